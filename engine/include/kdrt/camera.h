@@ -1,0 +1,56 @@
+#pragma once
+/// Cameras that turn pixel coordinates into primary rays.
+
+#include <cstdint>
+#include <stdexcept>
+
+#include "kdrt/types.h"
+
+namespace kdrt {
+
+enum class Projection : uint32_t { kPerspective = 0, kOrthographic = 1 };
+
+/// Thrown for a camera that cannot form an image (bad fov, zero size, eye == look_at, up
+/// parallel to the view direction); what() names the field.
+class CameraError : public std::invalid_argument {
+public:
+    using std::invalid_argument::invalid_argument;
+};
+
+/// Where the camera is and how it projects.
+struct CameraSpec {
+    Vec3 eye{0, 0, 1};
+    Vec3 look_at{0, 0, 0};
+    Vec3 up{0, 1, 0};
+    float fov_deg = 40.0f;          ///< vertical field of view (perspective), in (0, 180)
+    float ortho_height = 1.0f;      ///< height of the view in world units (orthographic), > 0
+    Projection projection = Projection::kPerspective;
+};
+
+/// A camera prepared for an image of width x height pixels: an orthonormal basis and the
+/// image-plane extents. Pixel (x, y) has y = 0 at the top row.
+class Camera {
+public:
+    /// Throws CameraError naming the bad field.
+    Camera(const CameraSpec& spec, uint32_t width, uint32_t height);
+
+    /// The ray through image position (px, py) in pixels (0..width, 0..height; pixel centres at
+    /// +0.5). tmin = 0, tmax = +inf; direction normalised.
+    [[nodiscard]] Ray ray(float px, float py) const noexcept;
+
+    [[nodiscard]] const CameraSpec& spec() const noexcept { return spec_; }
+    [[nodiscard]] uint32_t width() const noexcept { return width_; }
+    [[nodiscard]] uint32_t height() const noexcept { return height_; }
+
+private:
+    CameraSpec spec_;
+    uint32_t width_, height_;
+    Vec3 forward_, right_, up_;
+    float half_w_, half_h_;
+};
+
+/// A perspective view that frames `bounds` from the front (+z looking towards -z), slightly from
+/// above and to the side, with the whole box in view at the given aspect (width / height).
+[[nodiscard]] CameraSpec default_camera(const Aabb& bounds, float aspect = 1.0f);
+
+}  // namespace kdrt

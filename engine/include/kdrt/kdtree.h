@@ -1,0 +1,120 @@
+#pragma once
+/// The kD-tree: compact 8-byte nodes, its builders, and its statistics.
+
+#include <bit>
+#include <cstddef>
+#include <cstdint>
+#include <vector>
+
+#include "kdrt/mesh.h"
+#include "kdrt/types.h"
+
+namespace kdrt {
+
+/// Hard cap on tree depth. The builders never exceed it, so a traversal stack of
+/// kMaxDepth + 1 entries cannot overflow.
+inline constexpr int kMaxDepth = 64;
+
+/// An 8-byte kD-tree node (Stoll 2005, "compact 8-byte nodes").
+///
+///   word0 bits 0..1   : 0,1,2 = inner node split axis (x,y,z); 3 = leaf
+///   word0 bits 2..31  : inner: index of the first child (the second is first + 1)
+///                       leaf : number of triangle references
+///   word1             : inner: split position (IEEE f32 bits)
+///                       leaf : index of the first reference in KdTree::leaf_refs
+///
+/// The two children of an inner node are adjacent; no node stores a bounding box.
+class KdNode {
+public:
+    static constexpr uint32_t kLeafTag = 3;
+    static constexpr uint32_t kMaxField = (1u << 30) - 1;
+
+    [[nodiscard]] static constexpr KdNode inner(int axis, float split, uint32_t first_child) noexcept {
+        return KdNode((first_child << 2) | static_cast<uint32_t>(axis), std::bit_cast<uint32_t>(split));
+    }
+    [[nodiscard]] static constexpr KdNode leaf(uint32_t prim_count, uint32_t first_ref) noexcept {
+        return KdNode((prim_count << 2) | kLeafTag, first_ref);
+    }
+    constexpr KdNode() noexcept = default;
+
+    [[nodiscard]] constexpr bool is_leaf() const noexcept { return (word0_ & 3u) == kLeafTag; }
+    [[nodiscard]] constexpr int axis() const noexcept { return static_cast<int>(word0_ & 3u); }
+    [[nodiscard]] constexpr uint32_t first_child() const noexcept { return word0_ >> 2; }
+    [[nodiscard]] constexpr float split() const noexcept { return std::bit_cast<float>(word1_); }
+    [[nodiscard]] constexpr uint32_t prim_count() const noexcept { return word0_ >> 2; }
+    [[nodiscard]] constexpr uint32_t first_ref() const noexcept { return word1_; }
+    [[nodiscard]] constexpr uint32_t word0() const noexcept { return word0_; }
+    [[nodiscard]] constexpr uint32_t word1() const noexcept { return word1_; }
+    [[nodiscard]] static constexpr KdNode from_words(uint32_t w0, uint32_t w1) noexcept { return KdNode(w0, w1); }
+    friend constexpr bool operator==(const KdNode&, const KdNode&) = default;
+
+private:
+    constexpr KdNode(uint32_t w0, uint32_t w1) noexcept : word0_(w0), word1_(w1) {}
+    uint32_t word0_ = kLeafTag;  // an empty leaf
+    uint32_t word1_ = 0;
+};
+static_assert(sizeof(KdNode) == 8);
+
+/// Pre-processed triangle for the watertight intersection test: its three vertices, copied from
+/// the mesh so traversal never touches the cold mesh arrays. 36 bytes.
+struct TriVerts {
+    float v0[3];
+    float v1[3];
+    float v2[3];
+};
+static_assert(sizeof(TriVerts) == 36);
+
+enum class Builder : uint32_t {
+    kSah = 0,     ///< cost-optimised: Wald & Havran 2006 O(N log N) event sweep, perfect splits
+    kMiddle = 1,  ///< the "hack" tree: middle of the largest extent, fixed leaf size and depth
+};
+
+/// Build settings. The SAH costs are relative: only their ratio and the bonus matter.
+struct BuildOptions {
+    Builder builder = Builder::kSah;
+    float traversal_cost = 1.0f;      ///< C_trav: cost of one traversal step
+    float intersection_cost = 1.5f;   ///< C_isect: cost of one ray/triangle test
+    float empty_bonus = 0.2f;         ///< cost of a split with an empty side is scaled by (1 - bonus)
+    int max_depth = kMaxDepth;        ///< safety net only (clamped to [0, kMaxDepth])
+    uint32_t middle_leaf_size = 8;    ///< kMiddle: stop at this many triangles
+    int middle_max_depth = 24;        ///< kMiddle: stop at this depth
+    friend bool operator==(const BuildOptions&, const BuildOptions&) = default;
+};
+
+/// Figures that describe a built tree. Filled by the builders (build_ms included) and kept with
+/// the tree through serialisation.
+struct TreeStats {
+    uint64_t triangles = 0;        ///< triangles in the mesh
+    uint64_t nodes = 0;
+    uint64_t leaves = 0;
+    uint64_t empty_leaves = 0;
+    uint64_t refs = 0;             ///< triangle references in all leaves
+    uint32_t max_depth = 0;        ///< deepest leaf (root = 0)
+    double mean_leaf_depth = 0;
+    double mean_tris_per_leaf = 0; ///< over non-empty leaves
+    double sah_cost = 0;           ///< expected cost of a random ray through the root cell
+    uint64_t bytes = 0;            ///< nodes + refs + triangle data
+    double bytes_per_triangle = 0;
+    double build_ms = 0;
+};
+
+/// An immutable, self-contained acceleration structure: traversal reads only these arrays.
+/// Thread-safe for concurrent queries.
+struct KdTree {
+    Aabb bounds;                     ///< root cell (mesh bounds, padded slightly)
+    std::vector<KdNode> nodes;       ///< depth-first; nodes[0] is the root
+    std::vector<uint32_t> leaf_refs; ///< triangle ids, per leaf contiguous
+    std::vector<TriVerts> tris;      ///< indexed by triangle id
+    BuildOptions options;
+    TreeStats stats;
+};
+
+/// Builds a kD-tree over `mesh` with the builder and costs in `options`. Validates the mesh first
+/// (throws MeshError). Uses the calling thread's oneTBB arena for parallelism; the result is
+/// byte-identical at any thread count. Degenerate (zero-area) triangles are left out of the tree.
+[[nodiscard]] KdTree build_kdtree(const Mesh& mesh, const BuildOptions& options = {});
+
+/// Recomputes the structural statistics of `tree` (everything but build_ms, which it keeps).
+[[nodiscard]] TreeStats compute_stats(const KdTree& tree);
+
+}  // namespace kdrt

@@ -1,0 +1,130 @@
+#pragma once
+// Internal: per-ray set-up and the watertight ray/triangle test shared by every traversal path.
+// Everything here is inline and header-only so the scalar kernel and the per-ISA packet kernels
+// compute bit-identical results (the build uses -ffp-contract=off: no FMA contraction).
+
+#include <cmath>
+#include <cstdint>
+#include <limits>
+
+#include "kdrt/kdtree.h"
+#include "kdrt/types.h"
+
+namespace kdrt::detail {
+
+/// True for a ray the engine traces (see Ray's contract); everything else is a miss.
+inline bool ray_is_valid(const Ray& r) noexcept {
+    const bool finite = std::isfinite(r.ox) && std::isfinite(r.oy) && std::isfinite(r.oz) &&
+                        std::isfinite(r.dx) && std::isfinite(r.dy) && std::isfinite(r.dz);
+    const bool nonzero = r.dx != 0.0f || r.dy != 0.0f || r.dz != 0.0f;
+    return finite && nonzero && r.tmin <= r.tmax;  // false for a NaN tmin or tmax
+}
+
+/// Ray data prepared once per ray: reciprocal direction for traversal and the shear constants of
+/// Woop, Benthin & Wald 2013 ("Watertight Ray/Triangle Intersection") for the triangle test.
+struct PreparedRay {
+    float org[3];
+    float inv_dir[3];
+    int kx, ky, kz;
+    float sx, sy, sz;
+};
+
+inline PreparedRay prepare_ray(const Ray& r) noexcept {
+    PreparedRay p;
+    const float dir[3] = {r.dx, r.dy, r.dz};
+    p.org[0] = r.ox;
+    p.org[1] = r.oy;
+    p.org[2] = r.oz;
+    for (int a = 0; a < 3; ++a) p.inv_dir[a] = 1.0f / dir[a];  // +-inf for a zero component
+    // kz: the dimension where the direction is largest in magnitude; first such on ties.
+    const float ax = std::fabs(dir[0]), ay = std::fabs(dir[1]), az = std::fabs(dir[2]);
+    int kz = 0;
+    if (ay > ax) kz = 1;
+    if (az > (kz == 0 ? ax : ay)) kz = 2;
+    int kx = kz == 2 ? 0 : kz + 1;
+    int ky = kx == 2 ? 0 : kx + 1;
+    if (dir[kz] < 0.0f) {  // keep the winding, so the signs of U, V, W mean the same side
+        const int tmp = kx;
+        kx = ky;
+        ky = tmp;
+    }
+    p.kx = kx;
+    p.ky = ky;
+    p.kz = kz;
+    p.sx = dir[kx] / dir[kz];
+    p.sy = dir[ky] / dir[kz];
+    p.sz = 1.0f / dir[kz];
+    return p;
+}
+
+/// Watertight test of one triangle. On a hit with tmin <= t and (t, prim) lexicographically
+/// smaller than (best_t, best_prim), returns true and writes t, u, v. No hit is ever reported for
+/// a degenerate triangle or a ray in the triangle's plane.
+inline bool intersect_triangle(const PreparedRay& p, const TriVerts& tri, float tmin, float& t_out,
+                               float& u_out, float& v_out) noexcept {
+    // Vertices relative to the origin, in the ray's permuted frame (kx, ky, kz).
+    const float a_x = tri.v0[p.kx] - p.org[p.kx], a_y = tri.v0[p.ky] - p.org[p.ky], a_z = tri.v0[p.kz] - p.org[p.kz];
+    const float b_x = tri.v1[p.kx] - p.org[p.kx], b_y = tri.v1[p.ky] - p.org[p.ky], b_z = tri.v1[p.kz] - p.org[p.kz];
+    const float c_x = tri.v2[p.kx] - p.org[p.kx], c_y = tri.v2[p.ky] - p.org[p.ky], c_z = tri.v2[p.kz] - p.org[p.kz];
+    // Shear so the ray runs along +z through the origin.
+    const float ax = a_x - p.sx * a_z, ay = a_y - p.sy * a_z;
+    const float bx = b_x - p.sx * b_z, by = b_y - p.sy * b_z;
+    const float cx = c_x - p.sx * c_z, cy = c_y - p.sy * c_z;
+    float u = cx * by - cy * bx;
+    float v = ax * cy - ay * cx;
+    float w = bx * ay - by * ax;
+    // An edge function of exactly zero may be a rounding accident: redo all three in double, where
+    // the products of floats are exact, so a ray on a shared edge is decided consistently.
+    if (u == 0.0f || v == 0.0f || w == 0.0f) {
+        u = static_cast<float>(static_cast<double>(cx) * by - static_cast<double>(cy) * bx);
+        v = static_cast<float>(static_cast<double>(ax) * cy - static_cast<double>(ay) * cx);
+        w = static_cast<float>(static_cast<double>(bx) * ay - static_cast<double>(by) * ax);
+    }
+    if ((u < 0.0f || v < 0.0f || w < 0.0f) && (u > 0.0f || v > 0.0f || w > 0.0f)) return false;
+    const float det = u + v + w;
+    if (det == 0.0f) return false;
+    const float az = p.sz * a_z;
+    const float bz = p.sz * b_z;
+    const float cz = p.sz * c_z;
+    const float t_scaled = u * az + v * bz + w * cz;
+    const float t = t_scaled / det;
+    if (!(t >= tmin)) return false;  // also rejects NaN
+    t_out = t;
+    u_out = v / det;
+    v_out = w / det;
+    return true;
+}
+
+/// Clips [tmin, tmax] of a ray to a box; false when the ray misses it. Zero direction components
+/// are handled without NaN: the slab either contains the origin (no constraint) or not (miss).
+inline bool clip_to_box(const PreparedRay& p, const Aabb& box, float& tmin, float& tmax) noexcept {
+    for (int a = 0; a < 3; ++a) {
+        if (std::isinf(p.inv_dir[a])) {
+            if (p.org[a] < box.lo[a] || p.org[a] > box.hi[a]) return false;
+            continue;
+        }
+        float t0 = (box.lo[a] - p.org[a]) * p.inv_dir[a];
+        float t1 = (box.hi[a] - p.org[a]) * p.inv_dir[a];
+        if (t0 > t1) {
+            const float tmp = t0;
+            t0 = t1;
+            t1 = tmp;
+        }
+        tmin = t0 > tmin ? t0 : tmin;
+        tmax = t1 < tmax ? t1 : tmax;
+    }
+    return tmin <= tmax;
+}
+
+/// Spatial margin by which traversal widens its cells: 16 ulps of the largest coordinate magnitude
+/// of the scene and the ray origin, comfortably above the rounding of the triangle test.
+inline float interval_margin(const PreparedRay& p, const Aabb& bounds) noexcept {
+    float m = 0.0f;
+    for (int a = 0; a < 3; ++a) {
+        m = std::fmax(m, std::fabs(p.org[a]));
+        m = std::fmax(m, std::fmax(std::fabs(bounds.lo[a]), std::fabs(bounds.hi[a])));
+    }
+    return m * 0x1p-20f;
+}
+
+}  // namespace kdrt::detail

@@ -1,0 +1,125 @@
+# Integration test of kdrt-bench (cmake -P). Inputs: BENCH (the executable), MESH, WORK_DIR,
+# EMBREE (ON when built with --compare embree). Fails with FATAL_ERROR naming what is wrong.
+
+foreach(var BENCH MESH WORK_DIR)
+    if(NOT DEFINED ${var})
+        message(FATAL_ERROR "check_bench.cmake: -D${var}=... is required")
+    endif()
+endforeach()
+file(MAKE_DIRECTORY "${WORK_DIR}")
+
+# run_bench(OUT_VAR args...): runs kdrt-bench, requires exit 0 and exactly one output line.
+function(run_bench out_var)
+    execute_process(COMMAND "${BENCH}" ${ARGN}
+                    RESULT_VARIABLE rc OUTPUT_VARIABLE out ERROR_VARIABLE err
+                    OUTPUT_STRIP_TRAILING_WHITESPACE)
+    if(NOT rc EQUAL 0)
+        message(FATAL_ERROR "kdrt-bench ${ARGN} exited with ${rc}\nstdout: ${out}\nstderr: ${err}")
+    endif()
+    if(out MATCHES "\n")
+        message(FATAL_ERROR "kdrt-bench ${ARGN} printed more than one line:\n${out}")
+    endif()
+    set(${out_var} "${out}" PARENT_SCOPE)
+endfunction()
+
+# expect_keys(JSON keys...): every key exists and is not null.
+function(expect_keys json)
+    string(JSON type ERROR_VARIABLE err TYPE "${json}")
+    if(err OR NOT type STREQUAL "OBJECT")
+        message(FATAL_ERROR "not a JSON object: ${json}\n${err}")
+    endif()
+    foreach(key ${ARGN})
+        string(JSON type ERROR_VARIABLE err TYPE "${json}" ${key})
+        if(err OR type STREQUAL "NULL")
+            message(FATAL_ERROR "key '${key}' is missing from: ${json}")
+        endif()
+    endforeach()
+endfunction()
+
+# expect_value(JSON key value)
+function(expect_value json key want)
+    string(JSON got GET "${json}" ${key})
+    if(NOT got STREQUAL want)
+        message(FATAL_ERROR "key '${key}' is '${got}', expected '${want}', in: ${json}")
+    endif()
+endfunction()
+
+# expect_failure(CODE STDERR_PATTERN args...): kdrt-bench must exit with CODE and say PATTERN.
+function(expect_failure code pattern)
+    execute_process(COMMAND "${BENCH}" ${ARGN} RESULT_VARIABLE rc OUTPUT_VARIABLE out ERROR_VARIABLE err)
+    if(NOT rc EQUAL code)
+        message(FATAL_ERROR "kdrt-bench ${ARGN}: exit ${rc}, expected ${code}\nstderr: ${err}")
+    endif()
+    if(NOT err MATCHES "${pattern}")
+        message(FATAL_ERROR "kdrt-bench ${ARGN}: stderr does not match '${pattern}':\n${err}")
+    endif()
+endfunction()
+
+set(primary "${WORK_DIR}/primary64.kdrr")
+set(shadow "${WORK_DIR}/shadow64.kdrr")
+set(hits "${WORK_DIR}/primary64.kdrh")
+set(occl "${WORK_DIR}/shadow64.kdro")
+file(REMOVE "${primary}" "${shadow}" "${hits}" "${occl}")
+
+# build
+run_bench(build_line build "${MESH}" --reps 2 --threads 2)
+expect_keys("${build_line}" triangles node_bytes nodes leaves empty_leaves max_depth mean_leaf_depth
+            mean_tris_per_leaf sah_cost bytes bytes_per_triangle build_ms builder threads parse_ms)
+expect_value("${build_line}" node_bytes 8)
+expect_value("${build_line}" builder sah)
+expect_value("${build_line}" threads 2)
+run_bench(middle_line build "${MESH}" --builder middle --threads 1)
+expect_value("${middle_line}" builder middle)
+
+# rays
+set(rays_keys kind res seed rays occlusion out bytes)
+run_bench(rays_line rays "${MESH}" --kind primary --res 64 --out "${primary}")
+expect_keys("${rays_line}" ${rays_keys})
+expect_value("${rays_line}" rays 4096)
+file(SIZE "${primary}" primary_size)
+if(NOT primary_size EQUAL 131088)  # 16 + 4096 * 32
+    message(FATAL_ERROR "${primary} has ${primary_size} bytes, expected 131088")
+endif()
+run_bench(shadow_line rays "${MESH}" --kind shadow --res 64 --seed 7 --out "${shadow}")
+expect_value("${shadow_line}" occlusion ON)  # CMake renders JSON true as ON
+
+# trace
+set(trace_keys rays occlusion mode threads isa builder reps parse_ms build_ms seconds seconds_min
+               mrays_per_s hits cpu_util)
+run_bench(trace_line trace "${MESH}" "${primary}" --reps 2 --threads 2 --out "${hits}")
+expect_keys("${trace_line}" ${trace_keys})
+expect_value("${trace_line}" rays 4096)
+expect_value("${trace_line}" mode single)
+expect_value("${trace_line}" isa scalar)
+expect_value("${trace_line}" occlusion OFF)
+string(JSON hit_count GET "${trace_line}" hits)
+if(hit_count LESS_EQUAL 0 OR hit_count GREATER_EQUAL 4096)
+    message(FATAL_ERROR "a framed bunny should be hit by some but not all primary rays: ${trace_line}")
+endif()
+file(SIZE "${hits}" hits_size)
+if(NOT hits_size EQUAL 65552)  # 16 + 4096 * 16
+    message(FATAL_ERROR "${hits} has ${hits_size} bytes, expected 65552")
+endif()
+run_bench(occl_line trace "${MESH}" "${shadow}" --reps 1 --threads 1 --out "${occl}")
+expect_keys("${occl_line}" ${trace_keys})
+expect_value("${occl_line}" occlusion ON)
+string(JSON shadow_rays GET "${shadow_line}" rays)
+expect_value("${occl_line}" rays ${shadow_rays})
+
+if(EMBREE)
+    run_bench(embree_line trace "${MESH}" "${primary}" --reps 1 --compare embree)
+    expect_keys("${embree_line}" ${trace_keys} embree_mrays_per_s embree_best_mode ratio
+                embree_build_ms embree_bytes_per_triangle differences)
+endif()
+
+# exit codes: 2 for the command line, 1 for a failed run naming the file
+expect_failure(2 "missing argument RAYS.kdrr" trace "${MESH}")
+expect_failure(2 "unknown option '--bogus'" build "${MESH}" --bogus 1)
+expect_failure(2 "--kind" rays "${MESH}" --kind sideways --out "${WORK_DIR}/x.kdrr")
+expect_failure(2 "--reps" trace "${MESH}" "${primary}" --reps 0)
+expect_failure(2 "unknown command" frobnicate)
+expect_failure(1 "no-such-mesh.off" build "${WORK_DIR}/no-such-mesh.off")
+expect_failure(1 "mode packet is not available in this build" trace "${MESH}" "${primary}" --mode packet)
+expect_failure(1 "cannot read rays from .*bunny00.off" trace "${MESH}" "${MESH}")
+
+message(STATUS "kdrt-bench integration: all checks passed")

@@ -1,0 +1,355 @@
+#include "embree_compare.h"
+
+#include <embree3/rtcore.h>
+#include <sys/types.h>
+#include <tbb/blocked_range.h>
+#include <tbb/parallel_for.h>
+#include <tbb/task_arena.h>
+
+#include <algorithm>
+#include <atomic>
+#include <chrono>
+#include <cmath>
+#include <cstring>
+#include <limits>
+#include <memory>
+#include <mutex>
+#include <string>
+#include <type_traits>
+
+namespace kdrt::bench {
+namespace {
+
+using Clock = std::chrono::steady_clock;
+
+constexpr float kInf = std::numeric_limits<float>::infinity();
+
+// Rays are handed out in blocks of this many (a multiple of every packet width); each block is
+// one parallel task for every mode, so the modes differ only in how Embree is called.
+constexpr size_t kBlockRays = 256;
+
+// Relative t tolerance of the answer comparison (kdrt and Embree use different triangle tests).
+constexpr double kRelativeTolerance = 1e-4;
+
+/// Error and memory bookkeeping shared with Embree's callbacks (called from any thread).
+struct DeviceState {
+    std::atomic<int64_t> bytes{0};
+    std::mutex mutex;
+    std::string first_error;
+};
+
+void on_error(void* user, RTCError code, const char* message) {
+    auto* state = static_cast<DeviceState*>(user);
+    const std::lock_guard lock(state->mutex);
+    if (state->first_error.empty()) {
+        state->first_error =
+            "Embree error " + std::to_string(static_cast<int>(code)) + ": " + (message ? message : "(no message)");
+    }
+}
+
+bool on_memory(void* user, ssize_t bytes, bool /*post*/) {
+    // Positive before an allocation, negative after a release: the sum is what Embree holds.
+    static_cast<DeviceState*>(user)->bytes.fetch_add(static_cast<int64_t>(bytes), std::memory_order_relaxed);
+    return true;
+}
+
+struct DeviceDeleter {
+    void operator()(RTCDevice device) const noexcept { rtcReleaseDevice(device); }
+};
+struct SceneDeleter {
+    void operator()(RTCScene scene) const noexcept { rtcReleaseScene(scene); }
+};
+using DevicePtr = std::unique_ptr<std::remove_pointer_t<RTCDevice>, DeviceDeleter>;
+using ScenePtr = std::unique_ptr<std::remove_pointer_t<RTCScene>, SceneDeleter>;
+
+void check(DeviceState& state, RTCDevice device, const char* what) {
+    const RTCError code = rtcGetDeviceError(device);
+    const std::lock_guard lock(state.mutex);
+    if (code != RTC_ERROR_NONE || !state.first_error.empty()) {
+        throw EmbreeError(
+            std::string(what) + " failed: " +
+            (state.first_error.empty() ? "Embree error " + std::to_string(static_cast<int>(code)) : state.first_error));
+    }
+}
+
+/// kdrt's rule for a ray it traces (types.h); Embree gets the others as inactive rays.
+bool ray_is_valid(const Ray& r) noexcept {
+    const bool finite = std::isfinite(r.ox) && std::isfinite(r.oy) && std::isfinite(r.oz) && std::isfinite(r.dx) &&
+                        std::isfinite(r.dy) && std::isfinite(r.dz);
+    return finite && (r.dx != 0.0f || r.dy != 0.0f || r.dz != 0.0f) && r.tmin <= r.tmax;
+}
+
+/// Writes lane `lane` of an Embree ray (single: RTCRay, packets: RTCRayN with arrays).
+template <typename EmbreeRay>
+void set_lane(EmbreeRay& e, int lane, const Ray& r) noexcept {
+    const bool valid = ray_is_valid(r);
+    auto assign = [&](auto& field, auto value) {
+        if constexpr (std::is_array_v<std::remove_reference_t<decltype(field)>>) {
+            field[lane] = value;
+        } else {
+            field = value;
+        }
+    };
+    assign(e.org_x, valid ? r.ox : 0.0f);
+    assign(e.org_y, valid ? r.oy : 0.0f);
+    assign(e.org_z, valid ? r.oz : 0.0f);
+    assign(e.dir_x, valid ? r.dx : 0.0f);
+    assign(e.dir_y, valid ? r.dy : 0.0f);
+    assign(e.dir_z, valid ? r.dz : 1.0f);
+    // Inactive rays: tnear > tfar.
+    assign(e.tnear, valid ? r.tmin : kInf);
+    assign(e.tfar, valid ? r.tmax : -kInf);
+    assign(e.time, 0.0f);
+    assign(e.mask, ~0u);
+    assign(e.id, 0u);
+    assign(e.flags, 0u);
+}
+
+template <typename EmbreeHit>
+void clear_hit(EmbreeHit& h, int lane) noexcept {
+    if constexpr (std::is_array_v<decltype(h.geomID)>) {
+        h.geomID[lane] = RTC_INVALID_GEOMETRY_ID;
+        h.instID[0][lane] = RTC_INVALID_GEOMETRY_ID;
+    } else {
+        h.geomID = RTC_INVALID_GEOMETRY_ID;
+        h.instID[0] = RTC_INVALID_GEOMETRY_ID;
+    }
+}
+
+template <typename EmbreeRayHit>
+Hit read_hit(const EmbreeRayHit& rh, int lane) noexcept {
+    Hit hit;
+    if constexpr (std::is_array_v<decltype(rh.hit.geomID)>) {
+        if (rh.hit.geomID[lane] != RTC_INVALID_GEOMETRY_ID) {
+            hit = Hit{rh.ray.tfar[lane], rh.hit.primID[lane], rh.hit.u[lane], rh.hit.v[lane]};
+        }
+    } else {
+        if (rh.hit.geomID != RTC_INVALID_GEOMETRY_ID) {
+            hit = Hit{rh.ray.tfar, rh.hit.primID, rh.hit.u, rh.hit.v};
+        }
+    }
+    return hit;
+}
+
+template <typename EmbreeRay>
+uint8_t read_occluded(const EmbreeRay& ray, int lane) noexcept {
+    // rtcOccluded sets tfar to -inf for an occluded ray; an inactive ray already has -inf, so
+    // look at validity separately (the caller passes the kdrt ray's validity).
+    if constexpr (std::is_array_v<decltype(ray.tfar)>) {
+        return ray.tfar[lane] == -kInf ? 1 : 0;
+    } else {
+        return ray.tfar == -kInf ? 1 : 0;
+    }
+}
+
+/// Traces rays [begin, end) with the given API shape; `W` = 1 (rtc*1), 0 (rtc*1M stream) or a
+/// packet width. Answers go to hits[i] or occluded[i].
+template <int W, bool Occlusion>
+void trace_block(RTCScene scene, RTCIntersectContext& context, std::span<const Ray> rays, size_t begin, size_t end,
+                 std::span<Hit> hits, std::span<uint8_t> occluded) {
+    if constexpr (W == 1) {
+        for (size_t i = begin; i < end; ++i) {
+            if constexpr (Occlusion) {
+                RTCRay ray;
+                set_lane(ray, 0, rays[i]);
+                rtcOccluded1(scene, &context, &ray);
+                occluded[i] = ray_is_valid(rays[i]) ? read_occluded(ray, 0) : 0;
+            } else {
+                RTCRayHit rh;
+                set_lane(rh.ray, 0, rays[i]);
+                clear_hit(rh.hit, 0);
+                rtcIntersect1(scene, &context, &rh);
+                hits[i] = read_hit(rh, 0);
+            }
+        }
+    } else if constexpr (W == 0) {
+        const auto count = static_cast<unsigned>(end - begin);
+        if constexpr (Occlusion) {
+            RTCRay stream[kBlockRays];
+            for (unsigned k = 0; k < count; ++k) set_lane(stream[k], 0, rays[begin + k]);
+            rtcOccluded1M(scene, &context, stream, count, sizeof(RTCRay));
+            for (unsigned k = 0; k < count; ++k) {
+                occluded[begin + k] = ray_is_valid(rays[begin + k]) ? read_occluded(stream[k], 0) : 0;
+            }
+        } else {
+            RTCRayHit stream[kBlockRays];
+            for (unsigned k = 0; k < count; ++k) {
+                set_lane(stream[k].ray, 0, rays[begin + k]);
+                clear_hit(stream[k].hit, 0);
+            }
+            rtcIntersect1M(scene, &context, stream, count, sizeof(RTCRayHit));
+            for (unsigned k = 0; k < count; ++k) hits[begin + k] = read_hit(stream[k], 0);
+        }
+    } else {
+        using RayHitW = std::conditional_t<W == 4, RTCRayHit4, std::conditional_t<W == 8, RTCRayHit8, RTCRayHit16>>;
+        for (size_t first = begin; first < end; first += W) {
+            alignas(64) int valid[W];
+            RayHitW rh;
+            const size_t lanes = std::min<size_t>(W, end - first);
+            for (int lane = 0; lane < W; ++lane) {
+                const bool used = static_cast<size_t>(lane) < lanes;
+                const Ray r = used ? rays[first + lane] : Ray{0, 0, 0, kInf, 0, 0, 1, -kInf};
+                valid[lane] = used && ray_is_valid(r) ? -1 : 0;
+                set_lane(rh.ray, lane, r);
+                clear_hit(rh.hit, lane);
+            }
+            if constexpr (Occlusion) {
+                if constexpr (W == 4) rtcOccluded4(valid, scene, &context, &rh.ray);
+                if constexpr (W == 8) rtcOccluded8(valid, scene, &context, &rh.ray);
+                if constexpr (W == 16) rtcOccluded16(valid, scene, &context, &rh.ray);
+                for (size_t lane = 0; lane < lanes; ++lane) {
+                    occluded[first + lane] = valid[lane] ? read_occluded(rh.ray, static_cast<int>(lane)) : 0;
+                }
+            } else {
+                if constexpr (W == 4) rtcIntersect4(valid, scene, &context, &rh);
+                if constexpr (W == 8) rtcIntersect8(valid, scene, &context, &rh);
+                if constexpr (W == 16) rtcIntersect16(valid, scene, &context, &rh);
+                for (size_t lane = 0; lane < lanes; ++lane) {
+                    hits[first + lane] = valid[lane] ? read_hit(rh, static_cast<int>(lane)) : Hit{};
+                }
+            }
+        }
+    }
+}
+
+/// One full pass over the batch in parallel over the current arena; returns seconds.
+template <int W, bool Occlusion>
+double trace_pass(RTCScene scene, bool coherent, std::span<const Ray> rays, std::span<Hit> hits,
+                  std::span<uint8_t> occluded) {
+    const size_t blocks = (rays.size() + kBlockRays - 1) / kBlockRays;
+    const auto start = Clock::now();
+    tbb::parallel_for(tbb::blocked_range<size_t>(0, blocks), [&](const tbb::blocked_range<size_t>& range) {
+        RTCIntersectContext context;
+        rtcInitIntersectContext(&context);
+        context.flags = coherent ? RTC_INTERSECT_CONTEXT_FLAG_COHERENT : RTC_INTERSECT_CONTEXT_FLAG_INCOHERENT;
+        for (size_t block = range.begin(); block != range.end(); ++block) {
+            const size_t begin = block * kBlockRays;
+            trace_block<W, Occlusion>(scene, context, rays, begin, std::min(begin + kBlockRays, rays.size()), hits,
+                                      occluded);
+        }
+    });
+    return std::chrono::duration<double>(Clock::now() - start).count();
+}
+
+bool hits_differ(const Hit& kd, const Hit& em) noexcept {
+    if (kd.prim != em.prim) return true;
+    if (!kd.is_hit()) return false;
+    const double scale = std::max(std::fabs(static_cast<double>(kd.t)), std::fabs(static_cast<double>(em.t)));
+    return std::fabs(static_cast<double>(kd.t) - em.t) > kRelativeTolerance * scale;
+}
+
+double median(std::vector<double> values) {
+    std::sort(values.begin(), values.end());
+    const size_t mid = values.size() / 2;
+    return values.size() % 2 == 1 ? values[mid] : 0.5 * (values[mid - 1] + values[mid]);
+}
+
+struct ModeSpec {
+    const char* suffix;  ///< "1", "1M", "4", "8", "16"
+    int width;           ///< template W
+    RTCDeviceProperty support;
+};
+
+}  // namespace
+
+EmbreeReport compare_with_embree(const Mesh& mesh, const proto::RayBatch& batch, std::span<const Hit> kd_hits,
+                                 std::span<const uint8_t> kd_occluded, const EmbreeOptions& options) {
+    DeviceState state;
+    const int threads = tbb::this_task_arena::max_concurrency();
+    const std::string config = "threads=" + std::to_string(threads) + ",set_affinity=0,verbose=0";
+    DevicePtr device(rtcNewDevice(config.c_str()));
+    if (!device) {
+        throw EmbreeError("rtcNewDevice(\"" + config + "\") failed: Embree error " +
+                          std::to_string(static_cast<int>(rtcGetDeviceError(nullptr))));
+    }
+    rtcSetDeviceErrorFunction(device.get(), on_error, &state);
+    rtcSetDeviceMemoryMonitorFunction(device.get(), on_memory, &state);
+
+    EmbreeReport report;
+    const int64_t bytes_before = state.bytes.load();
+    ScenePtr scene(rtcNewScene(device.get()));
+    check(state, device.get(), "rtcNewScene");
+    rtcSetSceneBuildQuality(scene.get(), RTC_BUILD_QUALITY_HIGH);
+    const size_t tri_count = mesh.triangle_count();
+    if (tri_count > 0) {
+        RTCGeometry geometry = rtcNewGeometry(device.get(), RTC_GEOMETRY_TYPE_TRIANGLE);
+        check(state, device.get(), "rtcNewGeometry");
+        auto* vertices = static_cast<float*>(rtcSetNewGeometryBuffer(
+            geometry, RTC_BUFFER_TYPE_VERTEX, 0, RTC_FORMAT_FLOAT3, 3 * sizeof(float), mesh.vertex_count()));
+        auto* indices = static_cast<uint32_t*>(rtcSetNewGeometryBuffer(
+            geometry, RTC_BUFFER_TYPE_INDEX, 0, RTC_FORMAT_UINT3, 3 * sizeof(uint32_t), tri_count));
+        check(state, device.get(), "rtcSetNewGeometryBuffer");
+        std::memcpy(vertices, mesh.positions.data(), mesh.positions.size() * sizeof(float));
+        std::memcpy(indices, mesh.indices.data(), mesh.indices.size() * sizeof(uint32_t));
+        rtcSetGeometryBuildQuality(geometry, RTC_BUILD_QUALITY_HIGH);
+        rtcCommitGeometry(geometry);
+        rtcAttachGeometry(scene.get(), geometry);
+        rtcReleaseGeometry(geometry);
+        check(state, device.get(), "creating the Embree triangle geometry");
+    }
+    const auto build_start = Clock::now();
+    rtcCommitScene(scene.get());
+    report.build_ms = std::chrono::duration<double, std::milli>(Clock::now() - build_start).count();
+    check(state, device.get(), "rtcCommitScene");
+    // What the scene keeps after the build (vertex and index buffers included), per triangle.
+    report.bytes_per_triangle =
+        tri_count > 0 ? static_cast<double>(state.bytes.load() - bytes_before) / static_cast<double>(tri_count) : 0.0;
+
+    static constexpr ModeSpec kModes[] = {
+        {"1", 1, RTC_DEVICE_PROPERTY_TRIANGLE_GEOMETRY_SUPPORTED}, {"1M", 0, RTC_DEVICE_PROPERTY_RAY_STREAM_SUPPORTED},
+        {"4", 4, RTC_DEVICE_PROPERTY_NATIVE_RAY4_SUPPORTED},       {"8", 8, RTC_DEVICE_PROPERTY_NATIVE_RAY8_SUPPORTED},
+        {"16", 16, RTC_DEVICE_PROPERTY_NATIVE_RAY16_SUPPORTED},
+    };
+    const std::span<const Ray> rays = batch.rays;
+    std::vector<Hit> hits(batch.occlusion ? 0 : rays.size());
+    std::vector<uint8_t> occluded(batch.occlusion ? rays.size() : 0);
+    const std::string prefix = batch.occlusion ? "occluded" : "intersect";
+    for (const ModeSpec& spec : kModes) {
+        if (rtcGetDeviceProperty(device.get(), spec.support) == 0) continue;
+        for (bool coherent : {false, true}) {
+            auto pass = [&] {
+                const auto run = [&]<int W>() {
+                    return batch.occlusion ? trace_pass<W, true>(scene.get(), coherent, rays, hits, occluded)
+                                           : trace_pass<W, false>(scene.get(), coherent, rays, hits, occluded);
+                };
+                switch (spec.width) {
+                    case 0:
+                        return run.template operator()<0>();
+                    case 4:
+                        return run.template operator()<4>();
+                    case 8:
+                        return run.template operator()<8>();
+                    case 16:
+                        return run.template operator()<16>();
+                    default:
+                        return run.template operator()<1>();
+                }
+            };
+            std::vector<double> seconds;
+            for (int rep = 0; rep <= options.reps; ++rep) {  // pass 0 is the warm-up
+                const double s = pass();
+                if (rep > 0) seconds.push_back(s);
+            }
+            check(state, device.get(), ("rtc" + prefix + spec.suffix).c_str());
+
+            EmbreeModeTiming timing;
+            timing.name = prefix + spec.suffix + (coherent ? "_coherent" : "");
+            const double median_seconds = median(seconds);
+            timing.mrays_per_s = median_seconds > 0 ? static_cast<double>(rays.size()) / median_seconds / 1e6 : 0.0;
+            for (size_t i = 0; i < rays.size(); ++i) {
+                const bool differ =
+                    batch.occlusion ? (occluded[i] != 0) != (kd_occluded[i] != 0) : hits_differ(kd_hits[i], hits[i]);
+                timing.differences += differ ? 1 : 0;
+            }
+            if (report.best_mode.empty() || timing.mrays_per_s > report.best_mrays_per_s) {
+                report.best_mode = timing.name;
+                report.best_mrays_per_s = timing.mrays_per_s;
+                report.differences = timing.differences;
+            }
+            report.modes.push_back(std::move(timing));
+        }
+    }
+    return report;
+}
+
+}  // namespace kdrt::bench

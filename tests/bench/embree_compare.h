@@ -1,0 +1,69 @@
+#pragma once
+/// `kdrt-bench trace --compare embree`: the same mesh and rays through Embree 3, as a yardstick.
+/// Compiled only when CMake found Embree (KDRT_HAVE_EMBREE); otherwise kEmbreeAvailable is false
+/// and kdrt-bench refuses --compare before calling anything here.
+
+#include <cstdint>
+#include <span>
+#include <stdexcept>
+#include <string>
+#include <vector>
+
+#include "kdrt/mesh.h"
+#include "kdrt/proto/ray_batch.h"
+#include "kdrt/types.h"
+
+namespace kdrt::bench {
+
+#if defined(KDRT_HAVE_EMBREE) && KDRT_HAVE_EMBREE
+inline constexpr bool kEmbreeAvailable = true;
+#else
+inline constexpr bool kEmbreeAvailable = false;
+#endif
+
+/// An Embree device or scene call failed; what() carries Embree's error code and message.
+class EmbreeError : public std::runtime_error {
+public:
+    using std::runtime_error::runtime_error;
+};
+
+struct EmbreeOptions {
+    int reps = 5;  ///< timed passes per query mode (after one untimed warm-up pass)
+};
+
+/// Speed of one Embree query mode, e.g. "intersect8_coherent".
+struct EmbreeModeTiming {
+    std::string name;
+    double mrays_per_s = 0;
+    uint64_t differences = 0;  ///< answers that differ from kdrt's (see EmbreeReport)
+};
+
+struct EmbreeReport {
+    double build_ms = 0;            ///< rtcCommitScene, RTC_BUILD_QUALITY_HIGH
+    double bytes_per_triangle = 0;  ///< memory Embree holds after the build (memory monitor)
+    std::string best_mode;
+    double best_mrays_per_s = 0;
+    /// Rays whose answer differs from kdrt's in the best mode. Closest hit: the prim differs (a
+    /// hit against a miss included), or both hit and t differs by more than 1e-4 relative.
+    /// Occlusion: the bit differs.
+    uint64_t differences = 0;
+    std::vector<EmbreeModeTiming> modes;  ///< every mode measured, in a fixed order
+};
+
+/// Builds an Embree scene of `mesh` and times `batch` through rtcIntersect1/1M/4/8/16 (or the
+/// rtcOccluded forms for an occlusion batch), each incoherent and coherent, over the calling
+/// thread's oneTBB arena. `kd_hits` (closest hit) or `kd_occluded` (occlusion) are kdrt's answers
+/// for the same rays. Widths the CPU or the Embree build lacks are skipped. Throws EmbreeError.
+[[nodiscard]] EmbreeReport compare_with_embree(const Mesh& mesh, const proto::RayBatch& batch,
+                                               std::span<const Hit> kd_hits, std::span<const uint8_t> kd_occluded,
+                                               const EmbreeOptions& options);
+
+#if !(defined(KDRT_HAVE_EMBREE) && KDRT_HAVE_EMBREE)
+// Without Embree the caller checks kEmbreeAvailable first; this keeps the call site free of #if.
+inline EmbreeReport compare_with_embree(const Mesh&, const proto::RayBatch&, std::span<const Hit>,
+                                        std::span<const uint8_t>, const EmbreeOptions&) {
+    throw EmbreeError("this kdrt-bench was built without Embree");
+}
+#endif
+
+}  // namespace kdrt::bench

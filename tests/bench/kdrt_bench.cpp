@@ -1,0 +1,464 @@
+// kdrt-bench: builds kD-trees, generates ray sets and times batch tracing; one JSON line per run.
+// Usage: kdrt-bench --help. Exit status: 0 success, 1 runtime failure, 2 usage error.
+
+#include <tbb/global_control.h>
+#include <tbb/info.h>
+#include <tbb/task_arena.h>
+
+#include <algorithm>
+#include <array>
+#include <chrono>
+#include <cmath>
+#include <cstdint>
+#include <cstdio>
+#include <ctime>
+#include <exception>
+#include <filesystem>
+#include <iostream>
+#include <limits>
+#include <new>
+#include <nlohmann/json.hpp>
+#include <numeric>
+#include <span>
+#include <string>
+#include <string_view>
+#include <vector>
+
+#include "bench_args.h"
+#include "embree_compare.h"
+#include "kdrt/kdtree.h"
+#include "kdrt/mesh.h"
+#include "kdrt/proto/file_io.h"
+#include "kdrt/proto/mesh_io.h"
+#include "kdrt/proto/ray_batch.h"
+#include "kdrt/raygen.h"
+#include "trace_kernels.h"
+
+namespace kdrt::bench {
+namespace {
+
+// Keys keep the order they are written in, so a line reads the same run after run.
+using Json = nlohmann::ordered_json;
+using Clock = std::chrono::steady_clock;
+
+constexpr std::string_view kToolUsage = R"(usage: kdrt-bench <command> [options]
+
+Builds kD-trees, writes deterministic ray sets and times batch tracing. Every command prints one
+JSON line on stdout; errors go to stderr (exit 1: the run failed, exit 2: bad command line).
+
+commands:
+  build MESH    build the tree of a mesh and print its statistics and build time
+  trace MESH RAYS.kdrr
+                trace a KDRR ray batch (closest hit, or occlusion when the batch says so)
+  rays MESH     write a deterministic KDRR ray set (primary, shadow, diffuse, random)
+
+MESH is any mesh file kdrt reads, chosen by extension: .obj .ply .off .stl .raw/.kdrtmesh.
+Run 'kdrt-bench <command> --help' for the options of a command.
+)";
+
+constexpr std::string_view kBuildUsage =
+    R"(usage: kdrt-bench build MESH [--builder sah|middle] [--threads N] [--reps K]
+
+Builds the kD-tree of MESH K times (default 1) and prints one JSON line:
+  mesh, triangles, builder, threads, reps, parse_ms, build_ms (median of the K builds),
+  build_ms_min, node_bytes, nodes, leaves, empty_leaves, refs, max_depth, mean_leaf_depth,
+  mean_tris_per_leaf, sah_cost, bytes, bytes_per_triangle
+
+options:
+  --builder sah|middle  tree builder (default sah)
+  --threads N           worker threads (default: all cores)
+  --reps K              number of builds to time (default 1)
+)";
+
+constexpr std::string_view kTraceUsage =
+    R"(usage: kdrt-bench trace MESH RAYS.kdrr [--mode single|packet|auto] [--threads N]
+                        [--reps K] [--out FILE] [--builder sah|middle] [--compare embree]
+
+Builds the tree of MESH, then traces the rays of RAYS.kdrr K times (default 5) after one untimed
+warm-up pass: closest hits, or occlusion when the batch has flag bit 0 set. Prints one JSON line:
+  mesh, rays_file, rays, occlusion, mode, isa, threads, builder, reps, parse_ms, build_ms,
+  seconds (tracing only, median of the K passes), seconds_min, mrays_per_s (from the median),
+  hits (rays that hit, or are occluded), cpu_util (process CPU seconds per wall second while
+  tracing: near `threads` only when the workers had their cores; lower = a noisy measurement)
+With --compare embree it also traces the rays with Embree 3 (RTC_BUILD_QUALITY_HIGH) through
+rtcIntersect1/1M/4/8/16 (rtcOccluded* for occlusion), incoherent and coherent, and adds
+  embree_mrays_per_s and embree_best_mode (the fastest of those), ratio (mrays_per_s divided by
+  embree_mrays_per_s), embree_build_ms, embree_bytes_per_triangle (memory Embree keeps after the
+  build), differences (rays whose answer differs in the best mode: another prim, or t off by
+  more than 1e-4 relative; for occlusion another bit) and embree_modes (Mrays/s of every mode).
+
+options:
+  --mode single|packet|auto  traversal (default single)
+  --threads N                worker threads (default: all cores)
+  --reps K                   timed passes (default 5)
+  --out FILE                 write the answers as KDRH (hits) or KDRO (occlusion) to FILE
+  --builder sah|middle       tree builder (default sah)
+  --compare embree           also trace with Embree 3 and compare speed and answers
+)";
+
+constexpr std::string_view kRaysUsage =
+    R"(usage: kdrt-bench rays MESH --kind primary|shadow|diffuse|random --out FILE
+                       [--res R] [--seed S] [--threads N]
+
+Writes a deterministic KDRR ray set for MESH (the same bytes on any machine and thread count):
+  primary  R x R camera rays through the pixel centres of the default view of the mesh
+  shadow   one occlusion ray per primary hit, towards a point light (flag bit 0 set)
+  diffuse  one cosine-weighted ray per primary hit, into the hemisphere facing the camera
+  random   R x R rays, origins uniform in the mesh bounds, directions uniform on the sphere
+Prints one JSON line: mesh, kind, res, seed, rays, occlusion, out, bytes, generate_ms.
+
+options:
+  --kind K       ray set (required)
+  --out FILE     output KDRR file (required)
+  --res R        image resolution R x R (default 1024)
+  --seed S       random seed for diffuse and random (default 1)
+  --threads N    worker threads (default: all cores)
+)";
+
+double ms_since(Clock::time_point start) {
+    return std::chrono::duration<double, std::milli>(Clock::now() - start).count();
+}
+
+double median(std::vector<double> values) {
+    std::sort(values.begin(), values.end());
+    const size_t mid = values.size() / 2;
+    return values.size() % 2 == 1 ? values[mid] : 0.5 * (values[mid - 1] + values[mid]);
+}
+
+/// `value` rounded to `digits` decimals, so the JSON shows measurement precision, not noise.
+double rounded(double value, int digits) {
+    const double scale = std::pow(10.0, digits);
+    return std::round(value * scale) / scale;
+}
+
+/// CPU time of the whole process (all threads), in seconds.
+double process_cpu_seconds() {
+    timespec ts{};
+    clock_gettime(CLOCK_PROCESS_CPUTIME_ID, &ts);
+    return static_cast<double>(ts.tv_sec) + 1e-9 * static_cast<double>(ts.tv_nsec);
+}
+
+void print_json(const Json& line) { std::cout << line.dump() << '\n' << std::flush; }
+
+unsigned thread_count(const Args& args) {
+    const auto cores = static_cast<uint64_t>(tbb::info::default_concurrency());
+    return static_cast<unsigned>(args.get_uint("threads", cores, 1, 4096));
+}
+
+/// Runs `body` with at most `threads` oneTBB workers: its own arena of that size, and a global
+/// cap so nothing it calls can run wider.
+template <typename Body>
+void with_threads(unsigned threads, Body&& body) {
+    const tbb::global_control cap(tbb::global_control::max_allowed_parallelism, threads);
+    tbb::task_arena arena(static_cast<int>(threads));
+    arena.execute(body);
+}
+
+Builder parse_builder(const Args& args) {
+    const std::string name = args.get("builder").value_or("sah");
+    if (name == "sah") return Builder::kSah;
+    if (name == "middle") return Builder::kMiddle;
+    throw UsageError("option '--builder': '" + name + "' is not one of sah, middle");
+}
+
+std::string_view builder_name(Builder builder) { return builder == Builder::kMiddle ? "middle" : "sah"; }
+
+struct LoadedMesh {
+    Mesh mesh;
+    double parse_ms = 0;
+};
+
+LoadedMesh load_mesh(const std::string& path) {
+    const auto start = Clock::now();
+    auto mesh = proto::load_mesh_file(path);
+    if (!mesh) {
+        const proto::ParseError& error = mesh.error();
+        // to_string() starts with the path already when the parser knows it.
+        throw BenchError("cannot load mesh: " + (error.source.empty() ? path + ": " : std::string()) +
+                         error.to_string());
+    }
+    return {std::move(*mesh), ms_since(start)};
+}
+
+KdTree build_tree(const Mesh& mesh, Builder builder, double& build_ms) {
+    BuildOptions options;
+    options.builder = builder;
+    const auto start = Clock::now();
+    KdTree tree = build_kdtree(mesh, options);
+    build_ms = ms_since(start);
+    return tree;
+}
+
+void write_output(const std::string& path, std::span<const std::byte> bytes) {
+    auto written = proto::write_file_bytes(path, bytes);
+    if (!written) throw BenchError(written.error());
+}
+
+int run_build(const Args& args) {
+    static constexpr std::array<std::string_view, 1> kNames = {"MESH"};
+    args.expect_positional(kNames);
+    const std::string& mesh_path = args.positional()[0];
+    const Builder builder = parse_builder(args);
+    const unsigned threads = thread_count(args);
+    const auto reps = static_cast<int>(args.get_uint("reps", 1, 1, 1000));
+
+    const LoadedMesh loaded = load_mesh(mesh_path);
+    KdTree tree;
+    std::vector<double> build_ms;
+    with_threads(threads, [&] {
+        for (int rep = 0; rep < reps; ++rep) {
+            double ms = 0;
+            tree = build_tree(loaded.mesh, builder, ms);
+            build_ms.push_back(ms);
+        }
+    });
+
+    const TreeStats& s = tree.stats;
+    Json line;
+    line["command"] = "build";
+    line["mesh"] = std::filesystem::path(mesh_path).filename().string();
+    line["triangles"] = s.triangles;
+    line["builder"] = builder_name(builder);
+    line["threads"] = threads;
+    line["reps"] = reps;
+    line["parse_ms"] = rounded(loaded.parse_ms, 3);
+    line["build_ms"] = rounded(median(build_ms), 3);
+    line["build_ms_min"] = rounded(*std::min_element(build_ms.begin(), build_ms.end()), 3);
+    line["node_bytes"] = sizeof(KdNode);
+    line["nodes"] = s.nodes;
+    line["leaves"] = s.leaves;
+    line["empty_leaves"] = s.empty_leaves;
+    line["refs"] = s.refs;
+    line["max_depth"] = s.max_depth;
+    line["mean_leaf_depth"] = rounded(s.mean_leaf_depth, 3);
+    line["mean_tris_per_leaf"] = rounded(s.mean_tris_per_leaf, 3);
+    line["sah_cost"] = rounded(s.sah_cost, 3);
+    line["bytes"] = s.bytes;
+    line["bytes_per_triangle"] = rounded(s.bytes_per_triangle, 2);
+    print_json(line);
+    return 0;
+}
+
+proto::RayBatch load_rays(const std::string& path) {
+    auto bytes = proto::read_file_bytes(path);
+    if (!bytes) throw BenchError(bytes.error());
+    proto::DecodeLimits limits;
+    limits.max_rays = std::numeric_limits<uint32_t>::max();  // a local file: no network limit
+    auto batch = proto::decode_rays(*bytes, limits);
+    if (!batch) throw BenchError("cannot read rays from " + path + ": " + batch.error().to_string());
+    return std::move(*batch);
+}
+
+int run_trace(const Args& args) {
+    static constexpr std::array<std::string_view, 2> kNames = {"MESH", "RAYS.kdrr"};
+    args.expect_positional(kNames);
+    const std::string& mesh_path = args.positional()[0];
+    const std::string& rays_path = args.positional()[1];
+    const std::string mode_text = args.get("mode").value_or("single");
+    const auto mode = parse_trace_mode(mode_text);
+    if (!mode) throw UsageError("option '--mode': '" + mode_text + "' is not one of single, packet, auto");
+    const Builder builder = parse_builder(args);
+    const unsigned threads = thread_count(args);
+    const auto reps = static_cast<int>(args.get_uint("reps", 5, 1, 1000));
+    const auto out_path = args.get("out");
+    const auto compare = args.get("compare");
+    if (compare && *compare != "embree") {
+        throw UsageError("option '--compare': '" + *compare + "' is not embree");
+    }
+    const auto kernel = trace_kernel(*mode);
+    if (!kernel) throw BenchError("mode " + mode_text + " is not available in this build");
+    if (compare && !kEmbreeAvailable) {
+        throw BenchError(
+            "--compare embree is not available in this build (Embree 3 was not found "
+            "when it was configured)");
+    }
+
+    const LoadedMesh loaded = load_mesh(mesh_path);
+    const proto::RayBatch batch = load_rays(rays_path);
+    const std::span<const Ray> rays = batch.rays;
+
+    KdTree tree;
+    double build_ms = 0;
+    std::vector<double> seconds;
+    double cpu_seconds = 0;
+    std::vector<Hit> hits;
+    std::vector<uint8_t> occluded;
+    std::optional<EmbreeReport> embree;
+    with_threads(threads, [&] {
+        tree = build_tree(loaded.mesh, builder, build_ms);
+        if (batch.occlusion) {
+            occluded.resize(rays.size());
+        } else {
+            hits.resize(rays.size());
+        }
+        // Pass 0 warms caches and starts the workers; it is not timed.
+        for (int pass = 0; pass <= reps; ++pass) {
+            const double cpu_start = process_cpu_seconds();
+            const auto start = Clock::now();
+            if (batch.occlusion) {
+                kernel->occluded(tree, rays, occluded);
+            } else {
+                kernel->intersect(tree, rays, hits);
+            }
+            const double elapsed = std::chrono::duration<double>(Clock::now() - start).count();
+            if (pass > 0) {
+                seconds.push_back(elapsed);
+                cpu_seconds += process_cpu_seconds() - cpu_start;
+            }
+        }
+        if (compare) {
+            embree = compare_with_embree(loaded.mesh, batch, hits, occluded, EmbreeOptions{reps});
+        }
+    });
+
+    uint64_t answered = 0;
+    if (batch.occlusion) {
+        answered =
+            static_cast<uint64_t>(std::count_if(occluded.begin(), occluded.end(), [](uint8_t o) { return o != 0; }));
+        if (out_path) write_output(*out_path, proto::encode_occlusion(occluded));
+    } else {
+        answered =
+            static_cast<uint64_t>(std::count_if(hits.begin(), hits.end(), [](const Hit& h) { return h.is_hit(); }));
+        if (out_path) write_output(*out_path, proto::encode_hits(hits));
+    }
+
+    const double median_seconds = median(seconds);
+    const double mrays_per_s = median_seconds > 0 ? static_cast<double>(rays.size()) / median_seconds / 1e6 : 0.0;
+    Json line;
+    line["command"] = "trace";
+    line["mesh"] = std::filesystem::path(mesh_path).filename().string();
+    line["rays_file"] = std::filesystem::path(rays_path).filename().string();
+    line["rays"] = rays.size();
+    line["occlusion"] = batch.occlusion;
+    line["mode"] = trace_mode_name(*mode);
+    line["isa"] = kernel->isa;
+    line["threads"] = threads;
+    line["builder"] = builder_name(builder);
+    line["reps"] = reps;
+    line["parse_ms"] = rounded(loaded.parse_ms, 3);
+    line["build_ms"] = rounded(build_ms, 3);
+    line["seconds"] = rounded(median_seconds, 9);
+    line["seconds_min"] = rounded(*std::min_element(seconds.begin(), seconds.end()), 9);
+    line["mrays_per_s"] = rounded(mrays_per_s, 3);
+    line["hits"] = answered;
+    // CPU seconds per wall second while tracing: close to `threads` only when the workers had
+    // their cores to themselves; lower means other load (or a VM host) took CPU time.
+    const double wall_total = std::accumulate(seconds.begin(), seconds.end(), 0.0);
+    line["cpu_util"] = rounded(wall_total > 0 ? cpu_seconds / wall_total : 0.0, 2);
+    if (embree) {
+        line["embree_mrays_per_s"] = rounded(embree->best_mrays_per_s, 3);
+        line["embree_best_mode"] = embree->best_mode;
+        line["ratio"] = embree->best_mrays_per_s > 0 ? rounded(mrays_per_s / embree->best_mrays_per_s, 4) : 0.0;
+        line["embree_build_ms"] = rounded(embree->build_ms, 3);
+        line["embree_bytes_per_triangle"] = rounded(embree->bytes_per_triangle, 2);
+        line["differences"] = embree->differences;
+        Json modes = Json::object();
+        for (const EmbreeModeTiming& m : embree->modes) modes[m.name] = rounded(m.mrays_per_s, 3);
+        line["embree_modes"] = modes;
+    }
+    print_json(line);
+    return 0;
+}
+
+int run_rays(const Args& args) {
+    static constexpr std::array<std::string_view, 1> kNames = {"MESH"};
+    args.expect_positional(kNames);
+    const std::string& mesh_path = args.positional()[0];
+    const std::string kind_text = args.require("kind");
+    const auto kind = parse_ray_kind(kind_text);
+    if (!kind) {
+        throw UsageError("option '--kind': '" + kind_text + "' is not one of primary, shadow, diffuse, random");
+    }
+    const std::string out_path = args.require("out");
+    RayGenOptions options;
+    options.kind = *kind;
+    options.res = static_cast<uint32_t>(args.get_uint("res", 1024, 1, 65535));
+    options.seed = args.get_uint("seed", 1, 0, std::numeric_limits<uint64_t>::max());
+    const unsigned threads = thread_count(args);
+
+    const LoadedMesh loaded = load_mesh(mesh_path);
+    std::vector<Ray> rays;
+    double generate_ms = 0;
+    with_threads(threads, [&] {
+        const KdTree tree = build_kdtree(loaded.mesh);
+        const auto start = Clock::now();
+        rays = generate_rays(tree, options);
+        generate_ms = ms_since(start);
+    });
+    const bool occlusion = *kind == RayKind::kShadow;
+    const std::vector<std::byte> bytes = proto::encode_rays(rays, occlusion);
+    write_output(out_path, bytes);
+
+    Json line;
+    line["command"] = "rays";
+    line["mesh"] = std::filesystem::path(mesh_path).filename().string();
+    line["kind"] = ray_kind_name(*kind);
+    line["res"] = options.res;
+    line["seed"] = options.seed;
+    line["rays"] = rays.size();
+    line["occlusion"] = occlusion;
+    line["out"] = out_path;
+    line["bytes"] = bytes.size();
+    line["generate_ms"] = rounded(generate_ms, 3);
+    print_json(line);
+    return 0;
+}
+
+struct Command {
+    std::string_view name;
+    std::string_view usage;
+    std::span<const std::string_view> options;
+    int (*run)(const Args&);
+};
+
+constexpr std::array<std::string_view, 3> kBuildOptions = {"builder", "threads", "reps"};
+constexpr std::array<std::string_view, 6> kTraceOptions = {"mode", "threads", "reps", "out", "builder", "compare"};
+constexpr std::array<std::string_view, 5> kRaysOptions = {"kind", "res", "seed", "out", "threads"};
+constexpr std::array<Command, 3> kCommands = {{
+    {"build", kBuildUsage, kBuildOptions, &run_build},
+    {"trace", kTraceUsage, kTraceOptions, &run_trace},
+    {"rays", kRaysUsage, kRaysOptions, &run_rays},
+}};
+
+int run_main(int argc, char** argv) {
+    const std::span<char* const> all(argv + 1, static_cast<size_t>(std::max(argc - 1, 0)));
+    if (all.empty()) {
+        std::cerr << kToolUsage;
+        return 2;
+    }
+    const std::string_view first = all[0];
+    if (first == "--help" || first == "-h" || first == "help") {
+        std::cout << kToolUsage;
+        return 0;
+    }
+    const auto command =
+        std::find_if(kCommands.begin(), kCommands.end(), [&](const Command& c) { return c.name == first; });
+    if (command == kCommands.end()) {
+        std::cerr << "kdrt-bench: unknown command '" << first << "'\n\n" << kToolUsage;
+        return 2;
+    }
+    try {
+        const Args args(all.subspan(1), command->options);
+        if (args.help()) {
+            std::cout << command->usage;
+            return 0;
+        }
+        return command->run(args);
+    } catch (const UsageError& e) {
+        std::cerr << "kdrt-bench " << command->name << ": " << e.what() << "\n"
+                  << "Run 'kdrt-bench " << command->name << " --help' for usage.\n";
+        return 2;
+    } catch (const std::bad_alloc&) {
+        std::cerr << "kdrt-bench " << command->name << ": error: out of memory\n";
+        return 1;
+    } catch (const std::exception& e) {
+        // BenchError, MeshError, CameraError, EmbreeError, ...: the run itself failed.
+        std::cerr << "kdrt-bench " << command->name << ": error: " << e.what() << "\n";
+        return 1;
+    }
+}
+
+}  // namespace
+}  // namespace kdrt::bench
+
+int main(int argc, char** argv) { return kdrt::bench::run_main(argc, argv); }

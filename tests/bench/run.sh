@@ -1,0 +1,89 @@
+#!/usr/bin/env bash
+# The standard kdrt benchmark table: three scenes x four ray sets x 1 and 2 threads, as Markdown.
+#
+#   tests/bench/run.sh BUILD_DIR [WORK_DIR]
+#
+# BUILD_DIR holds tests/bench/kdrt-bench. Ray sets are written to WORK_DIR (default
+# BUILD_DIR/bench-rays) and reused when already there. Tunables (environment):
+#   RES=1024        image resolution of the ray sets (res x res primary and random rays)
+#   REPS=3          timed passes per trace (median reported)
+#   THREADS="1 2"   thread counts, one column each
+#   MODE=single     traversal mode passed to kdrt-bench trace
+#   COMPARE=embree  also trace with Embree (if kdrt-bench was built with it) and add its columns
+# The table goes to stdout, progress to stderr; the raw JSON lines are kept in WORK_DIR/results.jsonl.
+set -euo pipefail
+
+if [[ $# -lt 1 || $# -gt 2 || "$1" == "-h" || "$1" == "--help" ]]; then
+    sed -n '2,13s/^# \{0,1\}//p' "$0" >&2
+    exit 2
+fi
+build_dir=$1
+work_dir=${2:-$build_dir/bench-rays}
+bench=$build_dir/tests/bench/kdrt-bench
+data_dir=$(cd "$(dirname "$0")/../data" && pwd)
+res=${RES:-1024}
+reps=${REPS:-3}
+threads_list=${THREADS:-"1 2"}
+mode=${MODE:-single}
+compare=${COMPARE:-}
+scenes=(bunny00.off ChineseDragon-10kv.off diplodocus.off)
+kinds=(primary shadow diffuse random)
+
+if [[ ! -x "$bench" ]]; then
+    echo "run.sh: $bench not found; build it with: cmake --build $build_dir --target kdrt-bench" >&2
+    exit 1
+fi
+mkdir -p "$work_dir"
+results=$work_dir/results.jsonl
+: > "$results"
+
+# json_get LINE KEY: the value of a top-level key in a flat JSON line (strings unquoted).
+json_get() {
+    sed -n "s/.*\"$2\":\(\"[^\"]*\"\|[^,}]*\).*/\1/p" <<< "$1" | tr -d '"'
+}
+
+columns=(scene triangles "build ms" "ray set" rays "hit %")
+for t in $threads_list; do columns+=("${t}T Mrays/s"); done
+if [[ -n $compare ]]; then
+    for t in $threads_list; do columns+=("Embree ${t}T Mrays/s (mode)" "kdrt/Embree ${t}T"); done
+fi
+printf '| %s ' "${columns[@]}"
+echo "|"
+printf '|---%.0s' "${columns[@]}"
+echo "|"
+
+for scene in "${scenes[@]}"; do
+    mesh=$data_dir/$scene
+    stem=${scene%.*}
+    build_line=$("$bench" build "$mesh" --reps "$reps")
+    echo "$build_line" >> "$results"
+    triangles=$(json_get "$build_line" triangles)
+    build_ms=$(json_get "$build_line" build_ms)
+    for kind in "${kinds[@]}"; do
+        rays_file=$work_dir/$stem.$kind.$res.kdrr
+        if [[ ! -s "$rays_file" ]]; then
+            echo "run.sh: generating $rays_file" >&2
+            "$bench" rays "$mesh" --kind "$kind" --res "$res" --out "$rays_file" >> "$results"
+        fi
+        speeds=""
+        embree_cols=""
+        rays=0
+        hit_pct=0
+        for t in $threads_list; do
+            echo "run.sh: $scene $kind, $t thread(s)" >&2
+            args=(trace "$mesh" "$rays_file" --threads "$t" --reps "$reps" --mode "$mode")
+            [[ -n $compare ]] && args+=(--compare "$compare")
+            line=$("$bench" "${args[@]}")
+            echo "$line" >> "$results"
+            rays=$(json_get "$line" rays)
+            hits=$(json_get "$line" hits)
+            hit_pct=$(awk -v h="$hits" -v n="$rays" 'BEGIN { printf "%.1f", (n > 0 ? 100 * h / n : 0) }')
+            speeds+=" $(json_get "$line" mrays_per_s) |"
+            if [[ -n $compare ]]; then
+                embree_cols+=" $(json_get "$line" embree_mrays_per_s) ($(json_get "$line" embree_best_mode)) |"
+                embree_cols+=" $(json_get "$line" ratio) |"
+            fi
+        done
+        echo "| $stem | $triangles | $build_ms | $kind | $rays | $hit_pct |$speeds$embree_cols"
+    done
+done

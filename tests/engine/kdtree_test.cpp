@@ -1,0 +1,281 @@
+// Tree structure, statistics, determinism and degenerate inputs.
+
+#include <gtest/gtest.h>
+
+#include <array>
+#include <cmath>
+#include <cstring>
+
+#include <tbb/task_arena.h>
+
+#include "kdrt/proto/mesh_io.h"
+#include "kdrt/trace.h"
+#include "oracle.h"
+#include "test_util.h"
+
+namespace kdrt::test {
+namespace {
+
+// Akenine-Moeller triangle/box overlap (separating axis theorem) in double.
+bool triangle_overlaps_box(const TriVerts& t, const std::array<double, 3>& lo, const std::array<double, 3>& hi) {
+    using V = std::array<double, 3>;
+    V c, h, v[3];
+    for (int a = 0; a < 3; ++a) {
+        c[a] = 0.5 * (lo[a] + hi[a]);
+        h[a] = 0.5 * (hi[a] - lo[a]);
+        v[0][a] = t.v0[a] - c[a];
+        v[1][a] = t.v1[a] - c[a];
+        v[2][a] = t.v2[a] - c[a];
+    }
+    auto sub = [](const V& p, const V& q) { return V{p[0] - q[0], p[1] - q[1], p[2] - q[2]}; };
+    auto crs = [](const V& p, const V& q) {
+        return V{p[1] * q[2] - p[2] * q[1], p[2] * q[0] - p[0] * q[2], p[0] * q[1] - p[1] * q[0]};
+    };
+    auto dotp = [](const V& p, const V& q) { return p[0] * q[0] + p[1] * q[1] + p[2] * q[2]; };
+    auto separated = [&](const V& axis) {
+        const double p0 = dotp(v[0], axis), p1 = dotp(v[1], axis), p2 = dotp(v[2], axis);
+        const double r = h[0] * std::fabs(axis[0]) + h[1] * std::fabs(axis[1]) + h[2] * std::fabs(axis[2]);
+        return std::min({p0, p1, p2}) > r || std::max({p0, p1, p2}) < -r;
+    };
+    const V e[3] = {sub(v[1], v[0]), sub(v[2], v[1]), sub(v[0], v[2])};
+    const V unit[3] = {{1, 0, 0}, {0, 1, 0}, {0, 0, 1}};
+    for (const V& u : unit)
+        if (separated(u)) return false;
+    if (separated(crs(e[0], e[1]))) return false;
+    for (const V& u : unit)
+        for (const V& ed : e) {
+            const V axis = crs(u, ed);
+            if (axis[0] != 0 || axis[1] != 0 || axis[2] != 0) {
+                if (separated(axis)) return false;
+            }
+        }
+    return true;
+}
+
+// Every triangle overlapping the interior of a leaf cell must be referenced by that leaf; refs are
+// in range; depth within the cap; cells partition the root (checked by walking them).
+void check_tree_properties(const KdTree& tree, const Mesh& mesh) {
+    ASSERT_FALSE(tree.nodes.empty());
+    for (uint32_t r : tree.leaf_refs) ASSERT_LT(r, mesh.triangle_count());
+    EXPECT_LE(tree.stats.max_depth, static_cast<uint32_t>(kMaxDepth));
+    struct Item {
+        uint32_t node;
+        Aabb cell;
+    };
+    std::vector<Item> stack{{0, tree.bounds}};
+    double leaf_volume = 0;
+    size_t leaves = 0;
+    while (!stack.empty()) {
+        const Item it = stack.back();
+        stack.pop_back();
+        const KdNode n = tree.nodes[it.node];
+        if (!n.is_leaf()) {
+            ASSERT_GT(n.split(), it.cell.lo[n.axis()] - 1e-30f);
+            ASSERT_LE(n.split(), it.cell.hi[n.axis()]);
+            ASSERT_LT(n.first_child() + 1, tree.nodes.size());
+            ASSERT_GT(n.first_child(), it.node) << "children follow their parent (depth-first)";
+            Aabb l = it.cell, r = it.cell;
+            l.hi[n.axis()] = n.split();
+            r.lo[n.axis()] = n.split();
+            stack.push_back({n.first_child(), l});
+            stack.push_back({n.first_child() + 1, r});
+            continue;
+        }
+        ++leaves;
+        const Vec3 e = it.cell.extent();
+        leaf_volume += double{e.x} * e.y * e.z;
+        std::vector<uint8_t> in_leaf(mesh.triangle_count(), 0);
+        for (uint32_t i = 0; i < n.prim_count(); ++i) in_leaf[tree.leaf_refs[n.first_ref() + i]] = 1;
+        std::array<double, 3> lo, hi;
+        for (int a = 0; a < 3; ++a) {
+            const double shrink = 1e-6 * (double{tree.bounds.hi[a]} - tree.bounds.lo[a]);
+            lo[a] = it.cell.lo[a] + shrink;
+            hi[a] = it.cell.hi[a] - shrink;
+        }
+        if (lo[0] >= hi[0] || lo[1] >= hi[1] || lo[2] >= hi[2]) continue;  // flat cell
+        for (uint32_t prim = 0; prim < mesh.triangle_count(); ++prim) {
+            if (in_leaf[prim]) continue;
+            const TriVerts& t = tree.tris[prim];
+            bool apart = false;  // cheap bounding-box rejection before the exact test
+            for (int a = 0; a < 3; ++a)
+                apart = apart || std::min({t.v0[a], t.v1[a], t.v2[a]}) > hi[a] || std::max({t.v0[a], t.v1[a], t.v2[a]}) < lo[a];
+            if (apart) continue;
+            ASSERT_FALSE(triangle_overlaps_box(tree.tris[prim], lo, hi))
+                << "triangle " << prim << " overlaps leaf " << it.node << " but is not in it";
+        }
+    }
+    EXPECT_EQ(leaves, tree.stats.leaves);
+    const Vec3 e = tree.bounds.extent();
+    EXPECT_NEAR(leaf_volume, double{e.x} * e.y * e.z, 1e-6 * double{e.x} * e.y * e.z) << "leaf cells partition the root";
+}
+
+TEST(KdBuild, LeafCellsHoldEveryOverlappingTriangle) {
+    Rng rng(test_seed() + 100);
+    const Mesh mesh = random_soup(rng, 1500, 0.4f);
+    check_tree_properties(build_kdtree(mesh), mesh);
+    BuildOptions middle;
+    middle.builder = Builder::kMiddle;
+    check_tree_properties(build_kdtree(mesh, middle), mesh);
+}
+
+TEST(KdBuild, SameBytesAtAnyThreadCount) {
+    Rng rng(test_seed() + 101);
+    const Mesh mesh = random_soup(rng, 40000);
+    auto build_with = [&](int threads) {
+        tbb::task_arena arena(threads);
+        return arena.execute([&] { return build_kdtree(mesh); });
+    };
+    const KdTree one = build_with(1), two = build_with(2), four = build_with(4);
+    ASSERT_EQ(one.nodes.size(), two.nodes.size());
+    EXPECT_TRUE(one.nodes == two.nodes);
+    EXPECT_TRUE(one.leaf_refs == two.leaf_refs);
+    EXPECT_TRUE(one.nodes == four.nodes);
+    EXPECT_TRUE(one.leaf_refs == four.leaf_refs);
+}
+
+TEST(KdBuild, SahTreeHasTheExpectedShape) {
+    auto mesh = proto::load_mesh_file(std::string(KDRT_TEST_DATA_DIR) + "/bunny00.off");
+    ASSERT_TRUE(mesh.ok());
+    const KdTree sah = build_kdtree(*mesh);
+    BuildOptions middle_opts;
+    middle_opts.builder = Builder::kMiddle;
+    const KdTree middle = build_kdtree(*mesh, middle_opts);
+    const TreeStats& s = sah.stats;
+    EXPECT_EQ(s.triangles, 75408u);
+    EXPECT_EQ(s.nodes, 2 * s.leaves - 1);
+    EXPECT_GT(s.max_depth, 20u) << "a SAH tree is deep and stringy";
+    EXPECT_GT(s.empty_leaves, s.leaves / 10) << "and cuts off empty space";
+    EXPECT_LT(s.mean_tris_per_leaf, 6.0);
+    EXPECT_LT(s.sah_cost, middle.stats.sah_cost) << "SAH must beat the middle-split tree on its own metric";
+    EXPECT_EQ(s.bytes, s.nodes * 8 + s.refs * 4 + s.triangles * sizeof(TriVerts));
+    EXPECT_GT(s.build_ms, 0.0);
+}
+
+TEST(KdDegenerate, EmptyMeshMissesEverything) {
+    const Mesh mesh;
+    const KdTree tree = build_kdtree(mesh);
+    EXPECT_EQ(tree.stats.triangles, 0u);
+    EXPECT_EQ(tree.nodes.size(), 1u);
+    const Hit h = intersect(tree, make_ray({0, 0, -1}, {0, 0, 1}));
+    EXPECT_FALSE(h.is_hit());
+    EXPECT_TRUE(std::isinf(h.t));
+    EXPECT_FALSE(occluded(tree, make_ray({0, 0, -1}, {0, 0, 1})));
+}
+
+TEST(KdDegenerate, OneTriangle) {
+    Mesh mesh;
+    add_triangle(mesh, {0, 0, 0}, {1, 0, 0}, {0, 1, 0});
+    const KdTree tree = build_kdtree(mesh);
+    const Hit h = intersect(tree, make_ray({0.25f, 0.5f, 2}, {0, 0, -1}));
+    ASSERT_TRUE(h.is_hit());
+    EXPECT_EQ(h.prim, 0u);
+    EXPECT_EQ(h.t, 2.0f);
+    EXPECT_FLOAT_EQ(h.u, 0.25f);
+    EXPECT_FLOAT_EQ(h.v, 0.5f);
+    // Hit exactly at tmax and tmin counts; just beyond does not.
+    EXPECT_TRUE(intersect(tree, make_ray({0.25f, 0.5f, 2}, {0, 0, -1}, 0, 2.0f)).is_hit());
+    EXPECT_TRUE(intersect(tree, make_ray({0.25f, 0.5f, 2}, {0, 0, -1}, 2.0f, 2.0f)).is_hit());
+    EXPECT_FALSE(intersect(tree, make_ray({0.25f, 0.5f, 2}, {0, 0, -1}, 0, std::nextafter(2.0f, 0.0f))).is_hit());
+    EXPECT_FALSE(intersect(tree, make_ray({0.25f, 0.5f, 2}, {0, 0, -1}, std::nextafter(2.0f, 3.0f), 5)).is_hit());
+    EXPECT_FALSE(intersect(tree, make_ray({0.75f, 0.75f, 2}, {0, 0, -1})).is_hit());
+    EXPECT_TRUE(occluded(tree, make_ray({0.25f, 0.5f, -2}, {0, 0, 1})));  // back side is hit too
+}
+
+TEST(KdDegenerate, CoplanarAxisAlignedGrid) {
+    Mesh mesh;  // a 64x64 grid of triangle pairs, all in the plane z = 0.5
+    const int n = 64;
+    for (int i = 0; i < n; ++i)
+        for (int j = 0; j < n; ++j) {
+            const float x = i / float(n), y = j / float(n), s = 1.0f / n;
+            add_triangle(mesh, {x, y, 0.5f}, {x + s, y, 0.5f}, {x + s, y + s, 0.5f});
+            add_triangle(mesh, {x, y, 0.5f}, {x + s, y + s, 0.5f}, {x, y + s, 0.5f});
+        }
+    const KdTree tree = build_kdtree(mesh);
+    EXPECT_GT(tree.stats.leaves, 100u) << "planar triangles must still be split up";
+    Rng rng(test_seed() + 200);
+    std::vector<Ray> rays = oracle_rays(rng, mesh, tree, scaled(50'000));
+    for (int i = 0; i < 5000; ++i) {  // rays in the plane itself and straight down onto it
+        rays.push_back(make_ray({rng.uniform(), rng.uniform(), 0.5f}, {rng.uniform(-1, 1), rng.uniform(-1, 1), 0}));
+        rays.push_back(make_ray({rng.uniform(), rng.uniform(), 3.0f}, {0, 0, -1}));
+    }
+    const auto got = tree_all(tree, rays);
+    expect_same_hits(got, brute_force_all(tree.tris, rays), rays, tree.tris);
+    EXPECT_TRUE(intersect(tree, make_ray({0.3f, 0.3f, 3.0f}, {0, 0, -1})).is_hit());
+    EXPECT_FALSE(intersect(tree, make_ray({0.3f, 0.3f, 0.5f}, {1, 0, 0})).is_hit()) << "edge-on: no area";
+}
+
+TEST(KdDegenerate, DuplicateTrianglesTieToTheLowestId) {
+    Mesh mesh;
+    add_triangle(mesh, {5, 5, 5}, {6, 5, 5}, {5, 6, 5});  // decoy
+    for (int i = 0; i < 5; ++i) add_triangle(mesh, {0, 0, 0}, {1, 0, 0}, {0, 1, 0});
+    const KdTree tree = build_kdtree(mesh);
+    const Hit h = intersect(tree, make_ray({0.2f, 0.2f, 1}, {0, 0, -1}));
+    ASSERT_TRUE(h.is_hit());
+    EXPECT_EQ(h.prim, 1u);
+    EXPECT_EQ(h.t, 1.0f);
+}
+
+TEST(KdDegenerate, ZeroAreaTrianglesAreNeverHit) {
+    Mesh mesh;
+    add_triangle(mesh, {0, 0, 0}, {1, 0, 0}, {2, 0, 0});          // collinear
+    add_triangle(mesh, {0.5f, 0.5f, 0}, {0.5f, 0.5f, 0}, {0.5f, 0.5f, 0});  // a point
+    add_triangle(mesh, {0, 0, 1}, {1, 0, 1}, {0, 1, 1});          // a real one, behind
+    const KdTree tree = build_kdtree(mesh);
+    EXPECT_EQ(tree.stats.triangles, 3u);
+    EXPECT_EQ(tree.stats.refs, 1u) << "degenerate triangles stay out of the tree";
+    const Hit h = intersect(tree, make_ray({0.5f, 0, -1}, {0, 0, 1}));  // through the collinear one
+    EXPECT_EQ(h.prim, 2u);
+    EXPECT_EQ(intersect(tree, make_ray({0.5f, 0.5f, -1}, {0, 0, 1})).prim, 2u);  // through the point
+    EXPECT_EQ(brute_force_intersect(tree.tris, make_ray({0.5f, 0, -1}, {0, 0, 1})).prim, 2u);
+}
+
+TEST(KdDegenerate, InvalidMeshesGiveClearErrors) {
+    Mesh nan_mesh;
+    add_triangle(nan_mesh, {0, 0, 0}, {1, 0, 0}, {0, 1, 0});
+    nan_mesh.positions[4] = NAN;  // vertex 1, y
+    try {
+        (void)build_kdtree(nan_mesh);
+        FAIL() << "NaN accepted";
+    } catch (const MeshError& e) {
+        EXPECT_STREQ(e.what(), "vertex 1: coordinate y is NaN");
+    }
+    Mesh inf_mesh = nan_mesh;
+    inf_mesh.positions[4] = 0;
+    inf_mesh.positions[8] = -INFINITY;
+    EXPECT_THROW((void)build_kdtree(inf_mesh), MeshError);
+    Mesh bad_index;
+    add_triangle(bad_index, {0, 0, 0}, {1, 0, 0}, {0, 1, 0});
+    bad_index.indices[2] = 3;
+    try {
+        validate_mesh(bad_index);
+        FAIL() << "index out of range accepted";
+    } catch (const MeshError& e) {
+        EXPECT_STREQ(e.what(), "triangle 0: corner 2 refers to vertex 3 but the mesh has 3 vertices");
+    }
+    Mesh ragged;
+    ragged.positions = {0, 0};
+    EXPECT_THROW(validate_mesh(ragged), MeshError);
+}
+
+TEST(KdTrace, InvalidRaysAreMisses) {
+    Mesh mesh;
+    add_triangle(mesh, {-1, -1, 0}, {1, -1, 0}, {0, 1, 0});
+    const KdTree tree = build_kdtree(mesh);
+    const Ray good = make_ray({0, 0, 1}, {0, 0, -1});
+    ASSERT_TRUE(intersect(tree, good).is_hit());
+    for (int field = 0; field < 8; ++field) {
+        for (float bad : {NAN, INFINITY, -INFINITY}) {
+            Ray r = good;
+            std::memcpy(reinterpret_cast<char*>(&r) + sizeof(float) * field, &bad, sizeof bad);
+            const bool tmax_inf_ok = field == 7 && bad == INFINITY;
+            const bool tmin_ninf_ok = field == 3 && bad == -INFINITY;
+            EXPECT_EQ(intersect(tree, r).is_hit(), tmax_inf_ok || tmin_ninf_ok) << "field " << field << " = " << bad;
+            EXPECT_EQ(occluded(tree, r), tmax_inf_ok || tmin_ninf_ok) << "field " << field << " = " << bad;
+        }
+    }
+    EXPECT_FALSE(intersect(tree, make_ray({0, 0, 1}, {0, 0, 0})).is_hit()) << "zero direction";
+    EXPECT_FALSE(intersect(tree, make_ray({0, 0, 1}, {0, 0, -1}, 2.0f, 1.0f)).is_hit()) << "tmin > tmax";
+}
+
+}  // namespace
+}  // namespace kdrt::test

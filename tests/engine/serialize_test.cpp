@@ -1,0 +1,83 @@
+#include <gtest/gtest.h>
+
+#include <cstring>
+
+#include "kdrt/serialize.h"
+#include "oracle.h"
+#include "test_util.h"
+
+namespace kdrt::test {
+namespace {
+
+KdTree sample_tree() {
+    Rng rng(test_seed() + 400);
+    return build_kdtree(random_soup(rng, 2000));
+}
+
+TEST(TreeBlob, RoundTripGivesIdenticalTreeAndAnswers) {
+    const KdTree tree = sample_tree();
+    const std::vector<std::byte> blob = serialize_tree(tree);
+    const KdTree loaded = deserialize_tree(blob);
+    EXPECT_TRUE(loaded.nodes == tree.nodes);
+    EXPECT_TRUE(loaded.leaf_refs == tree.leaf_refs);
+    EXPECT_EQ(loaded.bounds, tree.bounds);
+    EXPECT_EQ(loaded.options, tree.options);
+    EXPECT_EQ(loaded.stats.sah_cost, tree.stats.sah_cost);
+    EXPECT_EQ(loaded.stats.build_ms, tree.stats.build_ms);
+    EXPECT_EQ(std::memcmp(loaded.tris.data(), tree.tris.data(), tree.tris.size() * sizeof(TriVerts)), 0);
+    EXPECT_EQ(serialize_tree(loaded), blob) << "serialisation is deterministic";
+    Rng rng(test_seed() + 401);
+    Mesh mesh;  // only bounds matter for oracle_rays' outer box; reuse the tree's triangles
+    for (const TriVerts& t : tree.tris) add_triangle(mesh, {t.v0[0], t.v0[1], t.v0[2]}, {t.v1[0], t.v1[1], t.v1[2]}, {t.v2[0], t.v2[1], t.v2[2]});
+    const auto rays = oracle_rays(rng, mesh, tree, scaled(20'000));
+    expect_same_hits(tree_all(loaded, rays), tree_all(tree, rays), rays);
+}
+
+void expect_refused(std::span<const std::byte> blob, const std::string& phrase) {
+    try {
+        (void)deserialize_tree(blob);
+        ADD_FAILURE() << "blob accepted; expected an error containing \"" << phrase << "\"";
+    } catch (const TreeFormatError& e) {
+        EXPECT_NE(std::string(e.what()).find(phrase), std::string::npos) << e.what();
+    }
+}
+
+TEST(TreeBlob, CorruptedBlobsAreRefused) {
+    const std::vector<std::byte> blob = serialize_tree(sample_tree());
+    for (size_t at : {size_t{200}, blob.size() / 2, blob.size() - 9}) {
+        std::vector<std::byte> bad = blob;
+        bad[at] ^= std::byte{0x01};
+        expect_refused(bad, "checksum");
+    }
+    std::vector<std::byte> bad_magic = blob;
+    bad_magic[0] = std::byte{'X'};
+    expect_refused(bad_magic, "bad magic");
+    std::vector<std::byte> version = blob;
+    version[8] = std::byte{2};
+    expect_refused(version, "version 2 is not supported");
+    expect_refused(std::span(blob).first(blob.size() - 1), "checksum");
+    expect_refused(std::span(blob).first(10), "truncated");
+    expect_refused({}, "truncated");
+}
+
+TEST(TreeBlob, StructurallyBrokenBlobWithValidChecksumIsRefused) {
+    // A blob whose checksum is right but whose content lies (e.g. written by a buggy tool) must
+    // still be refused, since traversal trusts child and ref indices.
+    KdTree tree = sample_tree();
+    ASSERT_FALSE(tree.nodes[0].is_leaf());
+    tree.nodes[0] = KdNode::inner(0, 0.5f, 0);  // child index pointing at itself: a cycle
+    expect_refused(serialize_tree(tree), "child index 0 out of range");
+    KdTree refs = sample_tree();
+    refs.leaf_refs[0] = 999999;
+    expect_refused(serialize_tree(refs), "names triangle 999999");
+}
+
+TEST(TreeBlob, EmptyTreeRoundTrips) {
+    const KdTree tree = build_kdtree(Mesh{});
+    const KdTree loaded = deserialize_tree(serialize_tree(tree));
+    EXPECT_EQ(loaded.nodes.size(), 1u);
+    EXPECT_FALSE(intersect(loaded, make_ray({0, 0, 0}, {1, 0, 0})).is_hit());
+}
+
+}  // namespace
+}  // namespace kdrt::test

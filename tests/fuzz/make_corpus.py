@@ -1,0 +1,160 @@
+#!/usr/bin/env python3
+"""Writes the seed corpora in tests/fuzz/corpus/<target>/: a few valid and invalid inputs per
+decoder/parser, including hostile headers (huge counts, wrong sizes). Deterministic; rerun after
+changing it. Inputs found by a real fuzzer are added by hand as corpus/<target>/crash-*."""
+
+import math
+import os
+import struct
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+
+
+def write(target, name, data):
+    directory = os.path.join(HERE, "corpus", target)
+    os.makedirs(directory, exist_ok=True)
+    if isinstance(data, str):
+        data = data.encode()
+    with open(os.path.join(directory, name), "wb") as f:
+        f.write(data)
+
+
+def header(magic, count, version=1, flags=0, reserved=0):
+    return magic + struct.pack("<HHII", version, flags, count, reserved)
+
+
+INF = math.inf
+NAN = math.nan
+
+# ---- KDRR ----
+RAYS = [(0, 0, -5, 0, 0, 0, 1, 100), (1, 2, 3, 0.5, -1, 0, 0, INF)]
+ray_body = b"".join(struct.pack("<8f", *r) for r in RAYS)
+write("rays", "valid_two_rays", header(b"KDRR", 2) + ray_body)
+write("rays", "valid_occlusion", header(b"KDRR", 2, flags=1) + ray_body)
+write("rays", "valid_empty", header(b"KDRR", 0))
+write("rays", "nan_ray", header(b"KDRR", 1) + struct.pack("<8f", NAN, 0, 0, 0, 1, 0, 0, INF))
+write("rays", "bad_magic", header(b"KDRH", 2) + ray_body)
+write("rays", "bad_version", header(b"KDRR", 2, version=2) + ray_body)
+write("rays", "bad_flags", header(b"KDRR", 2, flags=6) + ray_body)
+write("rays", "bad_reserved", header(b"KDRR", 2, reserved=1) + ray_body)
+write("rays", "short_body", header(b"KDRR", 3) + ray_body)
+write("rays", "long_body", header(b"KDRR", 1) + ray_body)
+write("rays", "huge_count", header(b"KDRR", 0xFFFFFFFF))
+write("rays", "truncated_header", b"KDRR\x01\x00")
+
+# ---- KDRH ----
+hit_body = struct.pack("<fIff", 5, 7, 0.25, 0.5) + struct.pack("<fIff", INF, 0xFFFFFFFF, 0, 0)
+write("hits", "valid_two_hits", header(b"KDRH", 2) + hit_body)
+write("hits", "valid_empty", header(b"KDRH", 0))
+write("hits", "bad_flags", header(b"KDRH", 2, flags=1) + hit_body)
+write("hits", "short_body", header(b"KDRH", 2) + hit_body[:-1])
+write("hits", "huge_count", header(b"KDRH", 0x80000000) + hit_body)
+write("hits", "rays_magic", header(b"KDRR", 1) + hit_body)
+
+# ---- KDRO ----
+write("occlusion", "valid_two", header(b"KDRO", 2) + b"\x01\x00")
+write("occlusion", "valid_empty", header(b"KDRO", 0))
+write("occlusion", "bad_value", header(b"KDRO", 3) + b"\x01\x00\x02")
+write("occlusion", "long_body", header(b"KDRO", 1) + b"\x01\x00")
+write("occlusion", "huge_count", header(b"KDRO", 0xFFFFFFFF) + b"\x01")
+write("occlusion", "bad_reserved", header(b"KDRO", 1, reserved=0xFFFFFFFF) + b"\x01")
+
+# ---- OBJ ----
+SQUARE = "v 0 0 0\nv 1 0 0\nv 1 1 0\nv 0 1 0\n"
+write("obj", "valid_square", SQUARE + "f 1 2 3 4\n")
+write("obj", "valid_forms", SQUARE + "vt 0 0\nvn 0 0 1\nf 1/1/1 2/1/1 3/1/1\nf 1//1 3//1 4//1\nf -4/1 -2/1 -1/1\n")
+write("obj", "valid_misc", "# c\r\nmtllib a.mtl\r\no x\r\ng y\r\ns 1\r\nusemtl m\r\nv 0 0 0 1\r\n"
+      "v 1 0 0 1 0.5 0.5 0.5\r\nv 0 \\\r\n1 0\r\nf 1 2 \\\n3\r\nl 1 2\r\n")
+write("obj", "face_before_vertex", "f 1 2 3\n" + SQUARE)
+write("obj", "nan_vertex", "v nan 0 0\n")
+write("obj", "huge_index", SQUARE + "f 1 2 4294967297\n")
+write("obj", "index_zero", SQUARE + "f 0 1 2\n")
+write("obj", "two_corners", SQUARE + "f 1 2\n")
+write("obj", "bad_corner", SQUARE + "f 1/ 2// 3/x/4\n")
+write("obj", "binary_garbage", bytes(range(256)))
+write("obj", "long_polygon", SQUARE + "f " + " ".join(str(1 + i % 4) for i in range(2000)) + "\n")
+
+# ---- OFF ----
+write("off", "valid_tetra", "OFF\n4 4 6\n0 0 0\n1 0 0\n0 1 0\n0 0 1\n3 0 2 1\n3 0 1 3\n3 0 3 2\n3 1 2 3\n")
+write("off", "valid_comments_quads", "# hi\nOFF 4 1 0 # counts here\n\n0 0 0\n1 0 0\n# x\n1 1 0\n0 1 0\n4 0 1 2 3 1 0 0\n")
+write("off", "valid_coff", "COFF\n3 1 0\n0 0 0 255 0 0 255\n1 0 0 0 255 0 255\n0 1 0 0 0 255 255\n3 0 1 2\n")
+write("off", "huge_counts", "OFF\n4294967295 4294967295 0\n0 0 0\n")
+write("off", "big_counts_little_data", "OFF\n200000000 900000000 0\n0 0 0\n")
+write("off", "truncated", "OFF\n3 1 0\n0 0 0\n1 0")
+write("off", "index_out_of_range", "OFF\n3 1 0\n0 0 0\n1 0 0\n0 1 0\n3 0 1 3\n")
+write("off", "huge_polygon", "OFF\n3 1 0\n0 0 0\n1 0 0\n0 1 0\n4294967295 0 1 2\n")
+write("off", "inf_vertex", "OFF\n3 1 0\n0 0 0\n1 inf 0\n0 1 0\n3 0 1 2\n")
+write("off", "bad_header", "4OFF\n1 0 0\n0 0 0 0\n")
+
+# ---- PLY ----
+PLY_HEAD = ("ply\nformat {fmt} 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\n"
+            "element face 1\nproperty list uchar int vertex_indices\nend_header\n")
+TRI = [(0, 0, 0), (1, 0, 0), (0, 1, 0)]
+
+
+def ply_binary(order):
+    fmt = "binary_little_endian" if order == "<" else "binary_big_endian"
+    body = b"".join(struct.pack(order + "3f", *v) for v in TRI) + struct.pack(order + "B3i", 3, 0, 1, 2)
+    return PLY_HEAD.format(fmt=fmt).encode() + body
+
+
+write("ply", "valid_ascii", PLY_HEAD.format(fmt="ascii") + "0 0 0\n1 0 0\n0 1 0\n3 0 1 2\n")
+write("ply", "valid_le", ply_binary("<"))
+write("ply", "valid_be", ply_binary(">"))
+write("ply", "valid_extras",
+      "ply\nformat ascii 1.0\ncomment c\nelement vertex 4\nproperty double x\nproperty list uchar float w\n"
+      "property int y\nproperty uchar z\nelement edge 1\nproperty list int int e\nelement face 1\n"
+      "property list ushort uint vertex_index\nproperty float q\nend_header\n"
+      "0 0 0 0\n1 1 5 0 0\n1 0 1 0\n0 2 1 2 1 3\n2 0 1\n4 0 1 2 3 0.5\n")
+write("ply", "huge_vertex_count", PLY_HEAD.format(fmt="binary_little_endian").replace("vertex 3", "vertex 4000000000"))
+write("ply", "big_vertex_count_little_data",
+      PLY_HEAD.format(fmt="binary_little_endian").replace("vertex 3", "vertex 200000000").encode() + b"\0" * 40)
+write("ply", "huge_list_count", PLY_HEAD.format(fmt="binary_little_endian").replace("uchar int", "uint int").encode()
+      + b"".join(struct.pack("<3f", *v) for v in TRI) + struct.pack("<I", 0xFFFFFFFF) + b"\0" * 12)
+write("ply", "zero_property_element_huge_count",
+      "ply\nformat binary_little_endian 1.0\nelement nothing 18446744073709551615\nend_header\n")
+write("ply", "missing_end_header", "ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\n")
+write("ply", "unknown_format", "ply\nformat binary_middle_endian 1.0\nend_header\n")
+write("ply", "nan_binary", PLY_HEAD.format(fmt="binary_little_endian").encode()
+      + struct.pack("<9f", 0, 0, 0, NAN, 0, 0, 0, 1, 0) + struct.pack("<B3i", 3, 0, 1, 2))
+write("ply", "truncated_binary", ply_binary("<")[:-5])
+
+# ---- STL ----
+FACET = "facet normal 0 0 1\n outer loop\n  vertex 0 0 0\n  vertex 1 0 0\n  vertex 0 1 0\n endloop\nendfacet\n"
+
+
+def stl_binary(count, triangles, head=b"kdrt corpus"):
+    out = head.ljust(80, b"\0") + struct.pack("<I", count)
+    for t in triangles:
+        out += struct.pack("<12fH", 0, 0, 1, *t, 0)
+    return out
+
+
+TRIS = [(0, 0, 0, 1, 0, 0, 0, 1, 0), (1, 1, 1, 2, 1, 1, 1, 2, 1)]
+write("stl", "valid_ascii", "solid s\n" + FACET + FACET + "endsolid s\n")
+write("stl", "valid_binary", stl_binary(2, TRIS))
+write("stl", "valid_binary_solid_header", stl_binary(2, TRIS, b"solid looks like ascii"))
+write("stl", "valid_multi_solid", "solid a\n" + FACET + "endsolid a\nsolid b\n" + FACET + "endsolid b\n")
+write("stl", "huge_count", stl_binary(0xFFFFFFFF, []))
+write("stl", "truncated_binary", stl_binary(3, TRIS))
+write("stl", "missing_endsolid", "solid s\n" + FACET)
+write("stl", "nan_binary", stl_binary(1, [(0, 0, 0, NAN, 0, 0, 0, 1, 0)]))
+write("stl", "four_vertices", "solid s\nfacet normal 0 0 1\nouter loop\nvertex 0 0 0\nvertex 1 0 0\n"
+      "vertex 0 1 0\nvertex 1 1 0\nendloop\nendfacet\nendsolid\n")
+write("stl", "tiny", "sol")
+
+# ---- raw ----
+def raw(vertex_count, triangle_count, positions, indices):
+    return (struct.pack("<II", vertex_count, triangle_count) + struct.pack("<%df" % len(positions), *positions)
+            + struct.pack("<%dI" % len(indices), *indices))
+
+
+QUAD = [0, 0, 0, 1, 0, 0, 1, 1, 0, 0, 1, 0]
+write("raw", "valid_quad", raw(4, 2, QUAD, [0, 1, 2, 0, 2, 3]))
+write("raw", "valid_empty", raw(0, 0, [], []))
+write("raw", "huge_counts", raw(0xFFFFFFFF, 0xFFFFFFFF, [], []))
+write("raw", "big_counts_little_data", raw(200000000, 0, QUAD, []))
+write("raw", "truncated", raw(4, 2, QUAD, [0, 1, 2, 0, 2, 3])[:-3])
+write("raw", "index_out_of_range", raw(4, 1, QUAD, [0, 1, 4]))
+write("raw", "nan_vertex", raw(4, 0, QUAD[:5] + [NAN] + QUAD[6:], []))
+write("raw", "short_header", b"\x04\x00\x00")
