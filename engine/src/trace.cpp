@@ -175,4 +175,20 @@ void occluded_single(const KdTree& tree, std::span<const Ray> rays, std::span<ui
                       });
 }
 
+void intersect_block(const KdTree& tree, std::span<const Ray> rays, std::span<Hit> hits) noexcept {
+    for (size_t i = 0; i < rays.size(); ++i) hits[i] = intersect(tree, rays[i]);
+}
+
+void occluded_block(const KdTree& tree, std::span<const Ray> rays, std::span<uint8_t> occluded_out) noexcept {
+    for (size_t i = 0; i < rays.size(); ++i) occluded_out[i] = occluded(tree, rays[i]) ? 1 : 0;
+}
+
+void intersect(const KdTree& tree, std::span<const Ray> rays, std::span<Hit> hits) noexcept {
+    intersect_single(tree, rays, hits);
+}
+
+void occluded(const KdTree& tree, std::span<const Ray> rays, std::span<uint8_t> occluded_out) noexcept {
+    occluded_single(tree, rays, occluded_out);
+}
+
 }  // namespace kdrt

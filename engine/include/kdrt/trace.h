@@ -26,8 +26,18 @@ namespace kdrt {
 /// (zero-area) triangles are collapsed to a point, so no ray ever hits them.
 [[nodiscard]] std::vector<TriVerts> make_tri_verts(const Mesh& mesh);
 
-/// Single-ray batch queries over all threads of the current oneTBB arena, in input order.
-/// `hits` / `occluded_out` must have rays.size() elements.
+/// Batch queries for arbitrary input, over all threads of the current oneTBB arena. Answers come
+/// back in input order; `hits` / `occluded_out` must have rays.size() elements (1 = occluded).
+/// The engine picks the fastest kernel it has for the batch; every kernel gives the same answers.
+void intersect(const KdTree& tree, std::span<const Ray> rays, std::span<Hit> hits) noexcept;
+void occluded(const KdTree& tree, std::span<const Ray> rays, std::span<uint8_t> occluded_out) noexcept;
+
+/// The same, on the calling thread only (no tasks spawned): for callers that already run in
+/// parallel over small blocks, such as the renderer's tiles.
+void intersect_block(const KdTree& tree, std::span<const Ray> rays, std::span<Hit> hits) noexcept;
+void occluded_block(const KdTree& tree, std::span<const Ray> rays, std::span<uint8_t> occluded_out) noexcept;
+
+/// Batch queries with the single-ray kernel only (the baseline that packets are measured against).
 void intersect_single(const KdTree& tree, std::span<const Ray> rays, std::span<Hit> hits) noexcept;
 void occluded_single(const KdTree& tree, std::span<const Ray> rays, std::span<uint8_t> occluded_out) noexcept;
 
