@@ -1,9 +1,13 @@
 #pragma once
 // Internal: per-ray set-up and the watertight ray/triangle test shared by every traversal path.
-// Everything here is inline and header-only so the scalar kernel and the per-ISA packet kernels
-// compute bit-identical results (the build uses -ffp-contract=off: no FMA contraction).
+// Everything here is header-only so the scalar kernel and the per-ISA packet kernels compute
+// bit-identical results (the build uses -ffp-contract=off: no FMA contraction).
+//
+// The functions are `static inline` and use compiler builtins rather than <cmath>: the per-ISA
+// translation units include this header too, and a function with external linkage emitted there
+// (compiled for AVX-512, say) could be the copy the linker keeps for the whole program. With
+// internal linkage every translation unit keeps its own copy, compiled for its own target.
 
-#include <cmath>
 #include <cstdint>
 #include <limits>
 
@@ -13,9 +17,9 @@
 namespace kdrt::detail {
 
 /// True for a ray the engine traces (see Ray's contract); everything else is a miss.
-inline bool ray_is_valid(const Ray& r) noexcept {
-    const bool finite = std::isfinite(r.ox) && std::isfinite(r.oy) && std::isfinite(r.oz) &&
-                        std::isfinite(r.dx) && std::isfinite(r.dy) && std::isfinite(r.dz);
+static inline bool ray_is_valid(const Ray& r) noexcept {
+    const bool finite = __builtin_isfinite(r.ox) && __builtin_isfinite(r.oy) && __builtin_isfinite(r.oz) &&
+                        __builtin_isfinite(r.dx) && __builtin_isfinite(r.dy) && __builtin_isfinite(r.dz);
     const bool nonzero = r.dx != 0.0f || r.dy != 0.0f || r.dz != 0.0f;
     return finite && nonzero && r.tmin <= r.tmax;  // false for a NaN tmin or tmax
 }
@@ -29,7 +33,7 @@ struct PreparedRay {
     float sx, sy, sz;
 };
 
-inline PreparedRay prepare_ray(const Ray& r) noexcept {
+static inline PreparedRay prepare_ray(const Ray& r) noexcept {
     PreparedRay p;
     const float dir[3] = {r.dx, r.dy, r.dz};
     p.org[0] = r.ox;
@@ -37,7 +41,7 @@ inline PreparedRay prepare_ray(const Ray& r) noexcept {
     p.org[2] = r.oz;
     for (int a = 0; a < 3; ++a) p.inv_dir[a] = 1.0f / dir[a];  // +-inf for a zero component
     // kz: the dimension where the direction is largest in magnitude; first such on ties.
-    const float ax = std::fabs(dir[0]), ay = std::fabs(dir[1]), az = std::fabs(dir[2]);
+    const float ax = __builtin_fabsf(dir[0]), ay = __builtin_fabsf(dir[1]), az = __builtin_fabsf(dir[2]);
     int kz = 0;
     if (ay > ax) kz = 1;
     if (az > (kz == 0 ? ax : ay)) kz = 2;
@@ -60,7 +64,7 @@ inline PreparedRay prepare_ray(const Ray& r) noexcept {
 /// Watertight test of one triangle. On a hit with tmin <= t and (t, prim) lexicographically
 /// smaller than (best_t, best_prim), returns true and writes t, u, v. No hit is ever reported for
 /// a degenerate triangle or a ray in the triangle's plane.
-inline bool intersect_triangle(const PreparedRay& p, const TriVerts& tri, float tmin, float& t_out,
+static inline bool intersect_triangle(const PreparedRay& p, const TriVerts& tri, float tmin, float& t_out,
                                float& u_out, float& v_out) noexcept {
     // Vertices relative to the origin, in the ray's permuted frame (kx, ky, kz).
     const float a_x = tri.v0[p.kx] - p.org[p.kx], a_y = tri.v0[p.ky] - p.org[p.ky], a_z = tri.v0[p.kz] - p.org[p.kz];
@@ -97,9 +101,9 @@ inline bool intersect_triangle(const PreparedRay& p, const TriVerts& tri, float 
 
 /// Clips [tmin, tmax] of a ray to a box; false when the ray misses it. Zero direction components
 /// are handled without NaN: the slab either contains the origin (no constraint) or not (miss).
-inline bool clip_to_box(const PreparedRay& p, const Aabb& box, float& tmin, float& tmax) noexcept {
+static inline bool clip_to_box(const PreparedRay& p, const Aabb& box, float& tmin, float& tmax) noexcept {
     for (int a = 0; a < 3; ++a) {
-        if (std::isinf(p.inv_dir[a])) {
+        if (__builtin_isinf(p.inv_dir[a])) {
             if (p.org[a] < box.lo[a] || p.org[a] > box.hi[a]) return false;
             continue;
         }
@@ -118,13 +122,24 @@ inline bool clip_to_box(const PreparedRay& p, const Aabb& box, float& tmin, floa
 
 /// Spatial margin by which traversal widens its cells: 16 ulps of the largest coordinate magnitude
 /// of the scene and the ray origin, comfortably above the rounding of the triangle test.
-inline float interval_margin(const PreparedRay& p, const Aabb& bounds) noexcept {
+static inline float interval_margin(const PreparedRay& p, const Aabb& bounds) noexcept {
     float m = 0.0f;
     for (int a = 0; a < 3; ++a) {
-        m = std::fmax(m, std::fabs(p.org[a]));
-        m = std::fmax(m, std::fmax(std::fabs(bounds.lo[a]), std::fabs(bounds.hi[a])));
+        m = __builtin_fmaxf(m, __builtin_fabsf(p.org[a]));
+        m = __builtin_fmaxf(m, __builtin_fmaxf(__builtin_fabsf(bounds.lo[a]), __builtin_fabsf(bounds.hi[a])));
     }
     return m * 0x1p-20f;
+}
+
+/// Per-axis tolerance of the cell intervals in t. The watertight test decides hits to within a
+/// few ulps of the coordinates (its shear rounds), so a ray through a cell corner or along a split
+/// plane may hit a triangle in a cell that its rounded plane crossings would skip. Each interval
+/// is widened by the spatial margin of interval_margin, converted to t along the split axis
+/// (margin / |d_axis|). Axis-parallel directions (infinite reciprocal) need none: their triangle
+/// tests are exact in that axis.
+static inline void traversal_eps(const PreparedRay& p, const Aabb& bounds, float eps[3]) noexcept {
+    const float delta = interval_margin(p, bounds);
+    for (int a = 0; a < 3; ++a) eps[a] = __builtin_isinf(p.inv_dir[a]) ? 0.0f : delta * __builtin_fabsf(p.inv_dir[a]);
 }
 
 }  // namespace kdrt::detail

@@ -39,16 +39,8 @@ bool traverse(const KdTree& tree, const Ray& ray, Best& best) noexcept {
     const uint32_t near_is_high[3] = {std::signbit(p.inv_dir[0]) ? 1u : 0u,
                                       std::signbit(p.inv_dir[1]) ? 1u : 0u,
                                       std::signbit(p.inv_dir[2]) ? 1u : 0u};
-    // Tolerance of the cell intervals. The watertight test decides hits to within a few ulps of
-    // the coordinates (its shear rounds), so a ray through a cell corner or along a split plane
-    // may hit a triangle in a cell that its rounded plane crossings would skip. Each interval is
-    // widened by a spatial margin delta, converted to t along the split axis (delta / |d_axis|).
-    // Axis-parallel directions (infinite reciprocal) need none: their triangle tests are exact in
-    // that axis.
-    const float delta = detail::interval_margin(p, tree.bounds);
-    const float eps[3] = {std::isinf(p.inv_dir[0]) ? 0.0f : delta * std::fabs(p.inv_dir[0]),
-                          std::isinf(p.inv_dir[1]) ? 0.0f : delta * std::fabs(p.inv_dir[1]),
-                          std::isinf(p.inv_dir[2]) ? 0.0f : delta * std::fabs(p.inv_dir[2])};
+    float eps[3];
+    detail::traversal_eps(p, tree.bounds, eps);
     const KdNode* nodes = tree.nodes.data();
     const uint32_t* refs = tree.leaf_refs.data();
     const TriVerts* tris = tree.tris.data();
@@ -64,14 +56,15 @@ bool traverse(const KdTree& tree, const Ray& ray, Best& best) noexcept {
             const float t_split = (node.split() - p.org[axis]) * p.inv_dir[axis];
             const uint32_t near_child = node.first_child() + near_is_high[axis];
             const uint32_t far_child = node.first_child() + (near_is_high[axis] ^ 1u);
-            // A plane crossed within eps of tmin or tmax sends the ray into both children, so a
-            // triangle touching the plane at that point is never skipped.
-            if (t_split < tmin - eps[axis]) {
-                node_index = far_child;
-            } else if (t_split > tmax + eps[axis]) {
+            // Each side's interval is widened by eps; a side is visited when its widened interval
+            // meets [tmin, tmax]. The packet kernels make exactly these comparisons per lane, so
+            // every path visits the same cells for a ray.
+            const float near_max = t_split + eps[axis], far_min = t_split - eps[axis];
+            if (far_min > tmax) {
                 node_index = near_child;
+            } else if (near_max < tmin) {
+                node_index = far_child;
             } else if (t_split == t_split) {
-                const float far_min = t_split - eps[axis], near_max = t_split + eps[axis];
                 stack[stack_size++] = {far_child, far_min > tmin ? far_min : tmin, tmax};
                 node_index = near_child;
                 tmax = near_max < tmax ? near_max : tmax;
@@ -173,22 +166,6 @@ void occluded_single(const KdTree& tree, std::span<const Ray> rays, std::span<ui
                           for (size_t i = range.begin(); i != range.end(); ++i)
                               occluded_out[i] = occluded(tree, rays[i]) ? 1 : 0;
                       });
-}
-
-void intersect_block(const KdTree& tree, std::span<const Ray> rays, std::span<Hit> hits) noexcept {
-    for (size_t i = 0; i < rays.size(); ++i) hits[i] = intersect(tree, rays[i]);
-}
-
-void occluded_block(const KdTree& tree, std::span<const Ray> rays, std::span<uint8_t> occluded_out) noexcept {
-    for (size_t i = 0; i < rays.size(); ++i) occluded_out[i] = occluded(tree, rays[i]) ? 1 : 0;
-}
-
-void intersect(const KdTree& tree, std::span<const Ray> rays, std::span<Hit> hits) noexcept {
-    intersect_single(tree, rays, hits);
-}
-
-void occluded(const KdTree& tree, std::span<const Ray> rays, std::span<uint8_t> occluded_out) noexcept {
-    occluded_single(tree, rays, occluded_out);
 }
 
 }  // namespace kdrt

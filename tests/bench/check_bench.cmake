@@ -84,13 +84,12 @@ run_bench(shadow_line rays "${MESH}" --kind shadow --res 64 --seed 7 --out "${sh
 expect_value("${shadow_line}" occlusion ON)  # CMake renders JSON true as ON
 
 # trace
-set(trace_keys rays occlusion mode threads isa builder reps parse_ms build_ms seconds seconds_min
-               mrays_per_s hits cpu_util)
+set(trace_keys rays occlusion mode threads isa packets packet_rays single_rays builder reps parse_ms
+               build_ms seconds seconds_min mrays_per_s hits cpu_util)
 run_bench(trace_line trace "${MESH}" "${primary}" --reps 2 --threads 2 --out "${hits}")
 expect_keys("${trace_line}" ${trace_keys})
 expect_value("${trace_line}" rays 4096)
-expect_value("${trace_line}" mode single)
-expect_value("${trace_line}" isa scalar)
+expect_value("${trace_line}" mode auto)
 expect_value("${trace_line}" occlusion OFF)
 string(JSON hit_count GET "${trace_line}" hits)
 if(hit_count LESS_EQUAL 0 OR hit_count GREATER_EQUAL 4096)
@@ -100,6 +99,27 @@ file(SIZE "${hits}" hits_size)
 if(NOT hits_size EQUAL 65552)  # 16 + 4096 * 16
     message(FATAL_ERROR "${hits} has ${hits_size} bytes, expected 65552")
 endif()
+# Every mode and instruction set writes the same answers, byte for byte.
+foreach(variant "single;scalar" "packet;sse4" "packet;avx2" "packet;avx512")
+    list(GET variant 0 variant_mode)
+    list(GET variant 1 variant_isa)
+    execute_process(COMMAND ${BENCH} trace "${MESH}" "${primary}" --reps 1 --mode ${variant_mode} --isa ${variant_isa}
+                            --out "${hits}.${variant_mode}.${variant_isa}"
+                    RESULT_VARIABLE variant_rc OUTPUT_VARIABLE variant_line ERROR_VARIABLE variant_err)
+    if(variant_rc EQUAL 1 AND variant_err MATCHES "not supported by this CPU")
+        continue()
+    endif()
+    if(NOT variant_rc EQUAL 0)
+        message(FATAL_ERROR "trace --mode ${variant_mode} --isa ${variant_isa} failed: ${variant_err}")
+    endif()
+    expect_value("${variant_line}" mode ${variant_mode})
+    expect_value("${variant_line}" isa ${variant_isa})
+    file(SHA256 "${hits}" want_sum)
+    file(SHA256 "${hits}.${variant_mode}.${variant_isa}" got_sum)
+    if(NOT want_sum STREQUAL got_sum)
+        message(FATAL_ERROR "--mode ${variant_mode} --isa ${variant_isa} wrote different hits than --mode auto")
+    endif()
+endforeach()
 run_bench(occl_line trace "${MESH}" "${shadow}" --reps 1 --threads 1 --out "${occl}")
 expect_keys("${occl_line}" ${trace_keys})
 expect_value("${occl_line}" occlusion ON)
@@ -119,7 +139,8 @@ expect_failure(2 "--kind" rays "${MESH}" --kind sideways --out "${WORK_DIR}/x.kd
 expect_failure(2 "--reps" trace "${MESH}" "${primary}" --reps 0)
 expect_failure(2 "unknown command" frobnicate)
 expect_failure(1 "no-such-mesh.off" build "${WORK_DIR}/no-such-mesh.off")
-expect_failure(1 "mode packet is not available in this build" trace "${MESH}" "${primary}" --mode packet)
+expect_failure(2 "--mode" trace "${MESH}" "${primary}" --mode sideways)
+expect_failure(2 "--isa" trace "${MESH}" "${primary}" --isa avx3)
 expect_failure(1 "cannot read rays from .*bunny00.off" trace "${MESH}" "${MESH}")
 
 message(STATUS "kdrt-bench integration: all checks passed")

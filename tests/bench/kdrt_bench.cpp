@@ -27,12 +27,12 @@
 #include "bench_args.h"
 #include "embree_compare.h"
 #include "kdrt/kdtree.h"
+#include "kdrt/trace.h"
 #include "kdrt/mesh.h"
 #include "kdrt/proto/file_io.h"
 #include "kdrt/proto/mesh_io.h"
 #include "kdrt/proto/ray_batch.h"
 #include "kdrt/raygen.h"
-#include "trace_kernels.h"
 
 namespace kdrt::bench {
 namespace {
@@ -71,12 +71,13 @@ options:
 )";
 
 constexpr std::string_view kTraceUsage =
-    R"(usage: kdrt-bench trace MESH RAYS.kdrr [--mode single|packet|auto] [--threads N]
+    R"(usage: kdrt-bench trace MESH RAYS.kdrr [--mode single|packet|auto] [--isa ISA] [--threads N]
                         [--reps K] [--out FILE] [--builder sah|middle] [--compare embree]
 
 Builds the tree of MESH, then traces the rays of RAYS.kdrr K times (default 5) after one untimed
 warm-up pass: closest hits, or occlusion when the batch has flag bit 0 set. Prints one JSON line:
-  mesh, rays_file, rays, occlusion, mode, isa, threads, builder, reps, parse_ms, build_ms,
+  mesh, rays_file, rays, occlusion, mode, isa, packets, packet_rays, single_rays (how the mode
+  split the rays), threads, builder, reps, parse_ms, build_ms,
   seconds (tracing only, median of the K passes), seconds_min, mrays_per_s (from the median),
   hits (rays that hit, or are occluded), cpu_util (process CPU seconds per wall second while
   tracing: near `threads` only when the workers had their cores; lower = a noisy measurement)
@@ -88,7 +89,8 @@ rtcIntersect1/1M/4/8/16 (rtcOccluded* for occlusion), incoherent and coherent, a
   more than 1e-4 relative; for occlusion another bit) and embree_modes (Mrays/s of every mode).
 
 options:
-  --mode single|packet|auto  traversal (default single)
+  --mode single|packet|auto  traversal (default auto: packets where rays are coherent)
+  --isa scalar|sse4|avx2|avx512  packet instruction set (default: widest supported, or KDRT_ISA)
   --threads N                worker threads (default: all cores)
   --reps K                   timed passes (default 5)
   --out FILE                 write the answers as KDRH (hits) or KDRO (occlusion) to FILE
@@ -254,9 +256,16 @@ int run_trace(const Args& args) {
     args.expect_positional(kNames);
     const std::string& mesh_path = args.positional()[0];
     const std::string& rays_path = args.positional()[1];
-    const std::string mode_text = args.get("mode").value_or("single");
+    const std::string mode_text = args.get("mode").value_or("auto");
     const auto mode = parse_trace_mode(mode_text);
     if (!mode) throw UsageError("option '--mode': '" + mode_text + "' is not one of single, packet, auto");
+    TraceOptions trace_options{*mode, default_isa()};
+    if (const auto isa_text = args.get("isa")) {
+        const auto isa = parse_isa(*isa_text);
+        if (!isa) throw UsageError("option '--isa': '" + *isa_text + "' is not one of scalar, sse4, avx2, avx512");
+        if (!isa_supported(*isa)) throw BenchError("--isa " + *isa_text + " is not supported by this CPU");
+        trace_options.isa = *isa;
+    }
     const Builder builder = parse_builder(args);
     const unsigned threads = thread_count(args);
     const auto reps = static_cast<int>(args.get_uint("reps", 5, 1, 1000));
@@ -265,8 +274,6 @@ int run_trace(const Args& args) {
     if (compare && *compare != "embree") {
         throw UsageError("option '--compare': '" + *compare + "' is not embree");
     }
-    const auto kernel = trace_kernel(*mode);
-    if (!kernel) throw BenchError("mode " + mode_text + " is not available in this build");
     if (compare && !kEmbreeAvailable) {
         throw BenchError(
             "--compare embree is not available in this build (Embree 3 was not found "
@@ -284,6 +291,7 @@ int run_trace(const Args& args) {
     std::vector<Hit> hits;
     std::vector<uint8_t> occluded;
     std::optional<EmbreeReport> embree;
+    TraceStats stats;
     with_threads(threads, [&] {
         tree = build_tree(loaded.mesh, builder, build_ms);
         if (batch.occlusion) {
@@ -296,9 +304,9 @@ int run_trace(const Args& args) {
             const double cpu_start = process_cpu_seconds();
             const auto start = Clock::now();
             if (batch.occlusion) {
-                kernel->occluded(tree, rays, occluded);
+                kdrt::occluded(tree, rays, occluded, trace_options, &stats);
             } else {
-                kernel->intersect(tree, rays, hits);
+                kdrt::intersect(tree, rays, hits, trace_options, &stats);
             }
             const double elapsed = std::chrono::duration<double>(Clock::now() - start).count();
             if (pass > 0) {
@@ -331,7 +339,10 @@ int run_trace(const Args& args) {
     line["rays"] = rays.size();
     line["occlusion"] = batch.occlusion;
     line["mode"] = trace_mode_name(*mode);
-    line["isa"] = kernel->isa;
+    line["isa"] = isa_name(*trace_options.isa);
+    line["packets"] = stats.packets;
+    line["packet_rays"] = stats.packet_rays;
+    line["single_rays"] = stats.single_rays;
     line["threads"] = threads;
     line["builder"] = builder_name(builder);
     line["reps"] = reps;
@@ -412,7 +423,7 @@ struct Command {
 };
 
 constexpr std::array<std::string_view, 3> kBuildOptions = {"builder", "threads", "reps"};
-constexpr std::array<std::string_view, 6> kTraceOptions = {"mode", "threads", "reps", "out", "builder", "compare"};
+constexpr std::array<std::string_view, 7> kTraceOptions = {"mode", "isa", "threads", "reps", "out", "builder", "compare"};
 constexpr std::array<std::string_view, 5> kRaysOptions = {"kind", "res", "seed", "out", "threads"};
 constexpr std::array<Command, 3> kCommands = {{
     {"build", kBuildUsage, kBuildOptions, &run_build},

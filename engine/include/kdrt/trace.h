@@ -2,7 +2,9 @@
 /// Single-ray queries against a KdTree, and a brute-force reference.
 
 #include <cstdint>
+#include <optional>
 #include <span>
+#include <string_view>
 
 #include "kdrt/kdtree.h"
 #include "kdrt/types.h"
@@ -26,16 +28,65 @@ namespace kdrt {
 /// (zero-area) triangles are collapsed to a point, so no ray ever hits them.
 [[nodiscard]] std::vector<TriVerts> make_tri_verts(const Mesh& mesh);
 
+/// SIMD instruction sets the packet kernels exist for, narrowest first.
+enum class Isa : uint32_t {
+    kScalar = 0,  ///< no packets: the single-ray kernel only
+    kSse4 = 1,    ///< SSE4.2, 4 rays per packet
+    kAvx2 = 2,    ///< AVX2, 8 rays per packet
+    kAvx512 = 3,  ///< AVX-512 (F, DQ, VL, BW), 16 rays per packet
+};
+
+/// "scalar", "sse4", "avx2", "avx512".
+[[nodiscard]] std::string_view isa_name(Isa isa) noexcept;
+[[nodiscard]] std::optional<Isa> parse_isa(std::string_view name) noexcept;
+/// Rays per packet: 1, 4, 8, 16.
+[[nodiscard]] int isa_width(Isa isa) noexcept;
+/// True when this CPU can run the kernels of `isa`.
+[[nodiscard]] bool isa_supported(Isa isa) noexcept;
+/// The instruction set batch queries use by default: the widest the CPU supports, or the one
+/// named by the environment variable KDRT_ISA (scalar|sse4|avx2|avx512) if the CPU supports it.
+/// Decided once, at first use; thread-safe.
+[[nodiscard]] Isa default_isa() noexcept;
+/// Why default_isa() is what it is, e.g. "widest supported" or "KDRT_ISA=sse4", or a warning
+/// when KDRT_ISA names an unknown or unsupported set (which is then ignored).
+[[nodiscard]] std::string_view default_isa_reason() noexcept;
+
+/// How a batch traces: packets where the rays are coherent and single rays elsewhere (auto),
+/// or one way only. Every mode gives the same answers, bit for bit.
+enum class TraceMode : uint32_t { kAuto = 0, kSingle = 1, kPacket = 2 };
+[[nodiscard]] std::string_view trace_mode_name(TraceMode mode) noexcept;
+[[nodiscard]] std::optional<TraceMode> parse_trace_mode(std::string_view name) noexcept;
+
+struct TraceOptions {
+    TraceMode mode = TraceMode::kAuto;
+    std::optional<Isa> isa;  ///< default: default_isa(); an unsupported one falls back to it
+};
+
+/// What a batch did: how the auto policy split the work.
+struct TraceStats {
+    Isa isa = Isa::kScalar;
+    uint64_t rays = 0;
+    uint64_t packets = 0;
+    uint64_t packet_rays = 0;
+    uint64_t single_rays = 0;
+    uint64_t invalid_rays = 0;
+};
+
 /// Batch queries for arbitrary input, over all threads of the current oneTBB arena. Answers come
 /// back in input order; `hits` / `occluded_out` must have rays.size() elements (1 = occluded).
-/// The engine picks the fastest kernel it has for the batch; every kernel gives the same answers.
-void intersect(const KdTree& tree, std::span<const Ray> rays, std::span<Hit> hits) noexcept;
-void occluded(const KdTree& tree, std::span<const Ray> rays, std::span<uint8_t> occluded_out) noexcept;
+/// Rays are grouped by direction octant inside blocks of 256 and traced as SIMD packets when the
+/// policy says so. No allocation; per-thread scratch only.
+void intersect(const KdTree& tree, std::span<const Ray> rays, std::span<Hit> hits, const TraceOptions& options = {},
+               TraceStats* stats = nullptr) noexcept;
+void occluded(const KdTree& tree, std::span<const Ray> rays, std::span<uint8_t> occluded_out,
+              const TraceOptions& options = {}, TraceStats* stats = nullptr) noexcept;
 
 /// The same, on the calling thread only (no tasks spawned): for callers that already run in
 /// parallel over small blocks, such as the renderer's tiles.
-void intersect_block(const KdTree& tree, std::span<const Ray> rays, std::span<Hit> hits) noexcept;
-void occluded_block(const KdTree& tree, std::span<const Ray> rays, std::span<uint8_t> occluded_out) noexcept;
+void intersect_block(const KdTree& tree, std::span<const Ray> rays, std::span<Hit> hits,
+                     const TraceOptions& options = {}) noexcept;
+void occluded_block(const KdTree& tree, std::span<const Ray> rays, std::span<uint8_t> occluded_out,
+                    const TraceOptions& options = {}) noexcept;
 
 /// Batch queries with the single-ray kernel only (the baseline that packets are measured against).
 void intersect_single(const KdTree& tree, std::span<const Ray> rays, std::span<Hit> hits) noexcept;

@@ -1,0 +1,42 @@
+#pragma once
+// Internal: the interface between the generic batch tracer and the per-ISA packet kernels.
+
+#include <cstddef>
+#include <cstdint>
+
+#include "kdrt/kdtree.h"
+#include "kdrt/types.h"
+
+namespace kdrt::detail {
+
+/// How a block decides between packets and single rays (TraceMode, as the kernels see it).
+enum class Policy : uint32_t { kAuto = 0, kSingle = 1, kPacket = 2 };
+
+/// What a kernel did, summed over a batch (per-thread, added up afterwards).
+struct TraceCounters {
+    uint64_t packets = 0;      ///< packets traversed
+    uint64_t packet_rays = 0;  ///< rays traced inside packets
+    uint64_t single_rays = 0;  ///< rays traced with the single-ray kernel
+    uint64_t invalid_rays = 0; ///< rays answered as misses without tracing (NaN, zero direction, ...)
+};
+
+/// One ISA's kernels. Each traces `count` rays on the calling thread, answers in input order.
+struct PacketKernels {
+    int width;
+    void (*intersect)(const KdTree& tree, const Ray* rays, size_t count, Hit* hits, Policy policy,
+                      TraceCounters& counters);
+    void (*occluded)(const KdTree& tree, const Ray* rays, size_t count, uint8_t* occluded, Policy policy,
+                     TraceCounters& counters);
+};
+
+/// Defined in packet_sse4.cpp, packet_avx2.cpp, packet_avx512.cpp. Call only when the CPU has the
+/// instruction set (see dispatch.cpp).
+const PacketKernels* packet_kernels_sse4() noexcept;
+const PacketKernels* packet_kernels_avx2() noexcept;
+const PacketKernels* packet_kernels_avx512() noexcept;
+
+/// Rays per block handed to a kernel: big enough to find same-octant neighbours, small enough
+/// that the bucket indices stay in L1.
+inline constexpr size_t kBlockRays = 256;
+
+}  // namespace kdrt::detail

@@ -1,0 +1,24 @@
+// The packet kernels instantiated for avx2 (W = 8). Only the code after the pragma is compiled
+// for that instruction set; see simd.h for why the kernel lives in an anonymous namespace.
+#include <cstddef>
+#include <cstdint>
+
+#include <immintrin.h>
+
+#include "packet.h"
+#include "ray_prep.h"
+#include "kdrt/trace.h"
+
+#pragma GCC push_options
+#pragma GCC target("avx2,popcnt")
+#include "packet_kernel.h"
+#pragma GCC pop_options
+
+namespace kdrt::detail {
+
+const PacketKernels* packet_kernels_avx2() noexcept {
+    static constexpr PacketKernels kKernels{8, &intersect_rays<8>, &occluded_rays<8>};
+    return &kKernels;
+}
+
+}  // namespace kdrt::detail
