@@ -29,11 +29,13 @@ struct alignas(64) Packet {
     VF<W> org[3];
     VF<W> inv[3];
     VF<W> eps[3];
+    VF<W> org_k[3];  // the origin permuted into the lane's (kx, ky, kz) frame
     VF<W> sx, sy, sz;
     VM<W> kx, ky, kz;
     VF<W> ray_tmin, ray_tmax;
     VF<W> tmin, tmax;  // the root interval: the ray clipped to the scene box (empty for dead lanes)
     uint32_t near_is_high[3];
+    int uniform_k;     // -1, or the kz shared by every lane (then kx, ky are shared too)
 };
 
 template <int W>
@@ -55,52 +57,94 @@ inline VF<W> pick(VM<W> k, VF<W> x, VF<W> y, VF<W> z) {
     return k == 0 ? x : (k == 1 ? y : z);
 }
 
-/// Loads `count` (1..W) rays into a packet. Lanes past `count` are dead (empty interval).
+/// Lane-wise v[k]: one coordinate of a vertex, per lane's axis k.
+template <int W>
+inline VF<W> pick_coord(const float* v, VM<W> k) {
+    return pick<W>(k, simd::broadcast<W>(v[0]), simd::broadcast<W>(v[1]), simd::broadcast<W>(v[2]));
+}
+
+template <int W>
+inline VF<W> abs(VF<W> x) {
+    VU<W> bits;
+    __builtin_memcpy(&bits, &x, sizeof bits);
+    bits &= 0x7FFFFFFFu;
+    __builtin_memcpy(&x, &bits, sizeof x);
+    return x;
+}
+
+/// Loads `count` (1..W) valid rays into a packet, computing lane by lane what prepare_ray,
+/// clip_to_box and traversal_eps compute for a single ray, with the same operations in the same
+/// order. Lanes past `count` are dead (empty interval).
 template <int W>
 inline void setup_packet(const KdTree& tree, const Ray* rays, const uint16_t* index, int count, Packet<W>& pk) {
-    alignas(64) float org[3][W], inv[3][W], eps[3][W], sx[W], sy[W], sz[W], rtmin[W], rtmax[W], tmin[W], tmax[W];
-    alignas(64) int32_t kx[W], ky[W], kz[W];
+    alignas(64) float field[8][W];
     for (int l = 0; l < W; ++l) {
-        const Ray& r = rays[index[l < count ? l : 0]];
-        const PreparedRay p = prepare_ray(r);
-        float lo = r.tmin, hi = r.tmax;
-        const bool alive = l < count && clip_to_box(p, tree.bounds, lo, hi);
-        float e[3];
-        traversal_eps(p, tree.bounds, e);
-        for (int a = 0; a < 3; ++a) {
-            org[a][l] = p.org[a];
-            inv[a][l] = p.inv_dir[a];
-            eps[a][l] = e[a];
-        }
-        sx[l] = p.sx;
-        sy[l] = p.sy;
-        sz[l] = p.sz;
-        kx[l] = p.kx;
-        ky[l] = p.ky;
-        kz[l] = p.kz;
-        rtmin[l] = r.tmin;
-        rtmax[l] = r.tmax;
-        tmin[l] = alive ? lo : __builtin_inff();
-        tmax[l] = alive ? hi : -__builtin_inff();
-        if (l == 0) {
-            for (int a = 0; a < 3; ++a) pk.near_is_high[a] = __builtin_signbit(p.inv_dir[a]) ? 1u : 0u;
-        }
+        float r[8];
+        __builtin_memcpy(r, &rays[index[l < count ? l : 0]], sizeof r);
+        for (int f = 0; f < 8; ++f) field[f][l] = r[f];
     }
+    const VF<W> o[3] = {simd::load<W>(field[0]), simd::load<W>(field[1]), simd::load<W>(field[2])};
+    const VF<W> d[3] = {simd::load<W>(field[4]), simd::load<W>(field[5]), simd::load<W>(field[6])};
+    const VF<W> ray_tmin = simd::load<W>(field[3]), ray_tmax = simd::load<W>(field[7]);
+    VF<W> inv[3];
+    for (int a = 0; a < 3; ++a) inv[a] = 1.0f / d[a];
+    // prepare_ray: kz where |d| is largest (first on ties), kx and ky after it, swapped when
+    // d[kz] < 0; the shear constants.
+    const VF<W> ad0 = abs<W>(d[0]), ad1 = abs<W>(d[1]), ad2 = abs<W>(d[2]);
+    VM<W> kz = simd::select<W>(ad1 > ad0, simd::broadcast_i<W>(1), simd::broadcast_i<W>(0));
+    kz = simd::select<W>(ad2 > (kz == 0 ? ad0 : ad1), simd::broadcast_i<W>(2), kz);
+    VM<W> kx = simd::select<W>(kz == 2, simd::broadcast_i<W>(0), kz + 1);
+    VM<W> ky = simd::select<W>(kx == 2, simd::broadcast_i<W>(0), kx + 1);
+    const VF<W> dkz = pick<W>(kz, d[0], d[1], d[2]);
+    const VM<W> swap = dkz < 0.0f;
+    const VM<W> kx_swapped = simd::select<W>(swap, ky, kx);
+    ky = simd::select<W>(swap, kx, ky);
+    kx = kx_swapped;
+    pk.sx = pick<W>(kx, d[0], d[1], d[2]) / dkz;
+    pk.sy = pick<W>(ky, d[0], d[1], d[2]) / dkz;
+    pk.sz = 1.0f / dkz;
+    pk.kx = kx;
+    pk.ky = ky;
+    pk.kz = kz;
+    pk.org_k[0] = pick<W>(kx, o[0], o[1], o[2]);
+    pk.org_k[1] = pick<W>(ky, o[0], o[1], o[2]);
+    pk.org_k[2] = pick<W>(kz, o[0], o[1], o[2]);
+    // clip_to_box
+    const VF<W> inf = simd::broadcast<W>(__builtin_inff());
+    VF<W> tmin = ray_tmin, tmax = ray_tmax;
+    VM<W> miss = simd::broadcast_i<W>(0);
+    VF<W> m = simd::broadcast<W>(bounds_magnitude(tree.bounds));
     for (int a = 0; a < 3; ++a) {
-        pk.org[a] = simd::load<W>(org[a]);
-        pk.inv[a] = simd::load<W>(inv[a]);
-        pk.eps[a] = simd::load<W>(eps[a]);
+        const VM<W> parallel = abs<W>(inv[a]) == inf;
+        miss |= parallel & ((o[a] < tree.bounds.lo[a]) | (o[a] > tree.bounds.hi[a]));
+        const VF<W> t0 = (tree.bounds.lo[a] - o[a]) * inv[a], t1 = (tree.bounds.hi[a] - o[a]) * inv[a];
+        const VM<W> order = t0 > t1;
+        const VF<W> near = simd::select<W>(order, t1, t0), far = simd::select<W>(order, t0, t1);
+        tmin = simd::select<W>(parallel, tmin, simd::select<W>(near > tmin, near, tmin));
+        tmax = simd::select<W>(parallel, tmax, simd::select<W>(far < tmax, far, tmax));
+        const VF<W> oa = abs<W>(o[a]);
+        m = simd::select<W>(oa > m, oa, m);  // interval_margin
     }
-    pk.sx = simd::load<W>(sx);
-    pk.sy = simd::load<W>(sy);
-    pk.sz = simd::load<W>(sz);
-    __builtin_memcpy(&pk.kx, kx, sizeof pk.kx);
-    __builtin_memcpy(&pk.ky, ky, sizeof pk.ky);
-    __builtin_memcpy(&pk.kz, kz, sizeof pk.kz);
-    pk.ray_tmin = simd::load<W>(rtmin);
-    pk.ray_tmax = simd::load<W>(rtmax);
-    pk.tmin = simd::load<W>(tmin);
-    pk.tmax = simd::load<W>(tmax);
+    alignas(64) int32_t lane[W];
+    for (int l = 0; l < W; ++l) lane[l] = l;
+    VM<W> lane_v;
+    __builtin_memcpy(&lane_v, lane, sizeof lane_v);
+    const VM<W> alive = (lane_v < count) & ~miss & (tmin <= tmax);
+    pk.tmin = simd::select<W>(alive, tmin, inf);
+    pk.tmax = simd::select<W>(alive, tmax, -inf);
+    // traversal_eps
+    const VF<W> delta = m * 0x1p-20f;
+    for (int a = 0; a < 3; ++a) {
+        const VF<W> ai = abs<W>(inv[a]);
+        pk.eps[a] = simd::select<W>(ai == inf, simd::broadcast<W>(0.0f), delta * ai);
+        pk.org[a] = o[a];
+        pk.inv[a] = inv[a];
+    }
+    pk.ray_tmin = ray_tmin;
+    pk.ray_tmax = ray_tmax;
+    for (int a = 0; a < 3; ++a) pk.near_is_high[a] = __builtin_signbit(field[4 + a][0]) ? 1u : 0u;
+    const int kz0 = pk.kz[0];
+    pk.uniform_k = simd::none<W>(kz != kz0) && simd::none<W>(kx != pk.kx[0]) ? kz0 : -1;
 }
 
 /// The watertight test of one triangle against the lanes in `active`; returns the lanes hit with
@@ -108,12 +152,22 @@ inline void setup_packet(const KdTree& tree, const Ray* rays, const uint16_t* in
 template <int W>
 inline VM<W> intersect_triangle_packet(const Packet<W>& pk, const TriVerts& tri, VM<W> active, VF<W>& t_out,
                                        VF<W>& u_out, VF<W>& v_out) {
-    const VF<W> a0 = tri.v0[0] - pk.org[0], a1 = tri.v0[1] - pk.org[1], a2 = tri.v0[2] - pk.org[2];
-    const VF<W> b0 = tri.v1[0] - pk.org[0], b1 = tri.v1[1] - pk.org[1], b2 = tri.v1[2] - pk.org[2];
-    const VF<W> c0 = tri.v2[0] - pk.org[0], c1 = tri.v2[1] - pk.org[1], c2 = tri.v2[2] - pk.org[2];
-    const VF<W> a_x = pick<W>(pk.kx, a0, a1, a2), a_y = pick<W>(pk.ky, a0, a1, a2), a_z = pick<W>(pk.kz, a0, a1, a2);
-    const VF<W> b_x = pick<W>(pk.kx, b0, b1, b2), b_y = pick<W>(pk.ky, b0, b1, b2), b_z = pick<W>(pk.kz, b0, b1, b2);
-    const VF<W> c_x = pick<W>(pk.kx, c0, c1, c2), c_y = pick<W>(pk.ky, c0, c1, c2), c_z = pick<W>(pk.kz, c0, c1, c2);
+    // The vertices relative to the origin in each lane's (kx, ky, kz) frame: tri.v[k] - org[k].
+    VF<W> a_x, a_y, a_z, b_x, b_y, b_z, c_x, c_y, c_z;
+    if (pk.uniform_k >= 0) {  // coherent packets: every lane has the same frame, no per-lane picks
+        const int kz = pk.uniform_k, kx = pk.kx[0], ky = pk.ky[0];
+        a_x = tri.v0[kx] - pk.org_k[0], a_y = tri.v0[ky] - pk.org_k[1], a_z = tri.v0[kz] - pk.org_k[2];
+        b_x = tri.v1[kx] - pk.org_k[0], b_y = tri.v1[ky] - pk.org_k[1], b_z = tri.v1[kz] - pk.org_k[2];
+        c_x = tri.v2[kx] - pk.org_k[0], c_y = tri.v2[ky] - pk.org_k[1], c_z = tri.v2[kz] - pk.org_k[2];
+    } else {
+        // (A helper function, not a lambda: a lambda would not inherit the ISA target.)
+        a_x = pick_coord<W>(tri.v0, pk.kx) - pk.org_k[0], a_y = pick_coord<W>(tri.v0, pk.ky) - pk.org_k[1];
+        a_z = pick_coord<W>(tri.v0, pk.kz) - pk.org_k[2];
+        b_x = pick_coord<W>(tri.v1, pk.kx) - pk.org_k[0], b_y = pick_coord<W>(tri.v1, pk.ky) - pk.org_k[1];
+        b_z = pick_coord<W>(tri.v1, pk.kz) - pk.org_k[2];
+        c_x = pick_coord<W>(tri.v2, pk.kx) - pk.org_k[0], c_y = pick_coord<W>(tri.v2, pk.ky) - pk.org_k[1];
+        c_z = pick_coord<W>(tri.v2, pk.kz) - pk.org_k[2];
+    }
     const VF<W> ax = a_x - pk.sx * a_z, ay = a_y - pk.sy * a_z;
     const VF<W> bx = b_x - pk.sx * b_z, by = b_y - pk.sy * b_z;
     const VF<W> cx = c_x - pk.sx * c_z, cy = c_y - pk.sy * c_z;

@@ -120,13 +120,26 @@ static inline bool clip_to_box(const PreparedRay& p, const Aabb& box, float& tmi
     return tmin <= tmax;
 }
 
+/// Largest coordinate magnitude of a box.
+static inline float bounds_magnitude(const Aabb& bounds) noexcept {
+    float m = 0.0f;
+    for (int a = 0; a < 3; ++a) {
+        const float lo = __builtin_fabsf(bounds.lo[a]), hi = __builtin_fabsf(bounds.hi[a]);
+        m = lo > m ? lo : m;
+        m = hi > m ? hi : m;
+    }
+    return m;
+}
+
 /// Spatial margin by which traversal widens its cells: 16 ulps of the largest coordinate magnitude
 /// of the scene and the ray origin, comfortably above the rounding of the triangle test.
 static inline float interval_margin(const PreparedRay& p, const Aabb& bounds) noexcept {
-    float m = 0.0f;
+    // Plain comparisons, not fmaxf (a libm call): the inputs are never NaN here, and the packet
+    // kernels take the same maximum lane by lane.
+    float m = bounds_magnitude(bounds);
     for (int a = 0; a < 3; ++a) {
-        m = __builtin_fmaxf(m, __builtin_fabsf(p.org[a]));
-        m = __builtin_fmaxf(m, __builtin_fmaxf(__builtin_fabsf(bounds.lo[a]), __builtin_fabsf(bounds.hi[a])));
+        const float o = __builtin_fabsf(p.org[a]);
+        m = o > m ? o : m;
     }
     return m * 0x1p-20f;
 }
