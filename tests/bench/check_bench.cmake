@@ -132,6 +132,15 @@ if(EMBREE)
                 embree_build_ms embree_bytes_per_triangle differences)
 endif()
 
+# generated scenes
+run_bench(grid_line scene grid --from "${MESH}" --copies 2 --out "${WORK_DIR}/grid.ply")
+expect_value("${grid_line}" triangles 150816)
+run_bench(grid_build build "${WORK_DIR}/grid.ply")
+expect_value("${grid_build}" triangles 150816)
+run_bench(stadium_line scene stadium --out "${WORK_DIR}/stadium.ply")
+expect_value("${stadium_line}" triangles 128892)
+expect_failure(2 "not one of stadium, grid" scene bogus --out "${WORK_DIR}/x.ply")
+
 # exit codes: 2 for the command line, 1 for a failed run naming the file
 expect_failure(2 "missing argument RAYS.kdrr" trace "${MESH}")
 expect_failure(2 "unknown option '--bogus'" build "${MESH}" --bogus 1)

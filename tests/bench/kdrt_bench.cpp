@@ -33,6 +33,7 @@
 #include "kdrt/proto/mesh_io.h"
 #include "kdrt/proto/ray_batch.h"
 #include "kdrt/raygen.h"
+#include "scenes.h"
 
 namespace kdrt::bench {
 namespace {
@@ -51,6 +52,7 @@ commands:
   trace MESH RAYS.kdrr
                 trace a KDRR ray batch (closest hit, or occlusion when the batch says so)
   rays MESH     write a deterministic KDRR ray set (primary, shadow, diffuse, random)
+  scene KIND    write a generated benchmark scene (stadium, grid) as a mesh file
 
 MESH is any mesh file kdrt reads, chosen by extension: .obj .ply .off .stl .raw/.kdrtmesh.
 Run 'kdrt-bench <command> --help' for the options of a command.
@@ -415,6 +417,47 @@ int run_rays(const Args& args) {
     return 0;
 }
 
+constexpr std::string_view kSceneUsage =
+    R"(usage: kdrt-bench scene stadium --out FILE [--size S]
+       kdrt-bench scene grid --from MESH --copies N --out FILE
+
+Writes a generated scene; the format follows the extension of FILE (.ply is binary PLY).
+  stadium  a closed box of side S (default 1000) around a finely tessellated unit sphere
+           (180 x 360 segments, ~130k triangles): the "teapot in a stadium"
+  grid     N copies of MESH (default 16) on a square grid: 16 bunnies are 1.2M triangles
+Prints one JSON line: kind, triangles, vertices, out, bytes.
+)";
+
+int run_scene(const Args& args) {
+    static constexpr std::array<std::string_view, 1> kNames = {"KIND"};
+    args.expect_positional(kNames);
+    const std::string& kind = args.positional()[0];
+    const std::string out_path = args.require("out");
+    const auto format = proto::mesh_format_from_path(out_path);
+    if (!format) throw UsageError("option '--out': cannot tell the mesh format from the extension of '" + out_path + "'");
+    Mesh mesh;
+    if (kind == "stadium") {
+        const auto size = static_cast<float>(args.get_uint("size", 1000, 4, 1000000));
+        mesh = test::teapot_in_stadium(size, 180, 360);
+    } else if (kind == "grid") {
+        const LoadedMesh loaded = load_mesh(args.require("from"));
+        mesh = test::replicate_grid(loaded.mesh, static_cast<uint32_t>(args.get_uint("copies", 16, 1, 4096)));
+    } else {
+        throw UsageError("scene kind '" + kind + "' is not one of stadium, grid");
+    }
+    const std::vector<std::byte> bytes = proto::write_mesh(mesh, *format);
+    write_output(out_path, bytes);
+    Json line;
+    line["command"] = "scene";
+    line["kind"] = kind;
+    line["triangles"] = mesh.triangle_count();
+    line["vertices"] = mesh.vertex_count();
+    line["out"] = out_path;
+    line["bytes"] = bytes.size();
+    print_json(line);
+    return 0;
+}
+
 struct Command {
     std::string_view name;
     std::string_view usage;
@@ -425,10 +468,12 @@ struct Command {
 constexpr std::array<std::string_view, 3> kBuildOptions = {"builder", "threads", "reps"};
 constexpr std::array<std::string_view, 7> kTraceOptions = {"mode", "isa", "threads", "reps", "out", "builder", "compare"};
 constexpr std::array<std::string_view, 5> kRaysOptions = {"kind", "res", "seed", "out", "threads"};
-constexpr std::array<Command, 3> kCommands = {{
+constexpr std::array<std::string_view, 4> kSceneOptions = {"out", "size", "from", "copies"};
+constexpr std::array<Command, 4> kCommands = {{
     {"build", kBuildUsage, kBuildOptions, &run_build},
     {"trace", kTraceUsage, kTraceOptions, &run_trace},
     {"rays", kRaysUsage, kRaysOptions, &run_rays},
+    {"scene", kSceneUsage, kSceneOptions, &run_scene},
 }};
 
 int run_main(int argc, char** argv) {

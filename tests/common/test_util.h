@@ -10,6 +10,7 @@
 #include "kdrt/kdtree.h"
 #include "kdrt/mesh.h"
 #include "kdrt/types.h"
+#include "scenes.h"
 
 namespace kdrt::test {
 
@@ -51,23 +52,6 @@ private:
     uint64_t state_;
 };
 
-inline uint32_t add_vertex(Mesh& m, Vec3 v) {
-    // push_back, not insert({...}): GCC 12 reports a false stringop-overflow for the latter.
-    m.positions.push_back(v.x);
-    m.positions.push_back(v.y);
-    m.positions.push_back(v.z);
-    return static_cast<uint32_t>(m.vertex_count() - 1);
-}
-inline void add_indices(Mesh& m, uint32_t i, uint32_t j, uint32_t k) {
-    m.indices.push_back(i);
-    m.indices.push_back(j);
-    m.indices.push_back(k);
-}
-inline void add_triangle(Mesh& m, Vec3 a, Vec3 b, Vec3 c) {
-    const uint32_t i = add_vertex(m, a), j = add_vertex(m, b), k = add_vertex(m, c);
-    add_indices(m, i, j, k);
-}
-
 /// `count` random triangles in the unit cube, of random size up to `max_edge`.
 inline Mesh random_soup(Rng& rng, size_t count, float max_edge = 0.15f) {
     Mesh m;
@@ -77,59 +61,6 @@ inline Mesh random_soup(Rng& rng, size_t count, float max_edge = 0.15f) {
         const float s = rng.uniform(0.01f, max_edge);
         add_triangle(m, c + rng.on_sphere() * s, c + rng.on_sphere() * s, c + rng.on_sphere() * s);
     }
-    return m;
-}
-
-/// A closed, finely tessellated UV sphere with shared vertices (watertight as an index mesh).
-inline Mesh uv_sphere(Vec3 centre, float radius, uint32_t rings, uint32_t segments) {
-    Mesh m;
-    add_vertex(m, centre + Vec3{0, 0, radius});
-    for (uint32_t r = 1; r < rings; ++r) {
-        const double theta = 3.14159265358979 * r / rings;
-        for (uint32_t s = 0; s < segments; ++s) {
-            const double phi = 2 * 3.14159265358979 * s / segments;
-            add_vertex(m, centre + Vec3{static_cast<float>(radius * std::sin(theta) * std::cos(phi)),
-                                        static_cast<float>(radius * std::sin(theta) * std::sin(phi)),
-                                        static_cast<float>(radius * std::cos(theta))});
-        }
-    }
-    const uint32_t south = add_vertex(m, centre + Vec3{0, 0, -radius});
-    auto ring_vertex = [&](uint32_t r, uint32_t s) { return 1 + (r - 1) * segments + s % segments; };
-    for (uint32_t s = 0; s < segments; ++s) {
-        add_indices(m, 0, ring_vertex(1, s), ring_vertex(1, s + 1));
-        add_indices(m, south, ring_vertex(rings - 1, s + 1), ring_vertex(rings - 1, s));
-    }
-    for (uint32_t r = 1; r + 1 < rings; ++r) {
-        for (uint32_t s = 0; s < segments; ++s) {
-            const uint32_t a = ring_vertex(r, s), b = ring_vertex(r, s + 1), c = ring_vertex(r + 1, s),
-                           d = ring_vertex(r + 1, s + 1);
-            add_indices(m, a, c, b);
-            add_indices(m, b, c, d);
-        }
-    }
-    return m;
-}
-
-/// Appends `src` to `dst` (indices rebased).
-inline void append(Mesh& dst, const Mesh& src) {
-    const auto base = static_cast<uint32_t>(dst.vertex_count());
-    dst.positions.insert(dst.positions.end(), src.positions.begin(), src.positions.end());
-    for (uint32_t i : src.indices) dst.indices.push_back(i + base);
-}
-
-/// "Teapot in a stadium": a huge closed box (12 triangles, size `stadium`) around a tiny, finely
-/// tessellated sphere at its centre.
-inline Mesh teapot_in_stadium(float stadium = 1000.0f, uint32_t rings = 60, uint32_t segments = 120) {
-    Mesh m;
-    const float h = stadium * 0.5f;
-    const Vec3 c[8] = {{-h, -h, -h}, {h, -h, -h}, {h, h, -h}, {-h, h, -h}, {-h, -h, h}, {h, -h, h}, {h, h, h}, {-h, h, h}};
-    for (const Vec3& v : c) add_vertex(m, v);
-    const uint32_t faces[6][4] = {{0, 3, 2, 1}, {4, 5, 6, 7}, {0, 1, 5, 4}, {2, 3, 7, 6}, {1, 2, 6, 5}, {0, 4, 7, 3}};
-    for (const auto& f : faces) {
-        add_indices(m, f[0], f[1], f[2]);
-        add_indices(m, f[0], f[2], f[3]);
-    }
-    append(m, uv_sphere({0.3f, -0.2f, 0.1f}, 1.0f, rings, segments));
     return m;
 }
 
