@@ -79,6 +79,9 @@ bool clipped_bounds(const TriVerts& tri, const Aabb& cell, Aabb& out) {
         for (int side = 0; side < 2 && n > 0; ++side) {
             const double bound = side == 0 ? cell.lo[a] : cell.hi[a];
             auto inside = [&](const P& p) { return side == 0 ? p[a] >= bound : p[a] <= bound; };
+            bool all_inside = true;
+            for (int i = 0; i < n && all_inside; ++i) all_inside = inside(src[i]);
+            if (all_inside) continue;  // this plane cuts nothing off (the common case)
             int m = 0;
             for (int i = 0; i < n; ++i) {
                 const P& cur = src[i];
@@ -124,6 +127,21 @@ bool vertex_bounds_in(const TriVerts& tri, const Aabb& cell, Aabb& out) {
         if (out.lo[a] > out.hi[a]) return false;
     }
     return true;
+}
+
+/// Merges the sorted `extra` into the sorted `dst` in place, from the back (no temporary).
+void merge_into(std::vector<Event>& dst, const std::vector<Event>& extra) {
+    if (extra.empty()) return;
+    size_t i = dst.size(), j = extra.size();
+    dst.resize(i + j);
+    size_t k = dst.size();
+    while (j > 0) {
+        if (i > 0 && dst[i - 1] > extra[j - 1]) {
+            dst[--k] = dst[--i];
+        } else {
+            dst[--k] = extra[--j];
+        }
+    }
 }
 
 double half_area(const Aabb& b) noexcept {
@@ -191,6 +209,7 @@ private:
         if (!(cell.lo[axis] < cell.hi[axis])) return best;  // flat along this axis: nothing to split
         const double area = half_area(cell);
         if (!(area > 0)) return best;
+        const double inv_area = 1.0 / area;
         const int a1 = (axis + 1) % 3, a2 = (axis + 2) % 3;
         const double e1 = double{cell.hi[a1]} - cell.lo[a1], e2 = double{cell.hi[a2]} - cell.lo[a2];
         const double cap = e1 * e2, ring = e1 + e2;
@@ -210,9 +229,11 @@ private:
             n_right -= planar + ending;
             const float pos = from_ordered_bits(key);
             if (pos >= cell.lo[axis] && pos <= cell.hi[axis]) {
-                const double pl = (cap + ring * (double{pos} - cell.lo[axis])) / area;
-                const double pr = (cap + ring * (double{cell.hi[axis]} - pos)) / area;
-                for (int planar_left = 1; planar_left >= 0; --planar_left) {
+                const double pl = (cap + ring * (double{pos} - cell.lo[axis])) * inv_area;
+                const double pr = (cap + ring * (double{cell.hi[axis]} - pos)) * inv_area;
+                // Planar triangles go left or right, whichever is cheaper (Wald & Havran 2006);
+                // without any, both placements are the same split.
+                for (int planar_left = 1; planar_left >= (planar ? 0 : 1); --planar_left) {
                     const uint32_t nl = n_left + (planar_left ? planar : 0);
                     const uint32_t nr = n_right + (planar_left ? 0 : planar);
                     // A plane on the cell boundary leaves one child the whole cell: it must then
@@ -316,18 +337,18 @@ private:
         auto split_axis = [&](int a) {
             std::sort(new_left[a].begin(), new_left[a].end());
             std::sort(new_right[a].begin(), new_right[a].end());
-            std::vector<Event> l, r;
-            l.reserve(in.events[a].size());
-            r.reserve(in.events[a].size());
+            // At most two events per triangle on each side (prim_count includes the straddlers).
+            std::vector<Event>& l = left.events[a];
+            std::vector<Event>& r = right.events[a];
+            l.reserve(2 * size_t{left.prim_count});
+            r.reserve(2 * size_t{right.prim_count});
             for (Event e : in.events[a]) {
                 const uint8_t s = side[event_prim(e)];
                 if (s == kLeftOnly) l.push_back(e);
                 else if (s == kRightOnly) r.push_back(e);
             }
-            left.events[a].resize(l.size() + new_left[a].size());
-            std::merge(l.begin(), l.end(), new_left[a].begin(), new_left[a].end(), left.events[a].begin());
-            right.events[a].resize(r.size() + new_right[a].size());
-            std::merge(r.begin(), r.end(), new_right[a].begin(), new_right[a].end(), right.events[a].begin());
+            merge_into(l, new_left[a]);
+            merge_into(r, new_right[a]);
         };
         if (in.events[k].size() >= kParallelAxes) {
             tbb::this_task_arena::isolate([&] {
