@@ -1,5 +1,7 @@
 #!/usr/bin/env bash
-# The standard kdrt benchmark table: three scenes x four ray sets x 1 and 2 threads, as Markdown.
+# The standard kdrt benchmark table, as Markdown: the bunny (75k triangles), dragon-10kv (20k),
+# diplodocus (48k), a generated teapot-in-a-stadium (129k) and 16 bunnies (1.2M), each with
+# four ray sets (primary, shadow, diffuse, random) on 1 and 2 threads.
 #
 #   tests/bench/run.sh BUILD_DIR [WORK_DIR]
 #
@@ -8,13 +10,14 @@
 #   RES=1024        image resolution of the ray sets (res x res primary and random rays)
 #   REPS=3          timed passes per trace (median reported)
 #   THREADS="1 2"   thread counts, one column each
-#   MODE=single     traversal mode passed to kdrt-bench trace
+#   MODE=auto       traversal mode passed to kdrt-bench trace (auto|packet|single)
+#   SCENES="..."    scene names to run (default: all five; e.g. SCENES="bunny00.off")
 #   COMPARE=embree  also trace with Embree (if kdrt-bench was built with it) and add its columns
 # The table goes to stdout, progress to stderr; the raw JSON lines are kept in WORK_DIR/results.jsonl.
 set -euo pipefail
 
 if [[ $# -lt 1 || $# -gt 2 || "$1" == "-h" || "$1" == "--help" ]]; then
-    sed -n '2,13s/^# \{0,1\}//p' "$0" >&2
+    sed -n '2,16s/^# \{0,1\}//p' "$0" >&2
     exit 2
 fi
 build_dir=$1
@@ -24,9 +27,9 @@ data_dir=$(cd "$(dirname "$0")/../data" && pwd)
 res=${RES:-1024}
 reps=${REPS:-3}
 threads_list=${THREADS:-"1 2"}
-mode=${MODE:-single}
+mode=${MODE:-auto}
 compare=${COMPARE:-}
-scenes=(bunny00.off ChineseDragon-10kv.off diplodocus.off)
+read -r -a scenes <<< "${SCENES:-bunny00.off ChineseDragon-10kv.off diplodocus.off stadium.ply bunny16.ply}"
 kinds=(primary shadow diffuse random)
 
 if [[ ! -x "$bench" ]]; then
@@ -52,8 +55,17 @@ echo "|"
 printf '|---%.0s' "${columns[@]}"
 echo "|"
 
+# The generated scenes live in WORK_DIR, made once.
+if [[ ! -s "$work_dir/stadium.ply" ]]; then
+    "$bench" scene stadium --out "$work_dir/stadium.ply" >> "$results"
+fi
+if [[ ! -s "$work_dir/bunny16.ply" ]]; then
+    "$bench" scene grid --from "$data_dir/bunny00.off" --copies 16 --out "$work_dir/bunny16.ply" >> "$results"
+fi
+
 for scene in "${scenes[@]}"; do
     mesh=$data_dir/$scene
+    [[ -f "$mesh" ]] || mesh=$work_dir/$scene
     stem=${scene%.*}
     build_line=$("$bench" build "$mesh" --reps "$reps")
     echo "$build_line" >> "$results"
