@@ -231,20 +231,20 @@ inline VM<W> traverse_packet(const KdTree& tree, const Packet<W>& pk, PacketHits
             const VF<W> t_split = (node.split() - pk.org[axis]) * pk.inv[axis];
             const VF<W> near_max = t_split + pk.eps[axis], far_min = t_split - pk.eps[axis];
             const VM<W> active = tmin <= tmax;
-            const VM<W> in_plane = t_split != t_split;
             const uint32_t near_child = node.first_child() + pk.near_is_high[axis];
             const uint32_t far_child = node.first_child() + (pk.near_is_high[axis] ^ 1u);
             // Per lane as in the scalar kernel: near needed unless near_max < tmin, far needed
-            // unless far_min > tmax; a lane in the split plane (NaN) needs both, unchanged.
+            // unless far_min > tmax; a lane in the split plane (NaN t_split) fails every
+            // comparison, so it needs both, and min/max below keep its interval unchanged.
             const VM<W> need_near = active & ~(near_max < tmin);
             const VM<W> need_far = active & ~(far_min > tmax);
             const bool go_near = simd::any<W>(need_near), go_far = simd::any<W>(need_far);
             if (go_near && go_far) {
                 StackEntry<W>& e = stack[stack_size++];
-                e.tmin = simd::select<W>(in_plane, tmin, simd::max<W>(far_min, tmin));
+                e.tmin = simd::max<W>(far_min, tmin);
                 e.tmax = tmax;
                 e.node = far_child;
-                tmax = simd::select<W>(in_plane, tmax, simd::min<W>(near_max, tmax));
+                tmax = simd::min<W>(near_max, tmax);
                 node_index = near_child;
             } else if (go_near) {
                 node_index = near_child;

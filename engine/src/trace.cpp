@@ -45,7 +45,7 @@ bool traverse(const KdTree& tree, const Ray& ray, Best& best) noexcept {
     const uint32_t* refs = tree.leaf_refs.data();
     const TriVerts* tris = tree.tris.data();
 
-    std::array<StackEntry, kMaxDepth + 1> stack;
+    std::array<StackEntry, kMaxDepth + 2> stack;  // +1: the unconditional write past the top
     int stack_size = 0;
     uint32_t node_index = 0;
     bool found = false;
@@ -58,22 +58,18 @@ bool traverse(const KdTree& tree, const Ray& ray, Best& best) noexcept {
             const uint32_t far_child = node.first_child() + (near_is_high[axis] ^ 1u);
             // Each side's interval is widened by eps; a side is visited when its widened interval
             // meets [tmin, tmax]. The packet kernels make exactly these comparisons per lane, so
-            // every path visits the same cells for a ray.
+            // every path visits the same cells for a ray. Branch-free: the far child is always
+            // written to the stack and kept only when both sides are needed. A ray lying in the
+            // split plane (zero direction component, origin on the plane) has a NaN t_split: no
+            // comparison holds, so it needs both sides with unchanged intervals, as it must
+            // (triangles touching the plane may sit on either side).
             const float near_max = t_split + eps[axis], far_min = t_split - eps[axis];
-            if (far_min > tmax) {
-                node_index = near_child;
-            } else if (near_max < tmin) {
-                node_index = far_child;
-            } else if (t_split == t_split) {
-                stack[stack_size++] = {far_child, far_min > tmin ? far_min : tmin, tmax};
-                node_index = near_child;
-                tmax = near_max < tmax ? near_max : tmax;
-            } else {
-                // NaN: the ray lies in the split plane (zero direction component, origin on the
-                // plane). Triangles touching the plane may sit on either side: visit both.
-                stack[stack_size++] = {far_child, tmin, tmax};
-                node_index = near_child;
-            }
+            const bool need_near = !(near_max < tmin), need_far = !(far_min > tmax);
+            const bool both = need_near && need_far;
+            stack[stack_size] = {far_child, far_min > tmin ? far_min : tmin, tmax};
+            stack_size += both ? 1 : 0;
+            tmax = both && near_max < tmax ? near_max : tmax;
+            node_index = need_near ? near_child : far_child;
             node = nodes[node_index];
         }
         const uint32_t end = node.first_ref() + node.prim_count();
