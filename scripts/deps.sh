@@ -1,5 +1,6 @@
 # Sourced by scripts/test and scripts/run: installs the Debian packages kdrt needs, if missing.
-# Works on a fresh minimal Debian 12 (bookworm) as root, or with sudo.
+# Works on a fresh minimal Debian 12 (bookworm) as root, or with sudo. When every package is
+# already installed it does not call apt-get (or sudo) at all.
 
 kdrt_packages=(
     ca-certificates g++ make cmake pkg-config git
@@ -9,27 +10,45 @@ kdrt_packages=(
     libembree-dev qemu-user
 )
 
-kdrt_install_deps() {
-    local missing=()
-    local pkg
+# kdrt_missing_packages: prints the packages of kdrt_packages that are not installed, one a line.
+kdrt_missing_packages() {
+    local pkg status
     for pkg in "${kdrt_packages[@]}"; do
-        if ! dpkg-query -W -f='${Status}' "$pkg" 2>/dev/null | grep -q "install ok installed"; then
-            missing+=("$pkg")
+        # db:Status-Status is "installed" for both "install ok installed" and "hold ok installed".
+        # (No "| grep -q": under the callers' pipefail an early grep exit can SIGPIPE dpkg-query.)
+        status=$(dpkg-query -W -f='${db:Status-Status}' "$pkg" 2>/dev/null || true)
+        if [ "$status" != "installed" ]; then
+            echo "$pkg"
         fi
     done
+}
+
+kdrt_install_deps() {
+    local missing=()
+    mapfile -t missing < <(kdrt_missing_packages)
     if [ "${#missing[@]}" -eq 0 ]; then
         return 0
     fi
     echo "kdrt: installing ${missing[*]}"
-    local sudo=""
+    local sudo=()
     if [ "$(id -u)" -ne 0 ]; then
         if command -v sudo >/dev/null 2>&1; then
-            sudo="sudo"
+            sudo=(sudo)
         else
             echo "kdrt: missing packages (${missing[*]}) and not root; install them and retry" >&2
             return 1
         fi
     fi
-    $sudo apt-get update -qq
-    DEBIAN_FRONTEND=noninteractive $sudo apt-get install -y -qq --no-install-recommends "${missing[@]}"
+    # "env VAR=..." after sudo: sudo's env_reset would drop a DEBIAN_FRONTEND set in front of it.
+    # Lock::Timeout: on a just-booted machine apt-daily/unattended-upgrades may hold the dpkg lock.
+    local apt=("${sudo[@]}" env DEBIAN_FRONTEND=noninteractive apt-get
+               -o DPkg::Lock::Timeout=600 -o Acquire::Retries=3)
+    "${apt[@]}" update -qq || return 1
+    "${apt[@]}" install -y -qq --no-install-recommends "${missing[@]}" || return 1
+    local still
+    still=$(kdrt_missing_packages)
+    if [ -n "$still" ]; then
+        echo "kdrt: still not installed after apt-get: ${still//$'\n'/ }" >&2
+        return 1
+    fi
 }

@@ -37,12 +37,6 @@ void require_finite(Vec3 v, const char* field) {
     }
 }
 
-// Normalises in float; the input is known to be finite and non-zero.
-Vec3 normalized(Vec3 v) noexcept {
-    const float inv_len = 1.0f / std::sqrt(kdrt::dot(v, v));
-    return v * inv_len;
-}
-
 // tan(20 deg): half of the default vertical field of view. A constant, so default_camera makes no
 // libm call and frames a box identically everywhere.
 constexpr float kDefaultFovDeg = 40.0f;
@@ -107,20 +101,6 @@ Camera::Camera(const CameraSpec& spec, uint32_t width, uint32_t height) : spec_(
     up_ = to_float(true_up);
     half_h_ = static_cast<float>(half_h);
     half_w_ = static_cast<float>(half_h * static_cast<double>(width) / static_cast<double>(height));
-}
-
-Ray Camera::ray(float px, float py) const noexcept {
-    // Image plane coordinates in [-1, 1], y up: pixel row 0 is the top of the image.
-    const float sx = (2.0f * px / static_cast<float>(width_) - 1.0f) * half_w_;
-    const float sy = (1.0f - 2.0f * py / static_cast<float>(height_)) * half_h_;
-    Vec3 origin = spec_.eye;
-    Vec3 dir = forward_;
-    if (spec_.projection == Projection::kOrthographic) {
-        origin = spec_.eye + right_ * sx + up_ * sy;
-    } else {
-        dir = normalized(forward_ + right_ * sx + up_ * sy);
-    }
-    return Ray{origin.x, origin.y, origin.z, 0.0f, dir.x, dir.y, dir.z, std::numeric_limits<float>::infinity()};
 }
 
 CameraSpec default_camera(const Aabb& bounds, float aspect) {

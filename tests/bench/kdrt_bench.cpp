@@ -26,6 +26,7 @@
 
 #include "bench_args.h"
 #include "embree_compare.h"
+#include "image_helper.h"
 #include "kdrt/kdtree.h"
 #include "kdrt/trace.h"
 #include "kdrt/mesh.h"
@@ -33,6 +34,7 @@
 #include "kdrt/proto/mesh_io.h"
 #include "kdrt/proto/ray_batch.h"
 #include "kdrt/raygen.h"
+#include "kdrt/render.h"
 #include "scenes.h"
 
 namespace kdrt::bench {
@@ -53,6 +55,7 @@ commands:
                 trace a KDRR ray batch (closest hit, or occlusion when the batch says so)
   rays MESH     write a deterministic KDRR ray set (primary, shadow, diffuse, random)
   scene KIND    write a generated benchmark scene (stadium, grid) as a mesh file
+  render MESH   render the default view of a mesh, timed against its camera rays as a batch
 
 MESH is any mesh file kdrt reads, chosen by extension: .obj .ply .off .stl .raw/.kdrtmesh.
 Run 'kdrt-bench <command> --help' for the options of a command.
@@ -117,6 +120,43 @@ options:
   --res R        image resolution R x R (default 1024)
   --seed S       random seed for diffuse and random (default 1)
   --threads N    worker threads (default: all cores)
+)";
+
+constexpr std::string_view kRenderUsage =
+    R"(usage: kdrt-bench render MESH [--shading MODE] [--res R] [--spp S] [--tile 8|16]
+                         [--threads N] [--reps K] [--seed S] [--ao-samples K] [--bounces B]
+                         [--builder sah|middle] [--out FILE] [--compare embree]
+
+Renders the default view of MESH (R x R pixels into a linear float buffer, kdrt::render) K times
+(default 5) after one untimed warm-up render. Then traces the render's own camera rays (sample 0)
+as one batch with kdrt::intersect (default mode and ISA, as the renderer), K times: the render
+loop's overhead is the difference. Prints one JSON line:
+  mesh, triangles, shading, width, height, spp, tile, isa, threads, builder, reps, parse_ms,
+  build_ms, pixels, rays (traced per frame: camera, AO, shadow and bounce rays), seconds (per
+  frame, median of the K renders), seconds_min, fps (from the median), mrays_per_s (rays per frame
+  / median), cpu_util, batch_rays, batch_seconds (median), batch_mrays_per_s, and for shadings
+  that trace camera rays only (normals, eyelight, depth, primid) overhead = seconds / (spp *
+  batch_seconds) - 1: what tiling, ray generation and shading add to tracing the same rays
+With --compare embree the same camera rays also go through Embree 3 (as in `trace --compare
+embree`), adding embree_mrays_per_s, embree_best_mode, embree_fps (camera rays of a frame at
+Embree's best speed), ratio (mrays_per_s / embree_mrays_per_s), embree_build_ms, differences and
+embree_modes.
+
+options:
+  --shading MODE    normals, eyelight, depth, primid, ao, diffuse (default eyelight)
+  --res R           image width and height in pixels (default 1024)
+  --spp S           samples per pixel (default 1)
+  --tile 8|16       tile edge in pixels (default 16)
+  --threads N       worker threads (default: all cores)
+  --reps K          timed renders and batch passes (default 5)
+  --seed S          random seed (default 1)
+  --ao-samples K    ao: occlusion rays per sample (default 16)
+  --bounces B       diffuse: indirect bounces (default 0)
+  --builder sah|middle  tree builder (default sah)
+  --out FILE        write the last image: .png/.jpg/.jpeg (8-bit sRGB) or .exr (linear half),
+                    through the kdrt-image helper built next to kdrt-bench (kdrt-bench itself
+                    does not load OpenImageIO, which would add ~0.2 s to every start)
+  --compare embree  also trace the camera rays with Embree 3
 )";
 
 double ms_since(Clock::time_point start) {
@@ -458,6 +498,128 @@ int run_scene(const Args& args) {
     return 0;
 }
 
+int run_render(const Args& args) {
+    static constexpr std::array<std::string_view, 1> kNames = {"MESH"};
+    args.expect_positional(kNames);
+    const std::string& mesh_path = args.positional()[0];
+    RenderSettings settings;
+    const std::string shading_text = args.get("shading").value_or("eyelight");
+    const auto shading = parse_shading(shading_text);
+    if (!shading) {
+        throw UsageError("option '--shading': '" + shading_text +
+                         "' is not one of normals, eyelight, depth, primid, ao, diffuse");
+    }
+    settings.shading = *shading;
+    settings.width = settings.height = static_cast<uint32_t>(args.get_uint("res", 1024, 1, kMaxImageSize));
+    settings.spp = static_cast<uint32_t>(args.get_uint("spp", 1, 1, kMaxSamplesPerPixel));
+    settings.tile_size = static_cast<uint32_t>(args.get_uint("tile", 16, 8, 16));
+    if (settings.tile_size != 8 && settings.tile_size != 16) {
+        throw UsageError("option '--tile': '" + std::to_string(settings.tile_size) + "' is not 8 or 16");
+    }
+    settings.seed = args.get_uint("seed", 1, 0, std::numeric_limits<uint64_t>::max());
+    settings.ao_samples = static_cast<uint32_t>(args.get_uint("ao-samples", 16, 1, kMaxAoSamples));
+    settings.bounces = static_cast<uint32_t>(args.get_uint("bounces", 0, 0, kMaxBounces));
+    const Builder builder = parse_builder(args);
+    const unsigned threads = thread_count(args);
+    const auto reps = static_cast<int>(args.get_uint("reps", 5, 1, 1000));
+    const auto out_path = args.get("out");
+    const auto compare = args.get("compare");
+    if (compare && *compare != "embree") throw UsageError("option '--compare': '" + *compare + "' is not embree");
+    if (compare && !kEmbreeAvailable) {
+        throw BenchError(
+            "--compare embree is not available in this build (Embree 3 was not found "
+            "when it was configured)");
+    }
+    const bool camera_rays_only = settings.shading != Shading::kAo && settings.shading != Shading::kDiffuse;
+
+    const LoadedMesh loaded = load_mesh(mesh_path);
+    KdTree tree;
+    double build_ms = 0;
+    Image image;
+    RenderStats stats;
+    std::vector<double> seconds, batch_seconds;
+    double cpu_seconds = 0;
+    std::vector<Ray> rays;
+    std::vector<Hit> hits;
+    std::optional<EmbreeReport> embree;
+    with_threads(threads, [&] {
+        tree = build_tree(loaded.mesh, builder, build_ms);
+        // Render 0 warms caches and starts the workers; it is not timed.
+        for (int rep = 0; rep <= reps; ++rep) {
+            const double cpu_start = process_cpu_seconds();
+            const auto start = Clock::now();
+            image = render(tree, settings, {}, &stats);
+            const double elapsed = std::chrono::duration<double>(Clock::now() - start).count();
+            if (rep > 0) {
+                seconds.push_back(elapsed);
+                cpu_seconds += process_cpu_seconds() - cpu_start;
+            }
+        }
+        rays = render_camera_rays(tree, settings, 0);
+        hits.resize(rays.size());
+        for (int pass = 0; pass <= reps; ++pass) {
+            const auto start = Clock::now();
+            kdrt::intersect(tree, rays, hits);
+            const double elapsed = std::chrono::duration<double>(Clock::now() - start).count();
+            if (pass > 0) batch_seconds.push_back(elapsed);
+        }
+        if (compare) {
+            proto::RayBatch batch;
+            batch.rays = rays;
+            embree = compare_with_embree(loaded.mesh, batch, hits, {}, EmbreeOptions{reps});
+        }
+    });
+    if (out_path) write_image_with_helper(*out_path, image);
+
+    const double median_seconds = median(seconds);
+    const double median_batch = median(batch_seconds);
+    const double mrays_per_s = median_seconds > 0 ? static_cast<double>(stats.rays) / median_seconds / 1e6 : 0.0;
+    Json line;
+    line["command"] = "render";
+    line["mesh"] = std::filesystem::path(mesh_path).filename().string();
+    line["triangles"] = tree.stats.triangles;
+    line["shading"] = shading_name(settings.shading);
+    line["width"] = settings.width;
+    line["height"] = settings.height;
+    line["spp"] = settings.spp;
+    line["tile"] = settings.tile_size;
+    line["isa"] = isa_name(default_isa());
+    line["threads"] = threads;
+    line["builder"] = builder_name(builder);
+    line["reps"] = reps;
+    line["parse_ms"] = rounded(loaded.parse_ms, 3);
+    line["build_ms"] = rounded(build_ms, 3);
+    line["pixels"] = stats.pixels;
+    line["rays"] = stats.rays;
+    line["seconds"] = rounded(median_seconds, 9);
+    line["seconds_min"] = rounded(*std::min_element(seconds.begin(), seconds.end()), 9);
+    line["fps"] = rounded(median_seconds > 0 ? 1.0 / median_seconds : 0.0, 3);
+    line["mrays_per_s"] = rounded(mrays_per_s, 3);
+    const double wall_total = std::accumulate(seconds.begin(), seconds.end(), 0.0);
+    line["cpu_util"] = rounded(wall_total > 0 ? cpu_seconds / wall_total : 0.0, 2);
+    line["batch_rays"] = rays.size();
+    line["batch_seconds"] = rounded(median_batch, 9);
+    line["batch_mrays_per_s"] =
+        rounded(median_batch > 0 ? static_cast<double>(rays.size()) / median_batch / 1e6 : 0.0, 3);
+    if (camera_rays_only && median_batch > 0) {
+        line["overhead"] = rounded(median_seconds / (settings.spp * median_batch) - 1.0, 4);
+    }
+    if (embree) {
+        line["embree_mrays_per_s"] = rounded(embree->best_mrays_per_s, 3);
+        line["embree_best_mode"] = embree->best_mode;
+        line["embree_fps"] = rounded(embree->best_mrays_per_s * 1e6 / static_cast<double>(stats.primary_rays), 3);
+        line["ratio"] = embree->best_mrays_per_s > 0 ? rounded(mrays_per_s / embree->best_mrays_per_s, 4) : 0.0;
+        line["embree_build_ms"] = rounded(embree->build_ms, 3);
+        line["differences"] = embree->differences;
+        Json modes = Json::object();
+        for (const EmbreeModeTiming& m : embree->modes) modes[m.name] = rounded(m.mrays_per_s, 3);
+        line["embree_modes"] = modes;
+    }
+    if (out_path) line["out"] = *out_path;
+    print_json(line);
+    return 0;
+}
+
 struct Command {
     std::string_view name;
     std::string_view usage;
@@ -469,11 +631,15 @@ constexpr std::array<std::string_view, 3> kBuildOptions = {"builder", "threads",
 constexpr std::array<std::string_view, 7> kTraceOptions = {"mode", "isa", "threads", "reps", "out", "builder", "compare"};
 constexpr std::array<std::string_view, 5> kRaysOptions = {"kind", "res", "seed", "out", "threads"};
 constexpr std::array<std::string_view, 4> kSceneOptions = {"out", "size", "from", "copies"};
-constexpr std::array<Command, 4> kCommands = {{
+constexpr std::array<std::string_view, 12> kRenderOptions = {"shading", "res",     "spp",  "tile",
+                                                             "threads", "reps",    "seed", "ao-samples",
+                                                             "bounces", "builder", "out",  "compare"};
+constexpr std::array<Command, 5> kCommands = {{
     {"build", kBuildUsage, kBuildOptions, &run_build},
     {"trace", kTraceUsage, kTraceOptions, &run_trace},
     {"rays", kRaysUsage, kRaysOptions, &run_rays},
     {"scene", kSceneUsage, kSceneOptions, &run_scene},
+    {"render", kRenderUsage, kRenderOptions, &run_render},
 }};
 
 int run_main(int argc, char** argv) {
@@ -508,7 +674,7 @@ int run_main(int argc, char** argv) {
         std::cerr << "kdrt-bench " << command->name << ": error: out of memory\n";
         return 1;
     } catch (const std::exception& e) {
-        // BenchError, MeshError, CameraError, EmbreeError, ...: the run itself failed.
+        // BenchError, MeshError, CameraError, RenderError, EmbreeError, ...: the run itself failed.
         std::cerr << "kdrt-bench " << command->name << ": error: " << e.what() << "\n";
         return 1;
     }

@@ -1,7 +1,9 @@
 #pragma once
 /// Cameras that turn pixel coordinates into primary rays.
 
+#include <cmath>
 #include <cstdint>
+#include <limits>
 #include <stdexcept>
 
 #include "kdrt/types.h"
@@ -36,7 +38,30 @@ public:
 
     /// The ray through image position (px, py) in pixels (0..width, 0..height; pixel centres at
     /// +0.5). tmin = 0, tmax = +inf; direction normalised.
-    [[nodiscard]] Ray ray(float px, float py) const noexcept;
+    [[nodiscard]] Ray ray(float px, float py) const noexcept { return ray_at(plane_x(px), plane_y(py)); }
+
+    /// ray() in two steps, for callers that make many rays per image row or column (the
+    /// renderer's tiles): plane_x / plane_y map a pixel position to image-plane coordinates (each
+    /// depends on px or py alone, so a tile computes them once per column and row) and ray_at
+    /// builds the ray there. ray(px, py) is ray_at(plane_x(px), plane_y(py)), bit for bit.
+    [[nodiscard]] float plane_x(float px) const noexcept {
+        return (2.0f * px / static_cast<float>(width_) - 1.0f) * half_w_;
+    }
+    [[nodiscard]] float plane_y(float py) const noexcept {
+        return (1.0f - 2.0f * py / static_cast<float>(height_)) * half_h_;
+    }
+    [[nodiscard]] Ray ray_at(float sx, float sy) const noexcept {
+        // Image plane coordinates are in [-half_w, half_w] x [-half_h, half_h], y up.
+        Vec3 origin = spec_.eye;
+        Vec3 dir = forward_;
+        if (spec_.projection == Projection::kOrthographic) {
+            origin = spec_.eye + right_ * sx + up_ * sy;
+        } else {
+            const Vec3 v = forward_ + right_ * sx + up_ * sy;
+            dir = v * (1.0f / std::sqrt(dot(v, v)));
+        }
+        return Ray{origin.x, origin.y, origin.z, 0.0f, dir.x, dir.y, dir.z, std::numeric_limits<float>::infinity()};
+    }
 
     [[nodiscard]] const CameraSpec& spec() const noexcept { return spec_; }
     [[nodiscard]] uint32_t width() const noexcept { return width_; }

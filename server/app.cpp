@@ -1,0 +1,191 @@
+#include "app.h"
+
+#include <pthread.h>
+#include <signal.h>
+#include <unistd.h>
+
+#include <condition_variable>
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+#include <mutex>
+#include <thread>
+
+#include "http_server.h"
+#include "kdrt/proto/mesh_id.h"
+#include "kdrt/proto/mesh_io.h"
+#include "log.h"
+#include "service.h"
+
+namespace kdrt::server {
+namespace {
+
+proto::Result<void, std::string> write_port_file(const std::string& path, int port) {
+    const std::string tmp = path + ".tmp";
+    {
+        std::ofstream out(tmp, std::ios::trunc);
+        out << port << "\n";
+        if (!out) return proto::Err{"cannot write \"" + tmp + "\""};
+    }
+    std::error_code ec;
+    std::filesystem::rename(tmp, path, ec);
+    if (ec) return proto::Err{"cannot rename \"" + tmp + "\" to \"" + path + "\": " + ec.message()};
+    return {};
+}
+
+/// Loads the index and the preloads. Returns false (logged) if the server cannot start.
+bool start_up(Service& svc) {
+    if (auto opened = svc.cache.open(); !opened) {
+        log_event(LogLevel::kCritical, "cannot open the mesh cache", {{"error", opened.error()}});
+        return false;
+    }
+    log_event(LogLevel::kInfo, "mesh index loaded",
+              {{"meshes", static_cast<uint64_t>(svc.cache.mesh_count())}, {"disk_bytes", svc.cache.disk_bytes()}});
+    for (const std::string& file : svc.config.preload) {
+        if (svc.shutting_down) return true;
+        proto::MeshLimits limits;
+        limits.max_triangles = svc.config.max_triangles;
+        auto mesh = proto::load_mesh_file(file, std::nullopt, limits);
+        if (!mesh) {
+            log_event(LogLevel::kCritical, "cannot preload mesh", {{"file", file}, {"error", mesh.error().to_string()}});
+            return false;
+        }
+        if (mesh->triangle_count() == 0) {
+            log_event(LogLevel::kCritical, "cannot preload mesh", {{"file", file}, {"error", std::string_view("the mesh has no triangles")}});
+            return false;
+        }
+        auto added = svc.cache.add(std::move(*mesh));
+        if (!added) {
+            log_event(LogLevel::kCritical, "cannot preload mesh", {{"file", file}, {"error", added.error().detail}});
+            return false;
+        }
+        log_event(LogLevel::kInfo, "preloaded",
+                  {{"file", file},
+                   {"mesh", added->summary.id},
+                   {"triangles", added->summary.triangles},
+                   {"built", added->created},
+                   {"build_ms", added->summary.tree.build_ms}});
+    }
+    return true;
+}
+
+}  // namespace
+
+int run_server(const ServerConfig& config) {
+    // The termination signals are blocked in every thread and collected here with sigwait, so
+    // no handler runs at an arbitrary point of another thread. SIGUSR1 is internal: a helper
+    // thread finished (start-up failed, or the listener stopped).
+    sigset_t signals;
+    sigemptyset(&signals);
+    sigaddset(&signals, SIGINT);
+    sigaddset(&signals, SIGTERM);
+    sigaddset(&signals, SIGUSR1);
+    pthread_sigmask(SIG_BLOCK, &signals, nullptr);
+    ::signal(SIGPIPE, SIG_IGN);
+
+    auto listen = split_listen(config.listen);
+    if (!listen) {
+        log_event(LogLevel::kCritical, "bad listen address", {{"error", listen.error()}});
+        return 1;
+    }
+    Service svc(config);
+    svc.metrics.set_build_info({{"version", KDRT_VERSION}, {"httplib", httplib_version()}, {"compiler", __VERSION__}});
+    HttpServer http(svc);
+    auto port = http.bind(listen->first, listen->second);
+    if (!port) {
+        log_event(LogLevel::kCritical, "cannot listen", {{"error", port.error()}});
+        return 1;
+    }
+    if (!config.port_file.empty()) {
+        if (auto written = write_port_file(config.port_file, *port); !written) {
+            log_event(LogLevel::kCritical, "cannot write the port file", {{"error", written.error()}});
+            return 1;
+        }
+    }
+    log_event(LogLevel::kInfo, "listening",
+              {{"address", listen->first + ":" + std::to_string(*port)},
+               {"version", std::string_view(KDRT_VERSION)},
+               {"engine_threads", static_cast<uint64_t>(svc.compute.threads())},
+               {"http_threads", static_cast<uint64_t>(config.http_threads)},
+               {"cache_dir", config.cache_dir},
+               {"memory_budget", config.memory_budget},
+               {"auth", !config.token.empty()}});
+
+    const pthread_t main_thread = pthread_self();
+    std::atomic<bool> listener_failed{false}, startup_failed{false};
+    std::thread listener([&] {
+        if (!http.serve() && !svc.shutting_down) listener_failed = true;
+        pthread_kill(main_thread, SIGUSR1);
+    });
+    std::thread startup([&] {
+        if (!start_up(svc)) {
+            startup_failed = true;
+            pthread_kill(main_thread, SIGUSR1);
+            return;
+        }
+        if (svc.shutting_down) return;
+        svc.ready = true;
+        log_event(LogLevel::kInfo, "ready", {{"meshes", static_cast<uint64_t>(svc.cache.mesh_count())}});
+    });
+
+    int exit_code = 0;
+    for (;;) {
+        int sig = 0;
+        sigwait(&signals, &sig);
+        if (sig == SIGUSR1 && !listener_failed && !startup_failed) continue;  // stale wake-up
+        if (sig == SIGUSR1) {
+            exit_code = 1;
+            log_event(LogLevel::kCritical, startup_failed ? "start-up failed" : "the listener stopped unexpectedly");
+        } else {
+            log_event(LogLevel::kInfo, "shutting down", {{"signal", std::string_view(sig == SIGINT ? "SIGINT" : "SIGTERM")},
+                                                          {"timeout_s", static_cast<uint64_t>(config.shutdown_timeout_s)}});
+        }
+        break;
+    }
+
+    // Requests in flight get shutdown_timeout_s; after that the process exits regardless.
+    std::mutex mutex;
+    std::condition_variable done_cv;
+    bool done = false;
+    std::thread watchdog([&] {
+        std::unique_lock lock(mutex);
+        if (!done_cv.wait_for(lock, std::chrono::seconds(config.shutdown_timeout_s), [&] { return done; })) {
+            log_event(LogLevel::kWarn, "shutdown timeout: exiting with requests still in flight");
+            std::fflush(nullptr);
+            ::_exit(exit_code);
+        }
+    });
+    // New /v1 requests now get 503; uploads, traces and renders already admitted run to the end
+    // before the listener stops (httplib cuts streamed responses short once it is stopped).
+    svc.shutting_down = true;
+    svc.ready = false;
+    svc.jobs.shutdown();  // cancels queued and running render jobs
+    while (svc.gate.in_flight() > 0) std::this_thread::sleep_for(std::chrono::milliseconds(2));
+    http.stop();
+    listener.join();
+    startup.join();
+    {
+        std::lock_guard lock(mutex);
+        done = true;
+    }
+    done_cv.notify_one();
+    watchdog.join();
+    log_event(LogLevel::kInfo, "stopped", {{"exit_code", static_cast<int64_t>(exit_code)}});
+    return exit_code;
+}
+
+int print_mesh_ids(const std::vector<std::string>& files) {
+    int status = 0;
+    for (const std::string& file : files) {
+        auto mesh = proto::load_mesh_file(file);
+        if (!mesh) {
+            std::fprintf(stderr, "kdrt-server: %s\n", mesh.error().to_string().c_str());
+            status = 1;
+            continue;
+        }
+        std::printf("%s  %s\n", proto::mesh_id(*mesh).c_str(), file.c_str());
+    }
+    return status;
+}
+
+}  // namespace kdrt::server

@@ -1,0 +1,360 @@
+#include "config.h"
+
+#include <algorithm>
+#include <charconv>
+#include <limits>
+#include <optional>
+
+#include "kdrt/proto/config_json.h"
+#include "kdrt/proto/file_io.h"
+
+namespace kdrt::server {
+namespace {
+
+using proto::Err;
+using proto::Result;
+
+/// One setting: its key, where it lives in ServerConfig, its range and its help line.
+struct Setting {
+    std::string_view key;
+    std::string_view help;
+    std::string ServerConfig::*text = nullptr;
+    unsigned ServerConfig::*u32 = nullptr;
+    uint64_t ServerConfig::*u64 = nullptr;
+    std::vector<std::string> ServerConfig::*list = nullptr;
+    bool bytes = false;  ///< u64 accepts K/M/G/T suffixes
+    uint64_t min = 0;
+    uint64_t max = std::numeric_limits<uint64_t>::max();
+    std::vector<std::string_view> choices = {};
+};
+
+const std::vector<Setting>& settings() {
+    static const std::vector<Setting> table = {
+        {.key = "listen", .help = "HOST:PORT to listen on (port 0: any free port)", .text = &ServerConfig::listen},
+        {.key = "port_file", .help = "write the bound port to this file once listening", .text = &ServerConfig::port_file},
+        {.key = "http_threads", .help = "HTTP connection threads (each open keep-alive connection holds one)",
+         .u32 = &ServerConfig::http_threads, .min = 1, .max = 4096},
+        {.key = "keep_alive_timeout_s", .help = "seconds an idle keep-alive connection is kept",
+         .u32 = &ServerConfig::keep_alive_timeout_s, .min = 1, .max = 3600},
+        {.key = "keep_alive_max_requests", .help = "requests served on one connection before it is closed",
+         .u32 = &ServerConfig::keep_alive_max_requests, .min = 1, .max = 1000000},
+        {.key = "read_timeout_s", .help = "socket read timeout in seconds", .u32 = &ServerConfig::read_timeout_s,
+         .min = 1, .max = 3600},
+        {.key = "write_timeout_s", .help = "socket write timeout in seconds", .u32 = &ServerConfig::write_timeout_s,
+         .min = 1, .max = 3600},
+        {.key = "token", .help = "bearer token required on /v1 requests (empty: no authentication)",
+         .text = &ServerConfig::token},
+        {.key = "threads", .help = "tracing and build threads (0: all cores)", .u32 = &ServerConfig::threads,
+         .max = 4096},
+        {.key = "cache_dir", .help = "directory of the stored meshes and trees", .text = &ServerConfig::cache_dir},
+        {.key = "memory_budget", .help = "bytes of kD-trees kept in memory; least recently used are evicted",
+         .u64 = &ServerConfig::memory_budget, .bytes = true},
+        {.key = "preload", .help = "mesh files to upload at start-up", .list = &ServerConfig::preload},
+        {.key = "max_upload_bytes", .help = "largest mesh upload body", .u64 = &ServerConfig::max_upload_bytes,
+         .bytes = true, .min = 1},
+        {.key = "upload_memory_bytes", .help = "uploads larger than this are spooled to a temp file",
+         .u64 = &ServerConfig::upload_memory_bytes, .bytes = true},
+        {.key = "max_triangles", .help = "most triangles in one mesh", .u64 = &ServerConfig::max_triangles, .min = 1,
+         .max = (1ull << 30) - 1},
+        {.key = "max_rays", .help = "most rays in one KDRR batch", .u32 = &ServerConfig::max_rays, .min = 1,
+         .max = 1u << 26},
+        {.key = "max_json_rays", .help = "most rays in one JSON batch", .u32 = &ServerConfig::max_json_rays,
+         .min = 1, .max = 1u << 24},
+        {.key = "max_json_bytes", .help = "largest JSON request body", .u64 = &ServerConfig::max_json_bytes,
+         .bytes = true, .min = 1024},
+        {.key = "max_inflight", .help = "uploads, traces and renders in flight before 503",
+         .u32 = &ServerConfig::max_inflight, .min = 1, .max = 100000},
+        {.key = "max_image_width", .help = "widest render", .u32 = &ServerConfig::max_image_width, .min = 1,
+         .max = 65536},
+        {.key = "max_image_height", .help = "tallest render", .u32 = &ServerConfig::max_image_height, .min = 1,
+         .max = 65536},
+        {.key = "max_spp", .help = "most samples per pixel", .u32 = &ServerConfig::max_spp, .min = 1, .max = 65536},
+        {.key = "max_jobs", .help = "async render jobs queued or running before 503", .u32 = &ServerConfig::max_jobs,
+         .min = 1, .max = 100000},
+        {.key = "job_ttl_s", .help = "seconds a finished job and its image are kept", .u32 = &ServerConfig::job_ttl_s,
+         .min = 1, .max = 7 * 86400},
+        {.key = "shutdown_timeout_s", .help = "seconds in-flight requests get to finish on SIGTERM/SIGINT",
+         .u32 = &ServerConfig::shutdown_timeout_s, .min = 1, .max = 3600},
+        {.key = "log_level", .help = "trace, debug, info, warn, error, critical or off", .text = &ServerConfig::log_level,
+         .choices = {"trace", "debug", "info", "warn", "error", "critical", "off"}},
+        {.key = "log_format", .help = "text or json (one JSON object per line)", .text = &ServerConfig::log_format,
+         .choices = {"text", "json"}},
+    };
+    return table;
+}
+
+std::string flag_name(std::string_view key) {
+    std::string flag = "--";
+    for (const char c : key) flag.push_back(c == '_' ? '-' : c);
+    return flag;
+}
+
+std::string env_name(std::string_view key) {
+    std::string env = "KDRT_";
+    for (const char c : key) env.push_back(static_cast<char>(std::toupper(static_cast<unsigned char>(c))));
+    return env;
+}
+
+const Setting* find_setting(std::string_view key) {
+    for (const Setting& s : settings())
+        if (s.key == key) return &s;
+    return nullptr;
+}
+
+std::string quote(std::string_view text) {
+    std::string out(1, '"');
+    out += text;
+    out.push_back('"');
+    return out;
+}
+
+Result<uint64_t, std::string> parse_unsigned(std::string_view text) {
+    uint64_t value = 0;
+    const auto [ptr, ec] = std::from_chars(text.data(), text.data() + text.size(), value);
+    if (text.empty() || ec != std::errc() || ptr != text.data() + text.size())
+        return Err{quote(text) + " is not a non-negative integer"};
+    return value;
+}
+
+/// Applies a textual value (flag, environment, or a config string/number) to `config`.
+Result<void, std::string> apply(const Setting& s, std::string_view text, ServerConfig& config) {
+    if (s.text) {
+        if (!s.choices.empty() && std::find(s.choices.begin(), s.choices.end(), text) == s.choices.end()) {
+            std::string allowed;
+            for (const auto c : s.choices) allowed += (allowed.empty() ? "" : ", ") + std::string(c);
+            return Err{quote(text) + " is not one of " + allowed};
+        }
+        if (s.key == "listen") {
+            auto split = split_listen(text);
+            if (!split) return Err{std::move(split).error()};
+        }
+        config.*s.text = std::string(text);
+        return {};
+    }
+    if (s.list) {
+        // Environment form: colon-separated, like PATH.
+        std::vector<std::string> items;
+        size_t start = 0;
+        while (start <= text.size()) {
+            const size_t colon = text.find(':', start);
+            const std::string_view item = text.substr(start, colon == std::string_view::npos ? colon : colon - start);
+            if (!item.empty()) items.emplace_back(item);
+            if (colon == std::string_view::npos) break;
+            start = colon + 1;
+        }
+        config.*s.list = std::move(items);
+        return {};
+    }
+    auto value = s.bytes ? parse_bytes(text) : parse_unsigned(text);
+    if (!value) return Err{std::move(value).error()};
+    if (*value < s.min || *value > s.max)
+        return Err{quote(text) + " is outside " + std::to_string(s.min) + ".." + std::to_string(s.max)};
+    if (s.u32)
+        config.*s.u32 = static_cast<unsigned>(*value);
+    else
+        config.*s.u64 = *value;
+    return {};
+}
+
+Result<void, std::string> apply_config_file(const std::string& path, ServerConfig& config) {
+    auto bytes = proto::read_file_bytes(path, 1u << 20);
+    if (!bytes) return Err{std::move(bytes).error()};
+    const std::string_view text(reinterpret_cast<const char*>(bytes->data()), bytes->size());
+    auto entries = proto::parse_config_object(text);
+    if (!entries) return Err{path + ": " + entries.error()};
+    for (const proto::ConfigEntry& e : *entries) {
+        const Setting* s = find_setting(e.key);
+        if (!s) return Err{path + ": unknown setting " + quote(e.key) + " (kdrt-server --help lists them)"};
+        Result<void, std::string> applied;
+        if (const auto* list = std::get_if<std::vector<std::string>>(&e.value)) {
+            if (!s->list) return Err{path + ": " + quote(e.key) + " takes a single value, not a list"};
+            config.*s->list = *list;
+        } else if (const auto* str = std::get_if<std::string>(&e.value)) {
+            if (s->list)
+                config.*s->list = {*str};
+            else
+                applied = apply(*s, *str, config);
+        } else if (const auto* integer = std::get_if<int64_t>(&e.value)) {
+            if (s->text || s->list) return Err{path + ": " + quote(e.key) + " must be a string"};
+            if (*integer < 0) return Err{path + ": " + quote(e.key) + " must not be negative"};
+            applied = apply(*s, std::to_string(*integer), config);
+        } else {
+            return Err{path + ": " + quote(e.key) + " must be " +
+                       (s->text ? "a string" : s->list ? "a list of strings" : "a non-negative integer")};
+        }
+        if (!applied) return Err{path + ": " + quote(e.key) + ": " + applied.error()};
+    }
+    config.config_file = path;
+    return {};
+}
+
+std::string json_quote(std::string_view text) {
+    std::string out(1, '"');
+    for (const char c : text) {
+        if (c == '"' || c == '\\') out.push_back('\\');
+        out.push_back(c);
+    }
+    out.push_back('"');
+    return out;
+}
+
+std::string default_json(const Setting& s) {
+    const ServerConfig defaults;
+    if (s.text) return json_quote(defaults.*s.text);
+    if (s.u32) return std::to_string(defaults.*s.u32);
+    if (s.u64) return std::to_string(defaults.*s.u64);
+    std::string out = "[";
+    for (const std::string& item : defaults.*s.list) out += (out.size() > 1 ? ", " : "") + json_quote(item);
+    return out + "]";
+}
+
+}  // namespace
+
+Result<std::pair<std::string, int>, std::string> split_listen(std::string_view listen) {
+    const size_t colon = listen.rfind(':');
+    if (colon == std::string_view::npos || colon == 0)
+        return Err{quote(listen) + " is not HOST:PORT (e.g. 127.0.0.1:8080)"};
+    std::string_view host = listen.substr(0, colon);
+    if (host.size() >= 2 && host.front() == '[' && host.back() == ']') host = host.substr(1, host.size() - 2);
+    auto port = parse_unsigned(listen.substr(colon + 1));
+    if (!port || *port > 65535) return Err{quote(listen) + " has no port number 0..65535 after the last ':'"};
+    return std::pair{std::string(host), static_cast<int>(*port)};
+}
+
+Result<uint64_t, std::string> parse_bytes(std::string_view text) {
+    uint64_t scale = 1;
+    std::string_view digits = text;
+    if (!digits.empty()) {
+        switch (std::toupper(static_cast<unsigned char>(digits.back()))) {
+            case 'K':
+                scale = 1ull << 10;
+                break;
+            case 'M':
+                scale = 1ull << 20;
+                break;
+            case 'G':
+                scale = 1ull << 30;
+                break;
+            case 'T':
+                scale = 1ull << 40;
+                break;
+            default:
+                break;
+        }
+        if (scale != 1) digits.remove_suffix(1);
+    }
+    auto value = parse_unsigned(digits);
+    if (!value) return Err{quote(text) + " is not a byte count (digits with an optional K, M, G or T suffix)"};
+    if (*value > std::numeric_limits<uint64_t>::max() / scale) return Err{quote(text) + " is too large"};
+    return *value * scale;
+}
+
+Result<Invocation, std::string> parse_invocation(const std::vector<std::string>& args,
+                                                 const std::vector<std::string>& env) {
+    Invocation inv;
+    // The config file comes first (flag, then environment), whatever its position on the line.
+    std::string config_path;
+    for (const std::string& e : env)
+        if (e.rfind("KDRT_CONFIG=", 0) == 0) config_path = e.substr(12);
+    for (size_t i = 0; i < args.size(); ++i) {
+        if (args[i] == "--config") {
+            if (i + 1 >= args.size()) return Err{std::string("--config needs a file name")};
+            config_path = args[i + 1];
+        } else if (args[i].rfind("--config=", 0) == 0) {
+            config_path = args[i].substr(9);
+        }
+    }
+    if (!config_path.empty()) {
+        auto applied = apply_config_file(config_path, inv.config);
+        if (!applied) return Err{std::move(applied).error()};
+    }
+    for (const Setting& s : settings()) {
+        const std::string prefix = env_name(s.key) + "=";
+        for (const std::string& e : env) {
+            if (e.rfind(prefix, 0) != 0) continue;
+            auto applied = apply(s, std::string_view(e).substr(prefix.size()), inv.config);
+            if (!applied) return Err{env_name(s.key) + ": " + applied.error()};
+        }
+    }
+    for (size_t i = 0; i < args.size(); ++i) {
+        std::string arg = args[i];
+        if (arg == "--help" || arg == "-h") {
+            inv.mode = Invocation::Mode::kHelp;
+            return inv;
+        }
+        if (arg == "--version") {
+            inv.mode = Invocation::Mode::kVersion;
+            return inv;
+        }
+        if (arg == "--mesh-id") {
+            inv.mode = Invocation::Mode::kMeshId;
+            inv.mesh_files.assign(args.begin() + static_cast<std::ptrdiff_t>(i) + 1, args.end());
+            if (inv.mesh_files.empty()) return Err{std::string("--mesh-id needs at least one mesh file")};
+            return inv;
+        }
+        std::optional<std::string> inline_value;
+        if (const size_t eq = arg.find('='); arg.rfind("--", 0) == 0 && eq != std::string::npos) {
+            inline_value = arg.substr(eq + 1);
+            arg.resize(eq);
+        }
+        if (arg == "--config") {
+            if (!inline_value) ++i;
+            continue;
+        }
+        const Setting* found = nullptr;
+        for (const Setting& s : settings())
+            if (flag_name(s.key) == arg) found = &s;
+        if (!found) return Err{"unknown argument " + quote(arg) + " (kdrt-server --help lists the flags)"};
+        if (found->list) {
+            // --preload A B C: every following argument up to the next flag.
+            std::vector<std::string> items;
+            if (inline_value) items.push_back(*inline_value);
+            while (i + 1 < args.size() && args[i + 1].rfind("--", 0) != 0) items.push_back(args[++i]);
+            if (items.empty()) return Err{arg + " needs at least one value"};
+            inv.config.*found->list = std::move(items);
+            continue;
+        }
+        if (!inline_value) {
+            if (i + 1 >= args.size()) return Err{arg + " needs a value"};
+            inline_value = args[++i];
+        }
+        auto applied = apply(*found, *inline_value, inv.config);
+        if (!applied) return Err{arg + ": " + applied.error()};
+    }
+    return inv;
+}
+
+std::string help_text() {
+    std::string out =
+        "usage: kdrt-server [--config FILE] [--SETTING VALUE ...]\n"
+        "       kdrt-server --mesh-id MESHFILE...   print the mesh id of each file and exit\n"
+        "       kdrt-server --help | --version\n\n"
+        "The kdrt ray-tracing HTTP service (API: proto/openapi.yaml). Settings come from their\n"
+        "defaults, then the JSON config file (--config FILE or KDRT_CONFIG; // comments allowed),\n"
+        "then KDRT_* environment variables, then flags. Byte counts take K, M, G, T suffixes.\n\n"
+        "  flag / environment variable                    default      meaning\n";
+    for (const Setting& s : settings()) {
+        std::string line = "  " + flag_name(s.key);
+        if (s.list) line += " FILE...";
+        line += " / " + env_name(s.key);
+        line.resize(std::max<size_t>(line.size() + 1, 49), ' ');
+        std::string def = default_json(s);
+        line += def;
+        line.resize(std::max<size_t>(line.size() + 1, 62), ' ');
+        out += line + std::string(s.help) + "\n";
+    }
+    return out;
+}
+
+std::vector<std::string> setting_keys() {
+    std::vector<std::string> keys;
+    for (const Setting& s : settings()) keys.emplace_back(s.key);
+    return keys;
+}
+
+std::string setting_default_json(std::string_view key) {
+    const Setting* s = find_setting(key);
+    return s ? default_json(*s) : std::string();
+}
+
+}  // namespace kdrt::server

@@ -1,0 +1,44 @@
+#pragma once
+/// Crash-safe file replacement and read-only file mappings (POSIX).
+
+#include <cstddef>
+#include <filesystem>
+#include <span>
+#include <string>
+
+#include "kdrt/proto/result.h"
+
+namespace kdrt::server {
+
+/// Writes `bytes` to a new file in `tmp_dir`, fsyncs it and renames it over `path` (same file
+/// system). When the call returns success the content is durable once the directory holding
+/// `path` is synced (sync_directory). On failure the temp file is removed and the error names
+/// the path and the OS reason.
+[[nodiscard]] proto::Result<void, std::string> write_file_durably(const std::filesystem::path& path,
+                                                                  const std::filesystem::path& tmp_dir,
+                                                                  std::span<const std::byte> bytes);
+
+/// fsync of a directory, making renames and unlinks in it durable.
+[[nodiscard]] proto::Result<void, std::string> sync_directory(const std::filesystem::path& dir);
+
+/// A whole file mapped read-only (empty files give an empty span). Move-only.
+class MappedFile {
+public:
+    MappedFile() = default;
+    MappedFile(MappedFile&& other) noexcept;
+    MappedFile& operator=(MappedFile&& other) noexcept;
+    MappedFile(const MappedFile&) = delete;
+    MappedFile& operator=(const MappedFile&) = delete;
+    ~MappedFile();
+
+    /// Maps the open descriptor `fd` (not closed by this class) of `size` bytes.
+    [[nodiscard]] static proto::Result<MappedFile, std::string> map(int fd, size_t size);
+
+    [[nodiscard]] std::span<const std::byte> bytes() const noexcept { return {data_, size_}; }
+
+private:
+    const std::byte* data_ = nullptr;
+    size_t size_ = 0;
+};
+
+}  // namespace kdrt::server

@@ -1,0 +1,44 @@
+#pragma once
+/// The API v1 route handlers. Each is three steps: decode (proto), call (mesh cache / compute),
+/// encode (proto). The route wrapper in http_server.cpp has already checked the bearer token,
+/// readiness and admission when a handler runs. Included by http_*.cpp only.
+
+#include <httplib.h>
+
+#include "service.h"
+
+namespace kdrt::server {
+
+class Routes {
+public:
+    explicit Routes(Service& service) : svc_(service) {}
+
+    // Streamed-body routes (the body is read, or discarded, by the handler).
+    void upload_mesh(const httplib::Request& req, httplib::Response& res, const httplib::ContentReader& reader);
+    void intersect(const httplib::Request& req, httplib::Response& res, const httplib::ContentReader& reader);
+    void render(const httplib::Request& req, httplib::Response& res, const httplib::ContentReader& reader);
+
+    void list_meshes(const httplib::Request& req, httplib::Response& res);
+    void get_mesh(const httplib::Request& req, httplib::Response& res);
+    void delete_mesh(const httplib::Request& req, httplib::Response& res);
+
+    void get_job(const httplib::Request& req, httplib::Response& res);
+    void delete_job(const httplib::Request& req, httplib::Response& res);
+    void job_result(const httplib::Request& req, httplib::Response& res);
+
+    void healthz(const httplib::Request& req, httplib::Response& res);
+    void readyz(const httplib::Request& req, httplib::Response& res);
+    void metrics(const httplib::Request& req, httplib::Response& res);
+
+private:
+    void intersect_binary(const httplib::Request& req, httplib::Response& res, const httplib::ContentReader& reader,
+                          const KdTree& tree);
+    void intersect_json(const httplib::Request& req, httplib::Response& res, const httplib::ContentReader& reader,
+                        const KdTree& tree);
+
+    void submit_job(const httplib::Request& req, httplib::Response& res, RenderJob job);
+
+    Service& svc_;
+};
+
+}  // namespace kdrt::server

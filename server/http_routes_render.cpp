@@ -1,0 +1,131 @@
+// POST /v1/render, and the async job routes /v1/jobs/{id}[/result].
+
+#include <algorithm>
+#include <cctype>
+
+#include "http_routes.h"
+#include "http_util.h"
+#include "kdrt/proto/image_io.h"
+#include "kdrt/proto/json_api.h"
+#include "problems.h"
+#include "rendering.h"
+
+namespace kdrt::server {
+namespace {
+
+using proto::ProblemKind;
+
+/// True when the Prefer header (RFC 7240) asks for respond-async.
+bool prefers_async(const httplib::Request& req) {
+    const size_t headers = req.get_header_value_count("Prefer");
+    for (size_t i = 0; i < headers; ++i) {
+        std::string value = req.get_header_value("Prefer", i);
+        std::transform(value.begin(), value.end(), value.begin(),
+                       [](unsigned char c) { return static_cast<char>(std::tolower(c)); });
+        size_t start = 0;
+        while (start <= value.size()) {
+            const size_t comma = value.find(',', start);
+            std::string token = value.substr(start, comma == std::string::npos ? std::string::npos : comma - start);
+            token.erase(0, token.find_first_not_of(" \t"));
+            token.erase(token.find_last_not_of(" \t") + 1);
+            if (token == "respond-async") return true;
+            if (comma == std::string::npos) break;
+            start = comma + 1;
+        }
+    }
+    return false;
+}
+
+proto::Problem unknown_job_problem(const std::string& id) {
+    return make_problem(ProblemKind::kUnknownJob, std::string(proto::api_errors::kUnknownJob) + " " + id +
+                                                      " (it never existed or expired after job_ttl_s)");
+}
+
+}  // namespace
+
+void Routes::render(const httplib::Request& req, httplib::Response& res, const httplib::ContentReader& reader) {
+    if (proto::media_type_essence(req.get_header_value("Content-Type")) != proto::kJsonMediaType) {
+        discard_body(req, res, reader);
+        return reply_problem(req, res, make_problem(ProblemKind::kUnsupportedMediaType,
+                                                    "render " + std::string(proto::api_errors::kUnsupportedJsonType)));
+    }
+    auto body = read_body(req, res, reader, svc_.config.max_json_bytes, svc_.config.max_json_bytes,
+                          svc_.store.tmp_dir().string(), "a JSON request (max_json_bytes)");
+    if (!body) return;
+    const proto::RenderLimits limits{svc_.config.max_image_width, svc_.config.max_image_height, svc_.config.max_spp};
+    auto request = proto::decode_render_request(as_text(body->bytes()), limits);
+    if (!request) return reply_problem(req, res, make_problem(ProblemKind::kBadRequest, request.error().detail));
+    const proto::ImageFormat format = *proto::image_format_from_name(request->format);
+    auto tree = svc_.cache.acquire(request->mesh);
+    if (!tree)
+        return reply_problem(req, res, tree.error().code == CacheError::Code::kUnknownMesh
+                                           ? unknown_mesh_problem(request->mesh)
+                                           : cache_problem(tree.error()));
+    try {
+        validate_render_settings(request->settings);
+    } catch (const RenderError& e) {
+        return reply_problem(req, res, make_problem(ProblemKind::kBadRequest, e.what()));
+    }
+    if (prefers_async(req)) return submit_job(req, res, {request->mesh, std::move(*tree), request->settings, format});
+    auto image = render_and_encode(svc_.compute, **tree, request->settings, format);
+    if (!image) return reply_problem(req, res, make_problem(ProblemKind::kInternal, image.error()));
+    svc_.metrics.renders.fetch_add(1);
+    request_context().rays = image->stats.rays;
+    res.set_header("X-Render-Ms", std::to_string(image->stats.seconds * 1e3));
+    reply_bytes(res, std::move(image->bytes), proto::image_media_type(format));
+}
+
+void Routes::submit_job(const httplib::Request& req, httplib::Response& res, RenderJob job) {
+    auto status = svc_.jobs.submit(std::move(job));
+    if (!status) {
+        auto p = make_problem(ProblemKind::kOverCapacity, status.error() + "; retry later");
+        p.retry_after = 1;
+        p.limit = svc_.config.max_jobs;
+        return reply_problem(req, res, std::move(p));
+    }
+    res.set_header("Location", "/v1/jobs/" + status->id);
+    res.set_header("Preference-Applied", "respond-async");
+    reply_json(res, 202, proto::encode_job_status(*status));
+}
+
+void Routes::get_job(const httplib::Request& req, httplib::Response& res) {
+    const std::string id = req.matches[1];
+    const auto status = svc_.jobs.status(id);
+    if (!status) return reply_problem(req, res, unknown_job_problem(id));
+    reply_json(res, 200, proto::encode_job_status(*status));
+}
+
+void Routes::delete_job(const httplib::Request& req, httplib::Response& res) {
+    const std::string id = req.matches[1];
+    proto::JobStatus status;
+    switch (svc_.jobs.cancel(id, &status)) {
+        case JobQueue::CancelOutcome::kUnknown:
+            return reply_problem(req, res, unknown_job_problem(id));
+        case JobQueue::CancelOutcome::kCancelling:
+            return reply_json(res, 202, proto::encode_job_status(status));
+        case JobQueue::CancelOutcome::kRemoved:
+            res.status = 204;
+            return;
+    }
+}
+
+void Routes::job_result(const httplib::Request& req, httplib::Response& res) {
+    const std::string id = req.matches[1];
+    const auto out = svc_.jobs.output(id);
+    if (!out) return reply_problem(req, res, unknown_job_problem(id));
+    if (out->status.state != proto::JobState::kDone) {
+        std::string detail = "job " + id + " is " + std::string(proto::job_state_name(out->status.state));
+        if (out->status.state == proto::JobState::kRunning || out->status.state == proto::JobState::kQueued)
+            detail += " (progress " + std::to_string(out->status.progress) + ")";
+        if (!out->status.error.empty()) detail += ": " + out->status.error;
+        return reply_problem(req, res,
+                             make_problem(ProblemKind::kJobNotDone, detail + " and " +
+                                                                        std::string(proto::api_errors::kJobNotDone)));
+    }
+    // Sent from a string, not streamed: GET routes are not held back by the shutdown sequence.
+    res.status = 200;
+    res.set_content(reinterpret_cast<const char*>(out->image->data()), out->image->size(),
+                    std::string(proto::image_media_type(out->format)));
+}
+
+}  // namespace kdrt::server

@@ -1,0 +1,350 @@
+#include "http_server.h"
+
+#include <httplib.h>
+
+#include <cstring>
+#include <regex>
+
+#include "http_routes.h"
+#include "http_util.h"
+#include "log.h"
+#include "problems.h"
+
+namespace kdrt::server {
+namespace {
+
+using proto::ProblemKind;
+
+/// A path segment (mesh or job id) in a route pattern.
+constexpr const char* kIdPattern = "([^/]+)";
+
+/// What the wrapper checks before a handler runs.
+struct RouteFlags {
+    bool api = false;    ///< /v1: bearer token and readiness
+    bool heavy = false;  ///< counts against max_inflight (503 beyond)
+};
+
+/// Compares a presented token with the configured one in time that depends only on the
+/// configured token's length (no early exit on the first differing byte).
+bool same_secret(std::string_view given, std::string_view expected) {
+    unsigned char diff = given.size() == expected.size() ? 0 : 1;
+    for (size_t i = 0; i < expected.size(); ++i)
+        diff |= static_cast<unsigned char>((i < given.size() ? given[i] : 0) ^ expected[i]);
+    return diff == 0;
+}
+
+std::string hex16(uint64_t value) {
+    static constexpr char kHex[] = "0123456789abcdef";
+    std::string out(16, '0');
+    for (int i = 15; i >= 0; --i, value >>= 4) out[static_cast<size_t>(i)] = kHex[value & 15];
+    return out;
+}
+
+}  // namespace
+
+struct HttpServer::Impl {
+    explicit Impl(Service& service) : svc(service), routes(service) {}
+
+    Service& svc;
+    Routes routes;
+    httplib::Server http;
+    struct Known {
+        std::regex pattern;
+        std::string method;
+    };
+    std::vector<Known> known;  ///< for 405 vs 404
+    std::atomic<uint64_t> next_request_id{1};
+
+    /// Checks the bearer token when one is configured. On refusal replies 401 and returns false.
+    bool authorized(const httplib::Request& req, httplib::Response& res) {
+        const std::string& token = svc.config.token;
+        if (token.empty()) return true;
+        const std::string auth = req.get_header_value("Authorization");
+        if (auth.rfind("Bearer ", 0) != 0) {
+            reply_problem(req, res, make_problem(ProblemKind::kUnauthorized,
+                                                 req.path + " " + std::string(proto::api_errors::kMissingToken)));
+            return false;
+        }
+        if (!same_secret(std::string_view(auth).substr(7), token)) {
+            reply_problem(req, res, make_problem(ProblemKind::kUnauthorized,
+                                                 "the " + std::string(proto::api_errors::kWrongToken)));
+            return false;
+        }
+        return true;
+    }
+
+    /// The body limit of the route `req` is for (uploads, KDRR batches, JSON).
+    [[nodiscard]] uint64_t body_limit(const httplib::Request& req) const {
+        const ServerConfig& c = svc.config;
+        if (req.path == "/v1/meshes") return c.max_upload_bytes;
+        if (req.path.size() > 10 && req.path.compare(req.path.size() - 10, 10, "/intersect") == 0 &&
+            proto::media_type_essence(req.get_header_value("Content-Type")) == proto::kRaysMediaType)
+            return 16 + 32 * uint64_t{c.max_rays};
+        return c.max_json_bytes;
+    }
+
+    /// `Expect: 100-continue`: refuse before the client sends the body when the token is wrong
+    /// or the declared length is over the route's limit (curl asks for bodies over 1 MiB).
+    int on_expect_continue(const httplib::Request& req, httplib::Response& res) {
+        begin_request(res);
+        const bool api = req.path.rfind("/v1/", 0) == 0 || req.path == "/v1";
+        if (api && !svc.config.token.empty()) {
+            if (!authorized(req, res)) {
+                res.set_header("Connection", "close");
+                return res.status;
+            }
+        }
+        const uint64_t limit = body_limit(req);
+        if (req.get_header_value<uint64_t>("Content-Length") > limit) {
+            reply_problem(req, res, body_too_large_problem(limit, "this route"));
+            res.set_header("Connection", "close");
+            return res.status;
+        }
+        return 100;
+    }
+
+    /// Starts the per-request context (id, clock). Called again by the pre-routing handler
+    /// after an accepted `Expect: 100-continue`, which then starts the clock anew.
+    void begin_request(httplib::Response& res) {
+        RequestContext& context = request_context();
+        context = RequestContext{};
+        context.active = true;
+        context.start = std::chrono::steady_clock::now();
+        context.request_id = hex16(next_request_id.fetch_add(1));
+        res.headers.erase("X-Request-Id");
+        res.set_header("X-Request-Id", context.request_id);
+    }
+
+    /// Checks token, readiness and capacity. On refusal replies and returns false.
+    bool admit(const RouteFlags& flags, const httplib::Request& req, httplib::Response& res,
+               std::optional<AdmissionGate::Slot>& slot) {
+        if (flags.api && !authorized(req, res)) return false;
+        if (flags.api && (svc.shutting_down || !svc.ready)) {
+            auto p = make_problem(ProblemKind::kNotReady, svc.shutting_down
+                                                              ? "the server is " + std::string(proto::api_errors::kShuttingDown)
+                                                              : std::string("the server is starting; retry shortly"));
+            p.retry_after = 1;
+            reply_problem(req, res, std::move(p));
+            return false;
+        }
+        if (flags.heavy) {
+            slot = svc.gate.try_enter();
+            if (slot && svc.shutting_down) {
+                // Shutdown began between the check above and taking the slot: the shutdown
+                // sequence may already have seen zero requests in flight.
+                slot.reset();
+                auto p = make_problem(ProblemKind::kNotReady,
+                                      "the server is " + std::string(proto::api_errors::kShuttingDown));
+                p.retry_after = 1;
+                reply_problem(req, res, std::move(p));
+                return false;
+            }
+            if (!slot) {
+                auto p = make_problem(ProblemKind::kOverCapacity,
+                                      std::to_string(svc.gate.limit()) + " " + std::string(proto::api_errors::kOverCapacity) +
+                                          " (max_inflight); retry later");
+                p.retry_after = 1;
+                p.limit = svc.gate.limit();
+                reply_problem(req, res, std::move(p));
+                return false;
+            }
+        }
+        return true;
+    }
+
+    /// A streamed response is written after the handler returns, and httplib stops streaming
+    /// once the server is stopped: keep the admission slot until the response is gone, so the
+    /// shutdown sequence (which waits for zero slots) never cuts a reply short.
+    static void hold_until_sent(httplib::Response& res, AdmissionGate::Slot slot) {
+        if (!res.content_provider_) return;
+        auto held = std::make_shared<AdmissionGate::Slot>(std::move(slot));
+        auto previous = std::move(res.content_provider_resource_releaser_);
+        res.content_provider_resource_releaser_ = [held, previous](bool success) {
+            if (previous) previous(success);
+        };
+    }
+
+    void get(const std::string& pattern, const std::string& name, RouteFlags flags,
+             void (Routes::*handler)(const httplib::Request&, httplib::Response&)) {
+        known.push_back({std::regex(pattern), "GET"});
+        http.Get(pattern, [this, name, flags, handler](const httplib::Request& req, httplib::Response& res) {
+            request_context().route = name;
+            std::optional<AdmissionGate::Slot> slot;
+            if (admit(flags, req, res, slot)) (routes.*handler)(req, res);
+        });
+    }
+
+    void del(const std::string& pattern, const std::string& name, RouteFlags flags,
+             void (Routes::*handler)(const httplib::Request&, httplib::Response&)) {
+        known.push_back({std::regex(pattern), "DELETE"});
+        http.Delete(pattern, [this, name, flags, handler](const httplib::Request& req, httplib::Response& res) {
+            request_context().route = name;
+            std::optional<AdmissionGate::Slot> slot;
+            if (admit(flags, req, res, slot)) (routes.*handler)(req, res);
+        });
+    }
+
+    void post(const std::string& pattern, const std::string& name, RouteFlags flags,
+              void (Routes::*handler)(const httplib::Request&, httplib::Response&, const httplib::ContentReader&)) {
+        known.push_back({std::regex(pattern), "POST"});
+        http.Post(pattern, [this, name, flags, handler](const httplib::Request& req, httplib::Response& res,
+                                                        const httplib::ContentReader& reader) {
+            request_context().route = name;
+            std::optional<AdmissionGate::Slot> slot;
+            if (!admit(flags, req, res, slot)) return discard_body(req, res, reader);
+            (routes.*handler)(req, res, reader);
+            if (slot) hold_until_sent(res, std::move(*slot));
+        });
+    }
+
+    void register_routes() {
+        const std::string meshes = "/v1/meshes";
+        const std::string mesh = meshes + "/" + kIdPattern;
+        post(meshes, "/v1/meshes", {.api = true, .heavy = true}, &Routes::upload_mesh);
+        get(meshes, "/v1/meshes", {.api = true}, &Routes::list_meshes);
+        get(mesh, "/v1/meshes/{id}", {.api = true}, &Routes::get_mesh);
+        del(mesh, "/v1/meshes/{id}", {.api = true}, &Routes::delete_mesh);
+        post(mesh + "/intersect", "/v1/meshes/{id}/intersect", {.api = true, .heavy = true}, &Routes::intersect);
+        post("/v1/render", "/v1/render", {.api = true, .heavy = true}, &Routes::render);
+        const std::string job = std::string("/v1/jobs/") + kIdPattern;
+        get(job, "/v1/jobs/{id}", {.api = true}, &Routes::get_job);
+        del(job, "/v1/jobs/{id}", {.api = true}, &Routes::delete_job);
+        get(job + "/result", "/v1/jobs/{id}/result", {.api = true}, &Routes::job_result);
+        get("/healthz", "/healthz", {}, &Routes::healthz);
+        get("/readyz", "/readyz", {}, &Routes::readyz);
+        get("/metrics", "/metrics", {}, &Routes::metrics);
+    }
+
+    /// Fills the body of errors httplib produced itself (unknown route, malformed request,
+    /// Content-Length over the payload limit).
+    httplib::Server::HandlerResponse on_error(const httplib::Request& req, httplib::Response& res) {
+        if (!res.body.empty() || res.content_length_ > 0) return httplib::Server::HandlerResponse::Unhandled;
+        proto::Problem p;
+        std::string allowed;
+        bool method_allowed = false;
+        for (const Known& k : known) {
+            if (!std::regex_match(req.path, k.pattern)) continue;
+            if (k.method == req.method || (k.method == "GET" && req.method == "HEAD")) method_allowed = true;
+            if (allowed.find(k.method) == std::string::npos) allowed += (allowed.empty() ? "" : ", ") + k.method;
+        }
+        if ((res.status == 404 || res.status == 400) && !allowed.empty() && !method_allowed) {
+            // httplib answers 404 (or 400 for methods it has no handlers for) when only the
+            // method is wrong.
+            res.status = 405;
+            p = make_problem(ProblemKind::kMethodNotAllowed, req.path + " " +
+                                                                 std::string(proto::api_errors::kMethodNotAllowed) +
+                                                                 " " + req.method + " (allowed: " + allowed + ")");
+            res.set_header("Allow", allowed);
+        } else if (res.status == 404) {
+            p = make_problem(ProblemKind::kNotFound,
+                             std::string(proto::api_errors::kNoRoute) + " " + req.method + " " + req.path);
+        } else if (res.status == 413) {
+            p = body_too_large_problem(largest_body(), "any request");
+        } else if (res.status >= 500) {
+            p = make_problem(ProblemKind::kInternal, "the server failed to answer the request");
+        } else {
+            p = make_problem(ProblemKind::kBadRequest, "malformed HTTP request (status " + std::to_string(res.status) +
+                                                           " from the HTTP layer)");
+        }
+        reply_problem(req, res, std::move(p));
+        return httplib::Server::HandlerResponse::Handled;
+    }
+
+    void on_exception(const httplib::Request& req, httplib::Response& res, std::exception_ptr ep) {
+        std::string what = "unknown exception";
+        try {
+            std::rethrow_exception(ep);
+        } catch (const std::exception& e) {
+            what = e.what();
+        } catch (...) {
+        }
+        log_event(LogLevel::kError, "unhandled exception",
+                  {{"request_id", request_context().request_id}, {"route", request_context().route}, {"error", what}});
+        res.headers.clear();
+        reply_problem(req, res, make_problem(ProblemKind::kInternal, "internal error; see the server log for request " +
+                                                                         request_context().request_id));
+        res.set_header("Connection", "close");
+    }
+
+    /// Starts the per-request context; answers requests httplib would mishandle.
+    httplib::Server::HandlerResponse on_pre_routing(const httplib::Request& req, httplib::Response& res) {
+        begin_request(res);
+        // httplib 0.11.4 reads a POST without Content-Length or chunked framing until the peer
+        // closes; HTTP/1.1 says such a body is empty. Answer now instead of hanging.
+        if (req.method == "POST" && !req.has_header("Content-Length") && !req.has_header("Transfer-Encoding")) {
+            request_context().route = "unmatched";
+            reply_problem(req, res, make_problem(ProblemKind::kBadRequest,
+                                                 "a POST needs a Content-Length (or chunked) body"));
+            return httplib::Server::HandlerResponse::Handled;
+        }
+        return httplib::Server::HandlerResponse::Unhandled;
+    }
+
+    /// One access-log line and the request metrics, after the response is written.
+    void on_logged(const httplib::Request& req, const httplib::Response& res) {
+        RequestContext& context = request_context();
+        const double seconds =
+            context.active ? std::chrono::duration<double>(std::chrono::steady_clock::now() - context.start).count() : 0;
+        const std::string route = context.route.empty() ? "unmatched" : context.route;
+        const uint64_t bytes_in = context.bytes_in ? context.bytes_in : req.body.size();
+        const uint64_t bytes_out = res.content_length_ ? res.content_length_ : res.body.size();
+        svc.metrics.record_request(route, req.method, res.status, seconds, bytes_in, bytes_out);
+        log_event(LogLevel::kInfo, "request",
+                  {{"method", req.method},
+                   {"route", route},
+                   {"status", static_cast<int64_t>(res.status)},
+                   {"in", bytes_in},
+                   {"out", bytes_out},
+                   {"rays", context.rays},
+                   {"ms", seconds * 1e3},
+                   {"id", context.request_id}});
+        context.active = false;
+    }
+
+    [[nodiscard]] uint64_t largest_body() const {
+        const ServerConfig& c = svc.config;
+        return std::max({c.max_upload_bytes, c.max_json_bytes, 16 + 32 * uint64_t{c.max_rays}});
+    }
+
+    void configure() {
+        const ServerConfig& c = svc.config;
+        const size_t threads = c.http_threads;
+        http.new_task_queue = [threads] { return new httplib::ThreadPool(threads); };
+        http.set_tcp_nodelay(true);
+        http.set_keep_alive_max_count(c.keep_alive_max_requests);
+        http.set_keep_alive_timeout(c.keep_alive_timeout_s);
+        http.set_read_timeout(c.read_timeout_s, 0);
+        http.set_write_timeout(c.write_timeout_s, 0);
+        http.set_payload_max_length(largest_body());
+        http.set_pre_routing_handler([this](const auto& req, auto& res) { return on_pre_routing(req, res); });
+        http.set_error_handler(httplib::Server::HandlerWithResponse(
+            [this](const auto& req, auto& res) { return on_error(req, res); }));
+        http.set_exception_handler([this](const auto& req, auto& res, std::exception_ptr ep) { on_exception(req, res, ep); });
+        http.set_expect_100_continue_handler([this](const auto& req, auto& res) { return on_expect_continue(req, res); });
+        http.set_logger([this](const auto& req, const auto& res) { on_logged(req, res); });
+        register_routes();
+    }
+};
+
+HttpServer::HttpServer(Service& service) : impl_(std::make_unique<Impl>(service)) { impl_->configure(); }
+
+HttpServer::~HttpServer() = default;
+
+proto::Result<int, std::string> HttpServer::bind(const std::string& host, int port) {
+    if (port == 0) {
+        const int bound = impl_->http.bind_to_any_port(host);
+        if (bound <= 0) return proto::Err{"cannot listen on " + host + ":0: " + std::strerror(errno)};
+        return bound;
+    }
+    if (!impl_->http.bind_to_port(host, port))
+        return proto::Err{"cannot listen on " + host + ":" + std::to_string(port) + ": " + std::strerror(errno)};
+    return port;
+}
+
+bool HttpServer::serve() { return impl_->http.listen_after_bind(); }
+
+void HttpServer::stop() { impl_->http.stop(); }
+
+std::string httplib_version() { return CPPHTTPLIB_VERSION; }
+
+}  // namespace kdrt::server

@@ -1,0 +1,37 @@
+#pragma once
+/// The HTTP front end: binds, serves the API v1 routes on cpp-httplib, stops gracefully.
+/// httplib itself stays inside server/http_*.cpp (this header does not include it).
+
+#include <memory>
+#include <string>
+
+#include "kdrt/proto/result.h"
+#include "service.h"
+
+namespace kdrt::server {
+
+class HttpServer {
+public:
+    /// Configures the server from service.config (threads, timeouts, limits, routes).
+    explicit HttpServer(Service& service);
+    ~HttpServer();
+    HttpServer(const HttpServer&) = delete;
+    HttpServer& operator=(const HttpServer&) = delete;
+
+    /// Binds HOST:PORT (port 0: any free port). Returns the bound port.
+    [[nodiscard]] proto::Result<int, std::string> bind(const std::string& host, int port);
+    /// Accepts and serves connections until stop(); then waits for in-flight requests. False if
+    /// the listening socket failed.
+    bool serve();
+    /// Stops accepting; serve() returns once the requests in flight are answered.
+    void stop();
+
+private:
+    struct Impl;
+    std::unique_ptr<Impl> impl_;
+};
+
+/// The cpp-httplib version the server was built against (for kdrt_build_info).
+[[nodiscard]] std::string httplib_version();
+
+}  // namespace kdrt::server

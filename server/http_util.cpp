@@ -1,0 +1,101 @@
+#include "http_util.h"
+
+#include "problems.h"
+
+namespace kdrt::server {
+namespace {
+
+/// Bodies up to this size are read and dropped after an early error, so the connection stays
+/// usable and clients that only read the reply after sending everything see it (64 MiB drain
+/// in ~30 ms on loopback). Larger ones get `Connection: close` instead.
+constexpr uint64_t kDrainLimit = 64u << 20;
+
+/// Responses up to this size are sent from a string in one write.
+constexpr size_t kInlineResponseBytes = 64u << 10;
+
+}  // namespace
+
+RequestContext& request_context() noexcept {
+    thread_local RequestContext context;
+    return context;
+}
+
+void reply_problem(const httplib::Request& req, httplib::Response& res, proto::Problem problem) {
+    problem.instance = req.path;
+    problem.request_id = request_context().request_id;
+    res.status = problem.status();
+    if (problem.retry_after) res.set_header("Retry-After", std::to_string(*problem.retry_after));
+    if (problem.kind == proto::ProblemKind::kUnauthorized) res.set_header("WWW-Authenticate", "Bearer realm=\"kdrt\"");
+    res.body = proto::encode_problem(problem);
+    res.set_header("Content-Type", std::string(proto::kProblemMediaType));
+}
+
+void reply_json(httplib::Response& res, int status, std::string json) {
+    res.status = status;
+    res.body = std::move(json);
+    res.set_header("Content-Type", "application/json");
+}
+
+void reply_bytes(httplib::Response& res, std::vector<std::byte> bytes, std::string_view content_type) {
+    res.status = 200;
+    if (bytes.size() <= kInlineResponseBytes) {
+        res.set_content(reinterpret_cast<const char*>(bytes.data()), bytes.size(), std::string(content_type));
+        return;
+    }
+    auto data = std::make_shared<std::vector<std::byte>>(std::move(bytes));
+    res.set_content_provider(data->size(), std::string(content_type),
+                             [data](size_t offset, size_t length, httplib::DataSink& sink) {
+                                 constexpr size_t kChunk = 4u << 20;
+                                 return sink.write(reinterpret_cast<const char*>(data->data()) + offset,
+                                                   std::min(length, kChunk));
+                             });
+}
+
+void discard_body(const httplib::Request& req, httplib::Response& res, const httplib::ContentReader& reader) {
+    const bool chunked = req.get_header_value("Transfer-Encoding").find("chunked") != std::string::npos;
+    const uint64_t length = req.get_header_value<uint64_t>("Content-Length");
+    if (!chunked && length <= kDrainLimit) {
+        if (length > 0) reader([](const char*, size_t) { return true; });
+        return;
+    }
+    res.set_header("Connection", "close");
+}
+
+std::unique_ptr<RequestBody> read_body(const httplib::Request& req, httplib::Response& res,
+                                       const httplib::ContentReader& reader, uint64_t limit, uint64_t memory_bytes,
+                                       const std::string& spool_dir, const std::string& what) {
+    const uint64_t declared = req.get_header_value<uint64_t>("Content-Length");
+    if (declared > limit) {
+        discard_body(req, res, reader);
+        reply_problem(req, res, body_too_large_problem(limit, what));
+        return nullptr;
+    }
+    auto body = std::make_unique<RequestBody>(limit, memory_bytes, spool_dir, declared);
+    RequestContext& context = request_context();
+    const bool has_body = declared > 0 || req.has_header("Transfer-Encoding");
+    const bool read_ok = !has_body || reader([&](const char* data, size_t size) {
+        context.bytes_in += size;
+        return body->append(data, size);
+    });
+    if (body->too_large()) {
+        reply_problem(req, res, body_too_large_problem(limit, what));
+        res.set_header("Connection", "close");
+        return nullptr;
+    }
+    if (!read_ok && body->error().empty()) {
+        // The connection broke or the framing was invalid; httplib set 400 or 413.
+        reply_problem(req, res, res.status == 413 ? body_too_large_problem(limit, what)
+                                                  : make_problem(proto::ProblemKind::kBadRequest,
+                                                                 "the request body could not be read"));
+        res.set_header("Connection", "close");
+        return nullptr;
+    }
+    if (auto finished = body->finish(); !finished) {
+        reply_problem(req, res, make_problem(proto::ProblemKind::kInternal, finished.error()));
+        res.set_header("Connection", "close");
+        return nullptr;
+    }
+    return body;
+}
+
+}  // namespace kdrt::server

@@ -1,0 +1,38 @@
+// kdrt-server: the kdrt HTTP service. See server/config.h for the settings, app.h for the life
+// cycle and proto/openapi.yaml for the API.
+
+#include <cstdio>
+#include <string>
+#include <vector>
+
+#include "app.h"
+#include "config.h"
+#include "log.h"
+
+extern char** environ;
+
+int main(int argc, char** argv) {
+    std::vector<std::string> args(argv + 1, argv + argc);
+    std::vector<std::string> env;
+    for (char** e = environ; *e; ++e) env.emplace_back(*e);
+    auto invocation = kdrt::server::parse_invocation(args, env);
+    if (!invocation) {
+        std::fprintf(stderr, "kdrt-server: %s\n", invocation.error().c_str());
+        return 2;
+    }
+    using Mode = kdrt::server::Invocation::Mode;
+    switch (invocation->mode) {
+        case Mode::kHelp:
+            std::fputs(kdrt::server::help_text().c_str(), stdout);
+            return 0;
+        case Mode::kVersion:
+            std::printf("kdrt-server %s\n", KDRT_VERSION);
+            return 0;
+        case Mode::kMeshId:
+            return kdrt::server::print_mesh_ids(invocation->mesh_files);
+        case Mode::kServe:
+            break;
+    }
+    kdrt::server::setup_logging(invocation->config.log_level, invocation->config.log_format);
+    return kdrt::server::run_server(invocation->config);
+}

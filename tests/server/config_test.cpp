@@ -1,0 +1,152 @@
+#include "config.h"
+
+#include <gtest/gtest.h>
+
+#include <algorithm>
+#include <cstdio>
+#include <filesystem>
+#include <fstream>
+
+#include "kdrt/proto/config_json.h"
+#include "kdrt/proto/file_io.h"
+
+namespace kdrt::server {
+namespace {
+
+Invocation parse_ok(const std::vector<std::string>& args, const std::vector<std::string>& env = {}) {
+    auto r = parse_invocation(args, env);
+    EXPECT_TRUE(r) << (r ? "" : r.error());
+    return r ? *r : Invocation{};
+}
+
+std::string parse_error(const std::vector<std::string>& args, const std::vector<std::string>& env = {}) {
+    auto r = parse_invocation(args, env);
+    EXPECT_FALSE(r);
+    return r ? "" : r.error();
+}
+
+TEST(Config, DefaultsWithoutAnything) {
+    const Invocation inv = parse_ok({});
+    EXPECT_EQ(inv.mode, Invocation::Mode::kServe);
+    EXPECT_EQ(inv.config.listen, "127.0.0.1:8080");
+    EXPECT_EQ(inv.config.memory_budget, 2ull << 30);
+    EXPECT_EQ(inv.config.max_json_rays, 100000u);
+    EXPECT_TRUE(inv.config.preload.empty());
+}
+
+TEST(Config, FlagsInBothFormsAndPreloadLists) {
+    const Invocation inv = parse_ok({"--listen", "0.0.0.0:9000", "--threads=3", "--memory-budget", "512M", "--preload",
+                                     "a.obj", "b.ply", "--token", "t", "--log-format", "json"});
+    EXPECT_EQ(inv.config.listen, "0.0.0.0:9000");
+    EXPECT_EQ(inv.config.threads, 3u);
+    EXPECT_EQ(inv.config.memory_budget, 512ull << 20);
+    EXPECT_EQ(inv.config.preload, (std::vector<std::string>{"a.obj", "b.ply"}));
+    EXPECT_EQ(inv.config.token, "t");
+    EXPECT_EQ(inv.config.log_format, "json");
+}
+
+TEST(Config, FileThenEnvironmentThenFlags) {
+    const auto path = std::filesystem::temp_directory_path() / ("kdrt-config-test-" + std::to_string(::getpid()) + ".json");
+    std::ofstream(path) << "{ // settings\n \"threads\": 4, \"http_threads\": 9, \"max_spp\": 7,\n"
+                           " \"preload\": [\"x.off\"], \"memory_budget\": \"1G\", \"cache_dir\": \"/c\" }";
+    const Invocation inv = parse_ok({"--http-threads", "11", "--config", path.string()},
+                                    {"KDRT_THREADS=5", "KDRT_HTTP_THREADS=10", "KDRT_PRELOAD=a.obj:b.obj",
+                                     "KDRT_UNRELATED=1", "HOME=/root"});
+    EXPECT_EQ(inv.config.config_file, path.string());
+    EXPECT_EQ(inv.config.max_spp, 7u);           // file
+    EXPECT_EQ(inv.config.memory_budget, 1ull << 30);
+    EXPECT_EQ(inv.config.cache_dir, "/c");
+    EXPECT_EQ(inv.config.threads, 5u);           // environment beats the file
+    EXPECT_EQ(inv.config.http_threads, 11u);     // flag beats both
+    EXPECT_EQ(inv.config.preload, (std::vector<std::string>{"a.obj", "b.obj"}));
+    // KDRT_CONFIG names the file too.
+    const Invocation from_env = parse_ok({}, {"KDRT_CONFIG=" + path.string()});
+    EXPECT_EQ(from_env.config.threads, 4u);
+    std::filesystem::remove(path);
+}
+
+TEST(Config, ErrorsNameTheSettingAndSource) {
+    EXPECT_EQ(parse_error({"--threads", "x"}), "--threads: \"x\" is not a non-negative integer");
+    EXPECT_EQ(parse_error({"--threads"}), "--threads needs a value");
+    EXPECT_EQ(parse_error({"--http-threads", "0"}), "--http-threads: \"0\" is outside 1..4096");
+    EXPECT_EQ(parse_error({"--memory-budget", "12Q"}),
+              "--memory-budget: \"12Q\" is not a byte count (digits with an optional K, M, G or T suffix)");
+    EXPECT_EQ(parse_error({"--listen", "8080"}), "--listen: \"8080\" is not HOST:PORT (e.g. 127.0.0.1:8080)");
+    EXPECT_EQ(parse_error({"--listen", "h:99999"}), "--listen: \"h:99999\" has no port number 0..65535 after the last ':'");
+    EXPECT_EQ(parse_error({"--log-level", "loud"}),
+              "--log-level: \"loud\" is not one of trace, debug, info, warn, error, critical, off");
+    EXPECT_EQ(parse_error({"--frobnicate"}), "unknown argument \"--frobnicate\" (kdrt-server --help lists the flags)");
+    EXPECT_EQ(parse_error({}, {"KDRT_MAX_RAYS=0"}), "KDRT_MAX_RAYS: \"0\" is outside 1..67108864");
+    EXPECT_EQ(parse_error({"--preload"}), "--preload needs at least one value");
+    EXPECT_EQ(parse_error({"--mesh-id"}), "--mesh-id needs at least one mesh file");
+
+    const auto path = std::filesystem::temp_directory_path() / ("kdrt-config-bad-" + std::to_string(::getpid()) + ".json");
+    std::ofstream(path) << "{\"thread\": 4}";
+    EXPECT_EQ(parse_error({"--config", path.string()}),
+              path.string() + ": unknown setting \"thread\" (kdrt-server --help lists them)");
+    std::ofstream(path, std::ios::trunc) << "{\"threads\": \"many\"}";
+    EXPECT_EQ(parse_error({"--config", path.string()}), path.string() + ": \"threads\": \"many\" is not a non-negative integer");
+    std::ofstream(path, std::ios::trunc) << "{\"listen\": 80}";
+    EXPECT_EQ(parse_error({"--config", path.string()}), path.string() + ": \"listen\" must be a string");
+    std::filesystem::remove(path);
+}
+
+TEST(Config, Commands) {
+    EXPECT_EQ(parse_ok({"--help"}).mode, Invocation::Mode::kHelp);
+    EXPECT_EQ(parse_ok({"--threads", "2", "-h"}).mode, Invocation::Mode::kHelp);
+    EXPECT_EQ(parse_ok({"--version"}).mode, Invocation::Mode::kVersion);
+    const Invocation ids = parse_ok({"--mesh-id", "a.obj", "b.off"});
+    EXPECT_EQ(ids.mode, Invocation::Mode::kMeshId);
+    EXPECT_EQ(ids.mesh_files, (std::vector<std::string>{"a.obj", "b.off"}));
+}
+
+TEST(Config, HelpListsEverySetting) {
+    const std::string help = help_text();
+    for (const std::string& key : setting_keys()) {
+        std::string flag = "--" + key;
+        std::replace(flag.begin(), flag.end(), '_', '-');
+        EXPECT_NE(help.find(flag), std::string::npos) << flag;
+    }
+}
+
+TEST(Config, ShippedConfigFileListsEverySettingWithItsDefault) {
+    const std::string path = std::string(KDRT_SOURCE_DIR) + "/config/kdrt.json";
+    auto bytes = proto::read_file_bytes(path);
+    ASSERT_TRUE(bytes) << bytes.error();
+    const std::string text(reinterpret_cast<const char*>(bytes->data()), bytes->size());
+    auto entries = proto::parse_config_object(text);
+    ASSERT_TRUE(entries) << entries.error();
+    std::vector<std::string> keys;
+    for (const auto& e : *entries) keys.push_back(e.key);
+    EXPECT_EQ(keys, setting_keys());
+    // Each value, re-read through the same parser, equals the built-in default.
+    for (const auto& e : *entries) {
+        auto one = proto::parse_config_object("{\"" + e.key + "\": " + setting_default_json(e.key) + "}");
+        ASSERT_TRUE(one) << e.key;
+        EXPECT_EQ((*one)[0].value, e.value) << e.key;
+    }
+    // Every setting has a comment line above it.
+    for (const std::string& key : setting_keys()) {
+        const size_t at = text.find("\"" + key + "\":");
+        ASSERT_NE(at, std::string::npos) << key;
+        const size_t line_start = text.rfind('\n', at);
+        const size_t prev_line = text.rfind('\n', line_start - 1);
+        EXPECT_NE(text.substr(prev_line + 1, line_start - prev_line).find("//"), std::string::npos) << key;
+    }
+    // And the server accepts it as is.
+    EXPECT_TRUE(parse_invocation({"--config", path}, {}));
+}
+
+TEST(Config, ByteCountsAndListenAddresses) {
+    EXPECT_EQ(*parse_bytes("0"), 0u);
+    EXPECT_EQ(*parse_bytes("4k"), 4096u);
+    EXPECT_EQ(*parse_bytes("3T"), 3ull << 40);
+    EXPECT_FALSE(parse_bytes("99999999999999999999"));
+    EXPECT_FALSE(parse_bytes("20000000T"));
+    EXPECT_FALSE(parse_bytes("M"));
+    EXPECT_EQ(*split_listen("[::1]:80"), (std::pair<std::string, int>{"::1", 80}));
+    EXPECT_EQ(*split_listen("localhost:0"), (std::pair<std::string, int>{"localhost", 0}));
+}
+
+}  // namespace
+}  // namespace kdrt::server

@@ -1,0 +1,262 @@
+// Every error the API reports, with its status, problem type and detail.
+
+#include <gtest/gtest.h>
+#include <sys/socket.h>
+#include <unistd.h>
+
+#include <cmath>
+#include <cstring>
+#include <thread>
+
+#include "http_test_util.h"
+#include "kdrt/proto/ray_batch.h"
+
+namespace kdrt::test {
+namespace {
+
+using proto::ProblemKind;
+
+class HttpErrors : public ::testing::Test {
+protected:
+    static void SetUpTestSuite() {
+        dir_ = new TempDir();
+        server_ = new ServerProcess({.cache_dir = dir_->path() / "cache",
+                                     .args = {"--max-upload-bytes", "200000", "--max-rays", "1000", "--max-json-rays",
+                                              "10", "--max-json-bytes", "100000"}});
+        auto cli = server_->client();
+        mesh_id_ = upload_id(*cli, small_mesh(3));
+    }
+    static void TearDownTestSuite() {
+        delete server_;
+        delete dir_;
+    }
+    static std::string intersect_path() { return "/v1/meshes/" + mesh_id_ + "/intersect"; }
+
+    static TempDir* dir_;
+    static ServerProcess* server_;
+    static std::string mesh_id_;
+};
+TempDir* HttpErrors::dir_ = nullptr;
+ServerProcess* HttpErrors::server_ = nullptr;
+std::string HttpErrors::mesh_id_;
+
+std::string two_rays(uint16_t version = 1, uint16_t flags = 0) {
+    const Ray rays[2] = {{0, 0, -5, 0, 0, 0, 1, 100}, {1, 2, 3, 0.5f, -1, 0, 0, INFINITY}};
+    std::string body = bytes_to_string(proto::encode_rays(rays, false));
+    std::memcpy(body.data() + 4, &version, 2);
+    std::memcpy(body.data() + 6, &flags, 2);
+    return body;
+}
+
+TEST_F(HttpErrors, UnknownMeshIs404) {
+    auto cli = server_->client();
+    const std::string absent(64, 'a');
+    auto p = expect_problem(cli->Get("/v1/meshes/" + absent), 404);
+    EXPECT_EQ(p.kind, ProblemKind::kUnknownMesh);
+    EXPECT_EQ(p.detail, "no mesh with id " + absent);
+    EXPECT_EQ(p.instance, "/v1/meshes/" + absent);
+    p = expect_problem(cli->Post("/v1/meshes/" + absent + "/intersect", two_rays(), "application/x-kdrt-rays"), 404);
+    EXPECT_EQ(p.detail, "no mesh with id " + absent);
+    p = expect_problem(cli->Get("/v1/meshes/not-an-id"), 404);
+    EXPECT_NE(p.detail.find("\"not-an-id\" is not a mesh id"), std::string::npos) << p.detail;
+}
+
+TEST_F(HttpErrors, UnsupportedMediaTypeIs415) {
+    auto cli = server_->client();
+    auto p = expect_problem(cli->Post("/v1/meshes", "v 0 0 0", "text/plain"), 415);
+    EXPECT_EQ(p.kind, ProblemKind::kUnsupportedMediaType);
+    EXPECT_NE(p.detail.find("cannot tell the mesh format from Content-Type \"text/plain\""), std::string::npos);
+    p = expect_problem(cli->Post("/v1/meshes?format=3ds", "x", "model/obj"), 415);
+    EXPECT_NE(p.detail.find("unknown mesh format \"3ds\""), std::string::npos) << p.detail;
+    p = expect_problem(cli->Post(intersect_path(), two_rays(), "application/octet-stream"), 415);
+    EXPECT_NE(p.detail.find(proto::api_errors::kUnsupportedRayType), std::string::npos) << p.detail;
+    EXPECT_NE(p.detail.find("application/octet-stream"), std::string::npos) << p.detail;
+    // The connection stays usable after an early refusal (the body was drained).
+    EXPECT_EQ(cli->Get("/healthz")->status, 200);
+}
+
+TEST_F(HttpErrors, MeshParseErrorsNameTheLineOrByte) {
+    auto cli = server_->client();
+    auto p = expect_problem(cli->Post("/v1/meshes", "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 9\n", "model/obj"), 422);
+    EXPECT_EQ(p.kind, ProblemKind::kMeshParseError);
+    EXPECT_EQ(p.line, 4u);
+    EXPECT_EQ(p.detail.rfind("line 4:", 0), 0u) << p.detail;
+
+    // Raw mesh whose index is out of range: the error names the byte offset.
+    std::string raw = mesh_body(small_mesh(9, 1), proto::MeshFormat::kRaw);
+    const uint32_t bad_index = 7;
+    std::memcpy(raw.data() + raw.size() - 4, &bad_index, 4);
+    p = expect_problem(cli->Post("/v1/meshes", raw, "application/x-kdrt-mesh"), 422);
+    EXPECT_EQ(p.byte_offset, raw.size() - 4);
+    EXPECT_EQ(p.detail.rfind("byte " + std::to_string(raw.size() - 4) + ":", 0), 0u) << p.detail;
+
+    p = expect_problem(cli->Post("/v1/meshes", "OFF\n0 0 0\n", "application/x-off"), 422);
+    EXPECT_EQ(p.kind, ProblemKind::kInvalidMesh);
+    EXPECT_NE(p.detail.find(proto::api_errors::kEmptyMesh), std::string::npos) << p.detail;
+}
+
+TEST_F(HttpErrors, MalformedRayBatchesAre400WithTheReason) {
+    auto cli = server_->client();
+    struct Case {
+        std::string body;
+        const char* code;
+        const char* detail;
+    };
+    std::string nan_ray = two_rays();
+    const float nan = std::nanf("");
+    std::memcpy(nan_ray.data() + 16 + 32 + 16, &nan, 4);  // ray 1, dx
+    std::string magic = two_rays();
+    std::memcpy(magic.data(), "ABCD", 4);
+    const std::vector<Case> cases = {
+        {"KDR", "too_short", "body has 3 bytes, less than the 16-byte header"},
+        {magic, "bad_magic", "bad magic \"ABCD\", expected \"KDRR\""},
+        {two_rays(2), "bad_version", "unsupported version 2, expected 1"},
+        {two_rays(1, 2), "bad_flags", "unknown flag bits 0x0002"},
+        {two_rays().substr(0, 60), "length_mismatch", "header says 2 rays (80 bytes) but body has 60 bytes"},
+        {nan_ray, "non_finite_ray", "ray 1: field dx is NaN"},
+    };
+    for (const Case& c : cases) {
+        SCOPED_TRACE(c.code);
+        auto p = expect_problem(cli->Post(intersect_path(), c.body, "application/x-kdrt-rays"), 400);
+        EXPECT_EQ(p.kind, ProblemKind::kBadRayBatch);
+        EXPECT_EQ(p.code, c.code);
+        EXPECT_NE(p.detail.find(c.detail), std::string::npos) << p.detail;
+    }
+}
+
+TEST_F(HttpErrors, MalformedJsonRequestsAre400) {
+    auto cli = server_->client();
+    struct Case {
+        std::string body;
+        const char* detail;
+    };
+    const std::vector<Case> cases = {
+        {"{\"rays\": [[0,0,0,1,0,0]", "invalid JSON at byte"},
+        {"[]", "expected a JSON object, got an array"},
+        {"{\"rays\": [[0,0,0,1,0]]}", "rays[0]: expected 6 or 8 numbers, got 5"},
+        {"{\"rays\": [[0,0,0,1,0,0], [0,0,\"x\",1,0,0]]}", "rays[1][2]: expected a number, got a string"},
+        {"{\"rays\": [], \"occlusion\": 1}", "\"occlusion\" must be true or false, got a number"},
+        {"{\"ray\": []}", "unknown member \"ray\""},
+        {"{}", "missing member \"rays\""},
+        {"{\"rays\": [[1e39,0,0,1,0,0]]}", "rays[0][0] (ox): 1e39 does not fit a 32-bit float"},
+    };
+    for (const Case& c : cases) {
+        SCOPED_TRACE(c.body);
+        auto p = expect_problem(cli->Post(intersect_path(), c.body, "application/json"), 400);
+        EXPECT_EQ(p.kind, ProblemKind::kBadRequest);
+        EXPECT_NE(p.detail.find(c.detail), std::string::npos) << p.detail;
+    }
+}
+
+TEST_F(HttpErrors, BodiesOverTheLimitsAre413) {
+    auto cli = server_->client();
+    // Upload over --max-upload-bytes 200000.
+    auto p = expect_problem(cli->Post("/v1/meshes", std::string(200001, ' '), "model/obj"), 413);
+    EXPECT_EQ(p.kind, ProblemKind::kPayloadTooLarge);
+    EXPECT_EQ(p.limit, 200000u);
+    EXPECT_NE(p.detail.find("request body exceeds the limit of 200000 bytes"), std::string::npos) << p.detail;
+    // KDRR over --max-rays 1000: by the body size first...
+    const std::vector<Ray> many(1001, Ray{0, 0, 0, 0, 1, 0, 0, 1});
+    cli = server_->client();
+    p = expect_problem(cli->Post(intersect_path(), bytes_to_string(proto::encode_rays(many, false)),
+                                 "application/x-kdrt-rays"),
+                       413);
+    EXPECT_EQ(p.limit, 16u + 32u * 1000u);
+    // ...and by the header count when the body is small.
+    cli = server_->client();
+    std::string header = two_rays().substr(0, 16);
+    const uint32_t count = 5000;
+    std::memcpy(header.data() + 8, &count, 4);
+    p = expect_problem(cli->Post(intersect_path(), header, "application/x-kdrt-rays"), 413);
+    EXPECT_EQ(p.code, "too_many_rays");
+    EXPECT_NE(p.detail.find("header says 5000 rays, limit is 1000"), std::string::npos) << p.detail;
+    // JSON over --max-json-rays 10.
+    const std::vector<Ray> eleven(11, Ray{0, 0, 0, 0, 1, 0, 0, 1});
+    p = expect_problem(cli->Post(intersect_path(), proto::encode_json_rays(eleven, false), "application/json"), 413);
+    EXPECT_EQ(p.limit, 10u);
+    EXPECT_NE(p.detail.find("rays[10]: rays in a JSON batch exceed the limit of 10"), std::string::npos) << p.detail;
+    // JSON body over --max-json-bytes.
+    cli = server_->client();
+    p = expect_problem(cli->Post(intersect_path(), std::string(100001, ' '), "application/json"), 413);
+    EXPECT_EQ(p.limit, 100000u);
+}
+
+TEST_F(HttpErrors, UnknownRoutesAndMethods) {
+    auto cli = server_->client();
+    auto p = expect_problem(cli->Get("/v2/meshes"), 404);
+    EXPECT_EQ(p.kind, ProblemKind::kNotFound);
+    EXPECT_EQ(p.detail, "no route for GET /v2/meshes");
+    auto res = cli->Put("/v1/meshes", "x", "text/plain");
+    p = expect_problem(res, 405);
+    EXPECT_EQ(p.kind, ProblemKind::kMethodNotAllowed);
+    EXPECT_EQ(res->get_header_value("Allow"), "POST, GET");
+    p = expect_problem(cli->Post("/healthz", "x", "text/plain"), 405);
+    EXPECT_NE(p.detail.find("does not support method POST (allowed: GET)"), std::string::npos) << p.detail;
+}
+
+TEST_F(HttpErrors, PostWithoutContentLengthIsRefusedAtOnce) {
+    const std::string reply =
+        raw_exchange(server_->port(), "POST /v1/meshes HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n",
+                     std::chrono::seconds(10));
+    EXPECT_EQ(reply.rfind("HTTP/1.1 400", 0), 0u) << reply;
+    EXPECT_NE(reply.find("a POST needs a Content-Length (or chunked) body"), std::string::npos) << reply;
+}
+
+TEST(HttpCapacity, OverCapacityIs503WithRetryAfter) {
+    TempDir dir;
+    ServerProcess server({.cache_dir = dir.path() / "cache", .args = {"--max-inflight", "1"}});
+    ASSERT_TRUE(server.running());
+    // Hold the only slot: an upload whose body never finishes arriving.
+    const int held = connect_loopback(server.port());
+    ASSERT_GE(held, 0);
+    const std::string head = "POST /v1/meshes HTTP/1.1\r\nHost: x\r\nContent-Type: model/obj\r\nContent-Length: 100\r\n\r\nv 0";
+    ASSERT_EQ(::send(held, head.data(), head.size(), MSG_NOSIGNAL), static_cast<ssize_t>(head.size()));
+    auto cli = server.client();
+    auto res = cli->Post("/v1/meshes", "v 0 0 0\n", "model/obj");
+    for (int attempt = 0; attempt < 500 && !(res && res->status == 503); ++attempt) {
+        std::this_thread::sleep_for(std::chrono::milliseconds(10));  // until the held request has its slot
+        res = cli->Post("/v1/meshes", "v 0 0 0\n", "model/obj");
+    }
+    auto p = expect_problem(res, 503);
+    EXPECT_EQ(p.kind, ProblemKind::kOverCapacity);
+    EXPECT_EQ(res->get_header_value("Retry-After"), "1");
+    EXPECT_EQ(p.retry_after, 1u);
+    EXPECT_NE(p.detail.find("1 requests are in flight (max_inflight)"), std::string::npos) << p.detail;
+    // Light routes are not gated.
+    EXPECT_EQ(cli->Get("/v1/meshes")->status, 200);
+    ::close(held);
+    // The slot comes back once the held request ends.
+    bool recovered = false;
+    for (int attempt = 0; attempt < 500 && !recovered; ++attempt) {
+        auto again = cli->Post("/v1/meshes", "v 0 0 0\n", "model/obj");
+        recovered = again && again->status == 422;
+        if (!recovered) std::this_thread::sleep_for(std::chrono::milliseconds(10));
+    }
+    EXPECT_TRUE(recovered);
+}
+
+TEST(HttpAuth, BearerTokenGuardsV1Only) {
+    TempDir dir;
+    ServerProcess server({.cache_dir = dir.path() / "cache", .args = {"--token", "s3cret"}});
+    ASSERT_TRUE(server.running());
+    auto cli = server.client();
+    auto res = cli->Get("/v1/meshes");
+    auto p = expect_problem(res, 401);
+    EXPECT_EQ(p.kind, ProblemKind::kUnauthorized);
+    EXPECT_EQ(res->get_header_value("WWW-Authenticate"), "Bearer realm=\"kdrt\"");
+    EXPECT_NE(p.detail.find("requires an Authorization: Bearer token"), std::string::npos) << p.detail;
+    cli->set_bearer_token_auth("wrong");
+    p = expect_problem(cli->Post("/v1/meshes", "v 0 0 0\n", "model/obj"), 401);
+    EXPECT_NE(p.detail.find("bearer token is not valid"), std::string::npos) << p.detail;
+    cli->set_bearer_token_auth("s3cret");
+    EXPECT_EQ(cli->Get("/v1/meshes")->status, 200);
+    EXPECT_EQ(upload_id(*cli, small_mesh(1)).size(), 64u);
+    // Health and metrics stay open.
+    auto open = server.client();
+    EXPECT_EQ(open->Get("/healthz")->status, 200);
+    EXPECT_EQ(open->Get("/readyz")->status, 200);
+    EXPECT_EQ(open->Get("/metrics")->status, 200);
+}
+
+}  // namespace
+}  // namespace kdrt::test

@@ -1,0 +1,196 @@
+// Operations: health, readiness, metrics, access log (text and JSON), configuration sources,
+// preloading, signals, the --help/--mesh-id commands.
+
+#include <gtest/gtest.h>
+#include <sys/wait.h>
+
+#include <cstdio>
+#include <fstream>
+#include <nlohmann/json.hpp>
+#include <sstream>
+#include <thread>
+
+#include "http_test_util.h"
+#include "kdrt/proto/mesh_id.h"
+#include "kdrt/proto/ray_batch.h"
+
+namespace kdrt::test {
+namespace {
+
+/// Runs the binary with `args` to completion; returns {exit code, stdout}.
+std::pair<int, std::string> run_command(const std::string& args) {
+    const std::string command = std::string(KDRT_SERVER_BINARY) + " " + args + " 2>&1";
+    FILE* pipe = ::popen(command.c_str(), "r");
+    std::string out;
+    char buf[4096];
+    size_t n = 0;
+    while ((n = std::fread(buf, 1, sizeof buf, pipe)) > 0) out.append(buf, n);
+    const int status = ::pclose(pipe);
+    return {WIFEXITED(status) ? WEXITSTATUS(status) : -1, out};
+}
+
+TEST(HttpOps, HealthReadyAndMetrics) {
+    TempDir dir;
+    ServerProcess server({.cache_dir = dir.path() / "cache"});
+    auto cli = server.client();
+    auto health = cli->Get("/healthz");
+    ASSERT_TRUE(health);
+    EXPECT_EQ(health->status, 200);
+    EXPECT_EQ(health->body, "{\"status\":\"ok\"}");
+    auto ready = cli->Get("/readyz");
+    ASSERT_TRUE(ready);
+    EXPECT_EQ(ready->status, 200);
+    EXPECT_EQ(ready->body, "{\"status\":\"ready\",\"meshes\":0}");
+
+    const Mesh mesh = small_mesh(5);
+    const std::string id = upload_id(*cli, mesh);
+    const std::vector<Ray> rays = random_rays(mesh_bounds(mesh), 1000, 3);
+    ASSERT_EQ(cli->Post("/v1/meshes/" + id + "/intersect", bytes_to_string(proto::encode_rays(rays, false)),
+                        "application/x-kdrt-rays")
+                  ->status,
+              200);
+    ASSERT_EQ(cli->Post("/v1/meshes/" + id + "/intersect", bytes_to_string(proto::encode_rays(rays, true)),
+                        "application/x-kdrt-rays")
+                  ->status,
+              200);
+    cli->Get("/v1/meshes/" + std::string(64, 'c'));
+
+    auto metrics = cli->Get("/metrics");
+    ASSERT_TRUE(metrics);
+    ASSERT_EQ(metrics->status, 200);
+    EXPECT_EQ(metrics->get_header_value("Content-Type"), "text/plain; version=0.0.4; charset=utf-8");
+    const std::string& text = metrics->body;
+    EXPECT_EQ(find_metric(text, "kdrt_http_requests_total{route=\"/v1/meshes\",method=\"POST\",status=\"201\"}"), 1.0);
+    EXPECT_EQ(find_metric(text, "kdrt_http_requests_total{route=\"/v1/meshes/{id}/intersect\",method=\"POST\",status=\"200\"}"),
+              2.0);
+    EXPECT_EQ(find_metric(text, "kdrt_http_requests_total{route=\"/v1/meshes/{id}\",method=\"GET\",status=\"404\"}"), 1.0);
+    EXPECT_EQ(find_metric(text, "kdrt_http_request_duration_seconds_count{route=\"/v1/meshes/{id}/intersect\"}"), 2.0);
+    EXPECT_EQ(find_metric(text, "kdrt_rays_traced_total{kind=\"closest\"}"), 1000.0);
+    EXPECT_EQ(find_metric(text, "kdrt_rays_traced_total{kind=\"occlusion\"}"), 1000.0);
+    EXPECT_EQ(find_metric(text, "kdrt_tree_builds_total"), 1.0);
+    EXPECT_EQ(find_metric(text, "kdrt_tree_build_seconds_count"), 1.0);
+    EXPECT_GT(find_metric(text, "kdrt_cache_bytes{where=\"memory\"}").value_or(0), 0.0);
+    EXPECT_GT(find_metric(text, "kdrt_cache_bytes{where=\"disk\"}").value_or(0), 0.0);
+    EXPECT_EQ(find_metric(text, "kdrt_cache_hits_total"), 2.0);
+    EXPECT_EQ(find_metric(text, "kdrt_cache_misses_total"), 0.0);
+    EXPECT_EQ(find_metric(text, "kdrt_cache_evictions_total"), 0.0);
+    EXPECT_EQ(find_metric(text, "kdrt_ready"), 1.0);
+    for (const char* family : {"kdrt_build_info{", "# TYPE kdrt_http_request_duration_seconds histogram",
+                               "# TYPE kdrt_tree_build_seconds histogram", "kdrt_jobs{state=\"queued\"} 0",
+                               "kdrt_jobs{state=\"running\"} 0"})
+        EXPECT_NE(text.find(family), std::string::npos) << family;
+
+    // The access log has one line per request with route, status, sizes, rays and time.
+    const std::string log = server.log();
+    EXPECT_NE(log.find("request method=POST route=/v1/meshes/{id}/intersect status=200 in=32016 out=16016 rays=1000"),
+              std::string::npos)
+        << log;
+}
+
+TEST(HttpOps, JsonLogFormat) {
+    TempDir dir;
+    ServerProcess server({.cache_dir = dir.path() / "cache", .env = {"KDRT_LOG_FORMAT=json"}});
+    server.client()->Get("/healthz");
+    server.stop();
+    std::istringstream lines(server.log());
+    std::string line;
+    int requests = 0, parsed = 0;
+    while (std::getline(lines, line)) {
+        const auto doc = nlohmann::json::parse(line, nullptr, false);
+        ASSERT_FALSE(doc.is_discarded()) << line;
+        ++parsed;
+        EXPECT_TRUE(doc.contains("time") && doc.contains("level") && doc.contains("msg")) << line;
+        if (doc["msg"] == "request") {
+            ++requests;
+            EXPECT_TRUE(doc["route"] == "/healthz" || doc["route"] == "/readyz") << line;
+            if (doc["route"] == "/healthz") {
+                EXPECT_EQ(doc["status"], 200);
+            }
+            EXPECT_TRUE(doc["ms"].is_number());
+        }
+    }
+    EXPECT_GE(parsed, 4);
+    EXPECT_GE(requests, 1);
+}
+
+TEST(HttpOps, SettingsComeFromFileThenEnvironmentThenFlags) {
+    TempDir dir;
+    const auto config = dir.path() / "kdrt.json";
+    std::ofstream(config) << "{\n  // comments are allowed\n  \"memory_budget\": \"1M\",\n  \"http_threads\": 5,\n"
+                             "  \"max_jobs\": 3\n}\n";
+    ServerProcess server({.cache_dir = dir.path() / "cache",
+                          .args = {"--config", config.string(), "--http-threads", "7"},
+                          .env = {"KDRT_HTTP_THREADS=6", "KDRT_MEMORY_BUDGET=2M"}});
+    ASSERT_TRUE(server.running());
+    EXPECT_EQ(server.metric("kdrt_cache_budget_bytes"), 2.0 * 1024 * 1024);  // env beats the file
+    EXPECT_NE(server.log().find("http_threads=7"), std::string::npos) << server.log();  // flag beats env
+}
+
+TEST(HttpOps, BadSettingsExitWithAMessage) {
+    auto [code, out] = run_command("--threads lots");
+    EXPECT_EQ(code, 2);
+    EXPECT_NE(out.find("--threads: \"lots\" is not a non-negative integer"), std::string::npos) << out;
+    std::tie(code, out) = run_command("--no-such-flag 1");
+    EXPECT_EQ(code, 2);
+    EXPECT_NE(out.find("unknown argument \"--no-such-flag\""), std::string::npos) << out;
+    std::tie(code, out) = run_command("--config /nonexistent/kdrt.json");
+    EXPECT_EQ(code, 2);
+    EXPECT_NE(out.find("cannot open \"/nonexistent/kdrt.json\""), std::string::npos) << out;
+}
+
+TEST(HttpOps, HelpListsEverySettingAndMeshIdPrintsIds) {
+    auto [code, out] = run_command("--help");
+    EXPECT_EQ(code, 0);
+    for (const char* flag : {"--listen", "--cache-dir", "--threads", "--memory-budget", "--preload", "--token",
+                             "--max-upload-bytes", "--max-rays", "--max-json-rays", "--max-image-width", "--log-level",
+                             "--log-format", "KDRT_MEMORY_BUDGET", "--config FILE"})
+        EXPECT_NE(out.find(flag), std::string::npos) << flag;
+    const std::string bunny = std::string(KDRT_TEST_DATA_DIR) + "/bunny00.off";
+    std::tie(code, out) = run_command("--mesh-id " + bunny);
+    EXPECT_EQ(code, 0);
+    EXPECT_EQ(out, proto::mesh_id(load_bunny()) + "  " + bunny + "\n");
+}
+
+TEST(HttpOps, PreloadedMeshIsReadyAtStart) {
+    TempDir dir;
+    const Mesh mesh = small_mesh(8);
+    const auto file = dir.path() / "soup.obj";
+    std::ofstream(file, std::ios::binary) << mesh_body(mesh, proto::MeshFormat::kObj);
+    ServerProcess server({.cache_dir = dir.path() / "cache", .args = {"--preload", file.string()}});
+    auto res = server.client()->Get("/v1/meshes/" + proto::mesh_id(mesh));
+    ASSERT_TRUE(res);
+    EXPECT_EQ(res->status, 200);
+    EXPECT_NE(server.log().find("preloaded file=" + file.string()), std::string::npos);
+    // A preload that cannot be read stops the start-up with exit code 1.
+    ServerProcess broken({.cache_dir = dir.path() / "cache2",
+                          .args = {"--preload", (dir.path() / "missing.obj").string()},
+                          .wait_ready = false});
+    EXPECT_EQ(broken.stop(0, std::chrono::seconds(30)), 1);
+}
+
+TEST(HttpOps, SigintFinishesInFlightRequestsAndExitsZero) {
+    TempDir dir;
+    ServerProcess server({.cache_dir = dir.path() / "cache"});
+    auto cli = server.client();
+    const Mesh mesh = small_mesh(9, 2000);
+    const std::string id = upload_id(*cli, mesh);
+    const std::vector<Ray> rays = random_rays(mesh_bounds(mesh), 400000, 1);
+    const std::string body = bytes_to_string(proto::encode_rays(rays, false));
+    std::optional<httplib::Result> in_flight;
+    std::thread request([&] {
+        in_flight.emplace(server.client()->Post("/v1/meshes/" + id + "/intersect", body, "application/x-kdrt-rays"));
+    });
+    // Wait until the request is being served, then interrupt.
+    for (int i = 0; i < 2000 && server.log().find("route=/v1/meshes/{id}/intersect") == std::string::npos &&
+                    server.metric("kdrt_inflight_requests").value_or(0) < 1;
+         ++i)
+        std::this_thread::sleep_for(std::chrono::milliseconds(1));
+    EXPECT_EQ(server.stop(SIGINT), 0);
+    request.join();
+    ASSERT_TRUE(in_flight && *in_flight) << "error " << static_cast<int>(in_flight->error()) << "\n" << server.log();
+    EXPECT_EQ((*in_flight)->status, 200);
+    EXPECT_EQ((*in_flight)->body.size(), 16 + 16 * rays.size());
+}
+
+}  // namespace
+}  // namespace kdrt::test

@@ -1,0 +1,240 @@
+// POST /v1/render and the async jobs, against the in-process renderer.
+
+#include <gtest/gtest.h>
+
+#include <thread>
+
+#include "http_test_util.h"
+#include "kdrt/proto/image_io.h"
+#include "kdrt/render.h"
+
+namespace kdrt::test {
+namespace {
+
+using proto::ProblemKind;
+
+class HttpRender : public ::testing::Test {
+protected:
+    static void SetUpTestSuite() {
+        dir_ = new TempDir();
+        server_ = new ServerProcess({.cache_dir = dir_->path() / "cache", .args = {"--max-jobs", "2"}});
+        mesh_ = new Mesh(small_mesh(77, 4000));  // renders like the bunny, builds in milliseconds
+        tree_ = new KdTree(build_kdtree(*mesh_));
+        id_ = upload_id(*server_->client(), *mesh_);
+    }
+    static void TearDownTestSuite() {
+        delete server_;
+        delete dir_;
+        delete mesh_;
+        delete tree_;
+    }
+    static httplib::Result post_render(httplib::Client& cli, const std::string& json, bool async = false) {
+        httplib::Headers headers;
+        if (async) headers.emplace("Prefer", "respond-async");
+        return cli.Post("/v1/render", headers, json, "application/json");
+    }
+    /// The image the server should send for `request`.
+    static std::string expected_image(const proto::RenderRequest& request) {
+        const Image image = render(*tree_, request.settings);
+        auto bytes = proto::encode_image(image, *proto::image_format_from_name(request.format));
+        EXPECT_TRUE(bytes) << bytes.error();
+        return bytes ? bytes_to_string(*bytes) : std::string();
+    }
+    static proto::RenderRequest request(const std::string& json) {
+        auto r = proto::decode_render_request(json);
+        EXPECT_TRUE(r) << r.error().detail;
+        return r ? *r : proto::RenderRequest{};
+    }
+
+    static TempDir* dir_;
+    static ServerProcess* server_;
+    static Mesh* mesh_;
+    static KdTree* tree_;
+    static std::string id_;
+};
+TempDir* HttpRender::dir_ = nullptr;
+ServerProcess* HttpRender::server_ = nullptr;
+Mesh* HttpRender::mesh_ = nullptr;
+KdTree* HttpRender::tree_ = nullptr;
+std::string HttpRender::id_;
+
+TEST_F(HttpRender, EveryShadingModeMatchesTheEngine) {
+    auto cli = server_->client();
+    for (const char* shading : {"normals", "eyelight", "ao", "diffuse", "depth", "primid"}) {
+        SCOPED_TRACE(shading);
+        const std::string json = "{\"mesh\":\"" + id_ + "\",\"shading\":\"" + shading + "\",\"width\":96,\"height\":64}";
+        auto res = post_render(*cli, json);
+        ASSERT_TRUE(res);
+        ASSERT_EQ(res->status, 200) << res->body;
+        EXPECT_EQ(res->get_header_value("Content-Type"), "image/png");
+        auto decoded = proto::decode_image(string_to_bytes(res->body));
+        ASSERT_TRUE(decoded) << decoded.error();
+        EXPECT_EQ(decoded->width, 96u);
+        EXPECT_EQ(decoded->height, 64u);
+        EXPECT_EQ(res->body, expected_image(request(json)));
+    }
+}
+
+TEST_F(HttpRender, DefaultsExrTilesAndExplicitCameras) {
+    auto cli = server_->client();
+    // Only "mesh": 512 x 512 eyelight PNG of the default view.
+    auto res = post_render(*cli, "{\"mesh\":\"" + id_ + "\"}");
+    ASSERT_TRUE(res);
+    ASSERT_EQ(res->status, 200) << res->body;
+    auto decoded = proto::decode_image(string_to_bytes(res->body));
+    ASSERT_TRUE(decoded);
+    EXPECT_EQ(decoded->width, 512u);
+    EXPECT_EQ(decoded->height, 512u);
+
+    // EXR keeps linear values: compare the decoded pixels with the engine's (as half floats).
+    const std::string exr = "{\"mesh\":\"" + id_ + "\",\"format\":\"exr\",\"shading\":\"depth\",\"width\":40,\"height\":30}";
+    res = post_render(*cli, exr);
+    ASSERT_TRUE(res);
+    ASSERT_EQ(res->status, 200) << res->body;
+    EXPECT_EQ(res->get_header_value("Content-Type"), "image/x-exr");
+    auto exr_image = proto::decode_image(string_to_bytes(res->body));
+    ASSERT_TRUE(exr_image) << exr_image.error();
+    auto want = proto::decode_image(string_to_bytes(expected_image(request(exr))));
+    ASSERT_TRUE(want);
+    EXPECT_EQ(exr_image->pixels, want->pixels);
+
+    // A tile of a frame is exactly that part of the full frame.
+    const std::string camera = R"("camera":{"eye":[0,0.1,1.5],"look_at":[0,0,0],"up":[0,1,0],"fov":35})";
+    const std::string full = "{\"mesh\":\"" + id_ + "\"," + camera + ",\"width\":64,\"height\":48,\"format\":\"exr\"}";
+    const std::string tile = "{\"mesh\":\"" + id_ + "\"," + camera +
+                             ",\"width\":64,\"height\":48,\"format\":\"exr\",\"tile\":{\"x\":16,\"y\":8,\"w\":32,\"h\":24}}";
+    auto full_image = proto::decode_image(string_to_bytes(post_render(*cli, full)->body));
+    auto tile_res = post_render(*cli, tile);
+    ASSERT_EQ(tile_res->status, 200) << tile_res->body;
+    auto tile_image = proto::decode_image(string_to_bytes(tile_res->body));
+    ASSERT_TRUE(full_image && tile_image);
+    ASSERT_EQ(tile_image->width, 32u);
+    ASSERT_EQ(tile_image->height, 24u);
+    const uint32_t c = full_image->channels;
+    for (uint32_t y = 0; y < 24; ++y)
+        for (uint32_t x = 0; x < 32 * c; ++x)
+            ASSERT_EQ(tile_image->pixels[y * 32 * c + x], full_image->pixels[(y + 8) * 64 * c + 16 * c + x]);
+
+    // Orthographic projection and JPEG.
+    res = post_render(*cli, "{\"mesh\":\"" + id_ +
+                                "\",\"format\":\"jpg\",\"width\":32,\"height\":32,\"camera\":{\"eye\":[0,0,2],"
+                                "\"look_at\":[0,0,0],\"projection\":\"orthographic\",\"ortho_height\":1.2}}");
+    ASSERT_TRUE(res);
+    ASSERT_EQ(res->status, 200) << res->body;
+    EXPECT_EQ(res->get_header_value("Content-Type"), "image/jpeg");
+}
+
+TEST_F(HttpRender, BadRequestsNameTheProblem) {
+    auto cli = server_->client();
+    struct Case {
+        std::string json;
+        int status;
+        const char* detail;
+    };
+    const std::string mesh = "\"mesh\":\"" + id_ + "\"";
+    const std::vector<Case> cases = {
+        {"{}", 400, "missing member \"mesh\""},
+        {"{" + mesh + ",\"width\":0}", 400, "\"width\" is 0, must be in 1 .. 8192 (max_image_width)"},
+        {"{" + mesh + ",\"spp\":5000}", 400, "\"spp\" is 5000, must be in 1 .. 1024 (max_spp)"},
+        {"{" + mesh + ",\"shading\":\"toon\"}", 400, "unknown shading \"toon\""},
+        {"{" + mesh + ",\"format\":\"gif\"}", 400, "unknown format \"gif\" (expected png, jpg or exr)"},
+        {"{" + mesh + ",\"colour\":1}", 400, "unknown member \"colour\""},
+        {"{" + mesh + ",\"camera\":{\"eye\":[0,0,1]}}", 400, "missing member \"camera.look_at\""},
+        {"{" + mesh + ",\"camera\":{\"eye\":[0,0,1],\"look_at\":[0,0,1]}}", 400, "camera eye and look_at are the same"},
+        {"{" + mesh + ",\"width\":100,\"tile\":{\"x\":90,\"y\":0,\"w\":20,\"h\":5}}", 400,
+         "\"tile.w\" is 20, must be in 1 .. 10 (the tile must lie inside the 100 x 512 frame)"},
+        {"{\"mesh\":\"" + std::string(64, 'e') + "\"}", 404, "no mesh with id eeee"},
+        {"{\"mesh\":", 400, "invalid JSON at byte"},
+    };
+    for (const Case& c : cases) {
+        SCOPED_TRACE(c.json);
+        auto p = expect_problem(post_render(*cli, c.json), c.status);
+        EXPECT_NE(p.detail.find(c.detail), std::string::npos) << p.detail;
+    }
+    auto p = expect_problem(cli->Post("/v1/render", "{}", "text/plain"), 415);
+    EXPECT_NE(p.detail.find("render expects Content-Type application/json"), std::string::npos) << p.detail;
+}
+
+TEST_F(HttpRender, AsyncJobReportsProgressAndGivesTheImage) {
+    auto cli = server_->client();
+    const std::string json = "{\"mesh\":\"" + id_ + "\",\"shading\":\"ao\",\"width\":128,\"height\":128,\"spp\":4}";
+    auto res = post_render(*cli, json, /*async=*/true);
+    ASSERT_TRUE(res);
+    ASSERT_EQ(res->status, 202) << res->body;
+    EXPECT_EQ(res->get_header_value("Preference-Applied"), "respond-async");
+    auto job = proto::decode_job_status(res->body);
+    ASSERT_TRUE(job) << job.error();
+    EXPECT_EQ(res->get_header_value("Location"), "/v1/jobs/" + job->id);
+    EXPECT_EQ(job->mesh, id_);
+    EXPECT_EQ(job->format, "png");
+
+    double last_progress = 0;
+    proto::JobStatus status = *job;
+    for (int i = 0; i < 6000 && status.state != proto::JobState::kDone; ++i) {
+        auto poll = cli->Get("/v1/jobs/" + job->id);
+        ASSERT_TRUE(poll);
+        ASSERT_EQ(poll->status, 200);
+        status = *proto::decode_job_status(poll->body);
+        EXPECT_GE(status.progress, last_progress);
+        EXPECT_LE(status.progress, 1.0);
+        last_progress = status.progress;
+        ASSERT_NE(status.state, proto::JobState::kFailed) << status.error;
+        if (status.state != proto::JobState::kDone) {
+            auto early = cli->Get("/v1/jobs/" + job->id + "/result");
+            if (early->status == 409) {
+                auto p = expect_problem(early, 409);
+                EXPECT_EQ(p.kind, ProblemKind::kJobNotDone);
+            }
+            std::this_thread::sleep_for(std::chrono::milliseconds(5));
+        }
+    }
+    ASSERT_EQ(status.state, proto::JobState::kDone);
+    EXPECT_EQ(status.progress, 1.0);
+    EXPECT_TRUE(status.render_ms.has_value());
+    auto image = cli->Get("/v1/jobs/" + job->id + "/result");
+    ASSERT_TRUE(image);
+    ASSERT_EQ(image->status, 200);
+    EXPECT_EQ(image->get_header_value("Content-Type"), "image/png");
+    EXPECT_EQ(image->body, expected_image(request(json)));
+    EXPECT_EQ(status.result_bytes, image->body.size());
+    // Deleting a finished job forgets it.
+    EXPECT_EQ(cli->Delete("/v1/jobs/" + job->id)->status, 204);
+    expect_problem(cli->Get("/v1/jobs/" + job->id), 404);
+}
+
+TEST_F(HttpRender, JobsCanBeCancelledAndTheQueueIsBounded) {
+    auto cli = server_->client();
+    // Long renders: the first runs, the second waits, a third is over --max-jobs 2.
+    const std::string slow = "{\"mesh\":\"" + id_ + "\",\"shading\":\"ao\",\"width\":1024,\"height\":1024,\"spp\":256}";
+    auto running = proto::decode_job_status(post_render(*cli, slow, true)->body);
+    auto queued = proto::decode_job_status(post_render(*cli, slow, true)->body);
+    ASSERT_TRUE(running && queued);
+    auto p = expect_problem(post_render(*cli, slow, true), 503);
+    EXPECT_EQ(p.kind, ProblemKind::kOverCapacity);
+    EXPECT_NE(p.detail.find("2 render jobs are queued or running (max_jobs)"), std::string::npos) << p.detail;
+
+    // Cancel the queued one: cancelled at once.
+    auto del = cli->Delete("/v1/jobs/" + queued->id);
+    ASSERT_EQ(del->status, 202) << del->body;
+    EXPECT_EQ(proto::decode_job_status(del->body)->state, proto::JobState::kCancelled);
+    // Cancel the running one: it stops at its next tile.
+    del = cli->Delete("/v1/jobs/" + running->id);
+    ASSERT_EQ(del->status, 202) << del->body;
+    EXPECT_TRUE(proto::decode_job_status(del->body)->cancel_requested);
+    proto::JobStatus status;
+    for (int i = 0; i < 3000; ++i) {
+        status = *proto::decode_job_status(cli->Get("/v1/jobs/" + running->id)->body);
+        if (status.state == proto::JobState::kCancelled) break;
+        std::this_thread::sleep_for(std::chrono::milliseconds(10));
+    }
+    EXPECT_EQ(status.state, proto::JobState::kCancelled);
+    EXPECT_LT(status.progress, 1.0);
+    p = expect_problem(cli->Get("/v1/jobs/" + running->id + "/result"), 409);
+    EXPECT_NE(p.detail.find("is cancelled and has no result"), std::string::npos) << p.detail;
+    p = expect_problem(cli->Get("/v1/jobs/0123"), 404);
+    EXPECT_EQ(p.kind, ProblemKind::kUnknownJob);
+    EXPECT_EQ(server_->metric("kdrt_jobs_finished_total{outcome=\"cancelled\"}"), 2.0);
+}
+
+}  // namespace
+}  // namespace kdrt::test

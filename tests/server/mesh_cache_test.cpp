@@ -1,0 +1,177 @@
+// The mesh cache in process: deduplication, single-flight builds, LRU eviction and reload,
+// corrupt files, removal. (http_cache_test.cpp covers the same through the binary.)
+
+#include "mesh_cache.h"
+
+#include <gtest/gtest.h>
+#include <unistd.h>
+
+#include <filesystem>
+#include <fstream>
+#include <thread>
+
+#include "kdrt/proto/mesh_id.h"
+#include "kdrt/trace.h"
+#include "test_util.h"
+
+namespace kdrt::server {
+namespace {
+
+namespace fs = std::filesystem;
+
+class MeshCacheTest : public ::testing::Test {
+protected:
+    void SetUp() override {
+        dir_ = fs::temp_directory_path() /
+               ("kdrt-cache-test-" + std::to_string(::getpid()) + "-" +
+                ::testing::UnitTest::GetInstance()->current_test_info()->name());
+        fs::remove_all(dir_);
+    }
+    void TearDown() override { fs::remove_all(dir_); }
+
+    static Mesh mesh(uint64_t seed, size_t triangles = 300) {
+        test::Rng rng(seed);
+        return test::random_soup(rng, triangles);
+    }
+
+    fs::path dir_;
+    Metrics metrics_;
+    Compute compute_{2};
+};
+
+TEST_F(MeshCacheTest, AddDeduplicatesAndAcquireReturnsTheTree) {
+    MeshStore store(dir_);
+    MeshCache cache(store, compute_, metrics_, 1ull << 30);
+    ASSERT_TRUE(cache.open());
+    const Mesh m = mesh(1);
+    auto first = cache.add(m);
+    ASSERT_TRUE(first);
+    EXPECT_TRUE(first->created);
+    EXPECT_EQ(first->summary.id, proto::mesh_id(m));
+    EXPECT_EQ(first->summary.triangles, 300u);
+    EXPECT_EQ(first->summary.bounds, mesh_bounds(m));
+    auto second = cache.add(m);
+    ASSERT_TRUE(second);
+    EXPECT_FALSE(second->created);
+    EXPECT_EQ(metrics_.builds(), 1u);
+
+    auto tree = cache.acquire(first->summary.id);
+    ASSERT_TRUE(tree);
+    const KdTree reference = build_kdtree(m);
+    EXPECT_EQ((*tree)->nodes, reference.nodes);
+    EXPECT_EQ(metrics_.cache_hits.load(), 1u);
+    EXPECT_EQ(cache.mesh_count(), 1u);
+    EXPECT_GT(cache.memory_bytes(), 0u);
+    EXPECT_GT(cache.disk_bytes(), 0u);
+
+    auto unknown = cache.acquire(std::string(64, '0'));
+    ASSERT_FALSE(unknown);
+    EXPECT_EQ(unknown.error().code, CacheError::Code::kUnknownMesh);
+}
+
+TEST_F(MeshCacheTest, ConcurrentAddsOfOneMeshBuildOnce) {
+    MeshStore store(dir_);
+    MeshCache cache(store, compute_, metrics_, 1ull << 30);
+    ASSERT_TRUE(cache.open());
+    const Mesh m = mesh(2, 20000);
+    std::atomic<int> created{0};
+    std::vector<std::thread> threads;
+    for (int i = 0; i < 8; ++i)
+        threads.emplace_back([&] {
+            auto added = cache.add(m);
+            ASSERT_TRUE(added);
+            created += added->created;
+        });
+    for (auto& t : threads) t.join();
+    EXPECT_EQ(created.load(), 1);
+    EXPECT_EQ(metrics_.builds(), 1u);
+}
+
+TEST_F(MeshCacheTest, BudgetEvictsLeastRecentlyUsed) {
+    MeshStore store(dir_);
+    const Mesh a = mesh(3), b = mesh(4), c = mesh(5);
+    const uint64_t one_tree = tree_memory_bytes(build_kdtree(a));
+    MeshCache cache(store, compute_, metrics_, one_tree * 2 + one_tree / 2);  // room for two
+    ASSERT_TRUE(cache.open());
+    const std::string ia = cache.add(a)->summary.id, ib = cache.add(b)->summary.id;
+    EXPECT_EQ(cache.resident_count(), 2u);
+    ASSERT_TRUE(cache.acquire(ia));  // a is now the most recent
+    const std::string ic = cache.add(c)->summary.id;
+    EXPECT_EQ(cache.resident_count(), 2u);
+    EXPECT_EQ(metrics_.cache_evictions.load(), 1u);
+    EXPECT_FALSE(cache.find(ib)->in_memory.value());  // b was the least recently used
+    EXPECT_TRUE(cache.find(ia)->in_memory.value());
+    // A held tree survives its eviction; reloading gives the same tree without a build.
+    auto held = cache.acquire(ia);
+    ASSERT_TRUE(held);
+    auto reloaded = cache.acquire(ib);
+    ASSERT_TRUE(reloaded);
+    EXPECT_EQ((*reloaded)->nodes, build_kdtree(b).nodes);
+    EXPECT_EQ(metrics_.cache_misses.load(), 1u);
+    EXPECT_EQ(metrics_.builds(), 3u);
+    EXPECT_FALSE((*held)->nodes.empty());
+    (void)ic;
+}
+
+TEST_F(MeshCacheTest, ReopenFindsEveryMeshAndRebuildsCorruptTrees) {
+    const Mesh a = mesh(6), b = mesh(7);
+    std::string ia, ib;
+    {
+        MeshStore store(dir_);
+        MeshCache cache(store, compute_, metrics_, 1ull << 30);
+        ASSERT_TRUE(cache.open());
+        ia = cache.add(a)->summary.id;
+        ib = cache.add(b)->summary.id;
+    }
+    {
+        std::fstream f(dir_ / "meshes" / (ib + ".tree"), std::ios::in | std::ios::out | std::ios::binary);
+        f.seekp(300);
+        f.put('\x7f');
+    }
+    Metrics metrics;
+    MeshStore store(dir_);
+    MeshCache cache(store, compute_, metrics, 1ull << 30);
+    ASSERT_TRUE(cache.open());
+    EXPECT_EQ(cache.mesh_count(), 2u);
+    EXPECT_FALSE(cache.find(ia)->in_memory.value());
+    ASSERT_TRUE(cache.acquire(ia));
+    EXPECT_EQ(metrics.builds(), 0u);
+    auto rebuilt = cache.acquire(ib);
+    ASSERT_TRUE(rebuilt);
+    EXPECT_EQ((*rebuilt)->nodes, build_kdtree(b).nodes);
+    EXPECT_EQ(metrics.builds(), 1u);
+    EXPECT_EQ(metrics.cache_rebuilds.load(), 1u);
+}
+
+TEST_F(MeshCacheTest, RemoveForgetsAndDeletesFiles) {
+    MeshStore store(dir_);
+    MeshCache cache(store, compute_, metrics_, 1ull << 30);
+    ASSERT_TRUE(cache.open());
+    const std::string id = cache.add(mesh(8))->summary.id;
+    auto held = cache.acquire(id);
+    EXPECT_TRUE(cache.remove(id));
+    EXPECT_FALSE(cache.remove(id));
+    EXPECT_FALSE(cache.find(id));
+    EXPECT_EQ(cache.memory_bytes(), 0u);
+    EXPECT_EQ(cache.disk_bytes(), 0u);
+    EXPECT_FALSE(fs::exists(store.mesh_path(id)));
+    EXPECT_FALSE(fs::exists(store.tree_path(id)));
+    EXPECT_FALSE(fs::exists(store.summary_path(id)));
+    ASSERT_TRUE(held);  // a trace in flight keeps its tree
+    EXPECT_FALSE((*held)->tris.empty());
+}
+
+TEST_F(MeshCacheTest, EngineRefusalIsAnInvalidMesh) {
+    MeshStore store(dir_);
+    MeshCache cache(store, compute_, metrics_, 1ull << 30);
+    ASSERT_TRUE(cache.open());
+    Mesh bad = mesh(9, 1);
+    bad.positions[0] = std::numeric_limits<float>::quiet_NaN();  // parsers never produce this
+    auto added = cache.add(bad);
+    ASSERT_FALSE(added);
+    EXPECT_EQ(added.error().code, CacheError::Code::kInvalidMesh);
+    EXPECT_EQ(cache.mesh_count(), 0u);
+}
+
+}  // namespace
+}  // namespace kdrt::server
