@@ -231,9 +231,10 @@ PixelRegion region_of(const RenderSettings& s) noexcept {
 
 Camera make_camera(const KdTree& tree, const RenderSettings& s) {
     try {
-        const CameraSpec spec = s.camera ? *s.camera
-                                         : default_camera(tree.bounds, static_cast<float>(static_cast<double>(s.width) /
-                                                                                          static_cast<double>(s.height)));
+        const CameraSpec spec =
+            s.camera ? *s.camera
+                     : default_camera(tree.bounds,
+                                      static_cast<float>(static_cast<double>(s.width) / static_cast<double>(s.height)));
         return Camera(spec, s.width, s.height);
     } catch (const CameraError& e) {
         throw RenderError(e.what());
@@ -262,11 +263,12 @@ struct Frame {
     uint32_t channels;
     uint32_t tiles_x, tiles_y;
     SampleGrid grid;
-    float offset;     ///< secondary ray origin offset along the normal
-    float ao_tmax;    ///< length of an AO ray
-    Vec3 to_light;    ///< kDirectional: unit direction towards the light
+    float offset;   ///< secondary ray origin offset along the normal
+    float ao_tmax;  ///< length of an AO ray
+    Vec3 to_light;  ///< kDirectional: unit direction towards the light
 
-    /// Position of camera sample `sample` of full-frame pixel (x, y), in image coordinates.
+    /// The camera ray of sample `sample` of full-frame pixel (x, y): through the pixel centre for
+    /// one sample per pixel, else through the sample's jittered position in its stratum.
     [[nodiscard]] Ray camera_ray(uint32_t x, uint32_t y, uint32_t sample) const noexcept {
         float jx = 0.5f, jy = 0.5f;
         if (settings.spp > 1) {
@@ -310,7 +312,7 @@ Frame make_frame(const KdTree& tree, const RenderSettings& s) {
 // ---------------------------------------------------------------------------------------------
 // Tracing
 
-/// The tree's own block queries: direct calls, inlined into the tile loop's caller.
+/// The tree's own block queries: direct calls, no indirection per block or ray.
 struct TreeTracer {
     const KdTree& tree;
     void intersect(std::span<const Ray> rays, std::span<Hit> hits) const noexcept { intersect_block(tree, rays, hits); }
@@ -372,12 +374,12 @@ struct TileScratch {
     std::array<Ray, kMaxTilePixels> rays;
     std::array<Hit, kMaxTilePixels> hits;
     std::array<uint8_t, kMaxTilePixels> occluded;
-    std::array<Surface, kMaxTilePixels> surfaces;        ///< per live path / AO point
-    std::array<uint16_t, kMaxTilePixels> path_pixel;     ///< tile pixel of each live path
-    std::array<float, kMaxTilePixels> throughput;        ///< per live path
-    std::array<uint16_t, kMaxTilePixels> ray_path;       ///< path of each ray in `rays`
-    std::array<float, kMaxTilePixels> ray_weight;        ///< per ray: light or throughput weight
-    std::array<float, kMaxTilePixels> value;             ///< per tile pixel: this sample's grey value
+    std::array<Surface, kMaxTilePixels> surfaces;          ///< per live path / AO point
+    std::array<uint16_t, kMaxTilePixels> path_pixel;       ///< tile pixel of each live path
+    std::array<float, kMaxTilePixels> throughput;          ///< per live path
+    std::array<uint16_t, kMaxTilePixels> ray_path;         ///< path of each ray in `rays`
+    std::array<float, kMaxTilePixels> ray_weight;          ///< per ray: light or throughput weight
+    std::array<float, kMaxTilePixels> value;               ///< per tile pixel: this sample's grey value
     std::array<std::array<float, 4>, kMaxTilePixels> sum;  ///< per tile pixel: RGB + coverage
 };
 
@@ -707,7 +709,8 @@ Image render_frame(const KdTree& tree, const RenderSettings& settings, const Tra
         }
         ray_count.fetch_add(rays, std::memory_order_relaxed);
     });
-    if (skipped.load()) throw RenderCancelled("render cancelled before all " + std::to_string(tile_count) + " tiles were done");
+    if (skipped.load())
+        throw RenderCancelled("render cancelled before all " + std::to_string(tile_count) + " tiles were done");
     progress.finish();
 
     if (stats) {

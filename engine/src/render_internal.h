@@ -17,8 +17,8 @@ namespace kdrt::detail {
 struct TraceFunctions {
     const void* context = nullptr;
     void (*intersect)(const void* context, std::span<const Ray> rays, std::span<Hit> hits) noexcept = nullptr;
-    void (*occluded)(const void* context, std::span<const Ray> rays, std::span<uint8_t> occluded_out) noexcept =
-        nullptr;
+    void (*occluded)(const void* context, std::span<const Ray> rays,
+                     std::span<uint8_t> occluded_out) noexcept = nullptr;
 };
 
 /// render() with `trace` answering every ray query. `tree` still supplies the triangles

@@ -11,6 +11,7 @@
 #include <limits>
 #include <mutex>
 
+#include "kdrt/proto/errors.h"
 #include "kdrt/proto/file_io.h"
 
 namespace kdrt::proto {
@@ -172,13 +173,13 @@ std::string png_structure_problem(std::span<const std::byte> bytes) {
     size_t at = 8;  // after the signature
     while (true) {
         if (bytes.size() - at < 12) {
-            return "PNG is truncated: byte " + std::to_string(at) + " should start a chunk, but the file has " +
-                   std::to_string(bytes.size()) + " bytes";
+            return std::string(image_errors::kTruncatedPng) + ": byte " + std::to_string(at) +
+                   " should start a chunk, but the file has " + std::to_string(bytes.size()) + " bytes";
         }
         const uint64_t length = read_be32(bytes, at);
         const bool is_end = read_be32(bytes, at + 4) == 0x49454E44u;  // "IEND"
         if (length > bytes.size() - at - 12) {
-            return "PNG is truncated: the chunk at byte " + std::to_string(at) + " needs " +
+            return std::string(image_errors::kTruncatedPng) + ": the chunk at byte " + std::to_string(at) + " needs " +
                    std::to_string(length + 12) + " bytes, the file has " + std::to_string(bytes.size() - at) + " left";
         }
         at += 12 + length;
@@ -234,7 +235,7 @@ uint8_t linear_to_srgb8(float value) noexcept {
 float srgb8_to_linear(uint8_t level) noexcept { return levels()[level]; }
 
 Result<std::vector<std::byte>, std::string> encode_image(const Image& image, ImageFormat format,
-                                                        const ImageEncodeOptions& options) {
+                                                         const ImageEncodeOptions& options) {
     if (std::string problem = check_image(image); !problem.empty()) return Err{std::move(problem)};
     if (!is_known_format(format)) {
         return Err{"unknown image format " + std::to_string(static_cast<int>(format))};
@@ -302,7 +303,7 @@ Result<void, std::string> write_image_file(const std::filesystem::path& path, co
                                            std::optional<ImageFormat> format, const ImageEncodeOptions& options) {
     if (!format) format = image_format_from_path(path);
     if (!format) {
-        return Err{"cannot tell the image format of \"" + path.string() +
+        return Err{std::string(image_errors::kUnknownExtension) + " of \"" + path.string() +
                    "\" from its extension (use .png, .jpg, .jpeg or .exr)"};
     }
     auto bytes = encode_image(image, *format, options);
@@ -312,7 +313,7 @@ Result<void, std::string> write_image_file(const std::filesystem::path& path, co
 
 Result<Image, std::string> decode_image(std::span<const std::byte> bytes, const ImageDecodeLimits& limits) {
     const std::optional<ImageFormat> format = sniff_format(bytes);
-    if (!format) return Err{std::string("not a PNG, JPEG or OpenEXR image (unknown magic bytes)")};
+    if (!format) return Err{std::string(image_errors::kUnknownMagic) + " (unknown magic bytes)"};
     if (*format == ImageFormat::kPng) {
         if (std::string problem = png_structure_problem(bytes); !problem.empty()) return Err{std::move(problem)};
     }
@@ -333,8 +334,8 @@ Result<Image, std::string> decode_image(std::span<const std::byte> bytes, const 
     }
     OIIO::ImageSpec spec;
     if (!in->open(name, spec, config)) {
-        return Err{"cannot read " + std::string(image_format_name(*format)) + " image: " +
-                   object_error(*in, "open failed")};
+        return Err{"cannot read " + std::string(image_format_name(*format)) +
+                   " image: " + object_error(*in, "open failed")};
     }
     if (spec.width < 1 || spec.height < 1 || spec.depth > 1) {
         return Err{"image has unsupported dimensions " + std::to_string(spec.width) + " x " +
@@ -342,8 +343,8 @@ Result<Image, std::string> decode_image(std::span<const std::byte> bytes, const 
     }
     const uint64_t pixels = uint64_t(spec.width) * uint64_t(spec.height);
     if (pixels > limits.max_pixels) {
-        return Err{"image has " + std::to_string(pixels) + " pixels, which exceeds the limit of " +
-                   std::to_string(limits.max_pixels)};
+        return Err{"image has " + std::to_string(pixels) + " pixels, which " + std::string(errors::kLimitExceeded) +
+                   " of " + std::to_string(limits.max_pixels)};
     }
     if (spec.nchannels < 1 || spec.nchannels > 4) {
         return Err{"image has " + std::to_string(spec.nchannels) + " channels; at most 4 are supported"};
@@ -370,12 +371,12 @@ Result<Image, std::string> decode_image(std::span<const std::byte> bytes, const 
     if (eight_bit) {
         levels8.resize(values);
         if (!in->read_image(0, 0, 0, spec.nchannels, OIIO::TypeDesc::UINT8, levels8.data())) {
-            return Err{"cannot decode " + std::string(image_format_name(*format)) + " image: " +
-                       object_error(*in, "read failed")};
+            return Err{"cannot decode " + std::string(image_format_name(*format)) +
+                       " image: " + object_error(*in, "read failed")};
         }
     } else if (!in->read_image(0, 0, 0, spec.nchannels, OIIO::TypeDesc::FLOAT, image.pixels.data())) {
-        return Err{"cannot decode " + std::string(image_format_name(*format)) + " image: " +
-                   object_error(*in, "read failed")};
+        return Err{"cannot decode " + std::string(image_format_name(*format)) +
+                   " image: " + object_error(*in, "read failed")};
     }
     for (size_t p = 0; p < pixels; ++p) {
         float* px = &image.pixels[p * image.channels];

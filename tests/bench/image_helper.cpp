@@ -70,9 +70,12 @@ void write_image_with_helper(const std::filesystem::path& path, const Image& ima
     posix_spawn_file_actions_t actions;
     posix_spawn_file_actions_init(&actions);
     posix_spawn_file_actions_adddup2(&actions, read_end.get(), STDIN_FILENO);
-    std::vector<std::string> args = {helper.string(),           "raw",
-                                     std::to_string(image.width), std::to_string(image.height),
-                                     std::to_string(image.channels), path.string()};
+    std::vector<std::string> args = {helper.string(),
+                                     "raw",
+                                     std::to_string(image.width),
+                                     std::to_string(image.height),
+                                     std::to_string(image.channels),
+                                     path.string()};
     std::vector<char*> argv;
     for (std::string& a : args) argv.push_back(a.data());
     argv.push_back(nullptr);

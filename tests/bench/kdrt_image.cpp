@@ -44,8 +44,8 @@ Image read_raw_image(uint32_t width, uint32_t height, uint32_t channels) {
     while (have < want) {
         const ssize_t n = ::read(STDIN_FILENO, data + have, want - have);
         if (n < 0 && errno == EINTR) continue;
-        if (n < 0) throw BenchError("cannot read the image from standard input: " +
-                                    std::generic_category().message(errno));
+        if (n < 0)
+            throw BenchError("cannot read the image from standard input: " + std::generic_category().message(errno));
         if (n == 0) {
             throw BenchError("standard input ended after " + std::to_string(have) + " of " + std::to_string(want) +
                              " bytes");
@@ -59,19 +59,20 @@ int run(const Args& args) {
     static constexpr std::array<std::string_view, 5> kNames = {"raw", "WIDTH", "HEIGHT", "CHANNELS", "OUT"};
     args.expect_positional(kNames);
     if (args.positional()[0] != "raw") throw UsageError("unknown command '" + args.positional()[0] + "'");
-    auto number = [&](size_t index, const char* name, uint64_t max_value) {
+    auto number = [&](size_t index, const char* name, uint64_t min_value, uint64_t max_value) {
         const std::string& text = args.positional()[index];
         uint64_t value = 0;
         const auto [ptr, ec] = std::from_chars(text.data(), text.data() + text.size(), value);
-        if (text.empty() || ec != std::errc() || ptr != text.data() + text.size() || value < 1 || value > max_value) {
-            throw UsageError(std::string(name) + " '" + text + "' is not an integer in [1, " +
-                             std::to_string(max_value) + "]");
+        if (text.empty() || ec != std::errc() || ptr != text.data() + text.size() || value < min_value ||
+            value > max_value) {
+            throw UsageError(std::string(name) + " '" + text + "' is not an integer in [" + std::to_string(min_value) +
+                             ", " + std::to_string(max_value) + "]");
         }
         return static_cast<uint32_t>(value);
     };
-    const uint32_t width = number(1, "WIDTH", kMaxImageSize);
-    const uint32_t height = number(2, "HEIGHT", kMaxImageSize);
-    const uint32_t channels = number(3, "CHANNELS", 4);
+    const uint32_t width = number(1, "WIDTH", 1, kMaxImageSize);
+    const uint32_t height = number(2, "HEIGHT", 1, kMaxImageSize);
+    const uint32_t channels = number(3, "CHANNELS", 3, 4);  // RGB or RGBA
     const std::string& out = args.positional()[4];
     proto::ImageEncodeOptions options;
     const std::string exr_type = args.get("exr-type").value_or("half");
@@ -82,7 +83,8 @@ int run(const Args& args) {
     }
     options.jpeg_quality = static_cast<int>(args.get_uint("jpeg-quality", 90, 1, 100));
     if (!proto::image_format_from_path(out)) {
-        throw UsageError("cannot tell the image format of '" + out + "' (use .png, .jpg, .jpeg or .exr)");
+        throw UsageError(std::string(proto::image_errors::kUnknownExtension) + " of '" + out +
+                         "' (use .png, .jpg, .jpeg or .exr)");
     }
     const Image image = read_raw_image(width, height, channels);
     auto written = proto::write_image_file(out, image, std::nullopt, options);

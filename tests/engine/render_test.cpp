@@ -12,6 +12,7 @@
 #include <set>
 #include <stdexcept>
 #include <string>
+#include <unordered_map>
 #include <vector>
 
 #include "kdrt/proto/mesh_io.h"
@@ -100,32 +101,51 @@ void expect_render_error(const KdTree& tree, const RenderSettings& settings, con
     EXPECT_THROW(validate_render_settings(settings), RenderError) << field;
 }
 
-// The brute-force oracle behind the renderer's TraceFunctions hook. FilteredBruteForce gives
-// exactly brute_force_intersect's answers (OracleSelfCheck.FilteredBruteForceEqualsPlain), and an
-// occlusion query is "the closest hit exists within [tmin, tmax]" (brute_force_occluded's answer).
-void oracle_intersect(const void* context, std::span<const Ray> rays, std::span<Hit> hits) noexcept {
-    const auto& oracle = *static_cast<const FilteredBruteForce*>(context);
-    for (size_t i = 0; i < rays.size(); ++i) hits[i] = oracle.intersect(rays[i]);
-}
-void oracle_occluded(const void* context, std::span<const Ray> rays, std::span<uint8_t> out) noexcept {
-    const auto& oracle = *static_cast<const FilteredBruteForce*>(context);
-    for (size_t i = 0; i < rays.size(); ++i) out[i] = oracle.intersect(rays[i]).is_hit() ? 1 : 0;
-}
+/// The brute-force oracle behind the renderer's TraceFunctions hook. FilteredBruteForce gives
+/// exactly brute_force_intersect's answers (OracleSelfCheck.FilteredBruteForceEqualsPlain), and an
+/// occlusion query is "the closest hit exists within [tmin, tmax]" (brute_force_occluded's
+/// answer). Answers already computed for a ray set (remember()) are looked up by the ray's bits,
+/// so several renders of the same camera rays pay for the brute force once.
+class BruteForce {
+public:
+    explicit BruteForce(const KdTree& tree) : filtered_(tree.tris) {}
+
+    void remember(std::span<const Ray> rays, std::span<const Hit> hits) {
+        for (size_t i = 0; i < rays.size(); ++i) known_.emplace(key(rays[i]), hits[i]);
+    }
+    [[nodiscard]] Hit intersect(const Ray& ray) const {
+        const auto it = known_.find(key(ray));
+        return it != known_.end() ? it->second : filtered_.intersect(ray);
+    }
+    [[nodiscard]] detail::TraceFunctions functions() const { return {this, &intersect_all, &occluded_all}; }
+
+private:
+    static std::string key(const Ray& ray) { return std::string(reinterpret_cast<const char*>(&ray), sizeof ray); }
+    static void intersect_all(const void* self, std::span<const Ray> rays, std::span<Hit> hits) noexcept {
+        const auto& oracle = *static_cast<const BruteForce*>(self);
+        for (size_t i = 0; i < rays.size(); ++i) hits[i] = oracle.intersect(rays[i]);
+    }
+    static void occluded_all(const void* self, std::span<const Ray> rays, std::span<uint8_t> out) noexcept {
+        const auto& oracle = *static_cast<const BruteForce*>(self);
+        for (size_t i = 0; i < rays.size(); ++i) out[i] = oracle.intersect(rays[i]).is_hit() ? 1 : 0;
+    }
+
+    FilteredBruteForce filtered_;
+    std::unordered_map<std::string, Hit> known_;
+};
 
 Image render_brute_force(const KdTree& tree, const RenderSettings& settings) {
-    const FilteredBruteForce oracle(tree.tris);
-    const detail::TraceFunctions functions{&oracle, &oracle_intersect, &oracle_occluded};
-    return detail::render_with(tree, settings, functions);
+    const BruteForce oracle(tree);
+    return detail::render_with(tree, settings, oracle.functions());
 }
 
-/// Pixels whose camera ray has an exact tie at its closest t, broken differently by the tree and
-/// the oracle (both legitimate: see expect_same_hits in oracle.h). The only accepted difference.
-std::set<size_t> tie_pixels(const KdTree& tree, const RenderSettings& settings) {
+/// Pixels whose camera ray (`rays`, with the oracle's answers `want`) has an exact tie at its
+/// closest t, broken differently by the tree and the oracle (both legitimate: see
+/// expect_same_hits in oracle.h). The only accepted difference.
+std::set<size_t> tie_pixels(const KdTree& tree, std::span<const Ray> rays, std::span<const Hit> want) {
     std::set<size_t> ties;
-    const std::vector<Ray> rays = render_camera_rays(tree, settings);
     std::vector<Hit> hits(rays.size());
     intersect_single(tree, rays, hits);
-    const std::vector<Hit> want = brute_force_all(tree.tris, rays);
     for (size_t i = 0; i < rays.size(); ++i) {
         if (hits[i].prim == want[i].prim || hits[i].t != want[i].t || !hits[i].is_hit()) continue;
         const Hit alone = brute_force_intersect(std::span(tree.tris).subspan(hits[i].prim, 1), rays[i]);
@@ -137,9 +157,10 @@ std::set<size_t> tie_pixels(const KdTree& tree, const RenderSettings& settings) 
 /// The tree render equals the oracle render bit for bit, except at the exact-tie pixels `ties`.
 /// Returns the number of pixels the camera rays hit (so callers can check the image is not
 /// trivial).
-size_t expect_matches_oracle(const KdTree& tree, const RenderSettings& settings, const std::set<size_t>& ties) {
+size_t expect_matches_oracle(const KdTree& tree, const RenderSettings& settings, const BruteForce& oracle,
+                             const std::set<size_t>& ties) {
     const Image got = render(tree, settings);
-    const Image want = render_brute_force(tree, settings);
+    const Image want = detail::render_with(tree, settings, oracle.functions());
     EXPECT_EQ(got.width, want.width);
     EXPECT_EQ(got.height, want.height);
     EXPECT_EQ(got.channels, want.channels);
@@ -179,11 +200,16 @@ RenderSettings bunny_settings(Shading shading, uint32_t res) {
 
 TEST(RenderOracle, BunnyNormalsDepthPrimIdEqualBruteForce) {
     const KdTree& tree = bunny_tree();
-    // One camera ray per pixel through its centre: the same rays, so the same ties, in all three.
-    const std::set<size_t> ties = tie_pixels(tree, bunny_settings(Shading::kNormals, 128));
+    // One camera ray per pixel through its centre: the three modes trace the same rays, so the
+    // brute force runs once for all of them, and the ties are the same.
+    const std::vector<Ray> rays = render_camera_rays(tree, bunny_settings(Shading::kNormals, 128));
+    const std::vector<Hit> want = brute_force_all(tree.tris, rays);
+    BruteForce oracle(tree);
+    oracle.remember(rays, want);
+    const std::set<size_t> ties = tie_pixels(tree, rays, want);
     for (Shading shading : {Shading::kNormals, Shading::kDepth, Shading::kPrimId}) {
         SCOPED_TRACE(shading_name(shading));
-        const size_t hit_pixels = expect_matches_oracle(tree, bunny_settings(shading, 128), ties);
+        const size_t hit_pixels = expect_matches_oracle(tree, bunny_settings(shading, 128), oracle, ties);
         EXPECT_GT(hit_pixels, 128u * 128u / 5) << "the default camera should fill the frame with the bunny";
         EXPECT_LT(hit_pixels, 128u * 128u) << "and show some background";
     }
@@ -367,8 +393,8 @@ TEST(RenderSamples, SamplesAreStratifiedOneToACell) {
                     ASSERT_LE(fy, 1.0 + 1e-5) << x << "," << y;
                     // A sample within rounding of a cell border cannot be assigned reliably.
                     const double gx = fx * columns, gy = fy * rows;
-                    ambiguous = ambiguous || std::fabs(gx - std::round(gx)) < 1e-4 ||
-                                std::fabs(gy - std::round(gy)) < 1e-4;
+                    ambiguous =
+                        ambiguous || std::fabs(gx - std::round(gx)) < 1e-4 || std::fabs(gy - std::round(gy)) < 1e-4;
                     const auto cx = std::min(columns - 1, static_cast<uint32_t>(gx));
                     const auto cy = std::min(rows - 1, static_cast<uint32_t>(gy));
                     cells.insert(cy * columns + cx);
@@ -735,8 +761,8 @@ TEST(RenderStatsTest, CountsPixelsTilesAndRays) {
 // Settings validation
 
 TEST(RenderSettingsTest, ShadingNamesRoundTrip) {
-    for (Shading shading : {Shading::kNormals, Shading::kEyelight, Shading::kDepth, Shading::kPrimId, Shading::kAo,
-                            Shading::kDiffuse}) {
+    for (Shading shading :
+         {Shading::kNormals, Shading::kEyelight, Shading::kDepth, Shading::kPrimId, Shading::kAo, Shading::kDiffuse}) {
         EXPECT_EQ(parse_shading(shading_name(shading)), shading);
     }
     EXPECT_EQ(parse_shading("Eyelight"), std::nullopt);
@@ -757,8 +783,7 @@ TEST(RenderSettingsTest, BadSizesAndCountsNameTheField) {
     expect_render_error(tree, with([](RenderSettings& s) { s.width = kMaxImageSize + 1; }), "width");
     expect_render_error(tree, with([](RenderSettings& s) { s.region = PixelRegion{0, 0, 0, 4}; }), "region");
     expect_render_error(tree, with([](RenderSettings& s) { s.region = PixelRegion{30, 0, 3, 4}; }), "region");
-    expect_render_error(tree, with([](RenderSettings& s) { s.region = PixelRegion{0xFFFFFFFFu, 0, 2, 2}; }),
-                        "region");
+    expect_render_error(tree, with([](RenderSettings& s) { s.region = PixelRegion{0xFFFFFFFFu, 0, 2, 2}; }), "region");
     expect_render_error(tree, with([](RenderSettings& s) { s.spp = 0; }), "spp");
     expect_render_error(tree, with([](RenderSettings& s) { s.spp = kMaxSamplesPerPixel + 1; }), "spp");
     expect_render_error(tree, with([](RenderSettings& s) { s.tile_size = 12; }), "tile_size");
@@ -771,16 +796,16 @@ TEST(RenderSettingsTest, BadSizesAndCountsNameTheField) {
     expect_render_error(tree, with([](RenderSettings& s) { s.background = {0, INFINITY, 0}; }), "background");
     expect_render_error(tree, with([](RenderSettings& s) { s.light.intensity = NAN; }), "light.intensity");
     expect_render_error(tree, with([](RenderSettings& s) { s.light.direction = {0, 0, 0}; }), "light.direction");
-    expect_render_error(tree, with([](RenderSettings& s) { s.light.direction = {1e30f, 1e30f, 0}; }),
+    expect_render_error(tree, with([](RenderSettings& s) {
+                            s.light.direction = {1e30f, 1e30f, 0};
+                        }),
                         "light.direction");
-    expect_render_error(tree,
-                        with([](RenderSettings& s) {
+    expect_render_error(tree, with([](RenderSettings& s) {
                             s.light.kind = LightKind::kPoint;
                             s.light.position = {NAN, 0, 0};
                         }),
                         "light.position");
-    expect_render_error(tree, with([](RenderSettings& s) { s.light.kind = static_cast<LightKind>(5); }),
-                        "light.kind");
+    expect_render_error(tree, with([](RenderSettings& s) { s.light.kind = static_cast<LightKind>(5); }), "light.kind");
     expect_render_error(tree, with([](RenderSettings& s) { s.shading = static_cast<Shading>(42); }), "shading");
     // The error type is an invalid_argument, as the server maps it to 400.
     EXPECT_THROW((void)render(tree, with([](RenderSettings& s) { s.spp = 0; })), std::invalid_argument);
@@ -802,16 +827,14 @@ TEST(RenderSettingsTest, CameraEdgeCasesGiveClearErrors) {
     }
     expect_render_error(tree, with_camera([](CameraSpec& c) { c.look_at = c.eye; }), "look_at");
     // Looking straight down the up vector: no basis can be formed.
-    expect_render_error(tree,
-                        with_camera([](CameraSpec& c) {
+    expect_render_error(tree, with_camera([](CameraSpec& c) {
                             c.eye = {0, 5, 0};
                             c.look_at = {0, 0, 0};
                             c.up = {0, 1, 0};
                         }),
                         "parallel");
     expect_render_error(tree, with_camera([](CameraSpec& c) { c.up = {0, 0, 0}; }), "up");
-    expect_render_error(tree,
-                        with_camera([](CameraSpec& c) {
+    expect_render_error(tree, with_camera([](CameraSpec& c) {
                             c.projection = Projection::kOrthographic;
                             c.ortho_height = 0.0f;
                         }),

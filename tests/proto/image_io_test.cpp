@@ -15,6 +15,7 @@
 #include <vector>
 
 #include "kdrt/kdtree.h"
+#include "kdrt/proto/errors.h"
 #include "kdrt/proto/file_io.h"
 #include "kdrt/proto/mesh_io.h"
 #include "kdrt/render.h"
@@ -212,17 +213,21 @@ TEST(ImageIoPng, DecodeMatchesTheBufferWithin8BitQuantisation) {
 TEST(ImageIoPng, AlphaIsStoredStraightAndDecodedPremultiplied) {
     const TempDir dir;
     // Premultiplied colour, as the renderer makes it with a black background.
+    // clang-format off
     Image image{3, 1, 4, {0.5f, 0.25f, 0.1f, 1.0f,   // opaque
                           0.2f, 0.1f, 0.05f, 0.5f,   // half covered: straight colour 0.4, 0.2, 0.1
                           0.0f, 0.0f, 0.0f, 0.0f}};  // background
+    // clang-format on
     const auto path = dir.file("alpha.png");
     ASSERT_TRUE(write_image_file(path, image).ok());
     const RawImage raw = read_with_oiio(path, OIIO::TypeDesc::UINT8);
     ASSERT_EQ(raw.spec.nchannels, 4);
     EXPECT_EQ(raw.spec.alpha_channel, 3);
+    // clang-format off
     const std::vector<int> want = {expected_level(0.5f), expected_level(0.25f), expected_level(0.1f), 255,
                                    expected_level(0.4f), expected_level(0.2f),  expected_level(0.1f), 128,
                                    0,                    0,                     0,                    0};
+    // clang-format on
     ASSERT_EQ(raw.bytes.size(), want.size());
     for (size_t i = 0; i < want.size(); ++i) EXPECT_EQ(raw.bytes[i], want[i]) << i;
 
@@ -287,7 +292,8 @@ TEST(ImageIoExr, FloatIsBitExactAndLinear) {
 TEST(ImageIoExr, HalfKeepsHalfPrecision) {
     Image image = gradient(23, 17, 3, /*specials=*/false);
     image.pixels[4] = 70000.0f;  // above the largest half
-    auto bytes = encode_image(image, ImageFormat::kExr);  // half is the default
+    // Half is the default pixel type.
+    auto bytes = encode_image(image, ImageFormat::kExr);
     ASSERT_TRUE(bytes.ok()) << bytes.error();
     auto decoded = decode_image(*bytes);
     ASSERT_TRUE(decoded.ok()) << decoded.error();
@@ -369,7 +375,7 @@ TEST(ImageIoErrors, UndecodableBytesGiveErrors) {
     std::vector<std::byte> text(64, std::byte{'x'});
     auto r = decode_image(text);
     ASSERT_FALSE(r.ok());
-    EXPECT_NE(r.error().find("not a PNG, JPEG or OpenEXR"), std::string::npos) << r.error();
+    EXPECT_NE(r.error().find(image_errors::kUnknownMagic), std::string::npos) << r.error();
 
     // Every prefix of valid files fails cleanly (or, for a prefix that happens to hold every
     // pixel, decodes the right size): never a crash.
@@ -404,7 +410,7 @@ TEST(ImageIoErrors, TruncatedPngIsRefusedBeforeOiioReadsIt) {
     for (size_t cut : {size_t{8}, size_t{20}, bytes->size() / 2, bytes->size() - 1}) {
         auto r = decode_image(std::span<const std::byte>(bytes->data(), cut));
         ASSERT_FALSE(r.ok()) << "cut at " << cut;
-        EXPECT_NE(r.error().find("PNG is truncated"), std::string::npos) << r.error();
+        EXPECT_NE(r.error().find(image_errors::kTruncatedPng), std::string::npos) << r.error();
     }
     // Bytes after IEND are ignored, as PNG decoders do.
     std::vector<std::byte> padded = *bytes;
@@ -419,7 +425,7 @@ TEST(ImageIoErrors, PixelLimitIsCheckedBeforeDecoding) {
     limits.max_pixels = 1199;
     auto r = decode_image(*bytes, limits);
     ASSERT_FALSE(r.ok());
-    EXPECT_NE(r.error().find("exceeds the limit"), std::string::npos) << r.error();
+    EXPECT_NE(r.error().find(errors::kLimitExceeded), std::string::npos) << r.error();
     limits.max_pixels = 1200;
     EXPECT_TRUE(decode_image(*bytes, limits).ok());
 }
@@ -429,6 +435,7 @@ TEST(ImageIoErrors, FileErrorsNameThePath) {
     auto w = write_image_file(dir.file("frame.tiff"), gradient(2, 2, 3));
     ASSERT_FALSE(w.ok());
     EXPECT_NE(w.error().find("frame.tiff"), std::string::npos) << w.error();
+    EXPECT_NE(w.error().find(image_errors::kUnknownExtension), std::string::npos) << w.error();
     // An explicit format overrides the extension.
     EXPECT_TRUE(write_image_file(dir.file("frame.bin"), gradient(2, 2, 3), ImageFormat::kPng).ok());
     EXPECT_TRUE(read_image_file(dir.file("frame.bin")).ok()) << "decoding goes by magic bytes";

@@ -186,11 +186,11 @@ struct RenderControl {
 
 /// What one render did.
 struct RenderStats {
-    uint64_t pixels = 0;          ///< pixels rendered (the region's)
-    uint64_t tiles = 0;           ///< tiles rendered
-    uint64_t primary_rays = 0;    ///< camera rays: pixels * spp
-    uint64_t rays = 0;            ///< every ray traced: camera, AO, shadow and bounce rays
-    double seconds = 0;           ///< wall time of render(), validation included
+    uint64_t pixels = 0;        ///< pixels rendered (the region's)
+    uint64_t tiles = 0;         ///< tiles rendered
+    uint64_t primary_rays = 0;  ///< camera rays: pixels * spp
+    uint64_t rays = 0;          ///< every ray traced: camera, AO, shadow and bounce rays
+    double seconds = 0;         ///< wall time of render(), validation included
 };
 
 /// Throws RenderError naming the first bad field: width/height outside 1 .. kMaxImageSize, a

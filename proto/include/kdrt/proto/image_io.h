@@ -25,6 +25,14 @@
 
 namespace kdrt::proto {
 
+/// Fixed phrases image errors are built from, so tests and callers match on them (the pixel cap
+/// uses errors::kLimitExceeded from kdrt/proto/errors.h).
+namespace image_errors {
+inline constexpr std::string_view kUnknownMagic = "not a PNG, JPEG or OpenEXR image";
+inline constexpr std::string_view kTruncatedPng = "PNG is truncated";
+inline constexpr std::string_view kUnknownExtension = "cannot tell the image format";
+}  // namespace image_errors
+
 enum class ImageFormat { kPng, kJpeg, kExr };
 
 /// "png", "jpeg" or "jpg", "exr" (exact, lower case) -> format; anything else -> nullopt.
@@ -53,7 +61,7 @@ struct ImageEncodeOptions {
 /// file in memory. PNG and EXR keep an alpha channel; JPEG has none and drops it. Errors name the
 /// problem: a malformed Image, a bad option, or OpenImageIO's message.
 [[nodiscard]] Result<std::vector<std::byte>, std::string> encode_image(const Image& image, ImageFormat format,
-                                                                      const ImageEncodeOptions& options = {});
+                                                                       const ImageEncodeOptions& options = {});
 
 /// encode_image, written to `path` (created or truncated). `format` defaults to the one the
 /// extension names (an unknown extension is an error naming the path).
@@ -70,11 +78,11 @@ struct ImageDecodeLimits {
 /// linear float Image with its channel count (1 .. 4; grey stays 1 channel). Only the first
 /// subimage is read. Untrusted input: errors, never crashes, for truncated or malformed data.
 [[nodiscard]] Result<Image, std::string> decode_image(std::span<const std::byte> bytes,
-                                                     const ImageDecodeLimits& limits = {});
+                                                      const ImageDecodeLimits& limits = {});
 
 /// Reads and decodes an image file. Errors name the path.
 [[nodiscard]] Result<Image, std::string> read_image_file(const std::filesystem::path& path,
-                                                        const ImageDecodeLimits& limits = {});
+                                                         const ImageDecodeLimits& limits = {});
 
 /// The 8-bit sRGB level of a linear value: round(255 * srgb_oetf(clamp(value, 0, 1))), NaN -> 0.
 [[nodiscard]] uint8_t linear_to_srgb8(float value) noexcept;
