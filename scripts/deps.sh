@@ -2,8 +2,9 @@
 # Works on a fresh minimal Debian 12 (bookworm) as root, or with sudo. When every package is
 # already installed it does not call apt-get (or sudo) at all.
 
+# curl: scripts/run prints a curl command line to try the server with.
 kdrt_packages=(
-    ca-certificates g++ make cmake pkg-config git
+    ca-certificates g++ make cmake pkg-config git curl
     libtbb-dev libcpp-httplib-dev nlohmann-json3-dev libspdlog-dev libssl-dev
     libopenimageio-dev openimageio-tools python3-imath
     libgtest-dev libgmock-dev libbenchmark-dev

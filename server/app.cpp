@@ -47,11 +47,13 @@ bool start_up(Service& svc) {
         limits.max_triangles = svc.config.max_triangles;
         auto mesh = proto::load_mesh_file(file, std::nullopt, limits);
         if (!mesh) {
-            log_event(LogLevel::kCritical, "cannot preload mesh", {{"file", file}, {"error", mesh.error().to_string()}});
+            log_event(LogLevel::kCritical, "cannot preload mesh",
+                      {{"file", file}, {"error", mesh.error().to_string()}});
             return false;
         }
         if (mesh->triangle_count() == 0) {
-            log_event(LogLevel::kCritical, "cannot preload mesh", {{"file", file}, {"error", std::string_view("the mesh has no triangles")}});
+            log_event(LogLevel::kCritical, "cannot preload mesh",
+                      {{"file", file}, {"error", std::string_view("the mesh has no triangles")}});
             return false;
         }
         auto added = svc.cache.add(std::move(*mesh));
@@ -137,8 +139,9 @@ int run_server(const ServerConfig& config) {
             exit_code = 1;
             log_event(LogLevel::kCritical, startup_failed ? "start-up failed" : "the listener stopped unexpectedly");
         } else {
-            log_event(LogLevel::kInfo, "shutting down", {{"signal", std::string_view(sig == SIGINT ? "SIGINT" : "SIGTERM")},
-                                                          {"timeout_s", static_cast<uint64_t>(config.shutdown_timeout_s)}});
+            log_event(LogLevel::kInfo, "shutting down",
+                      {{"signal", std::string_view(sig == SIGINT ? "SIGINT" : "SIGTERM")},
+                       {"timeout_s", static_cast<uint64_t>(config.shutdown_timeout_s)}});
         }
         break;
     }

@@ -2,12 +2,12 @@
 /// The process-wide oneTBB arena: every parallel build and trace runs inside it, so the engine
 /// never oversubscribes the machine however many HTTP threads call it (STYLE §1). Thread-safe.
 
+#include <tbb/global_control.h>
+#include <tbb/task_arena.h>
+
 #include <cstdint>
 #include <memory>
 #include <span>
-
-#include <tbb/global_control.h>
-#include <tbb/task_arena.h>
 
 #include "kdrt/kdtree.h"
 #include "kdrt/mesh.h"

@@ -17,41 +17,42 @@ namespace kdrt::server {
 
 struct ServerConfig {
     // Network
-    std::string listen = "127.0.0.1:8080";  ///< HOST:PORT; port 0 picks a free port
-    std::string port_file;                   ///< when set, the bound port is written there
-    unsigned http_threads = 32;              ///< connection threads (each keep-alive connection holds one)
-    unsigned keep_alive_timeout_s = 2;       ///< idle keep-alive connections close after this
-    unsigned keep_alive_max_requests = 1000; ///< requests per connection before it is closed
-    unsigned read_timeout_s = 30;            ///< per socket read
-    unsigned write_timeout_s = 30;           ///< per socket write
-    std::string token;                       ///< bearer token for /v1 (empty = no auth)
+    std::string listen = "127.0.0.1:8080";    ///< HOST:PORT; port 0 picks a free port
+    std::string port_file;                    ///< when set, the bound port is written there
+    unsigned http_threads = 32;               ///< connection threads (each keep-alive connection holds one)
+    unsigned keep_alive_timeout_s = 2;        ///< idle keep-alive connections close after this
+    unsigned keep_alive_max_requests = 1000;  ///< requests per connection before it is closed
+    unsigned read_timeout_s = 30;             ///< per socket read
+    unsigned write_timeout_s = 30;            ///< per socket write
+    std::string token;                        ///< bearer token for /v1 (empty = no auth)
 
     // Engine and cache
-    unsigned threads = 0;                    ///< tracing/build threads (0 = all cores)
-    std::string cache_dir = "kdrt-cache";    ///< where meshes and trees are stored
-    uint64_t memory_budget = 2ull << 30;     ///< bytes of trees kept in memory (LRU beyond)
-    std::vector<std::string> preload;        ///< mesh files uploaded at start-up
+    unsigned threads = 0;                       ///< tracing/build threads (0 = all cores)
+    std::string cache_dir = "kdrt-cache";       ///< where meshes and trees are stored
+    uint64_t memory_budget = 2ull << 30;        ///< bytes of trees kept in memory (LRU beyond)
+    std::vector<std::string> preload;           ///< mesh files uploaded at start-up
+    uint64_t buffer_pool_bytes = 256ull << 20;  ///< idle ray-batch buffers kept for reuse
 
     // Limits
-    uint64_t max_upload_bytes = 1ull << 30;  ///< mesh upload body
+    uint64_t max_upload_bytes = 1ull << 30;     ///< mesh upload body
     uint64_t upload_memory_bytes = 8ull << 20;  ///< uploads larger than this are spooled to disk
-    uint64_t max_triangles = 1ull << 27;     ///< triangles per mesh
-    uint32_t max_rays = 1u << 24;            ///< rays per KDRR batch (body = 16 + 32 x rays)
-    uint32_t max_json_rays = 100'000;        ///< rays per JSON batch
-    uint64_t max_json_bytes = 32ull << 20;   ///< JSON request body
-    unsigned max_inflight = 64;              ///< uploads/traces/renders in flight before 503
+    uint64_t max_triangles = 1ull << 27;        ///< triangles per mesh
+    uint32_t max_rays = 1u << 24;               ///< rays per KDRR batch (body = 16 + 32 x rays)
+    uint32_t max_json_rays = 100'000;           ///< rays per JSON batch
+    uint64_t max_json_bytes = 32ull << 20;      ///< JSON request body
+    unsigned max_inflight = 64;                 ///< uploads/traces/renders in flight before 503
     uint32_t max_image_width = 8192;
     uint32_t max_image_height = 8192;
     uint32_t max_spp = 1024;
-    unsigned max_jobs = 16;                  ///< async render jobs queued or running before 503
-    unsigned job_ttl_s = 600;                ///< finished jobs are forgotten after this
-    unsigned shutdown_timeout_s = 10;        ///< in-flight requests get this long on SIGTERM
+    unsigned max_jobs = 16;            ///< async render jobs queued or running before 503
+    unsigned job_ttl_s = 600;          ///< finished jobs are forgotten after this
+    unsigned shutdown_timeout_s = 10;  ///< in-flight requests get this long on SIGTERM
 
     // Logging
-    std::string log_level = "info";          ///< trace, debug, info, warn, error, critical, off
-    std::string log_format = "text";         ///< text or json
+    std::string log_level = "info";   ///< trace, debug, info, warn, error, critical, off
+    std::string log_format = "text";  ///< text or json
 
-    std::string config_file;                 ///< the file the settings came from (empty = none)
+    std::string config_file;  ///< the file the settings came from (empty = none)
 };
 
 /// What the command line asks for.

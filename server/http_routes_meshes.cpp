@@ -21,11 +21,11 @@ proto::Result<proto::MeshFormat, proto::Problem> upload_format(const httplib::Re
     }
     const std::string type = req.get_header_value("Content-Type");
     if (const auto format = proto::mesh_format_from_media_type(type)) return *format;
-    return proto::Err{make_problem(
-        ProblemKind::kUnsupportedMediaType,
-        std::string(proto::api_errors::kUnsupportedMeshType) + " from Content-Type \"" + type +
-            "\": use model/obj, model/stl, application/ply, application/x-off or application/x-kdrt-mesh, "
-            "or ?format=obj|ply|off|stl|raw")};
+    return proto::Err{
+        make_problem(ProblemKind::kUnsupportedMediaType,
+                     std::string(proto::api_errors::kUnsupportedMeshType) + " from Content-Type \"" + type +
+                         "\": use model/obj, model/stl, application/ply, application/x-off or application/x-kdrt-mesh, "
+                         "or ?format=obj|ply|off|stl|raw")};
 }
 
 }  // namespace
@@ -45,9 +45,10 @@ void Routes::upload_mesh(const httplib::Request& req, httplib::Response& res, co
     body.reset();  // the parsed mesh is the only copy from here on
     if (!mesh) return reply_problem(req, res, mesh_parse_problem(mesh.error()));
     if (mesh->triangle_count() == 0)
-        return reply_problem(req, res, make_problem(ProblemKind::kInvalidMesh,
-                                                    "the " + std::string(proto::mesh_format_name(*format)) +
-                                                        " mesh " + std::string(proto::api_errors::kEmptyMesh)));
+        return reply_problem(
+            req, res,
+            make_problem(ProblemKind::kInvalidMesh, "the " + std::string(proto::mesh_format_name(*format)) + " mesh " +
+                                                        std::string(proto::api_errors::kEmptyMesh)));
     auto added = svc_.cache.add(std::move(*mesh));
     if (!added) return reply_problem(req, res, cache_problem(added.error()));
     res.set_header("Location", "/v1/meshes/" + added->summary.id);

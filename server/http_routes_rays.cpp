@@ -1,5 +1,7 @@
 // POST /v1/meshes/{id}/intersect: KDRR -> KDRH/KDRO, or JSON -> JSON.
 
+#include <algorithm>
+
 #include "http_routes.h"
 #include "http_util.h"
 #include "kdrt/proto/json_api.h"
@@ -15,29 +17,32 @@ void Routes::intersect(const httplib::Request& req, httplib::Response& res, cons
     const bool binary = type == proto::kRaysMediaType;
     if (!binary && type != proto::kJsonMediaType) {
         discard_body(req, res, reader);
-        return reply_problem(req, res, make_problem(ProblemKind::kUnsupportedMediaType,
-                                                    "intersect " + std::string(proto::api_errors::kUnsupportedRayType) +
-                                                        ", not \"" + req.get_header_value("Content-Type") + "\""));
+        return reply_problem(req, res,
+                             make_problem(ProblemKind::kUnsupportedMediaType,
+                                          "intersect " + std::string(proto::api_errors::kUnsupportedRayType) +
+                                              ", not \"" + req.get_header_value("Content-Type") + "\""));
     }
     const std::string id = req.matches[1];
     auto tree = svc_.cache.acquire(id);
     if (!tree) {
         discard_body(req, res, reader);
-        return reply_problem(req, res, tree.error().code == CacheError::Code::kUnknownMesh
-                                           ? unknown_mesh_problem(id)
-                                           : cache_problem(tree.error()));
+        return reply_problem(req, res,
+                             tree.error().code == CacheError::Code::kUnknownMesh ? unknown_mesh_problem(id)
+                                                                                 : cache_problem(tree.error()));
     }
     if (binary) return intersect_binary(req, res, reader, **tree);
     intersect_json(req, res, reader, **tree);
 }
 
-void Routes::intersect_binary(const httplib::Request& req, httplib::Response& res,
-                              const httplib::ContentReader& reader, const KdTree& tree) {
+void Routes::intersect_binary(const httplib::Request& req, httplib::Response& res, const httplib::ContentReader& reader,
+                              const KdTree& tree) {
     const uint64_t limit = proto::kBatchHeaderBytes + uint64_t{proto::kRayRecordBytes} * svc_.config.max_rays;
+    const uint64_t declared = std::min(req.get_header_value<uint64_t>("Content-Length"), limit);
     auto body = read_body(req, res, reader, limit, limit, svc_.store.tmp_dir().string(),
-                          "a KDRR batch (16 + 32 x max_rays)");
+                          "a KDRR batch (16 + 32 x max_rays)", svc_.byte_pool.take(declared));
     if (!body) return;
     auto batch = proto::decode_rays(body->bytes(), {.max_rays = svc_.config.max_rays, .reject_non_finite = true});
+    svc_.byte_pool.give(body->release_buffer());
     body.reset();
     if (!batch) return reply_problem(req, res, ray_batch_problem(batch.error()));
     request_context().rays = batch->rays.size();
@@ -45,11 +50,14 @@ void Routes::intersect_binary(const httplib::Request& req, httplib::Response& re
     if (batch->occlusion) {
         std::vector<uint8_t> occluded(batch->rays.size());
         svc_.compute.occluded(tree, batch->rays, occluded);
-        return reply_bytes(res, proto::encode_occlusion(occluded), proto::kOcclusionMediaType);
+        return reply_bytes(res, proto::encode_occlusion(occluded), proto::kOcclusionMediaType, &svc_.byte_pool);
     }
-    std::vector<Hit> hits(batch->rays.size());
+    std::vector<Hit> hits = svc_.hit_pool.take(batch->rays.size());
+    hits.resize(batch->rays.size());
     svc_.compute.intersect(tree, batch->rays, hits);
-    reply_bytes(res, proto::encode_hits(hits), proto::kHitsMediaType);
+    std::vector<std::byte> answer = proto::encode_hits(hits);
+    svc_.hit_pool.give(std::move(hits));
+    reply_bytes(res, std::move(answer), proto::kHitsMediaType, &svc_.byte_pool);
 }
 
 void Routes::intersect_json(const httplib::Request& req, httplib::Response& res, const httplib::ContentReader& reader,

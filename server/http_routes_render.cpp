@@ -46,8 +46,9 @@ proto::Problem unknown_job_problem(const std::string& id) {
 void Routes::render(const httplib::Request& req, httplib::Response& res, const httplib::ContentReader& reader) {
     if (proto::media_type_essence(req.get_header_value("Content-Type")) != proto::kJsonMediaType) {
         discard_body(req, res, reader);
-        return reply_problem(req, res, make_problem(ProblemKind::kUnsupportedMediaType,
-                                                    "render " + std::string(proto::api_errors::kUnsupportedJsonType)));
+        return reply_problem(req, res,
+                             make_problem(ProblemKind::kUnsupportedMediaType,
+                                          "render " + std::string(proto::api_errors::kUnsupportedJsonType)));
     }
     auto body = read_body(req, res, reader, svc_.config.max_json_bytes, svc_.config.max_json_bytes,
                           svc_.store.tmp_dir().string(), "a JSON request (max_json_bytes)");
@@ -58,9 +59,9 @@ void Routes::render(const httplib::Request& req, httplib::Response& res, const h
     const proto::ImageFormat format = *proto::image_format_from_name(request->format);
     auto tree = svc_.cache.acquire(request->mesh);
     if (!tree)
-        return reply_problem(req, res, tree.error().code == CacheError::Code::kUnknownMesh
-                                           ? unknown_mesh_problem(request->mesh)
-                                           : cache_problem(tree.error()));
+        return reply_problem(req, res,
+                             tree.error().code == CacheError::Code::kUnknownMesh ? unknown_mesh_problem(request->mesh)
+                                                                                 : cache_problem(tree.error()));
     try {
         validate_render_settings(request->settings);
     } catch (const RenderError& e) {
@@ -118,9 +119,9 @@ void Routes::job_result(const httplib::Request& req, httplib::Response& res) {
         if (out->status.state == proto::JobState::kRunning || out->status.state == proto::JobState::kQueued)
             detail += " (progress " + std::to_string(out->status.progress) + ")";
         if (!out->status.error.empty()) detail += ": " + out->status.error;
-        return reply_problem(req, res,
-                             make_problem(ProblemKind::kJobNotDone, detail + " and " +
-                                                                        std::string(proto::api_errors::kJobNotDone)));
+        return reply_problem(
+            req, res,
+            make_problem(ProblemKind::kJobNotDone, detail + " and " + std::string(proto::api_errors::kJobNotDone)));
     }
     // Sent from a string, not streamed: GET routes are not held back by the shutdown sequence.
     res.status = 200;

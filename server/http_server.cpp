@@ -51,6 +51,7 @@ struct HttpServer::Impl {
     struct Known {
         std::regex pattern;
         std::string method;
+        std::string name;  ///< the path template, e.g. "/v1/meshes/{id}"
     };
     std::vector<Known> known;  ///< for 405 vs 404
     std::atomic<uint64_t> next_request_id{1};
@@ -61,13 +62,15 @@ struct HttpServer::Impl {
         if (token.empty()) return true;
         const std::string auth = req.get_header_value("Authorization");
         if (auth.rfind("Bearer ", 0) != 0) {
-            reply_problem(req, res, make_problem(ProblemKind::kUnauthorized,
-                                                 req.path + " " + std::string(proto::api_errors::kMissingToken)));
+            reply_problem(req, res,
+                          make_problem(ProblemKind::kUnauthorized,
+                                       req.path + " " + std::string(proto::api_errors::kMissingToken)));
             return false;
         }
         if (!same_secret(std::string_view(auth).substr(7), token)) {
-            reply_problem(req, res, make_problem(ProblemKind::kUnauthorized,
-                                                 "the " + std::string(proto::api_errors::kWrongToken)));
+            reply_problem(
+                req, res,
+                make_problem(ProblemKind::kUnauthorized, "the " + std::string(proto::api_errors::kWrongToken)));
             return false;
         }
         return true;
@@ -120,9 +123,9 @@ struct HttpServer::Impl {
                std::optional<AdmissionGate::Slot>& slot) {
         if (flags.api && !authorized(req, res)) return false;
         if (flags.api && (svc.shutting_down || !svc.ready)) {
-            auto p = make_problem(ProblemKind::kNotReady, svc.shutting_down
-                                                              ? "the server is " + std::string(proto::api_errors::kShuttingDown)
-                                                              : std::string("the server is starting; retry shortly"));
+            auto p = make_problem(ProblemKind::kNotReady,
+                                  svc.shutting_down ? "the server is " + std::string(proto::api_errors::kShuttingDown)
+                                                    : std::string("the server is starting; retry shortly"));
             p.retry_after = 1;
             reply_problem(req, res, std::move(p));
             return false;
@@ -140,9 +143,9 @@ struct HttpServer::Impl {
                 return false;
             }
             if (!slot) {
-                auto p = make_problem(ProblemKind::kOverCapacity,
-                                      std::to_string(svc.gate.limit()) + " " + std::string(proto::api_errors::kOverCapacity) +
-                                          " (max_inflight); retry later");
+                auto p = make_problem(ProblemKind::kOverCapacity, std::to_string(svc.gate.limit()) + " " +
+                                                                      std::string(proto::api_errors::kOverCapacity) +
+                                                                      " (max_inflight); retry later");
                 p.retry_after = 1;
                 p.limit = svc.gate.limit();
                 reply_problem(req, res, std::move(p));
@@ -166,7 +169,7 @@ struct HttpServer::Impl {
 
     void get(const std::string& pattern, const std::string& name, RouteFlags flags,
              void (Routes::*handler)(const httplib::Request&, httplib::Response&)) {
-        known.push_back({std::regex(pattern), "GET"});
+        known.push_back({std::regex(pattern), "GET", name});
         http.Get(pattern, [this, name, flags, handler](const httplib::Request& req, httplib::Response& res) {
             request_context().route = name;
             std::optional<AdmissionGate::Slot> slot;
@@ -176,7 +179,7 @@ struct HttpServer::Impl {
 
     void del(const std::string& pattern, const std::string& name, RouteFlags flags,
              void (Routes::*handler)(const httplib::Request&, httplib::Response&)) {
-        known.push_back({std::regex(pattern), "DELETE"});
+        known.push_back({std::regex(pattern), "DELETE", name});
         http.Delete(pattern, [this, name, flags, handler](const httplib::Request& req, httplib::Response& res) {
             request_context().route = name;
             std::optional<AdmissionGate::Slot> slot;
@@ -186,7 +189,7 @@ struct HttpServer::Impl {
 
     void post(const std::string& pattern, const std::string& name, RouteFlags flags,
               void (Routes::*handler)(const httplib::Request&, httplib::Response&, const httplib::ContentReader&)) {
-        known.push_back({std::regex(pattern), "POST"});
+        known.push_back({std::regex(pattern), "POST", name});
         http.Post(pattern, [this, name, flags, handler](const httplib::Request& req, httplib::Response& res,
                                                         const httplib::ContentReader& reader) {
             request_context().route = name;
@@ -243,8 +246,8 @@ struct HttpServer::Impl {
         } else if (res.status >= 500) {
             p = make_problem(ProblemKind::kInternal, "the server failed to answer the request");
         } else {
-            p = make_problem(ProblemKind::kBadRequest, "malformed HTTP request (status " + std::to_string(res.status) +
-                                                           " from the HTTP layer)");
+            p = make_problem(ProblemKind::kBadRequest,
+                             "malformed HTTP request (status " + std::to_string(res.status) + " from the HTTP layer)");
         }
         reply_problem(req, res, std::move(p));
         return httplib::Server::HandlerResponse::Handled;
@@ -261,8 +264,9 @@ struct HttpServer::Impl {
         log_event(LogLevel::kError, "unhandled exception",
                   {{"request_id", request_context().request_id}, {"route", request_context().route}, {"error", what}});
         res.headers.clear();
-        reply_problem(req, res, make_problem(ProblemKind::kInternal, "internal error; see the server log for request " +
-                                                                         request_context().request_id));
+        reply_problem(req, res,
+                      make_problem(ProblemKind::kInternal,
+                                   "internal error; see the server log for request " + request_context().request_id));
         res.set_header("Connection", "close");
     }
 
@@ -273,8 +277,8 @@ struct HttpServer::Impl {
         // closes; HTTP/1.1 says such a body is empty. Answer now instead of hanging.
         if (req.method == "POST" && !req.has_header("Content-Length") && !req.has_header("Transfer-Encoding")) {
             request_context().route = "unmatched";
-            reply_problem(req, res, make_problem(ProblemKind::kBadRequest,
-                                                 "a POST needs a Content-Length (or chunked) body"));
+            reply_problem(req, res,
+                          make_problem(ProblemKind::kBadRequest, "a POST needs a Content-Length (or chunked) body"));
             return httplib::Server::HandlerResponse::Handled;
         }
         return httplib::Server::HandlerResponse::Unhandled;
@@ -284,7 +288,8 @@ struct HttpServer::Impl {
     void on_logged(const httplib::Request& req, const httplib::Response& res) {
         RequestContext& context = request_context();
         const double seconds =
-            context.active ? std::chrono::duration<double>(std::chrono::steady_clock::now() - context.start).count() : 0;
+            context.active ? std::chrono::duration<double>(std::chrono::steady_clock::now() - context.start).count()
+                           : 0;
         const std::string route = context.route.empty() ? "unmatched" : context.route;
         const uint64_t bytes_in = context.bytes_in ? context.bytes_in : req.body.size();
         const uint64_t bytes_out = res.content_length_ ? res.content_length_ : res.body.size();
@@ -317,10 +322,12 @@ struct HttpServer::Impl {
         http.set_write_timeout(c.write_timeout_s, 0);
         http.set_payload_max_length(largest_body());
         http.set_pre_routing_handler([this](const auto& req, auto& res) { return on_pre_routing(req, res); });
-        http.set_error_handler(httplib::Server::HandlerWithResponse(
-            [this](const auto& req, auto& res) { return on_error(req, res); }));
-        http.set_exception_handler([this](const auto& req, auto& res, std::exception_ptr ep) { on_exception(req, res, ep); });
-        http.set_expect_100_continue_handler([this](const auto& req, auto& res) { return on_expect_continue(req, res); });
+        http.set_error_handler(
+            httplib::Server::HandlerWithResponse([this](const auto& req, auto& res) { return on_error(req, res); }));
+        http.set_exception_handler(
+            [this](const auto& req, auto& res, std::exception_ptr ep) { on_exception(req, res, ep); });
+        http.set_expect_100_continue_handler(
+            [this](const auto& req, auto& res) { return on_expect_continue(req, res); });
         http.set_logger([this](const auto& req, const auto& res) { on_logged(req, res); });
         register_routes();
     }
@@ -344,6 +351,12 @@ proto::Result<int, std::string> HttpServer::bind(const std::string& host, int po
 bool HttpServer::serve() { return impl_->http.listen_after_bind(); }
 
 void HttpServer::stop() { impl_->http.stop(); }
+
+std::vector<RouteInfo> HttpServer::routes() const {
+    std::vector<RouteInfo> out;
+    for (const Impl::Known& k : impl_->known) out.push_back({k.method, k.name});
+    return out;
+}
 
 std::string httplib_version() { return CPPHTTPLIB_VERSION; }
 

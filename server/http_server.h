@@ -4,11 +4,18 @@
 
 #include <memory>
 #include <string>
+#include <vector>
 
 #include "kdrt/proto/result.h"
 #include "service.h"
 
 namespace kdrt::server {
+
+/// A registered route: its method and path template, e.g. {"POST", "/v1/meshes/{id}/intersect"}.
+struct RouteInfo {
+    std::string method;
+    std::string path;
+};
 
 class HttpServer {
 public:
@@ -25,6 +32,9 @@ public:
     bool serve();
     /// Stops accepting; serve() returns once the requests in flight are answered.
     void stop();
+    /// Every route the server answers, in registration order (tests compare it with
+    /// proto/openapi.yaml).
+    [[nodiscard]] std::vector<RouteInfo> routes() const;
 
 private:
     struct Impl;

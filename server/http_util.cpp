@@ -36,19 +36,23 @@ void reply_json(httplib::Response& res, int status, std::string json) {
     res.set_header("Content-Type", "application/json");
 }
 
-void reply_bytes(httplib::Response& res, std::vector<std::byte> bytes, std::string_view content_type) {
+void reply_bytes(httplib::Response& res, std::vector<std::byte> bytes, std::string_view content_type,
+                 VectorPool<std::byte>* pool) {
     res.status = 200;
     if (bytes.size() <= kInlineResponseBytes) {
         res.set_content(reinterpret_cast<const char*>(bytes.data()), bytes.size(), std::string(content_type));
         return;
     }
-    auto data = std::make_shared<std::vector<std::byte>>(std::move(bytes));
-    res.set_content_provider(data->size(), std::string(content_type),
-                             [data](size_t offset, size_t length, httplib::DataSink& sink) {
-                                 constexpr size_t kChunk = 4u << 20;
-                                 return sink.write(reinterpret_cast<const char*>(data->data()) + offset,
-                                                   std::min(length, kChunk));
-                             });
+    std::shared_ptr<std::vector<std::byte>> data(new std::vector<std::byte>(std::move(bytes)),
+                                                 [pool](std::vector<std::byte>* v) {
+                                                     if (pool) pool->give(std::move(*v));
+                                                     delete v;
+                                                 });
+    res.set_content_provider(
+        data->size(), std::string(content_type), [data](size_t offset, size_t length, httplib::DataSink& sink) {
+            constexpr size_t kChunk = 4u << 20;
+            return sink.write(reinterpret_cast<const char*>(data->data()) + offset, std::min(length, kChunk));
+        });
 }
 
 void discard_body(const httplib::Request& req, httplib::Response& res, const httplib::ContentReader& reader) {
@@ -63,14 +67,15 @@ void discard_body(const httplib::Request& req, httplib::Response& res, const htt
 
 std::unique_ptr<RequestBody> read_body(const httplib::Request& req, httplib::Response& res,
                                        const httplib::ContentReader& reader, uint64_t limit, uint64_t memory_bytes,
-                                       const std::string& spool_dir, const std::string& what) {
+                                       const std::string& spool_dir, const std::string& what,
+                                       std::vector<std::byte> buffer) {
     const uint64_t declared = req.get_header_value<uint64_t>("Content-Length");
     if (declared > limit) {
         discard_body(req, res, reader);
         reply_problem(req, res, body_too_large_problem(limit, what));
         return nullptr;
     }
-    auto body = std::make_unique<RequestBody>(limit, memory_bytes, spool_dir, declared);
+    auto body = std::make_unique<RequestBody>(limit, memory_bytes, spool_dir, declared, std::move(buffer));
     RequestContext& context = request_context();
     const bool has_body = declared > 0 || req.has_header("Transfer-Encoding");
     const bool read_ok = !has_body || reader([&](const char* data, size_t size) {
@@ -84,9 +89,10 @@ std::unique_ptr<RequestBody> read_body(const httplib::Request& req, httplib::Res
     }
     if (!read_ok && body->error().empty()) {
         // The connection broke or the framing was invalid; httplib set 400 or 413.
-        reply_problem(req, res, res.status == 413 ? body_too_large_problem(limit, what)
-                                                  : make_problem(proto::ProblemKind::kBadRequest,
-                                                                 "the request body could not be read"));
+        reply_problem(req, res,
+                      res.status == 413
+                          ? body_too_large_problem(limit, what)
+                          : make_problem(proto::ProblemKind::kBadRequest, "the request body could not be read"));
         res.set_header("Connection", "close");
         return nullptr;
     }

@@ -12,6 +12,7 @@
 #include <string_view>
 #include <vector>
 
+#include "buffer_pool.h"
 #include "kdrt/proto/problem.h"
 #include "request_body.h"
 
@@ -39,8 +40,10 @@ void reply_problem(const httplib::Request& req, httplib::Response& res, proto::P
 /// Replies `status` with a JSON body (moved, not copied).
 void reply_json(httplib::Response& res, int status, std::string json);
 
-/// Replies 200 with a binary body; large bodies are streamed from memory by a content provider.
-void reply_bytes(httplib::Response& res, std::vector<std::byte> bytes, std::string_view content_type);
+/// Replies 200 with a binary body; large bodies are streamed from memory by a content provider,
+/// and their vector goes back to `pool` (if given) once sent.
+void reply_bytes(httplib::Response& res, std::vector<std::byte> bytes, std::string_view content_type,
+                 VectorPool<std::byte>* pool = nullptr);
 
 /// After an early error reply on a streamed route, the body has not been read: drain it if it
 /// is small, else ask the client to close the connection (never parse it as the next request).
@@ -52,7 +55,7 @@ void discard_body(const httplib::Request& req, httplib::Response& res, const htt
 [[nodiscard]] std::unique_ptr<RequestBody> read_body(const httplib::Request& req, httplib::Response& res,
                                                      const httplib::ContentReader& reader, uint64_t limit,
                                                      uint64_t memory_bytes, const std::string& spool_dir,
-                                                     const std::string& what);
+                                                     const std::string& what, std::vector<std::byte> buffer = {});
 
 /// The body as text (for JSON decoders).
 [[nodiscard]] inline std::string_view as_text(std::span<const std::byte> bytes) noexcept {

@@ -8,9 +8,7 @@
 namespace kdrt::server {
 namespace {
 
-double unix_now() {
-    return std::chrono::duration<double>(std::chrono::system_clock::now().time_since_epoch()).count();
-}
+double unix_now() { return std::chrono::duration<double>(std::chrono::system_clock::now().time_since_epoch()).count(); }
 
 /// 128 random bits as 32 hex digits: job ids are not guessable.
 std::string random_id() {
@@ -198,7 +196,8 @@ void JobQueue::purge_expired() {
     const auto now = std::chrono::steady_clock::now();
     std::erase_if(jobs_, [&](const auto& item) {
         const Job& job = *item.second;
-        const bool finished = job.status.state == proto::JobState::kDone || job.status.state == proto::JobState::kFailed ||
+        const bool finished = job.status.state == proto::JobState::kDone ||
+                              job.status.state == proto::JobState::kFailed ||
                               job.status.state == proto::JobState::kCancelled;
         return finished && now - job.finished_at > ttl_;
     });

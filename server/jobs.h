@@ -79,7 +79,7 @@ private:
 
     void worker_loop();
     void run(Job& job);
-    void purge_expired();  // mutex_ held
+    void purge_expired();                             // mutex_ held
     proto::JobStatus snapshot(const Job& job) const;  // mutex_ held
 
     Compute& compute_;

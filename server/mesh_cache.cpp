@@ -192,13 +192,15 @@ proto::Result<std::shared_ptr<const KdTree>, CacheError> MeshCache::acquire(cons
 
 MeshCache::TreeResult MeshCache::load(const std::string& id, const proto::MeshSummary& summary) {
     auto tree = store_.load_tree(id);
-    if (tree && consistent(*tree, summary)) return std::shared_ptr<const KdTree>(std::make_shared<KdTree>(std::move(*tree)));
+    if (tree && consistent(*tree, summary))
+        return std::shared_ptr<const KdTree>(std::make_shared<KdTree>(std::move(*tree)));
     const std::string why = tree ? "tree does not match the mesh summary" : tree.error().detail;
     log_event(LogLevel::kWarn, "cache: tree file failed validation; rebuilding from the stored mesh",
               {{"mesh", id}, {"error", why}});
     auto mesh = store_.load_mesh(id);
     if (!mesh) {
-        log_event(LogLevel::kError, "cache: stored mesh is corrupt; dropped", {{"mesh", id}, {"error", mesh.error().detail}});
+        log_event(LogLevel::kError, "cache: stored mesh is corrupt; dropped",
+                  {{"mesh", id}, {"error", mesh.error().detail}});
         store_.remove(id);
         return Err{CacheError{CacheError::Code::kLost,
                               "mesh " + id + " was dropped: its stored copy is corrupt (" + mesh.error().detail + ")"}};
@@ -310,7 +312,7 @@ void MeshCache::drop(Entry& entry) {
     }
     disk_bytes_ -= entry.disk_bytes;
     const std::string id = entry.id;  // erase() must not read a key owned by the erased node
-    entries_.erase(id);  // `entry` may be destroyed here: callers hold a shared_ptr
+    entries_.erase(id);               // `entry` may be destroyed here: callers hold a shared_ptr
 }
 
 bool MeshCache::is_current(const std::shared_ptr<Entry>& entry) const {

@@ -95,7 +95,7 @@ private:
     TreeResult load(const std::string& id, const proto::MeshSummary& summary);
     proto::MeshSummary with_runtime(const Entry& entry) const;
     void make_resident(Entry& entry, std::shared_ptr<const KdTree> tree);  // mutex_ held
-    void drop(Entry& entry);                                                 // mutex_ held
+    void drop(Entry& entry);                                               // mutex_ held
     bool is_current(const std::shared_ptr<Entry>& entry) const;            // mutex_ held
 
     MeshStore& store_;

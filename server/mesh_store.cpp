@@ -4,11 +4,11 @@
 #include <system_error>
 
 #include "durable_file.h"
-#include "text.h"
 #include "kdrt/proto/file_io.h"
 #include "kdrt/proto/mesh_id.h"
 #include "kdrt/proto/mesh_io.h"
 #include "kdrt/serialize.h"
+#include "text.h"
 
 namespace kdrt::server {
 namespace {
@@ -112,7 +112,8 @@ proto::Result<void, std::string> MeshStore::save_tree(const std::string& id, con
 proto::Result<void, std::string> MeshStore::save_summary(const proto::MeshSummary& summary) {
     proto::MeshSummary stored = summary;
     stored.in_memory.reset();
-    auto written = write_file_durably(summary_path(summary.id), tmp_dir_, text_bytes(proto::encode_mesh_summary(stored)));
+    auto written =
+        write_file_durably(summary_path(summary.id), tmp_dir_, text_bytes(proto::encode_mesh_summary(stored)));
     if (!written) return written;
     return sync_directory(meshes_dir_);
 }
@@ -133,7 +134,8 @@ proto::Result<Mesh, StoreError> MeshStore::load_mesh(const std::string& id) cons
     auto bytes = proto::read_file_bytes(path);
     if (!bytes) return Err{read_error(path, std::move(bytes).error())};
     auto mesh = proto::parse_mesh(*bytes, proto::MeshFormat::kRaw);
-    if (!mesh) return Err{StoreError{StoreError::Code::kCorrupt, in_quotes(path.string()) + ": " + mesh.error().message}};
+    if (!mesh)
+        return Err{StoreError{StoreError::Code::kCorrupt, in_quotes(path.string()) + ": " + mesh.error().message}};
     const std::string actual = proto::mesh_id(*mesh);
     if (actual != id)
         return Err{StoreError{StoreError::Code::kCorrupt,

@@ -86,17 +86,17 @@ std::string Metrics::render() const {
         std::lock_guard lock(mutex_);
         auto requests = family("kdrt_http_requests_total", "HTTP requests by route template, method and status.",
                                MetricType::kCounter);
-        auto durations = family("kdrt_http_request_duration_seconds",
-                                "Time from reading the request headers to writing the response.",
-                                MetricType::kHistogram);
+        auto durations =
+            family("kdrt_http_request_duration_seconds",
+                   "Time from reading the request headers to writing the response.", MetricType::kHistogram);
         auto bytes_in = family("kdrt_http_request_bytes_total", "Request body bytes by route.", MetricType::kCounter);
-        auto bytes_out = family("kdrt_http_response_bytes_total", "Response body bytes by route.", MetricType::kCounter);
+        auto bytes_out =
+            family("kdrt_http_response_bytes_total", "Response body bytes by route.", MetricType::kCounter);
         for (const auto& [route, r] : routes_) {
             for (const auto& [key, count] : r.by_method_status)
-                requests.samples.push_back({{{"route", route},
-                                             {"method", std::get<0>(key)},
-                                             {"status", std::to_string(std::get<1>(key))}},
-                                            static_cast<double>(count)});
+                requests.samples.push_back(
+                    {{{"route", route}, {"method", std::get<0>(key)}, {"status", std::to_string(std::get<1>(key))}},
+                     static_cast<double>(count)});
             durations.histograms.push_back(r.duration.sample({{"route", route}}));
             bytes_in.samples.push_back({{{"route", route}}, static_cast<double>(r.bytes_in)});
             bytes_out.samples.push_back({{{"route", route}}, static_cast<double>(r.bytes_out)});
@@ -141,8 +141,8 @@ std::string Metrics::render() const {
         info.samples.push_back({build_info_, 1});
     }
     families.push_back(std::move(info));
-    auto start = family("kdrt_process_start_time_seconds", "Start time of the process (Unix seconds).",
-                        MetricType::kGauge);
+    auto start =
+        family("kdrt_process_start_time_seconds", "Start time of the process (Unix seconds).", MetricType::kGauge);
     start.samples.push_back({{}, start_time_});
     families.push_back(std::move(start));
     return proto::encode_prometheus(families);

@@ -55,17 +55,18 @@ proto::Problem cache_problem(const CacheError& error) {
 }
 
 proto::Problem body_too_large_problem(uint64_t limit, const std::string& what) {
-    proto::Problem p = make_problem(ProblemKind::kPayloadTooLarge, std::string(proto::api_errors::kBodyTooLarge) +
-                                                                       " the limit of " + std::to_string(limit) +
-                                                                       " bytes for " + what);
+    proto::Problem p =
+        make_problem(ProblemKind::kPayloadTooLarge, std::string(proto::api_errors::kBodyTooLarge) + " the limit of " +
+                                                        std::to_string(limit) + " bytes for " + what);
     p.limit = limit;
     return p;
 }
 
 proto::Problem unknown_mesh_problem(const std::string& id) {
     if (!proto::is_mesh_id(id))
-        return make_problem(ProblemKind::kUnknownMesh, in_quotes(id) + " " + std::string(proto::api_errors::kBadMeshId) +
-                                                           " (64 lower-case hex digits)");
+        return make_problem(
+            ProblemKind::kUnknownMesh,
+            in_quotes(id) + " " + std::string(proto::api_errors::kBadMeshId) + " (64 lower-case hex digits)");
     return make_problem(ProblemKind::kUnknownMesh, std::string(proto::api_errors::kUnknownMesh) + " " + id);
 }
 

@@ -20,8 +20,9 @@ class RequestBody {
 public:
     /// `max_bytes`: larger bodies are refused; `memory_bytes`: spool beyond this; `spool_dir`:
     /// where the temp file goes. `expected_bytes` (Content-Length, if known) pre-sizes the buffer.
-    RequestBody(uint64_t max_bytes, uint64_t memory_bytes, std::filesystem::path spool_dir,
-                uint64_t expected_bytes = 0);
+    /// `buffer` (optional) is reused as the in-memory storage (its capacity is kept).
+    RequestBody(uint64_t max_bytes, uint64_t memory_bytes, std::filesystem::path spool_dir, uint64_t expected_bytes = 0,
+                std::vector<std::byte> buffer = {});
     RequestBody(const RequestBody&) = delete;
     RequestBody& operator=(const RequestBody&) = delete;
     ~RequestBody();
@@ -33,6 +34,9 @@ public:
     /// Call after the last chunk; then bytes() is the whole body.
     [[nodiscard]] proto::Result<void, std::string> finish();
     [[nodiscard]] std::span<const std::byte> bytes() const noexcept;
+
+    /// Gives the in-memory storage back (for reuse); bytes() is empty afterwards.
+    [[nodiscard]] std::vector<std::byte> release_buffer() noexcept { return std::move(memory_); }
 
     [[nodiscard]] uint64_t size() const noexcept { return size_; }
     [[nodiscard]] bool too_large() const noexcept { return too_large_; }

@@ -8,7 +8,9 @@ Service::Service(ServerConfig cfg)
       store(config.cache_dir),
       cache(store, compute, metrics, config.memory_budget),
       gate(config.max_inflight),
-      jobs(compute, metrics, config.max_jobs, config.job_ttl_s) {
+      jobs(compute, metrics, config.max_jobs, config.job_ttl_s),
+      byte_pool(config.buffer_pool_bytes / 3 * 2),
+      hit_pool(config.buffer_pool_bytes / 3) {
     metrics.add_collector([this](std::vector<proto::MetricFamily>& out) {
         using proto::MetricType;
         const auto gauge = [&](const char* name, const char* help, proto::MetricLabels labels, double value) {
@@ -21,7 +23,8 @@ Service::Service(ServerConfig cfg)
             }
             out.back().samples.push_back({std::move(labels), value});
         };
-        const char* bytes_help = "Bytes of the mesh cache, in memory (resident trees) and on disk (meshes, trees, summaries).";
+        const char* bytes_help =
+            "Bytes of the mesh cache, in memory (resident trees) and on disk (meshes, trees, summaries).";
         gauge("kdrt_cache_bytes", bytes_help, {{"where", "memory"}}, static_cast<double>(cache.memory_bytes()));
         gauge("kdrt_cache_bytes", bytes_help, {{"where", "disk"}}, static_cast<double>(cache.disk_bytes()));
         gauge("kdrt_cache_budget_bytes", "Configured memory budget for trees.", {},
@@ -32,6 +35,8 @@ Service::Service(ServerConfig cfg)
               static_cast<double>(cache.resident_count()));
         gauge("kdrt_inflight_requests", "Uploads, traces and renders in flight.", {},
               static_cast<double>(gate.in_flight()));
+        gauge("kdrt_buffer_pool_bytes", "Idle batch buffers kept for reuse (at most buffer_pool_bytes).", {},
+              static_cast<double>(byte_pool.idle_bytes() + hit_pool.idle_bytes()));
         gauge("kdrt_engine_threads", "Threads of the tracing/build arena.", {}, static_cast<double>(compute.threads()));
         gauge("kdrt_ready", "1 when /readyz answers 200.", {}, ready && !shutting_down ? 1.0 : 0.0);
     });

@@ -8,6 +8,7 @@
 #include <optional>
 #include <utility>
 
+#include "buffer_pool.h"
 #include "compute.h"
 #include "config.h"
 #include "jobs.h"
@@ -70,6 +71,8 @@ struct Service {
     MeshCache cache;
     AdmissionGate gate;
     JobQueue jobs;
+    VectorPool<std::byte> byte_pool;         ///< request bodies and encoded answers of ray batches
+    VectorPool<Hit> hit_pool;                ///< hit arrays of ray batches
     std::atomic<bool> ready{false};          ///< index loaded and preloads done
     std::atomic<bool> shutting_down{false};  ///< SIGTERM/SIGINT received
 };

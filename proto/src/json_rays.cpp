@@ -75,8 +75,8 @@ public:
         }
         if (state_ == State::kRays) {
             if (rays_.size() >= max_rays_)
-                return fail(JsonError::Code::kTooMany, "rays[" + std::to_string(rays_.size()) + "]: " +
-                                                           std::string(api_errors::kTooManyJsonRays) +
+                return fail(JsonError::Code::kTooMany, "rays[" + std::to_string(rays_.size()) +
+                                                           "]: " + std::string(api_errors::kTooManyJsonRays) +
                                                            " the limit of " + std::to_string(max_rays_) +
                                                            "; send larger batches as application/x-kdrt-rays");
             state_ = State::kRay;
@@ -88,8 +88,8 @@ public:
     bool end_array() {
         if (state_ == State::kRay) {
             if (field_count_ != 6 && field_count_ != 8)
-                return fail(JsonError::Code::kSchema, where() + ": expected 6 or 8 numbers, got " +
-                                                          std::to_string(field_count_));
+                return fail(JsonError::Code::kSchema,
+                            where() + ": expected 6 or 8 numbers, got " + std::to_string(field_count_));
             Ray ray{fields_[0], fields_[1], fields_[2], 0.0f, fields_[3], fields_[4], fields_[5], kInf};
             if (field_count_ == 8) {
                 ray.tmin = fields_[6];
@@ -108,8 +108,8 @@ public:
         std::string what = ex.what();
         const size_t bracket = what.find("] ");
         if (bracket != std::string::npos) what.erase(0, bracket + 2);
-        return fail(JsonError::Code::kSyntax, std::string(api_errors::kBadJson) + " at byte " +
-                                                  std::to_string(position) + ": " + what);
+        return fail(JsonError::Code::kSyntax,
+                    std::string(api_errors::kBadJson) + " at byte " + std::to_string(position) + ": " + what);
     }
 
     [[nodiscard]] bool failed() const noexcept { return error_.has_value(); }

@@ -123,8 +123,8 @@ Result<RenderRequest, JsonError> decode_render_request(std::string_view text, co
         std::string what = e.what();
         const size_t bracket = what.find("] ");
         if (bracket != std::string::npos) what.erase(0, bracket + 2);
-        return Err{JsonError{JsonError::Code::kSyntax, std::string(api_errors::kBadJson) + " at byte " +
-                                                          std::to_string(e.byte) + ": " + what}};
+        return Err{JsonError{JsonError::Code::kSyntax,
+                             std::string(api_errors::kBadJson) + " at byte " + std::to_string(e.byte) + ": " + what}};
     }
     if (!doc.is_object()) return schema_error("expected a JSON object, got " + std::string(doc.type_name()));
     RenderRequest req;
@@ -176,9 +176,9 @@ Result<RenderRequest, JsonError> decode_render_request(std::string_view text, co
         t.integer("y", region.y, 0, req.settings.height - 1);
         t.integer("w", region.width, 1, req.settings.width - region.x);
         t.integer("h", region.height, 1, req.settings.height - region.y);
-        if (!t.error().empty()) return schema_error(t.error() + " (the tile must lie inside the " +
-                                                    std::to_string(req.settings.width) + " x " +
-                                                    std::to_string(req.settings.height) + " frame)");
+        if (!t.error().empty())
+            return schema_error(t.error() + " (the tile must lie inside the " + std::to_string(req.settings.width) +
+                                " x " + std::to_string(req.settings.height) + " frame)");
         req.settings.region = region;
     }
     return req;
@@ -233,8 +233,8 @@ std::string_view job_state_name(JobState state) noexcept {
 }
 
 std::optional<JobState> parse_job_state(std::string_view name) noexcept {
-    for (const JobState s : {JobState::kQueued, JobState::kRunning, JobState::kDone, JobState::kFailed,
-                             JobState::kCancelled})
+    for (const JobState s :
+         {JobState::kQueued, JobState::kRunning, JobState::kDone, JobState::kFailed, JobState::kCancelled})
         if (job_state_name(s) == name) return s;
     return std::nullopt;
 }

@@ -58,9 +58,9 @@ void write_triangles(const Mesh& mesh, size_t first, size_t count, std::byte* ou
         for (int c = 0; c < 3; ++c) {
             const uint32_t index = mesh.indices[3 * t + static_cast<size_t>(c)];
             if (index >= vertex_count)
-                throw std::invalid_argument("mesh_id: triangle " + std::to_string(t) + " corner " +
-                                            std::to_string(c) + " has index " + std::to_string(index) +
-                                            " >= vertex count " + std::to_string(vertex_count));
+                throw std::invalid_argument("mesh_id: triangle " + std::to_string(t) + " corner " + std::to_string(c) +
+                                            " has index " + std::to_string(index) + " >= vertex count " +
+                                            std::to_string(vertex_count));
             for (int a = 0; a < 3; ++a) {
                 store_le_f32(out, mesh.positions[3 * static_cast<size_t>(index) + static_cast<size_t>(a)]);
                 out += 4;

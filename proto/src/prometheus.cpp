@@ -66,7 +66,9 @@ std::string encode_prometheus(std::span<const MetricFamily> families) {
         append_escaped(out, f.help, false);
         out += "\n# TYPE ";
         out += f.name;
-        out += f.type == MetricType::kCounter ? " counter\n" : f.type == MetricType::kGauge ? " gauge\n" : " histogram\n";
+        out += f.type == MetricType::kCounter ? " counter\n"
+               : f.type == MetricType::kGauge ? " gauge\n"
+                                              : " histogram\n";
         if (f.type != MetricType::kHistogram) {
             for (const MetricSample& s : f.samples) {
                 out += f.name;

@@ -46,18 +46,19 @@ TEST(Config, FlagsInBothFormsAndPreloadLists) {
 }
 
 TEST(Config, FileThenEnvironmentThenFlags) {
-    const auto path = std::filesystem::temp_directory_path() / ("kdrt-config-test-" + std::to_string(::getpid()) + ".json");
+    const auto path =
+        std::filesystem::temp_directory_path() / ("kdrt-config-test-" + std::to_string(::getpid()) + ".json");
     std::ofstream(path) << "{ // settings\n \"threads\": 4, \"http_threads\": 9, \"max_spp\": 7,\n"
                            " \"preload\": [\"x.off\"], \"memory_budget\": \"1G\", \"cache_dir\": \"/c\" }";
-    const Invocation inv = parse_ok({"--http-threads", "11", "--config", path.string()},
-                                    {"KDRT_THREADS=5", "KDRT_HTTP_THREADS=10", "KDRT_PRELOAD=a.obj:b.obj",
-                                     "KDRT_UNRELATED=1", "HOME=/root"});
+    const Invocation inv = parse_ok(
+        {"--http-threads", "11", "--config", path.string()},
+        {"KDRT_THREADS=5", "KDRT_HTTP_THREADS=10", "KDRT_PRELOAD=a.obj:b.obj", "KDRT_UNRELATED=1", "HOME=/root"});
     EXPECT_EQ(inv.config.config_file, path.string());
-    EXPECT_EQ(inv.config.max_spp, 7u);           // file
+    EXPECT_EQ(inv.config.max_spp, 7u);  // file
     EXPECT_EQ(inv.config.memory_budget, 1ull << 30);
     EXPECT_EQ(inv.config.cache_dir, "/c");
-    EXPECT_EQ(inv.config.threads, 5u);           // environment beats the file
-    EXPECT_EQ(inv.config.http_threads, 11u);     // flag beats both
+    EXPECT_EQ(inv.config.threads, 5u);        // environment beats the file
+    EXPECT_EQ(inv.config.http_threads, 11u);  // flag beats both
     EXPECT_EQ(inv.config.preload, (std::vector<std::string>{"a.obj", "b.obj"}));
     // KDRT_CONFIG names the file too.
     const Invocation from_env = parse_ok({}, {"KDRT_CONFIG=" + path.string()});
@@ -72,7 +73,8 @@ TEST(Config, ErrorsNameTheSettingAndSource) {
     EXPECT_EQ(parse_error({"--memory-budget", "12Q"}),
               "--memory-budget: \"12Q\" is not a byte count (digits with an optional K, M, G or T suffix)");
     EXPECT_EQ(parse_error({"--listen", "8080"}), "--listen: \"8080\" is not HOST:PORT (e.g. 127.0.0.1:8080)");
-    EXPECT_EQ(parse_error({"--listen", "h:99999"}), "--listen: \"h:99999\" has no port number 0..65535 after the last ':'");
+    EXPECT_EQ(parse_error({"--listen", "h:99999"}),
+              "--listen: \"h:99999\" has no port number 0..65535 after the last ':'");
     EXPECT_EQ(parse_error({"--log-level", "loud"}),
               "--log-level: \"loud\" is not one of trace, debug, info, warn, error, critical, off");
     EXPECT_EQ(parse_error({"--frobnicate"}), "unknown argument \"--frobnicate\" (kdrt-server --help lists the flags)");
@@ -80,12 +82,14 @@ TEST(Config, ErrorsNameTheSettingAndSource) {
     EXPECT_EQ(parse_error({"--preload"}), "--preload needs at least one value");
     EXPECT_EQ(parse_error({"--mesh-id"}), "--mesh-id needs at least one mesh file");
 
-    const auto path = std::filesystem::temp_directory_path() / ("kdrt-config-bad-" + std::to_string(::getpid()) + ".json");
+    const auto path =
+        std::filesystem::temp_directory_path() / ("kdrt-config-bad-" + std::to_string(::getpid()) + ".json");
     std::ofstream(path) << "{\"thread\": 4}";
     EXPECT_EQ(parse_error({"--config", path.string()}),
               path.string() + ": unknown setting \"thread\" (kdrt-server --help lists them)");
     std::ofstream(path, std::ios::trunc) << "{\"threads\": \"many\"}";
-    EXPECT_EQ(parse_error({"--config", path.string()}), path.string() + ": \"threads\": \"many\" is not a non-negative integer");
+    EXPECT_EQ(parse_error({"--config", path.string()}),
+              path.string() + ": \"threads\": \"many\" is not a non-negative integer");
     std::ofstream(path, std::ios::trunc) << "{\"listen\": 80}";
     EXPECT_EQ(parse_error({"--config", path.string()}), path.string() + ": \"listen\" must be a string");
     std::filesystem::remove(path);

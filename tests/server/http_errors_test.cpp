@@ -158,9 +158,8 @@ TEST_F(HttpErrors, BodiesOverTheLimitsAre413) {
     // KDRR over --max-rays 1000: by the body size first...
     const std::vector<Ray> many(1001, Ray{0, 0, 0, 0, 1, 0, 0, 1});
     cli = server_->client();
-    p = expect_problem(cli->Post(intersect_path(), bytes_to_string(proto::encode_rays(many, false)),
-                                 "application/x-kdrt-rays"),
-                       413);
+    p = expect_problem(
+        cli->Post(intersect_path(), bytes_to_string(proto::encode_rays(many, false)), "application/x-kdrt-rays"), 413);
     EXPECT_EQ(p.limit, 16u + 32u * 1000u);
     // ...and by the header count when the body is small.
     cli = server_->client();
@@ -195,11 +194,46 @@ TEST_F(HttpErrors, UnknownRoutesAndMethods) {
 }
 
 TEST_F(HttpErrors, PostWithoutContentLengthIsRefusedAtOnce) {
-    const std::string reply =
-        raw_exchange(server_->port(), "POST /v1/meshes HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n",
-                     std::chrono::seconds(10));
+    const std::string reply = raw_exchange(
+        server_->port(), "POST /v1/meshes HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n", std::chrono::seconds(10));
     EXPECT_EQ(reply.rfind("HTTP/1.1 400", 0), 0u) << reply;
     EXPECT_NE(reply.find("a POST needs a Content-Length (or chunked) body"), std::string::npos) << reply;
+}
+
+TEST_F(HttpErrors, ExpectContinueIsRefusedBeforeTheBodyIsSent) {
+    // The client announces 1 GB and waits for "100 Continue"; the server answers 413 at once.
+    const std::string reply = raw_exchange(server_->port(),
+                                           "POST /v1/meshes HTTP/1.1\r\nHost: x\r\nContent-Type: model/obj\r\n"
+                                           "Content-Length: 1000000000\r\nExpect: 100-continue\r\n\r\n",
+                                           std::chrono::seconds(10));
+    EXPECT_EQ(reply.rfind("HTTP/1.1 413", 0), 0u) << reply;
+    EXPECT_NE(reply.find("application/problem+json"), std::string::npos) << reply;
+    EXPECT_NE(reply.find("request body exceeds the limit of 200000 bytes"), std::string::npos) << reply;
+    EXPECT_EQ(reply.find("100 Continue"), std::string::npos) << reply;
+}
+
+TEST(HttpStartup, V1IsUnavailableUntilTheIndexAndPreloadsAreDone) {
+    TempDir dir;
+    const std::string bunny = std::string(KDRT_TEST_DATA_DIR) + "/bunny00.off";  // a build of some 100 ms
+    ServerProcess server({.cache_dir = dir.path() / "cache", .args = {"--preload", bunny}, .wait_ready = false});
+    ASSERT_TRUE(server.running());
+    auto cli = server.client();
+    auto ready = cli->Get("/readyz");
+    ASSERT_TRUE(ready);
+    EXPECT_EQ(cli->Get("/healthz")->status, 200);  // alive from the start
+    if (ready->status == 200) GTEST_SKIP() << "the preload finished before the first probe";
+    auto p = expect_problem(ready, 503);
+    EXPECT_EQ(p.kind, ProblemKind::kNotReady);
+    auto res = cli->Get("/v1/meshes");
+    if (res && res->status == 503) {
+        p = expect_problem(res, 503);
+        EXPECT_EQ(p.kind, ProblemKind::kNotReady);
+        EXPECT_EQ(res->get_header_value("Retry-After"), "1");
+    }
+    for (int i = 0; i < 12000 && cli->Get("/readyz")->status != 200; ++i)
+        std::this_thread::sleep_for(std::chrono::milliseconds(10));
+    EXPECT_EQ(cli->Get("/readyz")->status, 200);
+    EXPECT_EQ(cli->Get("/v1/meshes")->status, 200);
 }
 
 TEST(HttpCapacity, OverCapacityIs503WithRetryAfter) {
@@ -209,7 +243,8 @@ TEST(HttpCapacity, OverCapacityIs503WithRetryAfter) {
     // Hold the only slot: an upload whose body never finishes arriving.
     const int held = connect_loopback(server.port());
     ASSERT_GE(held, 0);
-    const std::string head = "POST /v1/meshes HTTP/1.1\r\nHost: x\r\nContent-Type: model/obj\r\nContent-Length: 100\r\n\r\nv 0";
+    const std::string head =
+        "POST /v1/meshes HTTP/1.1\r\nHost: x\r\nContent-Type: model/obj\r\nContent-Length: 100\r\n\r\nv 0";
     ASSERT_EQ(::send(held, head.data(), head.size(), MSG_NOSIGNAL), static_cast<ssize_t>(head.size()));
     auto cli = server.client();
     auto res = cli->Post("/v1/meshes", "v 0 0 0\n", "model/obj");

@@ -61,9 +61,11 @@ TEST(HttpOps, HealthReadyAndMetrics) {
     EXPECT_EQ(metrics->get_header_value("Content-Type"), "text/plain; version=0.0.4; charset=utf-8");
     const std::string& text = metrics->body;
     EXPECT_EQ(find_metric(text, "kdrt_http_requests_total{route=\"/v1/meshes\",method=\"POST\",status=\"201\"}"), 1.0);
-    EXPECT_EQ(find_metric(text, "kdrt_http_requests_total{route=\"/v1/meshes/{id}/intersect\",method=\"POST\",status=\"200\"}"),
+    EXPECT_EQ(find_metric(
+                  text, "kdrt_http_requests_total{route=\"/v1/meshes/{id}/intersect\",method=\"POST\",status=\"200\"}"),
               2.0);
-    EXPECT_EQ(find_metric(text, "kdrt_http_requests_total{route=\"/v1/meshes/{id}\",method=\"GET\",status=\"404\"}"), 1.0);
+    EXPECT_EQ(find_metric(text, "kdrt_http_requests_total{route=\"/v1/meshes/{id}\",method=\"GET\",status=\"404\"}"),
+              1.0);
     EXPECT_EQ(find_metric(text, "kdrt_http_request_duration_seconds_count{route=\"/v1/meshes/{id}/intersect\"}"), 2.0);
     EXPECT_EQ(find_metric(text, "kdrt_rays_traced_total{kind=\"closest\"}"), 1000.0);
     EXPECT_EQ(find_metric(text, "kdrt_rays_traced_total{kind=\"occlusion\"}"), 1000.0);
@@ -122,7 +124,7 @@ TEST(HttpOps, SettingsComeFromFileThenEnvironmentThenFlags) {
                           .args = {"--config", config.string(), "--http-threads", "7"},
                           .env = {"KDRT_HTTP_THREADS=6", "KDRT_MEMORY_BUDGET=2M"}});
     ASSERT_TRUE(server.running());
-    EXPECT_EQ(server.metric("kdrt_cache_budget_bytes"), 2.0 * 1024 * 1024);  // env beats the file
+    EXPECT_EQ(server.metric("kdrt_cache_budget_bytes"), 2.0 * 1024 * 1024);             // env beats the file
     EXPECT_NE(server.log().find("http_threads=7"), std::string::npos) << server.log();  // flag beats env
 }
 

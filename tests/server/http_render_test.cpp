@@ -62,7 +62,8 @@ TEST_F(HttpRender, EveryShadingModeMatchesTheEngine) {
     auto cli = server_->client();
     for (const char* shading : {"normals", "eyelight", "ao", "diffuse", "depth", "primid"}) {
         SCOPED_TRACE(shading);
-        const std::string json = "{\"mesh\":\"" + id_ + "\",\"shading\":\"" + shading + "\",\"width\":96,\"height\":64}";
+        const std::string json =
+            "{\"mesh\":\"" + id_ + "\",\"shading\":\"" + shading + "\",\"width\":96,\"height\":64}";
         auto res = post_render(*cli, json);
         ASSERT_TRUE(res);
         ASSERT_EQ(res->status, 200) << res->body;
@@ -87,7 +88,8 @@ TEST_F(HttpRender, DefaultsExrTilesAndExplicitCameras) {
     EXPECT_EQ(decoded->height, 512u);
 
     // EXR keeps linear values: compare the decoded pixels with the engine's (as half floats).
-    const std::string exr = "{\"mesh\":\"" + id_ + "\",\"format\":\"exr\",\"shading\":\"depth\",\"width\":40,\"height\":30}";
+    const std::string exr =
+        "{\"mesh\":\"" + id_ + "\",\"format\":\"exr\",\"shading\":\"depth\",\"width\":40,\"height\":30}";
     res = post_render(*cli, exr);
     ASSERT_TRUE(res);
     ASSERT_EQ(res->status, 200) << res->body;
@@ -101,8 +103,9 @@ TEST_F(HttpRender, DefaultsExrTilesAndExplicitCameras) {
     // A tile of a frame is exactly that part of the full frame.
     const std::string camera = R"("camera":{"eye":[0,0.1,1.5],"look_at":[0,0,0],"up":[0,1,0],"fov":35})";
     const std::string full = "{\"mesh\":\"" + id_ + "\"," + camera + ",\"width\":64,\"height\":48,\"format\":\"exr\"}";
-    const std::string tile = "{\"mesh\":\"" + id_ + "\"," + camera +
-                             ",\"width\":64,\"height\":48,\"format\":\"exr\",\"tile\":{\"x\":16,\"y\":8,\"w\":32,\"h\":24}}";
+    const std::string tile =
+        "{\"mesh\":\"" + id_ + "\"," + camera +
+        ",\"width\":64,\"height\":48,\"format\":\"exr\",\"tile\":{\"x\":16,\"y\":8,\"w\":32,\"h\":24}}";
     auto full_image = proto::decode_image(string_to_bytes(post_render(*cli, full)->body));
     auto tile_res = post_render(*cli, tile);
     ASSERT_EQ(tile_res->status, 200) << tile_res->body;

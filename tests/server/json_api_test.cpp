@@ -158,7 +158,8 @@ TEST(JsonRays, ErrorsNameTheMember) {
 TEST(JsonHits, EncodeIsCompactAndDecodes) {
     const Hit hits[3] = {{1.5f, 12, 0.25f, 0.5f}, Hit{}, {0.1f, 0, 0.0f, 1.0f}};
     const std::string json = encode_json_hits(hits);
-    EXPECT_EQ(json, "{\"hits\":[{\"t\":1.5,\"prim\":12,\"u\":0.25,\"v\":0.5},null,{\"t\":0.1,\"prim\":0,\"u\":0,\"v\":1}]}");
+    EXPECT_EQ(json,
+              "{\"hits\":[{\"t\":1.5,\"prim\":12,\"u\":0.25,\"v\":0.5},null,{\"t\":0.1,\"prim\":0,\"u\":0,\"v\":1}]}");
     auto back = decode_json_hits(json);
     ASSERT_TRUE(back) << back.error();
     ASSERT_EQ(back->size(), 3u);
@@ -188,7 +189,8 @@ TEST(JsonApi, MediaTypes) {
     EXPECT_EQ(mesh_format_from_media_type(" application/x-kdrt-mesh "), MeshFormat::kRaw);
     EXPECT_EQ(mesh_format_from_media_type("application/octet-stream"), std::nullopt);
     EXPECT_EQ(mesh_format_from_media_type(""), std::nullopt);
-    for (const MeshFormat f : {MeshFormat::kObj, MeshFormat::kPly, MeshFormat::kOff, MeshFormat::kStl, MeshFormat::kRaw})
+    for (const MeshFormat f :
+         {MeshFormat::kObj, MeshFormat::kPly, MeshFormat::kOff, MeshFormat::kStl, MeshFormat::kRaw})
         EXPECT_EQ(mesh_format_from_media_type(mesh_media_type(f)), f);
     EXPECT_EQ(media_type_essence("Application/JSON ; charset=UTF-8"), "application/json");
 }

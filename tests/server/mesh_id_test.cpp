@@ -34,8 +34,8 @@ TEST(MeshId, IndependentOfVertexSharingOrderAndFormat) {
     for (uint32_t index : soup.indices) shuffled.indices.push_back(static_cast<uint32_t>(n - 1 - index));
     EXPECT_EQ(mesh_id(shuffled), mesh_id(soup));
     // Through every file format (STL has no sharing at all).
-    for (const MeshFormat format : {MeshFormat::kObj, MeshFormat::kPly, MeshFormat::kOff, MeshFormat::kStl,
-                                    MeshFormat::kRaw}) {
+    for (const MeshFormat format :
+         {MeshFormat::kObj, MeshFormat::kPly, MeshFormat::kOff, MeshFormat::kStl, MeshFormat::kRaw}) {
         auto parsed = parse_mesh(write_mesh(soup, format), format);
         ASSERT_TRUE(parsed) << parsed.error().message;
         EXPECT_EQ(mesh_id(*parsed), mesh_id(soup)) << mesh_format_name(format);

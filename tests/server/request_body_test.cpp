@@ -9,7 +9,9 @@
 namespace kdrt::server {
 namespace {
 
-std::string as_string(std::span<const std::byte> bytes) { return {reinterpret_cast<const char*>(bytes.data()), bytes.size()}; }
+std::string as_string(std::span<const std::byte> bytes) {
+    return {reinterpret_cast<const char*>(bytes.data()), bytes.size()};
+}
 
 std::string pattern(size_t n) {
     std::string s(n, '\0');

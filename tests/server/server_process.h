@@ -29,10 +29,10 @@ private:
 class ServerProcess {
 public:
     struct Options {
-        std::filesystem::path cache_dir = {};    ///< required
-        std::vector<std::string> args = {};      ///< extra flags
-        std::vector<std::string> env = {};       ///< extra NAME=VALUE
-        bool wait_ready = true;                  ///< wait for /readyz 200
+        std::filesystem::path cache_dir = {};  ///< required
+        std::vector<std::string> args = {};    ///< extra flags
+        std::vector<std::string> env = {};     ///< extra NAME=VALUE
+        bool wait_ready = true;                ///< wait for /readyz 200
     };
 
     /// Starts the server and waits until it listens (and is ready, unless told otherwise).

@@ -59,8 +59,8 @@ struct MeshSummary {
     std::string id;
     uint64_t triangles = 0;
     uint64_t vertices = 0;
-    Aabb bounds;             ///< of the mesh's referenced vertices (not the padded tree cell)
-    TreeStats tree;          ///< build statistics; tree.build_ms is reported as "build_ms"
+    Aabb bounds;                    ///< of the mesh's referenced vertices (not the padded tree cell)
+    TreeStats tree;                 ///< build statistics; tree.build_ms is reported as "build_ms"
     std::optional<bool> in_memory;  ///< runtime state, omitted when unset (not stored on disk)
 
     /// Field-wise equality (TreeStats has no operator== of its own).
@@ -83,9 +83,9 @@ inline constexpr size_t kDefaultMaxJsonRays = 100'000;
 /// Why a JSON ray batch was refused.
 struct JsonError {
     enum class Code {
-        kSyntax,    ///< not JSON
-        kSchema,    ///< JSON, but not the expected document
-        kTooMany,   ///< more rays than the limit
+        kSyntax,   ///< not JSON
+        kSchema,   ///< JSON, but not the expected document
+        kTooMany,  ///< more rays than the limit
     };
     Code code = Code::kSyntax;
     /// Names the member and value: `rays[12]: expected 6 or 8 numbers, got 5`,
@@ -140,7 +140,7 @@ struct RenderLimits {
 /// engine's validate_render_settings checks the rest (camera geometry, tile inside the frame).
 struct RenderRequest {
     std::string mesh;
-    RenderSettings settings;  ///< camera/region/size/spp/shading/seed from the request
+    RenderSettings settings;     ///< camera/region/size/spp/shading/seed from the request
     std::string format = "png";  ///< "png", "jpg"/"jpeg" or "exr" (lower case, as sent)
 };
 
@@ -165,10 +165,10 @@ enum class JobState { kQueued, kRunning, kDone, kFailed, kCancelled };
 struct JobStatus {
     std::string id;
     JobState state = JobState::kQueued;
-    double progress = 0;    ///< 0 .. 1
+    double progress = 0;  ///< 0 .. 1
     std::string mesh;
     std::string format;
-    double created = 0;     ///< Unix time in seconds
+    double created = 0;  ///< Unix time in seconds
     bool cancel_requested = false;
     std::optional<double> render_ms;
     uint64_t result_bytes = 0;

@@ -51,12 +51,12 @@ enum class ProblemKind {
 /// One error reply.
 struct Problem {
     ProblemKind kind = ProblemKind::kInternal;
-    std::string detail;              ///< what exactly is wrong, naming values and limits
-    std::string instance;            ///< the request path
-    std::string code;                ///< machine-readable sub-reason; empty = none
-    std::optional<uint64_t> line;    ///< mesh parse errors in text: 1-based line
+    std::string detail;                   ///< what exactly is wrong, naming values and limits
+    std::string instance;                 ///< the request path
+    std::string code;                     ///< machine-readable sub-reason; empty = none
+    std::optional<uint64_t> line;         ///< mesh parse errors in text: 1-based line
     std::optional<uint64_t> byte_offset;  ///< mesh parse errors in binary data
-    std::optional<uint64_t> limit;   ///< the configured limit that was exceeded
+    std::optional<uint64_t> limit;        ///< the configured limit that was exceeded
     std::optional<uint32_t> retry_after;  ///< seconds (503)
     std::string request_id;
 
@@ -78,7 +78,8 @@ inline constexpr std::string_view kUnknownJob = "no job with id";
 inline constexpr std::string_view kNoRoute = "no route for";
 inline constexpr std::string_view kMethodNotAllowed = "does not support method";
 inline constexpr std::string_view kUnsupportedMeshType = "cannot tell the mesh format";
-inline constexpr std::string_view kUnsupportedRayType = "expects Content-Type application/x-kdrt-rays or application/json";
+inline constexpr std::string_view kUnsupportedRayType =
+    "expects Content-Type application/x-kdrt-rays or application/json";
 inline constexpr std::string_view kUnsupportedJsonType = "expects Content-Type application/json";
 inline constexpr std::string_view kBodyTooLarge = "request body exceeds";
 inline constexpr std::string_view kTooManyJsonRays = "rays in a JSON batch exceed";

@@ -1,0 +1,48 @@
+#include "buffer_pool.h"
+
+#include <gtest/gtest.h>
+
+namespace kdrt::server {
+namespace {
+
+TEST(VectorPool, ReusesTheSmallestIdleVectorThatFits) {
+    VectorPool<int> pool(64u << 20);
+    std::vector<int> a = pool.take(1u << 20), b = pool.take(4u << 20);
+    const int* a_data = a.data();
+    const int* b_data = b.data();
+    pool.give(std::move(b));
+    pool.give(std::move(a));
+    EXPECT_EQ(pool.idle_bytes(), (5u << 20) * sizeof(int));
+    std::vector<int> c = pool.take(1u << 19);  // large enough to pool: best fit is a
+    EXPECT_EQ(c.data(), a_data);
+    EXPECT_TRUE(c.empty());
+    std::vector<int> d = pool.take(3u << 20);
+    EXPECT_EQ(d.data(), b_data);
+    EXPECT_EQ(pool.idle_bytes(), 0u);
+}
+
+TEST(VectorPool, SmallRequestsAndSmallVectorsBypassThePool) {
+    VectorPool<char> pool(64u << 20);
+    std::vector<char> big = pool.take(8u << 20);
+    pool.give(std::move(big));
+    std::vector<char> small = pool.take(100);  // does not take the 8 MiB vector
+    EXPECT_LT(small.capacity(), 1u << 20);
+    EXPECT_EQ(pool.idle_bytes(), 8u << 20);
+    pool.give(std::move(small));  // too small to keep
+    EXPECT_EQ(pool.idle_bytes(), 8u << 20);
+}
+
+TEST(VectorPool, NeverHoldsMoreThanItsCap) {
+    VectorPool<char> pool(10u << 20);
+    std::vector<char> a = pool.take(6u << 20), b = pool.take(6u << 20);
+    pool.give(std::move(a));
+    pool.give(std::move(b));  // would exceed 10 MiB: freed
+    EXPECT_EQ(pool.idle_bytes(), 6u << 20);
+    VectorPool<char> off(0);
+    std::vector<char> c = off.take(2u << 20);
+    off.give(std::move(c));
+    EXPECT_EQ(off.idle_bytes(), 0u);
+}
+
+}  // namespace
+}  // namespace kdrt::server
