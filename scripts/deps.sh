@@ -10,6 +10,8 @@ kdrt_packages=(
     libgtest-dev libgmock-dev libbenchmark-dev
     libembree-dev qemu-user
 )
+# The client's OpenAPI test validates live answers against proto/openapi.yaml in Python.
+kdrt_packages+=(python3 python3-yaml python3-jsonschema)
 
 # kdrt_missing_packages: prints the packages of kdrt_packages that are not installed, one a line.
 kdrt_missing_packages() {

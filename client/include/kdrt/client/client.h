@@ -1,0 +1,157 @@
+#pragma once
+/// libkdrt-client: the kdrt HTTP API v1 (proto/openapi.yaml) from C++.
+///
+///   kdrt::Client client("http://127.0.0.1:8080");
+///   auto mesh = client.upload("bunny.obj");
+///   if (!mesh) { std::cerr << mesh.error().to_string() << "\n"; return 1; }
+///   auto hits = client.intersect(mesh->id, rays);   // KDRR -> KDRH, chunked and in parallel
+///
+/// Every wire format comes from kdrt::proto (ray batches, JSON documents, problem details); the
+/// library adds transport: keep-alive connections, timeouts, a bearer token, retries with
+/// exponential backoff, and the splitting of large ray batches. Link target: kdrt::client
+/// (CMake: find_package(kdrt) after installing). It never links OpenImageIO: images travel as
+/// the encoded bytes the server produces.
+///
+/// Thread safety: a Client may be used from several threads at once; each call takes its own
+/// connection(s) from a pool. Callbacks run on the calling thread.
+
+#include <chrono>
+#include <cstddef>
+#include <cstdint>
+#include <filesystem>
+#include <functional>
+#include <memory>
+#include <optional>
+#include <span>
+#include <string>
+#include <string_view>
+#include <vector>
+
+#include "kdrt/client/error.h"
+#include "kdrt/client/server_url.h"
+#include "kdrt/mesh.h"
+#include "kdrt/proto/json_api.h"
+#include "kdrt/proto/mesh_io.h"
+#include "kdrt/types.h"
+
+namespace kdrt {
+
+/// What the server reports about a stored mesh: id, triangles, vertices, bounds, build statistics.
+using MeshInfo = proto::MeshSummary;
+/// An async render job's state and progress (GET /v1/jobs/{id}).
+using Job = proto::JobStatus;
+/// A render: mesh id, RenderSettings (camera, size, spp, shading, seed, tile) and image format.
+using RenderRequest = proto::RenderRequest;
+
+/// Called by Client::wait after every poll with the job's latest status. Return false to stop
+/// waiting: wait() then cancels the job and returns ErrorKind::kCancelled.
+using ProgressCallback = std::function<bool(const Job& job)>;
+
+/// Transport settings. Every member has a working default.
+struct ClientOptions {
+    /// Bearer token sent on every request. Empty: the KDRT_TOKEN environment variable (read by
+    /// the constructor), or none.
+    std::string token;
+    /// Longest wait for a TCP (and TLS) connection to be set up.
+    std::chrono::milliseconds connect_timeout{5'000};
+    /// Per socket read and write (not per request): a render or a batch may take longer in total.
+    std::chrono::milliseconds io_timeout{300'000};
+    /// Retries after the first attempt, on connection errors and on 503 (never on another status).
+    unsigned max_retries = 4;
+    /// Delay before retry k (0-based): min(backoff_initial * 2^k, backoff_max), unless a 503 carries
+    /// Retry-After (seconds), which is honoured up to max_retry_after.
+    std::chrono::milliseconds backoff_initial{100};
+    std::chrono::milliseconds backoff_max{5'000};
+    std::chrono::milliseconds max_retry_after{60'000};
+    /// intersect/occluded: rays per request (1 .. the server's max_rays, default 2^24). A batch of
+    /// more rays is split into chunks of this many. 2^16 rays (2 MiB out, 1 MiB back) keeps the
+    /// buffers cache-sized and the connections pipelined; much larger chunks measured slower on
+    /// loopback (page faults of fresh multi-MiB buffers on both sides).
+    size_t chunk_rays = size_t{1} << 16;
+    /// intersect/occluded: chunks in flight at once, each on its own keep-alive connection.
+    unsigned connections = 4;
+    /// wait(): time between two polls of the job.
+    std::chrono::milliseconds poll_interval{100};
+};
+
+class Client {
+public:
+    /// A client of the server at `url` (see parse_server_url). Connects lazily, on the first call.
+    /// Throws std::invalid_argument naming the problem when `url` is malformed, or when
+    /// options.chunk_rays or options.connections is 0.
+    explicit Client(std::string_view url, ClientOptions options = {});
+    ~Client();
+    Client(Client&&) noexcept;
+    Client& operator=(Client&&) noexcept;
+    Client(const Client&) = delete;
+    Client& operator=(const Client&) = delete;
+
+    [[nodiscard]] const ServerUrl& url() const noexcept;
+    [[nodiscard]] const ClientOptions& options() const noexcept;
+
+    // ---- Meshes (POST/GET/DELETE /v1/meshes...) ---------------------------------------------
+
+    /// Uploads a mesh file, streamed from disk (a pipe or device such as /dev/stdin is read whole
+    /// first). The format comes from `format`, else from the extension (.obj .ply .off .stl .raw
+    /// .kdrtmesh; another one is a kInput error, as is an unreadable file). The server parses it:
+    /// a bad file is a kServer 422 error whose detail (and `line` / `byte_offset`) says where.
+    /// Uploading the same triangles again returns the stored summary without a rebuild.
+    [[nodiscard]] Result<MeshInfo> upload(const std::filesystem::path& file,
+                                          std::optional<proto::MeshFormat> format = std::nullopt);
+    /// Uploads an in-memory mesh (sent in the raw format, exactly its arrays).
+    [[nodiscard]] Result<MeshInfo> upload(const Mesh& mesh);
+    /// Uploads the bytes of a mesh file in `format`.
+    [[nodiscard]] Result<MeshInfo> upload(std::span<const std::byte> bytes, proto::MeshFormat format);
+    /// Every stored mesh, sorted by id.
+    [[nodiscard]] Result<std::vector<MeshInfo>> meshes();
+    /// One stored mesh (404 kServer error when unknown).
+    [[nodiscard]] Result<MeshInfo> mesh(std::string_view id);
+    /// Deletes a stored mesh (404 kServer error when unknown).
+    [[nodiscard]] Result<void> remove(std::string_view id);
+
+    // ---- Rays (POST /v1/meshes/{id}/intersect, binary KDRR) --------------------------------
+
+    /// Closest hit of every ray, in ray order (a miss: t = +inf, prim = kNoHit). Batches larger
+    /// than options.chunk_rays go as several requests over up to options.connections keep-alive
+    /// connections in parallel; the answers are put back in order. The server refuses rays with a
+    /// NaN/Inf origin or direction component (400). An empty span still asks the server (so an
+    /// unknown id is reported). More than 2^32 - 1 rays is a kInput error. On any chunk's error
+    /// the call stops sending and returns that error.
+    [[nodiscard]] Result<std::vector<Hit>> intersect(std::string_view id, std::span<const Ray> rays);
+    /// Occlusion of every ray (1 = something is hit within [tmin, tmax]), chunked the same way.
+    [[nodiscard]] Result<std::vector<uint8_t>> occluded(std::string_view id, std::span<const Ray> rays);
+
+    // ---- Renders (POST /v1/render, /v1/jobs/{id}...) -----------------------------------------
+
+    /// Renders synchronously and returns the encoded image (request.format: png, jpg/jpeg, exr).
+    [[nodiscard]] Result<std::vector<std::byte>> render(const RenderRequest& request);
+    /// Queues the render as an async job (Prefer: respond-async). Not retried after a lost
+    /// connection once the request was sent (it could queue a second job); retried on 503.
+    [[nodiscard]] Result<Job> submit(const RenderRequest& request);
+    /// The job's current status.
+    [[nodiscard]] Result<Job> job(std::string_view id);
+    /// Polls the job every options.poll_interval until it finishes, calling `progress` (if set)
+    /// after every poll, then returns its image. A failed job is a kJobFailed error, a cancelled
+    /// one kCancelled. The job stays on the server (until cancel() or its time to live).
+    [[nodiscard]] Result<std::vector<std::byte>> wait(const Job& job, const ProgressCallback& progress = {});
+    /// The image of a finished job (409 kServer error while it is not done).
+    [[nodiscard]] Result<std::vector<std::byte>> result(const Job& job);
+    /// Cancels a queued or running job (it stops before its next tile), or forgets a finished one.
+    [[nodiscard]] Result<void> cancel(const Job& job);
+
+    // ---- Operations -------------------------------------------------------------------------
+
+    /// GET /healthz: success when the process answers.
+    [[nodiscard]] Result<void> health();
+    /// GET /readyz: success when the server is ready; a 503 (starting, shutting down) is a
+    /// kServer error carrying the server's reason. Not retried on 503: it asks "now?".
+    [[nodiscard]] Result<void> ready();
+    /// GET /metrics: the Prometheus text exposition.
+    [[nodiscard]] Result<std::string> metrics();
+
+private:
+    struct Impl;
+    std::unique_ptr<Impl> impl_;
+};
+
+}  // namespace kdrt

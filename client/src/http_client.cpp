@@ -1,0 +1,601 @@
+// kdrt::Client on cpp-httplib: connection pool, retries, chunked ray batches. The only library
+// file that includes httplib.h; every body is encoded and decoded by kdrt::proto.
+
+#include <httplib.h>
+#include <netdb.h>
+#include <sys/socket.h>
+#include <sys/time.h>
+#include <unistd.h>
+
+#include <algorithm>
+#include <atomic>
+#include <cerrno>
+#include <charconv>
+#include <cstdlib>
+#include <cstring>
+#include <fstream>
+#include <limits>
+#include <mutex>
+#include <stdexcept>
+#include <thread>
+
+#include "kdrt/client/client.h"
+#include "kdrt/proto/errors.h"
+#include "kdrt/proto/file_io.h"
+#include "kdrt/proto/problem.h"
+#include "kdrt/proto/ray_batch.h"
+
+namespace kdrt {
+namespace {
+
+using Millis = std::chrono::milliseconds;
+
+/// Bytes handed to httplib per content-provider call when a file is streamed.
+constexpr size_t kUploadBlockBytes = size_t{1} << 20;
+
+/// Percent-encodes one path segment (an id from the caller): only RFC 3986 unreserved
+/// characters stay as they are, so "../x" or "a/b" cannot leave the route.
+std::string escape_segment(std::string_view segment) {
+    static constexpr char kHex[] = "0123456789ABCDEF";
+    std::string out;
+    for (const char c : segment) {
+        const auto u = static_cast<unsigned char>(c);
+        if ((u >= 'a' && u <= 'z') || (u >= 'A' && u <= 'Z') || (u >= '0' && u <= '9') || u == '-' || u == '.' ||
+            u == '_' || u == '~') {
+            out.push_back(c);
+        } else {
+            out.push_back('%');
+            out.push_back(kHex[u >> 4]);
+            out.push_back(kHex[u & 15]);
+        }
+    }
+    return out;
+}
+
+std::span<const std::byte> as_bytes(const std::string& text) noexcept {
+    return {reinterpret_cast<const std::byte*>(text.data()), text.size()};
+}
+
+std::vector<std::byte> to_byte_vector(const std::string& text) {
+    const auto bytes = as_bytes(text);
+    return {bytes.begin(), bytes.end()};
+}
+
+/// Retry-After in delta-seconds form; nullopt for an HTTP-date or garbage (then the backoff applies).
+std::optional<uint32_t> parse_retry_after(const std::string& value) {
+    uint32_t seconds = 0;
+    const char* end = value.data() + value.size();
+    const auto [ptr, ec] = std::from_chars(value.data(), end, seconds);
+    if (ec != std::errc() || ptr != end) return std::nullopt;
+    return seconds;
+}
+
+/// True for httplib errors where the request never reached the server (always safe to resend).
+bool failed_before_sending(httplib::Error error) noexcept {
+    return error == httplib::Error::Connection || error == httplib::Error::ConnectionTimeout ||
+           error == httplib::Error::BindIPAddress || error == httplib::Error::SSLConnection;
+}
+
+/// True for httplib errors of the transport (connection reset or timed out mid-exchange).
+bool transport_failure(httplib::Error error) noexcept {
+    return failed_before_sending(error) || error == httplib::Error::Read || error == httplib::Error::Write;
+}
+
+/// What went wrong, in words: httplib's error names ("Connection", "Read") say little.
+std::string describe(httplib::Error error) {
+    switch (error) {
+        case httplib::Error::Connection:
+            return "could not connect";
+        case httplib::Error::ConnectionTimeout:
+            return "the connection timed out";
+        case httplib::Error::Read:
+            return "the connection closed or timed out while reading the answer";
+        case httplib::Error::Write:
+            return "the connection closed or timed out while sending the request";
+        case httplib::Error::SSLConnection:
+            return "the TLS handshake failed";
+        case httplib::Error::SSLServerVerification:
+            return "the server's TLS certificate was not accepted";
+        default:
+            break;
+    }
+    return httplib::to_string(error);
+}
+
+/// Why a TCP connection to host:port fails ("Connection refused", "Name or service not known"),
+/// found by trying once more with a plain blocking connect: httplib reports only that it failed.
+/// Empty when this attempt succeeds (the failure was transient).
+std::string connect_failure_reason(const std::string& host, int port, std::chrono::milliseconds timeout) {
+    addrinfo hints{};
+    hints.ai_family = AF_UNSPEC;
+    hints.ai_socktype = SOCK_STREAM;
+    addrinfo* found = nullptr;
+    const std::string service = std::to_string(port);
+    if (const int rc = ::getaddrinfo(host.c_str(), service.c_str(), &hints, &found); rc != 0)
+        return rc == EAI_SYSTEM ? std::strerror(errno) : ::gai_strerror(rc);
+    std::string reason;
+    for (const addrinfo* ai = found; ai; ai = ai->ai_next) {
+        const int fd = ::socket(ai->ai_family, ai->ai_socktype | SOCK_CLOEXEC, ai->ai_protocol);
+        if (fd < 0) {
+            reason = std::strerror(errno);
+            continue;
+        }
+        timeval tv{};
+        tv.tv_sec = static_cast<time_t>(timeout.count() / 1000);
+        tv.tv_usec = static_cast<suseconds_t>((timeout.count() % 1000) * 1000);
+        ::setsockopt(fd, SOL_SOCKET, SO_SNDTIMEO, &tv, sizeof tv);  // bounds a blocking connect
+        const bool connected = ::connect(fd, ai->ai_addr, ai->ai_addrlen) == 0;
+        const int os_error = errno;
+        ::close(fd);
+        if (connected) {
+            reason.clear();
+            break;
+        }
+        reason = os_error == EINPROGRESS || os_error == EAGAIN ? std::strerror(ETIMEDOUT) : std::strerror(os_error);
+    }
+    ::freeaddrinfo(found);
+    return reason;
+}
+
+/// One HTTP exchange as the retry loop sends it (possibly several times).
+struct Exchange {
+    const char* method = "GET";
+    std::string path;                ///< API path, base path included
+    httplib::Headers headers;
+    std::string_view body;           ///< in-memory body (POST), unless `stream` is set
+    size_t stream_size = 0;          ///< streamed body size
+    httplib::ContentProvider stream; ///< streamed body (file uploads); re-invoked from 0 on a retry
+    std::string content_type;
+    /// May the request be sent again after the connection failed once it was (maybe) sent?
+    /// False for requests that are not idempotent (async render submissions).
+    bool resend_after_transport_error = true;
+    /// Retry 503 answers (all routes but /readyz, which asks "ready now?").
+    bool retry_unavailable = true;
+};
+
+}  // namespace
+
+struct Client::Impl {
+    Impl(ServerUrl server, ClientOptions opts) : url(std::move(server)), options(std::move(opts)) {
+        if (options.token.empty()) {
+            if (const char* env = std::getenv("KDRT_TOKEN")) options.token = env;
+        }
+        origin = url.to_string();
+        origin.resize(origin.size() - url.base_path.size());
+    }
+
+    ServerUrl url;
+    ClientOptions options;
+    std::string origin;  ///< scheme://host:port
+
+    std::mutex pool_mutex;
+    std::vector<std::unique_ptr<httplib::Client>> idle;  ///< keep-alive connections not in use
+
+    /// A pooled connection, returned to the pool when the lease ends.
+    class Lease {
+    public:
+        explicit Lease(Impl& impl) : impl_(impl), client_(impl.acquire()) {}
+        ~Lease() { impl_.release(std::move(client_)); }
+        Lease(const Lease&) = delete;
+        Lease& operator=(const Lease&) = delete;
+        httplib::Client& operator*() const noexcept { return *client_; }
+
+    private:
+        Impl& impl_;
+        std::unique_ptr<httplib::Client> client_;
+    };
+
+    std::unique_ptr<httplib::Client> acquire() {
+        {
+            std::lock_guard lock(pool_mutex);
+            if (!idle.empty()) {
+                auto client = std::move(idle.back());
+                idle.pop_back();
+                return client;
+            }
+        }
+        auto client = std::make_unique<httplib::Client>(origin);
+        client->set_keep_alive(true);
+        client->set_tcp_nodelay(true);
+        client->set_connection_timeout(options.connect_timeout);
+        client->set_read_timeout(options.io_timeout);
+        client->set_write_timeout(options.io_timeout);
+        if (!options.token.empty()) client->set_bearer_token_auth(options.token);
+        return client;
+    }
+
+    void release(std::unique_ptr<httplib::Client> client) {
+        std::lock_guard lock(pool_mutex);
+        // More idle connections than chunks in flight would only hold server threads.
+        if (idle.size() < std::max(1u, options.connections)) idle.push_back(std::move(client));
+    }
+
+    [[nodiscard]] std::string api(std::string_view path) const { return url.base_path + std::string(path); }
+
+    [[nodiscard]] Millis backoff(unsigned retry) const {
+        const auto initial = std::max<int64_t>(1, options.backoff_initial.count());
+        int64_t delay = initial;
+        for (unsigned i = 0; i < retry && delay < options.backoff_max.count(); ++i) delay *= 2;
+        return Millis(std::min<int64_t>(delay, options.backoff_max.count()));
+    }
+
+    [[nodiscard]] Error transport_error(const Exchange& ex, httplib::Error error, unsigned attempts) const {
+        const bool connect = failed_before_sending(error);
+        std::string what = describe(error);
+        if (error == httplib::Error::Connection) {
+            const std::string reason = connect_failure_reason(url.host, url.port, options.connect_timeout);
+            if (!reason.empty()) what += ": " + reason;
+        }
+        Error e = make_client_error(ErrorKind::kConnection, connect ? "cannot connect" : "connection failed",
+                                    url.to_string() + ": " + what + " (" + ex.method + " " +
+                                        ex.path + ", " + std::to_string(attempts) +
+                                        (attempts == 1 ? " attempt)" : " attempts)"));
+        e.attempts = attempts;
+        return e;
+    }
+
+    /// Sends `ex` on `cli`, retrying connection errors and 503 answers with exponential backoff
+    /// (Retry-After honoured). A 2xx answer is returned; any other status becomes its Error.
+    Result<httplib::Response> send(httplib::Client& cli, const Exchange& ex) {
+        const unsigned attempts_allowed = options.max_retries + 1;
+        for (unsigned attempt = 1;; ++attempt) {
+            httplib::Result res = [&] {
+                const std::string_view method = ex.method;
+                if (method == "GET") return cli.Get(ex.path, ex.headers);
+                if (method == "DELETE") return cli.Delete(ex.path, ex.headers);
+                if (ex.stream) return cli.Post(ex.path, ex.headers, ex.stream_size, ex.stream, ex.content_type);
+                return cli.Post(ex.path, ex.headers, ex.body.data(), ex.body.size(), ex.content_type);
+            }();
+            if (!res) {
+                const httplib::Error error = res.error();
+                const bool retriable =
+                    failed_before_sending(error) || (ex.resend_after_transport_error && transport_failure(error));
+                if (!retriable || attempt >= attempts_allowed) return proto::Err{transport_error(ex, error, attempt)};
+                std::this_thread::sleep_for(backoff(attempt - 1));
+                continue;
+            }
+            httplib::Response& response = res.value();
+            if (response.status >= 200 && response.status < 300) return std::move(response);
+            if (response.status == 503 && ex.retry_unavailable && attempt < attempts_allowed) {
+                Millis delay = backoff(attempt - 1);
+                if (const auto after = parse_retry_after(response.get_header_value("Retry-After")))
+                    delay = std::min<Millis>(std::chrono::seconds(*after), options.max_retry_after);
+                std::this_thread::sleep_for(delay);
+                continue;
+            }
+            Error e = error_from_response(response.status, response.get_header_value("Content-Type"), response.body,
+                                          response.get_header_value("X-Request-Id"));
+            e.attempts = attempt;
+            return proto::Err{std::move(e)};
+        }
+    }
+
+    Result<httplib::Response> send(const Exchange& ex) {
+        Lease lease(*this);
+        return send(*lease, ex);
+    }
+
+    [[nodiscard]] Error bad_response(const Exchange& ex, const std::string& why) const {
+        return make_client_error(ErrorKind::kProtocol, "bad response",
+                                 std::string(ex.method) + " " + ex.path + " from " + url.to_string() + ": " + why);
+    }
+
+    template <class T, class Decode>
+    Result<T> json_call(const Exchange& ex, Decode decode) {
+        auto res = send(ex);
+        if (!res) return proto::Err{std::move(res).error()};
+        auto decoded = decode(res->body);
+        if (!decoded) return proto::Err{bad_response(ex, decoded.error())};
+        return std::move(*decoded);
+    }
+
+    Result<MeshInfo> upload(Exchange ex) {
+        ex.method = "POST";
+        ex.path = api("/v1/meshes");
+        return json_call<MeshInfo>(ex, [](const std::string& body) { return proto::decode_mesh_summary(body); });
+    }
+
+    /// One chunk of a ray batch: POST, decode, check the count, copy into `out`.
+    template <class T>
+    Result<void> trace_chunk(httplib::Client& cli, const std::string& path, std::span<const Ray> rays, bool occlusion,
+                             std::span<T> out) {
+        const std::vector<std::byte> body = proto::encode_rays(rays, occlusion);
+        Exchange ex;
+        ex.method = "POST";
+        ex.path = path;
+        // Streamed from `body` (httplib copies an in-memory body into its request first).
+        ex.stream_size = body.size();
+        ex.stream = [&body](size_t offset, size_t length, httplib::DataSink& sink) {
+            return sink.write(reinterpret_cast<const char*>(body.data()) + offset, length);
+        };
+        ex.content_type = std::string(proto::kRaysMediaType);
+        auto res = send(cli, ex);
+        if (!res) return proto::Err{std::move(res).error()};
+        const proto::DecodeLimits limits{.max_rays = static_cast<uint32_t>(rays.size())};
+        auto decoded = [&] {
+            if constexpr (std::is_same_v<T, Hit>) {
+                return proto::decode_hits(as_bytes(res->body), limits);
+            } else {
+                return proto::decode_occlusion(as_bytes(res->body), limits);
+            }
+        }();
+        if (!decoded) return proto::Err{bad_response(ex, decoded.error().to_string())};
+        if (decoded->size() != rays.size())
+            return proto::Err{bad_response(ex, std::to_string(decoded->size()) + " answers for " +
+                                                   std::to_string(rays.size()) + " rays")};
+        std::copy(decoded->begin(), decoded->end(), out.begin());
+        return {};
+    }
+
+    /// A ray batch in chunks of options.chunk_rays, over up to options.connections connections.
+    template <class T>
+    Result<std::vector<T>> trace(std::string_view id, std::span<const Ray> rays, bool occlusion) {
+        if (rays.size() > std::numeric_limits<uint32_t>::max())
+            return proto::Err{make_client_error(ErrorKind::kInput, "too many rays",
+                                                std::to_string(rays.size()) +
+                                                    " rays in one call; a batch holds at most 4294967295")};
+        const std::string path = api("/v1/meshes/" + escape_segment(id) + "/intersect");
+        const size_t chunk = options.chunk_rays;
+        const size_t chunks = rays.empty() ? 1 : (rays.size() - 1) / chunk + 1;
+        std::vector<T> out(rays.size());
+
+        std::atomic<size_t> next{0};
+        std::atomic<bool> failed{false};
+        std::mutex error_mutex;
+        std::optional<Error> error;
+        size_t error_chunk = std::numeric_limits<size_t>::max();
+        const auto worker = [&] {
+            Lease lease(*this);
+            while (!failed.load(std::memory_order_relaxed)) {
+                const size_t k = next.fetch_add(1);
+                if (k >= chunks) return;
+                const size_t first = k * chunk;
+                const size_t count = std::min(chunk, rays.size() - first);
+                auto done = trace_chunk<T>(*lease, path, rays.subspan(first, count), occlusion,
+                                           std::span<T>(out).subspan(first, count));
+                if (!done) {
+                    std::lock_guard lock(error_mutex);
+                    // Report the earliest failing chunk among those that failed (deterministic
+                    // when every chunk fails the same way, e.g. an unknown id).
+                    if (k < error_chunk) {
+                        error_chunk = k;
+                        error = std::move(done).error();
+                    }
+                    failed = true;
+                    return;
+                }
+            }
+        };
+        const size_t threads = std::min<size_t>(options.connections, chunks);
+        if (threads <= 1) {
+            worker();
+        } else {
+            std::vector<std::jthread> pool;
+            pool.reserve(threads - 1);
+            for (size_t t = 1; t < threads; ++t) pool.emplace_back(worker);
+            worker();
+        }  // the jthreads join here
+        if (error) return proto::Err{std::move(*error)};
+        return out;
+    }
+
+    [[nodiscard]] Exchange render_exchange() const {
+        Exchange ex;
+        ex.method = "POST";
+        ex.path = api("/v1/render");
+        ex.content_type = std::string(proto::kJsonMediaType);
+        return ex;
+    }
+};
+
+Client::Client(std::string_view url, ClientOptions options) {
+    auto parsed = parse_server_url(url);
+    if (!parsed) throw std::invalid_argument(parsed.error());
+    if (options.chunk_rays == 0) throw std::invalid_argument("ClientOptions::chunk_rays must be at least 1");
+    if (options.connections == 0) throw std::invalid_argument("ClientOptions::connections must be at least 1");
+    impl_ = std::make_unique<Impl>(std::move(*parsed), std::move(options));
+}
+
+Client::~Client() = default;
+Client::Client(Client&&) noexcept = default;
+Client& Client::operator=(Client&&) noexcept = default;
+
+const ServerUrl& Client::url() const noexcept { return impl_->url; }
+const ClientOptions& Client::options() const noexcept { return impl_->options; }
+
+Result<MeshInfo> Client::upload(const std::filesystem::path& file, std::optional<proto::MeshFormat> format) {
+    if (!format) format = proto::mesh_format_from_path(file);
+    if (!format)
+        return proto::Err{make_client_error(
+            ErrorKind::kInput, "cannot upload",
+            std::string(proto::errors::kUnknownExtension) + " of \"" + file.string() +
+                "\" from its extension (expected .obj, .ply, .off, .stl, .raw or .kdrtmesh)")};
+    std::error_code ec;
+    if (std::filesystem::is_directory(file, ec))
+        return proto::Err{make_client_error(ErrorKind::kInput, "cannot upload", "\"" + file.string() + "\" is a directory")};
+    if (std::filesystem::exists(file, ec) && !std::filesystem::is_regular_file(file, ec)) {
+        // A pipe or device (/dev/stdin): no size to stream against, so read it whole.
+        auto bytes = proto::read_file_bytes(file);
+        if (!bytes) return proto::Err{make_client_error(ErrorKind::kInput, "cannot upload", bytes.error())};
+        return upload(*bytes, *format);
+    }
+    auto stream = std::make_shared<std::ifstream>(file, std::ios::binary);
+    if (!*stream)
+        return proto::Err{make_client_error(ErrorKind::kInput, "cannot upload",
+                                            "cannot open \"" + file.string() + "\" for reading: " +
+                                                std::strerror(errno))};
+    const auto size = std::filesystem::file_size(file, ec);
+    if (ec)
+        return proto::Err{make_client_error(ErrorKind::kInput, "cannot upload",
+                                            "cannot read the size of \"" + file.string() + "\": " + ec.message())};
+    auto read_failed = std::make_shared<bool>(false);
+    Exchange ex;
+    ex.content_type = std::string(proto::mesh_media_type(*format));
+    ex.stream_size = static_cast<size_t>(size);
+    ex.stream = [stream, read_failed, block = std::vector<char>()](size_t offset, size_t length,
+                                                                   httplib::DataSink& sink) mutable {
+        block.resize(std::min(length, kUploadBlockBytes));
+        stream->clear();
+        stream->seekg(static_cast<std::streamoff>(offset));
+        stream->read(block.data(), static_cast<std::streamsize>(block.size()));
+        if (stream->gcount() != static_cast<std::streamsize>(block.size())) {
+            *read_failed = true;  // the file shrank or failed while it was sent
+            return false;
+        }
+        return sink.write(block.data(), block.size());
+    };
+    auto result = impl_->upload(std::move(ex));
+    if (!result && *read_failed)
+        return proto::Err{make_client_error(ErrorKind::kInput, "cannot upload",
+                                            "reading \"" + file.string() + "\" failed while it was sent")};
+    return result;
+}
+
+Result<MeshInfo> Client::upload(const Mesh& mesh) {
+    std::vector<std::byte> bytes;
+    try {
+        bytes = proto::write_mesh(mesh, proto::MeshFormat::kRaw);
+    } catch (const std::invalid_argument& e) {
+        return proto::Err{make_client_error(ErrorKind::kInput, "cannot upload", std::string("malformed mesh: ") + e.what())};
+    }
+    return upload(bytes, proto::MeshFormat::kRaw);
+}
+
+Result<MeshInfo> Client::upload(std::span<const std::byte> bytes, proto::MeshFormat format) {
+    Exchange ex;
+    ex.body = {reinterpret_cast<const char*>(bytes.data()), bytes.size()};
+    ex.content_type = std::string(proto::mesh_media_type(format));
+    return impl_->upload(std::move(ex));
+}
+
+Result<std::vector<MeshInfo>> Client::meshes() {
+    Exchange ex;
+    ex.path = impl_->api("/v1/meshes");
+    return impl_->json_call<std::vector<MeshInfo>>(ex, [](const std::string& b) { return proto::decode_mesh_list(b); });
+}
+
+Result<MeshInfo> Client::mesh(std::string_view id) {
+    Exchange ex;
+    ex.path = impl_->api("/v1/meshes/" + escape_segment(id));
+    return impl_->json_call<MeshInfo>(ex, [](const std::string& b) { return proto::decode_mesh_summary(b); });
+}
+
+Result<void> Client::remove(std::string_view id) {
+    Exchange ex;
+    ex.method = "DELETE";
+    ex.path = impl_->api("/v1/meshes/" + escape_segment(id));
+    auto res = impl_->send(ex);
+    if (!res) return proto::Err{std::move(res).error()};
+    return {};
+}
+
+Result<std::vector<Hit>> Client::intersect(std::string_view id, std::span<const Ray> rays) {
+    return impl_->trace<Hit>(id, rays, false);
+}
+
+Result<std::vector<uint8_t>> Client::occluded(std::string_view id, std::span<const Ray> rays) {
+    return impl_->trace<uint8_t>(id, rays, true);
+}
+
+Result<std::vector<std::byte>> Client::render(const RenderRequest& request) {
+    Exchange ex = impl_->render_exchange();
+    const std::string body = proto::encode_render_request(request);
+    ex.body = body;
+    auto res = impl_->send(ex);
+    if (!res) return proto::Err{std::move(res).error()};
+    if (res->status != 200)
+        return proto::Err{impl_->bad_response(ex, "status " + std::to_string(res->status) + " instead of 200")};
+    return to_byte_vector(res->body);
+}
+
+Result<Job> Client::submit(const RenderRequest& request) {
+    Exchange ex = impl_->render_exchange();
+    const std::string body = proto::encode_render_request(request);
+    ex.body = body;
+    ex.headers.emplace("Prefer", "respond-async");
+    ex.resend_after_transport_error = false;
+    auto res = impl_->send(ex);
+    if (!res) return proto::Err{std::move(res).error()};
+    if (res->status != 202)
+        return proto::Err{impl_->bad_response(ex, "status " + std::to_string(res->status) +
+                                                      " instead of 202 (the server did not queue a job)")};
+    auto job = proto::decode_job_status(res->body);
+    if (!job) return proto::Err{impl_->bad_response(ex, job.error())};
+    return std::move(*job);
+}
+
+Result<Job> Client::job(std::string_view id) {
+    Exchange ex;
+    ex.path = impl_->api("/v1/jobs/" + escape_segment(id));
+    return impl_->json_call<Job>(ex, [](const std::string& b) { return proto::decode_job_status(b); });
+}
+
+Result<std::vector<std::byte>> Client::wait(const Job& submitted, const ProgressCallback& progress) {
+    for (;;) {
+        auto status = job(submitted.id);
+        if (!status) return proto::Err{std::move(status).error()};
+        if (progress && !progress(*status)) {
+            (void)cancel(*status);
+            return proto::Err{make_client_error(ErrorKind::kCancelled, "cancelled",
+                                                "job " + submitted.id + " cancelled while waiting for it")};
+        }
+        switch (status->state) {
+            case proto::JobState::kDone:
+                return result(*status);
+            case proto::JobState::kFailed:
+                return proto::Err{make_client_error(ErrorKind::kJobFailed, "render failed",
+                                                    "job " + submitted.id + ": " + status->error)};
+            case proto::JobState::kCancelled:
+                return proto::Err{make_client_error(ErrorKind::kCancelled, "cancelled",
+                                                    "job " + submitted.id + " was cancelled")};
+            case proto::JobState::kQueued:
+            case proto::JobState::kRunning:
+                break;
+        }
+        std::this_thread::sleep_for(impl_->options.poll_interval);
+    }
+}
+
+Result<std::vector<std::byte>> Client::result(const Job& job) {
+    Exchange ex;
+    ex.path = impl_->api("/v1/jobs/" + escape_segment(job.id) + "/result");
+    auto res = impl_->send(ex);
+    if (!res) return proto::Err{std::move(res).error()};
+    return to_byte_vector(res->body);
+}
+
+Result<void> Client::cancel(const Job& job) {
+    Exchange ex;
+    ex.method = "DELETE";
+    ex.path = impl_->api("/v1/jobs/" + escape_segment(job.id));
+    auto res = impl_->send(ex);
+    if (!res) return proto::Err{std::move(res).error()};
+    return {};
+}
+
+Result<void> Client::health() {
+    Exchange ex;
+    ex.path = impl_->api("/healthz");
+    auto res = impl_->send(ex);
+    if (!res) return proto::Err{std::move(res).error()};
+    return {};
+}
+
+Result<void> Client::ready() {
+    Exchange ex;
+    ex.path = impl_->api("/readyz");
+    ex.retry_unavailable = false;
+    auto res = impl_->send(ex);
+    if (!res) return proto::Err{std::move(res).error()};
+    return {};
+}
+
+Result<std::string> Client::metrics() {
+    Exchange ex;
+    ex.path = impl_->api("/metrics");
+    auto res = impl_->send(ex);
+    if (!res) return proto::Err{std::move(res).error()};
+    return std::move(res->body);
+}
+
+}  // namespace kdrt
