@@ -11,9 +11,14 @@
 
 #include "kdrt/camera.h"
 #include "kdrt/trace.h"
+#include "sampling.h"
 
 namespace kdrt {
 namespace {
+
+using detail::cosine_direction;
+using detail::is_finite;
+using detail::normalized;
 
 constexpr float kInf = std::numeric_limits<float>::infinity();
 
@@ -49,10 +54,6 @@ public:
 private:
     uint64_t state_;
 };
-
-Vec3 normalized(Vec3 v) noexcept { return v * (1.0f / std::sqrt(dot(v, v))); }
-
-bool is_finite(Vec3 v) noexcept { return std::isfinite(v.x) && std::isfinite(v.y) && std::isfinite(v.z); }
 
 /// The box the ray sets are placed in: the tree bounds, or the unit cube around the origin for an
 /// empty tree (the same fallback default_camera uses).
@@ -104,29 +105,6 @@ SurfacePoint surface_point(const KdTree& tree, const Ray& ray, const Hit& hit, f
         normal = normalized(dir) * -1.0f;
     }
     return {p + normal * offset, normal};
-}
-
-/// Cosine-weighted direction around the unit vector `n` (Malley's method: a uniform point in the
-/// unit disk lifted to the hemisphere). Square roots only, no libm transcendentals, so the bits are
-/// the same with every C library.
-Vec3 cosine_direction(Vec3 n, CounterRng& rng) noexcept {
-    // Orthonormal basis from one unit vector without branches on near-zero components
-    // (Duff et al. 2017, "Building an Orthonormal Basis, Revisited").
-    const float sign = std::copysign(1.0f, n.z);
-    const float a = -1.0f / (sign + n.z);
-    const float b = n.x * n.y * a;
-    const Vec3 t1{1.0f + sign * n.x * n.x * a, sign * b, -sign * n.x};
-    const Vec3 t2{b, sign + n.y * n.y * a, -n.y};
-    float x, y, r2;
-    // Rejecting r2 > 1 - 1e-6 keeps cos(theta) >= 1e-3, so rounding cannot tip a grazing sample
-    // below the surface; it drops a 1e-6 share of the distribution.
-    do {
-        x = rng.symmetric();
-        y = rng.symmetric();
-        r2 = x * x + y * y;
-    } while (r2 > 1.0f - 1e-6f);
-    const float z = std::sqrt(1.0f - r2);
-    return normalized(t1 * x + t2 * y + n * z);
 }
 
 /// Direction uniform on the unit sphere: a uniform point in the unit ball, normalised.

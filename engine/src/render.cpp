@@ -17,10 +17,15 @@
 #include <string>
 
 #include "kdrt/trace.h"
+#include "sampling.h"
 #include "render_internal.h"
 
 namespace kdrt {
 namespace {
+
+using detail::cosine_direction;
+using detail::is_finite;
+using detail::normalized;
 
 using Clock = std::chrono::steady_clock;
 
@@ -99,10 +104,6 @@ uint32_t permute(uint32_t index, uint32_t count, uint32_t key) noexcept {
 // ---------------------------------------------------------------------------------------------
 // Geometry
 
-Vec3 normalized(Vec3 v) noexcept { return v * (1.0f / std::sqrt(dot(v, v))); }
-
-bool is_finite(Vec3 v) noexcept { return std::isfinite(v.x) && std::isfinite(v.y) && std::isfinite(v.z); }
-
 Vec3 direction(const Ray& r) noexcept { return {r.dx, r.dy, r.dz}; }
 
 /// Unit geometric normal of `tri` facing against `dir` (towards where the ray came from), for
@@ -150,29 +151,6 @@ Surface surface_at(std::span<const TriVerts> tris, const Ray& ray, const Hit& hi
     const Vec3 p = v0 * (1.0f - hit.u - hit.v) + v1 * hit.u + v2 * hit.v;
     const Vec3 normal = facing_normal(tri, direction(ray));
     return {p + normal * offset, normal};
-}
-
-/// Cosine-weighted direction around the unit vector `n` (Malley's method: a uniform point in the
-/// unit disk lifted to the hemisphere). Square roots only, no libm transcendentals, so the bits
-/// are the same with every C library.
-Vec3 cosine_direction(Vec3 n, PixelRng& rng) noexcept {
-    // Orthonormal basis from one unit vector without branches on near-zero components
-    // (Duff et al. 2017, "Building an Orthonormal Basis, Revisited").
-    const float sign = std::copysign(1.0f, n.z);
-    const float a = -1.0f / (sign + n.z);
-    const float b = n.x * n.y * a;
-    const Vec3 t1{1.0f + sign * n.x * n.x * a, sign * b, -sign * n.x};
-    const Vec3 t2{b, sign + n.y * n.y * a, -n.y};
-    float x, y, r2;
-    // Rejecting r2 > 1 - 1e-6 keeps cos(theta) >= 1e-3, so rounding cannot tip a grazing sample
-    // below the surface; it drops a 1e-6 share of the distribution.
-    do {
-        x = rng.symmetric();
-        y = rng.symmetric();
-        r2 = x * x + y * y;
-    } while (r2 > 1.0f - 1e-6f);
-    const float z = std::sqrt(1.0f - r2);
-    return normalized(t1 * x + t2 * y + n * z);
 }
 
 /// A fixed colour per triangle id: three bytes of a hash of the id.
