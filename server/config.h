@@ -44,6 +44,7 @@ struct ServerConfig {
     uint32_t max_image_width = 8192;
     uint32_t max_image_height = 8192;
     uint32_t max_spp = 1024;
+    uint32_t png_compression = 1;      ///< zlib level of rendered PNGs when a request names none
     unsigned max_jobs = 16;            ///< async render jobs queued or running before 503
     unsigned job_ttl_s = 600;          ///< finished jobs are forgotten after this
     unsigned shutdown_timeout_s = 10;  ///< in-flight requests get this long on SIGTERM

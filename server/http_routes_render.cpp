@@ -67,12 +67,16 @@ void Routes::render(const httplib::Request& req, httplib::Response& res, const h
     } catch (const RenderError& e) {
         return reply_problem(req, res, make_problem(ProblemKind::kBadRequest, e.what()));
     }
-    if (prefers_async(req)) return submit_job(req, res, {request->mesh, std::move(*tree), request->settings, format});
-    auto image = render_and_encode(svc_.compute, **tree, request->settings, format);
+    proto::ImageEncodeOptions encode;
+    encode.png_compression = request->compression.value_or(static_cast<int>(svc_.config.png_compression));
+    if (prefers_async(req))
+        return submit_job(req, res, {request->mesh, std::move(*tree), request->settings, format, encode});
+    auto image = render_and_encode(svc_.compute, **tree, request->settings, format, encode);
     if (!image) return reply_problem(req, res, make_problem(ProblemKind::kInternal, image.error()));
     svc_.metrics.renders.fetch_add(1);
     request_context().rays = image->stats.rays;
     res.set_header("X-Render-Ms", std::to_string(image->stats.seconds * 1e3));
+    res.set_header("X-Encode-Ms", std::to_string(image->encode_ms));
     reply_bytes(res, std::move(image->bytes), proto::image_media_type(format));
 }
 

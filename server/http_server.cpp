@@ -263,7 +263,9 @@ struct HttpServer::Impl {
         }
         log_event(LogLevel::kError, "unhandled exception",
                   {{"request_id", request_context().request_id}, {"route", request_context().route}, {"error", what}});
+        // Whatever the handler had set goes (a half-built reply), except the request id.
         res.headers.clear();
+        res.set_header("X-Request-Id", request_context().request_id);
         reply_problem(req, res,
                       make_problem(ProblemKind::kInternal,
                                    "internal error; see the server log for request " + request_context().request_id));
@@ -356,6 +358,14 @@ std::vector<RouteInfo> HttpServer::routes() const {
     std::vector<RouteInfo> out;
     for (const Impl::Known& k : impl_->known) out.push_back({k.method, k.name});
     return out;
+}
+
+void HttpServer::add_route_for_tests(const std::string& path, std::function<void()> action) {
+    impl_->http.Get(path, [path, action = std::move(action)](const httplib::Request&, httplib::Response& res) {
+        request_context().route = path;
+        action();
+        res.status = 204;
+    });
 }
 
 std::string httplib_version() { return CPPHTTPLIB_VERSION; }

@@ -2,6 +2,7 @@
 /// The HTTP front end: binds, serves the API v1 routes on cpp-httplib, stops gracefully.
 /// httplib itself stays inside server/http_*.cpp (this header does not include it).
 
+#include <functional>
 #include <memory>
 #include <string>
 #include <vector>
@@ -35,6 +36,12 @@ public:
     /// Every route the server answers, in registration order (tests compare it with
     /// proto/openapi.yaml).
     [[nodiscard]] std::vector<RouteInfo> routes() const;
+
+    /// For in-process tests only (kdrt-server never calls it, so no such route exists in the
+    /// service): answers GET `path` by calling `action` inside the same per-request context and
+    /// exception handling as the API routes, so a test can make a handler throw. Call before
+    /// serve(); the route is not listed by routes().
+    void add_route_for_tests(const std::string& path, std::function<void()> action);
 
 private:
     struct Impl;

@@ -160,7 +160,8 @@ void JobQueue::run(Job& job) {
     std::shared_ptr<const std::vector<std::byte>> image;
     std::optional<double> render_ms;
     try {
-        auto rendered = render_and_encode(compute_, *job.input.tree, job.input.settings, job.input.format, control);
+        auto rendered = render_and_encode(compute_, *job.input.tree, job.input.settings, job.input.format,
+                                          job.input.encode, control);
         if (rendered) {
             render_ms = rendered->stats.seconds * 1e3;
             metrics_.renders.fetch_add(1);

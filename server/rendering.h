@@ -25,6 +25,7 @@ struct RenderedImage {
 [[nodiscard]] proto::Result<RenderedImage, std::string> render_and_encode(Compute& compute, const KdTree& tree,
                                                                           const RenderSettings& settings,
                                                                           proto::ImageFormat format,
+                                                                          const proto::ImageEncodeOptions& encode,
                                                                           const RenderControl& control = {});
 
 }  // namespace kdrt::server

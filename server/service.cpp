@@ -9,8 +9,7 @@ Service::Service(ServerConfig cfg)
       cache(store, compute, metrics, config.memory_budget),
       gate(config.max_inflight),
       jobs(compute, metrics, config.max_jobs, config.job_ttl_s),
-      byte_pool(config.buffer_pool_bytes / 3 * 2),
-      hit_pool(config.buffer_pool_bytes / 3) {
+      batch_buffers(config.buffer_pool_bytes) {
     metrics.add_collector([this](std::vector<proto::MetricFamily>& out) {
         using proto::MetricType;
         const auto gauge = [&](const char* name, const char* help, proto::MetricLabels labels, double value) {
@@ -36,7 +35,7 @@ Service::Service(ServerConfig cfg)
         gauge("kdrt_inflight_requests", "Uploads, traces and renders in flight.", {},
               static_cast<double>(gate.in_flight()));
         gauge("kdrt_buffer_pool_bytes", "Idle batch buffers kept for reuse (at most buffer_pool_bytes).", {},
-              static_cast<double>(byte_pool.idle_bytes() + hit_pool.idle_bytes()));
+              static_cast<double>(batch_buffers.idle_bytes()));
         gauge("kdrt_engine_threads", "Threads of the tracing/build arena.", {}, static_cast<double>(compute.threads()));
         gauge("kdrt_ready", "1 when /readyz answers 200.", {}, ready && !shutting_down ? 1.0 : 0.0);
     });

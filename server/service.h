@@ -71,8 +71,7 @@ struct Service {
     MeshCache cache;
     AdmissionGate gate;
     JobQueue jobs;
-    VectorPool<std::byte> byte_pool;         ///< request bodies and encoded answers of ray batches
-    VectorPool<Hit> hit_pool;                ///< hit arrays of ray batches
+    BufferPool batch_buffers;                ///< rays and encoded answers of KDRR batches
     std::atomic<bool> ready{false};          ///< index loaded and preloads done
     std::atomic<bool> shutting_down{false};  ///< SIGTERM/SIGINT received
 };

@@ -5,6 +5,7 @@
 
 #include <algorithm>
 #include <array>
+#include <bit>
 #include <cctype>
 #include <cmath>
 #include <cstring>
@@ -42,6 +43,24 @@ std::array<float, 256> make_levels() {
 
 const std::array<double, 255>& thresholds() {
     static const std::array<double, 255> table = make_thresholds();
+    return table;
+}
+
+/// linear_to_srgb8's buckets: positive floats below 1 by their bits >> kBucketShift.
+constexpr int kBucketShift = 16;
+constexpr size_t kBuckets = (0x3F800000u >> kBucketShift) + 1;
+
+/// The level of the smallest float in each bucket (thresholds <= it, counted exactly).
+const std::vector<uint8_t>& bucket_levels() {
+    static const std::vector<uint8_t> table = [] {
+        std::vector<uint8_t> out(kBuckets);
+        const auto& t = thresholds();
+        for (size_t b = 0; b < kBuckets; ++b) {
+            const double lowest = static_cast<double>(std::bit_cast<float>(static_cast<uint32_t>(b << kBucketShift)));
+            out[b] = static_cast<uint8_t>(std::upper_bound(t.begin(), t.end(), lowest) - t.begin());
+        }
+        return out;
+    }();
     return table;
 }
 
@@ -228,8 +247,16 @@ std::string_view image_media_type(ImageFormat format) noexcept {
 
 uint8_t linear_to_srgb8(float value) noexcept {
     if (!(value > 0.0f)) return 0;  // NaN too
+    if (value >= 1.0f) return 255;  // +inf too; the last threshold is below 1
+    // The level is the number of thresholds <= value. A table indexed by the float's top bits
+    // gives the level at the start of the value's bucket (buckets are 1/128 of a binade, finer
+    // than the levels' spacing), and the thresholds finish the count: one or two comparisons
+    // instead of a binary search over all 255 (an image encode calls this for every channel).
     const auto& t = thresholds();
-    return static_cast<uint8_t>(std::upper_bound(t.begin(), t.end(), static_cast<double>(value)) - t.begin());
+    const auto& start = bucket_levels();
+    unsigned level = start[std::bit_cast<uint32_t>(value) >> kBucketShift];
+    while (level < 255 && t[level] <= static_cast<double>(value)) ++level;
+    return static_cast<uint8_t>(level);
 }
 
 float srgb8_to_linear(uint8_t level) noexcept { return levels()[level]; }
@@ -242,6 +269,9 @@ Result<std::vector<std::byte>, std::string> encode_image(const Image& image, Ima
     }
     if (format == ImageFormat::kJpeg && (options.jpeg_quality < 1 || options.jpeg_quality > 100)) {
         return Err{"jpeg_quality " + std::to_string(options.jpeg_quality) + " must be in 1 .. 100"};
+    }
+    if (format == ImageFormat::kPng && (options.png_compression < 0 || options.png_compression > 9)) {
+        return Err{"png_compression " + std::to_string(options.png_compression) + " must be in 0 .. 9"};
     }
     if (format == ImageFormat::kExr && options.exr_pixel_type != ExrPixelType::kHalf &&
         options.exr_pixel_type != ExrPixelType::kFloat) {
@@ -272,6 +302,14 @@ Result<std::vector<std::byte>, std::string> encode_image(const Image& image, Ima
         } else {
             // The bytes already hold straight alpha (to_srgb8): OIIO must not convert them again.
             spec.attribute("oiio:UnassociatedAlpha", 1);
+            // libpng's row filters (png_set_filter): None 0x08, Sub 0x10; 0 = libpng's adaptive
+            // choice among all five, which costs more than zlib's fast levels themselves.
+            constexpr int kFilterNone = 0x08, kFilterSub = 0x10;
+            spec.attribute("png:compressionLevel", options.png_compression);
+            if (options.png_compression == 0)
+                spec.attribute("png:filter", kFilterNone);
+            else if (options.png_compression <= 3)
+                spec.attribute("png:filter", kFilterSub);
         }
         srgb = to_srgb8(image, channels);
         data_type = OIIO::TypeDesc::UINT8;

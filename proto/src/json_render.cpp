@@ -128,7 +128,7 @@ Result<RenderRequest, JsonError> decode_render_request(std::string_view text, co
     }
     if (!doc.is_object()) return schema_error("expected a JSON object, got " + std::string(doc.type_name()));
     RenderRequest req;
-    ObjectReader r(doc, "", {"mesh", "camera", "width", "height", "spp", "seed", "shading", "format", "tile"});
+    ObjectReader r(doc, "", {"mesh", "camera", "width", "height", "spp", "seed", "shading", "format", "compression", "tile"});
     if (!r.find("mesh")) r.fail("missing member \"mesh\"");
     r.text("mesh", req.mesh);
     r.integer("width", req.settings.width, 1, limits.max_width, "max_image_width");
@@ -144,6 +144,12 @@ Result<RenderRequest, JsonError> decode_render_request(std::string_view text, co
     r.text("format", req.format);
     if (req.format != "png" && req.format != "jpg" && req.format != "jpeg" && req.format != "exr")
         r.fail("unknown format " + in_quotes(req.format) + " (expected png, jpg or exr)");
+    if (r.find("compression")) {
+        int level = 0;
+        r.integer("compression", level, 0, 9);
+        if (req.format != "png") r.fail("\"compression\" applies to png only, not " + in_quotes(req.format));
+        req.compression = level;
+    }
     if (!r.error().empty()) return schema_error(r.error());
 
     if (const json* camera = r.find("camera")) {
@@ -206,6 +212,7 @@ std::string encode_render_request(const RenderRequest& request) {
     w.key("seed").number(s.seed);
     w.key("shading").string(shading_name(s.shading));
     w.key("format").string(request.format);
+    if (request.compression) w.key("compression").number(*request.compression);
     if (s.region) {
         w.key("tile").begin_object();
         w.key("x").number(s.region->x).key("y").number(s.region->y);

@@ -1,5 +1,6 @@
 #include "kdrt/proto/ray_batch.h"
 
+#include <algorithm>
 #include <array>
 #include <cmath>
 #include <cstring>
@@ -62,15 +63,22 @@ struct CheckedHeader {
     uint32_t count = 0;
 };
 
-/// Validates the header and the exact body length; nothing is allocated.
-Result<CheckedHeader, DecodeError> check_header(std::span<const std::byte> body,
-                                                const BatchKind& kind, const DecodeLimits& limits) {
-    if (body.size() < kBatchHeaderBytes) {
-        return Err{make(DecodeErrorCode::kTooShort,
-                        "body has " + std::to_string(body.size()) + " bytes, less than the " +
-                            std::to_string(kBatchHeaderBytes) + "-byte header")};
-    }
-    const std::byte* p = body.data();
+DecodeError too_short(uint64_t size) {
+    return make(DecodeErrorCode::kTooShort, "body has " + std::to_string(size) +
+                                                " bytes, less than the " +
+                                                std::to_string(kBatchHeaderBytes) + "-byte header");
+}
+
+DecodeError length_mismatch(const BatchKind& kind, uint32_t count, uint64_t size) {
+    const uint64_t expected = kBatchHeaderBytes + uint64_t{count} * kind.record_bytes;
+    return make(DecodeErrorCode::kLengthMismatch,
+                "header says " + count_noun(count, kind) + " (" + std::to_string(expected) +
+                    " bytes) but body has " + std::to_string(size) + " bytes");
+}
+
+/// Validates the 16 header bytes at `p` (everything but the body length).
+Result<CheckedHeader, DecodeError> check_header_fields(const std::byte* p, const BatchKind& kind,
+                                                       const DecodeLimits& limits) {
     if (std::memcmp(p, kind.magic.data(), 4) != 0) {
         return Err{make(
             DecodeErrorCode::kBadMagic,
@@ -102,13 +110,18 @@ Result<CheckedHeader, DecodeError> check_header(std::span<const std::byte> body,
                                                            ", limit is " +
                                                            std::to_string(limits.max_rays))};
     }
-    const uint64_t expected = kBatchHeaderBytes + uint64_t{count} * kind.record_bytes;
-    if (body.size() != expected) {
-        return Err{make(DecodeErrorCode::kLengthMismatch,
-                        "header says " + count_noun(count, kind) + " (" + std::to_string(expected) +
-                            " bytes) but body has " + std::to_string(body.size()) + " bytes")};
-    }
     return CheckedHeader{flags, count};
+}
+
+/// Validates the header and the exact body length; nothing is allocated.
+Result<CheckedHeader, DecodeError> check_header(std::span<const std::byte> body,
+                                                const BatchKind& kind, const DecodeLimits& limits) {
+    if (body.size() < kBatchHeaderBytes) return Err{too_short(body.size())};
+    auto header = check_header_fields(body.data(), kind, limits);
+    if (!header) return header;
+    if (body.size() != kBatchHeaderBytes + uint64_t{header->count} * kind.record_bytes)
+        return Err{length_mismatch(kind, header->count, body.size())};
+    return header;
 }
 
 /// A vector of 16 + count * record_bytes bytes with the header filled in.
@@ -142,6 +155,27 @@ int first_bad_ray_field(const Ray& ray) noexcept {
 std::string describe_non_finite(float v) {
     if (std::isnan(v)) return "NaN";
     return v > 0 ? "+inf" : "-inf";
+}
+
+/// The same test as first_bad_ray_field(ray) >= 0, branch-free on the bit patterns (the stream
+/// decoder runs it on every ray as it arrives).
+bool ray_refused(const Ray& ray) noexcept {
+    uint32_t b[8];
+    std::memcpy(b, &ray, sizeof b);
+    constexpr uint32_t kExp = 0x7f800000u;
+    uint32_t bad = 0;
+    for (int i : {0, 1, 2, 4, 5, 6}) bad |= static_cast<uint32_t>((b[i] & kExp) == kExp);
+    for (int i : {3, 7}) bad |= static_cast<uint32_t>((b[i] & 0x7fffffffu) > kExp);
+    return bad != 0;
+}
+
+DecodeError non_finite_error(uint64_t index, const Ray& r) {
+    const int field = first_bad_ray_field(r);
+    const float f[8] = {r.ox, r.oy, r.oz, r.tmin, r.dx, r.dy, r.dz, r.tmax};
+    return make(DecodeErrorCode::kNonFiniteRay,
+                "ray " + std::to_string(index) + ": field " +
+                    kRayFieldNames[static_cast<size_t>(field)] + " is " +
+                    describe_non_finite(f[field]));
 }
 
 }  // namespace
@@ -195,18 +229,102 @@ Result<RayBatch, DecodeError> decode_rays(std::span<const std::byte> body,
         }
     }
     if (limits.reject_non_finite) {
-        for (size_t i = 0; i < batch.rays.size(); ++i) {
-            const int field = first_bad_ray_field(batch.rays[i]);
-            if (field < 0) continue;
-            const Ray& r = batch.rays[i];
-            const float f[8] = {r.ox, r.oy, r.oz, r.tmin, r.dx, r.dy, r.dz, r.tmax};
-            return Err{make(DecodeErrorCode::kNonFiniteRay,
-                            "ray " + std::to_string(i) + ": field " +
-                                kRayFieldNames[static_cast<size_t>(field)] + " is " +
-                                describe_non_finite(f[field]))};
-        }
+        for (size_t i = 0; i < batch.rays.size(); ++i)
+            if (ray_refused(batch.rays[i])) return Err{non_finite_error(i, batch.rays[i])};
     }
     return batch;
+}
+
+RayStreamDecoder::RayStreamDecoder(DecodeLimits limits, Storage storage,
+                                   std::optional<uint64_t> declared_bytes)
+    : limits_(limits), storage_(std::move(storage)), declared_(declared_bytes) {}
+
+bool RayStreamDecoder::fail(DecodeError error) {
+    error_ = std::move(error);
+    return false;
+}
+
+void RayStreamDecoder::check_new_rays(uint64_t end) {
+    Ray* rays = reinterpret_cast<Ray*>(records_);
+    if constexpr (!kHostLittleEndian) {
+        for (uint64_t i = ready_; i < end; ++i) {
+            Ray& r = rays[i];
+            std::byte raw[kRayRecordBytes];
+            std::memcpy(raw, &r, sizeof raw);
+            float* f[8] = {&r.ox, &r.oy, &r.oz, &r.tmin, &r.dx, &r.dy, &r.dz, &r.tmax};
+            for (int k = 0; k < 8; ++k) *f[k] = detail::load_le_f32(raw + 4 * k);
+        }
+    }
+    if (limits_.reject_non_finite && !first_refused_) {
+        for (uint64_t i = ready_; i < end; ++i) {
+            if (!ray_refused(rays[i])) continue;
+            first_refused_ = i;
+            // With the size known to match, nothing that follows can change the verdict.
+            if (declared_) fail(non_finite_error(i, rays[i]));
+            break;
+        }
+    }
+    ready_ = end;
+}
+
+bool RayStreamDecoder::feed(std::span<const std::byte> piece) {
+    uint64_t pos = seen_;
+    seen_ += piece.size();
+    if (error_) return false;
+    const std::byte* p = piece.data();
+    size_t n = piece.size();
+    if (!header_done_) {
+        const size_t take = std::min<size_t>(n, kBatchHeaderBytes - pos);
+        if (take > 0) std::memcpy(header_ + pos, p, take);
+        pos += take;
+        p += take;
+        n -= take;
+        if (pos < kBatchHeaderBytes) return true;
+        auto header = check_header_fields(header_, kRays, limits_);
+        if (!header) return fail(std::move(header).error());
+        flags_ = header->flags;
+        count_ = header->count;
+        expected_ = kBatchHeaderBytes + uint64_t{count_} * kRayRecordBytes;
+        header_done_ = true;
+        if (declared_ && *declared_ != expected_) return fail(length_mismatch(kRays, count_, *declared_));
+        const std::span<Ray> storage = storage_(count_, occlusion());
+        if (storage.size() != count_)
+            throw std::logic_error("RayStreamDecoder: storage for " + std::to_string(storage.size()) +
+                                   " rays, the header says " + std::to_string(count_));
+        records_ = reinterpret_cast<std::byte*>(storage.data());
+    }
+    if (n > 0 && pos < expected_) {
+        const size_t take = static_cast<size_t>(std::min<uint64_t>(n, expected_ - pos));
+        std::memcpy(records_ + (pos - kBatchHeaderBytes), p, take);
+        pos += take;
+        check_new_rays((pos - kBatchHeaderBytes) / kRayRecordBytes);
+    }
+    return !error_;
+}
+
+std::span<std::byte> RayStreamDecoder::next_window() const noexcept {
+    if (!header_done_ || error_ || seen_ >= expected_) return {};
+    return {records_ + (seen_ - kBatchHeaderBytes), static_cast<size_t>(expected_ - seen_)};
+}
+
+bool RayStreamDecoder::commit(size_t n) {
+    if (n > next_window().size())
+        throw std::logic_error("RayStreamDecoder::commit: " + std::to_string(n) +
+                               " bytes, more than the window");
+    seen_ += n;
+    check_new_rays((seen_ - kBatchHeaderBytes) / kRayRecordBytes);
+    return !error_;
+}
+
+Result<void, DecodeError> RayStreamDecoder::finish() {
+    if (error_) return Err{*error_};
+    if (!header_done_) return Err{too_short(seen_)};
+    if (seen_ != expected_) return Err{length_mismatch(kRays, count_, seen_)};
+    if (first_refused_) {
+        const Ray* rays = reinterpret_cast<const Ray*>(records_);
+        return Err{non_finite_error(*first_refused_, rays[*first_refused_])};
+    }
+    return {};
 }
 
 std::vector<std::byte> encode_rays(std::span<const Ray> rays, bool occlusion) {
@@ -286,6 +404,31 @@ Result<std::vector<uint8_t>, DecodeError> decode_occlusion(std::span<const std::
         occluded[i] = v;
     }
     return occluded;
+}
+
+size_t write_answer_in_place(std::byte* out, AnswerKind kind, uint32_t count) noexcept {
+    const BatchKind& batch = kind == AnswerKind::kHits ? kHits : kOcclusion;
+    std::memcpy(out, batch.magic.data(), 4);
+    detail::store_le16(out + 4, kBatchVersion);
+    detail::store_le16(out + 6, 0);
+    detail::store_le32(out + 8, count);
+    detail::store_le32(out + 12, 0);
+    std::byte* records = out + kBatchHeaderBytes;
+    if (kind == AnswerKind::kOcclusion) {
+        for (uint32_t i = 0; i < count; ++i)
+            records[i] = std::byte{records[i] != std::byte{0} ? uint8_t{1} : uint8_t{0}};
+    } else if constexpr (!kHostLittleEndian) {
+        for (uint32_t i = 0; i < count; ++i) {
+            Hit h;
+            std::byte* dst = records + size_t{i} * kHitRecordBytes;
+            std::memcpy(&h, dst, sizeof h);
+            detail::store_le_f32(dst, h.t);
+            detail::store_le32(dst + 4, h.prim);
+            detail::store_le_f32(dst + 8, h.u);
+            detail::store_le_f32(dst + 12, h.v);
+        }
+    }
+    return kBatchHeaderBytes + size_t{count} * batch.record_bytes;
 }
 
 }  // namespace kdrt::proto

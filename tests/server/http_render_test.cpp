@@ -2,6 +2,8 @@
 
 #include <gtest/gtest.h>
 
+#include <map>
+#include <optional>
 #include <thread>
 
 #include "http_test_util.h"
@@ -33,10 +35,14 @@ protected:
         if (async) headers.emplace("Prefer", "respond-async");
         return cli.Post("/v1/render", headers, json, "application/json");
     }
+    /// The server's png_compression default (config/kdrt.json).
+    static constexpr int kDefaultPngCompression = 1;
     /// The image the server should send for `request`.
     static std::string expected_image(const proto::RenderRequest& request) {
         const Image image = render(*tree_, request.settings);
-        auto bytes = proto::encode_image(image, *proto::image_format_from_name(request.format));
+        proto::ImageEncodeOptions options;
+        options.png_compression = request.compression.value_or(kDefaultPngCompression);
+        auto bytes = proto::encode_image(image, *proto::image_format_from_name(request.format), options);
         EXPECT_TRUE(bytes) << bytes.error();
         return bytes ? bytes_to_string(*bytes) : std::string();
     }
@@ -127,6 +133,52 @@ TEST_F(HttpRender, DefaultsExrTilesAndExplicitCameras) {
     EXPECT_EQ(res->get_header_value("Content-Type"), "image/jpeg");
 }
 
+TEST_F(HttpRender, PngCompressionLevelsDecodeToTheSamePixels) {
+    auto cli = server_->client();
+    const std::string base = "{\"mesh\":\"" + id_ + "\",\"width\":160,\"height\":120,\"shading\":\"diffuse\"";
+    std::optional<Image> first;
+    std::map<std::string, size_t> sizes;
+    for (const std::string level : {"", "0", "1", "3", "6", "9"}) {
+        SCOPED_TRACE("compression " + (level.empty() ? std::string("default") : level));
+        const std::string json = base + (level.empty() ? "" : ",\"compression\":" + level) + "}";
+        auto res = post_render(*cli, json);
+        ASSERT_TRUE(res);
+        ASSERT_EQ(res->status, 200) << res->body;
+        EXPECT_EQ(res->get_header_value("Content-Type"), "image/png");
+        EXPECT_FALSE(res->get_header_value("X-Encode-Ms").empty());
+        EXPECT_EQ(res->body, expected_image(request(json)));
+        sizes[level] = res->body.size();
+        auto decoded = proto::decode_image(string_to_bytes(res->body));
+        ASSERT_TRUE(decoded) << decoded.error();
+        if (!first) {
+            first = std::move(*decoded);
+            continue;
+        }
+        EXPECT_EQ(decoded->width, first->width);
+        EXPECT_EQ(decoded->height, first->height);
+        EXPECT_EQ(decoded->channels, first->channels);
+        EXPECT_TRUE(decoded->pixels == first->pixels) << "the pixels differ from the default level's";
+    }
+    EXPECT_EQ(sizes[""], sizes["1"]);  // the server's default
+    EXPECT_GT(sizes["0"], sizes["1"]);
+    EXPECT_GE(sizes["1"], sizes["9"]);
+    // An async job encodes at the requested level too.
+    auto queued = post_render(*cli, base + ",\"compression\":0}", true);
+    ASSERT_TRUE(queued);
+    ASSERT_EQ(queued->status, 202) << queued->body;
+    const std::string location = queued->get_header_value("Location");
+    for (int i = 0; i < 3000; ++i) {
+        auto result = cli->Get((location + "/result").c_str());
+        ASSERT_TRUE(result);
+        if (result->status == 200) {
+            EXPECT_EQ(result->body.size(), sizes["0"]);
+            return;
+        }
+        std::this_thread::sleep_for(std::chrono::milliseconds(10));
+    }
+    FAIL() << "the job did not finish";
+}
+
 TEST_F(HttpRender, BadRequestsNameTheProblem) {
     auto cli = server_->client();
     struct Case {
@@ -148,6 +200,9 @@ TEST_F(HttpRender, BadRequestsNameTheProblem) {
          "\"tile.w\" is 20, must be in 1 .. 10 (the tile must lie inside the 100 x 512 frame)"},
         {"{\"mesh\":\"" + std::string(64, 'e') + "\"}", 404, "no mesh with id eeee"},
         {"{\"mesh\":", 400, "invalid JSON at byte"},
+        {"{" + mesh + ",\"compression\":10}", 400, "\"compression\" is 10, must be in 0 .. 9"},
+        {"{" + mesh + ",\"compression\":-1}", 400, "\"compression\" must be a non-negative integer"},
+        {"{" + mesh + ",\"format\":\"exr\",\"compression\":3}", 400, "\"compression\" applies to png only, not \"exr\""},
     };
     for (const Case& c : cases) {
         SCOPED_TRACE(c.json);

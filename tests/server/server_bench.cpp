@@ -2,23 +2,35 @@
 // Starts the real kdrt-server on an ephemeral loopback port and measures, in one run:
 //   - upload-to-ready of the bunny and of a 1M-triangle mesh (POST until the 201 arrives),
 //   - 1M-ray primary and diffuse batches over loopback HTTP (KDRR -> KDRH) against the same rays
-//     traced in process with the same thread count, as Mrays/s and their ratio,
+//     traced in process with the same thread count, alternating, as Mrays/s (median of --reps)
+//     and their ratio,
 //   - 1-ray and 1k-ray intersect latency over one keep-alive connection (p50, p99),
-//   - 1024^2 eyelight render latency over HTTP.
-// Prints one JSON object per measurement; "server_side_ms" is the server's own time for the
-// request (its access log: headers read to response written), the rest of "http_ms" is the client. Not a ctest test (a
+//   - 1024^2 eyelight render latency over HTTP (p50), at the default and at explicit PNG
+//     compression levels, with the server's render and encode times.
+// Intersect requests go through a minimal HTTP/1.1 keep-alive client on a plain socket (large
+// reads straight into a reused buffer), so the numbers are the server's, not a client
+// library's; "httplib_client_mrays" is the same batch through cpp-httplib's client for
+// comparison. Prints one JSON object per measurement; "server_side_ms" is the server's own time
+// for the request (its access log: headers read to response written). Not a ctest test (a
 // benchmark asserts nothing).
 //
 //   kdrt-server-bench [--threads N] [--reps R] [--latency-requests K] [--server PATH]
+//                     [--only upload,throughput,latency,render]
 
 #include <fcntl.h>
 #include <httplib.h>
+#include <netinet/in.h>
+#include <netinet/tcp.h>
+#include <poll.h>
 #include <signal.h>
+#include <sys/socket.h>
 #include <sys/wait.h>
 #include <tbb/task_arena.h>
 #include <unistd.h>
 
 #include <algorithm>
+#include <cctype>
+#include <cerrno>
 #include <chrono>
 #include <cmath>
 #include <cstdio>
@@ -26,6 +38,7 @@
 #include <filesystem>
 #include <fstream>
 #include <string>
+#include <string_view>
 #include <thread>
 #include <vector>
 
@@ -45,6 +58,12 @@ double seconds_since(Clock::time_point start) { return std::chrono::duration<dou
 
 std::string as_string(const std::vector<std::byte>& bytes) {
     return {reinterpret_cast<const char*>(bytes.data()), bytes.size()};
+}
+
+double median(std::vector<double> values) {
+    std::sort(values.begin(), values.end());
+    const size_t n = values.size();
+    return n % 2 ? values[n / 2] : 0.5 * (values[n / 2 - 1] + values[n / 2]);
 }
 
 double percentile(std::vector<double> values, double p) {
@@ -76,6 +95,12 @@ kdrt::Mesh torus(uint32_t rings, uint32_t sides) {
     return m;
 }
 
+/// The server's pid while it runs, so an early exit (a failed request) does not leave it behind.
+pid_t g_server_pid = -1;
+void stop_server_at_exit() {
+    if (g_server_pid > 0) ::kill(g_server_pid, SIGTERM);
+}
+
 struct Server {
     pid_t pid = -1;
     int port = 0;
@@ -97,6 +122,8 @@ struct Server {
                     static_cast<char*>(nullptr));
             ::_exit(127);
         }
+        g_server_pid = pid;
+        std::atexit(stop_server_at_exit);
         for (int i = 0; i < 6000 && port == 0; ++i) {
             std::ifstream in(port_file);
             if (!(in >> port)) std::this_thread::sleep_for(std::chrono::milliseconds(10));
@@ -110,24 +137,29 @@ struct Server {
         std::fprintf(stderr, "kdrt-server-bench: the server did not start\n");
         std::exit(1);
     }
-    /// The server's own time (from its access log) of the fastest request with `rays` rays.
-    double fastest_logged_ms(size_t rays) const {
+    /// Size of the server's log so far (to read only what follows with logged_ms).
+    uint64_t log_size() const { return fs::file_size(dir / "server.log"); }
+    /// The server's own times (from its access log, after byte `from`) of intersect requests
+    /// with `rays` rays.
+    std::vector<double> logged_ms(uint64_t from, size_t rays) const {
         std::ifstream in(dir / "server.log");
+        in.seekg(static_cast<std::streamoff>(from));
         std::string line;
-        double best = 1e30;
+        std::vector<double> out;
         const std::string key = "rays=" + std::to_string(rays) + " ms=";
         while (std::getline(in, line)) {
             const size_t at = line.find(key);
             if (at != std::string::npos && line.find("/intersect") != std::string::npos)
-                best = std::min(best, std::stod(line.substr(at + key.size())));
+                out.push_back(std::stod(line.substr(at + key.size())));
         }
-        return best;
+        return out;
     }
 
     ~Server() {
         ::kill(pid, SIGTERM);
         int status = 0;
         ::waitpid(pid, &status, 0);
+        g_server_pid = -1;
         fs::remove_all(dir);
     }
 };
@@ -154,6 +186,102 @@ std::pair<double, std::string> upload(httplib::Client& cli, const kdrt::Mesh& me
     return {s, kdrt::proto::mesh_id(mesh)};
 }
 
+/// A minimal HTTP/1.1 client on one keep-alive loopback connection: sends a POST with
+/// Content-Length and reads a Content-Length response straight into a reused buffer with large
+/// reads. Enough for the server's own answers (no chunked responses, no redirects).
+class RawClient {
+public:
+    explicit RawClient(int port) : port_(port) { connect(); }
+    RawClient(const RawClient&) = delete;
+    RawClient& operator=(const RawClient&) = delete;
+    ~RawClient() { ::close(fd_); }
+
+    void connect() {
+        if (fd_ >= 0) ::close(fd_);
+        const int port = port_;
+        fd_ = ::socket(AF_INET, SOCK_STREAM | SOCK_CLOEXEC, 0);
+        sockaddr_in addr{};
+        addr.sin_family = AF_INET;
+        addr.sin_port = htons(static_cast<uint16_t>(port));
+        addr.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+        const int one = 1;
+        ::setsockopt(fd_, IPPROTO_TCP, TCP_NODELAY, &one, sizeof one);
+        if (fd_ < 0 || ::connect(fd_, reinterpret_cast<sockaddr*>(&addr), sizeof addr) != 0) {
+            std::perror("kdrt-server-bench: connect");
+            std::exit(1);
+        }
+    }
+
+    /// POSTs `body`; returns the status and leaves the response body in `answer`.
+    int post(const std::string& path, const char* type, std::string_view body, std::vector<char>& answer) {
+        // An idle connection the server closed (keep_alive_timeout_s) reads as EOF: reconnect.
+        pollfd idle{fd_, POLLIN | POLLRDHUP, 0};
+        if (::poll(&idle, 1, 0) > 0) connect();
+        const std::string head = "POST " + path + " HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: " + type +
+                                 "\r\nContent-Length: " + std::to_string(body.size()) + "\r\n\r\n";
+        send_all(head.data(), head.size(), body.empty() ? 0 : MSG_MORE);
+        send_all(body.data(), body.size(), 0);
+        // Headers: read until the blank line; whatever follows it is the start of the body.
+        std::string buffered;
+        size_t end = std::string::npos;
+        while ((end = buffered.find("\r\n\r\n")) == std::string::npos) {
+            char chunk[16384];
+            const ssize_t n = ::recv(fd_, chunk, sizeof chunk, 0);
+            if (n <= 0) fail("connection closed while reading the response headers");
+            buffered.append(chunk, static_cast<size_t>(n));
+        }
+        const int status = std::atoi(buffered.c_str() + buffered.find(' ') + 1);
+        std::string lower = buffered.substr(0, end);
+        std::transform(lower.begin(), lower.end(), lower.begin(),
+                       [](unsigned char c) { return static_cast<char>(std::tolower(c)); });
+        close_after_ = lower.find("\r\nconnection: close") != std::string::npos;
+        const size_t cl = lower.find("\r\ncontent-length:");
+        if (cl == std::string::npos) fail("response without Content-Length");
+        const size_t length = std::stoull(lower.substr(cl + 17));
+        answer.resize(length);
+        size_t got = std::min(length, buffered.size() - (end + 4));
+        std::memcpy(answer.data(), buffered.data() + end + 4, got);
+        while (got < length) {
+            const ssize_t n = ::recv(fd_, answer.data() + got, length - got, 0);
+            if (n <= 0) fail("connection closed while reading the response body");
+            got += static_cast<size_t>(n);
+        }
+        if (close_after_) connect();  // keep_alive_max_requests reached: a new connection
+        return status;
+    }
+
+private:
+    [[noreturn]] static void fail(const char* why) {
+        std::fprintf(stderr, "kdrt-server-bench: %s\n", why);
+        std::exit(1);
+    }
+    void send_all(const char* data, size_t size, int flags) {
+        while (size > 0) {
+            const ssize_t n = ::send(fd_, data, size, flags | MSG_NOSIGNAL);
+            if (n < 0 && errno == EINTR) continue;
+            if (n <= 0) fail("send failed");
+            data += n;
+            size -= static_cast<size_t>(n);
+        }
+    }
+    int port_;
+    int fd_ = -1;
+    bool close_after_ = false;
+};
+
+/// One intersect POST through the raw client; returns seconds.
+double trace_raw(RawClient& cli, const std::string& path, std::string_view body, std::vector<char>& answer) {
+    const auto start = Clock::now();
+    const int status = cli.post(path, "application/x-kdrt-rays", body, answer);
+    const double s = seconds_since(start);
+    if (status != 200) {
+        std::fprintf(stderr, "intersect failed: %d %.*s\n", status, static_cast<int>(std::min<size_t>(answer.size(), 300)),
+                     answer.data());
+        std::exit(1);
+    }
+    return s;
+}
+
 /// One POST of a KDRR body, the KDRH answer received into a pre-sized buffer.
 double trace_remote(httplib::Client& cli, const std::string& path, const std::string& body, size_t answer_bytes,
                     std::string& answer) {
@@ -170,26 +298,46 @@ double trace_remote(httplib::Client& cli, const std::string& path, const std::st
     return s;
 }
 
+/// `count` rays of `kind` for the bunny's tree: the res x res set of the kind, res grown until
+/// it has at least `count` rays (diffuse rays exist only where primary rays hit), then cut.
+std::vector<kdrt::Ray> ray_set(tbb::task_arena& arena, const kdrt::KdTree& tree, kdrt::RayKind kind, size_t count) {
+    for (uint32_t res = 1024;; res = res * 5 / 4) {
+        std::vector<kdrt::Ray> rays = arena.execute([&] { return kdrt::generate_rays(tree, {.kind = kind, .res = res, .seed = 1}); });
+        if (rays.size() >= count) {
+            rays.resize(count);
+            return rays;
+        }
+    }
+}
+
+bool wanted(const std::string& only, const char* part) {
+    if (only.empty()) return true;
+    return ("," + only + ",").find("," + std::string(part) + ",") != std::string::npos;
+}
+
 }  // namespace
 
 int main(int argc, char** argv) {
     unsigned threads = std::max(1u, std::thread::hardware_concurrency());
-    int reps = 5;
+    int reps = 7;
     int latency_requests = 2000;
-    std::string binary = KDRT_SERVER_BINARY;
+    std::string binary = KDRT_SERVER_BINARY, only;
     for (int i = 1; i + 1 < argc; i += 2) {
         const std::string flag = argv[i];
         if (flag == "--threads")
             threads = static_cast<unsigned>(std::stoul(argv[i + 1]));
         else if (flag == "--reps")
-            reps = std::stoi(argv[i + 1]);
+            reps = std::max(1, std::stoi(argv[i + 1]));
         else if (flag == "--latency-requests")
-            latency_requests = std::stoi(argv[i + 1]);
+            latency_requests = std::max(1, std::stoi(argv[i + 1]));
         else if (flag == "--server")
             binary = argv[i + 1];
+        else if (flag == "--only")
+            only = argv[i + 1];
         else {
             std::fprintf(stderr,
-                         "usage: kdrt-server-bench [--threads N] [--reps R] [--latency-requests K] [--server PATH]\n");
+                         "usage: kdrt-server-bench [--threads N] [--reps R] [--latency-requests K] [--server PATH]\n"
+                         "                         [--only upload,throughput,latency,render]\n");
             return 2;
         }
     }
@@ -203,82 +351,110 @@ int main(int argc, char** argv) {
 
     // Upload-to-ready.
     const auto [bunny_s, bunny_id] = upload(*cli, *bunny);
-    std::printf("{\"measure\":\"upload_to_ready\",\"mesh\":\"bunny\",\"triangles\":%zu,\"ms\":%.1f}\n",
-                bunny->triangle_count(), bunny_s * 1e3);
-    {
+    if (wanted(only, "upload")) {
+        std::printf("{\"measure\":\"upload_to_ready\",\"mesh\":\"bunny\",\"triangles\":%zu,\"ms\":%.1f}\n",
+                    bunny->triangle_count(), bunny_s * 1e3);
         const kdrt::Mesh big = torus(1000, 500);
         const auto [big_s, big_id] = upload(*cli, big);
         std::printf("{\"measure\":\"upload_to_ready\",\"mesh\":\"torus\",\"triangles\":%zu,\"ms\":%.1f}\n",
                     big.triangle_count(), big_s * 1e3);
         cli->Delete(("/v1/meshes/" + big_id).c_str());
+        std::fflush(stdout);
     }
-    std::fflush(stdout);
 
-    // Throughput: the same rays in process and over HTTP, alternating, best of `reps`.
     tbb::task_arena arena(static_cast<int>(threads));
     const kdrt::KdTree tree = arena.execute([&] { return kdrt::build_kdtree(*bunny); });
     const std::string path = "/v1/meshes/" + bunny_id + "/intersect";
-    for (const kdrt::RayKind kind : {kdrt::RayKind::kPrimary, kdrt::RayKind::kDiffuse}) {
-        const std::vector<kdrt::Ray> rays =
-            arena.execute([&] { return kdrt::generate_rays(tree, {.kind = kind, .res = 1024, .seed = 1}); });
-        const std::string body = as_string(kdrt::proto::encode_rays(rays, false));
-        std::vector<kdrt::Hit> hits(rays.size());
-        std::string answer;
-        double best_local = 1e30, best_remote = 1e30;
-        for (int r = 0; r < reps; ++r) {
-            const auto start = Clock::now();
-            arena.execute([&] { kdrt::intersect(tree, rays, hits); });
-            best_local = std::min(best_local, seconds_since(start));
-            best_remote = std::min(best_remote, trace_remote(*cli, path, body, 16 + 16 * rays.size(), answer));
+    RawClient raw(server.port);
+
+    // Throughput: the same 1M rays in process and over HTTP, alternating; medians of `reps`.
+    if (wanted(only, "throughput")) {
+        constexpr size_t kRays = size_t{1} << 20;
+        for (const kdrt::RayKind kind : {kdrt::RayKind::kPrimary, kdrt::RayKind::kDiffuse}) {
+            const std::vector<kdrt::Ray> rays = ray_set(arena, tree, kind, kRays);
+            const std::string body = as_string(kdrt::proto::encode_rays(rays, false));
+            std::vector<kdrt::Hit> hits(rays.size());
+            std::vector<char> answer;
+            std::string httplib_answer;
+            trace_raw(raw, path, body, answer);  // warm-up: the server's buffers, the page cache
+            const uint64_t log_from = server.log_size();
+            std::vector<double> local, remote, via_httplib;
+            for (int r = 0; r < reps; ++r) {
+                const auto start = Clock::now();
+                arena.execute([&] { kdrt::intersect(tree, rays, hits); });
+                local.push_back(seconds_since(start));
+                remote.push_back(trace_raw(raw, path, body, answer));
+                via_httplib.push_back(trace_remote(*cli, path, body, 16 + 16 * rays.size(), httplib_answer));
+            }
+            // The server logs each request after answering it; in order: raw, httplib, raw, ...
+            std::vector<double> raw_logged;
+            const std::vector<double> logged = server.logged_ms(log_from, rays.size());
+            for (size_t i = 0; i < logged.size(); i += 2) raw_logged.push_back(logged[i]);
+            if (raw_logged.empty()) raw_logged.push_back(-1);
+            const std::string expected = as_string(kdrt::proto::encode_hits(hits));
+            const bool same = std::string_view(answer.data(), answer.size()) == expected && httplib_answer == expected;
+            const double n = static_cast<double>(rays.size()) * 1e-6;
+            const double local_mrays = n / median(local), remote_mrays = n / median(remote);
+            std::printf(
+                "{\"measure\":\"throughput\",\"rays\":\"%s\",\"count\":%zu,\"threads\":%u,\"reps\":%d,"
+                "\"in_process_mrays\":%.2f,\"http_mrays\":%.2f,\"ratio\":%.3f,\"httplib_client_mrays\":%.2f,"
+                "\"in_process_ms\":%.1f,\"http_ms\":%.1f,\"server_side_ms\":%.1f,\"same_hits\":%s}\n",
+                std::string(kdrt::ray_kind_name(kind)).c_str(), rays.size(), threads, reps, local_mrays, remote_mrays,
+                remote_mrays / local_mrays, n / median(via_httplib), median(local) * 1e3, median(remote) * 1e3,
+                median(raw_logged), same ? "true" : "false");
+            std::fflush(stdout);
         }
-        const bool same = answer == as_string(kdrt::proto::encode_hits(hits));
-        const double local = static_cast<double>(rays.size()) / best_local * 1e-6;
-        const double remote = static_cast<double>(rays.size()) / best_remote * 1e-6;
-        std::printf(
-            "{\"measure\":\"throughput\",\"rays\":\"%s\",\"count\":%zu,\"threads\":%u,\"in_process_mrays\":%.2f,"
-            "\"http_mrays\":%.2f,\"ratio\":%.3f,\"in_process_ms\":%.1f,\"http_ms\":%.1f,\"server_side_ms\":%.1f,"
-            "\"same_hits\":%s}\n",
-            std::string(kdrt::ray_kind_name(kind)).c_str(), rays.size(), threads, local, remote, remote / local,
-            best_local * 1e3, best_remote * 1e3, server.fastest_logged_ms(rays.size()), same ? "true" : "false");
-        std::fflush(stdout);
     }
 
     // Latency of small requests over one keep-alive connection.
-    for (const size_t count : {size_t{1}, size_t{1000}}) {
+    if (wanted(only, "latency")) {
         const std::vector<kdrt::Ray> rays =
             kdrt::generate_rays(tree, {.kind = kdrt::RayKind::kPrimary, .res = 64, .seed = 3});
-        const std::string body =
-            as_string(kdrt::proto::encode_rays(std::span(rays).first(std::min(count, rays.size())), false));
-        std::vector<double> us;
-        for (int i = 0; i < latency_requests + 50; ++i) {
-            std::string answer;
-            const double s = trace_remote(*cli, path, body, 16 + 16 * count, answer);
-            if (i >= 50) us.push_back(s * 1e6);  // the first 50 warm up
+        for (const size_t count : {size_t{1}, size_t{1000}}) {
+            const std::string body =
+                as_string(kdrt::proto::encode_rays(std::span(rays).first(std::min(count, rays.size())), false));
+            std::vector<double> us;
+            std::vector<char> answer;
+            for (int i = 0; i < latency_requests + 50; ++i) {
+                const double s = trace_raw(raw, path, body, answer);
+                if (i >= 50) us.push_back(s * 1e6);  // the first 50 warm up
+            }
+            std::printf("{\"measure\":\"latency\",\"rays\":%zu,\"requests\":%d,\"p50_us\":%.1f,\"p99_us\":%.1f}\n",
+                        count, latency_requests, percentile(us, 0.5), percentile(us, 0.99));
+            std::fflush(stdout);
         }
-        std::printf("{\"measure\":\"latency\",\"rays\":%zu,\"requests\":%d,\"p50_us\":%.1f,\"p99_us\":%.1f}\n", count,
-                    latency_requests, percentile(us, 0.5), percentile(us, 0.99));
-        std::fflush(stdout);
     }
 
-    // Render latency: 1024^2 eyelight PNG.
-    std::vector<double> ms, render_ms;
-    const std::string request =
-        "{\"mesh\":\"" + bunny_id + "\",\"width\":1024,\"height\":1024,\"shading\":\"eyelight\"}";
-    for (int i = 0; i < reps + 1; ++i) {
-        const auto start = Clock::now();
-        auto res = cli->Post("/v1/render", request, "application/json");
-        const double s = seconds_since(start);
-        if (!res || res->status != 200) {
-            std::fprintf(stderr, "render failed\n");
-            return 1;
+    // Render latency: 1024^2 eyelight PNG, at the server's default compression and at 0, 6, 9.
+    if (wanted(only, "render")) {
+        for (const int level : {-1, 0, 6, 9}) {
+            std::string request =
+                "{\"mesh\":\"" + bunny_id + "\",\"width\":1024,\"height\":1024,\"shading\":\"eyelight\"";
+            if (level >= 0) request += ",\"compression\":" + std::to_string(level);
+            request += "}";
+            std::vector<double> ms, render_ms, encode_ms;
+            size_t bytes = 0;
+            for (int i = 0; i < reps + 1; ++i) {
+                const auto start = Clock::now();
+                auto res = cli->Post("/v1/render", request, "application/json");
+                const double s = seconds_since(start);
+                if (!res || res->status != 200) {
+                    std::fprintf(stderr, "render failed: %d %s\n", res ? res->status : -1, res ? res->body.c_str() : "");
+                    return 1;
+                }
+                if (i == 0) continue;  // warm-up
+                ms.push_back(s * 1e3);
+                render_ms.push_back(std::stod(res->get_header_value("X-Render-Ms")));
+                encode_ms.push_back(res->has_header("X-Encode-Ms") ? std::stod(res->get_header_value("X-Encode-Ms")) : -1);
+                bytes = res->body.size();
+            }
+            std::printf(
+                "{\"measure\":\"render\",\"size\":1024,\"shading\":\"eyelight\",\"format\":\"png\",\"compression\":%s,"
+                "\"p50_ms\":%.1f,\"render_only_p50_ms\":%.1f,\"encode_p50_ms\":%.1f,\"bytes\":%zu}\n",
+                level < 0 ? "\"default\"" : std::to_string(level).c_str(), median(ms), median(render_ms),
+                median(encode_ms), bytes);
+            std::fflush(stdout);
         }
-        if (i == 0) continue;  // warm-up
-        ms.push_back(s * 1e3);
-        render_ms.push_back(std::stod(res->get_header_value("X-Render-Ms")));
     }
-    std::printf(
-        "{\"measure\":\"render\",\"size\":1024,\"shading\":\"eyelight\",\"format\":\"png\",\"p50_ms\":%.1f,"
-        "\"render_only_p50_ms\":%.1f}\n",
-        percentile(ms, 0.5), percentile(render_ms, 0.5));
     return 0;
 }

@@ -135,6 +135,8 @@ struct RenderLimits {
 ///    "width": 512, "height": 512, "spp": 1, "seed": 1,
 ///    "shading": "normals|eyelight|ao|diffuse|depth|primid",   default eyelight
 ///    "format": "png|exr|jpg",                                  default png
+///    "compression": 0..9,                     optional, png only: zlib level (ImageEncodeOptions::
+///                                             png_compression); omitted = the server's default
 ///    "tile": {"x": 0, "y": 0, "w": 256, "h": 256}}             optional; omitted = whole frame
 /// Unknown members are refused. Ranges beyond the limits are refused naming the limit; the
 /// engine's validate_render_settings checks the rest (camera geometry, tile inside the frame).
@@ -142,6 +144,7 @@ struct RenderRequest {
     std::string mesh;
     RenderSettings settings;     ///< camera/region/size/spp/shading/seed from the request
     std::string format = "png";  ///< "png", "jpg"/"jpeg" or "exr" (lower case, as sent)
+    std::optional<int> compression;  ///< PNG zlib level 0 .. 9, when sent
 };
 
 [[nodiscard]] Result<RenderRequest, JsonError> decode_render_request(std::string_view json,
