@@ -75,4 +75,18 @@ uint64_t Args::get_uint(std::string_view name, uint64_t fallback, uint64_t min_v
     return value;
 }
 
+float Args::get_float(std::string_view name, float fallback, float min_value, float max_value) const {
+    const auto text = get(name);
+    if (!text) return fallback;
+    float value = 0;
+    const char* end = text->data() + text->size();
+    const auto [ptr, ec] = std::from_chars(text->data(), end, value);
+    // Negated range test: NaN fails it too.
+    if (text->empty() || ec != std::errc() || ptr != end || !(value >= min_value && value <= max_value)) {
+        throw UsageError("option '--" + std::string(name) + "': '" + *text + "' is not a number in [" +
+                         std::to_string(min_value) + ", " + std::to_string(max_value) + "]");
+    }
+    return value;
+}
+
 }  // namespace kdrt::bench

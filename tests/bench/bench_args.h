@@ -48,6 +48,9 @@ public:
     /// An integer option in [min_value, max_value], or `fallback` if absent. UsageError otherwise.
     [[nodiscard]] uint64_t get_uint(std::string_view name, uint64_t fallback, uint64_t min_value,
                                     uint64_t max_value) const;
+    /// A finite number option in [min_value, max_value], or `fallback` if absent. UsageError
+    /// otherwise.
+    [[nodiscard]] float get_float(std::string_view name, float fallback, float min_value, float max_value) const;
 
 private:
     std::vector<std::string> positional_;

@@ -70,6 +70,17 @@ expect_value("${build_line}" builder sah)
 expect_value("${build_line}" threads 2)
 run_bench(middle_line build "${MESH}" --builder middle --threads 1)
 expect_value("${middle_line}" builder middle)
+# --c-isect reaches the builder: a dearer triangle test gives a deeper tree with more nodes.
+run_bench(default_cost_line build "${MESH}" --threads 1)
+run_bench(dear_isect_line build "${MESH}" --c-isect 3 --threads 1)
+expect_value("${dear_isect_line}" c_isect 3.0)
+string(JSON default_nodes GET "${default_cost_line}" nodes)
+string(JSON dear_nodes GET "${dear_isect_line}" nodes)
+if(NOT dear_nodes GREATER default_nodes)
+    message(FATAL_ERROR "--c-isect 3 gave ${dear_nodes} nodes, the default ${default_nodes}: expected more")
+endif()
+expect_failure(2 "option '--c-isect': 'nan' is not a number" build "${MESH}" --c-isect nan)
+expect_failure(2 "option '--c-isect': '0' is not a number" build "${MESH}" --c-isect 0)
 
 # rays
 set(rays_keys kind res seed rays occlusion out bytes)

@@ -62,27 +62,29 @@ Run 'kdrt-bench <command> --help' for the options of a command.
 )";
 
 constexpr std::string_view kBuildUsage =
-    R"(usage: kdrt-bench build MESH [--builder sah|middle] [--threads N] [--reps K]
+    R"(usage: kdrt-bench build MESH [--builder sah|middle] [--c-isect X] [--threads N] [--reps K]
 
 Builds the kD-tree of MESH K times (default 1) and prints one JSON line:
-  mesh, triangles, builder, threads, reps, parse_ms, build_ms (median of the K builds),
+  mesh, triangles, builder, c_isect, threads, reps, parse_ms, build_ms (median of the K builds),
   build_ms_min, node_bytes, nodes, leaves, empty_leaves, refs, max_depth, mean_leaf_depth,
   mean_tris_per_leaf, sah_cost, bytes, bytes_per_triangle
 
 options:
   --builder sah|middle  tree builder (default sah)
+  --c-isect X           SAH cost of a triangle test relative to a traversal step (default 0.3)
   --threads N           worker threads (default: all cores)
   --reps K              number of builds to time (default 1)
 )";
 
 constexpr std::string_view kTraceUsage =
     R"(usage: kdrt-bench trace MESH RAYS.kdrr [--mode single|packet|auto] [--isa ISA] [--threads N]
-                        [--reps K] [--out FILE] [--builder sah|middle] [--compare embree]
+                        [--reps K] [--out FILE] [--builder sah|middle] [--c-isect X]
+                        [--compare embree]
 
 Builds the tree of MESH, then traces the rays of RAYS.kdrr K times (default 5) after one untimed
 warm-up pass: closest hits, or occlusion when the batch has flag bit 0 set. Prints one JSON line:
   mesh, rays_file, rays, occlusion, mode, isa, packets, packet_rays, single_rays (how the mode
-  split the rays), threads, builder, reps, parse_ms, build_ms,
+  split the rays), threads, builder, c_isect, reps, parse_ms, build_ms,
   seconds (tracing only, median of the K passes), seconds_min, mrays_per_s (from the median),
   hits (rays that hit, or are occluded), cpu_util (process CPU seconds per wall second while
   tracing: near `threads` only when the workers had their cores; lower = a noisy measurement)
@@ -100,6 +102,7 @@ options:
   --reps K                   timed passes (default 5)
   --out FILE                 write the answers as KDRH (hits) or KDRO (occlusion) to FILE
   --builder sah|middle       tree builder (default sah)
+  --c-isect X                SAH cost of a triangle test relative to a traversal step (default 0.3)
   --compare embree           also trace with Embree 3 and compare speed and answers
 )";
 
@@ -125,13 +128,13 @@ options:
 constexpr std::string_view kRenderUsage =
     R"(usage: kdrt-bench render MESH [--shading MODE] [--res R] [--spp S] [--tile 8|16]
                          [--threads N] [--reps K] [--seed S] [--ao-samples K] [--bounces B]
-                         [--builder sah|middle] [--out FILE] [--compare embree]
+                         [--builder sah|middle] [--c-isect X] [--out FILE] [--compare embree]
 
 Renders the default view of MESH (R x R pixels into a linear float buffer, kdrt::render) K times
 (default 5) after one untimed warm-up render. Then traces the render's own camera rays (sample 0)
 as one batch with kdrt::intersect (default mode and ISA, as the renderer), K times: the render
 loop's overhead is the difference. Prints one JSON line:
-  mesh, triangles, shading, width, height, spp, tile, isa, threads, builder, reps, parse_ms,
+  mesh, triangles, shading, width, height, spp, tile, isa, threads, builder, c_isect, reps, parse_ms,
   build_ms, pixels, rays (traced per frame: camera, AO, shadow and bounce rays), seconds (per
   frame, median of the K renders), seconds_min, fps (from the median), mrays_per_s (rays per frame
   / median), cpu_util, batch_rays, batch_seconds (median), batch_mrays_per_s, and for shadings
@@ -153,6 +156,7 @@ options:
   --ao-samples K    ao: occlusion rays per sample (default 16)
   --bounces B       diffuse: indirect bounces (default 0)
   --builder sah|middle  tree builder (default sah)
+  --c-isect X       SAH cost of a triangle test relative to a traversal step (default 0.3)
   --out FILE        write the last image: .png/.jpg/.jpeg (8-bit sRGB) or .exr (linear half),
                     through the kdrt-image helper built next to kdrt-bench (kdrt-bench itself
                     does not load OpenImageIO, which would add ~0.2 s to every start)
@@ -198,11 +202,19 @@ void with_threads(unsigned threads, Body&& body) {
     arena.execute(body);
 }
 
-Builder parse_builder(const Args& args) {
+BuildOptions parse_build_options(const Args& args) {
+    BuildOptions options;
     const std::string name = args.get("builder").value_or("sah");
-    if (name == "sah") return Builder::kSah;
-    if (name == "middle") return Builder::kMiddle;
-    throw UsageError("option '--builder': '" + name + "' is not one of sah, middle");
+    if (name == "sah") {
+        options.builder = Builder::kSah;
+    } else if (name == "middle") {
+        options.builder = Builder::kMiddle;
+    } else {
+        throw UsageError("option '--builder': '" + name + "' is not one of sah, middle");
+    }
+    // Only their ratio matters (kdtree.h): C_trav stays 1 and C_isect is the knob.
+    options.intersection_cost = args.get_float("c-isect", options.intersection_cost, 0.001f, 1000.0f);
+    return options;
 }
 
 std::string_view builder_name(Builder builder) { return builder == Builder::kMiddle ? "middle" : "sah"; }
@@ -224,9 +236,7 @@ LoadedMesh load_mesh(const std::string& path) {
     return {std::move(*mesh), ms_since(start)};
 }
 
-KdTree build_tree(const Mesh& mesh, Builder builder, double& build_ms) {
-    BuildOptions options;
-    options.builder = builder;
+KdTree build_tree(const Mesh& mesh, const BuildOptions& options, double& build_ms) {
     const auto start = Clock::now();
     KdTree tree = build_kdtree(mesh, options);
     build_ms = ms_since(start);
@@ -242,7 +252,7 @@ int run_build(const Args& args) {
     static constexpr std::array<std::string_view, 1> kNames = {"MESH"};
     args.expect_positional(kNames);
     const std::string& mesh_path = args.positional()[0];
-    const Builder builder = parse_builder(args);
+    const BuildOptions build_options = parse_build_options(args);
     const unsigned threads = thread_count(args);
     const auto reps = static_cast<int>(args.get_uint("reps", 1, 1, 1000));
 
@@ -252,7 +262,7 @@ int run_build(const Args& args) {
     with_threads(threads, [&] {
         for (int rep = 0; rep < reps; ++rep) {
             double ms = 0;
-            tree = build_tree(loaded.mesh, builder, ms);
+            tree = build_tree(loaded.mesh, build_options, ms);
             build_ms.push_back(ms);
         }
     });
@@ -262,7 +272,8 @@ int run_build(const Args& args) {
     line["command"] = "build";
     line["mesh"] = std::filesystem::path(mesh_path).filename().string();
     line["triangles"] = s.triangles;
-    line["builder"] = builder_name(builder);
+    line["builder"] = builder_name(build_options.builder);
+    line["c_isect"] = build_options.intersection_cost;
     line["threads"] = threads;
     line["reps"] = reps;
     line["parse_ms"] = rounded(loaded.parse_ms, 3);
@@ -308,7 +319,7 @@ int run_trace(const Args& args) {
         if (!isa_supported(*isa)) throw BenchError("--isa " + *isa_text + " is not supported by this CPU");
         trace_options.isa = *isa;
     }
-    const Builder builder = parse_builder(args);
+    const BuildOptions build_options = parse_build_options(args);
     const unsigned threads = thread_count(args);
     const auto reps = static_cast<int>(args.get_uint("reps", 5, 1, 1000));
     const auto out_path = args.get("out");
@@ -335,7 +346,7 @@ int run_trace(const Args& args) {
     std::optional<EmbreeReport> embree;
     TraceStats stats;
     with_threads(threads, [&] {
-        tree = build_tree(loaded.mesh, builder, build_ms);
+        tree = build_tree(loaded.mesh, build_options, build_ms);
         if (batch.occlusion) {
             occluded.resize(rays.size());
         } else {
@@ -386,7 +397,8 @@ int run_trace(const Args& args) {
     line["packet_rays"] = stats.packet_rays;
     line["single_rays"] = stats.single_rays;
     line["threads"] = threads;
-    line["builder"] = builder_name(builder);
+    line["builder"] = builder_name(build_options.builder);
+    line["c_isect"] = build_options.intersection_cost;
     line["reps"] = reps;
     line["parse_ms"] = rounded(loaded.parse_ms, 3);
     line["build_ms"] = rounded(build_ms, 3);
@@ -519,7 +531,7 @@ int run_render(const Args& args) {
     settings.seed = args.get_uint("seed", 1, 0, std::numeric_limits<uint64_t>::max());
     settings.ao_samples = static_cast<uint32_t>(args.get_uint("ao-samples", 16, 1, kMaxAoSamples));
     settings.bounces = static_cast<uint32_t>(args.get_uint("bounces", 0, 0, kMaxBounces));
-    const Builder builder = parse_builder(args);
+    const BuildOptions build_options = parse_build_options(args);
     const unsigned threads = thread_count(args);
     const auto reps = static_cast<int>(args.get_uint("reps", 5, 1, 1000));
     const auto out_path = args.get("out");
@@ -543,7 +555,7 @@ int run_render(const Args& args) {
     std::vector<Hit> hits;
     std::optional<EmbreeReport> embree;
     with_threads(threads, [&] {
-        tree = build_tree(loaded.mesh, builder, build_ms);
+        tree = build_tree(loaded.mesh, build_options, build_ms);
         // Render 0 warms caches and starts the workers; it is not timed.
         for (int rep = 0; rep <= reps; ++rep) {
             const double cpu_start = process_cpu_seconds();
@@ -585,7 +597,8 @@ int run_render(const Args& args) {
     line["tile"] = settings.tile_size;
     line["isa"] = isa_name(default_isa());
     line["threads"] = threads;
-    line["builder"] = builder_name(builder);
+    line["builder"] = builder_name(build_options.builder);
+    line["c_isect"] = build_options.intersection_cost;
     line["reps"] = reps;
     line["parse_ms"] = rounded(loaded.parse_ms, 3);
     line["build_ms"] = rounded(build_ms, 3);
@@ -627,13 +640,14 @@ struct Command {
     int (*run)(const Args&);
 };
 
-constexpr std::array<std::string_view, 3> kBuildOptions = {"builder", "threads", "reps"};
-constexpr std::array<std::string_view, 7> kTraceOptions = {"mode", "isa", "threads", "reps", "out", "builder", "compare"};
+constexpr std::array<std::string_view, 4> kBuildOptions = {"builder", "c-isect", "threads", "reps"};
+constexpr std::array<std::string_view, 8> kTraceOptions = {"mode", "isa",     "threads", "reps",
+                                                            "out",  "builder", "c-isect", "compare"};
 constexpr std::array<std::string_view, 5> kRaysOptions = {"kind", "res", "seed", "out", "threads"};
 constexpr std::array<std::string_view, 4> kSceneOptions = {"out", "size", "from", "copies"};
-constexpr std::array<std::string_view, 12> kRenderOptions = {"shading", "res",     "spp",  "tile",
-                                                             "threads", "reps",    "seed", "ao-samples",
-                                                             "bounces", "builder", "out",  "compare"};
+constexpr std::array<std::string_view, 13> kRenderOptions = {"shading", "res",     "spp",     "tile",  "threads",
+                                                             "reps",    "seed",    "ao-samples", "bounces", "builder",
+                                                             "c-isect", "out",     "compare"};
 constexpr std::array<Command, 5> kCommands = {{
     {"build", kBuildUsage, kBuildOptions, &run_build},
     {"trace", kTraceUsage, kTraceOptions, &run_trace},
