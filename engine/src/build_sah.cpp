@@ -7,16 +7,37 @@
 // event position ("perfect splits": the candidates come from the triangles clipped to the cell).
 // Splitting a node partitions the sorted lists without re-sorting; only the triangles that straddle
 // the plane are clipped to each child and their (few) new events sorted and merged in.
+//
+// Performance notes. The output (which events a node holds, which split wins, the leaves) is fully
+// determined by the algorithm above and is bit-identical at any thread count; the points below only
+// change how fast it is computed. Most of the work is in the many small nodes near the leaves
+// (on the bunny, nodes of fewer than 16 triangles see ~40% of all events), so per-node overhead
+// matters as much as per-event cost.
+//  - A node's three event lists live in one buffer taken from a per-thread pool, so small nodes
+//    allocate nothing. Each list is followed by a sentinel, which ends the sweep's inner loop.
+//  - The root's events are created in triangle order and radix-sorted (stable) on the position and
+//    type bits: the same order as sorting the whole 64-bit events.
+//  - The partition classifies all triangles in one pass over the split axis (the list is sorted,
+//    so it is three runs: left of, on and right of the plane), then copies each axis into the
+//    children in one branch-free pass that also merges in the straddlers' new events.
+//  - Clipping uses the exact double arithmetic of the straightforward version (only the library
+//    call of nextafter is replaced by bit arithmetic, checked equal for every finite float).
+//  - Big nodes (the top of the tree, where only one or two nodes exist) sweep their axes in
+//    parallel chunks; chunk results are combined in list order, so the chosen split is the one a
+//    sequential sweep finds. Subtrees of big nodes are built concurrently, as before.
 
 #include <algorithm>
 #include <array>
 #include <bit>
 #include <cmath>
+#include <cstring>
+#include <limits>
+#include <memory>
 #include <vector>
 
 #include <tbb/enumerable_thread_specific.h>
+#include <tbb/parallel_for.h>
 #include <tbb/parallel_invoke.h>
-#include <tbb/parallel_sort.h>
 #include <tbb/task_arena.h>
 
 #include "build_common.h"
@@ -33,6 +54,9 @@ static_assert(sizeof(Event) == 8);
 
 enum EventType : uint32_t { kEnd = 0, kPlanar = 1, kStart = 2 };
 
+/// Larger than every real event (their type is never 3): ends the merge inputs.
+constexpr Event kSentinel = ~Event{0};
+
 constexpr uint32_t ordered_bits(float f) noexcept {
     const uint32_t b = std::bit_cast<uint32_t>(f + 0.0f);  // -0 -> +0: one key per plane
     return (b & 0x80000000u) ? ~b : (b | 0x80000000u);
@@ -44,7 +68,6 @@ constexpr Event make_event(float pos, EventType type, uint32_t prim) noexcept {
     return (uint64_t{ordered_bits(pos)} << 32) | (uint64_t{type} << 30) | prim;
 }
 constexpr uint32_t event_key(Event e) noexcept { return static_cast<uint32_t>(e >> 32); }
-constexpr float event_pos(Event e) noexcept { return from_ordered_bits(event_key(e)); }
 constexpr uint32_t event_type(Event e) noexcept { return static_cast<uint32_t>(e >> 30) & 3u; }
 constexpr uint32_t event_prim(Event e) noexcept { return static_cast<uint32_t>(e) & 0x3FFFFFFFu; }
 
@@ -62,41 +85,66 @@ void add_events(EventLists& lists, const Aabb& box, uint32_t prim) {
     }
 }
 
+using Point = std::array<double, 3>;
+
+/// std::nextafter(f, -INFINITY) for finite f, without the library call.
+inline float next_down(float f) noexcept {
+    if (f == 0.0f) return -std::numeric_limits<float>::denorm_min();
+    const uint32_t b = std::bit_cast<uint32_t>(f);
+    return std::bit_cast<float>(f > 0.0f ? b - 1 : b + 1);
+}
+/// std::nextafter(f, INFINITY) for finite f.
+inline float next_up(float f) noexcept { return -next_down(-f); }
+
+/// One Sutherland-Hodgman step: clips the polygon src[0..n) against the plane p[a] >= bound
+/// (kLow) or p[a] <= bound (!kLow) into dst and returns the new vertex count.
+template <bool kLow>
+int clip_polygon(const Point* src, int n, int a, double bound, Point* dst) {
+    int m = 0;
+    bool in_cur = kLow ? src[0][a] >= bound : src[0][a] <= bound;
+    for (int i = 0; i < n; ++i) {
+        const Point& cur = src[i];
+        const Point& next = src[i + 1 == n ? 0 : i + 1];
+        const bool in_next = kLow ? next[a] >= bound : next[a] <= bound;
+        if (in_cur) dst[m++] = cur;
+        if (in_cur != in_next) {
+            const double s = (bound - cur[a]) / (next[a] - cur[a]);
+            Point q;
+            for (int b = 0; b < 3; ++b) q[b] = cur[b] + s * (next[b] - cur[b]);
+            q[a] = bound;
+            dst[m++] = q;
+        }
+        in_cur = in_next;
+    }
+    return m;
+}
+
 /// Bounds of triangle `tri` clipped to the closed box `cell` (Sutherland-Hodgman in double),
 /// rounded outwards to float and clamped to the cell. Returns false if nothing remains.
 bool clipped_bounds(const TriVerts& tri, const Aabb& cell, Aabb& out) {
-    using P = std::array<double, 3>;
-    std::array<P, 16> poly_a, poly_b;
+    std::array<Point, 16> poly_a, poly_b;
     int n = 3;
     for (int a = 0; a < 3; ++a) {
         poly_a[0][a] = tri.v0[a];
         poly_a[1][a] = tri.v1[a];
         poly_a[2][a] = tri.v2[a];
     }
-    P* src = poly_a.data();
-    P* dst = poly_b.data();
+    Point* src = poly_a.data();
+    Point* dst = poly_b.data();
     for (int a = 0; a < 3 && n > 0; ++a) {
-        for (int side = 0; side < 2 && n > 0; ++side) {
-            const double bound = side == 0 ? cell.lo[a] : cell.hi[a];
-            auto inside = [&](const P& p) { return side == 0 ? p[a] >= bound : p[a] <= bound; };
-            bool all_inside = true;
-            for (int i = 0; i < n && all_inside; ++i) all_inside = inside(src[i]);
-            if (all_inside) continue;  // this plane cuts nothing off (the common case)
-            int m = 0;
-            for (int i = 0; i < n; ++i) {
-                const P& cur = src[i];
-                const P& next = src[(i + 1) % n];
-                const bool in_cur = inside(cur), in_next = inside(next);
-                if (in_cur) dst[m++] = cur;
-                if (in_cur != in_next) {
-                    const double s = (bound - cur[a]) / (next[a] - cur[a]);
-                    P q;
-                    for (int b = 0; b < 3; ++b) q[b] = cur[b] + s * (next[b] - cur[b]);
-                    q[a] = bound;
-                    dst[m++] = q;
-                }
-            }
-            n = m;
+        // Planes that cut nothing off the current polygon (the common case) are skipped.
+        const double lo = cell.lo[a], hi = cell.hi[a];
+        bool all_inside = true;
+        for (int i = 0; i < n && all_inside; ++i) all_inside = src[i][a] >= lo;
+        if (!all_inside) {
+            n = clip_polygon<true>(src, n, a, lo, dst);
+            std::swap(src, dst);
+            if (n == 0) break;
+        }
+        all_inside = true;
+        for (int i = 0; i < n && all_inside; ++i) all_inside = src[i][a] <= hi;
+        if (!all_inside) {
+            n = clip_polygon<false>(src, n, a, hi, dst);
             std::swap(src, dst);
         }
     }
@@ -108,8 +156,8 @@ bool clipped_bounds(const TriVerts& tri, const Aabb& cell, Aabb& out) {
             hi = std::max(hi, src[i][a]);
         }
         float flo = static_cast<float>(lo), fhi = static_cast<float>(hi);
-        if (static_cast<double>(flo) > lo) flo = std::nextafter(flo, -INFINITY);
-        if (static_cast<double>(fhi) < hi) fhi = std::nextafter(fhi, INFINITY);
+        if (static_cast<double>(flo) > lo) flo = next_down(flo);
+        if (static_cast<double>(fhi) < hi) fhi = next_up(fhi);
         out.lo[a] = std::max(flo, cell.lo[a]);
         out.hi[a] = std::min(fhi, cell.hi[a]);
         if (out.lo[a] > out.hi[a]) return false;
@@ -129,21 +177,6 @@ bool vertex_bounds_in(const TriVerts& tri, const Aabb& cell, Aabb& out) {
     return true;
 }
 
-/// Merges the sorted `extra` into the sorted `dst` in place, from the back (no temporary).
-void merge_into(std::vector<Event>& dst, const std::vector<Event>& extra) {
-    if (extra.empty()) return;
-    size_t i = dst.size(), j = extra.size();
-    dst.resize(i + j);
-    size_t k = dst.size();
-    while (j > 0) {
-        if (i > 0 && dst[i - 1] > extra[j - 1]) {
-            dst[--k] = dst[--i];
-        } else {
-            dst[--k] = extra[--j];
-        }
-    }
-}
-
 double half_area(const Aabb& b) noexcept {
     const double x = double{b.hi.x} - b.lo.x, y = double{b.hi.y} - b.lo.y, z = double{b.hi.z} - b.lo.z;
     return x * y + y * z + z * x;
@@ -157,80 +190,154 @@ struct Split {
     double cost = INFINITY;
 };
 
+/// Uninitialised storage for events (no zero-filling of memory that is overwritten anyway).
+struct EventBuffer {
+    std::unique_ptr<Event[]> data;
+    size_t capacity = 0;
+};
+
+/// A node to be built: its cell and its three sorted event lists, axis a at
+/// buffer.data[offset[a] .. offset[a] + count[a]), each followed by kSentinel.
 struct NodeInput {
     Aabb cell;
-    EventLists events;
+    EventBuffer buffer;
+    std::array<size_t, 3> offset{};
+    std::array<size_t, 3> count{};
     uint32_t prim_count = 0;
     uint32_t depth = 0;
+
+    [[nodiscard]] const Event* events(int a) const noexcept { return buffer.data.get() + offset[a]; }
 };
 
 enum Side : uint8_t { kBoth = 0, kLeftOnly = 1, kRightOnly = 2 };
 
 constexpr uint32_t kParallelSubtrees = 4096;  // nodes at least this big build children concurrently
-constexpr size_t kParallelAxes = 1u << 15;    // events per axis above which the axes run concurrently
+constexpr size_t kParallelAxes = 1u << 15;    // events per axis above which axes/chunks run concurrently
+constexpr size_t kChunk = 1u << 14;           // events per chunk of a parallel sweep
+constexpr size_t kPooledEvents = 1u << 13;    // buffers up to this size are recycled per thread
+constexpr size_t kPoolSlots = 48;             // at most this many free buffers kept per thread
+
+/// Per-thread scratch memory. Used only between TBB wait points, or inside isolated parallel
+/// regions that touch nothing but the calling node's data, so nested tasks never see it half-used.
+struct Scratch {
+    std::vector<uint8_t> side;  // per triangle id, written and read within one partition
+    std::vector<EventBuffer> pool;
+    std::vector<uint32_t> straddling;
+    EventLists new_left, new_right;
+    std::vector<uint32_t> prims;
+
+    /// A buffer for at least `n` events, recycled when possible.
+    EventBuffer take(size_t n) {
+        if (n <= kPooledEvents) {
+            for (size_t i = pool.size(); i-- > 0;) {
+                if (pool[i].capacity >= n) {
+                    EventBuffer b = std::move(pool[i]);
+                    pool[i] = std::move(pool.back());
+                    pool.pop_back();
+                    return b;
+                }
+            }
+            n = std::max<size_t>(std::bit_ceil(n), 64);  // round up so the buffer fits later nodes too
+        }
+        return {std::make_unique_for_overwrite<Event[]>(n), n};
+    }
+    void give_back(EventBuffer&& b) {
+        if (b.capacity != 0 && b.capacity <= 2 * kPooledEvents && pool.size() < kPoolSlots)
+            pool.push_back(std::move(b));
+        b = {};
+    }
+};
+
+/// Constants of one axis' SAH evaluation in a node.
+struct SweepSetup {
+    int axis;
+    float lo, hi;
+    double cap, ring, inv_area, c_trav, c_isect, empty_scale;
+    uint32_t n_total;
+};
 
 class SahBuilder {
 public:
     SahBuilder(const std::vector<TriVerts>& tris, const BuildOptions& options)
-        : tris_(tris), options_(options),
+        : tris_(tris),
+          options_(options),
           max_depth_(static_cast<uint32_t>(std::clamp(options.max_depth, 0, kMaxDepth))),
-          sides_([n = tris.size()] { return std::vector<uint8_t>(n); }) {}
+          scratch_([n = tris.size()] {
+              Scratch s;
+              s.side.resize(n);
+              return s;
+          }) {}
 
-    void build(SubTree& out, uint32_t slot, NodeInput&& in) {
+    /// Builds the subtree of `in` into `slot` of `out`. `scratch` is the calling thread's; a task
+    /// that may run on another thread looks up its own.
+    void build(SubTree& out, uint32_t slot, NodeInput&& in, Scratch& scratch) {
         const Split split = in.depth < max_depth_ && in.prim_count > 0 ? find_split(in) : Split{};
         const double leaf_cost = double{options_.intersection_cost} * in.prim_count;
         if (!split.valid || !(split.cost < leaf_cost)) {
-            make_leaf(out, slot, leaf_prims(in));
+            make_leaf(out, slot, leaf_prims(in, scratch.prims));
+            scratch.give_back(std::move(in.buffer));
             out.max_depth = std::max(out.max_depth, in.depth);
             return;
         }
         NodeInput left, right;
-        partition(in, split, left, right);
-        in = NodeInput{};  // free the parent's events before descending
+        partition(in, split, left, right, scratch);
+        scratch.give_back(std::move(in.buffer));  // free the parent's events before descending
         if (left.prim_count + right.prim_count >= kParallelSubtrees) {
             SubTree left_tree, right_tree;
-            tbb::parallel_invoke([&] { build(left_tree, 0, std::move(left)); },
-                                 [&] { build(right_tree, 0, std::move(right)); });
+            tbb::parallel_invoke([&] { build(left_tree, 0, std::move(left), scratch_.local()); },
+                                 [&] { build(right_tree, 0, std::move(right), scratch_.local()); });
             const uint32_t first = add_child_pair(out, slot, split.axis, split.pos);
             splice(out, first, left_tree);
             splice(out, first + 1, right_tree);
         } else {
             const uint32_t first = add_child_pair(out, slot, split.axis, split.pos);
-            build(out, first, std::move(left));
-            build(out, first + 1, std::move(right));
+            build(out, first, std::move(left), scratch);
+            build(out, first + 1, std::move(right), scratch);
         }
     }
 
+    void build_root(SubTree& out, NodeInput&& in) { build(out, 0, std::move(in), scratch_.local()); }
+
 private:
-    /// The SAH of every candidate plane on one axis, swept in one pass over its sorted events.
-    Split sweep_axis(const NodeInput& in, int axis) const {
-        Split best;
+    SweepSetup sweep_setup(const NodeInput& in, int axis, double inv_area) const {
         const Aabb& cell = in.cell;
-        if (!(cell.lo[axis] < cell.hi[axis])) return best;  // flat along this axis: nothing to split
-        const double area = half_area(cell);
-        if (!(area > 0)) return best;
-        const double inv_area = 1.0 / area;
         const int a1 = (axis + 1) % 3, a2 = (axis + 2) % 3;
         const double e1 = double{cell.hi[a1]} - cell.lo[a1], e2 = double{cell.hi[a2]} - cell.lo[a2];
-        const double cap = e1 * e2, ring = e1 + e2;
-        const double c_trav = options_.traversal_cost, c_isect = options_.intersection_cost;
-        const double empty_scale = 1.0 - double{options_.empty_bonus};
-        const uint32_t n_total = in.prim_count;
+        return {axis,
+                cell.lo[axis],
+                cell.hi[axis],
+                e1 * e2,
+                e1 + e2,
+                inv_area,
+                options_.traversal_cost,
+                options_.intersection_cost,
+                1.0 - double{options_.empty_bonus},
+                in.prim_count};
+    }
 
-        const std::vector<Event>& ev = in.events[axis];
-        uint32_t n_left = 0, n_right = n_total;
-        size_t i = 0;
-        while (i < ev.size()) {
+    /// The SAH of every candidate plane in ev[begin, end) (whole position groups), swept in one
+    /// pass; n_left / n_right are the counts before `begin`. Ties keep the earlier candidate.
+    [[gnu::noinline]] static Split sweep(const SweepSetup& s, const Event* ev, size_t begin, size_t end,
+                                         uint32_t n_left, uint32_t n_right) {
+        double best_cost = INFINITY;
+        uint32_t best_key = 0;
+        bool best_planar_left = true;
+        size_t i = begin;
+        while (i < end) {
             const uint32_t key = event_key(ev[i]);
-            uint32_t ending = 0, planar = 0, starting = 0;
-            while (i < ev.size() && event_key(ev[i]) == key && event_type(ev[i]) == kEnd) ++ending, ++i;
-            while (i < ev.size() && event_key(ev[i]) == key && event_type(ev[i]) == kPlanar) ++planar, ++i;
-            while (i < ev.size() && event_key(ev[i]) == key && event_type(ev[i]) == kStart) ++starting, ++i;
+            // Count the events at this position by type: End, Planar, Start (type 3 never occurs).
+            // ev[end] is at another position (the next one, or the sentinel after the list).
+            uint32_t count[4] = {0, 0, 0, 0};
+            do {
+                ++count[event_type(ev[i])];
+                ++i;
+            } while (event_key(ev[i]) == key);
+            const uint32_t ending = count[kEnd], planar = count[kPlanar], starting = count[kStart];
             n_right -= planar + ending;
             const float pos = from_ordered_bits(key);
-            if (pos >= cell.lo[axis] && pos <= cell.hi[axis]) {
-                const double pl = (cap + ring * (double{pos} - cell.lo[axis])) * inv_area;
-                const double pr = (cap + ring * (double{cell.hi[axis]} - pos)) * inv_area;
+            if (pos >= s.lo && pos <= s.hi) {
+                const double pl = (s.cap + s.ring * (double{pos} - s.lo)) * s.inv_area;
+                const double pr = (s.cap + s.ring * (double{s.hi} - pos)) * s.inv_area;
                 // Planar triangles go left or right, whichever is cheaper (Wald & Havran 2006);
                 // without any, both placements are the same split.
                 for (int planar_left = 1; planar_left >= (planar ? 0 : 1); --planar_left) {
@@ -238,29 +345,79 @@ private:
                     const uint32_t nr = n_right + (planar_left ? 0 : planar);
                     // A plane on the cell boundary leaves one child the whole cell: it must then
                     // hold fewer triangles, or the split makes no progress.
-                    if (pos == cell.lo[axis] && nr >= n_total) continue;
-                    if (pos == cell.hi[axis] && nl >= n_total) continue;
-                    double cost = c_isect * (pl * nl + pr * nr);
-                    if (nl == 0 || nr == 0) cost *= empty_scale;
-                    cost += c_trav;
-                    if (cost < best.cost) best = {true, axis, pos, planar_left == 1, cost};
+                    if (pos == s.lo && nr >= s.n_total) continue;
+                    if (pos == s.hi && nl >= s.n_total) continue;
+                    double cost = s.c_isect * (pl * nl + pr * nr);
+                    if (nl == 0 || nr == 0) cost *= s.empty_scale;
+                    cost += s.c_trav;
+                    // Branch-free update: which candidates win is hard to predict.
+                    const bool better = cost < best_cost;
+                    best_cost = better ? cost : best_cost;
+                    best_key = better ? key : best_key;
+                    best_planar_left = better ? planar_left == 1 : best_planar_left;
                 }
             }
             n_left += starting + planar;
         }
+        Split best;
+        if (best_cost < INFINITY) best = {true, s.axis, from_ordered_bits(best_key), best_planar_left, best_cost};
         return best;
+    }
+
+    /// Start indices of chunks of about kChunk events of `ev[0, n)`, each at the first event of
+    /// a position (so no position is split between chunks), followed by n.
+    static std::vector<size_t> chunk_starts(const Event* ev, size_t n) {
+        std::vector<size_t> starts{0};
+        for (size_t c = kChunk; c < n; c += kChunk) {
+            size_t b = std::max(c, starts.back() + 1);
+            while (b < n && event_key(ev[b]) == event_key(ev[b - 1])) ++b;
+            if (b >= n) break;
+            if (b > starts.back()) starts.push_back(b);
+        }
+        starts.push_back(n);
+        return starts;
+    }
+
+    /// sweep() over a big list in parallel chunks: one pass counts each chunk's events to get the
+    /// counts at its start, a second sweeps the chunks; the first best in list order wins, as in
+    /// one sequential sweep.
+    static Split sweep_parallel(const SweepSetup& s, const Event* ev, size_t n) {
+        const std::vector<size_t> starts = chunk_starts(ev, n);
+        const size_t chunks = starts.size() - 1;
+        std::vector<std::array<uint32_t, 2>> counts(chunks);  // {left += Start + Planar, right -= End + Planar}
+        tbb::parallel_for(size_t{0}, chunks, [&](size_t c) {
+            uint32_t count[4] = {0, 0, 0, 0};
+            for (size_t i = starts[c]; i < starts[c + 1]; ++i) ++count[event_type(ev[i])];
+            counts[c] = {count[kStart] + count[kPlanar], count[kEnd] + count[kPlanar]};
+        });
+        std::vector<Split> best(chunks);
+        tbb::parallel_for(size_t{0}, chunks, [&](size_t c) {
+            uint32_t n_left = 0, n_right = s.n_total;
+            for (size_t d = 0; d < c; ++d) n_left += counts[d][0], n_right -= counts[d][1];
+            best[c] = sweep(s, ev, starts[c], starts[c + 1], n_left, n_right);
+        });
+        Split result;
+        for (const Split& b : best)
+            if (b.cost < result.cost) result = b;
+        return result;
     }
 
     Split find_split(const NodeInput& in) const {
         std::array<Split, 3> per_axis;
-        if (in.events[0].size() >= kParallelAxes) {
-            tbb::this_task_arena::isolate([&] {
-                tbb::parallel_invoke([&] { per_axis[0] = sweep_axis(in, 0); },
-                                     [&] { per_axis[1] = sweep_axis(in, 1); },
-                                     [&] { per_axis[2] = sweep_axis(in, 2); });
-            });
+        const double area = half_area(in.cell);
+        if (!(area > 0)) return {};  // no area: nothing to split
+        const double inv_area = 1.0 / area;
+        auto sweep_axis = [&](int a) {
+            if (!(in.cell.lo[a] < in.cell.hi[a])) return;  // flat along this axis: nothing to split
+            const SweepSetup s = sweep_setup(in, a, inv_area);
+            per_axis[a] = in.count[a] >= kParallelAxes ? sweep_parallel(s, in.events(a), in.count[a])
+                                                       : sweep(s, in.events(a), 0, in.count[a], 0, in.prim_count);
+        };
+        if (std::max({in.count[0], in.count[1], in.count[2]}) >= kParallelAxes) {
+            tbb::this_task_arena::isolate(
+                [&] { tbb::parallel_invoke([&] { sweep_axis(0); }, [&] { sweep_axis(1); }, [&] { sweep_axis(2); }); });
         } else {
-            for (int a = 0; a < 3; ++a) per_axis[a] = sweep_axis(in, a);
+            for (int a = 0; a < 3; ++a) sweep_axis(a);
         }
         Split best = per_axis[0];
         for (int a = 1; a < 3; ++a)
@@ -268,17 +425,82 @@ private:
         return best;
     }
 
-    std::vector<uint32_t> leaf_prims(const NodeInput& in) const {
-        std::vector<uint32_t> prims;
-        prims.reserve(in.prim_count);
-        for (Event e : in.events[0])
-            if (event_type(e) != kEnd) prims.push_back(event_prim(e));
+    static const std::vector<uint32_t>& leaf_prims(const NodeInput& in, std::vector<uint32_t>& prims) {
+        prims.clear();
+        const Event* ev = in.events(0);
+        for (size_t i = 0; i < in.count[0]; ++i)
+            if (event_type(ev[i]) != kEnd) prims.push_back(event_prim(ev[i]));
         std::sort(prims.begin(), prims.end());
         return prims;
     }
 
+    /// Sets side[] for every triangle of the node and lists the straddling ones. The split axis'
+    /// list is sorted, so it is three runs: positions left of the plane, on it, and right of it.
+    /// Returns the number of triangles only on the left / only on the right.
+    [[gnu::noinline]] static std::array<uint32_t, 2> classify(const NodeInput& in, const Split& split, uint8_t* side,
+                                                              std::vector<uint32_t>& straddling, const TriVerts* tris) {
+        const Event* ev = in.events(split.axis);
+        const size_t n = in.count[split.axis];
+        const uint32_t plane = ordered_bits(split.pos);
+        const uint8_t planar_side = split.planar_left ? kLeftOnly : kRightOnly;
+        uint32_t left_only = 0, right_only = 0;
+        size_t i = 0;
+        // Left of the plane: ends and planars are left only; a start is "both" until its end is
+        // seen left of or on the plane.
+        for (; i < n && event_key(ev[i]) < plane; ++i) {
+            const bool start = event_type(ev[i]) == kStart;
+            side[event_prim(ev[i])] = start ? kBoth : kLeftOnly;
+            left_only += start ? 0 : 1;
+        }
+        // On the plane: ends are left, starts right, planars where the split put them.
+        for (; i < n && event_key(ev[i]) == plane; ++i) {
+            const uint32_t type = event_type(ev[i]);
+            const uint8_t s = type == kEnd ? uint8_t{kLeftOnly} : (type == kStart ? uint8_t{kRightOnly} : planar_side);
+            side[event_prim(ev[i])] = s;
+            left_only += s == kLeftOnly ? 1 : 0;
+            right_only += s == kRightOnly ? 1 : 0;
+        }
+        // Right of the plane: starts and planars are right only; an end whose start was left of
+        // the plane marks a straddling triangle.
+        for (; i < n; ++i) {
+            const uint32_t prim = event_prim(ev[i]);
+            const bool end = event_type(ev[i]) == kEnd;
+            const uint8_t old = side[prim];
+            side[prim] = end ? old : uint8_t{kRightOnly};
+            right_only += end ? 0 : 1;
+            if (end && old == kBoth) {  // rare: predictable
+                straddling.push_back(prim);
+                // Its triangle is clipped soon: start loading it (36 bytes, up to two lines).
+                __builtin_prefetch(&tris[prim]);
+                __builtin_prefetch(reinterpret_cast<const char*>(&tris[prim]) + sizeof(TriVerts) - 1);
+            }
+        }
+        return {left_only, right_only};
+    }
+
+    /// Copies the events of ev[0, n) on `side` 1 (left) / 2 (right) to l / r, merging in the
+    /// sorted, sentinel-terminated new events nl / nr. Returns the end pointers of l and r.
+    /// Branch-free except for the (rare) merge steps; writes one slot past the end of each output.
+    /// (sweep, classify and distribute are kept out of line: the hot loops get the registers to
+    /// themselves, and profiles show them apart.)
+    [[gnu::noinline]] static std::pair<Event*, Event*> distribute(const Event* ev, size_t n, const uint8_t* side,
+                                                                  const Event*& nl, const Event*& nr, Event* l,
+                                                                  Event* r) {
+        for (size_t i = 0; i < n; ++i) {
+            const Event e = ev[i];
+            while (*nl < e) *l++ = *nl++;
+            while (*nr < e) *r++ = *nr++;
+            const uint8_t s = side[event_prim(e)];
+            *l = e;
+            *r = e;
+            l += s & 1u;
+            r += s >> 1;
+        }
+        return {l, r};
+    }
+
     /// Classifies the triangles against the split and builds the children's sorted event lists.
-    void partition(const NodeInput& in, const Split& split, NodeInput& left, NodeInput& right) {
+    void partition(const NodeInput& in, const Split& split, NodeInput& left, NodeInput& right, Scratch& scratch) {
         const int k = split.axis;
         const float p = split.pos;
         left.cell = in.cell;
@@ -287,39 +509,18 @@ private:
         right.cell.lo[k] = p;
         left.depth = right.depth = in.depth + 1;
 
-        // The side array is per thread and sized for all triangles; it is written and read only
-        // inside this call, whose parallel part is isolated so no other node's work can run on
-        // this thread in between.
-        std::vector<uint8_t>& side = sides_.local();
-        std::vector<uint32_t> straddling;
-        uint32_t left_only = 0, right_only = 0;
-        for (Event e : in.events[k])
-            if (event_type(e) != kEnd) side[event_prim(e)] = kBoth;
-        for (Event e : in.events[k]) {
-            const uint32_t type = event_type(e);
-            const float pos = event_pos(e);
-            const uint32_t prim = event_prim(e);
-            if (type == kEnd && pos <= p) {
-                side[prim] = kLeftOnly;
-            } else if (type == kStart && pos >= p) {
-                side[prim] = kRightOnly;
-            } else if (type == kPlanar) {
-                const bool to_left = pos < p || (pos == p && split.planar_left);
-                side[prim] = to_left ? kLeftOnly : kRightOnly;
-            }
-        }
-        for (Event e : in.events[k]) {
-            if (event_type(e) == kEnd) continue;
-            const uint8_t s = side[event_prim(e)];
-            if (s == kLeftOnly) ++left_only;
-            else if (s == kRightOnly) ++right_only;
-            else straddling.push_back(event_prim(e));
-        }
-        std::sort(straddling.begin(), straddling.end());
+        // The scratch memory is per thread; it is used only inside this call, whose parallel part
+        // is isolated so no other node's work can run on this thread in between.
+        uint8_t* side = scratch.side.data();
+        std::vector<uint32_t>& straddling = scratch.straddling;
+        straddling.clear();
+        auto [left_only, right_only] = classify(in, split, side, straddling, tris_.data());
 
         // Straddling triangles are clipped to each child ("perfect splits"); their new events are
         // few (O(sqrt N) on typical meshes), sorted here and merged into the filtered lists.
-        EventLists new_left, new_right;
+        EventLists& new_left = scratch.new_left;
+        EventLists& new_right = scratch.new_right;
+        for (int a = 0; a < 3; ++a) new_left[a].clear(), new_right[a].clear();
         for (uint32_t prim : straddling) {
             Aabb box;
             if (clipped_bounds(tris_[prim], left.cell, box) || vertex_bounds_in(tris_[prim], left.cell, box)) {
@@ -333,27 +534,36 @@ private:
         }
         left.prim_count = left_only;
         right.prim_count = right_only;
-
-        auto split_axis = [&](int a) {
+        for (int a = 0; a < 3; ++a) {
             std::sort(new_left[a].begin(), new_left[a].end());
             std::sort(new_right[a].begin(), new_right[a].end());
-            // At most two events per triangle on each side (prim_count includes the straddlers).
-            std::vector<Event>& l = left.events[a];
-            std::vector<Event>& r = right.events[a];
-            l.reserve(2 * size_t{left.prim_count});
-            r.reserve(2 * size_t{right.prim_count});
-            for (Event e : in.events[a]) {
-                const uint8_t s = side[event_prim(e)];
-                if (s == kLeftOnly) l.push_back(e);
-                else if (s == kRightOnly) r.push_back(e);
-            }
-            merge_into(l, new_left[a]);
-            merge_into(r, new_right[a]);
+            new_left[a].push_back(kSentinel);
+            new_right[a].push_back(kSentinel);
+        }
+
+        // At most two events per triangle on each axis (prim_count includes the straddlers), plus
+        // the one slot distribute() writes past the end.
+        const size_t stride_l = 2 * size_t{left.prim_count} + 1, stride_r = 2 * size_t{right.prim_count} + 1;
+        left.buffer = scratch.take(3 * stride_l);
+        right.buffer = scratch.take(3 * stride_r);
+        for (int a = 0; a < 3; ++a) left.offset[a] = a * stride_l, right.offset[a] = a * stride_r;
+
+        auto split_axis = [&](int a) {
+            Event* l0 = left.buffer.data.get() + left.offset[a];
+            Event* r0 = right.buffer.data.get() + right.offset[a];
+            const Event* nl = new_left[a].data();
+            const Event* nr = new_right[a].data();
+            auto [l, r] = distribute(in.events(a), in.count[a], side, nl, nr, l0, r0);
+            while (*nl != kSentinel) *l++ = *nl++;
+            while (*nr != kSentinel) *r++ = *nr++;
+            *l = kSentinel;  // ends the list for sweep()
+            *r = kSentinel;
+            left.count[a] = static_cast<size_t>(l - l0);
+            right.count[a] = static_cast<size_t>(r - r0);
         };
-        if (in.events[k].size() >= kParallelAxes) {
-            tbb::this_task_arena::isolate([&] {
-                tbb::parallel_invoke([&] { split_axis(0); }, [&] { split_axis(1); }, [&] { split_axis(2); });
-            });
+        if (in.count[k] >= kParallelAxes) {
+            tbb::this_task_arena::isolate(
+                [&] { tbb::parallel_invoke([&] { split_axis(0); }, [&] { split_axis(1); }, [&] { split_axis(2); }); });
         } else {
             for (int a = 0; a < 3; ++a) split_axis(a);
         }
@@ -362,27 +572,77 @@ private:
     const std::vector<TriVerts>& tris_;
     BuildOptions options_;
     uint32_t max_depth_;
-    tbb::enumerable_thread_specific<std::vector<uint8_t>> sides_;
+    tbb::enumerable_thread_specific<Scratch> scratch_;
 };
+
+/// Sorts the root's events of one axis, ev[0, n), in place. The events were created in triangle
+/// order, so a stable sort on the position and type bits alone (a least-significant-digit radix
+/// sort in three passes of 11, 11 and 12 bits) gives exactly the order of sorting the 64-bit
+/// integers.
+void radix_sort_events(Event* ev, size_t n) {
+    constexpr int kShift[3] = {30, 41, 52};
+    constexpr int kBits[3] = {11, 11, 12};
+    std::vector<uint32_t> histogram[3];
+    for (int p = 0; p < 3; ++p) histogram[p].assign(size_t{1} << kBits[p], 0);
+    for (size_t i = 0; i < n; ++i)
+        for (int p = 0; p < 3; ++p) ++histogram[p][(ev[i] >> kShift[p]) & ((uint64_t{1} << kBits[p]) - 1)];
+    std::vector<Event> temp(n);
+    // Passes: ev -> temp -> ev -> temp, then back.
+    Event* src = ev;
+    Event* dst = temp.data();
+    for (int p = 0; p < 3; ++p) {
+        uint32_t sum = 0;
+        for (uint32_t& h : histogram[p]) {
+            const uint32_t c = h;
+            h = sum;
+            sum += c;
+        }
+        const uint64_t mask = (uint64_t{1} << kBits[p]) - 1;
+        for (size_t i = 0; i < n; ++i) {
+            const Event e = src[i];
+            dst[histogram[p][(e >> kShift[p]) & mask]++] = e;
+        }
+        std::swap(src, dst);
+    }
+    std::memcpy(ev, src, n * sizeof(Event));
+}
 
 }  // namespace
 
 void build_sah(const std::vector<TriVerts>& tris, const std::vector<uint8_t>& degenerate, const Aabb& root,
                const BuildOptions& options, SubTree& out) {
+    // The root's events go straight into its buffer (at most two per triangle and axis, plus the
+    // sentinel), in triangle order; each axis is then radix-sorted.
     NodeInput in;
     in.cell = root;
+    const size_t stride = 2 * tris.size() + 1;
+    in.buffer = {std::make_unique_for_overwrite<Event[]>(3 * stride), 3 * stride};
+    for (int a = 0; a < 3; ++a) in.offset[a] = a * stride;
+    Event* const ev = in.buffer.data.get();
     for (uint32_t prim = 0; prim < tris.size(); ++prim) {
         if (degenerate[prim]) continue;
         Aabb box;
         if (!vertex_bounds_in(tris[prim], root, box)) continue;
-        add_events(in.events, box, prim);
+        for (int a = 0; a < 3; ++a) {
+            Event* dst = ev + in.offset[a] + in.count[a];
+            if (box.lo[a] == box.hi[a]) {
+                dst[0] = make_event(box.lo[a], kPlanar, prim);
+                in.count[a] += 1;
+            } else {
+                dst[0] = make_event(box.lo[a], kStart, prim);
+                dst[1] = make_event(box.hi[a], kEnd, prim);
+                in.count[a] += 2;
+            }
+        }
         ++in.prim_count;
     }
-    tbb::parallel_invoke([&] { tbb::parallel_sort(in.events[0].begin(), in.events[0].end()); },
-                         [&] { tbb::parallel_sort(in.events[1].begin(), in.events[1].end()); },
-                         [&] { tbb::parallel_sort(in.events[2].begin(), in.events[2].end()); });
+    auto sort_axis = [&](int a) {
+        radix_sort_events(ev + in.offset[a], in.count[a]);
+        ev[in.offset[a] + in.count[a]] = kSentinel;
+    };
+    tbb::parallel_invoke([&] { sort_axis(0); }, [&] { sort_axis(1); }, [&] { sort_axis(2); });
     SahBuilder builder(tris, options);
-    builder.build(out, 0, std::move(in));
+    builder.build_root(out, std::move(in));
 }
 
 }  // namespace kdrt::detail
