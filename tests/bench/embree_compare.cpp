@@ -17,6 +17,8 @@
 #include <string>
 #include <type_traits>
 
+#include "kdrt/trace.h"
+
 namespace kdrt::bench {
 namespace {
 
@@ -231,11 +233,47 @@ double trace_pass(RTCScene scene, bool coherent, std::span<const Ray> rays, std:
     return std::chrono::duration<double>(Clock::now() - start).count();
 }
 
-bool hits_differ(const Hit& kd, const Hit& em) noexcept {
+/// The smallest t difference that counts, for a ray: 1e-4 relative to the larger t, but never
+/// below 1e-7 of the scene's diagonal in distance (converted to t by the direction's length).
+/// Hits a few ulps of the scene away from the origin (a ray starting on a surface) have t errors
+/// of the coordinates' rounding in both tracers, which a purely relative test would count.
+struct TScale {
+    double floor = 0;  ///< scene diagonal * 1e-7 (distance)
+    [[nodiscard]] bool same(const Ray& ray, float a, float b) const noexcept {
+        const double len = std::sqrt(double{ray.dx} * ray.dx + double{ray.dy} * ray.dy + double{ray.dz} * ray.dz);
+        const double scale = std::max(std::fabs(static_cast<double>(a)), std::fabs(static_cast<double>(b)));
+        const double tol = std::max(kRelativeTolerance * scale, len > 0 ? floor / len : 0.0);
+        return std::fabs(static_cast<double>(a) - b) <= tol;
+    }
+};
+
+bool hits_differ(const TScale& ts, const Ray& ray, const Hit& kd, const Hit& em) noexcept {
     if (kd.prim != em.prim) return true;
-    if (!kd.is_hit()) return false;
-    const double scale = std::max(std::fabs(static_cast<double>(kd.t)), std::fabs(static_cast<double>(em.t)));
-    return std::fabs(static_cast<double>(kd.t) - em.t) > kRelativeTolerance * scale;
+    return kd.is_hit() && !ts.same(ray, kd.t, em.t);
+}
+
+bool share_a_corner(const TriVerts& a, const TriVerts& b) noexcept {
+    const float* const ca[3] = {a.v0, a.v1, a.v2};
+    const float* const cb[3] = {b.v0, b.v1, b.v2};
+    for (const float* p : ca) {
+        for (const float* q : cb) {
+            if (p[0] == q[0] && p[1] == q[1] && p[2] == q[2]) return true;
+        }
+    }
+    return false;
+}
+
+/// A difference that is a tie: both tracers hit at the same distance, and either kdrt's own
+/// triangle test hits Embree's triangle there too (two triangles at one distance), or the two
+/// triangles share a corner: the ray passes through their shared edge or vertex, where which
+/// side is reported is up to each test's rounding (kdrt's watertight test picks exactly one;
+/// Embree's test is not watertight and may pick the neighbour).
+bool is_tie(const TScale& ts, std::span<const TriVerts> tris, const Ray& ray, const Hit& kd, const Hit& em) noexcept {
+    if (!kd.is_hit() || !em.is_hit() || em.prim >= tris.size() || kd.prim >= tris.size()) return false;
+    if (!ts.same(ray, kd.t, em.t)) return false;
+    if (share_a_corner(tris[kd.prim], tris[em.prim])) return true;
+    const Hit other = brute_force_intersect(tris.subspan(em.prim, 1), ray);
+    return other.is_hit() && ts.same(ray, other.t, kd.t);
 }
 
 double median(std::vector<double> values) {
@@ -301,6 +339,18 @@ EmbreeReport compare_with_embree(const Mesh& mesh, const proto::RayBatch& batch,
         {"16", 16, RTC_DEVICE_PROPERTY_NATIVE_RAY16_SUPPORTED},
     };
     const std::span<const Ray> rays = batch.rays;
+    const std::vector<TriVerts> tris = make_tri_verts(mesh);  // to recognise ties
+    TScale t_scale;
+    {
+        Aabb box;
+        for (const TriVerts& t : tris) {
+            for (const float* c : {t.v0, t.v1, t.v2}) box.extend({c[0], c[1], c[2]});
+        }
+        if (!box.empty()) {
+            const Vec3 e = box.extent();
+            t_scale.floor = 1e-7 * std::sqrt(double{e.x} * e.x + double{e.y} * e.y + double{e.z} * e.z);
+        }
+    }
     std::vector<Hit> hits(batch.occlusion ? 0 : rays.size());
     std::vector<uint8_t> occluded(batch.occlusion ? rays.size() : 0);
     const std::string prefix = batch.occlusion ? "occluded" : "intersect";
@@ -338,13 +388,16 @@ EmbreeReport compare_with_embree(const Mesh& mesh, const proto::RayBatch& batch,
             timing.mrays_per_s = median_seconds > 0 ? static_cast<double>(rays.size()) / median_seconds / 1e6 : 0.0;
             for (size_t i = 0; i < rays.size(); ++i) {
                 const bool differ =
-                    batch.occlusion ? (occluded[i] != 0) != (kd_occluded[i] != 0) : hits_differ(kd_hits[i], hits[i]);
-                timing.differences += differ ? 1 : 0;
+                    batch.occlusion ? (occluded[i] != 0) != (kd_occluded[i] != 0) : hits_differ(t_scale, rays[i], kd_hits[i], hits[i]);
+                if (!differ) continue;
+                ++timing.differences;
+                if (!batch.occlusion && is_tie(t_scale, tris, rays[i], kd_hits[i], hits[i])) ++timing.ties;
             }
             if (report.best_mode.empty() || timing.mrays_per_s > report.best_mrays_per_s) {
                 report.best_mode = timing.name;
                 report.best_mrays_per_s = timing.mrays_per_s;
                 report.differences = timing.differences;
+                report.ties = timing.ties;
             }
             report.modes.push_back(std::move(timing));
         }

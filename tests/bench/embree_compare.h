@@ -36,6 +36,7 @@ struct EmbreeModeTiming {
     std::string name;
     double mrays_per_s = 0;
     uint64_t differences = 0;  ///< answers that differ from kdrt's (see EmbreeReport)
+    uint64_t ties = 0;         ///< of those, ties (see EmbreeReport)
 };
 
 struct EmbreeReport {
@@ -44,9 +45,16 @@ struct EmbreeReport {
     std::string best_mode;
     double best_mrays_per_s = 0;
     /// Rays whose answer differs from kdrt's in the best mode. Closest hit: the prim differs (a
-    /// hit against a miss included), or both hit and t differs by more than 1e-4 relative.
+    /// hit against a miss included), or both hit and t differs by more than 1e-4 relative (and
+    /// more than 1e-7 of the scene's diagonal, in distance).
     /// Occlusion: the bit differs.
     uint64_t differences = 0;
+    /// Of the differences (closest hit only), the ties: both hit at the same t (within the same
+    /// 1e-4), and Embree's triangle shares a corner with kdrt's (the ray crosses their shared edge
+    /// or vertex, and each test's rounding picks a side) or kdrt's own watertight test hits it at
+    /// that t too. differences - ties are the answers the two tracers really disagree on (for
+    /// occlusion every difference counts).
+    uint64_t ties = 0;
     std::vector<EmbreeModeTiming> modes;  ///< every mode measured, in a fixed order
 };
 
