@@ -49,6 +49,7 @@ columns=(scene triangles "build ms" "ray set" rays "hit %")
 for t in $threads_list; do columns+=("${t}T Mrays/s"); done
 if [[ -n $compare ]]; then
     for t in $threads_list; do columns+=("Embree ${t}T Mrays/s (mode)" "kdrt/Embree ${t}T"); done
+    columns+=("Embree build ms" "bytes/tri kdrt / Embree" "differences (ties)")
 fi
 printf '| %s ' "${columns[@]}"
 echo "|"
@@ -71,6 +72,7 @@ for scene in "${scenes[@]}"; do
     echo "$build_line" >> "$results"
     triangles=$(json_get "$build_line" triangles)
     build_ms=$(json_get "$build_line" build_ms)
+    bytes_per_tri=$(json_get "$build_line" bytes_per_triangle)
     for kind in "${kinds[@]}"; do
         rays_file=$work_dir/$stem.$kind.$res.kdrr
         if [[ ! -s "$rays_file" ]]; then
@@ -96,6 +98,11 @@ for scene in "${scenes[@]}"; do
                 embree_cols+=" $(json_get "$line" ratio) |"
             fi
         done
+        if [[ -n $compare ]]; then  # from the last thread count's run
+            embree_cols+=" $(json_get "$line" embree_build_ms) |"
+            embree_cols+=" $bytes_per_tri / $(json_get "$line" embree_bytes_per_triangle) |"
+            embree_cols+=" $(json_get "$line" differences) ($(json_get "$line" ties)) |"
+        fi
         echo "| $stem | $triangles | $build_ms | $kind | $rays | $hit_pct |$speeds$embree_cols"
     done
 done
