@@ -89,8 +89,9 @@ template <bool AnyHit>
 void trace_batch(const KdTree& tree, std::span<const Ray> rays, Hit* hits, uint8_t* occ, const TraceOptions& options,
                  TraceStats* stats) noexcept {
     tbb::combinable<detail::TraceCounters> counters;
-    // Blocks of a few kernel blocks: enough tasks to balance two or more cores, little overhead.
-    constexpr size_t kGrain = 4 * detail::kBlockRays;
+    // One kernel block per task at the finest: a batch of a few thousand rays still spreads over
+    // the cores, and a task's sorting and tracing work dwarfs its scheduling.
+    constexpr size_t kGrain = detail::kBlockRays;
     tbb::parallel_for(tbb::blocked_range<size_t>(0, rays.size(), kGrain), [&](const tbb::blocked_range<size_t>& r) {
         trace_block<AnyHit>(tree, rays.subspan(r.begin(), r.size()), hits ? hits + r.begin() : nullptr,
                             occ ? occ + r.begin() : nullptr, options, counters.local());
@@ -104,6 +105,7 @@ void trace_batch(const KdTree& tree, std::span<const Ray> rays, Hit* hits, uint8
             stats->packet_rays += c.packet_rays;
             stats->single_rays += c.single_rays;
             stats->invalid_rays += c.invalid_rays;
+            stats->sorted_rays += c.sorted_rays;
         });
     }
 }

@@ -18,6 +18,7 @@ struct TraceCounters {
     uint64_t packet_rays = 0;  ///< rays traced inside packets
     uint64_t single_rays = 0;  ///< rays traced with the single-ray kernel
     uint64_t invalid_rays = 0; ///< rays answered as misses without tracing (NaN, zero direction, ...)
+    uint64_t sorted_rays = 0;  ///< valid rays of blocks sorted by origin and direction
 };
 
 /// One ISA's kernels. Each traces `count` rays on the calling thread, answers in input order.
@@ -35,8 +36,9 @@ const PacketKernels* packet_kernels_sse4() noexcept;
 const PacketKernels* packet_kernels_avx2() noexcept;
 const PacketKernels* packet_kernels_avx512() noexcept;
 
-/// Rays per block handed to a kernel: big enough to find same-octant neighbours, small enough
-/// that the bucket indices stay in L1.
-inline constexpr size_t kBlockRays = 256;
+/// Rays per block a kernel sorts for coherence (packet_kernel.h, order_block): big enough that
+/// rays from a few image rows find their neighbours across rows, small enough that the keys and
+/// indices (24 KiB) stay in L1/L2 and fit 16-bit indices.
+inline constexpr size_t kBlockRays = 4096;
 
 }  // namespace kdrt::detail

@@ -95,7 +95,7 @@ run_bench(shadow_line rays "${MESH}" --kind shadow --res 64 --seed 7 --out "${sh
 expect_value("${shadow_line}" occlusion ON)  # CMake renders JSON true as ON
 
 # trace
-set(trace_keys rays occlusion mode threads isa packets packet_rays single_rays builder reps parse_ms
+set(trace_keys rays occlusion mode threads isa packets packet_rays single_rays sorted_rays builder reps parse_ms
                build_ms seconds seconds_min mrays_per_s hits cpu_util)
 run_bench(trace_line trace "${MESH}" "${primary}" --reps 2 --threads 2 --out "${hits}")
 expect_keys("${trace_line}" ${trace_keys})

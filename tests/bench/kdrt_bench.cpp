@@ -83,8 +83,8 @@ constexpr std::string_view kTraceUsage =
 
 Builds the tree of MESH, then traces the rays of RAYS.kdrr K times (default 5) after one untimed
 warm-up pass: closest hits, or occlusion when the batch has flag bit 0 set. Prints one JSON line:
-  mesh, rays_file, rays, occlusion, mode, isa, packets, packet_rays, single_rays (how the mode
-  split the rays), threads, builder, c_isect, reps, parse_ms, build_ms,
+  mesh, rays_file, rays, occlusion, mode, isa, packets, packet_rays, single_rays, sorted_rays
+  (how the mode split the rays), threads, builder, c_isect, reps, parse_ms, build_ms,
   seconds (tracing only, median of the K passes), seconds_min, mrays_per_s (from the median),
   hits (rays that hit, or are occluded), cpu_util (process CPU seconds per wall second while
   tracing: near `threads` only when the workers had their cores; lower = a noisy measurement)
@@ -398,6 +398,7 @@ int run_trace(const Args& args) {
     line["packets"] = stats.packets;
     line["packet_rays"] = stats.packet_rays;
     line["single_rays"] = stats.single_rays;
+    line["sorted_rays"] = stats.sorted_rays;
     line["threads"] = threads;
     line["builder"] = builder_name(build_options.builder);
     line["c_isect"] = build_options.intersection_cost;

@@ -3,6 +3,7 @@
 
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <cstring>
 
 #include <tbb/task_arena.h>
@@ -145,6 +146,31 @@ TEST(PacketEquivalence, TailsAndDeadLanes) {
             std::vector<uint8_t> occ(rays.size(), 7);
             occluded(tree, rays, occ, {TraceMode::kPacket, isa});
             for (uint8_t o : occ) EXPECT_EQ(o, 0);
+        }
+    }
+}
+
+TEST(PacketEquivalence, OnlyIncoherentBlocksAreSortedAndSortingKeepsTheAnswers) {
+    auto mesh = proto::load_mesh_file(std::string(KDRT_TEST_DATA_DIR) + "/bunny00.off");
+    ASSERT_TRUE(mesh.ok());
+    const KdTree tree = build_kdtree(*mesh);
+    const uint32_t res = static_cast<uint32_t>(std::max<size_t>(scaled(256), 96));
+    for (Isa isa : supported_isas()) {
+        if (isa == Isa::kScalar) continue;  // the scalar path traces rays in input order
+        for (RayKind kind : {RayKind::kPrimary, RayKind::kShadow, RayKind::kDiffuse, RayKind::kRandom}) {
+            const std::string what = std::string(isa_name(isa)) + "/" + std::string(ray_kind_name(kind));
+            const std::vector<Ray> rays = generate_rays(tree, {kind, res, 11});
+            std::vector<Hit> hits(rays.size());
+            TraceStats stats;
+            intersect(tree, rays, hits, {TraceMode::kAuto, isa}, &stats);
+            expect_identical_bytes(hits, reference_hits(tree, rays), what);
+            const bool incoherent = kind == RayKind::kDiffuse || kind == RayKind::kRandom;
+            if (incoherent) {
+                // Every block of these sets is sorted: all their valid rays.
+                EXPECT_EQ(stats.sorted_rays, rays.size() - stats.invalid_rays) << what;
+            } else {
+                EXPECT_EQ(stats.sorted_rays, 0u) << what << ": one origin or one direction keeps the input order";
+            }
         }
     }
 }

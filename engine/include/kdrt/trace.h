@@ -70,12 +70,15 @@ struct TraceStats {
     uint64_t packet_rays = 0;
     uint64_t single_rays = 0;
     uint64_t invalid_rays = 0;
+    /// Valid rays of blocks the tracer found incoherent and sorted by origin and direction before
+    /// cutting packets (the rest keep their input order, split only by octant).
+    uint64_t sorted_rays = 0;
 };
 
 /// Batch queries for arbitrary input, over all threads of the current oneTBB arena. Answers come
 /// back in input order; `hits` / `occluded_out` must have rays.size() elements (1 = occluded).
-/// Rays are grouped by direction octant inside blocks of 256 and traced as SIMD packets when the
-/// policy says so. No allocation; per-thread scratch only.
+/// Rays are sorted by octant, origin and direction inside blocks of 4096 and traced as SIMD
+/// packets when the policy says so. No allocation; per-thread scratch only.
 void intersect(const KdTree& tree, std::span<const Ray> rays, std::span<Hit> hits, const TraceOptions& options = {},
                TraceStats* stats = nullptr) noexcept;
 void occluded(const KdTree& tree, std::span<const Ray> rays, std::span<uint8_t> occluded_out,
