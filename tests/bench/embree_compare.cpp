@@ -391,13 +391,21 @@ EmbreeReport compare_with_embree(const Mesh& mesh, const proto::RayBatch& batch,
                     batch.occlusion ? (occluded[i] != 0) != (kd_occluded[i] != 0) : hits_differ(t_scale, rays[i], kd_hits[i], hits[i]);
                 if (!differ) continue;
                 ++timing.differences;
-                if (!batch.occlusion && is_tie(t_scale, tris, rays[i], kd_hits[i], hits[i])) ++timing.ties;
+                if (batch.occlusion) continue;
+                if (is_tie(t_scale, tris, rays[i], kd_hits[i], hits[i])) {
+                    ++timing.ties;
+                } else {
+                    // Who is right? The brute-force oracle (every triangle, kdrt's watertight test).
+                    const Hit truth = brute_force_intersect(tris, rays[i]);
+                    if (std::memcmp(&truth, &kd_hits[i], sizeof(Hit)) == 0) ++timing.kdrt_matches_oracle;
+                }
             }
             if (report.best_mode.empty() || timing.mrays_per_s > report.best_mrays_per_s) {
                 report.best_mode = timing.name;
                 report.best_mrays_per_s = timing.mrays_per_s;
                 report.differences = timing.differences;
                 report.ties = timing.ties;
+                report.kdrt_matches_oracle = timing.kdrt_matches_oracle;
             }
             report.modes.push_back(std::move(timing));
         }

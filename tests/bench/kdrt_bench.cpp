@@ -95,7 +95,8 @@ rtcIntersect1/1M/4/8/16 (rtcOccluded* for occlusion), incoherent and coherent, a
   build), differences (rays whose answer differs in the best mode: another prim, or t off by
   more than 1e-4 relative and 1e-7 of the scene diagonal; for occlusion another bit), ties (of those, rays where both hit at
   the same t on triangles that share a corner, or that kdrt's test hits too: both answers
-  right) and embree_modes (Mrays/s of every mode).
+  right), kdrt_matches_oracle (of the other differences, rays where kdrt's answer is the
+  brute-force oracle's) and embree_modes (Mrays/s of every mode).
 
 options:
   --mode single|packet|auto  traversal (default auto: packets where rays are coherent)
@@ -144,8 +145,8 @@ loop's overhead is the difference. Prints one JSON line:
   batch_seconds) - 1: what tiling, ray generation and shading add to tracing the same rays
 With --compare embree the same camera rays also go through Embree 3 (as in `trace --compare
 embree`), adding embree_mrays_per_s, embree_best_mode, embree_fps (camera rays of a frame at
-Embree's best speed), ratio (mrays_per_s / embree_mrays_per_s), embree_build_ms, differences, ties and
-embree_modes.
+Embree's best speed), ratio (mrays_per_s / embree_mrays_per_s), embree_build_ms, differences, ties,
+kdrt_matches_oracle and embree_modes.
 
 options:
   --shading MODE    normals, eyelight, depth, primid, ao, diffuse (default eyelight)
@@ -421,6 +422,7 @@ int run_trace(const Args& args) {
         line["embree_bytes_per_triangle"] = rounded(embree->bytes_per_triangle, 2);
         line["differences"] = embree->differences;
         line["ties"] = embree->ties;
+        line["kdrt_matches_oracle"] = embree->kdrt_matches_oracle;
         Json modes = Json::object();
         for (const EmbreeModeTiming& m : embree->modes) modes[m.name] = rounded(m.mrays_per_s, 3);
         line["embree_modes"] = modes;
@@ -629,6 +631,7 @@ int run_render(const Args& args) {
         line["embree_build_ms"] = rounded(embree->build_ms, 3);
         line["differences"] = embree->differences;
         line["ties"] = embree->ties;
+        line["kdrt_matches_oracle"] = embree->kdrt_matches_oracle;
         Json modes = Json::object();
         for (const EmbreeModeTiming& m : embree->modes) modes[m.name] = rounded(m.mrays_per_s, 3);
         line["embree_modes"] = modes;

@@ -49,7 +49,7 @@ columns=(scene triangles "build ms" "ray set" rays "hit %")
 for t in $threads_list; do columns+=("${t}T Mrays/s"); done
 if [[ -n $compare ]]; then
     for t in $threads_list; do columns+=("Embree ${t}T Mrays/s (mode)" "kdrt/Embree ${t}T"); done
-    columns+=("Embree build ms" "bytes/tri kdrt / Embree" "differences (ties)")
+    columns+=("Embree build ms" "bytes/tri kdrt / Embree" "differences (ties, kdrt = oracle)")
 fi
 printf '| %s ' "${columns[@]}"
 echo "|"
@@ -101,7 +101,7 @@ for scene in "${scenes[@]}"; do
         if [[ -n $compare ]]; then  # from the last thread count's run
             embree_cols+=" $(json_get "$line" embree_build_ms) |"
             embree_cols+=" $bytes_per_tri / $(json_get "$line" embree_bytes_per_triangle) |"
-            embree_cols+=" $(json_get "$line" differences) ($(json_get "$line" ties)) |"
+            embree_cols+=" $(json_get "$line" differences) ($(json_get "$line" ties), $(json_get "$line" kdrt_matches_oracle)) |"
         fi
         echo "| $stem | $triangles | $build_ms | $kind | $rays | $hit_pct |$speeds$embree_cols"
     done
