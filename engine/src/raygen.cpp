@@ -125,8 +125,8 @@ void parallel_indices(size_t count, Body body) {
     });
 }
 
-std::vector<Ray> primary_rays(const KdTree& tree, uint32_t res) {
-    const Camera camera(default_camera(scene_box(tree), 1.0f), res, res);
+std::vector<Ray> primary_rays(const KdTree& tree, uint32_t res, const std::optional<CameraSpec>& spec) {
+    const Camera camera(spec ? *spec : default_camera(scene_box(tree), 1.0f), res, res);
     std::vector<Ray> rays(size_t{res} * res);
     parallel_indices(rays.size(), [&](size_t i) {
         const auto x = static_cast<uint32_t>(i % res);
@@ -138,8 +138,9 @@ std::vector<Ray> primary_rays(const KdTree& tree, uint32_t res) {
 
 /// One secondary ray per primary hit, in pixel order; `make(i, point, primary)` builds ray i.
 template <typename Make>
-std::vector<Ray> secondary_rays(const KdTree& tree, uint32_t res, Make make) {
-    const std::vector<Ray> primary = primary_rays(tree, res);
+std::vector<Ray> secondary_rays(const KdTree& tree, uint32_t res, const std::optional<CameraSpec>& camera,
+                                Make make) {
+    const std::vector<Ray> primary = primary_rays(tree, res, camera);
     std::vector<Hit> hits(primary.size());
     intersect_single(tree, primary, hits);
     std::vector<uint32_t> hit_pixels;
@@ -155,7 +156,7 @@ std::vector<Ray> secondary_rays(const KdTree& tree, uint32_t res, Make make) {
     return rays;
 }
 
-std::vector<Ray> shadow_rays(const KdTree& tree, uint32_t res) {
+std::vector<Ray> shadow_rays(const KdTree& tree, uint32_t res, const std::optional<CameraSpec>& camera) {
     // A point light above, in front of and to the right of the scene, 1.5 box diagonals from its
     // centre: outside the box, so every shadow segment ends in empty space. (A box with a zero
     // diagonal holds only zero-area triangles, which are never hit, so there are no shadow rays.)
@@ -164,7 +165,7 @@ std::vector<Ray> shadow_rays(const KdTree& tree, uint32_t res) {
     const Vec3 centre = (box.lo + box.hi) * 0.5f;
     const float diag = std::sqrt(dot(ext, ext));
     const Vec3 light = centre + normalized(Vec3{0.6f, 1.0f, 0.8f}) * (1.5f * diag);
-    return secondary_rays(tree, res, [&](uint32_t, const SurfacePoint& s) {
+    return secondary_rays(tree, res, camera, [&](uint32_t, const SurfacePoint& s) {
         const Vec3 to_light = light - s.origin;
         const float distance = std::sqrt(dot(to_light, to_light));
         const Vec3 dir = to_light * (1.0f / distance);
@@ -173,8 +174,9 @@ std::vector<Ray> shadow_rays(const KdTree& tree, uint32_t res) {
     });
 }
 
-std::vector<Ray> diffuse_rays(const KdTree& tree, uint32_t res, uint64_t seed) {
-    return secondary_rays(tree, res, [&](uint32_t pixel, const SurfacePoint& s) {
+std::vector<Ray> diffuse_rays(const KdTree& tree, uint32_t res, uint64_t seed,
+                              const std::optional<CameraSpec>& camera) {
+    return secondary_rays(tree, res, camera, [&](uint32_t pixel, const SurfacePoint& s) {
         CounterRng rng(seed, RayKind::kDiffuse, pixel);
         const Vec3 dir = cosine_direction(s.normal, rng);
         return Ray{s.origin.x, s.origin.y, s.origin.z, 0.0f, dir.x, dir.y, dir.z, kInf};
@@ -230,11 +232,11 @@ std::vector<Ray> generate_rays(const KdTree& tree, const RayGenOptions& options)
     if (options.res == 0) return {};
     switch (options.kind) {
         case RayKind::kPrimary:
-            return primary_rays(tree, options.res);
+            return primary_rays(tree, options.res, options.camera);
         case RayKind::kShadow:
-            return shadow_rays(tree, options.res);
+            return shadow_rays(tree, options.res, options.camera);
         case RayKind::kDiffuse:
-            return diffuse_rays(tree, options.res, options.seed);
+            return diffuse_rays(tree, options.res, options.seed, options.camera);
         case RayKind::kRandom:
             return random_rays(tree, options.res, options.seed);
     }

@@ -7,6 +7,7 @@
 
 #include <algorithm>
 #include <array>
+#include <charconv>
 #include <chrono>
 #include <cmath>
 #include <cstdint>
@@ -111,20 +112,24 @@ options:
 
 constexpr std::string_view kRaysUsage =
     R"(usage: kdrt-bench rays MESH --kind primary|shadow|diffuse|random --out FILE
-                       [--res R] [--seed S] [--threads N]
+                       [--res R] [--seed S] [--eye X,Y,Z --look-at X,Y,Z] [--threads N]
 
 Writes a deterministic KDRR ray set for MESH (the same bytes on any machine and thread count):
-  primary  R x R camera rays through the pixel centres of the default view of the mesh
+  primary  R x R camera rays through the pixel centres of the default view of the mesh (or of
+           the camera at --eye looking at --look-at: up +y, 40 degree field of view)
   shadow   one occlusion ray per primary hit, towards a point light (flag bit 0 set)
   diffuse  one cosine-weighted ray per primary hit, into the hemisphere facing the camera
   random   R x R rays, origins uniform in the mesh bounds, directions uniform on the sphere
-Prints one JSON line: mesh, kind, res, seed, rays, occlusion, out, bytes, generate_ms.
+Prints one JSON line: mesh, kind, res, seed, rays, occlusion, out, bytes, generate_ms, camera
+("default", or "eye X,Y,Z look_at X,Y,Z").
 
 options:
   --kind K       ray set (required)
   --out FILE     output KDRR file (required)
   --res R        image resolution R x R (default 1024)
   --seed S       random seed for diffuse and random (default 1)
+  --eye X,Y,Z    camera position for primary, shadow and diffuse (with --look-at)
+  --look-at X,Y,Z  the point the camera looks at (with --eye)
   --threads N    worker threads (default: all cores)
 )";
 
@@ -431,6 +436,22 @@ int run_trace(const Args& args) {
     return 0;
 }
 
+/// "X,Y,Z": three finite numbers.
+Vec3 parse_vec3(std::string_view option, const std::string& text) {
+    Vec3 v;
+    const char* p = text.data();
+    const char* const end = text.data() + text.size();
+    for (int a = 0; a < 3; ++a) {
+        const auto [next, ec] = std::from_chars(p, end, v[a]);
+        const bool separator_ok = a < 2 ? (next != end && *next == ',') : next == end;
+        if (ec != std::errc() || !separator_ok || !std::isfinite(v[a])) {
+            throw UsageError("option '--" + std::string(option) + "': '" + text + "' is not X,Y,Z (three finite numbers)");
+        }
+        p = next + 1;
+    }
+    return v;
+}
+
 int run_rays(const Args& args) {
     static constexpr std::array<std::string_view, 1> kNames = {"MESH"};
     args.expect_positional(kNames);
@@ -445,6 +466,25 @@ int run_rays(const Args& args) {
     options.kind = *kind;
     options.res = static_cast<uint32_t>(args.get_uint("res", 1024, 1, 65535));
     options.seed = args.get_uint("seed", 1, 0, std::numeric_limits<uint64_t>::max());
+    const auto eye = args.get("eye"), look_at = args.get("look-at");
+    if (eye.has_value() != look_at.has_value()) {
+        throw UsageError(std::string("option '--") + (eye ? "look-at" : "eye") + "' is required with '--" +
+                         (eye ? "eye" : "look-at") + "'");
+    }
+    std::string camera_text = "default";
+    if (eye) {
+        CameraSpec spec;
+        spec.eye = parse_vec3("eye", *eye);
+        spec.look_at = parse_vec3("look-at", *look_at);
+        // Checked here, before the mesh is loaded: a bad camera is a command-line error.
+        try {
+            (void)Camera(spec, 1, 1);
+        } catch (const CameraError& e) {
+            throw UsageError(std::string("options '--eye'/'--look-at': ") + e.what());
+        }
+        options.camera = spec;
+        camera_text = "eye " + *eye + " look_at " + *look_at;
+    }
     const unsigned threads = thread_count(args);
 
     const LoadedMesh loaded = load_mesh(mesh_path);
@@ -471,6 +511,7 @@ int run_rays(const Args& args) {
     line["out"] = out_path;
     line["bytes"] = bytes.size();
     line["generate_ms"] = rounded(generate_ms, 3);
+    line["camera"] = camera_text;
     print_json(line);
     return 0;
 }
@@ -651,7 +692,7 @@ struct Command {
 constexpr std::array<std::string_view, 4> kBuildOptions = {"builder", "c-isect", "threads", "reps"};
 constexpr std::array<std::string_view, 8> kTraceOptions = {"mode", "isa",     "threads", "reps",
                                                             "out",  "builder", "c-isect", "compare"};
-constexpr std::array<std::string_view, 5> kRaysOptions = {"kind", "res", "seed", "out", "threads"};
+constexpr std::array<std::string_view, 7> kRaysOptions = {"kind", "res", "seed", "out", "eye", "look-at", "threads"};
 constexpr std::array<std::string_view, 4> kSceneOptions = {"out", "size", "from", "copies"};
 constexpr std::array<std::string_view, 13> kRenderOptions = {"shading", "res",     "spp",     "tile",  "threads",
                                                              "reps",    "seed",    "ao-samples", "bounces", "builder",

@@ -129,6 +129,36 @@ TEST(RayGen, PrimaryRaysAreTheDefaultCameraThroughPixelCentres) {
     EXPECT_FALSE(intersect(scene_tree(), rays[kRes - 1]).is_hit());
 }
 
+TEST(RayGen, AGivenCameraReplacesTheDefaultForPrimaryAndSecondarySets) {
+    constexpr uint32_t kRes = 32;
+    const KdTree& tree = scene_tree();
+    CameraSpec spec = default_camera(tree.bounds, 1.0f);
+    spec.eye = spec.eye + Vec3{0.5f, 0.25f, 0.0f};  // a different view of the same scene
+    RayGenOptions options{RayKind::kPrimary, kRes, 1};
+    options.camera = spec;
+    const std::vector<Ray> rays = generate_rays(tree, options);
+    ASSERT_EQ(rays.size(), kRes * kRes);
+    const Camera camera(spec, kRes, kRes);
+    for (uint32_t y = 0; y < kRes; ++y) {
+        for (uint32_t x = 0; x < kRes; ++x) {
+            const Ray want = camera.ray(x + 0.5f, y + 0.5f);
+            ASSERT_EQ(std::memcmp(&rays[y * kRes + x], &want, sizeof(Ray)), 0) << x << "," << y;
+        }
+    }
+    EXPECT_FALSE(same_bytes(rays, generate(RayKind::kPrimary, kRes, 1)));
+    // Shadow and diffuse sets start at this camera's hits: one ray per hit pixel.
+    size_t hit_pixels = 0;
+    for (const Ray& r : rays) hit_pixels += intersect(tree, r).is_hit() ? 1 : 0;
+    ASSERT_GT(hit_pixels, 0u);
+    for (RayKind kind : {RayKind::kShadow, RayKind::kDiffuse}) {
+        options.kind = kind;
+        EXPECT_EQ(generate_rays(tree, options).size(), hit_pixels) << ray_kind_name(kind);
+    }
+    // Random rays do not use a camera.
+    options.kind = RayKind::kRandom;
+    EXPECT_TRUE(same_bytes(generate_rays(tree, options), generate(RayKind::kRandom, kRes, 1)));
+}
+
 TEST(RayGen, SameSeedGivesIdenticalBytes) {
     const uint64_t seed = test_seed();
     SCOPED_TRACE(testing::Message() << "seed=" << seed);
