@@ -394,6 +394,17 @@ inline bool block_is_incoherent(const Ray* block, int n, float lo[3], float hi[3
     return origins_differ && spread >= kSortSpread;
 }
 
+/// True for a ray the kernels trace; any other is answered as a miss here, at `at`.
+template <bool AnyHit>
+inline bool traceable_or_miss(const KdTree& tree, const Ray& r, size_t at, Hit* hits, uint8_t* occluded,
+                              TraceCounters& counters) {
+    if (ray_is_valid(r) && !tree.bounds.empty()) return true;
+    if constexpr (AnyHit) occluded[at] = 0;
+    else hits[at] = Hit{};
+    ++counters.invalid_rays;
+    return false;
+}
+
 /// Collects the valid rays of block[0, n) (indices into the block, keys with their octant) and
 /// answers the invalid ones as misses. Returns how many are valid.
 template <bool AnyHit>
@@ -402,12 +413,7 @@ inline int collect_valid(const KdTree& tree, const Ray* block, size_t base, int 
     int valid = 0;
     for (int i = 0; i < n; ++i) {
         const Ray& r = block[i];
-        if (!ray_is_valid(r) || tree.bounds.empty()) {
-            if constexpr (AnyHit) occluded[base + static_cast<size_t>(i)] = 0;
-            else hits[base + static_cast<size_t>(i)] = Hit{};
-            ++counters.invalid_rays;
-            continue;
-        }
+        if (!traceable_or_miss<AnyHit>(tree, r, base + static_cast<size_t>(i), hits, occluded, counters)) continue;
         index[valid] = static_cast<uint16_t>(i);
         key[valid] = octant(r) << kOctantShift;
         ++valid;
@@ -445,56 +451,49 @@ inline bool sort_by_origin_and_direction(const Ray* block, int valid, const floa
     return in_tmp;
 }
 
-/// Traces the valid rays of a block in the order of `index` (octant runs in `key`): cuts each
-/// octant's run into packets of W and traces each as a packet or as single rays.
+/// Traces `count` rays of one octant, block[order[0..count)], W at a time: each group as a packet
+/// or as single rays (the policy).
 template <int W, bool AnyHit>
-[[gnu::always_inline]] inline void trace_ordered(const KdTree& tree, const Ray* block, size_t base, const uint32_t* key,
-                          const uint16_t* order, int valid, Hit* hits, uint8_t* occluded, Policy policy,
-                          TraceCounters& counters) {
-    for (int first = 0; first < valid;) {
-        const uint32_t oct = key[first] >> kOctantShift;
-        int end = first + 1;
-        while (end < valid && (key[end] >> kOctantShift) == oct) ++end;
-        for (int p = first; p < end; p += W) {
-            const int lanes = end - p < W ? end - p : W;
-            const uint16_t* index = &order[p];
-            const bool as_packet =
-                policy == Policy::kPacket || (policy == Policy::kAuto && packet_pays(lanes, W));
-            if (!as_packet) {
-                for (int l = 0; l < lanes; ++l) {
-                    const size_t i = base + index[l];
-                    if constexpr (AnyHit) occluded[i] = kdrt::occluded(tree, block[index[l]]) ? 1 : 0;
-                    else hits[i] = kdrt::intersect(tree, block[index[l]]);
-                }
-                counters.single_rays += static_cast<uint64_t>(lanes);
-                continue;
+[[gnu::always_inline]] inline void trace_run(const KdTree& tree, const Ray* block, size_t base,
+                                             const uint16_t* order, int count, Hit* hits, uint8_t* occluded,
+                                             Policy policy, TraceCounters& counters) {
+    for (int p = 0; p < count; p += W) {
+        const int lanes = count - p < W ? count - p : W;
+        const uint16_t* index = &order[p];
+        const bool as_packet = policy == Policy::kPacket || (policy == Policy::kAuto && packet_pays(lanes, W));
+        if (!as_packet) {
+            for (int l = 0; l < lanes; ++l) {
+                const size_t i = base + index[l];
+                if constexpr (AnyHit) occluded[i] = kdrt::occluded(tree, block[index[l]]) ? 1 : 0;
+                else hits[i] = kdrt::intersect(tree, block[index[l]]);
             }
-            Packet<W> pk;
-            setup_packet<W>(tree, block, index, lanes, pk);
-            PacketHits<W> best;
-            best.t = pk.ray_tmax;
-            best.u = simd::broadcast<W>(0.0f);
-            best.v = simd::broadcast<W>(0.0f);
-            best.prim = simd::broadcast_u<W>(kNoHit);
-            const VM<W> occ = traverse_packet<W, AnyHit>(tree, pk, best);
-            ++counters.packets;
-            counters.packet_rays += static_cast<uint64_t>(lanes);
-            if constexpr (AnyHit) {
-                const uint32_t mask = simd::bits<W>(occ);
-                for (int l = 0; l < lanes; ++l) occluded[base + index[l]] = (mask >> l) & 1u;
-            } else {
-                alignas(64) float t[W], u[W], v[W];
-                alignas(64) uint32_t prim[W];
-                simd::store<W>(t, best.t);
-                simd::store<W>(u, best.u);
-                simd::store<W>(v, best.v);
-                __builtin_memcpy(prim, &best.prim, sizeof prim);
-                for (int l = 0; l < lanes; ++l) {
-                    hits[base + index[l]] = prim[l] == kNoHit ? Hit{} : Hit{t[l], prim[l], u[l], v[l]};
-                }
+            counters.single_rays += static_cast<uint64_t>(lanes);
+            continue;
+        }
+        Packet<W> pk;
+        setup_packet<W>(tree, block, index, lanes, pk);
+        PacketHits<W> best;
+        best.t = pk.ray_tmax;
+        best.u = simd::broadcast<W>(0.0f);
+        best.v = simd::broadcast<W>(0.0f);
+        best.prim = simd::broadcast_u<W>(kNoHit);
+        const VM<W> occ = traverse_packet<W, AnyHit>(tree, pk, best);
+        ++counters.packets;
+        counters.packet_rays += static_cast<uint64_t>(lanes);
+        if constexpr (AnyHit) {
+            const uint32_t mask = simd::bits<W>(occ);
+            for (int l = 0; l < lanes; ++l) occluded[base + index[l]] = (mask >> l) & 1u;
+        } else {
+            alignas(64) float t[W], u[W], v[W];
+            alignas(64) uint32_t prim[W];
+            simd::store<W>(t, best.t);
+            simd::store<W>(u, best.u);
+            simd::store<W>(v, best.v);
+            __builtin_memcpy(prim, &best.prim, sizeof prim);
+            for (int l = 0; l < lanes; ++l) {
+                hits[base + index[l]] = prim[l] == kNoHit ? Hit{} : Hit{t[l], prim[l], u[l], v[l]};
             }
         }
-        first = end;
     }
 }
 
@@ -515,11 +514,15 @@ void trace_rays(const KdTree& tree, const Ray* rays, size_t count, Hit* hits, ui
         if (block_is_incoherent(block, n, lo, hi)) {
             const int valid = collect_valid<AnyHit>(tree, block, base, n, hits, occluded, counters, key, index);
             counters.sorted_rays += static_cast<uint64_t>(valid);
-            if (sort_by_origin_and_direction(block, valid, lo, hi, key, index, key_tmp, index_tmp)) {
-                trace_ordered<W, AnyHit>(tree, block, base, key_tmp, index_tmp, valid, hits, occluded, policy,
-                                         counters);
-            } else {
-                trace_ordered<W, AnyHit>(tree, block, base, key, index, valid, hits, occluded, policy, counters);
+            const bool in_tmp = sort_by_origin_and_direction(block, valid, lo, hi, key, index, key_tmp, index_tmp);
+            const uint32_t* sorted_key = in_tmp ? key_tmp : key;
+            const uint16_t* sorted = in_tmp ? index_tmp : index;
+            for (int first = 0; first < valid;) {  // one run per octant (the keys' top bits)
+                const uint32_t oct = sorted_key[first] >> kOctantShift;
+                int end = first + 1;
+                while (end < valid && (sorted_key[end] >> kOctantShift) == oct) ++end;
+                trace_run<W, AnyHit>(tree, block, base, sorted + first, end - first, hits, occluded, policy, counters);
+                first = end;
             }
             continue;
         }
@@ -532,20 +535,13 @@ void trace_rays(const KdTree& tree, const Ray* rays, size_t count, Hit* hits, ui
             int bucket_size[8] = {0, 0, 0, 0, 0, 0, 0, 0};
             for (int i = 0; i < m; ++i) {
                 const Ray& r = run[i];
-                if (!ray_is_valid(r) || tree.bounds.empty()) {
-                    if constexpr (AnyHit) occluded[run_base + static_cast<size_t>(i)] = 0;
-                    else hits[run_base + static_cast<size_t>(i)] = Hit{};
-                    ++counters.invalid_rays;
+                if (!traceable_or_miss<AnyHit>(tree, r, run_base + static_cast<size_t>(i), hits, occluded, counters))
                     continue;
-                }
                 const uint32_t o = octant(r);
                 bucket[o][bucket_size[o]++] = static_cast<uint16_t>(i);
             }
             for (int o = 0; o < 8; ++o) {
-                if (bucket_size[o] == 0) continue;
-                for (int j = 0; j < bucket_size[o]; ++j) key[j] = static_cast<uint32_t>(o) << kOctantShift;
-                trace_ordered<W, AnyHit>(tree, run, run_base, key, bucket[o], bucket_size[o], hits, occluded, policy,
-                                         counters);
+                trace_run<W, AnyHit>(tree, run, run_base, bucket[o], bucket_size[o], hits, occluded, policy, counters);
             }
         }
     }

@@ -256,6 +256,16 @@ void write_output(const std::string& path, std::span<const std::byte> bytes) {
     if (!written) throw BenchError(written.error());
 }
 
+/// The keys both --compare embree outputs end with: how the answers compare, and every mode's speed.
+void put_embree_answers(Json& line, const EmbreeReport& embree) {
+    line["differences"] = embree.differences;
+    line["ties"] = embree.ties;
+    line["kdrt_matches_oracle"] = embree.kdrt_matches_oracle;
+    Json modes = Json::object();
+    for (const EmbreeModeTiming& m : embree.modes) modes[m.name] = rounded(m.mrays_per_s, 3);
+    line["embree_modes"] = modes;
+}
+
 int run_build(const Args& args) {
     static constexpr std::array<std::string_view, 1> kNames = {"MESH"};
     args.expect_positional(kNames);
@@ -425,12 +435,7 @@ int run_trace(const Args& args) {
         line["ratio"] = embree->best_mrays_per_s > 0 ? rounded(mrays_per_s / embree->best_mrays_per_s, 4) : 0.0;
         line["embree_build_ms"] = rounded(embree->build_ms, 3);
         line["embree_bytes_per_triangle"] = rounded(embree->bytes_per_triangle, 2);
-        line["differences"] = embree->differences;
-        line["ties"] = embree->ties;
-        line["kdrt_matches_oracle"] = embree->kdrt_matches_oracle;
-        Json modes = Json::object();
-        for (const EmbreeModeTiming& m : embree->modes) modes[m.name] = rounded(m.mrays_per_s, 3);
-        line["embree_modes"] = modes;
+        put_embree_answers(line, *embree);
     }
     print_json(line);
     return 0;
@@ -670,12 +675,7 @@ int run_render(const Args& args) {
         line["embree_fps"] = rounded(embree->best_mrays_per_s * 1e6 / static_cast<double>(stats.primary_rays), 3);
         line["ratio"] = embree->best_mrays_per_s > 0 ? rounded(mrays_per_s / embree->best_mrays_per_s, 4) : 0.0;
         line["embree_build_ms"] = rounded(embree->build_ms, 3);
-        line["differences"] = embree->differences;
-        line["ties"] = embree->ties;
-        line["kdrt_matches_oracle"] = embree->kdrt_matches_oracle;
-        Json modes = Json::object();
-        for (const EmbreeModeTiming& m : embree->modes) modes[m.name] = rounded(m.mrays_per_s, 3);
-        line["embree_modes"] = modes;
+        put_embree_answers(line, *embree);
     }
     if (out_path) line["out"] = *out_path;
     print_json(line);
