@@ -40,7 +40,8 @@ bool start_up(Service& svc) {
         return false;
     }
     log_event(LogLevel::kInfo, "mesh index loaded",
-              {{"meshes", static_cast<uint64_t>(svc.cache.mesh_count())}, {"disk_bytes", svc.cache.disk_bytes()}});
+              {{"meshes", static_cast<uint64_t>(svc.cache.mesh_count())},
+               {"disk_bytes", svc.cache.disk_bytes()}});
     for (const std::string& file : svc.config.preload) {
         if (svc.shutting_down) return true;
         proto::MeshLimits limits;
@@ -58,7 +59,8 @@ bool start_up(Service& svc) {
         }
         auto added = svc.cache.add(std::move(*mesh));
         if (!added) {
-            log_event(LogLevel::kCritical, "cannot preload mesh", {{"file", file}, {"error", added.error().detail}});
+            log_event(LogLevel::kCritical, "cannot preload mesh",
+                      {{"file", file}, {"error", added.error().detail}});
             return false;
         }
         log_event(LogLevel::kInfo, "preloaded",
@@ -91,7 +93,8 @@ int run_server(const ServerConfig& config) {
         return 1;
     }
     Service svc(config);
-    svc.metrics.set_build_info({{"version", KDRT_VERSION}, {"httplib", httplib_version()}, {"compiler", __VERSION__}});
+    svc.metrics.set_build_info(
+        {{"version", KDRT_VERSION}, {"httplib", httplib_version()}, {"compiler", __VERSION__}});
     HttpServer http(svc);
     auto port = http.bind(listen->first, listen->second);
     if (!port) {
@@ -100,7 +103,8 @@ int run_server(const ServerConfig& config) {
     }
     if (!config.port_file.empty()) {
         if (auto written = write_port_file(config.port_file, *port); !written) {
-            log_event(LogLevel::kCritical, "cannot write the port file", {{"error", written.error()}});
+            log_event(LogLevel::kCritical, "cannot write the port file",
+                      {{"error", written.error()}});
             return 1;
         }
     }
@@ -127,7 +131,8 @@ int run_server(const ServerConfig& config) {
         }
         if (svc.shutting_down) return;
         svc.ready = true;
-        log_event(LogLevel::kInfo, "ready", {{"meshes", static_cast<uint64_t>(svc.cache.mesh_count())}});
+        log_event(LogLevel::kInfo, "ready",
+                  {{"meshes", static_cast<uint64_t>(svc.cache.mesh_count())}});
     });
 
     int exit_code = 0;
@@ -137,7 +142,8 @@ int run_server(const ServerConfig& config) {
         if (sig == SIGUSR1 && !listener_failed && !startup_failed) continue;  // stale wake-up
         if (sig == SIGUSR1) {
             exit_code = 1;
-            log_event(LogLevel::kCritical, startup_failed ? "start-up failed" : "the listener stopped unexpectedly");
+            log_event(LogLevel::kCritical,
+                      startup_failed ? "start-up failed" : "the listener stopped unexpectedly");
         } else {
             log_event(LogLevel::kInfo, "shutting down",
                       {{"signal", std::string_view(sig == SIGINT ? "SIGINT" : "SIGTERM")},
@@ -152,7 +158,8 @@ int run_server(const ServerConfig& config) {
     bool done = false;
     std::thread watchdog([&] {
         std::unique_lock lock(mutex);
-        if (!done_cv.wait_for(lock, std::chrono::seconds(config.shutdown_timeout_s), [&] { return done; })) {
+        if (!done_cv.wait_for(lock, std::chrono::seconds(config.shutdown_timeout_s),
+                              [&] { return done; })) {
             log_event(LogLevel::kWarn, "shutdown timeout: exiting with requests still in flight");
             std::fflush(nullptr);
             ::_exit(exit_code);

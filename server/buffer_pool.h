@@ -29,7 +29,9 @@ public:
             std::lock_guard lock(mutex_);
             auto best = idle_.end();
             for (auto it = idle_.begin(); it != idle_.end(); ++it)
-                if (it->capacity() >= count && (best == idle_.end() || it->capacity() < best->capacity())) best = it;
+                if (it->capacity() >= count &&
+                    (best == idle_.end() || it->capacity() < best->capacity()))
+                    best = it;
             if (best != idle_.end()) {
                 std::vector<T> out = std::move(*best);
                 idle_bytes_ -= out.capacity() * sizeof(T);
@@ -77,7 +79,8 @@ public:
 
     AlignedBuffer() = default;
     /// At least `bytes` of storage (rounded up to the alignment). Throws std::bad_alloc.
-    explicit AlignedBuffer(size_t bytes) : capacity_((std::max<size_t>(bytes, 1) + kAlignment - 1) / kAlignment * kAlignment) {
+    explicit AlignedBuffer(size_t bytes)
+        : capacity_((std::max<size_t>(bytes, 1) + kAlignment - 1) / kAlignment * kAlignment) {
         data_ = static_cast<std::byte*>(std::aligned_alloc(kAlignment, capacity_));
         if (!data_) throw std::bad_alloc();
         // Large batches: ask for transparent huge pages (fewer faults on first use, fewer TLB
@@ -85,7 +88,8 @@ public:
         if (capacity_ >= (4u << 20)) ::madvise(data_, capacity_, MADV_HUGEPAGE);
     }
     AlignedBuffer(AlignedBuffer&& other) noexcept
-        : data_(std::exchange(other.data_, nullptr)), capacity_(std::exchange(other.capacity_, 0)) {}
+        : data_(std::exchange(other.data_, nullptr)),
+          capacity_(std::exchange(other.capacity_, 0)) {}
     AlignedBuffer& operator=(AlignedBuffer&& other) noexcept {
         if (this != &other) {
             std::free(data_);
@@ -122,7 +126,9 @@ public:
             std::lock_guard lock(mutex_);
             auto best = idle_.end();
             for (auto it = idle_.begin(); it != idle_.end(); ++it)
-                if (it->capacity() >= bytes && (best == idle_.end() || it->capacity() < best->capacity())) best = it;
+                if (it->capacity() >= bytes &&
+                    (best == idle_.end() || it->capacity() < best->capacity()))
+                    best = it;
             if (best != idle_.end()) {
                 AlignedBuffer out = std::move(*best);
                 idle_bytes_ -= out.capacity();

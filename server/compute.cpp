@@ -19,7 +19,8 @@ unsigned resolve_threads(unsigned requested) {
 Compute::Compute(unsigned threads)
     : threads_(resolve_threads(threads)),
       // Caps oneTBB's worker pool at the arena size: nothing else in the process may add threads.
-      control_(std::make_unique<tbb::global_control>(tbb::global_control::max_allowed_parallelism, threads_)),
+      control_(std::make_unique<tbb::global_control>(tbb::global_control::max_allowed_parallelism,
+                                                     threads_)),
       arena_(static_cast<int>(threads_)) {}
 
 KdTree Compute::build(const Mesh& mesh) {
@@ -42,7 +43,8 @@ void Compute::occluded(const KdTree& tree, std::span<const Ray> rays, std::span<
     arena_.execute([&] { kdrt::occluded(tree, rays, occluded); });
 }
 
-StreamTrace::StreamTrace(Compute& compute, const KdTree& tree, std::span<const Ray> rays, std::span<Hit> hits)
+StreamTrace::StreamTrace(Compute& compute, const KdTree& tree, std::span<const Ray> rays,
+                         std::span<Hit> hits)
     : compute_(compute), tree_(tree), rays_(rays), hits_(hits) {}
 
 StreamTrace::StreamTrace(Compute& compute, const KdTree& tree, std::span<const Ray> rays,

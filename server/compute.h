@@ -23,7 +23,8 @@ public:
 
     [[nodiscard]] unsigned threads() const noexcept { return threads_; }
 
-    /// Builds the SAH tree inside the arena. Throws what build_kdtree throws (MeshError, bad_alloc).
+    /// Builds the SAH tree inside the arena. Throws what build_kdtree throws (MeshError,
+    /// bad_alloc).
     [[nodiscard]] KdTree build(const Mesh& mesh);
 
     /// Batch queries. Batches below kInlineRays run on the calling thread (a 1-ray request must
@@ -54,8 +55,10 @@ private:
 /// (so a refused batch never leaves tasks writing into a buffer that went back to a pool).
 class StreamTrace {
 public:
-    StreamTrace(Compute& compute, const KdTree& tree, std::span<const Ray> rays, std::span<Hit> hits);
-    StreamTrace(Compute& compute, const KdTree& tree, std::span<const Ray> rays, std::span<uint8_t> occluded);
+    StreamTrace(Compute& compute, const KdTree& tree, std::span<const Ray> rays,
+                std::span<Hit> hits);
+    StreamTrace(Compute& compute, const KdTree& tree, std::span<const Ray> rays,
+                std::span<uint8_t> occluded);
     StreamTrace(const StreamTrace&) = delete;
     StreamTrace& operator=(const StreamTrace&) = delete;
     ~StreamTrace();

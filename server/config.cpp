@@ -30,7 +30,9 @@ struct Setting {
 
 const std::vector<Setting>& settings() {
     static const std::vector<Setting> table = {
-        {.key = "listen", .help = "HOST:PORT to listen on (port 0: any free port)", .text = &ServerConfig::listen},
+        {.key = "listen",
+         .help = "HOST:PORT to listen on (port 0: any free port)",
+         .text = &ServerConfig::listen},
         {.key = "port_file",
          .help = "write the bound port to this file once listening",
          .text = &ServerConfig::port_file},
@@ -66,12 +68,16 @@ const std::vector<Setting>& settings() {
          .help = "tracing and build threads (0: all cores)",
          .u32 = &ServerConfig::threads,
          .max = 4096},
-        {.key = "cache_dir", .help = "directory of the stored meshes and trees", .text = &ServerConfig::cache_dir},
+        {.key = "cache_dir",
+         .help = "directory of the stored meshes and trees",
+         .text = &ServerConfig::cache_dir},
         {.key = "memory_budget",
          .help = "bytes of kD-trees kept in memory; least recently used are evicted",
          .u64 = &ServerConfig::memory_budget,
          .bytes = true},
-        {.key = "preload", .help = "mesh files to upload at start-up", .list = &ServerConfig::preload},
+        {.key = "preload",
+         .help = "mesh files to upload at start-up",
+         .list = &ServerConfig::preload},
         {.key = "buffer_pool_bytes",
          .help = "idle ray-batch buffers kept for reuse (saves page faults)",
          .u64 = &ServerConfig::buffer_pool_bytes,
@@ -120,9 +126,14 @@ const std::vector<Setting>& settings() {
          .u32 = &ServerConfig::max_image_height,
          .min = 1,
          .max = 65536},
-        {.key = "max_spp", .help = "most samples per pixel", .u32 = &ServerConfig::max_spp, .min = 1, .max = 65536},
+        {.key = "max_spp",
+         .help = "most samples per pixel",
+         .u32 = &ServerConfig::max_spp,
+         .min = 1,
+         .max = 65536},
         {.key = "png_compression",
-         .help = "zlib level 0-9 of rendered PNGs when the request has no \"compression\" (1: fast)",
+         .help =
+             "zlib level 0-9 of rendered PNGs when the request has no \"compression\" (1: fast)",
          .u32 = &ServerConfig::png_compression,
          .min = 0,
          .max = 9},
@@ -161,7 +172,8 @@ std::string flag_name(std::string_view key) {
 
 std::string env_name(std::string_view key) {
     std::string env = "KDRT_";
-    for (const char c : key) env.push_back(static_cast<char>(std::toupper(static_cast<unsigned char>(c))));
+    for (const char c : key)
+        env.push_back(static_cast<char>(std::toupper(static_cast<unsigned char>(c))));
     return env;
 }
 
@@ -189,9 +201,11 @@ Result<uint64_t, std::string> parse_unsigned(std::string_view text) {
 /// Applies a textual value (flag, environment, or a config string/number) to `config`.
 Result<void, std::string> apply(const Setting& s, std::string_view text, ServerConfig& config) {
     if (s.text) {
-        if (!s.choices.empty() && std::find(s.choices.begin(), s.choices.end(), text) == s.choices.end()) {
+        if (!s.choices.empty() &&
+            std::find(s.choices.begin(), s.choices.end(), text) == s.choices.end()) {
             std::string allowed;
-            for (const auto c : s.choices) allowed += (allowed.empty() ? "" : ", ") + std::string(c);
+            for (const auto c : s.choices)
+                allowed += (allowed.empty() ? "" : ", ") + std::string(c);
             return Err{quote(text) + " is not one of " + allowed};
         }
         if (s.key == "listen") {
@@ -207,7 +221,8 @@ Result<void, std::string> apply(const Setting& s, std::string_view text, ServerC
         size_t start = 0;
         while (start <= text.size()) {
             const size_t colon = text.find(':', start);
-            const std::string_view item = text.substr(start, colon == std::string_view::npos ? colon : colon - start);
+            const std::string_view item =
+                text.substr(start, colon == std::string_view::npos ? colon : colon - start);
             if (!item.empty()) items.emplace_back(item);
             if (colon == std::string_view::npos) break;
             start = colon + 1;
@@ -218,7 +233,8 @@ Result<void, std::string> apply(const Setting& s, std::string_view text, ServerC
     auto value = s.bytes ? parse_bytes(text) : parse_unsigned(text);
     if (!value) return Err{std::move(value).error()};
     if (*value < s.min || *value > s.max)
-        return Err{quote(text) + " is outside " + std::to_string(s.min) + ".." + std::to_string(s.max)};
+        return Err{quote(text) + " is outside " + std::to_string(s.min) + ".." +
+                   std::to_string(s.max)};
     if (s.u32)
         config.*s.u32 = static_cast<unsigned>(*value);
     else
@@ -234,10 +250,13 @@ Result<void, std::string> apply_config_file(const std::string& path, ServerConfi
     if (!entries) return Err{path + ": " + entries.error()};
     for (const proto::ConfigEntry& e : *entries) {
         const Setting* s = find_setting(e.key);
-        if (!s) return Err{path + ": unknown setting " + quote(e.key) + " (kdrt-server --help lists them)"};
+        if (!s)
+            return Err{path + ": unknown setting " + quote(e.key) +
+                       " (kdrt-server --help lists them)"};
         Result<void, std::string> applied;
         if (const auto* list = std::get_if<std::vector<std::string>>(&e.value)) {
-            if (!s->list) return Err{path + ": " + quote(e.key) + " takes a single value, not a list"};
+            if (!s->list)
+                return Err{path + ": " + quote(e.key) + " takes a single value, not a list"};
             config.*s->list = *list;
         } else if (const auto* str = std::get_if<std::string>(&e.value)) {
             if (s->list)
@@ -276,7 +295,8 @@ std::string default_json(const Setting& s) {
     if (s.u32) return std::to_string(defaults.*s.u32);
     if (s.u64) return std::to_string(defaults.*s.u64);
     std::string out = "[";
-    for (const std::string& item : defaults.*s.list) out += (out.size() > 1 ? ", " : "") + json_quote(item);
+    for (const std::string& item : defaults.*s.list)
+        out += (out.size() > 1 ? ", " : "") + json_quote(item);
     return out + "]";
 }
 
@@ -287,9 +307,11 @@ Result<std::pair<std::string, int>, std::string> split_listen(std::string_view l
     if (colon == std::string_view::npos || colon == 0)
         return Err{quote(listen) + " is not HOST:PORT (e.g. 127.0.0.1:8080)"};
     std::string_view host = listen.substr(0, colon);
-    if (host.size() >= 2 && host.front() == '[' && host.back() == ']') host = host.substr(1, host.size() - 2);
+    if (host.size() >= 2 && host.front() == '[' && host.back() == ']')
+        host = host.substr(1, host.size() - 2);
     auto port = parse_unsigned(listen.substr(colon + 1));
-    if (!port || *port > 65535) return Err{quote(listen) + " has no port number 0..65535 after the last ':'"};
+    if (!port || *port > 65535)
+        return Err{quote(listen) + " has no port number 0..65535 after the last ':'"};
     return std::pair{std::string(host), static_cast<int>(*port)};
 }
 
@@ -316,8 +338,11 @@ Result<uint64_t, std::string> parse_bytes(std::string_view text) {
         if (scale != 1) digits.remove_suffix(1);
     }
     auto value = parse_unsigned(digits);
-    if (!value) return Err{quote(text) + " is not a byte count (digits with an optional K, M, G or T suffix)"};
-    if (*value > std::numeric_limits<uint64_t>::max() / scale) return Err{quote(text) + " is too large"};
+    if (!value)
+        return Err{quote(text) +
+                   " is not a byte count (digits with an optional K, M, G or T suffix)"};
+    if (*value > std::numeric_limits<uint64_t>::max() / scale)
+        return Err{quote(text) + " is too large"};
     return *value * scale;
 }
 
@@ -361,7 +386,8 @@ Result<Invocation, std::string> parse_invocation(const std::vector<std::string>&
         if (arg == "--mesh-id") {
             inv.mode = Invocation::Mode::kMeshId;
             inv.mesh_files.assign(args.begin() + static_cast<std::ptrdiff_t>(i) + 1, args.end());
-            if (inv.mesh_files.empty()) return Err{std::string("--mesh-id needs at least one mesh file")};
+            if (inv.mesh_files.empty())
+                return Err{std::string("--mesh-id needs at least one mesh file")};
             return inv;
         }
         std::optional<std::string> inline_value;
@@ -376,12 +402,14 @@ Result<Invocation, std::string> parse_invocation(const std::vector<std::string>&
         const Setting* found = nullptr;
         for (const Setting& s : settings())
             if (flag_name(s.key) == arg) found = &s;
-        if (!found) return Err{"unknown argument " + quote(arg) + " (kdrt-server --help lists the flags)"};
+        if (!found)
+            return Err{"unknown argument " + quote(arg) + " (kdrt-server --help lists the flags)"};
         if (found->list) {
             // --preload A B C: every following argument up to the next flag.
             std::vector<std::string> items;
             if (inline_value) items.push_back(*inline_value);
-            while (i + 1 < args.size() && args[i + 1].rfind("--", 0) != 0) items.push_back(args[++i]);
+            while (i + 1 < args.size() && args[i + 1].rfind("--", 0) != 0)
+                items.push_back(args[++i]);
             if (items.empty()) return Err{arg + " needs at least one value"};
             inv.config.*found->list = std::move(items);
             continue;

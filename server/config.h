@@ -17,9 +17,9 @@ namespace kdrt::server {
 
 struct ServerConfig {
     // Network
-    std::string listen = "127.0.0.1:8080";    ///< HOST:PORT; port 0 picks a free port
-    std::string port_file;                    ///< when set, the bound port is written there
-    unsigned http_threads = 32;               ///< connection threads (each keep-alive connection holds one)
+    std::string listen = "127.0.0.1:8080";  ///< HOST:PORT; port 0 picks a free port
+    std::string port_file;                  ///< when set, the bound port is written there
+    unsigned http_threads = 32;  ///< connection threads (each keep-alive connection holds one)
     unsigned keep_alive_timeout_s = 2;        ///< idle keep-alive connections close after this
     unsigned keep_alive_max_requests = 1000;  ///< requests per connection before it is closed
     unsigned read_timeout_s = 30;             ///< per socket read
@@ -68,8 +68,8 @@ struct Invocation {
 /// environ) and `args` (argv without argv[0]). Errors name the setting, its source and the
 /// problem: `--threads: "x" is not a non-negative integer`, `config/kdrt.json: unknown setting
 /// "thread"`.
-[[nodiscard]] proto::Result<Invocation, std::string> parse_invocation(const std::vector<std::string>& args,
-                                                                      const std::vector<std::string>& env);
+[[nodiscard]] proto::Result<Invocation, std::string> parse_invocation(
+    const std::vector<std::string>& args, const std::vector<std::string>& env);
 
 /// The --help text: usage, commands, and every setting with its flag, variable and default.
 [[nodiscard]] std::string help_text();
@@ -81,7 +81,8 @@ struct Invocation {
 [[nodiscard]] std::string setting_default_json(std::string_view key);
 
 /// Splits "HOST:PORT" ("[::1]:80" for IPv6). Errors name the value.
-[[nodiscard]] proto::Result<std::pair<std::string, int>, std::string> split_listen(std::string_view listen);
+[[nodiscard]] proto::Result<std::pair<std::string, int>, std::string> split_listen(
+    std::string_view listen);
 
 /// Parses a byte count: digits with an optional K, M, G or T suffix (powers of 1024), e.g. "512M".
 [[nodiscard]] proto::Result<uint64_t, std::string> parse_bytes(std::string_view text);

@@ -21,8 +21,9 @@ proto::Result<void, std::string> write_file_durably(const std::filesystem::path&
                                                     const std::filesystem::path& tmp_dir,
                                                     std::span<const std::byte> bytes) {
     static std::atomic<uint64_t> counter{0};
-    const std::filesystem::path tmp = tmp_dir / (path.filename().string() + "." + std::to_string(::getpid()) + "." +
-                                                 std::to_string(counter.fetch_add(1)) + ".tmp");
+    const std::filesystem::path tmp =
+        tmp_dir / (path.filename().string() + "." + std::to_string(::getpid()) + "." +
+                   std::to_string(counter.fetch_add(1)) + ".tmp");
     const int fd = ::open(tmp.c_str(), O_WRONLY | O_CREAT | O_EXCL | O_CLOEXEC, 0644);
     if (fd < 0) return proto::Err{os_error("cannot create", tmp, errno)};
     const auto fail = [&](const std::string& what) -> proto::Result<void, std::string> {
@@ -89,7 +90,8 @@ proto::Result<MappedFile, std::string> MappedFile::map(int fd, size_t size) {
     if (size == 0) return m;
     void* p = ::mmap(nullptr, size, PROT_READ, MAP_PRIVATE, fd, 0);
     if (p == MAP_FAILED)
-        return proto::Err{"cannot map " + std::to_string(size) + " bytes: " + std::generic_category().message(errno)};
+        return proto::Err{"cannot map " + std::to_string(size) +
+                          " bytes: " + std::generic_category().message(errno)};
     ::madvise(p, size, MADV_SEQUENTIAL);
     m.data_ = static_cast<const std::byte*>(p);
     m.size_ = size;

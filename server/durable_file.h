@@ -14,9 +14,9 @@ namespace kdrt::server {
 /// system). When the call returns success the content is durable once the directory holding
 /// `path` is synced (sync_directory). On failure the temp file is removed and the error names
 /// the path and the OS reason.
-[[nodiscard]] proto::Result<void, std::string> write_file_durably(const std::filesystem::path& path,
-                                                                  const std::filesystem::path& tmp_dir,
-                                                                  std::span<const std::byte> bytes);
+[[nodiscard]] proto::Result<void, std::string> write_file_durably(
+    const std::filesystem::path& path, const std::filesystem::path& tmp_dir,
+    std::span<const std::byte> bytes);
 
 /// fsync of a directory, making renames and unlinks in it durable.
 [[nodiscard]] proto::Result<void, std::string> sync_directory(const std::filesystem::path& dir);

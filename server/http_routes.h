@@ -14,9 +14,12 @@ public:
     explicit Routes(Service& service) : svc_(service) {}
 
     // Streamed-body routes (the body is read, or discarded, by the handler).
-    void upload_mesh(const httplib::Request& req, httplib::Response& res, const httplib::ContentReader& reader);
-    void intersect(const httplib::Request& req, httplib::Response& res, const httplib::ContentReader& reader);
-    void render(const httplib::Request& req, httplib::Response& res, const httplib::ContentReader& reader);
+    void upload_mesh(const httplib::Request& req, httplib::Response& res,
+                     const httplib::ContentReader& reader);
+    void intersect(const httplib::Request& req, httplib::Response& res,
+                   const httplib::ContentReader& reader);
+    void render(const httplib::Request& req, httplib::Response& res,
+                const httplib::ContentReader& reader);
 
     void list_meshes(const httplib::Request& req, httplib::Response& res);
     void get_mesh(const httplib::Request& req, httplib::Response& res);
@@ -31,10 +34,10 @@ public:
     void metrics(const httplib::Request& req, httplib::Response& res);
 
 private:
-    void intersect_binary(const httplib::Request& req, httplib::Response& res, const httplib::ContentReader& reader,
-                          const KdTree& tree);
-    void intersect_json(const httplib::Request& req, httplib::Response& res, const httplib::ContentReader& reader,
-                        const KdTree& tree);
+    void intersect_binary(const httplib::Request& req, httplib::Response& res,
+                          const httplib::ContentReader& reader, const KdTree& tree);
+    void intersect_json(const httplib::Request& req, httplib::Response& res,
+                        const httplib::ContentReader& reader, const KdTree& tree);
 
     void submit_job(const httplib::Request& req, httplib::Response& res, RenderJob job);
 

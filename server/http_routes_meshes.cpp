@@ -16,28 +16,32 @@ proto::Result<proto::MeshFormat, proto::Problem> upload_format(const httplib::Re
     if (req.has_param("format")) {
         const std::string name = req.get_param_value("format");
         if (const auto format = proto::mesh_format_from_name(name)) return *format;
-        return proto::Err{make_problem(ProblemKind::kUnsupportedMediaType,
-                                       "unknown mesh format \"" + name + "\" (expected obj, ply, off, stl or raw)")};
+        return proto::Err{make_problem(
+            ProblemKind::kUnsupportedMediaType,
+            "unknown mesh format \"" + name + "\" (expected obj, ply, off, stl or raw)")};
     }
     const std::string type = req.get_header_value("Content-Type");
     if (const auto format = proto::mesh_format_from_media_type(type)) return *format;
-    return proto::Err{
-        make_problem(ProblemKind::kUnsupportedMediaType,
-                     std::string(proto::api_errors::kUnsupportedMeshType) + " from Content-Type \"" + type +
-                         "\": use model/obj, model/stl, application/ply, application/x-off or application/x-kdrt-mesh, "
-                         "or ?format=obj|ply|off|stl|raw")};
+    return proto::Err{make_problem(ProblemKind::kUnsupportedMediaType,
+                                   std::string(proto::api_errors::kUnsupportedMeshType) +
+                                       " from Content-Type \"" + type +
+                                       "\": use model/obj, model/stl, application/ply, "
+                                       "application/x-off or application/x-kdrt-mesh, "
+                                       "or ?format=obj|ply|off|stl|raw")};
 }
 
 }  // namespace
 
-void Routes::upload_mesh(const httplib::Request& req, httplib::Response& res, const httplib::ContentReader& reader) {
+void Routes::upload_mesh(const httplib::Request& req, httplib::Response& res,
+                         const httplib::ContentReader& reader) {
     const auto format = upload_format(req);
     if (!format) {
         discard_body(req, res, reader);
         return reply_problem(req, res, format.error());
     }
-    auto body = read_body(req, res, reader, svc_.config.max_upload_bytes, svc_.config.upload_memory_bytes,
-                          svc_.store.tmp_dir().string(), "a mesh upload (max_upload_bytes)");
+    auto body =
+        read_body(req, res, reader, svc_.config.max_upload_bytes, svc_.config.upload_memory_bytes,
+                  svc_.store.tmp_dir().string(), "a mesh upload (max_upload_bytes)");
     if (!body) return;
     proto::MeshLimits limits;
     limits.max_triangles = svc_.config.max_triangles;
@@ -47,8 +51,9 @@ void Routes::upload_mesh(const httplib::Request& req, httplib::Response& res, co
     if (mesh->triangle_count() == 0)
         return reply_problem(
             req, res,
-            make_problem(ProblemKind::kInvalidMesh, "the " + std::string(proto::mesh_format_name(*format)) + " mesh " +
-                                                        std::string(proto::api_errors::kEmptyMesh)));
+            make_problem(ProblemKind::kInvalidMesh,
+                         "the " + std::string(proto::mesh_format_name(*format)) + " mesh " +
+                             std::string(proto::api_errors::kEmptyMesh)));
     auto added = svc_.cache.add(std::move(*mesh));
     if (!added) return reply_problem(req, res, cache_problem(added.error()));
     res.set_header("Location", "/v1/meshes/" + added->summary.id);

@@ -20,7 +20,8 @@ void Routes::readyz(const httplib::Request& req, httplib::Response& res) {
         return reply_problem(req, res, std::move(p));
     }
     if (!svc_.ready) {
-        auto p = make_problem(proto::ProblemKind::kNotReady, "the mesh index is loading or meshes are preloading");
+        auto p = make_problem(proto::ProblemKind::kNotReady,
+                              "the mesh index is loading or meshes are preloading");
         p.retry_after = 1;
         return reply_problem(req, res, std::move(p));
     }

@@ -31,38 +31,44 @@ constexpr size_t kDirectPieceBytes = 1u << 20;
 
 }  // namespace
 
-void Routes::intersect(const httplib::Request& req, httplib::Response& res, const httplib::ContentReader& reader) {
+void Routes::intersect(const httplib::Request& req, httplib::Response& res,
+                       const httplib::ContentReader& reader) {
     const std::string type = proto::media_type_essence(req.get_header_value("Content-Type"));
     const bool binary = type == proto::kRaysMediaType;
     if (!binary && type != proto::kJsonMediaType) {
         discard_body(req, res, reader);
-        return reply_problem(req, res,
-                             make_problem(ProblemKind::kUnsupportedMediaType,
-                                          "intersect " + std::string(proto::api_errors::kUnsupportedRayType) +
-                                              ", not \"" + req.get_header_value("Content-Type") + "\""));
+        return reply_problem(
+            req, res,
+            make_problem(ProblemKind::kUnsupportedMediaType,
+                         "intersect " + std::string(proto::api_errors::kUnsupportedRayType) +
+                             ", not \"" + req.get_header_value("Content-Type") + "\""));
     }
     const std::string id = req.matches[1];
     auto tree = svc_.cache.acquire(id);
     if (!tree) {
         discard_body(req, res, reader);
         return reply_problem(req, res,
-                             tree.error().code == CacheError::Code::kUnknownMesh ? unknown_mesh_problem(id)
-                                                                                 : cache_problem(tree.error()));
+                             tree.error().code == CacheError::Code::kUnknownMesh
+                                 ? unknown_mesh_problem(id)
+                                 : cache_problem(tree.error()));
     }
     if (binary) return intersect_binary(req, res, reader, **tree);
     intersect_json(req, res, reader, **tree);
 }
 
-void Routes::intersect_binary(const httplib::Request& req, httplib::Response& res, const httplib::ContentReader& reader,
-                              const KdTree& tree) {
+void Routes::intersect_binary(const httplib::Request& req, httplib::Response& res,
+                              const httplib::ContentReader& reader, const KdTree& tree) {
     // The body is decoded as it arrives, straight into a pooled ray buffer, and large batches are
     // traced block by block while the rest is still being received; the answer is written in
     // place into a pooled response buffer and streamed from it.
-    const uint64_t limit = proto::kBatchHeaderBytes + uint64_t{proto::kRayRecordBytes} * svc_.config.max_rays;
+    const uint64_t limit =
+        proto::kBatchHeaderBytes + uint64_t{proto::kRayRecordBytes} * svc_.config.max_rays;
     const std::string what = "a KDRR batch (16 + 32 x max_rays)";
-    const bool chunked = req.get_header_value("Transfer-Encoding").find("chunked") != std::string::npos;
+    const bool chunked =
+        req.get_header_value("Transfer-Encoding").find("chunked") != std::string::npos;
     std::optional<uint64_t> declared;
-    if (!chunked && req.has_header("Content-Length")) declared = req.get_header_value<uint64_t>("Content-Length");
+    if (!chunked && req.has_header("Content-Length"))
+        declared = req.get_header_value<uint64_t>("Content-Length");
     if (declared && *declared > limit) {
         discard_body(req, res, reader);
         return reply_problem(req, res, body_too_large_problem(limit, what));
@@ -82,11 +88,13 @@ void Routes::intersect_binary(const httplib::Request& req, httplib::Response& re
                 tracer.emplace(svc_.compute, tree, rays,
                                std::span<uint8_t>(reinterpret_cast<uint8_t*>(records), count));
             else
-                tracer.emplace(svc_.compute, tree, rays, std::span<Hit>(reinterpret_cast<Hit*>(records), count));
+                tracer.emplace(svc_.compute, tree, rays,
+                               std::span<Hit>(reinterpret_cast<Hit*>(records), count));
         }
         return rays;
     };
-    proto::RayStreamDecoder decoder({.max_rays = svc_.config.max_rays, .reject_non_finite = true}, storage, declared);
+    proto::RayStreamDecoder decoder({.max_rays = svc_.config.max_rays, .reject_non_finite = true},
+                                    storage, declared);
 
     RequestContext& context = request_context();
     uint64_t received = 0;
@@ -112,12 +120,14 @@ void Routes::intersect_binary(const httplib::Request& req, httplib::Response& re
     };
     const bool has_body = (declared && *declared > 0) || chunked;
     // Large bodies: the first piece through httplib, the rest straight from the socket.
-    const std::optional<DirectBody> direct = declared && *declared >= kDirectReadBytes
-                                                 ? direct_body(req, static_cast<int>(svc_.config.read_timeout_s))
-                                                 : std::nullopt;
+    const std::optional<DirectBody> direct =
+        declared && *declared >= kDirectReadBytes
+            ? direct_body(req, static_cast<int>(svc_.config.read_timeout_s))
+            : std::nullopt;
     bool go_direct = false;
     bool read_ok = !has_body || reader([&](const char* data, size_t size) {
-        if (!take_piece(std::span(reinterpret_cast<const std::byte*>(data), size), false)) return false;
+        if (!take_piece(std::span(reinterpret_cast<const std::byte*>(data), size), false))
+            return false;
         if (direct && received < *declared) {
             go_direct = true;
             return false;  // httplib's reader stops here; the route reads the rest
@@ -132,13 +142,15 @@ void Routes::intersect_binary(const httplib::Request& req, httplib::Response& re
             const std::span<std::byte> window = decoder.next_window();
             ssize_t n = 0;
             if (!window.empty()) {
-                n = receive_some(*direct, window.data(), std::min({window.size(), left, kDirectPieceBytes}));
+                n = receive_some(*direct, window.data(),
+                                 std::min({window.size(), left, kDirectPieceBytes}));
                 if (n > 0) read_ok = take_piece(window.first(static_cast<size_t>(n)), true);
             } else {
                 // Header bytes, or the rest of a refused body being drained.
                 scratch.resize(64u << 10);
                 n = receive_some(*direct, scratch.data(), std::min(scratch.size(), left));
-                if (n > 0) read_ok = take_piece(std::span(scratch).first(static_cast<size_t>(n)), false);
+                if (n > 0)
+                    read_ok = take_piece(std::span(scratch).first(static_cast<size_t>(n)), false);
             }
             if (n <= 0) read_ok = false;
         }
@@ -165,7 +177,8 @@ void Routes::intersect_binary(const httplib::Request& req, httplib::Response& re
         give_back();
         reply_problem(req, res,
                       res.status == 413 ? body_too_large_problem(limit, what)
-                                        : make_problem(ProblemKind::kBadRequest, "the request body could not be read"));
+                                        : make_problem(ProblemKind::kBadRequest,
+                                                       "the request body could not be read"));
         res.set_header("Connection", "close");
         return;
     }
@@ -182,7 +195,8 @@ void Routes::intersect_binary(const httplib::Request& req, httplib::Response& re
     if (tracer) {
         tracer->finish();
     } else if (occlusion) {
-        svc_.compute.occluded(tree, rays, std::span<uint8_t>(reinterpret_cast<uint8_t*>(records), count));
+        svc_.compute.occluded(tree, rays,
+                              std::span<uint8_t>(reinterpret_cast<uint8_t*>(records), count));
     } else {
         svc_.compute.intersect(tree, rays, std::span<Hit>(reinterpret_cast<Hit*>(records), count));
     }
@@ -191,22 +205,26 @@ void Routes::intersect_binary(const httplib::Request& req, httplib::Response& re
 
     size_t answer_bytes = 0;
     if (occlusion) {
-        answer_bytes = proto::write_answer_in_place(answer_buffer.data(), proto::AnswerKind::kOcclusion, count);
+        answer_bytes = proto::write_answer_in_place(answer_buffer.data(),
+                                                    proto::AnswerKind::kOcclusion, count);
     } else {
-        answer_bytes = proto::write_answer_in_place(answer_buffer.data(), proto::AnswerKind::kHits, count);
+        answer_bytes =
+            proto::write_answer_in_place(answer_buffer.data(), proto::AnswerKind::kHits, count);
     }
     reply_buffer(res, std::move(answer_buffer), answer_bytes,
-                 occlusion ? proto::kOcclusionMediaType : proto::kHitsMediaType, &svc_.batch_buffers);
+                 occlusion ? proto::kOcclusionMediaType : proto::kHitsMediaType,
+                 &svc_.batch_buffers);
 }
 
-void Routes::intersect_json(const httplib::Request& req, httplib::Response& res, const httplib::ContentReader& reader,
-                            const KdTree& tree) {
+void Routes::intersect_json(const httplib::Request& req, httplib::Response& res,
+                            const httplib::ContentReader& reader, const KdTree& tree) {
     auto body = read_body(req, res, reader, svc_.config.max_json_bytes, svc_.config.max_json_bytes,
                           svc_.store.tmp_dir().string(), "a JSON request (max_json_bytes)");
     if (!body) return;
     auto request = proto::decode_json_rays(as_text(body->bytes()), svc_.config.max_json_rays);
     body.reset();
-    if (!request) return reply_problem(req, res, json_problem(request.error(), svc_.config.max_json_rays));
+    if (!request)
+        return reply_problem(req, res, json_problem(request.error(), svc_.config.max_json_rays));
     request_context().rays = request->rays.size();
     svc_.metrics.add_rays(request->rays.size(), request->occlusion);
     if (request->occlusion) {

@@ -25,7 +25,8 @@ bool prefers_async(const httplib::Request& req) {
         size_t start = 0;
         while (start <= value.size()) {
             const size_t comma = value.find(',', start);
-            std::string token = value.substr(start, comma == std::string::npos ? std::string::npos : comma - start);
+            std::string token =
+                value.substr(start, comma == std::string::npos ? std::string::npos : comma - start);
             token.erase(0, token.find_first_not_of(" \t"));
             token.erase(token.find_last_not_of(" \t") + 1);
             if (token == "respond-async") return true;
@@ -37,40 +38,49 @@ bool prefers_async(const httplib::Request& req) {
 }
 
 proto::Problem unknown_job_problem(const std::string& id) {
-    return make_problem(ProblemKind::kUnknownJob, std::string(proto::api_errors::kUnknownJob) + " " + id +
-                                                      " (it never existed or expired after job_ttl_s)");
+    return make_problem(ProblemKind::kUnknownJob,
+                        std::string(proto::api_errors::kUnknownJob) + " " + id +
+                            " (it never existed or expired after job_ttl_s)");
 }
 
 }  // namespace
 
-void Routes::render(const httplib::Request& req, httplib::Response& res, const httplib::ContentReader& reader) {
+void Routes::render(const httplib::Request& req, httplib::Response& res,
+                    const httplib::ContentReader& reader) {
     if (proto::media_type_essence(req.get_header_value("Content-Type")) != proto::kJsonMediaType) {
         discard_body(req, res, reader);
-        return reply_problem(req, res,
-                             make_problem(ProblemKind::kUnsupportedMediaType,
-                                          "render " + std::string(proto::api_errors::kUnsupportedJsonType)));
+        return reply_problem(
+            req, res,
+            make_problem(ProblemKind::kUnsupportedMediaType,
+                         "render " + std::string(proto::api_errors::kUnsupportedJsonType)));
     }
     auto body = read_body(req, res, reader, svc_.config.max_json_bytes, svc_.config.max_json_bytes,
                           svc_.store.tmp_dir().string(), "a JSON request (max_json_bytes)");
     if (!body) return;
-    const proto::RenderLimits limits{svc_.config.max_image_width, svc_.config.max_image_height, svc_.config.max_spp};
+    const proto::RenderLimits limits{svc_.config.max_image_width, svc_.config.max_image_height,
+                                     svc_.config.max_spp};
     auto request = proto::decode_render_request(as_text(body->bytes()), limits);
-    if (!request) return reply_problem(req, res, make_problem(ProblemKind::kBadRequest, request.error().detail));
+    if (!request)
+        return reply_problem(req, res,
+                             make_problem(ProblemKind::kBadRequest, request.error().detail));
     const proto::ImageFormat format = *proto::image_format_from_name(request->format);
     auto tree = svc_.cache.acquire(request->mesh);
     if (!tree)
         return reply_problem(req, res,
-                             tree.error().code == CacheError::Code::kUnknownMesh ? unknown_mesh_problem(request->mesh)
-                                                                                 : cache_problem(tree.error()));
+                             tree.error().code == CacheError::Code::kUnknownMesh
+                                 ? unknown_mesh_problem(request->mesh)
+                                 : cache_problem(tree.error()));
     try {
         validate_render_settings(request->settings);
     } catch (const RenderError& e) {
         return reply_problem(req, res, make_problem(ProblemKind::kBadRequest, e.what()));
     }
     proto::ImageEncodeOptions encode;
-    encode.png_compression = request->compression.value_or(static_cast<int>(svc_.config.png_compression));
+    encode.png_compression =
+        request->compression.value_or(static_cast<int>(svc_.config.png_compression));
     if (prefers_async(req))
-        return submit_job(req, res, {request->mesh, std::move(*tree), request->settings, format, encode});
+        return submit_job(req, res,
+                          {request->mesh, std::move(*tree), request->settings, format, encode});
     auto image = render_and_encode(svc_.compute, **tree, request->settings, format, encode);
     if (!image) return reply_problem(req, res, make_problem(ProblemKind::kInternal, image.error()));
     svc_.metrics.renders.fetch_add(1);
@@ -119,13 +129,16 @@ void Routes::job_result(const httplib::Request& req, httplib::Response& res) {
     const auto out = svc_.jobs.output(id);
     if (!out) return reply_problem(req, res, unknown_job_problem(id));
     if (out->status.state != proto::JobState::kDone) {
-        std::string detail = "job " + id + " is " + std::string(proto::job_state_name(out->status.state));
-        if (out->status.state == proto::JobState::kRunning || out->status.state == proto::JobState::kQueued)
+        std::string detail =
+            "job " + id + " is " + std::string(proto::job_state_name(out->status.state));
+        if (out->status.state == proto::JobState::kRunning ||
+            out->status.state == proto::JobState::kQueued)
             detail += " (progress " + std::to_string(out->status.progress) + ")";
         if (!out->status.error.empty()) detail += ": " + out->status.error;
         return reply_problem(
             req, res,
-            make_problem(ProblemKind::kJobNotDone, detail + " and " + std::string(proto::api_errors::kJobNotDone)));
+            make_problem(ProblemKind::kJobNotDone,
+                         detail + " and " + std::string(proto::api_errors::kJobNotDone)));
     }
     // Sent from a string, not streamed: GET routes are not held back by the shutdown sequence.
     res.status = 200;

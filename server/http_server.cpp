@@ -62,15 +62,16 @@ struct HttpServer::Impl {
         if (token.empty()) return true;
         const std::string auth = req.get_header_value("Authorization");
         if (auth.rfind("Bearer ", 0) != 0) {
-            reply_problem(req, res,
-                          make_problem(ProblemKind::kUnauthorized,
-                                       req.path + " " + std::string(proto::api_errors::kMissingToken)));
+            reply_problem(
+                req, res,
+                make_problem(ProblemKind::kUnauthorized,
+                             req.path + " " + std::string(proto::api_errors::kMissingToken)));
             return false;
         }
         if (!same_secret(std::string_view(auth).substr(7), token)) {
-            reply_problem(
-                req, res,
-                make_problem(ProblemKind::kUnauthorized, "the " + std::string(proto::api_errors::kWrongToken)));
+            reply_problem(req, res,
+                          make_problem(ProblemKind::kUnauthorized,
+                                       "the " + std::string(proto::api_errors::kWrongToken)));
             return false;
         }
         return true;
@@ -81,7 +82,8 @@ struct HttpServer::Impl {
         const ServerConfig& c = svc.config;
         if (req.path == "/v1/meshes") return c.max_upload_bytes;
         if (req.path.size() > 10 && req.path.compare(req.path.size() - 10, 10, "/intersect") == 0 &&
-            proto::media_type_essence(req.get_header_value("Content-Type")) == proto::kRaysMediaType)
+            proto::media_type_essence(req.get_header_value("Content-Type")) ==
+                proto::kRaysMediaType)
             return 16 + 32 * uint64_t{c.max_rays};
         return c.max_json_bytes;
     }
@@ -123,9 +125,10 @@ struct HttpServer::Impl {
                std::optional<AdmissionGate::Slot>& slot) {
         if (flags.api && !authorized(req, res)) return false;
         if (flags.api && (svc.shutting_down || !svc.ready)) {
-            auto p = make_problem(ProblemKind::kNotReady,
-                                  svc.shutting_down ? "the server is " + std::string(proto::api_errors::kShuttingDown)
-                                                    : std::string("the server is starting; retry shortly"));
+            auto p = make_problem(
+                ProblemKind::kNotReady,
+                svc.shutting_down ? "the server is " + std::string(proto::api_errors::kShuttingDown)
+                                  : std::string("the server is starting; retry shortly"));
             p.retry_after = 1;
             reply_problem(req, res, std::move(p));
             return false;
@@ -136,16 +139,18 @@ struct HttpServer::Impl {
                 // Shutdown began between the check above and taking the slot: the shutdown
                 // sequence may already have seen zero requests in flight.
                 slot.reset();
-                auto p = make_problem(ProblemKind::kNotReady,
-                                      "the server is " + std::string(proto::api_errors::kShuttingDown));
+                auto p =
+                    make_problem(ProblemKind::kNotReady,
+                                 "the server is " + std::string(proto::api_errors::kShuttingDown));
                 p.retry_after = 1;
                 reply_problem(req, res, std::move(p));
                 return false;
             }
             if (!slot) {
-                auto p = make_problem(ProblemKind::kOverCapacity, std::to_string(svc.gate.limit()) + " " +
-                                                                      std::string(proto::api_errors::kOverCapacity) +
-                                                                      " (max_inflight); retry later");
+                auto p = make_problem(ProblemKind::kOverCapacity,
+                                      std::to_string(svc.gate.limit()) + " " +
+                                          std::string(proto::api_errors::kOverCapacity) +
+                                          " (max_inflight); retry later");
                 p.retry_after = 1;
                 p.limit = svc.gate.limit();
                 reply_problem(req, res, std::move(p));
@@ -170,17 +175,19 @@ struct HttpServer::Impl {
     void get(const std::string& pattern, const std::string& name, RouteFlags flags,
              void (Routes::*handler)(const httplib::Request&, httplib::Response&)) {
         known.push_back({std::regex(pattern), "GET", name});
-        http.Get(pattern, [this, name, flags, handler](const httplib::Request& req, httplib::Response& res) {
-            request_context().route = name;
-            std::optional<AdmissionGate::Slot> slot;
-            if (admit(flags, req, res, slot)) (routes.*handler)(req, res);
-        });
+        http.Get(pattern,
+                 [this, name, flags, handler](const httplib::Request& req, httplib::Response& res) {
+                     request_context().route = name;
+                     std::optional<AdmissionGate::Slot> slot;
+                     if (admit(flags, req, res, slot)) (routes.*handler)(req, res);
+                 });
     }
 
     void del(const std::string& pattern, const std::string& name, RouteFlags flags,
              void (Routes::*handler)(const httplib::Request&, httplib::Response&)) {
         known.push_back({std::regex(pattern), "DELETE", name});
-        http.Delete(pattern, [this, name, flags, handler](const httplib::Request& req, httplib::Response& res) {
+        http.Delete(pattern, [this, name, flags, handler](const httplib::Request& req,
+                                                          httplib::Response& res) {
             request_context().route = name;
             std::optional<AdmissionGate::Slot> slot;
             if (admit(flags, req, res, slot)) (routes.*handler)(req, res);
@@ -188,16 +195,18 @@ struct HttpServer::Impl {
     }
 
     void post(const std::string& pattern, const std::string& name, RouteFlags flags,
-              void (Routes::*handler)(const httplib::Request&, httplib::Response&, const httplib::ContentReader&)) {
+              void (Routes::*handler)(const httplib::Request&, httplib::Response&,
+                                      const httplib::ContentReader&)) {
         known.push_back({std::regex(pattern), "POST", name});
-        http.Post(pattern, [this, name, flags, handler](const httplib::Request& req, httplib::Response& res,
-                                                        const httplib::ContentReader& reader) {
-            request_context().route = name;
-            std::optional<AdmissionGate::Slot> slot;
-            if (!admit(flags, req, res, slot)) return discard_body(req, res, reader);
-            (routes.*handler)(req, res, reader);
-            if (slot) hold_until_sent(res, std::move(*slot));
-        });
+        http.Post(pattern,
+                  [this, name, flags, handler](const httplib::Request& req, httplib::Response& res,
+                                               const httplib::ContentReader& reader) {
+                      request_context().route = name;
+                      std::optional<AdmissionGate::Slot> slot;
+                      if (!admit(flags, req, res, slot)) return discard_body(req, res, reader);
+                      (routes.*handler)(req, res, reader);
+                      if (slot) hold_until_sent(res, std::move(*slot));
+                  });
     }
 
     void register_routes() {
@@ -207,7 +216,8 @@ struct HttpServer::Impl {
         get(meshes, "/v1/meshes", {.api = true}, &Routes::list_meshes);
         get(mesh, "/v1/meshes/{id}", {.api = true}, &Routes::get_mesh);
         del(mesh, "/v1/meshes/{id}", {.api = true}, &Routes::delete_mesh);
-        post(mesh + "/intersect", "/v1/meshes/{id}/intersect", {.api = true, .heavy = true}, &Routes::intersect);
+        post(mesh + "/intersect", "/v1/meshes/{id}/intersect", {.api = true, .heavy = true},
+             &Routes::intersect);
         post("/v1/render", "/v1/render", {.api = true, .heavy = true}, &Routes::render);
         const std::string job = std::string("/v1/jobs/") + kIdPattern;
         get(job, "/v1/jobs/{id}", {.api = true}, &Routes::get_job);
@@ -221,33 +231,37 @@ struct HttpServer::Impl {
     /// Fills the body of errors httplib produced itself (unknown route, malformed request,
     /// Content-Length over the payload limit).
     httplib::Server::HandlerResponse on_error(const httplib::Request& req, httplib::Response& res) {
-        if (!res.body.empty() || res.content_length_ > 0) return httplib::Server::HandlerResponse::Unhandled;
+        if (!res.body.empty() || res.content_length_ > 0)
+            return httplib::Server::HandlerResponse::Unhandled;
         proto::Problem p;
         std::string allowed;
         bool method_allowed = false;
         for (const Known& k : known) {
             if (!std::regex_match(req.path, k.pattern)) continue;
-            if (k.method == req.method || (k.method == "GET" && req.method == "HEAD")) method_allowed = true;
-            if (allowed.find(k.method) == std::string::npos) allowed += (allowed.empty() ? "" : ", ") + k.method;
+            if (k.method == req.method || (k.method == "GET" && req.method == "HEAD"))
+                method_allowed = true;
+            if (allowed.find(k.method) == std::string::npos)
+                allowed += (allowed.empty() ? "" : ", ") + k.method;
         }
         if ((res.status == 404 || res.status == 400) && !allowed.empty() && !method_allowed) {
             // httplib answers 404 (or 400 for methods it has no handlers for) when only the
             // method is wrong.
             res.status = 405;
-            p = make_problem(ProblemKind::kMethodNotAllowed, req.path + " " +
-                                                                 std::string(proto::api_errors::kMethodNotAllowed) +
-                                                                 " " + req.method + " (allowed: " + allowed + ")");
+            p = make_problem(ProblemKind::kMethodNotAllowed,
+                             req.path + " " + std::string(proto::api_errors::kMethodNotAllowed) +
+                                 " " + req.method + " (allowed: " + allowed + ")");
             res.set_header("Allow", allowed);
         } else if (res.status == 404) {
-            p = make_problem(ProblemKind::kNotFound,
-                             std::string(proto::api_errors::kNoRoute) + " " + req.method + " " + req.path);
+            p = make_problem(ProblemKind::kNotFound, std::string(proto::api_errors::kNoRoute) +
+                                                         " " + req.method + " " + req.path);
         } else if (res.status == 413) {
             p = body_too_large_problem(largest_body(), "any request");
         } else if (res.status >= 500) {
             p = make_problem(ProblemKind::kInternal, "the server failed to answer the request");
         } else {
-            p = make_problem(ProblemKind::kBadRequest,
-                             "malformed HTTP request (status " + std::to_string(res.status) + " from the HTTP layer)");
+            p = make_problem(ProblemKind::kBadRequest, "malformed HTTP request (status " +
+                                                           std::to_string(res.status) +
+                                                           " from the HTTP layer)");
         }
         reply_problem(req, res, std::move(p));
         return httplib::Server::HandlerResponse::Handled;
@@ -262,25 +276,31 @@ struct HttpServer::Impl {
         } catch (...) {
         }
         log_event(LogLevel::kError, "unhandled exception",
-                  {{"request_id", request_context().request_id}, {"route", request_context().route}, {"error", what}});
+                  {{"request_id", request_context().request_id},
+                   {"route", request_context().route},
+                   {"error", what}});
         // Whatever the handler had set goes (a half-built reply), except the request id.
         res.headers.clear();
         res.set_header("X-Request-Id", request_context().request_id);
-        reply_problem(req, res,
-                      make_problem(ProblemKind::kInternal,
-                                   "internal error; see the server log for request " + request_context().request_id));
+        reply_problem(
+            req, res,
+            make_problem(ProblemKind::kInternal, "internal error; see the server log for request " +
+                                                     request_context().request_id));
         res.set_header("Connection", "close");
     }
 
     /// Starts the per-request context; answers requests httplib would mishandle.
-    httplib::Server::HandlerResponse on_pre_routing(const httplib::Request& req, httplib::Response& res) {
+    httplib::Server::HandlerResponse on_pre_routing(const httplib::Request& req,
+                                                    httplib::Response& res) {
         begin_request(res);
         // httplib 0.11.4 reads a POST without Content-Length or chunked framing until the peer
         // closes; HTTP/1.1 says such a body is empty. Answer now instead of hanging.
-        if (req.method == "POST" && !req.has_header("Content-Length") && !req.has_header("Transfer-Encoding")) {
+        if (req.method == "POST" && !req.has_header("Content-Length") &&
+            !req.has_header("Transfer-Encoding")) {
             request_context().route = "unmatched";
             reply_problem(req, res,
-                          make_problem(ProblemKind::kBadRequest, "a POST needs a Content-Length (or chunked) body"));
+                          make_problem(ProblemKind::kBadRequest,
+                                       "a POST needs a Content-Length (or chunked) body"));
             return httplib::Server::HandlerResponse::Handled;
         }
         return httplib::Server::HandlerResponse::Unhandled;
@@ -290,8 +310,10 @@ struct HttpServer::Impl {
     void on_logged(const httplib::Request& req, const httplib::Response& res) {
         RequestContext& context = request_context();
         const double seconds =
-            context.active ? std::chrono::duration<double>(std::chrono::steady_clock::now() - context.start).count()
-                           : 0;
+            context.active
+                ? std::chrono::duration<double>(std::chrono::steady_clock::now() - context.start)
+                      .count()
+                : 0;
         const std::string route = context.route.empty() ? "unmatched" : context.route;
         const uint64_t bytes_in = context.bytes_in ? context.bytes_in : req.body.size();
         const uint64_t bytes_out = res.content_length_ ? res.content_length_ : res.body.size();
@@ -323,11 +345,13 @@ struct HttpServer::Impl {
         http.set_read_timeout(c.read_timeout_s, 0);
         http.set_write_timeout(c.write_timeout_s, 0);
         http.set_payload_max_length(largest_body());
-        http.set_pre_routing_handler([this](const auto& req, auto& res) { return on_pre_routing(req, res); });
-        http.set_error_handler(
-            httplib::Server::HandlerWithResponse([this](const auto& req, auto& res) { return on_error(req, res); }));
-        http.set_exception_handler(
-            [this](const auto& req, auto& res, std::exception_ptr ep) { on_exception(req, res, ep); });
+        http.set_pre_routing_handler(
+            [this](const auto& req, auto& res) { return on_pre_routing(req, res); });
+        http.set_error_handler(httplib::Server::HandlerWithResponse(
+            [this](const auto& req, auto& res) { return on_error(req, res); }));
+        http.set_exception_handler([this](const auto& req, auto& res, std::exception_ptr ep) {
+            on_exception(req, res, ep);
+        });
         http.set_expect_100_continue_handler(
             [this](const auto& req, auto& res) { return on_expect_continue(req, res); });
         http.set_logger([this](const auto& req, const auto& res) { on_logged(req, res); });
@@ -335,18 +359,22 @@ struct HttpServer::Impl {
     }
 };
 
-HttpServer::HttpServer(Service& service) : impl_(std::make_unique<Impl>(service)) { impl_->configure(); }
+HttpServer::HttpServer(Service& service) : impl_(std::make_unique<Impl>(service)) {
+    impl_->configure();
+}
 
 HttpServer::~HttpServer() = default;
 
 proto::Result<int, std::string> HttpServer::bind(const std::string& host, int port) {
     if (port == 0) {
         const int bound = impl_->http.bind_to_any_port(host);
-        if (bound <= 0) return proto::Err{"cannot listen on " + host + ":0: " + std::strerror(errno)};
+        if (bound <= 0)
+            return proto::Err{"cannot listen on " + host + ":0: " + std::strerror(errno)};
         return bound;
     }
     if (!impl_->http.bind_to_port(host, port))
-        return proto::Err{"cannot listen on " + host + ":" + std::to_string(port) + ": " + std::strerror(errno)};
+        return proto::Err{"cannot listen on " + host + ":" + std::to_string(port) + ": " +
+                          std::strerror(errno)};
     return port;
 }
 
@@ -361,11 +389,12 @@ std::vector<RouteInfo> HttpServer::routes() const {
 }
 
 void HttpServer::add_route_for_tests(const std::string& path, std::function<void()> action) {
-    impl_->http.Get(path, [path, action = std::move(action)](const httplib::Request&, httplib::Response& res) {
-        request_context().route = path;
-        action();
-        res.status = 204;
-    });
+    impl_->http.Get(
+        path, [path, action = std::move(action)](const httplib::Request&, httplib::Response& res) {
+            request_context().route = path;
+            action();
+            res.status = 204;
+        });
 }
 
 std::string httplib_version() { return CPPHTTPLIB_VERSION; }

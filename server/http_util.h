@@ -43,26 +43,27 @@ void reply_json(httplib::Response& res, int status, std::string json);
 
 /// Replies 200 with a binary body; large bodies are streamed from memory by a content provider,
 /// and their vector goes back to `pool` (if given) once sent.
-void reply_bytes(httplib::Response& res, std::vector<std::byte> bytes, std::string_view content_type,
-                 VectorPool<std::byte>* pool = nullptr);
+void reply_bytes(httplib::Response& res, std::vector<std::byte> bytes,
+                 std::string_view content_type, VectorPool<std::byte>* pool = nullptr);
 
 /// Replies 200 with the first `size` bytes of `buffer`: small bodies are copied into the
 /// response, large ones are streamed from the buffer itself by a content provider (no copy) and
 /// the buffer goes back to `pool` (if given) once sent or abandoned.
-void reply_buffer(httplib::Response& res, AlignedBuffer buffer, size_t size, std::string_view content_type,
-                  BufferPool* pool = nullptr);
+void reply_buffer(httplib::Response& res, AlignedBuffer buffer, size_t size,
+                  std::string_view content_type, BufferPool* pool = nullptr);
 
 /// After an early error reply on a streamed route, the body has not been read: drain it if it
 /// is small, else ask the client to close the connection (never parse it as the next request).
-void discard_body(const httplib::Request& req, httplib::Response& res, const httplib::ContentReader& reader);
+void discard_body(const httplib::Request& req, httplib::Response& res,
+                  const httplib::ContentReader& reader);
 
 /// Reads the request body through `reader` into a RequestBody (memory up to `memory_bytes`, then
 /// spooled to `spool_dir`). Refuses more than `limit` bytes with 413 (`what` names the body in
 /// the detail). On failure the reply is already set and nullptr is returned.
-[[nodiscard]] std::unique_ptr<RequestBody> read_body(const httplib::Request& req, httplib::Response& res,
-                                                     const httplib::ContentReader& reader, uint64_t limit,
-                                                     uint64_t memory_bytes, const std::string& spool_dir,
-                                                     const std::string& what, std::vector<std::byte> buffer = {});
+[[nodiscard]] std::unique_ptr<RequestBody> read_body(
+    const httplib::Request& req, httplib::Response& res, const httplib::ContentReader& reader,
+    uint64_t limit, uint64_t memory_bytes, const std::string& spool_dir, const std::string& what,
+    std::vector<std::byte> buffer = {});
 
 /// Reading a large body past cpp-httplib. httplib 0.11.4 hands a streamed body to the handler in
 /// 4 KiB pieces, each after a poll() and a recv() into a stack buffer: a 32 MiB ray batch costs
@@ -81,7 +82,8 @@ struct DirectBody {
 
 /// The socket `req` arrived on, when the body may be read from it directly (see DirectBody):
 /// nullopt when it may not or the socket cannot be identified for certain.
-[[nodiscard]] std::optional<DirectBody> direct_body(const httplib::Request& req, int read_timeout_s);
+[[nodiscard]] std::optional<DirectBody> direct_body(const httplib::Request& req,
+                                                    int read_timeout_s);
 
 /// Receives up to `size` bytes (at least 1) from the socket into `out`. Returns the count, 0 when
 /// the peer closed the connection, -1 on an error or after timeout_s without data.

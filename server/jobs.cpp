@@ -8,11 +8,15 @@
 namespace kdrt::server {
 namespace {
 
-double unix_now() { return std::chrono::duration<double>(std::chrono::system_clock::now().time_since_epoch()).count(); }
+double unix_now() {
+    return std::chrono::duration<double>(std::chrono::system_clock::now().time_since_epoch())
+        .count();
+}
 
 /// 128 random bits as 32 hex digits: job ids are not guessable.
 std::string random_id() {
-    static thread_local std::mt19937_64 rng{std::random_device{}() ^ (uint64_t{std::random_device{}()} << 32)};
+    static thread_local std::mt19937_64 rng{std::random_device{}() ^
+                                            (uint64_t{std::random_device{}()} << 32)};
     static constexpr char kHex[] = "0123456789abcdef";
     std::string id;
     for (int word = 0; word < 2; ++word) {
@@ -25,7 +29,9 @@ std::string random_id() {
 }  // namespace
 
 JobQueue::JobQueue(Compute& compute, Metrics& metrics, unsigned max_jobs, unsigned ttl_s)
-    : compute_(compute), metrics_(metrics), max_jobs_(max_jobs), ttl_(ttl_s), worker_([this] { worker_loop(); }) {
+    : compute_(compute), metrics_(metrics), max_jobs_(max_jobs), ttl_(ttl_s), worker_([this] {
+          worker_loop();
+      }) {
     metrics_.add_collector([this](std::vector<proto::MetricFamily>& out) {
         proto::MetricFamily jobs;
         jobs.name = "kdrt_jobs";
@@ -52,7 +58,8 @@ proto::Result<proto::JobStatus, std::string> JobQueue::submit(RenderJob input) {
     purge_expired();
     if (stopping_) return proto::Err{std::string("the server is shutting down")};
     if (queue_.size() + running_ >= max_jobs_)
-        return proto::Err{std::to_string(max_jobs_) + " render jobs are queued or running (max_jobs)"};
+        return proto::Err{std::to_string(max_jobs_) +
+                          " render jobs are queued or running (max_jobs)"};
     auto job = std::make_shared<Job>();
     job->status.id = random_id();
     job->status.mesh = input.mesh;
@@ -154,14 +161,16 @@ void JobQueue::worker_loop() {
 void JobQueue::run(Job& job) {
     RenderControl control;
     control.cancel = &job.cancel;
-    control.progress = [&job](double share) { job.progress.store(share, std::memory_order_relaxed); };
+    control.progress = [&job](double share) {
+        job.progress.store(share, std::memory_order_relaxed);
+    };
     proto::JobState state = proto::JobState::kDone;
     std::string error;
     std::shared_ptr<const std::vector<std::byte>> image;
     std::optional<double> render_ms;
     try {
-        auto rendered = render_and_encode(compute_, *job.input.tree, job.input.settings, job.input.format,
-                                          job.input.encode, control);
+        auto rendered = render_and_encode(compute_, *job.input.tree, job.input.settings,
+                                          job.input.format, job.input.encode, control);
         if (rendered) {
             render_ms = rendered->stats.seconds * 1e3;
             metrics_.renders.fetch_add(1);
@@ -176,7 +185,8 @@ void JobQueue::run(Job& job) {
         state = proto::JobState::kFailed;
         error = e.what();
     }
-    log_event(state == proto::JobState::kFailed ? LogLevel::kError : LogLevel::kInfo, "job finished",
+    log_event(state == proto::JobState::kFailed ? LogLevel::kError : LogLevel::kInfo,
+              "job finished",
               {{"job", job.status.id},
                {"state", job_state_name(state)},
                {"render_ms", render_ms.value_or(0.0)},
@@ -190,7 +200,10 @@ void JobQueue::run(Job& job) {
     job.status.result_bytes = job.image ? job.image->size() : 0;
     job.input.tree.reset();  // the job no longer pins the tree
     job.finished_at = std::chrono::steady_clock::now();
-    (state == proto::JobState::kDone ? done_ : state == proto::JobState::kFailed ? failed_ : cancelled_).fetch_add(1);
+    (state == proto::JobState::kDone     ? done_
+     : state == proto::JobState::kFailed ? failed_
+                                         : cancelled_)
+        .fetch_add(1);
 }
 
 void JobQueue::purge_expired() {
@@ -206,7 +219,8 @@ void JobQueue::purge_expired() {
 
 proto::JobStatus JobQueue::snapshot(const Job& job) const {
     proto::JobStatus s = job.status;
-    s.progress = s.state == proto::JobState::kDone ? 1.0 : job.progress.load(std::memory_order_relaxed);
+    s.progress =
+        s.state == proto::JobState::kDone ? 1.0 : job.progress.load(std::memory_order_relaxed);
     return s;
 }
 

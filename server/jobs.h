@@ -32,7 +32,7 @@ struct RenderJob {
     std::shared_ptr<const KdTree> tree;  ///< held from submission: the job survives eviction
     RenderSettings settings;             ///< already validated
     proto::ImageFormat format = proto::ImageFormat::kPng;
-    proto::ImageEncodeOptions encode;    ///< PNG compression level
+    proto::ImageEncodeOptions encode;  ///< PNG compression level
 };
 
 class JobQueue {

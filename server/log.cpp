@@ -65,7 +65,8 @@ void setup_logging(std::string_view level, std::string_view format) {
     g_json = format == "json";
     if (g_json) {
         // The message is the rest of a JSON object: "msg": "...", "key": value, ...
-        spdlog::set_pattern(R"({"time":"%Y-%m-%dT%H:%M:%S.%fZ","level":"%l",%v})", spdlog::pattern_time_type::utc);
+        spdlog::set_pattern(R"({"time":"%Y-%m-%dT%H:%M:%S.%fZ","level":"%l",%v})",
+                            spdlog::pattern_time_type::utc);
     } else {
         spdlog::set_pattern("%Y-%m-%d %H:%M:%S.%e %-5l %v");
     }
@@ -73,9 +74,12 @@ void setup_logging(std::string_view level, std::string_view format) {
     spdlog::flush_on(spdlog::level::info);
 }
 
-bool log_enabled(LogLevel level) noexcept { return spdlog::default_logger_raw()->should_log(to_spdlog(level)); }
+bool log_enabled(LogLevel level) noexcept {
+    return spdlog::default_logger_raw()->should_log(to_spdlog(level));
+}
 
-void log_event(LogLevel level, std::string_view message, std::initializer_list<proto::JsonField> fields) {
+void log_event(LogLevel level, std::string_view message,
+               std::initializer_list<proto::JsonField> fields) {
     const auto spd_level = to_spdlog(level);
     if (!spdlog::default_logger_raw()->should_log(spd_level)) return;
     std::string line;

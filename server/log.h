@@ -21,6 +21,7 @@ void setup_logging(std::string_view level, std::string_view format);
 [[nodiscard]] bool log_enabled(LogLevel level) noexcept;
 
 /// Writes one event: a message plus key/value fields.
-void log_event(LogLevel level, std::string_view message, std::initializer_list<proto::JsonField> fields = {});
+void log_event(LogLevel level, std::string_view message,
+               std::initializer_list<proto::JsonField> fields = {});
 
 }  // namespace kdrt::server

@@ -23,8 +23,8 @@ bool consistent(const KdTree& tree, const proto::MeshSummary& summary) {
 }  // namespace
 
 uint64_t tree_memory_bytes(const KdTree& tree) noexcept {
-    return sizeof(KdTree) + tree.nodes.capacity() * sizeof(KdNode) + tree.leaf_refs.capacity() * sizeof(uint32_t) +
-           tree.tris.capacity() * sizeof(TriVerts);
+    return sizeof(KdTree) + tree.nodes.capacity() * sizeof(KdNode) +
+           tree.leaf_refs.capacity() * sizeof(uint32_t) + tree.tris.capacity() * sizeof(TriVerts);
 }
 
 proto::MeshSummary make_summary(std::string id, const Mesh& mesh, const KdTree& tree) {
@@ -43,7 +43,8 @@ MeshCache::MeshCache(MeshStore& store, Compute& compute, Metrics& metrics, uint6
 proto::Result<void, std::string> MeshCache::open() {
     std::vector<std::string> removed;
     auto listed = store_.open(removed);
-    for (const std::string& line : removed) log_event(LogLevel::kWarn, "cache: removed leftover", {{"what", line}});
+    for (const std::string& line : removed)
+        log_event(LogLevel::kWarn, "cache: removed leftover", {{"what", line}});
     if (!listed) return Err{std::move(listed).error()};
     for (MeshStore::Listed& item : *listed) {
         if (!item.summary) {
@@ -63,10 +64,12 @@ proto::Result<void, std::string> MeshCache::open() {
                 built = compute_.build(*mesh);
                 metrics_.record_build(seconds_since(start));
                 metrics_.cache_rebuilds.fetch_add(1);
-                if (auto saved = store_.save_tree(item.id, built); !saved) return Err{std::move(saved).error()};
+                if (auto saved = store_.save_tree(item.id, built); !saved)
+                    return Err{std::move(saved).error()};
             }
             proto::MeshSummary summary = make_summary(item.id, *mesh, tree ? *tree : built);
-            if (auto saved = store_.save_summary(summary); !saved) return Err{std::move(saved).error()};
+            if (auto saved = store_.save_summary(summary); !saved)
+                return Err{std::move(saved).error()};
             item.summary = std::move(summary);
             item.disk_bytes = store_.disk_bytes(item.id);
         }
@@ -120,14 +123,17 @@ proto::Result<MeshCache::Added, CacheError> MeshCache::add(Mesh mesh) {
             tree = std::move(built);
             outcome = Added{std::move(summary), true};
         } else {
-            log_event(LogLevel::kError, "cache: cannot store mesh", {{"mesh", id}, {"error", saved.error()}});
+            log_event(LogLevel::kError, "cache: cannot store mesh",
+                      {{"mesh", id}, {"error", saved.error()}});
             store_.remove(id);
-            outcome = Err{CacheError{CacheError::Code::kStorage, "cannot store the mesh: " + saved.error()}};
+            outcome = Err{
+                CacheError{CacheError::Code::kStorage, "cannot store the mesh: " + saved.error()}};
         }
     } catch (const MeshError& e) {
         outcome = Err{CacheError{CacheError::Code::kInvalidMesh, e.what()}};
     } catch (const std::exception& e) {
-        outcome = Err{CacheError{CacheError::Code::kInternal, std::string("building the tree failed: ") + e.what()}};
+        outcome = Err{CacheError{CacheError::Code::kInternal,
+                                 std::string("building the tree failed: ") + e.what()}};
     }
 
     lock.lock();
@@ -172,7 +178,8 @@ proto::Result<std::shared_ptr<const KdTree>, CacheError> MeshCache::acquire(cons
     try {
         outcome = load(id, summary);
     } catch (const std::exception& e) {
-        outcome = Err{CacheError{CacheError::Code::kInternal, std::string("loading the tree failed: ") + e.what()}};
+        outcome = Err{CacheError{CacheError::Code::kInternal,
+                                 std::string("loading the tree failed: ") + e.what()}};
     }
 
     lock.lock();
@@ -183,7 +190,8 @@ proto::Result<std::shared_ptr<const KdTree>, CacheError> MeshCache::acquire(cons
         else if (outcome.error().code == CacheError::Code::kLost)
             drop(*entry);
     } else if (!outcome) {
-        outcome = Err{CacheError{CacheError::Code::kUnknownMesh, "no mesh with id " + id + " (deleted)"}};
+        outcome =
+            Err{CacheError{CacheError::Code::kUnknownMesh, "no mesh with id " + id + " (deleted)"}};
     }
     lock.unlock();
     promise.set_value(outcome);
@@ -195,7 +203,8 @@ MeshCache::TreeResult MeshCache::load(const std::string& id, const proto::MeshSu
     if (tree && consistent(*tree, summary))
         return std::shared_ptr<const KdTree>(std::make_shared<KdTree>(std::move(*tree)));
     const std::string why = tree ? "tree does not match the mesh summary" : tree.error().detail;
-    log_event(LogLevel::kWarn, "cache: tree file failed validation; rebuilding from the stored mesh",
+    log_event(LogLevel::kWarn,
+              "cache: tree file failed validation; rebuilding from the stored mesh",
               {{"mesh", id}, {"error", why}});
     auto mesh = store_.load_mesh(id);
     if (!mesh) {
@@ -203,16 +212,19 @@ MeshCache::TreeResult MeshCache::load(const std::string& id, const proto::MeshSu
                   {{"mesh", id}, {"error", mesh.error().detail}});
         store_.remove(id);
         return Err{CacheError{CacheError::Code::kLost,
-                              "mesh " + id + " was dropped: its stored copy is corrupt (" + mesh.error().detail + ")"}};
+                              "mesh " + id + " was dropped: its stored copy is corrupt (" +
+                                  mesh.error().detail + ")"}};
     }
     const auto start = std::chrono::steady_clock::now();
     auto built = std::make_shared<KdTree>(compute_.build(*mesh));
     metrics_.record_build(seconds_since(start));
     metrics_.cache_rebuilds.fetch_add(1);
     if (auto saved = store_.save_tree(id, *built); !saved)
-        log_event(LogLevel::kError, "cache: cannot rewrite the tree file", {{"mesh", id}, {"error", saved.error()}});
+        log_event(LogLevel::kError, "cache: cannot rewrite the tree file",
+                  {{"mesh", id}, {"error", saved.error()}});
     else
-        log_event(LogLevel::kInfo, "cache: tree rebuilt", {{"mesh", id}, {"build_ms", built->stats.build_ms}});
+        log_event(LogLevel::kInfo, "cache: tree rebuilt",
+                  {{"mesh", id}, {"build_ms", built->stats.build_ms}});
     return std::shared_ptr<const KdTree>(std::move(built));
 }
 

@@ -64,7 +64,8 @@ public:
     [[nodiscard]] proto::Result<Added, CacheError> add(Mesh mesh);
 
     /// The tree of mesh `id`, loading or rebuilding it if it is not in memory.
-    [[nodiscard]] proto::Result<std::shared_ptr<const KdTree>, CacheError> acquire(const std::string& id);
+    [[nodiscard]] proto::Result<std::shared_ptr<const KdTree>, CacheError> acquire(
+        const std::string& id);
 
     [[nodiscard]] std::optional<proto::MeshSummary> find(const std::string& id) const;
     /// Every acknowledged mesh, sorted by id.

@@ -23,14 +23,17 @@ std::span<const std::byte> text_bytes(const std::string& text) {
 StoreError read_error(const fs::path& path, std::string detail) {
     std::error_code ec;
     const bool exists = fs::exists(path, ec);
-    return StoreError{exists ? StoreError::Code::kIo : StoreError::Code::kMissing, std::move(detail)};
+    return StoreError{exists ? StoreError::Code::kIo : StoreError::Code::kMissing,
+                      std::move(detail)};
 }
 
 }  // namespace
 
-MeshStore::MeshStore(fs::path root) : root_(std::move(root)), meshes_dir_(root_ / "meshes"), tmp_dir_(root_ / "tmp") {}
+MeshStore::MeshStore(fs::path root)
+    : root_(std::move(root)), meshes_dir_(root_ / "meshes"), tmp_dir_(root_ / "tmp") {}
 
-proto::Result<std::vector<MeshStore::Listed>, std::string> MeshStore::open(std::vector<std::string>& removed) {
+proto::Result<std::vector<MeshStore::Listed>, std::string> MeshStore::open(
+    std::vector<std::string>& removed) {
     std::error_code ec;
     for (const fs::path& dir : {root_, meshes_dir_, tmp_dir_}) {
         fs::create_directories(dir, ec);
@@ -87,8 +90,8 @@ proto::Result<std::vector<MeshStore::Listed>, std::string> MeshStore::open(std::
     return listed;
 }
 
-proto::Result<uint64_t, std::string> MeshStore::save(const proto::MeshSummary& summary, const Mesh& mesh,
-                                                     const KdTree& tree) {
+proto::Result<uint64_t, std::string> MeshStore::save(const proto::MeshSummary& summary,
+                                                     const Mesh& mesh, const KdTree& tree) {
     {
         const std::vector<std::byte> raw = proto::write_mesh(mesh, proto::MeshFormat::kRaw);
         auto written = write_file_durably(mesh_path(summary.id), tmp_dir_, raw);
@@ -112,8 +115,8 @@ proto::Result<void, std::string> MeshStore::save_tree(const std::string& id, con
 proto::Result<void, std::string> MeshStore::save_summary(const proto::MeshSummary& summary) {
     proto::MeshSummary stored = summary;
     stored.in_memory.reset();
-    auto written =
-        write_file_durably(summary_path(summary.id), tmp_dir_, text_bytes(proto::encode_mesh_summary(stored)));
+    auto written = write_file_durably(summary_path(summary.id), tmp_dir_,
+                                      text_bytes(proto::encode_mesh_summary(stored)));
     if (!written) return written;
     return sync_directory(meshes_dir_);
 }
@@ -125,7 +128,8 @@ proto::Result<KdTree, StoreError> MeshStore::load_tree(const std::string& id) co
     try {
         return deserialize_tree(*bytes);
     } catch (const TreeFormatError& e) {
-        return Err{StoreError{StoreError::Code::kCorrupt, in_quotes(path.string()) + ": " + e.what()}};
+        return Err{
+            StoreError{StoreError::Code::kCorrupt, in_quotes(path.string()) + ": " + e.what()}};
     }
 }
 
@@ -135,11 +139,13 @@ proto::Result<Mesh, StoreError> MeshStore::load_mesh(const std::string& id) cons
     if (!bytes) return Err{read_error(path, std::move(bytes).error())};
     auto mesh = proto::parse_mesh(*bytes, proto::MeshFormat::kRaw);
     if (!mesh)
-        return Err{StoreError{StoreError::Code::kCorrupt, in_quotes(path.string()) + ": " + mesh.error().message}};
+        return Err{StoreError{StoreError::Code::kCorrupt,
+                              in_quotes(path.string()) + ": " + mesh.error().message}};
     const std::string actual = proto::mesh_id(*mesh);
     if (actual != id)
-        return Err{StoreError{StoreError::Code::kCorrupt,
-                              in_quotes(path.string()) + ": content hash is " + actual + ", not the mesh id"}};
+        return Err{StoreError{
+            StoreError::Code::kCorrupt,
+            in_quotes(path.string()) + ": content hash is " + actual + ", not the mesh id"}};
     return std::move(*mesh);
 }
 

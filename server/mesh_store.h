@@ -49,13 +49,15 @@ public:
     /// Creates the directories, empties tmp/, deletes files of uncommitted meshes (no summary)
     /// and summaries without a mesh file, and lists the committed meshes. `removed` receives a
     /// line per deleted leftover, for the log.
-    [[nodiscard]] proto::Result<std::vector<Listed>, std::string> open(std::vector<std::string>& removed);
+    [[nodiscard]] proto::Result<std::vector<Listed>, std::string> open(
+        std::vector<std::string>& removed);
 
     /// Stores mesh, tree and summary durably (in that order). Returns the bytes on disk.
-    [[nodiscard]] proto::Result<uint64_t, std::string> save(const proto::MeshSummary& summary, const Mesh& mesh,
-                                                            const KdTree& tree);
+    [[nodiscard]] proto::Result<uint64_t, std::string> save(const proto::MeshSummary& summary,
+                                                            const Mesh& mesh, const KdTree& tree);
     /// Replaces the tree file (after a rebuild) or the summary file (after recovery).
-    [[nodiscard]] proto::Result<void, std::string> save_tree(const std::string& id, const KdTree& tree);
+    [[nodiscard]] proto::Result<void, std::string> save_tree(const std::string& id,
+                                                             const KdTree& tree);
     [[nodiscard]] proto::Result<void, std::string> save_summary(const proto::MeshSummary& summary);
 
     /// Loads and validates the tree file.
@@ -70,8 +72,12 @@ public:
     [[nodiscard]] uint64_t disk_bytes(const std::string& id) const;
 
     [[nodiscard]] const std::filesystem::path& tmp_dir() const noexcept { return tmp_dir_; }
-    [[nodiscard]] std::filesystem::path mesh_path(const std::string& id) const { return meshes_dir_ / (id + ".mesh"); }
-    [[nodiscard]] std::filesystem::path tree_path(const std::string& id) const { return meshes_dir_ / (id + ".tree"); }
+    [[nodiscard]] std::filesystem::path mesh_path(const std::string& id) const {
+        return meshes_dir_ / (id + ".mesh");
+    }
+    [[nodiscard]] std::filesystem::path tree_path(const std::string& id) const {
+        return meshes_dir_ / (id + ".tree");
+    }
     [[nodiscard]] std::filesystem::path summary_path(const std::string& id) const {
         return meshes_dir_ / (id + ".json");
     }

@@ -6,12 +6,16 @@ namespace kdrt::server {
 namespace {
 
 std::vector<double> request_buckets() {
-    return {0.0001, 0.00025, 0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05, 0.1, 0.25, 0.5, 1, 2.5, 5, 10, 30};
+    return {0.0001, 0.00025, 0.0005, 0.001, 0.0025, 0.005, 0.01, 0.025, 0.05,
+            0.1,    0.25,    0.5,    1,     2.5,    5,     10,   30};
 }
-std::vector<double> build_buckets() { return {0.001, 0.01, 0.05, 0.1, 0.25, 0.5, 1, 2.5, 5, 10, 30, 60, 120, 300}; }
+std::vector<double> build_buckets() {
+    return {0.001, 0.01, 0.05, 0.1, 0.25, 0.5, 1, 2.5, 5, 10, 30, 60, 120, 300};
+}
 
 double now_seconds() {
-    return std::chrono::duration<double>(std::chrono::system_clock::now().time_since_epoch()).count();
+    return std::chrono::duration<double>(std::chrono::system_clock::now().time_since_epoch())
+        .count();
 }
 
 proto::MetricFamily family(std::string name, std::string help, proto::MetricType type) {
@@ -49,8 +53,8 @@ Metrics::Route::Route() : duration(request_buckets()) {}
 
 Metrics::Metrics() : build_seconds_(build_buckets()), start_time_(now_seconds()) {}
 
-void Metrics::record_request(const std::string& route, const std::string& method, int status, double seconds,
-                             uint64_t bytes_in, uint64_t bytes_out) {
+void Metrics::record_request(const std::string& route, const std::string& method, int status,
+                             double seconds, uint64_t bytes_in, uint64_t bytes_out) {
     std::lock_guard lock(mutex_);
     Route& r = routes_[route];
     ++r.by_method_status[{method, status}];
@@ -84,19 +88,22 @@ std::string Metrics::render() const {
     std::vector<std::function<void(std::vector<proto::MetricFamily>&)>> collectors;
     {
         std::lock_guard lock(mutex_);
-        auto requests = family("kdrt_http_requests_total", "HTTP requests by route template, method and status.",
+        auto requests =
+            family("kdrt_http_requests_total",
+                   "HTTP requests by route template, method and status.", MetricType::kCounter);
+        auto durations = family("kdrt_http_request_duration_seconds",
+                                "Time from reading the request headers to writing the response.",
+                                MetricType::kHistogram);
+        auto bytes_in = family("kdrt_http_request_bytes_total", "Request body bytes by route.",
                                MetricType::kCounter);
-        auto durations =
-            family("kdrt_http_request_duration_seconds",
-                   "Time from reading the request headers to writing the response.", MetricType::kHistogram);
-        auto bytes_in = family("kdrt_http_request_bytes_total", "Request body bytes by route.", MetricType::kCounter);
-        auto bytes_out =
-            family("kdrt_http_response_bytes_total", "Response body bytes by route.", MetricType::kCounter);
+        auto bytes_out = family("kdrt_http_response_bytes_total", "Response body bytes by route.",
+                                MetricType::kCounter);
         for (const auto& [route, r] : routes_) {
             for (const auto& [key, count] : r.by_method_status)
-                requests.samples.push_back(
-                    {{{"route", route}, {"method", std::get<0>(key)}, {"status", std::to_string(std::get<1>(key))}},
-                     static_cast<double>(count)});
+                requests.samples.push_back({{{"route", route},
+                                             {"method", std::get<0>(key)},
+                                             {"status", std::to_string(std::get<1>(key))}},
+                                            static_cast<double>(count)});
             durations.histograms.push_back(r.duration.sample({{"route", route}}));
             bytes_in.samples.push_back({{{"route", route}}, static_cast<double>(r.bytes_in)});
             bytes_out.samples.push_back({{{"route", route}}, static_cast<double>(r.bytes_out)});
@@ -107,42 +114,50 @@ std::string Metrics::render() const {
         families.push_back(std::move(bytes_out));
         collectors = collectors_;
     }
-    auto rays = family("kdrt_rays_traced_total", "Rays traced, by query kind.", MetricType::kCounter);
+    auto rays =
+        family("kdrt_rays_traced_total", "Rays traced, by query kind.", MetricType::kCounter);
     rays.samples.push_back({{{"kind", "closest"}}, static_cast<double>(rays_closest_.load())});
     rays.samples.push_back({{{"kind", "occlusion"}}, static_cast<double>(rays_occlusion_.load())});
     families.push_back(std::move(rays));
 
-    auto builds = family("kdrt_tree_builds_total", "kD-tree builds (uploads and rebuilds).", MetricType::kCounter);
+    auto builds = family("kdrt_tree_builds_total", "kD-tree builds (uploads and rebuilds).",
+                         MetricType::kCounter);
     builds.samples.push_back({{}, static_cast<double>(builds_.load())});
     families.push_back(std::move(builds));
-    auto build_seconds = family("kdrt_tree_build_seconds", "kD-tree build time.", MetricType::kHistogram);
+    auto build_seconds =
+        family("kdrt_tree_build_seconds", "kD-tree build time.", MetricType::kHistogram);
     build_seconds.histograms.push_back(build_seconds_.sample({}));
     families.push_back(std::move(build_seconds));
 
-    const auto counter = [&](const char* name, const char* help, const std::atomic<uint64_t>& value) {
+    const auto counter = [&](const char* name, const char* help,
+                             const std::atomic<uint64_t>& value) {
         auto f = family(name, help, MetricType::kCounter);
         f.samples.push_back({{}, static_cast<double>(value.load())});
         families.push_back(std::move(f));
     };
     counter("kdrt_cache_hits_total", "Tree lookups answered from memory.", cache_hits);
-    counter("kdrt_cache_misses_total", "Tree lookups that loaded the tree from disk.", cache_misses);
-    counter("kdrt_cache_evictions_total", "Trees dropped from memory to stay within the budget.", cache_evictions);
-    counter("kdrt_cache_rebuilds_total", "Cache files that failed validation and were rebuilt from the stored mesh.",
+    counter("kdrt_cache_misses_total", "Tree lookups that loaded the tree from disk.",
+            cache_misses);
+    counter("kdrt_cache_evictions_total", "Trees dropped from memory to stay within the budget.",
+            cache_evictions);
+    counter("kdrt_cache_rebuilds_total",
+            "Cache files that failed validation and were rebuilt from the stored mesh.",
             cache_rebuilds);
-    counter("kdrt_uploads_deduplicated_total", "Uploads of a mesh that was already stored (not rebuilt).",
-            uploads_deduplicated);
+    counter("kdrt_uploads_deduplicated_total",
+            "Uploads of a mesh that was already stored (not rebuilt).", uploads_deduplicated);
     counter("kdrt_renders_total", "Images rendered (synchronous and jobs).", renders);
 
     for (const auto& collect : collectors) collect(families);
 
-    auto info = family("kdrt_build_info", "Build and version information (value 1).", MetricType::kGauge);
+    auto info =
+        family("kdrt_build_info", "Build and version information (value 1).", MetricType::kGauge);
     {
         std::lock_guard lock(mutex_);
         info.samples.push_back({build_info_, 1});
     }
     families.push_back(std::move(info));
-    auto start =
-        family("kdrt_process_start_time_seconds", "Start time of the process (Unix seconds).", MetricType::kGauge);
+    auto start = family("kdrt_process_start_time_seconds",
+                        "Start time of the process (Unix seconds).", MetricType::kGauge);
     start.samples.push_back({{}, start_time_});
     families.push_back(std::move(start));
     return proto::encode_prometheus(families);

@@ -35,16 +35,17 @@ public:
     Metrics();
 
     /// One finished HTTP request. `route` is the route template ("/v1/meshes/{id}").
-    void record_request(const std::string& route, const std::string& method, int status, double seconds,
-                        uint64_t bytes_in, uint64_t bytes_out);
+    void record_request(const std::string& route, const std::string& method, int status,
+                        double seconds, uint64_t bytes_in, uint64_t bytes_out);
     void add_rays(uint64_t count, bool occlusion);
     /// One kD-tree build (upload, or rebuild of a corrupt cache file).
     void record_build(double seconds);
 
-    std::atomic<uint64_t> cache_hits{0};            ///< tree requested and resident
-    std::atomic<uint64_t> cache_misses{0};          ///< tree requested and loaded from disk
-    std::atomic<uint64_t> cache_evictions{0};       ///< trees dropped from memory
-    std::atomic<uint64_t> cache_rebuilds{0};        ///< tree files that failed validation and were rebuilt
+    std::atomic<uint64_t> cache_hits{0};       ///< tree requested and resident
+    std::atomic<uint64_t> cache_misses{0};     ///< tree requested and loaded from disk
+    std::atomic<uint64_t> cache_evictions{0};  ///< trees dropped from memory
+    std::atomic<uint64_t> cache_rebuilds{
+        0};  ///< tree files that failed validation and were rebuilt
     std::atomic<uint64_t> uploads_deduplicated{0};  ///< uploads of a mesh already stored
     std::atomic<uint64_t> renders{0};
 

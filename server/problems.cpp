@@ -16,8 +16,9 @@ proto::Problem make_problem(ProblemKind kind, std::string detail) {
 
 proto::Problem ray_batch_problem(const proto::DecodeError& error) {
     const bool too_many = error.code == proto::DecodeErrorCode::kTooManyRays;
-    proto::Problem p = make_problem(too_many ? ProblemKind::kPayloadTooLarge : ProblemKind::kBadRayBatch,
-                                    "malformed KDRR batch: " + error.detail);
+    proto::Problem p =
+        make_problem(too_many ? ProblemKind::kPayloadTooLarge : ProblemKind::kBadRayBatch,
+                     "malformed KDRR batch: " + error.detail);
     p.code = std::string(proto::decode_error_code_name(error.code));
     return p;
 }
@@ -25,7 +26,8 @@ proto::Problem ray_batch_problem(const proto::DecodeError& error) {
 proto::Problem mesh_parse_problem(const proto::ParseError& error) {
     proto::Problem p = make_problem(ProblemKind::kMeshParseError, error.message);
     if (error.line) p.line = error.line;
-    if (error.byte_offset || error.message.rfind("byte ", 0) == 0) p.byte_offset = error.byte_offset;
+    if (error.byte_offset || error.message.rfind("byte ", 0) == 0)
+        p.byte_offset = error.byte_offset;
     return p;
 }
 
@@ -45,8 +47,9 @@ proto::Problem cache_problem(const CacheError& error) {
         case CacheError::Code::kInvalidMesh:
             return make_problem(ProblemKind::kInvalidMesh, error.detail);
         case CacheError::Code::kLost:
-            return make_problem(ProblemKind::kInternal,
-                                error.detail + " (" + std::string(proto::api_errors::kStoredMeshLost) + ")");
+            return make_problem(
+                ProblemKind::kInternal,
+                error.detail + " (" + std::string(proto::api_errors::kStoredMeshLost) + ")");
         case CacheError::Code::kStorage:
         case CacheError::Code::kInternal:
             break;
@@ -56,18 +59,20 @@ proto::Problem cache_problem(const CacheError& error) {
 
 proto::Problem body_too_large_problem(uint64_t limit, const std::string& what) {
     proto::Problem p =
-        make_problem(ProblemKind::kPayloadTooLarge, std::string(proto::api_errors::kBodyTooLarge) + " the limit of " +
-                                                        std::to_string(limit) + " bytes for " + what);
+        make_problem(ProblemKind::kPayloadTooLarge, std::string(proto::api_errors::kBodyTooLarge) +
+                                                        " the limit of " + std::to_string(limit) +
+                                                        " bytes for " + what);
     p.limit = limit;
     return p;
 }
 
 proto::Problem unknown_mesh_problem(const std::string& id) {
     if (!proto::is_mesh_id(id))
-        return make_problem(
-            ProblemKind::kUnknownMesh,
-            in_quotes(id) + " " + std::string(proto::api_errors::kBadMeshId) + " (64 lower-case hex digits)");
-    return make_problem(ProblemKind::kUnknownMesh, std::string(proto::api_errors::kUnknownMesh) + " " + id);
+        return make_problem(ProblemKind::kUnknownMesh,
+                            in_quotes(id) + " " + std::string(proto::api_errors::kBadMeshId) +
+                                " (64 lower-case hex digits)");
+    return make_problem(ProblemKind::kUnknownMesh,
+                        std::string(proto::api_errors::kUnknownMesh) + " " + id);
 }
 
 }  // namespace kdrt::server

@@ -5,7 +5,8 @@
 namespace kdrt::server {
 
 proto::Result<RenderedImage, std::string> render_and_encode(Compute& compute, const KdTree& tree,
-                                                            const RenderSettings& settings, proto::ImageFormat format,
+                                                            const RenderSettings& settings,
+                                                            proto::ImageFormat format,
                                                             const proto::ImageEncodeOptions& encode,
                                                             const RenderControl& control) {
     RenderedImage out;
@@ -13,7 +14,8 @@ proto::Result<RenderedImage, std::string> render_and_encode(Compute& compute, co
     const auto start = std::chrono::steady_clock::now();
     auto encoded = proto::encode_image(image, format, encode);
     if (!encoded) return proto::Err{"encoding the image failed: " + encoded.error()};
-    out.encode_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
+    out.encode_ms =
+        std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
     out.bytes = std::move(*encoded);
     return out;
 }

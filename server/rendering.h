@@ -22,10 +22,8 @@ struct RenderedImage {
 /// Renders inside the compute arena and encodes the image. Throws what render() throws
 /// (RenderError for settings the tree cannot satisfy, RenderCancelled); an encoder failure is
 /// returned as an error string.
-[[nodiscard]] proto::Result<RenderedImage, std::string> render_and_encode(Compute& compute, const KdTree& tree,
-                                                                          const RenderSettings& settings,
-                                                                          proto::ImageFormat format,
-                                                                          const proto::ImageEncodeOptions& encode,
-                                                                          const RenderControl& control = {});
+[[nodiscard]] proto::Result<RenderedImage, std::string> render_and_encode(
+    Compute& compute, const KdTree& tree, const RenderSettings& settings, proto::ImageFormat format,
+    const proto::ImageEncodeOptions& encode, const RenderControl& control = {});
 
 }  // namespace kdrt::server

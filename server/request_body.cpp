@@ -12,7 +12,10 @@ namespace kdrt::server {
 
 RequestBody::RequestBody(uint64_t max_bytes, uint64_t memory_bytes, std::filesystem::path spool_dir,
                          uint64_t expected_bytes, std::vector<std::byte> buffer)
-    : max_bytes_(max_bytes), memory_bytes_(memory_bytes), spool_dir_(std::move(spool_dir)), memory_(std::move(buffer)) {
+    : max_bytes_(max_bytes),
+      memory_bytes_(memory_bytes),
+      spool_dir_(std::move(spool_dir)),
+      memory_(std::move(buffer)) {
     memory_.clear();
     if (expected_bytes > 0 && expected_bytes <= std::min(max_bytes_, memory_bytes_))
         memory_.reserve(static_cast<size_t>(expected_bytes));
@@ -32,8 +35,8 @@ bool RequestBody::spill() {
         if (fd_ >= 0) ::unlink(name.c_str());
     }
     if (fd_ < 0) {
-        error_ =
-            "cannot create a spool file in \"" + spool_dir_.string() + "\": " + std::generic_category().message(errno);
+        error_ = "cannot create a spool file in \"" + spool_dir_.string() +
+                 "\": " + std::generic_category().message(errno);
         return false;
     }
     const std::vector<std::byte> pending = std::move(memory_);

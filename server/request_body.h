@@ -21,8 +21,8 @@ public:
     /// `max_bytes`: larger bodies are refused; `memory_bytes`: spool beyond this; `spool_dir`:
     /// where the temp file goes. `expected_bytes` (Content-Length, if known) pre-sizes the buffer.
     /// `buffer` (optional) is reused as the in-memory storage (its capacity is kept).
-    RequestBody(uint64_t max_bytes, uint64_t memory_bytes, std::filesystem::path spool_dir, uint64_t expected_bytes = 0,
-                std::vector<std::byte> buffer = {});
+    RequestBody(uint64_t max_bytes, uint64_t memory_bytes, std::filesystem::path spool_dir,
+                uint64_t expected_bytes = 0, std::vector<std::byte> buffer = {});
     RequestBody(const RequestBody&) = delete;
     RequestBody& operator=(const RequestBody&) = delete;
     ~RequestBody();

@@ -12,7 +12,8 @@ Service::Service(ServerConfig cfg)
       batch_buffers(config.buffer_pool_bytes) {
     metrics.add_collector([this](std::vector<proto::MetricFamily>& out) {
         using proto::MetricType;
-        const auto gauge = [&](const char* name, const char* help, proto::MetricLabels labels, double value) {
+        const auto gauge = [&](const char* name, const char* help, proto::MetricLabels labels,
+                               double value) {
             if (out.empty() || out.back().name != name) {
                 proto::MetricFamily f;
                 f.name = name;
@@ -23,20 +24,25 @@ Service::Service(ServerConfig cfg)
             out.back().samples.push_back({std::move(labels), value});
         };
         const char* bytes_help =
-            "Bytes of the mesh cache, in memory (resident trees) and on disk (meshes, trees, summaries).";
-        gauge("kdrt_cache_bytes", bytes_help, {{"where", "memory"}}, static_cast<double>(cache.memory_bytes()));
-        gauge("kdrt_cache_bytes", bytes_help, {{"where", "disk"}}, static_cast<double>(cache.disk_bytes()));
+            "Bytes of the mesh cache, in memory (resident trees) and on disk (meshes, trees, "
+            "summaries).";
+        gauge("kdrt_cache_bytes", bytes_help, {{"where", "memory"}},
+              static_cast<double>(cache.memory_bytes()));
+        gauge("kdrt_cache_bytes", bytes_help, {{"where", "disk"}},
+              static_cast<double>(cache.disk_bytes()));
         gauge("kdrt_cache_budget_bytes", "Configured memory budget for trees.", {},
               static_cast<double>(config.memory_budget));
-        gauge("kdrt_cache_meshes", "Stored meshes, and how many have their tree in memory.", {{"state", "stored"}},
-              static_cast<double>(cache.mesh_count()));
-        gauge("kdrt_cache_meshes", "Stored meshes, and how many have their tree in memory.", {{"state", "resident"}},
-              static_cast<double>(cache.resident_count()));
+        gauge("kdrt_cache_meshes", "Stored meshes, and how many have their tree in memory.",
+              {{"state", "stored"}}, static_cast<double>(cache.mesh_count()));
+        gauge("kdrt_cache_meshes", "Stored meshes, and how many have their tree in memory.",
+              {{"state", "resident"}}, static_cast<double>(cache.resident_count()));
         gauge("kdrt_inflight_requests", "Uploads, traces and renders in flight.", {},
               static_cast<double>(gate.in_flight()));
-        gauge("kdrt_buffer_pool_bytes", "Idle batch buffers kept for reuse (at most buffer_pool_bytes).", {},
+        gauge("kdrt_buffer_pool_bytes",
+              "Idle batch buffers kept for reuse (at most buffer_pool_bytes).", {},
               static_cast<double>(batch_buffers.idle_bytes()));
-        gauge("kdrt_engine_threads", "Threads of the tracing/build arena.", {}, static_cast<double>(compute.threads()));
+        gauge("kdrt_engine_threads", "Threads of the tracing/build arena.", {},
+              static_cast<double>(compute.threads()));
         gauge("kdrt_ready", "1 when /readyz answers 200.", {}, ready && !shutting_down ? 1.0 : 0.0);
     });
 }

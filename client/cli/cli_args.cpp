@@ -12,7 +12,8 @@ namespace kdrt::cli {
 namespace {
 
 std::string in_quotes(std::string_view text) {
-    std::string out;  // appended, not `"\"" + ... + "\""`: GCC 12 warns falsely (-Wrestrict) on that
+    std::string
+        out;  // appended, not `"\"" + ... + "\""`: GCC 12 warns falsely (-Wrestrict) on that
     out.reserve(text.size() + 2);
     out.push_back('"');
     out.append(text);
@@ -38,7 +39,8 @@ std::optional<std::vector<std::string_view>> split_commas(std::string_view text,
     size_t start = 0;
     for (;;) {
         const size_t comma = text.find(',', start);
-        parts.push_back(text.substr(start, comma == std::string_view::npos ? std::string_view::npos : comma - start));
+        parts.push_back(text.substr(
+            start, comma == std::string_view::npos ? std::string_view::npos : comma - start));
         if (comma == std::string_view::npos) break;
         start = comma + 1;
     }
@@ -49,7 +51,8 @@ std::optional<std::vector<std::string_view>> split_commas(std::string_view text,
 }  // namespace
 
 bool ParsedArgs::has(std::string_view name) const {
-    return values.find(name) != values.end() || std::find(flags.begin(), flags.end(), name) != flags.end();
+    return values.find(name) != values.end() ||
+           std::find(flags.begin(), flags.end(), name) != flags.end();
 }
 
 std::optional<std::string> ParsedArgs::value(std::string_view name) const {
@@ -58,8 +61,8 @@ std::optional<std::string> ParsedArgs::value(std::string_view name) const {
     return it->second;
 }
 
-ParseResult<ParsedArgs> parse_args(std::span<const std::string> args, std::span<const OptionSpec> specs,
-                                   std::string_view command) {
+ParseResult<ParsedArgs> parse_args(std::span<const std::string> args,
+                                   std::span<const OptionSpec> specs, std::string_view command) {
     ParsedArgs out;
     const std::string see = " (see " + std::string(command) + " --help)";
     bool options_done = false;
@@ -78,7 +81,8 @@ ParseResult<ParsedArgs> parse_args(std::span<const std::string> args, std::span<
         std::optional<std::string> inline_value;
         if (arg[1] == '-') {
             const size_t eq = arg.find('=');
-            const std::string_view name = std::string_view(arg).substr(2, eq == std::string::npos ? std::string::npos : eq - 2);
+            const std::string_view name = std::string_view(arg).substr(
+                2, eq == std::string::npos ? std::string::npos : eq - 2);
             if (eq != std::string::npos) inline_value = arg.substr(eq + 1);
             spec = find_long(specs, name);
             shown = "--" + std::string(name);
@@ -89,10 +93,12 @@ ParseResult<ParsedArgs> parse_args(std::span<const std::string> args, std::span<
             out.positional.push_back(arg);  // a negative number
             continue;
         }
-        if (!spec) return proto::Err{"unknown option " + in_quotes(shown.empty() ? arg : shown) + " for " +
-                                     std::string(command) + see};
+        if (!spec)
+            return proto::Err{"unknown option " + in_quotes(shown.empty() ? arg : shown) + " for " +
+                              std::string(command) + see};
         if (!spec->takes_value) {
-            if (inline_value) return proto::Err{"option --" + std::string(spec->name) + " takes no value" + see};
+            if (inline_value)
+                return proto::Err{"option --" + std::string(spec->name) + " takes no value" + see};
             if (std::find(out.flags.begin(), out.flags.end(), spec->name) == out.flags.end())
                 out.flags.emplace_back(spec->name);
             continue;
@@ -106,7 +112,8 @@ ParseResult<ParsedArgs> parse_args(std::span<const std::string> args, std::span<
     return out;
 }
 
-ParseResult<GlobalSettings> global_settings(const ParsedArgs& args, const std::map<std::string, std::string>& env) {
+ParseResult<GlobalSettings> global_settings(const ParsedArgs& args,
+                                            const std::map<std::string, std::string>& env) {
     GlobalSettings g;
     if (auto server = args.value("server")) {
         g.server = *server;
@@ -120,7 +127,8 @@ ParseResult<GlobalSettings> global_settings(const ParsedArgs& args, const std::m
     if (auto timeout = args.value("timeout")) {
         auto seconds = parse_number(*timeout);
         if (!seconds || *seconds <= 0)
-            return proto::Err{"--timeout: " + in_quotes(*timeout) + " is not a positive number of seconds"};
+            return proto::Err{"--timeout: " + in_quotes(*timeout) +
+                              " is not a positive number of seconds"};
         g.timeout_s = *seconds;
     }
     if (auto retries = args.value("retries")) {
@@ -137,7 +145,8 @@ ParseResult<uint64_t> parse_uint(std::string_view text, uint64_t min, uint64_t m
     if (text.empty() || ec == std::errc::invalid_argument || end != text.data() + text.size())
         return proto::Err{in_quotes(text) + " is not a whole number"};
     if (ec == std::errc::result_out_of_range || value < min || value > max)
-        return proto::Err{in_quotes(text) + " is not in " + std::to_string(min) + " .. " + std::to_string(max)};
+        return proto::Err{in_quotes(text) + " is not in " + std::to_string(min) + " .. " +
+                          std::to_string(max)};
     return value;
 }
 
@@ -146,7 +155,8 @@ ParseResult<double> parse_number(std::string_view text) {
     std::string_view digits = text;
     if (!digits.empty() && digits.front() == '+') digits.remove_prefix(1);
     const auto [end, ec] = std::from_chars(digits.data(), digits.data() + digits.size(), value);
-    if (digits.empty() || ec != std::errc() || end != digits.data() + digits.size() || !std::isfinite(value))
+    if (digits.empty() || ec != std::errc() || end != digits.data() + digits.size() ||
+        !std::isfinite(value))
         return proto::Err{in_quotes(text) + " is not a finite number"};
     return value;
 }
@@ -184,13 +194,14 @@ ParseResult<PixelRegion> parse_region(std::string_view text) {
         if (!n) return proto::Err{bad};
         v[i] = *n;
     }
-    return PixelRegion{static_cast<uint32_t>(v[0]), static_cast<uint32_t>(v[1]), static_cast<uint32_t>(v[2]),
-                       static_cast<uint32_t>(v[3])};
+    return PixelRegion{static_cast<uint32_t>(v[0]), static_cast<uint32_t>(v[1]),
+                       static_cast<uint32_t>(v[2]), static_cast<uint32_t>(v[3])};
 }
 
 std::optional<std::string> image_format_for_path(std::string_view path) {
     std::string ext = std::filesystem::path(path).extension().string();
-    std::transform(ext.begin(), ext.end(), ext.begin(), [](unsigned char c) { return static_cast<char>(std::tolower(c)); });
+    std::transform(ext.begin(), ext.end(), ext.begin(),
+                   [](unsigned char c) { return static_cast<char>(std::tolower(c)); });
     if (ext == ".png") return "png";
     if (ext == ".jpg" || ext == ".jpeg") return "jpg";
     if (ext == ".exr") return "exr";

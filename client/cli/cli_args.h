@@ -19,11 +19,12 @@ namespace kdrt::cli {
 
 /// Process exit codes of `kdrt` (documented in `kdrt --help`).
 enum ExitCode : int {
-    kExitOk = 0,            ///< success
-    kExitRefused = 1,       ///< the server said no (message printed), or a render job failed
-    kExitUsage = 2,         ///< bad command line, or a file named on it cannot be read or written
-    kExitUnreachable = 3,   ///< cannot connect to the server (or the connection failed)
-    kExitInterrupted = 130, ///< interrupted (SIGINT) while waiting for a render; the job is cancelled
+    kExitOk = 0,           ///< success
+    kExitRefused = 1,      ///< the server said no (message printed), or a render job failed
+    kExitUsage = 2,        ///< bad command line, or a file named on it cannot be read or written
+    kExitUnreachable = 3,  ///< cannot connect to the server (or the connection failed)
+    kExitInterrupted =
+        130,  ///< interrupted (SIGINT) while waiting for a render; the job is cancelled
 };
 
 template <class T>
@@ -39,8 +40,9 @@ struct OptionSpec {
 /// The options and positionals of one subcommand.
 struct ParsedArgs {
     std::vector<std::string> positional;
-    std::map<std::string, std::string, std::less<>> values;  ///< by long name; the last one given wins
-    std::vector<std::string> flags;                          ///< boolean options given, by long name
+    std::map<std::string, std::string, std::less<>>
+        values;                      ///< by long name; the last one given wins
+    std::vector<std::string> flags;  ///< boolean options given, by long name
 
     [[nodiscard]] bool has(std::string_view name) const;  ///< a flag or a value option was given
     [[nodiscard]] std::optional<std::string> value(std::string_view name) const;
@@ -48,7 +50,8 @@ struct ParsedArgs {
 
 /// Splits `args` by `specs`. Errors: an unknown option, a missing value, a value given to a flag.
 /// `command` names the subcommand in messages ("kdrt upload").
-[[nodiscard]] ParseResult<ParsedArgs> parse_args(std::span<const std::string> args, std::span<const OptionSpec> specs,
+[[nodiscard]] ParseResult<ParsedArgs> parse_args(std::span<const std::string> args,
+                                                 std::span<const OptionSpec> specs,
                                                  std::string_view command);
 
 /// Options every subcommand that talks to a server accepts, wherever they appear.
@@ -58,14 +61,14 @@ inline constexpr OptionSpec kGlobalOptions[] = {
 
 /// Connection settings from the global options and the environment (KDRT_SERVER, KDRT_TOKEN).
 struct GlobalSettings {
-    std::string server;                 ///< --server, else KDRT_SERVER, else kDefaultServerUrl
-    std::string token;                  ///< --token, else KDRT_TOKEN (read by the client), else none
-    std::optional<double> timeout_s;    ///< --timeout: per socket read/write, seconds
-    std::optional<unsigned> retries;    ///< --retries
+    std::string server;               ///< --server, else KDRT_SERVER, else kDefaultServerUrl
+    std::string token;                ///< --token, else KDRT_TOKEN (read by the client), else none
+    std::optional<double> timeout_s;  ///< --timeout: per socket read/write, seconds
+    std::optional<unsigned> retries;  ///< --retries
 };
 
-[[nodiscard]] ParseResult<GlobalSettings> global_settings(const ParsedArgs& args,
-                                                          const std::map<std::string, std::string>& env);
+[[nodiscard]] ParseResult<GlobalSettings> global_settings(
+    const ParsedArgs& args, const std::map<std::string, std::string>& env);
 
 /// "1024x768" -> {1024, 768}; each 1 .. kMaxImageSize.
 [[nodiscard]] ParseResult<std::pair<uint32_t, uint32_t>> parse_size(std::string_view text);

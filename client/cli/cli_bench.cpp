@@ -27,7 +27,9 @@ constexpr uint64_t kMaxConnections = 64;
 /// Largest --chunk-rays: the server's default max_rays.
 constexpr uint64_t kMaxChunkRays = uint64_t{1} << 24;
 
-double seconds_since(Clock::time_point start) { return std::chrono::duration<double>(Clock::now() - start).count(); }
+double seconds_since(Clock::time_point start) {
+    return std::chrono::duration<double>(Clock::now() - start).count();
+}
 
 /// A ray set and where it came from.
 struct RaySet {
@@ -42,7 +44,9 @@ proto::Result<RayGenOptions, int> ray_options(const Context& ctx) {
     RayGenOptions options;
     if (auto kind = ctx.args.value("kind")) {
         auto parsed = parse_ray_kind(*kind);
-        if (!parsed) return proto::Err{ctx.usage_error("--kind: \"" + *kind + "\" is not primary, shadow, diffuse or random")};
+        if (!parsed)
+            return proto::Err{ctx.usage_error("--kind: \"" + *kind +
+                                              "\" is not primary, shadow, diffuse or random")};
         options.kind = *parsed;
     }
     if (auto res = ctx.args.value("res")) {
@@ -76,15 +80,18 @@ proto::Result<ClientOptions, int> trace_client_options(const Context& ctx) {
 
 /// Loads a mesh file and generates `options` rays from its tree. With `expected_id`, the file's
 /// mesh id must match it.
-proto::Result<RaySet, int> rays_from_mesh_file(const Context& ctx, const std::string& path, const RayGenOptions& options,
+proto::Result<RaySet, int> rays_from_mesh_file(const Context& ctx, const std::string& path,
+                                               const RayGenOptions& options,
                                                const std::string& expected_id = {}) {
     auto mesh = proto::load_mesh_file(path);
     if (!mesh)
-        return proto::Err{ctx.fail(make_client_error(ErrorKind::kInput, "cannot read the mesh", mesh.error().to_string()))};
+        return proto::Err{ctx.fail(make_client_error(ErrorKind::kInput, "cannot read the mesh",
+                                                     mesh.error().to_string()))};
     if (!expected_id.empty()) {
         const std::string id = proto::mesh_id(*mesh);
         if (id != expected_id)
-            return proto::Err{ctx.usage_error("--mesh " + path + " is not mesh " + expected_id + " (its id is " + id +
+            return proto::Err{ctx.usage_error("--mesh " + path + " is not mesh " + expected_id +
+                                              " (its id is " + id +
                                               "); give the file that was uploaded")};
     }
     RaySet set;
@@ -92,7 +99,8 @@ proto::Result<RaySet, int> rays_from_mesh_file(const Context& ctx, const std::st
         const KdTree tree = build_kdtree(*mesh);
         set.rays = generate_rays(tree, options);
     } catch (const MeshError& e) {
-        return proto::Err{ctx.fail(make_client_error(ErrorKind::kInput, "cannot build the mesh", path + ": " + e.what()))};
+        return proto::Err{ctx.fail(
+            make_client_error(ErrorKind::kInput, "cannot build the mesh", path + ": " + e.what()))};
     }
     set.occlusion = options.kind == RayKind::kShadow;
     set.kind = std::string(ray_kind_name(options.kind));
@@ -103,11 +111,14 @@ proto::Result<RaySet, int> rays_from_mesh_file(const Context& ctx, const std::st
 /// Reads a KDRR file.
 proto::Result<RaySet, int> rays_from_file(const Context& ctx, const std::string& path) {
     auto bytes = proto::read_file_bytes(path);
-    if (!bytes) return proto::Err{ctx.fail(make_client_error(ErrorKind::kInput, "cannot read the rays", bytes.error()))};
+    if (!bytes)
+        return proto::Err{
+            ctx.fail(make_client_error(ErrorKind::kInput, "cannot read the rays", bytes.error()))};
     auto batch = proto::decode_rays(*bytes, {.max_rays = std::numeric_limits<uint32_t>::max()});
     if (!batch)
-        return proto::Err{ctx.fail(make_client_error(ErrorKind::kInput, "cannot read the rays",
-                                                     path + " is not a KDRR ray batch: " + batch.error().to_string()))};
+        return proto::Err{ctx.fail(
+            make_client_error(ErrorKind::kInput, "cannot read the rays",
+                              path + " is not a KDRR ray batch: " + batch.error().to_string()))};
     RaySet set;
     set.rays = std::move(batch->rays);
     set.occlusion = batch->occlusion;
@@ -118,16 +129,19 @@ proto::Result<RaySet, int> rays_from_file(const Context& ctx, const std::string&
 
 /// res x res camera rays through the pixel centres of the default view of `bounds` (what
 /// generate_rays' primary set does with the tree's padded bounds).
-proto::Result<RaySet, int> primary_rays_from_bounds(const Context& ctx, const Aabb& bounds, uint32_t res) {
+proto::Result<RaySet, int> primary_rays_from_bounds(const Context& ctx, const Aabb& bounds,
+                                                    uint32_t res) {
     RaySet set;
     try {
         const Camera camera(default_camera(bounds, 1.0f), res, res);
         set.rays.resize(size_t{res} * res);
         for (uint32_t y = 0; y < res; ++y)
             for (uint32_t x = 0; x < res; ++x)
-                set.rays[size_t{y} * res + x] = camera.ray(static_cast<float>(x) + 0.5f, static_cast<float>(y) + 0.5f);
+                set.rays[size_t{y} * res + x] =
+                    camera.ray(static_cast<float>(x) + 0.5f, static_cast<float>(y) + 0.5f);
     } catch (const CameraError& e) {
-        return proto::Err{ctx.fail(make_client_error(ErrorKind::kInput, "cannot place a camera", e.what()))};
+        return proto::Err{
+            ctx.fail(make_client_error(ErrorKind::kInput, "cannot place a camera", e.what()))};
     }
     set.kind = "primary";
     set.source = "bounds";
@@ -137,7 +151,8 @@ proto::Result<RaySet, int> primary_rays_from_bounds(const Context& ctx, const Aa
 template <class T>
 uint64_t count_answers(const std::vector<T>& answers) {
     if constexpr (std::is_same_v<T, Hit>) {
-        return static_cast<uint64_t>(std::count_if(answers.begin(), answers.end(), [](const Hit& h) { return h.is_hit(); }));
+        return static_cast<uint64_t>(
+            std::count_if(answers.begin(), answers.end(), [](const Hit& h) { return h.is_hit(); }));
     } else {
         return static_cast<uint64_t>(std::count(answers.begin(), answers.end(), uint8_t{1}));
     }
@@ -147,7 +162,8 @@ uint64_t count_answers(const std::vector<T>& answers) {
 
 int run_rays(Context& ctx) {
     if (ctx.args.positional.empty()) return ctx.usage_error("missing MESH (the mesh file)");
-    if (ctx.args.positional.size() > 1) return ctx.usage_error("unexpected argument \"" + ctx.args.positional[1] + "\"");
+    if (ctx.args.positional.size() > 1)
+        return ctx.usage_error("unexpected argument \"" + ctx.args.positional[1] + "\"");
     const auto output = ctx.args.value("output");
     if (!output) return ctx.usage_error("missing -o FILE (the KDRR file to write)");
     auto options = ray_options(ctx);
@@ -159,7 +175,8 @@ int run_rays(Context& ctx) {
     const double generate_ms = seconds_since(start) * 1e3;
     const std::vector<std::byte> bytes = proto::encode_rays(set->rays, set->occlusion);
     if (auto written = proto::write_file_bytes(*output, bytes); !written)
-        return ctx.fail(make_client_error(ErrorKind::kInput, "cannot write the rays", written.error()));
+        return ctx.fail(
+            make_client_error(ErrorKind::kInput, "cannot write the rays", written.error()));
     if (ctx.args.has("json")) {
         const proto::JsonField fields[] = {{"command", std::string_view("rays")},
                                            {"mesh", std::string_view(mesh_path)},
@@ -174,15 +191,17 @@ int run_rays(Context& ctx) {
         ctx.console.out << proto::encode_flat_object(fields) << "\n";
     } else {
         ctx.console.out << "wrote " << set->rays.size() << " " << set->kind << " rays"
-                        << (set->occlusion ? " (occlusion query)" : "") << " to " << *output << " (" << bytes.size()
-                        << " bytes)\n";
+                        << (set->occlusion ? " (occlusion query)" : "") << " to " << *output << " ("
+                        << bytes.size() << " bytes)\n";
     }
     return kExitOk;
 }
 
 int run_trace(Context& ctx) {
-    if (ctx.args.positional.size() < 2) return ctx.usage_error("missing ID and RAYS (a mesh id and a KDRR file)");
-    if (ctx.args.positional.size() > 2) return ctx.usage_error("unexpected argument \"" + ctx.args.positional[2] + "\"");
+    if (ctx.args.positional.size() < 2)
+        return ctx.usage_error("missing ID and RAYS (a mesh id and a KDRR file)");
+    if (ctx.args.positional.size() > 2)
+        return ctx.usage_error("unexpected argument \"" + ctx.args.positional[2] + "\"");
     const auto output = ctx.args.value("output");
     if (!output) return ctx.usage_error("missing -o FILE (the KDRH/KDRO file to write)");
     auto options = trace_client_options(ctx);
@@ -210,7 +229,8 @@ int run_trace(Context& ctx) {
     }
     const double seconds = seconds_since(start);
     if (auto written = proto::write_file_bytes(*output, answer); !written)
-        return ctx.fail(make_client_error(ErrorKind::kInput, "cannot write the answers", written.error()));
+        return ctx.fail(
+            make_client_error(ErrorKind::kInput, "cannot write the answers", written.error()));
     const double mrays = seconds > 0 ? static_cast<double>(set->rays.size()) / seconds / 1e6 : 0.0;
     if (ctx.args.has("json")) {
         const proto::JsonField fields[] = {{"command", std::string_view("trace")},
@@ -226,18 +246,23 @@ int run_trace(Context& ctx) {
                                            {"out", std::string_view(*output)}};
         ctx.console.out << proto::encode_flat_object(fields) << "\n";
     } else {
-        ctx.console.out << "traced " << set->rays.size() << " rays (" << (set->occlusion ? "occlusion" : "closest hits")
-                        << ") in " << fixed(seconds, 3) << " s, " << fixed(mrays, 2) << " Mrays/s over "
-                        << options->connections << (options->connections == 1 ? " connection: " : " connections: ")
-                        << hits << (set->occlusion ? " occluded" : " hits") << " -> " << *output << "\n";
+        ctx.console.out << "traced " << set->rays.size() << " rays ("
+                        << (set->occlusion ? "occlusion" : "closest hits") << ") in "
+                        << fixed(seconds, 3) << " s, " << fixed(mrays, 2) << " Mrays/s over "
+                        << options->connections
+                        << (options->connections == 1 ? " connection: " : " connections: ") << hits
+                        << (set->occlusion ? " occluded" : " hits") << " -> " << *output << "\n";
     }
     return kExitOk;
 }
 
 int run_bench_remote(Context& ctx) {
-    if (ctx.args.positional.empty()) return ctx.usage_error("missing ID (the mesh to trace against)");
-    if (ctx.args.positional.size() > 1) return ctx.usage_error("unexpected argument \"" + ctx.args.positional[1] + "\"");
-    if (ctx.args.has("mesh") && ctx.args.has("rays")) return ctx.usage_error("give --mesh or --rays, not both");
+    if (ctx.args.positional.empty())
+        return ctx.usage_error("missing ID (the mesh to trace against)");
+    if (ctx.args.positional.size() > 1)
+        return ctx.usage_error("unexpected argument \"" + ctx.args.positional[1] + "\"");
+    if (ctx.args.has("mesh") && ctx.args.has("rays"))
+        return ctx.usage_error("give --mesh or --rays, not both");
     auto ray_opts = ray_options(ctx);
     if (!ray_opts) return ray_opts.error();
     auto options = trace_client_options(ctx);
@@ -250,7 +275,8 @@ int run_bench_remote(Context& ctx) {
     }
     if (!ctx.args.has("mesh") && !ctx.args.has("rays") && ray_opts->kind != RayKind::kPrimary)
         return ctx.usage_error("--kind " + std::string(ray_kind_name(ray_opts->kind)) +
-                               " needs the mesh's triangles: add --mesh FILE (the file uploaded as ID) or --rays FILE");
+                               " needs the mesh's triangles: add --mesh FILE (the file uploaded as "
+                               "ID) or --rays FILE");
 
     Client& client = ctx.connect(*options);
     auto id = ctx.resolve_mesh_id(ctx.args.positional[0]);
@@ -302,10 +328,12 @@ int run_bench_remote(Context& ctx) {
                                            {"hits", hits}};
         ctx.console.out << proto::encode_flat_object(fields) << "\n";
     } else {
-        ctx.console.out << set->kind << " rays (" << set->source << "): " << set->rays.size() << " rays, "
-                        << options->connections << (options->connections == 1 ? " connection" : " connections")
-                        << ", chunks of " << options->chunk_rays << ": median " << fixed(median, 3) << " s of " << reps
-                        << " (min " << fixed(times.front(), 3) << " s) = " << fixed(mrays, 2) << " Mrays/s, " << hits
+        ctx.console.out << set->kind << " rays (" << set->source << "): " << set->rays.size()
+                        << " rays, " << options->connections
+                        << (options->connections == 1 ? " connection" : " connections")
+                        << ", chunks of " << options->chunk_rays << ": median " << fixed(median, 3)
+                        << " s of " << reps << " (min " << fixed(times.front(), 3)
+                        << " s) = " << fixed(mrays, 2) << " Mrays/s, " << hits
                         << (set->occlusion ? " occluded\n" : " hits\n");
     }
     return kExitOk;

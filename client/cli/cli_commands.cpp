@@ -19,7 +19,8 @@
 namespace kdrt::cli {
 namespace {
 
-constexpr std::string_view kMainHelp = R"(usage: kdrt [--server URL] [--token TOKEN] COMMAND [ARGS...]
+constexpr std::string_view kMainHelp =
+    R"(usage: kdrt [--server URL] [--token TOKEN] COMMAND [ARGS...]
 
 Command-line client of kdrt-server: upload meshes, trace ray files, render images.
 
@@ -52,7 +53,8 @@ failed; 2 usage error (bad arguments, or a file named on the command line cannot
 written); 3 cannot connect to the server; 130 interrupted while waiting for a render.
 )";
 
-constexpr std::string_view kUploadHelp = R"(usage: kdrt upload FILE... [--format obj|ply|off|stl|raw] [--json]
+constexpr std::string_view kUploadHelp =
+    R"(usage: kdrt upload FILE... [--format obj|ply|off|stl|raw] [--json]
 
 Uploads each mesh file; the server builds its kD-tree and stores it. Prints one line per file:
   ID  TRIANGLES triangles  BUILD_MS ms  FILE
@@ -86,7 +88,8 @@ constexpr std::string_view kRmHelp = R"(usage: kdrt rm ID...
 Deletes stored meshes (their files on the server too). Prints "removed ID" per mesh.
 )";
 
-constexpr std::string_view kRenderHelp = R"(usage: kdrt render ID -o FILE [--size WxH] [--eye X,Y,Z] [--look-at X,Y,Z] [--up X,Y,Z]
+constexpr std::string_view kRenderHelp =
+    R"(usage: kdrt render ID -o FILE [--size WxH] [--eye X,Y,Z] [--look-at X,Y,Z] [--up X,Y,Z]
                    [--fov DEG] [--ortho HEIGHT] [--shading MODE] [--spp N] [--seed N]
                    [--tile X,Y,W,H] [--quiet]
 
@@ -121,7 +124,8 @@ constexpr std::string_view kMetricsHelp = R"(usage: kdrt metrics
 Prints the server's metrics in the Prometheus text format (GET /metrics).
 )";
 
-constexpr std::string_view kTraceHelp = R"(usage: kdrt trace ID RAYS.kdrr -o FILE [--connections N] [--chunk-rays N] [--json]
+constexpr std::string_view kTraceHelp =
+    R"(usage: kdrt trace ID RAYS.kdrr -o FILE [--connections N] [--chunk-rays N] [--json]
 
 Traces every ray of a KDRR file (kdrt rays, kdrt-bench rays, proto/FORMATS.md) against a stored
 mesh and writes the answers to FILE: KDRH closest hits, or KDRO occlusion bytes when the file's
@@ -134,7 +138,8 @@ Prints the ray count, time, Mrays/s and hits.
   --json               print the summary as one JSON object
 )";
 
-constexpr std::string_view kRaysHelp = R"(usage: kdrt rays MESH -o FILE [--kind primary|shadow|diffuse|random] [--res N] [--seed N] [--json]
+constexpr std::string_view kRaysHelp =
+    R"(usage: kdrt rays MESH -o FILE [--kind primary|shadow|diffuse|random] [--res N] [--seed N] [--json]
 
 Generates a deterministic KDRR ray set for a mesh file, locally (no server): the same bytes as
 `kdrt-bench rays` on every machine. The mesh's kD-tree is built in this process.
@@ -149,7 +154,8 @@ Generates a deterministic KDRR ray set for a mesh file, locally (no server): the
   --json              print the summary as one JSON object
 )";
 
-constexpr std::string_view kBenchHelp = R"(usage: kdrt bench-remote ID [--kind primary|shadow|diffuse|random] [--res N] [--seed N]
+constexpr std::string_view kBenchHelp =
+    R"(usage: kdrt bench-remote ID [--kind primary|shadow|diffuse|random] [--res N] [--seed N]
                          [--mesh FILE | --rays FILE] [--connections N] [--chunk-rays N]
                          [--reps K] [--json]
 
@@ -198,20 +204,43 @@ const std::vector<CommandSpec>& commands() {
         {"rm", kRmHelp, {}, true, run_rm},
         {"render",
          kRenderHelp,
-         {{"output", true, 'o'}, {"size", true}, {"eye", true}, {"look-at", true}, {"up", true}, {"fov", true},
-          {"ortho", true}, {"shading", true}, {"spp", true}, {"seed", true}, {"tile", true}, {"quiet", false}},
+         {{"output", true, 'o'},
+          {"size", true},
+          {"eye", true},
+          {"look-at", true},
+          {"up", true},
+          {"fov", true},
+          {"ortho", true},
+          {"shading", true},
+          {"spp", true},
+          {"seed", true},
+          {"tile", true},
+          {"quiet", false}},
          true,
          run_render},
-        {"trace", kTraceHelp, {{"output", true, 'o'}, {"connections", true}, {"chunk-rays", true}, {"json", false}},
-         true, run_trace},
-        {"rays", kRaysHelp, {{"output", true, 'o'}, {"kind", true}, {"res", true}, {"seed", true}, {"json", false}},
-         false, run_rays},
+        {"trace",
+         kTraceHelp,
+         {{"output", true, 'o'}, {"connections", true}, {"chunk-rays", true}, {"json", false}},
+         true,
+         run_trace},
+        {"rays",
+         kRaysHelp,
+         {{"output", true, 'o'}, {"kind", true}, {"res", true}, {"seed", true}, {"json", false}},
+         false,
+         run_rays},
         {"health", kHealthHelp, {}, true, run_health},
         {"metrics", kMetricsHelp, {}, true, run_metrics},
         {"bench-remote",
          kBenchHelp,
-         {{"kind", true}, {"res", true}, {"seed", true}, {"mesh", true}, {"rays", true}, {"connections", true},
-          {"chunk-rays", true}, {"reps", true}, {"json", false}},
+         {{"kind", true},
+          {"res", true},
+          {"seed", true},
+          {"mesh", true},
+          {"rays", true},
+          {"connections", true},
+          {"chunk-rays", true},
+          {"reps", true},
+          {"json", false}},
          true,
          run_bench_remote},
     };
@@ -251,11 +280,13 @@ bool positional_count_ok(Context& ctx, size_t min, size_t max, std::string_view 
 
 int run_upload(Context& ctx) {
     int code = kExitOk;
-    if (!positional_count_ok(ctx, 1, SIZE_MAX, "FILE (the mesh files to upload)", code)) return code;
+    if (!positional_count_ok(ctx, 1, SIZE_MAX, "FILE (the mesh files to upload)", code))
+        return code;
     std::optional<proto::MeshFormat> format;
     if (auto name = ctx.args.value("format")) {
         format = proto::mesh_format_from_name(*name);
-        if (!format) return ctx.usage_error("--format: \"" + *name + "\" is not obj, ply, off, stl or raw");
+        if (!format)
+            return ctx.usage_error("--format: \"" + *name + "\" is not obj, ply, off, stl or raw");
     }
     const bool json = ctx.args.has("json");
     Client& client = ctx.connect(ctx.client_options());
@@ -263,11 +294,13 @@ int run_upload(Context& ctx) {
         auto mesh = client.upload(file, format);
         if (!mesh) {
             const int failed = ctx.fail(mesh.error(), file);
-            if (failed == kExitUnreachable) return failed;  // the other files would fail the same way
+            if (failed == kExitUnreachable)
+                return failed;  // the other files would fail the same way
             code = std::max(code, failed);
             continue;
         }
-        ctx.console.out << (json ? mesh_json_line(*mesh, file) : upload_line(*mesh, file)) << "\n" << std::flush;
+        ctx.console.out << (json ? mesh_json_line(*mesh, file) : upload_line(*mesh, file)) << "\n"
+                        << std::flush;
     }
     return code;
 }
@@ -356,11 +389,13 @@ std::optional<int> render_settings(Context& ctx, const std::string& id, RenderRe
         if (!region) return ctx.usage_error("--tile: " + region.error());
         s.region = *region;
     }
-    const bool camera = a.has("eye") || a.has("look-at") || a.has("up") || a.has("fov") || a.has("ortho");
+    const bool camera =
+        a.has("eye") || a.has("look-at") || a.has("up") || a.has("fov") || a.has("ortho");
     if (!camera) return std::nullopt;
     // Parse everything before asking the server for the bounds.
     std::optional<Vec3> eye, look_at, up;
-    for (auto [name, target] : {std::pair{"eye", &eye}, std::pair{"look-at", &look_at}, std::pair{"up", &up}}) {
+    for (auto [name, target] :
+         {std::pair{"eye", &eye}, std::pair{"look-at", &look_at}, std::pair{"up", &up}}) {
         if (auto text = a.value(name)) {
             auto v = parse_vec3(*text);
             if (!v) return ctx.usage_error("--" + std::string(name) + ": " + v.error());
@@ -371,17 +406,20 @@ std::optional<int> render_settings(Context& ctx, const std::string& id, RenderRe
     if (auto text = a.value("fov")) {
         auto deg = parse_number(*text);
         if (!deg || *deg <= 0 || *deg >= 180)
-            return ctx.usage_error("--fov: \"" + *text + "\" is not a number of degrees in (0, 180)");
+            return ctx.usage_error("--fov: \"" + *text +
+                                   "\" is not a number of degrees in (0, 180)");
         fov = static_cast<float>(*deg);
     }
     if (auto text = a.value("ortho")) {
         auto height = parse_number(*text);
-        if (!height || *height <= 0) return ctx.usage_error("--ortho: \"" + *text + "\" is not a positive number");
+        if (!height || *height <= 0)
+            return ctx.usage_error("--ortho: \"" + *text + "\" is not a positive number");
         ortho = static_cast<float>(*height);
     }
     auto mesh = ctx.client->mesh(id);
     if (!mesh) return ctx.fail(mesh.error());
-    CameraSpec spec = default_camera(mesh->bounds, static_cast<float>(s.width) / static_cast<float>(s.height));
+    CameraSpec spec =
+        default_camera(mesh->bounds, static_cast<float>(s.width) / static_cast<float>(s.height));
     if (eye) spec.eye = *eye;
     if (look_at) spec.look_at = *look_at;
     if (up) spec.up = *up;
@@ -414,7 +452,8 @@ int run_render(Context& ctx) {
     const auto start = std::chrono::steady_clock::now();
     auto job = ctx.client->submit(request);
     if (!job) return ctx.fail(job.error());
-    ProgressReporter progress(ctx.console.err, ctx.console.err_is_tty, ctx.args.has("quiet"), "render");
+    ProgressReporter progress(ctx.console.err, ctx.console.err_is_tty, ctx.args.has("quiet"),
+                              "render");
     const std::atomic<bool>* interrupted = ctx.console.interrupted;
     if (ctx.console.waiting) ctx.console.waiting->store(true);
     auto image = ctx.client->wait(*job, [&](const Job& status) {
@@ -430,16 +469,20 @@ int run_render(Context& ctx) {
         progress.finish("failed");
         return ctx.fail(image.error());
     }
-    (void)ctx.client->cancel(*job);  // forget the finished job: the server keeps its image otherwise
-    const double seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+    (void)ctx.client->cancel(
+        *job);  // forget the finished job: the server keeps its image otherwise
+    const double seconds =
+        std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
     if (auto written = proto::write_file_bytes(*output, *image); !written) {
         progress.finish("failed");
-        return ctx.fail(make_client_error(ErrorKind::kInput, "cannot write the image", written.error()));
+        return ctx.fail(
+            make_client_error(ErrorKind::kInput, "cannot write the image", written.error()));
     }
     progress.finish("done in " + fixed(seconds, 2) + " s");
-    ctx.console.out << "wrote " << *output << " (" << image->size() << " bytes, " << request.settings.width << "x"
-                    << request.settings.height << " " << shading_name(request.settings.shading) << ", "
-                    << request.settings.spp << " spp)\n";
+    ctx.console.out << "wrote " << *output << " (" << image->size() << " bytes, "
+                    << request.settings.width << "x" << request.settings.height << " "
+                    << shading_name(request.settings.shading) << ", " << request.settings.spp
+                    << " spp)\n";
     return kExitOk;
 }
 
@@ -490,7 +533,8 @@ ClientOptions Context::client_options() const {
     ClientOptions options;
     options.token = settings.token;
     if (settings.timeout_s)
-        options.io_timeout = std::chrono::milliseconds(static_cast<int64_t>(std::ceil(*settings.timeout_s * 1000)));
+        options.io_timeout =
+            std::chrono::milliseconds(static_cast<int64_t>(std::ceil(*settings.timeout_s * 1000)));
     if (settings.retries) options.max_retries = *settings.retries;
     return options;
 }
@@ -507,10 +551,12 @@ int Context::usage_error(std::string_view message) const {
 }
 
 int Context::fail(const Error& error, std::string_view subject) const {
-    console.err << "kdrt " << command << ": " << (subject.empty() ? "" : std::string(subject) + ": ")
-                << error.to_string() << "\n";
+    console.err << "kdrt " << command << ": "
+                << (subject.empty() ? "" : std::string(subject) + ": ") << error.to_string()
+                << "\n";
     if (error.kind == ErrorKind::kConnection)
-        console.err << "is kdrt-server running there? Set the address with --server URL or KDRT_SERVER.\n";
+        console.err
+            << "is kdrt-server running there? Set the address with --server URL or KDRT_SERVER.\n";
     if (error.kind == ErrorKind::kServer && error.status == 401)
         console.err << "set the server's bearer token with --token TOKEN or KDRT_TOKEN.\n";
     return exit_code_for(error);
@@ -530,18 +576,21 @@ proto::Result<std::string, int> Context::resolve_mesh_id(std::string_view arg) {
     for (const MeshInfo& m : *list)
         if (m.id.rfind(prefix, 0) == 0) matches.push_back(m.id);
     if (matches.empty()) {
-        console.err << "kdrt " << command << ": no stored mesh has an id starting with " << prefix << "\n";
+        console.err << "kdrt " << command << ": no stored mesh has an id starting with " << prefix
+                    << "\n";
         return proto::Err{static_cast<int>(kExitRefused)};
     }
     if (matches.size() > 1)
-        return proto::Err{usage_error("mesh id prefix " + prefix + " is ambiguous: " + std::to_string(matches.size()) +
+        return proto::Err{usage_error("mesh id prefix " + prefix +
+                                      " is ambiguous: " + std::to_string(matches.size()) +
                                       " stored meshes start with it; give more digits")};
     return matches.front();
 }
 
 // ---- run ----------------------------------------------------------------------------------------
 
-int run(std::span<const std::string> args, const std::map<std::string, std::string>& env, const Console& console) {
+int run(std::span<const std::string> args, const std::map<std::string, std::string>& env,
+        const Console& console) {
     // The command is the first argument that is neither a global option nor its value.
     size_t command_index = args.size();
     for (size_t i = 0; i < args.size(); ++i) {
@@ -591,8 +640,10 @@ int run(std::span<const std::string> args, const std::map<std::string, std::stri
                     << "run 'kdrt --help' for the list of commands\n";
         return kExitUsage;
     }
-    std::vector<std::string> rest(args.begin(), args.begin() + static_cast<std::ptrdiff_t>(command_index));
-    rest.insert(rest.end(), args.begin() + static_cast<std::ptrdiff_t>(command_index) + 1, args.end());
+    std::vector<std::string> rest(args.begin(),
+                                  args.begin() + static_cast<std::ptrdiff_t>(command_index));
+    rest.insert(rest.end(), args.begin() + static_cast<std::ptrdiff_t>(command_index) + 1,
+                args.end());
     std::vector<OptionSpec> options = spec->options;
     options.insert(options.end(), std::begin(kGlobalOptions), std::end(kGlobalOptions));
 

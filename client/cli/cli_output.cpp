@@ -36,8 +36,8 @@ std::string fixed(double value, int decimals) {
 }
 
 std::string upload_line(const MeshInfo& mesh, std::string_view file) {
-    return mesh.id + "  " + std::to_string(mesh.triangles) + " triangles  " + fixed(mesh.tree.build_ms, 1) + " ms  " +
-           std::string(file);
+    return mesh.id + "  " + std::to_string(mesh.triangles) + " triangles  " +
+           fixed(mesh.tree.build_ms, 1) + " ms  " + std::string(file);
 }
 
 std::string mesh_table(std::span<const MeshInfo> meshes) {
@@ -45,8 +45,8 @@ std::string mesh_table(std::span<const MeshInfo> meshes) {
                       pad_left("BUILD_MS", 10) + "  IN_MEMORY\n";
     for (const MeshInfo& m : meshes) {
         out += pad_right(m.id, 66) + pad_left(std::to_string(m.triangles), 11) +
-               pad_left(std::to_string(m.vertices), 11) + pad_left(fixed(m.tree.build_ms, 1), 10) + "  " +
-               (m.in_memory ? (*m.in_memory ? "yes" : "no") : "-") + "\n";
+               pad_left(std::to_string(m.vertices), 11) + pad_left(fixed(m.tree.build_ms, 1), 10) +
+               "  " + (m.in_memory ? (*m.in_memory ? "yes" : "no") : "-") + "\n";
     }
     return out;
 }
@@ -59,11 +59,13 @@ std::string mesh_details(const MeshInfo& m) {
     out += "vertices    " + std::to_string(m.vertices) + "\n";
     out += "bounds      " + vec3_text(m.bounds.lo) + " .. " + vec3_text(m.bounds.hi) + "\n";
     out += "build_ms    " + fixed(t.build_ms, 1) + "\n";
-    out += "tree        " + std::to_string(t.nodes) + " nodes, " + std::to_string(t.leaves) + " leaves (" +
-           std::to_string(t.empty_leaves) + " empty), " + std::to_string(t.refs) + " refs, max depth " +
-           std::to_string(t.max_depth) + ", " + fixed(t.mean_tris_per_leaf, 2) + " triangles per leaf\n";
+    out += "tree        " + std::to_string(t.nodes) + " nodes, " + std::to_string(t.leaves) +
+           " leaves (" + std::to_string(t.empty_leaves) + " empty), " + std::to_string(t.refs) +
+           " refs, max depth " + std::to_string(t.max_depth) + ", " +
+           fixed(t.mean_tris_per_leaf, 2) + " triangles per leaf\n";
     out += "sah_cost    " + fixed(t.sah_cost, 2) + "\n";
-    out += "bytes       " + std::to_string(t.bytes) + " (" + fixed(t.bytes_per_triangle, 1) + " per triangle)\n";
+    out += "bytes       " + std::to_string(t.bytes) + " (" + fixed(t.bytes_per_triangle, 1) +
+           " per triangle)\n";
     if (m.in_memory) out += std::string("in_memory   ") + (*m.in_memory ? "yes" : "no") + "\n";
     return out;
 }

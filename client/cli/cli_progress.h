@@ -19,7 +19,8 @@ public:
     /// Ends the bar (a newline on a terminal) and prints "LABEL: <message>".
     void finish(std::string_view message);
 
-    /// The bar line for `progress` without the leading '\r' (for tests): "[#####-----]  50% running".
+    /// The bar line for `progress` without the leading '\r' (for tests): "[#####-----]  50%
+    /// running".
     [[nodiscard]] static std::string bar(std::string_view state, double progress, int width = 30);
 
 private:

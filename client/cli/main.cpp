@@ -33,12 +33,14 @@ extern "C" void on_interrupt(int signal_number) {
 }  // namespace
 
 int main(int argc, char** argv) {
-    static_assert(std::atomic<bool>::is_always_lock_free, "the SIGINT handler stores to an atomic<bool>");
+    static_assert(std::atomic<bool>::is_always_lock_free,
+                  "the SIGINT handler stores to an atomic<bool>");
     std::vector<std::string> args(argv + 1, argv + argc);
     std::map<std::string, std::string> env;
     for (char** e = environ; *e; ++e) {
         const char* eq = std::strchr(*e, '=');
-        if (eq && std::strncmp(*e, "KDRT_", 5) == 0) env.emplace(std::string(*e, static_cast<size_t>(eq - *e)), std::string(eq + 1));
+        if (eq && std::strncmp(*e, "KDRT_", 5) == 0)
+            env.emplace(std::string(*e, static_cast<size_t>(eq - *e)), std::string(eq + 1));
     }
     struct sigaction action {};
     action.sa_handler = on_interrupt;
@@ -46,8 +48,8 @@ int main(int argc, char** argv) {
     ::sigaction(SIGINT, &action, nullptr);
     ::signal(SIGPIPE, SIG_IGN);
 
-    const kdrt::cli::Console console{std::cout, std::cerr, ::isatty(STDERR_FILENO) == 1, &g_interrupted,
-                                            &g_waiting};
+    const kdrt::cli::Console console{std::cout, std::cerr, ::isatty(STDERR_FILENO) == 1,
+                                     &g_interrupted, &g_waiting};
     const int code = kdrt::cli::run(args, env, console);
     std::cout.flush();
     return code;

@@ -40,8 +40,8 @@ std::string escape_segment(std::string_view segment) {
     std::string out;
     for (const char c : segment) {
         const auto u = static_cast<unsigned char>(c);
-        if ((u >= 'a' && u <= 'z') || (u >= 'A' && u <= 'Z') || (u >= '0' && u <= '9') || u == '-' || u == '.' ||
-            u == '_' || u == '~') {
+        if ((u >= 'a' && u <= 'z') || (u >= 'A' && u <= 'Z') || (u >= '0' && u <= '9') ||
+            u == '-' || u == '.' || u == '_' || u == '~') {
             out.push_back(c);
         } else {
             out.push_back('%');
@@ -61,7 +61,8 @@ std::vector<std::byte> to_byte_vector(const std::string& text) {
     return {bytes.begin(), bytes.end()};
 }
 
-/// Retry-After in delta-seconds form; nullopt for an HTTP-date or garbage (then the backoff applies).
+/// Retry-After in delta-seconds form; nullopt for an HTTP-date or garbage (then the backoff
+/// applies).
 std::optional<uint32_t> parse_retry_after(const std::string& value) {
     uint32_t seconds = 0;
     const char* end = value.data() + value.size();
@@ -78,7 +79,8 @@ bool failed_before_sending(httplib::Error error) noexcept {
 
 /// True for httplib errors of the transport (connection reset or timed out mid-exchange).
 bool transport_failure(httplib::Error error) noexcept {
-    return failed_before_sending(error) || error == httplib::Error::Read || error == httplib::Error::Write;
+    return failed_before_sending(error) || error == httplib::Error::Read ||
+           error == httplib::Error::Write;
 }
 
 /// What went wrong, in words: httplib's error names ("Connection", "Read") say little.
@@ -105,7 +107,8 @@ std::string describe(httplib::Error error) {
 /// Why a TCP connection to host:port fails ("Connection refused", "Name or service not known"),
 /// found by trying once more with a plain blocking connect: httplib reports only that it failed.
 /// Empty when this attempt succeeds (the failure was transient).
-std::string connect_failure_reason(const std::string& host, int port, std::chrono::milliseconds timeout) {
+std::string connect_failure_reason(const std::string& host, int port,
+                                   std::chrono::milliseconds timeout) {
     addrinfo hints{};
     hints.ai_family = AF_UNSPEC;
     hints.ai_socktype = SOCK_STREAM;
@@ -131,7 +134,8 @@ std::string connect_failure_reason(const std::string& host, int port, std::chron
             reason.clear();
             break;
         }
-        reason = os_error == EINPROGRESS || os_error == EAGAIN ? std::strerror(ETIMEDOUT) : std::strerror(os_error);
+        reason = os_error == EINPROGRESS || os_error == EAGAIN ? std::strerror(ETIMEDOUT)
+                                                               : std::strerror(os_error);
     }
     ::freeaddrinfo(found);
     return reason;
@@ -140,11 +144,12 @@ std::string connect_failure_reason(const std::string& host, int port, std::chron
 /// One HTTP exchange as the retry loop sends it (possibly several times).
 struct Exchange {
     const char* method = "GET";
-    std::string path;                ///< API path, base path included
+    std::string path;  ///< API path, base path included
     httplib::Headers headers;
-    std::string_view body;           ///< in-memory body (POST), unless `stream` is set
-    size_t stream_size = 0;          ///< streamed body size
-    httplib::ContentProvider stream; ///< streamed body (file uploads); re-invoked from 0 on a retry
+    std::string_view body;   ///< in-memory body (POST), unless `stream` is set
+    size_t stream_size = 0;  ///< streamed body size
+    httplib::ContentProvider
+        stream;  ///< streamed body (file uploads); re-invoked from 0 on a retry
     std::string content_type;
     /// May the request be sent again after the connection failed once it was (maybe) sent?
     /// False for requests that are not idempotent (async render submissions).
@@ -210,7 +215,9 @@ struct Client::Impl {
         if (idle.size() < std::max(1u, options.connections)) idle.push_back(std::move(client));
     }
 
-    [[nodiscard]] std::string api(std::string_view path) const { return url.base_path + std::string(path); }
+    [[nodiscard]] std::string api(std::string_view path) const {
+        return url.base_path + std::string(path);
+    }
 
     [[nodiscard]] Millis backoff(unsigned retry) const {
         const auto initial = std::max<int64_t>(1, options.backoff_initial.count());
@@ -219,17 +226,19 @@ struct Client::Impl {
         return Millis(std::min<int64_t>(delay, options.backoff_max.count()));
     }
 
-    [[nodiscard]] Error transport_error(const Exchange& ex, httplib::Error error, unsigned attempts) const {
+    [[nodiscard]] Error transport_error(const Exchange& ex, httplib::Error error,
+                                        unsigned attempts) const {
         const bool connect = failed_before_sending(error);
         std::string what = describe(error);
         if (error == httplib::Error::Connection) {
-            const std::string reason = connect_failure_reason(url.host, url.port, options.connect_timeout);
+            const std::string reason =
+                connect_failure_reason(url.host, url.port, options.connect_timeout);
             if (!reason.empty()) what += ": " + reason;
         }
-        Error e = make_client_error(ErrorKind::kConnection, connect ? "cannot connect" : "connection failed",
-                                    url.to_string() + ": " + what + " (" + ex.method + " " +
-                                        ex.path + ", " + std::to_string(attempts) +
-                                        (attempts == 1 ? " attempt)" : " attempts)"));
+        Error e = make_client_error(
+            ErrorKind::kConnection, connect ? "cannot connect" : "connection failed",
+            url.to_string() + ": " + what + " (" + ex.method + " " + ex.path + ", " +
+                std::to_string(attempts) + (attempts == 1 ? " attempt)" : " attempts)"));
         e.attempts = attempts;
         return e;
     }
@@ -243,14 +252,19 @@ struct Client::Impl {
                 const std::string_view method = ex.method;
                 if (method == "GET") return cli.Get(ex.path, ex.headers);
                 if (method == "DELETE") return cli.Delete(ex.path, ex.headers);
-                if (ex.stream) return cli.Post(ex.path, ex.headers, ex.stream_size, ex.stream, ex.content_type);
-                return cli.Post(ex.path, ex.headers, ex.body.data(), ex.body.size(), ex.content_type);
+                if (ex.stream)
+                    return cli.Post(ex.path, ex.headers, ex.stream_size, ex.stream,
+                                    ex.content_type);
+                return cli.Post(ex.path, ex.headers, ex.body.data(), ex.body.size(),
+                                ex.content_type);
             }();
             if (!res) {
                 const httplib::Error error = res.error();
                 const bool retriable =
-                    failed_before_sending(error) || (ex.resend_after_transport_error && transport_failure(error));
-                if (!retriable || attempt >= attempts_allowed) return proto::Err{transport_error(ex, error, attempt)};
+                    failed_before_sending(error) ||
+                    (ex.resend_after_transport_error && transport_failure(error));
+                if (!retriable || attempt >= attempts_allowed)
+                    return proto::Err{transport_error(ex, error, attempt)};
                 std::this_thread::sleep_for(backoff(attempt - 1));
                 continue;
             }
@@ -263,8 +277,9 @@ struct Client::Impl {
                 std::this_thread::sleep_for(delay);
                 continue;
             }
-            Error e = error_from_response(response.status, response.get_header_value("Content-Type"), response.body,
-                                          response.get_header_value("X-Request-Id"));
+            Error e =
+                error_from_response(response.status, response.get_header_value("Content-Type"),
+                                    response.body, response.get_header_value("X-Request-Id"));
             e.attempts = attempt;
             return proto::Err{std::move(e)};
         }
@@ -276,8 +291,9 @@ struct Client::Impl {
     }
 
     [[nodiscard]] Error bad_response(const Exchange& ex, const std::string& why) const {
-        return make_client_error(ErrorKind::kProtocol, "bad response",
-                                 std::string(ex.method) + " " + ex.path + " from " + url.to_string() + ": " + why);
+        return make_client_error(
+            ErrorKind::kProtocol, "bad response",
+            std::string(ex.method) + " " + ex.path + " from " + url.to_string() + ": " + why);
     }
 
     template <class T, class Decode>
@@ -292,13 +308,14 @@ struct Client::Impl {
     Result<MeshInfo> upload(Exchange ex) {
         ex.method = "POST";
         ex.path = api("/v1/meshes");
-        return json_call<MeshInfo>(ex, [](const std::string& body) { return proto::decode_mesh_summary(body); });
+        return json_call<MeshInfo>(
+            ex, [](const std::string& body) { return proto::decode_mesh_summary(body); });
     }
 
     /// One chunk of a ray batch: POST, decode, check the count, copy into `out`.
     template <class T>
-    Result<void> trace_chunk(httplib::Client& cli, const std::string& path, std::span<const Ray> rays, bool occlusion,
-                             std::span<T> out) {
+    Result<void> trace_chunk(httplib::Client& cli, const std::string& path,
+                             std::span<const Ray> rays, bool occlusion, std::span<T> out) {
         const std::vector<std::byte> body = proto::encode_rays(rays, occlusion);
         Exchange ex;
         ex.method = "POST";
@@ -331,9 +348,10 @@ struct Client::Impl {
     template <class T>
     Result<std::vector<T>> trace(std::string_view id, std::span<const Ray> rays, bool occlusion) {
         if (rays.size() > std::numeric_limits<uint32_t>::max())
-            return proto::Err{make_client_error(ErrorKind::kInput, "too many rays",
-                                                std::to_string(rays.size()) +
-                                                    " rays in one call; a batch holds at most 4294967295")};
+            return proto::Err{
+                make_client_error(ErrorKind::kInput, "too many rays",
+                                  std::to_string(rays.size()) +
+                                      " rays in one call; a batch holds at most 4294967295")};
         const std::string path = api("/v1/meshes/" + escape_segment(id) + "/intersect");
         const size_t chunk = options.chunk_rays;
         const size_t chunks = rays.empty() ? 1 : (rays.size() - 1) / chunk + 1;
@@ -391,8 +409,10 @@ struct Client::Impl {
 Client::Client(std::string_view url, ClientOptions options) {
     auto parsed = parse_server_url(url);
     if (!parsed) throw std::invalid_argument(parsed.error());
-    if (options.chunk_rays == 0) throw std::invalid_argument("ClientOptions::chunk_rays must be at least 1");
-    if (options.connections == 0) throw std::invalid_argument("ClientOptions::connections must be at least 1");
+    if (options.chunk_rays == 0)
+        throw std::invalid_argument("ClientOptions::chunk_rays must be at least 1");
+    if (options.connections == 0)
+        throw std::invalid_argument("ClientOptions::connections must be at least 1");
     impl_ = std::make_unique<Impl>(std::move(*parsed), std::move(options));
 }
 
@@ -403,7 +423,8 @@ Client& Client::operator=(Client&&) noexcept = default;
 const ServerUrl& Client::url() const noexcept { return impl_->url; }
 const ClientOptions& Client::options() const noexcept { return impl_->options; }
 
-Result<MeshInfo> Client::upload(const std::filesystem::path& file, std::optional<proto::MeshFormat> format) {
+Result<MeshInfo> Client::upload(const std::filesystem::path& file,
+                                std::optional<proto::MeshFormat> format) {
     if (!format) format = proto::mesh_format_from_path(file);
     if (!format)
         return proto::Err{make_client_error(
@@ -412,28 +433,31 @@ Result<MeshInfo> Client::upload(const std::filesystem::path& file, std::optional
                 "\" from its extension (expected .obj, .ply, .off, .stl, .raw or .kdrtmesh)")};
     std::error_code ec;
     if (std::filesystem::is_directory(file, ec))
-        return proto::Err{make_client_error(ErrorKind::kInput, "cannot upload", "\"" + file.string() + "\" is a directory")};
+        return proto::Err{make_client_error(ErrorKind::kInput, "cannot upload",
+                                            "\"" + file.string() + "\" is a directory")};
     if (std::filesystem::exists(file, ec) && !std::filesystem::is_regular_file(file, ec)) {
         // A pipe or device (/dev/stdin): no size to stream against, so read it whole.
         auto bytes = proto::read_file_bytes(file);
-        if (!bytes) return proto::Err{make_client_error(ErrorKind::kInput, "cannot upload", bytes.error())};
+        if (!bytes)
+            return proto::Err{make_client_error(ErrorKind::kInput, "cannot upload", bytes.error())};
         return upload(*bytes, *format);
     }
     auto stream = std::make_shared<std::ifstream>(file, std::ios::binary);
     if (!*stream)
-        return proto::Err{make_client_error(ErrorKind::kInput, "cannot upload",
-                                            "cannot open \"" + file.string() + "\" for reading: " +
-                                                std::strerror(errno))};
+        return proto::Err{make_client_error(
+            ErrorKind::kInput, "cannot upload",
+            "cannot open \"" + file.string() + "\" for reading: " + std::strerror(errno))};
     const auto size = std::filesystem::file_size(file, ec);
     if (ec)
-        return proto::Err{make_client_error(ErrorKind::kInput, "cannot upload",
-                                            "cannot read the size of \"" + file.string() + "\": " + ec.message())};
+        return proto::Err{make_client_error(
+            ErrorKind::kInput, "cannot upload",
+            "cannot read the size of \"" + file.string() + "\": " + ec.message())};
     auto read_failed = std::make_shared<bool>(false);
     Exchange ex;
     ex.content_type = std::string(proto::mesh_media_type(*format));
     ex.stream_size = static_cast<size_t>(size);
-    ex.stream = [stream, read_failed, block = std::vector<char>()](size_t offset, size_t length,
-                                                                   httplib::DataSink& sink) mutable {
+    ex.stream = [stream, read_failed, block = std::vector<char>()](
+                    size_t offset, size_t length, httplib::DataSink& sink) mutable {
         block.resize(std::min(length, kUploadBlockBytes));
         stream->clear();
         stream->seekg(static_cast<std::streamoff>(offset));
@@ -446,8 +470,9 @@ Result<MeshInfo> Client::upload(const std::filesystem::path& file, std::optional
     };
     auto result = impl_->upload(std::move(ex));
     if (!result && *read_failed)
-        return proto::Err{make_client_error(ErrorKind::kInput, "cannot upload",
-                                            "reading \"" + file.string() + "\" failed while it was sent")};
+        return proto::Err{
+            make_client_error(ErrorKind::kInput, "cannot upload",
+                              "reading \"" + file.string() + "\" failed while it was sent")};
     return result;
 }
 
@@ -456,7 +481,8 @@ Result<MeshInfo> Client::upload(const Mesh& mesh) {
     try {
         bytes = proto::write_mesh(mesh, proto::MeshFormat::kRaw);
     } catch (const std::invalid_argument& e) {
-        return proto::Err{make_client_error(ErrorKind::kInput, "cannot upload", std::string("malformed mesh: ") + e.what())};
+        return proto::Err{make_client_error(ErrorKind::kInput, "cannot upload",
+                                            std::string("malformed mesh: ") + e.what())};
     }
     return upload(bytes, proto::MeshFormat::kRaw);
 }
@@ -471,13 +497,15 @@ Result<MeshInfo> Client::upload(std::span<const std::byte> bytes, proto::MeshFor
 Result<std::vector<MeshInfo>> Client::meshes() {
     Exchange ex;
     ex.path = impl_->api("/v1/meshes");
-    return impl_->json_call<std::vector<MeshInfo>>(ex, [](const std::string& b) { return proto::decode_mesh_list(b); });
+    return impl_->json_call<std::vector<MeshInfo>>(
+        ex, [](const std::string& b) { return proto::decode_mesh_list(b); });
 }
 
 Result<MeshInfo> Client::mesh(std::string_view id) {
     Exchange ex;
     ex.path = impl_->api("/v1/meshes/" + escape_segment(id));
-    return impl_->json_call<MeshInfo>(ex, [](const std::string& b) { return proto::decode_mesh_summary(b); });
+    return impl_->json_call<MeshInfo>(
+        ex, [](const std::string& b) { return proto::decode_mesh_summary(b); });
 }
 
 Result<void> Client::remove(std::string_view id) {
@@ -504,7 +532,8 @@ Result<std::vector<std::byte>> Client::render(const RenderRequest& request) {
     auto res = impl_->send(ex);
     if (!res) return proto::Err{std::move(res).error()};
     if (res->status != 200)
-        return proto::Err{impl_->bad_response(ex, "status " + std::to_string(res->status) + " instead of 200")};
+        return proto::Err{
+            impl_->bad_response(ex, "status " + std::to_string(res->status) + " instead of 200")};
     return to_byte_vector(res->body);
 }
 
@@ -517,8 +546,9 @@ Result<Job> Client::submit(const RenderRequest& request) {
     auto res = impl_->send(ex);
     if (!res) return proto::Err{std::move(res).error()};
     if (res->status != 202)
-        return proto::Err{impl_->bad_response(ex, "status " + std::to_string(res->status) +
-                                                      " instead of 202 (the server did not queue a job)")};
+        return proto::Err{
+            impl_->bad_response(ex, "status " + std::to_string(res->status) +
+                                        " instead of 202 (the server did not queue a job)")};
     auto job = proto::decode_job_status(res->body);
     if (!job) return proto::Err{impl_->bad_response(ex, job.error())};
     return std::move(*job);
@@ -527,17 +557,20 @@ Result<Job> Client::submit(const RenderRequest& request) {
 Result<Job> Client::job(std::string_view id) {
     Exchange ex;
     ex.path = impl_->api("/v1/jobs/" + escape_segment(id));
-    return impl_->json_call<Job>(ex, [](const std::string& b) { return proto::decode_job_status(b); });
+    return impl_->json_call<Job>(ex,
+                                 [](const std::string& b) { return proto::decode_job_status(b); });
 }
 
-Result<std::vector<std::byte>> Client::wait(const Job& submitted, const ProgressCallback& progress) {
+Result<std::vector<std::byte>> Client::wait(const Job& submitted,
+                                            const ProgressCallback& progress) {
     for (;;) {
         auto status = job(submitted.id);
         if (!status) return proto::Err{std::move(status).error()};
         if (progress && !progress(*status)) {
             (void)cancel(*status);
-            return proto::Err{make_client_error(ErrorKind::kCancelled, "cancelled",
-                                                "job " + submitted.id + " cancelled while waiting for it")};
+            return proto::Err{
+                make_client_error(ErrorKind::kCancelled, "cancelled",
+                                  "job " + submitted.id + " cancelled while waiting for it")};
         }
         switch (status->state) {
             case proto::JobState::kDone:

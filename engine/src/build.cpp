@@ -41,7 +41,8 @@ Aabb root_cell(const std::vector<TriVerts>& tris, const std::vector<uint8_t>& de
     if (box.empty()) return box;
     float scale = 0.0f;
     for (int a = 0; a < 3; ++a)
-        scale = std::max({scale, std::fabs(box.lo[a]), std::fabs(box.hi[a]), box.hi[a] - box.lo[a]});
+        scale =
+            std::max({scale, std::fabs(box.lo[a]), std::fabs(box.hi[a]), box.hi[a] - box.lo[a]});
     const float pad = scale * 0x1p-18f;
     for (int a = 0; a < 3; ++a) {
         box.lo[a] -= pad;
@@ -81,7 +82,8 @@ KdTree build_kdtree(const Mesh& mesh, const BuildOptions& options) {
             detail::build_sah(tree.tris, degenerate, tree.bounds, options, sub);
         }
     }
-    tree.stats.build_ms = std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
+    tree.stats.build_ms =
+        std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
     detail::finish_tree(tree, std::move(sub));
     return tree;
 }

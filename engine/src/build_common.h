@@ -28,7 +28,8 @@ inline uint32_t add_child_pair(SubTree& tree, uint32_t slot, int axis, float spl
 
 /// Writes a leaf for `prims` into `slot`.
 inline void make_leaf(SubTree& tree, uint32_t slot, const std::vector<uint32_t>& prims) {
-    tree.nodes[slot] = KdNode::leaf(static_cast<uint32_t>(prims.size()), static_cast<uint32_t>(tree.refs.size()));
+    tree.nodes[slot] =
+        KdNode::leaf(static_cast<uint32_t>(prims.size()), static_cast<uint32_t>(tree.refs.size()));
     tree.refs.insert(tree.refs.end(), prims.begin(), prims.end());
 }
 

@@ -17,11 +17,13 @@ struct MiddleBuilder {
     uint32_t leaf_size;
     uint32_t max_depth;
 
-    void build(SubTree& out, uint32_t slot, const Aabb& cell, std::vector<uint32_t>&& prims, uint32_t depth) {
+    void build(SubTree& out, uint32_t slot, const Aabb& cell, std::vector<uint32_t>&& prims,
+               uint32_t depth) {
         const Vec3 ext = cell.extent();
         const int axis = ext.x >= ext.y && ext.x >= ext.z ? 0 : (ext.y >= ext.z ? 1 : 2);
         const float mid = cell.lo[axis] + 0.5f * ext[axis];
-        if (prims.size() <= leaf_size || depth >= max_depth || !(mid > cell.lo[axis] && mid < cell.hi[axis])) {
+        if (prims.size() <= leaf_size || depth >= max_depth ||
+            !(mid > cell.lo[axis] && mid < cell.hi[axis])) {
             make_leaf(out, slot, prims);
             out.max_depth = std::max(out.max_depth, depth);
             return;
@@ -37,8 +39,9 @@ struct MiddleBuilder {
         right_cell.lo[axis] = mid;
         if (left.size() + right.size() >= 4096) {
             SubTree left_tree, right_tree;
-            tbb::parallel_invoke([&] { build(left_tree, 0, left_cell, std::move(left), depth + 1); },
-                                 [&] { build(right_tree, 0, right_cell, std::move(right), depth + 1); });
+            tbb::parallel_invoke(
+                [&] { build(left_tree, 0, left_cell, std::move(left), depth + 1); },
+                [&] { build(right_tree, 0, right_cell, std::move(right), depth + 1); });
             const uint32_t first = add_child_pair(out, slot, axis, mid);
             splice(out, first, left_tree);
             splice(out, first + 1, right_tree);
@@ -52,10 +55,11 @@ struct MiddleBuilder {
 
 }  // namespace
 
-void build_middle(const std::vector<TriVerts>& tris, const std::vector<uint8_t>& degenerate, const Aabb& root,
-                  const BuildOptions& options, SubTree& out) {
-    MiddleBuilder builder{tris, std::vector<Aabb>(tris.size()), std::max(options.middle_leaf_size, 1u),
-                          static_cast<uint32_t>(std::clamp(options.middle_max_depth, 0, kMaxDepth))};
+void build_middle(const std::vector<TriVerts>& tris, const std::vector<uint8_t>& degenerate,
+                  const Aabb& root, const BuildOptions& options, SubTree& out) {
+    MiddleBuilder builder{
+        tris, std::vector<Aabb>(tris.size()), std::max(options.middle_leaf_size, 1u),
+        static_cast<uint32_t>(std::clamp(options.middle_max_depth, 0, kMaxDepth))};
     std::vector<uint32_t> prims;
     for (uint32_t prim = 0; prim < tris.size(); ++prim) {
         if (degenerate[prim]) continue;

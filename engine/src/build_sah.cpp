@@ -178,7 +178,8 @@ bool vertex_bounds_in(const TriVerts& tri, const Aabb& cell, Aabb& out) {
 }
 
 double half_area(const Aabb& b) noexcept {
-    const double x = double{b.hi.x} - b.lo.x, y = double{b.hi.y} - b.lo.y, z = double{b.hi.z} - b.lo.z;
+    const double x = double{b.hi.x} - b.lo.x, y = double{b.hi.y} - b.lo.y,
+                 z = double{b.hi.z} - b.lo.z;
     return x * y + y * z + z * x;
 }
 
@@ -206,16 +207,19 @@ struct NodeInput {
     uint32_t prim_count = 0;
     uint32_t depth = 0;
 
-    [[nodiscard]] const Event* events(int a) const noexcept { return buffer.data.get() + offset[a]; }
+    [[nodiscard]] const Event* events(int a) const noexcept {
+        return buffer.data.get() + offset[a];
+    }
 };
 
 enum Side : uint8_t { kBoth = 0, kLeftOnly = 1, kRightOnly = 2 };
 
 constexpr uint32_t kParallelSubtrees = 4096;  // nodes at least this big build children concurrently
-constexpr size_t kParallelAxes = 1u << 15;    // events per axis above which axes/chunks run concurrently
-constexpr size_t kChunk = 1u << 14;           // events per chunk of a parallel sweep
-constexpr size_t kPooledEvents = 1u << 13;    // buffers up to this size are recycled per thread
-constexpr size_t kPoolSlots = 48;             // at most this many free buffers kept per thread
+constexpr size_t kParallelAxes = 1u
+                                 << 15;  // events per axis above which axes/chunks run concurrently
+constexpr size_t kChunk = 1u << 14;      // events per chunk of a parallel sweep
+constexpr size_t kPooledEvents = 1u << 13;  // buffers up to this size are recycled per thread
+constexpr size_t kPoolSlots = 48;           // at most this many free buffers kept per thread
 
 /// Per-thread scratch memory. Used only between TBB wait points, or inside isolated parallel
 /// regions that touch nothing but the calling node's data, so nested tasks never see it half-used.
@@ -237,7 +241,8 @@ struct Scratch {
                     return b;
                 }
             }
-            n = std::max<size_t>(std::bit_ceil(n), 64);  // round up so the buffer fits later nodes too
+            n = std::max<size_t>(std::bit_ceil(n),
+                                 64);  // round up so the buffer fits later nodes too
         }
         return {std::make_unique_for_overwrite<Event[]>(n), n};
     }
@@ -296,7 +301,9 @@ public:
         }
     }
 
-    void build_root(SubTree& out, NodeInput&& in) { build(out, 0, std::move(in), scratch_.local()); }
+    void build_root(SubTree& out, NodeInput&& in) {
+        build(out, 0, std::move(in), scratch_.local());
+    }
 
 private:
     SweepSetup sweep_setup(const NodeInput& in, int axis, double inv_area) const {
@@ -317,8 +324,8 @@ private:
 
     /// The SAH of every candidate plane in ev[begin, end) (whole position groups), swept in one
     /// pass; n_left / n_right are the counts before `begin`. Ties keep the earlier candidate.
-    [[gnu::noinline]] static Split sweep(const SweepSetup& s, const Event* ev, size_t begin, size_t end,
-                                         uint32_t n_left, uint32_t n_right) {
+    [[gnu::noinline]] static Split sweep(const SweepSetup& s, const Event* ev, size_t begin,
+                                         size_t end, uint32_t n_left, uint32_t n_right) {
         double best_cost = INFINITY;
         uint32_t best_key = 0;
         bool best_planar_left = true;
@@ -360,7 +367,8 @@ private:
             n_left += starting + planar;
         }
         Split best;
-        if (best_cost < INFINITY) best = {true, s.axis, from_ordered_bits(best_key), best_planar_left, best_cost};
+        if (best_cost < INFINITY)
+            best = {true, s.axis, from_ordered_bits(best_key), best_planar_left, best_cost};
         return best;
     }
 
@@ -384,7 +392,8 @@ private:
     static Split sweep_parallel(const SweepSetup& s, const Event* ev, size_t n) {
         const std::vector<size_t> starts = chunk_starts(ev, n);
         const size_t chunks = starts.size() - 1;
-        std::vector<std::array<uint32_t, 2>> counts(chunks);  // {left += Start + Planar, right -= End + Planar}
+        std::vector<std::array<uint32_t, 2>> counts(
+            chunks);  // {left += Start + Planar, right -= End + Planar}
         tbb::parallel_for(size_t{0}, chunks, [&](size_t c) {
             uint32_t count[4] = {0, 0, 0, 0};
             for (size_t i = starts[c]; i < starts[c + 1]; ++i) ++count[event_type(ev[i])];
@@ -410,12 +419,15 @@ private:
         auto sweep_axis = [&](int a) {
             if (!(in.cell.lo[a] < in.cell.hi[a])) return;  // flat along this axis: nothing to split
             const SweepSetup s = sweep_setup(in, a, inv_area);
-            per_axis[a] = in.count[a] >= kParallelAxes ? sweep_parallel(s, in.events(a), in.count[a])
-                                                       : sweep(s, in.events(a), 0, in.count[a], 0, in.prim_count);
+            per_axis[a] = in.count[a] >= kParallelAxes
+                              ? sweep_parallel(s, in.events(a), in.count[a])
+                              : sweep(s, in.events(a), 0, in.count[a], 0, in.prim_count);
         };
         if (std::max({in.count[0], in.count[1], in.count[2]}) >= kParallelAxes) {
-            tbb::this_task_arena::isolate(
-                [&] { tbb::parallel_invoke([&] { sweep_axis(0); }, [&] { sweep_axis(1); }, [&] { sweep_axis(2); }); });
+            tbb::this_task_arena::isolate([&] {
+                tbb::parallel_invoke([&] { sweep_axis(0); }, [&] { sweep_axis(1); },
+                                     [&] { sweep_axis(2); });
+            });
         } else {
             for (int a = 0; a < 3; ++a) sweep_axis(a);
         }
@@ -425,7 +437,8 @@ private:
         return best;
     }
 
-    static const std::vector<uint32_t>& leaf_prims(const NodeInput& in, std::vector<uint32_t>& prims) {
+    static const std::vector<uint32_t>& leaf_prims(const NodeInput& in,
+                                                   std::vector<uint32_t>& prims) {
         prims.clear();
         const Event* ev = in.events(0);
         for (size_t i = 0; i < in.count[0]; ++i)
@@ -437,8 +450,10 @@ private:
     /// Sets side[] for every triangle of the node and lists the straddling ones. The split axis'
     /// list is sorted, so it is three runs: positions left of the plane, on it, and right of it.
     /// Returns the number of triangles only on the left / only on the right.
-    [[gnu::noinline]] static std::array<uint32_t, 2> classify(const NodeInput& in, const Split& split, uint8_t* side,
-                                                              std::vector<uint32_t>& straddling, const TriVerts* tris) {
+    [[gnu::noinline]] static std::array<uint32_t, 2> classify(const NodeInput& in,
+                                                              const Split& split, uint8_t* side,
+                                                              std::vector<uint32_t>& straddling,
+                                                              const TriVerts* tris) {
         const Event* ev = in.events(split.axis);
         const size_t n = in.count[split.axis];
         const uint32_t plane = ordered_bits(split.pos);
@@ -455,7 +470,8 @@ private:
         // On the plane: ends are left, starts right, planars where the split put them.
         for (; i < n && event_key(ev[i]) == plane; ++i) {
             const uint32_t type = event_type(ev[i]);
-            const uint8_t s = type == kEnd ? uint8_t{kLeftOnly} : (type == kStart ? uint8_t{kRightOnly} : planar_side);
+            const uint8_t s = type == kEnd ? uint8_t{kLeftOnly}
+                                           : (type == kStart ? uint8_t{kRightOnly} : planar_side);
             side[event_prim(ev[i])] = s;
             left_only += s == kLeftOnly ? 1 : 0;
             right_only += s == kRightOnly ? 1 : 0;
@@ -472,7 +488,8 @@ private:
                 straddling.push_back(prim);
                 // Its triangle is clipped soon: start loading it (36 bytes, up to two lines).
                 __builtin_prefetch(&tris[prim]);
-                __builtin_prefetch(reinterpret_cast<const char*>(&tris[prim]) + sizeof(TriVerts) - 1);
+                __builtin_prefetch(reinterpret_cast<const char*>(&tris[prim]) + sizeof(TriVerts) -
+                                   1);
             }
         }
         return {left_only, right_only};
@@ -483,8 +500,10 @@ private:
     /// Branch-free except for the (rare) merge steps; writes one slot past the end of each output.
     /// (sweep, classify and distribute are kept out of line: the hot loops get the registers to
     /// themselves, and profiles show them apart.)
-    [[gnu::noinline]] static std::pair<Event*, Event*> distribute(const Event* ev, size_t n, const uint8_t* side,
-                                                                  const Event*& nl, const Event*& nr, Event* l,
+    [[gnu::noinline]] static std::pair<Event*, Event*> distribute(const Event* ev, size_t n,
+                                                                  const uint8_t* side,
+                                                                  const Event*& nl,
+                                                                  const Event*& nr, Event* l,
                                                                   Event* r) {
         for (size_t i = 0; i < n; ++i) {
             const Event e = ev[i];
@@ -500,7 +519,8 @@ private:
     }
 
     /// Classifies the triangles against the split and builds the children's sorted event lists.
-    void partition(const NodeInput& in, const Split& split, NodeInput& left, NodeInput& right, Scratch& scratch) {
+    void partition(const NodeInput& in, const Split& split, NodeInput& left, NodeInput& right,
+                   Scratch& scratch) {
         const int k = split.axis;
         const float p = split.pos;
         left.cell = in.cell;
@@ -523,11 +543,13 @@ private:
         for (int a = 0; a < 3; ++a) new_left[a].clear(), new_right[a].clear();
         for (uint32_t prim : straddling) {
             Aabb box;
-            if (clipped_bounds(tris_[prim], left.cell, box) || vertex_bounds_in(tris_[prim], left.cell, box)) {
+            if (clipped_bounds(tris_[prim], left.cell, box) ||
+                vertex_bounds_in(tris_[prim], left.cell, box)) {
                 add_events(new_left, box, prim);
                 ++left_only;
             }
-            if (clipped_bounds(tris_[prim], right.cell, box) || vertex_bounds_in(tris_[prim], right.cell, box)) {
+            if (clipped_bounds(tris_[prim], right.cell, box) ||
+                vertex_bounds_in(tris_[prim], right.cell, box)) {
                 add_events(new_right, box, prim);
                 ++right_only;
             }
@@ -543,7 +565,8 @@ private:
 
         // At most two events per triangle on each axis (prim_count includes the straddlers), plus
         // the one slot distribute() writes past the end.
-        const size_t stride_l = 2 * size_t{left.prim_count} + 1, stride_r = 2 * size_t{right.prim_count} + 1;
+        const size_t stride_l = 2 * size_t{left.prim_count} + 1,
+                     stride_r = 2 * size_t{right.prim_count} + 1;
         left.buffer = scratch.take(3 * stride_l);
         right.buffer = scratch.take(3 * stride_r);
         for (int a = 0; a < 3; ++a) left.offset[a] = a * stride_l, right.offset[a] = a * stride_r;
@@ -562,8 +585,10 @@ private:
             right.count[a] = static_cast<size_t>(r - r0);
         };
         if (in.count[k] >= kParallelAxes) {
-            tbb::this_task_arena::isolate(
-                [&] { tbb::parallel_invoke([&] { split_axis(0); }, [&] { split_axis(1); }, [&] { split_axis(2); }); });
+            tbb::this_task_arena::isolate([&] {
+                tbb::parallel_invoke([&] { split_axis(0); }, [&] { split_axis(1); },
+                                     [&] { split_axis(2); });
+            });
         } else {
             for (int a = 0; a < 3; ++a) split_axis(a);
         }
@@ -585,7 +610,8 @@ void radix_sort_events(Event* ev, size_t n) {
     std::vector<uint32_t> histogram[3];
     for (int p = 0; p < 3; ++p) histogram[p].assign(size_t{1} << kBits[p], 0);
     for (size_t i = 0; i < n; ++i)
-        for (int p = 0; p < 3; ++p) ++histogram[p][(ev[i] >> kShift[p]) & ((uint64_t{1} << kBits[p]) - 1)];
+        for (int p = 0; p < 3; ++p)
+            ++histogram[p][(ev[i] >> kShift[p]) & ((uint64_t{1} << kBits[p]) - 1)];
     std::vector<Event> temp(n);
     // Passes: ev -> temp -> ev -> temp, then back.
     Event* src = ev;
@@ -609,8 +635,8 @@ void radix_sort_events(Event* ev, size_t n) {
 
 }  // namespace
 
-void build_sah(const std::vector<TriVerts>& tris, const std::vector<uint8_t>& degenerate, const Aabb& root,
-               const BuildOptions& options, SubTree& out) {
+void build_sah(const std::vector<TriVerts>& tris, const std::vector<uint8_t>& degenerate,
+               const Aabb& root, const BuildOptions& options, SubTree& out) {
     // The root's events go straight into its buffer (at most two per triangle and axis, plus the
     // sentinel), in triangle order; each axis is then radix-sorted.
     NodeInput in;

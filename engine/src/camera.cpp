@@ -17,23 +17,31 @@ struct DVec3 {
 };
 
 DVec3 to_double(Vec3 v) noexcept { return {v.x, v.y, v.z}; }
-Vec3 to_float(DVec3 v) noexcept { return {static_cast<float>(v.x), static_cast<float>(v.y), static_cast<float>(v.z)}; }
+Vec3 to_float(DVec3 v) noexcept {
+    return {static_cast<float>(v.x), static_cast<float>(v.y), static_cast<float>(v.z)};
+}
 DVec3 sub(DVec3 a, DVec3 b) noexcept { return {a.x - b.x, a.y - b.y, a.z - b.z}; }
 DVec3 add(DVec3 a, DVec3 b) noexcept { return {a.x + b.x, a.y + b.y, a.z + b.z}; }
 DVec3 scale(DVec3 a, double s) noexcept { return {a.x * s, a.y * s, a.z * s}; }
 double dot(DVec3 a, DVec3 b) noexcept { return a.x * b.x + a.y * b.y + a.z * b.z; }
-DVec3 cross(DVec3 a, DVec3 b) noexcept { return {a.y * b.z - a.z * b.y, a.z * b.x - a.x * b.z, a.x * b.y - a.y * b.x}; }
+DVec3 cross(DVec3 a, DVec3 b) noexcept {
+    return {a.y * b.z - a.z * b.y, a.z * b.x - a.x * b.z, a.x * b.y - a.y * b.x};
+}
 double length(DVec3 a) noexcept { return std::sqrt(dot(a, a)); }
 
-bool is_finite(Vec3 v) noexcept { return std::isfinite(v.x) && std::isfinite(v.y) && std::isfinite(v.z); }
+bool is_finite(Vec3 v) noexcept {
+    return std::isfinite(v.x) && std::isfinite(v.y) && std::isfinite(v.z);
+}
 
 std::string format_vec(Vec3 v) {
-    return "(" + std::to_string(v.x) + ", " + std::to_string(v.y) + ", " + std::to_string(v.z) + ")";
+    return "(" + std::to_string(v.x) + ", " + std::to_string(v.y) + ", " + std::to_string(v.z) +
+           ")";
 }
 
 void require_finite(Vec3 v, const char* field) {
     if (!is_finite(v)) {
-        throw CameraError(std::string("camera ") + field + " " + format_vec(v) + " has a NaN or infinite component");
+        throw CameraError(std::string("camera ") + field + " " + format_vec(v) +
+                          " has a NaN or infinite component");
     }
 }
 
@@ -48,7 +56,8 @@ constexpr double kFrameMargin = 1.05;
 
 }  // namespace
 
-Camera::Camera(const CameraSpec& spec, uint32_t width, uint32_t height) : spec_(spec), width_(width), height_(height) {
+Camera::Camera(const CameraSpec& spec, uint32_t width, uint32_t height)
+    : spec_(spec), width_(width), height_(height) {
     if (width == 0) throw CameraError("camera width must be at least 1 pixel (got 0)");
     if (height == 0) throw CameraError("camera height must be at least 1 pixel (got 0)");
     require_finite(spec.eye, "eye");
@@ -73,7 +82,8 @@ Camera::Camera(const CameraSpec& spec, uint32_t width, uint32_t height) : spec_(
             half_h = 0.5 * static_cast<double>(spec.ortho_height);
             break;
         default:
-            throw CameraError("camera projection " + std::to_string(static_cast<uint32_t>(spec.projection)) +
+            throw CameraError("camera projection " +
+                              std::to_string(static_cast<uint32_t>(spec.projection)) +
                               " is neither perspective (0) nor orthographic (1)");
     }
 
@@ -91,7 +101,8 @@ Camera::Camera(const CameraSpec& spec, uint32_t width, uint32_t height) : spec_(
     const double side_len = length(side);
     // sin of the angle between up and the view direction; below ~1e-6 rad the basis is noise.
     if (side_len < 1e-6) {
-        throw CameraError("camera up " + format_vec(spec.up) + " is parallel to the view direction (look_at - eye)");
+        throw CameraError("camera up " + format_vec(spec.up) +
+                          " is parallel to the view direction (look_at - eye)");
     }
     const DVec3 right = scale(side, 1.0 / side_len);
     const DVec3 true_up = cross(right, forward);  // unit length: right and forward are orthonormal
@@ -105,7 +116,8 @@ Camera::Camera(const CameraSpec& spec, uint32_t width, uint32_t height) : spec_(
 
 CameraSpec default_camera(const Aabb& bounds, float aspect) {
     if (!(aspect > 0.0f) || !std::isfinite(aspect)) {
-        throw CameraError("camera aspect " + std::to_string(aspect) + " must be a finite value > 0");
+        throw CameraError("camera aspect " + std::to_string(aspect) +
+                          " must be a finite value > 0");
     }
     // An empty or non-finite box (an empty mesh) is framed as the unit cube around the origin.
     DVec3 lo{-0.5, -0.5, -0.5};
@@ -117,7 +129,8 @@ CameraSpec default_camera(const Aabb& bounds, float aspect) {
     const DVec3 centre = scale(add(lo, hi), 0.5);
     double radius = 0.5 * length(sub(hi, lo));
     // A point or a tiny box far from the origin: keep the eye a float-resolvable distance away.
-    const double magnitude = std::max({std::fabs(centre.x), std::fabs(centre.y), std::fabs(centre.z)});
+    const double magnitude =
+        std::max({std::fabs(centre.x), std::fabs(centre.y), std::fabs(centre.z)});
     radius = std::max(radius, 1e-4 * magnitude);
     if (radius == 0.0) radius = 0.5;  // a single point at the origin
 
@@ -137,8 +150,9 @@ CameraSpec default_camera(const Aabb& bounds, float aspect) {
     double distance = kFrameMargin * radius;
     double half_x = 0.0, half_y = 0.0;  // largest |v.right|, |v.up|: the orthographic extents
     for (int corner = 0; corner < 8; ++corner) {
-        const DVec3 v =
-            sub(DVec3{(corner & 1) ? hi.x : lo.x, (corner & 2) ? hi.y : lo.y, (corner & 4) ? hi.z : lo.z}, centre);
+        const DVec3 v = sub(DVec3{(corner & 1) ? hi.x : lo.x, (corner & 2) ? hi.y : lo.y,
+                                  (corner & 4) ? hi.z : lo.z},
+                            centre);
         const double x = std::fabs(dot(v, right));
         const double y = std::fabs(dot(v, up));
         const double depth_offset = dot(v, forward);
@@ -150,8 +164,9 @@ CameraSpec default_camera(const Aabb& bounds, float aspect) {
     CameraSpec spec;
     spec.eye = to_float(add(centre, scale(to_eye, distance)));
     if (!is_finite(spec.eye)) {
-        throw CameraError("camera bounds are too large to frame in single precision: eye would be " +
-                          format_vec(spec.eye));
+        throw CameraError(
+            "camera bounds are too large to frame in single precision: eye would be " +
+            format_vec(spec.eye));
     }
     spec.look_at = to_float(centre);
     spec.up = {0.0f, 1.0f, 0.0f};

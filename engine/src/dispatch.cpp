@@ -30,8 +30,12 @@ const IsaChoice& choice() noexcept {
         const char* env = std::getenv("KDRT_ISA");
         if (env == nullptr || *env == '\0') return IsaChoice{widest, "widest supported"};
         const std::optional<Isa> named = parse_isa(env);
-        if (!named) return IsaChoice{widest, std::string("KDRT_ISA=") + env + " is not one of scalar|sse4|avx2|avx512; ignored"};
-        if (!isa_supported(*named)) return IsaChoice{widest, std::string("KDRT_ISA=") + env + " is not supported by this CPU; ignored"};
+        if (!named)
+            return IsaChoice{widest, std::string("KDRT_ISA=") + env +
+                                         " is not one of scalar|sse4|avx2|avx512; ignored"};
+        if (!isa_supported(*named))
+            return IsaChoice{
+                widest, std::string("KDRT_ISA=") + env + " is not supported by this CPU; ignored"};
         return IsaChoice{*named, std::string("KDRT_ISA=") + env};
     }();
     return c;
@@ -39,10 +43,14 @@ const IsaChoice& choice() noexcept {
 
 const detail::PacketKernels* kernels_for(Isa isa) noexcept {
     switch (isa) {
-        case Isa::kSse4: return detail::packet_kernels_sse4();
-        case Isa::kAvx2: return detail::packet_kernels_avx2();
-        case Isa::kAvx512: return detail::packet_kernels_avx512();
-        case Isa::kScalar: break;
+        case Isa::kSse4:
+            return detail::packet_kernels_sse4();
+        case Isa::kAvx2:
+            return detail::packet_kernels_avx2();
+        case Isa::kAvx512:
+            return detail::packet_kernels_avx512();
+        case Isa::kScalar:
+            break;
     }
     return nullptr;
 }
@@ -54,9 +62,12 @@ Isa resolve(const TraceOptions& options) noexcept {
 
 detail::Policy policy_for(TraceMode mode) noexcept {
     switch (mode) {
-        case TraceMode::kSingle: return detail::Policy::kSingle;
-        case TraceMode::kPacket: return detail::Policy::kPacket;
-        case TraceMode::kAuto: break;
+        case TraceMode::kSingle:
+            return detail::Policy::kSingle;
+        case TraceMode::kPacket:
+            return detail::Policy::kPacket;
+        case TraceMode::kAuto:
+            break;
     }
     return detail::Policy::kAuto;
 }
@@ -66,15 +77,17 @@ template <bool AnyHit>
 void trace_scalar(const KdTree& tree, const Ray* rays, size_t count, Hit* hits, uint8_t* occ,
                   detail::TraceCounters& counters) noexcept {
     for (size_t i = 0; i < count; ++i) {
-        if constexpr (AnyHit) occ[i] = occluded(tree, rays[i]) ? 1 : 0;
-        else hits[i] = intersect(tree, rays[i]);
+        if constexpr (AnyHit)
+            occ[i] = occluded(tree, rays[i]) ? 1 : 0;
+        else
+            hits[i] = intersect(tree, rays[i]);
     }
     counters.single_rays += count;
 }
 
 template <bool AnyHit>
-void trace_block(const KdTree& tree, std::span<const Ray> rays, Hit* hits, uint8_t* occ, const TraceOptions& options,
-                 detail::TraceCounters& counters) noexcept {
+void trace_block(const KdTree& tree, std::span<const Ray> rays, Hit* hits, uint8_t* occ,
+                 const TraceOptions& options, detail::TraceCounters& counters) noexcept {
     const detail::PacketKernels* k = kernels_for(resolve(options));
     if (k == nullptr) {
         trace_scalar<AnyHit>(tree, rays.data(), rays.size(), hits, occ, counters);
@@ -86,16 +99,19 @@ void trace_block(const KdTree& tree, std::span<const Ray> rays, Hit* hits, uint8
 }
 
 template <bool AnyHit>
-void trace_batch(const KdTree& tree, std::span<const Ray> rays, Hit* hits, uint8_t* occ, const TraceOptions& options,
-                 TraceStats* stats) noexcept {
+void trace_batch(const KdTree& tree, std::span<const Ray> rays, Hit* hits, uint8_t* occ,
+                 const TraceOptions& options, TraceStats* stats) noexcept {
     tbb::combinable<detail::TraceCounters> counters;
     // One kernel block per task at the finest: a batch of a few thousand rays still spreads over
     // the cores, and a task's sorting and tracing work dwarfs its scheduling.
     constexpr size_t kGrain = detail::kBlockRays;
-    tbb::parallel_for(tbb::blocked_range<size_t>(0, rays.size(), kGrain), [&](const tbb::blocked_range<size_t>& r) {
-        trace_block<AnyHit>(tree, rays.subspan(r.begin(), r.size()), hits ? hits + r.begin() : nullptr,
-                            occ ? occ + r.begin() : nullptr, options, counters.local());
-    });
+    tbb::parallel_for(tbb::blocked_range<size_t>(0, rays.size(), kGrain),
+                      [&](const tbb::blocked_range<size_t>& r) {
+                          trace_block<AnyHit>(tree, rays.subspan(r.begin(), r.size()),
+                                              hits ? hits + r.begin() : nullptr,
+                                              occ ? occ + r.begin() : nullptr, options,
+                                              counters.local());
+                      });
     if (stats != nullptr) {
         *stats = TraceStats{};
         stats->isa = resolve(options);
@@ -114,10 +130,14 @@ void trace_batch(const KdTree& tree, std::span<const Ray> rays, Hit* hits, uint8
 
 std::string_view isa_name(Isa isa) noexcept {
     switch (isa) {
-        case Isa::kScalar: return "scalar";
-        case Isa::kSse4: return "sse4";
-        case Isa::kAvx2: return "avx2";
-        case Isa::kAvx512: return "avx512";
+        case Isa::kScalar:
+            return "scalar";
+        case Isa::kSse4:
+            return "sse4";
+        case Isa::kAvx2:
+            return "avx2";
+        case Isa::kAvx512:
+            return "avx512";
     }
     return "unknown";
 }
@@ -130,10 +150,14 @@ std::optional<Isa> parse_isa(std::string_view name) noexcept {
 
 int isa_width(Isa isa) noexcept {
     switch (isa) {
-        case Isa::kSse4: return 4;
-        case Isa::kAvx2: return 8;
-        case Isa::kAvx512: return 16;
-        case Isa::kScalar: break;
+        case Isa::kSse4:
+            return 4;
+        case Isa::kAvx2:
+            return 8;
+        case Isa::kAvx512:
+            return 16;
+        case Isa::kScalar:
+            break;
     }
     return 1;
 }
@@ -141,9 +165,12 @@ int isa_width(Isa isa) noexcept {
 bool isa_supported(Isa isa) noexcept {
     __builtin_cpu_init();
     switch (isa) {
-        case Isa::kScalar: return true;
-        case Isa::kSse4: return __builtin_cpu_supports("sse4.2") && __builtin_cpu_supports("popcnt");
-        case Isa::kAvx2: return __builtin_cpu_supports("avx2") && __builtin_cpu_supports("popcnt");
+        case Isa::kScalar:
+            return true;
+        case Isa::kSse4:
+            return __builtin_cpu_supports("sse4.2") && __builtin_cpu_supports("popcnt");
+        case Isa::kAvx2:
+            return __builtin_cpu_supports("avx2") && __builtin_cpu_supports("popcnt");
         case Isa::kAvx512:
             return __builtin_cpu_supports("avx512f") && __builtin_cpu_supports("avx512dq") &&
                    __builtin_cpu_supports("avx512vl") && __builtin_cpu_supports("avx512bw");
@@ -157,9 +184,12 @@ std::string_view default_isa_reason() noexcept { return choice().reason; }
 
 std::string_view trace_mode_name(TraceMode mode) noexcept {
     switch (mode) {
-        case TraceMode::kAuto: return "auto";
-        case TraceMode::kSingle: return "single";
-        case TraceMode::kPacket: return "packet";
+        case TraceMode::kAuto:
+            return "auto";
+        case TraceMode::kSingle:
+            return "single";
+        case TraceMode::kPacket:
+            return "packet";
     }
     return "unknown";
 }
@@ -170,8 +200,8 @@ std::optional<TraceMode> parse_trace_mode(std::string_view name) noexcept {
     return std::nullopt;
 }
 
-void intersect(const KdTree& tree, std::span<const Ray> rays, std::span<Hit> hits, const TraceOptions& options,
-               TraceStats* stats) noexcept {
+void intersect(const KdTree& tree, std::span<const Ray> rays, std::span<Hit> hits,
+               const TraceOptions& options, TraceStats* stats) noexcept {
     trace_batch<false>(tree, rays, hits.data(), nullptr, options, stats);
 }
 

@@ -29,8 +29,9 @@ void validate_mesh(const Mesh& mesh) {
     const size_t vertex_count = mesh.vertex_count();
     for (size_t i = 0; i < mesh.indices.size(); ++i) {
         if (mesh.indices[i] >= vertex_count) {
-            throw MeshError("triangle " + std::to_string(i / 3) + ": corner " + std::to_string(i % 3) +
-                            " refers to vertex " + std::to_string(mesh.indices[i]) + " but the mesh has " +
+            throw MeshError("triangle " + std::to_string(i / 3) + ": corner " +
+                            std::to_string(i % 3) + " refers to vertex " +
+                            std::to_string(mesh.indices[i]) + " but the mesh has " +
                             std::to_string(vertex_count) + " vertices");
         }
     }

@@ -17,7 +17,8 @@ struct TraceCounters {
     uint64_t packets = 0;      ///< packets traversed
     uint64_t packet_rays = 0;  ///< rays traced inside packets
     uint64_t single_rays = 0;  ///< rays traced with the single-ray kernel
-    uint64_t invalid_rays = 0; ///< rays answered as misses without tracing (NaN, zero direction, ...)
+    uint64_t invalid_rays =
+        0;  ///< rays answered as misses without tracing (NaN, zero direction, ...)
     uint64_t sorted_rays = 0;  ///< valid rays of blocks sorted by origin and direction
 };
 
@@ -26,8 +27,8 @@ struct PacketKernels {
     int width;
     void (*intersect)(const KdTree& tree, const Ray* rays, size_t count, Hit* hits, Policy policy,
                       TraceCounters& counters);
-    void (*occluded)(const KdTree& tree, const Ray* rays, size_t count, uint8_t* occluded, Policy policy,
-                     TraceCounters& counters);
+    void (*occluded)(const KdTree& tree, const Ray* rays, size_t count, uint8_t* occluded,
+                     Policy policy, TraceCounters& counters);
 };
 
 /// Defined in packet_sse4.cpp, packet_avx2.cpp, packet_avx512.cpp. Call only when the CPU has the

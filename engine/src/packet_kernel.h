@@ -35,7 +35,7 @@ struct alignas(64) Packet {
     VF<W> ray_tmin, ray_tmax;
     VF<W> tmin, tmax;  // the root interval: the ray clipped to the scene box (empty for dead lanes)
     uint32_t near_is_high[3];
-    int uniform_k;     // -1, or the kz shared by every lane (then kx, ky are shared too)
+    int uniform_k;  // -1, or the kz shared by every lane (then kx, ky are shared too)
 };
 
 template <int W>
@@ -76,7 +76,8 @@ inline VF<W> abs(VF<W> x) {
 /// clip_to_box and traversal_eps compute for a single ray, with the same operations in the same
 /// order. Lanes past `count` are dead (empty interval).
 template <int W>
-inline void setup_packet(const KdTree& tree, const Ray* rays, const uint16_t* index, int count, Packet<W>& pk) {
+inline void setup_packet(const KdTree& tree, const Ray* rays, const uint16_t* index, int count,
+                         Packet<W>& pk) {
     alignas(64) float field[8][W];
     for (int l = 0; l < W; ++l) {
         float r[8];
@@ -117,7 +118,8 @@ inline void setup_packet(const KdTree& tree, const Ray* rays, const uint16_t* in
     for (int a = 0; a < 3; ++a) {
         const VM<W> parallel = abs<W>(inv[a]) == inf;
         miss |= parallel & ((o[a] < tree.bounds.lo[a]) | (o[a] > tree.bounds.hi[a]));
-        const VF<W> t0 = (tree.bounds.lo[a] - o[a]) * inv[a], t1 = (tree.bounds.hi[a] - o[a]) * inv[a];
+        const VF<W> t0 = (tree.bounds.lo[a] - o[a]) * inv[a],
+                    t1 = (tree.bounds.hi[a] - o[a]) * inv[a];
         const VM<W> order = t0 > t1;
         const VF<W> near = simd::select<W>(order, t1, t0), far = simd::select<W>(order, t0, t1);
         tmin = simd::select<W>(parallel, tmin, simd::select<W>(near > tmin, near, tmin));
@@ -150,22 +152,28 @@ inline void setup_packet(const KdTree& tree, const Ray* rays, const uint16_t* in
 /// The watertight test of one triangle against the lanes in `active`; returns the lanes hit with
 /// tmin <= t (per lane t, u, v written). Same arithmetic as intersect_triangle, lane by lane.
 template <int W>
-inline VM<W> intersect_triangle_packet(const Packet<W>& pk, const TriVerts& tri, VM<W> active, VF<W>& t_out,
-                                       VF<W>& u_out, VF<W>& v_out) {
+inline VM<W> intersect_triangle_packet(const Packet<W>& pk, const TriVerts& tri, VM<W> active,
+                                       VF<W>& t_out, VF<W>& u_out, VF<W>& v_out) {
     // The vertices relative to the origin in each lane's (kx, ky, kz) frame: tri.v[k] - org[k].
     VF<W> a_x, a_y, a_z, b_x, b_y, b_z, c_x, c_y, c_z;
     if (pk.uniform_k >= 0) {  // coherent packets: every lane has the same frame, no per-lane picks
         const int kz = pk.uniform_k, kx = pk.kx[0], ky = pk.ky[0];
-        a_x = tri.v0[kx] - pk.org_k[0], a_y = tri.v0[ky] - pk.org_k[1], a_z = tri.v0[kz] - pk.org_k[2];
-        b_x = tri.v1[kx] - pk.org_k[0], b_y = tri.v1[ky] - pk.org_k[1], b_z = tri.v1[kz] - pk.org_k[2];
-        c_x = tri.v2[kx] - pk.org_k[0], c_y = tri.v2[ky] - pk.org_k[1], c_z = tri.v2[kz] - pk.org_k[2];
+        a_x = tri.v0[kx] - pk.org_k[0], a_y = tri.v0[ky] - pk.org_k[1],
+        a_z = tri.v0[kz] - pk.org_k[2];
+        b_x = tri.v1[kx] - pk.org_k[0], b_y = tri.v1[ky] - pk.org_k[1],
+        b_z = tri.v1[kz] - pk.org_k[2];
+        c_x = tri.v2[kx] - pk.org_k[0], c_y = tri.v2[ky] - pk.org_k[1],
+        c_z = tri.v2[kz] - pk.org_k[2];
     } else {
         // (A helper function, not a lambda: a lambda would not inherit the ISA target.)
-        a_x = pick_coord<W>(tri.v0, pk.kx) - pk.org_k[0], a_y = pick_coord<W>(tri.v0, pk.ky) - pk.org_k[1];
+        a_x = pick_coord<W>(tri.v0, pk.kx) - pk.org_k[0],
+        a_y = pick_coord<W>(tri.v0, pk.ky) - pk.org_k[1];
         a_z = pick_coord<W>(tri.v0, pk.kz) - pk.org_k[2];
-        b_x = pick_coord<W>(tri.v1, pk.kx) - pk.org_k[0], b_y = pick_coord<W>(tri.v1, pk.ky) - pk.org_k[1];
+        b_x = pick_coord<W>(tri.v1, pk.kx) - pk.org_k[0],
+        b_y = pick_coord<W>(tri.v1, pk.ky) - pk.org_k[1];
         b_z = pick_coord<W>(tri.v1, pk.kz) - pk.org_k[2];
-        c_x = pick_coord<W>(tri.v2, pk.kx) - pk.org_k[0], c_y = pick_coord<W>(tri.v2, pk.ky) - pk.org_k[1];
+        c_x = pick_coord<W>(tri.v2, pk.kx) - pk.org_k[0],
+        c_y = pick_coord<W>(tri.v2, pk.ky) - pk.org_k[1];
         c_z = pick_coord<W>(tri.v2, pk.kz) - pk.org_k[2];
     }
     const VF<W> ax = a_x - pk.sx * a_z, ay = a_y - pk.sy * a_z;
@@ -189,15 +197,19 @@ inline VM<W> intersect_triangle_packet(const Packet<W>& pk, const TriVerts& tri,
         simd::store<W>(fcy, cy);
         for (uint32_t m = simd::bits<W>(zero_edge); m; m &= m - 1) {
             const int l = __builtin_ctz(m);
-            fu[l] = static_cast<float>(static_cast<double>(fcx[l]) * fby[l] - static_cast<double>(fcy[l]) * fbx[l]);
-            fv[l] = static_cast<float>(static_cast<double>(fax[l]) * fcy[l] - static_cast<double>(fay[l]) * fcx[l]);
-            fw[l] = static_cast<float>(static_cast<double>(fbx[l]) * fay[l] - static_cast<double>(fby[l]) * fax[l]);
+            fu[l] = static_cast<float>(static_cast<double>(fcx[l]) * fby[l] -
+                                       static_cast<double>(fcy[l]) * fbx[l]);
+            fv[l] = static_cast<float>(static_cast<double>(fax[l]) * fcy[l] -
+                                       static_cast<double>(fay[l]) * fcx[l]);
+            fw[l] = static_cast<float>(static_cast<double>(fbx[l]) * fay[l] -
+                                       static_cast<double>(fby[l]) * fax[l]);
         }
         u = simd::load<W>(fu);
         v = simd::load<W>(fv);
         w = simd::load<W>(fw);
     }
-    const VM<W> outside = ((u < 0.0f) | (v < 0.0f) | (w < 0.0f)) & ((u > 0.0f) | (v > 0.0f) | (w > 0.0f));
+    const VM<W> outside =
+        ((u < 0.0f) | (v < 0.0f) | (w < 0.0f)) & ((u > 0.0f) | (v > 0.0f) | (w > 0.0f));
     const VF<W> det = u + v + w;
     VM<W> hit = active & ~outside & (det != 0.0f);
     if (simd::none<W>(hit)) return hit;
@@ -344,8 +356,8 @@ inline uint32_t quantize(double v, uint32_t levels) {
 }
 
 /// One stable counting-sort pass over `bits` bits of the keys from `shift`.
-inline void radix_pass(const uint32_t* key_in, const uint16_t* index_in, uint32_t* key_out, uint16_t* index_out,
-                       int n, int shift, int bits) {
+inline void radix_pass(const uint32_t* key_in, const uint16_t* index_in, uint32_t* key_out,
+                       uint16_t* index_out, int n, int shift, int bits) {
     uint16_t start[(1 << kRadixBits) + 1];
     const int buckets = 1 << bits;
     for (int b = 0; b <= buckets; ++b) start[b] = 0;
@@ -396,11 +408,13 @@ inline bool block_is_incoherent(const Ray* block, int n, float lo[3], float hi[3
 
 /// True for a ray the kernels trace; any other is answered as a miss here, at `at`.
 template <bool AnyHit>
-inline bool traceable_or_miss(const KdTree& tree, const Ray& r, size_t at, Hit* hits, uint8_t* occluded,
-                              TraceCounters& counters) {
+inline bool traceable_or_miss(const KdTree& tree, const Ray& r, size_t at, Hit* hits,
+                              uint8_t* occluded, TraceCounters& counters) {
     if (ray_is_valid(r) && !tree.bounds.empty()) return true;
-    if constexpr (AnyHit) occluded[at] = 0;
-    else hits[at] = Hit{};
+    if constexpr (AnyHit)
+        occluded[at] = 0;
+    else
+        hits[at] = Hit{};
     ++counters.invalid_rays;
     return false;
 }
@@ -408,12 +422,15 @@ inline bool traceable_or_miss(const KdTree& tree, const Ray& r, size_t at, Hit* 
 /// Collects the valid rays of block[0, n) (indices into the block, keys with their octant) and
 /// answers the invalid ones as misses. Returns how many are valid.
 template <bool AnyHit>
-inline int collect_valid(const KdTree& tree, const Ray* block, size_t base, int n, Hit* hits, uint8_t* occluded,
-                         TraceCounters& counters, uint32_t* key, uint16_t* index) {
+inline int collect_valid(const KdTree& tree, const Ray* block, size_t base, int n, Hit* hits,
+                         uint8_t* occluded, TraceCounters& counters, uint32_t* key,
+                         uint16_t* index) {
     int valid = 0;
     for (int i = 0; i < n; ++i) {
         const Ray& r = block[i];
-        if (!traceable_or_miss<AnyHit>(tree, r, base + static_cast<size_t>(i), hits, occluded, counters)) continue;
+        if (!traceable_or_miss<AnyHit>(tree, r, base + static_cast<size_t>(i), hits, occluded,
+                                       counters))
+            continue;
         index[valid] = static_cast<uint16_t>(i);
         key[valid] = octant(r) << kOctantShift;
         ++valid;
@@ -424,8 +441,9 @@ inline int collect_valid(const KdTree& tree, const Ray* block, size_t base, int 
 /// Adds the origin and direction Morton codes to the octant keys of the valid rays and sorts
 /// them (3 radix passes). The result is in key/index or in key_tmp/index_tmp: returns whether
 /// it is in the latter.
-inline bool sort_by_origin_and_direction(const Ray* block, int valid, const float lo[3], const float hi[3],
-                                         uint32_t* key, uint16_t* index, uint32_t* key_tmp, uint16_t* index_tmp) {
+inline bool sort_by_origin_and_direction(const Ray* block, int valid, const float lo[3],
+                                         const float hi[3], uint32_t* key, uint16_t* index,
+                                         uint32_t* key_tmp, uint16_t* index_tmp) {
     double extent = 0;  // in double: hi - lo of finite floats cannot overflow there
     for (int a = 0; a < 3; ++a) {
         const double e = static_cast<double>(hi[a]) - lo[a];
@@ -444,8 +462,10 @@ inline bool sort_by_origin_and_direction(const Ray* block, int valid, const floa
     }
     bool in_tmp = false;
     for (int shift = 0; shift < kKeyBits; shift += kRadixBits) {
-        if (in_tmp) radix_pass(key_tmp, index_tmp, key, index, valid, shift, kRadixBits);
-        else radix_pass(key, index, key_tmp, index_tmp, valid, shift, kRadixBits);
+        if (in_tmp)
+            radix_pass(key_tmp, index_tmp, key, index, valid, shift, kRadixBits);
+        else
+            radix_pass(key, index, key_tmp, index_tmp, valid, shift, kRadixBits);
         in_tmp = !in_tmp;
     }
     return in_tmp;
@@ -455,17 +475,21 @@ inline bool sort_by_origin_and_direction(const Ray* block, int valid, const floa
 /// or as single rays (the policy).
 template <int W, bool AnyHit>
 [[gnu::always_inline]] inline void trace_run(const KdTree& tree, const Ray* block, size_t base,
-                                             const uint16_t* order, int count, Hit* hits, uint8_t* occluded,
-                                             Policy policy, TraceCounters& counters) {
+                                             const uint16_t* order, int count, Hit* hits,
+                                             uint8_t* occluded, Policy policy,
+                                             TraceCounters& counters) {
     for (int p = 0; p < count; p += W) {
         const int lanes = count - p < W ? count - p : W;
         const uint16_t* index = &order[p];
-        const bool as_packet = policy == Policy::kPacket || (policy == Policy::kAuto && packet_pays(lanes, W));
+        const bool as_packet =
+            policy == Policy::kPacket || (policy == Policy::kAuto && packet_pays(lanes, W));
         if (!as_packet) {
             for (int l = 0; l < lanes; ++l) {
                 const size_t i = base + index[l];
-                if constexpr (AnyHit) occluded[i] = kdrt::occluded(tree, block[index[l]]) ? 1 : 0;
-                else hits[i] = kdrt::intersect(tree, block[index[l]]);
+                if constexpr (AnyHit)
+                    occluded[i] = kdrt::occluded(tree, block[index[l]]) ? 1 : 0;
+                else
+                    hits[i] = kdrt::intersect(tree, block[index[l]]);
             }
             counters.single_rays += static_cast<uint64_t>(lanes);
             continue;
@@ -503,8 +527,8 @@ template <int W, bool AnyHit>
 /// Every lane makes its single ray's decisions, so the grouping changes the speed, never an
 /// answer.
 template <int W, bool AnyHit>
-void trace_rays(const KdTree& tree, const Ray* rays, size_t count, Hit* hits, uint8_t* occluded, Policy policy,
-                TraceCounters& counters) {
+void trace_rays(const KdTree& tree, const Ray* rays, size_t count, Hit* hits, uint8_t* occluded,
+                Policy policy, TraceCounters& counters) {
     uint32_t key[kBlockRays], key_tmp[kBlockRays];
     uint16_t index[kBlockRays], index_tmp[kBlockRays];
     for (size_t base = 0; base < count; base += kBlockRays) {
@@ -512,16 +536,19 @@ void trace_rays(const KdTree& tree, const Ray* rays, size_t count, Hit* hits, ui
         const Ray* block = rays + base;
         float lo[3], hi[3];
         if (block_is_incoherent(block, n, lo, hi)) {
-            const int valid = collect_valid<AnyHit>(tree, block, base, n, hits, occluded, counters, key, index);
+            const int valid =
+                collect_valid<AnyHit>(tree, block, base, n, hits, occluded, counters, key, index);
             counters.sorted_rays += static_cast<uint64_t>(valid);
-            const bool in_tmp = sort_by_origin_and_direction(block, valid, lo, hi, key, index, key_tmp, index_tmp);
+            const bool in_tmp =
+                sort_by_origin_and_direction(block, valid, lo, hi, key, index, key_tmp, index_tmp);
             const uint32_t* sorted_key = in_tmp ? key_tmp : key;
             const uint16_t* sorted = in_tmp ? index_tmp : index;
             for (int first = 0; first < valid;) {  // one run per octant (the keys' top bits)
                 const uint32_t oct = sorted_key[first] >> kOctantShift;
                 int end = first + 1;
                 while (end < valid && (sorted_key[end] >> kOctantShift) == oct) ++end;
-                trace_run<W, AnyHit>(tree, block, base, sorted + first, end - first, hits, occluded, policy, counters);
+                trace_run<W, AnyHit>(tree, block, base, sorted + first, end - first, hits, occluded,
+                                     policy, counters);
                 first = end;
             }
             continue;
@@ -535,13 +562,15 @@ void trace_rays(const KdTree& tree, const Ray* rays, size_t count, Hit* hits, ui
             int bucket_size[8] = {0, 0, 0, 0, 0, 0, 0, 0};
             for (int i = 0; i < m; ++i) {
                 const Ray& r = run[i];
-                if (!traceable_or_miss<AnyHit>(tree, r, run_base + static_cast<size_t>(i), hits, occluded, counters))
+                if (!traceable_or_miss<AnyHit>(tree, r, run_base + static_cast<size_t>(i), hits,
+                                               occluded, counters))
                     continue;
                 const uint32_t o = octant(r);
                 bucket[o][bucket_size[o]++] = static_cast<uint16_t>(i);
             }
             for (int o = 0; o < 8; ++o) {
-                trace_run<W, AnyHit>(tree, run, run_base, bucket[o], bucket_size[o], hits, occluded, policy, counters);
+                trace_run<W, AnyHit>(tree, run, run_base, bucket[o], bucket_size[o], hits, occluded,
+                                     policy, counters);
             }
         }
     }
@@ -554,8 +583,8 @@ void intersect_rays(const KdTree& tree, const Ray* rays, size_t count, Hit* hits
 }
 
 template <int W>
-void occluded_rays(const KdTree& tree, const Ray* rays, size_t count, uint8_t* occluded, Policy policy,
-                   TraceCounters& counters) {
+void occluded_rays(const KdTree& tree, const Ray* rays, size_t count, uint8_t* occluded,
+                   Policy policy, TraceCounters& counters) {
     trace_rays<W, true>(tree, rays, count, nullptr, occluded, policy, counters);
 }
 

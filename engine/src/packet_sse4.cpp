@@ -5,9 +5,9 @@
 
 #include <immintrin.h>
 
+#include "kdrt/trace.h"
 #include "packet.h"
 #include "ray_prep.h"
-#include "kdrt/trace.h"
 
 #pragma GCC push_options
 #pragma GCC target("sse4.2,popcnt")

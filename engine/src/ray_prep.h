@@ -18,8 +18,9 @@ namespace kdrt::detail {
 
 /// True for a ray the engine traces (see Ray's contract); everything else is a miss.
 static inline bool ray_is_valid(const Ray& r) noexcept {
-    const bool finite = __builtin_isfinite(r.ox) && __builtin_isfinite(r.oy) && __builtin_isfinite(r.oz) &&
-                        __builtin_isfinite(r.dx) && __builtin_isfinite(r.dy) && __builtin_isfinite(r.dz);
+    const bool finite = __builtin_isfinite(r.ox) && __builtin_isfinite(r.oy) &&
+                        __builtin_isfinite(r.oz) && __builtin_isfinite(r.dx) &&
+                        __builtin_isfinite(r.dy) && __builtin_isfinite(r.dz);
     const bool nonzero = r.dx != 0.0f || r.dy != 0.0f || r.dz != 0.0f;
     return finite && nonzero && r.tmin <= r.tmax;  // false for a NaN tmin or tmax
 }
@@ -41,7 +42,8 @@ static inline PreparedRay prepare_ray(const Ray& r) noexcept {
     p.org[2] = r.oz;
     for (int a = 0; a < 3; ++a) p.inv_dir[a] = 1.0f / dir[a];  // +-inf for a zero component
     // kz: the dimension where the direction is largest in magnitude; first such on ties.
-    const float ax = __builtin_fabsf(dir[0]), ay = __builtin_fabsf(dir[1]), az = __builtin_fabsf(dir[2]);
+    const float ax = __builtin_fabsf(dir[0]), ay = __builtin_fabsf(dir[1]),
+                az = __builtin_fabsf(dir[2]);
     int kz = 0;
     if (ay > ax) kz = 1;
     if (az > (kz == 0 ? ax : ay)) kz = 2;
@@ -64,12 +66,15 @@ static inline PreparedRay prepare_ray(const Ray& r) noexcept {
 /// Watertight test of one triangle. On a hit with tmin <= t and (t, prim) lexicographically
 /// smaller than (best_t, best_prim), returns true and writes t, u, v. No hit is ever reported for
 /// a degenerate triangle or a ray in the triangle's plane.
-static inline bool intersect_triangle(const PreparedRay& p, const TriVerts& tri, float tmin, float& t_out,
-                               float& u_out, float& v_out) noexcept {
+static inline bool intersect_triangle(const PreparedRay& p, const TriVerts& tri, float tmin,
+                                      float& t_out, float& u_out, float& v_out) noexcept {
     // Vertices relative to the origin, in the ray's permuted frame (kx, ky, kz).
-    const float a_x = tri.v0[p.kx] - p.org[p.kx], a_y = tri.v0[p.ky] - p.org[p.ky], a_z = tri.v0[p.kz] - p.org[p.kz];
-    const float b_x = tri.v1[p.kx] - p.org[p.kx], b_y = tri.v1[p.ky] - p.org[p.ky], b_z = tri.v1[p.kz] - p.org[p.kz];
-    const float c_x = tri.v2[p.kx] - p.org[p.kx], c_y = tri.v2[p.ky] - p.org[p.ky], c_z = tri.v2[p.kz] - p.org[p.kz];
+    const float a_x = tri.v0[p.kx] - p.org[p.kx], a_y = tri.v0[p.ky] - p.org[p.ky],
+                a_z = tri.v0[p.kz] - p.org[p.kz];
+    const float b_x = tri.v1[p.kx] - p.org[p.kx], b_y = tri.v1[p.ky] - p.org[p.ky],
+                b_z = tri.v1[p.kz] - p.org[p.kz];
+    const float c_x = tri.v2[p.kx] - p.org[p.kx], c_y = tri.v2[p.ky] - p.org[p.ky],
+                c_z = tri.v2[p.kz] - p.org[p.kz];
     // Shear so the ray runs along +z through the origin.
     const float ax = a_x - p.sx * a_z, ay = a_y - p.sy * a_z;
     const float bx = b_x - p.sx * b_z, by = b_y - p.sy * b_z;
@@ -101,7 +106,8 @@ static inline bool intersect_triangle(const PreparedRay& p, const TriVerts& tri,
 
 /// Clips [tmin, tmax] of a ray to a box; false when the ray misses it. Zero direction components
 /// are handled without NaN: the slab either contains the origin (no constraint) or not (miss).
-static inline bool clip_to_box(const PreparedRay& p, const Aabb& box, float& tmin, float& tmax) noexcept {
+static inline bool clip_to_box(const PreparedRay& p, const Aabb& box, float& tmin,
+                               float& tmax) noexcept {
     for (int a = 0; a < 3; ++a) {
         if (__builtin_isinf(p.inv_dir[a])) {
             if (p.org[a] < box.lo[a] || p.org[a] > box.hi[a]) return false;
@@ -152,7 +158,8 @@ static inline float interval_margin(const PreparedRay& p, const Aabb& bounds) no
 /// tests are exact in that axis.
 static inline void traversal_eps(const PreparedRay& p, const Aabb& bounds, float eps[3]) noexcept {
     const float delta = interval_margin(p, bounds);
-    for (int a = 0; a < 3; ++a) eps[a] = __builtin_isinf(p.inv_dir[a]) ? 0.0f : delta * __builtin_fabsf(p.inv_dir[a]);
+    for (int a = 0; a < 3; ++a)
+        eps[a] = __builtin_isinf(p.inv_dir[a]) ? 0.0f : delta * __builtin_fabsf(p.inv_dir[a]);
 }
 
 }  // namespace kdrt::detail

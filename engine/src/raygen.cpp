@@ -83,7 +83,8 @@ struct SurfacePoint {
     Vec3 normal;  ///< unit geometric normal on the side the primary ray came from
 };
 
-SurfacePoint surface_point(const KdTree& tree, const Ray& ray, const Hit& hit, float offset) noexcept {
+SurfacePoint surface_point(const KdTree& tree, const Ray& ray, const Hit& hit,
+                           float offset) noexcept {
     const TriVerts& tri = tree.tris[hit.prim];
     const Vec3 v0{tri.v0[0], tri.v0[1], tri.v0[2]};
     const Vec3 v1{tri.v1[0], tri.v1[1], tri.v1[2]};
@@ -93,12 +94,14 @@ SurfacePoint surface_point(const KdTree& tree, const Ray& ray, const Hit& hit, f
     // Cross product in double: sliver triangles would lose most bits of their normal in float.
     const double e1[3] = {double{v1.x} - v0.x, double{v1.y} - v0.y, double{v1.z} - v0.z};
     const double e2[3] = {double{v2.x} - v0.x, double{v2.y} - v0.y, double{v2.z} - v0.z};
-    const double n[3] = {e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2], e1[0] * e2[1] - e1[1] * e2[0]};
+    const double n[3] = {e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2],
+                         e1[0] * e2[1] - e1[1] * e2[0]};
     const double n_len = std::sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]);
     const Vec3 dir{ray.dx, ray.dy, ray.dz};
     Vec3 normal;
     if (n_len > 0.0 && std::isfinite(n_len)) {
-        normal = {static_cast<float>(n[0] / n_len), static_cast<float>(n[1] / n_len), static_cast<float>(n[2] / n_len)};
+        normal = {static_cast<float>(n[0] / n_len), static_cast<float>(n[1] / n_len),
+                  static_cast<float>(n[2] / n_len)};
         if (dot(normal, dir) > 0.0f) normal = normal * -1.0f;
     } else {
         // The engine never reports a hit on a zero-area triangle; stay well defined regardless.
@@ -120,12 +123,14 @@ Vec3 sphere_direction(CounterRng& rng) noexcept {
 
 template <typename Body>
 void parallel_indices(size_t count, Body body) {
-    tbb::parallel_for(tbb::blocked_range<size_t>(0, count, kGrain), [&](const tbb::blocked_range<size_t>& range) {
-        for (size_t i = range.begin(); i != range.end(); ++i) body(i);
-    });
+    tbb::parallel_for(tbb::blocked_range<size_t>(0, count, kGrain),
+                      [&](const tbb::blocked_range<size_t>& range) {
+                          for (size_t i = range.begin(); i != range.end(); ++i) body(i);
+                      });
 }
 
-std::vector<Ray> primary_rays(const KdTree& tree, uint32_t res, const std::optional<CameraSpec>& spec) {
+std::vector<Ray> primary_rays(const KdTree& tree, uint32_t res,
+                              const std::optional<CameraSpec>& spec) {
     const Camera camera(spec ? *spec : default_camera(scene_box(tree), 1.0f), res, res);
     std::vector<Ray> rays(size_t{res} * res);
     parallel_indices(rays.size(), [&](size_t i) {
@@ -138,8 +143,8 @@ std::vector<Ray> primary_rays(const KdTree& tree, uint32_t res, const std::optio
 
 /// One secondary ray per primary hit, in pixel order; `make(i, point, primary)` builds ray i.
 template <typename Make>
-std::vector<Ray> secondary_rays(const KdTree& tree, uint32_t res, const std::optional<CameraSpec>& camera,
-                                Make make) {
+std::vector<Ray> secondary_rays(const KdTree& tree, uint32_t res,
+                                const std::optional<CameraSpec>& camera, Make make) {
     const std::vector<Ray> primary = primary_rays(tree, res, camera);
     std::vector<Hit> hits(primary.size());
     intersect_single(tree, primary, hits);
@@ -156,7 +161,8 @@ std::vector<Ray> secondary_rays(const KdTree& tree, uint32_t res, const std::opt
     return rays;
 }
 
-std::vector<Ray> shadow_rays(const KdTree& tree, uint32_t res, const std::optional<CameraSpec>& camera) {
+std::vector<Ray> shadow_rays(const KdTree& tree, uint32_t res,
+                             const std::optional<CameraSpec>& camera) {
     // A point light above, in front of and to the right of the scene, 1.5 box diagonals from its
     // centre: outside the box, so every shadow segment ends in empty space. (A box with a zero
     // diagonal holds only zero-area triangles, which are never hit, so there are no shadow rays.)
@@ -170,7 +176,8 @@ std::vector<Ray> shadow_rays(const KdTree& tree, uint32_t res, const std::option
         const float distance = std::sqrt(dot(to_light, to_light));
         const Vec3 dir = to_light * (1.0f / distance);
         // Stop short of the light by a relative 1e-3: the segment ends strictly before it.
-        return Ray{s.origin.x, s.origin.y, s.origin.z, 0.0f, dir.x, dir.y, dir.z, distance * 0.999f};
+        return Ray{s.origin.x, s.origin.y, s.origin.z, 0.0f,
+                   dir.x,      dir.y,      dir.z,      distance * 0.999f};
     });
 }
 
@@ -226,8 +233,9 @@ std::string_view ray_kind_name(RayKind kind) noexcept {
 
 std::vector<Ray> generate_rays(const KdTree& tree, const RayGenOptions& options) {
     if (options.res > kMaxRes) {
-        throw std::invalid_argument("ray generation: res " + std::to_string(options.res) + " is too large (at most " +
-                                    std::to_string(kMaxRes) + ", so res * res rays fit a 32-bit count)");
+        throw std::invalid_argument("ray generation: res " + std::to_string(options.res) +
+                                    " is too large (at most " + std::to_string(kMaxRes) +
+                                    ", so res * res rays fit a 32-bit count)");
     }
     if (options.res == 0) return {};
     switch (options.kind) {

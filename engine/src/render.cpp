@@ -17,8 +17,8 @@
 #include <string>
 
 #include "kdrt/trace.h"
-#include "sampling.h"
 #include "render_internal.h"
+#include "sampling.h"
 
 namespace kdrt {
 namespace {
@@ -66,9 +66,11 @@ enum class Stream : uint32_t {
 /// whichever thread, tile or region computes the pixel.
 class PixelRng {
 public:
-    PixelRng(uint64_t seed, uint32_t x, uint32_t y, uint32_t sample, Stream stream, uint32_t index) noexcept
+    PixelRng(uint64_t seed, uint32_t x, uint32_t y, uint32_t sample, Stream stream,
+             uint32_t index) noexcept
         : state_(mix64(mix64(mix64(seed) ^ ((uint64_t{y} << 32) | x)) ^
-                       ((uint64_t{sample} << 32) | (uint64_t{static_cast<uint32_t>(stream)} << 28) | index))) {}
+                       ((uint64_t{sample} << 32) | (uint64_t{static_cast<uint32_t>(stream)} << 28) |
+                        index))) {}
 
     uint32_t bits() noexcept {
         state_ += 0x9E3779B97F4A7C15ull;
@@ -110,9 +112,12 @@ Vec3 direction(const Ray& r) noexcept { return {r.dx, r.dy, r.dz}; }
 /// spawning secondary rays. The cross product is taken in double: sliver triangles lose most bits
 /// of it in float, and a wrong side would start AO and bounce rays inside the surface.
 Vec3 facing_normal(const TriVerts& tri, Vec3 dir) noexcept {
-    const double e1[3] = {double{tri.v1[0]} - tri.v0[0], double{tri.v1[1]} - tri.v0[1], double{tri.v1[2]} - tri.v0[2]};
-    const double e2[3] = {double{tri.v2[0]} - tri.v0[0], double{tri.v2[1]} - tri.v0[1], double{tri.v2[2]} - tri.v0[2]};
-    const double n[3] = {e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2], e1[0] * e2[1] - e1[1] * e2[0]};
+    const double e1[3] = {double{tri.v1[0]} - tri.v0[0], double{tri.v1[1]} - tri.v0[1],
+                          double{tri.v1[2]} - tri.v0[2]};
+    const double e2[3] = {double{tri.v2[0]} - tri.v0[0], double{tri.v2[1]} - tri.v0[1],
+                          double{tri.v2[2]} - tri.v0[2]};
+    const double n[3] = {e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2],
+                         e1[0] * e2[1] - e1[1] * e2[0]};
     const double len = std::sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]);
     if (!(len > 0.0) || !std::isfinite(len)) {
         // The engine never reports hits on zero-area triangles; stay well defined regardless.
@@ -129,9 +134,11 @@ Vec3 facing_normal(const TriVerts& tri, Vec3 dir) noexcept {
 /// tolerates the float rounding of sliver triangles, and this is the renderer's per-pixel cost.
 Vec3 display_normal(const TriVerts& tri, Vec3 dir) noexcept {
     const Vec3 v0{tri.v0[0], tri.v0[1], tri.v0[2]};
-    const Vec3 n = cross(Vec3{tri.v1[0], tri.v1[1], tri.v1[2]} - v0, Vec3{tri.v2[0], tri.v2[1], tri.v2[2]} - v0);
+    const Vec3 n = cross(Vec3{tri.v1[0], tri.v1[1], tri.v1[2]} - v0,
+                         Vec3{tri.v2[0], tri.v2[1], tri.v2[2]} - v0);
     const float len2 = dot(n, n);
-    if (!(len2 > 0.0f) || !std::isfinite(len2)) return facing_normal(tri, dir);  // tiny, huge or degenerate
+    if (!(len2 > 0.0f) || !std::isfinite(len2))
+        return facing_normal(tri, dir);  // tiny, huge or degenerate
     const Vec3 normal = n * (1.0f / std::sqrt(len2));
     return dot(normal, dir) > 0.0f ? normal * -1.0f : normal;
 }
@@ -142,7 +149,8 @@ struct Surface {
     Vec3 normal;  ///< unit geometric normal on the side the ray came from
 };
 
-Surface surface_at(std::span<const TriVerts> tris, const Ray& ray, const Hit& hit, float offset) noexcept {
+Surface surface_at(std::span<const TriVerts> tris, const Ray& ray, const Hit& hit,
+                   float offset) noexcept {
     const TriVerts& tri = tris[hit.prim];
     const Vec3 v0{tri.v0[0], tri.v0[1], tri.v0[2]};
     const Vec3 v1{tri.v1[0], tri.v1[1], tri.v1[2]};
@@ -185,8 +193,8 @@ std::string format_vec(Vec3 v) {
 
 void require_range(const char* field, uint64_t value, uint64_t lo, uint64_t hi) {
     if (value < lo || value > hi) {
-        fail(std::string(field) + " " + std::to_string(value) + " must be in " + std::to_string(lo) + " .. " +
-             std::to_string(hi));
+        fail(std::string(field) + " " + std::to_string(value) + " must be in " +
+             std::to_string(lo) + " .. " + std::to_string(hi));
     }
 }
 
@@ -199,7 +207,8 @@ void require_finite_nonnegative(const char* field, float value) {
 /// The box secondary rays and the default camera work with: the tree bounds, or the unit cube
 /// around the origin for an empty tree (default_camera's fallback too).
 Aabb scene_box(const KdTree& tree) noexcept {
-    if (!tree.bounds.empty() && is_finite(tree.bounds.lo) && is_finite(tree.bounds.hi)) return tree.bounds;
+    if (!tree.bounds.empty() && is_finite(tree.bounds.lo) && is_finite(tree.bounds.hi))
+        return tree.bounds;
     return Aabb{{-0.5f, -0.5f, -0.5f}, {0.5f, 0.5f, 0.5f}};
 }
 
@@ -210,9 +219,10 @@ PixelRegion region_of(const RenderSettings& s) noexcept {
 Camera make_camera(const KdTree& tree, const RenderSettings& s) {
     try {
         const CameraSpec spec =
-            s.camera ? *s.camera
-                     : default_camera(tree.bounds,
-                                      static_cast<float>(static_cast<double>(s.width) / static_cast<double>(s.height)));
+            s.camera
+                ? *s.camera
+                : default_camera(tree.bounds, static_cast<float>(static_cast<double>(s.width) /
+                                                                 static_cast<double>(s.height)));
         return Camera(spec, s.width, s.height);
     } catch (const CameraError& e) {
         throw RenderError(e.what());
@@ -267,7 +277,8 @@ Frame make_frame(const KdTree& tree, const RenderSettings& s) {
     const Vec3 ext = box.extent();
     const float diag = std::sqrt(dot(ext, ext));
     float magnitude = 0.0f;
-    for (int a = 0; a < 3; ++a) magnitude = std::max({magnitude, std::fabs(box.lo[a]), std::fabs(box.hi[a])});
+    for (int a = 0; a < 3; ++a)
+        magnitude = std::max({magnitude, std::fabs(box.lo[a]), std::fabs(box.hi[a])});
     const PixelRegion region = region_of(s);
     const uint32_t tile = s.tile_size;
     return Frame{
@@ -283,7 +294,8 @@ Frame make_frame(const KdTree& tree, const RenderSettings& s) {
         // (the same offset the ray-set generator uses).
         .offset = 1e-5f * (diag + magnitude),
         .ao_tmax = s.ao_distance * diag,
-        .to_light = s.light.kind == LightKind::kDirectional ? normalized(s.light.direction) : Vec3{},
+        .to_light =
+            s.light.kind == LightKind::kDirectional ? normalized(s.light.direction) : Vec3{},
     };
 }
 
@@ -293,8 +305,12 @@ Frame make_frame(const KdTree& tree, const RenderSettings& s) {
 /// The tree's own block queries: direct calls, no indirection per block or ray.
 struct TreeTracer {
     const KdTree& tree;
-    void intersect(std::span<const Ray> rays, std::span<Hit> hits) const noexcept { intersect_block(tree, rays, hits); }
-    void occluded(std::span<const Ray> rays, std::span<uint8_t> out) const noexcept { occluded_block(tree, rays, out); }
+    void intersect(std::span<const Ray> rays, std::span<Hit> hits) const noexcept {
+        intersect_block(tree, rays, hits);
+    }
+    void occluded(std::span<const Ray> rays, std::span<uint8_t> out) const noexcept {
+        occluded_block(tree, rays, out);
+    }
 };
 
 /// Queries through caller-supplied functions (tests: the brute-force oracle), one call per block.
@@ -352,12 +368,12 @@ struct TileScratch {
     std::array<Ray, kMaxTilePixels> rays;
     std::array<Hit, kMaxTilePixels> hits;
     std::array<uint8_t, kMaxTilePixels> occluded;
-    std::array<Surface, kMaxTilePixels> surfaces;          ///< per live path / AO point
-    std::array<uint16_t, kMaxTilePixels> path_pixel;       ///< tile pixel of each live path
-    std::array<float, kMaxTilePixels> throughput;          ///< per live path
-    std::array<uint16_t, kMaxTilePixels> ray_path;         ///< path of each ray in `rays`
-    std::array<float, kMaxTilePixels> ray_weight;          ///< per ray: light or throughput weight
-    std::array<float, kMaxTilePixels> value;               ///< per tile pixel: this sample's grey value
+    std::array<Surface, kMaxTilePixels> surfaces;     ///< per live path / AO point
+    std::array<uint16_t, kMaxTilePixels> path_pixel;  ///< tile pixel of each live path
+    std::array<float, kMaxTilePixels> throughput;     ///< per live path
+    std::array<uint16_t, kMaxTilePixels> ray_path;    ///< path of each ray in `rays`
+    std::array<float, kMaxTilePixels> ray_weight;     ///< per ray: light or throughput weight
+    std::array<float, kMaxTilePixels> value;          ///< per tile pixel: this sample's grey value
     std::array<std::array<float, 4>, kMaxTilePixels> sum;  ///< per tile pixel: RGB + coverage
 };
 
@@ -429,9 +445,12 @@ uint64_t shade_ao(const Frame& f, const Tracer& tracer, const TilePixels& tile, 
             PixelRng rng(f.settings.seed, tile.px(i), tile.py(i), sample, Stream::kAo, j);
             const Surface& surface = s.surfaces[p];
             const Vec3 d = cosine_direction(surface.normal, rng);
-            s.rays[p] = Ray{surface.origin.x, surface.origin.y, surface.origin.z, 0.0f, d.x, d.y, d.z, f.ao_tmax};
+            s.rays[p] =
+                Ray{surface.origin.x, surface.origin.y, surface.origin.z, 0.0f, d.x, d.y, d.z,
+                    f.ao_tmax};
         }
-        tracer.occluded(std::span<const Ray>(s.rays.data(), count), std::span<uint8_t>(s.occluded.data(), count));
+        tracer.occluded(std::span<const Ray>(s.rays.data(), count),
+                        std::span<uint8_t>(s.occluded.data(), count));
         for (uint32_t p = 0; p < count; ++p) s.value[p] += s.occluded[p] ? 0.0f : 1.0f;
     }
     for (uint32_t p = 0; p < count; ++p) {
@@ -443,7 +462,8 @@ uint64_t shade_ao(const Frame& f, const Tracer& tracer, const TilePixels& tile, 
 
 /// Direct light at every live path vertex: one shadow ray per vertex that faces the light.
 template <class Tracer>
-uint64_t add_direct_light(const Frame& f, const Tracer& tracer, uint32_t paths, TileScratch& s) noexcept {
+uint64_t add_direct_light(const Frame& f, const Tracer& tracer, uint32_t paths,
+                          TileScratch& s) noexcept {
     const Light& light = f.settings.light;
     uint32_t count = 0;
     for (uint32_t p = 0; p < paths; ++p) {
@@ -462,13 +482,15 @@ uint64_t add_direct_light(const Frame& f, const Tracer& tracer, uint32_t paths, 
         }
         const float cosine = dot(surface.normal, dir);
         if (!(cosine > 0.0f)) continue;
-        s.rays[count] = Ray{surface.origin.x, surface.origin.y, surface.origin.z, 0.0f, dir.x, dir.y, dir.z, tmax};
+        s.rays[count] = Ray{
+            surface.origin.x, surface.origin.y, surface.origin.z, 0.0f, dir.x, dir.y, dir.z, tmax};
         s.ray_path[count] = static_cast<uint16_t>(p);
         s.ray_weight[count] = weight * cosine;
         ++count;
     }
     if (count == 0) return 0;
-    tracer.occluded(std::span<const Ray>(s.rays.data(), count), std::span<uint8_t>(s.occluded.data(), count));
+    tracer.occluded(std::span<const Ray>(s.rays.data(), count),
+                    std::span<uint8_t>(s.occluded.data(), count));
     for (uint32_t r = 0; r < count; ++r) {
         if (s.occluded[r]) continue;
         const uint32_t p = s.ray_path[r];
@@ -481,8 +503,8 @@ uint64_t add_direct_light(const Frame& f, const Tracer& tracer, uint32_t paths, 
 /// cosine-weighted continuation (the cosine and 1/pi of the BRDF cancel against the pdf, so the
 /// throughput just takes the albedo), Russian roulette from kRouletteStartBounce on.
 template <class Tracer>
-uint64_t shade_diffuse(const Frame& f, const Tracer& tracer, const TilePixels& tile, uint32_t sample,
-                       TileScratch& s) noexcept {
+uint64_t shade_diffuse(const Frame& f, const Tracer& tracer, const TilePixels& tile,
+                       uint32_t sample, TileScratch& s) noexcept {
     uint32_t paths = gather_surfaces(f, tile, s);
     uint64_t rays = 0;
     for (uint32_t p = 0; p < paths; ++p) {
@@ -510,13 +532,15 @@ uint64_t shade_diffuse(const Frame& f, const Tracer& tracer, const TilePixels& t
             if (!(throughput > 0.0f)) continue;
             const Surface& surface = s.surfaces[p];
             const Vec3 d = cosine_direction(surface.normal, rng);
-            s.rays[count] = Ray{surface.origin.x, surface.origin.y, surface.origin.z, 0.0f, d.x, d.y, d.z, kInf};
+            s.rays[count] = Ray{
+                surface.origin.x, surface.origin.y, surface.origin.z, 0.0f, d.x, d.y, d.z, kInf};
             s.ray_path[count] = static_cast<uint16_t>(p);
             s.ray_weight[count] = throughput;
             ++count;
         }
         if (count == 0) break;
-        tracer.intersect(std::span<const Ray>(s.rays.data(), count), std::span<Hit>(s.hits.data(), count));
+        tracer.intersect(std::span<const Ray>(s.rays.data(), count),
+                         std::span<Hit>(s.hits.data(), count));
         rays += count;
         // Compact the surviving paths in place: ray r belongs to path ray_path[r] >= r >= the
         // slot written, so every slot is read before it is overwritten.
@@ -543,11 +567,13 @@ uint64_t shade_diffuse(const Frame& f, const Tracer& tracer, const TilePixels& t
 
 /// Renders one tile into `image`; returns the rays traced.
 template <class Tracer>
-uint64_t render_tile(const Frame& f, const Tracer& tracer, uint32_t tile_index, TileScratch& s, Image& image) noexcept {
+uint64_t render_tile(const Frame& f, const Tracer& tracer, uint32_t tile_index, TileScratch& s,
+                     Image& image) noexcept {
     const uint32_t size = f.settings.tile_size;
     const uint32_t col = tile_index % f.tiles_x, row = tile_index / f.tiles_x;
     const uint32_t x0 = col * size, y0 = row * size;  // region coordinates
-    const uint32_t width = std::min(size, f.region.width - x0), height = std::min(size, f.region.height - y0);
+    const uint32_t width = std::min(size, f.region.width - x0),
+                   height = std::min(size, f.region.height - y0);
     TilePixels& tile = s.tile;
     tile.x = f.region.x + x0;
     tile.y = f.region.y + y0;
@@ -557,7 +583,8 @@ uint64_t render_tile(const Frame& f, const Tracer& tracer, uint32_t tile_index, 
         std::copy_n(kMorton.x.begin(), n, tile.dx.begin());
         std::copy_n(kMorton.y.begin(), n, tile.dy.begin());
     } else {
-        for (uint32_t m = 0; m < size * size; ++m) {  // edge tiles keep the Morton order of their pixels
+        for (uint32_t m = 0; m < size * size;
+             ++m) {  // edge tiles keep the Morton order of their pixels
             if (kMorton.x[m] >= width || kMorton.y[m] >= height) continue;
             tile.dx[n] = kMorton.x[m];
             tile.dy[n] = kMorton.y[m];
@@ -572,11 +599,15 @@ uint64_t render_tile(const Frame& f, const Tracer& tracer, uint32_t tile_index, 
         if (f.settings.spp == 1) {
             // Pixel centres: the image-plane coordinates depend on the column or the row alone.
             std::array<float, kMaxTileSize> sx, sy;
-            for (uint32_t c = 0; c < width; ++c) sx[c] = f.camera.plane_x(static_cast<float>(tile.x + c) + 0.5f);
-            for (uint32_t r = 0; r < height; ++r) sy[r] = f.camera.plane_y(static_cast<float>(tile.y + r) + 0.5f);
-            for (uint32_t i = 0; i < n; ++i) s.rays[i] = f.camera.ray_at(sx[tile.dx[i]], sy[tile.dy[i]]);
+            for (uint32_t c = 0; c < width; ++c)
+                sx[c] = f.camera.plane_x(static_cast<float>(tile.x + c) + 0.5f);
+            for (uint32_t r = 0; r < height; ++r)
+                sy[r] = f.camera.plane_y(static_cast<float>(tile.y + r) + 0.5f);
+            for (uint32_t i = 0; i < n; ++i)
+                s.rays[i] = f.camera.ray_at(sx[tile.dx[i]], sy[tile.dy[i]]);
         } else {
-            for (uint32_t i = 0; i < n; ++i) s.rays[i] = f.camera_ray(tile.px(i), tile.py(i), sample);
+            for (uint32_t i = 0; i < n; ++i)
+                s.rays[i] = f.camera_ray(tile.px(i), tile.py(i), sample);
         }
         tracer.intersect(std::span<const Ray>(s.rays.data(), n), std::span<Hit>(s.hits.data(), n));
         rays += n;
@@ -607,7 +638,8 @@ uint64_t render_tile(const Frame& f, const Tracer& tracer, uint32_t tile_index, 
     const bool alpha = f.channels == 4;
     float* pixels = image.pixels.data();
     for (uint32_t i = 0; i < n; ++i) {
-        float* out = pixels + (size_t{y0 + tile.dy[i]} * f.region.width + x0 + tile.dx[i]) * f.channels;
+        float* out =
+            pixels + (size_t{y0 + tile.dy[i]} * f.region.width + x0 + tile.dx[i]) * f.channels;
         const std::array<float, 4>& sum = s.sum[i];
         if (f.settings.spp == 1) {
             out[0] = sum[0];
@@ -629,12 +661,15 @@ uint64_t render_tile(const Frame& f, const Tracer& tracer, uint32_t tile_index, 
 class ProgressReporter {
 public:
     ProgressReporter(const std::function<void(double)>& callback, uint64_t total) noexcept
-        : callback_(callback), total_(total), step_((total + kProgressSteps - 1) / kProgressSteps) {}
+        : callback_(callback),
+          total_(total),
+          step_((total + kProgressSteps - 1) / kProgressSteps) {}
 
     void tile_done() {
         if (!callback_) return;
         const uint64_t done = done_.fetch_add(1, std::memory_order_relaxed) + 1;
-        if (done >= total_ || done < next_.load(std::memory_order_relaxed)) return;  // 1.0 comes from finish()
+        if (done >= total_ || done < next_.load(std::memory_order_relaxed))
+            return;  // 1.0 comes from finish()
         const std::unique_lock lock(mutex_, std::try_to_lock);
         if (!lock.owns_lock() || done <= reported_) return;
         reported_ = done;
@@ -674,21 +709,24 @@ Image render_frame(const KdTree& tree, const RenderSettings& settings, const Tra
     std::atomic<uint64_t> ray_count{0};
     std::atomic<bool> skipped{false};
     tbb::enumerable_thread_specific<TileScratch> scratch_per_thread;
-    tbb::parallel_for(tbb::blocked_range<uint32_t>(0, tile_count), [&](const tbb::blocked_range<uint32_t>& range) {
-        TileScratch& scratch = scratch_per_thread.local();
-        uint64_t rays = 0;
-        for (uint32_t t = range.begin(); t != range.end(); ++t) {
-            if (control.cancel && control.cancel->load(std::memory_order_relaxed)) {
-                skipped.store(true, std::memory_order_relaxed);
-                break;
+    tbb::parallel_for(
+        tbb::blocked_range<uint32_t>(0, tile_count),
+        [&](const tbb::blocked_range<uint32_t>& range) {
+            TileScratch& scratch = scratch_per_thread.local();
+            uint64_t rays = 0;
+            for (uint32_t t = range.begin(); t != range.end(); ++t) {
+                if (control.cancel && control.cancel->load(std::memory_order_relaxed)) {
+                    skipped.store(true, std::memory_order_relaxed);
+                    break;
+                }
+                rays += render_tile(frame, tracer, t, scratch, image);
+                progress.tile_done();
             }
-            rays += render_tile(frame, tracer, t, scratch, image);
-            progress.tile_done();
-        }
-        ray_count.fetch_add(rays, std::memory_order_relaxed);
-    });
+            ray_count.fetch_add(rays, std::memory_order_relaxed);
+        });
     if (skipped.load())
-        throw RenderCancelled("render cancelled before all " + std::to_string(tile_count) + " tiles were done");
+        throw RenderCancelled("render cancelled before all " + std::to_string(tile_count) +
+                              " tiles were done");
     progress.finish();
 
     if (stats) {
@@ -709,28 +747,32 @@ void validate_render_settings(const RenderSettings& s) {
     if (s.region) {
         const PixelRegion& r = *s.region;
         if (r.width == 0 || r.height == 0) {
-            fail("region width and height must be at least 1 (got " + std::to_string(r.width) + " x " +
-                 std::to_string(r.height) + ")");
+            fail("region width and height must be at least 1 (got " + std::to_string(r.width) +
+                 " x " + std::to_string(r.height) + ")");
         }
         // 64-bit sums: x + width cannot wrap.
         if (uint64_t{r.x} + r.width > s.width || uint64_t{r.y} + r.height > s.height) {
             fail("region (x " + std::to_string(r.x) + ", y " + std::to_string(r.y) + ", width " +
-                 std::to_string(r.width) + ", height " + std::to_string(r.height) + ") is not inside the " +
-                 std::to_string(s.width) + " x " + std::to_string(s.height) + " frame");
+                 std::to_string(r.width) + ", height " + std::to_string(r.height) +
+                 ") is not inside the " + std::to_string(s.width) + " x " +
+                 std::to_string(s.height) + " frame");
         }
     }
     require_range("spp", s.spp, 1, kMaxSamplesPerPixel);
     if (!parse_shading(shading_name(s.shading))) {
-        fail("shading " + std::to_string(static_cast<uint32_t>(s.shading)) + " is not a known mode");
+        fail("shading " + std::to_string(static_cast<uint32_t>(s.shading)) +
+             " is not a known mode");
     }
     require_range("ao_samples", s.ao_samples, 1, kMaxAoSamples);
     if (!(s.ao_distance > 0.0f) || !std::isfinite(s.ao_distance)) {
         fail("ao_distance " + format_float(s.ao_distance) + " must be a finite value > 0");
     }
-    if (!(s.albedo >= 0.0f && s.albedo <= 1.0f)) fail("albedo " + format_float(s.albedo) + " must be in [0, 1]");
+    if (!(s.albedo >= 0.0f && s.albedo <= 1.0f))
+        fail("albedo " + format_float(s.albedo) + " must be in [0, 1]");
     require_range("bounces", s.bounces, 0, kMaxBounces);
     require_finite_nonnegative("sky", s.sky);
-    if (!is_finite(s.background)) fail("background " + format_vec(s.background) + " has a NaN or infinite component");
+    if (!is_finite(s.background))
+        fail("background " + format_vec(s.background) + " has a NaN or infinite component");
     if (s.tile_size != 8 && s.tile_size != 16) {
         fail("tile_size " + std::to_string(s.tile_size) + " must be 8 or 16");
     }
@@ -740,13 +782,15 @@ void validate_render_settings(const RenderSettings& s) {
         case LightKind::kDirectional: {
             const Vec3 d = light.direction;
             if (!is_finite(d) || dot(d, d) == 0.0f || !std::isfinite(dot(d, d))) {
-                fail("light.direction " + format_vec(d) + " must be finite, non-zero and not too long");
+                fail("light.direction " + format_vec(d) +
+                     " must be finite, non-zero and not too long");
             }
             break;
         }
         case LightKind::kPoint:
             if (!is_finite(light.position)) {
-                fail("light.position " + format_vec(light.position) + " has a NaN or infinite component");
+                fail("light.position " + format_vec(light.position) +
+                     " has a NaN or infinite component");
             }
             break;
         default:
@@ -762,14 +806,17 @@ void validate_render_settings(const RenderSettings& s) {
     }
 }
 
-Image render(const KdTree& tree, const RenderSettings& settings, const RenderControl& control, RenderStats* stats) {
+Image render(const KdTree& tree, const RenderSettings& settings, const RenderControl& control,
+             RenderStats* stats) {
     return render_frame(tree, settings, TreeTracer{tree}, control, stats);
 }
 
-std::vector<Ray> render_camera_rays(const KdTree& tree, const RenderSettings& settings, uint32_t sample) {
+std::vector<Ray> render_camera_rays(const KdTree& tree, const RenderSettings& settings,
+                                    uint32_t sample) {
     const Frame frame = make_frame(tree, settings);
     if (sample >= settings.spp) {
-        fail("camera ray sample " + std::to_string(sample) + " must be below spp " + std::to_string(settings.spp));
+        fail("camera ray sample " + std::to_string(sample) + " must be below spp " +
+             std::to_string(settings.spp));
     }
     std::vector<Ray> rays;
     rays.reserve(size_t{frame.region.width} * frame.region.height);

@@ -16,7 +16,8 @@ namespace kdrt::detail {
 /// through unchanged.
 struct TraceFunctions {
     const void* context = nullptr;
-    void (*intersect)(const void* context, std::span<const Ray> rays, std::span<Hit> hits) noexcept = nullptr;
+    void (*intersect)(const void* context, std::span<const Ray> rays,
+                      std::span<Hit> hits) noexcept = nullptr;
     void (*occluded)(const void* context, std::span<const Ray> rays,
                      std::span<uint8_t> occluded_out) noexcept = nullptr;
 };
@@ -24,7 +25,8 @@ struct TraceFunctions {
 /// render() with `trace` answering every ray query. `tree` still supplies the triangles
 /// (tree.tris) for shading and the bounds for the default camera and ray offsets; its nodes are
 /// not used unless `trace` uses them.
-[[nodiscard]] Image render_with(const KdTree& tree, const RenderSettings& settings, const TraceFunctions& trace,
-                                const RenderControl& control = {}, RenderStats* stats = nullptr);
+[[nodiscard]] Image render_with(const KdTree& tree, const RenderSettings& settings,
+                                const TraceFunctions& trace, const RenderControl& control = {},
+                                RenderStats* stats = nullptr);
 
 }  // namespace kdrt::detail

@@ -11,7 +11,9 @@ namespace kdrt::detail {
 
 inline Vec3 normalized(Vec3 v) noexcept { return v * (1.0f / std::sqrt(dot(v, v))); }
 
-inline bool is_finite(Vec3 v) noexcept { return std::isfinite(v.x) && std::isfinite(v.y) && std::isfinite(v.z); }
+inline bool is_finite(Vec3 v) noexcept {
+    return std::isfinite(v.x) && std::isfinite(v.y) && std::isfinite(v.z);
+}
 
 /// Cosine-weighted direction around the unit vector `n` (Malley's method: a uniform point in the
 /// unit disk lifted to the hemisphere). `Rng` gives symmetric() uniform in [-1, 1).

@@ -89,8 +89,9 @@ public:
 private:
     void need(size_t size, const char* what) const {
         if (remaining() < size) {
-            throw TreeFormatError(std::string("tree blob truncated in ") + what + " at byte " + std::to_string(at_) +
-                                  " (need " + std::to_string(size) + " bytes, have " + std::to_string(remaining()) + ")");
+            throw TreeFormatError(std::string("tree blob truncated in ") + what + " at byte " +
+                                  std::to_string(at_) + " (need " + std::to_string(size) +
+                                  " bytes, have " + std::to_string(remaining()) + ")");
         }
     }
     std::span<const std::byte> data_;
@@ -106,27 +107,32 @@ void validate_structure(const KdTree& tree) {
         if (node.is_leaf()) {
             const uint64_t end = uint64_t{node.first_ref()} + node.prim_count();
             if (end > tree.leaf_refs.size()) {
-                throw TreeFormatError("node " + std::to_string(i) + ": leaf references " + std::to_string(end) +
-                                      " exceed the " + std::to_string(tree.leaf_refs.size()) + " stored references");
+                throw TreeFormatError("node " + std::to_string(i) + ": leaf references " +
+                                      std::to_string(end) + " exceed the " +
+                                      std::to_string(tree.leaf_refs.size()) + " stored references");
             }
             continue;
         }
         const uint64_t child = node.first_child();
         // Children always follow their parent in the depth-first layout: no cycles possible.
         if (child <= i || child + 1 >= n) {
-            throw TreeFormatError("node " + std::to_string(i) + ": child index " + std::to_string(child) +
-                                  " out of range");
+            throw TreeFormatError("node " + std::to_string(i) + ": child index " +
+                                  std::to_string(child) + " out of range");
         }
-        if (!std::isfinite(node.split())) throw TreeFormatError("node " + std::to_string(i) + ": split is not finite");
+        if (!std::isfinite(node.split()))
+            throw TreeFormatError("node " + std::to_string(i) + ": split is not finite");
         const uint8_t d = static_cast<uint8_t>(depth[i] + 1);
-        if (d > kMaxDepth) throw TreeFormatError("tree blob is deeper than " + std::to_string(kMaxDepth) + " levels");
+        if (d > kMaxDepth)
+            throw TreeFormatError("tree blob is deeper than " + std::to_string(kMaxDepth) +
+                                  " levels");
         depth[child] = std::max(depth[child], d);
         depth[child + 1] = std::max(depth[child + 1], d);
     }
     for (size_t i = 0; i < tree.leaf_refs.size(); ++i) {
         if (tree.leaf_refs[i] >= tree.tris.size()) {
             throw TreeFormatError("reference " + std::to_string(i) + " names triangle " +
-                                  std::to_string(tree.leaf_refs[i]) + " of " + std::to_string(tree.tris.size()));
+                                  std::to_string(tree.leaf_refs[i]) + " of " +
+                                  std::to_string(tree.tris.size()));
         }
     }
 }
@@ -135,8 +141,8 @@ void validate_structure(const KdTree& tree) {
 
 std::vector<std::byte> serialize_tree(const KdTree& tree) {
     Writer w;
-    w.bytes().reserve(kPrefixBytes + kFixedBytes + tree.nodes.size() * 8 + tree.leaf_refs.size() * 4 +
-                      tree.tris.size() * sizeof(TriVerts) + 8);
+    w.bytes().reserve(kPrefixBytes + kFixedBytes + tree.nodes.size() * 8 +
+                      tree.leaf_refs.size() * 4 + tree.tris.size() * sizeof(TriVerts) + 8);
     w.put_bytes(kMagic, sizeof kMagic);
     w.put(kTreeFormatVersion);
     w.put(kFixedBytes);
@@ -180,25 +186,31 @@ KdTree deserialize_tree(std::span<const std::byte> blob) {
     Reader r(blob);
     char magic[8];
     r.get_bytes(magic, sizeof magic, "magic");
-    if (std::memcmp(magic, kMagic, sizeof kMagic) != 0) throw TreeFormatError("not a kdrt tree blob (bad magic)");
+    if (std::memcmp(magic, kMagic, sizeof kMagic) != 0)
+        throw TreeFormatError("not a kdrt tree blob (bad magic)");
     const auto version = r.get<uint32_t>("version");
     if (version != kTreeFormatVersion) {
-        throw TreeFormatError("tree blob format version " + std::to_string(version) + " is not supported (this build reads version " +
+        throw TreeFormatError("tree blob format version " + std::to_string(version) +
+                              " is not supported (this build reads version " +
                               std::to_string(kTreeFormatVersion) + ")");
     }
     const auto fixed = r.get<uint32_t>("header size");
     if (fixed != kFixedBytes) {
-        throw TreeFormatError("tree blob header size " + std::to_string(fixed) + ", expected " + std::to_string(kFixedBytes));
+        throw TreeFormatError("tree blob header size " + std::to_string(fixed) + ", expected " +
+                              std::to_string(kFixedBytes));
     }
-    if (blob.size() < kPrefixBytes + kFixedBytes + 8) throw TreeFormatError("tree blob truncated: " + std::to_string(blob.size()) + " bytes");
+    if (blob.size() < kPrefixBytes + kFixedBytes + 8)
+        throw TreeFormatError("tree blob truncated: " + std::to_string(blob.size()) + " bytes");
     uint64_t stored_sum;
     std::memcpy(&stored_sum, blob.data() + blob.size() - 8, 8);
-    if (checksum(blob.data(), blob.size() - 8) != stored_sum) throw TreeFormatError("tree blob checksum mismatch (corrupted data)");
+    if (checksum(blob.data(), blob.size() - 8) != stored_sum)
+        throw TreeFormatError("tree blob checksum mismatch (corrupted data)");
 
     KdTree tree;
     BuildOptions& o = tree.options;
     const auto builder = r.get<uint32_t>("options");
-    if (builder > static_cast<uint32_t>(Builder::kMiddle)) throw TreeFormatError("tree blob names unknown builder " + std::to_string(builder));
+    if (builder > static_cast<uint32_t>(Builder::kMiddle))
+        throw TreeFormatError("tree blob names unknown builder " + std::to_string(builder));
     o.builder = static_cast<Builder>(builder);
     o.traversal_cost = r.get<float>("options");
     o.intersection_cost = r.get<float>("options");
@@ -226,12 +238,16 @@ KdTree deserialize_tree(std::span<const std::byte> blob) {
     const auto tri_count = r.get<uint64_t>("counts");
     const uint64_t payload = r.remaining() - 8;
     // Each count is bounded by the bytes present before anything is allocated.
-    if (node_count > payload / 8 || ref_count > payload / 4 || tri_count > payload / sizeof(TriVerts) ||
+    if (node_count > payload / 8 || ref_count > payload / 4 ||
+        tri_count > payload / sizeof(TriVerts) ||
         node_count * 8 + ref_count * 4 + tri_count * sizeof(TriVerts) != payload) {
-        throw TreeFormatError("tree blob sizes disagree: " + std::to_string(node_count) + " nodes, " + std::to_string(ref_count) +
-                              " refs, " + std::to_string(tri_count) + " triangles in " + std::to_string(payload) + " bytes");
+        throw TreeFormatError("tree blob sizes disagree: " + std::to_string(node_count) +
+                              " nodes, " + std::to_string(ref_count) + " refs, " +
+                              std::to_string(tri_count) + " triangles in " +
+                              std::to_string(payload) + " bytes");
     }
-    if (tri_count > kMaxTriangles || node_count > KdNode::kMaxField) throw TreeFormatError("tree blob counts exceed the format's limits");
+    if (tri_count > kMaxTriangles || node_count > KdNode::kMaxField)
+        throw TreeFormatError("tree blob counts exceed the format's limits");
     tree.nodes.resize(node_count);
     for (auto& node : tree.nodes) {
         const auto w0 = r.get<uint32_t>("nodes");

@@ -7,7 +7,8 @@ namespace kdrt {
 namespace {
 
 double half_area(const Aabb& b) noexcept {
-    const double x = double{b.hi.x} - b.lo.x, y = double{b.hi.y} - b.lo.y, z = double{b.hi.z} - b.lo.z;
+    const double x = double{b.hi.x} - b.lo.x, y = double{b.hi.y} - b.lo.y,
+                 z = double{b.hi.z} - b.lo.z;
     return x * y + y * z + z * x;
 }
 
@@ -20,7 +21,8 @@ TreeStats compute_stats(const KdTree& tree) {
     s.refs = tree.leaf_refs.size();
     s.bytes = tree.nodes.size() * sizeof(KdNode) + tree.leaf_refs.size() * sizeof(uint32_t) +
               tree.tris.size() * sizeof(TriVerts);
-    s.bytes_per_triangle = s.triangles ? static_cast<double>(s.bytes) / static_cast<double>(s.triangles) : 0.0;
+    s.bytes_per_triangle =
+        s.triangles ? static_cast<double>(s.bytes) / static_cast<double>(s.triangles) : 0.0;
     if (tree.nodes.empty()) return s;
 
     struct Item {
@@ -58,7 +60,8 @@ TreeStats compute_stats(const KdTree& tree) {
         stack.push_back({node.first_child(), item.depth + 1, left});
     }
     s.mean_leaf_depth = s.leaves ? depth_sum / static_cast<double>(s.leaves) : 0.0;
-    s.mean_tris_per_leaf = nonempty ? static_cast<double>(nonempty_refs) / static_cast<double>(nonempty) : 0.0;
+    s.mean_tris_per_leaf =
+        nonempty ? static_cast<double>(nonempty_refs) / static_cast<double>(nonempty) : 0.0;
     s.sah_cost = cost;
     return s;
 }

@@ -152,11 +152,13 @@ bool brute_force_occluded(std::span<const TriVerts> tris, const Ray& ray) noexce
 void intersect_single(const KdTree& tree, std::span<const Ray> rays, std::span<Hit> hits) noexcept {
     tbb::parallel_for(tbb::blocked_range<size_t>(0, rays.size(), kSingleGrain),
                       [&](const tbb::blocked_range<size_t>& range) {
-                          for (size_t i = range.begin(); i != range.end(); ++i) hits[i] = intersect(tree, rays[i]);
+                          for (size_t i = range.begin(); i != range.end(); ++i)
+                              hits[i] = intersect(tree, rays[i]);
                       });
 }
 
-void occluded_single(const KdTree& tree, std::span<const Ray> rays, std::span<uint8_t> occluded_out) noexcept {
+void occluded_single(const KdTree& tree, std::span<const Ray> rays,
+                     std::span<uint8_t> occluded_out) noexcept {
     tbb::parallel_for(tbb::blocked_range<size_t>(0, rays.size(), kSingleGrain),
                       [&](const tbb::blocked_range<size_t>& range) {
                           for (size_t i = range.begin(); i != range.end(); ++i)

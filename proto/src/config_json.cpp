@@ -22,7 +22,8 @@ Result<std::vector<ConfigEntry>, std::string> parse_config_object(std::string_vi
         if (value.is_boolean()) {
             entry.value = value.get<bool>();
         } else if (value.is_number_integer()) {
-            if (value.is_number_unsigned() && value.get<uint64_t>() > static_cast<uint64_t>(INT64_MAX))
+            if (value.is_number_unsigned() &&
+                value.get<uint64_t>() > static_cast<uint64_t>(INT64_MAX))
                 return Err{"\"" + key + "\": integer too large"};
             entry.value = value.get<int64_t>();
         } else if (value.is_number_float()) {
@@ -32,12 +33,14 @@ Result<std::vector<ConfigEntry>, std::string> parse_config_object(std::string_vi
         } else if (value.is_array()) {
             std::vector<std::string> list;
             for (const auto& element : value) {
-                if (!element.is_string()) return Err{"\"" + key + "\": every element must be a string"};
+                if (!element.is_string())
+                    return Err{"\"" + key + "\": every element must be a string"};
                 list.push_back(element.get<std::string>());
             }
             entry.value = std::move(list);
         } else {
-            return Err{"\"" + key + "\": expected a boolean, number, string or array of strings, got " +
+            return Err{"\"" + key +
+                       "\": expected a boolean, number, string or array of strings, got " +
                        std::string(value.type_name())};
         }
         out.push_back(std::move(entry));

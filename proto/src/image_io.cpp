@@ -37,7 +37,8 @@ std::array<double, 255> make_thresholds() {
 
 std::array<float, 256> make_levels() {
     std::array<float, 256> levels{};
-    for (int k = 0; k <= 255; ++k) levels[static_cast<size_t>(k)] = static_cast<float>(srgb_eotf(k / 255.0));
+    for (int k = 0; k <= 255; ++k)
+        levels[static_cast<size_t>(k)] = static_cast<float>(srgb_eotf(k / 255.0));
     return levels;
 }
 
@@ -56,7 +57,8 @@ const std::vector<uint8_t>& bucket_levels() {
         std::vector<uint8_t> out(kBuckets);
         const auto& t = thresholds();
         for (size_t b = 0; b < kBuckets; ++b) {
-            const double lowest = static_cast<double>(std::bit_cast<float>(static_cast<uint32_t>(b << kBucketShift)));
+            const double lowest =
+                static_cast<double>(std::bit_cast<float>(static_cast<uint32_t>(b << kBucketShift)));
             out[b] = static_cast<uint8_t>(std::upper_bound(t.begin(), t.end(), lowest) - t.begin());
         }
         return out;
@@ -114,25 +116,29 @@ std::string_view oiio_extension(ImageFormat format) noexcept {
 }
 
 bool is_known_format(ImageFormat format) noexcept {
-    return format == ImageFormat::kPng || format == ImageFormat::kJpeg || format == ImageFormat::kExr;
+    return format == ImageFormat::kPng || format == ImageFormat::kJpeg ||
+           format == ImageFormat::kExr;
 }
 
 std::string check_image(const Image& image) {
     if (image.channels != 3 && image.channels != 4) {
-        return "image has " + std::to_string(image.channels) + " channels; only 3 (RGB) or 4 (RGBA) can be encoded";
+        return "image has " + std::to_string(image.channels) +
+               " channels; only 3 (RGB) or 4 (RGBA) can be encoded";
     }
     if (image.width == 0 || image.height == 0) {
-        return "image is empty (" + std::to_string(image.width) + " x " + std::to_string(image.height) + " pixels)";
+        return "image is empty (" + std::to_string(image.width) + " x " +
+               std::to_string(image.height) + " pixels)";
     }
     if (image.width > static_cast<uint32_t>(std::numeric_limits<int>::max()) ||
         image.height > static_cast<uint32_t>(std::numeric_limits<int>::max())) {
-        return "image is too large (" + std::to_string(image.width) + " x " + std::to_string(image.height) + ")";
+        return "image is too large (" + std::to_string(image.width) + " x " +
+               std::to_string(image.height) + ")";
     }
     const uint64_t expected = uint64_t{image.width} * image.height * image.channels;
     if (image.pixels.size() != expected) {
-        return "image has " + std::to_string(image.pixels.size()) + " floats, expected " + std::to_string(expected) +
-               " (" + std::to_string(image.width) + " x " + std::to_string(image.height) + " x " +
-               std::to_string(image.channels) + ")";
+        return "image has " + std::to_string(image.pixels.size()) + " floats, expected " +
+               std::to_string(expected) + " (" + std::to_string(image.width) + " x " +
+               std::to_string(image.height) + " x " + std::to_string(image.channels) + ")";
     }
     return {};
 }
@@ -180,8 +186,10 @@ std::optional<ImageFormat> sniff_format(std::span<const std::byte> bytes) noexce
 }
 
 uint32_t read_be32(std::span<const std::byte> bytes, size_t at) noexcept {
-    return (std::to_integer<uint32_t>(bytes[at]) << 24) | (std::to_integer<uint32_t>(bytes[at + 1]) << 16) |
-           (std::to_integer<uint32_t>(bytes[at + 2]) << 8) | std::to_integer<uint32_t>(bytes[at + 3]);
+    return (std::to_integer<uint32_t>(bytes[at]) << 24) |
+           (std::to_integer<uint32_t>(bytes[at + 1]) << 16) |
+           (std::to_integer<uint32_t>(bytes[at + 2]) << 8) |
+           std::to_integer<uint32_t>(bytes[at + 3]);
 }
 
 /// Walks the PNG chunk list (length, type, data, CRC) up to IEND; empty when every chunk lies
@@ -193,13 +201,15 @@ std::string png_structure_problem(std::span<const std::byte> bytes) {
     while (true) {
         if (bytes.size() - at < 12) {
             return std::string(image_errors::kTruncatedPng) + ": byte " + std::to_string(at) +
-                   " should start a chunk, but the file has " + std::to_string(bytes.size()) + " bytes";
+                   " should start a chunk, but the file has " + std::to_string(bytes.size()) +
+                   " bytes";
         }
         const uint64_t length = read_be32(bytes, at);
         const bool is_end = read_be32(bytes, at + 4) == 0x49454E44u;  // "IEND"
         if (length > bytes.size() - at - 12) {
-            return std::string(image_errors::kTruncatedPng) + ": the chunk at byte " + std::to_string(at) + " needs " +
-                   std::to_string(length + 12) + " bytes, the file has " + std::to_string(bytes.size() - at) + " left";
+            return std::string(image_errors::kTruncatedPng) + ": the chunk at byte " +
+                   std::to_string(at) + " needs " + std::to_string(length + 12) +
+                   " bytes, the file has " + std::to_string(bytes.size() - at) + " left";
         }
         at += 12 + length;
         if (is_end) return {};
@@ -270,8 +280,10 @@ Result<std::vector<std::byte>, std::string> encode_image(const Image& image, Ima
     if (format == ImageFormat::kJpeg && (options.jpeg_quality < 1 || options.jpeg_quality > 100)) {
         return Err{"jpeg_quality " + std::to_string(options.jpeg_quality) + " must be in 1 .. 100"};
     }
-    if (format == ImageFormat::kPng && (options.png_compression < 0 || options.png_compression > 9)) {
-        return Err{"png_compression " + std::to_string(options.png_compression) + " must be in 0 .. 9"};
+    if (format == ImageFormat::kPng &&
+        (options.png_compression < 0 || options.png_compression > 9)) {
+        return Err{"png_compression " + std::to_string(options.png_compression) +
+                   " must be in 0 .. 9"};
     }
     if (format == ImageFormat::kExr && options.exr_pixel_type != ExrPixelType::kHalf &&
         options.exr_pixel_type != ExrPixelType::kFloat) {
@@ -287,8 +299,9 @@ Result<std::vector<std::byte>, std::string> encode_image(const Image& image, Ima
     OIIO::TypeDesc data_type;
     const void* data = nullptr;
     if (format == ImageFormat::kExr) {
-        const OIIO::TypeDesc file_type =
-            options.exr_pixel_type == ExrPixelType::kHalf ? OIIO::TypeDesc::HALF : OIIO::TypeDesc::FLOAT;
+        const OIIO::TypeDesc file_type = options.exr_pixel_type == ExrPixelType::kHalf
+                                             ? OIIO::TypeDesc::HALF
+                                             : OIIO::TypeDesc::FLOAT;
         spec = OIIO::ImageSpec(width, height, static_cast<int>(channels), file_type);
         spec.attribute("compression", "zip");
         spec.attribute("oiio:ColorSpace", "Linear");
@@ -320,17 +333,22 @@ Result<std::vector<std::byte>, std::string> encode_image(const Image& image, Ima
     OIIO::Filesystem::IOVecOutput proxy(encoded);
     const std::string name = std::string("image.") + std::string(oiio_extension(format));
     auto out = OIIO::ImageOutput::create(name, &proxy);
-    if (!out) return Err{"cannot create an OpenImageIO " + name + " writer: " + oiio_global_error("no plugin")};
+    if (!out)
+        return Err{"cannot create an OpenImageIO " + name +
+                   " writer: " + oiio_global_error("no plugin")};
     if (!out->supports("ioproxy")) {
-        return Err{"the OpenImageIO " + std::string(out->format_name()) + " writer cannot write to memory"};
+        return Err{"the OpenImageIO " + std::string(out->format_name()) +
+                   " writer cannot write to memory"};
     }
-    if (!out->open(name, spec)) return Err{"cannot start " + name + ": " + object_error(*out, "open failed")};
+    if (!out->open(name, spec))
+        return Err{"cannot start " + name + ": " + object_error(*out, "open failed")};
     if (!out->write_image(data_type, data)) {
         std::string message = "cannot encode " + name + ": " + object_error(*out, "write failed");
         out->close();
         return Err{std::move(message)};
     }
-    if (!out->close()) return Err{"cannot finish " + name + ": " + object_error(*out, "close failed")};
+    if (!out->close())
+        return Err{"cannot finish " + name + ": " + object_error(*out, "close failed")};
 
     std::vector<std::byte> bytes(encoded.size());
     if (!encoded.empty()) std::memcpy(bytes.data(), encoded.data(), encoded.size());
@@ -338,7 +356,8 @@ Result<std::vector<std::byte>, std::string> encode_image(const Image& image, Ima
 }
 
 Result<void, std::string> write_image_file(const std::filesystem::path& path, const Image& image,
-                                           std::optional<ImageFormat> format, const ImageEncodeOptions& options) {
+                                           std::optional<ImageFormat> format,
+                                           const ImageEncodeOptions& options) {
     if (!format) format = image_format_from_path(path);
     if (!format) {
         return Err{std::string(image_errors::kUnknownExtension) + " of \"" + path.string() +
@@ -349,11 +368,13 @@ Result<void, std::string> write_image_file(const std::filesystem::path& path, co
     return write_file_bytes(path, *bytes);
 }
 
-Result<Image, std::string> decode_image(std::span<const std::byte> bytes, const ImageDecodeLimits& limits) {
+Result<Image, std::string> decode_image(std::span<const std::byte> bytes,
+                                        const ImageDecodeLimits& limits) {
     const std::optional<ImageFormat> format = sniff_format(bytes);
     if (!format) return Err{std::string(image_errors::kUnknownMagic) + " (unknown magic bytes)"};
     if (*format == ImageFormat::kPng) {
-        if (std::string problem = png_structure_problem(bytes); !problem.empty()) return Err{std::move(problem)};
+        if (std::string problem = png_structure_problem(bytes); !problem.empty())
+            return Err{std::move(problem)};
     }
     configure_oiio_once();
 
@@ -366,9 +387,12 @@ Result<Image, std::string> decode_image(std::span<const std::byte> bytes, const 
     OIIO::Filesystem::IOProxy* proxy_pointer = &proxy;
     config.attribute("oiio:ioproxy", OIIO::TypeDesc::PTR, &proxy_pointer);
     auto in = OIIO::ImageInput::create(name, false, &config, &proxy);
-    if (!in) return Err{"cannot create an OpenImageIO " + name + " reader: " + oiio_global_error("no plugin")};
+    if (!in)
+        return Err{"cannot create an OpenImageIO " + name +
+                   " reader: " + oiio_global_error("no plugin")};
     if (!in->supports("ioproxy")) {
-        return Err{"the OpenImageIO " + std::string(in->format_name()) + " reader cannot read from memory"};
+        return Err{"the OpenImageIO " + std::string(in->format_name()) +
+                   " reader cannot read from memory"};
     }
     OIIO::ImageSpec spec;
     if (!in->open(name, spec, config)) {
@@ -381,11 +405,13 @@ Result<Image, std::string> decode_image(std::span<const std::byte> bytes, const 
     }
     const uint64_t pixels = uint64_t(spec.width) * uint64_t(spec.height);
     if (pixels > limits.max_pixels) {
-        return Err{"image has " + std::to_string(pixels) + " pixels, which " + std::string(errors::kLimitExceeded) +
-                   " of " + std::to_string(limits.max_pixels)};
+        return Err{"image has " + std::to_string(pixels) + " pixels, which " +
+                   std::string(errors::kLimitExceeded) + " of " +
+                   std::to_string(limits.max_pixels)};
     }
     if (spec.nchannels < 1 || spec.nchannels > 4) {
-        return Err{"image has " + std::to_string(spec.nchannels) + " channels; at most 4 are supported"};
+        return Err{"image has " + std::to_string(spec.nchannels) +
+                   " channels; at most 4 are supported"};
     }
 
     Image image;
@@ -394,7 +420,8 @@ Result<Image, std::string> decode_image(std::span<const std::byte> bytes, const 
     image.channels = static_cast<uint32_t>(spec.nchannels);
     const size_t values = static_cast<size_t>(pixels) * image.channels;
     image.pixels.resize(values);
-    const int alpha = spec.alpha_channel >= 0 && spec.alpha_channel < spec.nchannels ? spec.alpha_channel : -1;
+    const int alpha =
+        spec.alpha_channel >= 0 && spec.alpha_channel < spec.nchannels ? spec.alpha_channel : -1;
     if (*format == ImageFormat::kExr) {
         // Linear, stored premultiplied: take the values as they are.
         if (!in->read_image(0, 0, 0, spec.nchannels, OIIO::TypeDesc::FLOAT, image.pixels.data())) {
@@ -412,7 +439,8 @@ Result<Image, std::string> decode_image(std::span<const std::byte> bytes, const 
             return Err{"cannot decode " + std::string(image_format_name(*format)) +
                        " image: " + object_error(*in, "read failed")};
         }
-    } else if (!in->read_image(0, 0, 0, spec.nchannels, OIIO::TypeDesc::FLOAT, image.pixels.data())) {
+    } else if (!in->read_image(0, 0, 0, spec.nchannels, OIIO::TypeDesc::FLOAT,
+                               image.pixels.data())) {
         return Err{"cannot decode " + std::string(image_format_name(*format)) +
                    " image: " + object_error(*in, "read failed")};
     }
@@ -424,7 +452,8 @@ Result<Image, std::string> decode_image(std::span<const std::byte> bytes, const 
                 const unsigned char level = levels8[p * image.channels + c];
                 px[c] = is_alpha ? static_cast<float>(level) / 255.0f : srgb8_to_linear(level);
             } else if (!is_alpha) {
-                px[c] = static_cast<float>(srgb_eotf(std::clamp(static_cast<double>(px[c]), 0.0, 1.0)));
+                px[c] =
+                    static_cast<float>(srgb_eotf(std::clamp(static_cast<double>(px[c]), 0.0, 1.0)));
             }
         }
         if (alpha >= 0) {
@@ -436,7 +465,8 @@ Result<Image, std::string> decode_image(std::span<const std::byte> bytes, const 
     return image;
 }
 
-Result<Image, std::string> read_image_file(const std::filesystem::path& path, const ImageDecodeLimits& limits) {
+Result<Image, std::string> read_image_file(const std::filesystem::path& path,
+                                           const ImageDecodeLimits& limits) {
     auto bytes = read_file_bytes(path);
     if (!bytes) return Err{std::move(bytes).error()};
     auto image = decode_image(*bytes, limits);

@@ -72,7 +72,8 @@ public:
     void get(const char* key, uint32_t& out) {
         uint64_t wide = 0;
         get(key, wide);
-        if (wide > std::numeric_limits<uint32_t>::max()) fail(std::string("\"") + key + "\" is too large");
+        if (wide > std::numeric_limits<uint32_t>::max())
+            fail(std::string("\"") + key + "\" is too large");
         out = static_cast<uint32_t>(wide);
     }
     void get(const char* key, double& out) {
@@ -164,19 +165,22 @@ Result<MeshSummary, std::string> summary_from_json(const json& doc, const std::s
     return s;
 }
 
-json parse_or_discard(std::string_view text) { return json::parse(text, nullptr, /*allow_exceptions=*/false); }
+json parse_or_discard(std::string_view text) {
+    return json::parse(text, nullptr, /*allow_exceptions=*/false);
+}
 
 }  // namespace
 
 bool operator==(const MeshSummary& a, const MeshSummary& b) noexcept {
     const TreeStats& s = a.tree;
     const TreeStats& t = b.tree;
-    return a.id == b.id && a.triangles == b.triangles && a.vertices == b.vertices && a.bounds == b.bounds &&
-           a.in_memory == b.in_memory && s.triangles == t.triangles && s.nodes == t.nodes && s.leaves == t.leaves &&
-           s.empty_leaves == t.empty_leaves && s.refs == t.refs && s.max_depth == t.max_depth &&
+    return a.id == b.id && a.triangles == b.triangles && a.vertices == b.vertices &&
+           a.bounds == b.bounds && a.in_memory == b.in_memory && s.triangles == t.triangles &&
+           s.nodes == t.nodes && s.leaves == t.leaves && s.empty_leaves == t.empty_leaves &&
+           s.refs == t.refs && s.max_depth == t.max_depth &&
            s.mean_leaf_depth == t.mean_leaf_depth && s.mean_tris_per_leaf == t.mean_tris_per_leaf &&
-           s.sah_cost == t.sah_cost && s.bytes == t.bytes && s.bytes_per_triangle == t.bytes_per_triangle &&
-           s.build_ms == t.build_ms;
+           s.sah_cost == t.sah_cost && s.bytes == t.bytes &&
+           s.bytes_per_triangle == t.bytes_per_triangle && s.build_ms == t.build_ms;
 }
 
 std::string media_type_essence(std::string_view content_type) {
@@ -188,7 +192,8 @@ std::optional<MeshFormat> mesh_format_from_media_type(std::string_view content_t
     const std::string type = media_type_essence(content_type);
     if (type == "model/obj") return MeshFormat::kObj;
     if (type == "model/stl" || type == "application/sla") return MeshFormat::kStl;
-    if (type == "application/ply" || type == "model/ply" || type == "application/x-ply") return MeshFormat::kPly;
+    if (type == "application/ply" || type == "model/ply" || type == "application/x-ply")
+        return MeshFormat::kPly;
     if (type == "application/x-off" || type == "model/off") return MeshFormat::kOff;
     if (type == kRawMeshMediaType) return MeshFormat::kRaw;
     return std::nullopt;
@@ -274,7 +279,8 @@ Result<std::vector<Hit>, std::string> decode_json_hits(std::string_view text) {
     const json doc = parse_or_discard(text);
     if (doc.is_discarded()) return Err{std::string("hits are not valid JSON")};
     const auto it = doc.is_object() ? doc.find("hits") : doc.end();
-    if (!doc.is_object() || it == doc.end() || !it->is_array()) return Err{std::string("no \"hits\" array")};
+    if (!doc.is_object() || it == doc.end() || !it->is_array())
+        return Err{std::string("no \"hits\" array")};
     std::vector<Hit> hits(it->size());
     for (size_t i = 0; i < hits.size(); ++i) {
         const json& h = (*it)[i];
@@ -288,8 +294,8 @@ Result<std::vector<Hit>, std::string> decode_json_hits(std::string_view text) {
             return true;
         };
         const auto prim = h.find("prim");
-        if (!num("t", hits[i].t) || !num("u", hits[i].u) || !num("v", hits[i].v) || prim == h.end() ||
-            !prim->is_number_unsigned() || prim->get<uint64_t>() >= kNoHit)
+        if (!num("t", hits[i].t) || !num("u", hits[i].u) || !num("v", hits[i].v) ||
+            prim == h.end() || !prim->is_number_unsigned() || prim->get<uint64_t>() >= kNoHit)
             return Err{where + " needs numbers t, u, v and an integer prim"};
         hits[i].prim = prim->get<uint32_t>();
     }
@@ -312,10 +318,12 @@ Result<std::vector<uint8_t>, std::string> decode_json_occlusion(std::string_view
     const json doc = parse_or_discard(text);
     if (doc.is_discarded()) return Err{std::string("occlusion answer is not valid JSON")};
     const auto it = doc.is_object() ? doc.find("occluded") : doc.end();
-    if (!doc.is_object() || it == doc.end() || !it->is_array()) return Err{std::string("no \"occluded\" array")};
+    if (!doc.is_object() || it == doc.end() || !it->is_array())
+        return Err{std::string("no \"occluded\" array")};
     std::vector<uint8_t> out(it->size());
     for (size_t i = 0; i < out.size(); ++i) {
-        if (!(*it)[i].is_boolean()) return Err{"occluded[" + std::to_string(i) + "] is not a boolean"};
+        if (!(*it)[i].is_boolean())
+            return Err{"occluded[" + std::to_string(i) + "] is not a boolean"};
         out[i] = (*it)[i].get<bool>() ? 1 : 0;
     }
     return out;

@@ -55,13 +55,15 @@ public:
             return true;
         }
         if (name == "occlusion") {
-            if (seen_occlusion_) return fail(JsonError::Code::kSchema, "duplicate member \"occlusion\"");
+            if (seen_occlusion_)
+                return fail(JsonError::Code::kSchema, "duplicate member \"occlusion\"");
             seen_occlusion_ = true;
             state_ = State::kOcclusionValue;
             return true;
         }
-        return fail(JsonError::Code::kSchema,
-                    "unknown member \"" + name + "\" (expected \"rays\" and optionally \"occlusion\")");
+        return fail(
+            JsonError::Code::kSchema,
+            "unknown member \"" + name + "\" (expected \"rays\" and optionally \"occlusion\")");
     }
     bool end_object() {
         state_ = State::kDone;
@@ -75,10 +77,11 @@ public:
         }
         if (state_ == State::kRays) {
             if (rays_.size() >= max_rays_)
-                return fail(JsonError::Code::kTooMany, "rays[" + std::to_string(rays_.size()) +
-                                                           "]: " + std::string(api_errors::kTooManyJsonRays) +
-                                                           " the limit of " + std::to_string(max_rays_) +
-                                                           "; send larger batches as application/x-kdrt-rays");
+                return fail(JsonError::Code::kTooMany,
+                            "rays[" + std::to_string(rays_.size()) +
+                                "]: " + std::string(api_errors::kTooManyJsonRays) +
+                                " the limit of " + std::to_string(max_rays_) +
+                                "; send larger batches as application/x-kdrt-rays");
             state_ = State::kRay;
             field_count_ = 0;
             return true;
@@ -88,9 +91,10 @@ public:
     bool end_array() {
         if (state_ == State::kRay) {
             if (field_count_ != 6 && field_count_ != 8)
-                return fail(JsonError::Code::kSchema,
-                            where() + ": expected 6 or 8 numbers, got " + std::to_string(field_count_));
-            Ray ray{fields_[0], fields_[1], fields_[2], 0.0f, fields_[3], fields_[4], fields_[5], kInf};
+                return fail(JsonError::Code::kSchema, where() + ": expected 6 or 8 numbers, got " +
+                                                          std::to_string(field_count_));
+            Ray ray{fields_[0], fields_[1], fields_[2], 0.0f,
+                    fields_[3], fields_[4], fields_[5], kInf};
             if (field_count_ == 8) {
                 ray.tmin = fields_[6];
                 ray.tmax = fields_[7];
@@ -102,14 +106,15 @@ public:
         state_ = State::kTopMembers;  // end of "rays"
         return true;
     }
-    bool parse_error(std::size_t position, const std::string&, const nlohmann::detail::exception& ex) {
+    bool parse_error(std::size_t position, const std::string&,
+                     const nlohmann::detail::exception& ex) {
         // nlohmann's message starts with "[json.exception.parse_error.101] parse error at line
         // 1, column 7: ..."; keep the part after the exception id.
         std::string what = ex.what();
         const size_t bracket = what.find("] ");
         if (bracket != std::string::npos) what.erase(0, bracket + 2);
-        return fail(JsonError::Code::kSyntax,
-                    std::string(api_errors::kBadJson) + " at byte " + std::to_string(position) + ": " + what);
+        return fail(JsonError::Code::kSyntax, std::string(api_errors::kBadJson) + " at byte " +
+                                                  std::to_string(position) + ": " + what);
     }
 
     [[nodiscard]] bool failed() const noexcept { return error_.has_value(); }
@@ -122,7 +127,8 @@ private:
     bool number(const std::string& text) {
         if (state_ != State::kRay) return unexpected("a number");
         if (field_count_ >= 8)
-            return fail(JsonError::Code::kSchema, where() + ": expected 6 or 8 numbers, got more than 8");
+            return fail(JsonError::Code::kSchema,
+                        where() + ": expected 6 or 8 numbers, got more than 8");
         float value = 0.0f;
         const char* first = text.data();
         const char* last = text.data() + text.size();
@@ -136,8 +142,9 @@ private:
             } else if (field_count_ >= 6) {
                 value = wide > 0 ? kInf : -kInf;
             } else {
-                return fail(JsonError::Code::kSchema, where() + "[" + std::to_string(field_count_) + "] (" +
-                                                          kFieldNames[field_count_] + "): " + text +
+                return fail(JsonError::Code::kSchema, where() + "[" + std::to_string(field_count_) +
+                                                          "] (" + kFieldNames[field_count_] +
+                                                          "): " + text +
                                                           " does not fit a 32-bit float");
             }
         } else if (ec != std::errc() || ptr != last) {
@@ -152,14 +159,17 @@ private:
             case State::kStart:
                 return fail(JsonError::Code::kSchema, "expected a JSON object, got " + what);
             case State::kRaysValue:
-                return fail(JsonError::Code::kSchema, "\"rays\" must be an array of rays, got " + what);
-            case State::kOcclusionValue:
-                return fail(JsonError::Code::kSchema, "\"occlusion\" must be true or false, got " + what);
-            case State::kRays:
-                return fail(JsonError::Code::kSchema, where() + ": expected an array of 6 or 8 numbers, got " + what);
-            case State::kRay:
                 return fail(JsonError::Code::kSchema,
-                            where() + "[" + std::to_string(field_count_) + "]: expected a number, got " + what);
+                            "\"rays\" must be an array of rays, got " + what);
+            case State::kOcclusionValue:
+                return fail(JsonError::Code::kSchema,
+                            "\"occlusion\" must be true or false, got " + what);
+            case State::kRays:
+                return fail(JsonError::Code::kSchema,
+                            where() + ": expected an array of 6 or 8 numbers, got " + what);
+            case State::kRay:
+                return fail(JsonError::Code::kSchema, where() + "[" + std::to_string(field_count_) +
+                                                          "]: expected a number, got " + what);
             default:
                 return fail(JsonError::Code::kSchema, "unexpected " + what);
         }
@@ -187,7 +197,8 @@ private:
 
 Result<JsonRayRequest, JsonError> decode_json_rays(std::string_view text, size_t max_rays) {
     RaySax sax(max_rays);
-    const bool ok = json::sax_parse(text.begin(), text.end(), &sax, json::input_format_t::json, /*strict=*/true);
+    const bool ok = json::sax_parse(text.begin(), text.end(), &sax, json::input_format_t::json,
+                                    /*strict=*/true);
     if (sax.failed()) return Err{sax.take_error()};
     if (!ok) return Err{JsonError{JsonError::Code::kSyntax, std::string(api_errors::kBadJson)}};
     return sax.take_request();

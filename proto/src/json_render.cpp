@@ -53,7 +53,8 @@ public:
 
     /// An integer in [min, max]; `limit_name` names the server setting behind max, if any.
     template <class T>
-    void integer(const char* key, T& out, uint64_t min, uint64_t max, const char* limit_name = nullptr) {
+    void integer(const char* key, T& out, uint64_t min, uint64_t max,
+                 const char* limit_name = nullptr) {
         const json* v = find(key);
         if (!v) return;
         if (!v->is_number_unsigned()) {
@@ -62,8 +63,8 @@ public:
         }
         const uint64_t value = v->get<uint64_t>();
         if (value < min || value > max) {
-            std::string why = in_quotes(prefix_ + key) + " is " + std::to_string(value) + ", must be in " +
-                              std::to_string(min) + " .. " + std::to_string(max);
+            std::string why = in_quotes(prefix_ + key) + " is " + std::to_string(value) +
+                              ", must be in " + std::to_string(min) + " .. " + std::to_string(max);
             if (limit_name) why += std::string(" (") + limit_name + ")";
             fail(why);
             return;
@@ -111,11 +112,14 @@ private:
     std::string error_;
 };
 
-Err<JsonError> schema_error(std::string detail) { return Err{JsonError{JsonError::Code::kSchema, std::move(detail)}}; }
+Err<JsonError> schema_error(std::string detail) {
+    return Err{JsonError{JsonError::Code::kSchema, std::move(detail)}};
+}
 
 }  // namespace
 
-Result<RenderRequest, JsonError> decode_render_request(std::string_view text, const RenderLimits& limits) {
+Result<RenderRequest, JsonError> decode_render_request(std::string_view text,
+                                                       const RenderLimits& limits) {
     json doc;
     try {
         doc = json::parse(text);
@@ -123,12 +127,16 @@ Result<RenderRequest, JsonError> decode_render_request(std::string_view text, co
         std::string what = e.what();
         const size_t bracket = what.find("] ");
         if (bracket != std::string::npos) what.erase(0, bracket + 2);
-        return Err{JsonError{JsonError::Code::kSyntax,
-                             std::string(api_errors::kBadJson) + " at byte " + std::to_string(e.byte) + ": " + what}};
+        return Err{JsonError{JsonError::Code::kSyntax, std::string(api_errors::kBadJson) +
+                                                           " at byte " + std::to_string(e.byte) +
+                                                           ": " + what}};
     }
-    if (!doc.is_object()) return schema_error("expected a JSON object, got " + std::string(doc.type_name()));
+    if (!doc.is_object())
+        return schema_error("expected a JSON object, got " + std::string(doc.type_name()));
     RenderRequest req;
-    ObjectReader r(doc, "", {"mesh", "camera", "width", "height", "spp", "seed", "shading", "format", "compression", "tile"});
+    ObjectReader r(doc, "",
+                   {"mesh", "camera", "width", "height", "spp", "seed", "shading", "format",
+                    "compression", "tile"});
     if (!r.find("mesh")) r.fail("missing member \"mesh\"");
     r.text("mesh", req.mesh);
     r.integer("width", req.settings.width, 1, limits.max_width, "max_image_width");
@@ -140,14 +148,16 @@ Result<RenderRequest, JsonError> decode_render_request(std::string_view text, co
     if (const auto parsed = parse_shading(shading))
         req.settings.shading = *parsed;
     else
-        r.fail("unknown shading " + in_quotes(shading) + " (expected normals, eyelight, ao, diffuse, depth or primid)");
+        r.fail("unknown shading " + in_quotes(shading) +
+               " (expected normals, eyelight, ao, diffuse, depth or primid)");
     r.text("format", req.format);
     if (req.format != "png" && req.format != "jpg" && req.format != "jpeg" && req.format != "exr")
         r.fail("unknown format " + in_quotes(req.format) + " (expected png, jpg or exr)");
     if (r.find("compression")) {
         int level = 0;
         r.integer("compression", level, 0, 9);
-        if (req.format != "png") r.fail("\"compression\" applies to png only, not " + in_quotes(req.format));
+        if (req.format != "png")
+            r.fail("\"compression\" applies to png only, not " + in_quotes(req.format));
         req.compression = level;
     }
     if (!r.error().empty()) return schema_error(r.error());
@@ -155,7 +165,8 @@ Result<RenderRequest, JsonError> decode_render_request(std::string_view text, co
     if (const json* camera = r.find("camera")) {
         if (!camera->is_object()) return schema_error("\"camera\" must be an object");
         CameraSpec spec;
-        ObjectReader c(*camera, "camera.", {"eye", "look_at", "up", "fov", "projection", "ortho_height"});
+        ObjectReader c(*camera, "camera.",
+                       {"eye", "look_at", "up", "fov", "projection", "ortho_height"});
         c.vec3("eye", spec.eye, true);
         c.vec3("look_at", spec.look_at, true);
         c.vec3("up", spec.up, false);
@@ -168,7 +179,8 @@ Result<RenderRequest, JsonError> decode_render_request(std::string_view text, co
         else if (projection == "orthographic")
             spec.projection = Projection::kOrthographic;
         else
-            c.fail("unknown camera.projection " + in_quotes(projection) + " (expected perspective or orthographic)");
+            c.fail("unknown camera.projection " + in_quotes(projection) +
+                   " (expected perspective or orthographic)");
         if (!c.error().empty()) return schema_error(c.error());
         req.settings.camera = spec;
     }
@@ -183,8 +195,9 @@ Result<RenderRequest, JsonError> decode_render_request(std::string_view text, co
         t.integer("w", region.width, 1, req.settings.width - region.x);
         t.integer("h", region.height, 1, req.settings.height - region.y);
         if (!t.error().empty())
-            return schema_error(t.error() + " (the tile must lie inside the " + std::to_string(req.settings.width) +
-                                " x " + std::to_string(req.settings.height) + " frame)");
+            return schema_error(t.error() + " (the tile must lie inside the " +
+                                std::to_string(req.settings.width) + " x " +
+                                std::to_string(req.settings.height) + " frame)");
         req.settings.region = region;
     }
     return req;
@@ -202,7 +215,8 @@ std::string encode_render_request(const RenderRequest& request) {
         w.key("look_at").vec3(c.look_at.x, c.look_at.y, c.look_at.z);
         w.key("up").vec3(c.up.x, c.up.y, c.up.z);
         w.key("fov").number(c.fov_deg);
-        w.key("projection").string(c.projection == Projection::kOrthographic ? "orthographic" : "perspective");
+        w.key("projection")
+            .string(c.projection == Projection::kOrthographic ? "orthographic" : "perspective");
         w.key("ortho_height").number(c.ortho_height);
         w.end_object();
     }
@@ -240,8 +254,8 @@ std::string_view job_state_name(JobState state) noexcept {
 }
 
 std::optional<JobState> parse_job_state(std::string_view name) noexcept {
-    for (const JobState s :
-         {JobState::kQueued, JobState::kRunning, JobState::kDone, JobState::kFailed, JobState::kCancelled})
+    for (const JobState s : {JobState::kQueued, JobState::kRunning, JobState::kDone,
+                             JobState::kFailed, JobState::kCancelled})
         if (job_state_name(s) == name) return s;
     return std::nullopt;
 }
@@ -268,12 +282,14 @@ std::string encode_job_status(const JobStatus& status) {
 
 Result<JobStatus, std::string> decode_job_status(std::string_view text) {
     const json doc = json::parse(text, nullptr, /*allow_exceptions=*/false);
-    if (doc.is_discarded() || !doc.is_object()) return Err{std::string("job status is not a JSON object")};
+    if (doc.is_discarded() || !doc.is_object())
+        return Err{std::string("job status is not a JSON object")};
     JobStatus s;
     try {
         s.id = doc.at("id").get<std::string>();
         const auto state = parse_job_state(doc.at("state").get<std::string>());
-        if (!state) return Err{"unknown job state " + in_quotes(doc.at("state").get<std::string>())};
+        if (!state)
+            return Err{"unknown job state " + in_quotes(doc.at("state").get<std::string>())};
         s.state = *state;
         s.progress = doc.at("progress").get<double>();
         s.mesh = doc.at("mesh").get<std::string>();

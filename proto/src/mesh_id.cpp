@@ -24,7 +24,8 @@ public:
             throw std::runtime_error("OpenSSL: cannot initialise SHA-256");
     }
     void update(const void* data, size_t size) {
-        if (EVP_DigestUpdate(ctx_.get(), data, size) != 1) throw std::runtime_error("OpenSSL: SHA-256 update failed");
+        if (EVP_DigestUpdate(ctx_.get(), data, size) != 1)
+            throw std::runtime_error("OpenSSL: SHA-256 update failed");
     }
     std::string hex_digest() {
         std::array<unsigned char, EVP_MAX_MD_SIZE> digest{};
@@ -58,11 +59,13 @@ void write_triangles(const Mesh& mesh, size_t first, size_t count, std::byte* ou
         for (int c = 0; c < 3; ++c) {
             const uint32_t index = mesh.indices[3 * t + static_cast<size_t>(c)];
             if (index >= vertex_count)
-                throw std::invalid_argument("mesh_id: triangle " + std::to_string(t) + " corner " + std::to_string(c) +
-                                            " has index " + std::to_string(index) + " >= vertex count " +
+                throw std::invalid_argument("mesh_id: triangle " + std::to_string(t) + " corner " +
+                                            std::to_string(c) + " has index " +
+                                            std::to_string(index) + " >= vertex count " +
                                             std::to_string(vertex_count));
             for (int a = 0; a < 3; ++a) {
-                store_le_f32(out, mesh.positions[3 * static_cast<size_t>(index) + static_cast<size_t>(a)]);
+                store_le_f32(
+                    out, mesh.positions[3 * static_cast<size_t>(index) + static_cast<size_t>(a)]);
                 out += 4;
             }
         }

@@ -348,8 +348,7 @@ private:
         }
         if (static_cast<uint64_t>(corners) > limits_.max_polygon_vertices) {
             return "face " + std::to_string(face) + " has " + std::to_string(corners) +
-                   " vertices, more than the " +
-                   std::string(errors::kTooManyCorners) + " " +
+                   " vertices, more than the " + std::string(errors::kTooManyCorners) + " " +
                    std::to_string(limits_.max_polygon_vertices);
         }
         const uint64_t triangles = mesh_.indices.size() / 3 + static_cast<uint64_t>(corners) - 2;

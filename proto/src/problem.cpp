@@ -22,10 +22,12 @@ constexpr std::array<KindInfo, 15> kKinds = {{
     {ProblemKind::kNotFound, 404, "Not found", "urn:kdrt:problem:not-found"},
     {ProblemKind::kUnknownMesh, 404, "Unknown mesh", "urn:kdrt:problem:unknown-mesh"},
     {ProblemKind::kUnknownJob, 404, "Unknown job", "urn:kdrt:problem:unknown-job"},
-    {ProblemKind::kMethodNotAllowed, 405, "Method not allowed", "urn:kdrt:problem:method-not-allowed"},
+    {ProblemKind::kMethodNotAllowed, 405, "Method not allowed",
+     "urn:kdrt:problem:method-not-allowed"},
     {ProblemKind::kJobNotDone, 409, "Job has no result", "urn:kdrt:problem:job-not-done"},
     {ProblemKind::kPayloadTooLarge, 413, "Payload too large", "urn:kdrt:problem:payload-too-large"},
-    {ProblemKind::kUnsupportedMediaType, 415, "Unsupported media type", "urn:kdrt:problem:unsupported-media-type"},
+    {ProblemKind::kUnsupportedMediaType, 415, "Unsupported media type",
+     "urn:kdrt:problem:unsupported-media-type"},
     {ProblemKind::kMeshParseError, 422, "Mesh parse error", "urn:kdrt:problem:mesh-parse-error"},
     {ProblemKind::kInvalidMesh, 422, "Invalid mesh", "urn:kdrt:problem:invalid-mesh"},
     {ProblemKind::kInternal, 500, "Internal server error", "urn:kdrt:problem:internal"},
@@ -69,7 +71,8 @@ Result<Problem, std::string> decode_problem(std::string_view body) {
     if (!doc.is_object()) return Err{std::string("problem body is not a JSON object")};
     Problem p;
     const auto type = doc.find("type");
-    if (type == doc.end() || !type->is_string()) return Err{std::string("problem body has no string \"type\"")};
+    if (type == doc.end() || !type->is_string())
+        return Err{std::string("problem body has no string \"type\"")};
     bool known = false;
     for (const KindInfo& k : kKinds) {
         if (k.type == type->get_ref<const std::string&>()) {

@@ -172,10 +172,9 @@ bool ray_refused(const Ray& ray) noexcept {
 DecodeError non_finite_error(uint64_t index, const Ray& r) {
     const int field = first_bad_ray_field(r);
     const float f[8] = {r.ox, r.oy, r.oz, r.tmin, r.dx, r.dy, r.dz, r.tmax};
-    return make(DecodeErrorCode::kNonFiniteRay,
-                "ray " + std::to_string(index) + ": field " +
-                    kRayFieldNames[static_cast<size_t>(field)] + " is " +
-                    describe_non_finite(f[field]));
+    return make(DecodeErrorCode::kNonFiniteRay, "ray " + std::to_string(index) + ": field " +
+                                                    kRayFieldNames[static_cast<size_t>(field)] +
+                                                    " is " + describe_non_finite(f[field]));
 }
 
 }  // namespace
@@ -286,11 +285,13 @@ bool RayStreamDecoder::feed(std::span<const std::byte> piece) {
         count_ = header->count;
         expected_ = kBatchHeaderBytes + uint64_t{count_} * kRayRecordBytes;
         header_done_ = true;
-        if (declared_ && *declared_ != expected_) return fail(length_mismatch(kRays, count_, *declared_));
+        if (declared_ && *declared_ != expected_)
+            return fail(length_mismatch(kRays, count_, *declared_));
         const std::span<Ray> storage = storage_(count_, occlusion());
         if (storage.size() != count_)
-            throw std::logic_error("RayStreamDecoder: storage for " + std::to_string(storage.size()) +
-                                   " rays, the header says " + std::to_string(count_));
+            throw std::logic_error("RayStreamDecoder: storage for " +
+                                   std::to_string(storage.size()) + " rays, the header says " +
+                                   std::to_string(count_));
         records_ = reinterpret_cast<std::byte*>(storage.data());
     }
     if (n > 0 && pos < expected_) {

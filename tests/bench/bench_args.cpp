@@ -32,7 +32,8 @@ Args::Args(std::span<char* const> args, std::span<const std::string_view> value_
             throw UsageError("unknown option '--" + std::string(name) + "'");
         }
         if (!value) {
-            if (i + 1 == args.size()) throw UsageError("option '--" + std::string(name) + "' needs a value");
+            if (i + 1 == args.size())
+                throw UsageError("option '--" + std::string(name) + "' needs a value");
             value = std::string_view(args[++i]);
         }
         if (!options_.emplace(std::string(name), std::string(*value)).second) {
@@ -62,29 +63,35 @@ std::string Args::require(std::string_view name) const {
     return *value;
 }
 
-uint64_t Args::get_uint(std::string_view name, uint64_t fallback, uint64_t min_value, uint64_t max_value) const {
+uint64_t Args::get_uint(std::string_view name, uint64_t fallback, uint64_t min_value,
+                        uint64_t max_value) const {
     const auto text = get(name);
     if (!text) return fallback;
     uint64_t value = 0;
     const char* end = text->data() + text->size();
     const auto [ptr, ec] = std::from_chars(text->data(), end, value);
-    if (text->empty() || ec != std::errc() || ptr != end || value < min_value || value > max_value) {
-        throw UsageError("option '--" + std::string(name) + "': '" + *text + "' is not an integer in [" +
-                         std::to_string(min_value) + ", " + std::to_string(max_value) + "]");
+    if (text->empty() || ec != std::errc() || ptr != end || value < min_value ||
+        value > max_value) {
+        throw UsageError("option '--" + std::string(name) + "': '" + *text +
+                         "' is not an integer in [" + std::to_string(min_value) + ", " +
+                         std::to_string(max_value) + "]");
     }
     return value;
 }
 
-float Args::get_float(std::string_view name, float fallback, float min_value, float max_value) const {
+float Args::get_float(std::string_view name, float fallback, float min_value,
+                      float max_value) const {
     const auto text = get(name);
     if (!text) return fallback;
     float value = 0;
     const char* end = text->data() + text->size();
     const auto [ptr, ec] = std::from_chars(text->data(), end, value);
     // Negated range test: NaN fails it too.
-    if (text->empty() || ec != std::errc() || ptr != end || !(value >= min_value && value <= max_value)) {
-        throw UsageError("option '--" + std::string(name) + "': '" + *text + "' is not a number in [" +
-                         std::to_string(min_value) + ", " + std::to_string(max_value) + "]");
+    if (text->empty() || ec != std::errc() || ptr != end ||
+        !(value >= min_value && value <= max_value)) {
+        throw UsageError("option '--" + std::string(name) + "': '" + *text +
+                         "' is not a number in [" + std::to_string(min_value) + ", " +
+                         std::to_string(max_value) + "]");
     }
     return value;
 }

@@ -35,7 +35,9 @@ public:
     Args(std::span<char* const> args, std::span<const std::string_view> value_options);
 
     [[nodiscard]] bool help() const noexcept { return help_; }
-    [[nodiscard]] const std::vector<std::string>& positional() const noexcept { return positional_; }
+    [[nodiscard]] const std::vector<std::string>& positional() const noexcept {
+        return positional_;
+    }
 
     /// Throws UsageError unless there are exactly `names.size()` positionals; the message names
     /// the first missing one, or the first extra value.
@@ -50,7 +52,8 @@ public:
                                     uint64_t max_value) const;
     /// A finite number option in [min_value, max_value], or `fallback` if absent. UsageError
     /// otherwise.
-    [[nodiscard]] float get_float(std::string_view name, float fallback, float min_value, float max_value) const;
+    [[nodiscard]] float get_float(std::string_view name, float fallback, float min_value,
+                                  float max_value) const;
 
 private:
     std::vector<std::string> positional_;

@@ -44,14 +44,15 @@ void on_error(void* user, RTCError code, const char* message) {
     auto* state = static_cast<DeviceState*>(user);
     const std::lock_guard lock(state->mutex);
     if (state->first_error.empty()) {
-        state->first_error =
-            "Embree error " + std::to_string(static_cast<int>(code)) + ": " + (message ? message : "(no message)");
+        state->first_error = "Embree error " + std::to_string(static_cast<int>(code)) + ": " +
+                             (message ? message : "(no message)");
     }
 }
 
 bool on_memory(void* user, ssize_t bytes, bool /*post*/) {
     // Positive before an allocation, negative after a release: the sum is what Embree holds.
-    static_cast<DeviceState*>(user)->bytes.fetch_add(static_cast<int64_t>(bytes), std::memory_order_relaxed);
+    static_cast<DeviceState*>(user)->bytes.fetch_add(static_cast<int64_t>(bytes),
+                                                     std::memory_order_relaxed);
     return true;
 }
 
@@ -68,16 +69,17 @@ void check(DeviceState& state, RTCDevice device, const char* what) {
     const RTCError code = rtcGetDeviceError(device);
     const std::lock_guard lock(state.mutex);
     if (code != RTC_ERROR_NONE || !state.first_error.empty()) {
-        throw EmbreeError(
-            std::string(what) + " failed: " +
-            (state.first_error.empty() ? "Embree error " + std::to_string(static_cast<int>(code)) : state.first_error));
+        throw EmbreeError(std::string(what) + " failed: " +
+                          (state.first_error.empty()
+                               ? "Embree error " + std::to_string(static_cast<int>(code))
+                               : state.first_error));
     }
 }
 
 /// kdrt's rule for a ray it traces (types.h); Embree gets the others as inactive rays.
 bool ray_is_valid(const Ray& r) noexcept {
-    const bool finite = std::isfinite(r.ox) && std::isfinite(r.oy) && std::isfinite(r.oz) && std::isfinite(r.dx) &&
-                        std::isfinite(r.dy) && std::isfinite(r.dz);
+    const bool finite = std::isfinite(r.ox) && std::isfinite(r.oy) && std::isfinite(r.oz) &&
+                        std::isfinite(r.dx) && std::isfinite(r.dy) && std::isfinite(r.dz);
     return finite && (r.dx != 0.0f || r.dy != 0.0f || r.dz != 0.0f) && r.tmin <= r.tmax;
 }
 
@@ -147,8 +149,8 @@ uint8_t read_occluded(const EmbreeRay& ray, int lane) noexcept {
 /// Traces rays [begin, end) with the given API shape; `W` = 1 (rtc*1), 0 (rtc*1M stream) or a
 /// packet width. Answers go to hits[i] or occluded[i].
 template <int W, bool Occlusion>
-void trace_block(RTCScene scene, RTCIntersectContext& context, std::span<const Ray> rays, size_t begin, size_t end,
-                 std::span<Hit> hits, std::span<uint8_t> occluded) {
+void trace_block(RTCScene scene, RTCIntersectContext& context, std::span<const Ray> rays,
+                 size_t begin, size_t end, std::span<Hit> hits, std::span<uint8_t> occluded) {
     if constexpr (W == 1) {
         for (size_t i = begin; i < end; ++i) {
             if constexpr (Occlusion) {
@@ -171,7 +173,8 @@ void trace_block(RTCScene scene, RTCIntersectContext& context, std::span<const R
             for (unsigned k = 0; k < count; ++k) set_lane(stream[k], 0, rays[begin + k]);
             rtcOccluded1M(scene, &context, stream, count, sizeof(RTCRay));
             for (unsigned k = 0; k < count; ++k) {
-                occluded[begin + k] = ray_is_valid(rays[begin + k]) ? read_occluded(stream[k], 0) : 0;
+                occluded[begin + k] =
+                    ray_is_valid(rays[begin + k]) ? read_occluded(stream[k], 0) : 0;
             }
         } else {
             RTCRayHit stream[kBlockRays];
@@ -183,7 +186,8 @@ void trace_block(RTCScene scene, RTCIntersectContext& context, std::span<const R
             for (unsigned k = 0; k < count; ++k) hits[begin + k] = read_hit(stream[k], 0);
         }
     } else {
-        using RayHitW = std::conditional_t<W == 4, RTCRayHit4, std::conditional_t<W == 8, RTCRayHit8, RTCRayHit16>>;
+        using RayHitW = std::conditional_t<W == 4, RTCRayHit4,
+                                           std::conditional_t<W == 8, RTCRayHit8, RTCRayHit16>>;
         for (size_t first = begin; first < end; first += W) {
             alignas(64) int valid[W];
             RayHitW rh;
@@ -200,7 +204,8 @@ void trace_block(RTCScene scene, RTCIntersectContext& context, std::span<const R
                 if constexpr (W == 8) rtcOccluded8(valid, scene, &context, &rh.ray);
                 if constexpr (W == 16) rtcOccluded16(valid, scene, &context, &rh.ray);
                 for (size_t lane = 0; lane < lanes; ++lane) {
-                    occluded[first + lane] = valid[lane] ? read_occluded(rh.ray, static_cast<int>(lane)) : 0;
+                    occluded[first + lane] =
+                        valid[lane] ? read_occluded(rh.ray, static_cast<int>(lane)) : 0;
                 }
             } else {
                 if constexpr (W == 4) rtcIntersect4(valid, scene, &context, &rh);
@@ -220,16 +225,19 @@ double trace_pass(RTCScene scene, bool coherent, std::span<const Ray> rays, std:
                   std::span<uint8_t> occluded) {
     const size_t blocks = (rays.size() + kBlockRays - 1) / kBlockRays;
     const auto start = Clock::now();
-    tbb::parallel_for(tbb::blocked_range<size_t>(0, blocks), [&](const tbb::blocked_range<size_t>& range) {
-        RTCIntersectContext context;
-        rtcInitIntersectContext(&context);
-        context.flags = coherent ? RTC_INTERSECT_CONTEXT_FLAG_COHERENT : RTC_INTERSECT_CONTEXT_FLAG_INCOHERENT;
-        for (size_t block = range.begin(); block != range.end(); ++block) {
-            const size_t begin = block * kBlockRays;
-            trace_block<W, Occlusion>(scene, context, rays, begin, std::min(begin + kBlockRays, rays.size()), hits,
-                                      occluded);
-        }
-    });
+    tbb::parallel_for(tbb::blocked_range<size_t>(0, blocks),
+                      [&](const tbb::blocked_range<size_t>& range) {
+                          RTCIntersectContext context;
+                          rtcInitIntersectContext(&context);
+                          context.flags = coherent ? RTC_INTERSECT_CONTEXT_FLAG_COHERENT
+                                                   : RTC_INTERSECT_CONTEXT_FLAG_INCOHERENT;
+                          for (size_t block = range.begin(); block != range.end(); ++block) {
+                              const size_t begin = block * kBlockRays;
+                              trace_block<W, Occlusion>(scene, context, rays, begin,
+                                                        std::min(begin + kBlockRays, rays.size()),
+                                                        hits, occluded);
+                          }
+                      });
     return std::chrono::duration<double>(Clock::now() - start).count();
 }
 
@@ -240,8 +248,10 @@ double trace_pass(RTCScene scene, bool coherent, std::span<const Ray> rays, std:
 struct TScale {
     double floor = 0;  ///< scene diagonal * 1e-7 (distance)
     [[nodiscard]] bool same(const Ray& ray, float a, float b) const noexcept {
-        const double len = std::sqrt(double{ray.dx} * ray.dx + double{ray.dy} * ray.dy + double{ray.dz} * ray.dz);
-        const double scale = std::max(std::fabs(static_cast<double>(a)), std::fabs(static_cast<double>(b)));
+        const double len =
+            std::sqrt(double{ray.dx} * ray.dx + double{ray.dy} * ray.dy + double{ray.dz} * ray.dz);
+        const double scale =
+            std::max(std::fabs(static_cast<double>(a)), std::fabs(static_cast<double>(b)));
         const double tol = std::max(kRelativeTolerance * scale, len > 0 ? floor / len : 0.0);
         return std::fabs(static_cast<double>(a) - b) <= tol;
     }
@@ -268,8 +278,10 @@ bool share_a_corner(const TriVerts& a, const TriVerts& b) noexcept {
 /// triangles share a corner: the ray passes through their shared edge or vertex, where which
 /// side is reported is up to each test's rounding (kdrt's watertight test picks exactly one;
 /// Embree's test is not watertight and may pick the neighbour).
-bool is_tie(const TScale& ts, std::span<const TriVerts> tris, const Ray& ray, const Hit& kd, const Hit& em) noexcept {
-    if (!kd.is_hit() || !em.is_hit() || em.prim >= tris.size() || kd.prim >= tris.size()) return false;
+bool is_tie(const TScale& ts, std::span<const TriVerts> tris, const Ray& ray, const Hit& kd,
+            const Hit& em) noexcept {
+    if (!kd.is_hit() || !em.is_hit() || em.prim >= tris.size() || kd.prim >= tris.size())
+        return false;
     if (!ts.same(ray, kd.t, em.t)) return false;
     if (share_a_corner(tris[kd.prim], tris[em.prim])) return true;
     const Hit other = brute_force_intersect(tris.subspan(em.prim, 1), ray);
@@ -290,8 +302,9 @@ struct ModeSpec {
 
 }  // namespace
 
-EmbreeReport compare_with_embree(const Mesh& mesh, const proto::RayBatch& batch, std::span<const Hit> kd_hits,
-                                 std::span<const uint8_t> kd_occluded, const EmbreeOptions& options) {
+EmbreeReport compare_with_embree(const Mesh& mesh, const proto::RayBatch& batch,
+                                 std::span<const Hit> kd_hits, std::span<const uint8_t> kd_occluded,
+                                 const EmbreeOptions& options) {
     DeviceState state;
     const int threads = tbb::this_task_arena::max_concurrency();
     const std::string config = "threads=" + std::to_string(threads) + ",set_affinity=0,verbose=0";
@@ -312,8 +325,9 @@ EmbreeReport compare_with_embree(const Mesh& mesh, const proto::RayBatch& batch,
     if (tri_count > 0) {
         RTCGeometry geometry = rtcNewGeometry(device.get(), RTC_GEOMETRY_TYPE_TRIANGLE);
         check(state, device.get(), "rtcNewGeometry");
-        auto* vertices = static_cast<float*>(rtcSetNewGeometryBuffer(
-            geometry, RTC_BUFFER_TYPE_VERTEX, 0, RTC_FORMAT_FLOAT3, 3 * sizeof(float), mesh.vertex_count()));
+        auto* vertices = static_cast<float*>(
+            rtcSetNewGeometryBuffer(geometry, RTC_BUFFER_TYPE_VERTEX, 0, RTC_FORMAT_FLOAT3,
+                                    3 * sizeof(float), mesh.vertex_count()));
         auto* indices = static_cast<uint32_t*>(rtcSetNewGeometryBuffer(
             geometry, RTC_BUFFER_TYPE_INDEX, 0, RTC_FORMAT_UINT3, 3 * sizeof(uint32_t), tri_count));
         check(state, device.get(), "rtcSetNewGeometryBuffer");
@@ -330,12 +344,16 @@ EmbreeReport compare_with_embree(const Mesh& mesh, const proto::RayBatch& batch,
     report.build_ms = std::chrono::duration<double, std::milli>(Clock::now() - build_start).count();
     check(state, device.get(), "rtcCommitScene");
     // What the scene keeps after the build (vertex and index buffers included), per triangle.
-    report.bytes_per_triangle =
-        tri_count > 0 ? static_cast<double>(state.bytes.load() - bytes_before) / static_cast<double>(tri_count) : 0.0;
+    report.bytes_per_triangle = tri_count > 0
+                                    ? static_cast<double>(state.bytes.load() - bytes_before) /
+                                          static_cast<double>(tri_count)
+                                    : 0.0;
 
     static constexpr ModeSpec kModes[] = {
-        {"1", 1, RTC_DEVICE_PROPERTY_TRIANGLE_GEOMETRY_SUPPORTED}, {"1M", 0, RTC_DEVICE_PROPERTY_RAY_STREAM_SUPPORTED},
-        {"4", 4, RTC_DEVICE_PROPERTY_NATIVE_RAY4_SUPPORTED},       {"8", 8, RTC_DEVICE_PROPERTY_NATIVE_RAY8_SUPPORTED},
+        {"1", 1, RTC_DEVICE_PROPERTY_TRIANGLE_GEOMETRY_SUPPORTED},
+        {"1M", 0, RTC_DEVICE_PROPERTY_RAY_STREAM_SUPPORTED},
+        {"4", 4, RTC_DEVICE_PROPERTY_NATIVE_RAY4_SUPPORTED},
+        {"8", 8, RTC_DEVICE_PROPERTY_NATIVE_RAY8_SUPPORTED},
         {"16", 16, RTC_DEVICE_PROPERTY_NATIVE_RAY16_SUPPORTED},
     };
     const std::span<const Ray> rays = batch.rays;
@@ -348,7 +366,8 @@ EmbreeReport compare_with_embree(const Mesh& mesh, const proto::RayBatch& batch,
         }
         if (!box.empty()) {
             const Vec3 e = box.extent();
-            t_scale.floor = 1e-7 * std::sqrt(double{e.x} * e.x + double{e.y} * e.y + double{e.z} * e.z);
+            t_scale.floor =
+                1e-7 * std::sqrt(double{e.x} * e.x + double{e.y} * e.y + double{e.z} * e.z);
         }
     }
     std::vector<Hit> hits(batch.occlusion ? 0 : rays.size());
@@ -359,8 +378,9 @@ EmbreeReport compare_with_embree(const Mesh& mesh, const proto::RayBatch& batch,
         for (bool coherent : {false, true}) {
             auto pass = [&] {
                 const auto run = [&]<int W>() {
-                    return batch.occlusion ? trace_pass<W, true>(scene.get(), coherent, rays, hits, occluded)
-                                           : trace_pass<W, false>(scene.get(), coherent, rays, hits, occluded);
+                    return batch.occlusion
+                               ? trace_pass<W, true>(scene.get(), coherent, rays, hits, occluded)
+                               : trace_pass<W, false>(scene.get(), coherent, rays, hits, occluded);
                 };
                 switch (spec.width) {
                     case 0:
@@ -385,19 +405,23 @@ EmbreeReport compare_with_embree(const Mesh& mesh, const proto::RayBatch& batch,
             EmbreeModeTiming timing;
             timing.name = prefix + spec.suffix + (coherent ? "_coherent" : "");
             const double median_seconds = median(seconds);
-            timing.mrays_per_s = median_seconds > 0 ? static_cast<double>(rays.size()) / median_seconds / 1e6 : 0.0;
+            timing.mrays_per_s =
+                median_seconds > 0 ? static_cast<double>(rays.size()) / median_seconds / 1e6 : 0.0;
             for (size_t i = 0; i < rays.size(); ++i) {
-                const bool differ =
-                    batch.occlusion ? (occluded[i] != 0) != (kd_occluded[i] != 0) : hits_differ(t_scale, rays[i], kd_hits[i], hits[i]);
+                const bool differ = batch.occlusion
+                                        ? (occluded[i] != 0) != (kd_occluded[i] != 0)
+                                        : hits_differ(t_scale, rays[i], kd_hits[i], hits[i]);
                 if (!differ) continue;
                 ++timing.differences;
                 if (batch.occlusion) continue;
                 if (is_tie(t_scale, tris, rays[i], kd_hits[i], hits[i])) {
                     ++timing.ties;
                 } else {
-                    // Who is right? The brute-force oracle (every triangle, kdrt's watertight test).
+                    // Who is right? The brute-force oracle (every triangle, kdrt's watertight
+                    // test).
                     const Hit truth = brute_force_intersect(tris, rays[i]);
-                    if (std::memcmp(&truth, &kd_hits[i], sizeof(Hit)) == 0) ++timing.kdrt_matches_oracle;
+                    if (std::memcmp(&truth, &kd_hits[i], sizeof(Hit)) == 0)
+                        ++timing.kdrt_matches_oracle;
                 }
             }
             if (report.best_mode.empty() || timing.mrays_per_s > report.best_mrays_per_s) {

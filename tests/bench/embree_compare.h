@@ -37,7 +37,8 @@ struct EmbreeModeTiming {
     double mrays_per_s = 0;
     uint64_t differences = 0;  ///< answers that differ from kdrt's (see EmbreeReport)
     uint64_t ties = 0;         ///< of those, ties (see EmbreeReport)
-    uint64_t kdrt_matches_oracle = 0;  ///< of the rest, kdrt's answer is the oracle's (see EmbreeReport)
+    uint64_t kdrt_matches_oracle =
+        0;  ///< of the rest, kdrt's answer is the oracle's (see EmbreeReport)
 };
 
 struct EmbreeReport {
@@ -69,7 +70,8 @@ struct EmbreeReport {
 /// thread's oneTBB arena. `kd_hits` (closest hit) or `kd_occluded` (occlusion) are kdrt's answers
 /// for the same rays. Widths the CPU or the Embree build lacks are skipped. Throws EmbreeError.
 [[nodiscard]] EmbreeReport compare_with_embree(const Mesh& mesh, const proto::RayBatch& batch,
-                                               std::span<const Hit> kd_hits, std::span<const uint8_t> kd_occluded,
+                                               std::span<const Hit> kd_hits,
+                                               std::span<const uint8_t> kd_occluded,
                                                const EmbreeOptions& options);
 
 #if !(defined(KDRT_HAVE_EMBREE) && KDRT_HAVE_EMBREE)

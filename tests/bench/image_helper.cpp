@@ -64,7 +64,8 @@ void write_image_with_helper(const std::filesystem::path& path, const Image& ima
     }
 
     int ends[2];
-    if (::pipe2(ends, O_CLOEXEC) != 0) throw BenchError("cannot create a pipe: " + os_reason(errno));
+    if (::pipe2(ends, O_CLOEXEC) != 0)
+        throw BenchError("cannot create a pipe: " + os_reason(errno));
     Fd read_end(ends[0]), write_end(ends[1]);
 
     posix_spawn_file_actions_t actions;
@@ -82,7 +83,8 @@ void write_image_with_helper(const std::filesystem::path& path, const Image& ima
     pid_t pid = 0;
     const int spawned = posix_spawn(&pid, helper.c_str(), &actions, nullptr, argv.data(), environ);
     posix_spawn_file_actions_destroy(&actions);
-    if (spawned != 0) throw BenchError("cannot start " + helper.string() + ": " + os_reason(spawned));
+    if (spawned != 0)
+        throw BenchError("cannot start " + helper.string() + ": " + os_reason(spawned));
     read_end.reset();
 
     std::string write_error;
@@ -104,14 +106,17 @@ void write_image_with_helper(const std::filesystem::path& path, const Image& ima
     }
     int status = 0;
     while (::waitpid(pid, &status, 0) < 0) {
-        if (errno != EINTR) throw BenchError("cannot wait for " + helper.string() + ": " + os_reason(errno));
+        if (errno != EINTR)
+            throw BenchError("cannot wait for " + helper.string() + ": " + os_reason(errno));
     }
     if (!WIFEXITED(status) || WEXITSTATUS(status) != 0) {
         throw BenchError("kdrt-image could not write " + path.string() +
-                         (WIFEXITED(status) ? " (exit status " + std::to_string(WEXITSTATUS(status)) + ")"
-                                            : " (killed by a signal)"));
+                         (WIFEXITED(status)
+                              ? " (exit status " + std::to_string(WEXITSTATUS(status)) + ")"
+                              : " (killed by a signal)"));
     }
-    if (!write_error.empty()) throw BenchError("cannot send the image to kdrt-image: " + write_error);
+    if (!write_error.empty())
+        throw BenchError("cannot send the image to kdrt-image: " + write_error);
 }
 
 }  // namespace kdrt::bench

@@ -29,13 +29,13 @@
 #include "embree_compare.h"
 #include "image_helper.h"
 #include "kdrt/kdtree.h"
-#include "kdrt/trace.h"
 #include "kdrt/mesh.h"
 #include "kdrt/proto/file_io.h"
 #include "kdrt/proto/mesh_io.h"
 #include "kdrt/proto/ray_batch.h"
 #include "kdrt/raygen.h"
 #include "kdrt/render.h"
+#include "kdrt/trace.h"
 #include "scenes.h"
 
 namespace kdrt::bench {
@@ -221,11 +221,14 @@ BuildOptions parse_build_options(const Args& args) {
         throw UsageError("option '--builder': '" + name + "' is not one of sah, middle");
     }
     // Only their ratio matters (kdtree.h): C_trav stays 1 and C_isect is the knob.
-    options.intersection_cost = args.get_float("c-isect", options.intersection_cost, 0.001f, 1000.0f);
+    options.intersection_cost =
+        args.get_float("c-isect", options.intersection_cost, 0.001f, 1000.0f);
     return options;
 }
 
-std::string_view builder_name(Builder builder) { return builder == Builder::kMiddle ? "middle" : "sah"; }
+std::string_view builder_name(Builder builder) {
+    return builder == Builder::kMiddle ? "middle" : "sah";
+}
 
 struct LoadedMesh {
     Mesh mesh;
@@ -238,8 +241,8 @@ LoadedMesh load_mesh(const std::string& path) {
     if (!mesh) {
         const proto::ParseError& error = mesh.error();
         // to_string() starts with the path already when the parser knows it.
-        throw BenchError("cannot load mesh: " + (error.source.empty() ? path + ": " : std::string()) +
-                         error.to_string());
+        throw BenchError("cannot load mesh: " +
+                         (error.source.empty() ? path + ": " : std::string()) + error.to_string());
     }
     return {std::move(*mesh), ms_since(start)};
 }
@@ -256,7 +259,8 @@ void write_output(const std::string& path, std::span<const std::byte> bytes) {
     if (!written) throw BenchError(written.error());
 }
 
-/// The keys both --compare embree outputs end with: how the answers compare, and every mode's speed.
+/// The keys both --compare embree outputs end with: how the answers compare, and every mode's
+/// speed.
 void put_embree_answers(Json& line, const EmbreeReport& embree) {
     line["differences"] = embree.differences;
     line["ties"] = embree.ties;
@@ -318,7 +322,8 @@ proto::RayBatch load_rays(const std::string& path) {
     proto::DecodeLimits limits;
     limits.max_rays = std::numeric_limits<uint32_t>::max();  // a local file: no network limit
     auto batch = proto::decode_rays(*bytes, limits);
-    if (!batch) throw BenchError("cannot read rays from " + path + ": " + batch.error().to_string());
+    if (!batch)
+        throw BenchError("cannot read rays from " + path + ": " + batch.error().to_string());
     return std::move(*batch);
 }
 
@@ -329,12 +334,16 @@ int run_trace(const Args& args) {
     const std::string& rays_path = args.positional()[1];
     const std::string mode_text = args.get("mode").value_or("auto");
     const auto mode = parse_trace_mode(mode_text);
-    if (!mode) throw UsageError("option '--mode': '" + mode_text + "' is not one of single, packet, auto");
+    if (!mode)
+        throw UsageError("option '--mode': '" + mode_text + "' is not one of single, packet, auto");
     TraceOptions trace_options{*mode, default_isa()};
     if (const auto isa_text = args.get("isa")) {
         const auto isa = parse_isa(*isa_text);
-        if (!isa) throw UsageError("option '--isa': '" + *isa_text + "' is not one of scalar, sse4, avx2, avx512");
-        if (!isa_supported(*isa)) throw BenchError("--isa " + *isa_text + " is not supported by this CPU");
+        if (!isa)
+            throw UsageError("option '--isa': '" + *isa_text +
+                             "' is not one of scalar, sse4, avx2, avx512");
+        if (!isa_supported(*isa))
+            throw BenchError("--isa " + *isa_text + " is not supported by this CPU");
         trace_options.isa = *isa;
     }
     const BuildOptions build_options = parse_build_options(args);
@@ -392,17 +401,18 @@ int run_trace(const Args& args) {
 
     uint64_t answered = 0;
     if (batch.occlusion) {
-        answered =
-            static_cast<uint64_t>(std::count_if(occluded.begin(), occluded.end(), [](uint8_t o) { return o != 0; }));
+        answered = static_cast<uint64_t>(
+            std::count_if(occluded.begin(), occluded.end(), [](uint8_t o) { return o != 0; }));
         if (out_path) write_output(*out_path, proto::encode_occlusion(occluded));
     } else {
-        answered =
-            static_cast<uint64_t>(std::count_if(hits.begin(), hits.end(), [](const Hit& h) { return h.is_hit(); }));
+        answered = static_cast<uint64_t>(
+            std::count_if(hits.begin(), hits.end(), [](const Hit& h) { return h.is_hit(); }));
         if (out_path) write_output(*out_path, proto::encode_hits(hits));
     }
 
     const double median_seconds = median(seconds);
-    const double mrays_per_s = median_seconds > 0 ? static_cast<double>(rays.size()) / median_seconds / 1e6 : 0.0;
+    const double mrays_per_s =
+        median_seconds > 0 ? static_cast<double>(rays.size()) / median_seconds / 1e6 : 0.0;
     Json line;
     line["command"] = "trace";
     line["mesh"] = std::filesystem::path(mesh_path).filename().string();
@@ -432,7 +442,8 @@ int run_trace(const Args& args) {
     if (embree) {
         line["embree_mrays_per_s"] = rounded(embree->best_mrays_per_s, 3);
         line["embree_best_mode"] = embree->best_mode;
-        line["ratio"] = embree->best_mrays_per_s > 0 ? rounded(mrays_per_s / embree->best_mrays_per_s, 4) : 0.0;
+        line["ratio"] =
+            embree->best_mrays_per_s > 0 ? rounded(mrays_per_s / embree->best_mrays_per_s, 4) : 0.0;
         line["embree_build_ms"] = rounded(embree->build_ms, 3);
         line["embree_bytes_per_triangle"] = rounded(embree->bytes_per_triangle, 2);
         put_embree_answers(line, *embree);
@@ -450,7 +461,8 @@ Vec3 parse_vec3(std::string_view option, const std::string& text) {
         const auto [next, ec] = std::from_chars(p, end, v[a]);
         const bool separator_ok = a < 2 ? (next != end && *next == ',') : next == end;
         if (ec != std::errc() || !separator_ok || !std::isfinite(v[a])) {
-            throw UsageError("option '--" + std::string(option) + "': '" + text + "' is not X,Y,Z (three finite numbers)");
+            throw UsageError("option '--" + std::string(option) + "': '" + text +
+                             "' is not X,Y,Z (three finite numbers)");
         }
         p = next + 1;
     }
@@ -464,7 +476,8 @@ int run_rays(const Args& args) {
     const std::string kind_text = args.require("kind");
     const auto kind = parse_ray_kind(kind_text);
     if (!kind) {
-        throw UsageError("option '--kind': '" + kind_text + "' is not one of primary, shadow, diffuse, random");
+        throw UsageError("option '--kind': '" + kind_text +
+                         "' is not one of primary, shadow, diffuse, random");
     }
     const std::string out_path = args.require("out");
     RayGenOptions options;
@@ -473,8 +486,8 @@ int run_rays(const Args& args) {
     options.seed = args.get_uint("seed", 1, 0, std::numeric_limits<uint64_t>::max());
     const auto eye = args.get("eye"), look_at = args.get("look-at");
     if (eye.has_value() != look_at.has_value()) {
-        throw UsageError(std::string("option '--") + (eye ? "look-at" : "eye") + "' is required with '--" +
-                         (eye ? "eye" : "look-at") + "'");
+        throw UsageError(std::string("option '--") + (eye ? "look-at" : "eye") +
+                         "' is required with '--" + (eye ? "eye" : "look-at") + "'");
     }
     std::string camera_text = "default";
     if (eye) {
@@ -538,14 +551,17 @@ int run_scene(const Args& args) {
     const std::string& kind = args.positional()[0];
     const std::string out_path = args.require("out");
     const auto format = proto::mesh_format_from_path(out_path);
-    if (!format) throw UsageError("option '--out': cannot tell the mesh format from the extension of '" + out_path + "'");
+    if (!format)
+        throw UsageError("option '--out': cannot tell the mesh format from the extension of '" +
+                         out_path + "'");
     Mesh mesh;
     if (kind == "stadium") {
         const auto size = static_cast<float>(args.get_uint("size", 1000, 4, 1000000));
         mesh = test::teapot_in_stadium(size, 180, 360);
     } else if (kind == "grid") {
         const LoadedMesh loaded = load_mesh(args.require("from"));
-        mesh = test::replicate_grid(loaded.mesh, static_cast<uint32_t>(args.get_uint("copies", 16, 1, 4096)));
+        mesh = test::replicate_grid(loaded.mesh,
+                                    static_cast<uint32_t>(args.get_uint("copies", 16, 1, 4096)));
     } else {
         throw UsageError("scene kind '" + kind + "' is not one of stadium, grid");
     }
@@ -574,11 +590,13 @@ int run_render(const Args& args) {
                          "' is not one of normals, eyelight, depth, primid, ao, diffuse");
     }
     settings.shading = *shading;
-    settings.width = settings.height = static_cast<uint32_t>(args.get_uint("res", 1024, 1, kMaxImageSize));
+    settings.width = settings.height =
+        static_cast<uint32_t>(args.get_uint("res", 1024, 1, kMaxImageSize));
     settings.spp = static_cast<uint32_t>(args.get_uint("spp", 1, 1, kMaxSamplesPerPixel));
     settings.tile_size = static_cast<uint32_t>(args.get_uint("tile", 16, 8, 16));
     if (settings.tile_size != 8 && settings.tile_size != 16) {
-        throw UsageError("option '--tile': '" + std::to_string(settings.tile_size) + "' is not 8 or 16");
+        throw UsageError("option '--tile': '" + std::to_string(settings.tile_size) +
+                         "' is not 8 or 16");
     }
     settings.seed = args.get_uint("seed", 1, 0, std::numeric_limits<uint64_t>::max());
     settings.ao_samples = static_cast<uint32_t>(args.get_uint("ao-samples", 16, 1, kMaxAoSamples));
@@ -588,13 +606,15 @@ int run_render(const Args& args) {
     const auto reps = static_cast<int>(args.get_uint("reps", 5, 1, 1000));
     const auto out_path = args.get("out");
     const auto compare = args.get("compare");
-    if (compare && *compare != "embree") throw UsageError("option '--compare': '" + *compare + "' is not embree");
+    if (compare && *compare != "embree")
+        throw UsageError("option '--compare': '" + *compare + "' is not embree");
     if (compare && !kEmbreeAvailable) {
         throw BenchError(
             "--compare embree is not available in this build (Embree 3 was not found "
             "when it was configured)");
     }
-    const bool camera_rays_only = settings.shading != Shading::kAo && settings.shading != Shading::kDiffuse;
+    const bool camera_rays_only =
+        settings.shading != Shading::kAo && settings.shading != Shading::kDiffuse;
 
     const LoadedMesh loaded = load_mesh(mesh_path);
     KdTree tree;
@@ -637,7 +657,8 @@ int run_render(const Args& args) {
 
     const double median_seconds = median(seconds);
     const double median_batch = median(batch_seconds);
-    const double mrays_per_s = median_seconds > 0 ? static_cast<double>(stats.rays) / median_seconds / 1e6 : 0.0;
+    const double mrays_per_s =
+        median_seconds > 0 ? static_cast<double>(stats.rays) / median_seconds / 1e6 : 0.0;
     Json line;
     line["command"] = "render";
     line["mesh"] = std::filesystem::path(mesh_path).filename().string();
@@ -672,8 +693,10 @@ int run_render(const Args& args) {
     if (embree) {
         line["embree_mrays_per_s"] = rounded(embree->best_mrays_per_s, 3);
         line["embree_best_mode"] = embree->best_mode;
-        line["embree_fps"] = rounded(embree->best_mrays_per_s * 1e6 / static_cast<double>(stats.primary_rays), 3);
-        line["ratio"] = embree->best_mrays_per_s > 0 ? rounded(mrays_per_s / embree->best_mrays_per_s, 4) : 0.0;
+        line["embree_fps"] =
+            rounded(embree->best_mrays_per_s * 1e6 / static_cast<double>(stats.primary_rays), 3);
+        line["ratio"] =
+            embree->best_mrays_per_s > 0 ? rounded(mrays_per_s / embree->best_mrays_per_s, 4) : 0.0;
         line["embree_build_ms"] = rounded(embree->build_ms, 3);
         put_embree_answers(line, *embree);
     }
@@ -691,12 +714,13 @@ struct Command {
 
 constexpr std::array<std::string_view, 4> kBuildOptions = {"builder", "c-isect", "threads", "reps"};
 constexpr std::array<std::string_view, 8> kTraceOptions = {"mode", "isa",     "threads", "reps",
-                                                            "out",  "builder", "c-isect", "compare"};
-constexpr std::array<std::string_view, 7> kRaysOptions = {"kind", "res", "seed", "out", "eye", "look-at", "threads"};
+                                                           "out",  "builder", "c-isect", "compare"};
+constexpr std::array<std::string_view, 7> kRaysOptions = {"kind", "res",     "seed",   "out",
+                                                          "eye",  "look-at", "threads"};
 constexpr std::array<std::string_view, 4> kSceneOptions = {"out", "size", "from", "copies"};
-constexpr std::array<std::string_view, 13> kRenderOptions = {"shading", "res",     "spp",     "tile",  "threads",
-                                                             "reps",    "seed",    "ao-samples", "bounces", "builder",
-                                                             "c-isect", "out",     "compare"};
+constexpr std::array<std::string_view, 13> kRenderOptions = {
+    "shading",    "res",     "spp",     "tile",    "threads", "reps",   "seed",
+    "ao-samples", "bounces", "builder", "c-isect", "out",     "compare"};
 constexpr std::array<Command, 5> kCommands = {{
     {"build", kBuildUsage, kBuildOptions, &run_build},
     {"trace", kTraceUsage, kTraceOptions, &run_trace},
@@ -716,8 +740,8 @@ int run_main(int argc, char** argv) {
         std::cout << kToolUsage;
         return 0;
     }
-    const auto command =
-        std::find_if(kCommands.begin(), kCommands.end(), [&](const Command& c) { return c.name == first; });
+    const auto command = std::find_if(kCommands.begin(), kCommands.end(),
+                                      [&](const Command& c) { return c.name == first; });
     if (command == kCommands.end()) {
         std::cerr << "kdrt-bench: unknown command '" << first << "'\n\n" << kToolUsage;
         return 2;

@@ -45,10 +45,11 @@ Image read_raw_image(uint32_t width, uint32_t height, uint32_t channels) {
         const ssize_t n = ::read(STDIN_FILENO, data + have, want - have);
         if (n < 0 && errno == EINTR) continue;
         if (n < 0)
-            throw BenchError("cannot read the image from standard input: " + std::generic_category().message(errno));
+            throw BenchError("cannot read the image from standard input: " +
+                             std::generic_category().message(errno));
         if (n == 0) {
-            throw BenchError("standard input ended after " + std::to_string(have) + " of " + std::to_string(want) +
-                             " bytes");
+            throw BenchError("standard input ended after " + std::to_string(have) + " of " +
+                             std::to_string(want) + " bytes");
         }
         have += static_cast<size_t>(n);
     }
@@ -56,17 +57,19 @@ Image read_raw_image(uint32_t width, uint32_t height, uint32_t channels) {
 }
 
 int run(const Args& args) {
-    static constexpr std::array<std::string_view, 5> kNames = {"raw", "WIDTH", "HEIGHT", "CHANNELS", "OUT"};
+    static constexpr std::array<std::string_view, 5> kNames = {"raw", "WIDTH", "HEIGHT", "CHANNELS",
+                                                               "OUT"};
     args.expect_positional(kNames);
-    if (args.positional()[0] != "raw") throw UsageError("unknown command '" + args.positional()[0] + "'");
+    if (args.positional()[0] != "raw")
+        throw UsageError("unknown command '" + args.positional()[0] + "'");
     auto number = [&](size_t index, const char* name, uint64_t min_value, uint64_t max_value) {
         const std::string& text = args.positional()[index];
         uint64_t value = 0;
         const auto [ptr, ec] = std::from_chars(text.data(), text.data() + text.size(), value);
-        if (text.empty() || ec != std::errc() || ptr != text.data() + text.size() || value < min_value ||
-            value > max_value) {
-            throw UsageError(std::string(name) + " '" + text + "' is not an integer in [" + std::to_string(min_value) +
-                             ", " + std::to_string(max_value) + "]");
+        if (text.empty() || ec != std::errc() || ptr != text.data() + text.size() ||
+            value < min_value || value > max_value) {
+            throw UsageError(std::string(name) + " '" + text + "' is not an integer in [" +
+                             std::to_string(min_value) + ", " + std::to_string(max_value) + "]");
         }
         return static_cast<uint32_t>(value);
     };
@@ -99,7 +102,8 @@ int main(int argc, char** argv) {
     using namespace kdrt::bench;
     static constexpr std::array<std::string_view, 2> kOptions = {"exr-type", "jpeg-quality"};
     try {
-        const Args args(std::span<char* const>(argv + 1, static_cast<size_t>(std::max(argc - 1, 0))), kOptions);
+        const Args args(
+            std::span<char* const>(argv + 1, static_cast<size_t>(std::max(argc - 1, 0))), kOptions);
         if (args.help()) {
             std::cout << kUsage;
             return 0;

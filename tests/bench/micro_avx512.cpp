@@ -15,7 +15,9 @@
 namespace kdrt::bench {
 namespace {
 
-void traversal_step_avx512(benchmark::State& state) { bench_traversal_step<16>(state, Isa::kAvx512); }
+void traversal_step_avx512(benchmark::State& state) {
+    bench_traversal_step<16>(state, Isa::kAvx512);
+}
 void leaf_test_avx512(benchmark::State& state) { bench_leaf_test<16>(state, Isa::kAvx512); }
 
 }  // namespace

@@ -23,7 +23,8 @@ const MicroFixture& micro_fixture() {
         if (!mesh) throw std::runtime_error(mesh.error().to_string());
         f.tree = build_kdtree(*mesh);
         const Camera cam(default_camera(f.tree.bounds, 1.0f), 1024, 1024);
-        for (int l = 0; l < 16; ++l) f.rays.push_back(cam.ray(504.5f + static_cast<float>(l), 512.5f));
+        for (int l = 0; l < 16; ++l)
+            f.rays.push_back(cam.ray(504.5f + static_cast<float>(l), 512.5f));
         const Hit h = intersect(f.tree, f.rays[0]);
         f.triangle = h.is_hit() ? h.prim : 0;
         f.inner_node = 0;  // the root: every ray crosses it

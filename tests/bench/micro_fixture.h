@@ -10,9 +10,9 @@ namespace kdrt::bench {
 
 struct MicroFixture {
     KdTree tree;
-    std::vector<Ray> rays;        // 16 adjacent primary rays through the middle of the image
-    uint32_t inner_node = 0;      // an inner node the rays cross
-    uint32_t triangle = 0;        // a triangle the first ray hits
+    std::vector<Ray> rays;    // 16 adjacent primary rays through the middle of the image
+    uint32_t inner_node = 0;  // an inner node the rays cross
+    uint32_t triangle = 0;    // a triangle the first ray hits
 };
 
 /// Built on first use (bunny00.off from the test data directory).

@@ -34,7 +34,8 @@ CliRun run_cli(const std::vector<std::string>& args, const CliOptions& options) 
     argv_strings.insert(argv_strings.end(), args.begin(), args.end());
     std::vector<std::string> env;
     for (char** e = environ; *e; ++e)
-        if (std::strncmp(*e, "KDRT_", 5) != 0 || std::strncmp(*e, "KDRT_TEST", 9) == 0) env.emplace_back(*e);
+        if (std::strncmp(*e, "KDRT_", 5) != 0 || std::strncmp(*e, "KDRT_TEST", 9) == 0)
+            env.emplace_back(*e);
     env.insert(env.end(), options.env.begin(), options.env.end());
     std::vector<char*> argv, envp;
     for (auto& a : argv_strings) argv.push_back(a.data());
@@ -47,7 +48,8 @@ CliRun run_cli(const std::vector<std::string>& args, const CliOptions& options) 
     if (::pipe2(out_pipe, O_CLOEXEC) != 0) throw std::runtime_error("pipe failed");
     if (options.stderr_tty) {
         const int master = ::posix_openpt(O_RDWR | O_NOCTTY | O_CLOEXEC);
-        if (master < 0 || ::grantpt(master) != 0 || ::unlockpt(master) != 0) throw std::runtime_error("no pty");
+        if (master < 0 || ::grantpt(master) != 0 || ::unlockpt(master) != 0)
+            throw std::runtime_error("no pty");
         const int slave = ::open(::ptsname(master), O_RDWR | O_NOCTTY | O_CLOEXEC);
         if (slave < 0) throw std::runtime_error("cannot open the pty");
         err_fds[0] = master;
@@ -73,7 +75,8 @@ CliRun run_cli(const std::vector<std::string>& args, const CliOptions& options) 
     bool out_open = true, err_open = true, interrupted = false;
     const auto deadline = std::chrono::steady_clock::now() + options.timeout;
     while ((out_open || err_open) && std::chrono::steady_clock::now() < deadline) {
-        pollfd fds[2] = {{out_open ? out_pipe[0] : -1, POLLIN, 0}, {err_open ? err_fds[0] : -1, POLLIN, 0}};
+        pollfd fds[2] = {{out_open ? out_pipe[0] : -1, POLLIN, 0},
+                         {err_open ? err_fds[0] : -1, POLLIN, 0}};
         if (::poll(fds, 2, 50) < 0 && errno != EINTR) break;
         if (fds[0].revents) out_open = drain(out_pipe[0], run.out);
         if (fds[1].revents) err_open = drain(err_fds[0], run.err);

@@ -16,10 +16,11 @@ struct CliRun {
 };
 
 struct CliOptions {
-    std::vector<std::string> env = {};       ///< extra NAME=VALUE (KDRT_* of the test's environment are dropped)
-    bool stderr_tty = false;                 ///< stderr on a pseudo-terminal (progress bar)
-    std::string interrupt_when = {};         ///< send SIGINT once stderr contains this text
-    std::chrono::seconds timeout{120};       ///< then SIGKILL, exit_code -1
+    std::vector<std::string> env =
+        {};                   ///< extra NAME=VALUE (KDRT_* of the test's environment are dropped)
+    bool stderr_tty = false;  ///< stderr on a pseudo-terminal (progress bar)
+    std::string interrupt_when = {};    ///< send SIGINT once stderr contains this text
+    std::chrono::seconds timeout{120};  ///< then SIGKILL, exit_code -1
 };
 
 /// Runs `kdrt args...` and waits for it.

@@ -20,8 +20,8 @@
 namespace kdrt::test {
 namespace {
 
-const char* const kCommands[] = {"upload", "meshes", "info", "rm", "render", "trace",
-                                 "rays", "health", "metrics", "bench-remote"};
+const char* const kCommands[] = {"upload", "meshes", "info",   "rm",      "render",
+                                 "trace",  "rays",   "health", "metrics", "bench-remote"};
 
 std::vector<std::string> lines_of(const std::string& text) {
     std::vector<std::string> lines;
@@ -30,13 +30,16 @@ std::vector<std::string> lines_of(const std::string& text) {
     return lines;
 }
 
-bool contains(const std::string& text, const std::string& part) { return text.find(part) != std::string::npos; }
+bool contains(const std::string& text, const std::string& part) {
+    return text.find(part) != std::string::npos;
+}
 
 class Cli : public ::testing::Test {
 protected:
     static void SetUpTestSuite() {
         dir_ = new TempDir();
-        server_ = new ServerProcess({.cache_dir = dir_->path() / "cache", .args = {"--max-jobs", "4"}});
+        server_ =
+            new ServerProcess({.cache_dir = dir_->path() / "cache", .args = {"--max-jobs", "4"}});
         Rng rng(test_seed() + 40);
         mesh_ = new Mesh(random_soup(rng, 2000));
         tree_ = new KdTree(build_kdtree(*mesh_));
@@ -81,19 +84,23 @@ std::string Cli::id_;
 // ---- help and usage ----------------------------------------------------------------------------
 
 TEST_F(Cli, HelpForTheToolAndEverySubcommand) {
-    for (const std::vector<std::string>& args : {std::vector<std::string>{"--help"}, {"-h"}, {"help"}}) {
+    for (const std::vector<std::string>& args :
+         {std::vector<std::string>{"--help"}, {"-h"}, {"help"}}) {
         const CliRun run = run_cli(args);
         EXPECT_EQ(run.exit_code, 0);
         EXPECT_EQ(run.out.rfind("usage: kdrt ", 0), 0u) << run.out;
-        for (const char* command : kCommands) EXPECT_TRUE(contains(run.out, "\n  " + std::string(command) + " "));
+        for (const char* command : kCommands)
+            EXPECT_TRUE(contains(run.out, "\n  " + std::string(command) + " "));
         EXPECT_TRUE(contains(run.out, "Exit status: 0 success; 1 the server refused"));
         EXPECT_TRUE(run.err.empty());
     }
     for (const char* command : kCommands) {
         SCOPED_TRACE(command);
         const std::string usage = "usage: kdrt " + std::string(command);
-        for (const std::vector<std::string>& args :
-             {std::vector<std::string>{command, "--help"}, {command, "-h"}, {"help", command}, {"--server", "x:1", command, "--help"}}) {
+        for (const std::vector<std::string>& args : {std::vector<std::string>{command, "--help"},
+                                                     {command, "-h"},
+                                                     {"help", command},
+                                                     {"--server", "x:1", command, "--help"}}) {
             const CliRun run = run_cli(args);
             EXPECT_EQ(run.exit_code, 0) << run.err;
             EXPECT_EQ(run.out.rfind(usage, 0), 0u) << run.out;
@@ -117,20 +124,24 @@ TEST_F(Cli, UsageErrorsExitTwoWithAMessage) {
         {{"meshes", "--frob"}, "kdrt meshes: unknown option \"--frob\" for kdrt meshes"},
         {{"meshes", "extra"}, "kdrt meshes: unexpected argument \"extra\""},
         {{"upload"}, "kdrt upload: missing FILE"},
-        {{"upload", "--format", "fbx", "x.obj"}, "kdrt upload: --format: \"fbx\" is not obj, ply, off, stl or raw"},
+        {{"upload", "--format", "fbx", "x.obj"},
+         "kdrt upload: --format: \"fbx\" is not obj, ply, off, stl or raw"},
         {{"info"}, "kdrt info: missing ID"},
         {{"info", "a", "b"}, "kdrt info: unexpected argument \"b\""},
         {{"rm"}, "kdrt rm: missing ID"},
         {{"render", "abcd"}, "kdrt render: missing -o FILE"},
-        {{"render", "abcd", "-o", "x.bmp"}, "cannot tell the image format of \"x.bmp\" from its extension"},
+        {{"render", "abcd", "-o", "x.bmp"},
+         "cannot tell the image format of \"x.bmp\" from its extension"},
         {{"render", "-o", "x.png"}, "kdrt render: missing ID"},
         {{"render", "abcd", "-o"}, "kdrt render: option -o needs a value"},
         {{"trace", "abcd"}, "kdrt trace: missing ID and RAYS"},
         {{"trace", "abcd", "r.kdrr"}, "kdrt trace: missing -o FILE"},
-        {{"trace", "abcd", "r.kdrr", "-o", "h", "--connections", "0"}, "--connections: \"0\" is not in 1 .. 64"},
+        {{"trace", "abcd", "r.kdrr", "-o", "h", "--connections", "0"},
+         "--connections: \"0\" is not in 1 .. 64"},
         {{"rays", "m.obj"}, "kdrt rays: missing -o FILE"},
         {{"rays"}, "kdrt rays: missing MESH"},
-        {{"rays", "m.obj", "-o", "r", "--kind", "sideways"}, "--kind: \"sideways\" is not primary, shadow, diffuse or random"},
+        {{"rays", "m.obj", "-o", "r", "--kind", "sideways"},
+         "--kind: \"sideways\" is not primary, shadow, diffuse or random"},
         {{"rays", "m.obj", "-o", "r", "--res", "0"}, "--res: \"0\" is not in 1 .. 8192"},
         {{"health", "--server", "ftp://x"}, "unknown scheme \"ftp\""},
         {{"health", "--timeout", "-1"}, "--timeout: \"-1\" is not a positive number of seconds"},
@@ -165,7 +176,8 @@ TEST_F(Cli, RenderOptionsAreCheckedBeforeAnyRequest) {
         {{"--look-at", "a,b,c"}, "--look-at: \"a,b,c\" is not three numbers"},
         {{"--fov", "180"}, "--fov: \"180\" is not a number of degrees in (0, 180)"},
         {{"--ortho", "-1"}, "--ortho: \"-1\" is not a positive number"},
-        {{"--shading", "toon"}, "--shading: \"toon\" is not normals, eyelight, ao, diffuse, depth or primid"},
+        {{"--shading", "toon"},
+         "--shading: \"toon\" is not normals, eyelight, ao, diffuse, depth or primid"},
         {{"--spp", "0"}, "--spp: \"0\" is not in 1 .. 65536"},
         {{"--seed", "-3"}, "--seed: \"-3\" is not a whole number"},
         {{"--tile", "1,2,3"}, "--tile: \"1,2,3\" is not x,y,w,h"},
@@ -192,7 +204,10 @@ TEST_F(Cli, UploadPrintsIdTrianglesAndBuildTimePerFile) {
     EXPECT_EQ(lines[0].rfind(id_ + "  2000 triangles  ", 0), 0u) << lines[0];
     EXPECT_TRUE(lines[0].ends_with(" ms  " + mesh_file_)) << lines[0];
     const std::string dino = proto::mesh_id(load_mesh(off));
-    EXPECT_EQ(lines[1].rfind(dino + "  " + std::to_string(load_mesh(off).triangle_count()) + " triangles  ", 0), 0u);
+    EXPECT_EQ(
+        lines[1].rfind(
+            dino + "  " + std::to_string(load_mesh(off).triangle_count()) + " triangles  ", 0),
+        0u);
 
     const CliRun json = kdrt({"upload", "--json", mesh_file_, off});
     ASSERT_EQ(json.exit_code, 0) << json.err;
@@ -203,12 +218,14 @@ TEST_F(Cli, UploadPrintsIdTrianglesAndBuildTimePerFile) {
     EXPECT_EQ(first["id"], id_);
     EXPECT_EQ(first["triangles"], 2000);
     EXPECT_EQ(first["vertices"], mesh_->vertex_count());
-    for (const char* key : {"bounds", "build_ms", "tree", "in_memory"}) EXPECT_TRUE(first.contains(key)) << key;
+    for (const char* key : {"bounds", "build_ms", "tree", "in_memory"})
+        EXPECT_TRUE(first.contains(key)) << key;
     EXPECT_EQ(nlohmann::json::parse(json_lines[1])["id"], dino);
 
     // --format overrides the extension.
     const std::string renamed = path("soup.data");
-    std::filesystem::copy_file(mesh_file_, renamed, std::filesystem::copy_options::overwrite_existing);
+    std::filesystem::copy_file(mesh_file_, renamed,
+                               std::filesystem::copy_options::overwrite_existing);
     const CliRun formatted = kdrt({"upload", renamed, "--format", "ply"});
     EXPECT_EQ(formatted.exit_code, 0) << formatted.err;
     EXPECT_EQ(formatted.out.rfind(id_, 0), 0u);
@@ -219,7 +236,8 @@ TEST_F(Cli, UploadErrorsNameTheFileAndKeepGoing) {
     write_text(bad, "v 0 0 0\nv 1 0 0\nf 1 2 3\n");
     const CliRun run = kdrt({"upload", bad, mesh_file_});
     EXPECT_EQ(run.exit_code, 1);
-    EXPECT_TRUE(contains(run.err, "kdrt upload: " + bad + ": 422 Mesh parse error: line 3:")) << run.err;
+    EXPECT_TRUE(contains(run.err, "kdrt upload: " + bad + ": 422 Mesh parse error: line 3:"))
+        << run.err;
     EXPECT_EQ(run.out.rfind(id_, 0), 0u) << run.out;  // the good file was still uploaded
 
     const CliRun missing = kdrt({"upload", path("nope.obj"), mesh_file_});
@@ -231,11 +249,13 @@ TEST_F(Cli, UploadErrorsNameTheFileAndKeepGoing) {
 
     const CliRun unknown = kdrt({"upload", path("x.fbx")});
     EXPECT_EQ(unknown.exit_code, 2);
-    EXPECT_TRUE(contains(unknown.err, "cannot tell the mesh format of \"" + path("x.fbx") + "\"")) << unknown.err;
+    EXPECT_TRUE(contains(unknown.err, "cannot tell the mesh format of \"" + path("x.fbx") + "\""))
+        << unknown.err;
 
     const CliRun empty = kdrt({"upload", "--format", "obj", "/dev/null"});
     EXPECT_EQ(empty.exit_code, 1) << empty.err;
-    EXPECT_TRUE(contains(empty.err, "422 Invalid mesh: the obj mesh has no triangles")) << empty.err;
+    EXPECT_TRUE(contains(empty.err, "422 Invalid mesh: the obj mesh has no triangles"))
+        << empty.err;
 }
 
 TEST_F(Cli, MeshesInfoAndRm) {
@@ -247,7 +267,8 @@ TEST_F(Cli, MeshesInfoAndRm) {
     const CliRun json = kdrt({"meshes", "--json"});
     ASSERT_EQ(json.exit_code, 0);
     bool found = false;
-    for (const std::string& line : lines_of(json.out)) found |= nlohmann::json::parse(line)["id"] == id_;
+    for (const std::string& line : lines_of(json.out))
+        found |= nlohmann::json::parse(line)["id"] == id_;
     EXPECT_TRUE(found) << json.out;
 
     const CliRun info = kdrt({"info", id_});
@@ -257,7 +278,9 @@ TEST_F(Cli, MeshesInfoAndRm) {
     const CliRun by_prefix = kdrt({"info", id_.substr(0, 12), "--json"});
     ASSERT_EQ(by_prefix.exit_code, 0) << by_prefix.err;
     EXPECT_EQ(nlohmann::json::parse(by_prefix.out)["id"], id_);
-    const CliRun upper = kdrt({"info", "--json", std::string(1, static_cast<char>(std::toupper(id_[0]))) + id_.substr(1, 7)});
+    const CliRun upper =
+        kdrt({"info", "--json",
+              std::string(1, static_cast<char>(std::toupper(id_[0]))) + id_.substr(1, 7)});
     EXPECT_EQ(upper.exit_code, 0) << upper.err;
 
     // Two meshes whose ids share a prefix cannot exist on demand; an unknown prefix can.
@@ -265,20 +288,24 @@ TEST_F(Cli, MeshesInfoAndRm) {
     absent[0] = absent[0] == 'f' ? '0' : 'f';
     const CliRun no_match = kdrt({"info", absent});
     EXPECT_EQ(no_match.exit_code, 1);
-    EXPECT_TRUE(contains(no_match.err, "kdrt info: no stored mesh has an id starting with " + absent)) << no_match.err;
+    EXPECT_TRUE(
+        contains(no_match.err, "kdrt info: no stored mesh has an id starting with " + absent))
+        << no_match.err;
 
     const CliRun rm = kdrt({"rm", id_});
     ASSERT_EQ(rm.exit_code, 0) << rm.err;
     EXPECT_EQ(rm.out, "removed " + id_ + "\n");
     const CliRun gone = kdrt({"info", id_});
     EXPECT_EQ(gone.exit_code, 1);
-    EXPECT_TRUE(contains(gone.err, "kdrt info: 404 Unknown mesh: no mesh with id " + id_)) << gone.err;
+    EXPECT_TRUE(contains(gone.err, "kdrt info: 404 Unknown mesh: no mesh with id " + id_))
+        << gone.err;
     const CliRun rm_again = kdrt({"rm", id_});
     EXPECT_EQ(rm_again.exit_code, 1);
     EXPECT_TRUE(contains(rm_again.err, "404 Unknown mesh")) << rm_again.err;
     const CliRun not_an_id = kdrt({"info", "hello"});
     EXPECT_EQ(not_an_id.exit_code, 1);
-    EXPECT_TRUE(contains(not_an_id.err, "404 Unknown mesh: \"hello\" is not a mesh id")) << not_an_id.err;
+    EXPECT_TRUE(contains(not_an_id.err, "404 Unknown mesh: \"hello\" is not a mesh id"))
+        << not_an_id.err;
 }
 
 TEST_F(Cli, AmbiguousIdPrefixIsAUsageError) {
@@ -294,7 +321,8 @@ TEST_F(Cli, AmbiguousIdPrefixIsAUsageError) {
         if (by_prefix.count(id.substr(0, 4))) {
             ASSERT_TRUE(c.upload(tiny));
             Mesh other;
-            add_triangle(other, {0, 0, 0}, {1, 0, 0}, {0, std::stof(by_prefix[id.substr(0, 4)]), 0});
+            add_triangle(other, {0, 0, 0}, {1, 0, 0},
+                         {0, std::stof(by_prefix[id.substr(0, 4)]), 0});
             ASSERT_TRUE(c.upload(other));
             prefix = id.substr(0, 4);
         }
@@ -322,7 +350,8 @@ TEST_F(Cli, RenderWritesTheFormatOfTheExtension) {
                           Case{"out.jpeg", "jpg", std::string("\xff\xd8\xff", 3)},
                           Case{"out.exr", "exr", std::string("\x76\x2f\x31\x01", 4)}}) {
         SCOPED_TRACE(k.file);
-        const CliRun run = kdrt({"render", id_, "-o", path(k.file), "--size", "80x60", "--shading", "normals"});
+        const CliRun run =
+            kdrt({"render", id_, "-o", path(k.file), "--size", "80x60", "--shading", "normals"});
         ASSERT_EQ(run.exit_code, 0) << run.err;
         EXPECT_TRUE(contains(run.out, "wrote " + path(k.file) + " (")) << run.out;
         EXPECT_TRUE(contains(run.out, "80x60 normals, 1 spp)")) << run.out;
@@ -340,9 +369,12 @@ TEST_F(Cli, RenderWritesTheFormatOfTheExtension) {
 
 TEST_F(Cli, RenderCameraOptionsOverrideTheDefaultView) {
     upload_suite_mesh();
-    const CliRun run = kdrt({"render", id_, "-o", path("cam.png"), "--size", "64x48", "--eye", "0.5,0.5,3", "--look-at",
-                             "0.5,0.5,0.5", "--up", "0,1,0", "--fov", "30", "--spp", "2", "--seed", "7", "--shading",
-                             "depth", "--tile", "8,8,16,16"});
+    const CliRun run = kdrt({"render",    id_,           "-o",        path("cam.png"),
+                             "--size",    "64x48",       "--eye",     "0.5,0.5,3",
+                             "--look-at", "0.5,0.5,0.5", "--up",      "0,1,0",
+                             "--fov",     "30",          "--spp",     "2",
+                             "--seed",    "7",           "--shading", "depth",
+                             "--tile",    "8,8,16,16"});
     ASSERT_EQ(run.exit_code, 0) << run.err;
     RenderRequest same = small_render(id_, Shading::kDepth);
     same.settings.width = 64;
@@ -350,13 +382,15 @@ TEST_F(Cli, RenderCameraOptionsOverrideTheDefaultView) {
     same.settings.spp = 2;
     same.settings.seed = 7;
     same.settings.region = PixelRegion{8, 8, 16, 16};
-    same.settings.camera = CameraSpec{{0.5f, 0.5f, 3}, {0.5f, 0.5f, 0.5f}, {0, 1, 0}, 30.0f, 1.0f, Projection::kPerspective};
+    same.settings.camera = CameraSpec{
+        {0.5f, 0.5f, 3}, {0.5f, 0.5f, 0.5f}, {0, 1, 0}, 30.0f, 1.0f, Projection::kPerspective};
     auto expected = Client(server_url(*server_), fast_options()).render(same);
     ASSERT_TRUE(expected) << expected.error().to_string();
     EXPECT_EQ(read_bytes(path("cam.png")), *expected);
 
     // Only --ortho: the rest of the camera is the default view of the bounds.
-    const CliRun ortho = kdrt({"render", id_, "-o", path("ortho.png"), "--ortho", "2", "--size", "32x32"});
+    const CliRun ortho =
+        kdrt({"render", id_, "-o", path("ortho.png"), "--ortho", "2", "--size", "32x32"});
     ASSERT_EQ(ortho.exit_code, 0) << ortho.err;
     RenderRequest ortho_request = small_render(id_);
     ortho_request.settings.width = ortho_request.settings.height = 32;
@@ -373,22 +407,25 @@ TEST_F(Cli, RenderCameraOptionsOverrideTheDefaultView) {
 
 TEST_F(Cli, RenderProgressIsPlainLinesWithoutATerminal) {
     upload_suite_mesh();
-    const CliRun run = kdrt({"render", id_, "-o", path("progress.png"), "--size", "512x512", "--shading", "ao"});
+    const CliRun run =
+        kdrt({"render", id_, "-o", path("progress.png"), "--size", "512x512", "--shading", "ao"});
     ASSERT_EQ(run.exit_code, 0) << run.err;
     EXPECT_EQ(run.err.find('\r'), std::string::npos);
     const auto lines = lines_of(run.err);
     ASSERT_FALSE(lines.empty());
     for (const std::string& line : lines) EXPECT_EQ(line.rfind("render: ", 0), 0u) << line;
     EXPECT_EQ(lines.back().rfind("render: done in ", 0), 0u) << run.err;
-    const CliRun quiet = kdrt({"render", id_, "-o", path("quiet.png"), "--size", "64x64", "--quiet"});
+    const CliRun quiet =
+        kdrt({"render", id_, "-o", path("quiet.png"), "--size", "64x64", "--quiet"});
     ASSERT_EQ(quiet.exit_code, 0);
     EXPECT_TRUE(quiet.err.empty()) << quiet.err;
 }
 
 TEST_F(Cli, RenderProgressIsABarOnATerminal) {
     upload_suite_mesh();
-    const CliRun run = kdrt({"render", id_, "-o", path("bar.png"), "--size", "512x512", "--shading", "ao"},
-                            {.stderr_tty = true});
+    const CliRun run =
+        kdrt({"render", id_, "-o", path("bar.png"), "--size", "512x512", "--shading", "ao"},
+             {.stderr_tty = true});
     ASSERT_EQ(run.exit_code, 0) << run.err;
     EXPECT_TRUE(contains(run.err, "\rrender: [")) << run.err;
     EXPECT_TRUE(contains(run.err, "] 100% done")) << run.err;
@@ -397,8 +434,8 @@ TEST_F(Cli, RenderProgressIsABarOnATerminal) {
 
 TEST_F(Cli, InterruptCancelsTheRenderJob) {
     upload_suite_mesh();
-    const CliRun run = kdrt({"render", id_, "-o", path("never.exr"), "--size", "2048x2048", "--shading", "ao", "--spp",
-                             "256"},
+    const CliRun run = kdrt({"render", id_, "-o", path("never.exr"), "--size", "2048x2048",
+                             "--shading", "ao", "--spp", "256"},
                             {.interrupt_when = "render: "});
     EXPECT_EQ(run.exit_code, 130) << run.err;
     const std::string marker = "interrupted; job ";
@@ -419,12 +456,14 @@ TEST_F(Cli, RenderErrors) {
     const std::string unknown(64, 'e');
     const CliRun run = kdrt({"render", unknown, "-o", path("x.png")});
     EXPECT_EQ(run.exit_code, 1);
-    EXPECT_TRUE(contains(run.err, "kdrt render: 404 Unknown mesh: no mesh with id " + unknown)) << run.err;
+    EXPECT_TRUE(contains(run.err, "kdrt render: 404 Unknown mesh: no mesh with id " + unknown))
+        << run.err;
     upload_suite_mesh();
     const CliRun too_big = kdrt({"render", id_, "-o", path("x.png"), "--spp", "5000"});
     EXPECT_EQ(too_big.exit_code, 1);
     EXPECT_TRUE(contains(too_big.err, "kdrt render: 400 Bad request: ")) << too_big.err;
-    const CliRun unwritable = kdrt({"render", id_, "-o", path("no/such/dir/x.png"), "--size", "8x8"});
+    const CliRun unwritable =
+        kdrt({"render", id_, "-o", path("no/such/dir/x.png"), "--size", "8x8"});
     EXPECT_EQ(unwritable.exit_code, 2);
     EXPECT_TRUE(contains(unwritable.err, "cannot write the image: ")) << unwritable.err;
 }
@@ -436,15 +475,20 @@ TEST_F(Cli, RaysWritesTheEngineRaySets) {
         SCOPED_TRACE(kind);
         const std::string out = path(std::string(kind) + ".kdrr");
         // No server needed: a bad KDRT_SERVER does not matter.
-        const CliRun run = run_cli({"rays", mesh_file_, "-o", out, "--kind", kind, "--res", "64", "--seed", "5"},
-                                   {.env = {"KDRT_SERVER=ftp://nowhere"}});
+        const CliRun run =
+            run_cli({"rays", mesh_file_, "-o", out, "--kind", kind, "--res", "64", "--seed", "5"},
+                    {.env = {"KDRT_SERVER=ftp://nowhere"}});
         ASSERT_EQ(run.exit_code, 0) << run.err;
         const auto parsed = parse_ray_kind(kind);
-        const std::vector<Ray> want = generate_rays(*tree_, {.kind = *parsed, .res = 64, .seed = 5});
+        const std::vector<Ray> want =
+            generate_rays(*tree_, {.kind = *parsed, .res = 64, .seed = 5});
         EXPECT_EQ(read_bytes(out), proto::encode_rays(want, *parsed == RayKind::kShadow));
-        EXPECT_TRUE(contains(run.out, "wrote " + std::to_string(want.size()) + " " + kind + " rays")) << run.out;
+        EXPECT_TRUE(
+            contains(run.out, "wrote " + std::to_string(want.size()) + " " + kind + " rays"))
+            << run.out;
     }
-    const CliRun json = run_cli({"rays", mesh_file_, "-o", path("j.kdrr"), "--res", "16", "--json"});
+    const CliRun json =
+        run_cli({"rays", mesh_file_, "-o", path("j.kdrr"), "--res", "16", "--json"});
     ASSERT_EQ(json.exit_code, 0) << json.err;
     const auto line = nlohmann::json::parse(json.out);
     EXPECT_EQ(line["command"], "rays");
@@ -459,11 +503,13 @@ TEST_F(Cli, RaysErrors) {
     write_text(bad, "OFF\n3 1 0\n0 0 0\n1 0 0\n");
     const CliRun run = run_cli({"rays", bad, "-o", path("r.kdrr")});
     EXPECT_EQ(run.exit_code, 2);
-    EXPECT_TRUE(contains(run.err, "kdrt rays: cannot read the mesh: " + bad + ": line 5:")) << run.err;
+    EXPECT_TRUE(contains(run.err, "kdrt rays: cannot read the mesh: " + bad + ": line 5:"))
+        << run.err;
     const CliRun missing = run_cli({"rays", path("absent.obj"), "-o", path("r.kdrr")});
     EXPECT_EQ(missing.exit_code, 2);
     EXPECT_TRUE(contains(missing.err, "No such file or directory")) << missing.err;
-    const CliRun unwritable = run_cli({"rays", mesh_file_, "-o", path("no/dir/r.kdrr"), "--res", "4"});
+    const CliRun unwritable =
+        run_cli({"rays", mesh_file_, "-o", path("no/dir/r.kdrr"), "--res", "4"});
     EXPECT_EQ(unwritable.exit_code, 2);
     EXPECT_TRUE(contains(unwritable.err, "kdrt rays: cannot write the rays: ")) << unwritable.err;
 }
@@ -474,8 +520,10 @@ TEST_F(Cli, TraceWritesTheEngineAnswers) {
         SCOPED_TRACE(kind);
         const std::string rays = path(std::string("t_") + kind + ".kdrr");
         const std::string out = path(std::string("t_") + kind + ".out");
-        ASSERT_EQ(run_cli({"rays", mesh_file_, "-o", rays, "--kind", kind, "--res", "300"}).exit_code, 0);
-        const CliRun run = kdrt({"trace", id_, rays, "-o", out, "--connections", "2", "--chunk-rays", "7000"});
+        ASSERT_EQ(
+            run_cli({"rays", mesh_file_, "-o", rays, "--kind", kind, "--res", "300"}).exit_code, 0);
+        const CliRun run =
+            kdrt({"trace", id_, rays, "-o", out, "--connections", "2", "--chunk-rays", "7000"});
         ASSERT_EQ(run.exit_code, 0) << run.err;
         auto batch = proto::decode_rays(read_bytes(rays));
         ASSERT_TRUE(batch);
@@ -488,12 +536,17 @@ TEST_F(Cli, TraceWritesTheEngineAnswers) {
             std::vector<Hit> want(batch->rays.size());
             intersect(*tree_, batch->rays, want);
             EXPECT_EQ(read_bytes(out), proto::encode_hits(want));
-            const auto hits = std::count_if(want.begin(), want.end(), [](const Hit& h) { return h.is_hit(); });
-            EXPECT_TRUE(contains(run.out, "over 2 connections: " + std::to_string(hits) + " hits -> " + out)) << run.out;
+            const auto hits =
+                std::count_if(want.begin(), want.end(), [](const Hit& h) { return h.is_hit(); });
+            EXPECT_TRUE(contains(run.out,
+                                 "over 2 connections: " + std::to_string(hits) + " hits -> " + out))
+                << run.out;
         }
-        EXPECT_EQ(run.out.rfind("traced " + std::to_string(batch->rays.size()) + " rays (", 0), 0u) << run.out;
+        EXPECT_EQ(run.out.rfind("traced " + std::to_string(batch->rays.size()) + " rays (", 0), 0u)
+            << run.out;
     }
-    const CliRun json = kdrt({"trace", id_.substr(0, 10), path("t_primary.kdrr"), "-o", path("j.kdrh"), "--json"});
+    const CliRun json =
+        kdrt({"trace", id_.substr(0, 10), path("t_primary.kdrr"), "-o", path("j.kdrh"), "--json"});
     ASSERT_EQ(json.exit_code, 0) << json.err;
     const auto line = nlohmann::json::parse(json.out);
     EXPECT_EQ(line["mesh"], id_);
@@ -525,7 +578,9 @@ TEST_F(Cli, TraceErrors) {
     ASSERT_TRUE(proto::write_file_bytes(rays, proto::encode_rays(few, false)));
     const CliRun nan = kdrt({"trace", id_, rays, "-o", path("h.kdrh")});
     EXPECT_EQ(nan.exit_code, 1);
-    EXPECT_TRUE(contains(nan.err, "400 Malformed ray batch: malformed KDRR batch: ray 4: field dz is NaN")) << nan.err;
+    EXPECT_TRUE(
+        contains(nan.err, "400 Malformed ray batch: malformed KDRR batch: ray 4: field dz is NaN"))
+        << nan.err;
     EXPECT_FALSE(std::filesystem::exists(path("h.kdrh")));
 }
 
@@ -539,7 +594,8 @@ TEST_F(Cli, HealthAndMetrics) {
     EXPECT_EQ(metrics.exit_code, 0) << metrics.err;
     EXPECT_TRUE(contains(metrics.out, "# TYPE kdrt_http_requests_total counter\n")) << metrics.out;
     // --server beats KDRT_SERVER.
-    const CliRun flag = run_cli({"health", "--server", server_url(*server_)}, {.env = {"KDRT_SERVER=http://127.0.0.1:1"}});
+    const CliRun flag = run_cli({"health", "--server", server_url(*server_)},
+                                {.env = {"KDRT_SERVER=http://127.0.0.1:1"}});
     EXPECT_EQ(flag.exit_code, 0) << flag.err;
 }
 
@@ -559,23 +615,33 @@ TEST_F(Cli, HealthReportsAServerThatIsNotReady) {
     const CliRun run = run_cli({"health", "--server", fake.url()});
     EXPECT_EQ(run.exit_code, 1);
     EXPECT_EQ(run.out, fake.url() + " is alive but not ready\n");
-    EXPECT_TRUE(contains(run.err, "kdrt health: 503 Not ready: the server is shutting down")) << run.err;
+    EXPECT_TRUE(contains(run.err, "kdrt health: 503 Not ready: the server is shutting down"))
+        << run.err;
 }
 
 TEST_F(Cli, ServerDownExitsThreeWithAClearMessage) {
     const std::string down = "http://127.0.0.1:" + std::to_string(unused_port());
-    for (const std::vector<std::string>& args :
-         {std::vector<std::string>{"health"}, {"meshes"}, {"upload", mesh_file_}, {"info", id_}, {"rm", id_},
-          {"metrics"}, {"render", id_, "-o", path("d.png")}, {"bench-remote", id_}}) {
+    for (const std::vector<std::string>& args : {std::vector<std::string>{"health"},
+                                                 {"meshes"},
+                                                 {"upload", mesh_file_},
+                                                 {"info", id_},
+                                                 {"rm", id_},
+                                                 {"metrics"},
+                                                 {"render", id_, "-o", path("d.png")},
+                                                 {"bench-remote", id_}}) {
         SCOPED_TRACE(args[0]);
         std::vector<std::string> with_server = args;
         with_server.insert(with_server.end(), {"--server", down, "--retries", "1"});
         const CliRun run = run_cli(with_server);
         EXPECT_EQ(run.exit_code, 3) << run.err;
         EXPECT_TRUE(contains(run.err, "kdrt " + args[0] + ": ")) << run.err;
-        EXPECT_TRUE(contains(run.err, "cannot connect: " + down + ": could not connect: Connection refused (")) << run.err;
+        EXPECT_TRUE(contains(
+            run.err, "cannot connect: " + down + ": could not connect: Connection refused ("))
+            << run.err;
         EXPECT_TRUE(contains(run.err, "2 attempts)")) << run.err;
-        EXPECT_TRUE(contains(run.err, "is kdrt-server running there? Set the address with --server URL or KDRT_SERVER."))
+        EXPECT_TRUE(contains(
+            run.err,
+            "is kdrt-server running there? Set the address with --server URL or KDRT_SERVER."))
             << run.err;
     }
     // The default retries (4, with backoff) still end in well under a minute.
@@ -593,7 +659,8 @@ TEST_F(Cli, Injected503sAreRetriedByTheCli) {
     FaultyProxy always(server_->port(), 1000, 0);
     const CliRun busy = run_cli({"meshes", "--server", always.url(), "--retries", "2"});
     EXPECT_EQ(busy.exit_code, 1);
-    EXPECT_TRUE(contains(busy.err, "kdrt meshes: 503 Over capacity: injected 503 number 3")) << busy.err;
+    EXPECT_TRUE(contains(busy.err, "kdrt meshes: 503 Over capacity: injected 503 number 3"))
+        << busy.err;
     EXPECT_EQ(always.requests(), 3);
 }
 
@@ -604,10 +671,15 @@ TEST(CliAuth, TokenFromFlagOrEnvironment) {
     const CliRun refused = run_cli({"meshes", "--server", url});
     EXPECT_EQ(refused.exit_code, 1);
     EXPECT_TRUE(contains(refused.err, "kdrt meshes: 401 Unauthorized: ")) << refused.err;
-    EXPECT_TRUE(contains(refused.err, "set the server's bearer token with --token TOKEN or KDRT_TOKEN.")) << refused.err;
+    EXPECT_TRUE(
+        contains(refused.err, "set the server's bearer token with --token TOKEN or KDRT_TOKEN."))
+        << refused.err;
     EXPECT_EQ(run_cli({"meshes", "--server", url, "--token", "t0ken"}).exit_code, 0);
     EXPECT_EQ(run_cli({"meshes", "--server", url}, {.env = {"KDRT_TOKEN=t0ken"}}).exit_code, 0);
-    EXPECT_EQ(run_cli({"meshes", "--server", url, "--token", "wrong"}, {.env = {"KDRT_TOKEN=t0ken"}}).exit_code, 1);
+    EXPECT_EQ(
+        run_cli({"meshes", "--server", url, "--token", "wrong"}, {.env = {"KDRT_TOKEN=t0ken"}})
+            .exit_code,
+        1);
 }
 
 // ---- bench-remote ------------------------------------------------------------------------------
@@ -615,7 +687,8 @@ TEST(CliAuth, TokenFromFlagOrEnvironment) {
 TEST_F(Cli, BenchRemoteMeasuresEveryRaySource) {
     upload_suite_mesh();
     // Primary rays from the server's bounds: needs only the id.
-    const CliRun bounds = kdrt({"bench-remote", id_, "--res", "64", "--reps", "2", "--connections", "2", "--json"});
+    const CliRun bounds =
+        kdrt({"bench-remote", id_, "--res", "64", "--reps", "2", "--connections", "2", "--json"});
     ASSERT_EQ(bounds.exit_code, 0) << bounds.err;
     const auto b = nlohmann::json::parse(bounds.out);
     EXPECT_EQ(b["command"], "bench-remote");
@@ -630,7 +703,8 @@ TEST_F(Cli, BenchRemoteMeasuresEveryRaySource) {
     EXPECT_GT(b["hits"].get<uint64_t>(), 0u);
 
     // Diffuse rays from the uploaded file: exactly generate_rays' set.
-    const CliRun diffuse = kdrt({"bench-remote", id_, "--kind", "diffuse", "--mesh", mesh_file_, "--res", "64", "--json"});
+    const CliRun diffuse = kdrt(
+        {"bench-remote", id_, "--kind", "diffuse", "--mesh", mesh_file_, "--res", "64", "--json"});
     ASSERT_EQ(diffuse.exit_code, 0) << diffuse.err;
     const auto d = nlohmann::json::parse(diffuse.out);
     EXPECT_EQ(d["source"], "mesh");
@@ -638,7 +712,9 @@ TEST_F(Cli, BenchRemoteMeasuresEveryRaySource) {
     EXPECT_EQ(d["occlusion"], false);
 
     const std::string shadow = path("bench_shadow.kdrr");
-    ASSERT_EQ(run_cli({"rays", mesh_file_, "-o", shadow, "--kind", "shadow", "--res", "64"}).exit_code, 0);
+    ASSERT_EQ(
+        run_cli({"rays", mesh_file_, "-o", shadow, "--kind", "shadow", "--res", "64"}).exit_code,
+        0);
     const CliRun file = kdrt({"bench-remote", id_, "--rays", shadow});
     ASSERT_EQ(file.exit_code, 0) << file.err;
     EXPECT_EQ(file.out.rfind("file rays (rays): ", 0), 0u) << file.out;
@@ -650,8 +726,11 @@ TEST_F(Cli, BenchRemoteErrors) {
     upload_suite_mesh();
     const CliRun needs_mesh = kdrt({"bench-remote", id_, "--kind", "diffuse"});
     EXPECT_EQ(needs_mesh.exit_code, 2);
-    EXPECT_TRUE(contains(needs_mesh.err, "--kind diffuse needs the mesh's triangles: add --mesh FILE")) << needs_mesh.err;
-    const CliRun wrong_mesh = kdrt({"bench-remote", id_, "--mesh", data_path("diplodocus.off"), "--res", "8"});
+    EXPECT_TRUE(
+        contains(needs_mesh.err, "--kind diffuse needs the mesh's triangles: add --mesh FILE"))
+        << needs_mesh.err;
+    const CliRun wrong_mesh =
+        kdrt({"bench-remote", id_, "--mesh", data_path("diplodocus.off"), "--res", "8"});
     EXPECT_EQ(wrong_mesh.exit_code, 2);
     EXPECT_TRUE(contains(wrong_mesh.err, "is not mesh " + id_ + " (its id is ")) << wrong_mesh.err;
     const CliRun unknown = kdrt({"bench-remote", std::string(64, '9')});

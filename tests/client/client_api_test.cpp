@@ -22,7 +22,8 @@ class ClientApi : public ::testing::Test {
 protected:
     static void SetUpTestSuite() {
         dir_ = new TempDir();
-        server_ = new ServerProcess({.cache_dir = dir_->path() / "cache", .args = {"--max-jobs", "4"}});
+        server_ =
+            new ServerProcess({.cache_dir = dir_->path() / "cache", .args = {"--max-jobs", "4"}});
         Rng rng(test_seed());
         mesh_ = new Mesh(random_soup(rng, 3000));
         tree_ = new KdTree(build_kdtree(*mesh_));
@@ -33,7 +34,9 @@ protected:
         delete mesh_;
         delete tree_;
     }
-    static Client client(ClientOptions options = fast_options()) { return Client(server_url(*server_), options); }
+    static Client client(ClientOptions options = fast_options()) {
+        return Client(server_url(*server_), options);
+    }
     /// Uploads the suite's mesh and returns its id.
     static std::string uploaded() {
         auto info = client().upload(*mesh_);
@@ -84,7 +87,8 @@ TEST_F(ClientApi, UploadRefusesUnusableLocalFiles) {
     auto missing = c.upload(dir_->path() / "missing.obj");
     ASSERT_FALSE(missing);
     EXPECT_EQ(missing.error().kind, ErrorKind::kInput);
-    EXPECT_NE(missing.error().detail.find("No such file or directory"), std::string::npos) << missing.error().detail;
+    EXPECT_NE(missing.error().detail.find("No such file or directory"), std::string::npos)
+        << missing.error().detail;
     EXPECT_NE(missing.error().detail.find("missing.obj"), std::string::npos);
 
     const std::filesystem::path unknown = dir_->path() / "mesh.xyz";
@@ -145,21 +149,28 @@ TEST_F(ClientApi, MeshesMeshAndRemove) {
 
     auto list = c.meshes();
     ASSERT_TRUE(list) << list.error().to_string();
-    EXPECT_TRUE(std::is_sorted(list->begin(), list->end(), [](const MeshInfo& a, const MeshInfo& b) { return a.id < b.id; }));
-    EXPECT_EQ(std::count_if(list->begin(), list->end(), [&](const MeshInfo& m) { return m.id == info->id; }), 1);
+    EXPECT_TRUE(std::is_sorted(list->begin(), list->end(),
+                               [](const MeshInfo& a, const MeshInfo& b) { return a.id < b.id; }));
+    EXPECT_EQ(std::count_if(list->begin(), list->end(),
+                            [&](const MeshInfo& m) { return m.id == info->id; }),
+              1);
 
     ASSERT_TRUE(c.remove(info->id));
     auto gone = c.mesh(info->id);
     ASSERT_FALSE(gone);
     EXPECT_EQ(gone.error().status, 404);
     EXPECT_EQ(gone.error().title, "Unknown mesh");
-    EXPECT_NE(gone.error().detail.find(std::string(proto::api_errors::kUnknownMesh) + " " + info->id), std::string::npos);
+    EXPECT_NE(
+        gone.error().detail.find(std::string(proto::api_errors::kUnknownMesh) + " " + info->id),
+        std::string::npos);
     auto again = c.remove(info->id);
     ASSERT_FALSE(again);
     EXPECT_EQ(again.error().status, 404);
     auto list_after = c.meshes();
     ASSERT_TRUE(list_after);
-    EXPECT_EQ(std::count_if(list_after->begin(), list_after->end(), [&](const MeshInfo& m) { return m.id == info->id; }), 0);
+    EXPECT_EQ(std::count_if(list_after->begin(), list_after->end(),
+                            [&](const MeshInfo& m) { return m.id == info->id; }),
+              0);
 }
 
 TEST_F(ClientApi, IdsThatAreNotIdsStayInsideTheRoute) {
@@ -173,7 +184,8 @@ TEST_F(ClientApi, IdsThatAreNotIdsStayInsideTheRoute) {
     ASSERT_FALSE(spaced);
     EXPECT_EQ(spaced.error().status, 404);
     EXPECT_EQ(spaced.error().title, "Unknown mesh");
-    EXPECT_NE(spaced.error().detail.find(proto::api_errors::kBadMeshId), std::string::npos) << spaced.error().detail;
+    EXPECT_NE(spaced.error().detail.find(proto::api_errors::kBadMeshId), std::string::npos)
+        << spaced.error().detail;
 }
 
 TEST_F(ClientApi, IntersectAndOccludedMatchTheEngine) {
@@ -221,7 +233,8 @@ TEST_F(ClientApi, IntersectErrorsComeFromTheServer) {
     EXPECT_EQ(refused.error().status, 400);
     EXPECT_EQ(refused.error().title, "Malformed ray batch");
     EXPECT_EQ(refused.error().code, "non_finite_ray");
-    EXPECT_NE(refused.error().detail.find("ray 3: field dx is NaN"), std::string::npos) << refused.error().detail;
+    EXPECT_NE(refused.error().detail.find("ray 3: field dx is NaN"), std::string::npos)
+        << refused.error().detail;
 }
 
 TEST_F(ClientApi, RenderSubmitWaitAndResultAgree) {
@@ -251,7 +264,7 @@ TEST_F(ClientApi, RenderSubmitWaitAndResultAgree) {
         EXPECT_TRUE(std::is_sorted(progress.begin(), progress.end()));
         auto again = c.result(*job);
         ASSERT_TRUE(again) << again.error().to_string();
-        EXPECT_EQ(*again, *waited);  // the stored bytes of the same job
+        EXPECT_EQ(*again, *waited);   // the stored bytes of the same job
         ASSERT_TRUE(c.cancel(*job));  // forgets the finished job
         auto forgotten = c.job(job->id);
         ASSERT_FALSE(forgotten);
@@ -283,7 +296,8 @@ TEST_F(ClientApi, RenderErrors) {
 
     Job ghost;
     ghost.id = std::string(32, '0');
-    for (auto result : {c.job(ghost.id).ok(), c.result(ghost).ok(), c.cancel(ghost).ok()}) EXPECT_FALSE(result);
+    for (auto result : {c.job(ghost.id).ok(), c.result(ghost).ok(), c.cancel(ghost).ok()})
+        EXPECT_FALSE(result);
     auto waited = c.wait(ghost);
     ASSERT_FALSE(waited);
     EXPECT_EQ(waited.error().status, 404);
@@ -311,7 +325,8 @@ TEST_F(ClientApi, WaitStopsAndCancelsWhenTheCallbackSaysSo) {
         ASSERT_TRUE(status) << status.error().to_string();
         EXPECT_TRUE(status->cancel_requested || status->state == proto::JobState::kCancelled);
         state = status->state;
-        if (state != proto::JobState::kCancelled) std::this_thread::sleep_for(std::chrono::milliseconds(50));
+        if (state != proto::JobState::kCancelled)
+            std::this_thread::sleep_for(std::chrono::milliseconds(50));
     }
     EXPECT_EQ(state, proto::JobState::kCancelled);
     auto result = c.result(*job);
@@ -380,7 +395,8 @@ class ClientAuth : public ::testing::Test {
 protected:
     static void SetUpTestSuite() {
         dir_ = new TempDir();
-        server_ = new ServerProcess({.cache_dir = dir_->path() / "cache", .args = {"--token", "s3cret"}});
+        server_ =
+            new ServerProcess({.cache_dir = dir_->path() / "cache", .args = {"--token", "s3cret"}});
     }
     static void TearDownTestSuite() {
         delete server_;

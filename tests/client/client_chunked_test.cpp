@@ -21,7 +21,8 @@ TEST(ClientChunked, FiveMillionRaysEqualTheEngine) {
     const KdTree tree = build_kdtree(mesh);
     // Camera rays of the default view: every pixel's answer differs from its neighbours', so a
     // chunk put back in the wrong place shows.
-    const auto res = static_cast<uint32_t>(std::lround(std::sqrt(static_cast<double>(scaled(5'000'000)))));
+    const auto res =
+        static_cast<uint32_t>(std::lround(std::sqrt(static_cast<double>(scaled(5'000'000)))));
     const std::vector<Ray> rays = generate_rays(tree, {.kind = RayKind::kPrimary, .res = res});
     SCOPED_TRACE(testing::Message() << rays.size() << " rays");
 
@@ -44,13 +45,16 @@ TEST(ClientChunked, FiveMillionRaysEqualTheEngine) {
            std::memcmp(&(*hits)[first_difference], &want[first_difference], sizeof(Hit)) == 0)
         ++first_difference;
     EXPECT_EQ(first_difference, want.size()) << "first different answer: ray " << first_difference;
-    const auto hit_count = std::count_if(want.begin(), want.end(), [](const Hit& h) { return h.is_hit(); });
+    const auto hit_count =
+        std::count_if(want.begin(), want.end(), [](const Hit& h) { return h.is_hit(); });
     EXPECT_GT(hit_count, 0);
     EXPECT_LT(static_cast<size_t>(hit_count), want.size());
 
     // Shadow rays from the primary hits towards a light: an occlusion batch of incoherent rays.
-    const auto shadow_res = static_cast<uint32_t>(std::lround(std::sqrt(static_cast<double>(scaled(1'000'000)))));
-    const std::vector<Ray> shadow = generate_rays(tree, {.kind = RayKind::kShadow, .res = shadow_res});
+    const auto shadow_res =
+        static_cast<uint32_t>(std::lround(std::sqrt(static_cast<double>(scaled(1'000'000)))));
+    const std::vector<Ray> shadow =
+        generate_rays(tree, {.kind = RayKind::kShadow, .res = shadow_res});
     auto occ = client.occluded(info->id, shadow);
     ASSERT_TRUE(occ) << occ.error().to_string();
     std::vector<uint8_t> want_occ(shadow.size());

@@ -19,7 +19,9 @@ namespace {
 
 using Clock = std::chrono::steady_clock;
 
-double seconds_since(Clock::time_point start) { return std::chrono::duration<double>(Clock::now() - start).count(); }
+double seconds_since(Clock::time_point start) {
+    return std::chrono::duration<double>(Clock::now() - start).count();
+}
 
 class ClientRetry : public ::testing::Test {
 protected:
@@ -243,7 +245,8 @@ struct OutOfOrderIntersect {
     void handle(const httplib::Request& req, httplib::Response& res) {
         const int index = arrived_.fetch_add(1);
         const int now = in_flight_.fetch_add(1) + 1;
-        for (int seen = max_in_flight_.load(); now > seen && !max_in_flight_.compare_exchange_weak(seen, now);) {
+        for (int seen = max_in_flight_.load();
+             now > seen && !max_in_flight_.compare_exchange_weak(seen, now);) {
         }
         {
             std::lock_guard lock(mutex_);
@@ -260,7 +263,8 @@ struct OutOfOrderIntersect {
         std::vector<Hit> hits(batch->rays.size());
         intersect(tree_, batch->rays, hits);
         const std::vector<std::byte> body = proto::encode_hits(hits);
-        res.set_content(reinterpret_cast<const char*>(body.data()), body.size(), std::string(proto::kHitsMediaType));
+        res.set_content(reinterpret_cast<const char*>(body.data()), body.size(),
+                        std::string(proto::kHitsMediaType));
     }
 
     const KdTree& tree_;
@@ -274,9 +278,11 @@ TEST_F(ClientRetry, ChunksAnsweredOutOfOrderAreReassembledInOrder) {
     constexpr int kChunks = 12;
     OutOfOrderIntersect route(*tree_, kChunks);
     FakeServer fake([&](httplib::Server& http) {
-        http.set_keep_alive_max_count(1000);  // httplib's default (5) would close connections under the test
-        http.Post("/v1/meshes/([^/]+)/intersect",
-                  [&](const httplib::Request& req, httplib::Response& res) { route.handle(req, res); });
+        http.set_keep_alive_max_count(
+            1000);  // httplib's default (5) would close connections under the test
+        http.Post(
+            "/v1/meshes/([^/]+)/intersect",
+            [&](const httplib::Request& req, httplib::Response& res) { route.handle(req, res); });
     });
     ClientOptions options = fast_options();
     options.chunk_rays = 500;
@@ -301,7 +307,8 @@ TEST_F(ClientRetry, ChunksAnsweredOutOfOrderAreReassembledInOrder) {
 TEST_F(ClientRetry, AChunkErrorStopsTheBatch) {
     std::atomic<int> calls{0};
     FakeServer fake([&](httplib::Server& http) {
-        http.Post("/v1/meshes/([^/]+)/intersect", [&](const httplib::Request& req, httplib::Response& res) {
+        http.Post("/v1/meshes/([^/]+)/intersect", [&](const httplib::Request& req,
+                                                      httplib::Response& res) {
             if (calls.fetch_add(1) == 2) {
                 proto::Problem p;
                 p.kind = proto::ProblemKind::kBadRayBatch;
@@ -311,8 +318,10 @@ TEST_F(ClientRetry, AChunkErrorStopsTheBatch) {
                 res.set_content(proto::encode_problem(p), std::string(proto::kProblemMediaType));
                 return;
             }
-            auto batch = proto::decode_rays(std::as_bytes(std::span(req.body.data(), req.body.size())));
-            const std::vector<std::byte> body = proto::encode_occlusion(std::vector<uint8_t>(batch->rays.size(), 1));
+            auto batch =
+                proto::decode_rays(std::as_bytes(std::span(req.body.data(), req.body.size())));
+            const std::vector<std::byte> body =
+                proto::encode_occlusion(std::vector<uint8_t>(batch->rays.size(), 1));
             res.set_content(reinterpret_cast<const char*>(body.data()), body.size(),
                             std::string(proto::kOcclusionMediaType));
         });
@@ -330,14 +339,17 @@ TEST_F(ClientRetry, AChunkErrorStopsTheBatch) {
 
 TEST_F(ClientRetry, AnswersTheApiDoesNotAllowAreProtocolErrors) {
     FakeServer fake([&](httplib::Server& http) {
-        http.Post("/v1/meshes/([^/]+)/intersect", [&](const httplib::Request& req, httplib::Response& res) {
-            if (req.path.find("garbage") != std::string::npos) {
-                res.set_content("not KDRH", std::string(proto::kHitsMediaType));
-                return;
-            }
-            const std::vector<std::byte> body = proto::encode_hits(std::vector<Hit>(2));  // always 2 answers
-            res.set_content(reinterpret_cast<const char*>(body.data()), body.size(), std::string(proto::kHitsMediaType));
-        });
+        http.Post("/v1/meshes/([^/]+)/intersect",
+                  [&](const httplib::Request& req, httplib::Response& res) {
+                      if (req.path.find("garbage") != std::string::npos) {
+                          res.set_content("not KDRH", std::string(proto::kHitsMediaType));
+                          return;
+                      }
+                      const std::vector<std::byte> body =
+                          proto::encode_hits(std::vector<Hit>(2));  // always 2 answers
+                      res.set_content(reinterpret_cast<const char*>(body.data()), body.size(),
+                                      std::string(proto::kHitsMediaType));
+                  });
         http.Get("/v1/meshes", [](const httplib::Request&, httplib::Response& res) {
             res.set_content("{\"meshes\": 7}", "application/json");
         });
@@ -354,14 +366,17 @@ TEST_F(ClientRetry, AnswersTheApiDoesNotAllowAreProtocolErrors) {
     ASSERT_FALSE(garbage);
     EXPECT_EQ(garbage.error().kind, ErrorKind::kProtocol);
     EXPECT_EQ(garbage.error().title, "bad response");
-    EXPECT_NE(garbage.error().detail.find("too_short"), std::string::npos) << garbage.error().detail;
+    EXPECT_NE(garbage.error().detail.find("too_short"), std::string::npos)
+        << garbage.error().detail;
     auto wrong_count = c.intersect(id_, std::vector<Ray>(1));
     ASSERT_FALSE(wrong_count);
     EXPECT_EQ(wrong_count.error().kind, ErrorKind::kProtocol);
-    EXPECT_NE(wrong_count.error().detail.find("too_many_rays"), std::string::npos) << wrong_count.error().detail;
+    EXPECT_NE(wrong_count.error().detail.find("too_many_rays"), std::string::npos)
+        << wrong_count.error().detail;
     auto short_count = c.intersect(id_, std::vector<Ray>(1000));
     ASSERT_FALSE(short_count);
-    EXPECT_NE(short_count.error().detail.find("2 answers for 1000 rays"), std::string::npos) << short_count.error().detail;
+    EXPECT_NE(short_count.error().detail.find("2 answers for 1000 rays"), std::string::npos)
+        << short_count.error().detail;
     auto list = c.meshes();
     ASSERT_FALSE(list);
     EXPECT_EQ(list.error().kind, ErrorKind::kProtocol);

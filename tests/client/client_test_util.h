@@ -19,7 +19,9 @@
 
 namespace kdrt::test {
 
-inline std::string data_path(const std::string& name) { return std::string(KDRT_TEST_DATA_DIR) + "/" + name; }
+inline std::string data_path(const std::string& name) {
+    return std::string(KDRT_TEST_DATA_DIR) + "/" + name;
+}
 
 inline Mesh load_mesh(const std::string& path) {
     auto mesh = proto::load_mesh_file(path);
@@ -55,7 +57,8 @@ inline ClientOptions fast_options() {
 /// Bitwise equality of two arrays of trivially copyable values (hits compare NaN-safe).
 template <class T>
 bool same_bits(const std::vector<T>& a, const std::vector<T>& b) {
-    return a.size() == b.size() && (a.empty() || std::memcmp(a.data(), b.data(), a.size() * sizeof(T)) == 0);
+    return a.size() == b.size() &&
+           (a.empty() || std::memcmp(a.data(), b.data(), a.size() * sizeof(T)) == 0);
 }
 
 /// The same rendered image: identical bytes for PNG and JPEG; for EXR (whose header carries the
@@ -77,7 +80,8 @@ inline void expect_same_image(const std::vector<std::byte>& got, const std::vect
 }
 
 /// Images render deterministically: the request every render test uses (small, fast).
-inline RenderRequest small_render(const std::string& id, Shading shading = Shading::kEyelight, std::string format = "png") {
+inline RenderRequest small_render(const std::string& id, Shading shading = Shading::kEyelight,
+                                  std::string format = "png") {
     RenderRequest request;
     request.mesh = id;
     request.settings.width = 96;

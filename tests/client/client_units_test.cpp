@@ -49,17 +49,16 @@ TEST(ServerUrl, RefusesMalformedAddressesNamingTheProblem) {
         const char* text;
         const char* phrase;
     };
-    for (const Case& c : {Case{"ftp://host", "unknown scheme \"ftp\""}, Case{"http://", "no host"},
-                          Case{"http://:80", "no host"}, Case{"http://host:", "empty port"},
-                          Case{"http://host:0", "not a number in 1 .. 65535"},
-                          Case{"http://host:65536", "not a number in 1 .. 65535"},
-                          Case{"http://host:8x", "not a number in 1 .. 65535"},
-                          Case{"http://host?x=1", "no query or fragment"},
-                          Case{"http://user:pw@host", "user information"},
-                          Case{"http://ho st", "is not a host name"},
-                          Case{"http://[::1", "unterminated ["},
-                          Case{"http://[zz]", "is not an IPv6 address"},
-                          Case{"http://[::1]x", "expected :PORT"}}) {
+    for (const Case& c :
+         {Case{"ftp://host", "unknown scheme \"ftp\""}, Case{"http://", "no host"},
+          Case{"http://:80", "no host"}, Case{"http://host:", "empty port"},
+          Case{"http://host:0", "not a number in 1 .. 65535"},
+          Case{"http://host:65536", "not a number in 1 .. 65535"},
+          Case{"http://host:8x", "not a number in 1 .. 65535"},
+          Case{"http://host?x=1", "no query or fragment"},
+          Case{"http://user:pw@host", "user information"},
+          Case{"http://ho st", "is not a host name"}, Case{"http://[::1", "unterminated ["},
+          Case{"http://[zz]", "is not an IPv6 address"}, Case{"http://[::1]x", "expected :PORT"}}) {
         SCOPED_TRACE(c.text);
         auto url = parse_server_url(c.text);
         ASSERT_FALSE(url);
@@ -74,7 +73,8 @@ TEST(ClientError, FromProblemJson) {
     p.detail = "line 4: face index 9 out of range";
     p.line = 4;
     p.request_id = "0000000000000007";
-    const Error e = error_from_response(422, "application/problem+json", proto::encode_problem(p), "ignored");
+    const Error e =
+        error_from_response(422, "application/problem+json", proto::encode_problem(p), "ignored");
     EXPECT_EQ(e.kind, ErrorKind::kServer);
     EXPECT_EQ(e.status, 422);
     EXPECT_EQ(e.title, "Mesh parse error");
@@ -90,7 +90,8 @@ TEST(ClientError, FromProblemJson) {
     p.limit = 64;
     p.code = "x";
     p.request_id.clear();
-    const Error busy = error_from_response(503, "text/plain", proto::encode_problem(p), "00000000000000ff");
+    const Error busy =
+        error_from_response(503, "text/plain", proto::encode_problem(p), "00000000000000ff");
     EXPECT_EQ(busy.title, "Over capacity");  // decoded though mislabelled: it is a problem document
     EXPECT_EQ(busy.retry_after, 3u);
     EXPECT_EQ(busy.limit, 64u);
@@ -116,7 +117,9 @@ TEST(ClientError, FromOtherBodies) {
 }
 
 TEST(CliExitCodes, FollowTheErrorKind) {
-    const auto code = [](ErrorKind kind) { return cli::exit_code_for(make_client_error(kind, "t", "d")); };
+    const auto code = [](ErrorKind kind) {
+        return cli::exit_code_for(make_client_error(kind, "t", "d"));
+    };
     EXPECT_EQ(code(ErrorKind::kServer), cli::kExitRefused);
     EXPECT_EQ(code(ErrorKind::kProtocol), cli::kExitRefused);
     EXPECT_EQ(code(ErrorKind::kJobFailed), cli::kExitRefused);
@@ -127,7 +130,8 @@ TEST(CliExitCodes, FollowTheErrorKind) {
 
 TEST(CliArgs, SplitsOptionsFlagsAndPositionals) {
     const cli::OptionSpec specs[] = {{"output", true, 'o'}, {"json", false}, {"size", true}};
-    const std::vector<std::string> args = {"a", "-o", "x.png", "--json", "--size=3x4", "--", "--json", "-5"};
+    const std::vector<std::string> args = {"a",          "-o", "x.png",  "--json",
+                                           "--size=3x4", "--", "--json", "-5"};
     auto parsed = cli::parse_args(args, specs, "kdrt t");
     ASSERT_TRUE(parsed) << parsed.error();
     EXPECT_EQ(parsed->positional, (std::vector<std::string>{"a", "--json", "-5"}));
@@ -155,8 +159,10 @@ TEST(CliArgs, ErrorsNameTheOptionAndTheCommand) {
 }
 
 TEST(CliArgs, GlobalSettingsFromFlagsAndEnvironment) {
-    const std::vector<cli::OptionSpec> specs(std::begin(cli::kGlobalOptions), std::end(cli::kGlobalOptions));
-    const auto settings = [&](std::vector<std::string> args, std::map<std::string, std::string> env) {
+    const std::vector<cli::OptionSpec> specs(std::begin(cli::kGlobalOptions),
+                                             std::end(cli::kGlobalOptions));
+    const auto settings = [&](std::vector<std::string> args,
+                              std::map<std::string, std::string> env) {
         return cli::global_settings(*cli::parse_args(args, specs, "kdrt t"), env);
     };
     EXPECT_EQ(settings({}, {})->server, "http://127.0.0.1:8080");
@@ -169,7 +175,8 @@ TEST(CliArgs, GlobalSettingsFromFlagsAndEnvironment) {
     EXPECT_EQ(full->retries, 0u);
     EXPECT_FALSE(settings({"--server", "ftp://x"}, {}));
     EXPECT_FALSE(settings({}, {{"KDRT_SERVER", "http://h:0"}}));
-    EXPECT_EQ(settings({"--timeout", "0"}, {}).error(), "--timeout: \"0\" is not a positive number of seconds");
+    EXPECT_EQ(settings({"--timeout", "0"}, {}).error(),
+              "--timeout: \"0\" is not a positive number of seconds");
     EXPECT_EQ(settings({"--retries", "x"}, {}).error(), "--retries: \"x\" is not a whole number");
     EXPECT_EQ(settings({"--retries", "101"}, {}).error(), "--retries: \"101\" is not in 0 .. 100");
 }
@@ -191,7 +198,8 @@ TEST(CliArgs, ValueParsers) {
     EXPECT_FALSE(cli::parse_region("0,0,5"));
     EXPECT_EQ(*cli::parse_uint("42", 1, 100), 42u);
     EXPECT_EQ(cli::parse_uint("", 0, 1).error(), "\"\" is not a whole number");
-    EXPECT_EQ(cli::parse_uint("99999999999999999999", 0, 1).error(), "\"99999999999999999999\" is not in 0 .. 1");
+    EXPECT_EQ(cli::parse_uint("99999999999999999999", 0, 1).error(),
+              "\"99999999999999999999\" is not in 0 .. 1");
     EXPECT_FALSE(cli::parse_uint("4.5", 0, 10));
     EXPECT_EQ(*cli::parse_number("-0.25"), -0.25);
     EXPECT_FALSE(cli::parse_number("1e999"));
@@ -215,15 +223,18 @@ TEST(CliOutput, JsonLinesCarryTheServerFields) {
     const std::string plain = cli::mesh_json_line(m);
     EXPECT_EQ(plain, proto::encode_mesh_summary(m));
     const std::string with_file = cli::mesh_json_line(m, "dir/a \"b\".obj");
-    EXPECT_EQ(with_file.rfind("{\"file\":\"dir/a \\\"b\\\".obj\",\"id\":\"aaaa", 0), 0u) << with_file;
+    EXPECT_EQ(with_file.rfind("{\"file\":\"dir/a \\\"b\\\".obj\",\"id\":\"aaaa", 0), 0u)
+        << with_file;
     EXPECT_EQ(cli::upload_line(m, "x.obj"), m.id + "  12 triangles  1.2 ms  x.obj");
     const std::string table = cli::mesh_table(std::vector<proto::MeshSummary>{m});
     EXPECT_EQ(table.rfind("ID ", 0), 0u);
-    EXPECT_NE(table.find(m.id + "  " + "         12" + "          8" + "       1.2" + "  yes\n"), std::string::npos)
+    EXPECT_NE(table.find(m.id + "  " + "         12" + "          8" + "       1.2" + "  yes\n"),
+              std::string::npos)
         << table;
     const std::string details = cli::mesh_details(m);
     EXPECT_NE(details.find("triangles   12\n"), std::string::npos);
-    EXPECT_NE(details.find("bounds      [0.000000, 0.000000, 0.000000] .. [1.000000, 1.000000, 1.000000]\n"),
+    EXPECT_NE(details.find(
+                  "bounds      [0.000000, 0.000000, 0.000000] .. [1.000000, 1.000000, 1.000000]\n"),
               std::string::npos)
         << details;
 }

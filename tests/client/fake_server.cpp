@@ -12,7 +12,8 @@
 namespace kdrt::test {
 
 FakeServer::FakeServer(const std::function<void(httplib::Server&)>& setup, int port) {
-    // stop() waits for connection threads, and an idle keep-alive connection holds one for this long.
+    // stop() waits for connection threads, and an idle keep-alive connection holds one for this
+    // long.
     http_.set_keep_alive_timeout(1);
     setup(http_);
     if (port == 0) {
@@ -26,7 +27,8 @@ FakeServer::FakeServer(const std::function<void(httplib::Server&)>& setup, int p
     }
     thread_ = std::thread([this] { http_.listen_after_bind(); });
     // 0.11.4 has no wait_until_ready: poll is_running (bounded).
-    for (int i = 0; i < 1000 && !http_.is_running(); ++i) std::this_thread::sleep_for(std::chrono::milliseconds(2));
+    for (int i = 0; i < 1000 && !http_.is_running(); ++i)
+        std::this_thread::sleep_for(std::chrono::milliseconds(2));
 }
 
 FakeServer::~FakeServer() {
@@ -35,9 +37,13 @@ FakeServer::~FakeServer() {
 }
 
 FaultyProxy::FaultyProxy(int upstream_port, int unavailable_first, int retry_after_s)
-    : upstream_port_(upstream_port), unavailable_first_(unavailable_first), retry_after_s_(retry_after_s) {
+    : upstream_port_(upstream_port),
+      unavailable_first_(unavailable_first),
+      retry_after_s_(retry_after_s) {
     server_ = std::make_unique<FakeServer>([this](httplib::Server& http) {
-        const auto handler = [this](const httplib::Request& req, httplib::Response& res) { handle(req, res); };
+        const auto handler = [this](const httplib::Request& req, httplib::Response& res) {
+            handle(req, res);
+        };
         http.Get(".*", handler);
         http.Post(".*", handler);
         http.Delete(".*", handler);
@@ -71,16 +77,19 @@ void FaultyProxy::handle(const httplib::Request& req, httplib::Response& res) {
         for (const char* name : {"Authorization", "Prefer"})
             if (req.has_header(name)) headers.emplace(name, req.get_header_value(name));
         const std::string type = req.get_header_value("Content-Type");
-        httplib::Result forwarded = req.method == "GET"      ? upstream.Get(req.path, headers)
-                                    : req.method == "DELETE" ? upstream.Delete(req.path, headers)
-                                                             : upstream.Post(req.path, headers, req.body, type);
+        httplib::Result forwarded = req.method == "GET" ? upstream.Get(req.path, headers)
+                                    : req.method == "DELETE"
+                                        ? upstream.Delete(req.path, headers)
+                                        : upstream.Post(req.path, headers, req.body, type);
         if (!forwarded) {
             res.status = 502;
-            res.set_content("upstream failed: " + httplib::to_string(forwarded.error()), "text/plain");
+            res.set_content("upstream failed: " + httplib::to_string(forwarded.error()),
+                            "text/plain");
         } else {
             res.status = forwarded->status;
             for (const char* name : {"Retry-After", "Location", "X-Request-Id"})
-                if (forwarded->has_header(name)) res.set_header(name, forwarded->get_header_value(name));
+                if (forwarded->has_header(name))
+                    res.set_header(name, forwarded->get_header_value(name));
             res.set_content(forwarded->body, forwarded->get_header_value("Content-Type"));
         }
     }
@@ -94,7 +103,8 @@ DropServer::DropServer() {
     addr.sin_family = AF_INET;
     addr.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
     socklen_t len = sizeof addr;
-    if (fd_ < 0 || ::bind(fd_, reinterpret_cast<sockaddr*>(&addr), sizeof addr) != 0 || ::listen(fd_, 16) != 0 ||
+    if (fd_ < 0 || ::bind(fd_, reinterpret_cast<sockaddr*>(&addr), sizeof addr) != 0 ||
+        ::listen(fd_, 16) != 0 ||
         ::getsockname(fd_, reinterpret_cast<sockaddr*>(&addr), &len) != 0) {
         ADD_FAILURE() << "DropServer cannot listen";
         return;

@@ -28,7 +28,7 @@ bool is_hex_byte(std::string_view token) {
            std::isxdigit(static_cast<unsigned char>(token[1]));
 }
 
-/// The hex dumps of a Markdown text: fenced blocks whose lines are "OFFSET  b b b b  b ...   notes".
+/// The hex dumps of a Markdown text: fenced blocks whose lines are "OFFSET  b b b b  b ... notes".
 /// The byte columns end at the first run of three spaces; offsets must count the bytes so far.
 std::vector<Dump> hex_dumps(const std::string& markdown) {
     std::vector<Dump> dumps;
@@ -47,12 +47,17 @@ std::vector<Dump> hex_dumps(const std::string& markdown) {
         }
         if (!in_block || line.size() < 6 || line.substr(4, 2) != "  ") continue;
         const std::string offset = line.substr(0, 4);
-        if (!std::all_of(offset.begin(), offset.end(), [](unsigned char c) { return std::isxdigit(c); })) continue;
-        EXPECT_EQ(std::stoul(offset, nullptr, 16), current.bytes.size()) << "FORMATS.md line " << number;
+        if (!std::all_of(offset.begin(), offset.end(),
+                         [](unsigned char c) { return std::isxdigit(c); }))
+            continue;
+        EXPECT_EQ(std::stoul(offset, nullptr, 16), current.bytes.size())
+            << "FORMATS.md line " << number;
         const size_t notes = line.find("   ", 6);
-        std::istringstream columns(line.substr(6, notes == std::string::npos ? std::string::npos : notes - 6));
+        std::istringstream columns(
+            line.substr(6, notes == std::string::npos ? std::string::npos : notes - 6));
         for (std::string token; columns >> token;) {
-            EXPECT_TRUE(is_hex_byte(token)) << "FORMATS.md line " << number << ": \"" << token << "\"";
+            EXPECT_TRUE(is_hex_byte(token))
+                << "FORMATS.md line " << number << ": \"" << token << "\"";
             current.bytes.push_back(static_cast<std::byte>(std::stoul(token, nullptr, 16)));
         }
     }
@@ -74,10 +79,13 @@ std::string hex(std::span<const std::byte> bytes) {
 uint64_t documented_checksum(std::span<const std::byte> data) {
     uint64_t h = 0x9E3779B97F4A7C15ull ^ data.size();
     size_t i = 0;
-    const auto mix = [&](uint64_t w) { h = std::rotl(h ^ (w * 0xC2B2AE3D27D4EB4Full), 31) * 0x9E3779B97F4A7C15ull; };
+    const auto mix = [&](uint64_t w) {
+        h = std::rotl(h ^ (w * 0xC2B2AE3D27D4EB4Full), 31) * 0x9E3779B97F4A7C15ull;
+    };
     for (; i + 8 <= data.size(); i += 8) {
         uint64_t w = 0;
-        for (int b = 7; b >= 0; --b) w = (w << 8) | static_cast<uint64_t>(data[i + static_cast<size_t>(b)]);
+        for (int b = 7; b >= 0; --b)
+            w = (w << 8) | static_cast<uint64_t>(data[i + static_cast<size_t>(b)]);
         mix(w);
     }
     uint64_t tail = 0;
@@ -92,10 +100,12 @@ uint64_t documented_checksum(std::span<const std::byte> data) {
 TEST(FormatsDoc, HexExamplesAreWhatTheCodecsWrite) {
     auto text = proto::read_file_bytes(std::string(KDRT_SOURCE_DIR) + "/proto/FORMATS.md");
     ASSERT_TRUE(text) << text.error();
-    const std::vector<Dump> dumps = hex_dumps(std::string(reinterpret_cast<const char*>(text->data()), text->size()));
+    const std::vector<Dump> dumps =
+        hex_dumps(std::string(reinterpret_cast<const char*>(text->data()), text->size()));
 
     const float inf = std::numeric_limits<float>::infinity();
-    const std::vector<Ray> rays = {Ray{0, 0, -5, 0, 0, 0, 1, 100}, Ray{1, 2, 3, 0.5f, -1, 0, 0, inf}};
+    const std::vector<Ray> rays = {Ray{0, 0, -5, 0, 0, 0, 1, 100},
+                                   Ray{1, 2, 3, 0.5f, -1, 0, 0, inf}};
     const std::vector<Hit> hits = {Hit{5, 7, 0.25f, 0.5f}, Hit{}};
     Mesh triangle;
     triangle.positions = {0, 0, 0, 1, 0, 0, 0, 1, 0};
@@ -118,7 +128,8 @@ TEST(FormatsDoc, HexExamplesAreWhatTheCodecsWrite) {
     const std::vector<std::byte>& blob = dumps.back().bytes;
     ASSERT_GE(blob.size(), 8u);
     uint64_t stored = 0;
-    for (size_t b = 8; b-- > 0;) stored = (stored << 8) | static_cast<uint64_t>(blob[blob.size() - 8 + b]);
+    for (size_t b = 8; b-- > 0;)
+        stored = (stored << 8) | static_cast<uint64_t>(blob[blob.size() - 8 + b]);
     EXPECT_EQ(stored, documented_checksum(std::span(blob).first(blob.size() - 8)));
     // And the documented bytes load as the tree they describe.
     const KdTree loaded = deserialize_tree(blob);

@@ -60,7 +60,8 @@ std::set<Operation> documented_operations(const std::string& yaml) {
             path = m[1];
         } else if (!path.empty() && std::regex_match(line, m, method_line)) {
             std::string method = m[1];
-            for (char& c : method) c = static_cast<char>(std::toupper(static_cast<unsigned char>(c)));
+            for (char& c : method)
+                c = static_cast<char>(std::toupper(static_cast<unsigned char>(c)));
             out.emplace(method, path);
         }
     }
@@ -80,9 +81,11 @@ TEST(OpenApiRoutes, DocumentedOperationsAreExactlyTheServersRoutes) {
     ASSERT_GE(served.size(), 12u);
     ASSERT_GE(documented.size(), 12u);
     for (const Operation& op : served)
-        EXPECT_TRUE(documented.count(op)) << op.first << " " << op.second << " is served but not in proto/openapi.yaml";
+        EXPECT_TRUE(documented.count(op))
+            << op.first << " " << op.second << " is served but not in proto/openapi.yaml";
     for (const Operation& op : documented)
-        EXPECT_TRUE(served.count(op)) << op.first << " " << op.second << " is in proto/openapi.yaml but not served";
+        EXPECT_TRUE(served.count(op))
+            << op.first << " " << op.second << " is in proto/openapi.yaml but not served";
 }
 
 TEST(OpenApiRoutes, EveryDocumentedOperationIsAnsweredByTheServer) {
@@ -91,7 +94,8 @@ TEST(OpenApiRoutes, EveryDocumentedOperationIsAnsweredByTheServer) {
     auto cli = server.client();
     for (const auto& [method, route] : documented_operations(read_text(openapi_path()))) {
         SCOPED_TRACE(method + " " + route);
-        const std::string path = std::regex_replace(route, std::regex(R"(\{id\})"), std::string(32, '0'));
+        const std::string path =
+            std::regex_replace(route, std::regex(R"(\{id\})"), std::string(32, '0'));
         httplib::Result res = method == "GET"      ? cli->Get(path)
                               : method == "DELETE" ? cli->Delete(path)
                                                    : cli->Post(path, "{}", "application/json");
@@ -114,12 +118,15 @@ public:
         capture["route"] = route;
         capture["status"] = res->status;
         capture["content_type"] = res->get_header_value("Content-Type");
-        const bool text = capture["content_type"].get<std::string>().find("json") != std::string::npos;
+        const bool text =
+            capture["content_type"].get<std::string>().find("json") != std::string::npos;
         capture["body"] = text ? res->body : std::string(res->body.empty() ? "" : "<binary>");
         statuses_.insert(method + " " + route + " " + std::to_string(res->status));
         list_.push_back(std::move(capture));
     }
-    [[nodiscard]] bool has(const std::string& method_route_status) const { return statuses_.count(method_route_status); }
+    [[nodiscard]] bool has(const std::string& method_route_status) const {
+        return statuses_.count(method_route_status);
+    }
     [[nodiscard]] std::string json() const { return list_.dump(1); }
 
 private:
@@ -133,8 +140,9 @@ std::string as_string(const std::vector<std::byte>& bytes) {
 
 /// Runs the checker on `captures`; returns its exit status and output.
 std::pair<int, std::string> run_checker(const std::string& captures_path) {
-    const std::string command = std::string(KDRT_PYTHON) + " " + KDRT_SOURCE_DIR + "/tests/client/openapi_check.py " +
-                                openapi_path() + " " + captures_path + " 2>&1";
+    const std::string command = std::string(KDRT_PYTHON) + " " + KDRT_SOURCE_DIR +
+                                "/tests/client/openapi_check.py " + openapi_path() + " " +
+                                captures_path + " 2>&1";
     std::string output;
     FILE* pipe = ::popen(command.c_str(), "r");
     if (!pipe) return {-1, "cannot run " + command};
@@ -148,8 +156,8 @@ TEST(OpenApiSchemas, ExamplesAndLiveAnswersValidate) {
     TempDir dir;
     ServerProcess server({.cache_dir = dir.path() / "cache", .args = {"--max-jobs", "4"}});
     ServerProcess limited({.cache_dir = dir.path() / "cache2",
-                           .args = {"--token", "tok", "--max-upload-bytes", "1024", "--max-rays", "10",
-                                    "--max-json-rays", "5"}});
+                           .args = {"--token", "tok", "--max-upload-bytes", "1024", "--max-rays",
+                                    "10", "--max-json-rays", "5"}});
     auto cli = server.client();
     Captures c;
     Rng rng(test_seed());
@@ -173,28 +181,40 @@ TEST(OpenApiSchemas, ExamplesAndLiveAnswersValidate) {
 
     // Rays.
     const std::string intersect = "/v1/meshes/" + id + "/intersect";
-    const std::string json_rays = R"({"rays": [[0.5, 0.5, -3, 0, 0, 1], [9, 9, 9, 1, 0, 0, 0, 5]]})";
+    const std::string json_rays =
+        R"({"rays": [[0.5, 0.5, -3, 0, 0, 1], [9, 9, 9, 1, 0, 0, 0, 5]]})";
     c.add("POST", "/v1/meshes/{id}/intersect", cli->Post(intersect, json_rays, "application/json"));
     c.add("POST", "/v1/meshes/{id}/intersect",
-          cli->Post(intersect, R"({"rays": [[0.5, 0.5, -3, 0, 0, 1]], "occlusion": true})", "application/json"));
+          cli->Post(intersect, R"({"rays": [[0.5, 0.5, -3, 0, 0, 1]], "occlusion": true})",
+                    "application/json"));
     const std::vector<Ray> rays(4, Ray{0.5f, 0.5f, -3, 0, 0, 0, 1, INFINITY});
     c.add("POST", "/v1/meshes/{id}/intersect",
-          cli->Post(intersect, as_string(proto::encode_rays(rays, false)), "application/x-kdrt-rays"));
+          cli->Post(intersect, as_string(proto::encode_rays(rays, false)),
+                    "application/x-kdrt-rays"));
+    c.add(
+        "POST", "/v1/meshes/{id}/intersect",
+        cli->Post(intersect, as_string(proto::encode_rays(rays, true)), "application/x-kdrt-rays"));
     c.add("POST", "/v1/meshes/{id}/intersect",
-          cli->Post(intersect, as_string(proto::encode_rays(rays, true)), "application/x-kdrt-rays"));
-    c.add("POST", "/v1/meshes/{id}/intersect", cli->Post(intersect, "ABCDxxxxxxxxxxxxxxxx", "application/x-kdrt-rays"));
-    c.add("POST", "/v1/meshes/{id}/intersect", cli->Post(intersect, R"({"rays": [[1, 2]]})", "application/json"));
+          cli->Post(intersect, "ABCDxxxxxxxxxxxxxxxx", "application/x-kdrt-rays"));
+    c.add("POST", "/v1/meshes/{id}/intersect",
+          cli->Post(intersect, R"({"rays": [[1, 2]]})", "application/json"));
     c.add("POST", "/v1/meshes/{id}/intersect", cli->Post(intersect, "{", "application/json"));
     c.add("POST", "/v1/meshes/{id}/intersect", cli->Post(intersect, "x", "text/plain"));
     c.add("POST", "/v1/meshes/{id}/intersect",
-          cli->Post("/v1/meshes/" + std::string(64, 'b') + "/intersect", json_rays, "application/json"));
+          cli->Post("/v1/meshes/" + std::string(64, 'b') + "/intersect", json_rays,
+                    "application/json"));
 
     // Renders and jobs.
     const std::string small = R"({"mesh": ")" + id + R"(", "width": 32, "height": 24)";
     for (const char* format : {"png", "jpg", "exr"})
-        c.add("POST", "/v1/render", cli->Post("/v1/render", small + R"(, "format": ")" + format + "\"}", "application/json"));
-    c.add("POST", "/v1/render", cli->Post("/v1/render", R"({"mesh": ")" + id + R"(", "spp": 0})", "application/json"));
-    c.add("POST", "/v1/render", cli->Post("/v1/render", R"({"mesh": ")" + std::string(64, 'c') + "\"}", "application/json"));
+        c.add("POST", "/v1/render",
+              cli->Post("/v1/render", small + R"(, "format": ")" + format + "\"}",
+                        "application/json"));
+    c.add("POST", "/v1/render",
+          cli->Post("/v1/render", R"({"mesh": ")" + id + R"(", "spp": 0})", "application/json"));
+    c.add("POST", "/v1/render",
+          cli->Post("/v1/render", R"({"mesh": ")" + std::string(64, 'c') + "\"}",
+                    "application/json"));
     c.add("POST", "/v1/render", cli->Post("/v1/render", "{}", "text/plain"));
     const httplib::Headers async = {{"Prefer", "respond-async"}};
     auto queued = cli->Post("/v1/render", async, small + "}", "application/json");
@@ -216,9 +236,10 @@ TEST(OpenApiSchemas, ExamplesAndLiveAnswersValidate) {
     c.add("GET", "/v1/jobs/{id}/result", cli->Get("/v1/jobs/" + job + "/result"));
     c.add("DELETE", "/v1/jobs/{id}", cli->Delete("/v1/jobs/" + job));
     // A long job: its result is not there yet (409) and deleting it cancels it (202).
-    auto slow = cli->Post("/v1/render", async,
-                          R"({"mesh": ")" + id + R"(", "width": 2048, "height": 2048, "shading": "ao", "spp": 64})",
-                          "application/json");
+    auto slow = cli->Post(
+        "/v1/render", async,
+        R"({"mesh": ")" + id + R"(", "width": 2048, "height": 2048, "shading": "ao", "spp": 64})",
+        "application/json");
     c.add("POST", "/v1/render", slow);
     ASSERT_TRUE(slow && slow->status == 202);
     const std::string slow_job = proto::decode_job_status(slow->body)->id;
@@ -238,38 +259,69 @@ TEST(OpenApiSchemas, ExamplesAndLiveAnswersValidate) {
     c.add("POST", "/v1/meshes", guarded->Post("/v1/meshes", raw, "application/x-kdrt-mesh"));
     guarded->set_bearer_token_auth("tok");
     c.add("POST", "/v1/meshes", guarded->Post("/v1/meshes", raw, "application/x-kdrt-mesh"));
-    const std::string tiny = as_string(proto::write_mesh(random_soup(rng, 4), proto::MeshFormat::kRaw));
+    const std::string tiny =
+        as_string(proto::write_mesh(random_soup(rng, 4), proto::MeshFormat::kRaw));
     auto tiny_created = guarded->Post("/v1/meshes", tiny, "application/x-kdrt-mesh");
     c.add("POST", "/v1/meshes", tiny_created);
-    ASSERT_TRUE(tiny_created && tiny_created->status == 201) << (tiny_created ? tiny_created->body : "");
-    const std::string tiny_intersect = "/v1/meshes/" + proto::decode_mesh_summary(tiny_created->body)->id + "/intersect";
+    ASSERT_TRUE(tiny_created && tiny_created->status == 201)
+        << (tiny_created ? tiny_created->body : "");
+    const std::string tiny_intersect =
+        "/v1/meshes/" + proto::decode_mesh_summary(tiny_created->body)->id + "/intersect";
     std::string too_many = as_string(proto::encode_rays(std::vector<Ray>(4), false));
     too_many[8] = 11;  // the header claims 11 rays: over max_rays before the length is checked
-    c.add("POST", "/v1/meshes/{id}/intersect", guarded->Post(tiny_intersect, too_many, "application/x-kdrt-rays"));
     c.add("POST", "/v1/meshes/{id}/intersect",
-          guarded->Post(tiny_intersect, R"({"rays": [[0,0,0,1,0,0],[0,0,0,1,0,0],[0,0,0,1,0,0],[0,0,0,1,0,0],[0,0,0,1,0,0],[0,0,0,1,0,0]]})",
-                        "application/json"));
+          guarded->Post(tiny_intersect, too_many, "application/x-kdrt-rays"));
+    c.add(
+        "POST", "/v1/meshes/{id}/intersect",
+        guarded->Post(
+            tiny_intersect,
+            R"({"rays": [[0,0,0,1,0,0],[0,0,0,1,0,0],[0,0,0,1,0,0],[0,0,0,1,0,0],[0,0,0,1,0,0],[0,0,0,1,0,0]]})",
+            "application/json"));
 
     // The captures cover every documented success and the main errors of each route.
-    for (const char* expected :
-         {"POST /v1/meshes 201", "POST /v1/meshes 200", "POST /v1/meshes 401", "POST /v1/meshes 413",
-          "POST /v1/meshes 415", "POST /v1/meshes 422", "GET /v1/meshes 200", "GET /v1/meshes 401",
-          "GET /v1/meshes/{id} 200", "GET /v1/meshes/{id} 404", "DELETE /v1/meshes/{id} 204",
-          "DELETE /v1/meshes/{id} 404", "POST /v1/meshes/{id}/intersect 200", "POST /v1/meshes/{id}/intersect 400",
-          "POST /v1/meshes/{id}/intersect 404", "POST /v1/meshes/{id}/intersect 413",
-          "POST /v1/meshes/{id}/intersect 415", "POST /v1/render 200", "POST /v1/render 202", "POST /v1/render 400",
-          "POST /v1/render 404", "POST /v1/render 415", "GET /v1/jobs/{id} 200", "GET /v1/jobs/{id} 404",
-          "DELETE /v1/jobs/{id} 202", "DELETE /v1/jobs/{id} 204", "DELETE /v1/jobs/{id} 404",
-          "GET /v1/jobs/{id}/result 200", "GET /v1/jobs/{id}/result 404", "GET /v1/jobs/{id}/result 409",
-          "GET /healthz 200", "GET /readyz 200", "GET /metrics 200"})
+    for (const char* expected : {"POST /v1/meshes 201",
+                                 "POST /v1/meshes 200",
+                                 "POST /v1/meshes 401",
+                                 "POST /v1/meshes 413",
+                                 "POST /v1/meshes 415",
+                                 "POST /v1/meshes 422",
+                                 "GET /v1/meshes 200",
+                                 "GET /v1/meshes 401",
+                                 "GET /v1/meshes/{id} 200",
+                                 "GET /v1/meshes/{id} 404",
+                                 "DELETE /v1/meshes/{id} 204",
+                                 "DELETE /v1/meshes/{id} 404",
+                                 "POST /v1/meshes/{id}/intersect 200",
+                                 "POST /v1/meshes/{id}/intersect 400",
+                                 "POST /v1/meshes/{id}/intersect 404",
+                                 "POST /v1/meshes/{id}/intersect 413",
+                                 "POST /v1/meshes/{id}/intersect 415",
+                                 "POST /v1/render 200",
+                                 "POST /v1/render 202",
+                                 "POST /v1/render 400",
+                                 "POST /v1/render 404",
+                                 "POST /v1/render 415",
+                                 "GET /v1/jobs/{id} 200",
+                                 "GET /v1/jobs/{id} 404",
+                                 "DELETE /v1/jobs/{id} 202",
+                                 "DELETE /v1/jobs/{id} 204",
+                                 "DELETE /v1/jobs/{id} 404",
+                                 "GET /v1/jobs/{id}/result 200",
+                                 "GET /v1/jobs/{id}/result 404",
+                                 "GET /v1/jobs/{id}/result 409",
+                                 "GET /healthz 200",
+                                 "GET /readyz 200",
+                                 "GET /metrics 200"})
         EXPECT_TRUE(c.has(expected)) << expected;
 
     const std::string captures_path = (dir.path() / "captures.json").string();
     const std::string text = c.json();
-    ASSERT_TRUE(proto::write_file_bytes(captures_path, std::as_bytes(std::span(text.data(), text.size()))));
+    ASSERT_TRUE(
+        proto::write_file_bytes(captures_path, std::as_bytes(std::span(text.data(), text.size()))));
     const auto [status, output] = run_checker(captures_path);
-    EXPECT_EQ(status, 0) << output << "(" << KDRT_PYTHON
-                         << " needs the yaml and jsonschema modules: Debian python3-yaml python3-jsonschema)";
+    EXPECT_EQ(status, 0)
+        << output << "(" << KDRT_PYTHON
+        << " needs the yaml and jsonschema modules: Debian python3-yaml python3-jsonschema)";
     EXPECT_NE(output.find("answers checked, 0 problems"), std::string::npos) << output;
     std::cout << output;  // the checker's summary line
 }

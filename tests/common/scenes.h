@@ -35,21 +35,24 @@ inline Mesh uv_sphere(Vec3 centre, float radius, uint32_t rings, uint32_t segmen
         const double theta = 3.14159265358979 * r / rings;
         for (uint32_t s = 0; s < segments; ++s) {
             const double phi = 2 * 3.14159265358979 * s / segments;
-            add_vertex(m, centre + Vec3{static_cast<float>(radius * std::sin(theta) * std::cos(phi)),
-                                        static_cast<float>(radius * std::sin(theta) * std::sin(phi)),
-                                        static_cast<float>(radius * std::cos(theta))});
+            add_vertex(m,
+                       centre + Vec3{static_cast<float>(radius * std::sin(theta) * std::cos(phi)),
+                                     static_cast<float>(radius * std::sin(theta) * std::sin(phi)),
+                                     static_cast<float>(radius * std::cos(theta))});
         }
     }
     const uint32_t south = add_vertex(m, centre + Vec3{0, 0, -radius});
-    auto ring_vertex = [&](uint32_t r, uint32_t s) { return 1 + (r - 1) * segments + s % segments; };
+    auto ring_vertex = [&](uint32_t r, uint32_t s) {
+        return 1 + (r - 1) * segments + s % segments;
+    };
     for (uint32_t s = 0; s < segments; ++s) {
         add_indices(m, 0, ring_vertex(1, s), ring_vertex(1, s + 1));
         add_indices(m, south, ring_vertex(rings - 1, s + 1), ring_vertex(rings - 1, s));
     }
     for (uint32_t r = 1; r + 1 < rings; ++r) {
         for (uint32_t s = 0; s < segments; ++s) {
-            const uint32_t a = ring_vertex(r, s), b = ring_vertex(r, s + 1), c = ring_vertex(r + 1, s),
-                           d = ring_vertex(r + 1, s + 1);
+            const uint32_t a = ring_vertex(r, s), b = ring_vertex(r, s + 1),
+                           c = ring_vertex(r + 1, s), d = ring_vertex(r + 1, s + 1);
             add_indices(m, a, c, b);
             add_indices(m, b, c, d);
         }
@@ -66,12 +69,15 @@ inline void append(Mesh& dst, const Mesh& src) {
 
 /// "Teapot in a stadium": a huge closed box (12 triangles, size `stadium`) around a tiny, finely
 /// tessellated sphere at its centre.
-inline Mesh teapot_in_stadium(float stadium = 1000.0f, uint32_t rings = 60, uint32_t segments = 120) {
+inline Mesh teapot_in_stadium(float stadium = 1000.0f, uint32_t rings = 60,
+                              uint32_t segments = 120) {
     Mesh m;
     const float h = stadium * 0.5f;
-    const Vec3 c[8] = {{-h, -h, -h}, {h, -h, -h}, {h, h, -h}, {-h, h, -h}, {-h, -h, h}, {h, -h, h}, {h, h, h}, {-h, h, h}};
+    const Vec3 c[8] = {{-h, -h, -h}, {h, -h, -h}, {h, h, -h}, {-h, h, -h},
+                       {-h, -h, h},  {h, -h, h},  {h, h, h},  {-h, h, h}};
     for (const Vec3& v : c) add_vertex(m, v);
-    const uint32_t faces[6][4] = {{0, 3, 2, 1}, {4, 5, 6, 7}, {0, 1, 5, 4}, {2, 3, 7, 6}, {1, 2, 6, 5}, {0, 4, 7, 3}};
+    const uint32_t faces[6][4] = {{0, 3, 2, 1}, {4, 5, 6, 7}, {0, 1, 5, 4},
+                                  {2, 3, 7, 6}, {1, 2, 6, 5}, {0, 4, 7, 3}};
     for (const auto& f : faces) {
         add_indices(m, f[0], f[1], f[2]);
         add_indices(m, f[0], f[2], f[3]);
@@ -91,7 +97,8 @@ inline Mesh replicate_grid(const Mesh& mesh, uint32_t copies) {
     out.positions.reserve(mesh.positions.size() * copies);
     out.indices.reserve(mesh.indices.size() * copies);
     for (uint32_t c = 0; c < copies; ++c) {
-        const float dx = 1.1f * e.x * static_cast<float>(c % side), dz = 1.1f * e.z * static_cast<float>(c / side);
+        const float dx = 1.1f * e.x * static_cast<float>(c % side),
+                    dz = 1.1f * e.z * static_cast<float>(c / side);
         const auto base = static_cast<uint32_t>(out.vertex_count());
         for (size_t v = 0; v < mesh.vertex_count(); ++v) {
             const Vec3 p = mesh.vertex(v);

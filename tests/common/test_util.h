@@ -25,7 +25,9 @@ inline double test_scale() {
     if (const char* s = std::getenv("KDRT_TEST_SCALE")) return std::max(0.001, std::atof(s));
     return 1.0;
 }
-inline size_t scaled(size_t n) { return std::max<size_t>(1, static_cast<size_t>(static_cast<double>(n) * test_scale())); }
+inline size_t scaled(size_t n) {
+    return std::max<size_t>(1, static_cast<size_t>(static_cast<double>(n) * test_scale()));
+}
 
 /// splitmix64: small, fast, good enough for test data.
 class Rng {
@@ -41,7 +43,9 @@ public:
     float uniform() { return static_cast<float>(next() >> 40) * 0x1p-24f; }
     float uniform(float lo, float hi) { return lo + (hi - lo) * uniform(); }
     uint32_t below(uint32_t n) { return static_cast<uint32_t>(next() % n); }
-    Vec3 in_box(const Aabb& b) { return {uniform(b.lo.x, b.hi.x), uniform(b.lo.y, b.hi.y), uniform(b.lo.z, b.hi.z)}; }
+    Vec3 in_box(const Aabb& b) {
+        return {uniform(b.lo.x, b.hi.x), uniform(b.lo.y, b.hi.y), uniform(b.lo.z, b.hi.z)};
+    }
     Vec3 on_sphere() {
         const float z = uniform(-1.0f, 1.0f), phi = uniform(0.0f, 6.2831853f);
         const float r = std::sqrt(std::max(0.0f, 1.0f - z * z));
@@ -108,11 +112,13 @@ inline std::vector<Ray> oracle_rays(Rng& rng, const Mesh& mesh, const KdTree& tr
             }
             case 3: {  // in a split plane of the tree, parallel to it
                 if (inner_nodes.empty()) continue;
-                const KdNode& n = *inner_nodes[rng.below(static_cast<uint32_t>(inner_nodes.size()))];
+                const KdNode& n =
+                    *inner_nodes[rng.below(static_cast<uint32_t>(inner_nodes.size()))];
                 o[n.axis()] = n.split();
                 Vec3 d = rng.on_sphere();
                 d[n.axis()] = 0.0f;
-                if (rng.below(2)) d[(n.axis() + 1) % 3] = 0.0f;  // also axis-parallel inside the plane
+                if (rng.below(2))
+                    d[(n.axis() + 1) % 3] = 0.0f;  // also axis-parallel inside the plane
                 r = make_ray(o, d);
                 break;
             }

@@ -35,7 +35,8 @@ CameraSpec front_spec() {
 }
 
 /// Asserts that Camera(spec, width, height) throws CameraError whose message contains `field`.
-void expect_camera_error(const CameraSpec& spec, uint32_t width, uint32_t height, const std::string& field) {
+void expect_camera_error(const CameraSpec& spec, uint32_t width, uint32_t height,
+                         const std::string& field) {
     try {
         const Camera camera(spec, width, height);
         ADD_FAILURE() << "no CameraError; expected one naming '" << field << "'";
@@ -224,7 +225,8 @@ void expect_box_in_view(const CameraSpec& spec, const Aabb& box, float aspect) {
         EXPECT_LE(y, 1.0) << "corner " << corner;
         fill = std::max({fill, x, y});
         const Vec3 w = p - spec.look_at;
-        EXPECT_LE(std::fabs(dot(w, right)), 0.5f * spec.ortho_height * aspect * 1.0001f) << "corner " << corner;
+        EXPECT_LE(std::fabs(dot(w, right)), 0.5f * spec.ortho_height * aspect * 1.0001f)
+            << "corner " << corner;
         EXPECT_LE(std::fabs(dot(w, up)), 0.5f * spec.ortho_height * 1.0001f) << "corner " << corner;
     }
     const Vec3 ext = box.extent();
@@ -235,11 +237,11 @@ void expect_box_in_view(const CameraSpec& spec, const Aabb& box, float aspect) {
 
 TEST(DefaultCamera, FramesBoxesOfEveryShape) {
     const std::array<Aabb, 6> boxes = {
-        Aabb{{-1, -2, -3}, {4, 5, 6}},                                      // ordinary
-        Aabb{{-1, -1, 0}, {1, 1, 0}},                                       // flat, facing the camera
-        Aabb{{-1, 0, -1}, {1, 0, 1}},                                       // flat floor
-        Aabb{{0, 0, 0}, {0, 0, 10}},                                        // a line along the view axis
-        Aabb{{2, 3, 4}, {2, 3, 4}},                                         // a point
+        Aabb{{-1, -2, -3}, {4, 5, 6}},  // ordinary
+        Aabb{{-1, -1, 0}, {1, 1, 0}},   // flat, facing the camera
+        Aabb{{-1, 0, -1}, {1, 0, 1}},   // flat floor
+        Aabb{{0, 0, 0}, {0, 0, 10}},    // a line along the view axis
+        Aabb{{2, 3, 4}, {2, 3, 4}},     // a point
         Aabb{{1e4f, 1e4f, 1e4f}, {1e4f + 1.0f, 1e4f + 1.0f, 1e4f + 1.0f}},  // far from the origin
     };
     for (float aspect : {1.0f, 2.0f, 0.5f}) {

@@ -36,10 +36,12 @@ void check_scene(const Mesh& mesh, const BuildOptions& options, size_t ray_count
     size_t disagree = 0;
     const size_t brute_stride = tree.tris.size() > 2000 ? 25 : 1;
     for (size_t i = 0; i < rays.size(); ++i) {
-        const bool brute = i % brute_stride == 0 ? brute_force_occluded(tree.tris, rays[i]) : want[i].is_hit();
+        const bool brute =
+            i % brute_stride == 0 ? brute_force_occluded(tree.tris, rays[i]) : want[i].is_hit();
         if ((occ[i] != 0) != got[i].is_hit() || brute != want[i].is_hit()) {
-            if (++disagree <= 5) ADD_FAILURE() << "ray " << i << ": occluded=" << int(occ[i]) << " brute=" << brute
-                                               << " closest hit=" << got[i].is_hit();
+            if (++disagree <= 5)
+                ADD_FAILURE() << "ray " << i << ": occluded=" << int(occ[i]) << " brute=" << brute
+                              << " closest hit=" << got[i].is_hit();
         }
     }
     EXPECT_EQ(disagree, 0u);

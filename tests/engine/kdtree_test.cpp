@@ -17,7 +17,8 @@ namespace kdrt::test {
 namespace {
 
 // Akenine-Moeller triangle/box overlap (separating axis theorem) in double.
-bool triangle_overlaps_box(const TriVerts& t, const std::array<double, 3>& lo, const std::array<double, 3>& hi) {
+bool triangle_overlaps_box(const TriVerts& t, const std::array<double, 3>& lo,
+                           const std::array<double, 3>& hi) {
     using V = std::array<double, 3>;
     V c, h, v[3];
     for (int a = 0; a < 3; ++a) {
@@ -34,7 +35,8 @@ bool triangle_overlaps_box(const TriVerts& t, const std::array<double, 3>& lo, c
     auto dotp = [](const V& p, const V& q) { return p[0] * q[0] + p[1] * q[1] + p[2] * q[2]; };
     auto separated = [&](const V& axis) {
         const double p0 = dotp(v[0], axis), p1 = dotp(v[1], axis), p2 = dotp(v[2], axis);
-        const double r = h[0] * std::fabs(axis[0]) + h[1] * std::fabs(axis[1]) + h[2] * std::fabs(axis[2]);
+        const double r =
+            h[0] * std::fabs(axis[0]) + h[1] * std::fabs(axis[1]) + h[2] * std::fabs(axis[2]);
         return std::min({p0, p1, p2}) > r || std::max({p0, p1, p2}) < -r;
     };
     const V e[3] = {sub(v[1], v[0]), sub(v[2], v[1]), sub(v[0], v[2])};
@@ -85,7 +87,8 @@ void check_tree_properties(const KdTree& tree, const Mesh& mesh) {
         const Vec3 e = it.cell.extent();
         leaf_volume += double{e.x} * e.y * e.z;
         std::vector<uint8_t> in_leaf(mesh.triangle_count(), 0);
-        for (uint32_t i = 0; i < n.prim_count(); ++i) in_leaf[tree.leaf_refs[n.first_ref() + i]] = 1;
+        for (uint32_t i = 0; i < n.prim_count(); ++i)
+            in_leaf[tree.leaf_refs[n.first_ref() + i]] = 1;
         std::array<double, 3> lo, hi;
         for (int a = 0; a < 3; ++a) {
             const double shrink = 1e-6 * (double{tree.bounds.hi[a]} - tree.bounds.lo[a]);
@@ -98,7 +101,8 @@ void check_tree_properties(const KdTree& tree, const Mesh& mesh) {
             const TriVerts& t = tree.tris[prim];
             bool apart = false;  // cheap bounding-box rejection before the exact test
             for (int a = 0; a < 3; ++a)
-                apart = apart || std::min({t.v0[a], t.v1[a], t.v2[a]}) > hi[a] || std::max({t.v0[a], t.v1[a], t.v2[a]}) < lo[a];
+                apart = apart || std::min({t.v0[a], t.v1[a], t.v2[a]}) > hi[a] ||
+                        std::max({t.v0[a], t.v1[a], t.v2[a]}) < lo[a];
             if (apart) continue;
             ASSERT_FALSE(triangle_overlaps_box(tree.tris[prim], lo, hi))
                 << "triangle " << prim << " overlaps leaf " << it.node << " but is not in it";
@@ -106,7 +110,8 @@ void check_tree_properties(const KdTree& tree, const Mesh& mesh) {
     }
     EXPECT_EQ(leaves, tree.stats.leaves);
     const Vec3 e = tree.bounds.extent();
-    EXPECT_NEAR(leaf_volume, double{e.x} * e.y * e.z, 1e-6 * double{e.x} * e.y * e.z) << "leaf cells partition the root";
+    EXPECT_NEAR(leaf_volume, double{e.x} * e.y * e.z, 1e-6 * double{e.x} * e.y * e.z)
+        << "leaf cells partition the root";
 }
 
 TEST(KdBuild, LeafCellsHoldEveryOverlappingTriangle) {
@@ -146,8 +151,10 @@ TEST(KdBuild, SahTreeHasTheExpectedShape) {
     EXPECT_EQ(s.nodes, 2 * s.leaves - 1);
     EXPECT_GT(s.max_depth, 20u) << "a SAH tree is deep and stringy";
     EXPECT_GT(s.empty_leaves, s.leaves / 10) << "and cuts off empty space";
-    EXPECT_LT(s.mean_tris_per_leaf, 12.0) << "leaves hold a few triangles (C_isect 0.3: about 9 on the bunny)";
-    EXPECT_LT(s.sah_cost, middle.stats.sah_cost) << "SAH must beat the middle-split tree on its own metric";
+    EXPECT_LT(s.mean_tris_per_leaf, 12.0)
+        << "leaves hold a few triangles (C_isect 0.3: about 9 on the bunny)";
+    EXPECT_LT(s.sah_cost, middle.stats.sah_cost)
+        << "SAH must beat the middle-split tree on its own metric";
     EXPECT_EQ(s.bytes, s.nodes * 8 + s.refs * 4 + s.triangles * sizeof(TriVerts));
     EXPECT_GT(s.build_ms, 0.0);
 }
@@ -176,8 +183,12 @@ TEST(KdDegenerate, OneTriangle) {
     // Hit exactly at tmax and tmin counts; just beyond does not.
     EXPECT_TRUE(intersect(tree, make_ray({0.25f, 0.5f, 2}, {0, 0, -1}, 0, 2.0f)).is_hit());
     EXPECT_TRUE(intersect(tree, make_ray({0.25f, 0.5f, 2}, {0, 0, -1}, 2.0f, 2.0f)).is_hit());
-    EXPECT_FALSE(intersect(tree, make_ray({0.25f, 0.5f, 2}, {0, 0, -1}, 0, std::nextafter(2.0f, 0.0f))).is_hit());
-    EXPECT_FALSE(intersect(tree, make_ray({0.25f, 0.5f, 2}, {0, 0, -1}, std::nextafter(2.0f, 3.0f), 5)).is_hit());
+    EXPECT_FALSE(
+        intersect(tree, make_ray({0.25f, 0.5f, 2}, {0, 0, -1}, 0, std::nextafter(2.0f, 0.0f)))
+            .is_hit());
+    EXPECT_FALSE(
+        intersect(tree, make_ray({0.25f, 0.5f, 2}, {0, 0, -1}, std::nextafter(2.0f, 3.0f), 5))
+            .is_hit());
     EXPECT_FALSE(intersect(tree, make_ray({0.75f, 0.75f, 2}, {0, 0, -1})).is_hit());
     EXPECT_TRUE(occluded(tree, make_ray({0.25f, 0.5f, -2}, {0, 0, 1})));  // back side is hit too
 }
@@ -196,13 +207,15 @@ TEST(KdDegenerate, CoplanarAxisAlignedGrid) {
     Rng rng(test_seed() + 200);
     std::vector<Ray> rays = oracle_rays(rng, mesh, tree, scaled(50'000));
     for (int i = 0; i < 5000; ++i) {  // rays in the plane itself and straight down onto it
-        rays.push_back(make_ray({rng.uniform(), rng.uniform(), 0.5f}, {rng.uniform(-1, 1), rng.uniform(-1, 1), 0}));
+        rays.push_back(make_ray({rng.uniform(), rng.uniform(), 0.5f},
+                                {rng.uniform(-1, 1), rng.uniform(-1, 1), 0}));
         rays.push_back(make_ray({rng.uniform(), rng.uniform(), 3.0f}, {0, 0, -1}));
     }
     const auto got = tree_all(tree, rays);
     expect_same_hits(got, brute_force_all(tree.tris, rays), rays, tree.tris);
     EXPECT_TRUE(intersect(tree, make_ray({0.3f, 0.3f, 3.0f}, {0, 0, -1})).is_hit());
-    EXPECT_FALSE(intersect(tree, make_ray({0.3f, 0.3f, 0.5f}, {1, 0, 0})).is_hit()) << "edge-on: no area";
+    EXPECT_FALSE(intersect(tree, make_ray({0.3f, 0.3f, 0.5f}, {1, 0, 0})).is_hit())
+        << "edge-on: no area";
 }
 
 TEST(KdDegenerate, DuplicateTrianglesTieToTheLowestId) {
@@ -218,15 +231,16 @@ TEST(KdDegenerate, DuplicateTrianglesTieToTheLowestId) {
 
 TEST(KdDegenerate, ZeroAreaTrianglesAreNeverHit) {
     Mesh mesh;
-    add_triangle(mesh, {0, 0, 0}, {1, 0, 0}, {2, 0, 0});          // collinear
+    add_triangle(mesh, {0, 0, 0}, {1, 0, 0}, {2, 0, 0});                    // collinear
     add_triangle(mesh, {0.5f, 0.5f, 0}, {0.5f, 0.5f, 0}, {0.5f, 0.5f, 0});  // a point
-    add_triangle(mesh, {0, 0, 1}, {1, 0, 1}, {0, 1, 1});          // a real one, behind
+    add_triangle(mesh, {0, 0, 1}, {1, 0, 1}, {0, 1, 1});                    // a real one, behind
     const KdTree tree = build_kdtree(mesh);
     EXPECT_EQ(tree.stats.triangles, 3u);
     EXPECT_EQ(tree.stats.refs, 1u) << "degenerate triangles stay out of the tree";
     const Hit h = intersect(tree, make_ray({0.5f, 0, -1}, {0, 0, 1}));  // through the collinear one
     EXPECT_EQ(h.prim, 2u);
-    EXPECT_EQ(intersect(tree, make_ray({0.5f, 0.5f, -1}, {0, 0, 1})).prim, 2u);  // through the point
+    EXPECT_EQ(intersect(tree, make_ray({0.5f, 0.5f, -1}, {0, 0, 1})).prim,
+              2u);  // through the point
     EXPECT_EQ(brute_force_intersect(tree.tris, make_ray({0.5f, 0, -1}, {0, 0, 1})).prim, 2u);
 }
 
@@ -251,7 +265,8 @@ TEST(KdDegenerate, InvalidMeshesGiveClearErrors) {
         validate_mesh(bad_index);
         FAIL() << "index out of range accepted";
     } catch (const MeshError& e) {
-        EXPECT_STREQ(e.what(), "triangle 0: corner 2 refers to vertex 3 but the mesh has 3 vertices");
+        EXPECT_STREQ(e.what(),
+                     "triangle 0: corner 2 refers to vertex 3 but the mesh has 3 vertices");
     }
     Mesh ragged;
     ragged.positions = {0, 0};
@@ -270,12 +285,15 @@ TEST(KdTrace, InvalidRaysAreMisses) {
             std::memcpy(reinterpret_cast<char*>(&r) + sizeof(float) * field, &bad, sizeof bad);
             const bool tmax_inf_ok = field == 7 && bad == INFINITY;
             const bool tmin_ninf_ok = field == 3 && bad == -INFINITY;
-            EXPECT_EQ(intersect(tree, r).is_hit(), tmax_inf_ok || tmin_ninf_ok) << "field " << field << " = " << bad;
-            EXPECT_EQ(occluded(tree, r), tmax_inf_ok || tmin_ninf_ok) << "field " << field << " = " << bad;
+            EXPECT_EQ(intersect(tree, r).is_hit(), tmax_inf_ok || tmin_ninf_ok)
+                << "field " << field << " = " << bad;
+            EXPECT_EQ(occluded(tree, r), tmax_inf_ok || tmin_ninf_ok)
+                << "field " << field << " = " << bad;
         }
     }
     EXPECT_FALSE(intersect(tree, make_ray({0, 0, 1}, {0, 0, 0})).is_hit()) << "zero direction";
-    EXPECT_FALSE(intersect(tree, make_ray({0, 0, 1}, {0, 0, -1}, 2.0f, 1.0f)).is_hit()) << "tmin > tmax";
+    EXPECT_FALSE(intersect(tree, make_ray({0, 0, 1}, {0, 0, -1}, 2.0f, 1.0f)).is_hit())
+        << "tmin > tmax";
 }
 
 }  // namespace

@@ -28,7 +28,8 @@ public:
         float scale = 0;
         for (const TriVerts& t : tris)
             for (int a = 0; a < 3; ++a)
-                scale = std::max({scale, std::fabs(t.v0[a]), std::fabs(t.v1[a]), std::fabs(t.v2[a])});
+                scale =
+                    std::max({scale, std::fabs(t.v0[a]), std::fabs(t.v1[a]), std::fabs(t.v2[a])});
         const float margin = scale * 0x1p-12f;
         for (int a = 0; a < 3; ++a) {
             lo_[a].resize(tris.size());
@@ -57,8 +58,10 @@ public:
         for (size_t base = 0; base < tris_.size(); base += kBlock) {
             const size_t n = std::min(kBlock, tris_.size() - base);
             const float tmax = best.t;
-            const float *lx = lo_[0].data() + base, *ly = lo_[1].data() + base, *lz = lo_[2].data() + base;
-            const float *hx = hi_[0].data() + base, *hy = hi_[1].data() + base, *hz = hi_[2].data() + base;
+            const float *lx = lo_[0].data() + base, *ly = lo_[1].data() + base,
+                        *lz = lo_[2].data() + base;
+            const float *hx = hi_[0].data() + base, *hy = hi_[1].data() + base,
+                        *hz = hi_[2].data() + base;
             for (size_t j = 0; j < n; ++j) {  // branch-free, so the compiler vectorises it
                 const float x0 = (lx[j] - o[0]) * inv[0], x1 = (hx[j] - o[0]) * inv[0];
                 const float y0 = (ly[j] - o[1]) * inv[1], y1 = (hy[j] - o[1]) * inv[1];
@@ -95,10 +98,12 @@ private:
 inline std::vector<Hit> brute_force_all(std::span<const TriVerts> tris, std::span<const Ray> rays) {
     std::vector<Hit> hits(rays.size());
     if (tris.size() < 1024) {
-        tbb::parallel_for(size_t{0}, rays.size(), [&](size_t i) { hits[i] = brute_force_intersect(tris, rays[i]); });
+        tbb::parallel_for(size_t{0}, rays.size(),
+                          [&](size_t i) { hits[i] = brute_force_intersect(tris, rays[i]); });
     } else {
         const FilteredBruteForce oracle(tris);
-        tbb::parallel_for(size_t{0}, rays.size(), [&](size_t i) { hits[i] = oracle.intersect(rays[i]); });
+        tbb::parallel_for(size_t{0}, rays.size(),
+                          [&](size_t i) { hits[i] = oracle.intersect(rays[i]); });
     }
     return hits;
 }
@@ -114,13 +119,14 @@ inline std::vector<Hit> tree_all(const KdTree& tree, std::span<const Ray> rays) 
 /// cell it has no reason to enter; such a tie is accepted when t agrees exactly and the tree's
 /// triangle really is hit there (its own brute-force test gives the same t, u, v). Ties are
 /// counted and reported.
-inline void expect_same_hits(std::span<const Hit> got, std::span<const Hit> want, std::span<const Ray> rays,
-                             std::span<const TriVerts> tris = {}) {
+inline void expect_same_hits(std::span<const Hit> got, std::span<const Hit> want,
+                             std::span<const Ray> rays, std::span<const TriVerts> tris = {}) {
     ASSERT_EQ(got.size(), want.size());
     size_t mismatches = 0, ties = 0;
     for (size_t i = 0; i < got.size(); ++i) {
         if (std::memcmp(&got[i], &want[i], sizeof(Hit)) == 0) continue;
-        if (!tris.empty() && got[i].is_hit() && got[i].t == want[i].t && got[i].prim < tris.size()) {
+        if (!tris.empty() && got[i].is_hit() && got[i].t == want[i].t &&
+            got[i].prim < tris.size()) {
             const Hit alone = brute_force_intersect(tris.subspan(got[i].prim, 1), rays[i]);
             if (alone.t == got[i].t && alone.u == got[i].u && alone.v == got[i].v) {
                 ++ties;
@@ -129,14 +135,16 @@ inline void expect_same_hits(std::span<const Hit> got, std::span<const Hit> want
         }
         if (++mismatches <= 5) {
             const Ray& r = rays[i];
-            ADD_FAILURE() << "ray " << i << " o=(" << r.ox << "," << r.oy << "," << r.oz << ") d=(" << r.dx << ","
-                          << r.dy << "," << r.dz << ") [" << r.tmin << "," << r.tmax << "]: got t=" << got[i].t
-                          << " prim=" << got[i].prim << " u=" << got[i].u << " v=" << got[i].v << ", want t=" << want[i].t
+            ADD_FAILURE() << "ray " << i << " o=(" << r.ox << "," << r.oy << "," << r.oz << ") d=("
+                          << r.dx << "," << r.dy << "," << r.dz << ") [" << r.tmin << "," << r.tmax
+                          << "]: got t=" << got[i].t << " prim=" << got[i].prim << " u=" << got[i].u
+                          << " v=" << got[i].v << ", want t=" << want[i].t
                           << " prim=" << want[i].prim << " u=" << want[i].u << " v=" << want[i].v;
         }
     }
     EXPECT_EQ(mismatches, 0u) << "of " << got.size() << " rays";
-    if (ties) std::printf("    %zu of %zu rays had an exact tie broken differently\n", ties, got.size());
+    if (ties)
+        std::printf("    %zu of %zu rays had an exact tie broken differently\n", ties, got.size());
 }
 
 }  // namespace kdrt::test

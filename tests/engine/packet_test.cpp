@@ -45,26 +45,40 @@ std::vector<Ray> mixed_rays(const Mesh& mesh, const KdTree& tree, uint64_t seed,
     for (size_t i = 0; i < rays.size(); i += 97) {
         Ray& r = rays[i];
         switch (i % 5) {
-            case 0: r.dx = NAN; break;
-            case 1: r.oy = INFINITY; break;
-            case 2: r.dx = r.dy = r.dz = 0; break;
-            case 3: r.tmin = NAN; break;
-            default: std::swap(r.tmin, r.tmax); r.tmin += 1; break;
+            case 0:
+                r.dx = NAN;
+                break;
+            case 1:
+                r.oy = INFINITY;
+                break;
+            case 2:
+                r.dx = r.dy = r.dz = 0;
+                break;
+            case 3:
+                r.tmin = NAN;
+                break;
+            default:
+                std::swap(r.tmin, r.tmax);
+                r.tmin += 1;
+                break;
         }
     }
     return rays;
 }
 
-void expect_identical_bytes(std::span<const Hit> got, std::span<const Hit> want, const std::string& what) {
+void expect_identical_bytes(std::span<const Hit> got, std::span<const Hit> want,
+                            const std::string& what) {
     ASSERT_EQ(got.size(), want.size());
     const auto a = proto::encode_hits(got), b = proto::encode_hits(want);
     if (a == b) return;
     size_t first = 0;
     while (std::memcmp(&got[first], &want[first], sizeof(Hit)) == 0) ++first;
     size_t count = 0;
-    for (size_t i = 0; i < got.size(); ++i) count += std::memcmp(&got[i], &want[i], sizeof(Hit)) != 0;
-    FAIL() << what << ": " << count << " answers differ; first at ray " << first << ": got t=" << got[first].t
-           << " prim=" << got[first].prim << ", want t=" << want[first].t << " prim=" << want[first].prim;
+    for (size_t i = 0; i < got.size(); ++i)
+        count += std::memcmp(&got[i], &want[i], sizeof(Hit)) != 0;
+    FAIL() << what << ": " << count << " answers differ; first at ray " << first
+           << ": got t=" << got[first].t << " prim=" << got[first].prim
+           << ", want t=" << want[first].t << " prim=" << want[first].prim;
 }
 
 void check_all_kernels(const Mesh& mesh, uint64_t seed, size_t count) {
@@ -76,14 +90,16 @@ void check_all_kernels(const Mesh& mesh, uint64_t seed, size_t count) {
     for (size_t i = 0; i < rays.size(); ++i) want_occ[i] = occluded(tree, rays[i]) ? 1 : 0;
     for (Isa isa : supported_isas()) {
         for (TraceMode mode : {TraceMode::kPacket, TraceMode::kAuto, TraceMode::kSingle}) {
-            const std::string what = std::string(isa_name(isa)) + "/" + std::string(trace_mode_name(mode));
+            const std::string what =
+                std::string(isa_name(isa)) + "/" + std::string(trace_mode_name(mode));
             const TraceOptions options{mode, isa};
             std::vector<Hit> hits(rays.size());
             TraceStats stats;
             intersect(tree, rays, hits, options, &stats);
             expect_identical_bytes(hits, want, what);
             EXPECT_EQ(stats.isa, isa);
-            EXPECT_EQ(stats.packet_rays + stats.single_rays + stats.invalid_rays, rays.size()) << what;
+            EXPECT_EQ(stats.packet_rays + stats.single_rays + stats.invalid_rays, rays.size())
+                << what;
             if (mode == TraceMode::kPacket && isa != Isa::kScalar) {
                 EXPECT_GT(stats.packets, 0u) << what;
             }
@@ -134,7 +150,8 @@ TEST(PacketEquivalence, TailsAndDeadLanes) {
             for (size_t i = 0; i < n; ++i) rays.push_back(cam.ray(i % 16 + 0.5f, i / 16 + 0.5f));
             std::vector<Hit> hits(n);
             intersect(tree, rays, hits, {TraceMode::kPacket, isa});
-            expect_identical_bytes(hits, reference_hits(tree, rays), std::string(isa_name(isa)) + " n=" + std::to_string(n));
+            expect_identical_bytes(hits, reference_hits(tree, rays),
+                                   std::string(isa_name(isa)) + " n=" + std::to_string(n));
         }
         // A packet whose every lane is invalid, and one whose lanes all miss the scene box.
         std::vector<Ray> dead(32, make_ray({0, 0, 0}, {NAN, 1, 0}));
@@ -157,8 +174,10 @@ TEST(PacketEquivalence, OnlyIncoherentBlocksAreSortedAndSortingKeepsTheAnswers) 
     const uint32_t res = static_cast<uint32_t>(std::max<size_t>(scaled(256), 96));
     for (Isa isa : supported_isas()) {
         if (isa == Isa::kScalar) continue;  // the scalar path traces rays in input order
-        for (RayKind kind : {RayKind::kPrimary, RayKind::kShadow, RayKind::kDiffuse, RayKind::kRandom}) {
-            const std::string what = std::string(isa_name(isa)) + "/" + std::string(ray_kind_name(kind));
+        for (RayKind kind :
+             {RayKind::kPrimary, RayKind::kShadow, RayKind::kDiffuse, RayKind::kRandom}) {
+            const std::string what =
+                std::string(isa_name(isa)) + "/" + std::string(ray_kind_name(kind));
             const std::vector<Ray> rays = generate_rays(tree, {kind, res, 11});
             std::vector<Hit> hits(rays.size());
             TraceStats stats;
@@ -169,7 +188,8 @@ TEST(PacketEquivalence, OnlyIncoherentBlocksAreSortedAndSortingKeepsTheAnswers) 
                 // Every block of these sets is sorted: all their valid rays.
                 EXPECT_EQ(stats.sorted_rays, rays.size() - stats.invalid_rays) << what;
             } else {
-                EXPECT_EQ(stats.sorted_rays, 0u) << what << ": one origin or one direction keeps the input order";
+                EXPECT_EQ(stats.sorted_rays, 0u)
+                    << what << ": one origin or one direction keeps the input order";
             }
         }
     }
@@ -194,7 +214,8 @@ TEST(PacketEquivalence, OneAndTwoThreadsGiveIdenticalBytes) {
 TEST(PacketDispatch, NamesAndWidths) {
     EXPECT_TRUE(isa_supported(Isa::kScalar));
     EXPECT_TRUE(isa_supported(default_isa()));
-    for (Isa isa : {Isa::kScalar, Isa::kSse4, Isa::kAvx2, Isa::kAvx512}) EXPECT_EQ(parse_isa(isa_name(isa)), isa);
+    for (Isa isa : {Isa::kScalar, Isa::kSse4, Isa::kAvx2, Isa::kAvx512})
+        EXPECT_EQ(parse_isa(isa_name(isa)), isa);
     EXPECT_EQ(isa_width(Isa::kScalar), 1);
     EXPECT_EQ(isa_width(Isa::kSse4), 4);
     EXPECT_EQ(isa_width(Isa::kAvx2), 8);

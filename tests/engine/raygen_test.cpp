@@ -52,7 +52,8 @@ Mesh sphere_on_floor() {
     for (float x : {-3.0f, 3.0f}) {
         for (float z : {-3.0f, 3.0f}) mesh.positions.insert(mesh.positions.end(), {x, -1.5f, z});
     }
-    mesh.indices.insert(mesh.indices.end(), {base, base + 1, base + 2, base + 1, base + 3, base + 2});
+    mesh.indices.insert(mesh.indices.end(),
+                        {base, base + 1, base + 2, base + 1, base + 3, base + 2});
     return mesh;
 }
 
@@ -87,7 +88,8 @@ std::vector<PrimaryHit> primary_hits(uint32_t res) {
 /// Unit geometric normal of the hit triangle, on the side the ray came from.
 Vec3 facing_normal(const PrimaryHit& p) {
     const TriVerts& t = scene_tree().tris[p.hit.prim];
-    const Vec3 v0{t.v0[0], t.v0[1], t.v0[2]}, v1{t.v1[0], t.v1[1], t.v1[2]}, v2{t.v2[0], t.v2[1], t.v2[2]};
+    const Vec3 v0{t.v0[0], t.v0[1], t.v0[2]}, v1{t.v1[0], t.v1[1], t.v1[2]},
+        v2{t.v2[0], t.v2[1], t.v2[2]};
     Vec3 n = cross(v1 - v0, v2 - v0);
     n = n * (1.0f / length(n));
     return dot(n, direction(p.ray)) > 0.0f ? n * -1.0f : n;
@@ -101,7 +103,8 @@ bool inside(const Aabb& box, Vec3 p) {
 }
 
 TEST(RayKindName, RoundTripsEveryKind) {
-    for (RayKind kind : {RayKind::kPrimary, RayKind::kShadow, RayKind::kDiffuse, RayKind::kRandom}) {
+    for (RayKind kind :
+         {RayKind::kPrimary, RayKind::kShadow, RayKind::kDiffuse, RayKind::kRandom}) {
         const auto parsed = parse_ray_kind(ray_kind_name(kind));
         ASSERT_TRUE(parsed.has_value()) << ray_kind_name(kind);
         EXPECT_EQ(*parsed, kind);
@@ -162,7 +165,8 @@ TEST(RayGen, AGivenCameraReplacesTheDefaultForPrimaryAndSecondarySets) {
 TEST(RayGen, SameSeedGivesIdenticalBytes) {
     const uint64_t seed = test_seed();
     SCOPED_TRACE(testing::Message() << "seed=" << seed);
-    for (RayKind kind : {RayKind::kPrimary, RayKind::kShadow, RayKind::kDiffuse, RayKind::kRandom}) {
+    for (RayKind kind :
+         {RayKind::kPrimary, RayKind::kShadow, RayKind::kDiffuse, RayKind::kRandom}) {
         SCOPED_TRACE(ray_kind_name(kind));
         const std::vector<Ray> a = generate(kind, 48, seed);
         const std::vector<Ray> b = generate(kind, 48, seed);
@@ -174,16 +178,21 @@ TEST(RayGen, SameSeedGivesIdenticalBytes) {
 TEST(RayGen, SeedChangesOnlyTheRandomKinds) {
     const uint64_t seed = test_seed();
     SCOPED_TRACE(testing::Message() << "seed=" << seed);
-    EXPECT_TRUE(same_bytes(generate(RayKind::kPrimary, 24, seed), generate(RayKind::kPrimary, 24, seed + 1)));
-    EXPECT_TRUE(same_bytes(generate(RayKind::kShadow, 24, seed), generate(RayKind::kShadow, 24, seed + 1)));
-    EXPECT_FALSE(same_bytes(generate(RayKind::kDiffuse, 24, seed), generate(RayKind::kDiffuse, 24, seed + 1)));
-    EXPECT_FALSE(same_bytes(generate(RayKind::kRandom, 24, seed), generate(RayKind::kRandom, 24, seed + 1)));
+    EXPECT_TRUE(same_bytes(generate(RayKind::kPrimary, 24, seed),
+                           generate(RayKind::kPrimary, 24, seed + 1)));
+    EXPECT_TRUE(
+        same_bytes(generate(RayKind::kShadow, 24, seed), generate(RayKind::kShadow, 24, seed + 1)));
+    EXPECT_FALSE(same_bytes(generate(RayKind::kDiffuse, 24, seed),
+                            generate(RayKind::kDiffuse, 24, seed + 1)));
+    EXPECT_FALSE(
+        same_bytes(generate(RayKind::kRandom, 24, seed), generate(RayKind::kRandom, 24, seed + 1)));
 }
 
 TEST(RayGen, IdenticalOnOneAndTwoThreads) {
     const uint64_t seed = test_seed();
     SCOPED_TRACE(testing::Message() << "seed=" << seed);
-    for (RayKind kind : {RayKind::kPrimary, RayKind::kShadow, RayKind::kDiffuse, RayKind::kRandom}) {
+    for (RayKind kind :
+         {RayKind::kPrimary, RayKind::kShadow, RayKind::kDiffuse, RayKind::kRandom}) {
         SCOPED_TRACE(ray_kind_name(kind));
         std::vector<Ray> one, two;
         tbb::task_arena(1).execute([&] { one = generate(kind, 200, seed); });
@@ -286,7 +295,8 @@ TEST(RayGen, RandomRaysStartInsideTheBoundsAndPointEverywhere) {
 }
 
 TEST(RayGen, ZeroResolutionGivesNoRays) {
-    for (RayKind kind : {RayKind::kPrimary, RayKind::kShadow, RayKind::kDiffuse, RayKind::kRandom}) {
+    for (RayKind kind :
+         {RayKind::kPrimary, RayKind::kShadow, RayKind::kDiffuse, RayKind::kRandom}) {
         EXPECT_TRUE(generate(kind, 0, 1).empty()) << ray_kind_name(kind);
     }
 }

@@ -44,8 +44,8 @@ const KdTree& bunny_tree() {
 /// The quad [-1, 1]^2 in the plane z = 0, two triangles (ids 0 and 1), normal +z.
 Mesh unit_quad(float z = 0.0f) {
     Mesh m;
-    const uint32_t a = add_vertex(m, {-1, -1, z}), b = add_vertex(m, {1, -1, z}), c = add_vertex(m, {1, 1, z}),
-                   d = add_vertex(m, {-1, 1, z});
+    const uint32_t a = add_vertex(m, {-1, -1, z}), b = add_vertex(m, {1, -1, z}),
+                   c = add_vertex(m, {1, 1, z}), d = add_vertex(m, {-1, 1, z});
     add_indices(m, a, b, c);
     add_indices(m, a, c, d);
     return m;
@@ -81,15 +81,17 @@ void expect_same_image(const Image& got, const Image& want) {
         if (std::memcmp(&got.pixels[i], &want.pixels[i], sizeof(float)) == 0) continue;
         if (++differences <= 5) {
             const size_t pixel = i / got.channels;
-            ADD_FAILURE() << "pixel (" << pixel % got.width << ", " << pixel / got.width << ") channel "
-                          << i % got.channels << ": " << got.pixels[i] << " vs " << want.pixels[i];
+            ADD_FAILURE() << "pixel (" << pixel % got.width << ", " << pixel / got.width
+                          << ") channel " << i % got.channels << ": " << got.pixels[i] << " vs "
+                          << want.pixels[i];
         }
     }
     EXPECT_EQ(differences, 0u);
 }
 
 /// Asserts that render(settings) throws RenderError whose message names `field`.
-void expect_render_error(const KdTree& tree, const RenderSettings& settings, const std::string& field) {
+void expect_render_error(const KdTree& tree, const RenderSettings& settings,
+                         const std::string& field) {
     try {
         const Image image = render(tree, settings);
         ADD_FAILURE() << "no RenderError; expected one naming '" << field << "'";
@@ -117,17 +119,24 @@ public:
         const auto it = known_.find(key(ray));
         return it != known_.end() ? it->second : filtered_.intersect(ray);
     }
-    [[nodiscard]] detail::TraceFunctions functions() const { return {this, &intersect_all, &occluded_all}; }
+    [[nodiscard]] detail::TraceFunctions functions() const {
+        return {this, &intersect_all, &occluded_all};
+    }
 
 private:
-    static std::string key(const Ray& ray) { return std::string(reinterpret_cast<const char*>(&ray), sizeof ray); }
-    static void intersect_all(const void* self, std::span<const Ray> rays, std::span<Hit> hits) noexcept {
+    static std::string key(const Ray& ray) {
+        return std::string(reinterpret_cast<const char*>(&ray), sizeof ray);
+    }
+    static void intersect_all(const void* self, std::span<const Ray> rays,
+                              std::span<Hit> hits) noexcept {
         const auto& oracle = *static_cast<const BruteForce*>(self);
         for (size_t i = 0; i < rays.size(); ++i) hits[i] = oracle.intersect(rays[i]);
     }
-    static void occluded_all(const void* self, std::span<const Ray> rays, std::span<uint8_t> out) noexcept {
+    static void occluded_all(const void* self, std::span<const Ray> rays,
+                             std::span<uint8_t> out) noexcept {
         const auto& oracle = *static_cast<const BruteForce*>(self);
-        for (size_t i = 0; i < rays.size(); ++i) out[i] = oracle.intersect(rays[i]).is_hit() ? 1 : 0;
+        for (size_t i = 0; i < rays.size(); ++i)
+            out[i] = oracle.intersect(rays[i]).is_hit() ? 1 : 0;
     }
 
     FilteredBruteForce filtered_;
@@ -142,13 +151,15 @@ Image render_brute_force(const KdTree& tree, const RenderSettings& settings) {
 /// Pixels whose camera ray (`rays`, with the oracle's answers `want`) has an exact tie at its
 /// closest t, broken differently by the tree and the oracle (both legitimate: see
 /// expect_same_hits in oracle.h). The only accepted difference.
-std::set<size_t> tie_pixels(const KdTree& tree, std::span<const Ray> rays, std::span<const Hit> want) {
+std::set<size_t> tie_pixels(const KdTree& tree, std::span<const Ray> rays,
+                            std::span<const Hit> want) {
     std::set<size_t> ties;
     std::vector<Hit> hits(rays.size());
     intersect_single(tree, rays, hits);
     for (size_t i = 0; i < rays.size(); ++i) {
         if (hits[i].prim == want[i].prim || hits[i].t != want[i].t || !hits[i].is_hit()) continue;
-        const Hit alone = brute_force_intersect(std::span(tree.tris).subspan(hits[i].prim, 1), rays[i]);
+        const Hit alone =
+            brute_force_intersect(std::span(tree.tris).subspan(hits[i].prim, 1), rays[i]);
         if (alone.t == hits[i].t) ties.insert(i);
     }
     return ties;
@@ -157,8 +168,8 @@ std::set<size_t> tie_pixels(const KdTree& tree, std::span<const Ray> rays, std::
 /// The tree render equals the oracle render bit for bit, except at the exact-tie pixels `ties`.
 /// Returns the number of pixels the camera rays hit (so callers can check the image is not
 /// trivial).
-size_t expect_matches_oracle(const KdTree& tree, const RenderSettings& settings, const BruteForce& oracle,
-                             const std::set<size_t>& ties) {
+size_t expect_matches_oracle(const KdTree& tree, const RenderSettings& settings,
+                             const BruteForce& oracle, const std::set<size_t>& ties) {
     const Image got = render(tree, settings);
     const Image want = detail::render_with(tree, settings, oracle.functions());
     EXPECT_EQ(got.width, want.width);
@@ -177,12 +188,14 @@ size_t expect_matches_oracle(const KdTree& tree, const RenderSettings& settings,
             continue;
         }
         if (++mismatches <= 5) {
-            ADD_FAILURE() << "pixel (" << p % got.width << ", " << p / got.width << "): (" << a[0] << ", " << a[1]
-                          << ", " << a[2] << ") vs brute force (" << b[0] << ", " << b[1] << ", " << b[2] << ")";
+            ADD_FAILURE() << "pixel (" << p % got.width << ", " << p / got.width << "): (" << a[0]
+                          << ", " << a[1] << ", " << a[2] << ") vs brute force (" << b[0] << ", "
+                          << b[1] << ", " << b[2] << ")";
         }
     }
     EXPECT_EQ(mismatches, 0u) << "of " << pixels << " pixels";
-    if (tie_mismatches) std::printf("    %zu pixels had an exact tie broken differently\n", tie_mismatches);
+    if (tie_mismatches)
+        std::printf("    %zu pixels had an exact tie broken differently\n", tie_mismatches);
     return hit_pixels;
 }
 
@@ -209,8 +222,10 @@ TEST(RenderOracle, BunnyNormalsDepthPrimIdEqualBruteForce) {
     const std::set<size_t> ties = tie_pixels(tree, rays, want);
     for (Shading shading : {Shading::kNormals, Shading::kDepth, Shading::kPrimId}) {
         SCOPED_TRACE(shading_name(shading));
-        const size_t hit_pixels = expect_matches_oracle(tree, bunny_settings(shading, 128), oracle, ties);
-        EXPECT_GT(hit_pixels, 128u * 128u / 5) << "the default camera should fill the frame with the bunny";
+        const size_t hit_pixels =
+            expect_matches_oracle(tree, bunny_settings(shading, 128), oracle, ties);
+        EXPECT_GT(hit_pixels, 128u * 128u / 5)
+            << "the default camera should fill the frame with the bunny";
         EXPECT_LT(hit_pixels, 128u * 128u) << "and show some background";
     }
 }
@@ -246,7 +261,8 @@ TEST(RenderOracle, BunnyAoCloseToBruteForceWithTheSameSeed) {
     }
     const double rmse = std::sqrt(squared / static_cast<double>(pixels));
     EXPECT_LT(rmse, 0.01);
-    EXPECT_GT(exact, pixels * 99 / 100) << "the same rays should almost always give the same answers";
+    EXPECT_GT(exact, pixels * 99 / 100)
+        << "the same rays should almost always give the same answers";
     EXPECT_GT(occluded_somewhere, pixels / 20) << "the bunny occludes itself in places";
 }
 
@@ -291,11 +307,13 @@ TEST(RenderDeterminism, FourRegionsStitchIntoTheFullFrameBitExactly) {
         const Image frame = render(bunny_tree(), full);
         // Uneven split points, off the tile grid: tiles inside a region start elsewhere.
         const uint32_t split_x = 29, split_y = 19;
-        Image stitched{full.width, full.height, frame.channels, std::vector<float>(frame.pixels.size(), -1.0f)};
-        const PixelRegion regions[4] = {{0, 0, split_x, split_y},
-                                        {split_x, 0, full.width - split_x, split_y},
-                                        {0, split_y, split_x, full.height - split_y},
-                                        {split_x, split_y, full.width - split_x, full.height - split_y}};
+        Image stitched{full.width, full.height, frame.channels,
+                       std::vector<float>(frame.pixels.size(), -1.0f)};
+        const PixelRegion regions[4] = {
+            {0, 0, split_x, split_y},
+            {split_x, 0, full.width - split_x, split_y},
+            {0, split_y, split_x, full.height - split_y},
+            {split_x, split_y, full.width - split_x, full.height - split_y}};
         for (const PixelRegion& r : regions) {
             RenderSettings part = full;
             part.region = r;
@@ -378,7 +396,8 @@ TEST(RenderSamples, SamplesAreStratifiedOneToACell) {
         while (columns * columns < spp) ++columns;
         const uint32_t rows = (spp + columns - 1) / columns;
         std::vector<std::vector<Ray>> samples;
-        for (uint32_t k = 0; k < spp; ++k) samples.push_back(render_camera_rays(bunny_tree(), s, k));
+        for (uint32_t k = 0; k < spp; ++k)
+            samples.push_back(render_camera_rays(bunny_tree(), s, k));
         size_t on_a_boundary = 0;
         for (uint32_t y = 0; y < kSize; ++y) {
             for (uint32_t x = 0; x < kSize; ++x) {
@@ -386,22 +405,24 @@ TEST(RenderSamples, SamplesAreStratifiedOneToACell) {
                 bool ambiguous = false;
                 for (uint32_t k = 0; k < spp; ++k) {
                     const Ray& r = samples[k][y * kSize + x];
-                    const double fx = r.ox + kSize / 2.0 - x, fy = kSize / 2.0 - r.oy - y;  // in [0, 1]
+                    const double fx = r.ox + kSize / 2.0 - x,
+                                 fy = kSize / 2.0 - r.oy - y;  // in [0, 1]
                     ASSERT_GE(fx, -1e-5) << x << "," << y;
                     ASSERT_LE(fx, 1.0 + 1e-5) << x << "," << y;
                     ASSERT_GE(fy, -1e-5) << x << "," << y;
                     ASSERT_LE(fy, 1.0 + 1e-5) << x << "," << y;
                     // A sample within rounding of a cell border cannot be assigned reliably.
                     const double gx = fx * columns, gy = fy * rows;
-                    ambiguous =
-                        ambiguous || std::fabs(gx - std::round(gx)) < 1e-4 || std::fabs(gy - std::round(gy)) < 1e-4;
+                    ambiguous = ambiguous || std::fabs(gx - std::round(gx)) < 1e-4 ||
+                                std::fabs(gy - std::round(gy)) < 1e-4;
                     const auto cx = std::min(columns - 1, static_cast<uint32_t>(gx));
                     const auto cy = std::min(rows - 1, static_cast<uint32_t>(gy));
                     cells.insert(cy * columns + cx);
                 }
                 on_a_boundary += ambiguous;
                 if (!ambiguous) {
-                    EXPECT_EQ(cells.size(), spp) << "pixel " << x << "," << y << ": two samples share a cell";
+                    EXPECT_EQ(cells.size(), spp)
+                        << "pixel " << x << "," << y << ": two samples share a cell";
                 }
             }
         }
@@ -417,7 +438,8 @@ TEST(RenderSamples, RegionRaysAreTheFullFrameRays) {
     ASSERT_EQ(part.size(), 260u);
     for (uint32_t y = 0; y < 13; ++y)
         for (uint32_t x = 0; x < 20; ++x)
-            ASSERT_EQ(std::memcmp(&part[y * 20 + x], &full[(y + 7) * s.width + x + 11], sizeof(Ray)), 0);
+            ASSERT_EQ(
+                std::memcmp(&part[y * 20 + x], &full[(y + 7) * s.width + x + 11], sizeof(Ray)), 0);
     EXPECT_THROW((void)render_camera_rays(bunny_tree(), s, s.spp), RenderError);
 }
 
@@ -497,7 +519,8 @@ TEST(RenderShading, PrimIdColourIsFixedPerTriangle) {
     std::vector<std::array<float, 3>> colour_of(2, {-1, -1, -1});
     for (size_t i = 0; i < rays.size(); ++i) {
         ASSERT_TRUE(hits[i].is_hit()) << "the quad fills the view";
-        const std::array<float, 3> c{image.pixels[i * 3], image.pixels[i * 3 + 1], image.pixels[i * 3 + 2]};
+        const std::array<float, 3> c{image.pixels[i * 3], image.pixels[i * 3 + 1],
+                                     image.pixels[i * 3 + 2]};
         for (float v : c) {
             EXPECT_GE(v, 0.0f);
             EXPECT_LE(v, 1.0f);
@@ -629,8 +652,10 @@ TEST(RenderShading, EyeInsideTheMeshSeesItsInside) {
     s.alpha = true;
     s.camera = looking_down_z({0, 0, 0}, 60.0f);
     const Image eyelight = render(tree, s);
-    for (uint32_t i = 0; i < 81; ++i) EXPECT_EQ(eyelight.pixels[i * 4 + 3], 1.0f) << "every ray hits the wall";
-    EXPECT_NEAR(at(eyelight, 4, 4, 0), 1.0f, 0.01f) << "looking at the wall head-on from the centre";
+    for (uint32_t i = 0; i < 81; ++i)
+        EXPECT_EQ(eyelight.pixels[i * 4 + 3], 1.0f) << "every ray hits the wall";
+    EXPECT_NEAR(at(eyelight, 4, 4, 0), 1.0f, 0.01f)
+        << "looking at the wall head-on from the centre";
     s.shading = Shading::kDepth;
     const Image depth = render(tree, s);
     for (uint32_t i = 0; i < 81; ++i) EXPECT_NEAR(depth.pixels[i * 4], 2.0f, 0.02f);
@@ -653,7 +678,8 @@ TEST(RenderShading, AlphaIsCoverageAndMissesShowTheBackground) {
     EXPECT_EQ(at(image, 0, 0, 2), 0.75f);
     size_t partial = 0;
     for (uint32_t y = 0; y < 8; ++y)
-        for (uint32_t x = 0; x < 16; ++x) partial += at(image, x, y, 3) > 0.0f && at(image, x, y, 3) < 1.0f;
+        for (uint32_t x = 0; x < 16; ++x)
+            partial += at(image, x, y, 3) > 0.0f && at(image, x, y, 3) < 1.0f;
     EXPECT_GT(partial, 0u) << "pixels on the quad's edge are partly covered";
 
     s.alpha = false;
@@ -701,7 +727,8 @@ TEST(RenderControl, CancelBeforeStartThrowsAndReportsNoCompletion) {
     RenderControl control;
     control.cancel = &cancel;
     control.progress = [&](double f) { finished = finished || f == 1.0; };
-    EXPECT_THROW((void)render(bunny_tree(), noisy_settings(Shading::kEyelight), control), RenderCancelled);
+    EXPECT_THROW((void)render(bunny_tree(), noisy_settings(Shading::kEyelight), control),
+                 RenderCancelled);
     EXPECT_FALSE(finished);
 }
 
@@ -761,8 +788,8 @@ TEST(RenderStatsTest, CountsPixelsTilesAndRays) {
 // Settings validation
 
 TEST(RenderSettingsTest, ShadingNamesRoundTrip) {
-    for (Shading shading :
-         {Shading::kNormals, Shading::kEyelight, Shading::kDepth, Shading::kPrimId, Shading::kAo, Shading::kDiffuse}) {
+    for (Shading shading : {Shading::kNormals, Shading::kEyelight, Shading::kDepth,
+                            Shading::kPrimId, Shading::kAo, Shading::kDiffuse}) {
         EXPECT_EQ(parse_shading(shading_name(shading)), shading);
     }
     EXPECT_EQ(parse_shading("Eyelight"), std::nullopt);
@@ -780,22 +807,41 @@ TEST(RenderSettingsTest, BadSizesAndCountsNameTheField) {
     };
     expect_render_error(tree, with([](RenderSettings& s) { s.width = 0; }), "width");
     expect_render_error(tree, with([](RenderSettings& s) { s.height = 0; }), "height");
-    expect_render_error(tree, with([](RenderSettings& s) { s.width = kMaxImageSize + 1; }), "width");
-    expect_render_error(tree, with([](RenderSettings& s) { s.region = PixelRegion{0, 0, 0, 4}; }), "region");
-    expect_render_error(tree, with([](RenderSettings& s) { s.region = PixelRegion{30, 0, 3, 4}; }), "region");
-    expect_render_error(tree, with([](RenderSettings& s) { s.region = PixelRegion{0xFFFFFFFFu, 0, 2, 2}; }), "region");
+    expect_render_error(tree, with([](RenderSettings& s) { s.width = kMaxImageSize + 1; }),
+                        "width");
+    expect_render_error(tree, with([](RenderSettings& s) {
+                            s.region = PixelRegion{0, 0, 0, 4};
+                        }),
+                        "region");
+    expect_render_error(tree, with([](RenderSettings& s) {
+                            s.region = PixelRegion{30, 0, 3, 4};
+                        }),
+                        "region");
+    expect_render_error(tree, with([](RenderSettings& s) {
+                            s.region = PixelRegion{0xFFFFFFFFu, 0, 2, 2};
+                        }),
+                        "region");
     expect_render_error(tree, with([](RenderSettings& s) { s.spp = 0; }), "spp");
-    expect_render_error(tree, with([](RenderSettings& s) { s.spp = kMaxSamplesPerPixel + 1; }), "spp");
+    expect_render_error(tree, with([](RenderSettings& s) { s.spp = kMaxSamplesPerPixel + 1; }),
+                        "spp");
     expect_render_error(tree, with([](RenderSettings& s) { s.tile_size = 12; }), "tile_size");
     expect_render_error(tree, with([](RenderSettings& s) { s.ao_samples = 0; }), "ao_samples");
     expect_render_error(tree, with([](RenderSettings& s) { s.ao_distance = 0.0f; }), "ao_distance");
     expect_render_error(tree, with([](RenderSettings& s) { s.ao_distance = NAN; }), "ao_distance");
     expect_render_error(tree, with([](RenderSettings& s) { s.albedo = 1.5f; }), "albedo");
-    expect_render_error(tree, with([](RenderSettings& s) { s.bounces = kMaxBounces + 1; }), "bounces");
+    expect_render_error(tree, with([](RenderSettings& s) { s.bounces = kMaxBounces + 1; }),
+                        "bounces");
     expect_render_error(tree, with([](RenderSettings& s) { s.sky = -1.0f; }), "sky");
-    expect_render_error(tree, with([](RenderSettings& s) { s.background = {0, INFINITY, 0}; }), "background");
-    expect_render_error(tree, with([](RenderSettings& s) { s.light.intensity = NAN; }), "light.intensity");
-    expect_render_error(tree, with([](RenderSettings& s) { s.light.direction = {0, 0, 0}; }), "light.direction");
+    expect_render_error(tree, with([](RenderSettings& s) {
+                            s.background = {0, INFINITY, 0};
+                        }),
+                        "background");
+    expect_render_error(tree, with([](RenderSettings& s) { s.light.intensity = NAN; }),
+                        "light.intensity");
+    expect_render_error(tree, with([](RenderSettings& s) {
+                            s.light.direction = {0, 0, 0};
+                        }),
+                        "light.direction");
     expect_render_error(tree, with([](RenderSettings& s) {
                             s.light.direction = {1e30f, 1e30f, 0};
                         }),
@@ -805,10 +851,14 @@ TEST(RenderSettingsTest, BadSizesAndCountsNameTheField) {
                             s.light.position = {NAN, 0, 0};
                         }),
                         "light.position");
-    expect_render_error(tree, with([](RenderSettings& s) { s.light.kind = static_cast<LightKind>(5); }), "light.kind");
-    expect_render_error(tree, with([](RenderSettings& s) { s.shading = static_cast<Shading>(42); }), "shading");
+    expect_render_error(tree,
+                        with([](RenderSettings& s) { s.light.kind = static_cast<LightKind>(5); }),
+                        "light.kind");
+    expect_render_error(tree, with([](RenderSettings& s) { s.shading = static_cast<Shading>(42); }),
+                        "shading");
     // The error type is an invalid_argument, as the server maps it to 400.
-    EXPECT_THROW((void)render(tree, with([](RenderSettings& s) { s.spp = 0; })), std::invalid_argument);
+    EXPECT_THROW((void)render(tree, with([](RenderSettings& s) { s.spp = 0; })),
+                 std::invalid_argument);
 }
 
 TEST(RenderSettingsTest, CameraEdgeCasesGiveClearErrors) {

@@ -24,11 +24,14 @@ TEST(TreeBlob, RoundTripGivesIdenticalTreeAndAnswers) {
     EXPECT_EQ(loaded.options, tree.options);
     EXPECT_EQ(loaded.stats.sah_cost, tree.stats.sah_cost);
     EXPECT_EQ(loaded.stats.build_ms, tree.stats.build_ms);
-    EXPECT_EQ(std::memcmp(loaded.tris.data(), tree.tris.data(), tree.tris.size() * sizeof(TriVerts)), 0);
+    EXPECT_EQ(
+        std::memcmp(loaded.tris.data(), tree.tris.data(), tree.tris.size() * sizeof(TriVerts)), 0);
     EXPECT_EQ(serialize_tree(loaded), blob) << "serialisation is deterministic";
     Rng rng(test_seed() + 401);
     Mesh mesh;  // only bounds matter for oracle_rays' outer box; reuse the tree's triangles
-    for (const TriVerts& t : tree.tris) add_triangle(mesh, {t.v0[0], t.v0[1], t.v0[2]}, {t.v1[0], t.v1[1], t.v1[2]}, {t.v2[0], t.v2[1], t.v2[2]});
+    for (const TriVerts& t : tree.tris)
+        add_triangle(mesh, {t.v0[0], t.v0[1], t.v0[2]}, {t.v1[0], t.v1[1], t.v1[2]},
+                     {t.v2[0], t.v2[1], t.v2[2]});
     const auto rays = oracle_rays(rng, mesh, tree, scaled(20'000));
     expect_same_hits(tree_all(loaded, rays), tree_all(tree, rays), rays);
 }

@@ -45,7 +45,8 @@ TEST_F(Watertight, NoRayFromInsideEscapes) {
     std::vector<Ray> rays;
     const size_t n = scaled(1'000'000);
     for (size_t i = 0; i < n; ++i) {
-        // Half from the centre (rays through every pole vertex and ring edge), half from anywhere inside.
+        // Half from the centre (rays through every pole vertex and ring edge), half from anywhere
+        // inside.
         const Vec3 o = i % 2 ? c : c + rng.on_sphere() * rng.uniform(0.0f, 0.95f);
         rays.push_back(make_ray(o, rng.on_sphere()));
     }

@@ -31,9 +31,13 @@ double srgb_oetf(double linear) {
     return linear <= 0.0031308 ? 12.92 * linear : 1.055 * std::pow(linear, 1.0 / 2.4) - 0.055;
 }
 
-double clamp01(float value) { return value > 0.0f ? std::min(static_cast<double>(value), 1.0) : 0.0; }
+double clamp01(float value) {
+    return value > 0.0f ? std::min(static_cast<double>(value), 1.0) : 0.0;
+}
 
-int expected_level(float linear) { return static_cast<int>(std::lround(255.0 * srgb_oetf(clamp01(linear)))); }
+int expected_level(float linear) {
+    return static_cast<int>(std::lround(255.0 * srgb_oetf(clamp01(linear))));
+}
 
 /// A scratch directory for one test, removed afterwards.
 class TempDir {
@@ -189,7 +193,8 @@ TEST(ImageIoPng, FileReadByOiioHasTheSrgbLevelsOfTheBuffer) {
     EXPECT_EQ(raw.spec.format, OIIO::TypeDesc::UINT8);
     ASSERT_EQ(raw.bytes.size(), image.pixels.size());
     for (size_t i = 0; i < image.pixels.size(); ++i) {
-        ASSERT_EQ(raw.bytes[i], expected_level(image.pixels[i])) << "value " << i << " = " << image.pixels[i];
+        ASSERT_EQ(raw.bytes[i], expected_level(image.pixels[i]))
+            << "value " << i << " = " << image.pixels[i];
     }
 }
 
@@ -206,7 +211,8 @@ TEST(ImageIoPng, DecodeMatchesTheBufferWithin8BitQuantisation) {
         // Within half a level in the encoded (sRGB) domain of the clamped value.
         const double got = srgb_oetf(decoded->pixels[i]);
         const double want = srgb_oetf(clamp01(image.pixels[i]));
-        ASSERT_LE(std::fabs(got - want), 0.5 / 255.0 + 1e-6) << "value " << i << " = " << image.pixels[i];
+        ASSERT_LE(std::fabs(got - want), 0.5 / 255.0 + 1e-6)
+            << "value " << i << " = " << image.pixels[i];
     }
 }
 
@@ -281,12 +287,16 @@ TEST(ImageIoExr, FloatIsBitExactAndLinear) {
     EXPECT_EQ(raw.spec.channelnames[0], "R");
     EXPECT_EQ(raw.spec.channelnames[3], "A");
     ASSERT_EQ(raw.floats.size(), image.pixels.size());
-    EXPECT_EQ(std::memcmp(raw.floats.data(), image.pixels.data(), image.pixels.size() * sizeof(float)), 0);
+    EXPECT_EQ(
+        std::memcmp(raw.floats.data(), image.pixels.data(), image.pixels.size() * sizeof(float)),
+        0);
 
     auto decoded = read_image_file(path);
     ASSERT_TRUE(decoded.ok()) << decoded.error();
     ASSERT_EQ(decoded->pixels.size(), image.pixels.size());
-    EXPECT_EQ(std::memcmp(decoded->pixels.data(), image.pixels.data(), image.pixels.size() * sizeof(float)), 0);
+    EXPECT_EQ(std::memcmp(decoded->pixels.data(), image.pixels.data(),
+                          image.pixels.size() * sizeof(float)),
+              0);
 }
 
 TEST(ImageIoExr, HalfKeepsHalfPrecision) {
@@ -332,7 +342,8 @@ TEST(ImageIoJpeg, CloseToTheBufferAndAlphaDropped) {
     const size_t pixels = size_t{image.width} * image.height;
     for (size_t p = 0; p < pixels; ++p) {
         for (int c = 0; c < 3; ++c) {
-            error += std::fabs(srgb_oetf(decoded->pixels[p * 3 + c]) - srgb_oetf(clamp01(image.pixels[p * 4 + c])));
+            error += std::fabs(srgb_oetf(decoded->pixels[p * 3 + c]) -
+                               srgb_oetf(clamp01(image.pixels[p * 4 + c])));
         }
     }
     EXPECT_LT(error / static_cast<double>(pixels * 3), 2.0 / 255.0) << "mean error in sRGB levels";
@@ -396,7 +407,8 @@ TEST(ImageIoErrors, UndecodableBytesGiveErrors) {
         EXPECT_GT(failures, 0u);
         // A corrupted body is an error or an image of the declared size, nothing else.
         std::vector<std::byte> corrupt = *bytes;
-        for (size_t i = corrupt.size() / 2; i < corrupt.size(); i += 7) corrupt[i] = std::byte{0xA5};
+        for (size_t i = corrupt.size() / 2; i < corrupt.size(); i += 7)
+            corrupt[i] = std::byte{0xA5};
         auto damaged = decode_image(corrupt);
         if (damaged.ok()) {
             EXPECT_EQ(damaged->pixels.size(), size_t{16} * 8 * damaged->channels);
@@ -444,7 +456,8 @@ TEST(ImageIoErrors, FileErrorsNameThePath) {
     ASSERT_FALSE(r.ok());
     EXPECT_NE(r.error().find("missing.png"), std::string::npos) << r.error();
 
-    ASSERT_TRUE(write_file_bytes(dir.file("junk.png"), std::vector<std::byte>(10, std::byte{1})).ok());
+    ASSERT_TRUE(
+        write_file_bytes(dir.file("junk.png"), std::vector<std::byte>(10, std::byte{1})).ok());
     r = read_image_file(dir.file("junk.png"));
     ASSERT_FALSE(r.ok());
     EXPECT_NE(r.error().find("junk.png"), std::string::npos) << r.error();

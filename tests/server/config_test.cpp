@@ -13,13 +13,15 @@
 namespace kdrt::server {
 namespace {
 
-Invocation parse_ok(const std::vector<std::string>& args, const std::vector<std::string>& env = {}) {
+Invocation parse_ok(const std::vector<std::string>& args,
+                    const std::vector<std::string>& env = {}) {
     auto r = parse_invocation(args, env);
     EXPECT_TRUE(r) << (r ? "" : r.error());
     return r ? *r : Invocation{};
 }
 
-std::string parse_error(const std::vector<std::string>& args, const std::vector<std::string>& env = {}) {
+std::string parse_error(const std::vector<std::string>& args,
+                        const std::vector<std::string>& env = {}) {
     auto r = parse_invocation(args, env);
     EXPECT_FALSE(r);
     return r ? "" : r.error();
@@ -35,8 +37,9 @@ TEST(Config, DefaultsWithoutAnything) {
 }
 
 TEST(Config, FlagsInBothFormsAndPreloadLists) {
-    const Invocation inv = parse_ok({"--listen", "0.0.0.0:9000", "--threads=3", "--memory-budget", "512M", "--preload",
-                                     "a.obj", "b.ply", "--token", "t", "--log-format", "json"});
+    const Invocation inv =
+        parse_ok({"--listen", "0.0.0.0:9000", "--threads=3", "--memory-budget", "512M", "--preload",
+                  "a.obj", "b.ply", "--token", "t", "--log-format", "json"});
     EXPECT_EQ(inv.config.listen, "0.0.0.0:9000");
     EXPECT_EQ(inv.config.threads, 3u);
     EXPECT_EQ(inv.config.memory_budget, 512ull << 20);
@@ -46,13 +49,14 @@ TEST(Config, FlagsInBothFormsAndPreloadLists) {
 }
 
 TEST(Config, FileThenEnvironmentThenFlags) {
-    const auto path =
-        std::filesystem::temp_directory_path() / ("kdrt-config-test-" + std::to_string(::getpid()) + ".json");
-    std::ofstream(path) << "{ // settings\n \"threads\": 4, \"http_threads\": 9, \"max_spp\": 7,\n"
-                           " \"preload\": [\"x.off\"], \"memory_budget\": \"1G\", \"cache_dir\": \"/c\" }";
-    const Invocation inv = parse_ok(
-        {"--http-threads", "11", "--config", path.string()},
-        {"KDRT_THREADS=5", "KDRT_HTTP_THREADS=10", "KDRT_PRELOAD=a.obj:b.obj", "KDRT_UNRELATED=1", "HOME=/root"});
+    const auto path = std::filesystem::temp_directory_path() /
+                      ("kdrt-config-test-" + std::to_string(::getpid()) + ".json");
+    std::ofstream(path)
+        << "{ // settings\n \"threads\": 4, \"http_threads\": 9, \"max_spp\": 7,\n"
+           " \"preload\": [\"x.off\"], \"memory_budget\": \"1G\", \"cache_dir\": \"/c\" }";
+    const Invocation inv = parse_ok({"--http-threads", "11", "--config", path.string()},
+                                    {"KDRT_THREADS=5", "KDRT_HTTP_THREADS=10",
+                                     "KDRT_PRELOAD=a.obj:b.obj", "KDRT_UNRELATED=1", "HOME=/root"});
     EXPECT_EQ(inv.config.config_file, path.string());
     EXPECT_EQ(inv.config.max_spp, 7u);  // file
     EXPECT_EQ(inv.config.memory_budget, 1ull << 30);
@@ -71,19 +75,22 @@ TEST(Config, ErrorsNameTheSettingAndSource) {
     EXPECT_EQ(parse_error({"--threads"}), "--threads needs a value");
     EXPECT_EQ(parse_error({"--http-threads", "0"}), "--http-threads: \"0\" is outside 1..4096");
     EXPECT_EQ(parse_error({"--memory-budget", "12Q"}),
-              "--memory-budget: \"12Q\" is not a byte count (digits with an optional K, M, G or T suffix)");
-    EXPECT_EQ(parse_error({"--listen", "8080"}), "--listen: \"8080\" is not HOST:PORT (e.g. 127.0.0.1:8080)");
+              "--memory-budget: \"12Q\" is not a byte count (digits with an optional K, M, G or T "
+              "suffix)");
+    EXPECT_EQ(parse_error({"--listen", "8080"}),
+              "--listen: \"8080\" is not HOST:PORT (e.g. 127.0.0.1:8080)");
     EXPECT_EQ(parse_error({"--listen", "h:99999"}),
               "--listen: \"h:99999\" has no port number 0..65535 after the last ':'");
     EXPECT_EQ(parse_error({"--log-level", "loud"}),
               "--log-level: \"loud\" is not one of trace, debug, info, warn, error, critical, off");
-    EXPECT_EQ(parse_error({"--frobnicate"}), "unknown argument \"--frobnicate\" (kdrt-server --help lists the flags)");
+    EXPECT_EQ(parse_error({"--frobnicate"}),
+              "unknown argument \"--frobnicate\" (kdrt-server --help lists the flags)");
     EXPECT_EQ(parse_error({}, {"KDRT_MAX_RAYS=0"}), "KDRT_MAX_RAYS: \"0\" is outside 1..67108864");
     EXPECT_EQ(parse_error({"--preload"}), "--preload needs at least one value");
     EXPECT_EQ(parse_error({"--mesh-id"}), "--mesh-id needs at least one mesh file");
 
-    const auto path =
-        std::filesystem::temp_directory_path() / ("kdrt-config-bad-" + std::to_string(::getpid()) + ".json");
+    const auto path = std::filesystem::temp_directory_path() /
+                      ("kdrt-config-bad-" + std::to_string(::getpid()) + ".json");
     std::ofstream(path) << "{\"thread\": 4}";
     EXPECT_EQ(parse_error({"--config", path.string()}),
               path.string() + ": unknown setting \"thread\" (kdrt-server --help lists them)");
@@ -91,7 +98,8 @@ TEST(Config, ErrorsNameTheSettingAndSource) {
     EXPECT_EQ(parse_error({"--config", path.string()}),
               path.string() + ": \"threads\": \"many\" is not a non-negative integer");
     std::ofstream(path, std::ios::trunc) << "{\"listen\": 80}";
-    EXPECT_EQ(parse_error({"--config", path.string()}), path.string() + ": \"listen\" must be a string");
+    EXPECT_EQ(parse_error({"--config", path.string()}),
+              path.string() + ": \"listen\" must be a string");
     std::filesystem::remove(path);
 }
 
@@ -125,7 +133,8 @@ TEST(Config, ShippedConfigFileListsEverySettingWithItsDefault) {
     EXPECT_EQ(keys, setting_keys());
     // Each value, re-read through the same parser, equals the built-in default.
     for (const auto& e : *entries) {
-        auto one = proto::parse_config_object("{\"" + e.key + "\": " + setting_default_json(e.key) + "}");
+        auto one =
+            proto::parse_config_object("{\"" + e.key + "\": " + setting_default_json(e.key) + "}");
         ASSERT_TRUE(one) << e.key;
         EXPECT_EQ((*one)[0].value, e.value) << e.key;
     }
@@ -135,7 +144,8 @@ TEST(Config, ShippedConfigFileListsEverySettingWithItsDefault) {
         ASSERT_NE(at, std::string::npos) << key;
         const size_t line_start = text.rfind('\n', at);
         const size_t prev_line = text.rfind('\n', line_start - 1);
-        EXPECT_NE(text.substr(prev_line + 1, line_start - prev_line).find("//"), std::string::npos) << key;
+        EXPECT_NE(text.substr(prev_line + 1, line_start - prev_line).find("//"), std::string::npos)
+            << key;
     }
     // And the server accepts it as is.
     EXPECT_TRUE(parse_invocation({"--config", path}, {}));

@@ -47,8 +47,8 @@ TEST_F(HttpApi, UploadInEveryFormatGivesTheSameId) {
         {"ply ascii", mesh_body(bunny, proto::MeshFormat::kPly, false), "application/ply", ""},
         {"off", mesh_body(bunny, proto::MeshFormat::kOff), "application/x-off; charset=utf-8", ""},
         {"stl binary", mesh_body(bunny, proto::MeshFormat::kStl), "model/stl", ""},
-        {"stl ascii, ?format", mesh_body(bunny, proto::MeshFormat::kStl, false), "application/octet-stream",
-         "?format=stl"},
+        {"stl ascii, ?format", mesh_body(bunny, proto::MeshFormat::kStl, false),
+         "application/octet-stream", "?format=stl"},
     };
     bool first = true;
     for (const Case& c : cases) {
@@ -117,8 +117,9 @@ TEST_F(HttpApi, BinaryIntersectMatchesTheEngineBitForBit) {
 
     std::vector<Hit> want(rays.size());
     intersect(tree, rays, want);
-    auto res = cli->Post("/v1/meshes/" + id + "/intersect", bytes_to_string(proto::encode_rays(rays, false)),
-                         "application/x-kdrt-rays");
+    auto res =
+        cli->Post("/v1/meshes/" + id + "/intersect",
+                  bytes_to_string(proto::encode_rays(rays, false)), "application/x-kdrt-rays");
     ASSERT_TRUE(res);
     ASSERT_EQ(res->status, 200) << res->body;
     EXPECT_EQ(res->get_header_value("Content-Type"), "application/x-kdrt-hits");
@@ -130,8 +131,9 @@ TEST_F(HttpApi, BinaryIntersectMatchesTheEngineBitForBit) {
 
     std::vector<uint8_t> occluded_want(rays.size());
     occluded(tree, rays, occluded_want);
-    auto occ = cli->Post("/v1/meshes/" + id + "/intersect", bytes_to_string(proto::encode_rays(rays, true)),
-                         "application/x-kdrt-rays");
+    auto occ =
+        cli->Post("/v1/meshes/" + id + "/intersect",
+                  bytes_to_string(proto::encode_rays(rays, true)), "application/x-kdrt-rays");
     ASSERT_TRUE(occ);
     ASSERT_EQ(occ->status, 200) << occ->body;
     EXPECT_EQ(occ->get_header_value("Content-Type"), "application/x-kdrt-occlusion");
@@ -139,13 +141,15 @@ TEST_F(HttpApi, BinaryIntersectMatchesTheEngineBitForBit) {
 
     // Small batches take the inline path; they must agree too.
     const std::vector<Ray> one(rays.begin(), rays.begin() + 1);
-    auto single = cli->Post("/v1/meshes/" + id + "/intersect", bytes_to_string(proto::encode_rays(one, false)),
-                            "application/x-kdrt-rays");
+    auto single =
+        cli->Post("/v1/meshes/" + id + "/intersect",
+                  bytes_to_string(proto::encode_rays(one, false)), "application/x-kdrt-rays");
     ASSERT_TRUE(single);
     EXPECT_EQ(single->body, bytes_to_string(proto::encode_hits(std::span(want).first(1))));
     // A count-0 batch is valid.
-    auto empty = cli->Post("/v1/meshes/" + id + "/intersect", bytes_to_string(proto::encode_rays({}, false)),
-                           "application/x-kdrt-rays");
+    auto empty =
+        cli->Post("/v1/meshes/" + id + "/intersect", bytes_to_string(proto::encode_rays({}, false)),
+                  "application/x-kdrt-rays");
     ASSERT_TRUE(empty);
     EXPECT_EQ(empty->status, 200);
     EXPECT_EQ(empty->body, bytes_to_string(proto::encode_hits({})));
@@ -162,7 +166,8 @@ TEST_F(HttpApi, JsonIntersectMatchesTheEngine) {
     std::vector<Hit> want(rays.size());
     intersect(tree, rays, want);
 
-    auto res = cli->Post("/v1/meshes/" + id + "/intersect", proto::encode_json_rays(rays, false), "application/json");
+    auto res = cli->Post("/v1/meshes/" + id + "/intersect", proto::encode_json_rays(rays, false),
+                         "application/json");
     ASSERT_TRUE(res);
     ASSERT_EQ(res->status, 200) << res->body;
     EXPECT_EQ(res->get_header_value("Content-Type"), "application/json");
@@ -181,8 +186,9 @@ TEST_F(HttpApi, JsonIntersectMatchesTheEngine) {
 
     // The 6-number form and the occlusion flag, written by hand.
     const Ray& r = rays[0];
-    const std::string body = "{\"rays\": [[" + std::to_string(r.ox) + "," + std::to_string(r.oy) + "," +
-                             std::to_string(r.oz) + ",0,0,1], [0,0,-100,0,0,-1]], \"occlusion\": true}";
+    const std::string body = "{\"rays\": [[" + std::to_string(r.ox) + "," + std::to_string(r.oy) +
+                             "," + std::to_string(r.oz) +
+                             ",0,0,1], [0,0,-100,0,0,-1]], \"occlusion\": true}";
     auto occ = cli->Post("/v1/meshes/" + id + "/intersect", body, "application/json");
     ASSERT_TRUE(occ);
     ASSERT_EQ(occ->status, 200) << occ->body;

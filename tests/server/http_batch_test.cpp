@@ -127,14 +127,18 @@ private:
 };
 
 std::string post_head(const std::string& path, size_t length) {
-    return "POST " + path + " HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: application/x-kdrt-rays\r\nContent-Length: " +
+    return "POST " + path +
+           " HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: "
+           "application/x-kdrt-rays\r\nContent-Length: " +
            std::to_string(length) + "\r\n\r\n";
 }
 
 TEST_F(HttpBatch, LargeBatchesMatchTheEngineAndKeepTheConnection) {
     auto cli = server_->client();
-    for (int round = 0; round < 2; ++round) {  // the second round reuses the server's pooled buffers
-        auto res = cli->Post(path(), bytes_to_string(proto::encode_rays(*rays_, false)), "application/x-kdrt-rays");
+    for (int round = 0; round < 2;
+         ++round) {  // the second round reuses the server's pooled buffers
+        auto res = cli->Post(path(), bytes_to_string(proto::encode_rays(*rays_, false)),
+                             "application/x-kdrt-rays");
         ASSERT_TRUE(res);
         ASSERT_EQ(res->status, 200) << res->body;
         EXPECT_EQ(res->get_header_value("Content-Type"), "application/x-kdrt-hits");
@@ -142,16 +146,19 @@ TEST_F(HttpBatch, LargeBatchesMatchTheEngineAndKeepTheConnection) {
     }
     std::vector<uint8_t> occluded_want(rays_->size());
     occluded(*tree_, *rays_, occluded_want);
-    auto occ = cli->Post(path(), bytes_to_string(proto::encode_rays(*rays_, true)), "application/x-kdrt-rays");
+    auto occ = cli->Post(path(), bytes_to_string(proto::encode_rays(*rays_, true)),
+                         "application/x-kdrt-rays");
     ASSERT_TRUE(occ);
     ASSERT_EQ(occ->status, 200) << occ->body;
     EXPECT_EQ(occ->get_header_value("Content-Type"), "application/x-kdrt-occlusion");
     EXPECT_TRUE(occ->body == bytes_to_string(proto::encode_occlusion(occluded_want)));
     // Sizes around the thresholds (direct reads from 256 KiB, streamed tracing from 131072 rays).
-    for (const size_t count : {size_t{8191}, size_t{8192}, size_t{131071}, size_t{131072}, size_t{131073}}) {
+    for (const size_t count :
+         {size_t{8191}, size_t{8192}, size_t{131071}, size_t{131072}, size_t{131073}}) {
         SCOPED_TRACE(count);
         const std::vector<Ray> some(rays_->begin(), rays_->begin() + static_cast<ptrdiff_t>(count));
-        auto r = cli->Post(path(), bytes_to_string(proto::encode_rays(some, false)), "application/x-kdrt-rays");
+        auto r = cli->Post(path(), bytes_to_string(proto::encode_rays(some, false)),
+                           "application/x-kdrt-rays");
         ASSERT_TRUE(r);
         ASSERT_EQ(r->status, 200) << r->body;
         EXPECT_TRUE(r->body == expected_hits(some));
@@ -164,15 +171,20 @@ TEST_F(HttpBatch, ARefusedRayIsNamedByIndexAndTheConnectionGoesOn) {
         SCOPED_TRACE(bad);
         std::vector<Ray> rays = *rays_;
         rays[bad].dy = std::numeric_limits<float>::quiet_NaN();
-        rays[kLargeBatch - 1].ox = std::numeric_limits<float>::infinity();  // later ones are not named
-        auto p = expect_problem(
-            cli->Post(path(), bytes_to_string(proto::encode_rays(rays, false)), "application/x-kdrt-rays"), 400);
+        rays[kLargeBatch - 1].ox =
+            std::numeric_limits<float>::infinity();  // later ones are not named
+        auto p = expect_problem(cli->Post(path(), bytes_to_string(proto::encode_rays(rays, false)),
+                                          "application/x-kdrt-rays"),
+                                400);
         EXPECT_EQ(p.code, "non_finite_ray");
         const std::string field = bad == kLargeBatch - 1 ? "ox is +inf" : "dy is NaN";
-        EXPECT_NE(p.detail.find("ray " + std::to_string(bad) + ": field " + field), std::string::npos) << p.detail;
+        EXPECT_NE(p.detail.find("ray " + std::to_string(bad) + ": field " + field),
+                  std::string::npos)
+            << p.detail;
         // The same connection answers the next request.
         const std::vector<Ray> one(rays_->begin(), rays_->begin() + 1);
-        auto ok = cli->Post(path(), bytes_to_string(proto::encode_rays(one, false)), "application/x-kdrt-rays");
+        auto ok = cli->Post(path(), bytes_to_string(proto::encode_rays(one, false)),
+                            "application/x-kdrt-rays");
         ASSERT_TRUE(ok);
         EXPECT_EQ(ok->status, 200);
     }
@@ -181,7 +193,8 @@ TEST_F(HttpBatch, ARefusedRayIsNamedByIndexAndTheConnectionGoesOn) {
     body.resize(body.size() - 32);
     auto p = expect_problem(cli->Post(path(), body, "application/x-kdrt-rays"), 400);
     EXPECT_EQ(p.code, "length_mismatch");
-    EXPECT_NE(p.detail.find("header says 200000 rays (6400016 bytes) but body has 6399984 bytes"), std::string::npos)
+    EXPECT_NE(p.detail.find("header says 200000 rays (6400016 bytes) but body has 6399984 bytes"),
+              std::string::npos)
         << p.detail;
 }
 
@@ -212,7 +225,8 @@ TEST_F(HttpBatch, ABodyCutShortIsA400AndTheServerGoesOn) {
         const auto r = s.read_response();
         if (r.status != -1) {  // the server may also just close the connection
             EXPECT_EQ(r.status, 400) << r.head;
-            EXPECT_NE(r.body.find("the request body could not be read"), std::string::npos) << r.body;
+            EXPECT_NE(r.body.find("the request body could not be read"), std::string::npos)
+                << r.body;
         }
     }
     {

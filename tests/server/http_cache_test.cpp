@@ -25,8 +25,8 @@ std::string engine_hits(const Mesh& mesh, const std::vector<Ray>& rays) {
 }
 
 httplib::Result trace(httplib::Client& cli, const std::string& id, const std::vector<Ray>& rays) {
-    return cli.Post("/v1/meshes/" + id + "/intersect", bytes_to_string(proto::encode_rays(rays, false)),
-                    "application/x-kdrt-rays");
+    return cli.Post("/v1/meshes/" + id + "/intersect",
+                    bytes_to_string(proto::encode_rays(rays, false)), "application/x-kdrt-rays");
 }
 
 void flip_byte(const fs::path& path, size_t offset) {
@@ -90,7 +90,8 @@ TEST(HttpCache, CorruptTreeFileIsRebuiltNotServed) {
     EXPECT_EQ(res->body, engine_hits(mesh, rays));
     EXPECT_EQ(server.metric("kdrt_cache_rebuilds_total"), 1.0);
     EXPECT_EQ(server.metric("kdrt_tree_builds_total"), 1.0);
-    EXPECT_NE(server.log().find("tree file failed validation; rebuilding from the stored mesh"), std::string::npos)
+    EXPECT_NE(server.log().find("tree file failed validation; rebuilding from the stored mesh"),
+              std::string::npos)
         << server.log();
     // The rewritten file is good: a restart loads it without another rebuild.
     server.stop();
@@ -119,7 +120,8 @@ TEST(HttpCache, CorruptStoredMeshIsDroppedNeverServed) {
     EXPECT_NE(p.detail.find("stored copy is corrupt"), std::string::npos) << p.detail;
     expect_problem(cli->Get("/v1/meshes/" + id), 404);
     EXPECT_FALSE(fs::exists(meshes / (id + ".json")));
-    EXPECT_NE(server.log().find("stored mesh is corrupt; dropped"), std::string::npos) << server.log();
+    EXPECT_NE(server.log().find("stored mesh is corrupt; dropped"), std::string::npos)
+        << server.log();
     // It can be uploaded again.
     EXPECT_EQ(upload(*cli, mesh)->status, 201);
 }
@@ -149,7 +151,8 @@ TEST(HttpCache, UnreadableSummaryIsRecoveredAtStartUp) {
     EXPECT_EQ(summary->triangles, mesh.triangle_count());
     EXPECT_FALSE(fs::exists(meshes / (orphan + ".mesh")));
     EXPECT_FALSE(fs::exists(dir.path() / "cache" / "tmp" / "x.tmp"));
-    EXPECT_NE(server.log().find("summary unreadable, recovering from the stored mesh"), std::string::npos);
+    EXPECT_NE(server.log().find("summary unreadable, recovering from the stored mesh"),
+              std::string::npos);
 }
 
 TEST(HttpCache, TinyBudgetEvictsAndReloadsWithoutRebuilding) {
@@ -203,9 +206,11 @@ TEST(HttpCache, ConcurrentIdenticalUploadsBuildOnce) {
 
 TEST(HttpCache, LargeUploadsAreSpooledToDisk) {
     TempDir dir;
-    ServerProcess server({.cache_dir = dir.path() / "cache", .args = {"--upload-memory-bytes", "4K"}});
+    ServerProcess server(
+        {.cache_dir = dir.path() / "cache", .args = {"--upload-memory-bytes", "4K"}});
     const Mesh mesh = small_mesh(71, 3000);
-    auto res = server.client()->Post("/v1/meshes", mesh_body(mesh, proto::MeshFormat::kPly, false), "application/ply");
+    auto res = server.client()->Post("/v1/meshes", mesh_body(mesh, proto::MeshFormat::kPly, false),
+                                     "application/ply");
     ASSERT_TRUE(res);
     ASSERT_EQ(res->status, 201) << res->body;
     EXPECT_EQ(proto::decode_mesh_summary(res->body)->id, proto::mesh_id(mesh));

@@ -20,9 +20,10 @@ class HttpErrors : public ::testing::Test {
 protected:
     static void SetUpTestSuite() {
         dir_ = new TempDir();
-        server_ = new ServerProcess({.cache_dir = dir_->path() / "cache",
-                                     .args = {"--max-upload-bytes", "200000", "--max-rays", "1000", "--max-json-rays",
-                                              "10", "--max-json-bytes", "100000"}});
+        server_ =
+            new ServerProcess({.cache_dir = dir_->path() / "cache",
+                               .args = {"--max-upload-bytes", "200000", "--max-rays", "1000",
+                                        "--max-json-rays", "10", "--max-json-bytes", "100000"}});
         auto cli = server_->client();
         mesh_id_ = upload_id(*cli, small_mesh(3));
     }
@@ -55,7 +56,9 @@ TEST_F(HttpErrors, UnknownMeshIs404) {
     EXPECT_EQ(p.kind, ProblemKind::kUnknownMesh);
     EXPECT_EQ(p.detail, "no mesh with id " + absent);
     EXPECT_EQ(p.instance, "/v1/meshes/" + absent);
-    p = expect_problem(cli->Post("/v1/meshes/" + absent + "/intersect", two_rays(), "application/x-kdrt-rays"), 404);
+    p = expect_problem(
+        cli->Post("/v1/meshes/" + absent + "/intersect", two_rays(), "application/x-kdrt-rays"),
+        404);
     EXPECT_EQ(p.detail, "no mesh with id " + absent);
     p = expect_problem(cli->Get("/v1/meshes/not-an-id"), 404);
     EXPECT_NE(p.detail.find("\"not-an-id\" is not a mesh id"), std::string::npos) << p.detail;
@@ -65,7 +68,8 @@ TEST_F(HttpErrors, UnsupportedMediaTypeIs415) {
     auto cli = server_->client();
     auto p = expect_problem(cli->Post("/v1/meshes", "v 0 0 0", "text/plain"), 415);
     EXPECT_EQ(p.kind, ProblemKind::kUnsupportedMediaType);
-    EXPECT_NE(p.detail.find("cannot tell the mesh format from Content-Type \"text/plain\""), std::string::npos);
+    EXPECT_NE(p.detail.find("cannot tell the mesh format from Content-Type \"text/plain\""),
+              std::string::npos);
     p = expect_problem(cli->Post("/v1/meshes?format=3ds", "x", "model/obj"), 415);
     EXPECT_NE(p.detail.find("unknown mesh format \"3ds\""), std::string::npos) << p.detail;
     p = expect_problem(cli->Post(intersect_path(), two_rays(), "application/octet-stream"), 415);
@@ -77,7 +81,8 @@ TEST_F(HttpErrors, UnsupportedMediaTypeIs415) {
 
 TEST_F(HttpErrors, MeshParseErrorsNameTheLineOrByte) {
     auto cli = server_->client();
-    auto p = expect_problem(cli->Post("/v1/meshes", "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 9\n", "model/obj"), 422);
+    auto p = expect_problem(
+        cli->Post("/v1/meshes", "v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 9\n", "model/obj"), 422);
     EXPECT_EQ(p.kind, ProblemKind::kMeshParseError);
     EXPECT_EQ(p.line, 4u);
     EXPECT_EQ(p.detail.rfind("line 4:", 0), 0u) << p.detail;
@@ -112,12 +117,14 @@ TEST_F(HttpErrors, MalformedRayBatchesAre400WithTheReason) {
         {magic, "bad_magic", "bad magic \"ABCD\", expected \"KDRR\""},
         {two_rays(2), "bad_version", "unsupported version 2, expected 1"},
         {two_rays(1, 2), "bad_flags", "unknown flag bits 0x0002"},
-        {two_rays().substr(0, 60), "length_mismatch", "header says 2 rays (80 bytes) but body has 60 bytes"},
+        {two_rays().substr(0, 60), "length_mismatch",
+         "header says 2 rays (80 bytes) but body has 60 bytes"},
         {nan_ray, "non_finite_ray", "ray 1: field dx is NaN"},
     };
     for (const Case& c : cases) {
         SCOPED_TRACE(c.code);
-        auto p = expect_problem(cli->Post(intersect_path(), c.body, "application/x-kdrt-rays"), 400);
+        auto p =
+            expect_problem(cli->Post(intersect_path(), c.body, "application/x-kdrt-rays"), 400);
         EXPECT_EQ(p.kind, ProblemKind::kBadRayBatch);
         EXPECT_EQ(p.code, c.code);
         EXPECT_NE(p.detail.find(c.detail), std::string::npos) << p.detail;
@@ -134,7 +141,8 @@ TEST_F(HttpErrors, MalformedJsonRequestsAre400) {
         {"{\"rays\": [[0,0,0,1,0,0]", "invalid JSON at byte"},
         {"[]", "expected a JSON object, got an array"},
         {"{\"rays\": [[0,0,0,1,0]]}", "rays[0]: expected 6 or 8 numbers, got 5"},
-        {"{\"rays\": [[0,0,0,1,0,0], [0,0,\"x\",1,0,0]]}", "rays[1][2]: expected a number, got a string"},
+        {"{\"rays\": [[0,0,0,1,0,0], [0,0,\"x\",1,0,0]]}",
+         "rays[1][2]: expected a number, got a string"},
         {"{\"rays\": [], \"occlusion\": 1}", "\"occlusion\" must be true or false, got a number"},
         {"{\"ray\": []}", "unknown member \"ray\""},
         {"{}", "missing member \"rays\""},
@@ -154,12 +162,14 @@ TEST_F(HttpErrors, BodiesOverTheLimitsAre413) {
     auto p = expect_problem(cli->Post("/v1/meshes", std::string(200001, ' '), "model/obj"), 413);
     EXPECT_EQ(p.kind, ProblemKind::kPayloadTooLarge);
     EXPECT_EQ(p.limit, 200000u);
-    EXPECT_NE(p.detail.find("request body exceeds the limit of 200000 bytes"), std::string::npos) << p.detail;
+    EXPECT_NE(p.detail.find("request body exceeds the limit of 200000 bytes"), std::string::npos)
+        << p.detail;
     // KDRR over --max-rays 1000: by the body size first...
     const std::vector<Ray> many(1001, Ray{0, 0, 0, 0, 1, 0, 0, 1});
     cli = server_->client();
-    p = expect_problem(
-        cli->Post(intersect_path(), bytes_to_string(proto::encode_rays(many, false)), "application/x-kdrt-rays"), 413);
+    p = expect_problem(cli->Post(intersect_path(), bytes_to_string(proto::encode_rays(many, false)),
+                                 "application/x-kdrt-rays"),
+                       413);
     EXPECT_EQ(p.limit, 16u + 32u * 1000u);
     // ...and by the header count when the body is small.
     cli = server_->client();
@@ -171,12 +181,17 @@ TEST_F(HttpErrors, BodiesOverTheLimitsAre413) {
     EXPECT_NE(p.detail.find("header says 5000 rays, limit is 1000"), std::string::npos) << p.detail;
     // JSON over --max-json-rays 10.
     const std::vector<Ray> eleven(11, Ray{0, 0, 0, 0, 1, 0, 0, 1});
-    p = expect_problem(cli->Post(intersect_path(), proto::encode_json_rays(eleven, false), "application/json"), 413);
+    p = expect_problem(
+        cli->Post(intersect_path(), proto::encode_json_rays(eleven, false), "application/json"),
+        413);
     EXPECT_EQ(p.limit, 10u);
-    EXPECT_NE(p.detail.find("rays[10]: rays in a JSON batch exceed the limit of 10"), std::string::npos) << p.detail;
+    EXPECT_NE(p.detail.find("rays[10]: rays in a JSON batch exceed the limit of 10"),
+              std::string::npos)
+        << p.detail;
     // JSON body over --max-json-bytes.
     cli = server_->client();
-    p = expect_problem(cli->Post(intersect_path(), std::string(100001, ' '), "application/json"), 413);
+    p = expect_problem(cli->Post(intersect_path(), std::string(100001, ' '), "application/json"),
+                       413);
     EXPECT_EQ(p.limit, 100000u);
 }
 
@@ -190,32 +205,39 @@ TEST_F(HttpErrors, UnknownRoutesAndMethods) {
     EXPECT_EQ(p.kind, ProblemKind::kMethodNotAllowed);
     EXPECT_EQ(res->get_header_value("Allow"), "POST, GET");
     p = expect_problem(cli->Post("/healthz", "x", "text/plain"), 405);
-    EXPECT_NE(p.detail.find("does not support method POST (allowed: GET)"), std::string::npos) << p.detail;
+    EXPECT_NE(p.detail.find("does not support method POST (allowed: GET)"), std::string::npos)
+        << p.detail;
 }
 
 TEST_F(HttpErrors, PostWithoutContentLengthIsRefusedAtOnce) {
     const std::string reply = raw_exchange(
-        server_->port(), "POST /v1/meshes HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n", std::chrono::seconds(10));
+        server_->port(), "POST /v1/meshes HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n",
+        std::chrono::seconds(10));
     EXPECT_EQ(reply.rfind("HTTP/1.1 400", 0), 0u) << reply;
-    EXPECT_NE(reply.find("a POST needs a Content-Length (or chunked) body"), std::string::npos) << reply;
+    EXPECT_NE(reply.find("a POST needs a Content-Length (or chunked) body"), std::string::npos)
+        << reply;
 }
 
 TEST_F(HttpErrors, ExpectContinueIsRefusedBeforeTheBodyIsSent) {
     // The client announces 1 GB and waits for "100 Continue"; the server answers 413 at once.
-    const std::string reply = raw_exchange(server_->port(),
-                                           "POST /v1/meshes HTTP/1.1\r\nHost: x\r\nContent-Type: model/obj\r\n"
-                                           "Content-Length: 1000000000\r\nExpect: 100-continue\r\n\r\n",
-                                           std::chrono::seconds(10));
+    const std::string reply =
+        raw_exchange(server_->port(),
+                     "POST /v1/meshes HTTP/1.1\r\nHost: x\r\nContent-Type: model/obj\r\n"
+                     "Content-Length: 1000000000\r\nExpect: 100-continue\r\n\r\n",
+                     std::chrono::seconds(10));
     EXPECT_EQ(reply.rfind("HTTP/1.1 413", 0), 0u) << reply;
     EXPECT_NE(reply.find("application/problem+json"), std::string::npos) << reply;
-    EXPECT_NE(reply.find("request body exceeds the limit of 200000 bytes"), std::string::npos) << reply;
+    EXPECT_NE(reply.find("request body exceeds the limit of 200000 bytes"), std::string::npos)
+        << reply;
     EXPECT_EQ(reply.find("100 Continue"), std::string::npos) << reply;
 }
 
 TEST(HttpStartup, V1IsUnavailableUntilTheIndexAndPreloadsAreDone) {
     TempDir dir;
-    const std::string bunny = std::string(KDRT_TEST_DATA_DIR) + "/bunny00.off";  // a build of some 100 ms
-    ServerProcess server({.cache_dir = dir.path() / "cache", .args = {"--preload", bunny}, .wait_ready = false});
+    const std::string bunny =
+        std::string(KDRT_TEST_DATA_DIR) + "/bunny00.off";  // a build of some 100 ms
+    ServerProcess server(
+        {.cache_dir = dir.path() / "cache", .args = {"--preload", bunny}, .wait_ready = false});
     ASSERT_TRUE(server.running());
     auto cli = server.client();
     auto ready = cli->Get("/readyz");
@@ -244,19 +266,23 @@ TEST(HttpCapacity, OverCapacityIs503WithRetryAfter) {
     const int held = connect_loopback(server.port());
     ASSERT_GE(held, 0);
     const std::string head =
-        "POST /v1/meshes HTTP/1.1\r\nHost: x\r\nContent-Type: model/obj\r\nContent-Length: 100\r\n\r\nv 0";
-    ASSERT_EQ(::send(held, head.data(), head.size(), MSG_NOSIGNAL), static_cast<ssize_t>(head.size()));
+        "POST /v1/meshes HTTP/1.1\r\nHost: x\r\nContent-Type: model/obj\r\nContent-Length: "
+        "100\r\n\r\nv 0";
+    ASSERT_EQ(::send(held, head.data(), head.size(), MSG_NOSIGNAL),
+              static_cast<ssize_t>(head.size()));
     auto cli = server.client();
     auto res = cli->Post("/v1/meshes", "v 0 0 0\n", "model/obj");
     for (int attempt = 0; attempt < 500 && !(res && res->status == 503); ++attempt) {
-        std::this_thread::sleep_for(std::chrono::milliseconds(10));  // until the held request has its slot
+        std::this_thread::sleep_for(
+            std::chrono::milliseconds(10));  // until the held request has its slot
         res = cli->Post("/v1/meshes", "v 0 0 0\n", "model/obj");
     }
     auto p = expect_problem(res, 503);
     EXPECT_EQ(p.kind, ProblemKind::kOverCapacity);
     EXPECT_EQ(res->get_header_value("Retry-After"), "1");
     EXPECT_EQ(p.retry_after, 1u);
-    EXPECT_NE(p.detail.find("1 requests are in flight (max_inflight)"), std::string::npos) << p.detail;
+    EXPECT_NE(p.detail.find("1 requests are in flight (max_inflight)"), std::string::npos)
+        << p.detail;
     // Light routes are not gated.
     EXPECT_EQ(cli->Get("/v1/meshes")->status, 200);
     ::close(held);
@@ -279,7 +305,8 @@ TEST(HttpAuth, BearerTokenGuardsV1Only) {
     auto p = expect_problem(res, 401);
     EXPECT_EQ(p.kind, ProblemKind::kUnauthorized);
     EXPECT_EQ(res->get_header_value("WWW-Authenticate"), "Bearer realm=\"kdrt\"");
-    EXPECT_NE(p.detail.find("requires an Authorization: Bearer token"), std::string::npos) << p.detail;
+    EXPECT_NE(p.detail.find("requires an Authorization: Bearer token"), std::string::npos)
+        << p.detail;
     cli->set_bearer_token_auth("wrong");
     p = expect_problem(cli->Post("/v1/meshes", "v 0 0 0\n", "model/obj"), 401);
     EXPECT_NE(p.detail.find("bearer token is not valid"), std::string::npos) << p.detail;

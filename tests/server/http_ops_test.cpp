@@ -45,12 +45,12 @@ TEST(HttpOps, HealthReadyAndMetrics) {
     const Mesh mesh = small_mesh(5);
     const std::string id = upload_id(*cli, mesh);
     const std::vector<Ray> rays = random_rays(mesh_bounds(mesh), 1000, 3);
-    ASSERT_EQ(cli->Post("/v1/meshes/" + id + "/intersect", bytes_to_string(proto::encode_rays(rays, false)),
-                        "application/x-kdrt-rays")
+    ASSERT_EQ(cli->Post("/v1/meshes/" + id + "/intersect",
+                        bytes_to_string(proto::encode_rays(rays, false)), "application/x-kdrt-rays")
                   ->status,
               200);
-    ASSERT_EQ(cli->Post("/v1/meshes/" + id + "/intersect", bytes_to_string(proto::encode_rays(rays, true)),
-                        "application/x-kdrt-rays")
+    ASSERT_EQ(cli->Post("/v1/meshes/" + id + "/intersect",
+                        bytes_to_string(proto::encode_rays(rays, true)), "application/x-kdrt-rays")
                   ->status,
               200);
     cli->Get("/v1/meshes/" + std::string(64, 'c'));
@@ -58,15 +58,26 @@ TEST(HttpOps, HealthReadyAndMetrics) {
     auto metrics = cli->Get("/metrics");
     ASSERT_TRUE(metrics);
     ASSERT_EQ(metrics->status, 200);
-    EXPECT_EQ(metrics->get_header_value("Content-Type"), "text/plain; version=0.0.4; charset=utf-8");
+    EXPECT_EQ(metrics->get_header_value("Content-Type"),
+              "text/plain; version=0.0.4; charset=utf-8");
     const std::string& text = metrics->body;
-    EXPECT_EQ(find_metric(text, "kdrt_http_requests_total{route=\"/v1/meshes\",method=\"POST\",status=\"201\"}"), 1.0);
-    EXPECT_EQ(find_metric(
-                  text, "kdrt_http_requests_total{route=\"/v1/meshes/{id}/intersect\",method=\"POST\",status=\"200\"}"),
+    EXPECT_EQ(
+        find_metric(
+            text, "kdrt_http_requests_total{route=\"/v1/meshes\",method=\"POST\",status=\"201\"}"),
+        1.0);
+    EXPECT_EQ(find_metric(text,
+                          "kdrt_http_requests_total{route=\"/v1/meshes/{id}/"
+                          "intersect\",method=\"POST\",status=\"200\"}"),
               2.0);
-    EXPECT_EQ(find_metric(text, "kdrt_http_requests_total{route=\"/v1/meshes/{id}\",method=\"GET\",status=\"404\"}"),
-              1.0);
-    EXPECT_EQ(find_metric(text, "kdrt_http_request_duration_seconds_count{route=\"/v1/meshes/{id}/intersect\"}"), 2.0);
+    EXPECT_EQ(
+        find_metric(
+            text,
+            "kdrt_http_requests_total{route=\"/v1/meshes/{id}\",method=\"GET\",status=\"404\"}"),
+        1.0);
+    EXPECT_EQ(
+        find_metric(
+            text, "kdrt_http_request_duration_seconds_count{route=\"/v1/meshes/{id}/intersect\"}"),
+        2.0);
     EXPECT_EQ(find_metric(text, "kdrt_rays_traced_total{kind=\"closest\"}"), 1000.0);
     EXPECT_EQ(find_metric(text, "kdrt_rays_traced_total{kind=\"occlusion\"}"), 1000.0);
     EXPECT_EQ(find_metric(text, "kdrt_tree_builds_total"), 1.0);
@@ -77,14 +88,16 @@ TEST(HttpOps, HealthReadyAndMetrics) {
     EXPECT_EQ(find_metric(text, "kdrt_cache_misses_total"), 0.0);
     EXPECT_EQ(find_metric(text, "kdrt_cache_evictions_total"), 0.0);
     EXPECT_EQ(find_metric(text, "kdrt_ready"), 1.0);
-    for (const char* family : {"kdrt_build_info{", "# TYPE kdrt_http_request_duration_seconds histogram",
-                               "# TYPE kdrt_tree_build_seconds histogram", "kdrt_jobs{state=\"queued\"} 0",
-                               "kdrt_jobs{state=\"running\"} 0"})
+    for (const char* family :
+         {"kdrt_build_info{", "# TYPE kdrt_http_request_duration_seconds histogram",
+          "# TYPE kdrt_tree_build_seconds histogram", "kdrt_jobs{state=\"queued\"} 0",
+          "kdrt_jobs{state=\"running\"} 0"})
         EXPECT_NE(text.find(family), std::string::npos) << family;
 
     // The access log has one line per request with route, status, sizes, rays and time.
     const std::string log = server.log();
-    EXPECT_NE(log.find("request method=POST route=/v1/meshes/{id}/intersect status=200 in=32016 out=16016 rays=1000"),
+    EXPECT_NE(log.find("request method=POST route=/v1/meshes/{id}/intersect status=200 in=32016 "
+                       "out=16016 rays=1000"),
               std::string::npos)
         << log;
 }
@@ -118,20 +131,23 @@ TEST(HttpOps, JsonLogFormat) {
 TEST(HttpOps, SettingsComeFromFileThenEnvironmentThenFlags) {
     TempDir dir;
     const auto config = dir.path() / "kdrt.json";
-    std::ofstream(config) << "{\n  // comments are allowed\n  \"memory_budget\": \"1M\",\n  \"http_threads\": 5,\n"
-                             "  \"max_jobs\": 3\n}\n";
+    std::ofstream(config)
+        << "{\n  // comments are allowed\n  \"memory_budget\": \"1M\",\n  \"http_threads\": 5,\n"
+           "  \"max_jobs\": 3\n}\n";
     ServerProcess server({.cache_dir = dir.path() / "cache",
                           .args = {"--config", config.string(), "--http-threads", "7"},
                           .env = {"KDRT_HTTP_THREADS=6", "KDRT_MEMORY_BUDGET=2M"}});
     ASSERT_TRUE(server.running());
-    EXPECT_EQ(server.metric("kdrt_cache_budget_bytes"), 2.0 * 1024 * 1024);             // env beats the file
-    EXPECT_NE(server.log().find("http_threads=7"), std::string::npos) << server.log();  // flag beats env
+    EXPECT_EQ(server.metric("kdrt_cache_budget_bytes"), 2.0 * 1024 * 1024);  // env beats the file
+    EXPECT_NE(server.log().find("http_threads=7"), std::string::npos)
+        << server.log();  // flag beats env
 }
 
 TEST(HttpOps, BadSettingsExitWithAMessage) {
     auto [code, out] = run_command("--threads lots");
     EXPECT_EQ(code, 2);
-    EXPECT_NE(out.find("--threads: \"lots\" is not a non-negative integer"), std::string::npos) << out;
+    EXPECT_NE(out.find("--threads: \"lots\" is not a non-negative integer"), std::string::npos)
+        << out;
     std::tie(code, out) = run_command("--no-such-flag 1");
     EXPECT_EQ(code, 2);
     EXPECT_NE(out.find("unknown argument \"--no-such-flag\""), std::string::npos) << out;
@@ -143,9 +159,10 @@ TEST(HttpOps, BadSettingsExitWithAMessage) {
 TEST(HttpOps, HelpListsEverySettingAndMeshIdPrintsIds) {
     auto [code, out] = run_command("--help");
     EXPECT_EQ(code, 0);
-    for (const char* flag : {"--listen", "--cache-dir", "--threads", "--memory-budget", "--preload", "--token",
-                             "--max-upload-bytes", "--max-rays", "--max-json-rays", "--max-image-width", "--log-level",
-                             "--log-format", "KDRT_MEMORY_BUDGET", "--config FILE"})
+    for (const char* flag :
+         {"--listen", "--cache-dir", "--threads", "--memory-budget", "--preload", "--token",
+          "--max-upload-bytes", "--max-rays", "--max-json-rays", "--max-image-width", "--log-level",
+          "--log-format", "KDRT_MEMORY_BUDGET", "--config FILE"})
         EXPECT_NE(out.find(flag), std::string::npos) << flag;
     const std::string bunny = std::string(KDRT_TEST_DATA_DIR) + "/bunny00.off";
     std::tie(code, out) = run_command("--mesh-id " + bunny);
@@ -180,16 +197,19 @@ TEST(HttpOps, SigintFinishesInFlightRequestsAndExitsZero) {
     const std::string body = bytes_to_string(proto::encode_rays(rays, false));
     std::optional<httplib::Result> in_flight;
     std::thread request([&] {
-        in_flight.emplace(server.client()->Post("/v1/meshes/" + id + "/intersect", body, "application/x-kdrt-rays"));
+        in_flight.emplace(server.client()->Post("/v1/meshes/" + id + "/intersect", body,
+                                                "application/x-kdrt-rays"));
     });
     // Wait until the request is being served, then interrupt.
-    for (int i = 0; i < 2000 && server.log().find("route=/v1/meshes/{id}/intersect") == std::string::npos &&
-                    server.metric("kdrt_inflight_requests").value_or(0) < 1;
+    for (int i = 0;
+         i < 2000 && server.log().find("route=/v1/meshes/{id}/intersect") == std::string::npos &&
+         server.metric("kdrt_inflight_requests").value_or(0) < 1;
          ++i)
         std::this_thread::sleep_for(std::chrono::milliseconds(1));
     EXPECT_EQ(server.stop(SIGINT), 0);
     request.join();
-    ASSERT_TRUE(in_flight && *in_flight) << "error " << static_cast<int>(in_flight->error()) << "\n" << server.log();
+    ASSERT_TRUE(in_flight && *in_flight) << "error " << static_cast<int>(in_flight->error()) << "\n"
+                                         << server.log();
     EXPECT_EQ((*in_flight)->status, 200);
     EXPECT_EQ((*in_flight)->body.size(), 16 + 16 * rays.size());
 }

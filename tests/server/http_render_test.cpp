@@ -19,7 +19,8 @@ class HttpRender : public ::testing::Test {
 protected:
     static void SetUpTestSuite() {
         dir_ = new TempDir();
-        server_ = new ServerProcess({.cache_dir = dir_->path() / "cache", .args = {"--max-jobs", "2"}});
+        server_ =
+            new ServerProcess({.cache_dir = dir_->path() / "cache", .args = {"--max-jobs", "2"}});
         mesh_ = new Mesh(small_mesh(77, 4000));  // renders like the bunny, builds in milliseconds
         tree_ = new KdTree(build_kdtree(*mesh_));
         id_ = upload_id(*server_->client(), *mesh_);
@@ -30,7 +31,8 @@ protected:
         delete mesh_;
         delete tree_;
     }
-    static httplib::Result post_render(httplib::Client& cli, const std::string& json, bool async = false) {
+    static httplib::Result post_render(httplib::Client& cli, const std::string& json,
+                                       bool async = false) {
         httplib::Headers headers;
         if (async) headers.emplace("Prefer", "respond-async");
         return cli.Post("/v1/render", headers, json, "application/json");
@@ -42,7 +44,8 @@ protected:
         const Image image = render(*tree_, request.settings);
         proto::ImageEncodeOptions options;
         options.png_compression = request.compression.value_or(kDefaultPngCompression);
-        auto bytes = proto::encode_image(image, *proto::image_format_from_name(request.format), options);
+        auto bytes =
+            proto::encode_image(image, *proto::image_format_from_name(request.format), options);
         EXPECT_TRUE(bytes) << bytes.error();
         return bytes ? bytes_to_string(*bytes) : std::string();
     }
@@ -95,7 +98,8 @@ TEST_F(HttpRender, DefaultsExrTilesAndExplicitCameras) {
 
     // EXR keeps linear values: compare the decoded pixels with the engine's (as half floats).
     const std::string exr =
-        "{\"mesh\":\"" + id_ + "\",\"format\":\"exr\",\"shading\":\"depth\",\"width\":40,\"height\":30}";
+        "{\"mesh\":\"" + id_ +
+        "\",\"format\":\"exr\",\"shading\":\"depth\",\"width\":40,\"height\":30}";
     res = post_render(*cli, exr);
     ASSERT_TRUE(res);
     ASSERT_EQ(res->status, 200) << res->body;
@@ -107,11 +111,13 @@ TEST_F(HttpRender, DefaultsExrTilesAndExplicitCameras) {
     EXPECT_EQ(exr_image->pixels, want->pixels);
 
     // A tile of a frame is exactly that part of the full frame.
-    const std::string camera = R"("camera":{"eye":[0,0.1,1.5],"look_at":[0,0,0],"up":[0,1,0],"fov":35})";
-    const std::string full = "{\"mesh\":\"" + id_ + "\"," + camera + ",\"width\":64,\"height\":48,\"format\":\"exr\"}";
-    const std::string tile =
-        "{\"mesh\":\"" + id_ + "\"," + camera +
-        ",\"width\":64,\"height\":48,\"format\":\"exr\",\"tile\":{\"x\":16,\"y\":8,\"w\":32,\"h\":24}}";
+    const std::string camera =
+        R"("camera":{"eye":[0,0.1,1.5],"look_at":[0,0,0],"up":[0,1,0],"fov":35})";
+    const std::string full =
+        "{\"mesh\":\"" + id_ + "\"," + camera + ",\"width\":64,\"height\":48,\"format\":\"exr\"}";
+    const std::string tile = "{\"mesh\":\"" + id_ + "\"," + camera +
+                             ",\"width\":64,\"height\":48,\"format\":\"exr\",\"tile\":{\"x\":16,"
+                             "\"y\":8,\"w\":32,\"h\":24}}";
     auto full_image = proto::decode_image(string_to_bytes(post_render(*cli, full)->body));
     auto tile_res = post_render(*cli, tile);
     ASSERT_EQ(tile_res->status, 200) << tile_res->body;
@@ -122,12 +128,14 @@ TEST_F(HttpRender, DefaultsExrTilesAndExplicitCameras) {
     const uint32_t c = full_image->channels;
     for (uint32_t y = 0; y < 24; ++y)
         for (uint32_t x = 0; x < 32 * c; ++x)
-            ASSERT_EQ(tile_image->pixels[y * 32 * c + x], full_image->pixels[(y + 8) * 64 * c + 16 * c + x]);
+            ASSERT_EQ(tile_image->pixels[y * 32 * c + x],
+                      full_image->pixels[(y + 8) * 64 * c + 16 * c + x]);
 
     // Orthographic projection and JPEG.
-    res = post_render(*cli, "{\"mesh\":\"" + id_ +
-                                "\",\"format\":\"jpg\",\"width\":32,\"height\":32,\"camera\":{\"eye\":[0,0,2],"
-                                "\"look_at\":[0,0,0],\"projection\":\"orthographic\",\"ortho_height\":1.2}}");
+    res = post_render(
+        *cli, "{\"mesh\":\"" + id_ +
+                  "\",\"format\":\"jpg\",\"width\":32,\"height\":32,\"camera\":{\"eye\":[0,0,2],"
+                  "\"look_at\":[0,0,0],\"projection\":\"orthographic\",\"ortho_height\":1.2}}");
     ASSERT_TRUE(res);
     ASSERT_EQ(res->status, 200) << res->body;
     EXPECT_EQ(res->get_header_value("Content-Type"), "image/jpeg");
@@ -135,7 +143,8 @@ TEST_F(HttpRender, DefaultsExrTilesAndExplicitCameras) {
 
 TEST_F(HttpRender, PngCompressionLevelsDecodeToTheSamePixels) {
     auto cli = server_->client();
-    const std::string base = "{\"mesh\":\"" + id_ + "\",\"width\":160,\"height\":120,\"shading\":\"diffuse\"";
+    const std::string base =
+        "{\"mesh\":\"" + id_ + "\",\"width\":160,\"height\":120,\"shading\":\"diffuse\"";
     std::optional<Image> first;
     std::map<std::string, size_t> sizes;
     for (const std::string level : {"", "0", "1", "3", "6", "9"}) {
@@ -157,7 +166,8 @@ TEST_F(HttpRender, PngCompressionLevelsDecodeToTheSamePixels) {
         EXPECT_EQ(decoded->width, first->width);
         EXPECT_EQ(decoded->height, first->height);
         EXPECT_EQ(decoded->channels, first->channels);
-        EXPECT_TRUE(decoded->pixels == first->pixels) << "the pixels differ from the default level's";
+        EXPECT_TRUE(decoded->pixels == first->pixels)
+            << "the pixels differ from the default level's";
     }
     EXPECT_EQ(sizes[""], sizes["1"]);  // the server's default
     EXPECT_GT(sizes["0"], sizes["1"]);
@@ -189,20 +199,25 @@ TEST_F(HttpRender, BadRequestsNameTheProblem) {
     const std::string mesh = "\"mesh\":\"" + id_ + "\"";
     const std::vector<Case> cases = {
         {"{}", 400, "missing member \"mesh\""},
-        {"{" + mesh + ",\"width\":0}", 400, "\"width\" is 0, must be in 1 .. 8192 (max_image_width)"},
+        {"{" + mesh + ",\"width\":0}", 400,
+         "\"width\" is 0, must be in 1 .. 8192 (max_image_width)"},
         {"{" + mesh + ",\"spp\":5000}", 400, "\"spp\" is 5000, must be in 1 .. 1024 (max_spp)"},
         {"{" + mesh + ",\"shading\":\"toon\"}", 400, "unknown shading \"toon\""},
-        {"{" + mesh + ",\"format\":\"gif\"}", 400, "unknown format \"gif\" (expected png, jpg or exr)"},
+        {"{" + mesh + ",\"format\":\"gif\"}", 400,
+         "unknown format \"gif\" (expected png, jpg or exr)"},
         {"{" + mesh + ",\"colour\":1}", 400, "unknown member \"colour\""},
         {"{" + mesh + ",\"camera\":{\"eye\":[0,0,1]}}", 400, "missing member \"camera.look_at\""},
-        {"{" + mesh + ",\"camera\":{\"eye\":[0,0,1],\"look_at\":[0,0,1]}}", 400, "camera eye and look_at are the same"},
+        {"{" + mesh + ",\"camera\":{\"eye\":[0,0,1],\"look_at\":[0,0,1]}}", 400,
+         "camera eye and look_at are the same"},
         {"{" + mesh + ",\"width\":100,\"tile\":{\"x\":90,\"y\":0,\"w\":20,\"h\":5}}", 400,
          "\"tile.w\" is 20, must be in 1 .. 10 (the tile must lie inside the 100 x 512 frame)"},
         {"{\"mesh\":\"" + std::string(64, 'e') + "\"}", 404, "no mesh with id eeee"},
         {"{\"mesh\":", 400, "invalid JSON at byte"},
         {"{" + mesh + ",\"compression\":10}", 400, "\"compression\" is 10, must be in 0 .. 9"},
-        {"{" + mesh + ",\"compression\":-1}", 400, "\"compression\" must be a non-negative integer"},
-        {"{" + mesh + ",\"format\":\"exr\",\"compression\":3}", 400, "\"compression\" applies to png only, not \"exr\""},
+        {"{" + mesh + ",\"compression\":-1}", 400,
+         "\"compression\" must be a non-negative integer"},
+        {"{" + mesh + ",\"format\":\"exr\",\"compression\":3}", 400,
+         "\"compression\" applies to png only, not \"exr\""},
     };
     for (const Case& c : cases) {
         SCOPED_TRACE(c.json);
@@ -210,12 +225,14 @@ TEST_F(HttpRender, BadRequestsNameTheProblem) {
         EXPECT_NE(p.detail.find(c.detail), std::string::npos) << p.detail;
     }
     auto p = expect_problem(cli->Post("/v1/render", "{}", "text/plain"), 415);
-    EXPECT_NE(p.detail.find("render expects Content-Type application/json"), std::string::npos) << p.detail;
+    EXPECT_NE(p.detail.find("render expects Content-Type application/json"), std::string::npos)
+        << p.detail;
 }
 
 TEST_F(HttpRender, AsyncJobReportsProgressAndGivesTheImage) {
     auto cli = server_->client();
-    const std::string json = "{\"mesh\":\"" + id_ + "\",\"shading\":\"ao\",\"width\":128,\"height\":128,\"spp\":4}";
+    const std::string json =
+        "{\"mesh\":\"" + id_ + "\",\"shading\":\"ao\",\"width\":128,\"height\":128,\"spp\":4}";
     auto res = post_render(*cli, json, /*async=*/true);
     ASSERT_TRUE(res);
     ASSERT_EQ(res->status, 202) << res->body;
@@ -263,13 +280,15 @@ TEST_F(HttpRender, AsyncJobReportsProgressAndGivesTheImage) {
 TEST_F(HttpRender, JobsCanBeCancelledAndTheQueueIsBounded) {
     auto cli = server_->client();
     // Long renders: the first runs, the second waits, a third is over --max-jobs 2.
-    const std::string slow = "{\"mesh\":\"" + id_ + "\",\"shading\":\"ao\",\"width\":1024,\"height\":1024,\"spp\":256}";
+    const std::string slow =
+        "{\"mesh\":\"" + id_ + "\",\"shading\":\"ao\",\"width\":1024,\"height\":1024,\"spp\":256}";
     auto running = proto::decode_job_status(post_render(*cli, slow, true)->body);
     auto queued = proto::decode_job_status(post_render(*cli, slow, true)->body);
     ASSERT_TRUE(running && queued);
     auto p = expect_problem(post_render(*cli, slow, true), 503);
     EXPECT_EQ(p.kind, ProblemKind::kOverCapacity);
-    EXPECT_NE(p.detail.find("2 render jobs are queued or running (max_jobs)"), std::string::npos) << p.detail;
+    EXPECT_NE(p.detail.find("2 render jobs are queued or running (max_jobs)"), std::string::npos)
+        << p.detail;
 
     // Cancel the queued one: cancelled at once.
     auto del = cli->Delete("/v1/jobs/" + queued->id);

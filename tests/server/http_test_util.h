@@ -47,14 +47,16 @@ inline std::string mesh_body(const Mesh& mesh, proto::MeshFormat format, bool bi
 
 /// Uploads in raw form; returns the response (status 201/200 expected).
 inline httplib::Result upload(httplib::Client& cli, const Mesh& mesh) {
-    return cli.Post("/v1/meshes", mesh_body(mesh, proto::MeshFormat::kRaw), "application/x-kdrt-mesh");
+    return cli.Post("/v1/meshes", mesh_body(mesh, proto::MeshFormat::kRaw),
+                    "application/x-kdrt-mesh");
 }
 
 /// Uploads and returns the id, failing the test on any other status.
 inline std::string upload_id(httplib::Client& cli, const Mesh& mesh) {
     auto res = upload(cli, mesh);
     if (!res || (res->status != 201 && res->status != 200)) {
-        ADD_FAILURE() << "upload failed: " << (res ? res->status : -1) << " " << (res ? res->body : "");
+        ADD_FAILURE() << "upload failed: " << (res ? res->status : -1) << " "
+                      << (res ? res->body : "");
         return {};
     }
     auto summary = proto::decode_mesh_summary(res->body);

@@ -28,8 +28,8 @@ class InProcessServer {
 public:
     explicit InProcessServer(const std::function<void(HttpServer&)>& add_routes) {
         static std::atomic<int> counter{0};
-        dir_ = fs::temp_directory_path() /
-               ("kdrt-wrapper-test-" + std::to_string(::getpid()) + "-" + std::to_string(counter++));
+        dir_ = fs::temp_directory_path() / ("kdrt-wrapper-test-" + std::to_string(::getpid()) +
+                                            "-" + std::to_string(counter++));
         fs::remove_all(dir_);
         ServerConfig config;
         config.cache_dir = (dir_ / "cache").string();
@@ -70,7 +70,8 @@ struct NotAStdException {
 
 TEST(HttpWrapper, ExceptionsFromHandlersAre500ProblemsAndTheServerGoesOn) {
     InProcessServer server([](HttpServer& http) {
-        http.add_route_for_tests("/test/throw-std", [] { throw std::runtime_error("secret internal detail"); });
+        http.add_route_for_tests("/test/throw-std",
+                                 [] { throw std::runtime_error("secret internal detail"); });
         http.add_route_for_tests("/test/throw-other", [] { throw NotAStdException{}; });
         http.add_route_for_tests("/test/ok", [] {});
     });

@@ -42,7 +42,9 @@ TEST(JsonApi, MeshSummaryRoundTripsExactly) {
     EXPECT_EQ(*back, s);
     s.in_memory = true;
     const std::string json = encode_mesh_summary(s);
-    EXPECT_NE(json.find("\"bounds\":{\"min\":[-0.0946899,0.0329874,-0.0618736],"), std::string::npos) << json;
+    EXPECT_NE(json.find("\"bounds\":{\"min\":[-0.0946899,0.0329874,-0.0618736],"),
+              std::string::npos)
+        << json;
     EXPECT_NE(json.find("\"build_ms\":41.5"), std::string::npos) << json;
     EXPECT_NE(json.find(",\"in_memory\":true}"), std::string::npos) << json;
     back = decode_mesh_summary(json);
@@ -90,7 +92,8 @@ TEST(JsonRays, RoundTripIsBitExact) {
         ASSERT_EQ(back->rays.size(), rays.size());
         for (size_t i = 0; i < rays.size(); ++i)
             for (int f = 0; f < 8; ++f)
-                ASSERT_EQ(std::bit_cast<uint32_t>((&back->rays[i].ox)[f]), std::bit_cast<uint32_t>((&rays[i].ox)[f]))
+                ASSERT_EQ(std::bit_cast<uint32_t>((&back->rays[i].ox)[f]),
+                          std::bit_cast<uint32_t>((&rays[i].ox)[f]))
                     << "ray " << i << " field " << f;
     }
 }
@@ -128,14 +131,18 @@ TEST(JsonRays, ErrorsNameTheMember) {
         {"{\"rays\": [}", JsonError::Code::kSyntax, "invalid JSON at byte 11: "},
         {"{\"rays\": []} x", JsonError::Code::kSyntax, "invalid JSON at byte 14: "},
         {"[]", JsonError::Code::kSchema, "expected a JSON object, got an array"},
-        {"{\"rays\": {}}", JsonError::Code::kSchema, "\"rays\" must be an array of rays, got an object"},
-        {"{\"rays\": [1]}", JsonError::Code::kSchema, "rays[0]: expected an array of 6 or 8 numbers, got a number"},
-        {"{\"rays\": [[1,2,3,4,5,6,7]]}", JsonError::Code::kSchema, "rays[0]: expected 6 or 8 numbers, got 7"},
+        {"{\"rays\": {}}", JsonError::Code::kSchema,
+         "\"rays\" must be an array of rays, got an object"},
+        {"{\"rays\": [1]}", JsonError::Code::kSchema,
+         "rays[0]: expected an array of 6 or 8 numbers, got a number"},
+        {"{\"rays\": [[1,2,3,4,5,6,7]]}", JsonError::Code::kSchema,
+         "rays[0]: expected 6 or 8 numbers, got 7"},
         {"{\"rays\": [[1,2,3,4,5,6,7,8,9]]}", JsonError::Code::kSchema,
          "rays[0]: expected 6 or 8 numbers, got more than 8"},
         {"{\"rays\": [[1,2,3,4,5,6],[1,null,3,4,5,6]]}", JsonError::Code::kSchema,
          "rays[1][1]: expected a number, got null"},
-        {"{\"rays\": [[1,2,3,[4],5,6]]}", JsonError::Code::kSchema, "rays[0][3]: expected a number, got an array"},
+        {"{\"rays\": [[1,2,3,[4],5,6]]}", JsonError::Code::kSchema,
+         "rays[0][3]: expected a number, got an array"},
         {"{\"rays\": [], \"occlusion\": \"yes\"}", JsonError::Code::kSchema,
          "\"occlusion\" must be true or false, got a string"},
         {"{\"rays\": [], \"rays\": []}", JsonError::Code::kSchema, "duplicate member \"rays\""},
@@ -144,7 +151,8 @@ TEST(JsonRays, ErrorsNameTheMember) {
         {"{\"rays\": [[0,0,0,-3e38,0,1e39]]}", JsonError::Code::kSchema,
          "rays[0][5] (dz): 1e39 does not fit a 32-bit float"},
         {"{\"rays\": [[1,2,3,4,5,6],[1,2,3,4,5,6],[1,2,3,4,5,6]]}", JsonError::Code::kTooMany,
-         "rays[2]: rays in a JSON batch exceed the limit of 2; send larger batches as application/x-kdrt-rays"},
+         "rays[2]: rays in a JSON batch exceed the limit of 2; send larger batches as "
+         "application/x-kdrt-rays"},
     };
     for (const Case& c : cases) {
         SCOPED_TRACE(c.json);
@@ -159,7 +167,8 @@ TEST(JsonHits, EncodeIsCompactAndDecodes) {
     const Hit hits[3] = {{1.5f, 12, 0.25f, 0.5f}, Hit{}, {0.1f, 0, 0.0f, 1.0f}};
     const std::string json = encode_json_hits(hits);
     EXPECT_EQ(json,
-              "{\"hits\":[{\"t\":1.5,\"prim\":12,\"u\":0.25,\"v\":0.5},null,{\"t\":0.1,\"prim\":0,\"u\":0,\"v\":1}]}");
+              "{\"hits\":[{\"t\":1.5,\"prim\":12,\"u\":0.25,\"v\":0.5},null,{\"t\":0.1,\"prim\":0,"
+              "\"u\":0,\"v\":1}]}");
     auto back = decode_json_hits(json);
     ASSERT_TRUE(back) << back.error();
     ASSERT_EQ(back->size(), 3u);
@@ -203,19 +212,22 @@ TEST(JsonApi, FlatObject) {
                                 {"b", true},
                                 {"s", std::string("\x01")}};
     EXPECT_EQ(encode_flat_object(fields),
-              "{\"msg\":\"a \\\"quoted\\\"\\tword\",\"n\":-3,\"u\":7,\"x\":0.5,\"b\":true,\"s\":\"\\u0001\"}");
+              "{\"msg\":\"a "
+              "\\\"quoted\\\"\\tword\",\"n\":-3,\"u\":7,\"x\":0.5,\"b\":true,\"s\":\"\\u0001\"}");
 }
 
 TEST(ConfigJson, CommentsScalarsAndLists) {
     auto entries = parse_config_object(
-        "// leading comment\n{\n  \"a\": 1, /* block */\n  \"b\": \"x\",\n  \"c\": [\"p\", \"q\"],\n  \"d\": true,\n"
+        "// leading comment\n{\n  \"a\": 1, /* block */\n  \"b\": \"x\",\n  \"c\": [\"p\", "
+        "\"q\"],\n  \"d\": true,\n"
         "  \"e\": 0.5\n}\n");
     ASSERT_TRUE(entries) << entries.error();
     ASSERT_EQ(entries->size(), 5u);
     EXPECT_EQ((*entries)[0].key, "a");
     EXPECT_EQ(std::get<int64_t>((*entries)[0].value), 1);
     EXPECT_EQ(std::get<std::string>((*entries)[1].value), "x");
-    EXPECT_EQ(std::get<std::vector<std::string>>((*entries)[2].value), (std::vector<std::string>{"p", "q"}));
+    EXPECT_EQ(std::get<std::vector<std::string>>((*entries)[2].value),
+              (std::vector<std::string>{"p", "q"}));
     EXPECT_TRUE(std::get<bool>((*entries)[3].value));
     EXPECT_EQ(std::get<double>((*entries)[4].value), 0.5);
 }

@@ -22,8 +22,9 @@ namespace fs = std::filesystem;
 class MeshCacheTest : public ::testing::Test {
 protected:
     void SetUp() override {
-        dir_ = fs::temp_directory_path() / ("kdrt-cache-test-" + std::to_string(::getpid()) + "-" +
-                                            ::testing::UnitTest::GetInstance()->current_test_info()->name());
+        dir_ = fs::temp_directory_path() /
+               ("kdrt-cache-test-" + std::to_string(::getpid()) + "-" +
+                ::testing::UnitTest::GetInstance()->current_test_info()->name());
         fs::remove_all(dir_);
     }
     void TearDown() override { fs::remove_all(dir_); }
@@ -123,7 +124,8 @@ TEST_F(MeshCacheTest, ReopenFindsEveryMeshAndRebuildsCorruptTrees) {
         ib = cache.add(b)->summary.id;
     }
     {
-        std::fstream f(dir_ / "meshes" / (ib + ".tree"), std::ios::in | std::ios::out | std::ios::binary);
+        std::fstream f(dir_ / "meshes" / (ib + ".tree"),
+                       std::ios::in | std::ios::out | std::ios::binary);
         f.seekp(300);
         f.put('\x7f');
     }

@@ -17,7 +17,8 @@ Mesh one_triangle() {
 
 TEST(MeshId, KnownAnswers) {
     // SHA-256 of 9 little-endian f32 (0,0,0, 1,0,0, 0,1,0) and of nothing.
-    EXPECT_EQ(mesh_id(one_triangle()), "d8b87038ed2ace74ed183166f6b0a541eab77f7184d50e65edc4bca5ccb5445a");
+    EXPECT_EQ(mesh_id(one_triangle()),
+              "d8b87038ed2ace74ed183166f6b0a541eab77f7184d50e65edc4bca5ccb5445a");
     EXPECT_EQ(mesh_id(Mesh{}), "e3b0c44298fc1c149afbf4c8996fb92427ae41e4649b934ca495991b7852b855");
     EXPECT_EQ(sha256_hex(canonical_triangles(one_triangle())), mesh_id(one_triangle()));
     EXPECT_EQ(canonical_triangles(one_triangle()).size(), kCanonicalTriangleBytes);
@@ -31,11 +32,12 @@ TEST(MeshId, IndependentOfVertexSharingOrderAndFormat) {
     const size_t n = soup.vertex_count();
     for (size_t i = n; i-- > 0;) test::add_vertex(shuffled, soup.vertex(i));
     test::add_vertex(shuffled, {9, 9, 9});
-    for (uint32_t index : soup.indices) shuffled.indices.push_back(static_cast<uint32_t>(n - 1 - index));
+    for (uint32_t index : soup.indices)
+        shuffled.indices.push_back(static_cast<uint32_t>(n - 1 - index));
     EXPECT_EQ(mesh_id(shuffled), mesh_id(soup));
     // Through every file format (STL has no sharing at all).
-    for (const MeshFormat format :
-         {MeshFormat::kObj, MeshFormat::kPly, MeshFormat::kOff, MeshFormat::kStl, MeshFormat::kRaw}) {
+    for (const MeshFormat format : {MeshFormat::kObj, MeshFormat::kPly, MeshFormat::kOff,
+                                    MeshFormat::kStl, MeshFormat::kRaw}) {
         auto parsed = parse_mesh(write_mesh(soup, format), format);
         ASSERT_TRUE(parsed) << parsed.error().message;
         EXPECT_EQ(mesh_id(*parsed), mesh_id(soup)) << mesh_format_name(format);

@@ -15,7 +15,8 @@ TEST(Problem, EncodesRfc9457Members) {
     p.line = 4;
     p.request_id = "00000000000000ff";
     EXPECT_EQ(encode_problem(p),
-              "{\"type\":\"urn:kdrt:problem:mesh-parse-error\",\"title\":\"Mesh parse error\",\"status\":422,"
+              "{\"type\":\"urn:kdrt:problem:mesh-parse-error\",\"title\":\"Mesh parse "
+              "error\",\"status\":422,"
               "\"detail\":\"line 4: face \\\"x\\\"\\n\",\"instance\":\"/v1/meshes\",\"line\":4,"
               "\"request_id\":\"00000000000000ff\"}");
 }
@@ -62,7 +63,8 @@ TEST(Problem, DecodeRefusesOtherDocuments) {
     EXPECT_FALSE(decode_problem("nope"));
     EXPECT_FALSE(decode_problem("[]"));
     EXPECT_FALSE(decode_problem("{\"type\":\"about:blank\",\"status\":400,\"detail\":\"x\"}"));
-    EXPECT_FALSE(decode_problem("{\"type\":\"urn:kdrt:problem:unknown-mesh\",\"status\":400,\"detail\":\"x\"}"));
+    EXPECT_FALSE(decode_problem(
+        "{\"type\":\"urn:kdrt:problem:unknown-mesh\",\"status\":400,\"detail\":\"x\"}"));
     EXPECT_FALSE(decode_problem("{\"type\":\"urn:kdrt:problem:unknown-mesh\",\"status\":404}"));
 }
 

@@ -28,7 +28,8 @@ std::vector<Ray> some_rays(size_t count, uint64_t seed) {
     test::Rng rng(seed);
     std::vector<Ray> rays(count);
     for (Ray& r : rays) {
-        const Vec3 o = rng.in_box({{-1, -1, -1}, {2, 2, 2}}), t = rng.in_box({{0, 0, 0}, {1, 1, 1}});
+        const Vec3 o = rng.in_box({{-1, -1, -1}, {2, 2, 2}}),
+                   t = rng.in_box({{0, 0, 0}, {1, 1, 1}});
         r = test::make_ray(o, t - o);
     }
     return rays;
@@ -47,8 +48,10 @@ struct Outcome {
 
 /// Decodes `body` with a stream decoder, fed in pieces (or read in place into its window after
 /// the header when `in_place`), optionally told the body's size in advance.
-Outcome stream_decode(const std::vector<std::byte>& body, Cut cut, bool declare, bool in_place, uint64_t seed,
-                      proto::DecodeLimits limits = {.max_rays = 1u << 20, .reject_non_finite = true}) {
+Outcome stream_decode(const std::vector<std::byte>& body, Cut cut, bool declare, bool in_place,
+                      uint64_t seed,
+                      proto::DecodeLimits limits = {.max_rays = 1u << 20,
+                                                    .reject_non_finite = true}) {
     std::vector<Ray> storage;
     Outcome out;
     RayStreamDecoder decoder(
@@ -102,8 +105,8 @@ void expect_like_decode_rays(const std::vector<std::byte>& body, const std::stri
         if (cut == Cut::kBytes && body.size() > 20000) continue;
         for (const bool declare : {false, true}) {
             for (const bool in_place : {false, true}) {
-                SCOPED_TRACE(testing::Message() << "cut " << static_cast<int>(cut) << " declare " << declare
-                                                << " in_place " << in_place);
+                SCOPED_TRACE(testing::Message() << "cut " << static_cast<int>(cut) << " declare "
+                                                << declare << " in_place " << in_place);
                 const Outcome got = stream_decode(body, cut, declare, in_place, 7, limits);
                 ASSERT_EQ(got.ok, static_cast<bool>(want)) << got.detail;
                 if (!want) {
@@ -113,7 +116,9 @@ void expect_like_decode_rays(const std::vector<std::byte>& body, const std::stri
                     EXPECT_EQ(got.occlusion, want->occlusion);
                     ASSERT_EQ(got.rays.size(), want->rays.size());
                     if (!got.rays.empty()) {
-                        EXPECT_EQ(std::memcmp(got.rays.data(), want->rays.data(), got.rays.size() * sizeof(Ray)), 0);
+                        EXPECT_EQ(std::memcmp(got.rays.data(), want->rays.data(),
+                                              got.rays.size() * sizeof(Ray)),
+                                  0);
                     }
                 }
             }
@@ -125,7 +130,8 @@ TEST(RayStreamDecoder, AgreesWithDecodeRaysOnValidBatches) {
     for (const size_t count : {size_t{0}, size_t{1}, size_t{3}, size_t{1000}}) {
         const std::vector<Ray> rays = some_rays(count, count + 1);
         expect_like_decode_rays(proto::encode_rays(rays, false), std::to_string(count) + " rays");
-        expect_like_decode_rays(proto::encode_rays(rays, true), std::to_string(count) + " occlusion rays");
+        expect_like_decode_rays(proto::encode_rays(rays, true),
+                                std::to_string(count) + " occlusion rays");
     }
 }
 
@@ -178,10 +184,13 @@ TEST(RayStreamDecoder, AgreesWithDecodeRaysOnEveryRefusal) {
 
 TEST(RayStreamDecoder, ADeclaredSizeRefusesEarly) {
     const std::vector<std::byte> body = proto::encode_rays(some_rays(100, 5), false);
-    RayStreamDecoder decoder({}, [](uint32_t, bool) -> std::span<Ray> {
-        ADD_FAILURE() << "no storage for a refused batch";
-        return {};
-    }, body.size() + 32);
+    RayStreamDecoder decoder(
+        {},
+        [](uint32_t, bool) -> std::span<Ray> {
+            ADD_FAILURE() << "no storage for a refused batch";
+            return {};
+        },
+        body.size() + 32);
     EXPECT_FALSE(decoder.feed(std::span(body).first(16)));
     ASSERT_TRUE(decoder.error());
     EXPECT_EQ(decoder.error()->code, DecodeErrorCode::kLengthMismatch);
@@ -204,15 +213,18 @@ TEST(RayBatchAnswers, WrittenInPlaceTheyEqualTheEncoders) {
         std::vector<uint8_t> occluded(count);
         for (uint32_t i = 0; i < count; ++i) {
             hits[i] = i % 3 ? Hit{rng.uniform(), i * 7, rng.uniform(), rng.uniform()} : Hit{};
-            occluded[i] = static_cast<uint8_t>(rng.below(3));  // 2: any nonzero value is 1 on the wire
+            occluded[i] =
+                static_cast<uint8_t>(rng.below(3));  // 2: any nonzero value is 1 on the wire
         }
         AlignedBuffer buffer(16 + 16 * size_t{count});
         if (count > 0) std::memcpy(buffer.data() + 16, hits.data(), hits.size() * sizeof(Hit));
         size_t size = proto::write_answer_in_place(buffer.data(), proto::AnswerKind::kHits, count);
-        EXPECT_EQ(std::vector<std::byte>(buffer.data(), buffer.data() + size), proto::encode_hits(hits));
+        EXPECT_EQ(std::vector<std::byte>(buffer.data(), buffer.data() + size),
+                  proto::encode_hits(hits));
         if (count > 0) std::memcpy(buffer.data() + 16, occluded.data(), occluded.size());
         size = proto::write_answer_in_place(buffer.data(), proto::AnswerKind::kOcclusion, count);
-        EXPECT_EQ(std::vector<std::byte>(buffer.data(), buffer.data() + size), proto::encode_occlusion(occluded));
+        EXPECT_EQ(std::vector<std::byte>(buffer.data(), buffer.data() + size),
+                  proto::encode_occlusion(occluded));
     }
 }
 

@@ -52,7 +52,8 @@ TEST(RequestBody, ReportsAnUnusableSpoolDirectory) {
     RequestBody body(1000, 4, "/nonexistent-kdrt-dir");
     EXPECT_FALSE(body.append("0123456789", 10));
     EXPECT_FALSE(body.too_large());
-    EXPECT_NE(body.error().find("cannot create a spool file in \"/nonexistent-kdrt-dir\""), std::string::npos)
+    EXPECT_NE(body.error().find("cannot create a spool file in \"/nonexistent-kdrt-dir\""),
+              std::string::npos)
         << body.error();
     EXPECT_FALSE(body.finish());
 }

@@ -54,7 +54,9 @@ namespace {
 using Clock = std::chrono::steady_clock;
 namespace fs = std::filesystem;
 
-double seconds_since(Clock::time_point start) { return std::chrono::duration<double>(Clock::now() - start).count(); }
+double seconds_since(Clock::time_point start) {
+    return std::chrono::duration<double>(Clock::now() - start).count();
+}
 
 std::string as_string(const std::vector<std::byte>& bytes) {
     return {reinterpret_cast<const char*>(bytes.data()), bytes.size()};
@@ -68,7 +70,8 @@ double median(std::vector<double> values) {
 
 double percentile(std::vector<double> values, double p) {
     std::sort(values.begin(), values.end());
-    const size_t index = std::min(values.size() - 1, static_cast<size_t>(p * static_cast<double>(values.size())));
+    const size_t index =
+        std::min(values.size() - 1, static_cast<size_t>(p * static_cast<double>(values.size())));
     return values[index];
 }
 
@@ -88,7 +91,8 @@ kdrt::Mesh torus(uint32_t rings, uint32_t sides) {
     for (uint32_t i = 0; i < rings; ++i) {
         for (uint32_t j = 0; j < sides; ++j) {
             const uint32_t a = i * sides + j, b = ((i + 1) % rings) * sides + j;
-            const uint32_t c = ((i + 1) % rings) * sides + (j + 1) % sides, d = i * sides + (j + 1) % sides;
+            const uint32_t c = ((i + 1) % rings) * sides + (j + 1) % sides,
+                           d = i * sides + (j + 1) % sides;
             m.indices.insert(m.indices.end(), {a, b, c, a, c, d});
         }
     }
@@ -117,9 +121,9 @@ struct Server {
         if (pid == 0) {
             const int log_fd = ::open(log.c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0644);
             ::dup2(log_fd, 2);
-            ::execl(binary.c_str(), binary.c_str(), "--listen", "127.0.0.1:0", "--port-file", port_file.c_str(),
-                    "--cache-dir", cache.c_str(), "--threads", t.c_str(), "--max-inflight", "1000",
-                    static_cast<char*>(nullptr));
+            ::execl(binary.c_str(), binary.c_str(), "--listen", "127.0.0.1:0", "--port-file",
+                    port_file.c_str(), "--cache-dir", cache.c_str(), "--threads", t.c_str(),
+                    "--max-inflight", "1000", static_cast<char*>(nullptr));
             ::_exit(127);
         }
         g_server_pid = pid;
@@ -175,12 +179,14 @@ std::unique_ptr<httplib::Client> client(int port) {
 
 /// POST the raw mesh; returns seconds until the 201/200 answer and the id.
 std::pair<double, std::string> upload(httplib::Client& cli, const kdrt::Mesh& mesh) {
-    const std::string body = as_string(kdrt::proto::write_mesh(mesh, kdrt::proto::MeshFormat::kRaw));
+    const std::string body =
+        as_string(kdrt::proto::write_mesh(mesh, kdrt::proto::MeshFormat::kRaw));
     const auto start = Clock::now();
     auto res = cli.Post("/v1/meshes", body, "application/x-kdrt-mesh");
     const double s = seconds_since(start);
     if (!res || (res->status != 201 && res->status != 200)) {
-        std::fprintf(stderr, "upload failed: %d %s\n", res ? res->status : -1, res ? res->body.c_str() : "");
+        std::fprintf(stderr, "upload failed: %d %s\n", res ? res->status : -1,
+                     res ? res->body.c_str() : "");
         std::exit(1);
     }
     return {s, kdrt::proto::mesh_id(mesh)};
@@ -213,11 +219,13 @@ public:
     }
 
     /// POSTs `body`; returns the status and leaves the response body in `answer`.
-    int post(const std::string& path, const char* type, std::string_view body, std::vector<char>& answer) {
+    int post(const std::string& path, const char* type, std::string_view body,
+             std::vector<char>& answer) {
         // An idle connection the server closed (keep_alive_timeout_s) reads as EOF: reconnect.
         pollfd idle{fd_, POLLIN | POLLRDHUP, 0};
         if (::poll(&idle, 1, 0) > 0) connect();
-        const std::string head = "POST " + path + " HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: " + type +
+        const std::string head = "POST " + path +
+                                 " HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Type: " + type +
                                  "\r\nContent-Length: " + std::to_string(body.size()) + "\r\n\r\n";
         send_all(head.data(), head.size(), body.empty() ? 0 : MSG_MORE);
         send_all(body.data(), body.size(), 0);
@@ -270,21 +278,22 @@ private:
 };
 
 /// One intersect POST through the raw client; returns seconds.
-double trace_raw(RawClient& cli, const std::string& path, std::string_view body, std::vector<char>& answer) {
+double trace_raw(RawClient& cli, const std::string& path, std::string_view body,
+                 std::vector<char>& answer) {
     const auto start = Clock::now();
     const int status = cli.post(path, "application/x-kdrt-rays", body, answer);
     const double s = seconds_since(start);
     if (status != 200) {
-        std::fprintf(stderr, "intersect failed: %d %.*s\n", status, static_cast<int>(std::min<size_t>(answer.size(), 300)),
-                     answer.data());
+        std::fprintf(stderr, "intersect failed: %d %.*s\n", status,
+                     static_cast<int>(std::min<size_t>(answer.size(), 300)), answer.data());
         std::exit(1);
     }
     return s;
 }
 
 /// One POST of a KDRR body, the KDRH answer received into a pre-sized buffer.
-double trace_remote(httplib::Client& cli, const std::string& path, const std::string& body, size_t answer_bytes,
-                    std::string& answer) {
+double trace_remote(httplib::Client& cli, const std::string& path, const std::string& body,
+                    size_t answer_bytes, std::string& answer) {
     answer.clear();
     answer.reserve(answer_bytes);
     const auto start = Clock::now();
@@ -300,9 +309,11 @@ double trace_remote(httplib::Client& cli, const std::string& path, const std::st
 
 /// `count` rays of `kind` for the bunny's tree: the res x res set of the kind, res grown until
 /// it has at least `count` rays (diffuse rays exist only where primary rays hit), then cut.
-std::vector<kdrt::Ray> ray_set(tbb::task_arena& arena, const kdrt::KdTree& tree, kdrt::RayKind kind, size_t count) {
+std::vector<kdrt::Ray> ray_set(tbb::task_arena& arena, const kdrt::KdTree& tree, kdrt::RayKind kind,
+                               size_t count) {
     for (uint32_t res = 1024;; res = res * 5 / 4) {
-        std::vector<kdrt::Ray> rays = arena.execute([&] { return kdrt::generate_rays(tree, {.kind = kind, .res = res, .seed = 1}); });
+        std::vector<kdrt::Ray> rays = arena.execute(
+            [&] { return kdrt::generate_rays(tree, {.kind = kind, .res = res, .seed = 1}); });
         if (rays.size() >= count) {
             rays.resize(count);
             return rays;
@@ -336,7 +347,8 @@ int main(int argc, char** argv) {
             only = argv[i + 1];
         else {
             std::fprintf(stderr,
-                         "usage: kdrt-server-bench [--threads N] [--reps R] [--latency-requests K] [--server PATH]\n"
+                         "usage: kdrt-server-bench [--threads N] [--reps R] [--latency-requests K] "
+                         "[--server PATH]\n"
                          "                         [--only upload,throughput,latency,render]\n");
             return 2;
         }
@@ -352,12 +364,14 @@ int main(int argc, char** argv) {
     // Upload-to-ready.
     const auto [bunny_s, bunny_id] = upload(*cli, *bunny);
     if (wanted(only, "upload")) {
-        std::printf("{\"measure\":\"upload_to_ready\",\"mesh\":\"bunny\",\"triangles\":%zu,\"ms\":%.1f}\n",
-                    bunny->triangle_count(), bunny_s * 1e3);
+        std::printf(
+            "{\"measure\":\"upload_to_ready\",\"mesh\":\"bunny\",\"triangles\":%zu,\"ms\":%.1f}\n",
+            bunny->triangle_count(), bunny_s * 1e3);
         const kdrt::Mesh big = torus(1000, 500);
         const auto [big_s, big_id] = upload(*cli, big);
-        std::printf("{\"measure\":\"upload_to_ready\",\"mesh\":\"torus\",\"triangles\":%zu,\"ms\":%.1f}\n",
-                    big.triangle_count(), big_s * 1e3);
+        std::printf(
+            "{\"measure\":\"upload_to_ready\",\"mesh\":\"torus\",\"triangles\":%zu,\"ms\":%.1f}\n",
+            big.triangle_count(), big_s * 1e3);
         cli->Delete(("/v1/meshes/" + big_id).c_str());
         std::fflush(stdout);
     }
@@ -384,7 +398,8 @@ int main(int argc, char** argv) {
                 arena.execute([&] { kdrt::intersect(tree, rays, hits); });
                 local.push_back(seconds_since(start));
                 remote.push_back(trace_raw(raw, path, body, answer));
-                via_httplib.push_back(trace_remote(*cli, path, body, 16 + 16 * rays.size(), httplib_answer));
+                via_httplib.push_back(
+                    trace_remote(*cli, path, body, 16 + 16 * rays.size(), httplib_answer));
             }
             // The server logs each request after answering it; in order: raw, httplib, raw, ...
             std::vector<double> raw_logged;
@@ -392,16 +407,21 @@ int main(int argc, char** argv) {
             for (size_t i = 0; i < logged.size(); i += 2) raw_logged.push_back(logged[i]);
             if (raw_logged.empty()) raw_logged.push_back(-1);
             const std::string expected = as_string(kdrt::proto::encode_hits(hits));
-            const bool same = std::string_view(answer.data(), answer.size()) == expected && httplib_answer == expected;
+            const bool same = std::string_view(answer.data(), answer.size()) == expected &&
+                              httplib_answer == expected;
             const double n = static_cast<double>(rays.size()) * 1e-6;
             const double local_mrays = n / median(local), remote_mrays = n / median(remote);
             std::printf(
-                "{\"measure\":\"throughput\",\"rays\":\"%s\",\"count\":%zu,\"threads\":%u,\"reps\":%d,"
-                "\"in_process_mrays\":%.2f,\"http_mrays\":%.2f,\"ratio\":%.3f,\"httplib_client_mrays\":%.2f,"
-                "\"in_process_ms\":%.1f,\"http_ms\":%.1f,\"server_side_ms\":%.1f,\"same_hits\":%s}\n",
-                std::string(kdrt::ray_kind_name(kind)).c_str(), rays.size(), threads, reps, local_mrays, remote_mrays,
-                remote_mrays / local_mrays, n / median(via_httplib), median(local) * 1e3, median(remote) * 1e3,
-                median(raw_logged), same ? "true" : "false");
+                "{\"measure\":\"throughput\",\"rays\":\"%s\",\"count\":%zu,\"threads\":%u,\"reps\":"
+                "%d,"
+                "\"in_process_mrays\":%.2f,\"http_mrays\":%.2f,\"ratio\":%.3f,\"httplib_client_"
+                "mrays\":%.2f,"
+                "\"in_process_ms\":%.1f,\"http_ms\":%.1f,\"server_side_ms\":%.1f,\"same_hits\":%s}"
+                "\n",
+                std::string(kdrt::ray_kind_name(kind)).c_str(), rays.size(), threads, reps,
+                local_mrays, remote_mrays, remote_mrays / local_mrays, n / median(via_httplib),
+                median(local) * 1e3, median(remote) * 1e3, median(raw_logged),
+                same ? "true" : "false");
             std::fflush(stdout);
         }
     }
@@ -411,16 +431,18 @@ int main(int argc, char** argv) {
         const std::vector<kdrt::Ray> rays =
             kdrt::generate_rays(tree, {.kind = kdrt::RayKind::kPrimary, .res = 64, .seed = 3});
         for (const size_t count : {size_t{1}, size_t{1000}}) {
-            const std::string body =
-                as_string(kdrt::proto::encode_rays(std::span(rays).first(std::min(count, rays.size())), false));
+            const std::string body = as_string(kdrt::proto::encode_rays(
+                std::span(rays).first(std::min(count, rays.size())), false));
             std::vector<double> us;
             std::vector<char> answer;
             for (int i = 0; i < latency_requests + 50; ++i) {
                 const double s = trace_raw(raw, path, body, answer);
                 if (i >= 50) us.push_back(s * 1e6);  // the first 50 warm up
             }
-            std::printf("{\"measure\":\"latency\",\"rays\":%zu,\"requests\":%d,\"p50_us\":%.1f,\"p99_us\":%.1f}\n",
-                        count, latency_requests, percentile(us, 0.5), percentile(us, 0.99));
+            std::printf(
+                "{\"measure\":\"latency\",\"rays\":%zu,\"requests\":%d,\"p50_us\":%.1f,\"p99_us\":%"
+                ".1f}\n",
+                count, latency_requests, percentile(us, 0.5), percentile(us, 0.99));
             std::fflush(stdout);
         }
     }
@@ -428,8 +450,8 @@ int main(int argc, char** argv) {
     // Render latency: 1024^2 eyelight PNG, at the server's default compression and at 0, 6, 9.
     if (wanted(only, "render")) {
         for (const int level : {-1, 0, 6, 9}) {
-            std::string request =
-                "{\"mesh\":\"" + bunny_id + "\",\"width\":1024,\"height\":1024,\"shading\":\"eyelight\"";
+            std::string request = "{\"mesh\":\"" + bunny_id +
+                                  "\",\"width\":1024,\"height\":1024,\"shading\":\"eyelight\"";
             if (level >= 0) request += ",\"compression\":" + std::to_string(level);
             request += "}";
             std::vector<double> ms, render_ms, encode_ms;
@@ -439,20 +461,25 @@ int main(int argc, char** argv) {
                 auto res = cli->Post("/v1/render", request, "application/json");
                 const double s = seconds_since(start);
                 if (!res || res->status != 200) {
-                    std::fprintf(stderr, "render failed: %d %s\n", res ? res->status : -1, res ? res->body.c_str() : "");
+                    std::fprintf(stderr, "render failed: %d %s\n", res ? res->status : -1,
+                                 res ? res->body.c_str() : "");
                     return 1;
                 }
                 if (i == 0) continue;  // warm-up
                 ms.push_back(s * 1e3);
                 render_ms.push_back(std::stod(res->get_header_value("X-Render-Ms")));
-                encode_ms.push_back(res->has_header("X-Encode-Ms") ? std::stod(res->get_header_value("X-Encode-Ms")) : -1);
+                encode_ms.push_back(res->has_header("X-Encode-Ms")
+                                        ? std::stod(res->get_header_value("X-Encode-Ms"))
+                                        : -1);
                 bytes = res->body.size();
             }
             std::printf(
-                "{\"measure\":\"render\",\"size\":1024,\"shading\":\"eyelight\",\"format\":\"png\",\"compression\":%s,"
-                "\"p50_ms\":%.1f,\"render_only_p50_ms\":%.1f,\"encode_p50_ms\":%.1f,\"bytes\":%zu}\n",
-                level < 0 ? "\"default\"" : std::to_string(level).c_str(), median(ms), median(render_ms),
-                median(encode_ms), bytes);
+                "{\"measure\":\"render\",\"size\":1024,\"shading\":\"eyelight\",\"format\":\"png\","
+                "\"compression\":%s,"
+                "\"p50_ms\":%.1f,\"render_only_p50_ms\":%.1f,\"encode_p50_ms\":%.1f,\"bytes\":%zu}"
+                "\n",
+                level < 0 ? "\"default\"" : std::to_string(level).c_str(), median(ms),
+                median(render_ms), median(encode_ms), bytes);
             std::fflush(stdout);
         }
     }

@@ -38,15 +38,16 @@ ServerProcess::ServerProcess(Options options) : options_(std::move(options)) {
     log_path_ = options_.cache_dir.parent_path() / ("server-" + tag + ".log");
     port_path_ = options_.cache_dir.parent_path() / ("server-" + tag + ".port");
 
-    std::vector<std::string> args = {KDRT_SERVER_BINARY, "--listen", "127.0.0.1:0", "--port-file", port_path_.string(),
-                                     "--cache-dir", options_.cache_dir.string(), "--threads", "2", "--http-threads",
-                                     "8",
-                                     // Idle keep-alive connections hold up a stop for this long.
-                                     "--keep-alive-timeout-s", "1"};
+    std::vector<std::string> args = {
+        KDRT_SERVER_BINARY, "--listen", "127.0.0.1:0", "--port-file", port_path_.string(),
+        "--cache-dir", options_.cache_dir.string(), "--threads", "2", "--http-threads", "8",
+        // Idle keep-alive connections hold up a stop for this long.
+        "--keep-alive-timeout-s", "1"};
     args.insert(args.end(), options_.args.begin(), options_.args.end());
     std::vector<std::string> env;
     for (char** e = environ; *e; ++e)
-        if (std::strncmp(*e, "KDRT_", 5) != 0 || std::strncmp(*e, "KDRT_TEST", 9) == 0) env.emplace_back(*e);
+        if (std::strncmp(*e, "KDRT_", 5) != 0 || std::strncmp(*e, "KDRT_TEST", 9) == 0)
+            env.emplace_back(*e);
     env.insert(env.end(), options_.env.begin(), options_.env.end());
 
     std::vector<char*> argv, envp;
@@ -151,7 +152,8 @@ std::optional<double> find_metric(const std::string& text, const std::string& se
     std::istringstream in(text);
     std::string line;
     while (std::getline(in, line)) {
-        if (line.size() > series.size() && line.compare(0, series.size(), series) == 0 && line[series.size()] == ' ')
+        if (line.size() > series.size() && line.compare(0, series.size(), series) == 0 &&
+            line[series.size()] == ' ')
             return std::strtod(line.c_str() + series.size() + 1, nullptr);
     }
     return std::nullopt;

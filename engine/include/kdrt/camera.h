@@ -24,8 +24,8 @@ struct CameraSpec {
     Vec3 eye{0, 0, 1};
     Vec3 look_at{0, 0, 0};
     Vec3 up{0, 1, 0};
-    float fov_deg = 40.0f;          ///< vertical field of view (perspective), in (0, 180)
-    float ortho_height = 1.0f;      ///< height of the view in world units (orthographic), > 0
+    float fov_deg = 40.0f;      ///< vertical field of view (perspective), in (0, 180)
+    float ortho_height = 1.0f;  ///< height of the view in world units (orthographic), > 0
     Projection projection = Projection::kPerspective;
 };
 
@@ -38,7 +38,9 @@ public:
 
     /// The ray through image position (px, py) in pixels (0..width, 0..height; pixel centres at
     /// +0.5). tmin = 0, tmax = +inf; direction normalised.
-    [[nodiscard]] Ray ray(float px, float py) const noexcept { return ray_at(plane_x(px), plane_y(py)); }
+    [[nodiscard]] Ray ray(float px, float py) const noexcept {
+        return ray_at(plane_x(px), plane_y(py));
+    }
 
     /// ray() in two steps, for callers that make many rays per image row or column (the
     /// renderer's tiles): plane_x / plane_y map a pixel position to image-plane coordinates (each
@@ -60,7 +62,8 @@ public:
             const Vec3 v = forward_ + right_ * sx + up_ * sy;
             dir = v * (1.0f / std::sqrt(dot(v, v)));
         }
-        return Ray{origin.x, origin.y, origin.z, 0.0f, dir.x, dir.y, dir.z, std::numeric_limits<float>::infinity()};
+        return Ray{origin.x, origin.y, origin.z, 0.0f,
+                   dir.x,    dir.y,    dir.z,    std::numeric_limits<float>::infinity()};
     }
 
     [[nodiscard]] const CameraSpec& spec() const noexcept { return spec_; }

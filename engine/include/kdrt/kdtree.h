@@ -29,8 +29,10 @@ public:
     static constexpr uint32_t kLeafTag = 3;
     static constexpr uint32_t kMaxField = (1u << 30) - 1;
 
-    [[nodiscard]] static constexpr KdNode inner(int axis, float split, uint32_t first_child) noexcept {
-        return KdNode((first_child << 2) | static_cast<uint32_t>(axis), std::bit_cast<uint32_t>(split));
+    [[nodiscard]] static constexpr KdNode inner(int axis, float split,
+                                                uint32_t first_child) noexcept {
+        return KdNode((first_child << 2) | static_cast<uint32_t>(axis),
+                      std::bit_cast<uint32_t>(split));
     }
     [[nodiscard]] static constexpr KdNode leaf(uint32_t prim_count, uint32_t first_ref) noexcept {
         return KdNode((prim_count << 2) | kLeafTag, first_ref);
@@ -45,7 +47,9 @@ public:
     [[nodiscard]] constexpr uint32_t first_ref() const noexcept { return word1_; }
     [[nodiscard]] constexpr uint32_t word0() const noexcept { return word0_; }
     [[nodiscard]] constexpr uint32_t word1() const noexcept { return word1_; }
-    [[nodiscard]] static constexpr KdNode from_words(uint32_t w0, uint32_t w1) noexcept { return KdNode(w0, w1); }
+    [[nodiscard]] static constexpr KdNode from_words(uint32_t w0, uint32_t w1) noexcept {
+        return KdNode(w0, w1);
+    }
     friend constexpr bool operator==(const KdNode&, const KdNode&) = default;
 
 private:
@@ -78,28 +82,28 @@ enum class Builder : uint32_t {
 /// dependent load, while a leaf's triangles are tested back to back (for a whole packet at once).
 struct BuildOptions {
     Builder builder = Builder::kSah;
-    float traversal_cost = 1.0f;      ///< C_trav: cost of one traversal step
-    float intersection_cost = 0.3f;   ///< C_isect: cost of one ray/triangle test
-    float empty_bonus = 0.1f;         ///< cost of a split with an empty side is scaled by (1 - bonus)
-    int max_depth = kMaxDepth;        ///< safety net only (clamped to [0, kMaxDepth])
-    uint32_t middle_leaf_size = 8;    ///< kMiddle: stop at this many triangles
-    int middle_max_depth = 24;        ///< kMiddle: stop at this depth
+    float traversal_cost = 1.0f;     ///< C_trav: cost of one traversal step
+    float intersection_cost = 0.3f;  ///< C_isect: cost of one ray/triangle test
+    float empty_bonus = 0.1f;       ///< cost of a split with an empty side is scaled by (1 - bonus)
+    int max_depth = kMaxDepth;      ///< safety net only (clamped to [0, kMaxDepth])
+    uint32_t middle_leaf_size = 8;  ///< kMiddle: stop at this many triangles
+    int middle_max_depth = 24;      ///< kMiddle: stop at this depth
     friend bool operator==(const BuildOptions&, const BuildOptions&) = default;
 };
 
 /// Figures that describe a built tree. Filled by the builders (build_ms included) and kept with
 /// the tree through serialisation.
 struct TreeStats {
-    uint64_t triangles = 0;        ///< triangles in the mesh
+    uint64_t triangles = 0;  ///< triangles in the mesh
     uint64_t nodes = 0;
     uint64_t leaves = 0;
     uint64_t empty_leaves = 0;
-    uint64_t refs = 0;             ///< triangle references in all leaves
-    uint32_t max_depth = 0;        ///< deepest leaf (root = 0)
+    uint64_t refs = 0;       ///< triangle references in all leaves
+    uint32_t max_depth = 0;  ///< deepest leaf (root = 0)
     double mean_leaf_depth = 0;
-    double mean_tris_per_leaf = 0; ///< over non-empty leaves
-    double sah_cost = 0;           ///< expected cost of a random ray through the root cell
-    uint64_t bytes = 0;            ///< nodes + refs + triangle data
+    double mean_tris_per_leaf = 0;  ///< over non-empty leaves
+    double sah_cost = 0;            ///< expected cost of a random ray through the root cell
+    uint64_t bytes = 0;             ///< nodes + refs + triangle data
     double bytes_per_triangle = 0;
     double build_ms = 0;
 };
@@ -107,10 +111,10 @@ struct TreeStats {
 /// An immutable, self-contained acceleration structure: traversal reads only these arrays.
 /// Thread-safe for concurrent queries.
 struct KdTree {
-    Aabb bounds;                     ///< root cell (mesh bounds, padded slightly)
-    std::vector<KdNode> nodes;       ///< depth-first; nodes[0] is the root
-    std::vector<uint32_t> leaf_refs; ///< triangle ids, per leaf contiguous
-    std::vector<TriVerts> tris;      ///< indexed by triangle id
+    Aabb bounds;                      ///< root cell (mesh bounds, padded slightly)
+    std::vector<KdNode> nodes;        ///< depth-first; nodes[0] is the root
+    std::vector<uint32_t> leaf_refs;  ///< triangle ids, per leaf contiguous
+    std::vector<TriVerts> tris;       ///< indexed by triangle id
     BuildOptions options;
     TreeStats stats;
 };

@@ -16,7 +16,7 @@ enum class RayKind : uint32_t {
     kPrimary = 0,  ///< res x res camera rays through pixel centres (RayGenOptions::camera)
     kShadow = 1,   ///< from each primary hit point towards a point light (occlusion query)
     kDiffuse = 2,  ///< from each primary hit point, cosine-weighted into the visible hemisphere
-    kRandom = 3,   ///< res x res rays, origin uniform in the bounds, direction uniform on the sphere
+    kRandom = 3,  ///< res x res rays, origin uniform in the bounds, direction uniform on the sphere
 };
 
 [[nodiscard]] std::optional<RayKind> parse_ray_kind(std::string_view name) noexcept;

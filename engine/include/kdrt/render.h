@@ -31,9 +31,9 @@ enum class Shading : uint32_t {
     kNormals = 0,   ///< unit geometric normal n (turned to face the camera) as 0.5 * n + 0.5
     kEyelight = 1,  ///< |N.V|: cosine between the geometric normal and the camera ray, grey
     kDepth = 2,     ///< distance t from the camera along the (normalised) camera ray, grey
-    kPrimId = 3,    ///< a fixed false colour per triangle id (a hash of the id, the same everywhere)
-    kAo = 4,        ///< ambient occlusion: share of ao_samples cosine-weighted rays that escape
-    kDiffuse = 5,   ///< Lambertian surfaces lit by `light` with hard shadows, plus `bounces`
+    kPrimId = 3,   ///< a fixed false colour per triangle id (a hash of the id, the same everywhere)
+    kAo = 4,       ///< ambient occlusion: share of ao_samples cosine-weighted rays that escape
+    kDiffuse = 5,  ///< Lambertian surfaces lit by `light` with hard shadows, plus `bounces`
 };
 
 /// "normals", "eyelight", "depth", "primid", "ao", "diffuse" (exact, lower case) -> mode.
@@ -210,13 +210,14 @@ void validate_render_settings(const RenderSettings& settings);
 /// [0, 1]; kAo in [0, 1]; kDiffuse in [0, inf). Camera rays that miss give `background` and
 /// alpha 0. Secondary rays start on the hit triangle, pushed off the surface towards the side
 /// the ray came from by 1e-5 of (scene diagonal + largest coordinate magnitude).
-[[nodiscard]] Image render(const KdTree& tree, const RenderSettings& settings, const RenderControl& control = {},
-                           RenderStats* stats = nullptr);
+[[nodiscard]] Image render(const KdTree& tree, const RenderSettings& settings,
+                           const RenderControl& control = {}, RenderStats* stats = nullptr);
 
 /// The camera rays render() traces for sample `sample` (0 .. spp - 1) of every pixel of the
 /// region, in row-major region order: the same bits, so other tracers can be timed or checked
 /// on exactly the rays of a render. Throws RenderError like render().
-[[nodiscard]] std::vector<Ray> render_camera_rays(const KdTree& tree, const RenderSettings& settings,
+[[nodiscard]] std::vector<Ray> render_camera_rays(const KdTree& tree,
+                                                  const RenderSettings& settings,
                                                   uint32_t sample = 0);
 
 }  // namespace kdrt

@@ -79,8 +79,8 @@ struct TraceStats {
 /// back in input order; `hits` / `occluded_out` must have rays.size() elements (1 = occluded).
 /// Rays are sorted by octant, origin and direction inside blocks of 4096 and traced as SIMD
 /// packets when the policy says so. No allocation; per-thread scratch only.
-void intersect(const KdTree& tree, std::span<const Ray> rays, std::span<Hit> hits, const TraceOptions& options = {},
-               TraceStats* stats = nullptr) noexcept;
+void intersect(const KdTree& tree, std::span<const Ray> rays, std::span<Hit> hits,
+               const TraceOptions& options = {}, TraceStats* stats = nullptr) noexcept;
 void occluded(const KdTree& tree, std::span<const Ray> rays, std::span<uint8_t> occluded_out,
               const TraceOptions& options = {}, TraceStats* stats = nullptr) noexcept;
 
@@ -93,6 +93,7 @@ void occluded_block(const KdTree& tree, std::span<const Ray> rays, std::span<uin
 
 /// Batch queries with the single-ray kernel only (the baseline that packets are measured against).
 void intersect_single(const KdTree& tree, std::span<const Ray> rays, std::span<Hit> hits) noexcept;
-void occluded_single(const KdTree& tree, std::span<const Ray> rays, std::span<uint8_t> occluded_out) noexcept;
+void occluded_single(const KdTree& tree, std::span<const Ray> rays,
+                     std::span<uint8_t> occluded_out) noexcept;
 
 }  // namespace kdrt

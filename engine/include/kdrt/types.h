@@ -40,9 +40,15 @@ struct Vec3 {
 
     constexpr float operator[](int i) const noexcept { return i == 0 ? x : (i == 1 ? y : z); }
     constexpr float& operator[](int i) noexcept { return i == 0 ? x : (i == 1 ? y : z); }
-    friend constexpr Vec3 operator+(Vec3 a, Vec3 b) noexcept { return {a.x + b.x, a.y + b.y, a.z + b.z}; }
-    friend constexpr Vec3 operator-(Vec3 a, Vec3 b) noexcept { return {a.x - b.x, a.y - b.y, a.z - b.z}; }
-    friend constexpr Vec3 operator*(Vec3 a, float s) noexcept { return {a.x * s, a.y * s, a.z * s}; }
+    friend constexpr Vec3 operator+(Vec3 a, Vec3 b) noexcept {
+        return {a.x + b.x, a.y + b.y, a.z + b.z};
+    }
+    friend constexpr Vec3 operator-(Vec3 a, Vec3 b) noexcept {
+        return {a.x - b.x, a.y - b.y, a.z - b.z};
+    }
+    friend constexpr Vec3 operator*(Vec3 a, float s) noexcept {
+        return {a.x * s, a.y * s, a.z * s};
+    }
     friend constexpr Vec3 operator*(float s, Vec3 a) noexcept { return a * s; }
     friend constexpr bool operator==(Vec3, Vec3) = default;
 };

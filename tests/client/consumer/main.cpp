@@ -16,7 +16,8 @@ int main() {
         return 1;
     }
     const std::vector<kdrt::Ray> rays(2, kdrt::Ray{0, 0, 0, 0, 0, 0, 1, 1});
-    if (kdrt::proto::encode_rays(rays, false).size() != kdrt::proto::kBatchHeaderBytes + 2 * kdrt::proto::kRayRecordBytes) {
+    if (kdrt::proto::encode_rays(rays, false).size() !=
+        kdrt::proto::kBatchHeaderBytes + 2 * kdrt::proto::kRayRecordBytes) {
         std::puts("unexpected KDRR size");
         return 1;
     }

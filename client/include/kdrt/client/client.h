@@ -58,8 +58,8 @@ struct ClientOptions {
     std::chrono::milliseconds io_timeout{300'000};
     /// Retries after the first attempt, on connection errors and on 503 (never on another status).
     unsigned max_retries = 4;
-    /// Delay before retry k (0-based): min(backoff_initial * 2^k, backoff_max), unless a 503 carries
-    /// Retry-After (seconds), which is honoured up to max_retry_after.
+    /// Delay before retry k (0-based): min(backoff_initial * 2^k, backoff_max), unless a 503
+    /// carries Retry-After (seconds), which is honoured up to max_retry_after.
     std::chrono::milliseconds backoff_initial{100};
     std::chrono::milliseconds backoff_max{5'000};
     std::chrono::milliseconds max_retry_after{60'000};
@@ -101,7 +101,8 @@ public:
     /// Uploads an in-memory mesh (sent in the raw format, exactly its arrays).
     [[nodiscard]] Result<MeshInfo> upload(const Mesh& mesh);
     /// Uploads the bytes of a mesh file in `format`.
-    [[nodiscard]] Result<MeshInfo> upload(std::span<const std::byte> bytes, proto::MeshFormat format);
+    [[nodiscard]] Result<MeshInfo> upload(std::span<const std::byte> bytes,
+                                          proto::MeshFormat format);
     /// Every stored mesh, sorted by id.
     [[nodiscard]] Result<std::vector<MeshInfo>> meshes();
     /// One stored mesh (404 kServer error when unknown).
@@ -117,9 +118,11 @@ public:
     /// NaN/Inf origin or direction component (400). An empty span still asks the server (so an
     /// unknown id is reported). More than 2^32 - 1 rays is a kInput error. On any chunk's error
     /// the call stops sending and returns that error.
-    [[nodiscard]] Result<std::vector<Hit>> intersect(std::string_view id, std::span<const Ray> rays);
+    [[nodiscard]] Result<std::vector<Hit>> intersect(std::string_view id,
+                                                     std::span<const Ray> rays);
     /// Occlusion of every ray (1 = something is hit within [tmin, tmax]), chunked the same way.
-    [[nodiscard]] Result<std::vector<uint8_t>> occluded(std::string_view id, std::span<const Ray> rays);
+    [[nodiscard]] Result<std::vector<uint8_t>> occluded(std::string_view id,
+                                                        std::span<const Ray> rays);
 
     // ---- Renders (POST /v1/render, /v1/jobs/{id}...) -----------------------------------------
 
@@ -133,7 +136,8 @@ public:
     /// Polls the job every options.poll_interval until it finishes, calling `progress` (if set)
     /// after every poll, then returns its image. A failed job is a kJobFailed error, a cancelled
     /// one kCancelled. The job stays on the server (until cancel() or its time to live).
-    [[nodiscard]] Result<std::vector<std::byte>> wait(const Job& job, const ProgressCallback& progress = {});
+    [[nodiscard]] Result<std::vector<std::byte>> wait(const Job& job,
+                                                      const ProgressCallback& progress = {});
     /// The image of a finished job (409 kServer error while it is not done).
     [[nodiscard]] Result<std::vector<std::byte>> result(const Job& job);
     /// Cancels a queued or running job (it stops before its next tile), or forgets a finished one.

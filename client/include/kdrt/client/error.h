@@ -15,12 +15,13 @@ namespace kdrt {
 
 /// Why a call failed.
 enum class ErrorKind {
-    kServer,      ///< the server answered with an error status (4xx/5xx); status/title/detail are its
+    kServer,  ///< the server answered with an error status (4xx/5xx); status/title/detail are its
     kConnection,  ///< no answer: cannot connect, connection lost, or timed out (after the retries)
-    kProtocol,    ///< the server answered 2xx with a body the API does not allow (bad JSON/KDRH, count)
-    kInput,       ///< a local input is unusable: unreadable file, unknown mesh format, > 2^32 - 1 rays
-    kJobFailed,   ///< a render job ended in state "failed" (detail: the server's reason)
-    kCancelled,   ///< a render job was cancelled (by cancel(), the server, or a progress callback)
+    kProtocol,    ///< the server answered 2xx with a body the API does not allow (bad JSON/KDRH,
+                  ///< count)
+    kInput,  ///< a local input is unusable: unreadable file, unknown mesh format, > 2^32 - 1 rays
+    kJobFailed,  ///< a render job ended in state "failed" (detail: the server's reason)
+    kCancelled,  ///< a render job was cancelled (by cancel(), the server, or a progress callback)
 };
 
 /// "server", "connection", "protocol", "input", "job_failed", "cancelled".
@@ -32,17 +33,17 @@ enum class ErrorKind {
 /// ("cannot connect", "bad response", ...) and `detail` names the URL, file or value.
 struct Error {
     ErrorKind kind = ErrorKind::kServer;
-    int status = 0;                         ///< HTTP status (kServer; also kProtocol), else 0
+    int status = 0;  ///< HTTP status (kServer; also kProtocol), else 0
     std::string title;
     std::string detail;
-    std::string type;                       ///< problem type URN ("urn:kdrt:problem:unknown-mesh"), or empty
-    std::string code;                       ///< problem `code` (e.g. "bad_magic"), or empty
-    std::string request_id;                 ///< problem request_id / X-Request-Id, or empty
-    std::optional<uint64_t> line;           ///< mesh parse errors in text: 1-based line
-    std::optional<uint64_t> byte_offset;    ///< mesh parse errors in binary data
-    std::optional<uint64_t> limit;          ///< the server limit that was exceeded
-    std::optional<uint32_t> retry_after;    ///< seconds (503)
-    unsigned attempts = 1;                  ///< requests sent for this call: 1 + retries
+    std::string type;              ///< problem type URN ("urn:kdrt:problem:unknown-mesh"), or empty
+    std::string code;              ///< problem `code` (e.g. "bad_magic"), or empty
+    std::string request_id;        ///< problem request_id / X-Request-Id, or empty
+    std::optional<uint64_t> line;  ///< mesh parse errors in text: 1-based line
+    std::optional<uint64_t> byte_offset;  ///< mesh parse errors in binary data
+    std::optional<uint64_t> limit;        ///< the server limit that was exceeded
+    std::optional<uint32_t> retry_after;  ///< seconds (503)
+    unsigned attempts = 1;                ///< requests sent for this call: 1 + retries
 
     /// One line: "404 Unknown mesh: no mesh with id 3f2a..." for kServer, "<title>: <detail>"
     /// otherwise (e.g. "cannot connect: http://127.0.0.1:1: Could not establish connection
@@ -59,8 +60,8 @@ using Result = proto::Result<T, Error>;
 /// retry_after and request_id; any other body becomes the detail (its first 300 bytes, control
 /// characters as spaces) with the reason phrase of `status` as title. `request_id` (the
 /// X-Request-Id header) is used when the body has none. Thread-safe.
-[[nodiscard]] Error error_from_response(int status, std::string_view content_type, std::string_view body,
-                                        std::string_view request_id = {});
+[[nodiscard]] Error error_from_response(int status, std::string_view content_type,
+                                        std::string_view body, std::string_view request_id = {});
 
 /// An Error of a local `kind` (not kServer) with the given title and detail.
 [[nodiscard]] Error make_client_error(ErrorKind kind, std::string title, std::string detail);

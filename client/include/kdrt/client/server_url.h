@@ -16,7 +16,7 @@ struct ServerUrl {
     std::string scheme = "http";  ///< "http" or "https"
     std::string host;             ///< without brackets for IPv6
     int port = 80;                ///< 1 .. 65535; default 80 (http) or 443 (https)
-    std::string base_path;        ///< "" or "/prefix" (no trailing '/'): prepended to every API path
+    std::string base_path;  ///< "" or "/prefix" (no trailing '/'): prepended to every API path
 
     /// "scheme://host:port/prefix", IPv6 hosts in brackets.
     [[nodiscard]] std::string to_string() const;

@@ -24,6 +24,7 @@ struct ConfigEntry {
 /// Parses `text` as a JSON object whose members are scalars or arrays of strings, in file order.
 /// Errors name the problem: invalid JSON (with nlohmann's line/column), a top level that is not
 /// an object, or a member whose value is null, an object, or an array with a non-string element.
-[[nodiscard]] Result<std::vector<ConfigEntry>, std::string> parse_config_object(std::string_view text);
+[[nodiscard]] Result<std::vector<ConfigEntry>, std::string> parse_config_object(
+    std::string_view text);
 
 }  // namespace kdrt::proto

@@ -65,14 +65,14 @@ struct ImageEncodeOptions {
 /// Encodes `image` (3 or 4 channels, width and height >= 1, pixels.size() matching) as a whole
 /// file in memory. PNG and EXR keep an alpha channel; JPEG has none and drops it. Errors name the
 /// problem: a malformed Image, a bad option, or OpenImageIO's message.
-[[nodiscard]] Result<std::vector<std::byte>, std::string> encode_image(const Image& image, ImageFormat format,
-                                                                       const ImageEncodeOptions& options = {});
+[[nodiscard]] Result<std::vector<std::byte>, std::string> encode_image(
+    const Image& image, ImageFormat format, const ImageEncodeOptions& options = {});
 
 /// encode_image, written to `path` (created or truncated). `format` defaults to the one the
 /// extension names (an unknown extension is an error naming the path).
-[[nodiscard]] Result<void, std::string> write_image_file(const std::filesystem::path& path, const Image& image,
-                                                         std::optional<ImageFormat> format = std::nullopt,
-                                                         const ImageEncodeOptions& options = {});
+[[nodiscard]] Result<void, std::string> write_image_file(
+    const std::filesystem::path& path, const Image& image,
+    std::optional<ImageFormat> format = std::nullopt, const ImageEncodeOptions& options = {});
 
 /// Caps checked from the header, before the pixels are decoded.
 struct ImageDecodeLimits {

@@ -59,8 +59,8 @@ struct MeshSummary {
     std::string id;
     uint64_t triangles = 0;
     uint64_t vertices = 0;
-    Aabb bounds;                    ///< of the mesh's referenced vertices (not the padded tree cell)
-    TreeStats tree;                 ///< build statistics; tree.build_ms is reported as "build_ms"
+    Aabb bounds;     ///< of the mesh's referenced vertices (not the padded tree cell)
+    TreeStats tree;  ///< build statistics; tree.build_ms is reported as "build_ms"
     std::optional<bool> in_memory;  ///< runtime state, omitted when unset (not stored on disk)
 
     /// Field-wise equality (TreeStats has no operator== of its own).
@@ -89,7 +89,8 @@ struct JsonError {
     };
     Code code = Code::kSyntax;
     /// Names the member and value: `rays[12]: expected 6 or 8 numbers, got 5`,
-    /// `invalid JSON at byte 17: ...`, `rays[100000]: rays in a JSON batch exceed the limit of 100000`.
+    /// `invalid JSON at byte 17: ...`, `rays[100000]: rays in a JSON batch exceed the limit of
+    /// 100000`.
     std::string detail;
 };
 
@@ -103,8 +104,8 @@ struct JsonRayRequest {
     bool occlusion = false;
 };
 
-[[nodiscard]] Result<JsonRayRequest, JsonError> decode_json_rays(std::string_view json,
-                                                                 size_t max_rays = kDefaultMaxJsonRays);
+[[nodiscard]] Result<JsonRayRequest, JsonError> decode_json_rays(
+    std::string_view json, size_t max_rays = kDefaultMaxJsonRays);
 /// Writes a request decode_json_rays accepts: 8 numbers per ray, a tmax of +inf as 3.4028235e38
 /// rounded up (1e39). NaN components are written as null and refused by the decoder.
 [[nodiscard]] std::string encode_json_rays(std::span<const Ray> rays, bool occlusion);
@@ -115,7 +116,8 @@ struct JsonRayRequest {
 
 /// {"occluded": [true, false, ...]}
 [[nodiscard]] std::string encode_json_occlusion(std::span<const uint8_t> occluded);
-[[nodiscard]] Result<std::vector<uint8_t>, std::string> decode_json_occlusion(std::string_view json);
+[[nodiscard]] Result<std::vector<uint8_t>, std::string> decode_json_occlusion(
+    std::string_view json);
 
 // ---- Renders ----------------------------------------------------------------------------------
 
@@ -142,13 +144,13 @@ struct RenderLimits {
 /// engine's validate_render_settings checks the rest (camera geometry, tile inside the frame).
 struct RenderRequest {
     std::string mesh;
-    RenderSettings settings;     ///< camera/region/size/spp/shading/seed from the request
-    std::string format = "png";  ///< "png", "jpg"/"jpeg" or "exr" (lower case, as sent)
+    RenderSettings settings;         ///< camera/region/size/spp/shading/seed from the request
+    std::string format = "png";      ///< "png", "jpg"/"jpeg" or "exr" (lower case, as sent)
     std::optional<int> compression;  ///< PNG zlib level 0 .. 9, when sent
 };
 
-[[nodiscard]] Result<RenderRequest, JsonError> decode_render_request(std::string_view json,
-                                                                     const RenderLimits& limits = {});
+[[nodiscard]] Result<RenderRequest, JsonError> decode_render_request(
+    std::string_view json, const RenderLimits& limits = {});
 /// Writes every member decode_render_request reads (camera and tile only when set).
 [[nodiscard]] std::string encode_render_request(const RenderRequest& request);
 

@@ -173,7 +173,7 @@ private:
     bool header_done_ = false;
     uint16_t flags_ = 0;
     uint32_t count_ = 0;
-    uint64_t expected_ = 0;   ///< 16 + 32 * count once the header is in
+    uint64_t expected_ = 0;  ///< 16 + 32 * count once the header is in
     std::byte* records_ = nullptr;
     uint64_t seen_ = 0;
     uint64_t ready_ = 0;

@@ -55,11 +55,11 @@ public:
     /// Failure from an error wrapper (implicit, so `return Err{...};` works).
     // clang-format off  (clang-format 14 folds requires-clauses into the declarator line)
     template <class G>
-        requires std::is_constructible_v<E, G&&>
-    Result(Err<G>&& err) : data_(std::in_place_index<1>, std::move(err.error)) {}
+    requires std::is_constructible_v<E, G&&> Result(Err<G>&& err)
+        : data_(std::in_place_index<1>, std::move(err.error)) {}
     template <class G>
-        requires std::is_constructible_v<E, const G&>
-    Result(const Err<G>& err) : data_(std::in_place_index<1>, err.error) {}
+    requires std::is_constructible_v<E, const G&> Result(const Err<G>& err)
+        : data_(std::in_place_index<1>, err.error) {}
     // clang-format on
 
     /// Explicit factories; unambiguous even when T and E are the same type.
