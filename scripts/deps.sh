@@ -10,6 +10,8 @@ kdrt_packages=(
     libgtest-dev libgmock-dev libbenchmark-dev
     libembree-dev qemu-user
 )
+# scripts/test checks the format (clang-format); scripts/lint runs clang-tidy.
+kdrt_packages+=(clang-format clang-tidy)
 # The client's OpenAPI test validates live answers against proto/openapi.yaml in Python.
 kdrt_packages+=(python3 python3-yaml python3-jsonschema)
 
