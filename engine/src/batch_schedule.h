@@ -26,10 +26,10 @@ inline uint32_t octant(const Ray& r) {
            (__builtin_signbit(r.dz) ? 4u : 0u);
 }
 
-/// The auto policy: a packet pays when enough of its lanes are alive. Measured on the bunny (one
-/// thread, every width): packets beat single rays on primary (2.3x), shadow (2.9x) and diffuse
-/// bounce rays (1.6x), and tie on uniformly random rays; a packet with fewer than half its lanes
-/// alive (an octant's tail) does less useful work per traversal step than the single-ray kernel.
+/// The auto policy: a group of `lanes` same-octant rays goes as one packet of `width` lanes when
+/// at least two and at least half the lanes are alive; else as single rays. A packet with fewer
+/// live lanes (an octant's tail) does less useful work per traversal step than the single-ray
+/// kernel (tests/bench/README.md has the measurements).
 inline bool packet_pays(int lanes, int width) { return lanes >= 2 && lanes * 2 >= width; }
 
 // Sort keys of the rays of a block: the direction octant in the top bits, so a packet never

@@ -74,12 +74,9 @@ enum class Builder : uint32_t {
 };
 
 /// Build settings. The SAH costs are relative: only their ratio and the bonus matter. The
-/// default C_isect/C_trav = 0.3 was measured with kdrt-bench on the bunny, dragon and diplodocus
-/// (1024^2 primary, shadow, diffuse and random rays, one thread): against 0.8 it traces primary
-/// rays 5-15% and shadow rays 15-20% faster, diffuse rays 5-6% faster and uniformly random rays
-/// 0-7% slower, and the tree is a third smaller (52 instead of 78 bytes per triangle on the
-/// bunny) and 40% quicker to build. A traversal step is the dearer operation here: it is a
-/// dependent load, while a leaf's triangles are tested back to back (for a whole packet at once).
+/// default C_isect/C_trav = 0.3 makes a traversal step the dearer operation, as it is here: a
+/// step is a dependent load, while a leaf's triangles are tested back to back (for a whole packet
+/// at once). tests/bench/README.md lists the measurements that chose it.
 struct BuildOptions {
     Builder builder = Builder::kSah;
     float traversal_cost = 1.0f;     ///< C_trav: cost of one traversal step
