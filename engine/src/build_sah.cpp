@@ -42,6 +42,7 @@
 
 #include "build_common.h"
 #include "build_internal.h"
+#include "geometry.h"
 
 namespace kdrt::detail {
 namespace {
@@ -175,12 +176,6 @@ bool vertex_bounds_in(const TriVerts& tri, const Aabb& cell, Aabb& out) {
         if (out.lo[a] > out.hi[a]) return false;
     }
     return true;
-}
-
-double half_area(const Aabb& b) noexcept {
-    const double x = double{b.hi.x} - b.lo.x, y = double{b.hi.y} - b.lo.y,
-                 z = double{b.hi.z} - b.lo.z;
-    return x * y + y * z + z * x;
 }
 
 struct Split {

@@ -6,8 +6,15 @@
 #include <numbers>
 #include <string>
 
+#include "format.h"
+#include "geometry.h"
+
 namespace kdrt {
 namespace {
+
+using detail::format_vec_fixed;
+using detail::is_finite;
+using detail::scene_box;
 
 // The basis and extents are computed once per camera in double and rounded to float: the float
 // results then do not depend on the order of a handful of operations, and the only libm call (tan)
@@ -29,18 +36,9 @@ DVec3 cross(DVec3 a, DVec3 b) noexcept {
 }
 double length(DVec3 a) noexcept { return std::sqrt(dot(a, a)); }
 
-bool is_finite(Vec3 v) noexcept {
-    return std::isfinite(v.x) && std::isfinite(v.y) && std::isfinite(v.z);
-}
-
-std::string format_vec(Vec3 v) {
-    return "(" + std::to_string(v.x) + ", " + std::to_string(v.y) + ", " + std::to_string(v.z) +
-           ")";
-}
-
 void require_finite(Vec3 v, const char* field) {
     if (!is_finite(v)) {
-        throw CameraError(std::string("camera ") + field + " " + format_vec(v) +
+        throw CameraError(std::string("camera ") + field + " " + format_vec_fixed(v) +
                           " has a NaN or infinite component");
     }
 }
@@ -90,8 +88,8 @@ Camera::Camera(const CameraSpec& spec, uint32_t width, uint32_t height)
     const DVec3 view = sub(to_double(spec.look_at), to_double(spec.eye));
     const double view_len = length(view);
     if (view_len == 0.0) {
-        throw CameraError("camera eye and look_at are the same point " + format_vec(spec.eye) +
-                          "; the view direction is undefined");
+        throw CameraError("camera eye and look_at are the same point " +
+                          format_vec_fixed(spec.eye) + "; the view direction is undefined");
     }
     const DVec3 up = to_double(spec.up);
     const double up_len = length(up);
@@ -101,7 +99,7 @@ Camera::Camera(const CameraSpec& spec, uint32_t width, uint32_t height)
     const double side_len = length(side);
     // sin of the angle between up and the view direction; below ~1e-6 rad the basis is noise.
     if (side_len < 1e-6) {
-        throw CameraError("camera up " + format_vec(spec.up) +
+        throw CameraError("camera up " + format_vec_fixed(spec.up) +
                           " is parallel to the view direction (look_at - eye)");
     }
     const DVec3 right = scale(side, 1.0 / side_len);
@@ -120,12 +118,9 @@ CameraSpec default_camera(const Aabb& bounds, float aspect) {
                           " must be a finite value > 0");
     }
     // An empty or non-finite box (an empty mesh) is framed as the unit cube around the origin.
-    DVec3 lo{-0.5, -0.5, -0.5};
-    DVec3 hi{0.5, 0.5, 0.5};
-    if (!bounds.empty() && is_finite(bounds.lo) && is_finite(bounds.hi)) {
-        lo = to_double(bounds.lo);
-        hi = to_double(bounds.hi);
-    }
+    const Aabb box = scene_box(bounds);
+    const DVec3 lo = to_double(box.lo);
+    const DVec3 hi = to_double(box.hi);
     const DVec3 centre = scale(add(lo, hi), 0.5);
     double radius = 0.5 * length(sub(hi, lo));
     // A point or a tiny box far from the origin: keep the eye a float-resolvable distance away.
@@ -166,7 +161,7 @@ CameraSpec default_camera(const Aabb& bounds, float aspect) {
     if (!is_finite(spec.eye)) {
         throw CameraError(
             "camera bounds are too large to frame in single precision: eye would be " +
-            format_vec(spec.eye));
+            format_vec_fixed(spec.eye));
     }
     spec.look_at = to_float(centre);
     spec.up = {0.0f, 1.0f, 0.0f};

@@ -5,6 +5,7 @@
 #include <cstdint>
 
 #include "kdrt/kdtree.h"
+#include "kdrt/trace.h"
 #include "kdrt/types.h"
 
 namespace kdrt::detail {
@@ -32,12 +33,15 @@ struct PacketKernels {
 };
 
 /// Defined in packet_sse4.cpp, packet_avx2.cpp, packet_avx512.cpp. Call only when the CPU has the
-/// instruction set (see dispatch.cpp).
+/// instruction set (isa_supported).
 const PacketKernels* packet_kernels_sse4() noexcept;
 const PacketKernels* packet_kernels_avx2() noexcept;
 const PacketKernels* packet_kernels_avx512() noexcept;
 
-/// Rays per block a kernel sorts for coherence (packet_kernel.h, order_block): big enough that
+/// The kernels of `isa`, nullptr for Isa::kScalar (isa_dispatch.cpp). `isa` must be supported.
+const PacketKernels* packet_kernels_for(Isa isa) noexcept;
+
+/// Rays per block a kernel sorts for coherence (batch_schedule.h, schedule_rays): big enough that
 /// rays from a few image rows find their neighbours across rows, small enough that the keys and
 /// indices (24 KiB) stay in L1/L2 and fit 16-bit indices.
 inline constexpr size_t kBlockRays = 4096;

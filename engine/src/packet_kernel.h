@@ -9,6 +9,7 @@
 // not empty; the packet descends into a child when any active lane needs it. So every lane tests
 // exactly the triangles its single ray would, and the answers are bit-identical.
 
+#include "batch_schedule.h"
 #include "packet.h"
 #include "ray_prep.h"
 #include "simd.h"
@@ -307,170 +308,6 @@ inline VM<W> traverse_packet(const KdTree& tree, const Packet<W>& pk, PacketHits
     }
 }
 
-/// Octant of a valid ray: the sign bits of its direction (those of its reciprocal, too).
-inline uint32_t octant(const Ray& r) {
-    return (__builtin_signbit(r.dx) ? 1u : 0u) | (__builtin_signbit(r.dy) ? 2u : 0u) |
-           (__builtin_signbit(r.dz) ? 4u : 0u);
-}
-
-/// The auto policy: a packet pays when enough of its lanes are alive. Measured on the bunny (one
-/// thread, every width): packets beat single rays on primary (2.3x), shadow (2.9x) and diffuse
-/// bounce rays (1.6x), and tie on uniformly random rays; a packet with fewer than half its lanes
-/// alive (an octant's tail) does less useful work per traversal step than the single-ray kernel.
-inline bool packet_pays(int lanes, int width) { return lanes >= 2 && lanes * 2 >= width; }
-
-// Sort keys of the rays of a block: the direction octant in the top bits, so a packet never
-// mixes octants; below it, for blocks whose origins differ, the Morton code of the origin (4 bits
-// per axis, relative to the block's origin bounds) and of the direction (2 bits per axis of
-// |d_axis| / |d|). Rays that start near each other and go the same way end up side by side.
-constexpr int kOriginShift = 6;
-constexpr int kOctantShift = 18;
-constexpr int kKeyBits = 21;
-constexpr int kRadixBits = 7;  // 3 passes of 128 buckets: cheap for a 256-ray render tile too
-// Blocks whose unit directions span less than this in every axis keep their input order.
-constexpr float kSortSpread = 0.5f;
-// Coherent blocks are traced in runs of this many rays, bucketed by octant: a run's rays and its
-// buckets stay in L1.
-constexpr int kCoherentRun = 256;
-// Every kSampleStride-th valid ray of a block is looked at to decide whether to sort it; the
-// origin quantization uses the sample's bounds too (rays outside them clamp to the edge levels).
-constexpr int kSampleStride = 64;
-
-/// Bits 0..3 of x spread to bits 0, 3, 6, 9.
-constexpr uint32_t spread3(uint32_t x) {
-    x &= 0xFu;
-    x = (x | (x << 4)) & 0x0C3u;
-    x = (x | (x << 2)) & 0x249u;
-    return x;
-}
-
-constexpr uint32_t morton3(uint32_t x, uint32_t y, uint32_t z) {
-    return spread3(x) | (spread3(y) << 1) | (spread3(z) << 2);
-}
-
-/// Level 0..levels-1 of v, clamped to [0, 1] (v = 1 lands in the top level).
-inline uint32_t quantize(double v, uint32_t levels) {
-    const double q = v * levels;
-    if (!(q > 0.0)) return 0;
-    return q < static_cast<double>(levels) ? static_cast<uint32_t>(q) : levels - 1;
-}
-
-/// One stable counting-sort pass over `bits` bits of the keys from `shift`.
-inline void radix_pass(const uint32_t* key_in, const uint16_t* index_in, uint32_t* key_out,
-                       uint16_t* index_out, int n, int shift, int bits) {
-    uint16_t start[(1 << kRadixBits) + 1];
-    const int buckets = 1 << bits;
-    for (int b = 0; b <= buckets; ++b) start[b] = 0;
-    const uint32_t mask = static_cast<uint32_t>(buckets - 1);
-    for (int i = 0; i < n; ++i) ++start[((key_in[i] >> shift) & mask) + 1];
-    for (int b = 0; b < buckets; ++b) start[b + 1] = static_cast<uint16_t>(start[b + 1] + start[b]);
-    for (int i = 0; i < n; ++i) {
-        const uint16_t at = start[(key_in[i] >> shift) & mask]++;
-        key_out[at] = key_in[i];
-        index_out[at] = index_in[i];
-    }
-}
-
-/// Whether a block is worth sorting, from a sample of its valid rays (a heuristic: it only
-/// picks the order, never an answer): the origins differ and the unit directions spread by
-/// kSortSpread or more in some axis. Pinhole cameras (one origin), shadow rays towards a light
-/// and orthographic views (one direction) come in an image's order, as coherent as it gets.
-/// Writes the sample's origin bounds, for the sort's origin levels.
-inline bool block_is_incoherent(const Ray* block, int n, float lo[3], float hi[3]) {
-    float dir_lo[3] = {2.0f, 2.0f, 2.0f}, dir_hi[3] = {-2.0f, -2.0f, -2.0f};
-    for (int a = 0; a < 3; ++a) {
-        lo[a] = __builtin_inff();
-        hi[a] = -__builtin_inff();
-    }
-    for (int i = 0; i < n; i += kSampleStride) {
-        const Ray& r = block[i];
-        if (!ray_is_valid(r)) continue;
-        const float o[3] = {r.ox, r.oy, r.oz};
-        // |d| in double: the squares of finite floats cannot overflow there.
-        const float inv_len = static_cast<float>(
-            1.0 / __builtin_sqrt(double{r.dx} * r.dx + double{r.dy} * r.dy + double{r.dz} * r.dz));
-        const float d[3] = {r.dx * inv_len, r.dy * inv_len, r.dz * inv_len};
-        for (int a = 0; a < 3; ++a) {
-            lo[a] = o[a] < lo[a] ? o[a] : lo[a];
-            hi[a] = o[a] > hi[a] ? o[a] : hi[a];
-            dir_lo[a] = d[a] < dir_lo[a] ? d[a] : dir_lo[a];
-            dir_hi[a] = d[a] > dir_hi[a] ? d[a] : dir_hi[a];
-        }
-    }
-    bool origins_differ = false;
-    float spread = 0;
-    for (int a = 0; a < 3; ++a) {
-        origins_differ |= hi[a] > lo[a];
-        spread = dir_hi[a] - dir_lo[a] > spread ? dir_hi[a] - dir_lo[a] : spread;
-    }
-    return origins_differ && spread >= kSortSpread;
-}
-
-/// True for a ray the kernels trace; any other is answered as a miss here, at `at`.
-template <bool AnyHit>
-inline bool traceable_or_miss(const KdTree& tree, const Ray& r, size_t at, Hit* hits,
-                              uint8_t* occluded, TraceCounters& counters) {
-    if (ray_is_valid(r) && !tree.bounds.empty()) return true;
-    if constexpr (AnyHit)
-        occluded[at] = 0;
-    else
-        hits[at] = Hit{};
-    ++counters.invalid_rays;
-    return false;
-}
-
-/// Collects the valid rays of block[0, n) (indices into the block, keys with their octant) and
-/// answers the invalid ones as misses. Returns how many are valid.
-template <bool AnyHit>
-inline int collect_valid(const KdTree& tree, const Ray* block, size_t base, int n, Hit* hits,
-                         uint8_t* occluded, TraceCounters& counters, uint32_t* key,
-                         uint16_t* index) {
-    int valid = 0;
-    for (int i = 0; i < n; ++i) {
-        const Ray& r = block[i];
-        if (!traceable_or_miss<AnyHit>(tree, r, base + static_cast<size_t>(i), hits, occluded,
-                                       counters))
-            continue;
-        index[valid] = static_cast<uint16_t>(i);
-        key[valid] = octant(r) << kOctantShift;
-        ++valid;
-    }
-    return valid;
-}
-
-/// Adds the origin and direction Morton codes to the octant keys of the valid rays and sorts
-/// them (3 radix passes). The result is in key/index or in key_tmp/index_tmp: returns whether
-/// it is in the latter.
-inline bool sort_by_origin_and_direction(const Ray* block, int valid, const float lo[3],
-                                         const float hi[3], uint32_t* key, uint16_t* index,
-                                         uint32_t* key_tmp, uint16_t* index_tmp) {
-    double extent = 0;  // in double: hi - lo of finite floats cannot overflow there
-    for (int a = 0; a < 3; ++a) {
-        const double e = static_cast<double>(hi[a]) - lo[a];
-        extent = e > extent ? e : extent;
-    }
-    for (int j = 0; j < valid; ++j) {
-        const Ray& r = block[index[j]];
-        const double o[3] = {r.ox, r.oy, r.oz}, d[3] = {r.dx, r.dy, r.dz};
-        const double len = __builtin_sqrt(d[0] * d[0] + d[1] * d[1] + d[2] * d[2]);
-        uint32_t qo[3], qd[3];
-        for (int a = 0; a < 3; ++a) {
-            qo[a] = quantize((o[a] - lo[a]) / extent, 16);  // origins outside the sample clamp
-            qd[a] = quantize(__builtin_fabs(d[a]) / len, 4);
-        }
-        key[j] |= (morton3(qo[0], qo[1], qo[2]) << kOriginShift) | morton3(qd[0], qd[1], qd[2]);
-    }
-    bool in_tmp = false;
-    for (int shift = 0; shift < kKeyBits; shift += kRadixBits) {
-        if (in_tmp)
-            radix_pass(key_tmp, index_tmp, key, index, valid, shift, kRadixBits);
-        else
-            radix_pass(key, index, key_tmp, index_tmp, valid, shift, kRadixBits);
-        in_tmp = !in_tmp;
-    }
-    return in_tmp;
-}
-
 /// Traces `count` rays of one octant, block[order[0..count)], W at a time: each group as a packet
 /// or as single rays (the policy).
 template <int W, bool AnyHit>
@@ -521,59 +358,28 @@ template <int W, bool AnyHit>
     }
 }
 
-/// Traces `count` rays, block by block (kBlockRays). An incoherent block (block_is_incoherent)
-/// is sorted whole by octant, origin and direction; a coherent one is traced in runs of
-/// kCoherentRun rays, each only split by octant, keeping the input order and a small working set.
-/// Every lane makes its single ray's decisions, so the grouping changes the speed, never an
-/// answer.
+/// The kernel's answer to schedule_rays: traces one octant run W rays at a time (trace_run).
+/// A struct rather than a lambda: a lambda would not inherit the ISA target.
+template <int W, bool AnyHit>
+struct RunTracer {
+    const KdTree& tree;
+    Hit* hits;
+    uint8_t* occluded;
+    Policy policy;
+    TraceCounters& counters;
+
+    [[gnu::always_inline]] void operator()(const Ray* block, size_t base, const uint16_t* order,
+                                           int count) const {
+        trace_run<W, AnyHit>(tree, block, base, order, count, hits, occluded, policy, counters);
+    }
+};
+
+/// Traces `count` rays in the order schedule_rays picks; answers in input order.
 template <int W, bool AnyHit>
 void trace_rays(const KdTree& tree, const Ray* rays, size_t count, Hit* hits, uint8_t* occluded,
                 Policy policy, TraceCounters& counters) {
-    uint32_t key[kBlockRays], key_tmp[kBlockRays];
-    uint16_t index[kBlockRays], index_tmp[kBlockRays];
-    for (size_t base = 0; base < count; base += kBlockRays) {
-        const int n = static_cast<int>(count - base < kBlockRays ? count - base : kBlockRays);
-        const Ray* block = rays + base;
-        float lo[3], hi[3];
-        if (block_is_incoherent(block, n, lo, hi)) {
-            const int valid =
-                collect_valid<AnyHit>(tree, block, base, n, hits, occluded, counters, key, index);
-            counters.sorted_rays += static_cast<uint64_t>(valid);
-            const bool in_tmp =
-                sort_by_origin_and_direction(block, valid, lo, hi, key, index, key_tmp, index_tmp);
-            const uint32_t* sorted_key = in_tmp ? key_tmp : key;
-            const uint16_t* sorted = in_tmp ? index_tmp : index;
-            for (int first = 0; first < valid;) {  // one run per octant (the keys' top bits)
-                const uint32_t oct = sorted_key[first] >> kOctantShift;
-                int end = first + 1;
-                while (end < valid && (sorted_key[end] >> kOctantShift) == oct) ++end;
-                trace_run<W, AnyHit>(tree, block, base, sorted + first, end - first, hits, occluded,
-                                     policy, counters);
-                first = end;
-            }
-            continue;
-        }
-        for (int first = 0; first < n; first += kCoherentRun) {
-            const int m = n - first < kCoherentRun ? n - first : kCoherentRun;
-            const Ray* run = block + first;
-            const size_t run_base = base + static_cast<size_t>(first);
-            // Bucket the valid rays by octant (input order inside each), then trace the buckets.
-            uint16_t bucket[8][kCoherentRun];
-            int bucket_size[8] = {0, 0, 0, 0, 0, 0, 0, 0};
-            for (int i = 0; i < m; ++i) {
-                const Ray& r = run[i];
-                if (!traceable_or_miss<AnyHit>(tree, r, run_base + static_cast<size_t>(i), hits,
-                                               occluded, counters))
-                    continue;
-                const uint32_t o = octant(r);
-                bucket[o][bucket_size[o]++] = static_cast<uint16_t>(i);
-            }
-            for (int o = 0; o < 8; ++o) {
-                trace_run<W, AnyHit>(tree, run, run_base, bucket[o], bucket_size[o], hits, occluded,
-                                     policy, counters);
-            }
-        }
-    }
+    schedule_rays<AnyHit>(tree, rays, count, hits, occluded, counters,
+                          RunTracer<W, AnyHit>{tree, hits, occluded, policy, counters});
 }
 
 template <int W>

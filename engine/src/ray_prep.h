@@ -63,9 +63,11 @@ static inline PreparedRay prepare_ray(const Ray& r) noexcept {
     return p;
 }
 
-/// Watertight test of one triangle. On a hit with tmin <= t and (t, prim) lexicographically
-/// smaller than (best_t, best_prim), returns true and writes t, u, v. No hit is ever reported for
-/// a degenerate triangle or a ray in the triangle's plane.
+/// Watertight test of one triangle against the prepared ray `p`. On a hit at t >= tmin (t not
+/// NaN), returns true and writes t and the barycentrics u (of v1) and v (of v2) into t_out, u_out,
+/// v_out; otherwise returns false and writes nothing. The upper bound and the tie rule (closest t,
+/// then lowest prim) are the caller's. No hit is ever reported for a degenerate triangle or a ray
+/// in the triangle's plane.
 static inline bool intersect_triangle(const PreparedRay& p, const TriVerts& tri, float tmin,
                                       float& t_out, float& u_out, float& v_out) noexcept {
     // Vertices relative to the origin, in the ray's permuted frame (kx, ky, kz).

@@ -1,22 +1,17 @@
 #pragma once
-// Internal: vector helpers and hemisphere sampling shared by ray-set generation (raygen.cpp) and
-// the renderer (render.cpp). Square roots only, no libm transcendentals, so the bits are the same
-// with every C library.
+// Internal: direction sampling shared by ray-set generation (raygen.cpp) and the renderer
+// (render_*.cpp). Square roots only, no libm transcendentals, so the bits are the same with every
+// C library. `Rng` is a CounterRng (random.h) or anything with symmetric() uniform in [-1, 1).
 
 #include <cmath>
 
+#include "geometry.h"
 #include "kdrt/types.h"
 
 namespace kdrt::detail {
 
-inline Vec3 normalized(Vec3 v) noexcept { return v * (1.0f / std::sqrt(dot(v, v))); }
-
-inline bool is_finite(Vec3 v) noexcept {
-    return std::isfinite(v.x) && std::isfinite(v.y) && std::isfinite(v.z);
-}
-
 /// Cosine-weighted direction around the unit vector `n` (Malley's method: a uniform point in the
-/// unit disk lifted to the hemisphere). `Rng` gives symmetric() uniform in [-1, 1).
+/// unit disk lifted to the hemisphere).
 template <class Rng>
 Vec3 cosine_direction(Vec3 n, Rng& rng) noexcept {
     // Orthonormal basis from one unit vector without branches on near-zero components
@@ -36,6 +31,18 @@ Vec3 cosine_direction(Vec3 n, Rng& rng) noexcept {
     } while (r2 > 1.0f - 1e-6f);
     const float z = std::sqrt(1.0f - r2);
     return normalized(t1 * x + t2 * y + n * z);
+}
+
+/// Direction uniform on the unit sphere: a uniform point in the unit ball, normalised.
+template <class Rng>
+Vec3 sphere_direction(Rng& rng) noexcept {
+    Vec3 v;
+    float len2;
+    do {
+        v = {rng.symmetric(), rng.symmetric(), rng.symmetric()};
+        len2 = dot(v, v);
+    } while (len2 > 1.0f || len2 < 1e-4f);
+    return v * (1.0f / std::sqrt(len2));
 }
 
 }  // namespace kdrt::detail

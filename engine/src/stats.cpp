@@ -1,18 +1,12 @@
 #include <algorithm>
 #include <vector>
 
+#include "geometry.h"
 #include "kdrt/kdtree.h"
 
 namespace kdrt {
-namespace {
 
-double half_area(const Aabb& b) noexcept {
-    const double x = double{b.hi.x} - b.lo.x, y = double{b.hi.y} - b.lo.y,
-                 z = double{b.hi.z} - b.lo.z;
-    return x * y + y * z + z * x;
-}
-
-}  // namespace
+using detail::half_area;
 
 TreeStats compute_stats(const KdTree& tree) {
     TreeStats s;

@@ -6,27 +6,16 @@
 #include <limits>
 #include <stdexcept>
 
+#include "kdrt/camera_spec.h"
 #include "kdrt/types.h"
 
 namespace kdrt {
-
-enum class Projection : uint32_t { kPerspective = 0, kOrthographic = 1 };
 
 /// Thrown for a camera that cannot form an image (bad fov, zero size, eye == look_at, up
 /// parallel to the view direction); what() names the field.
 class CameraError : public std::invalid_argument {
 public:
     using std::invalid_argument::invalid_argument;
-};
-
-/// Where the camera is and how it projects.
-struct CameraSpec {
-    Vec3 eye{0, 0, 1};
-    Vec3 look_at{0, 0, 0};
-    Vec3 up{0, 1, 0};
-    float fov_deg = 40.0f;      ///< vertical field of view (perspective), in (0, 180)
-    float ortho_height = 1.0f;  ///< height of the view in world units (orthographic), > 0
-    Projection projection = Projection::kPerspective;
 };
 
 /// A camera prepared for an image of width x height pixels: an orthonormal basis and the

@@ -7,6 +7,7 @@
 #include <vector>
 
 #include "kdrt/mesh.h"
+#include "kdrt/tree_stats.h"
 #include "kdrt/types.h"
 
 namespace kdrt {
@@ -74,12 +75,9 @@ enum class Builder : uint32_t {
 };
 
 /// Build settings. The SAH costs are relative: only their ratio and the bonus matter. The
-/// default C_isect/C_trav = 0.3 was measured with kdrt-bench on the bunny, dragon and diplodocus
-/// (1024^2 primary, shadow, diffuse and random rays, one thread): against 0.8 it traces primary
-/// rays 5-15% and shadow rays 15-20% faster, diffuse rays 5-6% faster and uniformly random rays
-/// 0-7% slower, and the tree is a third smaller (52 instead of 78 bytes per triangle on the
-/// bunny) and 40% quicker to build. A traversal step is the dearer operation here: it is a
-/// dependent load, while a leaf's triangles are tested back to back (for a whole packet at once).
+/// default C_isect/C_trav = 0.3 makes a traversal step the dearer operation, as it is here: a
+/// step is a dependent load, while a leaf's triangles are tested back to back (for a whole packet
+/// at once). tests/bench/README.md lists the measurements that chose it.
 struct BuildOptions {
     Builder builder = Builder::kSah;
     float traversal_cost = 1.0f;     ///< C_trav: cost of one traversal step
@@ -89,23 +87,6 @@ struct BuildOptions {
     uint32_t middle_leaf_size = 8;  ///< kMiddle: stop at this many triangles
     int middle_max_depth = 24;      ///< kMiddle: stop at this depth
     friend bool operator==(const BuildOptions&, const BuildOptions&) = default;
-};
-
-/// Figures that describe a built tree. Filled by the builders (build_ms included) and kept with
-/// the tree through serialisation.
-struct TreeStats {
-    uint64_t triangles = 0;  ///< triangles in the mesh
-    uint64_t nodes = 0;
-    uint64_t leaves = 0;
-    uint64_t empty_leaves = 0;
-    uint64_t refs = 0;       ///< triangle references in all leaves
-    uint32_t max_depth = 0;  ///< deepest leaf (root = 0)
-    double mean_leaf_depth = 0;
-    double mean_tris_per_leaf = 0;  ///< over non-empty leaves
-    double sah_cost = 0;            ///< expected cost of a random ray through the root cell
-    uint64_t bytes = 0;             ///< nodes + refs + triangle data
-    double bytes_per_triangle = 0;
-    double build_ms = 0;
 };
 
 /// An immutable, self-contained acceleration structure: traversal reads only these arrays.

@@ -1,41 +1,18 @@
 #pragma once
 /// Triangle meshes as the engine takes them: float positions and uint32 triangle indices.
 
-#include <cstddef>
-#include <cstdint>
 #include <stdexcept>
-#include <string>
-#include <vector>
 
+#include "kdrt/mesh_types.h"
 #include "kdrt/types.h"
 
 namespace kdrt {
-
-/// An indexed triangle mesh. `positions` holds x,y,z per vertex; `indices` holds three vertex
-/// indices per triangle. Triangle ids are positions in `indices` / 3 (input order).
-struct Mesh {
-    std::vector<float> positions;
-    std::vector<uint32_t> indices;
-
-    [[nodiscard]] size_t vertex_count() const noexcept { return positions.size() / 3; }
-    [[nodiscard]] size_t triangle_count() const noexcept { return indices.size() / 3; }
-    [[nodiscard]] Vec3 vertex(size_t i) const noexcept {
-        return {positions[3 * i], positions[3 * i + 1], positions[3 * i + 2]};
-    }
-    /// Corner `corner` (0..2) of triangle `tri`.
-    [[nodiscard]] Vec3 corner(size_t tri, int corner) const noexcept {
-        return vertex(indices[3 * tri + static_cast<size_t>(corner)]);
-    }
-};
 
 /// Thrown by validate_mesh and build_kdtree for a mesh the engine cannot accept.
 class MeshError : public std::runtime_error {
 public:
     using std::runtime_error::runtime_error;
 };
-
-/// Largest triangle count the 30-bit node fields can address.
-inline constexpr size_t kMaxTriangles = (size_t{1} << 30) - 1;
 
 /// Checks a mesh and throws MeshError naming the first problem found: positions not a multiple
 /// of 3, indices not a multiple of 3, a NaN/Inf coordinate (with the vertex index and axis), an

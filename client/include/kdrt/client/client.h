@@ -29,7 +29,7 @@
 
 #include "kdrt/client/error.h"
 #include "kdrt/client/server_url.h"
-#include "kdrt/mesh.h"
+#include "kdrt/mesh_types.h"
 #include "kdrt/proto/json_api.h"
 #include "kdrt/proto/mesh_io.h"
 #include "kdrt/types.h"

@@ -20,8 +20,8 @@
 #include <string_view>
 #include <vector>
 
+#include "kdrt/image.h"
 #include "kdrt/proto/result.h"
-#include "kdrt/render.h"
 
 namespace kdrt::proto {
 

@@ -12,10 +12,10 @@
 #include <variant>
 #include <vector>
 
-#include "kdrt/kdtree.h"
 #include "kdrt/proto/mesh_io.h"
 #include "kdrt/proto/result.h"
-#include "kdrt/render.h"
+#include "kdrt/render_settings.h"
+#include "kdrt/tree_stats.h"
 #include "kdrt/types.h"
 
 namespace kdrt::proto {

@@ -11,7 +11,7 @@
 #include <string_view>
 #include <vector>
 
-#include "kdrt/mesh.h"
+#include "kdrt/mesh_types.h"
 
 namespace kdrt::proto {
 

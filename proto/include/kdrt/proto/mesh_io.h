@@ -17,7 +17,7 @@
 #include <string_view>
 #include <vector>
 
-#include "kdrt/mesh.h"
+#include "kdrt/mesh_types.h"
 #include "kdrt/proto/result.h"
 
 namespace kdrt::proto {

@@ -1,0 +1,116 @@
+// The instruction sets: what the CPU supports, which one the engine uses (KDRT_ISA), and the
+// packet kernels of each.
+
+#include <cstdlib>
+#include <optional>
+#include <string>
+#include <string_view>
+
+#include "kdrt/trace.h"
+#include "packet.h"
+
+namespace kdrt {
+namespace {
+
+struct IsaChoice {
+    Isa isa;
+    std::string reason;
+};
+
+Isa widest_supported() noexcept {
+    for (Isa isa : {Isa::kAvx512, Isa::kAvx2, Isa::kSse4})
+        if (isa_supported(isa)) return isa;
+    return Isa::kScalar;
+}
+
+const IsaChoice& choice() noexcept {
+    static const IsaChoice c = [] {
+        const Isa widest = widest_supported();
+        const char* env = std::getenv("KDRT_ISA");
+        if (env == nullptr || *env == '\0') return IsaChoice{widest, "widest supported"};
+        const std::optional<Isa> named = parse_isa(env);
+        if (!named)
+            return IsaChoice{widest, std::string("KDRT_ISA=") + env +
+                                         " is not one of scalar|sse4|avx2|avx512; ignored"};
+        if (!isa_supported(*named))
+            return IsaChoice{
+                widest, std::string("KDRT_ISA=") + env + " is not supported by this CPU; ignored"};
+        return IsaChoice{*named, std::string("KDRT_ISA=") + env};
+    }();
+    return c;
+}
+
+}  // namespace
+
+std::string_view isa_name(Isa isa) noexcept {
+    switch (isa) {
+        case Isa::kScalar:
+            return "scalar";
+        case Isa::kSse4:
+            return "sse4";
+        case Isa::kAvx2:
+            return "avx2";
+        case Isa::kAvx512:
+            return "avx512";
+    }
+    return "unknown";
+}
+
+std::optional<Isa> parse_isa(std::string_view name) noexcept {
+    for (Isa isa : {Isa::kScalar, Isa::kSse4, Isa::kAvx2, Isa::kAvx512})
+        if (name == isa_name(isa)) return isa;
+    return std::nullopt;
+}
+
+int isa_width(Isa isa) noexcept {
+    switch (isa) {
+        case Isa::kSse4:
+            return 4;
+        case Isa::kAvx2:
+            return 8;
+        case Isa::kAvx512:
+            return 16;
+        case Isa::kScalar:
+            break;
+    }
+    return 1;
+}
+
+bool isa_supported(Isa isa) noexcept {
+    __builtin_cpu_init();
+    switch (isa) {
+        case Isa::kScalar:
+            return true;
+        case Isa::kSse4:
+            return __builtin_cpu_supports("sse4.2") && __builtin_cpu_supports("popcnt");
+        case Isa::kAvx2:
+            return __builtin_cpu_supports("avx2") && __builtin_cpu_supports("popcnt");
+        case Isa::kAvx512:
+            return __builtin_cpu_supports("avx512f") && __builtin_cpu_supports("avx512dq") &&
+                   __builtin_cpu_supports("avx512vl") && __builtin_cpu_supports("avx512bw");
+    }
+    return false;
+}
+
+Isa default_isa() noexcept { return choice().isa; }
+
+std::string_view default_isa_reason() noexcept { return choice().reason; }
+
+namespace detail {
+
+const PacketKernels* packet_kernels_for(Isa isa) noexcept {
+    switch (isa) {
+        case Isa::kSse4:
+            return packet_kernels_sse4();
+        case Isa::kAvx2:
+            return packet_kernels_avx2();
+        case Isa::kAvx512:
+            return packet_kernels_avx512();
+        case Isa::kScalar:
+            break;
+    }
+    return nullptr;
+}
+
+}  // namespace detail
+}  // namespace kdrt

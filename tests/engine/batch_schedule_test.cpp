@@ -1,0 +1,361 @@
+// The batch scheduler under the packet kernels (engine/src/batch_schedule.h), without a kernel:
+// its sort keys, which blocks it sorts, and that it hands every valid ray to exactly one octant
+// run and answers the rest, so the kernels' answers land in input order.
+
+#include <gtest/gtest.h>
+
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+#include <cstring>
+#include <limits>
+#include <vector>
+
+#include "batch_schedule.h"
+#include "kdrt/camera.h"
+#include "kdrt/kdtree.h"
+#include "test_util.h"
+
+namespace kdrt::test {
+namespace {
+
+using detail::block_is_incoherent;
+using detail::collect_valid;
+using detail::kBlockRays;
+using detail::kCoherentRun;
+using detail::kOctantShift;
+using detail::morton3;
+using detail::octant;
+using detail::packet_pays;
+using detail::quantize;
+using detail::schedule_rays;
+using detail::sort_by_origin_and_direction;
+using detail::spread3;
+using detail::TraceCounters;
+
+constexpr float kInf = std::numeric_limits<float>::infinity();
+constexpr float kNaN = std::numeric_limits<float>::quiet_NaN();
+
+/// A tree the scheduler accepts: it only reads the bounds (an empty root answers every ray).
+KdTree tree_with_bounds() {
+    KdTree tree;
+    tree.bounds = Aabb{{-1.0f, -1.0f, -1.0f}, {1.0f, 1.0f, 1.0f}};
+    return tree;
+}
+
+Ray ray(Vec3 o, Vec3 d) { return Ray{o.x, o.y, o.z, 0.0f, d.x, d.y, d.z, kInf}; }
+
+/// Random origins in the unit cube and directions on the sphere: incoherent.
+std::vector<Ray> random_rays(Rng& rng, size_t count) {
+    std::vector<Ray> rays;
+    for (size_t i = 0; i < count; ++i)
+        rays.push_back(ray(rng.in_box(Aabb{{0, 0, 0}, {1, 1, 1}}), rng.on_sphere()));
+    return rays;
+}
+
+/// A pinhole camera's rays: one origin, so the block keeps its order.
+std::vector<Ray> camera_rays(uint32_t res) {
+    const Camera camera(default_camera(Aabb{{0, 0, 0}, {1, 1, 1}}), res, res);
+    std::vector<Ray> rays;
+    for (uint32_t y = 0; y < res; ++y)
+        for (uint32_t x = 0; x < res; ++x)
+            rays.push_back(camera.ray(static_cast<float>(x) + 0.5f, static_cast<float>(y) + 0.5f));
+    return rays;
+}
+
+/// Every kind of ray the engine answers without tracing.
+std::vector<Ray> invalid_rays() {
+    return {
+        ray({kNaN, 0, 0}, {1, 0, 0}),      ray({0, 0, 0}, {0, kInf, 0}),
+        ray({0, 0, 0}, {0, 0, 0}),         Ray{0, 0, 0, 2.0f, 1, 0, 0, 1.0f},  // tmin > tmax
+        Ray{0, 0, 0, kNaN, 1, 0, 0, kInf},                                     // NaN tmin
+        Ray{0, 0, 0, 0.0f, 1, 0, 0, kNaN},                                     // NaN tmax
+    };
+}
+
+bool is_miss(const Hit& h) { return h.t == kInf && h.prim == kNoHit && h.u == 0.0f && h.v == 0.0f; }
+
+/// Stands in for the kernel: checks each run and answers ray `i` with prim = i, so the test can
+/// see where every answer landed.
+struct RecordingRun {
+    const std::vector<Ray>& rays;
+    std::vector<Hit>& hits;
+    std::vector<uint8_t>& occluded;
+    std::vector<int>& times_traced;
+    std::vector<std::vector<uint32_t>>& runs;  ///< global indices of each run, in run order
+
+    void operator()(const Ray* block, size_t base, const uint16_t* order, int count) const {
+        std::vector<uint32_t> run;
+        for (int i = 0; i < count; ++i) {
+            const size_t at = base + order[i];
+            ASSERT_LT(at, rays.size());
+            // The run's rays are the caller's rays: the block pointer and base agree.
+            ASSERT_EQ(0, std::memcmp(&block[order[i]], &rays[at], sizeof(Ray))) << "ray " << at;
+            ASSERT_EQ(octant(rays[at]), octant(rays[base + order[0]])) << "a run mixes octants";
+            ++times_traced[at];
+            hits[at] = Hit{1.0f, static_cast<uint32_t>(at), 0.0f, 0.0f};
+            occluded[at] = 1;
+            run.push_back(static_cast<uint32_t>(at));
+        }
+        runs.push_back(std::move(run));
+    }
+};
+
+struct Scheduled {
+    std::vector<Hit> hits;
+    std::vector<uint8_t> occluded;
+    std::vector<int> times_traced;
+    std::vector<std::vector<uint32_t>> runs;
+    TraceCounters counters;
+};
+
+template <bool AnyHit>
+Scheduled schedule(const KdTree& tree, const std::vector<Ray>& rays) {
+    Scheduled s;
+    s.hits.assign(rays.size(), Hit{2.0f, 7, 0.5f, 0.5f});  // neither a miss nor a run's answer
+    s.occluded.assign(rays.size(), 7);
+    s.times_traced.assign(rays.size(), 0);
+    const RecordingRun run{rays, s.hits, s.occluded, s.times_traced, s.runs};
+    schedule_rays<AnyHit>(tree, rays.data(), rays.size(), AnyHit ? nullptr : s.hits.data(),
+                          AnyHit ? s.occluded.data() : nullptr, s.counters, run);
+    return s;
+}
+
+TEST(BatchSchedule, OctantIsTheSignBitsOfTheDirection) {
+    EXPECT_EQ(octant(ray({}, {1, 1, 1})), 0u);
+    EXPECT_EQ(octant(ray({}, {-1, 1, 1})), 1u);
+    EXPECT_EQ(octant(ray({}, {1, -1, 1})), 2u);
+    EXPECT_EQ(octant(ray({}, {1, 1, -1})), 4u);
+    EXPECT_EQ(octant(ray({}, {-1, -1, -1})), 7u);
+    // -0 is negative: the reciprocal is -inf, so the ray walks the axis downwards.
+    EXPECT_EQ(octant(ray({}, {-0.0f, 0.0f, 1})), 1u);
+}
+
+TEST(BatchSchedule, MortonCodesInterleaveFourBitsPerAxis) {
+    EXPECT_EQ(spread3(0xFu), 0x249u);
+    EXPECT_EQ(spread3(0x1Fu), 0x249u) << "bits above the fourth are dropped";
+    EXPECT_EQ(morton3(1, 0, 0), 1u);
+    EXPECT_EQ(morton3(0, 1, 0), 2u);
+    EXPECT_EQ(morton3(0, 0, 1), 4u);
+    EXPECT_EQ(morton3(2, 0, 0), 8u);
+    EXPECT_EQ(morton3(15, 15, 15), 0xFFFu);
+    // Origin codes (12 bits from kOriginShift) and direction codes (6 bits) sit below the octant.
+    EXPECT_LE(detail::kOriginShift + 12, kOctantShift);
+    EXPECT_LE(morton3(3, 3, 3), (1u << detail::kOriginShift) - 1);
+    EXPECT_EQ(detail::kKeyBits, kOctantShift + 3);
+}
+
+TEST(BatchSchedule, QuantizeClampsToTheLevels) {
+    EXPECT_EQ(quantize(0.0, 16), 0u);
+    EXPECT_EQ(quantize(-0.5, 16), 0u);
+    EXPECT_EQ(quantize(std::nan(""), 16), 0u);
+    EXPECT_EQ(quantize(0.5, 16), 8u);
+    EXPECT_EQ(quantize(0.99, 4), 3u);
+    EXPECT_EQ(quantize(1.0, 16), 15u) << "v = 1 lands in the top level";
+    EXPECT_EQ(quantize(7.0, 4), 3u);
+}
+
+TEST(BatchSchedule, PacketsPayFromHalfTheLanes) {
+    for (int width : {4, 8, 16}) {
+        for (int lanes = 1; lanes <= width; ++lanes) {
+            EXPECT_EQ(packet_pays(lanes, width), lanes >= 2 && 2 * lanes >= width)
+                << lanes << " of " << width;
+        }
+    }
+    EXPECT_FALSE(packet_pays(1, 1));
+}
+
+TEST(BatchSchedule, OnlyBlocksWithSpreadOriginsAndDirectionsAreSorted) {
+    Rng rng(test_seed());
+    float lo[3], hi[3];
+    const std::vector<Ray> random = random_rays(rng, kBlockRays);
+    EXPECT_TRUE(block_is_incoherent(random.data(), static_cast<int>(random.size()), lo, hi));
+    for (int a = 0; a < 3; ++a) {
+        EXPECT_GE(lo[a], 0.0f);
+        EXPECT_LE(hi[a], 1.0f);
+        EXPECT_LT(lo[a], hi[a]);
+    }
+
+    // One origin (a pinhole camera): kept in image order, however the directions spread.
+    const std::vector<Ray> camera = camera_rays(64);
+    EXPECT_FALSE(block_is_incoherent(camera.data(), static_cast<int>(camera.size()), lo, hi));
+
+    // One direction (an orthographic view, shadow rays towards a far light): kept too.
+    std::vector<Ray> parallel;
+    for (size_t i = 0; i < kBlockRays; ++i)
+        parallel.push_back(ray(rng.in_box(Aabb{{0, 0, 0}, {1, 1, 1}}), {0.1f, -1.0f, 0.2f}));
+    EXPECT_FALSE(block_is_incoherent(parallel.data(), static_cast<int>(parallel.size()), lo, hi));
+
+    // Invalid rays in the sample are skipped; a block of nothing else is not sorted.
+    std::vector<Ray> invalid;
+    while (invalid.size() < kBlockRays) {
+        for (const Ray& r : invalid_rays()) invalid.push_back(r);
+    }
+    EXPECT_FALSE(block_is_incoherent(invalid.data(), static_cast<int>(kBlockRays), lo, hi));
+}
+
+TEST(BatchSchedule, SortOrdersByOctantThenOriginThenDirectionStably) {
+    const uint64_t seed = test_seed();
+    SCOPED_TRACE(testing::Message() << "seed=" << seed);
+    Rng rng(seed);
+    std::vector<Ray> block = random_rays(rng, kBlockRays);
+    for (size_t i = 0; i < block.size(); i += 97) block[i] = invalid_rays()[i % 6];
+    // Duplicates, so equal keys occur and stability is visible.
+    for (size_t i = 1; i < block.size(); i += 13) block[i] = block[i - 1];
+    const int n = static_cast<int>(block.size());
+
+    const KdTree tree = tree_with_bounds();
+    std::vector<Hit> hits(block.size(), Hit{2.0f, 7, 0.0f, 0.0f});
+    TraceCounters counters;
+    std::vector<uint32_t> key(kBlockRays), key_tmp(kBlockRays);
+    std::vector<uint16_t> index(kBlockRays), index_tmp(kBlockRays);
+    const int valid = collect_valid<false>(tree, block.data(), 0, n, hits.data(), nullptr, counters,
+                                           key.data(), index.data());
+    int invalid = 0;
+    for (int i = 0; i < n; ++i) {
+        if (!detail::ray_is_valid(block[i])) {
+            ++invalid;
+            EXPECT_TRUE(is_miss(hits[i])) << "invalid ray " << i << " is answered as a miss";
+        }
+    }
+    EXPECT_EQ(valid + invalid, n);
+    EXPECT_EQ(counters.invalid_rays, static_cast<uint64_t>(invalid));
+    for (int j = 0; j < valid; ++j) EXPECT_EQ(key[j], octant(block[index[j]]) << kOctantShift);
+
+    float lo[3], hi[3];
+    ASSERT_TRUE(block_is_incoherent(block.data(), n, lo, hi));
+    const bool in_tmp = sort_by_origin_and_direction(
+        block.data(), valid, lo, hi, key.data(), index.data(), key_tmp.data(), index_tmp.data());
+    const std::vector<uint32_t>& sorted_key = in_tmp ? key_tmp : key;
+    const std::vector<uint16_t>& sorted = in_tmp ? index_tmp : index;
+
+    std::vector<int> seen(block.size(), 0);
+    for (int j = 0; j < valid; ++j) {
+        ASSERT_LT(sorted[j], block.size());
+        ++seen[sorted[j]];
+        EXPECT_LT(sorted_key[j], 1u << detail::kKeyBits);
+        EXPECT_EQ(sorted_key[j] >> kOctantShift, octant(block[sorted[j]])) << "position " << j;
+        if (j == 0) continue;
+        EXPECT_LE(sorted_key[j - 1], sorted_key[j]) << "position " << j;
+        if (sorted_key[j - 1] == sorted_key[j]) {
+            EXPECT_LT(sorted[j - 1], sorted[j]) << "equal keys keep the input order";
+        }
+    }
+    for (size_t i = 0; i < block.size(); ++i) {
+        EXPECT_EQ(seen[i], detail::ray_is_valid(block[i]) ? 1 : 0) << "ray " << i;
+    }
+    // The duplicated rays have equal keys.
+    for (size_t i = 1; i < block.size(); i += 13) {
+        if (!detail::ray_is_valid(block[i])) continue;
+        const auto at = [&](size_t r) {
+            return sorted_key[static_cast<size_t>(
+                std::find(sorted.begin(), sorted.begin() + valid, r) - sorted.begin())];
+        };
+        EXPECT_EQ(at(i), at(i - 1)) << "ray " << i;
+    }
+}
+
+/// Incoherent blocks, coherent blocks, a tail and invalid rays, with block boundaries crossed.
+std::vector<Ray> mixed_batch(uint64_t seed) {
+    Rng rng(seed);
+    std::vector<Ray> rays = random_rays(rng, kBlockRays + 1000);
+    const std::vector<Ray> camera = camera_rays(64);
+    rays.insert(rays.end(), camera.begin(), camera.end());
+    const std::vector<Ray> more = random_rays(rng, 777);
+    rays.insert(rays.end(), more.begin(), more.end());
+    for (size_t i = 5; i < rays.size(); i += 61) rays[i] = invalid_rays()[i % 6];
+    return rays;
+}
+
+template <bool AnyHit>
+void expect_every_valid_ray_traced_once_in_place(const std::vector<Ray>& rays) {
+    const Scheduled s = schedule<AnyHit>(tree_with_bounds(), rays);
+    uint64_t invalid = 0;
+    for (size_t i = 0; i < rays.size(); ++i) {
+        if (detail::ray_is_valid(rays[i])) {
+            ASSERT_EQ(s.times_traced[i], 1) << "ray " << i;
+            if constexpr (AnyHit) {
+                EXPECT_EQ(s.occluded[i], 1) << "ray " << i;
+            } else {
+                EXPECT_EQ(s.hits[i].prim, i) << "ray " << i << " got another ray's answer";
+            }
+        } else {
+            ++invalid;
+            ASSERT_EQ(s.times_traced[i], 0) << "ray " << i;
+            if constexpr (AnyHit) {
+                EXPECT_EQ(s.occluded[i], 0) << "ray " << i;
+            } else {
+                EXPECT_TRUE(is_miss(s.hits[i])) << "ray " << i;
+            }
+        }
+    }
+    EXPECT_EQ(s.counters.invalid_rays, invalid);
+    EXPECT_EQ(s.counters.packets + s.counters.packet_rays + s.counters.single_rays, 0u)
+        << "the scheduler counts no traced rays: the kernel does";
+}
+
+TEST(BatchSchedule, EveryValidRayIsInExactlyOneRunAndAnswersLandInInputOrder) {
+    const uint64_t seed = test_seed();
+    SCOPED_TRACE(testing::Message() << "seed=" << seed);
+    const std::vector<Ray> rays = mixed_batch(seed);
+    expect_every_valid_ray_traced_once_in_place<false>(rays);
+    expect_every_valid_ray_traced_once_in_place<true>(rays);
+}
+
+TEST(BatchSchedule, IncoherentBlocksAreSortedWholeCoherentOnesRunInInputOrder) {
+    const uint64_t seed = test_seed();
+    SCOPED_TRACE(testing::Message() << "seed=" << seed);
+    Rng rng(seed);
+    // Block 0: random rays (sorted). Block 1: camera rays (kept in order, runs of kCoherentRun).
+    std::vector<Ray> rays = random_rays(rng, kBlockRays);
+    const std::vector<Ray> camera = camera_rays(64);
+    ASSERT_EQ(camera.size(), kBlockRays);
+    rays.insert(rays.end(), camera.begin(), camera.end());
+    const Scheduled s = schedule<false>(tree_with_bounds(), rays);
+    EXPECT_EQ(s.counters.sorted_rays, kBlockRays) << "only the random block is sorted";
+
+    std::vector<uint32_t> octants_of_block0;
+    for (const std::vector<uint32_t>& run : s.runs) {
+        if (run.empty()) continue;
+        if (run.front() < kBlockRays) {
+            // A sorted block: one run per octant, in increasing octant order.
+            for (uint32_t i : run) ASSERT_LT(i, kBlockRays) << "a run crosses blocks";
+            octants_of_block0.push_back(octant(rays[run.front()]));
+            continue;
+        }
+        // A coherent block: runs of at most kCoherentRun rays within one aligned window, in
+        // input order.
+        ASSERT_LE(run.size(), static_cast<size_t>(kCoherentRun));
+        const uint32_t window = (run.front() - kBlockRays) / kCoherentRun;
+        for (size_t j = 0; j < run.size(); ++j) {
+            EXPECT_EQ((run[j] - kBlockRays) / kCoherentRun, window);
+            if (j > 0) {
+                EXPECT_LT(run[j - 1], run[j]) << "a coherent run keeps the input order";
+            }
+        }
+    }
+    EXPECT_TRUE(std::is_sorted(octants_of_block0.begin(), octants_of_block0.end()));
+    EXPECT_EQ(std::adjacent_find(octants_of_block0.begin(), octants_of_block0.end()),
+              octants_of_block0.end())
+        << "one run per octant";
+    EXPECT_EQ(octants_of_block0.size(), 8u) << "random directions cover every octant";
+}
+
+TEST(BatchSchedule, AnEmptyTreeAnswersEveryRayAsAMiss) {
+    Rng rng(test_seed());
+    const std::vector<Ray> rays = random_rays(rng, 3000);
+    const Scheduled s = schedule<false>(KdTree{}, rays);
+    for (size_t i = 0; i < rays.size(); ++i) {
+        EXPECT_EQ(s.times_traced[i], 0);
+        EXPECT_TRUE(is_miss(s.hits[i]));
+    }
+    EXPECT_EQ(s.counters.invalid_rays, rays.size());
+}
+
+TEST(BatchSchedule, AnEmptyBatchRunsNothing) {
+    const Scheduled s = schedule<false>(tree_with_bounds(), {});
+    EXPECT_TRUE(s.runs.empty());
+}
+
+}  // namespace
+}  // namespace kdrt::test
