@@ -7,6 +7,7 @@
 
 #include "http_routes.h"
 #include "http_util.h"
+#include "httplib_internals.h"
 #include "log.h"
 #include "problems.h"
 
@@ -47,7 +48,7 @@ struct HttpServer::Impl {
 
     Service& svc;
     Routes routes;
-    httplib::Server http;
+    ConnectionServer http;
     struct Known {
         std::regex pattern;
         std::string method;
@@ -84,7 +85,7 @@ struct HttpServer::Impl {
         if (req.path.size() > 10 && req.path.compare(req.path.size() - 10, 10, "/intersect") == 0 &&
             proto::media_type_essence(req.get_header_value("Content-Type")) ==
                 proto::kRaysMediaType)
-            return 16 + 32 * uint64_t{c.max_rays};
+            return proto::kdrr_body_size(c.max_rays);
         return c.max_json_bytes;
     }
 
@@ -164,12 +165,7 @@ struct HttpServer::Impl {
     /// once the server is stopped: keep the admission slot until the response is gone, so the
     /// shutdown sequence (which waits for zero slots) never cuts a reply short.
     static void hold_until_sent(httplib::Response& res, AdmissionGate::Slot slot) {
-        if (!res.content_provider_) return;
-        auto held = std::make_shared<AdmissionGate::Slot>(std::move(slot));
-        auto previous = std::move(res.content_provider_resource_releaser_);
-        res.content_provider_resource_releaser_ = [held, previous](bool success) {
-            if (previous) previous(success);
-        };
+        keep_until_sent(res, std::make_shared<AdmissionGate::Slot>(std::move(slot)));
     }
 
     void get(const std::string& pattern, const std::string& name, RouteFlags flags,
@@ -231,8 +227,7 @@ struct HttpServer::Impl {
     /// Fills the body of errors httplib produced itself (unknown route, malformed request,
     /// Content-Length over the payload limit).
     httplib::Server::HandlerResponse on_error(const httplib::Request& req, httplib::Response& res) {
-        if (!res.body.empty() || res.content_length_ > 0)
-            return httplib::Server::HandlerResponse::Unhandled;
+        if (response_has_content(res)) return httplib::Server::HandlerResponse::Unhandled;
         proto::Problem p;
         std::string allowed;
         bool method_allowed = false;
@@ -316,7 +311,7 @@ struct HttpServer::Impl {
                 : 0;
         const std::string route = context.route.empty() ? "unmatched" : context.route;
         const uint64_t bytes_in = context.bytes_in ? context.bytes_in : req.body.size();
-        const uint64_t bytes_out = res.content_length_ ? res.content_length_ : res.body.size();
+        const uint64_t bytes_out = response_body_bytes(res);
         svc.metrics.record_request(route, req.method, res.status, seconds, bytes_in, bytes_out);
         log_event(LogLevel::kInfo, "request",
                   {{"method", req.method},
@@ -332,7 +327,7 @@ struct HttpServer::Impl {
 
     [[nodiscard]] uint64_t largest_body() const {
         const ServerConfig& c = svc.config;
-        return std::max({c.max_upload_bytes, c.max_json_bytes, 16 + 32 * uint64_t{c.max_rays}});
+        return std::max({c.max_upload_bytes, c.max_json_bytes, proto::kdrr_body_size(c.max_rays)});
     }
 
     void configure() {

@@ -72,5 +72,24 @@ TEST(BufferPool, ReusesTheSmallestIdleBufferThatFitsWithinItsBudget) {
     EXPECT_EQ(pool.idle_bytes(), 6u << 20);
 }
 
+TEST(PooledBuffer, GoesBackToItsPoolWhenDestroyedOrReplaced) {
+    BufferPool pool(64u << 20);
+    {
+        PooledBuffer a(pool, 2u << 20);
+        EXPECT_GE(a.capacity(), 2u << 20);
+        EXPECT_EQ(pool.idle_bytes(), 0u);
+        PooledBuffer b = std::move(a);  // moved-from a gives nothing back
+        EXPECT_FALSE(a);
+        EXPECT_TRUE(b);
+    }
+    EXPECT_EQ(pool.idle_bytes(), 2u << 20);
+    PooledBuffer c(pool, 1u << 20);  // reuses the idle one
+    EXPECT_EQ(pool.idle_bytes(), 0u);
+    c = PooledBuffer(pool, 3u << 20);  // the replaced buffer goes back
+    EXPECT_EQ(pool.idle_bytes(), 2u << 20);
+    c = PooledBuffer();
+    EXPECT_EQ(pool.idle_bytes(), 5u << 20);
+}
+
 }  // namespace
 }  // namespace kdrt::server
