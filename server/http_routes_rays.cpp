@@ -57,10 +57,7 @@ void Routes::intersect(const httplib::Request& req, httplib::Response& res,
     auto tree = svc_.cache.acquire(id);
     if (!tree) {
         discard_body(req, res, reader);
-        return reply_problem(req, res,
-                             tree.error().code == CacheError::Code::kUnknownMesh
-                                 ? unknown_mesh_problem(id)
-                                 : cache_problem(tree.error()));
+        return reply_problem(req, res, mesh_lookup_problem(tree.error(), id));
     }
     if (binary) return intersect_binary(req, res, reader, **tree);
     intersect_json(req, res, reader, **tree);
