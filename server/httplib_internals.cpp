@@ -18,8 +18,8 @@
 // exports for it (Itanium C++ ABI: `this` is the first argument). The version check in the header
 // pins the library this was checked against. The alternatives: reimplementing httplib's
 // keep-alive loop (a second copy of code we do not own), or scanning /proc/self/fd for a socket
-// whose two ends match the request's addresses (what this replaced: a directory scan per
-// connection, and a lookup by address rather than the socket httplib actually serves).
+// whose two ends match the request's addresses (a directory scan per connection, and a lookup
+// by address rather than the socket httplib actually serves).
 bool kdrt_httplib_serve_connection(httplib::Server* server, socket_t sock) __asm__(
     "_ZN7httplib6Server24process_and_close_socketEi");
 
