@@ -4,12 +4,16 @@
 #include <signal.h>
 #include <unistd.h>
 
+#include <atomic>
+#include <chrono>
 #include <condition_variable>
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
 #include <mutex>
+#include <string>
 #include <thread>
+#include <utility>
 
 #include "http_server.h"
 #include "kdrt/proto/mesh_id.h"
@@ -73,12 +77,10 @@ bool start_up(Service& svc) {
     return true;
 }
 
-}  // namespace
-
-int run_server(const ServerConfig& config) {
-    // The termination signals are blocked in every thread and collected here with sigwait, so
-    // no handler runs at an arbitrary point of another thread. SIGUSR1 is internal: a helper
-    // thread finished (start-up failed, or the listener stopped).
+/// Blocks the termination signals (and the internal SIGUSR1) in this thread and every thread it
+/// starts, so they are collected with sigwait and no handler runs at an arbitrary point of
+/// another thread. SIGUSR1: a helper thread finished (start-up failed, or the listener stopped).
+sigset_t block_stop_signals() {
     sigset_t signals;
     sigemptyset(&signals);
     sigaddset(&signals, SIGINT);
@@ -86,7 +88,132 @@ int run_server(const ServerConfig& config) {
     sigaddset(&signals, SIGUSR1);
     pthread_sigmask(SIG_BLOCK, &signals, nullptr);
     ::signal(SIGPIPE, SIG_IGN);
+    return signals;
+}
 
+/// Binds the listen address and writes the port file. Logs and returns false on failure.
+bool bind_and_announce(HttpServer& http, const Service& svc,
+                       const std::pair<std::string, int>& listen) {
+    const ServerConfig& config = svc.config;
+    auto port = http.bind(listen.first, listen.second);
+    if (!port) {
+        log_event(LogLevel::kCritical, "cannot listen", {{"error", port.error()}});
+        return false;
+    }
+    if (!config.port_file.empty()) {
+        if (auto written = write_port_file(config.port_file, *port); !written) {
+            log_event(LogLevel::kCritical, "cannot write the port file",
+                      {{"error", written.error()}});
+            return false;
+        }
+    }
+    log_event(LogLevel::kInfo, "listening",
+              {{"address", listen.first + ":" + std::to_string(*port)},
+               {"version", std::string_view(KDRT_VERSION)},
+               {"engine_threads", static_cast<uint64_t>(svc.compute.threads())},
+               {"http_threads", static_cast<uint64_t>(config.http_threads)},
+               {"cache_dir", config.cache_dir},
+               {"memory_budget", config.memory_budget},
+               {"auth", !config.token.empty()}});
+    return true;
+}
+
+/// What the helper threads report to the main thread (with SIGUSR1).
+struct HelperFailures {
+    std::atomic<bool> listener{false}, startup{false};
+};
+
+/// Serves on a new thread until stopped; a failure is reported to this thread.
+std::thread start_listener(HttpServer& http, const Service& svc, HelperFailures& failed) {
+    return std::thread([&http, &svc, &failed, main_thread = pthread_self()] {
+        if (!http.serve() && !svc.shutting_down) failed.listener = true;
+        pthread_kill(main_thread, SIGUSR1);
+    });
+}
+
+/// Loads the mesh index and the preloads on a new thread, then marks the service ready; a
+/// failure is reported to this thread.
+std::thread start_loading(Service& svc, HelperFailures& failed) {
+    return std::thread([&svc, &failed, main_thread = pthread_self()] {
+        if (!start_up(svc)) {
+            failed.startup = true;
+            pthread_kill(main_thread, SIGUSR1);
+            return;
+        }
+        if (svc.shutting_down) return;
+        svc.ready = true;
+        log_event(LogLevel::kInfo, "ready",
+                  {{"meshes", static_cast<uint64_t>(svc.cache.mesh_count())}});
+    });
+}
+
+/// Waits for SIGINT/SIGTERM or a helper's failure; returns the exit code (1 for a failure).
+int wait_for_stop(const sigset_t& signals, const HelperFailures& failed, unsigned timeout_s) {
+    for (;;) {
+        int sig = 0;
+        sigwait(&signals, &sig);
+        if (sig == SIGUSR1 && !failed.listener && !failed.startup) continue;  // stale wake-up
+        if (sig == SIGUSR1) {
+            log_event(LogLevel::kCritical,
+                      failed.startup ? "start-up failed" : "the listener stopped unexpectedly");
+            return 1;
+        }
+        log_event(LogLevel::kInfo, "shutting down",
+                  {{"signal", std::string_view(sig == SIGINT ? "SIGINT" : "SIGTERM")},
+                   {"timeout_s", static_cast<uint64_t>(timeout_s)}});
+        return 0;
+    }
+}
+
+/// Requests in flight get `timeout_s` to finish; after that the process exits with `exit_code`
+/// regardless. disarm() (or the destructor) stops the watchdog.
+class ShutdownWatchdog {
+public:
+    ShutdownWatchdog(unsigned timeout_s, int exit_code)
+        : thread_([this, timeout_s, exit_code] {
+              std::unique_lock lock(mutex_);
+              if (!done_cv_.wait_for(lock, std::chrono::seconds(timeout_s),
+                                     [&] { return done_; })) {
+                  log_event(LogLevel::kWarn,
+                            "shutdown timeout: exiting with requests still in flight");
+                  std::fflush(nullptr);
+                  ::_exit(exit_code);
+              }
+          }) {}
+    ShutdownWatchdog(const ShutdownWatchdog&) = delete;
+    ShutdownWatchdog& operator=(const ShutdownWatchdog&) = delete;
+    ~ShutdownWatchdog() { disarm(); }
+
+    void disarm() {
+        {
+            std::lock_guard lock(mutex_);
+            done_ = true;
+        }
+        done_cv_.notify_one();
+        if (thread_.joinable()) thread_.join();
+    }
+
+private:
+    std::mutex mutex_;
+    std::condition_variable done_cv_;
+    bool done_ = false;
+    std::thread thread_;  ///< last: starts once the members it uses exist
+};
+
+/// New /v1 requests now get 503; uploads, traces and renders already admitted run to the end
+/// before the listener stops (httplib cuts streamed responses short once it is stopped).
+void drain_and_stop(Service& svc, HttpServer& http) {
+    svc.shutting_down = true;
+    svc.ready = false;
+    svc.jobs.shutdown();  // cancels queued and running render jobs
+    while (svc.gate.in_flight() > 0) std::this_thread::sleep_for(std::chrono::milliseconds(2));
+    http.stop();
+}
+
+}  // namespace
+
+int run_server(const ServerConfig& config) {
+    const sigset_t signals = block_stop_signals();
     auto listen = split_listen(config.listen);
     if (!listen) {
         log_event(LogLevel::kCritical, "bad listen address", {{"error", listen.error()}});
@@ -96,90 +223,17 @@ int run_server(const ServerConfig& config) {
     svc.metrics.set_build_info(
         {{"version", KDRT_VERSION}, {"httplib", httplib_version()}, {"compiler", __VERSION__}});
     HttpServer http(svc);
-    auto port = http.bind(listen->first, listen->second);
-    if (!port) {
-        log_event(LogLevel::kCritical, "cannot listen", {{"error", port.error()}});
-        return 1;
-    }
-    if (!config.port_file.empty()) {
-        if (auto written = write_port_file(config.port_file, *port); !written) {
-            log_event(LogLevel::kCritical, "cannot write the port file",
-                      {{"error", written.error()}});
-            return 1;
-        }
-    }
-    log_event(LogLevel::kInfo, "listening",
-              {{"address", listen->first + ":" + std::to_string(*port)},
-               {"version", std::string_view(KDRT_VERSION)},
-               {"engine_threads", static_cast<uint64_t>(svc.compute.threads())},
-               {"http_threads", static_cast<uint64_t>(config.http_threads)},
-               {"cache_dir", config.cache_dir},
-               {"memory_budget", config.memory_budget},
-               {"auth", !config.token.empty()}});
+    if (!bind_and_announce(http, svc, *listen)) return 1;
 
-    const pthread_t main_thread = pthread_self();
-    std::atomic<bool> listener_failed{false}, startup_failed{false};
-    std::thread listener([&] {
-        if (!http.serve() && !svc.shutting_down) listener_failed = true;
-        pthread_kill(main_thread, SIGUSR1);
-    });
-    std::thread startup([&] {
-        if (!start_up(svc)) {
-            startup_failed = true;
-            pthread_kill(main_thread, SIGUSR1);
-            return;
-        }
-        if (svc.shutting_down) return;
-        svc.ready = true;
-        log_event(LogLevel::kInfo, "ready",
-                  {{"meshes", static_cast<uint64_t>(svc.cache.mesh_count())}});
-    });
-
-    int exit_code = 0;
-    for (;;) {
-        int sig = 0;
-        sigwait(&signals, &sig);
-        if (sig == SIGUSR1 && !listener_failed && !startup_failed) continue;  // stale wake-up
-        if (sig == SIGUSR1) {
-            exit_code = 1;
-            log_event(LogLevel::kCritical,
-                      startup_failed ? "start-up failed" : "the listener stopped unexpectedly");
-        } else {
-            log_event(LogLevel::kInfo, "shutting down",
-                      {{"signal", std::string_view(sig == SIGINT ? "SIGINT" : "SIGTERM")},
-                       {"timeout_s", static_cast<uint64_t>(config.shutdown_timeout_s)}});
-        }
-        break;
-    }
-
-    // Requests in flight get shutdown_timeout_s; after that the process exits regardless.
-    std::mutex mutex;
-    std::condition_variable done_cv;
-    bool done = false;
-    std::thread watchdog([&] {
-        std::unique_lock lock(mutex);
-        if (!done_cv.wait_for(lock, std::chrono::seconds(config.shutdown_timeout_s),
-                              [&] { return done; })) {
-            log_event(LogLevel::kWarn, "shutdown timeout: exiting with requests still in flight");
-            std::fflush(nullptr);
-            ::_exit(exit_code);
-        }
-    });
-    // New /v1 requests now get 503; uploads, traces and renders already admitted run to the end
-    // before the listener stops (httplib cuts streamed responses short once it is stopped).
-    svc.shutting_down = true;
-    svc.ready = false;
-    svc.jobs.shutdown();  // cancels queued and running render jobs
-    while (svc.gate.in_flight() > 0) std::this_thread::sleep_for(std::chrono::milliseconds(2));
-    http.stop();
+    HelperFailures failed;
+    std::thread listener = start_listener(http, svc, failed);
+    std::thread startup = start_loading(svc, failed);
+    const int exit_code = wait_for_stop(signals, failed, config.shutdown_timeout_s);
+    ShutdownWatchdog watchdog(config.shutdown_timeout_s, exit_code);
+    drain_and_stop(svc, http);
     listener.join();
     startup.join();
-    {
-        std::lock_guard lock(mutex);
-        done = true;
-    }
-    done_cv.notify_one();
-    watchdog.join();
+    watchdog.disarm();
     log_event(LogLevel::kInfo, "stopped", {{"exit_code", static_cast<int64_t>(exit_code)}});
     return exit_code;
 }

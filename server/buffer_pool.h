@@ -163,4 +163,45 @@ private:
     size_t idle_bytes_ = 0;
 };
 
+/// A buffer taken from a BufferPool that goes back to it when destroyed or replaced, so every
+/// exit of a request (answer sent, batch refused, exception) returns its storage. Move-only; a
+/// default-constructed or moved-from PooledBuffer holds nothing.
+class PooledBuffer {
+public:
+    PooledBuffer() = default;
+    /// At least `bytes` from `pool` (which must outlive this). Throws std::bad_alloc.
+    PooledBuffer(BufferPool& pool, size_t bytes) : pool_(&pool), buffer_(pool.take(bytes)) {}
+    PooledBuffer(PooledBuffer&& other) noexcept
+        : pool_(std::exchange(other.pool_, nullptr)), buffer_(std::move(other.buffer_)) {}
+    PooledBuffer& operator=(PooledBuffer&& other) noexcept {
+        if (this != &other) {
+            give_back();
+            pool_ = std::exchange(other.pool_, nullptr);
+            buffer_ = std::move(other.buffer_);
+        }
+        return *this;
+    }
+    PooledBuffer(const PooledBuffer&) = delete;
+    PooledBuffer& operator=(const PooledBuffer&) = delete;
+    ~PooledBuffer() { give_back(); }
+
+    [[nodiscard]] std::byte* data() const noexcept { return buffer_.data(); }
+    [[nodiscard]] size_t capacity() const noexcept { return buffer_.capacity(); }
+    [[nodiscard]] explicit operator bool() const noexcept { return static_cast<bool>(buffer_); }
+
+private:
+    void give_back() noexcept {
+        // give() can only fail to allocate its bookkeeping; the buffer is then simply freed.
+        try {
+            if (pool_) pool_->give(std::move(buffer_));
+        } catch (...) {
+        }
+        pool_ = nullptr;
+        buffer_ = AlignedBuffer();
+    }
+
+    BufferPool* pool_ = nullptr;
+    AlignedBuffer buffer_;
+};
+
 }  // namespace kdrt::server

@@ -5,6 +5,9 @@
 
 #include <httplib.h>
 
+#include <optional>
+
+#include "kdrt/proto/json_api.h"
 #include "service.h"
 
 namespace kdrt::server {
@@ -39,6 +42,14 @@ private:
     void intersect_json(const httplib::Request& req, httplib::Response& res,
                         const httplib::ContentReader& reader, const KdTree& tree);
 
+    /// The render request in the body; on failure the reply is set and nullopt returned.
+    std::optional<proto::RenderRequest> read_render_request(const httplib::Request& req,
+                                                            httplib::Response& res,
+                                                            const httplib::ContentReader& reader);
+    /// The request with its mesh's tree and validated settings; on failure as above.
+    std::optional<RenderJob> make_render_job(const httplib::Request& req, httplib::Response& res,
+                                             proto::RenderRequest request);
+    void render_now(const httplib::Request& req, httplib::Response& res, const RenderJob& job);
     void submit_job(const httplib::Request& req, httplib::Response& res, RenderJob job);
 
     Service& svc_;

@@ -15,8 +15,8 @@ void Routes::healthz(const httplib::Request&, httplib::Response& res) {
 
 void Routes::readyz(const httplib::Request& req, httplib::Response& res) {
     if (svc_.shutting_down) {
-        auto p = make_problem(proto::ProblemKind::kNotReady,
-                              "the server is " + std::string(proto::api_errors::kShuttingDown));
+        proto::Problem p = not_ready_problem(true);
+        p.retry_after.reset();  // a readiness probe is not asked to come back to a server leaving
         return reply_problem(req, res, std::move(p));
     }
     if (!svc_.ready) {

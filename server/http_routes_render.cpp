@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <cctype>
+#include <optional>
 
 #include "http_routes.h"
 #include "http_util.h"
@@ -47,47 +48,66 @@ proto::Problem unknown_job_problem(const std::string& id) {
 
 void Routes::render(const httplib::Request& req, httplib::Response& res,
                     const httplib::ContentReader& reader) {
+    auto request = read_render_request(req, res, reader);
+    if (!request) return;
+    auto job = make_render_job(req, res, std::move(*request));
+    if (!job) return;
+    if (prefers_async(req)) return submit_job(req, res, std::move(*job));
+    render_now(req, res, *job);
+}
+
+std::optional<proto::RenderRequest> Routes::read_render_request(
+    const httplib::Request& req, httplib::Response& res, const httplib::ContentReader& reader) {
     if (proto::media_type_essence(req.get_header_value("Content-Type")) != proto::kJsonMediaType) {
         discard_body(req, res, reader);
-        return reply_problem(
+        reply_problem(
             req, res,
             make_problem(ProblemKind::kUnsupportedMediaType,
                          "render " + std::string(proto::api_errors::kUnsupportedJsonType)));
+        return std::nullopt;
     }
     auto body = read_body(req, res, reader, svc_.config.max_json_bytes, svc_.config.max_json_bytes,
                           svc_.store.tmp_dir().string(), "a JSON request (max_json_bytes)");
-    if (!body) return;
+    if (!body) return std::nullopt;
     const proto::RenderLimits limits{svc_.config.max_image_width, svc_.config.max_image_height,
                                      svc_.config.max_spp};
     auto request = proto::decode_render_request(as_text(body->bytes()), limits);
-    if (!request)
-        return reply_problem(req, res,
-                             make_problem(ProblemKind::kBadRequest, request.error().detail));
-    const proto::ImageFormat format = *proto::image_format_from_name(request->format);
-    auto tree = svc_.cache.acquire(request->mesh);
-    if (!tree)
-        return reply_problem(req, res,
-                             tree.error().code == CacheError::Code::kUnknownMesh
-                                 ? unknown_mesh_problem(request->mesh)
-                                 : cache_problem(tree.error()));
+    if (!request) {
+        reply_problem(req, res, make_problem(ProblemKind::kBadRequest, request.error().detail));
+        return std::nullopt;
+    }
+    return std::move(*request);
+}
+
+std::optional<RenderJob> Routes::make_render_job(const httplib::Request& req,
+                                                 httplib::Response& res,
+                                                 proto::RenderRequest request) {
+    const proto::ImageFormat format = *proto::image_format_from_name(request.format);
+    auto tree = svc_.cache.acquire(request.mesh);
+    if (!tree) {
+        reply_problem(req, res, mesh_lookup_problem(tree.error(), request.mesh));
+        return std::nullopt;
+    }
     try {
-        validate_render_settings(request->settings);
+        validate_render_settings(request.settings);
     } catch (const RenderError& e) {
-        return reply_problem(req, res, make_problem(ProblemKind::kBadRequest, e.what()));
+        reply_problem(req, res, make_problem(ProblemKind::kBadRequest, e.what()));
+        return std::nullopt;
     }
     proto::ImageEncodeOptions encode;
     encode.png_compression =
-        request->compression.value_or(static_cast<int>(svc_.config.png_compression));
-    if (prefers_async(req))
-        return submit_job(req, res,
-                          {request->mesh, std::move(*tree), request->settings, format, encode});
-    auto image = render_and_encode(svc_.compute, **tree, request->settings, format, encode);
+        request.compression.value_or(static_cast<int>(svc_.config.png_compression));
+    return RenderJob{std::move(request.mesh), std::move(*tree), request.settings, format, encode};
+}
+
+void Routes::render_now(const httplib::Request& req, httplib::Response& res, const RenderJob& job) {
+    auto image = render_and_encode(svc_.compute, *job.tree, job.settings, job.format, job.encode);
     if (!image) return reply_problem(req, res, make_problem(ProblemKind::kInternal, image.error()));
     svc_.metrics.renders.fetch_add(1);
     request_context().rays = image->stats.rays;
     res.set_header("X-Render-Ms", std::to_string(image->stats.seconds * 1e3));
     res.set_header("X-Encode-Ms", std::to_string(image->encode_ms));
-    reply_bytes(res, std::move(image->bytes), proto::image_media_type(format));
+    reply_bytes(res, std::move(image->bytes), proto::image_media_type(job.format));
 }
 
 void Routes::submit_job(const httplib::Request& req, httplib::Response& res, RenderJob job) {

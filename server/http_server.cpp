@@ -7,6 +7,7 @@
 
 #include "http_routes.h"
 #include "http_util.h"
+#include "httplib_internals.h"
 #include "log.h"
 #include "problems.h"
 
@@ -47,7 +48,7 @@ struct HttpServer::Impl {
 
     Service& svc;
     Routes routes;
-    httplib::Server http;
+    ConnectionServer http;
     struct Known {
         std::regex pattern;
         std::string method;
@@ -84,7 +85,7 @@ struct HttpServer::Impl {
         if (req.path.size() > 10 && req.path.compare(req.path.size() - 10, 10, "/intersect") == 0 &&
             proto::media_type_essence(req.get_header_value("Content-Type")) ==
                 proto::kRaysMediaType)
-            return 16 + 32 * uint64_t{c.max_rays};
+            return proto::kdrr_body_size(c.max_rays);
         return c.max_json_bytes;
     }
 
@@ -125,37 +126,32 @@ struct HttpServer::Impl {
                std::optional<AdmissionGate::Slot>& slot) {
         if (flags.api && !authorized(req, res)) return false;
         if (flags.api && (svc.shutting_down || !svc.ready)) {
-            auto p = make_problem(
-                ProblemKind::kNotReady,
-                svc.shutting_down ? "the server is " + std::string(proto::api_errors::kShuttingDown)
-                                  : std::string("the server is starting; retry shortly"));
-            p.retry_after = 1;
-            reply_problem(req, res, std::move(p));
+            reply_problem(req, res, not_ready_problem(svc.shutting_down));
             return false;
         }
-        if (flags.heavy) {
-            slot = svc.gate.try_enter();
-            if (slot && svc.shutting_down) {
-                // Shutdown began between the check above and taking the slot: the shutdown
-                // sequence may already have seen zero requests in flight.
-                slot.reset();
-                auto p =
-                    make_problem(ProblemKind::kNotReady,
-                                 "the server is " + std::string(proto::api_errors::kShuttingDown));
-                p.retry_after = 1;
-                reply_problem(req, res, std::move(p));
-                return false;
-            }
-            if (!slot) {
-                auto p = make_problem(ProblemKind::kOverCapacity,
-                                      std::to_string(svc.gate.limit()) + " " +
-                                          std::string(proto::api_errors::kOverCapacity) +
-                                          " (max_inflight); retry later");
-                p.retry_after = 1;
-                p.limit = svc.gate.limit();
-                reply_problem(req, res, std::move(p));
-                return false;
-            }
+        return !flags.heavy || take_slot(req, res, slot);
+    }
+
+    /// Takes a max_inflight slot for a heavy route. On refusal replies and returns false.
+    bool take_slot(const httplib::Request& req, httplib::Response& res,
+                   std::optional<AdmissionGate::Slot>& slot) {
+        slot = svc.gate.try_enter();
+        if (slot && svc.shutting_down) {
+            // Shutdown began between the readiness check and taking the slot: the shutdown
+            // sequence may already have seen zero requests in flight.
+            slot.reset();
+            reply_problem(req, res, not_ready_problem(true));
+            return false;
+        }
+        if (!slot) {
+            auto p = make_problem(ProblemKind::kOverCapacity,
+                                  std::to_string(svc.gate.limit()) + " " +
+                                      std::string(proto::api_errors::kOverCapacity) +
+                                      " (max_inflight); retry later");
+            p.retry_after = 1;
+            p.limit = svc.gate.limit();
+            reply_problem(req, res, std::move(p));
+            return false;
         }
         return true;
     }
@@ -164,12 +160,7 @@ struct HttpServer::Impl {
     /// once the server is stopped: keep the admission slot until the response is gone, so the
     /// shutdown sequence (which waits for zero slots) never cuts a reply short.
     static void hold_until_sent(httplib::Response& res, AdmissionGate::Slot slot) {
-        if (!res.content_provider_) return;
-        auto held = std::make_shared<AdmissionGate::Slot>(std::move(slot));
-        auto previous = std::move(res.content_provider_resource_releaser_);
-        res.content_provider_resource_releaser_ = [held, previous](bool success) {
-            if (previous) previous(success);
-        };
+        keep_until_sent(res, std::make_shared<AdmissionGate::Slot>(std::move(slot)));
     }
 
     void get(const std::string& pattern, const std::string& name, RouteFlags flags,
@@ -228,42 +219,53 @@ struct HttpServer::Impl {
         get("/metrics", "/metrics", {}, &Routes::metrics);
     }
 
-    /// Fills the body of errors httplib produced itself (unknown route, malformed request,
-    /// Content-Length over the payload limit).
-    httplib::Server::HandlerResponse on_error(const httplib::Request& req, httplib::Response& res) {
-        if (!res.body.empty() || res.content_length_ > 0)
-            return httplib::Server::HandlerResponse::Unhandled;
-        proto::Problem p;
+    /// The methods registered for `path` ("GET, DELETE"), and whether `method` is one of them
+    /// (HEAD counts as GET).
+    [[nodiscard]] std::pair<std::string, bool> allowed_methods(const std::string& path,
+                                                               const std::string& method) const {
         std::string allowed;
         bool method_allowed = false;
         for (const Known& k : known) {
-            if (!std::regex_match(req.path, k.pattern)) continue;
-            if (k.method == req.method || (k.method == "GET" && req.method == "HEAD"))
+            if (!std::regex_match(path, k.pattern)) continue;
+            if (k.method == method || (k.method == "GET" && method == "HEAD"))
                 method_allowed = true;
             if (allowed.find(k.method) == std::string::npos)
                 allowed += (allowed.empty() ? "" : ", ") + k.method;
         }
+        return {allowed, method_allowed};
+    }
+
+    /// The problem for an error status httplib set itself (other than a wrong method).
+    [[nodiscard]] proto::Problem http_layer_problem(const httplib::Request& req, int status) const {
+        if (status == 404)
+            return make_problem(ProblemKind::kNotFound, std::string(proto::api_errors::kNoRoute) +
+                                                            " " + req.method + " " + req.path);
+        if (status == 413) return body_too_large_problem(largest_body(), "any request");
+        if (status >= 500)
+            return make_problem(ProblemKind::kInternal, "the server failed to answer the request");
+        return make_problem(
+            ProblemKind::kBadRequest,
+            "malformed HTTP request (status " + std::to_string(status) + " from the HTTP layer)");
+    }
+
+    /// Fills the body of errors httplib produced itself (unknown route, malformed request,
+    /// Content-Length over the payload limit).
+    httplib::Server::HandlerResponse on_error(const httplib::Request& req, httplib::Response& res) {
+        if (response_has_content(res)) return httplib::Server::HandlerResponse::Unhandled;
+        const auto [allowed, method_allowed] = allowed_methods(req.path, req.method);
         if ((res.status == 404 || res.status == 400) && !allowed.empty() && !method_allowed) {
             // httplib answers 404 (or 400 for methods it has no handlers for) when only the
             // method is wrong.
             res.status = 405;
-            p = make_problem(ProblemKind::kMethodNotAllowed,
-                             req.path + " " + std::string(proto::api_errors::kMethodNotAllowed) +
-                                 " " + req.method + " (allowed: " + allowed + ")");
             res.set_header("Allow", allowed);
-        } else if (res.status == 404) {
-            p = make_problem(ProblemKind::kNotFound, std::string(proto::api_errors::kNoRoute) +
-                                                         " " + req.method + " " + req.path);
-        } else if (res.status == 413) {
-            p = body_too_large_problem(largest_body(), "any request");
-        } else if (res.status >= 500) {
-            p = make_problem(ProblemKind::kInternal, "the server failed to answer the request");
+            reply_problem(
+                req, res,
+                make_problem(ProblemKind::kMethodNotAllowed,
+                             req.path + " " + std::string(proto::api_errors::kMethodNotAllowed) +
+                                 " " + req.method + " (allowed: " + allowed + ")"));
         } else {
-            p = make_problem(ProblemKind::kBadRequest, "malformed HTTP request (status " +
-                                                           std::to_string(res.status) +
-                                                           " from the HTTP layer)");
+            reply_problem(req, res, http_layer_problem(req, res.status));
         }
-        reply_problem(req, res, std::move(p));
         return httplib::Server::HandlerResponse::Handled;
     }
 
@@ -316,7 +318,7 @@ struct HttpServer::Impl {
                 : 0;
         const std::string route = context.route.empty() ? "unmatched" : context.route;
         const uint64_t bytes_in = context.bytes_in ? context.bytes_in : req.body.size();
-        const uint64_t bytes_out = res.content_length_ ? res.content_length_ : res.body.size();
+        const uint64_t bytes_out = response_body_bytes(res);
         svc.metrics.record_request(route, req.method, res.status, seconds, bytes_in, bytes_out);
         log_event(LogLevel::kInfo, "request",
                   {{"method", req.method},
@@ -332,7 +334,7 @@ struct HttpServer::Impl {
 
     [[nodiscard]] uint64_t largest_body() const {
         const ServerConfig& c = svc.config;
-        return std::max({c.max_upload_bytes, c.max_json_bytes, 16 + 32 * uint64_t{c.max_rays}});
+        return std::max({c.max_upload_bytes, c.max_json_bytes, proto::kdrr_body_size(c.max_rays)});
     }
 
     void configure() {

@@ -47,10 +47,10 @@ void reply_bytes(httplib::Response& res, std::vector<std::byte> bytes,
                  std::string_view content_type, VectorPool<std::byte>* pool = nullptr);
 
 /// Replies 200 with the first `size` bytes of `buffer`: small bodies are copied into the
-/// response, large ones are streamed from the buffer itself by a content provider (no copy) and
-/// the buffer goes back to `pool` (if given) once sent or abandoned.
-void reply_buffer(httplib::Response& res, AlignedBuffer buffer, size_t size,
-                  std::string_view content_type, BufferPool* pool = nullptr);
+/// response, large ones are streamed from the buffer itself by a content provider (no copy); the
+/// buffer goes back to its pool once copied, or once sent or abandoned.
+void reply_buffer(httplib::Response& res, PooledBuffer buffer, size_t size,
+                  std::string_view content_type);
 
 /// After an early error reply on a streamed route, the body has not been read: drain it if it
 /// is small, else ask the client to close the connection (never parse it as the next request).
@@ -65,29 +65,11 @@ void discard_body(const httplib::Request& req, httplib::Response& res,
     uint64_t limit, uint64_t memory_bytes, const std::string& spool_dir, const std::string& what,
     std::vector<std::byte> buffer = {});
 
-/// Reading a large body past cpp-httplib. httplib 0.11.4 hands a streamed body to the handler in
-/// 4 KiB pieces, each after a poll() and a recv() into a stack buffer: a 32 MiB ray batch costs
-/// 16k system calls and an extra copy. Instead, the route takes the first piece from httplib
-/// (which drains whatever httplib had buffered after the headers: its buffer holds one recv()
-/// of at most 4 KiB and a 4 KiB read request empties it), stops httplib's reader, and receives
-/// the rest of the body from the connection's socket straight into its own storage with large
-/// reads. The connection stays usable for keep-alive: exactly the body is consumed, and httplib
-/// reads the next request from the socket as usual. Only for bodies with a Content-Length and no
-/// Content-Encoding, and only on the httplib version this was checked against; anywhere else
-/// (or if the socket cannot be identified) the route reads through httplib as before.
-struct DirectBody {
-    int fd = -1;         ///< the connection's socket
-    int timeout_s = 30;  ///< per read, like httplib's read timeout
-};
+/// True when the request body is framed as chunks (Transfer-Encoding: chunked).
+[[nodiscard]] bool is_chunked(const httplib::Request& req);
 
-/// The socket `req` arrived on, when the body may be read from it directly (see DirectBody):
-/// nullopt when it may not or the socket cannot be identified for certain.
-[[nodiscard]] std::optional<DirectBody> direct_body(const httplib::Request& req,
-                                                    int read_timeout_s);
-
-/// Receives up to `size` bytes (at least 1) from the socket into `out`. Returns the count, 0 when
-/// the peer closed the connection, -1 on an error or after timeout_s without data.
-[[nodiscard]] ssize_t receive_some(const DirectBody& body, std::byte* out, size_t size);
+/// The body's size declared in advance: Content-Length, unless the body is chunked or has none.
+[[nodiscard]] std::optional<uint64_t> declared_body_bytes(const httplib::Request& req);
 
 /// The body as text (for JSON decoders).
 [[nodiscard]] inline std::string_view as_text(std::span<const std::byte> bytes) noexcept {

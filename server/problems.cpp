@@ -75,4 +75,18 @@ proto::Problem unknown_mesh_problem(const std::string& id) {
                         std::string(proto::api_errors::kUnknownMesh) + " " + id);
 }
 
+proto::Problem mesh_lookup_problem(const CacheError& error, const std::string& id) {
+    return error.code == CacheError::Code::kUnknownMesh ? unknown_mesh_problem(id)
+                                                        : cache_problem(error);
+}
+
+proto::Problem not_ready_problem(bool shutting_down) {
+    proto::Problem p = make_problem(
+        ProblemKind::kNotReady,
+        shutting_down ? "the server is " + std::string(proto::api_errors::kShuttingDown)
+                      : std::string("the server is starting; retry shortly"));
+    p.retry_after = 1;
+    return p;
+}
+
 }  // namespace kdrt::server

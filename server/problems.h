@@ -25,5 +25,11 @@ namespace kdrt::server {
 [[nodiscard]] proto::Problem body_too_large_problem(uint64_t limit, const std::string& what);
 /// 404 for an id that is not of the mesh id form or not stored.
 [[nodiscard]] proto::Problem unknown_mesh_problem(const std::string& id);
+/// A failed cache lookup of mesh `id`: unknown_mesh_problem(id) for an unknown mesh, else
+/// cache_problem(error).
+[[nodiscard]] proto::Problem mesh_lookup_problem(const CacheError& error, const std::string& id);
+/// 503 kNotReady with Retry-After: 1: "the server is shutting down", or when not
+/// `shutting_down`, "the server is starting; retry shortly".
+[[nodiscard]] proto::Problem not_ready_problem(bool shutting_down);
 
 }  // namespace kdrt::server

@@ -1,6 +1,9 @@
 #pragma once
-// Internal: explicit little/big-endian loads and stores. Byte order is decided here, nowhere else;
-// callers get host values whatever the host's endianness.
+// Internal: little-endian loads and stores. proto's one byte-order policy lives here: every wire
+// format it reads or writes is little-endian, and so must the host be (as the engine's tree blob
+// already requires), so records whose layout matches a host struct (KDRR rays, KDRH hits, raw
+// mesh arrays) are copied with memcpy. The explicit loads and stores below serve the fields whose
+// width or byte order differs from a host struct (headers, big-endian PLY).
 
 #include <bit>
 #include <cstddef>
@@ -9,7 +12,11 @@
 
 namespace kdrt::proto::detail {
 
-inline constexpr bool kHostLittleEndian = std::endian::native == std::endian::little;
+static_assert(std::endian::native == std::endian::little,
+              "proto copies little-endian wire records as host structs");
+
+/// Always true (see the static_assert above); kept so callers can state the assumption.
+inline constexpr bool kHostLittleEndian = true;
 
 template <class U>
 [[nodiscard]] inline U load_uint(const std::byte* p, bool big_endian) noexcept {

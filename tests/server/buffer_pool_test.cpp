@@ -2,6 +2,10 @@
 
 #include <gtest/gtest.h>
 
+#include <cstdint>
+#include <utility>
+#include <vector>
+
 namespace kdrt::server {
 namespace {
 
@@ -42,6 +46,49 @@ TEST(VectorPool, NeverHoldsMoreThanItsCap) {
     std::vector<char> c = off.take(2u << 20);
     off.give(std::move(c));
     EXPECT_EQ(off.idle_bytes(), 0u);
+}
+
+TEST(BufferPool, ReusesTheSmallestIdleBufferThatFitsWithinItsBudget) {
+    BufferPool pool(8u << 20);
+    AlignedBuffer a = pool.take(3u << 20), b = pool.take((1u << 20) + 1);
+    EXPECT_EQ(reinterpret_cast<uintptr_t>(a.data()) % AlignedBuffer::kAlignment, 0u);
+    EXPECT_EQ(b.capacity(), 2u << 20);  // pooled sizes are whole MiB
+    const std::byte* a_data = a.data();
+    const std::byte* b_data = b.data();
+    pool.give(std::move(a));
+    pool.give(std::move(b));
+    EXPECT_EQ(pool.idle_bytes(), 5u << 20);
+    AlignedBuffer c = pool.take(1u << 20);
+    EXPECT_EQ(c.data(), b_data);
+    AlignedBuffer d = pool.take(3u << 20);
+    EXPECT_EQ(d.data(), a_data);
+    EXPECT_EQ(pool.idle_bytes(), 0u);
+    pool.give(pool.take(6u << 20));
+    pool.give(std::move(d));  // 6 + 3 MiB > the 8 MiB budget: freed, not kept
+    EXPECT_EQ(pool.idle_bytes(), 6u << 20);
+    AlignedBuffer small = pool.take(100);  // small buffers bypass the pool
+    EXPECT_GE(small.capacity(), 100u);
+    pool.give(std::move(small));
+    EXPECT_EQ(pool.idle_bytes(), 6u << 20);
+}
+
+TEST(PooledBuffer, GoesBackToItsPoolWhenDestroyedOrReplaced) {
+    BufferPool pool(64u << 20);
+    {
+        PooledBuffer a(pool, 2u << 20);
+        EXPECT_GE(a.capacity(), 2u << 20);
+        EXPECT_EQ(pool.idle_bytes(), 0u);
+        PooledBuffer b = std::move(a);  // moved-from a gives nothing back
+        EXPECT_FALSE(a);
+        EXPECT_TRUE(b);
+    }
+    EXPECT_EQ(pool.idle_bytes(), 2u << 20);
+    PooledBuffer c(pool, 1u << 20);  // reuses the idle one
+    EXPECT_EQ(pool.idle_bytes(), 0u);
+    c = PooledBuffer(pool, 3u << 20);  // the replaced buffer goes back
+    EXPECT_EQ(pool.idle_bytes(), 2u << 20);
+    c = PooledBuffer();
+    EXPECT_EQ(pool.idle_bytes(), 5u << 20);
 }
 
 }  // namespace

@@ -11,9 +11,12 @@
 #include <sys/socket.h>
 #include <unistd.h>
 
+#include <chrono>
 #include <cmath>
 #include <cstring>
 #include <limits>
+#include <thread>
+#include <vector>
 
 #include "http_test_util.h"
 #include "kdrt/proto/ray_batch.h"
@@ -214,6 +217,43 @@ TEST_F(HttpBatch, ARequestRightBehindALargeBodyIsAnswered) {
     const auto second = s.read_response();
     ASSERT_EQ(second.status, 200) << second.head;
     EXPECT_TRUE(second.body == expected_hits(few));
+}
+
+// Several connections stream large bodies at once, interleaved, over keep-alive: each body is
+// received from its own connection's socket (the part read past httplib), so each connection
+// gets the answer to its own rays. A socket lookup that ever picked another connection's socket
+// would garble both bodies, and the answers or the framing would be wrong.
+TEST_F(HttpBatch, ConcurrentLargeBodiesEachGetTheirOwnAnswer) {
+    constexpr int kConnections = 4;
+    constexpr size_t kRays = 20'000;  // 640 KiB: read from the socket past the first piece
+    std::vector<std::string> bodies, answers;
+    for (int c = 0; c < kConnections; ++c) {
+        const std::vector<Ray> own(rays_->begin() + static_cast<ptrdiff_t>(c * kRays),
+                                   rays_->begin() + static_cast<ptrdiff_t>((c + 1) * kRays));
+        bodies.push_back(bytes_to_string(proto::encode_rays(own, false)));
+        answers.push_back(expected_hits(own));
+    }
+    std::vector<int> good(kConnections, 0);
+    std::vector<std::thread> clients;
+    for (int c = 0; c < kConnections; ++c) {
+        clients.emplace_back([&, c] {
+            Socket s(server_->port());
+            for (int round = 0; round < 3; ++round) {
+                const std::string& body = bodies[static_cast<size_t>(c)];
+                s.send_all(post_head(path(), body.size()));
+                for (size_t at = 0; at < body.size(); at += 50'000) {
+                    s.send_all(body.substr(at, 50'000));
+                    std::this_thread::sleep_for(std::chrono::milliseconds(1));  // interleave
+                }
+                const auto r = s.read_response();
+                if (r.status == 200 && r.body == answers[static_cast<size_t>(c)])
+                    ++good[static_cast<size_t>(c)];
+            }
+        });
+    }
+    for (std::thread& t : clients) t.join();
+    for (int c = 0; c < kConnections; ++c)
+        EXPECT_EQ(good[static_cast<size_t>(c)], 3) << "connection " << c;
 }
 
 TEST_F(HttpBatch, ABodyCutShortIsA400AndTheServerGoesOn) {

@@ -1,7 +1,6 @@
-// The streamed KDRR path of the intersect route, in process: RayStreamDecoder gives decode_rays'
+// The incremental KDRR decoder and the in-place answers: RayStreamDecoder gives decode_rays'
 // verdict (same code, same detail) for every body however it is cut into pieces, fed or read in
-// place; write_answer_in_place gives encode_hits' / encode_occlusion's bytes; StreamTrace gives
-// Compute::intersect's / occluded's answers however the rays arrive; BufferPool reuses buffers.
+// place; write_answer_in_place gives encode_hits' / encode_occlusion's bytes.
 
 #include <gtest/gtest.h>
 
@@ -12,17 +11,11 @@
 #include <optional>
 #include <vector>
 
-#include "buffer_pool.h"
-#include "compute.h"
 #include "kdrt/proto/ray_batch.h"
-#include "kdrt/trace.h"
 #include "test_util.h"
 
-namespace kdrt::server {
+namespace kdrt::proto {
 namespace {
-
-using proto::DecodeErrorCode;
-using proto::RayStreamDecoder;
 
 std::vector<Ray> some_rays(size_t count, uint64_t seed) {
     test::Rng rng(seed);
@@ -50,8 +43,7 @@ struct Outcome {
 /// the header when `in_place`), optionally told the body's size in advance.
 Outcome stream_decode(const std::vector<std::byte>& body, Cut cut, bool declare, bool in_place,
                       uint64_t seed,
-                      proto::DecodeLimits limits = {.max_rays = 1u << 20,
-                                                    .reject_non_finite = true}) {
+                      DecodeLimits limits = {.max_rays = 1u << 20, .reject_non_finite = true}) {
     std::vector<Ray> storage;
     Outcome out;
     RayStreamDecoder decoder(
@@ -99,8 +91,8 @@ Outcome stream_decode(const std::vector<std::byte>& body, Cut cut, bool declare,
 /// size declared, may name the same problem before the rest arrives: same code and detail.)
 void expect_like_decode_rays(const std::vector<std::byte>& body, const std::string& what) {
     SCOPED_TRACE(what);
-    const proto::DecodeLimits limits{.max_rays = 1u << 20, .reject_non_finite = true};
-    auto want = proto::decode_rays(body, limits);
+    const DecodeLimits limits{.max_rays = 1u << 20, .reject_non_finite = true};
+    auto want = decode_rays(body, limits);
     for (const Cut cut : {Cut::kWhole, Cut::kBytes, Cut::kOdd, Cut::kRandom}) {
         if (cut == Cut::kBytes && body.size() > 20000) continue;
         for (const bool declare : {false, true}) {
@@ -129,15 +121,14 @@ void expect_like_decode_rays(const std::vector<std::byte>& body, const std::stri
 TEST(RayStreamDecoder, AgreesWithDecodeRaysOnValidBatches) {
     for (const size_t count : {size_t{0}, size_t{1}, size_t{3}, size_t{1000}}) {
         const std::vector<Ray> rays = some_rays(count, count + 1);
-        expect_like_decode_rays(proto::encode_rays(rays, false), std::to_string(count) + " rays");
-        expect_like_decode_rays(proto::encode_rays(rays, true),
-                                std::to_string(count) + " occlusion rays");
+        expect_like_decode_rays(encode_rays(rays, false), std::to_string(count) + " rays");
+        expect_like_decode_rays(encode_rays(rays, true), std::to_string(count) + " occlusion rays");
     }
 }
 
 TEST(RayStreamDecoder, AgreesWithDecodeRaysOnEveryRefusal) {
     const std::vector<Ray> rays = some_rays(50, 3);
-    const std::vector<std::byte> good = proto::encode_rays(rays, false);
+    const std::vector<std::byte> good = encode_rays(rays, false);
     auto with = [&](size_t offset, std::initializer_list<uint8_t> bytes) {
         std::vector<std::byte> b = good;
         for (uint8_t v : bytes) b[offset++] = std::byte{v};
@@ -161,9 +152,9 @@ TEST(RayStreamDecoder, AgreesWithDecodeRaysOnEveryRefusal) {
         float* f = reinterpret_cast<float*>(&bad[17]);
         f[field] = std::numeric_limits<float>::quiet_NaN();
         reinterpret_cast<float*>(&bad[40])[0] = std::numeric_limits<float>::infinity();
-        const std::vector<std::byte> body = proto::encode_rays(bad, false);
+        const std::vector<std::byte> body = encode_rays(bad, false);
         expect_like_decode_rays(body, std::string("NaN in ") + fields[field]);
-        auto want = proto::decode_rays(body, {.reject_non_finite = true});
+        auto want = decode_rays(body, {.reject_non_finite = true});
         ASSERT_FALSE(want);
         EXPECT_EQ(want.error().detail, "ray 17: field " + std::string(fields[field]) + " is NaN");
     }
@@ -171,19 +162,19 @@ TEST(RayStreamDecoder, AgreesWithDecodeRaysOnEveryRefusal) {
     std::vector<Ray> inf = rays;
     inf[5].tmax = std::numeric_limits<float>::infinity();
     inf[6].tmin = -std::numeric_limits<float>::infinity();
-    expect_like_decode_rays(proto::encode_rays(inf, false), "infinite range");
+    expect_like_decode_rays(encode_rays(inf, false), "infinite range");
     inf[9].dz = -std::numeric_limits<float>::infinity();
-    expect_like_decode_rays(proto::encode_rays(inf, false), "infinite direction");
+    expect_like_decode_rays(encode_rays(inf, false), "infinite direction");
     // A refused ray and a wrong length: the length is reported, as decode_rays does.
     std::vector<Ray> nan_rays = rays;
     nan_rays[2].dx = std::numeric_limits<float>::quiet_NaN();
-    std::vector<std::byte> nan_short = proto::encode_rays(nan_rays, false);
+    std::vector<std::byte> nan_short = encode_rays(nan_rays, false);
     nan_short.pop_back();
     expect_like_decode_rays(nan_short, "NaN and short");
 }
 
 TEST(RayStreamDecoder, ADeclaredSizeRefusesEarly) {
-    const std::vector<std::byte> body = proto::encode_rays(some_rays(100, 5), false);
+    const std::vector<std::byte> body = encode_rays(some_rays(100, 5), false);
     RayStreamDecoder decoder(
         {},
         [](uint32_t, bool) -> std::span<Ray> {
@@ -200,7 +191,7 @@ TEST(RayStreamDecoder, ADeclaredSizeRefusesEarly) {
 }
 
 TEST(RayStreamDecoder, StorageOfTheWrongSizeIsAProgrammingError) {
-    const std::vector<std::byte> body = proto::encode_rays(some_rays(4, 5), false);
+    const std::vector<std::byte> body = encode_rays(some_rays(4, 5), false);
     std::vector<Ray> storage(3);
     RayStreamDecoder decoder({}, [&](uint32_t, bool) { return std::span<Ray>(storage); });
     EXPECT_THROW((void)decoder.feed(body), std::logic_error);
@@ -216,81 +207,33 @@ TEST(RayBatchAnswers, WrittenInPlaceTheyEqualTheEncoders) {
             occluded[i] =
                 static_cast<uint8_t>(rng.below(3));  // 2: any nonzero value is 1 on the wire
         }
-        AlignedBuffer buffer(16 + 16 * size_t{count});
-        if (count > 0) std::memcpy(buffer.data() + 16, hits.data(), hits.size() * sizeof(Hit));
-        size_t size = proto::write_answer_in_place(buffer.data(), proto::AnswerKind::kHits, count);
-        EXPECT_EQ(std::vector<std::byte>(buffer.data(), buffer.data() + size),
-                  proto::encode_hits(hits));
-        if (count > 0) std::memcpy(buffer.data() + 16, occluded.data(), occluded.size());
-        size = proto::write_answer_in_place(buffer.data(), proto::AnswerKind::kOcclusion, count);
-        EXPECT_EQ(std::vector<std::byte>(buffer.data(), buffer.data() + size),
-                  proto::encode_occlusion(occluded));
+        // Storage aligned for Hit records after the 16-byte header, as the server's buffers are.
+        std::vector<Hit> storage(1 + size_t{count});
+        std::byte* body = reinterpret_cast<std::byte*>(storage.data());
+        ASSERT_EQ(answer_body_size(AnswerKind::kHits, count), 16 + 16 * uint64_t{count});
+        const std::span<Hit> records = answer_hit_records(body, count);
+        ASSERT_EQ(records.size(), count);
+        EXPECT_EQ(reinterpret_cast<std::byte*>(records.data()), body + kBatchHeaderBytes);
+        std::copy(hits.begin(), hits.end(), records.begin());
+        size_t size = write_answer_in_place(body, AnswerKind::kHits, count);
+        EXPECT_EQ(std::vector<std::byte>(body, body + size), encode_hits(hits));
+        const std::span<uint8_t> flags = answer_occlusion_records(body, count);
+        std::copy(occluded.begin(), occluded.end(), flags.begin());
+        size = write_answer_in_place(body, AnswerKind::kOcclusion, count);
+        EXPECT_EQ(size, answer_body_size(AnswerKind::kOcclusion, count));
+        EXPECT_EQ(std::vector<std::byte>(body, body + size), encode_occlusion(occluded));
     }
 }
 
-TEST(StreamTrace, AnswersEqualTheWholeBatchHoweverTheRaysArrive) {
-    test::Rng rng(test::test_seed());
-    SCOPED_TRACE(testing::Message() << "seed=" << test::test_seed());
-    const Mesh mesh = test::random_soup(rng, 2000);
-    const KdTree tree = build_kdtree(mesh);
-    Compute compute(2);
-    // More than two blocks (so some are traced while "arriving"), and a ragged tail.
-    const size_t count = std::max<size_t>(test::scaled(3 * StreamTrace::kBlockRays + 1234), 3000);
-    const std::vector<Ray> rays = some_rays(count, 21);
-    std::vector<Hit> want(count);
-    std::vector<uint8_t> want_occluded(count);
-    compute.intersect(tree, rays, want);
-    compute.occluded(tree, rays, want_occluded);
-
-    std::vector<Hit> hits(count);
-    std::vector<uint8_t> occ(count);
-    {
-        StreamTrace trace(compute, tree, rays, std::span<Hit>(hits));
-        StreamTrace trace_occ(compute, tree, rays, std::span<uint8_t>(occ));
-        for (size_t ready = 0; ready < count;) {
-            ready = std::min(count, ready + 1 + rng.below(40000));
-            trace.advance(ready);
-            trace_occ.advance(ready);
-        }
-        trace.finish();
-        trace_occ.finish();
-    }
-    EXPECT_EQ(std::memcmp(hits.data(), want.data(), count * sizeof(Hit)), 0);
-    EXPECT_EQ(occ, want_occluded);
-
-    // Abandoned part-way (a refused batch): waits for what it started, traces nothing more.
-    std::vector<Hit> partial(count);
-    {
-        StreamTrace trace(compute, tree, rays, std::span<Hit>(partial));
-        trace.advance(count / 2);
-        trace.abandon();
-        trace.advance(count);  // ignored after abandon: nothing starts, nothing is left running
-    }
-}
-
-TEST(BufferPool, ReusesTheSmallestIdleBufferThatFitsWithinItsBudget) {
-    BufferPool pool(8u << 20);
-    AlignedBuffer a = pool.take(3u << 20), b = pool.take((1u << 20) + 1);
-    EXPECT_EQ(reinterpret_cast<uintptr_t>(a.data()) % AlignedBuffer::kAlignment, 0u);
-    EXPECT_EQ(b.capacity(), 2u << 20);  // pooled sizes are whole MiB
-    const std::byte* a_data = a.data();
-    const std::byte* b_data = b.data();
-    pool.give(std::move(a));
-    pool.give(std::move(b));
-    EXPECT_EQ(pool.idle_bytes(), 5u << 20);
-    AlignedBuffer c = pool.take(1u << 20);
-    EXPECT_EQ(c.data(), b_data);
-    AlignedBuffer d = pool.take(3u << 20);
-    EXPECT_EQ(d.data(), a_data);
-    EXPECT_EQ(pool.idle_bytes(), 0u);
-    pool.give(pool.take(6u << 20));
-    pool.give(std::move(d));  // 6 + 3 MiB > the 8 MiB budget: freed, not kept
-    EXPECT_EQ(pool.idle_bytes(), 6u << 20);
-    AlignedBuffer small = pool.take(100);  // small buffers bypass the pool
-    EXPECT_GE(small.capacity(), 100u);
-    pool.give(std::move(small));
-    EXPECT_EQ(pool.idle_bytes(), 6u << 20);
+TEST(RayBatchSizes, NameTheKdrrArithmetic) {
+    EXPECT_EQ(kdrr_body_size(0), 16u);
+    EXPECT_EQ(kdrr_body_size(3), 16u + 3 * 32);
+    EXPECT_EQ(kdrr_body_size(0xffffffffu), 16 + 32 * uint64_t{0xffffffffu});
+    EXPECT_EQ(answer_record_size(AnswerKind::kHits), kHitRecordBytes);
+    EXPECT_EQ(answer_record_size(AnswerKind::kOcclusion), kOcclusionRecordBytes);
+    EXPECT_EQ(answer_body_size(AnswerKind::kOcclusion, 5), 21u);
+    EXPECT_EQ(encode_rays(std::vector<Ray>(7), false).size(), kdrr_body_size(7));
 }
 
 }  // namespace
-}  // namespace kdrt::server
+}  // namespace kdrt::proto
