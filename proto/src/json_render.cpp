@@ -7,18 +7,12 @@
 #include "json_writer.h"
 #include "kdrt/proto/json_api.h"
 #include "kdrt/proto/problem.h"
+#include "kdrt/proto/text.h"
 
 namespace kdrt::proto {
 namespace {
 
 using nlohmann::json;
-
-std::string in_quotes(std::string_view text) {
-    std::string out(1, '"');
-    out.append(text);
-    out.push_back('"');
-    return out;
-}
 
 /// Reads the members of one JSON object, refusing unknown ones; remembers the first error.
 class ObjectReader {
