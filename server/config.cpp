@@ -5,9 +5,14 @@
 #include <limits>
 #include <optional>
 
+#include "kdrt/mesh.h"
 #include "kdrt/proto/config_json.h"
 #include "kdrt/proto/file_io.h"
+#include "kdrt/proto/image_io.h"
+#include "kdrt/proto/json_api.h"
+#include "kdrt/proto/ray_batch.h"
 #include "kdrt/proto/text.h"
+#include "kdrt/render.h"
 
 namespace kdrt::server {
 namespace {
@@ -15,6 +20,16 @@ namespace {
 using proto::Err;
 using proto::in_quotes;
 using proto::Result;
+
+// Ranges of the settings the server alone enforces. The others take the limit of the layer that
+// enforces it (the engine's kMax* constants, proto's decode limits), so a configured value is
+// never one that layer then refuses on every request.
+constexpr uint64_t kMaxThreadCount = 4096;     ///< http_threads, threads
+constexpr uint64_t kMaxTimeoutSeconds = 3600;  ///< keep-alive, socket and shutdown timeouts
+constexpr uint64_t kMaxQueued = 100000;        ///< max_inflight, max_jobs
+constexpr uint64_t kMaxRequestsPerConnection = 1000000;
+constexpr uint64_t kMaxJobTtlSeconds = 7 * 86400;  ///< one week
+constexpr uint64_t kMinJsonBodyBytes = 1024;       ///< room for the smallest useful request
 
 /// One setting: its key, where it lives in ServerConfig, its range and its help line.
 struct Setting {
@@ -42,34 +57,34 @@ const std::vector<Setting>& settings() {
          .help = "HTTP connection threads (each open keep-alive connection holds one)",
          .u32 = &ServerConfig::http_threads,
          .min = 1,
-         .max = 4096},
+         .max = kMaxThreadCount},
         {.key = "keep_alive_timeout_s",
          .help = "seconds an idle keep-alive connection is kept",
          .u32 = &ServerConfig::keep_alive_timeout_s,
          .min = 1,
-         .max = 3600},
+         .max = kMaxTimeoutSeconds},
         {.key = "keep_alive_max_requests",
          .help = "requests served on one connection before it is closed",
          .u32 = &ServerConfig::keep_alive_max_requests,
          .min = 1,
-         .max = 1000000},
+         .max = kMaxRequestsPerConnection},
         {.key = "read_timeout_s",
          .help = "socket read timeout in seconds",
          .u32 = &ServerConfig::read_timeout_s,
          .min = 1,
-         .max = 3600},
+         .max = kMaxTimeoutSeconds},
         {.key = "write_timeout_s",
          .help = "socket write timeout in seconds",
          .u32 = &ServerConfig::write_timeout_s,
          .min = 1,
-         .max = 3600},
+         .max = kMaxTimeoutSeconds},
         {.key = "token",
          .help = "bearer token required on /v1 requests (empty: no authentication)",
          .text = &ServerConfig::token},
         {.key = "threads",
          .help = "tracing and build threads (0: all cores)",
          .u32 = &ServerConfig::threads,
-         .max = 4096},
+         .max = kMaxThreadCount},
         {.key = "cache_dir",
          .help = "directory of the stored meshes and trees",
          .text = &ServerConfig::cache_dir},
@@ -97,63 +112,63 @@ const std::vector<Setting>& settings() {
          .help = "most triangles in one mesh",
          .u64 = &ServerConfig::max_triangles,
          .min = 1,
-         .max = (1ull << 30) - 1},
+         .max = kMaxTriangles},
         {.key = "max_rays",
          .help = "most rays in one KDRR batch",
          .u32 = &ServerConfig::max_rays,
          .min = 1,
-         .max = 1u << 26},
+         .max = proto::DecodeLimits{}.max_rays},
         {.key = "max_json_rays",
          .help = "most rays in one JSON batch",
          .u32 = &ServerConfig::max_json_rays,
          .min = 1,
-         .max = 1u << 24},
+         .max = proto::kMaxJsonRays},
         {.key = "max_json_bytes",
          .help = "largest JSON request body",
          .u64 = &ServerConfig::max_json_bytes,
          .bytes = true,
-         .min = 1024},
+         .min = kMinJsonBodyBytes},
         {.key = "max_inflight",
          .help = "uploads, traces and renders in flight before 503",
          .u32 = &ServerConfig::max_inflight,
          .min = 1,
-         .max = 100000},
+         .max = kMaxQueued},
         {.key = "max_image_width",
          .help = "widest render",
          .u32 = &ServerConfig::max_image_width,
          .min = 1,
-         .max = 65536},
+         .max = kMaxImageSize},
         {.key = "max_image_height",
          .help = "tallest render",
          .u32 = &ServerConfig::max_image_height,
          .min = 1,
-         .max = 65536},
+         .max = kMaxImageSize},
         {.key = "max_spp",
          .help = "most samples per pixel",
          .u32 = &ServerConfig::max_spp,
          .min = 1,
-         .max = 65536},
+         .max = kMaxSamplesPerPixel},
         {.key = "png_compression",
          .help =
              "zlib level 0-9 of rendered PNGs when the request has no \"compression\" (1: fast)",
          .u32 = &ServerConfig::png_compression,
          .min = 0,
-         .max = 9},
+         .max = proto::kMaxPngCompression},
         {.key = "max_jobs",
          .help = "async render jobs queued or running before 503",
          .u32 = &ServerConfig::max_jobs,
          .min = 1,
-         .max = 100000},
+         .max = kMaxQueued},
         {.key = "job_ttl_s",
          .help = "seconds a finished job and its image are kept",
          .u32 = &ServerConfig::job_ttl_s,
          .min = 1,
-         .max = 7 * 86400},
+         .max = kMaxJobTtlSeconds},
         {.key = "shutdown_timeout_s",
          .help = "seconds in-flight requests get to finish on SIGTERM/SIGINT",
          .u32 = &ServerConfig::shutdown_timeout_s,
          .min = 1,
-         .max = 3600},
+         .max = kMaxTimeoutSeconds},
         {.key = "log_level",
          .help = "trace, debug, info, warn, error, critical or off",
          .text = &ServerConfig::log_level,
