@@ -5,14 +5,31 @@
 #include <limits>
 #include <optional>
 
+#include "kdrt/mesh.h"
 #include "kdrt/proto/config_json.h"
 #include "kdrt/proto/file_io.h"
+#include "kdrt/proto/image_io.h"
+#include "kdrt/proto/json_api.h"
+#include "kdrt/proto/ray_batch.h"
+#include "kdrt/proto/text.h"
+#include "kdrt/render.h"
 
 namespace kdrt::server {
 namespace {
 
 using proto::Err;
+using proto::in_quotes;
 using proto::Result;
+
+// Ranges of the settings the server alone enforces. The others take the limit of the layer that
+// enforces it (the engine's kMax* constants, proto's decode limits), so a configured value is
+// never one that layer then refuses on every request.
+constexpr uint64_t kMaxThreadCount = 4096;     ///< http_threads, threads
+constexpr uint64_t kMaxTimeoutSeconds = 3600;  ///< keep-alive, socket and shutdown timeouts
+constexpr uint64_t kMaxQueued = 100000;        ///< max_inflight, max_jobs
+constexpr uint64_t kMaxRequestsPerConnection = 1000000;
+constexpr uint64_t kMaxJobTtlSeconds = 7 * 86400;  ///< one week
+constexpr uint64_t kMinJsonBodyBytes = 1024;       ///< room for the smallest useful request
 
 /// One setting: its key, where it lives in ServerConfig, its range and its help line.
 struct Setting {
@@ -40,34 +57,34 @@ const std::vector<Setting>& settings() {
          .help = "HTTP connection threads (each open keep-alive connection holds one)",
          .u32 = &ServerConfig::http_threads,
          .min = 1,
-         .max = 4096},
+         .max = kMaxThreadCount},
         {.key = "keep_alive_timeout_s",
          .help = "seconds an idle keep-alive connection is kept",
          .u32 = &ServerConfig::keep_alive_timeout_s,
          .min = 1,
-         .max = 3600},
+         .max = kMaxTimeoutSeconds},
         {.key = "keep_alive_max_requests",
          .help = "requests served on one connection before it is closed",
          .u32 = &ServerConfig::keep_alive_max_requests,
          .min = 1,
-         .max = 1000000},
+         .max = kMaxRequestsPerConnection},
         {.key = "read_timeout_s",
          .help = "socket read timeout in seconds",
          .u32 = &ServerConfig::read_timeout_s,
          .min = 1,
-         .max = 3600},
+         .max = kMaxTimeoutSeconds},
         {.key = "write_timeout_s",
          .help = "socket write timeout in seconds",
          .u32 = &ServerConfig::write_timeout_s,
          .min = 1,
-         .max = 3600},
+         .max = kMaxTimeoutSeconds},
         {.key = "token",
          .help = "bearer token required on /v1 requests (empty: no authentication)",
          .text = &ServerConfig::token},
         {.key = "threads",
          .help = "tracing and build threads (0: all cores)",
          .u32 = &ServerConfig::threads,
-         .max = 4096},
+         .max = kMaxThreadCount},
         {.key = "cache_dir",
          .help = "directory of the stored meshes and trees",
          .text = &ServerConfig::cache_dir},
@@ -95,63 +112,63 @@ const std::vector<Setting>& settings() {
          .help = "most triangles in one mesh",
          .u64 = &ServerConfig::max_triangles,
          .min = 1,
-         .max = (1ull << 30) - 1},
+         .max = kMaxTriangles},
         {.key = "max_rays",
          .help = "most rays in one KDRR batch",
          .u32 = &ServerConfig::max_rays,
          .min = 1,
-         .max = 1u << 26},
+         .max = proto::DecodeLimits{}.max_rays},
         {.key = "max_json_rays",
          .help = "most rays in one JSON batch",
          .u32 = &ServerConfig::max_json_rays,
          .min = 1,
-         .max = 1u << 24},
+         .max = proto::kMaxJsonRays},
         {.key = "max_json_bytes",
          .help = "largest JSON request body",
          .u64 = &ServerConfig::max_json_bytes,
          .bytes = true,
-         .min = 1024},
+         .min = kMinJsonBodyBytes},
         {.key = "max_inflight",
          .help = "uploads, traces and renders in flight before 503",
          .u32 = &ServerConfig::max_inflight,
          .min = 1,
-         .max = 100000},
+         .max = kMaxQueued},
         {.key = "max_image_width",
          .help = "widest render",
          .u32 = &ServerConfig::max_image_width,
          .min = 1,
-         .max = 65536},
+         .max = kMaxImageSize},
         {.key = "max_image_height",
          .help = "tallest render",
          .u32 = &ServerConfig::max_image_height,
          .min = 1,
-         .max = 65536},
+         .max = kMaxImageSize},
         {.key = "max_spp",
          .help = "most samples per pixel",
          .u32 = &ServerConfig::max_spp,
          .min = 1,
-         .max = 65536},
+         .max = kMaxSamplesPerPixel},
         {.key = "png_compression",
          .help =
              "zlib level 0-9 of rendered PNGs when the request has no \"compression\" (1: fast)",
          .u32 = &ServerConfig::png_compression,
          .min = 0,
-         .max = 9},
+         .max = proto::kMaxPngCompression},
         {.key = "max_jobs",
          .help = "async render jobs queued or running before 503",
          .u32 = &ServerConfig::max_jobs,
          .min = 1,
-         .max = 100000},
+         .max = kMaxQueued},
         {.key = "job_ttl_s",
          .help = "seconds a finished job and its image are kept",
          .u32 = &ServerConfig::job_ttl_s,
          .min = 1,
-         .max = 7 * 86400},
+         .max = kMaxJobTtlSeconds},
         {.key = "shutdown_timeout_s",
          .help = "seconds in-flight requests get to finish on SIGTERM/SIGINT",
          .u32 = &ServerConfig::shutdown_timeout_s,
          .min = 1,
-         .max = 3600},
+         .max = kMaxTimeoutSeconds},
         {.key = "log_level",
          .help = "trace, debug, info, warn, error, critical or off",
          .text = &ServerConfig::log_level,
@@ -183,18 +200,11 @@ const Setting* find_setting(std::string_view key) {
     return nullptr;
 }
 
-std::string quote(std::string_view text) {
-    std::string out(1, '"');
-    out += text;
-    out.push_back('"');
-    return out;
-}
-
 Result<uint64_t, std::string> parse_unsigned(std::string_view text) {
     uint64_t value = 0;
     const auto [ptr, ec] = std::from_chars(text.data(), text.data() + text.size(), value);
     if (text.empty() || ec != std::errc() || ptr != text.data() + text.size())
-        return Err{quote(text) + " is not a non-negative integer"};
+        return Err{in_quotes(text) + " is not a non-negative integer"};
     return value;
 }
 
@@ -206,7 +216,7 @@ Result<void, std::string> apply(const Setting& s, std::string_view text, ServerC
             std::string allowed;
             for (const auto c : s.choices)
                 allowed += (allowed.empty() ? "" : ", ") + std::string(c);
-            return Err{quote(text) + " is not one of " + allowed};
+            return Err{in_quotes(text) + " is not one of " + allowed};
         }
         if (s.key == "listen") {
             auto split = split_listen(text);
@@ -233,7 +243,7 @@ Result<void, std::string> apply(const Setting& s, std::string_view text, ServerC
     auto value = s.bytes ? parse_bytes(text) : parse_unsigned(text);
     if (!value) return Err{std::move(value).error()};
     if (*value < s.min || *value > s.max)
-        return Err{quote(text) + " is outside " + std::to_string(s.min) + ".." +
+        return Err{in_quotes(text) + " is outside " + std::to_string(s.min) + ".." +
                    std::to_string(s.max)};
     if (s.u32)
         config.*s.u32 = static_cast<unsigned>(*value);
@@ -251,12 +261,12 @@ Result<void, std::string> apply_config_file(const std::string& path, ServerConfi
     for (const proto::ConfigEntry& e : *entries) {
         const Setting* s = find_setting(e.key);
         if (!s)
-            return Err{path + ": unknown setting " + quote(e.key) +
+            return Err{path + ": unknown setting " + in_quotes(e.key) +
                        " (kdrt-server --help lists them)"};
         Result<void, std::string> applied;
         if (const auto* list = std::get_if<std::vector<std::string>>(&e.value)) {
             if (!s->list)
-                return Err{path + ": " + quote(e.key) + " takes a single value, not a list"};
+                return Err{path + ": " + in_quotes(e.key) + " takes a single value, not a list"};
             config.*s->list = *list;
         } else if (const auto* str = std::get_if<std::string>(&e.value)) {
             if (s->list)
@@ -264,39 +274,30 @@ Result<void, std::string> apply_config_file(const std::string& path, ServerConfi
             else
                 applied = apply(*s, *str, config);
         } else if (const auto* integer = std::get_if<int64_t>(&e.value)) {
-            if (s->text || s->list) return Err{path + ": " + quote(e.key) + " must be a string"};
-            if (*integer < 0) return Err{path + ": " + quote(e.key) + " must not be negative"};
+            if (s->text || s->list)
+                return Err{path + ": " + in_quotes(e.key) + " must be a string"};
+            if (*integer < 0) return Err{path + ": " + in_quotes(e.key) + " must not be negative"};
             applied = apply(*s, std::to_string(*integer), config);
         } else {
-            return Err{path + ": " + quote(e.key) + " must be " +
+            return Err{path + ": " + in_quotes(e.key) + " must be " +
                        (s->text   ? "a string"
                         : s->list ? "a list of strings"
                                   : "a non-negative integer")};
         }
-        if (!applied) return Err{path + ": " + quote(e.key) + ": " + applied.error()};
+        if (!applied) return Err{path + ": " + in_quotes(e.key) + ": " + applied.error()};
     }
     config.config_file = path;
     return {};
 }
 
-std::string json_quote(std::string_view text) {
-    std::string out(1, '"');
-    for (const char c : text) {
-        if (c == '"' || c == '\\') out.push_back('\\');
-        out.push_back(c);
-    }
-    out.push_back('"');
-    return out;
-}
-
 std::string default_json(const Setting& s) {
     const ServerConfig defaults;
-    if (s.text) return json_quote(defaults.*s.text);
+    if (s.text) return proto::json_string(defaults.*s.text);
     if (s.u32) return std::to_string(defaults.*s.u32);
     if (s.u64) return std::to_string(defaults.*s.u64);
     std::string out = "[";
     for (const std::string& item : defaults.*s.list)
-        out += (out.size() > 1 ? ", " : "") + json_quote(item);
+        out += (out.size() > 1 ? ", " : "") + proto::json_string(item);
     return out + "]";
 }
 
@@ -305,13 +306,13 @@ std::string default_json(const Setting& s) {
 Result<std::pair<std::string, int>, std::string> split_listen(std::string_view listen) {
     const size_t colon = listen.rfind(':');
     if (colon == std::string_view::npos || colon == 0)
-        return Err{quote(listen) + " is not HOST:PORT (e.g. 127.0.0.1:8080)"};
+        return Err{in_quotes(listen) + " is not HOST:PORT (e.g. 127.0.0.1:8080)"};
     std::string_view host = listen.substr(0, colon);
     if (host.size() >= 2 && host.front() == '[' && host.back() == ']')
         host = host.substr(1, host.size() - 2);
     auto port = parse_unsigned(listen.substr(colon + 1));
     if (!port || *port > 65535)
-        return Err{quote(listen) + " has no port number 0..65535 after the last ':'"};
+        return Err{in_quotes(listen) + " has no port number 0..65535 after the last ':'"};
     return std::pair{std::string(host), static_cast<int>(*port)};
 }
 
@@ -339,10 +340,10 @@ Result<uint64_t, std::string> parse_bytes(std::string_view text) {
     }
     auto value = parse_unsigned(digits);
     if (!value)
-        return Err{quote(text) +
+        return Err{in_quotes(text) +
                    " is not a byte count (digits with an optional K, M, G or T suffix)"};
     if (*value > std::numeric_limits<uint64_t>::max() / scale)
-        return Err{quote(text) + " is too large"};
+        return Err{in_quotes(text) + " is too large"};
     return *value * scale;
 }
 
@@ -403,7 +404,8 @@ Result<Invocation, std::string> parse_invocation(const std::vector<std::string>&
         for (const Setting& s : settings())
             if (flag_name(s.key) == arg) found = &s;
         if (!found)
-            return Err{"unknown argument " + quote(arg) + " (kdrt-server --help lists the flags)"};
+            return Err{"unknown argument " + in_quotes(arg) +
+                       " (kdrt-server --help lists the flags)"};
         if (found->list) {
             // --preload A B C: every following argument up to the next flag.
             std::vector<std::string> items;

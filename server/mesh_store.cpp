@@ -7,14 +7,15 @@
 #include "kdrt/proto/file_io.h"
 #include "kdrt/proto/mesh_id.h"
 #include "kdrt/proto/mesh_io.h"
+#include "kdrt/proto/text.h"
 #include "kdrt/serialize.h"
-#include "text.h"
 
 namespace kdrt::server {
 namespace {
 
 namespace fs = std::filesystem;
 using proto::Err;
+using proto::in_quotes;
 
 std::span<const std::byte> text_bytes(const std::string& text) {
     return {reinterpret_cast<const std::byte*>(text.data()), text.size()};

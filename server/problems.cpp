@@ -1,10 +1,11 @@
 #include "problems.h"
 
 #include "kdrt/proto/mesh_id.h"
-#include "text.h"
+#include "kdrt/proto/text.h"
 
 namespace kdrt::server {
 
+using proto::in_quotes;
 using proto::ProblemKind;
 
 proto::Problem make_problem(ProblemKind kind, std::string detail) {

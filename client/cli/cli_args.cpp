@@ -7,19 +7,12 @@
 #include <filesystem>
 
 #include "kdrt/client/server_url.h"
+#include "kdrt/proto/text.h"
 
 namespace kdrt::cli {
 namespace {
 
-std::string in_quotes(std::string_view text) {
-    std::string
-        out;  // appended, not `"\"" + ... + "\""`: GCC 12 warns falsely (-Wrestrict) on that
-    out.reserve(text.size() + 2);
-    out.push_back('"');
-    out.append(text);
-    out.push_back('"');
-    return out;
-}
+using proto::in_quotes;
 
 const OptionSpec* find_long(std::span<const OptionSpec> specs, std::string_view name) {
     for (const OptionSpec& s : specs)

@@ -1,6 +1,8 @@
 #pragma once
-/// What the subcommand implementations share (internal to the CLI).
+/// What the subcommand implementations share (internal to the CLI): one run's context, and the
+/// checks and messages every command uses.
 
+#include <cstddef>
 #include <optional>
 #include <span>
 #include <string>
@@ -42,8 +44,9 @@ struct Context {
 /// Exit code of an Error kind (see Context::fail).
 [[nodiscard]] int exit_code_for(const Error& error) noexcept;
 
-int run_rays(Context& ctx);
-int run_trace(Context& ctx);
-int run_bench_remote(Context& ctx);
+/// Checks the positional count: at least `min`, at most `max`. Otherwise prints the usage error
+/// ("missing <what>" or "unexpected argument"), sets `code` to its exit code and returns false.
+[[nodiscard]] bool positional_count_ok(Context& ctx, size_t min, size_t max, std::string_view what,
+                                       int& code);
 
 }  // namespace kdrt::cli

@@ -1,4 +1,5 @@
-// kdrt: the command-line client of kdrt-server. See `kdrt --help` and client/cli/cli_commands.cpp.
+// kdrt: the command-line client of kdrt-server. See `kdrt --help`; the commands are listed in
+// client/cli/cli_command.h, each with its help text in the file that implements it.
 
 #include <signal.h>
 #include <unistd.h>

@@ -3,22 +3,16 @@
 #include <cctype>
 #include <charconv>
 
+#include "kdrt/proto/text.h"
+
 namespace kdrt {
 namespace {
+
+using proto::in_quotes;
 
 bool is_host_char(char c) noexcept {
     return (c >= 'a' && c <= 'z') || (c >= 'A' && c <= 'Z') || (c >= '0' && c <= '9') || c == '-' ||
            c == '.' || c == '_';
-}
-
-std::string in_quotes(std::string_view text) {
-    std::string
-        out;  // appended, not `"\"" + ... + "\""`: GCC 12 warns falsely (-Wrestrict) on that
-    out.reserve(text.size() + 2);
-    out.push_back('"');
-    out.append(text);
-    out.push_back('"');
-    return out;
 }
 
 }  // namespace

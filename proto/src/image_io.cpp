@@ -281,9 +281,9 @@ Result<std::vector<std::byte>, std::string> encode_image(const Image& image, Ima
         return Err{"jpeg_quality " + std::to_string(options.jpeg_quality) + " must be in 1 .. 100"};
     }
     if (format == ImageFormat::kPng &&
-        (options.png_compression < 0 || options.png_compression > 9)) {
+        (options.png_compression < 0 || options.png_compression > kMaxPngCompression)) {
         return Err{"png_compression " + std::to_string(options.png_compression) +
-                   " must be in 0 .. 9"};
+                   " must be in 0 .. " + std::to_string(kMaxPngCompression)};
     }
     if (format == ImageFormat::kExr && options.exr_pixel_type != ExrPixelType::kHalf &&
         options.exr_pixel_type != ExrPixelType::kFloat) {

@@ -5,20 +5,15 @@
 #include <nlohmann/json.hpp>
 
 #include "json_writer.h"
+#include "kdrt/proto/image_io.h"
 #include "kdrt/proto/json_api.h"
 #include "kdrt/proto/problem.h"
+#include "kdrt/proto/text.h"
 
 namespace kdrt::proto {
 namespace {
 
 using nlohmann::json;
-
-std::string in_quotes(std::string_view text) {
-    std::string out(1, '"');
-    out.append(text);
-    out.push_back('"');
-    return out;
-}
 
 /// Reads the members of one JSON object, refusing unknown ones; remembers the first error.
 class ObjectReader {
@@ -155,7 +150,7 @@ Result<RenderRequest, JsonError> decode_render_request(std::string_view text,
         r.fail("unknown format " + in_quotes(req.format) + " (expected png, jpg or exr)");
     if (r.find("compression")) {
         int level = 0;
-        r.integer("compression", level, 0, 9);
+        r.integer("compression", level, 0, kMaxPngCompression);
         if (req.format != "png")
             r.fail("\"compression\" applies to png only, not " + in_quotes(req.format));
         req.compression = level;

@@ -1,7 +1,7 @@
 #pragma once
 // A small streaming JSON writer for the encoders in this directory: shortest round-trip numbers
-// (std::to_chars), RFC 8259 string escaping, commas tracked per nesting level. Internal to
-// kdrt_proto_json; callers see only the typed encoders.
+// (std::to_chars), RFC 8259 string escaping (kdrt/proto/text.h), commas tracked per nesting level.
+// Internal to kdrt_proto_json; callers see only the typed encoders.
 
 #include <cstdint>
 #include <string>
@@ -9,10 +9,6 @@
 #include <vector>
 
 namespace kdrt::proto::detail {
-
-/// Appends `text` to `out` as a quoted JSON string. Control characters become \uXXXX, `"` and
-/// `\` are escaped; bytes >= 0x80 are copied as they are (the caller passes UTF-8).
-void append_json_string(std::string& out, std::string_view text);
 
 /// Appends the shortest decimal that reads back to the same float; NaN/Inf become `null`.
 void append_json_float(std::string& out, float value);

@@ -9,6 +9,7 @@
 
 #include "kdrt/proto/errors.h"
 #include "kdrt/proto/mesh_io.h"
+#include "kdrt/proto/text.h"
 
 namespace kdrt::proto::detail {
 
@@ -35,12 +36,6 @@ namespace kdrt::proto::detail {
 
 [[nodiscard]] constexpr char axis_name(int axis) noexcept {
     return axis == 0 ? 'x' : (axis == 1 ? 'y' : 'z');
-}
-
-/// "NaN", "+inf" or "-inf" for a non-finite float read from binary data.
-[[nodiscard]] inline std::string non_finite_name(double v) {
-    if (std::isnan(v)) return "NaN";
-    return v > 0 ? "+inf" : "-inf";
 }
 
 /// "<what> count N exceeds the limit L".

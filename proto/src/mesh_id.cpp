@@ -9,6 +9,8 @@
 #include <span>
 #include <stdexcept>
 
+#include "kdrt/proto/text.h"
+
 namespace kdrt::proto {
 namespace {
 
@@ -32,13 +34,8 @@ public:
         unsigned int length = 0;
         if (EVP_DigestFinal_ex(ctx_.get(), digest.data(), &length) != 1)
             throw std::runtime_error("OpenSSL: SHA-256 final failed");
-        static constexpr char kHex[] = "0123456789abcdef";
         std::string out;
-        out.reserve(2 * length);
-        for (unsigned int i = 0; i < length; ++i) {
-            out.push_back(kHex[digest[i] >> 4]);
-            out.push_back(kHex[digest[i] & 15]);
-        }
+        append_hex(out, std::span<const unsigned char>(digest.data(), length));
         return out;
     }
 

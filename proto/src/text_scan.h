@@ -12,6 +12,8 @@
 #include <system_error>
 #include <type_traits>
 
+#include "kdrt/proto/text.h"
+
 namespace kdrt::proto::detail {
 
 /// Blanks inside a line. '\r' counts, so CRLF files and stray CRs need no special casing.
@@ -182,7 +184,6 @@ template <class I>
 
 /// A token for an error message: quoted, at most 40 characters, non-printables as \xNN.
 [[nodiscard]] inline std::string quote_token(std::string_view token) {
-    static constexpr char kHex[] = "0123456789abcdef";
     std::string s = "'";
     const size_t shown = token.size() > 40 ? 40 : token.size();
     for (size_t i = 0; i < shown; ++i) {
@@ -191,8 +192,7 @@ template <class I>
             s += static_cast<char>(c);
         } else {
             s += "\\x";
-            s += kHex[c >> 4];
-            s += kHex[c & 15];
+            s += hex(c, 2);
         }
     }
     if (shown < token.size()) s += "...";

@@ -6,6 +6,7 @@
 #include <sstream>
 
 #include "cli_args.h"
+#include "cli_command.h"
 #include "cli_context.h"
 #include "cli_output.h"
 #include "cli_progress.h"
@@ -126,6 +127,25 @@ TEST(CliExitCodes, FollowTheErrorKind) {
     EXPECT_EQ(code(ErrorKind::kCancelled), cli::kExitRefused);
     EXPECT_EQ(code(ErrorKind::kInput), cli::kExitUsage);
     EXPECT_EQ(code(ErrorKind::kConnection), cli::kExitUnreachable);
+}
+
+TEST(CliCommands, TheTableDrivesDispatchAndTheMainHelp) {
+    ASSERT_FALSE(cli::commands().empty());
+    for (const cli::Command* c : cli::commands()) {
+        SCOPED_TRACE(std::string(c->name));
+        EXPECT_EQ(cli::find_command(c->name), c);
+        ASSERT_NE(c->run, nullptr);
+        EXPECT_EQ(c->synopsis.substr(0, c->name.size()), c->name);
+        EXPECT_EQ(c->help.rfind("usage: kdrt " + std::string(c->name), 0), 0u);
+        // One line of the main help per command: the synopsis, then the summary.
+        const size_t line = cli::main_help().find("\n  " + std::string(c->synopsis) + " ");
+        ASSERT_NE(line, std::string::npos);
+        EXPECT_NE(cli::main_help().find(std::string(c->summary) + "\n", line), std::string::npos);
+        for (const cli::OptionSpec& o : c->options)
+            EXPECT_NE(c->help.find("--" + std::string(o.name)), std::string_view::npos) << o.name;
+    }
+    EXPECT_EQ(cli::find_command("help"), nullptr);  // handled by dispatch, not a table entry
+    EXPECT_EQ(cli::find_command("frob"), nullptr);
 }
 
 TEST(CliArgs, SplitsOptionsFlagsAndPositionals) {

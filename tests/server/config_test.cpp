@@ -7,8 +7,13 @@
 #include <filesystem>
 #include <fstream>
 
+#include "kdrt/mesh.h"
 #include "kdrt/proto/config_json.h"
 #include "kdrt/proto/file_io.h"
+#include "kdrt/proto/image_io.h"
+#include "kdrt/proto/json_api.h"
+#include "kdrt/proto/ray_batch.h"
+#include "kdrt/render.h"
 
 namespace kdrt::server {
 namespace {
@@ -149,6 +154,46 @@ TEST(Config, ShippedConfigFileListsEverySettingWithItsDefault) {
     }
     // And the server accepts it as is.
     EXPECT_TRUE(parse_invocation({"--config", path}, {}));
+}
+
+// A setting's range is the range of the layer that enforces it: a value the renderer, the mesh
+// parsers or the batch decoders would refuse on every request is refused at start-up instead.
+TEST(Config, RangesAreTheLimitsOfTheLayerThatEnforcesThem) {
+    const std::string image = std::to_string(kMaxImageSize);
+    EXPECT_EQ(parse_error({"--max-image-width", "20000"}),
+              "--max-image-width: \"20000\" is outside 1.." + image);
+    EXPECT_EQ(parse_error({"--max-image-height=20000"}),
+              "--max-image-height: \"20000\" is outside 1.." + image);
+    EXPECT_EQ(parse_error({}, {"KDRT_MAX_IMAGE_WIDTH=65536"}),
+              "KDRT_MAX_IMAGE_WIDTH: \"65536\" is outside 1.." + image);
+    const auto path = std::filesystem::temp_directory_path() /
+                      ("kdrt-config-range-" + std::to_string(::getpid()) + ".json");
+    std::ofstream(path) << "{\"max_image_height\": 20000}";
+    EXPECT_EQ(parse_error({"--config", path.string()}),
+              path.string() + ": \"max_image_height\": \"20000\" is outside 1.." + image);
+    std::filesystem::remove(path);
+
+    const Invocation largest = parse_ok({"--max-image-width", image, "--max-image-height", image});
+    EXPECT_EQ(largest.config.max_image_width, kMaxImageSize);
+    EXPECT_EQ(largest.config.max_image_height, kMaxImageSize);
+
+    const auto one_past = [](uint64_t limit) { return std::to_string(limit + 1); };
+    EXPECT_EQ(parse_error({"--max-spp", one_past(kMaxSamplesPerPixel)}),
+              "--max-spp: \"" + one_past(kMaxSamplesPerPixel) + "\" is outside 1.." +
+                  std::to_string(kMaxSamplesPerPixel));
+    EXPECT_EQ(parse_error({"--max-triangles", one_past(kMaxTriangles)}),
+              "--max-triangles: \"" + one_past(kMaxTriangles) + "\" is outside 1.." +
+                  std::to_string(kMaxTriangles));
+    const uint32_t max_rays = proto::DecodeLimits{}.max_rays;
+    EXPECT_EQ(
+        parse_error({"--max-rays", one_past(max_rays)}),
+        "--max-rays: \"" + one_past(max_rays) + "\" is outside 1.." + std::to_string(max_rays));
+    EXPECT_EQ(parse_error({"--max-json-rays", one_past(proto::kMaxJsonRays)}),
+              "--max-json-rays: \"" + one_past(proto::kMaxJsonRays) + "\" is outside 1.." +
+                  std::to_string(proto::kMaxJsonRays));
+    EXPECT_EQ(
+        parse_error({"--png-compression", "10"}),
+        "--png-compression: \"10\" is outside 0.." + std::to_string(proto::kMaxPngCompression));
 }
 
 TEST(Config, ByteCountsAndListenAddresses) {

@@ -50,6 +50,9 @@ enum class ImageFormat { kPng, kJpeg, kExr };
 /// Sample type of an EXR file.
 enum class ExrPixelType { kHalf, kFloat };
 
+/// Largest ImageEncodeOptions::png_compression (zlib's best compression).
+inline constexpr int kMaxPngCompression = 9;
+
 struct ImageEncodeOptions {
     /// EXR: 16-bit half (compact; values above 65504 become +inf) or 32-bit float.
     ExrPixelType exr_pixel_type = ExrPixelType::kHalf;

@@ -79,6 +79,8 @@ struct MeshSummary {
 
 /// Default largest JSON batch (larger batches belong in KDRR).
 inline constexpr size_t kDefaultMaxJsonRays = 100'000;
+/// Largest JSON batch limit a server may configure (some 1.6 GB of JSON at ~100 bytes per ray).
+inline constexpr size_t kMaxJsonRays = size_t{1} << 24;
 
 /// Why a JSON ray batch was refused.
 struct JsonError {

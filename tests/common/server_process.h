@@ -1,6 +1,7 @@
 #pragma once
 // Starts the real kdrt-server binary on an ephemeral loopback port with a temp cache directory,
-// for the integration tests. The binary's path comes from the KDRT_SERVER_BINARY definition.
+// for the integration tests (the kdrt_test_server_process library). The binary's path comes from
+// the KDRT_SERVER_BINARY definition of that library (tests/common/CMakeLists.txt).
 
 #include <httplib.h>
 

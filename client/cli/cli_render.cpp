@@ -1,0 +1,189 @@
+// kdrt render: an image of a stored mesh, as an async job.
+
+#include <atomic>
+#include <chrono>
+#include <optional>
+
+#include "cli_command.h"
+#include "cli_context.h"
+#include "cli_output.h"
+#include "cli_progress.h"
+#include "kdrt/camera.h"
+#include "kdrt/proto/file_io.h"
+
+namespace kdrt::cli {
+namespace {
+
+constexpr std::string_view kRenderHelp =
+    R"(usage: kdrt render ID -o FILE [--size WxH] [--eye X,Y,Z] [--look-at X,Y,Z] [--up X,Y,Z]
+                   [--fov DEG] [--ortho HEIGHT] [--shading MODE] [--spp N] [--seed N]
+                   [--tile X,Y,W,H] [--quiet]
+
+Renders an image of a stored mesh as an async job and writes the encoded image to FILE. The
+format follows the extension: .png, .jpg/.jpeg or .exr. Progress goes to stderr: a bar on a
+terminal, a line per 10 % otherwise. Ctrl-C cancels the job (exit 130).
+
+  -o, --output FILE   the image file (required)
+  --size WxH          image size in pixels (default 512x512)
+  --eye X,Y,Z         camera position
+  --look-at X,Y,Z     point the camera looks at
+  --up X,Y,Z          up direction (default 0,1,0)
+  --fov DEG           vertical field of view in degrees (default 40)
+  --ortho HEIGHT      orthographic projection showing HEIGHT world units vertically
+                      Camera options left out come from the default view of the mesh's bounds;
+                      with none, the server frames the mesh itself.
+  --shading MODE      normals, eyelight (default), ao, diffuse, depth or primid
+  --spp N             samples per pixel (default 1)
+  --seed N            seed of every random number (default 1)
+  --tile X,Y,W,H      render only this part of the frame
+  --quiet             no progress output
+)";
+
+constexpr OptionSpec kRenderOptions[] = {
+    {"output", true, 'o'}, {"size", true}, {"eye", true},   {"look-at", true},
+    {"up", true},          {"fov", true},  {"ortho", true}, {"shading", true},
+    {"spp", true},         {"seed", true}, {"tile", true},  {"quiet", false},
+};
+
+/// Fills `request.settings` from the command line. Returns an exit code on a usage error.
+std::optional<int> render_settings(Context& ctx, const std::string& id, RenderRequest& request) {
+    RenderSettings& s = request.settings;
+    const ParsedArgs& a = ctx.args;
+    if (auto size = a.value("size")) {
+        auto wh = parse_size(*size);
+        if (!wh) return ctx.usage_error("--size: " + wh.error());
+        s.width = wh->first;
+        s.height = wh->second;
+    }
+    if (auto shading = a.value("shading")) {
+        auto mode = parse_shading(*shading);
+        if (!mode)
+            return ctx.usage_error("--shading: \"" + *shading +
+                                   "\" is not normals, eyelight, ao, diffuse, depth or primid");
+        s.shading = *mode;
+    }
+    if (auto spp = a.value("spp")) {
+        auto n = parse_uint(*spp, 1, kMaxSamplesPerPixel);
+        if (!n) return ctx.usage_error("--spp: " + n.error());
+        s.spp = static_cast<uint32_t>(*n);
+    }
+    if (auto seed = a.value("seed")) {
+        auto n = parse_uint(*seed, 0, UINT64_MAX);
+        if (!n) return ctx.usage_error("--seed: " + n.error());
+        s.seed = *n;
+    }
+    if (auto tile = a.value("tile")) {
+        auto region = parse_region(*tile);
+        if (!region) return ctx.usage_error("--tile: " + region.error());
+        s.region = *region;
+    }
+    const bool camera =
+        a.has("eye") || a.has("look-at") || a.has("up") || a.has("fov") || a.has("ortho");
+    if (!camera) return std::nullopt;
+    // Parse everything before asking the server for the bounds.
+    std::optional<Vec3> eye, look_at, up;
+    for (auto [name, target] :
+         {std::pair{"eye", &eye}, std::pair{"look-at", &look_at}, std::pair{"up", &up}}) {
+        if (auto text = a.value(name)) {
+            auto v = parse_vec3(*text);
+            if (!v) return ctx.usage_error("--" + std::string(name) + ": " + v.error());
+            *target = *v;
+        }
+    }
+    std::optional<float> fov, ortho;
+    if (auto text = a.value("fov")) {
+        auto deg = parse_number(*text);
+        if (!deg || *deg <= 0 || *deg >= 180)
+            return ctx.usage_error("--fov: \"" + *text +
+                                   "\" is not a number of degrees in (0, 180)");
+        fov = static_cast<float>(*deg);
+    }
+    if (auto text = a.value("ortho")) {
+        auto height = parse_number(*text);
+        if (!height || *height <= 0)
+            return ctx.usage_error("--ortho: \"" + *text + "\" is not a positive number");
+        ortho = static_cast<float>(*height);
+    }
+    auto mesh = ctx.client->mesh(id);
+    if (!mesh) return ctx.fail(mesh.error());
+    CameraSpec spec =
+        default_camera(mesh->bounds, static_cast<float>(s.width) / static_cast<float>(s.height));
+    if (eye) spec.eye = *eye;
+    if (look_at) spec.look_at = *look_at;
+    if (up) spec.up = *up;
+    if (fov) spec.fov_deg = *fov;
+    if (ortho) {
+        spec.projection = Projection::kOrthographic;
+        spec.ortho_height = *ortho;
+    }
+    s.camera = spec;
+    return std::nullopt;
+}
+
+int run_render(Context& ctx) {
+    int code = kExitOk;
+    if (!positional_count_ok(ctx, 1, 1, "ID (the mesh to render)", code)) return code;
+    const auto output = ctx.args.value("output");
+    if (!output) return ctx.usage_error("missing -o FILE (the image to write)");
+    const auto format = image_format_for_path(*output);
+    if (!format)
+        return ctx.usage_error("cannot tell the image format of \"" + *output +
+                               "\" from its extension (use .png, .jpg, .jpeg or .exr)");
+    ctx.connect(ctx.client_options());
+    auto id = ctx.resolve_mesh_id(ctx.args.positional[0]);
+    if (!id) return id.error();
+    RenderRequest request;
+    request.mesh = *id;
+    request.format = *format;
+    if (auto failed = render_settings(ctx, *id, request)) return *failed;
+
+    const auto start = std::chrono::steady_clock::now();
+    auto job = ctx.client->submit(request);
+    if (!job) return ctx.fail(job.error());
+    ProgressReporter progress(ctx.console.err, ctx.console.err_is_tty, ctx.args.has("quiet"),
+                              "render");
+    const std::atomic<bool>* interrupted = ctx.console.interrupted;
+    if (ctx.console.waiting) ctx.console.waiting->store(true);
+    auto image = ctx.client->wait(*job, [&](const Job& status) {
+        progress.update(proto::job_state_name(status.state), status.progress);
+        return !(interrupted && interrupted->load());
+    });
+    if (ctx.console.waiting) ctx.console.waiting->store(false);
+    if (!image) {
+        if (image.error().kind == ErrorKind::kCancelled && interrupted && interrupted->load()) {
+            progress.finish("interrupted; job " + job->id + " cancelled");
+            return kExitInterrupted;
+        }
+        progress.finish("failed");
+        return ctx.fail(image.error());
+    }
+    (void)ctx.client->cancel(
+        *job);  // forget the finished job: the server keeps its image otherwise
+    const double seconds =
+        std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+    if (auto written = proto::write_file_bytes(*output, *image); !written) {
+        progress.finish("failed");
+        return ctx.fail(
+            make_client_error(ErrorKind::kInput, "cannot write the image", written.error()));
+    }
+    progress.finish("done in " + fixed(seconds, 2) + " s");
+    ctx.console.out << "wrote " << *output << " (" << image->size() << " bytes, "
+                    << request.settings.width << "x" << request.settings.height << " "
+                    << shading_name(request.settings.shading) << ", " << request.settings.spp
+                    << " spp)\n";
+    return kExitOk;
+}
+
+}  // namespace
+
+constinit const Command kRenderCommand{
+    .name = "render",
+    .synopsis = "render ID -o FILE",
+    .summary = "render an image as an async job (PNG, JPEG or EXR, from the extension)",
+    .help = kRenderHelp,
+    .options = kRenderOptions,
+    .needs_server = true,
+    .run = run_render,
+};
+
+}  // namespace kdrt::cli

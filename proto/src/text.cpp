@@ -1,0 +1,82 @@
+#include "kdrt/proto/text.h"
+
+#include <cmath>
+
+namespace kdrt::proto {
+namespace {
+
+constexpr char kHexDigits[] = "0123456789abcdef";
+
+}  // namespace
+
+std::string in_quotes(std::string_view text) {
+    // Built piecewise: GCC 12 reports a false -Wrestrict for "\"" + str + "\"".
+    std::string out;
+    out.reserve(text.size() + 2);
+    out.push_back('"');
+    out.append(text);
+    out.push_back('"');
+    return out;
+}
+
+std::string hex(uint64_t value, int digits) {
+    std::string out(static_cast<size_t>(digits), '0');
+    for (int i = digits - 1; i >= 0; --i, value >>= 4)
+        out[static_cast<size_t>(i)] = kHexDigits[value & 15];
+    return out;
+}
+
+void append_hex(std::string& out, std::span<const unsigned char> bytes) {
+    out.reserve(out.size() + 2 * bytes.size());
+    for (const unsigned char b : bytes) {
+        out.push_back(kHexDigits[b >> 4]);
+        out.push_back(kHexDigits[b & 15]);
+    }
+}
+
+std::string non_finite_name(double value) {
+    if (std::isnan(value)) return "NaN";
+    return value > 0 ? "+inf" : "-inf";
+}
+
+void append_json_string(std::string& out, std::string_view text) {
+    out.push_back('"');
+    for (const char c : text) {
+        const auto u = static_cast<unsigned char>(c);
+        switch (c) {
+            case '"':
+                out += "\\\"";
+                break;
+            case '\\':
+                out += "\\\\";
+                break;
+            case '\n':
+                out += "\\n";
+                break;
+            case '\r':
+                out += "\\r";
+                break;
+            case '\t':
+                out += "\\t";
+                break;
+            default:
+                if (u < 0x20) {
+                    out += "\\u00";
+                    out.push_back(kHexDigits[u >> 4]);
+                    out.push_back(kHexDigits[u & 15]);
+                } else {
+                    out.push_back(c);
+                }
+        }
+    }
+    out.push_back('"');
+}
+
+std::string json_string(std::string_view text) {
+    std::string out;
+    out.reserve(text.size() + 2);
+    append_json_string(out, text);
+    return out;
+}
+
+}  // namespace kdrt::proto
