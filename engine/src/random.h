@@ -1,7 +1,7 @@
 #pragma once
 // Internal: counter-based random numbers for ray-set generation (raygen.cpp) and the renderer
-// (render_*.cpp). A stream is keyed by what it is for (a ray, a pixel sample), never by a shared
-// sequence, so results do not depend on threads, tiles or evaluation order.
+// (render_frame.h, render_shading.h). A stream is keyed by what it is for (a ray, a pixel sample),
+// never by a shared sequence, so results do not depend on threads, tiles or evaluation order.
 
 #include <algorithm>
 #include <bit>

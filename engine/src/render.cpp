@@ -1,3 +1,6 @@
+// render(): the tile loop (tiles in parallel over the calling thread's oneTBB arena, each traced
+// as blocks of Morton-ordered rays and shaded by render_shading.h), progress and cancellation.
+
 #include "kdrt/render.h"
 
 #include <tbb/blocked_range.h>
@@ -7,11 +10,7 @@
 #include <algorithm>
 #include <array>
 #include <atomic>
-#include <bit>
 #include <chrono>
-#include <cmath>
-#include <cstdio>
-#include <limits>
 #include <mutex>
 #include <span>
 #include <string>

@@ -27,8 +27,9 @@ inline constexpr float kMaxSurvival = 0.95f;
 // never reaches geometry the light sits on.
 inline constexpr float kPointLightReach = 0.999f;
 
-/// The same normal in float, for display only (normals and eyelight): a camera hit's colour
-/// tolerates the float rounding of sliver triangles, and this is the renderer's per-pixel cost.
+/// facing_normal (geometry.h) in float, for display only (normals and eyelight): a camera hit's
+/// colour tolerates the float rounding of sliver triangles, and this is the renderer's per-pixel
+/// cost.
 inline Vec3 display_normal(const TriVerts& tri, Vec3 dir) noexcept {
     const Vec3 v0{tri.v0[0], tri.v0[1], tri.v0[2]};
     const Vec3 n = cross(Vec3{tri.v1[0], tri.v1[1], tri.v1[2]} - v0,

@@ -1,7 +1,8 @@
 #pragma once
 // Internal: direction sampling shared by ray-set generation (raygen.cpp) and the renderer
-// (render_*.cpp). Square roots only, no libm transcendentals, so the bits are the same with every
-// C library. `Rng` is a CounterRng (random.h) or anything with symmetric() uniform in [-1, 1).
+// (render_shading.h). Square roots only, no libm transcendentals, so the bits are the same with
+// every C library. `Rng` is a CounterRng (random.h) or anything with symmetric()
+// uniform in [-1, 1).
 
 #include <cmath>
 
