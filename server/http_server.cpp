@@ -8,6 +8,7 @@
 #include "http_routes.h"
 #include "http_util.h"
 #include "httplib_internals.h"
+#include "kdrt/proto/text.h"
 #include "log.h"
 #include "problems.h"
 
@@ -32,13 +33,6 @@ bool same_secret(std::string_view given, std::string_view expected) {
     for (size_t i = 0; i < expected.size(); ++i)
         diff |= static_cast<unsigned char>((i < given.size() ? given[i] : 0) ^ expected[i]);
     return diff == 0;
-}
-
-std::string hex16(uint64_t value) {
-    static constexpr char kHex[] = "0123456789abcdef";
-    std::string out(16, '0');
-    for (int i = 15; i >= 0; --i, value >>= 4) out[static_cast<size_t>(i)] = kHex[value & 15];
-    return out;
 }
 
 }  // namespace
@@ -116,7 +110,7 @@ struct HttpServer::Impl {
         context = RequestContext{};
         context.active = true;
         context.start = std::chrono::steady_clock::now();
-        context.request_id = hex16(next_request_id.fetch_add(1));
+        context.request_id = proto::hex(next_request_id.fetch_add(1), 16);
         res.headers.erase("X-Request-Id");
         res.set_header("X-Request-Id", context.request_id);
     }

@@ -8,18 +8,15 @@
 #include <string>
 
 #include "byte_io.h"
+#include "kdrt/proto/text.h"
 #include "ray_batch_checks.h"
 
 namespace kdrt::proto {
 namespace detail {
 namespace {
 
-std::string hex(uint64_t v, int digits) {
-    static constexpr char kDigits[] = "0123456789abcdef";
-    std::string s = "0x";
-    for (int i = digits - 1; i >= 0; --i) s += kDigits[(v >> (4 * i)) & 0xF];
-    return s;
-}
+/// `v` as "0x" and `digits` lower-case hex digits.
+std::string hex_literal(uint64_t v, int digits) { return "0x" + hex(v, digits); }
 
 /// The 4 magic bytes as a C-style quoted string, non-printable bytes as \xNN.
 std::string quoted_magic(const std::byte* p) {
@@ -30,7 +27,7 @@ std::string quoted_magic(const std::byte* p) {
             s += static_cast<char>(c);
         } else {
             s += "\\x";
-            s += hex(c, 2).substr(2);
+            s += hex(c, 2);
         }
     }
     return s + "\"";
@@ -55,11 +52,6 @@ int first_bad_ray_field(const Ray& ray) noexcept {
         if (is_range_bound ? std::isnan(f[i]) : !std::isfinite(f[i])) return i;
     }
     return -1;
-}
-
-std::string describe_non_finite(float v) {
-    if (std::isnan(v)) return "NaN";
-    return v > 0 ? "+inf" : "-inf";
 }
 
 }  // namespace
@@ -94,8 +86,8 @@ Result<CheckedHeader, DecodeError> check_header_fields(const std::byte* p, const
                                                           std::to_string(kBatchVersion))};
     }
     if ((flags & ~kind.known_flags) != 0) {
-        std::string text = "unknown flag bits " + hex(flags & ~kind.known_flags, 4) + " in flags " +
-                           hex(flags, 4) + " (";
+        std::string text = "unknown flag bits " + hex_literal(flags & ~kind.known_flags, 4) +
+                           " in flags " + hex_literal(flags, 4) + " (";
         text += kind.known_flags != 0 ? "only bit 0, occlusion, is defined for "
                                       : "no flags are defined for ";
         text += std::string(kind.magic) + ")";
@@ -103,7 +95,7 @@ Result<CheckedHeader, DecodeError> check_header_fields(const std::byte* p, const
     }
     if (reserved != 0) {
         return Err{make(DecodeErrorCode::kBadReserved,
-                        "reserved header field is " + hex(reserved, 8) + ", expected 0")};
+                        "reserved header field is " + hex_literal(reserved, 8) + ", expected 0")};
     }
     if (count > limits.max_rays) {
         return Err{make(DecodeErrorCode::kTooManyRays, "header says " + count_noun(count, kind) +
@@ -138,7 +130,7 @@ DecodeError non_finite_error(uint64_t index, const Ray& r) {
     const float f[8] = {r.ox, r.oy, r.oz, r.tmin, r.dx, r.dy, r.dz, r.tmax};
     return make(DecodeErrorCode::kNonFiniteRay, "ray " + std::to_string(index) + ": field " +
                                                     kRayFieldNames[static_cast<size_t>(field)] +
-                                                    " is " + describe_non_finite(f[field]));
+                                                    " is " + non_finite_name(f[field]));
 }
 
 }  // namespace detail
