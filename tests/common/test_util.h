@@ -73,6 +73,19 @@ inline Ray make_ray(Vec3 o, Vec3 d, float tmin = 0.0f, float tmax = INFINITY) {
 }
 
 /// Bounds of a mesh enlarged by `margin` of its size on each side.
+/// `count` rays from points of the box [-1, 2]^3 towards points of the unit cube (seeded): a
+/// batch in which most rays hit a mesh in the unit cube and some miss.
+inline std::vector<Ray> rays_towards_unit_cube(size_t count, uint64_t seed) {
+    Rng rng(seed);
+    std::vector<Ray> rays(count);
+    for (Ray& r : rays) {
+        const Vec3 o = rng.in_box({{-1, -1, -1}, {2, 2, 2}}),
+                   t = rng.in_box({{0, 0, 0}, {1, 1, 1}});
+        r = make_ray(o, t - o);
+    }
+    return rays;
+}
+
 inline Aabb grown_bounds(const Mesh& m, float margin) {
     Aabb b = mesh_bounds(m);
     const Vec3 e = b.extent();

@@ -17,17 +17,6 @@
 namespace kdrt::proto {
 namespace {
 
-std::vector<Ray> some_rays(size_t count, uint64_t seed) {
-    test::Rng rng(seed);
-    std::vector<Ray> rays(count);
-    for (Ray& r : rays) {
-        const Vec3 o = rng.in_box({{-1, -1, -1}, {2, 2, 2}}),
-                   t = rng.in_box({{0, 0, 0}, {1, 1, 1}});
-        r = test::make_ray(o, t - o);
-    }
-    return rays;
-}
-
 /// How a test cuts a body into pieces.
 enum class Cut { kWhole, kBytes, kOdd, kRandom };
 
@@ -120,14 +109,14 @@ void expect_like_decode_rays(const std::vector<std::byte>& body, const std::stri
 
 TEST(RayStreamDecoder, AgreesWithDecodeRaysOnValidBatches) {
     for (const size_t count : {size_t{0}, size_t{1}, size_t{3}, size_t{1000}}) {
-        const std::vector<Ray> rays = some_rays(count, count + 1);
+        const std::vector<Ray> rays = test::rays_towards_unit_cube(count, count + 1);
         expect_like_decode_rays(encode_rays(rays, false), std::to_string(count) + " rays");
         expect_like_decode_rays(encode_rays(rays, true), std::to_string(count) + " occlusion rays");
     }
 }
 
 TEST(RayStreamDecoder, AgreesWithDecodeRaysOnEveryRefusal) {
-    const std::vector<Ray> rays = some_rays(50, 3);
+    const std::vector<Ray> rays = test::rays_towards_unit_cube(50, 3);
     const std::vector<std::byte> good = encode_rays(rays, false);
     auto with = [&](size_t offset, std::initializer_list<uint8_t> bytes) {
         std::vector<std::byte> b = good;
@@ -174,7 +163,7 @@ TEST(RayStreamDecoder, AgreesWithDecodeRaysOnEveryRefusal) {
 }
 
 TEST(RayStreamDecoder, ADeclaredSizeRefusesEarly) {
-    const std::vector<std::byte> body = encode_rays(some_rays(100, 5), false);
+    const std::vector<std::byte> body = encode_rays(test::rays_towards_unit_cube(100, 5), false);
     RayStreamDecoder decoder(
         {},
         [](uint32_t, bool) -> std::span<Ray> {
@@ -191,7 +180,7 @@ TEST(RayStreamDecoder, ADeclaredSizeRefusesEarly) {
 }
 
 TEST(RayStreamDecoder, StorageOfTheWrongSizeIsAProgrammingError) {
-    const std::vector<std::byte> body = encode_rays(some_rays(4, 5), false);
+    const std::vector<std::byte> body = encode_rays(test::rays_towards_unit_cube(4, 5), false);
     std::vector<Ray> storage(3);
     RayStreamDecoder decoder({}, [&](uint32_t, bool) { return std::span<Ray>(storage); });
     EXPECT_THROW((void)decoder.feed(body), std::logic_error);

@@ -21,17 +21,6 @@ namespace {
 
 using Kind = IngestFailure::Kind;
 
-std::vector<Ray> some_rays(size_t count, uint64_t seed) {
-    test::Rng rng(seed);
-    std::vector<Ray> rays(count);
-    for (Ray& r : rays) {
-        const Vec3 o = rng.in_box({{-1, -1, -1}, {2, 2, 2}}),
-                   t = rng.in_box({{0, 0, 0}, {1, 1, 1}});
-        r = test::make_ray(o, t - o);
-    }
-    return rays;
-}
-
 /// How a test delivers a body.
 enum class Delivery {
     kWhole,    ///< one feed()
@@ -152,18 +141,20 @@ Compute* BatchIngestTest::compute_ = nullptr;
 
 TEST_F(BatchIngestTest, AnswersEqualTheNonStreamedPathHoweverTheBodyArrives) {
     for (const size_t count : {size_t{0}, size_t{1}, size_t{3}, size_t{1000}}) {
-        const std::vector<Ray> rays = some_rays(count, count + 1);
+        const std::vector<Ray> rays = test::rays_towards_unit_cube(count, count + 1);
         expect_answer(proto::encode_rays(rays, false), std::to_string(count) + " rays");
         expect_answer(proto::encode_rays(rays, true), std::to_string(count) + " occlusion rays");
     }
     // Traced while arriving (BatchIngest::kStreamTraceRays and more), with a ragged tail.
-    const std::vector<Ray> many = some_rays(BatchIngest::kStreamTraceRays + 1234, 9);
+    const std::vector<Ray> many =
+        test::rays_towards_unit_cube(BatchIngest::kStreamTraceRays + 1234, 9);
     expect_answer(proto::encode_rays(many, false), "streamed trace");
     expect_answer(proto::encode_rays(many, true), "streamed occlusion trace");
 }
 
 TEST_F(BatchIngestTest, RefusalsCarryDecodeRaysErrorAndTheDrainVerdict) {
-    const std::vector<std::byte> good = proto::encode_rays(some_rays(50, 3), false);
+    const std::vector<std::byte> good =
+        proto::encode_rays(test::rays_towards_unit_cube(50, 3), false);
     const auto with = [&](size_t offset, std::initializer_list<uint8_t> bytes) {
         std::vector<std::byte> b = good;
         for (uint8_t v : bytes) b[offset++] = std::byte{v};
@@ -178,7 +169,7 @@ TEST_F(BatchIngestTest, RefusalsCarryDecodeRaysErrorAndTheDrainVerdict) {
     expect_refused(with(8, {0xe9, 0x03, 0, 0}), std::nullopt, Delivery::kRandom, true,
                    "1001 rays over max_rays 1000, chunked: not drained");
     // NaN rays: named by index, at arrival (declared size) or at the end (chunked).
-    std::vector<Ray> nan_rays = some_rays(50, 3);
+    std::vector<Ray> nan_rays = test::rays_towards_unit_cube(50, 3);
     nan_rays[17].dy = std::numeric_limits<float>::quiet_NaN();
     nan_rays[30].ox = std::numeric_limits<float>::infinity();
     const std::vector<std::byte> nan_body = proto::encode_rays(nan_rays, false);
@@ -202,7 +193,8 @@ TEST_F(BatchIngestTest, RefusalsCarryDecodeRaysErrorAndTheDrainVerdict) {
 }
 
 TEST_F(BatchIngestTest, TruncatedAndOverLimitBodies) {
-    const std::vector<std::byte> body = proto::encode_rays(some_rays(500, 4), false);
+    const std::vector<std::byte> body =
+        proto::encode_rays(test::rays_towards_unit_cube(500, 4), false);
     // The peer closes before the declared size: unreadable, close.
     for (const Delivery d : {Delivery::kRandom, Delivery::kReceive}) {
         Run cut = ingest(body, d, body.size(), 1u << 20, body.size() - 100);
@@ -231,7 +223,7 @@ TEST_F(BatchIngestTest, TruncatedAndOverLimitBodies) {
 
 TEST_F(BatchIngestTest, BuffersGoBackToThePoolOnEveryExit) {
     // Large enough that both buffers are pooled (>= 1 MiB each) and the trace streams.
-    const std::vector<Ray> rays = some_rays(BatchIngest::kStreamTraceRays, 6);
+    const std::vector<Ray> rays = test::rays_towards_unit_cube(BatchIngest::kStreamTraceRays, 6);
     const std::vector<std::byte> body = proto::encode_rays(rays, false);
     const std::optional<uint64_t> sized = body.size();
     { Run warm = ingest(body, Delivery::kReceive, sized, 1u << 20); }

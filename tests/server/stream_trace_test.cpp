@@ -15,17 +15,6 @@
 namespace kdrt::server {
 namespace {
 
-std::vector<Ray> some_rays(size_t count, uint64_t seed) {
-    test::Rng rng(seed);
-    std::vector<Ray> rays(count);
-    for (Ray& r : rays) {
-        const Vec3 o = rng.in_box({{-1, -1, -1}, {2, 2, 2}}),
-                   t = rng.in_box({{0, 0, 0}, {1, 1, 1}});
-        r = test::make_ray(o, t - o);
-    }
-    return rays;
-}
-
 TEST(StreamTrace, AnswersEqualTheWholeBatchHoweverTheRaysArrive) {
     test::Rng rng(test::test_seed());
     SCOPED_TRACE(testing::Message() << "seed=" << test::test_seed());
@@ -34,7 +23,7 @@ TEST(StreamTrace, AnswersEqualTheWholeBatchHoweverTheRaysArrive) {
     Compute compute(2);
     // More than two blocks (so some are traced while "arriving"), and a ragged tail.
     const size_t count = std::max<size_t>(test::scaled(3 * StreamTrace::kBlockRays + 1234), 3000);
-    const std::vector<Ray> rays = some_rays(count, 21);
+    const std::vector<Ray> rays = test::rays_towards_unit_cube(count, 21);
     std::vector<Hit> want(count);
     std::vector<uint8_t> want_occluded(count);
     compute.intersect(tree, rays, want);
