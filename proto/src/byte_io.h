@@ -15,9 +15,6 @@ namespace kdrt::proto::detail {
 static_assert(std::endian::native == std::endian::little,
               "proto copies little-endian wire records as host structs");
 
-/// Always true (see the static_assert above); kept so callers can state the assumption.
-inline constexpr bool kHostLittleEndian = true;
-
 template <class U>
 [[nodiscard]] inline U load_uint(const std::byte* p, bool big_endian) noexcept {
     static_assert(sizeof(U) <= 8);

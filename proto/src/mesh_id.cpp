@@ -9,10 +9,13 @@
 #include <span>
 #include <stdexcept>
 
+#include "byte_io.h"
 #include "kdrt/proto/text.h"
 
 namespace kdrt::proto {
 namespace {
+
+using detail::store_le_f32;
 
 struct MdCtxDeleter {
     void operator()(EVP_MD_CTX* ctx) const noexcept { EVP_MD_CTX_free(ctx); }
@@ -42,12 +45,6 @@ public:
 private:
     std::unique_ptr<EVP_MD_CTX, MdCtxDeleter> ctx_;
 };
-
-void store_le_f32(std::byte* out, float value) noexcept {
-    uint32_t bits = std::bit_cast<uint32_t>(value);
-    if constexpr (std::endian::native == std::endian::big) bits = __builtin_bswap32(bits);
-    std::memcpy(out, &bits, 4);
-}
 
 /// Writes the canonical bytes of triangles [first, first + count) to `out`.
 void write_triangles(const Mesh& mesh, size_t first, size_t count, std::byte* out) {

@@ -46,16 +46,10 @@ Result<Mesh, ParseError> parse_raw(std::span<const std::byte> data, const MeshLi
     mesh.positions.resize(3 * vertex_count);
     mesh.indices.resize(3 * triangle_count);
     const std::byte* src = data.data() + kHeaderBytes;
-    if constexpr (kHostLittleEndian) {
-        if (vertex_count != 0) std::memcpy(mesh.positions.data(), src, 12 * vertex_count);
-        if (triangle_count != 0)
-            std::memcpy(mesh.indices.data(), src + 12 * vertex_count, 12 * triangle_count);
-    } else {
-        for (uint64_t i = 0; i < 3 * vertex_count; ++i)
-            mesh.positions[i] = load_le_f32(src + 4 * i);
-        for (uint64_t i = 0; i < 3 * triangle_count; ++i)
-            mesh.indices[i] = load_le32(src + 12 * vertex_count + 4 * i);
-    }
+    // The file is little-endian, like every host kdrt builds for (byte_io.h asserts it).
+    if (vertex_count != 0) std::memcpy(mesh.positions.data(), src, 12 * vertex_count);
+    if (triangle_count != 0)
+        std::memcpy(mesh.indices.data(), src + 12 * vertex_count, 12 * triangle_count);
     for (uint64_t i = 0; i < mesh.positions.size(); ++i) {
         const float value = mesh.positions[i];
         if (!std::isfinite(value)) {
