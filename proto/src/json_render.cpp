@@ -25,7 +25,10 @@ public:
             for (const char* k : known) ok = ok || key == k;
             if (!ok) {
                 std::string list;
-                for (const char* k : known) list += (list.empty() ? "" : ", ") + std::string(k);
+                for (const char* k : known) {
+                    if (!list.empty()) list += ", ";
+                    list += k;
+                }
                 fail("unknown member " + in_quotes(prefix_ + key) + " (expected " + list + ")");
                 return;
             }
