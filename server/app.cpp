@@ -1,12 +1,12 @@
 #include "app.h"
 
 #include <pthread.h>
-#include <signal.h>
 #include <unistd.h>
 
 #include <atomic>
 #include <chrono>
 #include <condition_variable>
+#include <csignal>
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
@@ -61,7 +61,7 @@ bool start_up(Service& svc) {
                       {{"file", file}, {"error", std::string_view("the mesh has no triangles")}});
             return false;
         }
-        auto added = svc.cache.add(std::move(*mesh));
+        auto added = svc.cache.add(*mesh);
         if (!added) {
             log_event(LogLevel::kCritical, "cannot preload mesh",
                       {{"file", file}, {"error", added.error().detail}});

@@ -54,7 +54,7 @@ void Routes::upload_mesh(const httplib::Request& req, httplib::Response& res,
             make_problem(ProblemKind::kInvalidMesh,
                          "the " + std::string(proto::mesh_format_name(*format)) + " mesh " +
                              std::string(proto::api_errors::kEmptyMesh)));
-    auto added = svc_.cache.add(std::move(*mesh));
+    auto added = svc_.cache.add(*mesh);
     if (!added) return reply_problem(req, res, cache_problem(added.error()));
     res.set_header("Location", "/v1/meshes/" + added->summary.id);
     reply_json(res, added->created ? 201 : 200, proto::encode_mesh_summary(added->summary));

@@ -4,6 +4,7 @@
 
 #include <cstring>
 #include <regex>
+#include <utility>
 
 #include "http_routes.h"
 #include "http_util.h"
@@ -266,7 +267,7 @@ struct HttpServer::Impl {
     void on_exception(const httplib::Request& req, httplib::Response& res, std::exception_ptr ep) {
         std::string what = "unknown exception";
         try {
-            std::rethrow_exception(ep);
+            std::rethrow_exception(std::move(ep));
         } catch (const std::exception& e) {
             what = e.what();
         } catch (...) {
@@ -346,7 +347,7 @@ struct HttpServer::Impl {
         http.set_error_handler(httplib::Server::HandlerWithResponse(
             [this](const auto& req, auto& res) { return on_error(req, res); }));
         http.set_exception_handler([this](const auto& req, auto& res, std::exception_ptr ep) {
-            on_exception(req, res, ep);
+            on_exception(req, res, std::move(ep));
         });
         http.set_expect_100_continue_handler(
             [this](const auto& req, auto& res) { return on_expect_continue(req, res); });

@@ -42,9 +42,9 @@ public:
     JobQueue(const JobQueue&) = delete;
     JobQueue& operator=(const JobQueue&) = delete;
 
-    /// Queues a job; fails (with a reason for the 503 detail) when max_jobs are queued or
-    /// running, or after shutdown().
-    [[nodiscard]] proto::Result<proto::JobStatus, std::string> submit(RenderJob job);
+    /// Queues `input` as a job; fails (with a reason for the 503 detail) when max_jobs are queued
+    /// or running, or after shutdown().
+    [[nodiscard]] proto::Result<proto::JobStatus, std::string> submit(RenderJob input);
 
     [[nodiscard]] std::optional<proto::JobStatus> status(const std::string& id);
 

@@ -2,6 +2,7 @@
 // cycle and proto/openapi.yaml for the API.
 
 #include <cstdio>
+#include <exception>
 #include <string>
 #include <vector>
 
@@ -11,7 +12,9 @@
 
 extern char** environ;
 
-int main(int argc, char** argv) {
+namespace {
+
+int run(int argc, char** argv) {
     std::vector<std::string> args(argv + 1, argv + argc);
     std::vector<std::string> env;
     for (char** e = environ; *e; ++e) env.emplace_back(*e);
@@ -35,4 +38,18 @@ int main(int argc, char** argv) {
     }
     kdrt::server::setup_logging(invocation->config.log_level, invocation->config.log_format);
     return kdrt::server::run_server(invocation->config);
+}
+
+}  // namespace
+
+/// An exception that escapes (std::bad_alloc, std::system_error) is reported on stderr; exit 1.
+int main(int argc, char** argv) {
+    try {
+        return run(argc, argv);
+    } catch (const std::exception& e) {
+        std::fprintf(stderr, "kdrt-server: %s\n", e.what());
+    } catch (...) {
+        std::fputs("kdrt-server: unknown exception\n", stderr);
+    }
+    return 1;
 }

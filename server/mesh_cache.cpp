@@ -84,7 +84,7 @@ proto::Result<void, std::string> MeshCache::open() {
     return {};
 }
 
-proto::Result<MeshCache::Added, CacheError> MeshCache::add(Mesh mesh) {
+proto::Result<MeshCache::Added, CacheError> MeshCache::add(const Mesh& mesh) {
     const std::string id = proto::mesh_id(mesh);
     std::unique_lock lock(mutex_);
     for (;;) {

@@ -61,7 +61,7 @@ public:
     };
     /// Stores `mesh` (parsed and non-empty) under its content id, building its tree unless it is
     /// already stored. Durable when it returns success.
-    [[nodiscard]] proto::Result<Added, CacheError> add(Mesh mesh);
+    [[nodiscard]] proto::Result<Added, CacheError> add(const Mesh& mesh);
 
     /// The tree of mesh `id`, loading or rebuilding it if it is not in memory.
     [[nodiscard]] proto::Result<std::shared_ptr<const KdTree>, CacheError> acquire(

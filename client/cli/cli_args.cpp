@@ -97,7 +97,12 @@ ParseResult<ParsedArgs> parse_args(std::span<const std::string> args,
             continue;
         }
         if (!inline_value) {
-            if (i + 1 >= args.size()) return proto::Err{"option " + shown + " needs a value" + see};
+            if (i + 1 >= args.size()) {
+                std::string message = "option " + shown;
+                message += " needs a value";
+                message += see;
+                return proto::Err{std::move(message)};
+            }
             inline_value = args[++i];
         }
         out.values[std::string(spec->name)] = *inline_value;

@@ -71,7 +71,7 @@ std::string mesh_details(const MeshInfo& m) {
 }
 
 std::string mesh_json_line(const MeshInfo& mesh, std::string_view file) {
-    const std::string summary = proto::encode_mesh_summary(mesh);
+    std::string summary = proto::encode_mesh_summary(mesh);
     if (file.empty()) return summary;
     const proto::JsonField fields[] = {{"file", file}};
     std::string head = proto::encode_flat_object(fields);

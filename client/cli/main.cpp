@@ -1,10 +1,10 @@
 // kdrt: the command-line client of kdrt-server. See `kdrt --help`; the commands are listed in
 // client/cli/cli_command.h, each with its help text in the file that implements it.
 
-#include <signal.h>
 #include <unistd.h>
 
 #include <atomic>
+#include <csignal>
 #include <cstring>
 #include <iostream>
 #include <map>

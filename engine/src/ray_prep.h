@@ -145,6 +145,7 @@ static inline float interval_margin(const PreparedRay& p, const Aabb& bounds) no
     // Plain comparisons, not fmaxf (a libm call): the inputs are never NaN here, and the packet
     // kernels take the same maximum lane by lane.
     float m = bounds_magnitude(bounds);
+    // NOLINTNEXTLINE(modernize-loop-convert): kernel code, kept as reviewed (no rewrites here)
     for (int a = 0; a < 3; ++a) {
         const float o = __builtin_fabsf(p.org[a]);
         m = o > m ? o : m;

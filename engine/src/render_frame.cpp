@@ -28,6 +28,7 @@ SampleGrid sample_grid(uint32_t spp) noexcept {
     auto columns = static_cast<uint32_t>(std::sqrt(static_cast<double>(spp)));
     while (columns * columns < spp) ++columns;
     while (columns > 1 && (columns - 1) * (columns - 1) >= spp) --columns;
+    // NOLINTNEXTLINE(clang-analyzer-core.DivideZero): spp is validated >= 1, so columns >= 1
     return {columns, (spp + columns - 1) / columns};
 }
 

@@ -51,8 +51,9 @@ struct Frame {
             const uint32_t cell = permute(sample, grid.columns * grid.rows, key);
             CounterRng rng = pixel_rng(settings.seed, x, y, sample, PixelStream::kJitter, 0);
             const float u1 = rng.uniform(), u2 = rng.uniform();
-            jx = (static_cast<float>(cell % grid.columns) + u1) / static_cast<float>(grid.columns);
-            jy = (static_cast<float>(cell / grid.columns) + u2) / static_cast<float>(grid.rows);
+            const uint32_t column = cell % grid.columns, row = cell / grid.columns;
+            jx = (static_cast<float>(column) + u1) / static_cast<float>(grid.columns);
+            jy = (static_cast<float>(row) + u2) / static_cast<float>(grid.rows);
         }
         return camera.ray(static_cast<float>(x) + jx, static_cast<float>(y) + jy);
     }

@@ -16,21 +16,21 @@ template <int W>
 struct Types;
 template <>
 struct Types<4> {
-    typedef float F __attribute__((vector_size(16)));
-    typedef int32_t I __attribute__((vector_size(16)));
-    typedef uint32_t U __attribute__((vector_size(16)));
+    using F = float __attribute__((vector_size(16)));
+    using I = int32_t __attribute__((vector_size(16)));
+    using U = uint32_t __attribute__((vector_size(16)));
 };
 template <>
 struct Types<8> {
-    typedef float F __attribute__((vector_size(32)));
-    typedef int32_t I __attribute__((vector_size(32)));
-    typedef uint32_t U __attribute__((vector_size(32)));
+    using F = float __attribute__((vector_size(32)));
+    using I = int32_t __attribute__((vector_size(32)));
+    using U = uint32_t __attribute__((vector_size(32)));
 };
 template <>
 struct Types<16> {
-    typedef float F __attribute__((vector_size(64)));
-    typedef int32_t I __attribute__((vector_size(64)));
-    typedef uint32_t U __attribute__((vector_size(64)));
+    using F = float __attribute__((vector_size(64)));
+    using I = int32_t __attribute__((vector_size(64)));
+    using U = uint32_t __attribute__((vector_size(64)));
 };
 
 /// W floats, W signed ints (masks: -1 true, 0 false, as comparisons produce), W unsigned ints.

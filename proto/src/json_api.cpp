@@ -113,7 +113,7 @@ public:
                 fail(std::string("\"") + key + "\" is not an array of 3 numbers");
         }
     }
-    void fail(std::string message) {
+    void fail(const std::string& message) {
         if (error_.empty()) error_ = where_ + message;
     }
     [[nodiscard]] const std::string& error() const noexcept { return error_; }

@@ -24,9 +24,13 @@ public:
             bool ok = false;
             for (const char* k : known) ok = ok || key == k;
             if (!ok) {
-                std::string list;
-                for (const char* k : known) list += (list.empty() ? "" : ", ") + std::string(k);
-                fail("unknown member " + in_quotes(prefix_ + key) + " (expected " + list + ")");
+                std::string message = "unknown member " + in_quotes(prefix_ + key) + " (expected ";
+                for (size_t i = 0; const char* k : known) {
+                    if (i++ > 0) message += ", ";
+                    message += k;
+                }
+                message += ')';
+                fail(std::move(message));
                 return;
             }
         }

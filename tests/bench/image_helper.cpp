@@ -78,6 +78,7 @@ void write_image_with_helper(const std::filesystem::path& path, const Image& ima
                                      std::to_string(image.channels),
                                      path.string()};
     std::vector<char*> argv;
+    argv.reserve(args.size() + 1);
     for (std::string& a : args) argv.push_back(a.data());
     argv.push_back(nullptr);
     pid_t pid = 0;

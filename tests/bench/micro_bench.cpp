@@ -43,7 +43,7 @@ void traversal_step_scalar(benchmark::State& state) {
     const KdNode node = f.tree.nodes[f.inner_node];
     float tmin = 0.0f, tmax = 100.0f;
     uint32_t visited = 0;
-    for (auto _ : state) {
+    for ([[maybe_unused]] auto _ : state) {
         benchmark::DoNotOptimize(tmin);
         benchmark::DoNotOptimize(tmax);
         const int axis = node.axis();
@@ -62,7 +62,7 @@ void leaf_test_scalar(benchmark::State& state) {
     const detail::PreparedRay p = detail::prepare_ray(f.rays[0]);
     const TriVerts& tri = f.tree.tris[f.triangle];
     uint32_t hits = 0;
-    for (auto _ : state) {
+    for ([[maybe_unused]] auto _ : state) {
         float t = 0, u = 0, v = 0;
         benchmark::DoNotOptimize(p);
         hits += detail::intersect_triangle(p, tri, 0.0f, t, u, v) ? 1u : 0u;

@@ -23,7 +23,7 @@ void bench_traversal_step(benchmark::State& state, Isa isa) {
     const KdNode node = f.tree.nodes[f.inner_node];
     detail::VF<W> tmin = pk.tmin, tmax = pk.tmax;
     uint32_t visited = 0;
-    for (auto _ : state) {
+    for ([[maybe_unused]] auto _ : state) {
         // The body of the packet kernel's inner loop: plane distances, widened intervals, masks.
         benchmark::DoNotOptimize(tmin);
         benchmark::DoNotOptimize(tmax);
@@ -55,7 +55,7 @@ void bench_leaf_test(benchmark::State& state, Isa isa) {
     const TriVerts& tri = f.tree.tris[f.triangle];
     const detail::VM<W> active = pk.tmin <= pk.tmax;
     uint32_t hits = 0;
-    for (auto _ : state) {
+    for ([[maybe_unused]] auto _ : state) {
         detail::VF<W> t = simd::broadcast<W>(0.0f), u = t, v = t;
         benchmark::DoNotOptimize(pk);
         const detail::VM<W> hit = detail::intersect_triangle_packet<W>(pk, tri, active, t, u, v);

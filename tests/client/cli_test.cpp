@@ -57,7 +57,7 @@ protected:
     void SetUp() override { ASSERT_GT(server_->port(), 0); }
 
     /// Runs kdrt with --server pointing at the suite's server.
-    static CliRun kdrt(std::vector<std::string> args, CliOptions options = {}) {
+    static CliRun kdrt(const std::vector<std::string>& args, CliOptions options = {}) {
         options.env.push_back("KDRT_SERVER=" + server_url(*server_));
         return run_cli(args, options);
     }

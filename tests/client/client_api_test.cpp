@@ -6,6 +6,7 @@
 
 #include <cstdlib>
 #include <thread>
+#include <utility>
 
 #include "client_test_util.h"
 #include "fake_server.h"
@@ -35,7 +36,7 @@ protected:
         delete tree_;
     }
     static Client client(ClientOptions options = fast_options()) {
-        return Client(server_url(*server_), options);
+        return Client(server_url(*server_), std::move(options));
     }
     /// Uploads the suite's mesh and returns its id.
     static std::string uploaded() {

@@ -240,38 +240,39 @@ TEST_F(ClientRetry, DroppedConnectionsAreResentOnlyWhenIdempotent) {
 /// A fake intersect route that answers with the engine, later chunks first, and records which
 /// connections it was asked on and how many requests ran at once.
 struct OutOfOrderIntersect {
-    explicit OutOfOrderIntersect(const KdTree& tree, int chunks) : tree_(tree), chunks_(chunks) {}
+    explicit OutOfOrderIntersect(const KdTree& served, int chunk_count)
+        : tree(served), chunks(chunk_count) {}
 
     void handle(const httplib::Request& req, httplib::Response& res) {
-        const int index = arrived_.fetch_add(1);
-        const int now = in_flight_.fetch_add(1) + 1;
-        for (int seen = max_in_flight_.load();
-             now > seen && !max_in_flight_.compare_exchange_weak(seen, now);) {
+        const int index = arrived.fetch_add(1);
+        const int now = in_flight.fetch_add(1) + 1;
+        for (int seen = max_in_flight.load();
+             now > seen && !max_in_flight.compare_exchange_weak(seen, now);) {
         }
         {
-            std::lock_guard lock(mutex_);
-            ports_.insert(req.remote_port);
+            std::lock_guard lock(mutex);
+            ports.insert(req.remote_port);
         }
         // Early chunks wait longest, so answers complete out of order.
-        std::this_thread::sleep_for(std::chrono::milliseconds(20 * std::max(0, chunks_ - index)));
+        std::this_thread::sleep_for(std::chrono::milliseconds(20 * std::max(0, chunks - index)));
         auto batch = proto::decode_rays(std::as_bytes(std::span(req.body.data(), req.body.size())));
-        in_flight_.fetch_sub(1);
+        in_flight.fetch_sub(1);
         if (!batch) {
             res.status = 400;
             return;
         }
         std::vector<Hit> hits(batch->rays.size());
-        intersect(tree_, batch->rays, hits);
+        intersect(tree, batch->rays, hits);
         const std::vector<std::byte> body = proto::encode_hits(hits);
         res.set_content(reinterpret_cast<const char*>(body.data()), body.size(),
                         std::string(proto::kHitsMediaType));
     }
 
-    const KdTree& tree_;
-    const int chunks_;
-    std::atomic<int> arrived_{0}, in_flight_{0}, max_in_flight_{0};
-    std::mutex mutex_;
-    std::set<int> ports_;
+    const KdTree& tree;
+    const int chunks;
+    std::atomic<int> arrived{0}, in_flight{0}, max_in_flight{0};
+    std::mutex mutex;
+    std::set<int> ports;
 };
 
 TEST_F(ClientRetry, ChunksAnsweredOutOfOrderAreReassembledInOrder) {
@@ -292,16 +293,16 @@ TEST_F(ClientRetry, ChunksAnsweredOutOfOrderAreReassembledInOrder) {
     auto hits = c.intersect(id_, r);
     ASSERT_TRUE(hits) << hits.error().to_string();
     EXPECT_TRUE(same_bits(*hits, engine_hits(r)));
-    EXPECT_EQ(route.arrived_.load(), kChunks);
-    EXPECT_GE(route.max_in_flight_.load(), 2);
-    EXPECT_LE(route.max_in_flight_.load(), 3);
-    EXPECT_LE(route.ports_.size(), 3u);  // keep-alive: one connection per parallel stream
+    EXPECT_EQ(route.arrived.load(), kChunks);
+    EXPECT_GE(route.max_in_flight.load(), 2);
+    EXPECT_LE(route.max_in_flight.load(), 3);
+    EXPECT_LE(route.ports.size(), 3u);  // keep-alive: one connection per parallel stream
 
     // A second call reuses the pooled connections.
     auto again = c.intersect(id_, r);
     ASSERT_TRUE(again) << again.error().to_string();
     EXPECT_TRUE(same_bits(*again, *hits));
-    EXPECT_LE(route.ports_.size(), 3u);
+    EXPECT_LE(route.ports.size(), 3u);
 }
 
 TEST_F(ClientRetry, AChunkErrorStopsTheBatch) {

@@ -182,7 +182,7 @@ TEST(CliArgs, GlobalSettingsFromFlagsAndEnvironment) {
     const std::vector<cli::OptionSpec> specs(std::begin(cli::kGlobalOptions),
                                              std::end(cli::kGlobalOptions));
     const auto settings = [&](std::vector<std::string> args,
-                              std::map<std::string, std::string> env) {
+                              const std::map<std::string, std::string>& env) {
         return cli::global_settings(*cli::parse_args(args, specs, "kdrt t"), env);
     };
     EXPECT_EQ(settings({}, {})->server, "http://127.0.0.1:8080");

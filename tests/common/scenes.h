@@ -97,8 +97,9 @@ inline Mesh replicate_grid(const Mesh& mesh, uint32_t copies) {
     out.positions.reserve(mesh.positions.size() * copies);
     out.indices.reserve(mesh.indices.size() * copies);
     for (uint32_t c = 0; c < copies; ++c) {
-        const float dx = 1.1f * e.x * static_cast<float>(c % side),
-                    dz = 1.1f * e.z * static_cast<float>(c / side);
+        const uint32_t column = c % side, row = c / side;
+        const float dx = 1.1f * e.x * static_cast<float>(column),
+                    dz = 1.1f * e.z * static_cast<float>(row);
         const auto base = static_cast<uint32_t>(out.vertex_count());
         for (size_t v = 0; v < mesh.vertex_count(); ++v) {
             const Vec3 p = mesh.vertex(v);

@@ -147,7 +147,11 @@ TEST(PacketEquivalence, TailsAndDeadLanes) {
     for (Isa isa : supported_isas()) {
         for (size_t n = 0; n <= 33; ++n) {  // every tail length of every width, and empty batches
             std::vector<Ray> rays;
-            for (size_t i = 0; i < n; ++i) rays.push_back(cam.ray(i % 16 + 0.5f, i / 16 + 0.5f));
+            for (size_t i = 0; i < n; ++i) {
+                const size_t column = i % 16, row = i / 16;
+                rays.push_back(
+                    cam.ray(static_cast<float>(column) + 0.5f, static_cast<float>(row) + 0.5f));
+            }
             std::vector<Hit> hits(n);
             intersect(tree, rays, hits, {TraceMode::kPacket, isa});
             expect_identical_bytes(hits, reference_hits(tree, rays),

@@ -89,7 +89,7 @@ struct RawImage {
 };
 
 /// Reads a file with OpenImageIO directly (not through decode_image), straight alpha kept.
-RawImage read_with_oiio(const std::filesystem::path& path, OIIO::TypeDesc type) {
+RawImage read_with_oiio(const std::filesystem::path& path, const OIIO::TypeDesc& type) {
     OIIO::ImageSpec config;
     config.attribute("oiio:UnassociatedAlpha", 1);
     auto in = OIIO::ImageInput::open(path.string(), &config);

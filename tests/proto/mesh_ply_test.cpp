@@ -14,7 +14,6 @@
 namespace kdrt::proto {
 namespace {
 
-using test::bytes_of;
 using test::parse_error;
 using test::parse_ok;
 using ::testing::HasSubstr;

@@ -133,10 +133,11 @@ public:
     [[nodiscard]] Result<Job> submit(const RenderRequest& request);
     /// The job's current status.
     [[nodiscard]] Result<Job> job(std::string_view id);
-    /// Polls the job every options.poll_interval until it finishes, calling `progress` (if set)
-    /// after every poll, then returns its image. A failed job is a kJobFailed error, a cancelled
-    /// one kCancelled. The job stays on the server (until cancel() or its time to live).
-    [[nodiscard]] Result<std::vector<std::byte>> wait(const Job& job,
+    /// Polls the `submitted` job every options.poll_interval until it finishes, calling
+    /// `progress` (if set) after every poll, then returns its image. A failed job is a kJobFailed
+    /// error, a cancelled one kCancelled. The job stays on the server (until cancel() or its time
+    /// to live).
+    [[nodiscard]] Result<std::vector<std::byte>> wait(const Job& submitted,
                                                       const ProgressCallback& progress = {});
     /// The image of a finished job (409 kServer error while it is not done).
     [[nodiscard]] Result<std::vector<std::byte>> result(const Job& job);

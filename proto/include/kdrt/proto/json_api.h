@@ -69,11 +69,11 @@ struct MeshSummary {
 
 [[nodiscard]] std::string encode_mesh_summary(const MeshSummary& summary);
 /// Inverse of encode_mesh_summary (floats and integers round-trip exactly).
-[[nodiscard]] Result<MeshSummary, std::string> decode_mesh_summary(std::string_view json);
+[[nodiscard]] Result<MeshSummary, std::string> decode_mesh_summary(std::string_view text);
 
 /// {"meshes": [summary, ...]}
 [[nodiscard]] std::string encode_mesh_list(std::span<const MeshSummary> meshes);
-[[nodiscard]] Result<std::vector<MeshSummary>, std::string> decode_mesh_list(std::string_view json);
+[[nodiscard]] Result<std::vector<MeshSummary>, std::string> decode_mesh_list(std::string_view text);
 
 // ---- JSON ray batches --------------------------------------------------------------------------
 
@@ -107,19 +107,19 @@ struct JsonRayRequest {
 };
 
 [[nodiscard]] Result<JsonRayRequest, JsonError> decode_json_rays(
-    std::string_view json, size_t max_rays = kDefaultMaxJsonRays);
+    std::string_view text, size_t max_rays = kDefaultMaxJsonRays);
 /// Writes a request decode_json_rays accepts: 8 numbers per ray, a tmax of +inf as 3.4028235e38
 /// rounded up (1e39). NaN components are written as null and refused by the decoder.
 [[nodiscard]] std::string encode_json_rays(std::span<const Ray> rays, bool occlusion);
 
 /// {"hits": [{"t": 1.5, "prim": 12, "u": 0.2, "v": 0.3} | null, ...]} (null for a miss).
 [[nodiscard]] std::string encode_json_hits(std::span<const Hit> hits);
-[[nodiscard]] Result<std::vector<Hit>, std::string> decode_json_hits(std::string_view json);
+[[nodiscard]] Result<std::vector<Hit>, std::string> decode_json_hits(std::string_view text);
 
 /// {"occluded": [true, false, ...]}
 [[nodiscard]] std::string encode_json_occlusion(std::span<const uint8_t> occluded);
 [[nodiscard]] Result<std::vector<uint8_t>, std::string> decode_json_occlusion(
-    std::string_view json);
+    std::string_view text);
 
 // ---- Renders ----------------------------------------------------------------------------------
 
@@ -152,7 +152,7 @@ struct RenderRequest {
 };
 
 [[nodiscard]] Result<RenderRequest, JsonError> decode_render_request(
-    std::string_view json, const RenderLimits& limits = {});
+    std::string_view text, const RenderLimits& limits = {});
 /// Writes every member decode_render_request reads (camera and tile only when set).
 [[nodiscard]] std::string encode_render_request(const RenderRequest& request);
 
@@ -183,7 +183,7 @@ struct JobStatus {
 };
 
 [[nodiscard]] std::string encode_job_status(const JobStatus& status);
-[[nodiscard]] Result<JobStatus, std::string> decode_job_status(std::string_view json);
+[[nodiscard]] Result<JobStatus, std::string> decode_job_status(std::string_view text);
 
 // ---- Small documents ---------------------------------------------------------------------------
 
