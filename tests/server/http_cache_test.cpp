@@ -188,6 +188,7 @@ TEST(HttpCache, ConcurrentIdenticalUploadsBuildOnce) {
     std::vector<int> statuses(kClients, 0);
     std::vector<std::string> ids(kClients);
     std::vector<std::thread> threads;
+    threads.reserve(kClients);
     for (int i = 0; i < kClients; ++i) {
         threads.emplace_back([&, i] {
             auto cli = server.client();

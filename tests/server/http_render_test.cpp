@@ -149,7 +149,9 @@ TEST_F(HttpRender, PngCompressionLevelsDecodeToTheSamePixels) {
     std::map<std::string, size_t> sizes;
     for (const std::string level : {"", "0", "1", "3", "6", "9"}) {
         SCOPED_TRACE("compression " + (level.empty() ? std::string("default") : level));
-        const std::string json = base + (level.empty() ? "" : ",\"compression\":" + level) + "}";
+        std::string json = base;
+        if (!level.empty()) json += ",\"compression\":" + level;
+        json += "}";
         auto res = post_render(*cli, json);
         ASSERT_TRUE(res);
         ASSERT_EQ(res->status, 200) << res->body;
@@ -178,7 +180,7 @@ TEST_F(HttpRender, PngCompressionLevelsDecodeToTheSamePixels) {
     ASSERT_EQ(queued->status, 202) << queued->body;
     const std::string location = queued->get_header_value("Location");
     for (int i = 0; i < 3000; ++i) {
-        auto result = cli->Get((location + "/result").c_str());
+        auto result = cli->Get(location + "/result");
         ASSERT_TRUE(result);
         if (result->status == 200) {
             EXPECT_EQ(result->body.size(), sizes["0"]);

@@ -80,7 +80,7 @@ TEST(HttpWrapper, ExceptionsFromHandlersAre500ProblemsAndTheServerGoesOn) {
     cli.set_read_timeout(30, 0);
     for (const std::string path : {"/test/throw-std", "/test/throw-other"}) {
         SCOPED_TRACE(path);
-        auto res = cli.Get(path.c_str());
+        auto res = cli.Get(path);
         ASSERT_TRUE(res) << httplib::to_string(res.error());
         EXPECT_EQ(res->status, 500);
         EXPECT_EQ(res->get_header_value("Content-Type"), "application/problem+json");

@@ -76,6 +76,7 @@ TEST_F(MeshCacheTest, ConcurrentAddsOfOneMeshBuildOnce) {
     const Mesh m = mesh(2, 20000);
     std::atomic<int> created{0};
     std::vector<std::thread> threads;
+    threads.reserve(8);
     for (int i = 0; i < 8; ++i)
         threads.emplace_back([&] {
             auto added = cache.add(m);
