@@ -79,7 +79,7 @@ TEST(PooledBuffer, GoesBackToItsPoolWhenDestroyedOrReplaced) {
         EXPECT_GE(a.capacity(), 2u << 20);
         EXPECT_EQ(pool.idle_bytes(), 0u);
         PooledBuffer b = std::move(a);  // moved-from a gives nothing back
-        EXPECT_FALSE(a);
+        EXPECT_FALSE(a);  // NOLINT(bugprone-use-after-move): the moved-from state is the test
         EXPECT_TRUE(b);
     }
     EXPECT_EQ(pool.idle_bytes(), 2u << 20);

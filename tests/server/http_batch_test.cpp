@@ -235,6 +235,7 @@ TEST_F(HttpBatch, ConcurrentLargeBodiesEachGetTheirOwnAnswer) {
     }
     std::vector<int> good(kConnections, 0);
     std::vector<std::thread> clients;
+    clients.reserve(kConnections);
     for (int c = 0; c < kConnections; ++c) {
         clients.emplace_back([&, c] {
             Socket s(server_->port());

@@ -372,7 +372,7 @@ int main(int argc, char** argv) {
         std::printf(
             "{\"measure\":\"upload_to_ready\",\"mesh\":\"torus\",\"triangles\":%zu,\"ms\":%.1f}\n",
             big.triangle_count(), big_s * 1e3);
-        cli->Delete(("/v1/meshes/" + big_id).c_str());
+        cli->Delete("/v1/meshes/" + big_id);
         std::fflush(stdout);
     }
 
