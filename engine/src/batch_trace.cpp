@@ -34,12 +34,17 @@ detail::Policy policy_for(TraceMode mode) noexcept {
 /// The scalar "kernel": every valid ray alone.
 template <bool AnyHit>
 void trace_scalar(const KdTree& tree, const Ray* rays, size_t count, Hit* hits, uint8_t* occ,
-                  detail::TraceCounters& counters) noexcept {
+                  bool count_work, detail::TraceCounters& counters) noexcept {
     for (size_t i = 0; i < count; ++i) {
-        if constexpr (AnyHit)
-            occ[i] = occluded(tree, rays[i]) ? 1 : 0;
-        else
-            hits[i] = intersect(tree, rays[i]);
+        if constexpr (AnyHit) {
+            occ[i] = (count_work ? detail::occluded_counted(tree, rays[i], counters)
+                                 : occluded(tree, rays[i]))
+                         ? 1
+                         : 0;
+        } else {
+            hits[i] = count_work ? detail::intersect_counted(tree, rays[i], counters)
+                                 : intersect(tree, rays[i]);
+        }
     }
     counters.single_rays += count;
 }
@@ -49,11 +54,14 @@ void trace_block(const KdTree& tree, std::span<const Ray> rays, Hit* hits, uint8
                  const TraceOptions& options, detail::TraceCounters& counters) noexcept {
     const detail::PacketKernels* k = detail::packet_kernels_for(resolve(options));
     if (k == nullptr) {
-        trace_scalar<AnyHit>(tree, rays.data(), rays.size(), hits, occ, counters);
+        trace_scalar<AnyHit>(tree, rays.data(), rays.size(), hits, occ, options.count_work,
+                             counters);
     } else if constexpr (AnyHit) {
-        k->occluded(tree, rays.data(), rays.size(), occ, policy_for(options.mode), counters);
+        (options.count_work ? k->occluded_counted : k->occluded)(
+            tree, rays.data(), rays.size(), occ, policy_for(options.mode), counters);
     } else {
-        k->intersect(tree, rays.data(), rays.size(), hits, policy_for(options.mode), counters);
+        (options.count_work ? k->intersect_counted : k->intersect)(
+            tree, rays.data(), rays.size(), hits, policy_for(options.mode), counters);
     }
 }
 
@@ -74,6 +82,7 @@ void trace_batch(const KdTree& tree, std::span<const Ray> rays, Hit* hits, uint8
     if (stats != nullptr) {
         *stats = TraceStats{};
         stats->isa = resolve(options);
+        stats->width = isa_width(stats->isa);
         stats->rays = rays.size();
         counters.combine_each([&](const detail::TraceCounters& c) {
             stats->packets += c.packets;
@@ -81,6 +90,11 @@ void trace_batch(const KdTree& tree, std::span<const Ray> rays, Hit* hits, uint8
             stats->single_rays += c.single_rays;
             stats->invalid_rays += c.invalid_rays;
             stats->sorted_rays += c.sorted_rays;
+            stats->traversal_steps += c.steps;
+            stats->leaves_visited += c.leaves;
+            stats->triangle_tests += c.tri_tests;
+            stats->packet_visits += c.packet_visits;
+            stats->packet_lanes += c.packet_lanes;
         });
     }
 }

@@ -21,15 +21,33 @@ struct TraceCounters {
     uint64_t invalid_rays =
         0;  ///< rays answered as misses without tracing (NaN, zero direction, ...)
     uint64_t sorted_rays = 0;  ///< valid rays of blocks sorted by origin and direction
+    // The work done, counted only by the counting kernels (TraceOptions::count_work). A packet's
+    // node visit or triangle test counts once per live lane, so the per-ray figures compare
+    // across modes.
+    uint64_t steps = 0;          ///< inner nodes visited, summed over rays
+    uint64_t leaves = 0;         ///< leaves visited, summed over rays
+    uint64_t tri_tests = 0;      ///< ray-triangle tests
+    uint64_t packet_visits = 0;  ///< nodes (inner and leaf) visited by packets
+    uint64_t packet_lanes = 0;   ///< live lanes summed over those visits
 };
 
-/// One ISA's kernels. Each traces `count` rays on the calling thread, answers in input order.
+/// The scalar kernel (trace.cpp) with its work counted: the same answers as intersect/occluded.
+Hit intersect_counted(const KdTree& tree, const Ray& ray, TraceCounters& counters) noexcept;
+bool occluded_counted(const KdTree& tree, const Ray& ray, TraceCounters& counters) noexcept;
+
+using IntersectKernel = void (*)(const KdTree& tree, const Ray* rays, size_t count, Hit* hits,
+                                 Policy policy, TraceCounters& counters);
+using OccludedKernel = void (*)(const KdTree& tree, const Ray* rays, size_t count,
+                                uint8_t* occluded, Policy policy, TraceCounters& counters);
+
+/// One ISA's kernels. Each traces `count` rays on the calling thread, answers in input order. The
+/// counting ones also fill the work counters of TraceCounters (slower; same answers).
 struct PacketKernels {
     int width;
-    void (*intersect)(const KdTree& tree, const Ray* rays, size_t count, Hit* hits, Policy policy,
-                      TraceCounters& counters);
-    void (*occluded)(const KdTree& tree, const Ray* rays, size_t count, uint8_t* occluded,
-                     Policy policy, TraceCounters& counters);
+    IntersectKernel intersect;
+    OccludedKernel occluded;
+    IntersectKernel intersect_counted;
+    OccludedKernel occluded_counted;
 };
 
 /// Defined in packet_sse4.cpp, packet_avx2.cpp, packet_avx512.cpp. Call only when the CPU has the

@@ -17,7 +17,8 @@
 namespace kdrt::detail {
 
 const PacketKernels* packet_kernels_avx2() noexcept {
-    static constexpr PacketKernels kKernels{8, &intersect_rays<8>, &occluded_rays<8>};
+    static constexpr PacketKernels kKernels{8, &intersect_rays<8, false>, &occluded_rays<8, false>,
+                                            &intersect_rays<8, true>, &occluded_rays<8, true>};
     return &kKernels;
 }
 

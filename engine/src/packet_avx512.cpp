@@ -17,7 +17,9 @@
 namespace kdrt::detail {
 
 const PacketKernels* packet_kernels_avx512() noexcept {
-    static constexpr PacketKernels kKernels{16, &intersect_rays<16>, &occluded_rays<16>};
+    static constexpr PacketKernels kKernels{16, &intersect_rays<16, false>,
+                                            &occluded_rays<16, false>, &intersect_rays<16, true>,
+                                            &occluded_rays<16, true>};
     return &kKernels;
 }
 

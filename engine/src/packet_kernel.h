@@ -224,10 +224,27 @@ inline VM<W> intersect_triangle_packet(const Packet<W>& pk, const TriVerts& tri,
     return hit;
 }
 
+/// Live lanes of a mask.
+template <int W>
+inline uint64_t live_lanes(VM<W> m) {
+    return static_cast<uint64_t>(__builtin_popcount(simd::bits<W>(m)));
+}
+
+/// Counts a packet's visit of a node: its live lanes, into `per_ray` (steps or leaves) and the
+/// lane-use totals.
+template <int W>
+inline void count_visit(VM<W> active, uint64_t& per_ray, TraceCounters& counters) {
+    const uint64_t live = live_lanes<W>(active);
+    per_ray += live;
+    counters.packet_lanes += live;
+    ++counters.packet_visits;
+}
+
 /// Traverses the tree with one packet. Closest hit: `best` holds per-lane answers (initialised by
 /// the caller to t = ray tmax, prim = kNoHit). Any hit: returns the lanes occluded.
-template <int W, bool AnyHit>
-inline VM<W> traverse_packet(const KdTree& tree, const Packet<W>& pk, PacketHits<W>& best) {
+template <int W, bool AnyHit, bool Count>
+inline VM<W> traverse_packet(const KdTree& tree, const Packet<W>& pk, PacketHits<W>& best,
+                             TraceCounters& counters) {
     const KdNode* nodes = tree.nodes.data();
     const uint32_t* refs = tree.leaf_refs.data();
     const TriVerts* tris = tree.tris.data();
@@ -244,6 +261,7 @@ inline VM<W> traverse_packet(const KdTree& tree, const Packet<W>& pk, PacketHits
             const VF<W> t_split = (node.split() - pk.org[axis]) * pk.inv[axis];
             const VF<W> near_max = t_split + pk.eps[axis], far_min = t_split - pk.eps[axis];
             const VM<W> active = tmin <= tmax;
+            if constexpr (Count) count_visit<W>(active, counters.steps, counters);
             const uint32_t near_child = node.first_child() + pk.near_is_high[axis];
             const uint32_t far_child = node.first_child() + (pk.near_is_high[axis] ^ 1u);
             // Per lane as in the scalar kernel: near needed unless near_max < tmin, far needed
@@ -270,9 +288,11 @@ inline VM<W> traverse_packet(const KdTree& tree, const Packet<W>& pk, PacketHits
         }
         if (node.is_leaf()) {
             VM<W> active = (tmin <= tmax) & ~done;
+            if constexpr (Count) count_visit<W>(active, counters.leaves, counters);
             const uint32_t end = node.first_ref() + node.prim_count();
             for (uint32_t r = node.first_ref(); r < end; ++r) {
                 const uint32_t prim = refs[r];
+                if constexpr (Count) counters.tri_tests += live_lanes<W>(active);
                 VF<W> t, u, v;
                 VM<W> hit = intersect_triangle_packet<W>(pk, tris[prim], active, t, u, v);
                 if (simd::none<W>(hit)) continue;
@@ -310,7 +330,7 @@ inline VM<W> traverse_packet(const KdTree& tree, const Packet<W>& pk, PacketHits
 
 /// Traces `count` rays of one octant, block[order[0..count)], W at a time: each group as a packet
 /// or as single rays (the policy).
-template <int W, bool AnyHit>
+template <int W, bool AnyHit, bool Count>
 [[gnu::always_inline]] inline void trace_run(const KdTree& tree, const Ray* block, size_t base,
                                              const uint16_t* order, int count, Hit* hits,
                                              uint8_t* occluded, Policy policy,
@@ -323,10 +343,15 @@ template <int W, bool AnyHit>
         if (!as_packet) {
             for (int l = 0; l < lanes; ++l) {
                 const size_t i = base + index[l];
-                if constexpr (AnyHit)
-                    occluded[i] = kdrt::occluded(tree, block[index[l]]) ? 1 : 0;
-                else
-                    hits[i] = kdrt::intersect(tree, block[index[l]]);
+                if constexpr (AnyHit) {
+                    occluded[i] = (Count ? occluded_counted(tree, block[index[l]], counters)
+                                         : kdrt::occluded(tree, block[index[l]]))
+                                      ? 1
+                                      : 0;
+                } else {
+                    hits[i] = Count ? intersect_counted(tree, block[index[l]], counters)
+                                    : kdrt::intersect(tree, block[index[l]]);
+                }
             }
             counters.single_rays += static_cast<uint64_t>(lanes);
             continue;
@@ -338,7 +363,7 @@ template <int W, bool AnyHit>
         best.u = simd::broadcast<W>(0.0f);
         best.v = simd::broadcast<W>(0.0f);
         best.prim = simd::broadcast_u<W>(kNoHit);
-        const VM<W> occ = traverse_packet<W, AnyHit>(tree, pk, best);
+        const VM<W> occ = traverse_packet<W, AnyHit, Count>(tree, pk, best, counters);
         ++counters.packets;
         counters.packet_rays += static_cast<uint64_t>(lanes);
         if constexpr (AnyHit) {
@@ -360,7 +385,7 @@ template <int W, bool AnyHit>
 
 /// The kernel's answer to schedule_rays: traces one octant run W rays at a time (trace_run).
 /// A struct rather than a lambda: a lambda would not inherit the ISA target.
-template <int W, bool AnyHit>
+template <int W, bool AnyHit, bool Count>
 struct RunTracer {
     const KdTree& tree;
     Hit* hits;
@@ -370,28 +395,30 @@ struct RunTracer {
 
     [[gnu::always_inline]] void operator()(const Ray* block, size_t base, const uint16_t* order,
                                            int count) const {
-        trace_run<W, AnyHit>(tree, block, base, order, count, hits, occluded, policy, counters);
+        trace_run<W, AnyHit, Count>(tree, block, base, order, count, hits, occluded, policy,
+                                    counters);
     }
 };
 
 /// Traces `count` rays in the order schedule_rays picks; answers in input order.
-template <int W, bool AnyHit>
+template <int W, bool AnyHit, bool Count>
 void trace_rays(const KdTree& tree, const Ray* rays, size_t count, Hit* hits, uint8_t* occluded,
                 Policy policy, TraceCounters& counters) {
     schedule_rays<AnyHit>(tree, rays, count, hits, occluded, counters,
-                          RunTracer<W, AnyHit>{tree, hits, occluded, policy, counters});
+                          RunTracer<W, AnyHit, Count>{tree, hits, occluded, policy, counters});
 }
 
-template <int W>
+/// The kernels of PacketKernels; Count selects the counting copies (TraceOptions::count_work).
+template <int W, bool Count>
 void intersect_rays(const KdTree& tree, const Ray* rays, size_t count, Hit* hits, Policy policy,
                     TraceCounters& counters) {
-    trace_rays<W, false>(tree, rays, count, hits, nullptr, policy, counters);
+    trace_rays<W, false, Count>(tree, rays, count, hits, nullptr, policy, counters);
 }
 
-template <int W>
+template <int W, bool Count>
 void occluded_rays(const KdTree& tree, const Ray* rays, size_t count, uint8_t* occluded,
                    Policy policy, TraceCounters& counters) {
-    trace_rays<W, true>(tree, rays, count, nullptr, occluded, policy, counters);
+    trace_rays<W, true, Count>(tree, rays, count, nullptr, occluded, policy, counters);
 }
 
 }  // namespace

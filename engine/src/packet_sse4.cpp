@@ -17,7 +17,8 @@
 namespace kdrt::detail {
 
 const PacketKernels* packet_kernels_sse4() noexcept {
-    static constexpr PacketKernels kKernels{4, &intersect_rays<4>, &occluded_rays<4>};
+    static constexpr PacketKernels kKernels{4, &intersect_rays<4, false>, &occluded_rays<4, false>,
+                                            &intersect_rays<4, true>, &occluded_rays<4, true>};
     return &kKernels;
 }
 

@@ -6,6 +6,7 @@
 #include <tbb/blocked_range.h>
 #include <tbb/parallel_for.h>
 
+#include "packet.h"
 #include "ray_prep.h"
 
 namespace kdrt {
@@ -27,8 +28,23 @@ struct Best {
 /// The single-ray kernel (Stoll 2005): non-recursive, a fixed stack of (node, tmin, tmax), one
 /// subtract and one multiply per step. With AnyHit it returns at the first hit; otherwise it keeps
 /// the lexicographically smallest (t, prim) so ties do not depend on traversal order.
-template <bool AnyHit>
-bool traverse(const KdTree& tree, const Ray& ray, Best& best) noexcept {
+/// No counting: the public queries.
+struct NoCount {
+    void step() noexcept {}
+    void leaf(uint32_t) noexcept {}
+};
+/// Counting into TraceCounters: kdrt-bench trace --stats.
+struct Count {
+    detail::TraceCounters& c;
+    void step() noexcept { ++c.steps; }
+    void leaf(uint32_t tris) noexcept {
+        ++c.leaves;
+        c.tri_tests += tris;
+    }
+};
+
+template <bool AnyHit, class Counter>
+bool traverse(const KdTree& tree, const Ray& ray, Best& best, Counter counter) noexcept {
     if (!detail::ray_is_valid(ray) || tree.bounds.empty()) return false;
     const detail::PreparedRay p = detail::prepare_ray(ray);
     float tmin = ray.tmin, tmax = ray.tmax;
@@ -52,6 +68,7 @@ bool traverse(const KdTree& tree, const Ray& ray, Best& best) noexcept {
     for (;;) {
         KdNode node = nodes[node_index];
         while (!node.is_leaf()) {
+            counter.step();
             const int axis = node.axis();
             const float t_split = (node.split() - p.org[axis]) * p.inv_dir[axis];
             const uint32_t near_child = node.first_child() + near_is_high[axis];
@@ -72,6 +89,7 @@ bool traverse(const KdTree& tree, const Ray& ray, Best& best) noexcept {
             node_index = need_near ? near_child : far_child;
             node = nodes[node_index];
         }
+        counter.leaf(node.prim_count());
         const uint32_t end = node.first_ref() + node.prim_count();
         for (uint32_t r = node.first_ref(); r < end; ++r) {
             const uint32_t prim = refs[r];
@@ -129,14 +147,29 @@ constexpr size_t kSingleGrain = 1024;
 
 Hit intersect(const KdTree& tree, const Ray& ray) noexcept {
     Best best{ray.tmax, kNoHit, 0.0f, 0.0f};
-    const bool found = traverse<false>(tree, ray, best);
+    const bool found = traverse<false>(tree, ray, best, NoCount{});
     return to_hit(found, best);
 }
 
 bool occluded(const KdTree& tree, const Ray& ray) noexcept {
     Best best{ray.tmax, kNoHit, 0.0f, 0.0f};
-    return traverse<true>(tree, ray, best);
+    return traverse<true>(tree, ray, best, NoCount{});
 }
+
+namespace detail {
+
+Hit intersect_counted(const KdTree& tree, const Ray& ray, TraceCounters& counters) noexcept {
+    Best best{ray.tmax, kNoHit, 0.0f, 0.0f};
+    const bool found = traverse<false>(tree, ray, best, Count{counters});
+    return to_hit(found, best);
+}
+
+bool occluded_counted(const KdTree& tree, const Ray& ray, TraceCounters& counters) noexcept {
+    Best best{ray.tmax, kNoHit, 0.0f, 0.0f};
+    return traverse<true>(tree, ray, best, Count{counters});
+}
+
+}  // namespace detail
 
 Hit brute_force_intersect(std::span<const TriVerts> tris, const Ray& ray) noexcept {
     Best best{ray.tmax, kNoHit, 0.0f, 0.0f};

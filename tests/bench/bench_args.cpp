@@ -5,7 +5,8 @@
 
 namespace kdrt::bench {
 
-Args::Args(std::span<char* const> args, std::span<const std::string_view> value_options) {
+Args::Args(std::span<char* const> args, std::span<const std::string_view> value_options,
+           std::span<const std::string_view> flag_options) {
     bool options_done = false;  // after "--" everything is positional
     for (size_t i = 0; i < args.size(); ++i) {
         const std::string_view arg = args[i];
@@ -27,6 +28,12 @@ Args::Args(std::span<char* const> args, std::span<const std::string_view> value_
         if (const size_t eq = name.find('='); eq != std::string_view::npos) {
             value = name.substr(eq + 1);
             name = name.substr(0, eq);
+        }
+        if (std::find(flag_options.begin(), flag_options.end(), name) != flag_options.end()) {
+            if (value) throw UsageError("option '--" + std::string(name) + "' takes no value");
+            if (!flags_.emplace(name).second)
+                throw UsageError("option '--" + std::string(name) + "' is given more than once");
+            continue;
         }
         if (std::find(value_options.begin(), value_options.end(), name) == value_options.end()) {
             throw UsageError("unknown option '--" + std::string(name) + "'");

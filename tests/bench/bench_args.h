@@ -5,6 +5,7 @@
 #include <cstdint>
 #include <map>
 #include <optional>
+#include <set>
 #include <span>
 #include <stdexcept>
 #include <string>
@@ -32,7 +33,9 @@ public:
     /// Splits `args` into positionals and options. `value_options` are the option names (without
     /// "--") the subcommand accepts; each takes exactly one value. `--help` / `-h` set help().
     /// Throws UsageError for an unknown option, a missing value or an option given twice.
-    Args(std::span<char* const> args, std::span<const std::string_view> value_options);
+    /// `flag_options` take no value (`--stats`); flag() tells whether one was given.
+    Args(std::span<char* const> args, std::span<const std::string_view> value_options,
+         std::span<const std::string_view> flag_options = {});
 
     [[nodiscard]] bool help() const noexcept { return help_; }
     [[nodiscard]] const std::vector<std::string>& positional() const noexcept {
@@ -43,6 +46,8 @@ public:
     /// the first missing one, or the first extra value.
     void expect_positional(std::span<const std::string_view> names) const;
 
+    /// Whether the flag option was given.
+    [[nodiscard]] bool flag(std::string_view name) const { return flags_.contains(name); }
     /// The option's value, if given.
     [[nodiscard]] std::optional<std::string> get(std::string_view name) const;
     /// The option's value; UsageError naming the option if absent.
@@ -58,6 +63,7 @@ public:
 private:
     std::vector<std::string> positional_;
     std::map<std::string, std::string, std::less<>> options_;
+    std::set<std::string, std::less<>> flags_;
     bool help_ = false;
 };
 

@@ -145,6 +145,27 @@ expect_value("${occl_line}" occlusion ON)
 string(JSON shadow_rays GET "${shadow_line}" rays)
 expect_value("${occl_line}" rays ${shadow_rays})
 
+# --stats: the work per ray from the counting kernels; the answers stay the same
+run_bench(stats_line trace "${MESH}" "${primary}" --reps 1 --stats --out "${WORK_DIR}/stats_hits.kdrh")
+expect_keys("${stats_line}" ${trace_keys} steps_per_ray leaves_per_ray tri_tests_per_ray packet_visits
+            lane_utilisation)
+string(JSON steps GET "${stats_line}" steps_per_ray)
+string(JSON use GET "${stats_line}" lane_utilisation)
+if(NOT steps GREATER 1 OR use GREATER 1)
+    message(FATAL_ERROR "--stats: a framed bunny's primary rays take more than one step each, and "
+                        "no more lanes than a packet has: ${stats_line}")
+endif()
+file(SHA256 "${hits}" plain_sum)
+file(SHA256 "${WORK_DIR}/stats_hits.kdrh" stats_sum)
+if(NOT plain_sum STREQUAL stats_sum)
+    message(FATAL_ERROR "--stats changed the answers")
+endif()
+string(JSON plain_steps ERROR_VARIABLE no_steps GET "${trace_line}" steps_per_ray)
+if(NOT no_steps)
+    message(FATAL_ERROR "steps_per_ray without --stats: ${trace_line}")
+endif()
+expect_failure(2 "takes no value" trace "${MESH}" "${primary}" --stats=yes)
+
 if(EMBREE)
     run_bench(embree_line trace "${MESH}" "${primary}" --reps 1 --compare embree)
     expect_keys("${embree_line}" ${trace_keys} embree_mrays_per_s embree_best_mode ratio

@@ -80,7 +80,7 @@ options:
 constexpr std::string_view kTraceUsage =
     R"(usage: kdrt-bench trace MESH RAYS.kdrr [--mode single|packet|auto] [--isa ISA] [--threads N]
                         [--reps K] [--out FILE] [--builder sah|middle] [--c-isect X]
-                        [--compare embree]
+                        [--compare embree] [--stats]
 
 Builds the tree of MESH, then traces the rays of RAYS.kdrr K times (default 5) after one untimed
 warm-up pass: closest hits, or occlusion when the batch has flag bit 0 set. Prints one JSON line:
@@ -98,6 +98,10 @@ rtcIntersect1/1M/4/8/16 (rtcOccluded* for occlusion), incoherent and coherent, a
   the same t on triangles that share a corner, or that kdrt's test hits too: both answers
   right), kdrt_matches_oracle (of the other differences, rays where kdrt's answer is the
   brute-force oracle's) and embree_modes (Mrays/s of every mode).
+With --stats it traces once more, untimed, with the counting kernels and adds the work per ray:
+  steps_per_ray (inner nodes visited), leaves_per_ray, tri_tests_per_ray (a packet's visit or
+  test counts once per live lane), packet_visits (node visits by packets) and lane_utilisation
+  (live lanes per packet node visit, divided by the packet width).
 
 options:
   --mode single|packet|auto  traversal (default auto: packets where rays are coherent)
@@ -108,6 +112,7 @@ options:
   --builder sah|middle       tree builder (default sah)
   --c-isect X                SAH cost of a triangle test relative to a traversal step (default 0.3)
   --compare embree           also trace with Embree 3 and compare speed and answers
+  --stats                    also count the work per ray (an extra, untimed pass)
 )";
 
 constexpr std::string_view kRaysUsage =
@@ -371,7 +376,7 @@ int run_trace(const Args& args) {
     std::vector<Hit> hits;
     std::vector<uint8_t> occluded;
     std::optional<EmbreeReport> embree;
-    TraceStats stats;
+    TraceStats stats, work;
     with_threads(threads, [&] {
         tree = build_tree(loaded.mesh, build_options, build_ms);
         if (batch.occlusion) {
@@ -392,6 +397,15 @@ int run_trace(const Args& args) {
             if (pass > 0) {
                 seconds.push_back(elapsed);
                 cpu_seconds += process_cpu_seconds() - cpu_start;
+            }
+        }
+        if (args.flag("stats")) {
+            TraceOptions counting = trace_options;
+            counting.count_work = true;
+            if (batch.occlusion) {
+                kdrt::occluded(tree, rays, occluded, counting, &work);
+            } else {
+                kdrt::intersect(tree, rays, hits, counting, &work);
             }
         }
         if (compare) {
@@ -435,6 +449,21 @@ int run_trace(const Args& args) {
     line["seconds_min"] = rounded(*std::min_element(seconds.begin(), seconds.end()), 9);
     line["mrays_per_s"] = rounded(mrays_per_s, 3);
     line["hits"] = answered;
+    if (args.flag("stats")) {
+        const auto per_ray = [&](uint64_t n) {
+            return rounded(
+                rays.empty() ? 0.0 : static_cast<double>(n) / static_cast<double>(rays.size()), 3);
+        };
+        line["steps_per_ray"] = per_ray(work.traversal_steps);
+        line["leaves_per_ray"] = per_ray(work.leaves_visited);
+        line["tri_tests_per_ray"] = per_ray(work.triangle_tests);
+        line["packet_visits"] = work.packet_visits;
+        line["lane_utilisation"] = rounded(
+            work.packet_visits == 0 ? 0.0
+                                    : static_cast<double>(work.packet_lanes) /
+                                          (static_cast<double>(work.packet_visits) * work.width),
+            3);
+    }
     // CPU seconds per wall second while tracing: close to `threads` only when the workers had
     // their cores to themselves; lower means other load (or a VM host) took CPU time.
     const double wall_total = std::accumulate(seconds.begin(), seconds.end(), 0.0);
@@ -710,11 +739,13 @@ struct Command {
     std::string_view usage;
     std::span<const std::string_view> options;
     int (*run)(const Args&);
+    std::span<const std::string_view> flags = {};
 };
 
 constexpr std::array<std::string_view, 4> kBuildOptions = {"builder", "c-isect", "threads", "reps"};
 constexpr std::array<std::string_view, 8> kTraceOptions = {"mode", "isa",     "threads", "reps",
                                                            "out",  "builder", "c-isect", "compare"};
+constexpr std::array<std::string_view, 1> kTraceFlags = {"stats"};
 constexpr std::array<std::string_view, 7> kRaysOptions = {"kind", "res",     "seed",   "out",
                                                           "eye",  "look-at", "threads"};
 constexpr std::array<std::string_view, 4> kSceneOptions = {"out", "size", "from", "copies"};
@@ -723,7 +754,7 @@ constexpr std::array<std::string_view, 13> kRenderOptions = {
     "ao-samples", "bounces", "builder", "c-isect", "out",     "compare"};
 constexpr std::array<Command, 5> kCommands = {{
     {"build", kBuildUsage, kBuildOptions, &run_build},
-    {"trace", kTraceUsage, kTraceOptions, &run_trace},
+    {"trace", kTraceUsage, kTraceOptions, &run_trace, kTraceFlags},
     {"rays", kRaysUsage, kRaysOptions, &run_rays},
     {"scene", kSceneUsage, kSceneOptions, &run_scene},
     {"render", kRenderUsage, kRenderOptions, &run_render},
@@ -747,7 +778,7 @@ int run_main(int argc, char** argv) {
         return 2;
     }
     try {
-        const Args args(all.subspan(1), command->options);
+        const Args args(all.subspan(1), command->options, command->flags);
         if (args.help()) {
             std::cout << command->usage;
             return 0;

@@ -152,10 +152,14 @@ TEST(PacketEquivalence, TailsAndDeadLanes) {
                 rays.push_back(
                     cam.ray(static_cast<float>(column) + 0.5f, static_cast<float>(row) + 0.5f));
             }
-            std::vector<Hit> hits(n);
-            intersect(tree, rays, hits, {TraceMode::kPacket, isa});
-            expect_identical_bytes(hits, reference_hits(tree, rays),
-                                   std::string(isa_name(isa)) + " n=" + std::to_string(n));
+            for (TraceMode mode : {TraceMode::kPacket, TraceMode::kSingle}) {
+                std::vector<Hit> hits(n);
+                intersect(tree, rays, hits, {mode, isa});
+                expect_identical_bytes(hits, reference_hits(tree, rays),
+                                       std::string(isa_name(isa)) + "/" +
+                                           std::string(trace_mode_name(mode)) +
+                                           " n=" + std::to_string(n));
+            }
         }
         // A packet whose every lane is invalid, and one whose lanes all miss the scene box.
         std::vector<Ray> dead(32, make_ray({0, 0, 0}, {NAN, 1, 0}));
@@ -212,6 +216,66 @@ TEST(PacketEquivalence, OneAndTwoThreadsGiveIdenticalBytes) {
             return proto::encode_hits(hits);
         };
         EXPECT_EQ(run(1), run(2)) << ray_kind_name(kind);
+    }
+}
+
+/// The work counters of a batch traced with count_work (and the answers, which must not change).
+struct Counted {
+    std::vector<Hit> hits;
+    std::vector<uint8_t> occ;
+    TraceStats hit_stats, occ_stats;
+};
+
+Counted trace_counted(const KdTree& tree, std::span<const Ray> rays, TraceOptions options) {
+    options.count_work = true;
+    Counted c;
+    c.hits.resize(rays.size());
+    c.occ.resize(rays.size());
+    intersect(tree, rays, c.hits, options, &c.hit_stats);
+    occluded(tree, rays, c.occ, options, &c.occ_stats);
+    return c;
+}
+
+TEST(WorkCounters, EveryKernelCountsTheScalarKernelsWorkPerRay) {
+    auto mesh = proto::load_mesh_file(std::string(KDRT_TEST_DATA_DIR) + "/bunny00.off");
+    ASSERT_TRUE(mesh.ok());
+    const KdTree tree = build_kdtree(*mesh);
+    const uint32_t res = static_cast<uint32_t>(std::max<size_t>(scaled(128), 48));
+    for (RayKind kind : {RayKind::kPrimary, RayKind::kShadow, RayKind::kDiffuse}) {
+        const std::vector<Ray> rays = generate_rays(tree, {kind, res, 5});
+        const Counted ref = trace_counted(tree, rays, {TraceMode::kSingle, Isa::kScalar});
+        expect_identical_bytes(ref.hits, reference_hits(tree, rays), "counted scalar");
+        EXPECT_GT(ref.hit_stats.traversal_steps, rays.size()) << "every ray crosses the root";
+        EXPECT_GT(ref.hit_stats.triangle_tests, 0u);
+        EXPECT_GE(ref.hit_stats.leaves_visited, ref.hit_stats.triangle_tests / 64);
+        EXPECT_EQ(ref.hit_stats.packet_visits, 0u);
+        for (Isa isa : supported_isas()) {
+            for (TraceMode mode : {TraceMode::kSingle, TraceMode::kPacket, TraceMode::kAuto}) {
+                const std::string what = std::string(ray_kind_name(kind)) + "/" +
+                                         std::string(isa_name(isa)) + "/" +
+                                         std::string(trace_mode_name(mode));
+                const Counted c = trace_counted(tree, rays, {mode, isa});
+                expect_identical_bytes(c.hits, ref.hits, what);
+                EXPECT_TRUE(c.occ == ref.occ) << what;
+                // A lane makes its ray's decisions, so it visits the nodes and leaves the ray
+                // visits alone, in any kernel.
+                EXPECT_EQ(c.hit_stats.traversal_steps, ref.hit_stats.traversal_steps) << what;
+                EXPECT_EQ(c.hit_stats.leaves_visited, ref.hit_stats.leaves_visited) << what;
+                EXPECT_EQ(c.hit_stats.triangle_tests, ref.hit_stats.triangle_tests) << what;
+                EXPECT_EQ(c.occ_stats.traversal_steps, ref.occ_stats.traversal_steps) << what;
+                EXPECT_EQ(c.hit_stats.width, isa_width(isa));
+                if (c.hit_stats.packet_visits > 0) {
+                    const double use =
+                        static_cast<double>(c.hit_stats.packet_lanes) /
+                        (static_cast<double>(c.hit_stats.packet_visits) * isa_width(isa));
+                    EXPECT_GT(use, 0.0) << what;
+                    EXPECT_LE(use, 1.0) << what;
+                }
+                if (mode == TraceMode::kPacket && isa != Isa::kScalar) {
+                    EXPECT_GT(c.hit_stats.packet_visits, 0u) << what;
+                }
+            }
+        }
     }
 }
 

@@ -60,6 +60,9 @@ enum class TraceMode : uint32_t { kAuto = 0, kSingle = 1, kPacket = 2 };
 struct TraceOptions {
     TraceMode mode = TraceMode::kAuto;
     std::optional<Isa> isa;  ///< default: default_isa(); an unsupported one falls back to it
+    /// Count the work done into TraceStats (traversal steps, leaves, triangle tests, packet lane
+    /// use). Uses counting copies of the kernels: the same answers, somewhat slower.
+    bool count_work = false;
 };
 
 /// What a batch did: how the auto policy split the work.
@@ -73,6 +76,16 @@ struct TraceStats {
     /// Valid rays of blocks the tracer found incoherent and sorted by origin and direction before
     /// cutting packets (the rest keep their input order, split only by octant).
     uint64_t sorted_rays = 0;
+    /// The work done, with TraceOptions::count_work only (else 0). Summed over rays: a packet's
+    /// node visit or triangle test counts once per live lane, so the means per ray compare across
+    /// modes and instruction sets.
+    uint64_t traversal_steps = 0;  ///< inner nodes visited
+    uint64_t leaves_visited = 0;   ///< leaves visited (empty ones too)
+    uint64_t triangle_tests = 0;   ///< ray-triangle tests
+    uint64_t packet_visits = 0;    ///< nodes (inner and leaf) visited by packets
+    uint64_t packet_lanes = 0;     ///< live lanes summed over those visits
+    int width = 1;                 ///< lanes per packet (isa_width): utilisation is
+                                   ///< packet_lanes / (packet_visits * width)
 };
 
 /// Batch queries for arbitrary input, over all threads of the current oneTBB arena. Answers come
