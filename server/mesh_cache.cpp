@@ -24,7 +24,8 @@ bool consistent(const KdTree& tree, const proto::MeshSummary& summary) {
 
 uint64_t tree_memory_bytes(const KdTree& tree) noexcept {
     return sizeof(KdTree) + tree.nodes.capacity() * sizeof(KdNode) +
-           tree.leaf_refs.capacity() * sizeof(uint32_t) + tree.tris.capacity() * sizeof(TriVerts);
+           tree.leaf_refs.capacity() * sizeof(uint32_t) + tree.tris.capacity() * sizeof(TriVerts) +
+           (tree.tri_ids.capacity() + tree.tri_slots.capacity()) * sizeof(uint32_t);
 }
 
 proto::MeshSummary make_summary(std::string id, const Mesh& mesh, const KdTree& tree) {

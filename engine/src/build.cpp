@@ -4,6 +4,7 @@
 
 #include "build_internal.h"
 #include "kdrt/trace.h"
+#include "node_layout.h"
 
 namespace kdrt {
 namespace detail {
@@ -51,15 +52,47 @@ Aabb root_cell(const std::vector<TriVerts>& tris, const std::vector<uint8_t>& de
     return box;
 }
 
-void finish_tree(KdTree& tree, SubTree&& sub) {
-    tree.nodes = std::move(sub.nodes);
-    tree.leaf_refs = std::move(sub.refs);
+/// Fills tree.tris with the triangles `by_id` in leaf order and rewrites leaf_refs to index it.
+void order_triangles(KdTree& tree, const std::vector<TriVerts>& by_id) {
+    const auto n = static_cast<uint32_t>(by_id.size());
+    constexpr uint32_t kUnplaced = ~0u;
+    tree.tri_slots.assign(n, kUnplaced);
+    tree.tri_ids.clear();
+    tree.tri_ids.reserve(n);
+    for (uint32_t& ref : tree.leaf_refs) {
+        if (tree.tri_slots[ref] == kUnplaced) {
+            tree.tri_slots[ref] = static_cast<uint32_t>(tree.tri_ids.size());
+            tree.tri_ids.push_back(ref);
+        }
+        ref = tree.tri_slots[ref];
+    }
+    for (uint32_t id = 0; id < n; ++id) {
+        if (tree.tri_slots[id] != kUnplaced) continue;
+        tree.tri_slots[id] = static_cast<uint32_t>(tree.tri_ids.size());
+        tree.tri_ids.push_back(id);
+    }
+    TreeArray<TriVerts> ordered(n);
+    for (uint32_t slot = 0; slot < n; ++slot) ordered[slot] = by_id[tree.tri_ids[slot]];
+    tree.tris = std::move(ordered);
+}
+
+void finish_tree(KdTree& tree, SubTree&& sub, const std::vector<TriVerts>& by_id) {
+    tree.nodes = cluster_nodes(sub.nodes);
+    tree.leaf_refs.assign(sub.refs.begin(), sub.refs.end());
+    order_triangles(tree, by_id);
     const double build_ms = tree.stats.build_ms;
     tree.stats = compute_stats(tree);
     tree.stats.build_ms = build_ms;
 }
 
 }  // namespace detail
+
+std::vector<TriVerts> triangles_by_id(const KdTree& tree) {
+    std::vector<TriVerts> tris(tree.tris.size());
+    for (size_t slot = 0; slot < tree.tris.size(); ++slot)
+        tris[tree.tri_ids[slot]] = tree.tris[slot];
+    return tris;
+}
 
 std::vector<TriVerts> make_tri_verts(const Mesh& mesh) {
     std::vector<TriVerts> tris;
@@ -72,19 +105,20 @@ KdTree build_kdtree(const Mesh& mesh, const BuildOptions& options) {
     validate_mesh(mesh);
     KdTree tree;
     tree.options = options;
-    const std::vector<uint8_t> degenerate = detail::prepare_triangles(mesh, tree.tris);
-    tree.bounds = detail::root_cell(tree.tris, degenerate);
+    std::vector<TriVerts> by_id;
+    const std::vector<uint8_t> degenerate = detail::prepare_triangles(mesh, by_id);
+    tree.bounds = detail::root_cell(by_id, degenerate);
     detail::SubTree sub;
     if (!tree.bounds.empty()) {
         if (options.builder == Builder::kMiddle) {
-            detail::build_middle(tree.tris, degenerate, tree.bounds, options, sub);
+            detail::build_middle(by_id, degenerate, tree.bounds, options, sub);
         } else {
-            detail::build_sah(tree.tris, degenerate, tree.bounds, options, sub);
+            detail::build_sah(by_id, degenerate, tree.bounds, options, sub);
         }
     }
     tree.stats.build_ms =
         std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
-    detail::finish_tree(tree, std::move(sub));
+    detail::finish_tree(tree, std::move(sub), by_id);
     return tree;
 }
 

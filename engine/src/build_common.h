@@ -58,7 +58,8 @@ std::vector<uint8_t> prepare_triangles(const Mesh& mesh, std::vector<TriVerts>& 
 /// that ray clipping is robust and flat meshes get a cell with volume.
 Aabb root_cell(const std::vector<TriVerts>& tris, const std::vector<uint8_t>& degenerate);
 
-/// Moves a finished SubTree into `tree` and fills the statistics (build_ms excluded).
-void finish_tree(KdTree& tree, SubTree&& sub);
+/// Moves a finished SubTree into `tree` (its nodes in cache lines, the triangles `by_id` in leaf
+/// order) and fills the statistics (build_ms excluded).
+void finish_tree(KdTree& tree, SubTree&& sub, const std::vector<TriVerts>& by_id);
 
 }  // namespace kdrt::detail

@@ -91,11 +91,10 @@ struct Surface {
     Vec3 normal;  ///< unit geometric normal on the side the ray came from
 };
 
-/// The surface of `hit` (a hit of `ray` on tris[hit.prim]), its origin pushed off by `offset`.
+/// The surface of `hit` (a hit of `ray` on `tri`, the triangle hit.prim), its origin pushed off by
+/// `offset`.
 template <NormalScaling kScaling>
-Surface surface_at(std::span<const TriVerts> tris, const Ray& ray, const Hit& hit,
-                   float offset) noexcept {
-    const TriVerts& tri = tris[hit.prim];
+Surface surface_at(const TriVerts& tri, const Ray& ray, const Hit& hit, float offset) noexcept {
     const Vec3 v0{tri.v0[0], tri.v0[1], tri.v0[2]};
     const Vec3 v1{tri.v1[0], tri.v1[1], tri.v1[2]};
     const Vec3 v2{tri.v2[0], tri.v2[1], tri.v2[2]};

@@ -248,6 +248,7 @@ inline VM<W> traverse_packet(const KdTree& tree, const Packet<W>& pk, PacketHits
     const KdNode* nodes = tree.nodes.data();
     const uint32_t* refs = tree.leaf_refs.data();
     const TriVerts* tris = tree.tris.data();
+    const uint32_t* ids = tree.tri_ids.data();
     StackEntry<W> stack[kMaxDepth + 1];
     int stack_size = 0;
     VM<W> done = simd::broadcast_i<W>(0);  // any-hit lanes already occluded
@@ -291,10 +292,10 @@ inline VM<W> traverse_packet(const KdTree& tree, const Packet<W>& pk, PacketHits
             if constexpr (Count) count_visit<W>(active, counters.leaves, counters);
             const uint32_t end = node.first_ref() + node.prim_count();
             for (uint32_t r = node.first_ref(); r < end; ++r) {
-                const uint32_t prim = refs[r];
+                const uint32_t slot = refs[r];
                 if constexpr (Count) counters.tri_tests += live_lanes<W>(active);
                 VF<W> t, u, v;
-                VM<W> hit = intersect_triangle_packet<W>(pk, tris[prim], active, t, u, v);
+                VM<W> hit = intersect_triangle_packet<W>(pk, tris[slot], active, t, u, v);
                 if (simd::none<W>(hit)) continue;
                 if constexpr (AnyHit) {
                     hit &= t <= pk.ray_tmax;
@@ -302,7 +303,7 @@ inline VM<W> traverse_packet(const KdTree& tree, const Packet<W>& pk, PacketHits
                     active &= ~hit;
                     if (simd::none<W>(active)) break;
                 } else {
-                    const VU<W> prim_v = simd::broadcast_u<W>(prim);
+                    const VU<W> prim_v = simd::broadcast_u<W>(ids[slot]);  // mesh ids
                     hit &= (t < best.t) | ((t == best.t) & (prim_v < best.prim));
                     best.t = simd::select<W>(hit, t, best.t);
                     best.u = simd::select<W>(hit, u, best.u);

@@ -73,8 +73,9 @@ std::vector<Ray> secondary_rays(const KdTree& tree, uint32_t res,
     std::vector<Ray> rays(hit_pixels.size());
     parallel_indices(rays.size(), [&](size_t i) {
         const uint32_t pixel = hit_pixels[i];
-        rays[i] = make(pixel, surface_at<NormalScaling::kDivision>(tree.tris, primary[pixel],
-                                                                   hits[pixel], offset));
+        rays[i] =
+            make(pixel, surface_at<NormalScaling::kDivision>(tree.triangle(hits[pixel].prim),
+                                                             primary[pixel], hits[pixel], offset));
     });
     return rays;
 }

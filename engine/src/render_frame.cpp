@@ -44,7 +44,7 @@ Frame make_frame(const KdTree& tree, const RenderSettings& s) {
         .settings = s,
         .camera = make_camera(tree, s),
         .region = region,
-        .tris = tree.tris,
+        .tree = tree,
         .channels = s.alpha ? 4u : 3u,
         .tiles_x = (region.width + tile - 1) / tile,
         .tiles_y = (region.height + tile - 1) / tile,

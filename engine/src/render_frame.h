@@ -34,7 +34,7 @@ struct Frame {
     const RenderSettings& settings;
     Camera camera;
     PixelRegion region;
-    std::span<const TriVerts> tris;
+    const KdTree& tree;  ///< for the hit triangles' normals (KdTree::triangle)
     uint32_t channels;
     uint32_t tiles_x, tiles_y;
     SampleGrid grid;

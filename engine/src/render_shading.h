@@ -70,12 +70,13 @@ void shade_primary(const Frame& f, const TilePixels& tile, TileScratch& s) noexc
             continue;
         }
         if constexpr (kShading == Shading::kNormals) {
-            const Vec3 n = display_normal(f.tris[hit.prim], direction(s.rays[i]));
+            const Vec3 n = display_normal(f.tree.triangle(hit.prim), direction(s.rays[i]));
             add(s.sum[i], 0.5f * n.x + 0.5f, 0.5f * n.y + 0.5f, 0.5f * n.z + 0.5f, 1.0f);
         } else if constexpr (kShading == Shading::kEyelight) {
             const Vec3 d = direction(s.rays[i]);
             // Camera directions are unit vectors; the clamp only absorbs rounding.
-            const float c = std::min(1.0f, std::fabs(dot(display_normal(f.tris[hit.prim], d), d)));
+            const float c =
+                std::min(1.0f, std::fabs(dot(display_normal(f.tree.triangle(hit.prim), d), d)));
             add(s.sum[i], c, c, c, 1.0f);
         } else if constexpr (kShading == Shading::kDepth) {
             add(s.sum[i], hit.t, hit.t, hit.t, 1.0f);
@@ -96,8 +97,8 @@ inline uint32_t gather_surfaces(const Frame& f, const TilePixels& tile, TileScra
             add_background(f, s.sum[i]);
             continue;
         }
-        s.surfaces[count] =
-            surface_at<NormalScaling::kReciprocal>(f.tris, s.rays[i], s.hits[i], f.offset);
+        s.surfaces[count] = surface_at<NormalScaling::kReciprocal>(f.tree.triangle(s.hits[i].prim),
+                                                                   s.rays[i], s.hits[i], f.offset);
         s.path_pixel[count] = static_cast<uint16_t>(i);
         ++count;
     }
@@ -226,8 +227,8 @@ uint64_t shade_diffuse(const Frame& f, const Tracer& tracer, const TilePixels& t
                 s.value[pixel] += s.ray_weight[r] * f.settings.sky;
                 continue;
             }
-            s.surfaces[live] =
-                surface_at<NormalScaling::kReciprocal>(f.tris, s.rays[r], s.hits[r], f.offset);
+            s.surfaces[live] = surface_at<NormalScaling::kReciprocal>(
+                f.tree.triangle(s.hits[r].prim), s.rays[r], s.hits[r], f.offset);
             s.path_pixel[live] = static_cast<uint16_t>(pixel);
             s.throughput[live] = s.ray_weight[r];
             ++live;

@@ -142,7 +142,7 @@ void validate_structure(const KdTree& tree) {
 std::vector<std::byte> serialize_tree(const KdTree& tree) {
     Writer w;
     w.bytes().reserve(kPrefixBytes + kFixedBytes + tree.nodes.size() * 8 +
-                      tree.leaf_refs.size() * 4 + tree.tris.size() * sizeof(TriVerts) + 8);
+                      tree.leaf_refs.size() * 4 + tree.tris.size() * (sizeof(TriVerts) + 4) + 8);
     w.put_bytes(kMagic, sizeof kMagic);
     w.put(kTreeFormatVersion);
     w.put(kFixedBytes);
@@ -178,6 +178,7 @@ std::vector<std::byte> serialize_tree(const KdTree& tree) {
     }
     w.put_bytes(tree.leaf_refs.data(), tree.leaf_refs.size() * sizeof(uint32_t));
     w.put_bytes(tree.tris.data(), tree.tris.size() * sizeof(TriVerts));
+    w.put_bytes(tree.tri_ids.data(), tree.tri_ids.size() * sizeof(uint32_t));
     w.put(checksum(w.bytes().data(), w.bytes().size()));
     return std::move(w.bytes());
 }
@@ -239,8 +240,8 @@ KdTree deserialize_tree(std::span<const std::byte> blob) {
     const uint64_t payload = r.remaining() - 8;
     // Each count is bounded by the bytes present before anything is allocated.
     if (node_count > payload / 8 || ref_count > payload / 4 ||
-        tri_count > payload / sizeof(TriVerts) ||
-        node_count * 8 + ref_count * 4 + tri_count * sizeof(TriVerts) != payload) {
+        tri_count > payload / (sizeof(TriVerts) + 4) ||
+        node_count * 8 + ref_count * 4 + tri_count * (sizeof(TriVerts) + 4) != payload) {
         throw TreeFormatError("tree blob sizes disagree: " + std::to_string(node_count) +
                               " nodes, " + std::to_string(ref_count) + " refs, " +
                               std::to_string(tri_count) + " triangles in " +
@@ -258,6 +259,18 @@ KdTree deserialize_tree(std::span<const std::byte> blob) {
     r.get_bytes(tree.leaf_refs.data(), ref_count * sizeof(uint32_t), "refs");
     tree.tris.resize(tri_count);
     r.get_bytes(tree.tris.data(), tri_count * sizeof(TriVerts), "triangles");
+    tree.tri_ids.resize(tri_count);
+    r.get_bytes(tree.tri_ids.data(), tri_count * sizeof(uint32_t), "triangle ids");
+    // tri_ids must be a permutation of the mesh ids; tri_slots is its inverse.
+    tree.tri_slots.assign(tri_count, ~0u);
+    for (size_t slot = 0; slot < tri_count; ++slot) {
+        const uint32_t id = tree.tri_ids[slot];
+        if (id >= tri_count || tree.tri_slots[id] != ~0u) {
+            throw TreeFormatError("triangle " + std::to_string(slot) + " has id " +
+                                  std::to_string(id) + ", out of range or repeated");
+        }
+        tree.tri_slots[id] = static_cast<uint32_t>(slot);
+    }
     validate_structure(tree);
     return tree;
 }

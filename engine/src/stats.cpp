@@ -11,10 +11,12 @@ using detail::half_area;
 TreeStats compute_stats(const KdTree& tree) {
     TreeStats s;
     s.triangles = tree.tris.size();
-    s.nodes = tree.nodes.size();
+    // s.nodes counts the nodes reachable from the root (the cache-line layout leaves slot 1
+    // unused); s.bytes counts the array as allocated.
     s.refs = tree.leaf_refs.size();
     s.bytes = tree.nodes.size() * sizeof(KdNode) + tree.leaf_refs.size() * sizeof(uint32_t) +
-              tree.tris.size() * sizeof(TriVerts);
+              tree.tris.size() * sizeof(TriVerts) +
+              (tree.tri_ids.size() + tree.tri_slots.size()) * sizeof(uint32_t);
     s.bytes_per_triangle =
         s.triangles ? static_cast<double>(s.bytes) / static_cast<double>(s.triangles) : 0.0;
     if (tree.nodes.empty()) return s;
@@ -33,6 +35,7 @@ TreeStats compute_stats(const KdTree& tree) {
         stack.pop_back();
         const KdNode node = tree.nodes[item.node];
         const double p = root_area > 0 ? half_area(item.cell) / root_area : 1.0;
+        ++s.nodes;
         if (node.is_leaf()) {
             ++s.leaves;
             depth_sum += item.depth;

@@ -60,6 +60,7 @@ bool traverse(const KdTree& tree, const Ray& ray, Best& best, Counter counter) n
     const KdNode* nodes = tree.nodes.data();
     const uint32_t* refs = tree.leaf_refs.data();
     const TriVerts* tris = tree.tris.data();
+    const uint32_t* ids = tree.tri_ids.data();
 
     std::array<StackEntry, kMaxDepth + 2> stack;  // +1: the unconditional write past the top
     int stack_size = 0;
@@ -92,12 +93,13 @@ bool traverse(const KdTree& tree, const Ray& ray, Best& best, Counter counter) n
         counter.leaf(node.prim_count());
         const uint32_t end = node.first_ref() + node.prim_count();
         for (uint32_t r = node.first_ref(); r < end; ++r) {
-            const uint32_t prim = refs[r];
+            const uint32_t slot = refs[r];
             float t, u, v;
-            if (!detail::intersect_triangle(p, tris[prim], ray.tmin, t, u, v)) continue;
+            if (!detail::intersect_triangle(p, tris[slot], ray.tmin, t, u, v)) continue;
             if constexpr (AnyHit) {
                 if (t <= ray.tmax) return true;
             } else {
+                const uint32_t prim = ids[slot];  // the tie rule and the answer use mesh ids
                 if (t < best.t || (t == best.t && prim < best.prim)) {
                     best = {t, prim, u, v};
                     found = true;

@@ -60,7 +60,7 @@ void traversal_step_scalar(benchmark::State& state) {
 void leaf_test_scalar(benchmark::State& state) {
     const MicroFixture& f = micro_fixture();
     const detail::PreparedRay p = detail::prepare_ray(f.rays[0]);
-    const TriVerts& tri = f.tree.tris[f.triangle];
+    const TriVerts& tri = f.tree.triangle(f.triangle);
     uint32_t hits = 0;
     for ([[maybe_unused]] auto _ : state) {
         float t = 0, u = 0, v = 0;

@@ -52,7 +52,7 @@ void bench_leaf_test(benchmark::State& state, Isa isa) {
     for (int l = 0; l < 16; ++l) index[l] = static_cast<uint16_t>(l);
     detail::Packet<W> pk;
     detail::setup_packet<W>(f.tree, f.rays.data(), index, W, pk);
-    const TriVerts& tri = f.tree.tris[f.triangle];
+    const TriVerts& tri = f.tree.triangle(f.triangle);
     const detail::VM<W> active = pk.tmin <= pk.tmax;
     uint32_t hits = 0;
     for ([[maybe_unused]] auto _ : state) {

@@ -1,17 +1,19 @@
 #!/usr/bin/env bash
 # The standard kdrt benchmark table, as Markdown: the bunny (75k triangles), dragon-10kv (20k),
-# diplodocus (48k), a generated teapot-in-a-stadium (129k, seen from inside) and 16 bunnies
-# (1.2M), each with four ray sets (primary, shadow, diffuse, random) on 1 and 2 threads.
+# diplodocus (48k), a generated teapot-in-a-stadium (129k, seen from inside), 16 bunnies (1.2M)
+# and 64 bunnies (4.8M), each with four ray sets (primary, shadow, diffuse, random) on 1 and 2
+# threads.
 #
 #   tests/bench/run.sh BUILD_DIR [WORK_DIR]
 #
 # BUILD_DIR holds tests/bench/kdrt-bench. Ray sets are written to WORK_DIR (default
 # BUILD_DIR/bench-rays) and reused when already there. Tunables (environment):
 #   RES=1024        image resolution of the ray sets (res x res primary and random rays)
-#   REPS=3          timed passes per trace (median reported)
+#   REPS=9          timed passes per trace (median reported; short sets need several to settle)
+#   BUILD_REPS=3    timed builds per scene (median reported)
 #   THREADS="1 2"   thread counts, one column each
 #   MODE=auto       traversal mode passed to kdrt-bench trace (auto|packet|single)
-#   SCENES="..."    scene names to run (default: all five; e.g. SCENES="bunny00.off")
+#   SCENES="..."    scene names to run (default: all six; e.g. SCENES="bunny00.off")
 #   COMPARE=embree  also trace with Embree (if kdrt-bench was built with it) and add its columns
 # The table goes to stdout, progress to stderr; the raw JSON lines are kept in WORK_DIR/results.jsonl.
 set -euo pipefail
@@ -25,11 +27,12 @@ work_dir=${2:-$build_dir/bench-rays}
 bench=$build_dir/tests/bench/kdrt-bench
 data_dir=$(cd "$(dirname "$0")/../data" && pwd)
 res=${RES:-1024}
-reps=${REPS:-3}
+reps=${REPS:-9}
+build_reps=${BUILD_REPS:-3}
 threads_list=${THREADS:-"1 2"}
 mode=${MODE:-auto}
 compare=${COMPARE:-}
-read -r -a scenes <<< "${SCENES:-bunny00.off ChineseDragon-10kv.off diplodocus.off stadium.ply bunny16.ply}"
+read -r -a scenes <<< "${SCENES:-bunny00.off ChineseDragon-10kv.off diplodocus.off stadium.ply bunny16.ply bunny64.ply}"
 kinds=(primary shadow diffuse random)
 
 if [[ ! -x "$bench" ]]; then
@@ -60,9 +63,12 @@ echo "|"
 if [[ ! -s "$work_dir/stadium.ply" ]]; then
     "$bench" scene stadium --out "$work_dir/stadium.ply" >> "$results"
 fi
-if [[ ! -s "$work_dir/bunny16.ply" ]]; then
-    "$bench" scene grid --from "$data_dir/bunny00.off" --copies 16 --out "$work_dir/bunny16.ply" >> "$results"
-fi
+for copies in 16 64; do
+    if [[ ! -s "$work_dir/bunny$copies.ply" ]]; then
+        "$bench" scene grid --from "$data_dir/bunny00.off" --copies $copies \
+            --out "$work_dir/bunny$copies.ply" >> "$results"
+    fi
+done
 
 for scene in "${scenes[@]}"; do
     mesh=$data_dir/$scene
@@ -75,7 +81,7 @@ for scene in "${scenes[@]}"; do
         camera=(--eye 1.7,0.8,4.1 --look-at 0.3,-0.2,0.1)
         stem=stadium-inside
     fi
-    build_line=$("$bench" build "$mesh" --reps "$reps")
+    build_line=$("$bench" build "$mesh" --reps "$build_reps")
     echo "$build_line" >> "$results"
     triangles=$(json_get "$build_line" triangles)
     build_ms=$(json_get "$build_line" build_ms)

@@ -20,11 +20,12 @@ Mesh load_data_mesh(const char* name) {
 void check_scene(const Mesh& mesh, const BuildOptions& options, size_t ray_count, uint64_t seed) {
     SCOPED_TRACE(testing::Message() << "seed=" << seed << " (replay with KDRT_TEST_SEED)");
     const KdTree tree = build_kdtree(mesh, options);
+    const std::vector<TriVerts> tris = make_tri_verts(mesh);  // the oracle's own copy, by id
     Rng rng(seed);
     const std::vector<Ray> rays = oracle_rays(rng, mesh, tree, ray_count);
     const std::vector<Hit> got = tree_all(tree, rays);
-    const std::vector<Hit> want = brute_force_all(tree.tris, rays);
-    expect_same_hits(got, want, rays, tree.tris);
+    const std::vector<Hit> want = brute_force_all(tris, rays);
+    expect_same_hits(got, want, rays, tris);
     size_t hits = 0;
     for (const Hit& h : want) hits += h.is_hit();
     EXPECT_GT(hits, ray_count / 10) << "the ray set should hit the scene often";
@@ -34,10 +35,10 @@ void check_scene(const Mesh& mesh, const BuildOptions& options, size_t ray_count
     std::vector<uint8_t> occ(rays.size());
     occluded_single(tree, rays, occ);
     size_t disagree = 0;
-    const size_t brute_stride = tree.tris.size() > 2000 ? 25 : 1;
+    const size_t brute_stride = tris.size() > 2000 ? 25 : 1;
     for (size_t i = 0; i < rays.size(); ++i) {
         const bool brute =
-            i % brute_stride == 0 ? brute_force_occluded(tree.tris, rays[i]) : want[i].is_hit();
+            i % brute_stride == 0 ? brute_force_occluded(tris, rays[i]) : want[i].is_hit();
         if ((occ[i] != 0) != got[i].is_hit() || brute != want[i].is_hit()) {
             if (++disagree <= 5)
                 ADD_FAILURE() << "ray " << i << ": occluded=" << int(occ[i]) << " brute=" << brute
@@ -72,6 +73,7 @@ TEST(KdOracle, TeapotInStadiumMatchesBruteForce) {
     const Mesh mesh = teapot_in_stadium();
     ASSERT_GT(mesh.triangle_count(), 14000u);
     const KdTree tree = build_kdtree(mesh);
+    const std::vector<TriVerts> tris = make_tri_verts(mesh);  // the oracle's own copy, by id
     // Most oracle rays start in the stadium; add rays aimed at the tiny teapot from far away.
     Rng rng(test_seed() + 31);
     std::vector<Ray> rays = oracle_rays(rng, mesh, tree, scaled(60'000));
@@ -80,7 +82,7 @@ TEST(KdOracle, TeapotInStadiumMatchesBruteForce) {
         const Vec3 target = Vec3{0.3f, -0.2f, 0.1f} + rng.on_sphere() * 1.1f;
         rays.push_back(make_ray(o, target - o));
     }
-    expect_same_hits(tree_all(tree, rays), brute_force_all(tree.tris, rays), rays, tree.tris);
+    expect_same_hits(tree_all(tree, rays), brute_force_all(tris, rays), rays, tris);
 }
 
 TEST(KdOracle, MiddleSplitTreeMatchesBruteForce) {
@@ -116,12 +118,13 @@ namespace {
 TEST(OracleSelfCheck, FilteredBruteForceEqualsPlain) {
     const Mesh mesh = load_data_mesh("bunny00.off");
     const KdTree tree = build_kdtree(mesh);
+    const std::vector<TriVerts> tris = make_tri_verts(mesh);  // the oracle's own copy, by id
     Rng rng(test_seed() + 61);
     const std::vector<Ray> rays = oracle_rays(rng, mesh, tree, scaled(2'000));
-    const FilteredBruteForce filtered(tree.tris);
+    const FilteredBruteForce filtered(tris);
     std::vector<Hit> plain(rays.size()), fast(rays.size());
     tbb::parallel_for(size_t{0}, rays.size(), [&](size_t i) {
-        plain[i] = brute_force_intersect(tree.tris, rays[i]);
+        plain[i] = brute_force_intersect(tris, rays[i]);
         fast[i] = filtered.intersect(rays[i]);
     });
     expect_same_hits(fast, plain, rays);

@@ -59,6 +59,23 @@ bool triangle_overlaps_box(const TriVerts& t, const std::array<double, 3>& lo,
 void check_tree_properties(const KdTree& tree, const Mesh& mesh) {
     ASSERT_FALSE(tree.nodes.empty());
     for (uint32_t r : tree.leaf_refs) ASSERT_LT(r, mesh.triangle_count());
+    // tris is a permutation of the mesh's triangles (leaf order), tri_ids and tri_slots its maps.
+    ASSERT_EQ(tree.tri_ids.size(), mesh.triangle_count());
+    ASSERT_EQ(tree.tri_slots.size(), mesh.triangle_count());
+    const std::vector<TriVerts> by_id = make_tri_verts(mesh);
+    for (uint32_t id = 0; id < mesh.triangle_count(); ++id) {
+        ASSERT_EQ(tree.tri_ids[tree.tri_slots[id]], id);
+        ASSERT_EQ(std::memcmp(&tree.triangle(id), &by_id[id], sizeof(TriVerts)), 0) << id;
+    }
+    ASSERT_EQ(
+        std::memcmp(triangles_by_id(tree).data(), by_id.data(), by_id.size() * sizeof(TriVerts)),
+        0);
+    // Leaf order: each reference is to a triangle first seen in its own leaf or an earlier one.
+    uint32_t seen = 0;
+    for (uint32_t r : tree.leaf_refs) {
+        ASSERT_LE(r, seen) << "triangles are numbered by first reference";
+        if (r == seen) ++seen;
+    }
     EXPECT_LE(tree.stats.max_depth, static_cast<uint32_t>(kMaxDepth));
     struct Item {
         uint32_t node;
@@ -88,7 +105,7 @@ void check_tree_properties(const KdTree& tree, const Mesh& mesh) {
         leaf_volume += double{e.x} * e.y * e.z;
         std::vector<uint8_t> in_leaf(mesh.triangle_count(), 0);
         for (uint32_t i = 0; i < n.prim_count(); ++i)
-            in_leaf[tree.leaf_refs[n.first_ref() + i]] = 1;
+            in_leaf[tree.tri_ids[tree.leaf_refs[n.first_ref() + i]]] = 1;
         std::array<double, 3> lo, hi;
         for (int a = 0; a < 3; ++a) {
             const double shrink = 1e-6 * (double{tree.bounds.hi[a]} - tree.bounds.lo[a]);
@@ -98,13 +115,13 @@ void check_tree_properties(const KdTree& tree, const Mesh& mesh) {
         if (lo[0] >= hi[0] || lo[1] >= hi[1] || lo[2] >= hi[2]) continue;  // flat cell
         for (uint32_t prim = 0; prim < mesh.triangle_count(); ++prim) {
             if (in_leaf[prim]) continue;
-            const TriVerts& t = tree.tris[prim];
+            const TriVerts& t = tree.triangle(prim);
             bool apart = false;  // cheap bounding-box rejection before the exact test
             for (int a = 0; a < 3; ++a)
                 apart = apart || std::min({t.v0[a], t.v1[a], t.v2[a]}) > hi[a] ||
                         std::max({t.v0[a], t.v1[a], t.v2[a]}) < lo[a];
             if (apart) continue;
-            ASSERT_FALSE(triangle_overlaps_box(tree.tris[prim], lo, hi))
+            ASSERT_FALSE(triangle_overlaps_box(tree.triangle(prim), lo, hi))
                 << "triangle " << prim << " overlaps leaf " << it.node << " but is not in it";
         }
     }
@@ -155,7 +172,9 @@ TEST(KdBuild, SahTreeHasTheExpectedShape) {
         << "leaves hold a few triangles (C_isect 0.3: about 9 on the bunny)";
     EXPECT_LT(s.sah_cost, middle.stats.sah_cost)
         << "SAH must beat the middle-split tree on its own metric";
-    EXPECT_EQ(s.bytes, s.nodes * 8 + s.refs * 4 + s.triangles * sizeof(TriVerts));
+    EXPECT_EQ(s.bytes, sah.nodes.size() * 8 + s.refs * 4 + s.triangles * (sizeof(TriVerts) + 8))
+        << "nodes, references, triangles and their two id maps";
+    EXPECT_EQ(sah.nodes.size(), s.nodes + 1) << "the line layout leaves one slot unused";
     EXPECT_GT(s.build_ms, 0.0);
 }
 
@@ -212,7 +231,8 @@ TEST(KdDegenerate, CoplanarAxisAlignedGrid) {
         rays.push_back(make_ray({rng.uniform(), rng.uniform(), 3.0f}, {0, 0, -1}));
     }
     const auto got = tree_all(tree, rays);
-    expect_same_hits(got, brute_force_all(tree.tris, rays), rays, tree.tris);
+    const std::vector<TriVerts> tris = make_tri_verts(mesh);
+    expect_same_hits(got, brute_force_all(tris, rays), rays, tris);
     EXPECT_TRUE(intersect(tree, make_ray({0.3f, 0.3f, 3.0f}, {0, 0, -1})).is_hit());
     EXPECT_FALSE(intersect(tree, make_ray({0.3f, 0.3f, 0.5f}, {1, 0, 0})).is_hit())
         << "edge-on: no area";
@@ -241,7 +261,8 @@ TEST(KdDegenerate, ZeroAreaTrianglesAreNeverHit) {
     EXPECT_EQ(h.prim, 2u);
     EXPECT_EQ(intersect(tree, make_ray({0.5f, 0.5f, -1}, {0, 0, 1})).prim,
               2u);  // through the point
-    EXPECT_EQ(brute_force_intersect(tree.tris, make_ray({0.5f, 0, -1}, {0, 0, 1})).prim, 2u);
+    EXPECT_EQ(brute_force_intersect(make_tri_verts(mesh), make_ray({0.5f, 0, -1}, {0, 0, 1})).prim,
+              2u);
 }
 
 TEST(KdDegenerate, InvalidMeshesGiveClearErrors) {

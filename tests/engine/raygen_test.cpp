@@ -87,7 +87,7 @@ std::vector<PrimaryHit> primary_hits(uint32_t res) {
 
 /// Unit geometric normal of the hit triangle, on the side the ray came from.
 Vec3 facing_normal(const PrimaryHit& p) {
-    const TriVerts& t = scene_tree().tris[p.hit.prim];
+    const TriVerts& t = scene_tree().triangle(p.hit.prim);
     const Vec3 v0{t.v0[0], t.v0[1], t.v0[2]}, v1{t.v1[0], t.v1[1], t.v1[2]},
         v2{t.v2[0], t.v2[1], t.v2[2]};
     Vec3 n = cross(v1 - v0, v2 - v0);

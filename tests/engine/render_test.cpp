@@ -110,7 +110,7 @@ void expect_render_error(const KdTree& tree, const RenderSettings& settings,
 /// so several renders of the same camera rays pay for the brute force once.
 class BruteForce {
 public:
-    explicit BruteForce(const KdTree& tree) : filtered_(tree.tris) {}
+    explicit BruteForce(const KdTree& tree) : tris_(triangles_by_id(tree)), filtered_(tris_) {}
 
     void remember(std::span<const Ray> rays, std::span<const Hit> hits) {
         for (size_t i = 0; i < rays.size(); ++i) known_.emplace(key(rays[i]), hits[i]);
@@ -139,6 +139,7 @@ private:
             out[i] = oracle.intersect(rays[i]).is_hit() ? 1 : 0;
     }
 
+    std::vector<TriVerts> tris_;  // by mesh id; filtered_ refers to it
     FilteredBruteForce filtered_;
     std::unordered_map<std::string, Hit> known_;
 };
@@ -159,7 +160,7 @@ std::set<size_t> tie_pixels(const KdTree& tree, std::span<const Ray> rays,
     for (size_t i = 0; i < rays.size(); ++i) {
         if (hits[i].prim == want[i].prim || hits[i].t != want[i].t || !hits[i].is_hit()) continue;
         const Hit alone =
-            brute_force_intersect(std::span(tree.tris).subspan(hits[i].prim, 1), rays[i]);
+            brute_force_intersect(std::span(&tree.triangle(hits[i].prim), 1), rays[i]);
         if (alone.t == hits[i].t) ties.insert(i);
     }
     return ties;
@@ -216,7 +217,7 @@ TEST(RenderOracle, BunnyNormalsDepthPrimIdEqualBruteForce) {
     // One camera ray per pixel through its centre: the three modes trace the same rays, so the
     // brute force runs once for all of them, and the ties are the same.
     const std::vector<Ray> rays = render_camera_rays(tree, bunny_settings(Shading::kNormals, 128));
-    const std::vector<Hit> want = brute_force_all(tree.tris, rays);
+    const std::vector<Hit> want = brute_force_all(triangles_by_id(tree), rays);
     BruteForce oracle(tree);
     oracle.remember(rays, want);
     const std::set<size_t> ties = tie_pixels(tree, rays, want);

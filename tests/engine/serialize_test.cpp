@@ -20,6 +20,8 @@ TEST(TreeBlob, RoundTripGivesIdenticalTreeAndAnswers) {
     const KdTree loaded = deserialize_tree(blob);
     EXPECT_TRUE(loaded.nodes == tree.nodes);
     EXPECT_TRUE(loaded.leaf_refs == tree.leaf_refs);
+    EXPECT_TRUE(loaded.tri_ids == tree.tri_ids);
+    EXPECT_TRUE(loaded.tri_slots == tree.tri_slots);
     EXPECT_EQ(loaded.bounds, tree.bounds);
     EXPECT_EQ(loaded.options, tree.options);
     EXPECT_EQ(loaded.stats.sah_cost, tree.stats.sah_cost);
@@ -56,8 +58,8 @@ TEST(TreeBlob, CorruptedBlobsAreRefused) {
     bad_magic[0] = std::byte{'X'};
     expect_refused(bad_magic, "bad magic");
     std::vector<std::byte> version = blob;
-    version[8] = std::byte{2};
-    expect_refused(version, "version 2 is not supported");
+    version[8] = std::byte{1};
+    expect_refused(version, "version 1 is not supported");
     expect_refused(std::span(blob).first(blob.size() - 1), "checksum");
     expect_refused(std::span(blob).first(10), "truncated");
     expect_refused({}, "truncated");
@@ -73,6 +75,12 @@ TEST(TreeBlob, StructurallyBrokenBlobWithValidChecksumIsRefused) {
     KdTree refs = sample_tree();
     refs.leaf_refs[0] = 999999;
     expect_refused(serialize_tree(refs), "names triangle 999999");
+    KdTree ids = sample_tree();
+    ASSERT_GT(ids.tri_ids.size(), 2u);
+    ids.tri_ids[1] = ids.tri_ids[0];  // two slots claim one mesh triangle
+    expect_refused(serialize_tree(ids), "out of range or repeated");
+    ids.tri_ids[1] = static_cast<uint32_t>(ids.tri_ids.size());
+    expect_refused(serialize_tree(ids), "out of range or repeated");
 }
 
 TEST(TreeBlob, EmptyTreeRoundTrips) {

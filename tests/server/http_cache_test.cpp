@@ -9,6 +9,7 @@
 
 #include "http_test_util.h"
 #include "kdrt/proto/mesh_id.h"
+#include "kdrt/proto/mesh_io.h"
 #include "kdrt/proto/ray_batch.h"
 
 namespace kdrt::test {
@@ -99,6 +100,43 @@ TEST(HttpCache, CorruptTreeFileIsRebuiltNotServed) {
     auto res2 = trace(*again.client(), id, rays);
     ASSERT_TRUE(res2);
     EXPECT_EQ(res2->body, engine_hits(mesh, rays));
+    EXPECT_EQ(again.metric("kdrt_cache_rebuilds_total"), 0.0);
+}
+
+TEST(HttpCache, TreeOfAnOlderFormatIsRebuilt) {
+    // A cache written by kdrt 0.1: its tree blob is format version 1 (tests/data/store-v1).
+    const fs::path old_store = fs::path(KDRT_TEST_DATA_DIR) / "store-v1";
+    const std::string id = "02b48668aa10941dfd1a5be5dab0ab8f116513d9e97666413d4e35c9b878230a";
+    auto mesh = proto::load_mesh_file((old_store / "sphere.obj").string());
+    ASSERT_TRUE(mesh.ok());
+    ASSERT_EQ(proto::mesh_id(*mesh), id);
+    TempDir dir;
+    fs::create_directories(dir.path() / "cache" / "meshes");
+    fs::copy(old_store / "meshes", dir.path() / "cache" / "meshes",
+             fs::copy_options::recursive | fs::copy_options::overwrite_existing);
+    const fs::path tree_file = dir.path() / "cache" / "meshes" / (id + ".tree");
+    {
+        std::ifstream f(tree_file, std::ios::binary);
+        char head[12] = {};
+        f.read(head, sizeof head);
+        ASSERT_EQ(std::string(head, 8), "KDRTTREE");
+        ASSERT_EQ(head[8], 1) << "the checked-in blob must stay format version 1";
+    }
+    const std::vector<Ray> rays = random_rays(mesh_bounds(*mesh), 500, 7);
+    ServerProcess server({.cache_dir = dir.path() / "cache"});
+    auto cli = server.client();
+    auto res = trace(*cli, id, rays);
+    ASSERT_TRUE(res);
+    ASSERT_EQ(res->status, 200) << res->body;
+    EXPECT_EQ(res->body, engine_hits(*mesh, rays));
+    EXPECT_EQ(server.metric("kdrt_cache_rebuilds_total"), 1.0);
+    EXPECT_NE(server.log().find("version 1 is not supported"), std::string::npos) << server.log();
+    // The tree file is rewritten in the current format: a restart loads it as it is.
+    server.stop();
+    ServerProcess again({.cache_dir = dir.path() / "cache"});
+    auto res2 = trace(*again.client(), id, rays);
+    ASSERT_TRUE(res2);
+    EXPECT_EQ(res2->body, engine_hits(*mesh, rays));
     EXPECT_EQ(again.metric("kdrt_cache_rebuilds_total"), 0.0);
 }
 

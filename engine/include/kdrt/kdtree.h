@@ -4,6 +4,7 @@
 #include <bit>
 #include <cstddef>
 #include <cstdint>
+#include <new>
 #include <vector>
 
 #include "kdrt/mesh.h"
@@ -69,6 +70,38 @@ struct TriVerts {
 };
 static_assert(sizeof(TriVerts) == 36);
 
+/// Nodes per 64-byte cache line. A tree's nodes are laid out in lines (the builders cluster
+/// them: each line holds a child pair and the pairs below it), and the node array starts on a
+/// line boundary, so a descent stays within a line for two or three steps.
+inline constexpr size_t kNodesPerLine = 64 / sizeof(KdNode);
+
+/// Memory for a tree's arrays (tree_memory.cpp): 64-byte aligned, and an array of 2 MiB or more
+/// is 2 MiB aligned and asks the kernel for transparent huge pages (madvise), so random accesses
+/// over a big scene's tree miss the TLB far less often. Throws std::bad_alloc.
+[[nodiscard]] void* allocate_tree_memory(size_t bytes);
+void free_tree_memory(void* p, size_t bytes) noexcept;
+
+/// The allocator of a tree's arrays (allocate_tree_memory).
+template <class T>
+struct TreeAllocator {
+    using value_type = T;
+    TreeAllocator() noexcept = default;
+    template <class U>
+    TreeAllocator(const TreeAllocator<U>&) noexcept {}  // NOLINT(google-explicit-constructor)
+    [[nodiscard]] T* allocate(size_t n) {
+        return static_cast<T*>(allocate_tree_memory(n * sizeof(T)));
+    }
+    void deallocate(T* p, size_t n) noexcept { free_tree_memory(p, n * sizeof(T)); }
+    friend bool operator==(const TreeAllocator&, const TreeAllocator&) noexcept { return true; }
+};
+
+/// One of a tree's arrays.
+template <class T>
+using TreeArray = std::vector<T, TreeAllocator<T>>;
+
+/// The node array: starts on a cache line.
+using NodeArray = TreeArray<KdNode>;
+
 enum class Builder : uint32_t {
     kSah = 0,     ///< cost-optimised: Wald & Havran 2006 O(N log N) event sweep, perfect splits
     kMiddle = 1,  ///< the "hack" tree: middle of the largest extent, fixed leaf size and depth
@@ -92,10 +125,20 @@ struct BuildOptions {
 /// An immutable, self-contained acceleration structure: traversal reads only these arrays.
 /// Thread-safe for concurrent queries.
 struct KdTree {
-    Aabb bounds;                      ///< root cell (mesh bounds, padded slightly)
-    std::vector<KdNode> nodes;        ///< depth-first; nodes[0] is the root
-    std::vector<uint32_t> leaf_refs;  ///< triangle ids, per leaf contiguous
-    std::vector<TriVerts> tris;       ///< indexed by triangle id
+    Aabb bounds;      ///< root cell (mesh bounds, padded slightly)
+    NodeArray nodes;  ///< nodes[0] is the root; in cache lines, children after their parent
+    TreeArray<uint32_t> leaf_refs;  ///< indices into tris, per leaf contiguous
+    /// Every triangle of the mesh, in leaf order: the order of first reference in leaf_refs, then
+    /// the triangles no leaf references (degenerate ones) by id. A leaf's triangles are mostly
+    /// neighbours in memory, so a ray's leaf tests touch few cache lines.
+    TreeArray<TriVerts> tris;
+    TreeArray<uint32_t> tri_ids;      ///< tris[i] is mesh triangle tri_ids[i]
+    std::vector<uint32_t> tri_slots;  ///< mesh triangle id -> its index in tris (the inverse)
+
+    /// The triangle with mesh id `id`.
+    [[nodiscard]] const TriVerts& triangle(uint32_t id) const noexcept {
+        return tris[tri_slots[id]];
+    }
     BuildOptions options;
     TreeStats stats;
 };
@@ -104,6 +147,10 @@ struct KdTree {
 /// (throws MeshError). Uses the calling thread's oneTBB arena for parallelism; the result is
 /// byte-identical at any thread count. Degenerate (zero-area) triangles are left out of the tree.
 [[nodiscard]] KdTree build_kdtree(const Mesh& mesh, const BuildOptions& options = {});
+
+/// The triangles of `tree` indexed by mesh triangle id (what make_tri_verts gives for its mesh):
+/// the brute-force oracle's input.
+[[nodiscard]] std::vector<TriVerts> triangles_by_id(const KdTree& tree);
 
 /// Recomputes the structural statistics of `tree` (everything but build_ms, which it keeps).
 [[nodiscard]] TreeStats compute_stats(const KdTree& tree);

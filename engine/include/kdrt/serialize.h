@@ -11,7 +11,10 @@
 namespace kdrt {
 
 /// Current tree blob format version.
-inline constexpr uint32_t kTreeFormatVersion = 1;
+/// Version 2 (kdrt 0.2): nodes in cache lines, triangles in leaf order with their mesh ids. A blob
+/// of another version is refused (TreeFormatError); the server then rebuilds the tree from the
+/// stored mesh.
+inline constexpr uint32_t kTreeFormatVersion = 2;
 
 /// Thrown by deserialize_tree for a blob it refuses; what() names the problem (bad magic,
 /// version, truncated section, checksum mismatch, inconsistent content).
@@ -21,8 +24,8 @@ public:
 };
 
 /// Layout (little-endian): "KDRTTREE", u32 version, u32 header bytes, build options, stats,
-/// bounds, array counts, then nodes, refs, triangles, and a trailing u64 checksum of all bytes
-/// before it. See engine/src/serialize.cpp for the exact field list.
+/// bounds, array counts, then nodes, refs, triangles, their mesh ids, and a trailing u64 checksum
+/// of all bytes before it. See engine/src/serialize.cpp for the exact field list.
 [[nodiscard]] std::vector<std::byte> serialize_tree(const KdTree& tree);
 
 /// Loads a blob written by serialize_tree. Validates magic, version, sizes, checksum and the
