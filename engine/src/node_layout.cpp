@@ -53,7 +53,7 @@ NodeArray cluster_nodes(std::span<const KdNode> nodes) {
                 if (!nodes[c].is_leaf()) line.push_back(nodes[c].first_child());
         }
         // What did not fit starts lines of its own, the first of them next.
-        for (auto it = line.rbegin(); it != line.rend(); ++it) pending.push_back(*it);
+        pending.insert(pending.end(), line.rbegin(), line.rend());
     }
     out.assign(slot, KdNode{});
     out[0] = KdNode::inner(nodes[0].axis(), nodes[0].split(), new_first[nodes[0].first_child()]);
