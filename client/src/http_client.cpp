@@ -39,6 +39,10 @@ constexpr size_t kUploadBlockBytes = size_t{1} << 20;
 /// problem+json refusal, a proxy's error page).
 constexpr size_t kMaxErrorBodyBytes = size_t{1} << 20;
 
+/// Largest image read from a direct connection: an 8192 x 8192 RGBA float EXR is 1 GiB before
+/// compression.
+constexpr uint64_t kMaxImageBodyBytes = uint64_t{4} << 30;
+
 /// Percent-encodes one path segment (an id from the caller): only RFC 3986 unreserved
 /// characters stay as they are, so "../x" or "a/b" cannot leave the route.
 std::string escape_segment(std::string_view segment) {
@@ -355,15 +359,15 @@ struct Client::Impl {
         }
     }
 
-    /// send() on a direct connection (a POST of `body`), with the same retries and errors. The
-    /// answer is left in slot.response.
+    /// send() on a direct connection (`body` is the request body), with the same retries and
+    /// errors. Idempotent requests only. The answer is left in slot.response.
     Result<void> send_direct(DirectSlot& slot, const Exchange& ex, std::span<const std::byte> body,
                              size_t max_body) {
         const unsigned attempts_allowed = options.max_retries + 1;
         std::string reason;
         for (unsigned attempt = 1;; ++attempt) {
-            const detail::DirectFailure failure = slot.connection.post(
-                ex.path, ex.content_type, body, max_body, slot.response, reason);
+            const detail::DirectFailure failure = slot.connection.request(
+                ex.method, ex.path, ex.content_type, body, max_body, slot.response, reason);
             if (failure == detail::DirectFailure::kProtocol)
                 return proto::Err{bad_response(ex, reason)};
             if (failure != detail::DirectFailure::kNone) {
@@ -545,6 +549,39 @@ struct Client::Impl {
         return out;
     }
 
+    /// An exchange whose answer is an image (a synchronous render, a job's result): on a direct
+    /// connection for plain http (big reads), else through httplib. `required_status`, when
+    /// nonzero, is the only 2xx status accepted.
+    Result<std::vector<std::byte>> image_call(const Exchange& ex, std::string_view body,
+                                              int required_status) {
+        const auto check = [&](int status) -> Result<void> {
+            if (required_status != 0 && status != required_status)
+                return proto::Err{bad_response(ex, "status " + std::to_string(status) +
+                                                       " instead of " +
+                                                       std::to_string(required_status))};
+            return {};
+        };
+        if (!direct) {
+            auto res = send(ex);
+            if (!res) return proto::Err{std::move(res).error()};
+            if (auto ok = check(res->status); !ok) return proto::Err{std::move(ok).error()};
+            return to_byte_vector(res->body);
+        }
+        struct SlotLease {
+            Impl& impl;
+            std::unique_ptr<DirectSlot> slot;
+            ~SlotLease() { impl.release_direct(std::move(slot)); }
+        } lease{*this, acquire_direct()};
+        const size_t max_body = static_cast<size_t>(
+            std::min<uint64_t>(kMaxImageBodyBytes, std::numeric_limits<size_t>::max()));
+        auto sent = send_direct(*lease.slot, ex, std::as_bytes(std::span(body)), max_body);
+        if (!sent) return proto::Err{std::move(sent).error()};
+        if (auto ok = check(lease.slot->response.status); !ok)
+            return proto::Err{std::move(ok).error()};
+        const auto answer = lease.slot->response.body();
+        return std::vector<std::byte>(answer.begin(), answer.end());
+    }
+
     [[nodiscard]] Exchange render_exchange() const {
         Exchange ex;
         ex.method = "POST";
@@ -677,12 +714,7 @@ Result<std::vector<std::byte>> Client::render(const RenderRequest& request) {
     Exchange ex = impl_->render_exchange();
     const std::string body = proto::encode_render_request(request);
     ex.body = body;
-    auto res = impl_->send(ex);
-    if (!res) return proto::Err{std::move(res).error()};
-    if (res->status != 200)
-        return proto::Err{
-            impl_->bad_response(ex, "status " + std::to_string(res->status) + " instead of 200")};
-    return to_byte_vector(res->body);
+    return impl_->image_call(ex, body, 200);
 }
 
 Result<Job> Client::submit(const RenderRequest& request) {
@@ -740,9 +772,7 @@ Result<std::vector<std::byte>> Client::wait(const Job& submitted,
 Result<std::vector<std::byte>> Client::result(const Job& job) {
     Exchange ex;
     ex.path = impl_->api("/v1/jobs/" + escape_segment(job.id) + "/result");
-    auto res = impl_->send(ex);
-    if (!res) return proto::Err{std::move(res).error()};
-    return to_byte_vector(res->body);
+    return impl_->image_call(ex, {}, 0);
 }
 
 Result<void> Client::cancel(const Job& job) {

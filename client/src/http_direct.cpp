@@ -197,9 +197,10 @@ DirectFailure DirectConnection::connect(std::string& detail) {
     return fd_ >= 0 ? DirectFailure::kNone : failure;
 }
 
-DirectFailure DirectConnection::post(std::string_view path, std::string_view content_type,
-                                     std::span<const std::byte> body, size_t max_body,
-                                     DirectResponse& response, std::string& detail) {
+DirectFailure DirectConnection::request(std::string_view method, std::string_view path,
+                                        std::string_view content_type,
+                                        std::span<const std::byte> body, size_t max_body,
+                                        DirectResponse& response, std::string& detail) {
     detail.clear();
     if (fd_ >= 0) {
         // An idle keep-alive connection the server has closed (its keep-alive timeout) reads as
@@ -213,9 +214,11 @@ DirectFailure DirectConnection::post(std::string_view path, std::string_view con
     }
     std::string head;
     head.reserve(256 + path.size() + target_.token.size());
-    head.append("POST ").append(path).append(" HTTP/1.1\r\nHost: ").append(target_.host_header);
-    head.append("\r\nContent-Type: ").append(content_type);
-    head.append("\r\nContent-Length: ").append(std::to_string(body.size()));
+    head.append(method).append(" ").append(path).append(" HTTP/1.1\r\nHost: ");
+    head.append(target_.host_header);
+    if (!content_type.empty()) head.append("\r\nContent-Type: ").append(content_type);
+    if (method == "POST" || !body.empty())
+        head.append("\r\nContent-Length: ").append(std::to_string(body.size()));
     head.append("\r\nAccept: */*\r\nConnection: keep-alive\r\nUser-Agent: kdrt-client");
     if (!target_.token.empty()) head.append("\r\nAuthorization: Bearer ").append(target_.token);
     head.append("\r\n\r\n");

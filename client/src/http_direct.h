@@ -1,14 +1,15 @@
 #pragma once
-/// The client's one way around cpp-httplib: ray batches over plain http go through a keep-alive
-/// HTTP/1.1 connection of this file's own. cpp-httplib 0.11.4 (Debian 12's, a compiled shared
-/// library) reads every response body in 4 KiB pieces, each after a poll() (its
-/// CPPHTTPLIB_RECV_BUFSIZ is fixed when the library is built): a 16 MiB KDRH answer costs 8k
-/// system call pairs, and the client reached half of the server's rate. Here a request goes out
-/// as one sendmsg() of the head and the caller's body, and the answer is read with large recv()
-/// calls straight into a reused buffer. Everything else (JSON calls, uploads, renders, https)
-/// stays on httplib's public API in http_client.cpp; this file includes no httplib header and
-/// touches none of its internals. Retries, backoff and problem+json errors stay in
-/// http_client.cpp, which maps DirectFailure onto the same messages as httplib's errors.
+/// The client's one way around cpp-httplib: ray batches, synchronous renders and job results over
+/// plain http (the large bodies) go through a keep-alive HTTP/1.1 connection of this file's own.
+/// cpp-httplib 0.11.4 (Debian 12's, a compiled shared library) reads every response body in 4 KiB
+/// pieces, each after a poll() (its CPPHTTPLIB_RECV_BUFSIZ is fixed when the library is built): a
+/// 16 MiB KDRH answer costs 8k system call pairs, and the client reached half of the server's rate.
+/// Here a request goes out as one sendmsg() of the head and the caller's body, and the answer is
+/// read with large recv() calls straight into a reused buffer. Everything else (JSON calls,
+/// uploads, job submissions, https) stays on httplib's public API in http_client.cpp; this file
+/// includes no httplib header and touches none of its internals. Retries, backoff and problem+json
+/// errors stay in http_client.cpp, which maps DirectFailure onto the same messages as httplib's
+/// errors.
 
 #include <chrono>
 #include <cstddef>
@@ -68,15 +69,18 @@ public:
     DirectConnection(const DirectConnection&) = delete;
     DirectConnection& operator=(const DirectConnection&) = delete;
 
-    /// POSTs `body` (Content-Type `content_type`) to `path` and reads the whole answer into
-    /// `response`. A body larger than `max_body` bytes is refused as kProtocol before it is read
-    /// (the connection is then closed). A connection kept alive from an earlier exchange that
-    /// turns out closed by the server before any byte of the answer arrived is reopened and the
-    /// request sent once more (the server never saw it), as browsers do; every other failure is
-    /// returned, with `detail` naming it (an OS error text, or what was wrong with the answer).
-    [[nodiscard]] DirectFailure post(std::string_view path, std::string_view content_type,
-                                     std::span<const std::byte> body, size_t max_body,
-                                     DirectResponse& response, std::string& detail);
+    /// Sends `method` `path` with `body` (Content-Type `content_type`, none when empty; a
+    /// Content-Length for a POST or a non-empty body) and reads the whole answer into
+    /// `response`. For idempotent requests only (see below). A body larger than `max_body` bytes is
+    /// refused as kProtocol before it is read (the connection is then closed). A connection kept
+    /// alive from an earlier exchange that turns out closed by the server before any byte of the
+    /// answer arrived is reopened and the request sent once more (the server never saw it), as
+    /// browsers do; every other failure is returned, with `detail` naming it (an OS error text, or
+    /// what was wrong with the answer).
+    [[nodiscard]] DirectFailure request(std::string_view method, std::string_view path,
+                                        std::string_view content_type,
+                                        std::span<const std::byte> body, size_t max_body,
+                                        DirectResponse& response, std::string& detail);
 
 private:
     DirectFailure exchange(std::string_view head, std::span<const std::byte> body, size_t max_body,

@@ -195,5 +195,41 @@ TEST(ClientDirect, TheTokenAndHostAreSentWithBatches) {
     EXPECT_EQ(hosts, std::set<std::string>{"127.0.0.1:" + std::to_string(fake.port())});
 }
 
+TEST(ClientDirect, ImagesArriveWholeAndRenderWantsA200) {
+    // 5 MB of bytes that differ from position to position, as a render's and a result's answer.
+    std::string image(5'000'003, '\0');
+    for (size_t i = 0; i < image.size(); ++i) image[i] = static_cast<char>((i * 131) >> 3);
+    std::atomic<int> status{200};
+    FakeServer fake([&](httplib::Server& http) {
+        http.Post("/v1/render", [&](const httplib::Request& req, httplib::Response& res) {
+            res.status = status.load();
+            res.set_content(req.body.find("\"mesh\"") != std::string::npos ? image : "?",
+                            "image/png");
+        });
+        http.Get("/v1/jobs/([^/]+)/result", [&](const httplib::Request&, httplib::Response& res) {
+            res.set_content(image, "image/png");
+        });
+    });
+    Client client(fake.url(), fast_options());
+    RenderRequest request;
+    request.mesh = "m";
+    Job job;
+    job.id = "j";
+    const auto expected = std::as_bytes(std::span(image));
+    auto rendered = client.render(request);
+    ASSERT_TRUE(rendered) << rendered.error().to_string();
+    EXPECT_TRUE(std::equal(rendered->begin(), rendered->end(), expected.begin(), expected.end()));
+    auto result = client.result(job);
+    ASSERT_TRUE(result) << result.error().to_string();
+    EXPECT_TRUE(std::equal(result->begin(), result->end(), expected.begin(), expected.end()));
+
+    status = 202;  // a queued job is not the image the synchronous call asked for
+    auto queued = client.render(request);
+    ASSERT_FALSE(queued);
+    EXPECT_EQ(queued.error().kind, ErrorKind::kProtocol);
+    EXPECT_NE(queued.error().detail.find("status 202 instead of 200"), std::string::npos)
+        << queued.error().detail;
+}
+
 }  // namespace
 }  // namespace kdrt::test

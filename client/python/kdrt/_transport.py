@@ -12,6 +12,7 @@ kdrt.Error carrying the problem+json fields.
 from __future__ import annotations
 
 import http.client
+import os
 import select
 import socket
 import ssl
@@ -23,6 +24,41 @@ from ._errors import Error
 
 #: Largest error body read (a problem+json refusal, a proxy's error page).
 MAX_ERROR_BODY = 1 << 20
+#: Bytes read from a file and sent at a time when a file is the request body.
+FILE_BLOCK = 1 << 20
+
+
+class FileBody:
+    """A file as (part of) a request body: streamed from disk in FILE_BLOCK pieces, from its
+    start again on every attempt. Raises kdrt.Error "input" if the file cannot be opened."""
+
+    def __init__(self, path):
+        self.path = os.fspath(path)
+        try:
+            self.size = os.path.getsize(self.path)
+            with open(self.path, "rb"):
+                pass
+        except OSError as exc:
+            raise Error(kind="input", title="cannot upload",
+                        detail=f'cannot read "{self.path}": {exc.strerror}') from None
+
+    def send(self, connection):
+        sent = 0
+        with open(self.path, "rb") as f:
+            while sent < self.size:
+                block = f.read(min(FILE_BLOCK, self.size - sent))
+                if not block:
+                    break
+                connection.send(block)
+                sent += len(block)
+        if sent != self.size:
+            raise Error(kind="input", title="cannot upload",
+                        detail=f'reading "{self.path}" failed while it was sent (the file '
+                        f"changed size)")
+
+
+def _part_size(part) -> int:
+    return part.size if isinstance(part, FileBody) else memoryview(part).nbytes
 
 
 class ServerUrl:
@@ -222,6 +258,8 @@ class Transport:
                 err.attempts = attempt
                 raise err
             except Error:
+                if conn.http.sock is not None and stage != "read":
+                    conn.close()  # a body left half sent
                 raise
             except (OSError, http.client.HTTPException) as exc:
                 conn.close()
@@ -234,7 +272,7 @@ class Transport:
     def _send(self, conn, method, path, body, content_type, headers):
         h = conn.http
         h.putrequest(method, path, skip_accept_encoding=True)
-        total = sum(memoryview(part).nbytes for part in body)
+        total = sum(_part_size(part) for part in body)
         if method == "POST" or total:
             h.putheader("Content-Length", str(total))
         if content_type:
@@ -247,7 +285,9 @@ class Transport:
             h.putheader(name, value)
         h.endheaders()
         for part in body:
-            if len(part):
+            if isinstance(part, FileBody):
+                part.send(h)
+            elif _part_size(part):
                 h.send(part)
 
     def _transport_error(self, exc, stage, method, path, attempts) -> Error:

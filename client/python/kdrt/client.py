@@ -12,7 +12,7 @@ import numpy as np
 
 from . import _wire
 from ._errors import Error
-from ._transport import Transport
+from ._transport import FileBody, Transport
 from .png import read_png
 
 
@@ -159,7 +159,7 @@ class Client:
         the stored mesh without a rebuild).
 
         upload(path[, format]): a mesh file (.obj .ply .off .stl .raw .kdrtmesh, or `format`
-        "obj", "ply", "off", "stl", "raw"), streamed from disk. The server parses it: a bad file
+        "obj", "ply", "off", "stl", "raw"), streamed from disk in 1 MiB blocks. The server parses it: a bad file
         raises kdrt.Error 422 whose `line` (text formats) or `byte_offset` says where.
         upload(vertices, triangles): arrays of shape (V, 3) (float) and (T, 3) (integer indices),
         sent as the raw format."""
@@ -181,13 +181,7 @@ class Client:
                                 detail=f'cannot tell the mesh format of "{path}" from its '
                                 f"extension (expected .obj, .ply, .off, .stl, .raw or .kdrtmesh)")
                 media_type = _wire.MESH_MEDIA_TYPES[ext]
-            try:
-                with open(path, "rb") as f:
-                    data = f.read()
-            except OSError as exc:
-                raise Error(kind="input", title="cannot upload",
-                            detail=f'cannot read "{path}": {exc.strerror}') from None
-            parts = [data]
+            parts = [FileBody(path)]
         path = self._t.api("/v1/meshes")
         return Mesh(self._t.request("POST", path, parts, media_type, None,
                                     _json_answer("POST", path)))

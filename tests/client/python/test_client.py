@@ -275,11 +275,13 @@ def test_a_nan_ray_is_refused_naming_the_ray(client):
 
 
 def test_local_input_errors(client, tmp_path):
+    (tmp_path / "folder.obj").mkdir()
     cases = [
         lambda: client.cast_rays("ab" * 32, np.zeros((4, 7), np.float32)),
         lambda: client.cast_rays("ab" * 32, np.array(["a"] * 6)),
         lambda: client.upload(tmp_path / "mesh.xyz"),
         lambda: client.upload(tmp_path / "missing.obj"),
+        lambda: client.upload(tmp_path / "folder.obj"),
         lambda: client.upload(QUAD_VERTICES, np.array([[0, 1, 4]])),
         lambda: client.upload(QUAD_VERTICES[:, :2], QUAD_TRIANGLES),
         lambda: client.render("ab" * 32, 8, 8, format="exr"),
