@@ -298,11 +298,18 @@ double trace_remote(httplib::Client& cli, const std::string& path, const std::st
                     size_t answer_bytes, std::string& answer) {
     answer.clear();
     answer.reserve(answer_bytes);
-    const auto start = Clock::now();
+    auto start = Clock::now();
     auto res = cli.Post(path, body, "application/x-kdrt-rays");
+    if (!res) {
+        // The keep-alive connection sat idle while the other clients were measured and the
+        // server closed it just as this request went out: time a second attempt instead.
+        start = Clock::now();
+        res = cli.Post(path, body, "application/x-kdrt-rays");
+    }
     const double s = seconds_since(start);
     if (!res || res->status != 200) {
-        std::fprintf(stderr, "intersect failed: %d\n", res ? res->status : -1);
+        std::fprintf(stderr, "intersect failed: %d (%s)\n", res ? res->status : -1,
+                     res ? "" : httplib::to_string(res.error()).c_str());
         std::exit(1);
     }
     answer = std::move(res->body);
