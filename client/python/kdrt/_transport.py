@@ -218,10 +218,11 @@ class Transport:
                     stage = "read"
                     response = conn.http.getresponse()
                 except (http.client.RemoteDisconnected, ConnectionResetError, BrokenPipeError):
-                    if not conn.used:
+                    if not conn.used or not resend:
                         raise
                     # The server closed the kept-alive connection as the request went out; it
-                    # never saw the request: send it once more on a new connection.
+                    # never saw the request: send it once more on a new connection. (Not for a
+                    # request that must not be sent twice: then it is a connection error.)
                     conn.close()
                     stage = "connect"
                     conn.connect()
@@ -242,7 +243,7 @@ class Transport:
                         conn.close()
                     return result
                 answer = response.read(MAX_ERROR_BODY)
-                if response.length or response.will_close:
+                if not response.isclosed() or response.will_close:
                     conn.close()  # unread rest, or the server closes: do not reuse
                 else:
                     conn.used = True

@@ -336,6 +336,9 @@ class Client:
             for key in ("eye", "look_at", "up"):
                 if key in cam:
                     cam[key] = _vec3(cam[key], key)
+            for key in ("fov", "ortho_height"):
+                if key in cam:
+                    cam[key] = float(cam[key])  # numpy scalars too
             request["camera"] = cam
         if tile is not None:
             x, y, w, h = tile

@@ -175,7 +175,7 @@ def test_five_million_rays_in_chunks(server):
 # ---- Renders ---------------------------------------------------------------------------------------
 
 def test_render_arrays_and_bytes(client, server, bunny, cli, tmp_path):
-    camera = {"eye": np.array([0.0, 0.1, 1.5]), "look_at": [0, 0, 0], "fov": 40}
+    camera = {"eye": np.array([0.0, 0.1, 1.5]), "look_at": [0, 0, 0], "fov": np.float32(40)}
     image = client.render(bunny, 64, 48, camera=camera)
     assert image.shape == (48, 64, 3) and image.dtype == np.uint8
     assert image.min() < image.max()
