@@ -14,6 +14,9 @@ kdrt_packages=(
 kdrt_packages+=(clang-format clang-tidy)
 # The client's OpenAPI test validates live answers against proto/openapi.yaml in Python.
 kdrt_packages+=(python3 python3-yaml python3-jsonschema)
+# The Python client (client/python): numpy, its tests (pytest), and its install test (a venv made
+# with --system-site-packages; setuptools and wheel build the package offline).
+kdrt_packages+=(python3-numpy python3-pytest python3-venv python3-setuptools python3-wheel)
 
 # kdrt_missing_packages: prints the packages of kdrt_packages that are not installed, one a line.
 kdrt_missing_packages() {

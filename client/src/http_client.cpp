@@ -1,5 +1,6 @@
 // kdrt::Client on cpp-httplib: connection pool, retries, chunked ray batches. The only library
-// file that includes httplib.h; every body is encoded and decoded by kdrt::proto.
+// file that includes httplib.h; every body is encoded and decoded by kdrt::proto. Ray batches
+// over plain http go through http_direct.h's connections instead (big reads and writes).
 
 #include <httplib.h>
 #include <netdb.h>
@@ -19,6 +20,7 @@
 #include <stdexcept>
 #include <thread>
 
+#include "http_direct.h"
 #include "kdrt/client/client.h"
 #include "kdrt/proto/errors.h"
 #include "kdrt/proto/file_io.h"
@@ -32,6 +34,14 @@ using Millis = std::chrono::milliseconds;
 
 /// Bytes handed to httplib per content-provider call when a file is streamed.
 constexpr size_t kUploadBlockBytes = size_t{1} << 20;
+
+/// Largest answer read from a direct connection when it is not the batch's answer (a
+/// problem+json refusal, a proxy's error page).
+constexpr size_t kMaxErrorBodyBytes = size_t{1} << 20;
+
+/// Largest image read from a direct connection: an 8192 x 8192 RGBA float EXR is 1 GiB before
+/// compression.
+constexpr uint64_t kMaxImageBodyBytes = uint64_t{4} << 30;
 
 /// Percent-encodes one path segment (an id from the caller): only RFC 3986 unreserved
 /// characters stay as they are, so "../x" or "a/b" cannot leave the route.
@@ -69,6 +79,25 @@ std::optional<uint32_t> parse_retry_after(const std::string& value) {
     const auto [ptr, ec] = std::from_chars(value.data(), end, seconds);
     if (ec != std::errc() || ptr != end) return std::nullopt;
     return seconds;
+}
+
+/// The httplib error a direct-transport failure stands for, so both transports retry the same
+/// failures and describe them in the same words (kProtocol is not one: it is a bad answer).
+httplib::Error as_httplib_error(detail::DirectFailure failure) noexcept {
+    switch (failure) {
+        case detail::DirectFailure::kConnect:
+            return httplib::Error::Connection;
+        case detail::DirectFailure::kConnectTimeout:
+            return httplib::Error::ConnectionTimeout;
+        case detail::DirectFailure::kWrite:
+            return httplib::Error::Write;
+        case detail::DirectFailure::kRead:
+            return httplib::Error::Read;
+        case detail::DirectFailure::kNone:
+        case detail::DirectFailure::kProtocol:
+            break;
+    }
+    return httplib::Error::Unknown;
 }
 
 /// True for httplib errors where the request never reached the server (always safe to resend).
@@ -167,6 +196,18 @@ struct Client::Impl {
         }
         origin = url.to_string();
         origin.resize(origin.size() - url.base_path.size());
+        direct = url.scheme == "http";
+        if (direct) {
+            const bool ipv6 = url.host.find(':') != std::string::npos;
+            direct_target =
+                detail::DirectTarget{.host = url.host,
+                                     .port = url.port,
+                                     .host_header = (ipv6 ? "[" + url.host + "]" : url.host) + ":" +
+                                                    std::to_string(url.port),
+                                     .token = options.token,
+                                     .connect_timeout = options.connect_timeout,
+                                     .io_timeout = options.io_timeout};
+        }
     }
 
     ServerUrl url;
@@ -175,6 +216,17 @@ struct Client::Impl {
 
     std::mutex pool_mutex;
     std::vector<std::unique_ptr<httplib::Client>> idle;  ///< keep-alive connections not in use
+    /// Ray batches over plain http use http_direct.h's connections (https stays on httplib).
+    bool direct = false;
+    detail::DirectTarget direct_target;
+    /// A direct connection and its reused buffers, pooled like the httplib connections.
+    struct DirectSlot {
+        explicit DirectSlot(const detail::DirectTarget& target) : connection(target) {}
+        detail::DirectConnection connection;
+        detail::DirectResponse response;
+        std::vector<std::byte> body;
+    };
+    std::vector<std::unique_ptr<DirectSlot>> idle_direct;
 
     /// A pooled connection, returned to the pool when the lease ends.
     class Lease {
@@ -215,6 +267,24 @@ struct Client::Impl {
         if (idle.size() < std::max(1u, options.connections)) idle.push_back(std::move(client));
     }
 
+    std::unique_ptr<DirectSlot> acquire_direct() {
+        {
+            std::lock_guard lock(pool_mutex);
+            if (!idle_direct.empty()) {
+                auto slot = std::move(idle_direct.back());
+                idle_direct.pop_back();
+                return slot;
+            }
+        }
+        return std::make_unique<DirectSlot>(direct_target);
+    }
+
+    void release_direct(std::unique_ptr<DirectSlot> slot) {
+        std::lock_guard lock(pool_mutex);
+        if (idle_direct.size() < std::max(1u, options.connections))
+            idle_direct.push_back(std::move(slot));
+    }
+
     [[nodiscard]] std::string api(std::string_view path) const {
         return url.base_path + std::string(path);
     }
@@ -226,14 +296,18 @@ struct Client::Impl {
         return Millis(std::min<int64_t>(delay, options.backoff_max.count()));
     }
 
-    [[nodiscard]] Error transport_error(const Exchange& ex, httplib::Error error,
-                                        unsigned attempts) const {
+    /// `reason`: the OS's word for the failure when the transport knows it (the direct one);
+    /// for a failed connect without one, a plain connect is tried once more to find it.
+    [[nodiscard]] Error transport_error(const Exchange& ex, httplib::Error error, unsigned attempts,
+                                        const std::string& reason = {}) const {
         const bool connect = failed_before_sending(error);
         std::string what = describe(error);
-        if (error == httplib::Error::Connection) {
-            const std::string reason =
+        if (!reason.empty()) {
+            what += ": " + reason;
+        } else if (error == httplib::Error::Connection) {
+            const std::string found =
                 connect_failure_reason(url.host, url.port, options.connect_timeout);
-            if (!reason.empty()) what += ": " + reason;
+            if (!found.empty()) what += ": " + found;
         }
         Error e = make_client_error(
             ErrorKind::kConnection, connect ? "cannot connect" : "connection failed",
@@ -285,6 +359,46 @@ struct Client::Impl {
         }
     }
 
+    /// send() on a direct connection (`body` is the request body), with the same retries and
+    /// errors. Idempotent requests only. The answer is left in slot.response.
+    Result<void> send_direct(DirectSlot& slot, const Exchange& ex, std::span<const std::byte> body,
+                             size_t max_body) {
+        const unsigned attempts_allowed = options.max_retries + 1;
+        std::string reason;
+        for (unsigned attempt = 1;; ++attempt) {
+            const detail::DirectFailure failure = slot.connection.request(
+                ex.method, ex.path, ex.content_type, body, max_body, slot.response, reason);
+            if (failure == detail::DirectFailure::kProtocol)
+                return proto::Err{bad_response(ex, reason)};
+            if (failure != detail::DirectFailure::kNone) {
+                const httplib::Error error = as_httplib_error(failure);
+                const bool retriable =
+                    failed_before_sending(error) ||
+                    (ex.resend_after_transport_error && transport_failure(error));
+                if (!retriable || attempt >= attempts_allowed)
+                    return proto::Err{transport_error(ex, error, attempt, reason)};
+                std::this_thread::sleep_for(backoff(attempt - 1));
+                continue;
+            }
+            const detail::DirectResponse& response = slot.response;
+            if (response.status >= 200 && response.status < 300) return {};
+            if (response.status == 503 && ex.retry_unavailable && attempt < attempts_allowed) {
+                Millis delay = backoff(attempt - 1);
+                if (const auto after = parse_retry_after(response.retry_after))
+                    delay = std::min<Millis>(std::chrono::seconds(*after), options.max_retry_after);
+                std::this_thread::sleep_for(delay);
+                continue;
+            }
+            const auto answer = response.body();
+            Error e = error_from_response(
+                response.status, response.content_type,
+                std::string_view(reinterpret_cast<const char*>(answer.data()), answer.size()),
+                response.request_id);
+            e.attempts = attempt;
+            return proto::Err{std::move(e)};
+        }
+    }
+
     Result<httplib::Response> send(const Exchange& ex) {
         Lease lease(*this);
         return send(*lease, ex);
@@ -312,6 +426,45 @@ struct Client::Impl {
             ex, [](const std::string& body) { return proto::decode_mesh_summary(body); });
     }
 
+    /// Decodes one chunk's answer, checks the count and copies it into `out`.
+    template <class T>
+    Result<void> take_answer(const Exchange& ex, std::span<const std::byte> answer,
+                             std::span<T> out) {
+        const proto::DecodeLimits limits{.max_rays = static_cast<uint32_t>(out.size())};
+        auto decoded = [&] {
+            if constexpr (std::is_same_v<T, Hit>) {
+                return proto::decode_hits(answer, limits);
+            } else {
+                return proto::decode_occlusion(answer, limits);
+            }
+        }();
+        if (!decoded) return proto::Err{bad_response(ex, decoded.error().to_string())};
+        if (decoded->size() != out.size())
+            return proto::Err{bad_response(ex, std::to_string(decoded->size()) + " answers for " +
+                                                   std::to_string(out.size()) + " rays")};
+        std::copy(decoded->begin(), decoded->end(), out.begin());
+        return {};
+    }
+
+    /// One chunk of a ray batch on a direct connection: the KDRR body encoded once and sent
+    /// with the head in one write, the answer read with big reads into the slot's buffer.
+    template <class T>
+    Result<void> trace_chunk_direct(DirectSlot& slot, const std::string& path,
+                                    std::span<const Ray> rays, bool occlusion, std::span<T> out) {
+        slot.body = proto::encode_rays(rays, occlusion);
+        Exchange ex;
+        ex.method = "POST";
+        ex.path = path;
+        ex.content_type = std::string(proto::kRaysMediaType);
+        // An answer of this batch has exactly this size; a problem+json refusal is small.
+        const auto expected = static_cast<size_t>(proto::answer_body_size(
+            occlusion ? proto::AnswerKind::kOcclusion : proto::AnswerKind::kHits, rays.size()));
+        const size_t max_body = std::max(expected, kMaxErrorBodyBytes);
+        auto sent = send_direct(slot, ex, slot.body, max_body);
+        if (!sent) return proto::Err{std::move(sent).error()};
+        return take_answer<T>(ex, slot.response.body(), out);
+    }
+
     /// One chunk of a ray batch: POST, decode, check the count, copy into `out`.
     template <class T>
     Result<void> trace_chunk(httplib::Client& cli, const std::string& path,
@@ -328,20 +481,7 @@ struct Client::Impl {
         ex.content_type = std::string(proto::kRaysMediaType);
         auto res = send(cli, ex);
         if (!res) return proto::Err{std::move(res).error()};
-        const proto::DecodeLimits limits{.max_rays = static_cast<uint32_t>(rays.size())};
-        auto decoded = [&] {
-            if constexpr (std::is_same_v<T, Hit>) {
-                return proto::decode_hits(as_bytes(res->body), limits);
-            } else {
-                return proto::decode_occlusion(as_bytes(res->body), limits);
-            }
-        }();
-        if (!decoded) return proto::Err{bad_response(ex, decoded.error().to_string())};
-        if (decoded->size() != rays.size())
-            return proto::Err{bad_response(ex, std::to_string(decoded->size()) + " answers for " +
-                                                   std::to_string(rays.size()) + " rays")};
-        std::copy(decoded->begin(), decoded->end(), out.begin());
-        return {};
+        return take_answer<T>(ex, as_bytes(res->body), out);
     }
 
     /// A ray batch in chunks of options.chunk_rays, over up to options.connections connections.
@@ -363,14 +503,26 @@ struct Client::Impl {
         std::optional<Error> error;
         size_t error_chunk = std::numeric_limits<size_t>::max();
         const auto worker = [&] {
-            Lease lease(*this);
+            // One connection per worker: a direct one for plain http, else httplib's.
+            std::unique_ptr<DirectSlot> slot = direct ? acquire_direct() : nullptr;
+            std::optional<Lease> lease;
+            if (!direct) lease.emplace(*this);
+            struct ReleaseSlot {
+                Impl& impl;
+                std::unique_ptr<DirectSlot>& slot;
+                ~ReleaseSlot() {
+                    if (slot) impl.release_direct(std::move(slot));
+                }
+            } release_slot{*this, slot};
             while (!failed.load(std::memory_order_relaxed)) {
                 const size_t k = next.fetch_add(1);
                 if (k >= chunks) return;
                 const size_t first = k * chunk;
                 const size_t count = std::min(chunk, rays.size() - first);
-                auto done = trace_chunk<T>(*lease, path, rays.subspan(first, count), occlusion,
-                                           std::span<T>(out).subspan(first, count));
+                const auto part = rays.subspan(first, count);
+                const auto into = std::span<T>(out).subspan(first, count);
+                auto done = slot ? trace_chunk_direct<T>(*slot, path, part, occlusion, into)
+                                 : trace_chunk<T>(**lease, path, part, occlusion, into);
                 if (!done) {
                     std::lock_guard lock(error_mutex);
                     // Report the earliest failing chunk among those that failed (deterministic
@@ -395,6 +547,39 @@ struct Client::Impl {
         }  // the jthreads join here
         if (error) return proto::Err{std::move(*error)};
         return out;
+    }
+
+    /// An exchange whose answer is an image (a synchronous render, a job's result): on a direct
+    /// connection for plain http (big reads), else through httplib. `required_status`, when
+    /// nonzero, is the only 2xx status accepted.
+    Result<std::vector<std::byte>> image_call(const Exchange& ex, std::string_view body,
+                                              int required_status) {
+        const auto check = [&](int status) -> Result<void> {
+            if (required_status != 0 && status != required_status)
+                return proto::Err{bad_response(ex, "status " + std::to_string(status) +
+                                                       " instead of " +
+                                                       std::to_string(required_status))};
+            return {};
+        };
+        if (!direct) {
+            auto res = send(ex);
+            if (!res) return proto::Err{std::move(res).error()};
+            if (auto ok = check(res->status); !ok) return proto::Err{std::move(ok).error()};
+            return to_byte_vector(res->body);
+        }
+        struct SlotLease {
+            Impl& impl;
+            std::unique_ptr<DirectSlot> slot;
+            ~SlotLease() { impl.release_direct(std::move(slot)); }
+        } lease{*this, acquire_direct()};
+        const size_t max_body = static_cast<size_t>(
+            std::min<uint64_t>(kMaxImageBodyBytes, std::numeric_limits<size_t>::max()));
+        auto sent = send_direct(*lease.slot, ex, std::as_bytes(std::span(body)), max_body);
+        if (!sent) return proto::Err{std::move(sent).error()};
+        if (auto ok = check(lease.slot->response.status); !ok)
+            return proto::Err{std::move(ok).error()};
+        const auto answer = lease.slot->response.body();
+        return std::vector<std::byte>(answer.begin(), answer.end());
     }
 
     [[nodiscard]] Exchange render_exchange() const {
@@ -529,12 +714,7 @@ Result<std::vector<std::byte>> Client::render(const RenderRequest& request) {
     Exchange ex = impl_->render_exchange();
     const std::string body = proto::encode_render_request(request);
     ex.body = body;
-    auto res = impl_->send(ex);
-    if (!res) return proto::Err{std::move(res).error()};
-    if (res->status != 200)
-        return proto::Err{
-            impl_->bad_response(ex, "status " + std::to_string(res->status) + " instead of 200")};
-    return to_byte_vector(res->body);
+    return impl_->image_call(ex, body, 200);
 }
 
 Result<Job> Client::submit(const RenderRequest& request) {
@@ -592,9 +772,7 @@ Result<std::vector<std::byte>> Client::wait(const Job& submitted,
 Result<std::vector<std::byte>> Client::result(const Job& job) {
     Exchange ex;
     ex.path = impl_->api("/v1/jobs/" + escape_segment(job.id) + "/result");
-    auto res = impl_->send(ex);
-    if (!res) return proto::Err{std::move(res).error()};
-    return to_byte_vector(res->body);
+    return impl_->image_call(ex, {}, 0);
 }
 
 Result<void> Client::cancel(const Job& job) {

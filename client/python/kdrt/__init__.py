@@ -1,0 +1,22 @@
+"""kdrt for Python: the kdrt ray-tracing server from numpy.
+
+    import kdrt
+    client = kdrt.Client("http://127.0.0.1:8080")
+    mesh = client.upload("bunny.obj")                 # or client.upload(vertices, triangles)
+    hits = client.cast_rays(mesh, rays)               # rays: float32 (..., 6) or (..., 8)
+    depth = hits["t_hit"]                             # shaped like rays[..., 0], inf on a miss
+
+Depends on numpy only; HTTP goes through the standard library's http.client. See README.md.
+"""
+
+from ._errors import Error
+from ._wire import NO_HIT
+from .client import Client, Job, Mesh
+from .png import read_png, write_png
+
+for _public in (Error, Client, Job, Mesh):
+    _public.__module__ = "kdrt"  # kdrt.Error in tracebacks, not kdrt._errors.Error
+del _public
+
+__version__ = "0.1.0"
+__all__ = ["Client", "Error", "Job", "Mesh", "NO_HIT", "read_png", "write_png", "__version__"]

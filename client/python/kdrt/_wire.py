@@ -1,0 +1,164 @@
+"""The binary wire formats of proto/FORMATS.md, on numpy arrays.
+
+KDRR (rays out), KDRH and KDRO (answers back) and the raw mesh. Every layout here follows
+FORMATS.md exactly (little-endian, the 16-byte batch header, 32-byte ray records in the order of
+kdrt::Ray: ox oy oz tmin dx dy dz tmax; 16-byte hit records t prim u v; 1-byte occlusion records).
+Records are built and read with whole-array numpy operations, never per ray in Python.
+"""
+
+from __future__ import annotations
+
+import struct
+
+import numpy as np
+
+from ._errors import Error
+
+#: The 16-byte header: magic, version (u16), flags (u16), count (u32), reserved (u32).
+BATCH_HEADER = struct.Struct("<4sHHII")
+HEADER_BYTES = 16
+RAY_RECORD_BYTES = 32
+HIT_RECORD_BYTES = 16
+OCCLUSION_RECORD_BYTES = 1
+BATCH_VERSION = 1
+FLAG_OCCLUSION = 0x0001
+RAY_MAGIC = b"KDRR"
+HIT_MAGIC = b"KDRH"
+OCCLUSION_MAGIC = b"KDRO"
+#: The largest record count a batch header can hold.
+MAX_BATCH_RAYS = 0xFFFFFFFF
+
+RAYS_MEDIA_TYPE = "application/x-kdrt-rays"
+RAW_MESH_MEDIA_TYPE = "application/x-kdrt-mesh"
+
+#: kdrt::Hit.prim of a miss.
+NO_HIT = 0xFFFFFFFF
+
+#: Upload media types by file extension (proto's mesh_media_type).
+MESH_MEDIA_TYPES = {
+    ".obj": "model/obj",
+    ".stl": "model/stl",
+    ".ply": "application/ply",
+    ".off": "application/x-off",
+    ".raw": RAW_MESH_MEDIA_TYPE,
+    ".kdrtmesh": RAW_MESH_MEDIA_TYPE,
+}
+#: The same by format name (Client.upload(path, format=...)).
+MESH_FORMATS = {
+    "obj": "model/obj",
+    "stl": "model/stl",
+    "ply": "application/ply",
+    "off": "application/x-off",
+    "raw": RAW_MESH_MEDIA_TYPE,
+}
+
+
+def input_error(title: str, detail: str) -> Error:
+    return Error(kind="input", title=title, detail=detail)
+
+
+def as_rays(rays) -> np.ndarray:
+    """Checks a ray array of shape (..., 6) or (..., 8) and returns it as float32 (no copy when
+    it already is float32)."""
+    arr = np.asarray(rays)
+    if arr.ndim < 1 or arr.shape[-1] not in (6, 8):
+        raise input_error(
+            "bad rays",
+            f"rays must have shape (..., 6) [ox, oy, oz, dx, dy, dz] or (..., 8) "
+            f"[ox, oy, oz, dx, dy, dz, tmin, tmax]; got shape {arr.shape}",
+        )
+    if not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)):
+        raise input_error("bad rays", f"rays must be a float array; got dtype {arr.dtype}")
+    count = arr.size // arr.shape[-1]
+    if count > MAX_BATCH_RAYS:
+        raise input_error(
+            "too many rays", f"{count} rays in one call; a batch holds at most {MAX_BATCH_RAYS}"
+        )
+    return arr.astype(np.float32, copy=False)
+
+
+def byte_view(arr: np.ndarray) -> memoryview:
+    """The bytes of a C-contiguous array as a flat memoryview (no copy; empty arrays work)."""
+    return memoryview(arr.reshape(-1).view(np.uint8))
+
+
+def batch_header(magic: bytes, flags: int, count: int) -> bytes:
+    return BATCH_HEADER.pack(magic, BATCH_VERSION, flags, count, 0)
+
+
+def kdrr_records(rays: np.ndarray) -> np.ndarray:
+    """(n, 6|8) float32 rays in [o, d(, tmin, tmax)] order -> (n, 8) float32 KDRR records
+    [ox oy oz tmin dx dy dz tmax], little-endian. Six columns mean tmin = 0, tmax = +inf."""
+    n = rays.shape[0]
+    records = np.empty((n, 8), dtype="<f4")
+    records[:, 0:3] = rays[:, 0:3]
+    records[:, 4:7] = rays[:, 3:6]
+    if rays.shape[1] == 8:
+        records[:, 3] = rays[:, 6]
+        records[:, 7] = rays[:, 7]
+    else:
+        records[:, 3] = 0.0
+        records[:, 7] = np.inf
+    return records
+
+
+def check_answer_header(header: bytes, magic: bytes, count: int) -> None:
+    """Checks a KDRH/KDRO header against FORMATS.md and the request's ray count. Raises a
+    "protocol" Error naming the field."""
+    if len(header) < HEADER_BYTES:
+        raise Error(
+            kind="protocol",
+            title="bad response",
+            detail=f"too_short: body has {len(header)} bytes, less than the 16-byte header",
+        )
+    got_magic, version, flags, got_count, reserved = BATCH_HEADER.unpack(header[:HEADER_BYTES])
+    problem = None
+    if got_magic != magic:
+        problem = f'bad_magic: bad magic "{got_magic.decode("latin-1")}", expected "{magic.decode()}"'
+    elif version != BATCH_VERSION:
+        problem = f"bad_version: unsupported version {version}, expected {BATCH_VERSION}"
+    elif flags != 0:
+        problem = f"bad_flags: flags 0x{flags:04x}, expected 0"
+    elif reserved != 0:
+        problem = f"bad_reserved: reserved header field is 0x{reserved:08x}, expected 0"
+    elif got_count != count:
+        problem = f"{got_count} answers for {count} rays"
+    if problem:
+        raise Error(kind="protocol", title="bad response", detail=problem)
+
+
+def check_occlusion_records(records: np.ndarray) -> None:
+    """KDRO records must be 0 or 1 (FORMATS.md); names the first bad one."""
+    bad = np.flatnonzero(records > 1)
+    if bad.size:
+        i = int(bad[0])
+        raise Error(
+            kind="protocol",
+            title="bad response",
+            detail=f"bad_occlusion_value: ray {i}: occlusion value {int(records[i])}, "
+            f"expected 0 or 1",
+        )
+
+
+def raw_mesh(vertices, triangles) -> list:
+    """The raw mesh body (FORMATS.md): u32 V, u32 T, V x 3 f32, T x 3 u32, as buffers to send."""
+    v = np.asarray(vertices)
+    t = np.asarray(triangles)
+    if v.ndim != 2 or v.shape[1] != 3:
+        raise input_error("cannot upload", f"vertices must have shape (V, 3); got {v.shape}")
+    if t.ndim != 2 or t.shape[1] != 3:
+        raise input_error("cannot upload", f"triangles must have shape (T, 3); got {t.shape}")
+    if not np.issubdtype(t.dtype, np.integer):
+        raise input_error("cannot upload", f"triangles must be integers; got dtype {t.dtype}")
+    if v.shape[0] > 0xFFFFFFFF or t.shape[0] > 0xFFFFFFFF:
+        raise input_error("cannot upload", "more than 2^32 - 1 vertices or triangles")
+    if t.size and (int(t.min()) < 0 or int(t.max()) >= v.shape[0]):
+        bad = int(np.flatnonzero((t.reshape(-1) < 0) | (t.reshape(-1) >= v.shape[0]))[0])
+        raise input_error(
+            "cannot upload",
+            f"triangle {bad // 3} has vertex index {int(t.reshape(-1)[bad])}, "
+            f"outside 0 .. {v.shape[0] - 1}",
+        )
+    verts = np.ascontiguousarray(v, dtype="<f4")
+    tris = np.ascontiguousarray(t, dtype="<u4")
+    return [struct.pack("<II", v.shape[0], t.shape[0]), byte_view(verts), byte_view(tris)]

@@ -1,0 +1,457 @@
+"""kdrt.Client: the kdrt HTTP API v1 (proto/openapi.yaml) for numpy users."""
+
+from __future__ import annotations
+
+import json
+import os
+import threading
+import time
+from concurrent.futures import ThreadPoolExecutor
+
+import numpy as np
+
+from . import _wire
+from ._errors import Error
+from ._transport import FileBody, Transport
+from .png import read_png
+
+
+class Mesh:
+    """A stored mesh as the server reports it: `id` (the SHA-256 of its canonical triangles),
+    `triangles`, `vertices`, `bounds` ((2, 3) float64 array: min, max), `tree` (the build
+    statistics, a dict, with `build_ms`), `in_memory` (None when not reported) and `summary`,
+    the whole JSON object."""
+
+    def __init__(self, summary: dict):
+        self.summary = summary
+        self.id = summary["id"]
+        self.triangles = int(summary["triangles"])
+        self.vertices = int(summary["vertices"])
+        bounds = summary.get("bounds", {})
+        self.bounds = np.array([bounds.get("min", [0, 0, 0]), bounds.get("max", [0, 0, 0])],
+                               dtype=np.float64)
+        self.tree = dict(summary.get("tree", {}))
+        if "build_ms" in summary:
+            self.tree["build_ms"] = summary["build_ms"]
+        self.in_memory = summary.get("in_memory")
+
+    def __repr__(self):
+        return f"kdrt.Mesh(id={self.id[:12]}..., triangles={self.triangles})"
+
+    def __eq__(self, other):
+        return isinstance(other, Mesh) and self.summary == other.summary
+
+
+class Job:
+    """An async render job: `id`, `state` ("queued", "running", "done", "failed",
+    "cancelled"), `progress` (0 .. 1), `error` (why it failed, else ""), and `status`, the whole
+    JSON object."""
+
+    def __init__(self, status: dict):
+        self.status = status
+        self.id = status["id"]
+        self.state = status["state"]
+        self.progress = float(status.get("progress", 0.0))
+        self.error = status.get("error", "")
+
+    @property
+    def finished(self) -> bool:
+        return self.state in ("done", "failed", "cancelled")
+
+    def __repr__(self):
+        return f"kdrt.Job(id={self.id}, state={self.state}, progress={self.progress:.2f})"
+
+
+def _mesh_id(mesh) -> str:
+    if isinstance(mesh, Mesh):
+        return mesh.id
+    if isinstance(mesh, str):
+        return mesh
+    raise Error(kind="input", title="bad mesh", detail=f"expected a kdrt.Mesh or a mesh id "
+                f"string; got {type(mesh).__name__}")
+
+
+def _segment(text: str) -> str:
+    """Percent-encodes one path segment: only RFC 3986 unreserved characters stay."""
+    out = []
+    for byte in text.encode("utf-8"):
+        c = chr(byte)
+        if c.isascii() and (c.isalnum() or c in "-._~"):
+            out.append(c)
+        else:
+            out.append(f"%{byte:02X}")
+    return "".join(out)
+
+
+def _json_answer(method, path):
+    def read(response):
+        body = response.read()
+        try:
+            return json.loads(body)
+        except ValueError:
+            raise Error(kind="protocol", title="bad response",
+                        detail=f"{method} {path}: the answer is not JSON") from None
+    return read
+
+
+def _vec3(value, name):
+    arr = np.asarray(value, dtype=np.float64).reshape(-1)
+    if arr.size != 3:
+        raise Error(kind="input", title="bad camera", detail=f"camera {name} needs 3 numbers; "
+                    f"got {arr.size}")
+    return [float(x) for x in arr]
+
+
+class Client:
+    """A client of the kdrt-server at `url` ("http://host:port[/prefix]", "https://...", or
+    "host:port"). Connects lazily. Thread-safe: each call takes its own connection(s).
+
+    token:       bearer token for every request (default: the KDRT_TOKEN environment variable).
+    timeout:     seconds per socket read or write (a long batch may take longer in total).
+    connect_timeout: seconds to set a connection up.
+    max_retries: retries after the first attempt, on connection errors and 503 answers.
+    chunk_rays:  rays per request; larger batches are split into chunks of this many...
+    connections: ...sent at once on this many keep-alive connections (one thread each).
+    poll_interval: seconds between two polls of a job in wait().
+    """
+
+    def __init__(self, url="http://127.0.0.1:8080", token=None, timeout=300.0,
+                 connect_timeout=5.0, max_retries=4, backoff_initial=0.1, backoff_max=5.0,
+                 max_retry_after=60.0, chunk_rays=1 << 16, connections=4, poll_interval=0.1):
+        if chunk_rays < 1:
+            raise ValueError("chunk_rays must be at least 1")
+        if connections < 1:
+            raise ValueError("connections must be at least 1")
+        if token is None:
+            token = os.environ.get("KDRT_TOKEN") or None
+        self._t = Transport(url, token, timeout, connect_timeout, max_retries, backoff_initial,
+                            backoff_max, max_retry_after, connections)
+        self.url = str(self._t.url)
+        self.chunk_rays = int(chunk_rays)
+        self.connections = int(connections)
+        self.poll_interval = poll_interval
+        self._pool = None
+        self._pool_lock = threading.Lock()
+
+    def close(self):
+        """Closes the idle connections and the worker threads (the client stays usable)."""
+        with self._pool_lock:
+            pool, self._pool = self._pool, None
+        if pool:
+            pool.shutdown(wait=True)
+        self._t.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    def _json(self, method, path, body=None, headers=None, resend=True, retry_unavailable=True):
+        parts = [json.dumps(body).encode()] if body is not None else []
+        return self._t.request(method, path, parts, "application/json" if parts else None,
+                               headers, _json_answer(method, path), resend, retry_unavailable)
+
+    # ---- Meshes -------------------------------------------------------------------------------
+
+    def upload(self, source, triangles=None, format=None) -> Mesh:
+        """Uploads a mesh and returns it as stored (uploading the same triangles again returns
+        the stored mesh without a rebuild).
+
+        upload(path[, format]): a mesh file (.obj .ply .off .stl .raw .kdrtmesh, or `format`
+        "obj", "ply", "off", "stl", "raw"), streamed from disk in 1 MiB blocks. The server parses it: a bad file
+        raises kdrt.Error 422 whose `line` (text formats) or `byte_offset` says where.
+        upload(vertices, triangles): arrays of shape (V, 3) (float) and (T, 3) (integer indices),
+        sent as the raw format."""
+        if triangles is not None:
+            parts = _wire.raw_mesh(source, triangles)
+            media_type = _wire.RAW_MESH_MEDIA_TYPE
+        else:
+            path = os.fspath(source)
+            if format is not None:
+                if format not in _wire.MESH_FORMATS:
+                    raise Error(kind="input", title="cannot upload",
+                                detail=f"unknown mesh format {format!r} (expected one of "
+                                f"{', '.join(_wire.MESH_FORMATS)})")
+                media_type = _wire.MESH_FORMATS[format]
+            else:
+                ext = os.path.splitext(path)[1].lower()
+                if ext not in _wire.MESH_MEDIA_TYPES:
+                    raise Error(kind="input", title="cannot upload",
+                                detail=f'cannot tell the mesh format of "{path}" from its '
+                                f"extension (expected .obj, .ply, .off, .stl, .raw or .kdrtmesh)")
+                media_type = _wire.MESH_MEDIA_TYPES[ext]
+            parts = [FileBody(path)]
+        path = self._t.api("/v1/meshes")
+        return Mesh(self._t.request("POST", path, parts, media_type, None,
+                                    _json_answer("POST", path)))
+
+    def meshes(self) -> list:
+        """Every stored mesh, sorted by id."""
+        answer = self._json("GET", self._t.api("/v1/meshes"))
+        return [Mesh(m) for m in answer["meshes"]]
+
+    def mesh(self, mesh) -> Mesh:
+        """One stored mesh (kdrt.Error 404 when unknown)."""
+        return Mesh(self._json("GET", self._t.api("/v1/meshes/" + _segment(_mesh_id(mesh)))))
+
+    def remove(self, mesh) -> None:
+        """Deletes a stored mesh (kdrt.Error 404 when unknown)."""
+        self._t.request("DELETE", self._t.api("/v1/meshes/" + _segment(_mesh_id(mesh))))
+
+    # ---- Rays ---------------------------------------------------------------------------------
+
+    def cast_rays(self, mesh, rays) -> dict:
+        """Closest hit of every ray, like Open3D's RaycastingScene.cast_rays.
+
+        rays: float array of shape (..., 6) [ox, oy, oz, dx, dy, dz] (the segment t in [0, inf))
+        or (..., 8) [ox, oy, oz, dx, dy, dz, tmin, tmax]; t is in units of the direction's
+        length. Returns a dict of arrays shaped like the rays' leading dimensions:
+          t_hit          float32 (...),   inf on a miss
+          primitive_ids  uint32 (...),    the triangle index, 0xFFFFFFFF (kdrt.NO_HIT) on a miss
+          primitive_uvs  float32 (..., 2) barycentric weights of v1 and v2, 0 on a miss
+        The three are views of one buffer that the answers were read into (no copies).
+        Rays with a NaN or infinite origin or direction component are refused by the server
+        (kdrt.Error 400 naming the ray)."""
+        records = self._trace(_mesh_id(mesh), rays, occlusion=False)
+        lead = records.shape[:-1]
+        return {
+            "t_hit": records[..., 0],
+            "primitive_ids": records.view(np.uint32)[..., 1],
+            "primitive_uvs": records[..., 2:4],
+        }
+
+    def test_occlusions(self, mesh, rays) -> np.ndarray:
+        """Occlusion of every ray (True: some triangle is hit with tmin <= t <= tmax), a bool
+        array shaped like the rays' leading dimensions. Rays as for cast_rays."""
+        return self._trace(_mesh_id(mesh), rays, occlusion=True)
+
+    def _workers(self):
+        with self._pool_lock:
+            if self._pool is None:
+                self._pool = ThreadPoolExecutor(max_workers=self.connections,
+                                                thread_name_prefix="kdrt")
+            return self._pool
+
+    def _trace(self, mesh_id, rays, occlusion):
+        arr = _wire.as_rays(rays)
+        lead = arr.shape[:-1]
+        flat = arr.reshape(-1, arr.shape[-1])
+        n = flat.shape[0]
+        path = self._t.api("/v1/meshes/" + _segment(mesh_id) + "/intersect")
+        if occlusion:
+            out = np.empty(n, dtype=np.uint8)
+            magic, record_bytes, flags = _wire.OCCLUSION_MAGIC, 1, _wire.FLAG_OCCLUSION
+        else:
+            out = np.empty((n, 4), dtype="<f4")
+            magic, record_bytes, flags = _wire.HIT_MAGIC, _wire.HIT_RECORD_BYTES, 0
+        chunk = self.chunk_rays
+        chunks = max(1, -(-n // chunk))
+
+        def send_chunk(k, conn):
+            first = k * chunk
+            count = min(chunk, n - first)
+            records = _wire.kdrr_records(flat[first:first + count])
+            header = _wire.batch_header(_wire.RAY_MAGIC, flags, count)
+            target = _wire.byte_view(out[first:first + count])
+            expected = _wire.HEADER_BYTES + record_bytes * count
+
+            def read(response):
+                length = response.getheader("Content-Length")
+                if length is None or int(length) != expected:
+                    # Not this batch's answer: read what there is and let the decoder say why.
+                    body = response.read(max(expected, _wire.HEADER_BYTES))
+                    response.close()
+                    conn.close()
+                    _wire.check_answer_header(body, magic, count)
+                    raise Error(kind="protocol", title="bad response",
+                                detail=f"POST {path}: answer of {length} bytes, expected "
+                                f"{expected} for {count} rays")
+                head = response.read(_wire.HEADER_BYTES)
+                _wire.check_answer_header(head, magic, count)
+                got = 0
+                while got < len(target):  # straight into the output array
+                    step = response.readinto(target[got:])
+                    if not step:
+                        raise OSError("the answer ended early")
+                    got += step
+                return None
+
+            self._t.request("POST", path, [header, _wire.byte_view(records)],
+                            _wire.RAYS_MEDIA_TYPE, None, read, conn=conn)
+
+        if chunks == 1 or self.connections == 1:
+            conn = self._t.acquire()
+            try:
+                for k in range(chunks):
+                    send_chunk(k, conn)
+            finally:
+                self._t.release(conn)
+        else:
+            # Like the C++ client: each worker takes the next chunk on its own connection; the
+            # first failure stops the others and the earliest failing chunk's error is raised.
+            next_chunk = iter(range(chunks))
+            lock = threading.Lock()
+            failures = {}
+
+            def worker():
+                conn = self._t.acquire()
+                try:
+                    while not failures:
+                        with lock:
+                            k = next(next_chunk, None)
+                        if k is None:
+                            return
+                        try:
+                            send_chunk(k, conn)
+                        except BaseException as exc:  # noqa: B902 - reraised by the caller
+                            with lock:
+                                failures[k] = exc
+                            return
+                finally:
+                    self._t.release(conn)
+
+            pool = self._workers()
+            futures = [pool.submit(worker) for _ in range(min(self.connections, chunks))]
+            for f in futures:
+                f.result()
+            if failures:
+                raise failures[min(failures)]
+        if occlusion:
+            _wire.check_occlusion_records(out)
+            return out.view(np.bool_).reshape(lead)
+        return out.reshape(lead + (4,))
+
+    # ---- Renders ------------------------------------------------------------------------------
+
+    @staticmethod
+    def _render_request(mesh, width, height, shading, camera, spp, seed, format, compression,
+                        tile):
+        request = {"mesh": _mesh_id(mesh), "width": int(width), "height": int(height),
+                   "shading": shading, "spp": int(spp), "seed": int(seed), "format": format}
+        if compression is not None:
+            request["compression"] = int(compression)
+        if camera is not None:
+            cam = dict(camera)
+            for key in ("eye", "look_at", "up"):
+                if key in cam:
+                    cam[key] = _vec3(cam[key], key)
+            for key in ("fov", "ortho_height"):
+                if key in cam:
+                    cam[key] = float(cam[key])  # numpy scalars too
+            request["camera"] = cam
+        if tile is not None:
+            x, y, w, h = tile
+            request["tile"] = {"x": int(x), "y": int(y), "w": int(w), "h": int(h)}
+        return request
+
+    @staticmethod
+    def _image(data: bytes, output: str):
+        if output == "bytes":
+            return data
+        image = read_png(data)
+        return image if output == "uint8" else image.astype(np.float32) / np.float32(255)
+
+    @staticmethod
+    def _check_output(output, format):
+        if output not in ("uint8", "float", "bytes"):
+            raise Error(kind="input", title="bad output", detail=f"output {output!r}: expected "
+                        f'"uint8", "float" or "bytes"')
+        if output != "bytes" and format != "png":
+            raise Error(kind="input", title="bad output", detail=f"a {format} image can only be "
+                        f'returned as output="bytes" (arrays are decoded from PNG)')
+
+    def render(self, mesh, width=512, height=512, shading="eyelight", camera=None, spp=1, seed=1,
+               format="png", output="uint8", compression=None, tile=None):
+        """Renders synchronously. shading: "normals", "eyelight", "ao", "diffuse", "depth",
+        "primid"; camera: a dict {"eye", "look_at", "up", "fov", "projection", "ortho_height"}
+        (None: a default view framing the mesh); tile (x, y, w, h): a part of the frame.
+        output "uint8": an (H, W, C) uint8 array (C = 3, or 4 with alpha), "float": the same as
+        float32 in [0, 1] (sRGB-encoded, as in the PNG), "bytes": the encoded image (format
+        "png", "jpeg"/"jpg" or "exr")."""
+        self._check_output(output, format)
+        request = self._render_request(mesh, width, height, shading, camera, spp, seed, format,
+                                       compression, tile)
+        path = self._t.api("/v1/render")
+        _, _, data = self._t.request("POST", path, [json.dumps(request).encode()],
+                                     "application/json")
+        return self._image(data, output)
+
+    def submit(self, mesh, width=512, height=512, shading="eyelight", camera=None, spp=1,
+               seed=1, format="png", compression=None, tile=None) -> Job:
+        """Queues the render as an async job (arguments as for render) and returns it. Not
+        resent after a lost connection once the request may have been sent (it could queue a
+        second job); resent on 503."""
+        request = self._render_request(mesh, width, height, shading, camera, spp, seed, format,
+                                       compression, tile)
+        path = self._t.api("/v1/render")
+
+        def read(response):
+            body = response.read()
+            if response.status != 202:
+                raise Error(kind="protocol", title="bad response", status=response.status,
+                            detail=f"POST {path}: status {response.status} instead of 202 (the "
+                            f"server did not queue a job)")
+            return json.loads(body)
+
+        return Job(self._t.request("POST", path, [json.dumps(request).encode()],
+                                   "application/json", {"Prefer": "respond-async"}, read,
+                                   resend=False))
+
+    def job(self, job) -> Job:
+        """The job's current status."""
+        job_id = job.id if isinstance(job, Job) else job
+        return Job(self._json("GET", self._t.api("/v1/jobs/" + _segment(job_id))))
+
+    def wait(self, job, progress=None, output="uint8"):
+        """Polls the job every poll_interval seconds until it finishes, calling progress(job)
+        after every poll (returning False cancels the job and raises kdrt.Error "cancelled"),
+        then returns its image (output as for render). A failed job raises kdrt.Error
+        "job_failed", a cancelled one "cancelled"."""
+        job_id = job.id if isinstance(job, Job) else job
+        fmt = job.status.get("format", "png") if isinstance(job, Job) else "png"
+        self._check_output(output, "png" if fmt == "png" else fmt)
+        while True:
+            status = self.job(job_id)
+            if progress is not None and progress(status) is False:
+                try:
+                    self.cancel(status)
+                except Error:
+                    pass
+                raise Error(kind="cancelled", title="cancelled",
+                            detail=f"job {job_id} cancelled while waiting for it")
+            if status.state == "done":
+                return self.result(status, output)
+            if status.state == "failed":
+                raise Error(kind="job_failed", title="render failed",
+                            detail=f"job {job_id}: {status.error}")
+            if status.state == "cancelled":
+                raise Error(kind="cancelled", title="cancelled",
+                            detail=f"job {job_id} was cancelled")
+            time.sleep(self.poll_interval)
+
+    def result(self, job, output="uint8"):
+        """The image of a finished job (kdrt.Error 409 while it is not done)."""
+        job_id = job.id if isinstance(job, Job) else job
+        _, _, data = self._t.request("GET", self._t.api(f"/v1/jobs/{_segment(job_id)}/result"))
+        return self._image(data, output)
+
+    def cancel(self, job) -> None:
+        """Cancels a queued or running job, or forgets a finished one."""
+        job_id = job.id if isinstance(job, Job) else job
+        self._t.request("DELETE", self._t.api("/v1/jobs/" + _segment(job_id)))
+
+    # ---- Operations ---------------------------------------------------------------------------
+
+    def health(self) -> None:
+        """GET /healthz: returns when the process answers."""
+        self._t.request("GET", self._t.api("/healthz"))
+
+    def ready(self) -> None:
+        """GET /readyz: returns when the server is ready; a 503 raises (not retried)."""
+        self._t.request("GET", self._t.api("/readyz"), retry_unavailable=False)
+
+    def metrics(self) -> str:
+        """GET /metrics: the Prometheus text exposition."""
+        _, _, data = self._t.request("GET", self._t.api("/metrics"))
+        return data.decode("utf-8")
