@@ -391,6 +391,10 @@ Result<Invocation, std::string> parse_invocation(const std::vector<std::string>&
                 return Err{std::string("--mesh-id needs at least one mesh file")};
             return inv;
         }
+        if (arg == "--check-store") {
+            inv.mode = Invocation::Mode::kCheckStore;  // with the other flags (--cache-dir)
+            continue;
+        }
         std::optional<std::string> inline_value;
         if (const size_t eq = arg.find('='); arg.rfind("--", 0) == 0 && eq != std::string::npos) {
             inline_value = arg.substr(eq + 1);
@@ -430,6 +434,8 @@ std::string help_text() {
     std::string out =
         "usage: kdrt-server [--config FILE] [--SETTING VALUE ...]\n"
         "       kdrt-server --mesh-id MESHFILE...   print the mesh id of each file and exit\n"
+        "       kdrt-server --check-store [--cache-dir DIR]   verify every stored mesh, tree\n"
+        "                and summary (read-only; exit 0 intact, 1 damage found, 2 unreadable)\n"
         "       kdrt-server --help | --version\n\n"
         "The kdrt ray-tracing HTTP service (API: proto/openapi.yaml). Settings come from their\n"
         "defaults, then the JSON config file (--config FILE or KDRT_CONFIG; // comments allowed),\n"

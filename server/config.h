@@ -58,7 +58,7 @@ struct ServerConfig {
 
 /// What the command line asks for.
 struct Invocation {
-    enum class Mode { kServe, kHelp, kVersion, kMeshId };
+    enum class Mode { kServe, kHelp, kVersion, kMeshId, kCheckStore };
     Mode mode = Mode::kServe;
     ServerConfig config;
     std::vector<std::string> mesh_files;  ///< kMeshId: files to print the ids of

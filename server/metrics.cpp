@@ -49,9 +49,39 @@ proto::HistogramSample Histogram::sample(proto::MetricLabels labels) const {
     return s;
 }
 
+void LabelledCounter::add(const proto::MetricLabels& labels, uint64_t n) {
+    std::lock_guard lock(mutex_);
+    counts_[labels] += n;
+}
+
+uint64_t LabelledCounter::value(const proto::MetricLabels& labels) const {
+    std::lock_guard lock(mutex_);
+    const auto it = counts_.find(labels);
+    return it == counts_.end() ? 0 : it->second;
+}
+
+uint64_t LabelledCounter::total() const {
+    std::lock_guard lock(mutex_);
+    uint64_t sum = 0;
+    for (const auto& [labels, n] : counts_) sum += n;
+    return sum;
+}
+
+std::vector<proto::MetricSample> LabelledCounter::samples() const {
+    std::lock_guard lock(mutex_);
+    std::vector<proto::MetricSample> out;
+    for (const auto& [labels, n] : counts_) out.push_back({labels, static_cast<double>(n)});
+    return out;
+}
+
 Metrics::Route::Route() : duration(request_buckets()) {}
 
-Metrics::Metrics() : build_seconds_(build_buckets()), start_time_(now_seconds()) {}
+Metrics::Metrics() : build_seconds_(build_buckets()), start_time_(now_seconds()) {
+    // Every reason is exported from the start (at 0), so rate() and alerts see the series.
+    for (const char* reason :
+         {"missing", "unreadable", "truncated", "corrupt", "format_version", "other_mesh"})
+        cache_rebuilds.add({{"reason", reason}}, 0);
+}
 
 void Metrics::record_request(const std::string& route, const std::string& method, int status,
                              double seconds, uint64_t bytes_in, uint64_t bytes_out) {
@@ -140,9 +170,20 @@ std::string Metrics::render() const {
             cache_misses);
     counter("kdrt_cache_evictions_total", "Trees dropped from memory to stay within the budget.",
             cache_evictions);
-    counter("kdrt_cache_rebuilds_total",
-            "Cache files that failed validation and were rebuilt from the stored mesh.",
-            cache_rebuilds);
+    const auto labelled = [&](const char* name, const char* help, const LabelledCounter& value) {
+        auto f = family(name, help, MetricType::kCounter);
+        f.samples = value.samples();
+        families.push_back(std::move(f));
+    };
+    labelled("kdrt_cache_rebuilds_total",
+             "Trees rebuilt from the stored mesh because the tree file was refused, by reason.",
+             cache_rebuilds);
+    labelled("kdrt_store_problems_total",
+             "Damage found in stored files (on read, at start-up or by a scrub), by file and "
+             "reason.",
+             store_problems);
+    labelled("kdrt_store_repairs_total", "Stored files rewritten from what remained, by file.",
+             store_repairs);
     counter("kdrt_uploads_deduplicated_total",
             "Uploads of a mesh that was already stored (not rebuilt).", uploads_deduplicated);
     counter("kdrt_renders_total", "Images rendered (synchronous and jobs).", renders);

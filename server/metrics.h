@@ -30,6 +30,20 @@ private:
     double sum_ = 0;
 };
 
+/// A counter family with one label set per sample (few, fixed label values: reasons, kinds).
+class LabelledCounter {
+public:
+    void add(const proto::MetricLabels& labels, uint64_t n = 1);
+    [[nodiscard]] uint64_t value(const proto::MetricLabels& labels) const;
+    /// Sum over every label set.
+    [[nodiscard]] uint64_t total() const;
+    [[nodiscard]] std::vector<proto::MetricSample> samples() const;
+
+private:
+    mutable std::mutex mutex_;
+    std::map<proto::MetricLabels, uint64_t> counts_;
+};
+
 class Metrics {
 public:
     Metrics();
@@ -44,8 +58,12 @@ public:
     std::atomic<uint64_t> cache_hits{0};       ///< tree requested and resident
     std::atomic<uint64_t> cache_misses{0};     ///< tree requested and loaded from disk
     std::atomic<uint64_t> cache_evictions{0};  ///< trees dropped from memory
-    std::atomic<uint64_t> cache_rebuilds{
-        0};  ///< tree files that failed validation and were rebuilt
+    /// Trees rebuilt from the stored mesh, by {reason} (the TreeFileProblem reason label).
+    LabelledCounter cache_rebuilds;
+    /// Damage found in stored files, by {file="mesh"|"tree"|"summary", reason}.
+    LabelledCounter store_problems;
+    /// Stored files rewritten from what remained, by {file}.
+    LabelledCounter store_repairs;
     std::atomic<uint64_t> uploads_deduplicated{0};  ///< uploads of a mesh already stored
     std::atomic<uint64_t> renders{0};
 
