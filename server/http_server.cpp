@@ -246,6 +246,7 @@ struct HttpServer::Impl {
     /// Fills the body of errors httplib produced itself (unknown route, malformed request,
     /// Content-Length over the payload limit).
     httplib::Server::HandlerResponse on_error(const httplib::Request& req, httplib::Response& res) {
+        fresh_context_if_rejected(res);
         if (response_has_content(res)) return httplib::Server::HandlerResponse::Unhandled;
         const auto [allowed, method_allowed] = allowed_methods(req.path, req.method);
         if ((res.status == 404 || res.status == 400) && !allowed.empty() && !method_allowed) {
@@ -303,8 +304,25 @@ struct HttpServer::Impl {
         return httplib::Server::HandlerResponse::Unhandled;
     }
 
+    /// A request httplib refused before routing (malformed request line, unknown method) never
+    /// reached the pre-routing handler: give it its own context instead of the previous
+    /// request's on this thread (id, route "rejected").
+    void fresh_context_if_rejected(httplib::Response& res) {
+        if (request_context().active) return;
+        begin_request(res);
+        request_context().route = "rejected";
+    }
+
     /// One access-log line and the request metrics, after the response is written.
     void on_logged(const httplib::Request& req, const httplib::Response& res) {
+        if (!request_context().active) {
+            RequestContext& context = request_context();
+            context = RequestContext{};
+            context.active = true;
+            context.start = std::chrono::steady_clock::now();
+            context.request_id = proto::hex(next_request_id.fetch_add(1), 16);
+            context.route = "rejected";
+        }
         RequestContext& context = request_context();
         const double seconds =
             context.active
@@ -316,7 +334,7 @@ struct HttpServer::Impl {
         const uint64_t bytes_out = response_body_bytes(res);
         svc.metrics.record_request(route, req.method, res.status, seconds, bytes_in, bytes_out);
         log_event(LogLevel::kInfo, "request",
-                  {{"method", req.method},
+                  {{"method", method_label(req.method)},
                    {"route", route},
                    {"status", static_cast<int64_t>(res.status)},
                    {"in", bytes_in},
@@ -337,6 +355,13 @@ struct HttpServer::Impl {
         const size_t threads = c.http_threads;
         http.new_task_queue = [threads] { return new httplib::ThreadPool(threads); };
         http.set_tcp_nodelay(true);
+        // httplib's default also sets SO_REUSEPORT, which lets a second server bind the same
+        // port and take half the connections. SO_REUSEADDR alone still allows a restart while
+        // old connections are in TIME_WAIT.
+        http.set_socket_options([](socket_t sock) {
+            int yes = 1;
+            ::setsockopt(sock, SOL_SOCKET, SO_REUSEADDR, &yes, sizeof yes);
+        });
         http.set_keep_alive_max_count(c.keep_alive_max_requests);
         http.set_keep_alive_timeout(c.keep_alive_timeout_s);
         http.set_read_timeout(c.read_timeout_s, 0);
@@ -369,9 +394,14 @@ proto::Result<int, std::string> HttpServer::bind(const std::string& host, int po
             return proto::Err{"cannot listen on " + host + ":0: " + std::strerror(errno)};
         return bound;
     }
-    if (!impl_->http.bind_to_port(host, port))
-        return proto::Err{"cannot listen on " + host + ":" + std::to_string(port) + ": " +
-                          std::strerror(errno)};
+    errno = 0;
+    if (!impl_->http.bind_to_port(host, port)) {
+        const int err = errno;
+        std::string why = err ? std::strerror(err) : "bind failed";
+        if (err == EADDRINUSE)
+            why += " (another process, perhaps another kdrt-server, listens there)";
+        return proto::Err{"cannot listen on " + host + ":" + std::to_string(port) + ": " + why};
+    }
     return port;
 }
 

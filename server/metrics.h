@@ -8,6 +8,7 @@
 #include <functional>
 #include <map>
 #include <mutex>
+#include <optional>
 #include <string>
 #include <tuple>
 #include <vector>
@@ -15,6 +16,10 @@
 #include "kdrt/proto/prometheus.h"
 
 namespace kdrt::server {
+
+/// The method label of a request: the method when it is one of the standard HTTP methods, else
+/// "other" (so a client cannot create a series per invented method token).
+[[nodiscard]] std::string method_label(const std::string& method);
 
 /// A fixed-bucket histogram (upper bounds in seconds).
 class Histogram {
@@ -52,6 +57,9 @@ public:
     void record_request(const std::string& route, const std::string& method, int status,
                         double seconds, uint64_t bytes_in, uint64_t bytes_out);
     void add_rays(uint64_t count, bool occlusion);
+    /// One finished render (sync or job): counts it, its rays (kind="render") and its time;
+    /// `queue_seconds` is how long a job waited before it started (nullopt for sync renders).
+    void record_render(uint64_t rays, double seconds, std::optional<double> queue_seconds);
     /// One kD-tree build (upload, or rebuild of a corrupt cache file).
     void record_build(double seconds);
 
@@ -82,9 +90,8 @@ public:
 
 private:
     struct Route {
-        Route();
         std::map<std::tuple<std::string, int>, uint64_t> by_method_status;
-        Histogram duration;
+        std::map<std::string, Histogram> duration_by_method;
         uint64_t bytes_in = 0, bytes_out = 0;
     };
 
@@ -94,6 +101,8 @@ private:
 
     std::atomic<uint64_t> rays_closest_{0};
     std::atomic<uint64_t> rays_occlusion_{0};
+    std::atomic<uint64_t> rays_render_{0};
+    Histogram render_seconds_, queue_seconds_;
     std::atomic<uint64_t> builds_{0};
     Histogram build_seconds_;
     proto::MetricLabels build_info_;
