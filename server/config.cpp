@@ -350,6 +350,14 @@ Result<uint64_t, std::string> parse_bytes(std::string_view text) {
 Result<Invocation, std::string> parse_invocation(const std::vector<std::string>& args,
                                                  const std::vector<std::string>& env) {
     Invocation inv;
+    // --help and --version work whatever the config file, environment or other flags say.
+    for (const std::string& arg : args) {
+        if (arg == "--mesh-id") break;  // file names follow
+        if (arg == "--help" || arg == "-h" || arg == "--version") {
+            inv.mode = arg == "--version" ? Invocation::Mode::kVersion : Invocation::Mode::kHelp;
+            return inv;
+        }
+    }
     // The config file comes first (flag, then environment), whatever its position on the line.
     std::string config_path;
     for (const std::string& e : env)

@@ -291,6 +291,22 @@ struct HttpServer::Impl {
     httplib::Server::HandlerResponse on_pre_routing(const httplib::Request& req,
                                                     httplib::Response& res) {
         begin_request(res);
+        // httplib reads Content-Length with strtoull: "abc" is 0, "0x10" is 0, "1, 2" is 1.
+        // RFC 9110: one value of decimal digits (a list of equal values is not worth the risk).
+        if (req.has_header("Content-Length")) {
+            const std::string value = req.get_header_value("Content-Length");
+            const bool digits = !value.empty() && value.size() <= 19 &&
+                                value.find_first_not_of("0123456789") == std::string::npos;
+            if (!digits || req.get_header_value_count("Content-Length") != 1) {
+                request_context().route = "unmatched";
+                reply_problem(req, res,
+                              make_problem(ProblemKind::kBadRequest,
+                                           "invalid Content-Length " + proto::in_quotes(value) +
+                                               " (one decimal number of bytes)"));
+                res.set_header("Connection", "close");
+                return httplib::Server::HandlerResponse::Handled;
+            }
+        }
         // httplib 0.11.4 reads a POST without Content-Length or chunked framing until the peer
         // closes; HTTP/1.1 says such a body is empty. Answer now instead of hanging.
         if (req.method == "POST" && !req.has_header("Content-Length") &&

@@ -209,6 +209,26 @@ TEST_F(HttpErrors, UnknownRoutesAndMethods) {
         << p.detail;
 }
 
+TEST_F(HttpErrors, InvalidContentLengthsAreRefused) {
+    for (const char* value : {"abc", "1, 2", "0x10", "-1", "+5", "99999999999999999999"}) {
+        SCOPED_TRACE(value);
+        const std::string answer = raw_exchange(
+            server_->port(),
+            std::string("POST /v1/meshes HTTP/1.1\r\nHost: x\r\nContent-Type: model/stl\r\n"
+                        "Connection: close\r\nContent-Length: ") +
+                value + "\r\n\r\n",
+            std::chrono::seconds(5));
+        EXPECT_EQ(answer.rfind("HTTP/1.1 400", 0), 0u) << answer;
+        EXPECT_NE(answer.find("invalid Content-Length"), std::string::npos) << answer;
+    }
+    const std::string twice = raw_exchange(
+        server_->port(),
+        "POST /v1/meshes HTTP/1.1\r\nHost: x\r\nConnection: close\r\nContent-Length: 3\r\n"
+        "Content-Length: 3\r\n\r\nabc",
+        std::chrono::seconds(5));
+    EXPECT_EQ(twice.rfind("HTTP/1.1 400", 0), 0u) << twice;
+}
+
 TEST_F(HttpErrors, PostWithoutContentLengthIsRefusedAtOnce) {
     const std::string reply = raw_exchange(
         server_->port(), "POST /v1/meshes HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n",

@@ -249,6 +249,21 @@ TEST(HttpOps, BadSettingsExitWithAMessage) {
     EXPECT_NE(out.find("cannot open \"/nonexistent/kdrt.json\""), std::string::npos) << out;
 }
 
+TEST(HttpOps, OutOfRangeNumbersInTheConfigAreAnErrorAndHelpStillWorks) {
+    TempDir dir;
+    const std::string config = (dir.path() / "kdrt.json").string();
+    std::ofstream(config) << "{\"memory_budget\": 1e400}";
+    // This used to abort (an uncaught nlohmann out_of_range), even with --help.
+    auto [code, out] = run_command("--config " + config);
+    EXPECT_EQ(code, 2) << out;
+    EXPECT_NE(out.find("\"memory_budget\": number overflow"), std::string::npos) << out;
+    std::tie(code, out) = run_command("--config " + config + " --help");
+    EXPECT_EQ(code, 0) << out;
+    EXPECT_NE(out.find("usage: kdrt-server"), std::string::npos);
+    std::tie(code, out) = run_command("--memory-budget 1e400");
+    EXPECT_EQ(code, 2) << out;
+}
+
 TEST(HttpOps, HelpListsEverySettingAndMeshIdPrintsIds) {
     auto [code, out] = run_command("--help");
     EXPECT_EQ(code, 0);
