@@ -256,6 +256,13 @@ Result<void, std::string> apply_config_file(const std::string& path, ServerConfi
     auto bytes = proto::read_file_bytes(path, 1u << 20);
     if (!bytes) return Err{std::move(bytes).error()};
     const std::string_view text(reinterpret_cast<const char*>(bytes->data()), bytes->size());
+    return apply_config_text(text, path, config);
+}
+
+}  // namespace
+
+Result<void, std::string> apply_config_text(std::string_view text, const std::string& path,
+                                            ServerConfig& config) {
     auto entries = proto::parse_config_object(text);
     if (!entries) return Err{path + ": " + entries.error()};
     for (const proto::ConfigEntry& e : *entries) {
@@ -300,8 +307,6 @@ std::string default_json(const Setting& s) {
         out += (out.size() > 1 ? ", " : "") + proto::json_string(item);
     return out + "]";
 }
-
-}  // namespace
 
 Result<std::pair<std::string, int>, std::string> split_listen(std::string_view listen) {
     const size_t colon = listen.rfind(':');

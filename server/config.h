@@ -71,6 +71,11 @@ struct Invocation {
 [[nodiscard]] proto::Result<Invocation, std::string> parse_invocation(
     const std::vector<std::string>& args, const std::vector<std::string>& env);
 
+/// Applies the settings of a config file's text (`origin` names it in errors) over `config`.
+[[nodiscard]] proto::Result<void, std::string> apply_config_text(std::string_view text,
+                                                                 const std::string& origin,
+                                                                 ServerConfig& config);
+
 /// The --help text: usage, commands, and every setting with its flag, variable and default.
 [[nodiscard]] std::string help_text();
 
