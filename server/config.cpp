@@ -79,8 +79,13 @@ const std::vector<Setting>& settings() {
          .min = 1,
          .max = kMaxTimeoutSeconds},
         {.key = "token",
-         .help = "bearer token required on /v1 requests (empty: no authentication)",
+         .help = "bearer token required on /v1 requests (empty: no authentication); as a "
+                 "flag it is visible to every user in /proc/PID/cmdline: prefer KDRT_TOKEN or "
+                 "--token-file",
          .text = &ServerConfig::token},
+        {.key = "token_file",
+         .help = "file holding the bearer token (one line; instead of token)",
+         .text = &ServerConfig::token_file},
         {.key = "threads",
          .help = "tracing and build threads (0: all cores)",
          .u32 = &ServerConfig::threads,
@@ -439,6 +444,21 @@ Result<Invocation, std::string> parse_invocation(const std::vector<std::string>&
         }
         auto applied = apply(*found, *inline_value, inv.config);
         if (!applied) return Err{arg + ": " + applied.error()};
+    }
+    if (!inv.config.token_file.empty()) {
+        if (!inv.config.token.empty())
+            return Err{std::string("token and token_file are both set; give the token one way")};
+        auto bytes = proto::read_file_bytes(inv.config.token_file, 4096);
+        if (!bytes) return Err{"token_file: " + bytes.error()};
+        std::string token(reinterpret_cast<const char*>(bytes->data()), bytes->size());
+        while (!token.empty() && (token.back() == '\n' || token.back() == '\r')) token.pop_back();
+        if (token.empty())
+            return Err{"token_file " + in_quotes(inv.config.token_file) + " is empty"};
+        for (const char c : token)
+            if (static_cast<unsigned char>(c) <= ' ' || c == 0x7f)
+                return Err{"token_file " + in_quotes(inv.config.token_file) +
+                           " holds more than one line, spaces or control characters"};
+        inv.config.token = std::move(token);
     }
     return inv;
 }

@@ -25,6 +25,7 @@ struct ServerConfig {
     unsigned read_timeout_s = 30;             ///< per socket read
     unsigned write_timeout_s = 30;            ///< per socket write
     std::string token;                        ///< bearer token for /v1 (empty = no auth)
+    std::string token_file;  ///< file holding the token (read once at start; excludes `token`)
 
     // Engine and cache
     unsigned threads = 0;                       ///< tracing/build threads (0 = all cores)
