@@ -291,6 +291,7 @@ struct HttpServer::Impl {
     httplib::Server::HandlerResponse on_pre_routing(const httplib::Request& req,
                                                     httplib::Response& res) {
         begin_request(res);
+        svc.requests.begin(request_context().request_id, method_label(req.method), req.path);
         // httplib reads Content-Length with strtoull: "abc" is 0, "0x10" is 0, "1, 2" is 1.
         // RFC 9110: one value of decimal digits (a list of equal values is not worth the risk).
         if (req.has_header("Content-Length")) {
@@ -359,6 +360,7 @@ struct HttpServer::Impl {
                    {"ms", seconds * 1e3},
                    {"id", context.request_id}});
         context.active = false;
+        svc.requests.end();
     }
 
     [[nodiscard]] uint64_t largest_body() const {

@@ -2,7 +2,9 @@
 // preloading, signals, the --help/--mesh-id commands.
 
 #include <gtest/gtest.h>
+#include <sys/socket.h>
 #include <sys/wait.h>
+#include <unistd.h>
 
 #include <cstdio>
 #include <fstream>
@@ -320,6 +322,46 @@ TEST(HttpOps, SigintFinishesInFlightRequestsAndExitsZero) {
                                          << server.log();
     EXPECT_EQ((*in_flight)->status, 200);
     EXPECT_EQ((*in_flight)->body.size(), 16 + 16 * rays.size());
+}
+
+TEST(HttpOps, AShutdownThatCutsRequestsSaysWhichAndExitsNonZero) {
+    TempDir dir;
+    ServerProcess server(
+        {.cache_dir = dir.path() / "cache", .args = {"--shutdown-timeout-s", "1"}});
+    // An upload whose body never finishes: admitted, then stuck reading.
+    const int fd = connect_loopback(server.port());
+    ASSERT_GE(fd, 0);
+    const std::string head =
+        "POST /v1/meshes HTTP/1.1\r\nHost: x\r\nContent-Type: application/x-kdrt-mesh\r\n"
+        "Content-Length: 1000000\r\n\r\nabcd";
+    ASSERT_EQ(::send(fd, head.data(), head.size(), MSG_NOSIGNAL),
+              static_cast<ssize_t>(head.size()));
+    for (int i = 0; i < 5000 && server.metric("kdrt_inflight_requests").value_or(0) < 1; ++i)
+        std::this_thread::sleep_for(std::chrono::milliseconds(1));
+    ASSERT_EQ(server.metric("kdrt_inflight_requests"), 1.0);
+    EXPECT_EQ(server.stop(SIGTERM), 1);  // it used to exit 0 after dropping the client
+    const std::string log = server.log();
+    EXPECT_NE(log.find("shutdown timeout: exiting with requests still in flight"),
+              std::string::npos)
+        << log;
+    EXPECT_NE(log.find("shutdown cut request request=\""), std::string::npos) << log;
+    EXPECT_NE(log.find(" POST /v1/meshes ("), std::string::npos) << log;
+    ::close(fd);
+}
+
+TEST(HttpOps, AFailedStartUpExitsAtOnceNotAfterTheShutdownTimeout) {
+    TempDir dir;
+    // A failed preload stops the server right after the listener thread starts; httplib's stop()
+    // was a no-op until the listener ran, so some runs waited for the shutdown watchdog.
+    for (int round = 0; round < 5; ++round) {
+        SCOPED_TRACE(round);
+        auto [code, out] =
+            run_command("--listen 127.0.0.1:0 --cache-dir '" + (dir.path() / "cache").string() +
+                        "' --preload /nonexistent/mesh.obj --shutdown-timeout-s 60");
+        EXPECT_EQ(code, 1) << out;
+        EXPECT_NE(out.find("cannot preload mesh"), std::string::npos) << out;
+        EXPECT_EQ(out.find("shutdown timeout"), std::string::npos) << out;
+    }
 }
 
 }  // namespace
