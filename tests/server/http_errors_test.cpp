@@ -1,8 +1,10 @@
 // Every error the API reports, with its status, problem type and detail.
 
 #include <gtest/gtest.h>
+
 #include <sys/socket.h>
 #include <unistd.h>
+#include <fstream>
 
 #include <cmath>
 #include <cstring>
@@ -207,6 +209,24 @@ TEST_F(HttpErrors, UnknownRoutesAndMethods) {
     p = expect_problem(cli->Post("/healthz", "x", "text/plain"), 405);
     EXPECT_NE(p.detail.find("does not support method POST (allowed: GET)"), std::string::npos)
         << p.detail;
+}
+
+TEST_F(HttpErrors, ABlender247PlyLoadsWithAWarningInTheAnswer) {
+    std::ifstream in(std::string(KDRT_TEST_DATA_DIR) + "/quirks/blender247.ply", std::ios::binary);
+    const std::string ply{std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>()};
+    ASSERT_FALSE(ply.empty());
+    auto res = server_->client()->Post("/v1/meshes", ply, "application/ply");
+    ASSERT_TRUE(res);
+    ASSERT_TRUE(res->status == 201 || res->status == 200) << res->body;
+    auto summary = proto::decode_mesh_summary(res->body);
+    ASSERT_TRUE(summary) << res->body;
+    EXPECT_EQ(summary->triangles, 1u);
+    ASSERT_EQ(summary->warnings.size(), 1u) << res->body;
+    EXPECT_EQ(summary->warnings[0],
+              "line 3: PLY header line with unknown keyword 'Created' skipped");
+    // Not stored: the mesh's own summary has no warnings.
+    EXPECT_EQ(server_->client()->Get("/v1/meshes/" + summary->id)->body.find("warnings"),
+              std::string::npos);
 }
 
 TEST_F(HttpErrors, InvalidContentLengthsAreRefused) {
