@@ -121,12 +121,14 @@ bool bind_and_announce(HttpServer& http, const Service& svc,
 /// What the helper threads report to the main thread (with SIGUSR1).
 struct HelperFailures {
     std::atomic<bool> listener{false}, startup{false};
+    std::atomic<bool> listener_done{false};  ///< serve() returned
 };
 
 /// Serves on a new thread until stopped; a failure is reported to this thread.
 std::thread start_listener(HttpServer& http, const Service& svc, HelperFailures& failed) {
     return std::thread([&http, &svc, &failed, main_thread = pthread_self()] {
         if (!http.serve() && !svc.shutting_down) failed.listener = true;
+        failed.listener_done = true;
         pthread_kill(main_thread, SIGUSR1);
     });
 }
@@ -165,19 +167,26 @@ int wait_for_stop(const sigset_t& signals, const HelperFailures& failed, unsigne
     }
 }
 
-/// Requests in flight get `timeout_s` to finish; after that the process exits with `exit_code`
-/// regardless. disarm() (or the destructor) stops the watchdog.
+/// Requests in flight get `timeout_s` to finish; after that the process logs each request it
+/// cuts and exits with status 1 (a shutdown that dropped clients is not a clean exit).
+/// disarm() (or the destructor) stops the watchdog.
 class ShutdownWatchdog {
 public:
-    ShutdownWatchdog(unsigned timeout_s, int exit_code)
-        : thread_([this, timeout_s, exit_code] {
+    ShutdownWatchdog(unsigned timeout_s, const Service& svc)
+        : thread_([this, timeout_s, &svc] {
               std::unique_lock lock(mutex_);
               if (!done_cv_.wait_for(lock, std::chrono::seconds(timeout_s),
                                      [&] { return done_; })) {
-                  log_event(LogLevel::kWarn,
-                            "shutdown timeout: exiting with requests still in flight");
+                  const std::vector<std::string> cut = svc.requests.describe();
+                  log_event(LogLevel::kError,
+                            "shutdown timeout: exiting with requests still in flight",
+                            {{"timeout_s", static_cast<uint64_t>(timeout_s)},
+                             {"requests", static_cast<uint64_t>(cut.size())},
+                             {"exit_code", int64_t{1}}});
+                  for (const std::string& request : cut)
+                      log_event(LogLevel::kError, "shutdown cut request", {{"request", request}});
                   std::fflush(nullptr);
-                  ::_exit(exit_code);
+                  ::_exit(1);
               }
           }) {}
     ShutdownWatchdog(const ShutdownWatchdog&) = delete;
@@ -202,12 +211,17 @@ private:
 
 /// New /v1 requests now get 503; uploads, traces and renders already admitted run to the end
 /// before the listener stops (httplib cuts streamed responses short once it is stopped).
-void drain_and_stop(Service& svc, HttpServer& http) {
+void drain_and_stop(Service& svc, HttpServer& http, const HelperFailures& helpers) {
     svc.shutting_down = true;
     svc.ready = false;
     svc.jobs.shutdown();  // cancels queued and running render jobs
     while (svc.gate.in_flight() > 0) std::this_thread::sleep_for(std::chrono::milliseconds(2));
-    http.stop();
+    // httplib's stop() does nothing until the listener runs: a stop right after start-up (a
+    // failed preload) used to leave it listening until the shutdown watchdog fired. Repeat it.
+    while (!helpers.listener_done) {
+        http.stop();
+        std::this_thread::sleep_for(std::chrono::milliseconds(2));
+    }
 }
 
 }  // namespace
@@ -229,8 +243,8 @@ int run_server(const ServerConfig& config) {
     std::thread listener = start_listener(http, svc, failed);
     std::thread startup = start_loading(svc, failed);
     const int exit_code = wait_for_stop(signals, failed, config.shutdown_timeout_s);
-    ShutdownWatchdog watchdog(config.shutdown_timeout_s, exit_code);
-    drain_and_stop(svc, http);
+    ShutdownWatchdog watchdog(config.shutdown_timeout_s, svc);
+    drain_and_stop(svc, http, failed);
     listener.join();
     startup.join();
     watchdog.disarm();

@@ -14,14 +14,14 @@ constexpr size_t kScratchBytes = size_t{64} << 10;
 }  // namespace
 
 BatchIngest::BatchIngest(Compute& compute, BufferPool& pool, const KdTree& tree, uint32_t max_rays,
-                         std::optional<uint64_t> declared_bytes)
+                         std::optional<uint64_t> declared_bytes, bool reject_non_finite)
     : compute_(compute),
       pool_(pool),
       tree_(tree),
       limit_(proto::kdrr_body_size(max_rays)),
       declared_(declared_bytes),
       decoder_(
-          {.max_rays = max_rays, .reject_non_finite = true},
+          {.max_rays = max_rays, .reject_non_finite = reject_non_finite},
           [this](uint32_t count, bool occlusion) { return storage(count, occlusion); },
           declared_bytes) {}
 

@@ -56,9 +56,10 @@ public:
     static constexpr size_t kReceivePieceBytes = size_t{1} << 20;
 
     /// `declared_bytes`: the body's size when known in advance (Content-Length), else nullopt
-    /// (chunked). Rays with NaN/Inf fields are refused (DecodeLimits::reject_non_finite).
+    /// (chunked). Rays with NaN/Inf fields are refused (DecodeLimits::reject_non_finite) unless
+    /// `reject_non_finite` is false: then the engine answers them as misses.
     BatchIngest(Compute& compute, BufferPool& pool, const KdTree& tree, uint32_t max_rays,
-                std::optional<uint64_t> declared_bytes);
+                std::optional<uint64_t> declared_bytes, bool reject_non_finite = true);
     BatchIngest(const BatchIngest&) = delete;
     BatchIngest& operator=(const BatchIngest&) = delete;
     /// Waits for any blocks still tracing, then returns the buffers to the pool.

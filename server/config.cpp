@@ -79,8 +79,13 @@ const std::vector<Setting>& settings() {
          .min = 1,
          .max = kMaxTimeoutSeconds},
         {.key = "token",
-         .help = "bearer token required on /v1 requests (empty: no authentication)",
+         .help = "bearer token required on /v1 requests (empty: no authentication); as a "
+                 "flag it is visible to every user in /proc/PID/cmdline: prefer KDRT_TOKEN or "
+                 "--token-file",
          .text = &ServerConfig::token},
+        {.key = "token_file",
+         .help = "file holding the bearer token (one line; instead of token)",
+         .text = &ServerConfig::token_file},
         {.key = "threads",
          .help = "tracing and build threads (0: all cores)",
          .u32 = &ServerConfig::threads,
@@ -256,6 +261,13 @@ Result<void, std::string> apply_config_file(const std::string& path, ServerConfi
     auto bytes = proto::read_file_bytes(path, 1u << 20);
     if (!bytes) return Err{std::move(bytes).error()};
     const std::string_view text(reinterpret_cast<const char*>(bytes->data()), bytes->size());
+    return apply_config_text(text, path, config);
+}
+
+}  // namespace
+
+Result<void, std::string> apply_config_text(std::string_view text, const std::string& path,
+                                            ServerConfig& config) {
     auto entries = proto::parse_config_object(text);
     if (!entries) return Err{path + ": " + entries.error()};
     for (const proto::ConfigEntry& e : *entries) {
@@ -300,8 +312,6 @@ std::string default_json(const Setting& s) {
         out += (out.size() > 1 ? ", " : "") + proto::json_string(item);
     return out + "]";
 }
-
-}  // namespace
 
 Result<std::pair<std::string, int>, std::string> split_listen(std::string_view listen) {
     const size_t colon = listen.rfind(':');
@@ -350,6 +360,14 @@ Result<uint64_t, std::string> parse_bytes(std::string_view text) {
 Result<Invocation, std::string> parse_invocation(const std::vector<std::string>& args,
                                                  const std::vector<std::string>& env) {
     Invocation inv;
+    // --help and --version work whatever the config file, environment or other flags say.
+    for (const std::string& arg : args) {
+        if (arg == "--mesh-id") break;  // file names follow
+        if (arg == "--help" || arg == "-h" || arg == "--version") {
+            inv.mode = arg == "--version" ? Invocation::Mode::kVersion : Invocation::Mode::kHelp;
+            return inv;
+        }
+    }
     // The config file comes first (flag, then environment), whatever its position on the line.
     std::string config_path;
     for (const std::string& e : env)
@@ -391,6 +409,10 @@ Result<Invocation, std::string> parse_invocation(const std::vector<std::string>&
                 return Err{std::string("--mesh-id needs at least one mesh file")};
             return inv;
         }
+        if (arg == "--check-store") {
+            inv.mode = Invocation::Mode::kCheckStore;  // with the other flags (--cache-dir)
+            continue;
+        }
         std::optional<std::string> inline_value;
         if (const size_t eq = arg.find('='); arg.rfind("--", 0) == 0 && eq != std::string::npos) {
             inline_value = arg.substr(eq + 1);
@@ -423,6 +445,21 @@ Result<Invocation, std::string> parse_invocation(const std::vector<std::string>&
         auto applied = apply(*found, *inline_value, inv.config);
         if (!applied) return Err{arg + ": " + applied.error()};
     }
+    if (!inv.config.token_file.empty()) {
+        if (!inv.config.token.empty())
+            return Err{std::string("token and token_file are both set; give the token one way")};
+        auto bytes = proto::read_file_bytes(inv.config.token_file, 4096);
+        if (!bytes) return Err{"token_file: " + bytes.error()};
+        std::string token(reinterpret_cast<const char*>(bytes->data()), bytes->size());
+        while (!token.empty() && (token.back() == '\n' || token.back() == '\r')) token.pop_back();
+        if (token.empty())
+            return Err{"token_file " + in_quotes(inv.config.token_file) + " is empty"};
+        for (const char c : token)
+            if (static_cast<unsigned char>(c) <= ' ' || c == 0x7f)
+                return Err{"token_file " + in_quotes(inv.config.token_file) +
+                           " holds more than one line, spaces or control characters"};
+        inv.config.token = std::move(token);
+    }
     return inv;
 }
 
@@ -430,6 +467,8 @@ std::string help_text() {
     std::string out =
         "usage: kdrt-server [--config FILE] [--SETTING VALUE ...]\n"
         "       kdrt-server --mesh-id MESHFILE...   print the mesh id of each file and exit\n"
+        "       kdrt-server --check-store [--cache-dir DIR]   verify every stored mesh, tree\n"
+        "                and summary (read-only; exit 0 intact, 1 damage found, 2 unreadable)\n"
         "       kdrt-server --help | --version\n\n"
         "The kdrt ray-tracing HTTP service (API: proto/openapi.yaml). Settings come from their\n"
         "defaults, then the JSON config file (--config FILE or KDRT_CONFIG; // comments allowed),\n"

@@ -25,6 +25,7 @@ struct ServerConfig {
     unsigned read_timeout_s = 30;             ///< per socket read
     unsigned write_timeout_s = 30;            ///< per socket write
     std::string token;                        ///< bearer token for /v1 (empty = no auth)
+    std::string token_file;  ///< file holding the token (read once at start; excludes `token`)
 
     // Engine and cache
     unsigned threads = 0;                       ///< tracing/build threads (0 = all cores)
@@ -58,7 +59,7 @@ struct ServerConfig {
 
 /// What the command line asks for.
 struct Invocation {
-    enum class Mode { kServe, kHelp, kVersion, kMeshId };
+    enum class Mode { kServe, kHelp, kVersion, kMeshId, kCheckStore };
     Mode mode = Mode::kServe;
     ServerConfig config;
     std::vector<std::string> mesh_files;  ///< kMeshId: files to print the ids of
@@ -70,6 +71,11 @@ struct Invocation {
 /// "thread"`.
 [[nodiscard]] proto::Result<Invocation, std::string> parse_invocation(
     const std::vector<std::string>& args, const std::vector<std::string>& env);
+
+/// Applies the settings of a config file's text (`origin` names it in errors) over `config`.
+[[nodiscard]] proto::Result<void, std::string> apply_config_text(std::string_view text,
+                                                                 const std::string& origin,
+                                                                 ServerConfig& config);
 
 /// The --help text: usage, commands, and every setting with its flag, variable and default.
 [[nodiscard]] std::string help_text();

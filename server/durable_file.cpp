@@ -11,22 +11,23 @@
 namespace kdrt::server {
 namespace {
 
-std::string os_error(const std::string& what, const std::filesystem::path& path, int err) {
-    return what + " \"" + path.string() + "\": " + std::generic_category().message(err);
+WriteError os_error(const std::string& what, const std::filesystem::path& path, int err) {
+    return WriteError{what + " \"" + path.string() + "\": " + std::generic_category().message(err),
+                      err == ENOSPC || err == EDQUOT || err == EFBIG};
 }
 
 }  // namespace
 
-proto::Result<void, std::string> write_file_durably(const std::filesystem::path& path,
-                                                    const std::filesystem::path& tmp_dir,
-                                                    std::span<const std::byte> bytes) {
+proto::Result<void, WriteError> write_file_durably(const std::filesystem::path& path,
+                                                   const std::filesystem::path& tmp_dir,
+                                                   std::span<const std::byte> bytes) {
     static std::atomic<uint64_t> counter{0};
     const std::filesystem::path tmp =
         tmp_dir / (path.filename().string() + "." + std::to_string(::getpid()) + "." +
                    std::to_string(counter.fetch_add(1)) + ".tmp");
     const int fd = ::open(tmp.c_str(), O_WRONLY | O_CREAT | O_EXCL | O_CLOEXEC, 0644);
     if (fd < 0) return proto::Err{os_error("cannot create", tmp, errno)};
-    const auto fail = [&](const std::string& what) -> proto::Result<void, std::string> {
+    const auto fail = [&](const std::string& what) -> proto::Result<void, WriteError> {
         const int err = errno;
         ::close(fd);
         ::unlink(tmp.c_str());
@@ -55,7 +56,7 @@ proto::Result<void, std::string> write_file_durably(const std::filesystem::path&
     return {};
 }
 
-proto::Result<void, std::string> sync_directory(const std::filesystem::path& dir) {
+proto::Result<void, WriteError> sync_directory(const std::filesystem::path& dir) {
     const int fd = ::open(dir.c_str(), O_RDONLY | O_DIRECTORY | O_CLOEXEC);
     if (fd < 0) return proto::Err{os_error("cannot open directory", dir, errno)};
     const int rc = ::fsync(fd);

@@ -10,16 +10,23 @@
 
 namespace kdrt::server {
 
+/// A failed write: the message names the path and the OS reason; `no_space` is set when the
+/// file system is full or a size limit refused the write (ENOSPC, EDQUOT, EFBIG).
+struct WriteError {
+    std::string message;
+    bool no_space = false;
+};
+
 /// Writes `bytes` to a new file in `tmp_dir`, fsyncs it and renames it over `path` (same file
 /// system). When the call returns success the content is durable once the directory holding
 /// `path` is synced (sync_directory). On failure the temp file is removed and the error names
 /// the path and the OS reason.
-[[nodiscard]] proto::Result<void, std::string> write_file_durably(
+[[nodiscard]] proto::Result<void, WriteError> write_file_durably(
     const std::filesystem::path& path, const std::filesystem::path& tmp_dir,
     std::span<const std::byte> bytes);
 
 /// fsync of a directory, making renames and unlinks in it durable.
-[[nodiscard]] proto::Result<void, std::string> sync_directory(const std::filesystem::path& dir);
+[[nodiscard]] proto::Result<void, WriteError> sync_directory(const std::filesystem::path& dir);
 
 /// A whole file mapped read-only (empty files give an empty span). Move-only.
 class MappedFile {

@@ -38,7 +38,8 @@ public:
 
 private:
     void intersect_binary(const httplib::Request& req, httplib::Response& res,
-                          const httplib::ContentReader& reader, const KdTree& tree);
+                          const httplib::ContentReader& reader, const KdTree& tree,
+                          bool reject_invalid);
     void intersect_json(const httplib::Request& req, httplib::Response& res,
                         const httplib::ContentReader& reader, const KdTree& tree);
 

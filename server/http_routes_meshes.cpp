@@ -45,6 +45,8 @@ void Routes::upload_mesh(const httplib::Request& req, httplib::Response& res,
     if (!body) return;
     proto::MeshLimits limits;
     limits.max_triangles = svc_.config.max_triangles;
+    std::vector<std::string> warnings;
+    limits.warnings = &warnings;
     auto mesh = proto::parse_mesh(body->bytes(), *format, limits);
     body.reset();  // the parsed mesh is the only copy from here on
     if (!mesh) return reply_problem(req, res, mesh_parse_problem(mesh.error()));
@@ -57,6 +59,7 @@ void Routes::upload_mesh(const httplib::Request& req, httplib::Response& res,
     auto added = svc_.cache.add(*mesh);
     if (!added) return reply_problem(req, res, cache_problem(added.error()));
     res.set_header("Location", "/v1/meshes/" + added->summary.id);
+    added->summary.warnings = std::move(warnings);
     reply_json(res, added->created ? 201 : 200, proto::encode_mesh_summary(added->summary));
 }
 

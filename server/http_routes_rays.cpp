@@ -8,6 +8,7 @@
 #include "httplib_internals.h"
 #include "kdrt/proto/json_api.h"
 #include "kdrt/proto/ray_batch.h"
+#include "kdrt/proto/text.h"
 #include "problems.h"
 
 namespace kdrt::server {
@@ -53,20 +54,32 @@ void Routes::intersect(const httplib::Request& req, httplib::Response& res,
                          "intersect " + std::string(proto::api_errors::kUnsupportedRayType) +
                              ", not \"" + req.get_header_value("Content-Type") + "\""));
     }
+    // ?invalid_rays=refuse (default): a ray with a NaN/Inf field makes the KDRR batch a 400
+    // naming its index; =miss: such rays are answered as misses (as Embree and Open3D do).
+    const std::string invalid = req.get_param_value("invalid_rays");
+    if (!invalid.empty() && invalid != "refuse" && invalid != "miss") {
+        discard_body(req, res, reader);
+        return reply_problem(
+            req, res,
+            make_problem(ProblemKind::kBadRequest, "query parameter invalid_rays is " +
+                                                       proto::in_quotes(invalid) +
+                                                       " (expected refuse or miss)"));
+    }
     const std::string id = req.matches[1];
     auto tree = svc_.cache.acquire(id);
     if (!tree) {
         discard_body(req, res, reader);
         return reply_problem(req, res, mesh_lookup_problem(tree.error(), id));
     }
-    if (binary) return intersect_binary(req, res, reader, **tree);
+    if (binary) return intersect_binary(req, res, reader, **tree, invalid != "miss");
     intersect_json(req, res, reader, **tree);
 }
 
 void Routes::intersect_binary(const httplib::Request& req, httplib::Response& res,
-                              const httplib::ContentReader& reader, const KdTree& tree) {
+                              const httplib::ContentReader& reader, const KdTree& tree,
+                              bool reject_invalid) {
     BatchIngest ingest(svc_.compute, svc_.batch_buffers, tree, svc_.config.max_rays,
-                       declared_body_bytes(req));
+                       declared_body_bytes(req), reject_invalid);
     if (ingest.declared_too_large()) {
         discard_body(req, res, reader);
         return reply_problem(req, res, body_too_large_problem(ingest.limit(), kBatchLimitWhat));

@@ -103,7 +103,7 @@ std::optional<RenderJob> Routes::make_render_job(const httplib::Request& req,
 void Routes::render_now(const httplib::Request& req, httplib::Response& res, const RenderJob& job) {
     auto image = render_and_encode(svc_.compute, *job.tree, job.settings, job.format, job.encode);
     if (!image) return reply_problem(req, res, make_problem(ProblemKind::kInternal, image.error()));
-    svc_.metrics.renders.fetch_add(1);
+    svc_.metrics.record_render(image->stats.rays, image->stats.seconds, std::nullopt);
     request_context().rays = image->stats.rays;
     res.set_header("X-Render-Ms", std::to_string(image->stats.seconds * 1e3));
     res.set_header("X-Encode-Ms", std::to_string(image->encode_ms));

@@ -246,6 +246,7 @@ struct HttpServer::Impl {
     /// Fills the body of errors httplib produced itself (unknown route, malformed request,
     /// Content-Length over the payload limit).
     httplib::Server::HandlerResponse on_error(const httplib::Request& req, httplib::Response& res) {
+        fresh_context_if_rejected(res);
         if (response_has_content(res)) return httplib::Server::HandlerResponse::Unhandled;
         const auto [allowed, method_allowed] = allowed_methods(req.path, req.method);
         if ((res.status == 404 || res.status == 400) && !allowed.empty() && !method_allowed) {
@@ -290,6 +291,23 @@ struct HttpServer::Impl {
     httplib::Server::HandlerResponse on_pre_routing(const httplib::Request& req,
                                                     httplib::Response& res) {
         begin_request(res);
+        svc.requests.begin(request_context().request_id, method_label(req.method), req.path);
+        // httplib reads Content-Length with strtoull: "abc" is 0, "0x10" is 0, "1, 2" is 1.
+        // RFC 9110: one value of decimal digits (a list of equal values is not worth the risk).
+        if (req.has_header("Content-Length")) {
+            const std::string value = req.get_header_value("Content-Length");
+            const bool digits = !value.empty() && value.size() <= 19 &&
+                                value.find_first_not_of("0123456789") == std::string::npos;
+            if (!digits || req.get_header_value_count("Content-Length") != 1) {
+                request_context().route = "unmatched";
+                reply_problem(req, res,
+                              make_problem(ProblemKind::kBadRequest,
+                                           "invalid Content-Length " + proto::in_quotes(value) +
+                                               " (one decimal number of bytes)"));
+                res.set_header("Connection", "close");
+                return httplib::Server::HandlerResponse::Handled;
+            }
+        }
         // httplib 0.11.4 reads a POST without Content-Length or chunked framing until the peer
         // closes; HTTP/1.1 says such a body is empty. Answer now instead of hanging.
         if (req.method == "POST" && !req.has_header("Content-Length") &&
@@ -303,8 +321,25 @@ struct HttpServer::Impl {
         return httplib::Server::HandlerResponse::Unhandled;
     }
 
+    /// A request httplib refused before routing (malformed request line, unknown method) never
+    /// reached the pre-routing handler: give it its own context instead of the previous
+    /// request's on this thread (id, route "rejected").
+    void fresh_context_if_rejected(httplib::Response& res) {
+        if (request_context().active) return;
+        begin_request(res);
+        request_context().route = "rejected";
+    }
+
     /// One access-log line and the request metrics, after the response is written.
     void on_logged(const httplib::Request& req, const httplib::Response& res) {
+        if (!request_context().active) {
+            RequestContext& context = request_context();
+            context = RequestContext{};
+            context.active = true;
+            context.start = std::chrono::steady_clock::now();
+            context.request_id = proto::hex(next_request_id.fetch_add(1), 16);
+            context.route = "rejected";
+        }
         RequestContext& context = request_context();
         const double seconds =
             context.active
@@ -316,7 +351,7 @@ struct HttpServer::Impl {
         const uint64_t bytes_out = response_body_bytes(res);
         svc.metrics.record_request(route, req.method, res.status, seconds, bytes_in, bytes_out);
         log_event(LogLevel::kInfo, "request",
-                  {{"method", req.method},
+                  {{"method", method_label(req.method)},
                    {"route", route},
                    {"status", static_cast<int64_t>(res.status)},
                    {"in", bytes_in},
@@ -325,6 +360,7 @@ struct HttpServer::Impl {
                    {"ms", seconds * 1e3},
                    {"id", context.request_id}});
         context.active = false;
+        svc.requests.end();
     }
 
     [[nodiscard]] uint64_t largest_body() const {
@@ -337,6 +373,13 @@ struct HttpServer::Impl {
         const size_t threads = c.http_threads;
         http.new_task_queue = [threads] { return new httplib::ThreadPool(threads); };
         http.set_tcp_nodelay(true);
+        // httplib's default also sets SO_REUSEPORT, which lets a second server bind the same
+        // port and take half the connections. SO_REUSEADDR alone still allows a restart while
+        // old connections are in TIME_WAIT.
+        http.set_socket_options([](socket_t sock) {
+            int yes = 1;
+            ::setsockopt(sock, SOL_SOCKET, SO_REUSEADDR, &yes, sizeof yes);
+        });
         http.set_keep_alive_max_count(c.keep_alive_max_requests);
         http.set_keep_alive_timeout(c.keep_alive_timeout_s);
         http.set_read_timeout(c.read_timeout_s, 0);
@@ -369,9 +412,14 @@ proto::Result<int, std::string> HttpServer::bind(const std::string& host, int po
             return proto::Err{"cannot listen on " + host + ":0: " + std::strerror(errno)};
         return bound;
     }
-    if (!impl_->http.bind_to_port(host, port))
-        return proto::Err{"cannot listen on " + host + ":" + std::to_string(port) + ": " +
-                          std::strerror(errno)};
+    errno = 0;
+    if (!impl_->http.bind_to_port(host, port)) {
+        const int err = errno;
+        std::string why = err ? std::strerror(err) : "bind failed";
+        if (err == EADDRINUSE)
+            why += " (another process, perhaps another kdrt-server, listens there)";
+        return proto::Err{"cannot listen on " + host + ":" + std::to_string(port) + ": " + why};
+    }
     return port;
 }
 

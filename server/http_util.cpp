@@ -125,7 +125,10 @@ std::unique_ptr<RequestBody> read_body(const httplib::Request& req, httplib::Res
         return nullptr;
     }
     if (auto finished = body->finish(); !finished) {
-        reply_problem(req, res, make_problem(proto::ProblemKind::kInternal, finished.error()));
+        reply_problem(req, res,
+                      make_problem(body->no_space() ? proto::ProblemKind::kInsufficientStorage
+                                                    : proto::ProblemKind::kInternal,
+                                   finished.error()));
         res.set_header("Connection", "close");
         return nullptr;
     }

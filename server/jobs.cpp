@@ -159,6 +159,7 @@ void JobQueue::worker_loop() {
 }
 
 void JobQueue::run(Job& job) {
+    const double queued_seconds = unix_now() - job.status.created;
     RenderControl control;
     control.cancel = &job.cancel;
     control.progress = [&job](double share) {
@@ -173,7 +174,7 @@ void JobQueue::run(Job& job) {
                                           job.input.format, job.input.encode, control);
         if (rendered) {
             render_ms = rendered->stats.seconds * 1e3;
-            metrics_.renders.fetch_add(1);
+            metrics_.record_render(rendered->stats.rays, rendered->stats.seconds, queued_seconds);
             image = std::make_shared<const std::vector<std::byte>>(std::move(rendered->bytes));
         } else {
             state = proto::JobState::kFailed;

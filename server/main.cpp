@@ -1,6 +1,7 @@
 // kdrt-server: the kdrt HTTP service. See server/config.h for the settings, app.h for the life
 // cycle and proto/openapi.yaml for the API.
 
+#include <csignal>
 #include <cstdio>
 #include <exception>
 #include <string>
@@ -9,6 +10,7 @@
 #include "app.h"
 #include "config.h"
 #include "log.h"
+#include "store_check.h"
 
 extern char** environ;
 
@@ -33,9 +35,14 @@ int run(int argc, char** argv) {
             return 0;
         case Mode::kMeshId:
             return kdrt::server::print_mesh_ids(invocation->mesh_files);
+        case Mode::kCheckStore:
+            return kdrt::server::check_store(invocation->config, stdout);
         case Mode::kServe:
             break;
     }
+    // A file size limit (RLIMIT_FSIZE) must fail the write (EFBIG, answered 507), not kill the
+    // process with SIGXFSZ.
+    std::signal(SIGXFSZ, SIG_IGN);
     kdrt::server::setup_logging(invocation->config.log_level, invocation->config.log_format);
     return kdrt::server::run_server(invocation->config);
 }

@@ -4,23 +4,56 @@
 #include <chrono>
 
 #include "kdrt/proto/mesh_id.h"
+#include "kdrt/proto/text.h"
 #include "log.h"
 
 namespace kdrt::server {
 namespace {
 
 using proto::Err;
+using proto::in_quotes;
 
 double seconds_since(std::chrono::steady_clock::time_point start) {
     return std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
 }
 
-/// A tree that loaded cleanly must also belong to the summary it is filed under.
-bool consistent(const KdTree& tree, const proto::MeshSummary& summary) {
-    return tree.stats.triangles == summary.triangles && tree.tris.size() == summary.triangles;
+/// The bounds of the triangles a tree holds: the summary's bounds (of the referenced vertices).
+Aabb tris_bounds(const KdTree& tree) {
+    Aabb box;
+    bool first = true;
+    for (const TriVerts& t : tree.tris)
+        for (const float* v : {t.v0, t.v1, t.v2}) {
+            const Vec3 p{v[0], v[1], v[2]};
+            if (first) {
+                box = Aabb{p, p};
+                first = false;
+            } else {
+                box.lo =
+                    Vec3{std::min(box.lo.x, p.x), std::min(box.lo.y, p.y), std::min(box.lo.z, p.z)};
+                box.hi =
+                    Vec3{std::max(box.hi.x, p.x), std::max(box.hi.y, p.y), std::max(box.hi.z, p.z)};
+            }
+        }
+    return box;
+}
+
+bool same_box(const Aabb& a, const Aabb& b) {
+    return a.lo.x == b.lo.x && a.lo.y == b.lo.y && a.lo.z == b.lo.z && a.hi.x == b.hi.x &&
+           a.hi.y == b.hi.y && a.hi.z == b.hi.z;
 }
 
 }  // namespace
+
+std::string summary_disagreement(const KdTree& tree, const proto::MeshSummary& summary) {
+    if (tree.tris.size() != summary.triangles)
+        return "the summary says " + std::to_string(summary.triangles) + " triangles, the tree " +
+               std::to_string(tree.tris.size());
+    if (!same_box(tris_bounds(tree), summary.bounds))
+        return "the summary's bounds are not the bounds of the mesh's triangles";
+    return {};
+}
+
+namespace {}  // namespace
 
 uint64_t tree_memory_bytes(const KdTree& tree) noexcept {
     return sizeof(KdTree) + tree.nodes.capacity() * sizeof(KdNode) +
@@ -41,6 +74,113 @@ proto::MeshSummary make_summary(std::string id, const Mesh& mesh, const KdTree& 
 MeshCache::MeshCache(MeshStore& store, Compute& compute, Metrics& metrics, uint64_t memory_budget)
     : store_(store), compute_(compute), metrics_(metrics), memory_budget_(memory_budget) {}
 
+void MeshCache::note_problem(const char* file, const std::string& reason,
+                             const std::string& detail) {
+    metrics_.store_problems.add({{"file", file}, {"reason", reason}});
+    log_event(LogLevel::kWarn, "store: damaged file",
+              {{"file", std::string(file)}, {"reason", reason}, {"error", detail}});
+}
+
+std::shared_ptr<MeshCache::Entry> MeshCache::recover(MeshStore::Listed& item) {
+    const std::string& id = item.id;
+    auto entry = std::make_shared<Entry>();
+    entry->id = id;
+    bool summary_ok = item.summary.has_value();
+    bool mesh_noted = false;
+    if (item.summary) {
+        auto checked = store_.check_mesh_header(*item.summary);
+        if (checked) {
+            entry->summary = std::move(item.summary);
+            entry->disk_bytes = store_.disk_bytes(id);
+            return entry;
+        }
+        const bool summary_wrong = checked.error().reason == "summary_mismatch";
+        note_problem(summary_wrong ? "summary" : "mesh", checked.error().reason,
+                     checked.error().detail);
+        summary_ok = !summary_wrong;
+        mesh_noted = !summary_wrong;
+    } else {
+        note_problem("summary", item.has_summary ? "corrupt" : "missing", item.summary_error);
+        log_event(LogLevel::kWarn, "cache: summary unreadable, recovering from the stored mesh",
+                  {{"mesh", id}, {"error", item.summary_error}});
+    }
+
+    auto mesh = store_.load_mesh(id);
+    auto tree = store_.load_tree(id);
+    if (!mesh) {
+        if (!mesh_noted && (mesh.error().code != StoreError::Code::kMissing || item.summary))
+            note_problem("mesh", mesh.error().reason, mesh.error().detail);
+        if (tree) {
+            Mesh soup = mesh_from_tree(*tree);
+            if (proto::mesh_id(soup) == id) {
+                if (auto saved = store_.save_mesh(id, soup); saved) {
+                    metrics_.store_repairs.add({{"file", "mesh"}});
+                    log_event(LogLevel::kWarn, "store: mesh file rewritten from the tree",
+                              {{"mesh", id}, {"error", mesh.error().detail}});
+                } else {
+                    log_event(LogLevel::kError, "store: cannot rewrite the mesh file",
+                              {{"mesh", id}, {"error", saved.error().message}});
+                }
+                mesh = std::move(soup);
+            }
+        }
+    }
+    if (!mesh) {
+        const std::string tree_detail =
+            tree ? "valid but not of this mesh's triangles" : tree.error().detail;
+        const std::string detail =
+            "mesh " + id + " is damaged on disk and cannot be served: " + mesh.error().detail +
+            "; tree file: " + tree_detail + ". Upload the same mesh again to repair it";
+        if (item.summary) {
+            // Acknowledged (a readable summary): keep it listed, never serve it, never delete it.
+            log_event(LogLevel::kError, "store: mesh damaged beyond repair; kept, not served",
+                      {{"mesh", id}, {"error", detail}});
+            entry->summary = std::move(item.summary);
+            entry->damage = detail;
+            entry->disk_bytes = store_.disk_bytes(id);
+            return entry;
+        }
+        auto moved = store_.quarantine(id);
+        log_event(LogLevel::kError, "store: unusable files moved to quarantine",
+                  {{"mesh", id},
+                   {"error", detail},
+                   {"quarantine", moved ? moved->string() : "failed: " + moved.error()}});
+        return nullptr;
+    }
+
+    KdTree built;
+    if (!tree) {
+        if (tree.error().reason != TreeFileProblem::Reason::kMissing || item.summary)
+            note_problem("tree", std::string(reason_label(tree.error().reason)),
+                         tree.error().detail);
+        const auto start = std::chrono::steady_clock::now();
+        built = compute_.build(*mesh);
+        metrics_.record_build(seconds_since(start));
+        metrics_.cache_rebuilds.add({{"reason", std::string(reason_label(tree.error().reason))}});
+        if (auto saved = store_.save_tree(id, built); !saved)
+            log_event(LogLevel::kError, "cache: cannot rewrite the tree file",
+                      {{"mesh", id}, {"error", saved.error().message}});
+    }
+    const KdTree& good_tree = tree ? *tree : built;
+    if (summary_ok && summary_disagreement(good_tree, *item.summary).empty()) {
+        entry->summary = std::move(item.summary);
+    } else {
+        proto::MeshSummary summary = make_summary(id, *mesh, good_tree);
+        if (auto saved = store_.save_summary(summary); saved) {
+            metrics_.store_repairs.add({{"file", "summary"}});
+            log_event(LogLevel::kWarn, "store: summary rewritten from the stored mesh",
+                      {{"mesh", id}});
+        } else {
+            log_event(LogLevel::kError,
+                      "store: cannot rewrite the summary; serving the recovered one from memory",
+                      {{"mesh", id}, {"error", saved.error().message}});
+        }
+        entry->summary = std::move(summary);
+    }
+    entry->disk_bytes = store_.disk_bytes(id);
+    return entry;
+}
+
 proto::Result<void, std::string> MeshCache::open() {
     std::vector<std::string> removed;
     auto listed = store_.open(removed);
@@ -48,36 +188,14 @@ proto::Result<void, std::string> MeshCache::open() {
         log_event(LogLevel::kWarn, "cache: removed leftover", {{"what", line}});
     if (!listed) return Err{std::move(listed).error()};
     for (MeshStore::Listed& item : *listed) {
-        if (!item.summary) {
-            log_event(LogLevel::kWarn, "cache: summary unreadable, recovering from the stored mesh",
-                      {{"mesh", item.id}, {"error", item.summary_error}});
-            auto mesh = store_.load_mesh(item.id);
-            if (!mesh) {
-                log_event(LogLevel::kError, "cache: stored mesh is corrupt; dropped",
-                          {{"mesh", item.id}, {"error", mesh.error().detail}});
-                store_.remove(item.id);
-                continue;
-            }
-            auto tree = store_.load_tree(item.id);
-            KdTree built;
-            if (!tree) {
-                const auto start = std::chrono::steady_clock::now();
-                built = compute_.build(*mesh);
-                metrics_.record_build(seconds_since(start));
-                metrics_.cache_rebuilds.fetch_add(1);
-                if (auto saved = store_.save_tree(item.id, built); !saved)
-                    return Err{std::move(saved).error()};
-            }
-            proto::MeshSummary summary = make_summary(item.id, *mesh, tree ? *tree : built);
-            if (auto saved = store_.save_summary(summary); !saved)
-                return Err{std::move(saved).error()};
-            item.summary = std::move(summary);
-            item.disk_bytes = store_.disk_bytes(item.id);
+        std::shared_ptr<Entry> entry;
+        try {
+            entry = recover(item);
+        } catch (const std::exception& e) {
+            log_event(LogLevel::kError, "cache: cannot recover a stored mesh; left in place",
+                      {{"mesh", item.id}, {"error", std::string(e.what())}});
         }
-        auto entry = std::make_shared<Entry>();
-        entry->id = item.id;
-        entry->summary = std::move(item.summary);
-        entry->disk_bytes = item.disk_bytes;
+        if (!entry) continue;
         std::lock_guard lock(mutex_);
         disk_bytes_ += entry->disk_bytes;
         entries_[entry->id] = std::move(entry);
@@ -87,11 +205,20 @@ proto::Result<void, std::string> MeshCache::open() {
 
 proto::Result<MeshCache::Added, CacheError> MeshCache::add(const Mesh& mesh) {
     const std::string id = proto::mesh_id(mesh);
+    std::optional<proto::MeshSummary> previous;  // set when repairing a damaged mesh
     std::unique_lock lock(mutex_);
     for (;;) {
         const auto it = entries_.find(id);
         if (it == entries_.end()) break;
         const std::shared_ptr<Entry> entry = it->second;
+        if (entry->summary && !entry->damage.empty() && !entry->flight.valid()) {
+            // Stored but damaged: these triangles (verified by their id) replace the files.
+            log_event(LogLevel::kInfo, "cache: repairing a damaged mesh from a new upload",
+                      {{"mesh", id}});
+            previous = entry->summary;
+            drop(*entry);
+            break;
+        }
         if (entry->summary) {
             metrics_.uploads_deduplicated.fetch_add(1);
             return Added{with_runtime(*entry), false};
@@ -125,10 +252,13 @@ proto::Result<MeshCache::Added, CacheError> MeshCache::add(const Mesh& mesh) {
             outcome = Added{std::move(summary), true};
         } else {
             log_event(LogLevel::kError, "cache: cannot store mesh",
-                      {{"mesh", id}, {"error", saved.error()}});
-            store_.remove(id);
-            outcome = Err{
-                CacheError{CacheError::Code::kStorage, "cannot store the mesh: " + saved.error()}};
+                      {{"mesh", id}, {"error", saved.error().message}});
+            // Never acknowledged: its files go. A damaged mesh being repaired keeps its files
+            // (whatever was rewritten is valid); it is checked again on its next use.
+            if (!previous) store_.remove(id);
+            outcome = Err{CacheError{
+                saved.error().no_space ? CacheError::Code::kNoSpace : CacheError::Code::kStorage,
+                "cannot store the mesh (nothing was stored): " + saved.error().message}};
         }
     } catch (const MeshError& e) {
         outcome = Err{CacheError{CacheError::Code::kInvalidMesh, e.what()}};
@@ -146,7 +276,14 @@ proto::Result<MeshCache::Added, CacheError> MeshCache::add(const Mesh& mesh) {
         make_resident(*entry, tree);
         outcome->summary = with_runtime(*entry);
     } else if (is_current(entry)) {
-        entries_.erase(id);
+        if (previous) {
+            // Back to the acknowledged (damaged) entry, to be checked again when next used.
+            entry->summary = std::move(previous);
+            entry->disk_bytes = store_.disk_bytes(id);
+            disk_bytes_ += entry->disk_bytes;
+        } else {
+            entries_.erase(id);
+        }
     }
     lock.unlock();
     promise.set_value(outcome ? TreeResult(tree) : TreeResult(Err{outcome.error()}));
@@ -159,6 +296,7 @@ proto::Result<std::shared_ptr<const KdTree>, CacheError> MeshCache::acquire(cons
     if (it == entries_.end() || !it->second->summary)
         return Err{CacheError{CacheError::Code::kUnknownMesh, "no mesh with id " + id}};
     const std::shared_ptr<Entry> entry = it->second;
+    if (!entry->damage.empty()) return Err{CacheError{CacheError::Code::kDamaged, entry->damage}};
     if (entry->tree) {
         metrics_.cache_hits.fetch_add(1, std::memory_order_relaxed);
         lru_.splice(lru_.begin(), lru_, entry->lru_position);
@@ -176,8 +314,15 @@ proto::Result<std::shared_ptr<const KdTree>, CacheError> MeshCache::acquire(cons
     lock.unlock();
 
     TreeResult outcome = Err{CacheError{}};
+    std::optional<proto::MeshSummary> repaired;
     try {
-        outcome = load(id, summary);
+        auto loaded = load(id, summary);
+        if (loaded) {
+            outcome = std::move(loaded->tree);
+            repaired = std::move(loaded->repaired_summary);
+        } else {
+            outcome = Err{std::move(loaded).error()};
+        }
     } catch (const std::exception& e) {
         outcome = Err{CacheError{CacheError::Code::kInternal,
                                  std::string("loading the tree failed: ") + e.what()}};
@@ -186,10 +331,11 @@ proto::Result<std::shared_ptr<const KdTree>, CacheError> MeshCache::acquire(cons
     lock.lock();
     entry->flight = Flight();
     if (is_current(entry)) {
+        if (repaired) entry->summary = std::move(repaired);
         if (outcome)
             make_resident(*entry, *outcome);
-        else if (outcome.error().code == CacheError::Code::kLost)
-            drop(*entry);
+        else if (outcome.error().code == CacheError::Code::kDamaged)
+            entry->damage = outcome.error().detail;
     } else if (!outcome) {
         outcome =
             Err{CacheError{CacheError::Code::kUnknownMesh, "no mesh with id " + id + " (deleted)"}};
@@ -199,34 +345,67 @@ proto::Result<std::shared_ptr<const KdTree>, CacheError> MeshCache::acquire(cons
     return outcome;
 }
 
-MeshCache::TreeResult MeshCache::load(const std::string& id, const proto::MeshSummary& summary) {
+proto::Result<MeshCache::Loaded, CacheError> MeshCache::load(const std::string& id,
+                                                             const proto::MeshSummary& summary) {
     auto tree = store_.load_tree(id);
-    if (tree && consistent(*tree, summary))
-        return std::shared_ptr<const KdTree>(std::make_shared<KdTree>(std::move(*tree)));
-    const std::string why = tree ? "tree does not match the mesh summary" : tree.error().detail;
+    if (tree) {
+        auto shared = std::make_shared<const KdTree>(std::move(*tree));
+        const std::string disagreement = summary_disagreement(*shared, summary);
+        if (disagreement.empty()) return Loaded{std::move(shared), std::nullopt};
+        // The tree is this mesh's (bound to the id): the summary is what is wrong.
+        note_problem("summary", "summary_mismatch",
+                     in_quotes(store_.summary_path(id).string()) + ": " + disagreement);
+        proto::MeshSummary fixed = summary;
+        fixed.triangles = shared->tris.size();
+        fixed.bounds = tris_bounds(*shared);
+        fixed.tree = shared->stats;
+        if (auto mesh = store_.load_mesh(id); mesh) fixed.vertices = mesh->vertex_count();
+        if (auto saved = store_.save_summary(fixed); saved) {
+            metrics_.store_repairs.add({{"file", "summary"}});
+            log_event(LogLevel::kWarn, "store: summary rewritten from the tree", {{"mesh", id}});
+        } else {
+            log_event(LogLevel::kError, "store: cannot rewrite the summary",
+                      {{"mesh", id}, {"error", saved.error().message}});
+        }
+        return Loaded{std::move(shared), std::move(fixed)};
+    }
+    const TreeFileProblem& problem = tree.error();
+    const std::string reason(reason_label(problem.reason));
+    note_problem("tree", reason, problem.detail);
     log_event(LogLevel::kWarn,
               "cache: tree file failed validation; rebuilding from the stored mesh",
-              {{"mesh", id}, {"error", why}});
+              {{"mesh", id}, {"reason", reason}, {"error", problem.detail}});
     auto mesh = store_.load_mesh(id);
     if (!mesh) {
-        log_event(LogLevel::kError, "cache: stored mesh is corrupt; dropped",
-                  {{"mesh", id}, {"error", mesh.error().detail}});
-        store_.remove(id);
-        return Err{CacheError{CacheError::Code::kLost,
-                              "mesh " + id + " was dropped: its stored copy is corrupt (" +
-                                  mesh.error().detail + ")"}};
+        note_problem("mesh", mesh.error().reason, mesh.error().detail);
+        const std::string detail =
+            "mesh " + id + " is damaged on disk and cannot be served: " + mesh.error().detail +
+            "; tree file: " + problem.detail + ". Upload the same mesh again to repair it";
+        log_event(LogLevel::kError, "store: mesh damaged beyond repair; kept, not served",
+                  {{"mesh", id}, {"error", detail}});
+        return Err{CacheError{CacheError::Code::kDamaged, detail}};
     }
     const auto start = std::chrono::steady_clock::now();
     auto built = std::make_shared<KdTree>(compute_.build(*mesh));
     metrics_.record_build(seconds_since(start));
-    metrics_.cache_rebuilds.fetch_add(1);
+    metrics_.cache_rebuilds.add({{"reason", reason}});
     if (auto saved = store_.save_tree(id, *built); !saved)
         log_event(LogLevel::kError, "cache: cannot rewrite the tree file",
-                  {{"mesh", id}, {"error", saved.error()}});
+                  {{"mesh", id}, {"error", saved.error().message}});
     else
         log_event(LogLevel::kInfo, "cache: tree rebuilt",
-                  {{"mesh", id}, {"build_ms", built->stats.build_ms}});
-    return std::shared_ptr<const KdTree>(std::move(built));
+                  {{"mesh", id}, {"reason", reason}, {"build_ms", built->stats.build_ms}});
+    std::optional<proto::MeshSummary> fixed;
+    const proto::MeshSummary fresh = make_summary(id, *mesh, *built);
+    if (fresh.triangles != summary.triangles || fresh.vertices != summary.vertices ||
+        !same_box(fresh.bounds, summary.bounds)) {
+        note_problem("summary", "summary_mismatch",
+                     in_quotes(store_.summary_path(id).string()) + " disagrees with the mesh file");
+        fixed = fresh;
+        if (auto saved = store_.save_summary(fresh); saved)
+            metrics_.store_repairs.add({{"file", "summary"}});
+    }
+    return Loaded{std::shared_ptr<const KdTree>(std::move(built)), std::move(fixed)};
 }
 
 std::optional<proto::MeshSummary> MeshCache::find(const std::string& id) const {
@@ -282,6 +461,13 @@ size_t MeshCache::mesh_count() const {
     std::lock_guard lock(mutex_);
     size_t n = 0;
     for (const auto& [id, entry] : entries_) n += entry->summary.has_value();
+    return n;
+}
+
+size_t MeshCache::damaged_count() const {
+    std::lock_guard lock(mutex_);
+    size_t n = 0;
+    for (const auto& [id, entry] : entries_) n += !entry->damage.empty();
     return n;
 }
 

@@ -8,9 +8,16 @@
 ///   caller traces lock-free on an immutable shared tree). An evicted tree is reloaded from disk
 ///   by one caller while others asking for the same mesh wait; requests for other meshes never
 ///   wait on it, nor on any build.
-/// - A tree file that fails validation is rebuilt from the stored mesh (logged, counted in
-///   kdrt_cache_rebuilds_total); a stored mesh whose content hash no longer matches its id is
-///   dropped (logged) and never served.
+/// - A tree file that is refused (missing, truncated, corrupt, of another format version, or the
+///   tree of another mesh: tree_file.h) is rebuilt from the stored mesh, which is checked against
+///   its id first (logged with the reason, counted in kdrt_cache_rebuilds_total{reason} and
+///   kdrt_store_problems_total{file,reason}). A summary that disagrees with the tree or the mesh
+///   file is rewritten from them; a missing or damaged mesh file is rewritten from a valid tree.
+/// - A mesh with neither a valid mesh file nor a valid tree is never served and never deleted:
+///   it stays listed, marked damaged, and every trace answers 500 stored-mesh-damaged naming the
+///   files and what is wrong with each; uploading the same triangles again repairs it. At
+///   start-up, files that are not even backed by a readable summary are moved to quarantine/.
+/// - Nothing is acknowledged before it is durable; a full disk is kNoSpace (507).
 /// - Eviction drops the cache's reference only: traces in flight keep their tree alive. The
 ///   most recently used tree stays resident even if it alone exceeds the budget.
 /// All member functions are thread-safe.
@@ -40,7 +47,8 @@ struct CacheError {
         kUnknownMesh,  ///< no acknowledged mesh with that id
         kInvalidMesh,  ///< the engine refused the mesh (MeshError)
         kStorage,      ///< the disk refused a write
-        kLost,         ///< the stored copy is corrupt beyond repair; the mesh was dropped
+        kNoSpace,      ///< the disk (or a file size limit) is full; nothing was stored
+        kDamaged,      ///< the stored mesh and tree are both damaged; detail says how
         kInternal,     ///< an unexpected exception (e.g. out of memory)
     };
     Code code = Code::kInternal;
@@ -51,8 +59,10 @@ class MeshCache {
 public:
     MeshCache(MeshStore& store, Compute& compute, Metrics& metrics, uint64_t memory_budget);
 
-    /// Loads the index from the store; summaries that cannot be read are recovered from the
-    /// stored mesh and tree. Call once before anything else.
+    /// Loads the index from the store, repairing what it can (summaries from the mesh file or the
+    /// tree, a mesh file from the tree) and quarantining ids with no usable data; never deletes
+    /// data in meshes/ and never fails because a repair could not be written (e.g. a full disk:
+    /// the repaired summary is then used from memory). Call once before anything else.
     [[nodiscard]] proto::Result<void, std::string> open();
 
     struct Added {
@@ -77,6 +87,8 @@ public:
     [[nodiscard]] uint64_t disk_bytes() const;
     [[nodiscard]] size_t mesh_count() const;
     [[nodiscard]] size_t resident_count() const;
+    /// Acknowledged meshes that are known to be damaged (neither mesh file nor tree valid).
+    [[nodiscard]] size_t damaged_count() const;
 
 private:
     using TreeResult = proto::Result<std::shared_ptr<const KdTree>, CacheError>;
@@ -90,10 +102,19 @@ private:
         uint64_t disk_bytes = 0;
         std::list<Entry*>::iterator lru_position;
         bool in_lru = false;
-        Flight flight;  ///< the build (no summary yet) or disk load in progress, if any
+        Flight flight;       ///< the build (no summary yet) or disk load in progress, if any
+        std::string damage;  ///< non-empty: known damaged (CacheError::kDamaged detail)
     };
 
-    TreeResult load(const std::string& id, const proto::MeshSummary& summary);
+    struct Loaded {
+        std::shared_ptr<const KdTree> tree;
+        std::optional<proto::MeshSummary> repaired_summary;  ///< the stored one was wrong
+    };
+    proto::Result<Loaded, CacheError> load(const std::string& id,
+                                           const proto::MeshSummary& summary);
+    /// open()'s decision for one listed id: the entry to register, or nullptr (quarantined).
+    std::shared_ptr<Entry> recover(MeshStore::Listed& item);
+    void note_problem(const char* file, const std::string& reason, const std::string& detail);
     proto::MeshSummary with_runtime(const Entry& entry) const;
     void make_resident(Entry& entry, std::shared_ptr<const KdTree> tree);  // mutex_ held
     void drop(Entry& entry);                                               // mutex_ held
@@ -113,6 +134,11 @@ private:
 
 /// Memory held by a tree's arrays.
 [[nodiscard]] uint64_t tree_memory_bytes(const KdTree& tree) noexcept;
+
+/// What `summary` says that a tree bound to the same mesh contradicts (triangle count, bounds);
+/// empty when they agree.
+[[nodiscard]] std::string summary_disagreement(const KdTree& tree,
+                                               const proto::MeshSummary& summary);
 
 /// The summary of a mesh and its tree.
 [[nodiscard]] proto::MeshSummary make_summary(std::string id, const Mesh& mesh, const KdTree& tree);

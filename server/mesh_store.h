@@ -1,14 +1,19 @@
 #pragma once
 /// Durable storage of acknowledged meshes under the cache directory:
 ///
-///   meshes/<id>.mesh   the mesh as parsed, in the raw format (proto/FORMATS.md)
-///   meshes/<id>.tree   its serialised kD-tree (engine blob, with checksum)
+///   meshes/<id>.mesh   the mesh as parsed, in the raw format (proto/FORMATS.md); its content hash
+///                      is the id, so it verifies itself
+///   meshes/<id>.tree   its kD-tree: the engine blob in a container naming the mesh (tree_file.h)
 ///   meshes/<id>.json   its summary (proto::MeshSummary) - the commit record, written last
 ///   tmp/               spooled uploads and writes in progress; emptied at start-up
+///   quarantine/        files of a mesh that could be neither served nor repaired, moved aside
+///                      at start-up (never deleted), one directory per mesh and time
 ///
 /// Every file is written to tmp/, fsync'd and renamed into meshes/, and the directory is synced
 /// before the summary (the commit record) is renamed in, so after a crash a mesh is either
-/// complete or absent. Thread-safe for distinct ids; the cache serialises work per id.
+/// complete or its files are complete but uncommitted (no summary). The store itself never
+/// deletes a file in meshes/ except on remove(): start-up decisions (repair, quarantine) are the
+/// cache's. Thread-safe for distinct ids; the cache serialises work per id.
 
 #include <cstdint>
 #include <filesystem>
@@ -16,54 +21,72 @@
 #include <string>
 #include <vector>
 
+#include "durable_file.h"
 #include "kdrt/kdtree.h"
 #include "kdrt/mesh.h"
 #include "kdrt/proto/json_api.h"
 #include "kdrt/proto/result.h"
+#include "tree_file.h"
 
 namespace kdrt::server {
 
-/// Why a stored file could not be used.
+/// Why a stored mesh or summary file could not be used.
 struct StoreError {
     enum class Code {
         kMissing,  ///< the file does not exist
-        kCorrupt,  ///< it exists but fails validation (checksum, format, or content hash != id)
-        kIo,       ///< the operating system refused (permissions, disk full, ...)
+        kCorrupt,  ///< it exists but fails validation (format, size, or content hash != id)
+        kIo,       ///< the operating system refused (permissions, ...)
     };
     Code code = Code::kIo;
-    std::string detail;
+    /// Metric label: "missing", "unreadable", "truncated", "corrupt", "hash_mismatch",
+    /// "summary_mismatch".
+    std::string reason;
+    std::string detail;  ///< names the file and what is wrong with it
 };
 
 class MeshStore {
 public:
     explicit MeshStore(std::filesystem::path root);
 
-    /// A committed mesh found by open().
+    /// Every mesh id with at least one file in meshes/.
     struct Listed {
         std::string id;
-        std::optional<proto::MeshSummary> summary;  ///< nullopt: the summary file is unreadable
+        std::optional<proto::MeshSummary> summary;  ///< nullopt: missing or unreadable
         std::string summary_error;                  ///< why, when summary is nullopt
-        uint64_t disk_bytes = 0;
+        bool has_mesh = false, has_tree = false, has_summary = false;
     };
 
-    /// Creates the directories, empties tmp/, deletes files of uncommitted meshes (no summary)
-    /// and summaries without a mesh file, and lists the committed meshes. `removed` receives a
-    /// line per deleted leftover, for the log.
+    /// Creates the directories, empties tmp/ (`removed` receives a line per deleted file, for
+    /// the log) and lists every id found in meshes/. Deletes nothing in meshes/.
     [[nodiscard]] proto::Result<std::vector<Listed>, std::string> open(
         std::vector<std::string>& removed);
+    /// The listing part of open() alone: reads, never writes (for --check-store).
+    [[nodiscard]] proto::Result<std::vector<Listed>, std::string> list() const;
 
     /// Stores mesh, tree and summary durably (in that order). Returns the bytes on disk.
-    [[nodiscard]] proto::Result<uint64_t, std::string> save(const proto::MeshSummary& summary,
-                                                            const Mesh& mesh, const KdTree& tree);
-    /// Replaces the tree file (after a rebuild) or the summary file (after recovery).
-    [[nodiscard]] proto::Result<void, std::string> save_tree(const std::string& id,
-                                                             const KdTree& tree);
-    [[nodiscard]] proto::Result<void, std::string> save_summary(const proto::MeshSummary& summary);
+    [[nodiscard]] proto::Result<uint64_t, WriteError> save(const proto::MeshSummary& summary,
+                                                           const Mesh& mesh, const KdTree& tree);
+    /// Replaces one file (after a rebuild or a repair).
+    [[nodiscard]] proto::Result<void, WriteError> save_mesh(const std::string& id,
+                                                            const Mesh& mesh);
+    [[nodiscard]] proto::Result<void, WriteError> save_tree(const std::string& id,
+                                                            const KdTree& tree);
+    [[nodiscard]] proto::Result<void, WriteError> save_summary(const proto::MeshSummary& summary);
 
-    /// Loads and validates the tree file.
-    [[nodiscard]] proto::Result<KdTree, StoreError> load_tree(const std::string& id) const;
+    /// Loads the tree file and checks that it is the tree of mesh `id`.
+    [[nodiscard]] proto::Result<KdTree, TreeFileProblem> load_tree(const std::string& id) const;
     /// Loads the mesh file and checks that its content hash is `id`.
     [[nodiscard]] proto::Result<Mesh, StoreError> load_mesh(const std::string& id) const;
+    /// The cheap start-up check of the mesh file against a summary: it exists, its header's
+    /// counts match the file size, and its triangle count is the summary's (reason
+    /// "summary_mismatch" when only that differs). Reads 8 bytes.
+    [[nodiscard]] proto::Result<void, StoreError> check_mesh_header(
+        const proto::MeshSummary& summary) const;
+
+    /// Moves the mesh's files to quarantine/<id>.<unix seconds>/ (nothing is deleted). Returns
+    /// that directory.
+    [[nodiscard]] proto::Result<std::filesystem::path, std::string> quarantine(
+        const std::string& id);
 
     /// Deletes the mesh's files (summary first, so a crash never leaves a summary without data).
     void remove(const std::string& id);
@@ -83,7 +106,11 @@ public:
     }
 
 private:
-    std::filesystem::path root_, meshes_dir_, tmp_dir_;
+    std::filesystem::path root_, meshes_dir_, tmp_dir_, quarantine_dir_;
 };
+
+/// The mesh a tree was built from, as an unindexed triangle soup (the tree keeps every
+/// triangle's corners in triangle order, so the soup has the same canonical triangles and id).
+[[nodiscard]] Mesh mesh_from_tree(const KdTree& tree);
 
 }  // namespace kdrt::server

@@ -8,6 +8,7 @@
 #include <functional>
 #include <map>
 #include <mutex>
+#include <optional>
 #include <string>
 #include <tuple>
 #include <vector>
@@ -15,6 +16,10 @@
 #include "kdrt/proto/prometheus.h"
 
 namespace kdrt::server {
+
+/// The method label of a request: the method when it is one of the standard HTTP methods, else
+/// "other" (so a client cannot create a series per invented method token).
+[[nodiscard]] std::string method_label(const std::string& method);
 
 /// A fixed-bucket histogram (upper bounds in seconds).
 class Histogram {
@@ -30,6 +35,20 @@ private:
     double sum_ = 0;
 };
 
+/// A counter family with one label set per sample (few, fixed label values: reasons, kinds).
+class LabelledCounter {
+public:
+    void add(const proto::MetricLabels& labels, uint64_t n = 1);
+    [[nodiscard]] uint64_t value(const proto::MetricLabels& labels) const;
+    /// Sum over every label set.
+    [[nodiscard]] uint64_t total() const;
+    [[nodiscard]] std::vector<proto::MetricSample> samples() const;
+
+private:
+    mutable std::mutex mutex_;
+    std::map<proto::MetricLabels, uint64_t> counts_;
+};
+
 class Metrics {
 public:
     Metrics();
@@ -38,14 +57,21 @@ public:
     void record_request(const std::string& route, const std::string& method, int status,
                         double seconds, uint64_t bytes_in, uint64_t bytes_out);
     void add_rays(uint64_t count, bool occlusion);
+    /// One finished render (sync or job): counts it, its rays (kind="render") and its time;
+    /// `queue_seconds` is how long a job waited before it started (nullopt for sync renders).
+    void record_render(uint64_t rays, double seconds, std::optional<double> queue_seconds);
     /// One kD-tree build (upload, or rebuild of a corrupt cache file).
     void record_build(double seconds);
 
     std::atomic<uint64_t> cache_hits{0};       ///< tree requested and resident
     std::atomic<uint64_t> cache_misses{0};     ///< tree requested and loaded from disk
     std::atomic<uint64_t> cache_evictions{0};  ///< trees dropped from memory
-    std::atomic<uint64_t> cache_rebuilds{
-        0};  ///< tree files that failed validation and were rebuilt
+    /// Trees rebuilt from the stored mesh, by {reason} (the TreeFileProblem reason label).
+    LabelledCounter cache_rebuilds;
+    /// Damage found in stored files, by {file="mesh"|"tree"|"summary", reason}.
+    LabelledCounter store_problems;
+    /// Stored files rewritten from what remained, by {file}.
+    LabelledCounter store_repairs;
     std::atomic<uint64_t> uploads_deduplicated{0};  ///< uploads of a mesh already stored
     std::atomic<uint64_t> renders{0};
 
@@ -64,9 +90,8 @@ public:
 
 private:
     struct Route {
-        Route();
         std::map<std::tuple<std::string, int>, uint64_t> by_method_status;
-        Histogram duration;
+        std::map<std::string, Histogram> duration_by_method;
         uint64_t bytes_in = 0, bytes_out = 0;
     };
 
@@ -76,6 +101,8 @@ private:
 
     std::atomic<uint64_t> rays_closest_{0};
     std::atomic<uint64_t> rays_occlusion_{0};
+    std::atomic<uint64_t> rays_render_{0};
+    Histogram render_seconds_, queue_seconds_;
     std::atomic<uint64_t> builds_{0};
     Histogram build_seconds_;
     proto::MetricLabels build_info_;

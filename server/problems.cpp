@@ -47,10 +47,10 @@ proto::Problem cache_problem(const CacheError& error) {
             return make_problem(ProblemKind::kUnknownMesh, error.detail);
         case CacheError::Code::kInvalidMesh:
             return make_problem(ProblemKind::kInvalidMesh, error.detail);
-        case CacheError::Code::kLost:
-            return make_problem(
-                ProblemKind::kInternal,
-                error.detail + " (" + std::string(proto::api_errors::kStoredMeshLost) + ")");
+        case CacheError::Code::kDamaged:
+            return make_problem(ProblemKind::kStoredMeshDamaged, error.detail);
+        case CacheError::Code::kNoSpace:
+            return make_problem(ProblemKind::kInsufficientStorage, error.detail);
         case CacheError::Code::kStorage:
         case CacheError::Code::kInternal:
             break;

@@ -19,7 +19,8 @@ namespace kdrt::server {
 [[nodiscard]] proto::Problem mesh_parse_problem(const proto::ParseError& error);
 /// JSON ray batches: 400, or 413 when over the ray limit.
 [[nodiscard]] proto::Problem json_problem(const proto::JsonError& error, uint64_t max_rays);
-/// Cache errors: 404 unknown mesh, 422 invalid mesh, 500 storage / lost / internal.
+/// Cache errors: 404 unknown mesh, 422 invalid mesh, 507 disk full, 500 stored-mesh-damaged,
+/// 500 storage / internal.
 [[nodiscard]] proto::Problem cache_problem(const CacheError& error);
 /// 413 for a body over `limit` bytes.
 [[nodiscard]] proto::Problem body_too_large_problem(uint64_t limit, const std::string& what);

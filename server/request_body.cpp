@@ -46,12 +46,17 @@ bool RequestBody::spill() {
         const ssize_t n = ::write(fd_, pending.data() + done, pending.size() - done);
         if (n < 0 && errno == EINTR) continue;
         if (n < 0) {
-            error_ = "cannot write the spool file: " + std::generic_category().message(errno);
+            set_write_error(errno);
             return false;
         }
         done += static_cast<size_t>(n);
     }
     return true;
+}
+
+void RequestBody::set_write_error(int err) {
+    error_ = "cannot write the spool file: " + std::generic_category().message(err);
+    no_space_ = err == ENOSPC || err == EDQUOT || err == EFBIG;
 }
 
 bool RequestBody::append(const char* data, size_t size) {
@@ -67,7 +72,7 @@ bool RequestBody::append(const char* data, size_t size) {
             const ssize_t n = ::write(fd_, data + done, size - done);
             if (n < 0 && errno == EINTR) continue;
             if (n < 0) {
-                error_ = "cannot write the spool file: " + std::generic_category().message(errno);
+                set_write_error(errno);
                 return false;
             }
             done += static_cast<size_t>(n);

@@ -47,9 +47,12 @@ public:
     [[nodiscard]] bool too_large() const noexcept { return too_large_; }
     [[nodiscard]] bool spooled() const noexcept { return fd_ >= 0; }
     [[nodiscard]] const std::string& error() const noexcept { return error_; }
+    /// The spool write failed because the disk (or a file size limit) is full.
+    [[nodiscard]] bool no_space() const noexcept { return no_space_; }
 
 private:
     bool spill();
+    void set_write_error(int err);
 
     uint64_t max_bytes_, memory_bytes_;
     std::filesystem::path spool_dir_;
@@ -58,6 +61,7 @@ private:
     uint64_t size_ = 0;
     bool too_large_ = false;
     std::string error_;
+    bool no_space_ = false;
     MappedFile mapping_;
 };
 

@@ -36,6 +36,10 @@ Service::Service(ServerConfig cfg)
               {{"state", "stored"}}, static_cast<double>(cache.mesh_count()));
         gauge("kdrt_cache_meshes", "Stored meshes, and how many have their tree in memory.",
               {{"state", "resident"}}, static_cast<double>(cache.resident_count()));
+        gauge("kdrt_store_damaged_meshes",
+              "Acknowledged meshes whose mesh file and tree are both damaged (not served until "
+              "uploaded again).",
+              {}, static_cast<double>(cache.damaged_count()));
         gauge("kdrt_inflight_requests", "Uploads, traces and renders in flight.", {},
               static_cast<double>(gate.in_flight()));
         gauge("kdrt_buffer_pool_bytes",

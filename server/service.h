@@ -4,9 +4,15 @@
 /// state.
 
 #include <atomic>
+#include <chrono>
+#include <map>
 #include <memory>
+#include <mutex>
 #include <optional>
+#include <string>
+#include <thread>
 #include <utility>
+#include <vector>
 
 #include "buffer_pool.h"
 #include "compute.h"
@@ -61,6 +67,42 @@ private:
     std::atomic<unsigned> in_flight_{0};
 };
 
+/// The request each HTTP thread is serving now, so a shutdown that times out can say which
+/// requests it cut. Keyed by thread: a thread's next request replaces its entry.
+class RequestRegistry {
+public:
+    void begin(std::string id, std::string method, std::string path) {
+        std::lock_guard lock(mutex_);
+        current_[std::this_thread::get_id()] = {std::move(id), std::move(method), std::move(path),
+                                                std::chrono::steady_clock::now()};
+    }
+    void end() {
+        std::lock_guard lock(mutex_);
+        current_.erase(std::this_thread::get_id());
+    }
+    /// "id METHOD path (N ms)" per request still being served.
+    [[nodiscard]] std::vector<std::string> describe() const {
+        std::lock_guard lock(mutex_);
+        std::vector<std::string> out;
+        const auto now = std::chrono::steady_clock::now();
+        for (const auto& [thread, r] : current_) {
+            const auto ms =
+                std::chrono::duration_cast<std::chrono::milliseconds>(now - r.start).count();
+            out.push_back(r.id + " " + r.method + " " + r.path + " (" + std::to_string(ms) +
+                          " ms)");
+        }
+        return out;
+    }
+
+private:
+    struct Current {
+        std::string id, method, path;
+        std::chrono::steady_clock::time_point start;
+    };
+    mutable std::mutex mutex_;
+    std::map<std::thread::id, Current> current_;
+};
+
 struct Service {
     explicit Service(ServerConfig cfg);
 
@@ -74,6 +116,7 @@ struct Service {
     BufferPool batch_buffers;                ///< rays and encoded answers of KDRR batches
     std::atomic<bool> ready{false};          ///< index loaded and preloads done
     std::atomic<bool> shutting_down{false};  ///< SIGTERM/SIGINT received
+    RequestRegistry requests;                ///< what each HTTP thread serves now
 };
 
 }  // namespace kdrt::server

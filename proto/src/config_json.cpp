@@ -2,19 +2,15 @@
 
 #include <nlohmann/json.hpp>
 
+#include "json_strict.h"
+
 namespace kdrt::proto {
 
 Result<std::vector<ConfigEntry>, std::string> parse_config_object(std::string_view text) {
     using json = nlohmann::ordered_json;
-    json doc;
-    try {
-        doc = json::parse(text, nullptr, /*allow_exceptions=*/true, /*ignore_comments=*/true);
-    } catch (const json::parse_error& e) {
-        std::string what = e.what();
-        const size_t bracket = what.find("] ");
-        if (bracket != std::string::npos) what.erase(0, bracket + 2);
-        return Err{"invalid JSON: " + what};
-    }
+    auto parsed = detail::parse_json_strict<json>(text, /*ignore_comments=*/true);
+    if (!parsed) return Err{std::move(parsed).error()};
+    const json& doc = *parsed;
     if (!doc.is_object()) return Err{std::string("the configuration must be a JSON object")};
     std::vector<ConfigEntry> out;
     for (const auto& [key, value] : doc.items()) {

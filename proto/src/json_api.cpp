@@ -45,6 +45,11 @@ void write_summary(detail::JsonWriter& w, const MeshSummary& s) {
     w.key("bytes_per_triangle").number(s.tree.bytes_per_triangle);
     w.end_object();
     if (s.in_memory) w.key("in_memory").boolean(*s.in_memory);
+    if (!s.warnings.empty()) {
+        w.key("warnings").begin_array();
+        for (const std::string& warning : s.warnings) w.string(warning);
+        w.end_array();
+    }
     w.end_object();
 }
 
@@ -161,6 +166,13 @@ Result<MeshSummary, std::string> summary_from_json(const json& doc, const std::s
         if (!in_memory->is_boolean()) return Err{where + "\"in_memory\" is not a boolean"};
         s.in_memory = in_memory->get<bool>();
     }
+    if (const auto warnings = doc.find("warnings"); warnings != doc.end()) {
+        if (!warnings->is_array()) return Err{where + "\"warnings\" is not an array"};
+        for (const auto& warning : *warnings) {
+            if (!warning.is_string()) return Err{where + "\"warnings\" holds a non-string"};
+            s.warnings.push_back(warning.get<std::string>());
+        }
+    }
     if (!r.error().empty()) return Err{r.error()};
     return s;
 }
@@ -175,9 +187,9 @@ bool operator==(const MeshSummary& a, const MeshSummary& b) noexcept {
     const TreeStats& s = a.tree;
     const TreeStats& t = b.tree;
     return a.id == b.id && a.triangles == b.triangles && a.vertices == b.vertices &&
-           a.bounds == b.bounds && a.in_memory == b.in_memory && s.triangles == t.triangles &&
-           s.nodes == t.nodes && s.leaves == t.leaves && s.empty_leaves == t.empty_leaves &&
-           s.refs == t.refs && s.max_depth == t.max_depth &&
+           a.bounds == b.bounds && a.in_memory == b.in_memory && a.warnings == b.warnings &&
+           s.triangles == t.triangles && s.nodes == t.nodes && s.leaves == t.leaves &&
+           s.empty_leaves == t.empty_leaves && s.refs == t.refs && s.max_depth == t.max_depth &&
            s.mean_leaf_depth == t.mean_leaf_depth && s.mean_tris_per_leaf == t.mean_tris_per_leaf &&
            s.sah_cost == t.sah_cost && s.bytes == t.bytes &&
            s.bytes_per_triangle == t.bytes_per_triangle && s.build_ms == t.build_ms;

@@ -1,9 +1,11 @@
 // Render requests and job status documents.
 
+#include <algorithm>
 #include <cmath>
 #include <limits>
 #include <nlohmann/json.hpp>
 
+#include "json_strict.h"
 #include "json_writer.h"
 #include "kdrt/proto/image_io.h"
 #include "kdrt/proto/json_api.h"
@@ -119,17 +121,15 @@ Err<JsonError> schema_error(std::string detail) {
 
 Result<RenderRequest, JsonError> decode_render_request(std::string_view text,
                                                        const RenderLimits& limits) {
-    json doc;
-    try {
-        doc = json::parse(text);
-    } catch (const json::parse_error& e) {
-        std::string what = e.what();
-        const size_t bracket = what.find("] ");
-        if (bracket != std::string::npos) what.erase(0, bracket + 2);
-        return Err{JsonError{JsonError::Code::kSyntax, std::string(api_errors::kBadJson) +
-                                                           " at byte " + std::to_string(e.byte) +
-                                                           ": " + what}};
+    auto parsed = detail::parse_json_strict<json>(text);
+    if (!parsed) {
+        const bool syntax = parsed.error().rfind("invalid JSON", 0) == 0;
+        std::string detail = parsed.error();
+        if (syntax) detail.replace(0, 12, std::string(api_errors::kBadJson));
+        return Err{JsonError{syntax ? JsonError::Code::kSyntax : JsonError::Code::kSchema,
+                             std::move(detail)}};
     }
+    const json& doc = *parsed;
     if (!doc.is_object())
         return schema_error("expected a JSON object, got " + std::string(doc.type_name()));
     RenderRequest req;
@@ -138,6 +138,10 @@ Result<RenderRequest, JsonError> decode_render_request(std::string_view text,
                     "compression", "tile"});
     if (!r.find("mesh")) r.fail("missing member \"mesh\"");
     r.text("mesh", req.mesh);
+    // A default never exceeds the server's limit (a 128-pixel limit renders 128 wide by default).
+    req.settings.width = std::min(req.settings.width, limits.max_width);
+    req.settings.height = std::min(req.settings.height, limits.max_height);
+    req.settings.spp = std::min(req.settings.spp, limits.max_spp);
     r.integer("width", req.settings.width, 1, limits.max_width, "max_image_width");
     r.integer("height", req.settings.height, 1, limits.max_height, "max_image_height");
     r.integer("spp", req.settings.spp, 1, limits.max_spp, "max_spp");

@@ -179,8 +179,14 @@ private:
             } else if (keyword == "property") {
                 error = property_line(rest, n);
             } else {
-                error = line_error(n, std::string(errors::kBadHeader) + ": unknown keyword " +
-                                          quote_token(keyword));
+                // Exporters write lines PLY does not define (Blender 2.4x: "Created by
+                // Blender3D 247 - www.blender.org, source file: ..." without "comment"). They
+                // carry no data; skip them, and say so.
+                if (limits_.warnings)
+                    limits_.warnings->push_back("line " + std::to_string(n) +
+                                                ": PLY header line with unknown keyword " +
+                                                quote_token(keyword) + " skipped");
+                continue;
             }
             if (error) return error;
         }

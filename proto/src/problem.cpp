@@ -15,7 +15,7 @@ struct KindInfo {
     std::string_view type;
 };
 
-constexpr std::array<KindInfo, 15> kKinds = {{
+constexpr std::array<KindInfo, 17> kKinds = {{
     {ProblemKind::kBadRequest, 400, "Bad request", "urn:kdrt:problem:bad-request"},
     {ProblemKind::kBadRayBatch, 400, "Malformed ray batch", "urn:kdrt:problem:bad-ray-batch"},
     {ProblemKind::kUnauthorized, 401, "Unauthorized", "urn:kdrt:problem:unauthorized"},
@@ -33,6 +33,10 @@ constexpr std::array<KindInfo, 15> kKinds = {{
     {ProblemKind::kInternal, 500, "Internal server error", "urn:kdrt:problem:internal"},
     {ProblemKind::kOverCapacity, 503, "Over capacity", "urn:kdrt:problem:over-capacity"},
     {ProblemKind::kNotReady, 503, "Not ready", "urn:kdrt:problem:not-ready"},
+    {ProblemKind::kInsufficientStorage, 507, "Insufficient storage",
+     "urn:kdrt:problem:insufficient-storage"},
+    {ProblemKind::kStoredMeshDamaged, 500, "Stored mesh damaged",
+     "urn:kdrt:problem:stored-mesh-damaged"},
 }};
 
 const KindInfo& info(ProblemKind kind) noexcept {

@@ -6,14 +6,18 @@
 namespace kdrt::proto {
 namespace {
 
-void append_value(std::string& out, double value) {
+/// Values in the shortest round-trip form; `le` bounds in plain decimal ("0.0001", not "1e-04"),
+/// the form the Prometheus client libraries write, so bucket series match across exporters.
+void append_value(std::string& out, double value, bool plain = false) {
     if (std::isnan(value)) {
         out += "NaN";
     } else if (std::isinf(value)) {
         out += value > 0 ? "+Inf" : "-Inf";
     } else {
         char buf[40];
-        const auto r = std::to_chars(buf, buf + sizeof buf, value);
+        const auto r = plain && std::abs(value) >= 1e-9 && std::abs(value) < 1e15
+                           ? std::to_chars(buf, buf + sizeof buf, value, std::chars_format::fixed)
+                           : std::to_chars(buf, buf + sizeof buf, value);
         out.append(buf, r.ptr);
     }
 }
@@ -84,7 +88,7 @@ std::string encode_prometheus(std::span<const MetricFamily> families) {
             for (size_t i = 0; i < h.bucket_counts.size(); ++i) {
                 cumulative += h.bucket_counts[i];
                 std::string le;
-                append_value(le, i < h.upper_bounds.size() ? h.upper_bounds[i] : INFINITY);
+                append_value(le, i < h.upper_bounds.size() ? h.upper_bounds[i] : INFINITY, true);
                 out += f.name;
                 out += "_bucket";
                 append_labels(out, h.labels, "le", le);

@@ -4,6 +4,7 @@
 #include <fcntl.h>
 #include <gtest/gtest.h>
 #include <netinet/in.h>
+#include <sys/resource.h>
 #include <sys/socket.h>
 #include <sys/wait.h>
 #include <unistd.h>
@@ -61,6 +62,10 @@ ServerProcess::ServerProcess(Options options) : options_(std::move(options)) {
     if (pid_ == 0) {
         ::dup2(log_fd, 2);
         ::dup2(log_fd, 1);
+        if (options_.file_size_limit > 0) {
+            const rlimit limit{options_.file_size_limit, options_.file_size_limit};
+            ::setrlimit(RLIMIT_FSIZE, &limit);
+        }
         ::execve(argv[0], argv.data(), envp.data());
         ::_exit(127);
     }

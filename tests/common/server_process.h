@@ -34,6 +34,7 @@ public:
         std::vector<std::string> args = {};    ///< extra flags
         std::vector<std::string> env = {};     ///< extra NAME=VALUE
         bool wait_ready = true;                ///< wait for /readyz 200
+        uint64_t file_size_limit = 0;          ///< RLIMIT_FSIZE of the server (0 = inherited)
     };
 
     /// Starts the server and waits until it listens (and is ready, unless told otherwise).

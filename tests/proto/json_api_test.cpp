@@ -235,7 +235,14 @@ TEST(ConfigJson, CommentsScalarsAndLists) {
 TEST(ConfigJson, Errors) {
     auto r = parse_config_object("{\"a\": }");
     ASSERT_FALSE(r);
-    EXPECT_EQ(r.error().rfind("invalid JSON: parse error at line 1, column 7", 0), 0u) << r.error();
+    EXPECT_EQ(r.error().rfind("invalid JSON at byte 7: parse error at line 1, column 7", 0), 0u)
+        << r.error();
+    // A number beyond a double names its member (it used to escape as an exception: abort).
+    EXPECT_EQ(
+        parse_config_object("{\"memory_budget\": 1e400}").error().rfind("\"memory_budget\": ", 0),
+        0u);
+    EXPECT_EQ(parse_config_object("{\"a\": 1, \"a\": 2}").error(),
+              "duplicate member \"a\" (each member may appear once)");
     EXPECT_EQ(parse_config_object("[1]").error(), "the configuration must be a JSON object");
     EXPECT_EQ(parse_config_object("{\"a\": null}").error(),
               "\"a\": expected a boolean, number, string or array of strings, got null");

@@ -251,8 +251,19 @@ TEST(PlyMalformed, HeaderStructure) {
     e = parse_error("ply\nformat ascii 1.0\nelement vertex -1\nend_header\n", MeshFormat::kPly);
     EXPECT_EQ(e.line, 3u);
     EXPECT_THAT(e.message, HasSubstr("expected 'element <name> <count>'"));
-    e = parse_error("ply\nformat ascii 1.0\nelemental vertex 1\nend_header\n", MeshFormat::kPly);
-    EXPECT_THAT(e.message, HasSubstr("line 3: bad header: unknown keyword 'elemental'"));
+    {
+        // An unknown header keyword is skipped with a warning (exporters write such lines).
+        const std::string text = "ply\nformat ascii 1.0\nelemental vertex 1\nend_header\n";
+        std::vector<std::string> warnings;
+        MeshLimits limits;
+        limits.warnings = &warnings;
+        const auto* p = reinterpret_cast<const std::byte*>(text.data());
+        auto mesh = parse_mesh({p, text.size()}, MeshFormat::kPly, limits);
+        ASSERT_TRUE(mesh);
+        EXPECT_EQ(mesh->triangle_count(), 0u);
+        ASSERT_EQ(warnings.size(), 1u);
+        EXPECT_THAT(warnings[0], HasSubstr("line 3: PLY header line with unknown keyword"));
+    }
     e = parse_error("ply\nformat ascii 1.0\nelement vertex 0\nelement vertex 0\nend_header\n",
                     MeshFormat::kPly);
     EXPECT_THAT(e.message, HasSubstr("line 4: bad header: second element 'vertex'"));

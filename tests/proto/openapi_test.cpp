@@ -32,7 +32,7 @@ TEST(OpenApi, DocumentsEveryRoute) {
 
 TEST(OpenApi, DocumentsEveryProblemType) {
     const std::string doc = read_openapi();
-    for (int k = 0; k <= static_cast<int>(ProblemKind::kNotReady); ++k) {
+    for (int k = 0; k <= static_cast<int>(kLastProblemKind); ++k) {
         const auto kind = static_cast<ProblemKind>(k);
         const std::string type(problem_type(kind));
         EXPECT_NE(doc.find("- " + type + "\n"), std::string::npos) << type;

@@ -23,7 +23,7 @@ TEST(Problem, EncodesRfc9457Members) {
 
 TEST(Problem, RoundTripsEveryKind) {
     std::set<std::string_view> types;
-    for (int k = 0; k <= static_cast<int>(ProblemKind::kNotReady); ++k) {
+    for (int k = 0; k <= static_cast<int>(kLastProblemKind); ++k) {
         Problem p;
         p.kind = static_cast<ProblemKind>(k);
         p.detail = "detail " + std::to_string(k);
@@ -43,7 +43,7 @@ TEST(Problem, RoundTripsEveryKind) {
         types.insert(problem_type(p.kind));
         EXPECT_GE(problem_status(p.kind), 400);
     }
-    EXPECT_EQ(types.size(), static_cast<size_t>(ProblemKind::kNotReady) + 1);  // unique types
+    EXPECT_EQ(types.size(), static_cast<size_t>(kLastProblemKind) + 1);  // unique types
 }
 
 TEST(Problem, StatusesMatchTheApi) {

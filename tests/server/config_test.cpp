@@ -1,6 +1,7 @@
 #include "config.h"
 
 #include <gtest/gtest.h>
+#include <unistd.h>
 
 #include <algorithm>
 #include <cstdio>
@@ -205,6 +206,32 @@ TEST(Config, ByteCountsAndListenAddresses) {
     EXPECT_FALSE(parse_bytes("M"));
     EXPECT_EQ(*split_listen("[::1]:80"), (std::pair<std::string, int>{"::1", 80}));
     EXPECT_EQ(*split_listen("localhost:0"), (std::pair<std::string, int>{"localhost", 0}));
+}
+
+}  // namespace
+}  // namespace kdrt::server
+
+namespace kdrt::server {
+namespace {
+
+TEST(Config, TokenFromAFileOrTheEnvironmentNotOnlyTheCommandLine) {
+    const std::filesystem::path file =
+        std::filesystem::temp_directory_path() / ("kdrt-token-" + std::to_string(::getpid()));
+    std::ofstream(file) << "s3cret-token\n";
+    EXPECT_EQ(parse_ok({"--token-file", file.string()}).config.token, "s3cret-token");
+    EXPECT_EQ(parse_ok({}, {"KDRT_TOKEN_FILE=" + file.string()}).config.token, "s3cret-token");
+    EXPECT_EQ(parse_ok({}, {"KDRT_TOKEN=from-env"}).config.token, "from-env");
+    EXPECT_EQ(parse_error({"--token-file", file.string(), "--token", "x"}),
+              "token and token_file are both set; give the token one way");
+    std::ofstream(file, std::ios::trunc) << "two\nlines\n";
+    EXPECT_NE(parse_error({"--token-file", file.string()}).find("more than one line"),
+              std::string::npos);
+    std::ofstream(file, std::ios::trunc) << "\n";
+    EXPECT_NE(parse_error({"--token-file", file.string()}).find("is empty"), std::string::npos);
+    std::filesystem::remove(file);
+    EXPECT_NE(parse_error({"--token-file", file.string()}).find("token_file: "), std::string::npos);
+    EXPECT_NE(help_text().find("--token-file"), std::string::npos);
+    EXPECT_NE(help_text().find("/proc/PID/cmdline"), std::string::npos);
 }
 
 }  // namespace

@@ -168,6 +168,40 @@ TEST_F(HttpBatch, LargeBatchesMatchTheEngineAndKeepTheConnection) {
     }
 }
 
+TEST_F(HttpBatch, InvalidRaysAreMissesWhenTheRequestSaysSo) {
+    auto cli = server_->client();
+    std::vector<Ray> rays(rays_->begin(), rays_->begin() + 1000);
+    size_t hits_before = 0;
+    for (size_t i = 0; i < 1000; i += 7) {
+        hits_before += expected_hits({rays[i]}) != expected_hits({Ray{}});
+        rays[i].dx = std::numeric_limits<float>::quiet_NaN();
+        rays[i + 1].oz = -std::numeric_limits<float>::infinity();
+    }
+    ASSERT_GT(hits_before, 0u);  // some of the spoiled rays hit before
+    const std::string body = bytes_to_string(proto::encode_rays(rays, false));
+    // The default is to refuse the batch, naming the first bad ray.
+    auto p = expect_problem(cli->Post(path(), body, "application/x-kdrt-rays"), 400);
+    EXPECT_NE(p.detail.find("ray 0: field dx is NaN"), std::string::npos) << p.detail;
+    p = expect_problem(cli->Post(path() + "?invalid_rays=refuse", body, "application/x-kdrt-rays"),
+                       400);
+    // ?invalid_rays=miss: the batch is answered; every invalid ray is a miss, the rest as usual.
+    auto res = cli->Post(path() + "?invalid_rays=miss", body, "application/x-kdrt-rays");
+    ASSERT_TRUE(res);
+    ASSERT_EQ(res->status, 200) << res->body;
+    EXPECT_TRUE(res->body == expected_hits(rays));
+    auto hits = proto::decode_hits(string_to_bytes(res->body));
+    ASSERT_TRUE(hits);
+    for (size_t i = 0; i < 1000; i += 7) {
+        EXPECT_FALSE((*hits)[i].is_hit()) << i;
+        EXPECT_FALSE((*hits)[i + 1].is_hit()) << i + 1;
+    }
+    p = expect_problem(cli->Post(path() + "?invalid_rays=skip", body, "application/x-kdrt-rays"),
+                       400);
+    EXPECT_NE(p.detail.find("invalid_rays is \"skip\" (expected refuse or miss)"),
+              std::string::npos)
+        << p.detail;
+}
+
 TEST_F(HttpBatch, ARefusedRayIsNamedByIndexAndTheConnectionGoesOn) {
     auto cli = server_->client();
     for (const size_t bad : {size_t{0}, size_t{150'001}, kLargeBatch - 1}) {

@@ -1,8 +1,10 @@
 // Every error the API reports, with its status, problem type and detail.
 
 #include <gtest/gtest.h>
+
 #include <sys/socket.h>
 #include <unistd.h>
+#include <fstream>
 
 #include <cmath>
 #include <cstring>
@@ -207,6 +209,44 @@ TEST_F(HttpErrors, UnknownRoutesAndMethods) {
     p = expect_problem(cli->Post("/healthz", "x", "text/plain"), 405);
     EXPECT_NE(p.detail.find("does not support method POST (allowed: GET)"), std::string::npos)
         << p.detail;
+}
+
+TEST_F(HttpErrors, ABlender247PlyLoadsWithAWarningInTheAnswer) {
+    std::ifstream in(std::string(KDRT_TEST_DATA_DIR) + "/quirks/blender247.ply", std::ios::binary);
+    const std::string ply{std::istreambuf_iterator<char>(in), std::istreambuf_iterator<char>()};
+    ASSERT_FALSE(ply.empty());
+    auto res = server_->client()->Post("/v1/meshes", ply, "application/ply");
+    ASSERT_TRUE(res);
+    ASSERT_TRUE(res->status == 201 || res->status == 200) << res->body;
+    auto summary = proto::decode_mesh_summary(res->body);
+    ASSERT_TRUE(summary) << res->body;
+    EXPECT_EQ(summary->triangles, 1u);
+    ASSERT_EQ(summary->warnings.size(), 1u) << res->body;
+    EXPECT_EQ(summary->warnings[0],
+              "line 3: PLY header line with unknown keyword 'Created' skipped");
+    // Not stored: the mesh's own summary has no warnings.
+    EXPECT_EQ(server_->client()->Get("/v1/meshes/" + summary->id)->body.find("warnings"),
+              std::string::npos);
+}
+
+TEST_F(HttpErrors, InvalidContentLengthsAreRefused) {
+    for (const char* value : {"abc", "1, 2", "0x10", "-1", "+5", "99999999999999999999"}) {
+        SCOPED_TRACE(value);
+        const std::string answer = raw_exchange(
+            server_->port(),
+            std::string("POST /v1/meshes HTTP/1.1\r\nHost: x\r\nContent-Type: model/stl\r\n"
+                        "Connection: close\r\nContent-Length: ") +
+                value + "\r\n\r\n",
+            std::chrono::seconds(5));
+        EXPECT_EQ(answer.rfind("HTTP/1.1 400", 0), 0u) << answer;
+        EXPECT_NE(answer.find("invalid Content-Length"), std::string::npos) << answer;
+    }
+    const std::string twice = raw_exchange(
+        server_->port(),
+        "POST /v1/meshes HTTP/1.1\r\nHost: x\r\nConnection: close\r\nContent-Length: 3\r\n"
+        "Content-Length: 3\r\n\r\nabc",
+        std::chrono::seconds(5));
+    EXPECT_EQ(twice.rfind("HTTP/1.1 400", 0), 0u) << twice;
 }
 
 TEST_F(HttpErrors, PostWithoutContentLengthIsRefusedAtOnce) {

@@ -2,7 +2,9 @@
 // preloading, signals, the --help/--mesh-id commands.
 
 #include <gtest/gtest.h>
+#include <sys/socket.h>
 #include <sys/wait.h>
+#include <unistd.h>
 
 #include <cstdio>
 #include <fstream>
@@ -74,10 +76,10 @@ TEST(HttpOps, HealthReadyAndMetrics) {
             text,
             "kdrt_http_requests_total{route=\"/v1/meshes/{id}\",method=\"GET\",status=\"404\"}"),
         1.0);
-    EXPECT_EQ(
-        find_metric(
-            text, "kdrt_http_request_duration_seconds_count{route=\"/v1/meshes/{id}/intersect\"}"),
-        2.0);
+    EXPECT_EQ(find_metric(text,
+                          "kdrt_http_request_duration_seconds_count{route=\"/v1/meshes/{id}/"
+                          "intersect\",method=\"POST\"}"),
+              2.0);
     EXPECT_EQ(find_metric(text, "kdrt_rays_traced_total{kind=\"closest\"}"), 1000.0);
     EXPECT_EQ(find_metric(text, "kdrt_rays_traced_total{kind=\"occlusion\"}"), 1000.0);
     EXPECT_EQ(find_metric(text, "kdrt_tree_builds_total"), 1.0);
@@ -143,6 +145,99 @@ TEST(HttpOps, SettingsComeFromFileThenEnvironmentThenFlags) {
         << server.log();  // flag beats env
 }
 
+/// The whole output of `command` (a shell command line) and its exit code.
+std::pair<int, std::string> run_shell(const std::string& command) {
+    FILE* pipe = ::popen((command + " 2>&1").c_str(), "r");
+    std::string out;
+    char buf[4096];
+    size_t n = 0;
+    while ((n = std::fread(buf, 1, sizeof buf, pipe)) > 0) out.append(buf, n);
+    const int status = ::pclose(pipe);
+    return {WIFEXITED(status) ? WEXITSTATUS(status) : -1, out};
+}
+
+TEST(HttpOps, MetricsAreWhatAPrometheusUserExpects) {
+    TempDir dir;
+    ServerProcess server({.cache_dir = dir.path() / "cache"});
+    auto cli = server.client();
+    const Mesh mesh = small_mesh(6, 2000);
+    const std::string id = upload_id(*cli, mesh);
+    cli->Get("/v1/meshes");
+    auto render = cli->Post("/v1/render", "{\"mesh\":\"" + id + "\",\"width\":32,\"height\":16}",
+                            "application/json");
+    ASSERT_TRUE(render);
+    ASSERT_EQ(render->status, 200) << render->body;
+    // Requests the HTTP layer rejects: an invented method and a malformed request line.
+    for (const char* request :
+         {"BREW /v1/meshes HTTP/1.1\r\nHost: x\r\n\r\n", "NOT A REQUEST LINE\r\n\r\n"}) {
+        const std::string answer = raw_exchange(server.port(), request, std::chrono::seconds(5));
+        EXPECT_NE(answer.find("HTTP/1.1 400"), std::string::npos) << answer;
+    }
+    const std::string text = cli->Get("/metrics")->body;
+
+    // Uploads and listings are separate series of the duration histogram.
+    EXPECT_EQ(find_metric(text,
+                          "kdrt_http_request_duration_seconds_count{route=\"/v1/meshes\","
+                          "method=\"POST\"}"),
+              1.0);
+    EXPECT_EQ(find_metric(text,
+                          "kdrt_http_request_duration_seconds_count{route=\"/v1/meshes\","
+                          "method=\"GET\"}"),
+              1.0);
+    // Canonical bucket bounds.
+    EXPECT_NE(text.find("le=\"0.0001\""), std::string::npos);
+    for (size_t at = text.find("le=\""); at != std::string::npos; at = text.find("le=\"", at + 1)) {
+        const std::string bound = text.substr(at + 4, text.find('"', at + 4) - at - 4);
+        EXPECT_EQ(bound.find('e'), std::string::npos) << bound;
+    }
+    // Rejected requests: their own route, methods outside the standard set as "other".
+    EXPECT_EQ(find_metric(text,
+                          "kdrt_http_requests_total{route=\"rejected\",method=\"other\","
+                          "status=\"400\"}"),
+              2.0);
+    EXPECT_EQ(text.find("BREW"), std::string::npos);
+    // Renders count their rays and time.
+    EXPECT_GE(find_metric(text, "kdrt_rays_traced_total{kind=\"render\"}").value_or(0), 512.0);
+    EXPECT_EQ(find_metric(text, "kdrt_render_seconds_count"), 1.0);
+    EXPECT_EQ(find_metric(text, "kdrt_job_queue_wait_seconds_count"), 0.0);
+    // The standard process metrics.
+    EXPECT_GT(find_metric(text, "process_resident_memory_bytes").value_or(0), 1e6);
+    EXPECT_GT(find_metric(text, "process_open_fds").value_or(0), 2.0);
+    EXPECT_GE(find_metric(text, "process_cpu_seconds_total").value_or(-1), 0.0);
+    EXPECT_GT(find_metric(text, "process_start_time_seconds").value_or(0), 1.6e9);
+    EXPECT_GT(find_metric(text, "process_max_fds").value_or(0), 0.0);
+
+    // The rejected requests were logged with their own ids, not the previous request's.
+    const std::string log = server.log();
+    const size_t render_line = log.find("route=/v1/render status=200");
+    const size_t rejected = log.find("method=other route=rejected status=400");
+    ASSERT_NE(render_line, std::string::npos) << log;
+    ASSERT_NE(rejected, std::string::npos) << log;
+    const auto id_of = [&](size_t at) { return log.substr(log.find(" id=", at) + 4, 16); };
+    EXPECT_NE(id_of(render_line), id_of(rejected));
+
+    // promtool (Debian's prometheus package) accepts the exposition.
+    const std::filesystem::path file = dir.path() / "metrics.txt";
+    std::ofstream(file) << text;
+    auto [code, out] = run_shell("promtool check metrics < '" + file.string() + "'");
+    EXPECT_EQ(code, 0) << out;
+}
+
+TEST(HttpOps, ASecondServerOnATakenPortRefusesToStart) {
+    TempDir dir;
+    ServerProcess first({.cache_dir = dir.path() / "cache"});
+    // `timeout`: before the fix the second server started (SO_REUSEPORT) and never exited.
+    auto [code, out] = run_shell("timeout 20 " + std::string(KDRT_SERVER_BINARY) +
+                                 " --listen 127.0.0.1:" + std::to_string(first.port()) +
+                                 " --cache-dir '" + (dir.path() / "other").string() + "'");
+    EXPECT_EQ(code, 1) << out;
+    EXPECT_NE(out.find("cannot listen on 127.0.0.1:" + std::to_string(first.port()) +
+                       ": Address already in use"),
+              std::string::npos)
+        << out;
+    EXPECT_EQ(first.client()->Get("/healthz")->status, 200);
+}
+
 TEST(HttpOps, BadSettingsExitWithAMessage) {
     auto [code, out] = run_command("--threads lots");
     EXPECT_EQ(code, 2);
@@ -154,6 +249,21 @@ TEST(HttpOps, BadSettingsExitWithAMessage) {
     std::tie(code, out) = run_command("--config /nonexistent/kdrt.json");
     EXPECT_EQ(code, 2);
     EXPECT_NE(out.find("cannot open \"/nonexistent/kdrt.json\""), std::string::npos) << out;
+}
+
+TEST(HttpOps, OutOfRangeNumbersInTheConfigAreAnErrorAndHelpStillWorks) {
+    TempDir dir;
+    const std::string config = (dir.path() / "kdrt.json").string();
+    std::ofstream(config) << "{\"memory_budget\": 1e400}";
+    // This used to abort (an uncaught nlohmann out_of_range), even with --help.
+    auto [code, out] = run_command("--config " + config);
+    EXPECT_EQ(code, 2) << out;
+    EXPECT_NE(out.find("\"memory_budget\": number overflow"), std::string::npos) << out;
+    std::tie(code, out) = run_command("--config " + config + " --help");
+    EXPECT_EQ(code, 0) << out;
+    EXPECT_NE(out.find("usage: kdrt-server"), std::string::npos);
+    std::tie(code, out) = run_command("--memory-budget 1e400");
+    EXPECT_EQ(code, 2) << out;
 }
 
 TEST(HttpOps, HelpListsEverySettingAndMeshIdPrintsIds) {
@@ -212,6 +322,46 @@ TEST(HttpOps, SigintFinishesInFlightRequestsAndExitsZero) {
                                          << server.log();
     EXPECT_EQ((*in_flight)->status, 200);
     EXPECT_EQ((*in_flight)->body.size(), 16 + 16 * rays.size());
+}
+
+TEST(HttpOps, AShutdownThatCutsRequestsSaysWhichAndExitsNonZero) {
+    TempDir dir;
+    ServerProcess server(
+        {.cache_dir = dir.path() / "cache", .args = {"--shutdown-timeout-s", "1"}});
+    // An upload whose body never finishes: admitted, then stuck reading.
+    const int fd = connect_loopback(server.port());
+    ASSERT_GE(fd, 0);
+    const std::string head =
+        "POST /v1/meshes HTTP/1.1\r\nHost: x\r\nContent-Type: application/x-kdrt-mesh\r\n"
+        "Content-Length: 1000000\r\n\r\nabcd";
+    ASSERT_EQ(::send(fd, head.data(), head.size(), MSG_NOSIGNAL),
+              static_cast<ssize_t>(head.size()));
+    for (int i = 0; i < 5000 && server.metric("kdrt_inflight_requests").value_or(0) < 1; ++i)
+        std::this_thread::sleep_for(std::chrono::milliseconds(1));
+    ASSERT_EQ(server.metric("kdrt_inflight_requests"), 1.0);
+    EXPECT_EQ(server.stop(SIGTERM), 1);  // it used to exit 0 after dropping the client
+    const std::string log = server.log();
+    EXPECT_NE(log.find("shutdown timeout: exiting with requests still in flight"),
+              std::string::npos)
+        << log;
+    EXPECT_NE(log.find("shutdown cut request request=\""), std::string::npos) << log;
+    EXPECT_NE(log.find(" POST /v1/meshes ("), std::string::npos) << log;
+    ::close(fd);
+}
+
+TEST(HttpOps, AFailedStartUpExitsAtOnceNotAfterTheShutdownTimeout) {
+    TempDir dir;
+    // A failed preload stops the server right after the listener thread starts; httplib's stop()
+    // was a no-op until the listener ran, so some runs waited for the shutdown watchdog.
+    for (int round = 0; round < 5; ++round) {
+        SCOPED_TRACE(round);
+        auto [code, out] =
+            run_command("--listen 127.0.0.1:0 --cache-dir '" + (dir.path() / "cache").string() +
+                        "' --preload /nonexistent/mesh.obj --shutdown-timeout-s 60");
+        EXPECT_EQ(code, 1) << out;
+        EXPECT_NE(out.find("cannot preload mesh"), std::string::npos) << out;
+        EXPECT_EQ(out.find("shutdown timeout"), std::string::npos) << out;
+    }
 }
 
 }  // namespace

@@ -215,6 +215,14 @@ TEST_F(HttpRender, BadRequestsNameTheProblem) {
          "\"tile.w\" is 20, must be in 1 .. 10 (the tile must lie inside the 100 x 512 frame)"},
         {"{\"mesh\":\"" + std::string(64, 'e') + "\"}", 404, "no mesh with id eeee"},
         {"{\"mesh\":", 400, "invalid JSON at byte"},
+        // Numbers beyond a double are a 400 naming the member (they were a 500).
+        {"{" + mesh + ",\"camera\":{\"eye\":[0,0,1e400],\"look_at\":[0,0,0]}}", 400,
+         "\"camera.eye\": number overflow"},
+        {"{" + mesh + ",\"width\":1e400}", 400, "\"width\": number overflow"},
+        // One rule for every JSON body: a member given twice is refused (as the rays route does).
+        {"{" + mesh + ",\"width\":64,\"width\":32}", 400, "duplicate member \"width\""},
+        {"{" + mesh + ",\"camera\":{\"eye\":[0,0,1],\"eye\":[0,0,2],\"look_at\":[0,0,0]}}", 400,
+         "duplicate member \"camera.eye\""},
         {"{" + mesh + ",\"compression\":10}", 400, "\"compression\" is 10, must be in 0 .. 9"},
         {"{" + mesh + ",\"compression\":-1}", 400,
          "\"compression\" must be a non-negative integer"},
@@ -313,6 +321,27 @@ TEST_F(HttpRender, JobsCanBeCancelledAndTheQueueIsBounded) {
     p = expect_problem(cli->Get("/v1/jobs/0123"), 404);
     EXPECT_EQ(p.kind, ProblemKind::kUnknownJob);
     EXPECT_EQ(server_->metric("kdrt_jobs_finished_total{outcome=\"cancelled\"}"), 2.0);
+}
+
+}  // namespace
+}  // namespace kdrt::test
+
+namespace kdrt::test {
+namespace {
+
+TEST(HttpRenderDefaults, LeftOutSizesRespectTheServerLimits) {
+    TempDir dir;
+    ServerProcess server({.cache_dir = dir.path() / "cache",
+                          .args = {"--max-image-width", "128", "--max-image-height", "64"}});
+    auto cli = server.client();
+    const std::string id = upload_id(*cli, small_mesh(78, 500));
+    auto res = cli->Post("/v1/render", "{\"mesh\":\"" + id + "\"}", "application/json");
+    ASSERT_TRUE(res);
+    ASSERT_EQ(res->status, 200) << res->body;
+    auto image = proto::decode_image(string_to_bytes(res->body));
+    ASSERT_TRUE(image);
+    EXPECT_EQ(image->width, 128u);  // the default 512 used to be rendered anyway
+    EXPECT_EQ(image->height, 64u);
 }
 
 }  // namespace

@@ -142,7 +142,8 @@ TEST_F(MeshCacheTest, ReopenFindsEveryMeshAndRebuildsCorruptTrees) {
     ASSERT_TRUE(rebuilt);
     EXPECT_EQ((*rebuilt)->nodes, build_kdtree(b).nodes);
     EXPECT_EQ(metrics.builds(), 1u);
-    EXPECT_EQ(metrics.cache_rebuilds.load(), 1u);
+    EXPECT_EQ(metrics.cache_rebuilds.total(), 1u);
+    EXPECT_EQ(metrics.cache_rebuilds.value({{"reason", "corrupt"}}), 1u);
 }
 
 TEST_F(MeshCacheTest, RemoveForgetsAndDeletesFiles) {

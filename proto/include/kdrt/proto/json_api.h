@@ -62,6 +62,9 @@ struct MeshSummary {
     Aabb bounds;     ///< of the mesh's referenced vertices (not the padded tree cell)
     TreeStats tree;  ///< build statistics; tree.build_ms is reported as "build_ms"
     std::optional<bool> in_memory;  ///< runtime state, omitted when unset (not stored on disk)
+    /// Upload answers only: what the parser skipped (e.g. unknown PLY header lines); omitted
+    /// when empty, never stored.
+    std::vector<std::string> warnings;
 
     /// Field-wise equality (TreeStats has no operator== of its own).
     friend bool operator==(const MeshSummary& a, const MeshSummary& b) noexcept;

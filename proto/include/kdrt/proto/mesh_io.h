@@ -60,6 +60,9 @@ struct MeshLimits {
     uint64_t max_triangles = (1ull << 30) - 1;
     /// Most corners of one polygon (OBJ/OFF/PLY faces).
     uint32_t max_polygon_vertices = 1u << 16;
+    /// When set, receives one line per thing the parser skipped that a user may want to know
+    /// about (a PLY header line with an unknown keyword, e.g. Blender 2.4x's "Created by ...").
+    std::vector<std::string>* warnings = nullptr;
 };
 
 /// Parses a whole file held in memory. Errors name the line (text formats, PLY header) or byte
@@ -68,6 +71,7 @@ struct MeshLimits {
 ///        an error. Negative (relative) indices and v, v/vt, v//vn, v/vt/vn corners.
 ///   PLY: ascii, binary_little_endian, binary_big_endian; x, y, z of element vertex (any scalar
 ///        type) and list vertex_indices / vertex_index of element face; the rest is skipped.
+///        A header line with an unknown keyword is skipped with a warning (limits.warnings).
 ///   OFF: [ST][C][N]OFF header, one vertex per line (first 3 numbers), faces `n i0 .. in-1`.
 ///   STL: binary when 84 + 50 * count equals the size (even if the header starts with "solid"),
 ///        else ascii. Three vertices per triangle, no deduplication.

@@ -39,9 +39,13 @@ enum class ProblemKind {
     kInternal,              ///< 500 unexpected failure (logged with request_id)
     kOverCapacity,          ///< 503 too many requests or jobs in flight (retry_after)
     kNotReady,              ///< 503 starting up or shutting down
+    kInsufficientStorage,   ///< 507 the disk is full; nothing was stored
+    kStoredMeshDamaged,     ///< 500 the stored mesh and its tree are both damaged (detail says how)
 };
+/// The last ProblemKind (for loops over every kind).
+inline constexpr ProblemKind kLastProblemKind = ProblemKind::kStoredMeshDamaged;
 
-/// HTTP status of a kind (400, 401, 404, 405, 409, 413, 415, 422, 500, 503).
+/// HTTP status of a kind (400, 401, 404, 405, 409, 413, 415, 422, 500, 503, 507).
 [[nodiscard]] int problem_status(ProblemKind kind) noexcept;
 /// Short constant title, e.g. "Unknown mesh".
 [[nodiscard]] std::string_view problem_title(ProblemKind kind) noexcept;
@@ -91,7 +95,6 @@ inline constexpr std::string_view kOverCapacity = "requests are in flight";
 inline constexpr std::string_view kQueueFull = "render jobs are queued";
 inline constexpr std::string_view kShuttingDown = "shutting down";
 inline constexpr std::string_view kJobNotDone = "has no result";
-inline constexpr std::string_view kStoredMeshLost = "stored copy is corrupt";
 }  // namespace api_errors
 
 }  // namespace kdrt::proto
