@@ -19,12 +19,18 @@ struct ServerConfig {
     // Network
     std::string listen = "127.0.0.1:8080";  ///< HOST:PORT; port 0 picks a free port
     std::string port_file;                  ///< when set, the bound port is written there
-    unsigned http_threads = 32;  ///< connection threads (each keep-alive connection holds one)
-    unsigned keep_alive_timeout_s = 2;        ///< idle keep-alive connections close after this
+    unsigned http_threads = 32;         ///< threads serving requests (idle connections hold none)
+    unsigned keep_alive_timeout_s = 2;  ///< idle keep-alive connections close after this
     unsigned keep_alive_max_requests = 1000;  ///< requests per connection before it is closed
     unsigned read_timeout_s = 30;             ///< per socket read
     unsigned write_timeout_s = 30;            ///< per socket write
-    std::string token;                        ///< bearer token for /v1 (empty = no auth)
+    unsigned request_head_timeout_s = 10;     ///< whole request head (line + headers), else 408
+    unsigned request_timeout_s = 60;          ///< whole request head and body, else 408
+    uint64_t max_request_head_bytes = 32ull << 10;    ///< request line + headers, else 431
+    unsigned max_request_headers = 100;               ///< header lines, else 431
+    uint64_t request_prebuffer_bytes = 256ull << 10;  ///< body bytes read before a thread
+    unsigned max_connections = 4096;                  ///< open connections; more are refused
+    std::string token;                                ///< bearer token for /v1 (empty = no auth)
 
     // Engine and cache
     unsigned threads = 0;                       ///< tracing/build threads (0 = all cores)

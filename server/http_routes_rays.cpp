@@ -33,7 +33,8 @@ proto::Problem ingest_problem(const IngestFailure& failure, int http_status, uin
         case IngestFailure::Kind::kUnreadable:
             break;
     }
-    // The connection broke or the framing was invalid.
+    // The connection broke, the request's deadline passed, or the framing was invalid.
+    if (request_deadline_passed()) return body_timeout_problem();
     return http_status == 413
                ? body_too_large_problem(limit, kBatchLimitWhat)
                : make_problem(ProblemKind::kBadRequest, "the request body could not be read");
@@ -72,7 +73,7 @@ void Routes::intersect_binary(const httplib::Request& req, httplib::Response& re
         return reply_problem(req, res, body_too_large_problem(ingest.limit(), kBatchLimitWhat));
     }
     const bool read_ok = read_body_direct(
-        req, reader, kDirectReadBytes, static_cast<int>(svc_.config.read_timeout_s),
+        req, reader, kDirectReadBytes,
         [&](std::span<const std::byte> piece) { return ingest.feed(piece); },
         [&](const SocketReceive& receive) { return ingest.receive_rest(receive); });
     request_context().bytes_in += ingest.received();

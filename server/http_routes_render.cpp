@@ -6,6 +6,7 @@
 
 #include "http_routes.h"
 #include "http_util.h"
+#include "json_shape.h"
 #include "kdrt/proto/image_io.h"
 #include "kdrt/proto/json_api.h"
 #include "problems.h"
@@ -38,6 +39,9 @@ bool prefers_async(const httplib::Request& req) {
     return false;
 }
 
+/// The shape a render request body may have before it is parsed (it has about 20 values).
+constexpr JsonShapeLimits kRenderJsonShape{.max_depth = 8, .max_values = 256};
+
 proto::Problem unknown_job_problem(const std::string& id) {
     return make_problem(ProblemKind::kUnknownJob,
                         std::string(proto::api_errors::kUnknownJob) + " " + id +
@@ -69,6 +73,17 @@ std::optional<proto::RenderRequest> Routes::read_render_request(
     auto body = read_body(req, res, reader, svc_.config.max_json_bytes, svc_.config.max_json_bytes,
                           svc_.store.tmp_dir().string(), "a JSON request (max_json_bytes)");
     if (!body) return std::nullopt;
+    // A render request is a few dozen values, 3 levels deep; it is parsed into a DOM, so its
+    // shape is bounded first (kRenderJsonShape).
+    if (auto shape = json_shape_error(as_text(body->bytes()), kRenderJsonShape)) {
+        reply_problem(req, res,
+                      make_problem(ProblemKind::kBadRequest,
+                                   "render request: " + *shape + " (a render request has " +
+                                       std::to_string(kRenderJsonShape.max_values) +
+                                       " values at most, nested " +
+                                       std::to_string(kRenderJsonShape.max_depth) + " deep)"));
+        return std::nullopt;
+    }
     const proto::RenderLimits limits{svc_.config.max_image_width, svc_.config.max_image_height,
                                      svc_.config.max_spp};
     auto request = proto::decode_render_request(as_text(body->bytes()), limits);
