@@ -50,10 +50,17 @@ struct ServerConfig {
     uint32_t max_image_width = 8192;
     uint32_t max_image_height = 8192;
     uint32_t max_spp = 1024;
-    uint32_t png_compression = 1;      ///< zlib level of rendered PNGs when a request names none
-    unsigned max_jobs = 16;            ///< async render jobs queued or running before 503
-    unsigned job_ttl_s = 600;          ///< finished jobs are forgotten after this
-    unsigned shutdown_timeout_s = 10;  ///< in-flight requests get this long on SIGTERM
+    uint32_t png_compression = 1;  ///< zlib level of rendered PNGs when a request names none
+    unsigned max_jobs = 16;        ///< async render jobs queued or running before 503
+    unsigned job_ttl_s = 600;      ///< finished jobs are forgotten after this
+    uint64_t job_result_bytes = 512ull << 20;  ///< finished jobs' images (oldest forgotten beyond)
+    uint64_t batch_memory_budget = 2ull
+                                   << 30;   ///< ray batches in flight (rays + answers), 503 beyond
+    uint64_t max_render_rays = 1ull << 31;  ///< pixels x spp x rays per sample of one render
+    unsigned max_renders = 2;               ///< synchronous renders running at once
+    unsigned max_builds = 2;                ///< uploads parsed and built at once
+    unsigned max_queued = 8;                ///< requests waiting for a render or build slot
+    unsigned shutdown_timeout_s = 10;       ///< in-flight requests get this long on SIGTERM
 
     // Logging
     std::string log_level = "info";   ///< trace, debug, info, warn, error, critical, off

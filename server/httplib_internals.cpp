@@ -758,6 +758,15 @@ bool request_deadline_passed() noexcept {
     return t_connection != nullptr && t_connection->timed_out;
 }
 
+std::function<bool()> client_gone_check() {
+    const int fd = t_connection != nullptr ? t_connection->fd : -1;
+    return [fd] {
+        if (fd < 0) return false;
+        pollfd p{fd, POLLRDHUP, 0};
+        return ::poll(&p, 1, 0) > 0 && (p.revents & (POLLRDHUP | POLLHUP | POLLERR)) != 0;
+    };
+}
+
 void note_response_sent(const httplib::Response& res) noexcept {
     if (t_connection == nullptr) return;
     const auto it = res.headers.find("Connection");

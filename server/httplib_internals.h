@@ -97,6 +97,11 @@ private:
 /// body was being read (its reply should be 408; the connection is closed after it).
 [[nodiscard]] bool request_deadline_passed() noexcept;
 
+/// A check, callable from any thread while the request being served on this thread is answered,
+/// of whether its client has closed the connection (hung up or reset). Outside a
+/// ConnectionServer's worker it always says no.
+[[nodiscard]] std::function<bool()> client_gone_check();
+
 /// Called once a response is written (by the logger): a response with `Connection: close`
 /// closes the connection it went out on (httplib 0.11.4 only honours the request's).
 void note_response_sent(const httplib::Response& res) noexcept;
