@@ -56,7 +56,7 @@ struct ServerConfig {
     uint64_t job_result_bytes = 512ull << 20;  ///< finished jobs' images (oldest forgotten beyond)
     uint64_t batch_memory_budget = 2ull
                                    << 30;   ///< ray batches in flight (rays + answers), 503 beyond
-    uint64_t max_render_rays = 1ull << 31;  ///< pixels x spp x rays per sample of one render
+    uint64_t max_render_rays = 1ull << 36;  ///< pixels x spp x rays per sample of one render
     unsigned max_renders = 2;               ///< synchronous renders running at once
     unsigned max_builds = 2;                ///< uploads parsed and built at once
     unsigned max_queued = 8;                ///< requests waiting for a render or build slot

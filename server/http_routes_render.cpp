@@ -62,9 +62,11 @@ RenderCost render_cost(const RenderSettings& s) {
 constexpr JsonShapeLimits kRenderJsonShape{.max_depth = 8, .max_values = 256};
 
 proto::Problem unknown_job_problem(const std::string& id) {
-    return make_problem(ProblemKind::kUnknownJob,
-                        std::string(proto::api_errors::kUnknownJob) + " " + id +
-                            " (it never existed or expired after job_ttl_s)");
+    return make_problem(
+        ProblemKind::kUnknownJob,
+        std::string(proto::api_errors::kUnknownJob) + " " + id +
+            " (it never existed, expired after job_ttl_s, or was forgotten to keep finished "
+            "images within job_result_bytes)");
 }
 
 }  // namespace
