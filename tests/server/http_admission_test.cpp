@@ -237,33 +237,70 @@ TEST(HttpAdmission, RendersBeyondTheRunningAndQueuedLimitsGet503) {
     }));
 }
 
-TEST(HttpAdmission, HostileJsonBodiesStayWithinTheMemoryBound) {
+TEST(HttpAdmission, HostileBodiesOfEveryKindStayWithinTheMemoryBound) {
     TempDir dir;
     ServerProcess server({.cache_dir = dir.path() / "cache"});
     ASSERT_TRUE(server.running());
     const uint64_t before = peak_rss_bytes(server.pid());
     ASSERT_GT(before, 0u);
-    // Four 32 MiB bodies of nested arrays at once (max_json_bytes), to the DOM-parsed render
-    // route and the SAX-parsed rays route. Unbounded, one such body peaked at 1.36 GB.
+    auto cli = server.client();
+    const std::string id = upload_id(*cli, small_mesh(8));
+    // 32 MiB of nested arrays (max_json_bytes), to the DOM-parsed render route and the
+    // SAX-parsed rays route: unbounded, one such body peaked at 1.36 GB.
     constexpr size_t kBody = 32u << 20;
     std::string nested(kBody, '[');
     std::fill(nested.begin() + kBody / 2, nested.end(), ']');
-    auto cli = server.client();
-    const std::string id = upload_id(*cli, small_mesh(8));
+    // Headers and counts that promise far more than the body holds.
+    std::string kdrr_lie = kdrr(1000, 9);
+    kdrr_lie[8] = kdrr_lie[9] = kdrr_lie[10] = '\xff';  // a count of ~2^24 rays
+    const std::string ply =
+        "ply\nformat binary_little_endian 1.0\nelement vertex 134217728\nproperty float x\n"
+        "property float y\nproperty float z\nelement face 134217728\nproperty list uchar int "
+        "vertex_indices\nend_header\n" +
+        std::string(1000, '\0');
+    std::string stl(80, '\0');
+    stl += std::string("\x00\x00\x00\x08", 4) + std::string(100, '\0');  // 2^27 triangles
+    const std::string off = "OFF\n134217728 134217728 0\n0 0 0\n";
+    std::string obj;
+    while (obj.size() < kBody) obj += "f 1 2 3\n";  // faces of vertices never given
+    struct Hostile {
+        std::string path, body, type;
+        httplib::Headers headers;
+        int status;
+    };
+    const std::string rays_path = "/v1/meshes/" + id + "/intersect";
+    const std::vector<Hostile> bodies = {
+        {"/v1/render", nested, "application/json", {}, 400},
+        {"/v1/render", nested, "application/json", {}, 400},
+        {rays_path, nested, "application/json", {}, 400},
+        {rays_path, kdrr_lie, kRays, {}, 400},
+        {"/v1/meshes", ply, "application/ply", {}, 422},
+        {"/v1/meshes", stl, "model/stl", {}, 422},
+        {"/v1/meshes", off, "application/x-off", {}, 422},
+        {"/v1/meshes", obj, "model/obj", {}, 422},
+        // A 2 MB gzip body inflates to 1 GiB: refused unread.
+        {"/v1/meshes",
+         std::string(2u << 20, 'x'),
+         "model/obj",
+         {{"Content-Encoding", "gzip"}},
+         415},
+    };
+    std::vector<int> statuses(bodies.size(), 0);
     std::vector<std::thread> senders;
-    std::vector<int> statuses(4, 0);
-    for (int i = 0; i < 4; ++i) {
+    senders.reserve(bodies.size());
+    for (size_t i = 0; i < bodies.size(); ++i) {
         senders.emplace_back([&, i] {
             auto c = server.client();
-            auto res = i % 2 == 0
-                           ? c->Post("/v1/render", nested, "application/json")
-                           : c->Post("/v1/meshes/" + id + "/intersect", nested, "application/json");
-            statuses[static_cast<size_t>(i)] = res ? res->status : -1;
+            const Hostile& h = bodies[i];
+            auto res = c->Post(h.path, h.headers, h.body, h.type);
+            statuses[i] = res ? res->status : -1;
         });
     }
     for (std::thread& t : senders) t.join();
-    for (const int status : statuses) EXPECT_EQ(status, 400);
-    // The bodies themselves (4 x 32 MiB in memory, max_json_bytes each) plus a 64 MiB margin.
+    for (size_t i = 0; i < bodies.size(); ++i)
+        EXPECT_EQ(statuses[i], bodies[i].status) << bodies[i].path << " " << bodies[i].type;
+    // What the bodies themselves take in memory (3 x 32 MiB of JSON; the OBJ is spooled beyond
+    // upload_memory_bytes), plus a 64 MiB margin.
     const uint64_t bound = before + 4 * uint64_t{kBody} + (64u << 20);
     EXPECT_LE(peak_rss_bytes(server.pid()), bound)
         << "peak RSS " << peak_rss_bytes(server.pid()) << " bytes, before " << before;
