@@ -77,8 +77,8 @@ TEST(HttpConnections, SlowAndIdleClientsDoNotStarveOtherRequests) {
                                    "--request-head-timeout-s", "60", "--request-timeout-s", "60"}});
     ASSERT_TRUE(server.running());
     Sockets held;
-    constexpr int kEach = 24;
-    for (int i = 0; i < kEach; ++i) {
+    constexpr size_t kEach = 24;
+    for (size_t i = 0; i < kEach; ++i) {
         // A head that never ends.
         const int slow_head = connect_loopback(server.port());
         ASSERT_GE(slow_head, 0);
@@ -98,8 +98,8 @@ TEST(HttpConnections, SlowAndIdleClientsDoNotStarveOtherRequests) {
         ASSERT_TRUE(send_all(idle, kHealthz));
     }
     // Every idle connection got its answer and stays open.
-    for (int i = 0; i < kEach; ++i) {
-        const int idle = held.fds[static_cast<size_t>(3 * i + 2)];
+    for (size_t i = 0; i < kEach; ++i) {
+        const int idle = held.fds[3 * i + 2];
         char buf[1024];
         pollfd p{idle, POLLIN, 0};
         ASSERT_GT(::poll(&p, 1, 10000), 0) << "idle connection " << i << " got no answer";

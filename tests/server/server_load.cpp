@@ -246,6 +246,7 @@ struct Server {
                 ::open((dir / "server.log").c_str(), O_WRONLY | O_CREAT | O_TRUNC, 0644);
             ::dup2(log_fd, 2);
             std::vector<char*> argv;
+            argv.reserve(args.size() + 1);
             for (std::string& a : args) argv.push_back(a.data());
             argv.push_back(nullptr);
             ::execv(binary.c_str(), argv.data());
