@@ -19,11 +19,17 @@ struct ServerConfig {
     // Network
     std::string listen = "127.0.0.1:8080";  ///< HOST:PORT; port 0 picks a free port
     std::string port_file;                  ///< when set, the bound port is written there
-    unsigned http_threads = 32;  ///< connection threads (each keep-alive connection holds one)
-    unsigned keep_alive_timeout_s = 2;        ///< idle keep-alive connections close after this
+    unsigned http_threads = 32;         ///< threads serving requests (idle connections hold none)
+    unsigned keep_alive_timeout_s = 2;  ///< idle keep-alive connections close after this
     unsigned keep_alive_max_requests = 1000;  ///< requests per connection before it is closed
     unsigned read_timeout_s = 30;             ///< per socket read
     unsigned write_timeout_s = 30;            ///< per socket write
+    unsigned request_head_timeout_s = 10;     ///< whole request head (line + headers), else 408
+    unsigned request_timeout_s = 60;          ///< whole request head and body, else 408
+    uint64_t max_request_head_bytes = 32ull << 10;    ///< request line + headers, else 431
+    unsigned max_request_headers = 100;               ///< header lines, else 431
+    uint64_t request_prebuffer_bytes = 256ull << 10;  ///< body bytes read before a thread
+    unsigned max_connections = 4096;                  ///< open connections; more are refused
     std::string token;                        ///< bearer token for /v1 (empty = no auth)
     std::string token_file;  ///< file holding the token (read once at start; excludes `token`)
 
@@ -45,10 +51,17 @@ struct ServerConfig {
     uint32_t max_image_width = 8192;
     uint32_t max_image_height = 8192;
     uint32_t max_spp = 1024;
-    uint32_t png_compression = 1;      ///< zlib level of rendered PNGs when a request names none
-    unsigned max_jobs = 16;            ///< async render jobs queued or running before 503
-    unsigned job_ttl_s = 600;          ///< finished jobs are forgotten after this
-    unsigned shutdown_timeout_s = 10;  ///< in-flight requests get this long on SIGTERM
+    uint32_t png_compression = 1;  ///< zlib level of rendered PNGs when a request names none
+    unsigned max_jobs = 16;        ///< async render jobs queued or running before 503
+    unsigned job_ttl_s = 600;      ///< finished jobs are forgotten after this
+    uint64_t job_result_bytes = 512ull << 20;  ///< finished jobs' images (oldest forgotten beyond)
+    uint64_t batch_memory_budget = 2ull
+                                   << 30;   ///< ray batches in flight (rays + answers), 503 beyond
+    uint64_t max_render_rays = 1ull << 36;  ///< pixels x spp x rays per sample of one render
+    unsigned max_renders = 2;               ///< synchronous renders running at once
+    unsigned max_builds = 2;                ///< uploads parsed and built at once
+    unsigned max_queued = 8;                ///< requests waiting for a render or build slot
+    unsigned shutdown_timeout_s = 10;       ///< in-flight requests get this long on SIGTERM
 
     // Logging
     std::string log_level = "info";   ///< trace, debug, info, warn, error, critical, off

@@ -37,6 +37,12 @@ public:
     void metrics(const httplib::Request& req, httplib::Response& res);
 
 private:
+    /// The batch's memory from batch_memory_budget; on refusal (503, or 413 when it could
+    /// never fit) replies and returns nullopt.
+    std::optional<ByteBudget::Hold> take_batch_budget(const httplib::Request& req,
+                                                      httplib::Response& res,
+                                                      const httplib::ContentReader& reader,
+                                                      bool binary);
     void intersect_binary(const httplib::Request& req, httplib::Response& res,
                           const httplib::ContentReader& reader, const KdTree& tree,
                           bool reject_invalid);

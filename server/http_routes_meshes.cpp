@@ -43,6 +43,20 @@ void Routes::upload_mesh(const httplib::Request& req, httplib::Response& res,
         read_body(req, res, reader, svc_.config.max_upload_bytes, svc_.config.upload_memory_bytes,
                   svc_.store.tmp_dir().string(), "a mesh upload (max_upload_bytes)");
     if (!body) return;
+    // Parsing and building take memory and every engine thread: at most max_builds at once,
+    // max_queued waiting, the rest shed. (Taken once the body is in: a slow upload holds no
+    // slot, and the body is spooled to disk beyond upload_memory_bytes.)
+    auto slot = svc_.builds.enter(svc_.shutting_down);
+    if (!slot) {
+        auto p = make_problem(ProblemKind::kOverCapacity,
+                              std::to_string(svc_.builds.running_limit()) +
+                                  " uploads are being built (max_builds) and " +
+                                  std::to_string(svc_.builds.queue_limit()) +
+                                  " waiting (max_queued); retry later");
+        p.retry_after = 1;
+        p.limit = svc_.builds.running_limit();
+        return reply_problem(req, res, std::move(p));
+    }
     proto::MeshLimits limits;
     limits.max_triangles = svc_.config.max_triangles;
     std::vector<std::string> warnings;

@@ -34,7 +34,8 @@ proto::Problem ingest_problem(const IngestFailure& failure, int http_status, uin
         case IngestFailure::Kind::kUnreadable:
             break;
     }
-    // The connection broke or the framing was invalid.
+    // The connection broke, the request's deadline passed, or the framing was invalid.
+    if (request_deadline_passed()) return body_timeout_problem();
     return http_status == 413
                ? body_too_large_problem(limit, kBatchLimitWhat)
                : make_problem(ProblemKind::kBadRequest, "the request body could not be read");
@@ -71,8 +72,52 @@ void Routes::intersect(const httplib::Request& req, httplib::Response& res,
         discard_body(req, res, reader);
         return reply_problem(req, res, mesh_lookup_problem(tree.error(), id));
     }
-    if (binary) return intersect_binary(req, res, reader, **tree, invalid != "miss");
-    intersect_json(req, res, reader, **tree);
+    // The batch's memory (its rays and its answer) is taken from batch_memory_budget before its
+    // body is read, and held until the answer has been sent.
+    auto hold = take_batch_budget(req, res, reader, binary);
+    if (!hold) return;
+    if (binary)
+        intersect_binary(req, res, reader, **tree, invalid != "miss");
+    else
+        intersect_json(req, res, reader, **tree);
+    keep_until_sent(res, std::make_shared<ByteBudget::Hold>(std::move(*hold)));
+}
+
+std::optional<ByteBudget::Hold> Routes::take_batch_budget(const httplib::Request& req,
+                                                          httplib::Response& res,
+                                                          const httplib::ContentReader& reader,
+                                                          bool binary) {
+    const std::optional<uint64_t> declared = declared_body_bytes(req);
+    uint64_t bytes = 0;
+    if (binary) {
+        // 32 bytes a ray in, at most 16 out (KDRH), and the 16-byte header.
+        const uint64_t body = declared.value_or(proto::kdrr_body_size(svc_.config.max_rays));
+        bytes = proto::kdrr_body_size(0) + (body / 32) * 48;
+    } else {
+        bytes = declared.value_or(svc_.config.max_json_bytes) +
+                uint64_t{svc_.config.max_json_rays} * 48;
+    }
+    auto hold = svc_.batch_budget.try_take(bytes);
+    if (hold) return hold;
+    discard_body(req, res, reader);
+    const uint64_t limit = svc_.batch_budget.limit();
+    if (bytes > limit) {
+        reply_problem(req, res,
+                      make_problem(ProblemKind::kPayloadTooLarge,
+                                   "this batch needs " + std::to_string(bytes) +
+                                       " bytes of memory, more than batch_memory_budget (" +
+                                       std::to_string(limit) + ")"));
+        return std::nullopt;
+    }
+    auto p = make_problem(ProblemKind::kOverCapacity,
+                          "ray batches in flight hold " + std::to_string(svc_.batch_budget.held()) +
+                              " of " + std::to_string(limit) +
+                              " bytes (batch_memory_budget); this batch needs " +
+                              std::to_string(bytes) + "; retry later");
+    p.retry_after = 1;
+    p.limit = limit;
+    reply_problem(req, res, std::move(p));
+    return std::nullopt;
 }
 
 void Routes::intersect_binary(const httplib::Request& req, httplib::Response& res,
@@ -85,7 +130,7 @@ void Routes::intersect_binary(const httplib::Request& req, httplib::Response& re
         return reply_problem(req, res, body_too_large_problem(ingest.limit(), kBatchLimitWhat));
     }
     const bool read_ok = read_body_direct(
-        req, reader, kDirectReadBytes, static_cast<int>(svc_.config.read_timeout_s),
+        req, reader, kDirectReadBytes,
         [&](std::span<const std::byte> piece) { return ingest.feed(piece); },
         [&](const SocketReceive& receive) { return ingest.receive_rest(receive); });
     request_context().bytes_in += ingest.received();

@@ -6,8 +6,11 @@
 
 #include "http_routes.h"
 #include "http_util.h"
+#include "httplib_internals.h"
+#include "json_shape.h"
 #include "kdrt/proto/image_io.h"
 #include "kdrt/proto/json_api.h"
+#include "log.h"
 #include "problems.h"
 #include "rendering.h"
 
@@ -38,10 +41,32 @@ bool prefers_async(const httplib::Request& req) {
     return false;
 }
 
+/// What a render costs in rays, an upper bound (Russian roulette may end diffuse paths early).
+struct RenderCost {
+    uint64_t pixels = 0;
+    uint64_t rays_per_sample = 1;
+    uint64_t rays = 0;
+};
+
+RenderCost render_cost(const RenderSettings& s) {
+    RenderCost cost;
+    cost.pixels =
+        s.region ? uint64_t{s.region->width} * s.region->height : uint64_t{s.width} * s.height;
+    if (s.shading == Shading::kAo) cost.rays_per_sample = 1 + uint64_t{s.ao_samples};
+    if (s.shading == Shading::kDiffuse) cost.rays_per_sample = 2 + 2 * uint64_t{s.bounces};
+    cost.rays = cost.pixels * s.spp * cost.rays_per_sample;
+    return cost;
+}
+
+/// The shape a render request body may have before it is parsed (it has about 20 values).
+constexpr JsonShapeLimits kRenderJsonShape{.max_depth = 8, .max_values = 256};
+
 proto::Problem unknown_job_problem(const std::string& id) {
-    return make_problem(ProblemKind::kUnknownJob,
-                        std::string(proto::api_errors::kUnknownJob) + " " + id +
-                            " (it never existed or expired after job_ttl_s)");
+    return make_problem(
+        ProblemKind::kUnknownJob,
+        std::string(proto::api_errors::kUnknownJob) + " " + id +
+            " (it never existed, expired after job_ttl_s, or was forgotten to keep finished "
+            "images within job_result_bytes)");
 }
 
 }  // namespace
@@ -53,6 +78,18 @@ void Routes::render(const httplib::Request& req, httplib::Response& res,
     auto job = make_render_job(req, res, std::move(*request));
     if (!job) return;
     if (prefers_async(req)) return submit_job(req, res, std::move(*job));
+    // At most max_renders run at once and max_queued wait; the rest are shed now.
+    auto slot = svc_.renders.enter(svc_.shutting_down);
+    if (!slot) {
+        auto p = make_problem(ProblemKind::kOverCapacity,
+                              std::to_string(svc_.renders.running_limit()) +
+                                  " renders are running (max_renders) and " +
+                                  std::to_string(svc_.renders.queue_limit()) +
+                                  " waiting (max_queued); retry later");
+        p.retry_after = 1;
+        p.limit = svc_.renders.running_limit();
+        return reply_problem(req, res, std::move(p));
+    }
     render_now(req, res, *job);
 }
 
@@ -69,6 +106,17 @@ std::optional<proto::RenderRequest> Routes::read_render_request(
     auto body = read_body(req, res, reader, svc_.config.max_json_bytes, svc_.config.max_json_bytes,
                           svc_.store.tmp_dir().string(), "a JSON request (max_json_bytes)");
     if (!body) return std::nullopt;
+    // A render request is a few dozen values, 3 levels deep; it is parsed into a DOM, so its
+    // shape is bounded first (kRenderJsonShape).
+    if (auto shape = json_shape_error(as_text(body->bytes()), kRenderJsonShape)) {
+        reply_problem(req, res,
+                      make_problem(ProblemKind::kBadRequest,
+                                   "render request: " + *shape + " (a render request has " +
+                                       std::to_string(kRenderJsonShape.max_values) +
+                                       " values at most, nested " +
+                                       std::to_string(kRenderJsonShape.max_depth) + " deep)"));
+        return std::nullopt;
+    }
     const proto::RenderLimits limits{svc_.config.max_image_width, svc_.config.max_image_height,
                                      svc_.config.max_spp};
     auto request = proto::decode_render_request(as_text(body->bytes()), limits);
@@ -94,6 +142,19 @@ std::optional<RenderJob> Routes::make_render_job(const httplib::Request& req,
         reply_problem(req, res, make_problem(ProblemKind::kBadRequest, e.what()));
         return std::nullopt;
     }
+    const RenderCost cost = render_cost(request.settings);
+    if (cost.rays > svc_.config.max_render_rays) {
+        auto p = make_problem(ProblemKind::kBadRequest,
+                              "render cost " + std::to_string(cost.rays) + " rays (" +
+                                  std::to_string(cost.pixels) + " pixels x " +
+                                  std::to_string(request.settings.spp) + " spp x " +
+                                  std::to_string(cost.rays_per_sample) +
+                                  " rays per sample) exceeds max_render_rays " +
+                                  std::to_string(svc_.config.max_render_rays));
+        p.limit = svc_.config.max_render_rays;
+        reply_problem(req, res, std::move(p));
+        return std::nullopt;
+    }
     proto::ImageEncodeOptions encode;
     encode.png_compression =
         request.compression.value_or(static_cast<int>(svc_.config.png_compression));
@@ -101,7 +162,26 @@ std::optional<RenderJob> Routes::make_render_job(const httplib::Request& req,
 }
 
 void Routes::render_now(const httplib::Request& req, httplib::Response& res, const RenderJob& job) {
-    auto image = render_and_encode(svc_.compute, *job.tree, job.settings, job.format, job.encode);
+    // A render whose client has gone is cancelled at its next tile (checked with each progress
+    // report, about every 1/256 of the work).
+    std::atomic<bool> cancel{false};
+    RenderControl control;
+    control.cancel = &cancel;
+    control.progress = [gone = client_gone_check(), &cancel](double) {
+        if (!cancel.load(std::memory_order_relaxed) && gone()) cancel = true;
+    };
+    proto::Result<RenderedImage, std::string> image = proto::Err{std::string()};
+    try {
+        image = render_and_encode(svc_.compute, *job.tree, job.settings, job.format, job.encode,
+                                  control);
+    } catch (const RenderCancelled&) {
+        log_event(LogLevel::kInfo, "render cancelled: the client closed the connection",
+                  {{"id", request_context().request_id}});
+        res.set_header("Connection", "close");
+        return reply_problem(req, res,
+                             make_problem(ProblemKind::kBadRequest,
+                                          "the client closed the connection; render cancelled"));
+    }
     if (!image) return reply_problem(req, res, make_problem(ProblemKind::kInternal, image.error()));
     svc_.metrics.record_render(image->stats.rays, image->stats.seconds, std::nullopt);
     request_context().rays = image->stats.rays;

@@ -2,6 +2,8 @@
 
 #include <httplib.h>
 
+#include <algorithm>
+#include <array>
 #include <cstring>
 #include <regex>
 #include <utility>
@@ -17,6 +19,10 @@ namespace kdrt::server {
 namespace {
 
 using proto::ProblemKind;
+
+/// Connections waiting to be accepted (httplib 0.11.4 listens with 5: a burst of new
+/// connections beyond that waits for SYN retransmits, 1 s and more).
+constexpr int kListenBacklog = 1024;
 
 /// A path segment (mesh or job id) in a route pattern.
 constexpr const char* kIdPattern = "([^/]+)";
@@ -34,6 +40,15 @@ bool same_secret(std::string_view given, std::string_view expected) {
     for (size_t i = 0; i < expected.size(); ++i)
         diff |= static_cast<unsigned char>((i < given.size() ? given[i] : 0) ^ expected[i]);
     return diff == 0;
+}
+
+/// True for the Content-Encoding "identity" (any case): no encoding.
+bool is_identity(std::string_view encoding) {
+    constexpr std::string_view kIdentity = "identity";
+    return encoding.size() == kIdentity.size() &&
+           std::equal(encoding.begin(), encoding.end(), kIdentity.begin(), [](char a, char b) {
+               return std::tolower(static_cast<unsigned char>(a)) == b;
+           });
 }
 
 }  // namespace
@@ -318,6 +333,20 @@ struct HttpServer::Impl {
                                        "a POST needs a Content-Length (or chunked) body"));
             return httplib::Server::HandlerResponse::Handled;
         }
+        // Compressed request bodies are refused (RFC 7694): httplib would inflate them with no
+        // bound on the decoded size (a 2 MB gzip body becomes a 1 GiB spooled upload).
+        const std::string encoding = req.get_header_value("Content-Encoding");
+        if (!encoding.empty() && !is_identity(encoding)) {
+            request_context().route = "unmatched";
+            reply_problem(req, res,
+                          make_problem(ProblemKind::kUnsupportedMediaType,
+                                       "Content-Encoding " + proto::in_quotes(encoding) +
+                                           " is not accepted; send request bodies "
+                                           "uncompressed (identity)"));
+            res.set_header("Accept-Encoding", "identity");
+            res.set_header("Connection", "close");  // the body is not read
+            return httplib::Server::HandlerResponse::Handled;
+        }
         return httplib::Server::HandlerResponse::Unhandled;
     }
 
@@ -361,6 +390,32 @@ struct HttpServer::Impl {
                    {"id", context.request_id}});
         context.active = false;
         svc.requests.end();
+        note_response_sent(res);
+    }
+
+    /// The problem+json body of a refusal the connection layer sends before httplib parses the
+    /// request (408, 431, 503); logged and counted like a request on no route.
+    std::string early_reply(int status, std::string_view method, const std::string& detail) {
+        const ProblemKind kind = status == 408   ? ProblemKind::kRequestTimeout
+                                 : status == 431 ? ProblemKind::kHeadersTooLarge
+                                 : status == 503 ? ProblemKind::kOverCapacity
+                                                 : ProblemKind::kBadRequest;
+        proto::Problem problem = make_problem(kind, detail);
+        problem.request_id = proto::hex(next_request_id.fetch_add(1), 16);
+        if (status == 503) problem.retry_after = 1;
+        std::string body = proto::encode_problem(problem);
+        static constexpr std::array<std::string_view, 7> kMethods = {
+            "GET", "HEAD", "POST", "PUT", "DELETE", "PATCH", "OPTIONS"};
+        const bool known_method =
+            std::find(kMethods.begin(), kMethods.end(), method) != kMethods.end();
+        const std::string method_label = known_method ? std::string(method) : "other";
+        svc.metrics.record_request("unmatched", method_label, status, 0, 0, body.size());
+        log_event(LogLevel::kWarn, "request refused",
+                  {{"method", method_label},
+                   {"status", static_cast<int64_t>(status)},
+                   {"error", detail},
+                   {"id", problem.request_id}});
+        return body;
     }
 
     [[nodiscard]] uint64_t largest_body() const {
@@ -370,8 +425,21 @@ struct HttpServer::Impl {
 
     void configure() {
         const ServerConfig& c = svc.config;
-        const size_t threads = c.http_threads;
-        http.new_task_queue = [threads] { return new httplib::ThreadPool(threads); };
+        http.set_connection_limits(
+            {.threads = c.http_threads,
+             .keep_alive_timeout_s = c.keep_alive_timeout_s,
+             .keep_alive_max_requests = c.keep_alive_max_requests,
+             .read_timeout_s = c.read_timeout_s,
+             .write_timeout_s = c.write_timeout_s,
+             .head_timeout_s = c.request_head_timeout_s,
+             .request_timeout_s = c.request_timeout_s,
+             .max_head_bytes = static_cast<size_t>(c.max_request_head_bytes),
+             .max_headers = c.max_request_headers,
+             .prebuffer_bytes = static_cast<size_t>(c.request_prebuffer_bytes),
+             .max_connections = c.max_connections},
+            [this](int status, std::string_view method, const std::string& detail) {
+                return early_reply(status, method, detail);
+            });
         http.set_tcp_nodelay(true);
         // httplib's default also sets SO_REUSEPORT, which lets a second server bind the same
         // port and take half the connections. SO_REUSEADDR alone still allows a restart while
@@ -410,6 +478,9 @@ proto::Result<int, std::string> HttpServer::bind(const std::string& host, int po
         const int bound = impl_->http.bind_to_any_port(host);
         if (bound <= 0)
             return proto::Err{"cannot listen on " + host + ":0: " + std::strerror(errno)};
+        if (!impl_->http.set_listen_backlog(kListenBacklog))
+            return proto::Err{"cannot set the listen backlog of " + host + ": " +
+                              std::strerror(errno)};
         return bound;
     }
     errno = 0;
@@ -420,6 +491,9 @@ proto::Result<int, std::string> HttpServer::bind(const std::string& host, int po
             why += " (another process, perhaps another kdrt-server, listens there)";
         return proto::Err{"cannot listen on " + host + ":" + std::to_string(port) + ": " + why};
     }
+    if (!impl_->http.set_listen_backlog(kListenBacklog))
+        return proto::Err{"cannot set the listen backlog of " + host + ":" + std::to_string(port) +
+                          ": " + std::strerror(errno)};
     return port;
 }
 

@@ -3,6 +3,7 @@
 #include <algorithm>
 #include <memory>
 
+#include "httplib_internals.h"
 #include "problems.h"
 
 namespace kdrt::server {
@@ -82,6 +83,11 @@ void reply_buffer(httplib::Response& res, PooledBuffer buffer, size_t size,
                              });
 }
 
+proto::Problem body_timeout_problem() {
+    return make_problem(proto::ProblemKind::kRequestTimeout,
+                        "the request body did not arrive within request_timeout_s");
+}
+
 void discard_body(const httplib::Request& req, httplib::Response& res,
                   const httplib::ContentReader& reader) {
     const uint64_t length = req.get_header_value<uint64_t>("Content-Length");
@@ -116,11 +122,13 @@ std::unique_ptr<RequestBody> read_body(const httplib::Request& req, httplib::Res
         return nullptr;
     }
     if (!read_ok && body->error().empty()) {
-        // The connection broke or the framing was invalid; httplib set 400 or 413.
+        // The connection broke, the request's deadline passed, or the framing was invalid
+        // (httplib set 400 or 413).
         reply_problem(req, res,
-                      res.status == 413 ? body_too_large_problem(limit, what)
-                                        : make_problem(proto::ProblemKind::kBadRequest,
-                                                       "the request body could not be read"));
+                      request_deadline_passed() ? body_timeout_problem()
+                      : res.status == 413       ? body_too_large_problem(limit, what)
+                                                : make_problem(proto::ProblemKind::kBadRequest,
+                                                               "the request body could not be read"));
         res.set_header("Connection", "close");
         return nullptr;
     }

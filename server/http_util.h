@@ -52,6 +52,9 @@ void reply_bytes(httplib::Response& res, std::vector<std::byte> bytes,
 void reply_buffer(httplib::Response& res, PooledBuffer buffer, size_t size,
                   std::string_view content_type);
 
+/// 408 for a body that did not arrive within the request's deadline (request_timeout_s).
+[[nodiscard]] proto::Problem body_timeout_problem();
+
 /// After an early error reply on a streamed route, the body has not been read: drain it if it
 /// is small, else ask the client to close the connection (never parse it as the next request).
 void discard_body(const httplib::Request& req, httplib::Response& res,

@@ -28,10 +28,14 @@ std::string random_id() {
 
 }  // namespace
 
-JobQueue::JobQueue(Compute& compute, Metrics& metrics, unsigned max_jobs, unsigned ttl_s)
-    : compute_(compute), metrics_(metrics), max_jobs_(max_jobs), ttl_(ttl_s), worker_([this] {
-          worker_loop();
-      }) {
+JobQueue::JobQueue(Compute& compute, Metrics& metrics, unsigned max_jobs, unsigned ttl_s,
+                   uint64_t max_result_bytes)
+    : compute_(compute),
+      metrics_(metrics),
+      max_jobs_(max_jobs),
+      ttl_(ttl_s),
+      max_result_bytes_(max_result_bytes),
+      worker_([this] { worker_loop(); }) {
     metrics_.add_collector([this](std::vector<proto::MetricFamily>& out) {
         proto::MetricFamily jobs;
         jobs.name = "kdrt_jobs";
@@ -48,6 +52,19 @@ JobQueue::JobQueue(Compute& compute, Metrics& metrics, unsigned max_jobs, unsign
                             {{{"outcome", "failed"}}, static_cast<double>(failed_.load())},
                             {{{"outcome", "cancelled"}}, static_cast<double>(cancelled_.load())}};
         out.push_back(std::move(finished));
+        proto::MetricFamily held;
+        held.name = "kdrt_job_result_bytes";
+        held.help = "Bytes of finished async jobs' images held (at most job_result_bytes).";
+        held.type = proto::MetricType::kGauge;
+        held.samples = {{{}, static_cast<double>(result_bytes())}};
+        out.push_back(std::move(held));
+        proto::MetricFamily evicted;
+        evicted.name = "kdrt_jobs_evicted_total";
+        evicted.help =
+            "Finished async jobs forgotten before job_ttl_s to stay within job_result_bytes.";
+        evicted.type = proto::MetricType::kCounter;
+        evicted.samples = {{{}, static_cast<double>(evicted_.load())}};
+        out.push_back(std::move(evicted));
     });
 }
 
@@ -142,6 +159,37 @@ unsigned JobQueue::running() const {
     return running_;
 }
 
+uint64_t JobQueue::result_bytes() const {
+    std::lock_guard lock(mutex_);
+    return held_result_bytes();
+}
+
+uint64_t JobQueue::held_result_bytes() const {
+    uint64_t bytes = 0;
+    for (const auto& [id, job] : jobs_)
+        if (job->image) bytes += job->image->size();
+    return bytes;
+}
+
+void JobQueue::evict_over_budget() {
+    uint64_t held = held_result_bytes();
+    while (held > max_result_bytes_) {
+        auto oldest = jobs_.end();
+        for (auto it = jobs_.begin(); it != jobs_.end(); ++it)
+            if (it->second->image &&
+                (oldest == jobs_.end() || it->second->finished_at < oldest->second->finished_at))
+                oldest = it;
+        if (oldest == jobs_.end()) return;
+        held -= oldest->second->image->size();
+        log_event(LogLevel::kInfo, "job evicted",
+                  {{"job", oldest->first},
+                   {"result_bytes", static_cast<uint64_t>(oldest->second->image->size())},
+                   {"reason", std::string_view("job_result_bytes")}});
+        jobs_.erase(oldest);
+        evicted_.fetch_add(1);
+    }
+}
+
 void JobQueue::worker_loop() {
     for (;;) {
         std::shared_ptr<Job> job;
@@ -172,7 +220,12 @@ void JobQueue::run(Job& job) {
     try {
         auto rendered = render_and_encode(compute_, *job.input.tree, job.input.settings,
                                           job.input.format, job.input.encode, control);
-        if (rendered) {
+        if (rendered && rendered->bytes.size() > max_result_bytes_) {
+            state = proto::JobState::kFailed;
+            error = "the image (" + std::to_string(rendered->bytes.size()) +
+                    " bytes) is larger than job_result_bytes (" +
+                    std::to_string(max_result_bytes_) + ")";
+        } else if (rendered) {
             render_ms = rendered->stats.seconds * 1e3;
             metrics_.record_render(rendered->stats.rays, rendered->stats.seconds, queued_seconds);
             image = std::make_shared<const std::vector<std::byte>>(std::move(rendered->bytes));
@@ -201,6 +254,7 @@ void JobQueue::run(Job& job) {
     job.status.result_bytes = job.image ? job.image->size() : 0;
     job.input.tree.reset();  // the job no longer pins the tree
     job.finished_at = std::chrono::steady_clock::now();
+    evict_over_budget();
     (state == proto::JobState::kDone     ? done_
      : state == proto::JobState::kFailed ? failed_
                                          : cancelled_)

@@ -2,11 +2,14 @@
 /// Async render jobs (POST /v1/render with `Prefer: respond-async`): a bounded queue served by
 /// one worker thread, which renders inside the compute arena (a render already uses every
 /// core). Jobs report progress (0..1), can be cancelled while queued or running, and keep their
-/// image for job_ttl_s after they finish. Thread-safe.
+/// image for job_ttl_s after they finish, within a byte budget (job_result_bytes): when a new
+/// image would take the finished jobs' images over it, the oldest finished jobs are forgotten
+/// first (their ids then answer 404, as after job_ttl_s). Thread-safe.
 
 #include <atomic>
 #include <chrono>
 #include <condition_variable>
+#include <cstdint>
 #include <deque>
 #include <memory>
 #include <mutex>
@@ -37,7 +40,10 @@ struct RenderJob {
 
 class JobQueue {
 public:
-    JobQueue(Compute& compute, Metrics& metrics, unsigned max_jobs, unsigned ttl_s);
+    /// `max_result_bytes`: the finished jobs' images together (an image larger than this fails
+    /// its job).
+    JobQueue(Compute& compute, Metrics& metrics, unsigned max_jobs, unsigned ttl_s,
+             uint64_t max_result_bytes);
     ~JobQueue();
     JobQueue(const JobQueue&) = delete;
     JobQueue& operator=(const JobQueue&) = delete;
@@ -67,6 +73,8 @@ public:
 
     [[nodiscard]] unsigned queued() const;
     [[nodiscard]] unsigned running() const;
+    /// Bytes of the finished jobs' images held now.
+    [[nodiscard]] uint64_t result_bytes() const;
 
 private:
     struct Job {
@@ -81,12 +89,15 @@ private:
     void worker_loop();
     void run(Job& job);
     void purge_expired();                             // mutex_ held
+    void evict_over_budget();                         // mutex_ held
+    uint64_t held_result_bytes() const;               // mutex_ held
     proto::JobStatus snapshot(const Job& job) const;  // mutex_ held
 
     Compute& compute_;
     Metrics& metrics_;
     const unsigned max_jobs_;
     const std::chrono::seconds ttl_;
+    const uint64_t max_result_bytes_;
 
     mutable std::mutex mutex_;
     std::condition_variable wake_;
@@ -94,7 +105,7 @@ private:
     std::deque<std::shared_ptr<Job>> queue_;
     unsigned running_ = 0;
     bool stopping_ = false;
-    std::atomic<uint64_t> done_{0}, failed_{0}, cancelled_{0};
+    std::atomic<uint64_t> done_{0}, failed_{0}, cancelled_{0}, evicted_{0};
     std::thread worker_;
 };
 

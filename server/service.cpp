@@ -8,7 +8,10 @@ Service::Service(ServerConfig cfg)
       store(config.cache_dir),
       cache(store, compute, metrics, config.memory_budget),
       gate(config.max_inflight),
-      jobs(compute, metrics, config.max_jobs, config.job_ttl_s),
+      batch_budget(config.batch_memory_budget),
+      renders(config.max_renders, config.max_queued),
+      builds(config.max_builds, config.max_queued),
+      jobs(compute, metrics, config.max_jobs, config.job_ttl_s, config.job_result_bytes),
       batch_buffers(config.buffer_pool_bytes) {
     metrics.add_collector([this](std::vector<proto::MetricFamily>& out) {
         using proto::MetricType;
@@ -42,6 +45,16 @@ Service::Service(ServerConfig cfg)
               {}, static_cast<double>(cache.damaged_count()));
         gauge("kdrt_inflight_requests", "Uploads, traces and renders in flight.", {},
               static_cast<double>(gate.in_flight()));
+        gauge("kdrt_batch_bytes", "Bytes of ray batches in flight (at most batch_memory_budget).",
+              {}, static_cast<double>(batch_budget.held()));
+        gauge("kdrt_work_slots", "Renders and builds running and waiting for a slot.",
+              {{"work", "render"}, {"state", "running"}}, static_cast<double>(renders.running()));
+        gauge("kdrt_work_slots", "Renders and builds running and waiting for a slot.",
+              {{"work", "render"}, {"state", "waiting"}}, static_cast<double>(renders.waiting()));
+        gauge("kdrt_work_slots", "Renders and builds running and waiting for a slot.",
+              {{"work", "build"}, {"state", "running"}}, static_cast<double>(builds.running()));
+        gauge("kdrt_work_slots", "Renders and builds running and waiting for a slot.",
+              {{"work", "build"}, {"state", "waiting"}}, static_cast<double>(builds.waiting()));
         gauge("kdrt_buffer_pool_bytes",
               "Idle batch buffers kept for reuse (at most buffer_pool_bytes).", {},
               static_cast<double>(batch_buffers.idle_bytes()));

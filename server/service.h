@@ -6,6 +6,8 @@
 #include <atomic>
 #include <chrono>
 #include <map>
+#include <condition_variable>
+#include <cstdint>
 #include <memory>
 #include <mutex>
 #include <optional>
@@ -103,6 +105,113 @@ private:
     std::map<std::thread::id, Current> current_;
 };
 
+/// Bytes of a shared budget held by work in flight (ray batches: their rays and answers); work
+/// that does not fit gets 503 before it starts.
+class ByteBudget {
+public:
+    explicit ByteBudget(uint64_t limit) : limit_(limit) {}
+
+    /// Held bytes; given back on destruction.
+    class Hold {
+    public:
+        Hold(std::atomic<uint64_t>& held, uint64_t bytes) : held_(&held), bytes_(bytes) {}
+        Hold(Hold&& other) noexcept
+            : held_(std::exchange(other.held_, nullptr)), bytes_(other.bytes_) {}
+        Hold(const Hold&) = delete;
+        Hold& operator=(const Hold&) = delete;
+        Hold& operator=(Hold&&) = delete;
+        ~Hold() {
+            if (held_) held_->fetch_sub(bytes_);
+        }
+
+    private:
+        std::atomic<uint64_t>* held_;
+        uint64_t bytes_;
+    };
+
+    /// `bytes` of the budget, or nullopt when they do not fit next to what is held.
+    [[nodiscard]] std::optional<Hold> try_take(uint64_t bytes) {
+        uint64_t held = held_.load();
+        do {
+            if (bytes > limit_ || held > limit_ - bytes) return std::nullopt;
+        } while (!held_.compare_exchange_weak(held, held + bytes));
+        return Hold(held_, bytes);
+    }
+    [[nodiscard]] uint64_t held() const noexcept { return held_.load(); }
+    [[nodiscard]] uint64_t limit() const noexcept { return limit_; }
+
+private:
+    const uint64_t limit_;
+    std::atomic<uint64_t> held_{0};
+};
+
+/// Admits at most `running` of one kind of expensive work (renders, tree builds) at once; up to
+/// `queued` more wait for a slot in arrival order, and the rest are refused at once (503 +
+/// Retry-After), so a burst is shed early instead of sharing the cores ever more thinly.
+class WorkGate {
+public:
+    WorkGate(unsigned running, unsigned queued) : running_limit_(running), queue_limit_(queued) {}
+
+    class Slot {
+    public:
+        explicit Slot(WorkGate& gate) : gate_(&gate) {}
+        Slot(Slot&& other) noexcept : gate_(std::exchange(other.gate_, nullptr)) {}
+        Slot(const Slot&) = delete;
+        Slot& operator=(const Slot&) = delete;
+        Slot& operator=(Slot&&) = delete;
+        ~Slot() {
+            if (gate_) gate_->leave();
+        }
+
+    private:
+        WorkGate* gate_;
+    };
+
+    /// A slot, after waiting in the queue when every slot is taken; nullopt when the queue is
+    /// full too, or once `stop` is set (checked while waiting).
+    [[nodiscard]] std::optional<Slot> enter(const std::atomic<bool>& stop) {
+        std::unique_lock lock(mutex_);
+        if (running_ >= running_limit_ || waiting_ > 0) {
+            if (waiting_ >= queue_limit_) return std::nullopt;
+            ++waiting_;
+            const uint64_t ticket = next_ticket_++;
+            while (!stop && (running_ >= running_limit_ || ticket != serving_))
+                cv_.wait_for(lock, std::chrono::milliseconds(100));
+            --waiting_;
+            if (stop) return std::nullopt;  // shutting down: every waiter leaves
+            ++serving_;
+            cv_.notify_all();  // the next ticket may take a slot too
+        }
+        ++running_;
+        return Slot(*this);
+    }
+    [[nodiscard]] unsigned running() const {
+        std::lock_guard lock(mutex_);
+        return running_;
+    }
+    [[nodiscard]] unsigned waiting() const {
+        std::lock_guard lock(mutex_);
+        return waiting_;
+    }
+    [[nodiscard]] unsigned running_limit() const noexcept { return running_limit_; }
+    [[nodiscard]] unsigned queue_limit() const noexcept { return queue_limit_; }
+
+private:
+    void leave() {
+        {
+            std::lock_guard lock(mutex_);
+            --running_;
+        }
+        cv_.notify_all();
+    }
+
+    const unsigned running_limit_, queue_limit_;
+    mutable std::mutex mutex_;
+    std::condition_variable cv_;
+    unsigned running_ = 0, waiting_ = 0;
+    uint64_t next_ticket_ = 0, serving_ = 0;  ///< FIFO order of the waiters
+};
+
 struct Service {
     explicit Service(ServerConfig cfg);
 
@@ -112,6 +221,9 @@ struct Service {
     MeshStore store;
     MeshCache cache;
     AdmissionGate gate;
+    ByteBudget batch_budget;  ///< bytes of ray batches in flight (batch_memory_budget)
+    WorkGate renders;         ///< synchronous renders (max_renders, max_queued)
+    WorkGate builds;          ///< mesh uploads: parse and tree build (max_builds, max_queued)
     JobQueue jobs;
     BufferPool batch_buffers;                ///< rays and encoded answers of KDRR batches
     std::atomic<bool> ready{false};          ///< index loaded and preloads done

@@ -24,10 +24,13 @@ constexpr std::array<KindInfo, 17> kKinds = {{
     {ProblemKind::kUnknownJob, 404, "Unknown job", "urn:kdrt:problem:unknown-job"},
     {ProblemKind::kMethodNotAllowed, 405, "Method not allowed",
      "urn:kdrt:problem:method-not-allowed"},
+    {ProblemKind::kRequestTimeout, 408, "Request timeout", "urn:kdrt:problem:request-timeout"},
     {ProblemKind::kJobNotDone, 409, "Job has no result", "urn:kdrt:problem:job-not-done"},
     {ProblemKind::kPayloadTooLarge, 413, "Payload too large", "urn:kdrt:problem:payload-too-large"},
     {ProblemKind::kUnsupportedMediaType, 415, "Unsupported media type",
      "urn:kdrt:problem:unsupported-media-type"},
+    {ProblemKind::kHeadersTooLarge, 431, "Request header fields too large",
+     "urn:kdrt:problem:headers-too-large"},
     {ProblemKind::kMeshParseError, 422, "Mesh parse error", "urn:kdrt:problem:mesh-parse-error"},
     {ProblemKind::kInvalidMesh, 422, "Invalid mesh", "urn:kdrt:problem:invalid-mesh"},
     {ProblemKind::kInternal, 500, "Internal server error", "urn:kdrt:problem:internal"},
@@ -42,7 +45,9 @@ constexpr std::array<KindInfo, 17> kKinds = {{
 const KindInfo& info(ProblemKind kind) noexcept {
     for (const KindInfo& k : kKinds)
         if (k.kind == kind) return k;
-    return kKinds[12];  // kInternal
+    for (const KindInfo& k : kKinds)
+        if (k.kind == ProblemKind::kInternal) return k;
+    return kKinds.front();
 }
 
 }  // namespace

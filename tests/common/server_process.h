@@ -47,6 +47,8 @@ public:
 
     [[nodiscard]] int port() const noexcept { return port_; }
     [[nodiscard]] bool running() const noexcept { return pid_ > 0; }
+    /// The server's process id (for /proc/PID/status), or -1 once it has stopped.
+    [[nodiscard]] int pid() const noexcept { return pid_; }
 
     /// A client for this server (keep-alive, generous timeouts).
     [[nodiscard]] std::unique_ptr<httplib::Client> client() const;

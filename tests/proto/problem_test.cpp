@@ -51,6 +51,8 @@ TEST(Problem, StatusesMatchTheApi) {
     EXPECT_EQ(problem_status(ProblemKind::kUnauthorized), 401);
     EXPECT_EQ(problem_status(ProblemKind::kUnknownMesh), 404);
     EXPECT_EQ(problem_status(ProblemKind::kMethodNotAllowed), 405);
+    EXPECT_EQ(problem_status(ProblemKind::kRequestTimeout), 408);
+    EXPECT_EQ(problem_status(ProblemKind::kHeadersTooLarge), 431);
     EXPECT_EQ(problem_status(ProblemKind::kJobNotDone), 409);
     EXPECT_EQ(problem_status(ProblemKind::kPayloadTooLarge), 413);
     EXPECT_EQ(problem_status(ProblemKind::kUnsupportedMediaType), 415);

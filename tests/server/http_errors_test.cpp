@@ -300,7 +300,9 @@ TEST(HttpStartup, V1IsUnavailableUntilTheIndexAndPreloadsAreDone) {
 
 TEST(HttpCapacity, OverCapacityIs503WithRetryAfter) {
     TempDir dir;
-    ServerProcess server({.cache_dir = dir.path() / "cache", .args = {"--max-inflight", "1"}});
+    // No prebuffering: the held upload below gets a thread (and its slot) with its head.
+    ServerProcess server({.cache_dir = dir.path() / "cache",
+                          .args = {"--max-inflight", "1", "--request-prebuffer-bytes", "0"}});
     ASSERT_TRUE(server.running());
     // Hold the only slot: an upload whose body never finishes arriving.
     const int held = connect_loopback(server.port());

@@ -4,8 +4,12 @@
 // names the request id, leaks nothing of the exception, closes the connection, and leaves the
 // server serving.
 
+#include <arpa/inet.h>
 #include <gtest/gtest.h>
 #include <httplib.h>
+#include <netinet/in.h>
+#include <poll.h>
+#include <sys/socket.h>
 #include <unistd.h>
 
 #include <atomic>
@@ -26,7 +30,8 @@ namespace fs = std::filesystem;
 /// A Service + HttpServer on an ephemeral loopback port, serving on a thread.
 class InProcessServer {
 public:
-    explicit InProcessServer(const std::function<void(HttpServer&)>& add_routes) {
+    explicit InProcessServer(const std::function<void(HttpServer&)>& add_routes,
+                             const std::function<void(ServerConfig&)>& configure = {}) {
         static std::atomic<int> counter{0};
         dir_ = fs::temp_directory_path() / ("kdrt-wrapper-test-" + std::to_string(::getpid()) +
                                             "-" + std::to_string(counter++));
@@ -35,6 +40,7 @@ public:
         config.cache_dir = (dir_ / "cache").string();
         config.threads = 1;
         config.http_threads = 2;
+        if (configure) configure(config);
         service_ = std::make_unique<Service>(config);
         service_->ready = true;
         http_ = std::make_unique<HttpServer>(*service_);
@@ -101,6 +107,83 @@ TEST(HttpWrapper, ExceptionsFromHandlersAre500ProblemsAndTheServerGoesOn) {
     auto health = cli.Get("/healthz");
     ASSERT_TRUE(health);
     EXPECT_EQ(health->status, 200);
+}
+
+/// A connected loopback socket, or -1.
+int connect_to(int port) {
+    const int fd = ::socket(AF_INET, SOCK_STREAM, 0);
+    sockaddr_in addr{};
+    addr.sin_family = AF_INET;
+    addr.sin_port = htons(static_cast<uint16_t>(port));
+    addr.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+    if (fd >= 0 && ::connect(fd, reinterpret_cast<sockaddr*>(&addr), sizeof addr) == 0) return fd;
+    if (fd >= 0) ::close(fd);
+    return -1;
+}
+
+/// Sends `request` on `fd` and returns what arrives until the server closes the connection
+/// (bounded: 30 s).
+std::string exchange(int fd, const std::string& request) {
+    ::send(fd, request.data(), request.size(), MSG_NOSIGNAL);
+    std::string out;
+    char buf[4096];
+    for (;;) {
+        pollfd p{fd, POLLIN, 0};
+        if (::poll(&p, 1, 30000) <= 0) break;
+        const ssize_t n = ::recv(fd, buf, sizeof buf, 0);
+        if (n <= 0) break;
+        out.append(buf, static_cast<size_t>(n));
+    }
+    ::close(fd);
+    return out;
+}
+
+size_t count_of(const std::string& text, const std::string& what) {
+    size_t n = 0;
+    for (size_t at = text.find(what); at != std::string::npos; at = text.find(what, at + 1)) ++n;
+    return n;
+}
+
+// The connection layer in process (so the sanitizer pass covers it; the integration tests in
+// http_connections_test.cpp drive it from outside): pipelining with a prebuffered body, the
+// head limits, the head deadline, and a connection reused after idling in the poll loop.
+TEST(HttpWrapper, TheConnectionLayerAnswersPipelinedRequestsAndRefusesBadHeads) {
+    InProcessServer server([](HttpServer&) {},
+                           [](ServerConfig& c) {
+                               c.request_head_timeout_s = 1;
+                               c.max_request_head_bytes = 2048;
+                               c.max_request_headers = 10;
+                           });
+    ASSERT_GT(server.port(), 0);
+    // Three pipelined requests, the second with a body the loop receives before a thread.
+    std::string requests = "GET /healthz HTTP/1.1\r\nHost: x\r\n\r\n";
+    requests +=
+        "POST /v1/render HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\n"
+        "Content-Length: 2\r\n\r\n{}";
+    requests += "GET /readyz HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n";
+    std::string reply = exchange(connect_to(server.port()), requests);
+    EXPECT_EQ(count_of(reply, "HTTP/1.1 "), 3u) << reply;
+    EXPECT_EQ(reply.rfind("HTTP/1.1 200", 0), 0u) << reply;
+    EXPECT_NE(reply.find("HTTP/1.1 400"), std::string::npos) << reply;  // {} names no mesh
+    // Over the head limits.
+    reply = exchange(connect_to(server.port()),
+                     "GET /healthz HTTP/1.1\r\nX-Big: " + std::string(3000, 'a') + "\r\n\r\n");
+    EXPECT_EQ(reply.rfind("HTTP/1.1 431", 0), 0u) << reply;
+    std::string many = "GET /healthz HTTP/1.1\r\n";
+    for (int i = 0; i < 11; ++i) many += "X-A: 1\r\n";
+    reply = exchange(connect_to(server.port()), many + "\r\n");
+    EXPECT_EQ(reply.rfind("HTTP/1.1 431", 0), 0u) << reply;
+    // A head that stops arriving: 408 at the 1 s head deadline.
+    reply = exchange(connect_to(server.port()), "GET /healthz HTTP/1.1\r\nHost: x\r\n");
+    EXPECT_EQ(reply.rfind("HTTP/1.1 408", 0), 0u) << reply;
+    // A keep-alive connection idles in the loop between requests and is served again.
+    httplib::Client cli("127.0.0.1", server.port());
+    cli.set_keep_alive(true);
+    for (int i = 0; i < 3; ++i) {
+        auto res = cli.Get("/healthz");
+        ASSERT_TRUE(res);
+        EXPECT_EQ(res->status, 200);
+    }
 }
 
 }  // namespace

@@ -31,9 +31,11 @@ enum class ProblemKind {
     kUnknownMesh,           ///< 404 no mesh with that id
     kUnknownJob,            ///< 404 no job with that id
     kMethodNotAllowed,      ///< 405 route exists, method does not
+    kRequestTimeout,        ///< 408 request head or body not received within its deadline
     kJobNotDone,            ///< 409 job result requested before the job succeeded
     kPayloadTooLarge,       ///< 413 body or batch over a configured limit
     kUnsupportedMediaType,  ///< 415 Content-Type (or ?format) not accepted by the route
+    kHeadersTooLarge,       ///< 431 request head over its size or header-count limit
     kMeshParseError,        ///< 422 mesh file refused by the parser (line / byte_offset)
     kInvalidMesh,           ///< 422 mesh parsed but cannot be built (e.g. no triangles)
     kInternal,              ///< 500 unexpected failure (logged with request_id)
@@ -45,7 +47,7 @@ enum class ProblemKind {
 /// The last ProblemKind (for loops over every kind).
 inline constexpr ProblemKind kLastProblemKind = ProblemKind::kStoredMeshDamaged;
 
-/// HTTP status of a kind (400, 401, 404, 405, 409, 413, 415, 422, 500, 503, 507).
+/// HTTP status of a kind (400, 401, 404, 405, 408, 409, 413, 415, 422, 431, 500, 503, 507).
 [[nodiscard]] int problem_status(ProblemKind kind) noexcept;
 /// Short constant title, e.g. "Unknown mesh".
 [[nodiscard]] std::string_view problem_title(ProblemKind kind) noexcept;

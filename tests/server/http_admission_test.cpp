@@ -1,0 +1,310 @@
+// Memory and work bounded by configuration, against a real kdrt-server: the ray-batch byte
+// budget, the finished-jobs byte budget, the render cost limit, render admission (503 +
+// Retry-After), cancelling a render whose client left, and the peak RSS under hostile bodies.
+
+#include <gtest/gtest.h>
+#include <poll.h>
+#include <sys/socket.h>
+#include <unistd.h>
+
+#include <chrono>
+#include <fstream>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "http_test_util.h"
+#include "kdrt/proto/ray_batch.h"
+
+namespace kdrt::test {
+namespace {
+
+using namespace std::chrono_literals;
+using proto::ProblemKind;
+
+const std::string kRays(proto::kRaysMediaType);
+
+bool send_all(int fd, const std::string& data) {
+    size_t sent = 0;
+    while (sent < data.size()) {
+        const ssize_t n = ::send(fd, data.data() + sent, data.size() - sent, MSG_NOSIGNAL);
+        if (n <= 0) return false;
+        sent += static_cast<size_t>(n);
+    }
+    return true;
+}
+
+/// The peak resident set (VmHWM) of `pid` in bytes.
+uint64_t peak_rss_bytes(int pid) {
+    std::ifstream in("/proc/" + std::to_string(pid) + "/status");
+    std::string line;
+    while (std::getline(in, line))
+        if (line.rfind("VmHWM:", 0) == 0) return std::stoull(line.substr(6)) * 1024;
+    return 0;
+}
+
+/// Waits (bounded) until `predicate` holds.
+template <typename Predicate>
+bool eventually(Predicate predicate, std::chrono::seconds limit = 60s) {
+    const auto end = std::chrono::steady_clock::now() + limit;
+    while (std::chrono::steady_clock::now() < end) {
+        if (predicate()) return true;
+        std::this_thread::sleep_for(20ms);
+    }
+    return predicate();
+}
+
+std::string kdrr(size_t rays, uint64_t seed) {
+    return bytes_to_string(proto::encode_rays(rays_towards_unit_cube(rays, seed), false));
+}
+
+TEST(HttpAdmission, RayBatchesAreAdmittedAgainstTheByteBudget) {
+    TempDir dir;
+    // 90 000 bytes: a 1000-ray batch (16 + 48 x 1000) fits, a 3000-ray one never can, and a
+    // second 1000-ray batch does not fit next to one in flight.
+    ServerProcess server(
+        {.cache_dir = dir.path() / "cache",
+         .args = {"--batch-memory-budget", "90000", "--request-prebuffer-bytes", "0"}});
+    ASSERT_TRUE(server.running());
+    auto cli = server.client();
+    const std::string id = upload_id(*cli, small_mesh(3));
+    const std::string path = "/v1/meshes/" + id + "/intersect";
+    auto res = cli->Post(path, kdrr(1000, 1), kRays);
+    ASSERT_TRUE(res);
+    EXPECT_EQ(res->status, 200);
+    auto p = expect_problem(cli->Post(path, kdrr(3000, 2), kRays), 413);
+    EXPECT_NE(p.detail.find("more than batch_memory_budget (90000)"), std::string::npos)
+        << p.detail;
+    // Hold a 1000-ray batch in flight: its body never finishes arriving.
+    const int held = connect_loopback(server.port());
+    ASSERT_GE(held, 0);
+    const std::string body = kdrr(1000, 3);
+    ASSERT_TRUE(send_all(held, "POST " + path + " HTTP/1.1\r\nHost: x\r\nContent-Type: " +
+                                   std::string(proto::kRaysMediaType) + "\r\nContent-Length: " +
+                                   std::to_string(body.size()) + "\r\n\r\n" + body.substr(0, 100)));
+    ASSERT_TRUE(eventually([&] { return server.metric("kdrt_batch_bytes").value_or(0) > 0; }));
+    res = cli->Post(path, kdrr(1000, 4), kRays);
+    p = expect_problem(res, 503);
+    EXPECT_EQ(p.kind, ProblemKind::kOverCapacity);
+    EXPECT_EQ(res->get_header_value("Retry-After"), "1");
+    EXPECT_NE(p.detail.find("(batch_memory_budget); this batch needs 48016"), std::string::npos)
+        << p.detail;
+    ::close(held);
+    // The budget comes back once the held batch is gone.
+    EXPECT_TRUE(eventually([&] {
+        auto again = cli->Post(path, kdrr(1000, 5), kRays);
+        return again && again->status == 200;
+    }));
+}
+
+TEST(HttpAdmission, FinishedJobsAreForgottenOldestFirstBeyondTheirByteBudget) {
+    TempDir dir;
+    constexpr uint64_t kBudget = 20000;
+    ServerProcess server({.cache_dir = dir.path() / "cache",
+                          .args = {"--job-result-bytes", std::to_string(kBudget)}});
+    ASSERT_TRUE(server.running());
+    auto cli = server.client();
+    const std::string id = upload_id(*cli, small_mesh(4, 2000));
+    std::vector<std::string> jobs;
+    uint64_t total = 0;
+    for (int i = 0; i < 40 && total <= kBudget; ++i) {
+        const std::string json = "{\"mesh\":\"" + id +
+                                 "\",\"width\":48,\"height\":48,\"seed\":" + std::to_string(i + 1) +
+                                 ",\"shading\":\"ao\"}";
+        auto res = cli->Post("/v1/render", {{"Prefer", "respond-async"}}, json, "application/json");
+        ASSERT_TRUE(res);
+        ASSERT_EQ(res->status, 202) << res->body;
+        const std::string job = proto::decode_job_status(res->body)->id;
+        jobs.push_back(job);
+        uint64_t bytes = 0;
+        ASSERT_TRUE(eventually([&] {
+            auto status = cli->Get("/v1/jobs/" + job);
+            if (!status || status->status != 200) return false;
+            auto s = proto::decode_job_status(status->body);
+            bytes = s ? s->result_bytes : 0;
+            return s && s->state == proto::JobState::kDone;
+        }));
+        ASSERT_GT(bytes, 0u);
+        ASSERT_LT(bytes, kBudget);
+        total += bytes;
+    }
+    ASSERT_GT(total, kBudget) << "the renders never filled the budget";
+    // The newest job's image is kept; the oldest was forgotten to make room.
+    auto newest = cli->Get("/v1/jobs/" + jobs.back() + "/result");
+    ASSERT_TRUE(newest);
+    EXPECT_EQ(newest->status, 200);
+    auto oldest = expect_problem(cli->Get("/v1/jobs/" + jobs.front()), 404);
+    EXPECT_EQ(oldest.kind, ProblemKind::kUnknownJob);
+    EXPECT_LE(server.metric("kdrt_job_result_bytes").value_or(kBudget + 1), kBudget);
+    EXPECT_GE(server.metric("kdrt_jobs_evicted_total").value_or(0), 1);
+}
+
+TEST(HttpAdmission, RendersOverTheCostLimitAreRefusedBeforeTheyStart) {
+    TempDir dir;
+    ServerProcess server(
+        {.cache_dir = dir.path() / "cache", .args = {"--max-render-rays", "1000"}});
+    ASSERT_TRUE(server.running());
+    auto cli = server.client();
+    const std::string id = upload_id(*cli, small_mesh(5));
+    auto ok = cli->Post("/v1/render", "{\"mesh\":\"" + id + "\",\"width\":20,\"height\":20}",
+                        "application/json");
+    ASSERT_TRUE(ok);
+    EXPECT_EQ(ok->status, 200);
+    auto p = expect_problem(
+        cli->Post("/v1/render",
+                  "{\"mesh\":\"" + id + "\",\"width\":20,\"height\":20,\"shading\":\"ao\"}",
+                  "application/json"),
+        400);
+    EXPECT_EQ(p.detail,
+              "render cost 6800 rays (400 pixels x 1 spp x 17 rays per sample) exceeds "
+              "max_render_rays 1000");
+    p = expect_problem(
+        cli->Post("/v1/render", "{\"mesh\":\"" + id + "\",\"width\":20,\"height\":20,\"spp\":4}",
+                  "application/json"),
+        400);
+    EXPECT_NE(p.detail.find("1600 rays (400 pixels x 4 spp x 1 rays per sample)"),
+              std::string::npos)
+        << p.detail;
+}
+
+/// A render of a minute or more on this machine (4M pixels x 16 samples x 17 rays).
+std::string long_render(const std::string& id) {
+    return "{\"mesh\":\"" + id + "\",\"width\":2048,\"height\":2048,\"shading\":\"ao\",\"spp\":16}";
+}
+
+/// Sends a long render on a new connection (not waiting for the answer); the socket.
+int start_long_render(int port, const std::string& id) {
+    const int fd = connect_loopback(port);
+    const std::string json = long_render(id);
+    send_all(fd,
+             "POST /v1/render HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\n"
+             "Content-Length: " +
+                 std::to_string(json.size()) + "\r\n\r\n" + json);
+    return fd;
+}
+
+TEST(HttpAdmission, ARenderWhoseClientLeftIsCancelled) {
+    TempDir dir;
+    ServerProcess server({.cache_dir = dir.path() / "cache"});
+    ASSERT_TRUE(server.running());
+    auto cli = server.client();
+    const std::string id = upload_id(*cli, small_mesh(6, 20000));
+    const int fd = start_long_render(server.port(), id);
+    ASSERT_GE(fd, 0);
+    ASSERT_TRUE(eventually(
+        [&] { return server.metric("kdrt_work_slots{work=\"render\",state=\"running\"}") == 1; }));
+    ::close(fd);
+    EXPECT_TRUE(eventually([&] {
+        return server.log().find("render cancelled: the client closed the connection") !=
+               std::string::npos;
+    }));
+    EXPECT_TRUE(eventually(
+        [&] { return server.metric("kdrt_work_slots{work=\"render\",state=\"running\"}") == 0; }));
+}
+
+TEST(HttpAdmission, RendersBeyondTheRunningAndQueuedLimitsGet503) {
+    TempDir dir;
+    ServerProcess server(
+        {.cache_dir = dir.path() / "cache", .args = {"--max-renders", "1", "--max-queued", "1"}});
+    ASSERT_TRUE(server.running());
+    auto cli = server.client();
+    const std::string id = upload_id(*cli, small_mesh(7, 20000));
+    const int running = start_long_render(server.port(), id);
+    ASSERT_TRUE(eventually(
+        [&] { return server.metric("kdrt_work_slots{work=\"render\",state=\"running\"}") == 1; }));
+    const int waiting = start_long_render(server.port(), id);
+    ASSERT_TRUE(eventually(
+        [&] { return server.metric("kdrt_work_slots{work=\"render\",state=\"waiting\"}") == 1; }));
+    auto res = cli->Post("/v1/render", "{\"mesh\":\"" + id + "\",\"width\":8,\"height\":8}",
+                         "application/json");
+    auto p = expect_problem(res, 503);
+    EXPECT_EQ(p.kind, ProblemKind::kOverCapacity);
+    EXPECT_EQ(res->get_header_value("Retry-After"), "1");
+    EXPECT_NE(p.detail.find("1 renders are running (max_renders) and 1 waiting (max_queued)"),
+              std::string::npos)
+        << p.detail;
+    // Async jobs have their own queue (max_jobs) and are not shed here.
+    res = cli->Post("/v1/render", {{"Prefer", "respond-async"}},
+                    "{\"mesh\":\"" + id + "\",\"width\":8,\"height\":8}", "application/json");
+    ASSERT_TRUE(res);
+    EXPECT_EQ(res->status, 202);
+    ::close(waiting);
+    ::close(running);
+    EXPECT_TRUE(eventually([&] {
+        auto again = cli->Post("/v1/render", "{\"mesh\":\"" + id + "\",\"width\":8,\"height\":8}",
+                               "application/json");
+        return again && again->status == 200;
+    }));
+}
+
+TEST(HttpAdmission, HostileBodiesOfEveryKindStayWithinTheMemoryBound) {
+    TempDir dir;
+    ServerProcess server({.cache_dir = dir.path() / "cache"});
+    ASSERT_TRUE(server.running());
+    const uint64_t before = peak_rss_bytes(server.pid());
+    ASSERT_GT(before, 0u);
+    auto cli = server.client();
+    const std::string id = upload_id(*cli, small_mesh(8));
+    // 32 MiB of nested arrays (max_json_bytes), to the DOM-parsed render route and the
+    // SAX-parsed rays route: unbounded, one such body peaked at 1.36 GB.
+    constexpr size_t kBody = 32u << 20;
+    std::string nested(kBody, '[');
+    std::fill(nested.begin() + kBody / 2, nested.end(), ']');
+    // Headers and counts that promise far more than the body holds.
+    std::string kdrr_lie = kdrr(1000, 9);
+    kdrr_lie[8] = kdrr_lie[9] = kdrr_lie[10] = '\xff';  // a count of ~2^24 rays
+    const std::string ply =
+        "ply\nformat binary_little_endian 1.0\nelement vertex 134217728\nproperty float x\n"
+        "property float y\nproperty float z\nelement face 134217728\nproperty list uchar int "
+        "vertex_indices\nend_header\n" +
+        std::string(1000, '\0');
+    std::string stl(80, '\0');
+    stl += std::string("\x00\x00\x00\x08", 4) + std::string(100, '\0');  // 2^27 triangles
+    const std::string off = "OFF\n134217728 134217728 0\n0 0 0\n";
+    std::string obj;
+    while (obj.size() < kBody) obj += "f 1 2 3\n";  // faces of vertices never given
+    struct Hostile {
+        std::string path, body, type;
+        httplib::Headers headers;
+        int status;
+    };
+    const std::string rays_path = "/v1/meshes/" + id + "/intersect";
+    const std::vector<Hostile> bodies = {
+        {"/v1/render", nested, "application/json", {}, 400},
+        {"/v1/render", nested, "application/json", {}, 400},
+        {rays_path, nested, "application/json", {}, 400},
+        {rays_path, kdrr_lie, kRays, {}, 400},
+        {"/v1/meshes", ply, "application/ply", {}, 422},
+        {"/v1/meshes", stl, "model/stl", {}, 422},
+        {"/v1/meshes", off, "application/x-off", {}, 422},
+        {"/v1/meshes", obj, "model/obj", {}, 422},
+        // A 2 MB gzip body inflates to 1 GiB: refused unread.
+        {"/v1/meshes",
+         std::string(2u << 20, 'x'),
+         "model/obj",
+         {{"Content-Encoding", "gzip"}},
+         415},
+    };
+    std::vector<int> statuses(bodies.size(), 0);
+    std::vector<std::thread> senders;
+    senders.reserve(bodies.size());
+    for (size_t i = 0; i < bodies.size(); ++i) {
+        senders.emplace_back([&, i] {
+            auto c = server.client();
+            const Hostile& h = bodies[i];
+            auto res = c->Post(h.path, h.headers, h.body, h.type);
+            statuses[i] = res ? res->status : -1;
+        });
+    }
+    for (std::thread& t : senders) t.join();
+    for (size_t i = 0; i < bodies.size(); ++i)
+        EXPECT_EQ(statuses[i], bodies[i].status) << bodies[i].path << " " << bodies[i].type;
+    // What the bodies themselves take in memory (3 x 32 MiB of JSON; the OBJ is spooled beyond
+    // upload_memory_bytes), plus a 64 MiB margin.
+    const uint64_t bound = before + 4 * uint64_t{kBody} + (64u << 20);
+    EXPECT_LE(peak_rss_bytes(server.pid()), bound)
+        << "peak RSS " << peak_rss_bytes(server.pid()) << " bytes, before " << before;
+}
+
+}  // namespace
+}  // namespace kdrt::test
