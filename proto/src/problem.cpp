@@ -15,7 +15,7 @@ struct KindInfo {
     std::string_view type;
 };
 
-constexpr std::array<KindInfo, 17> kKinds = {{
+constexpr std::array<KindInfo, 19> kKinds = {{
     {ProblemKind::kBadRequest, 400, "Bad request", "urn:kdrt:problem:bad-request"},
     {ProblemKind::kBadRayBatch, 400, "Malformed ray batch", "urn:kdrt:problem:bad-ray-batch"},
     {ProblemKind::kUnauthorized, 401, "Unauthorized", "urn:kdrt:problem:unauthorized"},
