@@ -357,6 +357,9 @@ struct HttpServer::Impl {
         if (request_context().active) return;
         begin_request(res);
         request_context().route = "rejected";
+        // What follows an unparsed request line on the connection cannot be framed: answer and
+        // close (the connection layer closes a connection whose response says so).
+        res.set_header("Connection", "close");
     }
 
     /// One access-log line and the request metrics, after the response is written.

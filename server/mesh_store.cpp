@@ -229,7 +229,7 @@ Mesh mesh_from_tree(const KdTree& tree) {
     mesh.positions.resize(tree.tris.size() * 9);
     mesh.indices.resize(tree.tris.size() * 3);
     for (size_t t = 0; t < tree.tris.size(); ++t) {
-        const TriVerts& tri = tree.tris[t];
+        const TriVerts& tri = tree.triangle(static_cast<uint32_t>(t));  // by mesh id
         std::memcpy(&mesh.positions[9 * t], tri.v0, sizeof tri.v0);
         std::memcpy(&mesh.positions[9 * t + 3], tri.v1, sizeof tri.v1);
         std::memcpy(&mesh.positions[9 * t + 6], tri.v2, sizeof tri.v2);
