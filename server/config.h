@@ -30,7 +30,7 @@ struct ServerConfig {
     unsigned max_request_headers = 100;               ///< header lines, else 431
     uint64_t request_prebuffer_bytes = 256ull << 10;  ///< body bytes read before a thread
     unsigned max_connections = 4096;                  ///< open connections; more are refused
-    std::string token;                        ///< bearer token for /v1 (empty = no auth)
+    std::string token;                                ///< bearer token for /v1 (empty = no auth)
     std::string token_file;  ///< file holding the token (read once at start; excludes `token`)
 
     // Engine and cache
