@@ -5,9 +5,9 @@
 
 #include <atomic>
 #include <chrono>
-#include <map>
 #include <condition_variable>
 #include <cstdint>
+#include <map>
 #include <memory>
 #include <mutex>
 #include <optional>
