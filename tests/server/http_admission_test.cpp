@@ -24,16 +24,6 @@ using proto::ProblemKind;
 
 const std::string kRays(proto::kRaysMediaType);
 
-bool send_all(int fd, const std::string& data) {
-    size_t sent = 0;
-    while (sent < data.size()) {
-        const ssize_t n = ::send(fd, data.data() + sent, data.size() - sent, MSG_NOSIGNAL);
-        if (n <= 0) return false;
-        sent += static_cast<size_t>(n);
-    }
-    return true;
-}
-
 /// The peak resident set (VmHWM) of `pid` in bytes.
 uint64_t peak_rss_bytes(int pid) {
     std::ifstream in("/proc/" + std::to_string(pid) + "/status");

@@ -17,19 +17,6 @@ namespace {
 
 namespace fs = std::filesystem;
 
-/// The KDRH answer the engine gives in-process for `rays` on `mesh`.
-std::string engine_hits(const Mesh& mesh, const std::vector<Ray>& rays) {
-    const KdTree tree = build_kdtree(mesh);
-    std::vector<Hit> hits(rays.size());
-    intersect(tree, rays, hits);
-    return bytes_to_string(proto::encode_hits(hits));
-}
-
-httplib::Result trace(httplib::Client& cli, const std::string& id, const std::vector<Ray>& rays) {
-    return cli.Post("/v1/meshes/" + id + "/intersect",
-                    bytes_to_string(proto::encode_rays(rays, false)), "application/x-kdrt-rays");
-}
-
 void flip_byte(const fs::path& path, size_t offset) {
     std::fstream f(path, std::ios::in | std::ios::out | std::ios::binary);
     ASSERT_TRUE(f) << path;

@@ -20,17 +20,6 @@ namespace {
 
 using namespace std::chrono_literals;
 
-/// Sends all of `data`; false if the connection refused it.
-bool send_all(int fd, const std::string& data) {
-    size_t sent = 0;
-    while (sent < data.size()) {
-        const ssize_t n = ::send(fd, data.data() + sent, data.size() - sent, MSG_NOSIGNAL);
-        if (n <= 0) return false;
-        sent += static_cast<size_t>(n);
-    }
-    return true;
-}
-
 /// Everything received on `fd` until the peer closes it or `timeout` passes.
 std::string receive_until_closed(int fd, std::chrono::milliseconds timeout) {
     const auto end = std::chrono::steady_clock::now() + timeout;

@@ -21,14 +21,7 @@ namespace {
 
 /// Runs the binary with `args` to completion; returns {exit code, stdout}.
 std::pair<int, std::string> run_command(const std::string& args) {
-    const std::string command = std::string(KDRT_SERVER_BINARY) + " " + args + " 2>&1";
-    FILE* pipe = ::popen(command.c_str(), "r");
-    std::string out;
-    char buf[4096];
-    size_t n = 0;
-    while ((n = std::fread(buf, 1, sizeof buf, pipe)) > 0) out.append(buf, n);
-    const int status = ::pclose(pipe);
-    return {WIFEXITED(status) ? WEXITSTATUS(status) : -1, out};
+    return run_shell(std::string(KDRT_SERVER_BINARY) + " " + args);
 }
 
 TEST(HttpOps, HealthReadyAndMetrics) {
@@ -143,17 +136,6 @@ TEST(HttpOps, SettingsComeFromFileThenEnvironmentThenFlags) {
     EXPECT_EQ(server.metric("kdrt_cache_budget_bytes"), 2.0 * 1024 * 1024);  // env beats the file
     EXPECT_NE(server.log().find("http_threads=7"), std::string::npos)
         << server.log();  // flag beats env
-}
-
-/// The whole output of `command` (a shell command line) and its exit code.
-std::pair<int, std::string> run_shell(const std::string& command) {
-    FILE* pipe = ::popen((command + " 2>&1").c_str(), "r");
-    std::string out;
-    char buf[4096];
-    size_t n = 0;
-    while ((n = std::fread(buf, 1, sizeof buf, pipe)) > 0) out.append(buf, n);
-    const int status = ::pclose(pipe);
-    return {WIFEXITED(status) ? WEXITSTATUS(status) : -1, out};
 }
 
 TEST(HttpOps, MetricsAreWhatAPrometheusUserExpects) {

@@ -19,18 +19,6 @@ namespace {
 
 namespace fs = std::filesystem;
 
-std::string engine_hits(const Mesh& mesh, const std::vector<Ray>& rays) {
-    const KdTree tree = build_kdtree(mesh);
-    std::vector<Hit> hits(rays.size());
-    intersect(tree, rays, hits);
-    return bytes_to_string(proto::encode_hits(hits));
-}
-
-httplib::Result trace(httplib::Client& cli, const std::string& id, const std::vector<Ray>& rays) {
-    return cli.Post("/v1/meshes/" + id + "/intersect",
-                    bytes_to_string(proto::encode_rays(rays, false)), "application/x-kdrt-rays");
-}
-
 /// Traces `rays` and expects exactly the engine's answer for `mesh`.
 void expect_right_answer(httplib::Client& cli, const std::string& id, const Mesh& mesh) {
     const std::vector<Ray> rays = random_rays(mesh_bounds(mesh), 400, 9);

@@ -2,8 +2,12 @@
 // Helpers shared by the HTTP integration tests: test meshes, rays, requests.
 
 #include <httplib.h>
+#include <sys/socket.h>
+#include <sys/wait.h>
 
+#include <cstdio>
 #include <string>
+#include <utility>
 #include <vector>
 
 #include "kdrt/kdtree.h"
@@ -11,6 +15,7 @@
 #include "kdrt/proto/json_api.h"
 #include "kdrt/proto/mesh_io.h"
 #include "kdrt/proto/problem.h"
+#include "kdrt/proto/ray_batch.h"
 #include "kdrt/trace.h"
 #include "server_process.h"
 #include "test_util.h"
@@ -85,6 +90,43 @@ inline std::vector<Ray> random_rays(const Aabb& bounds, size_t count, uint64_t s
 
 /// The body of a problem reply, decoded; fails the test if it is not problem+json with the
 /// given status.
+/// The KDRH answer the engine gives in-process for `rays` on `mesh`.
+inline std::string engine_hits(const Mesh& mesh, const std::vector<Ray>& rays) {
+    const KdTree tree = build_kdtree(mesh);
+    std::vector<Hit> hits(rays.size());
+    intersect(tree, rays, hits);
+    return bytes_to_string(proto::encode_hits(hits));
+}
+
+/// POST /v1/meshes/{id}/intersect with `rays` as a KDRR body.
+inline httplib::Result trace(httplib::Client& cli, const std::string& id,
+                             const std::vector<Ray>& rays) {
+    return cli.Post("/v1/meshes/" + id + "/intersect",
+                    bytes_to_string(proto::encode_rays(rays, false)), "application/x-kdrt-rays");
+}
+
+/// Sends all of `data` on a raw socket; false if the connection refused it.
+inline bool send_all(int fd, const std::string& data) {
+    size_t sent = 0;
+    while (sent < data.size()) {
+        const ssize_t n = ::send(fd, data.data() + sent, data.size() - sent, MSG_NOSIGNAL);
+        if (n <= 0) return false;
+        sent += static_cast<size_t>(n);
+    }
+    return true;
+}
+
+/// The whole output (stdout and stderr) of a shell command line, and its exit code.
+inline std::pair<int, std::string> run_shell(const std::string& command) {
+    FILE* pipe = ::popen((command + " 2>&1").c_str(), "r");
+    std::string out;
+    char buf[4096];
+    size_t n = 0;
+    while ((n = std::fread(buf, 1, sizeof buf, pipe)) > 0) out.append(buf, n);
+    const int status = ::pclose(pipe);
+    return {WIFEXITED(status) ? WEXITSTATUS(status) : -1, out};
+}
+
 inline proto::Problem expect_problem(const httplib::Result& res, int status) {
     if (!res) {
         ADD_FAILURE() << "no response (" << httplib::to_string(res.error()) << ")";
