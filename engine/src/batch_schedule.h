@@ -7,10 +7,13 @@
 //
 // Included by packet_kernel.h inside each per-ISA translation unit's `#pragma GCC target`, so,
 // like the kernel, everything is in an anonymous namespace and uses compiler builtins rather than
-// <cmath> (see simd.h). Nothing here is SIMD: tests include it directly.
+// <cmath> (see simd.h). Nothing here needs more than SSE2, x86-64's baseline: tests include it
+// directly.
 
 #include <cstddef>
 #include <cstdint>
+
+#include <emmintrin.h>
 
 #include "kdrt/kdtree.h"
 #include "kdrt/types.h"
@@ -24,6 +27,22 @@ namespace {
 inline uint32_t octant(const Ray& r) {
     return (__builtin_signbit(r.dx) ? 1u : 0u) | (__builtin_signbit(r.dy) ? 2u : 0u) |
            (__builtin_signbit(r.dz) ? 4u : 0u);
+}
+
+/// The octant of a ray the kernels trace (0..7, as octant() gives it), or -1 for one they answer
+/// as a miss (ray_is_valid false). The same test as ray_is_valid in a dozen SSE2 instructions
+/// (x86-64's baseline, so tests compile it too): it runs once for every ray of every batch, where
+/// ray_is_valid's chain of compares and branches cost more than a coherent ray's whole set-up.
+inline int octant_or_invalid(const Ray& r) {
+    const __m128 zero = _mm_setzero_ps();
+    const __m128 origin = _mm_loadu_ps(&r.ox);  // ox oy oz tmin
+    const __m128 dir = _mm_loadu_ps(&r.dx);     // dx dy dz tmax
+    // x * 0 == 0 exactly when x is finite (inf * 0 and NaN * 0 are NaN); lanes 0..2 count.
+    const int finite = _mm_movemask_ps(_mm_and_ps(_mm_cmpeq_ps(_mm_mul_ps(origin, zero), zero),
+                                                  _mm_cmpeq_ps(_mm_mul_ps(dir, zero), zero)));
+    const int nonzero = _mm_movemask_ps(_mm_cmpneq_ps(dir, zero));  // -0 == 0; NaN is caught above
+    const bool valid = (finite & 7) == 7 && (nonzero & 7) != 0 && r.tmin <= r.tmax;
+    return valid ? (_mm_movemask_ps(dir) & 7) : -1;  // the direction's sign bits
 }
 
 /// The auto policy: a group of `lanes` same-octant rays goes as one packet of `width` lanes when
@@ -119,17 +138,14 @@ inline bool block_is_incoherent(const Ray* block, int n, float lo[3], float hi[3
     return origins_differ && spread >= kSortSpread;
 }
 
-/// True for a ray the kernels trace; any other is answered as a miss here, at `at`.
+/// Answers the ray at `at` as a miss (one the kernels do not trace).
 template <bool AnyHit>
-inline bool traceable_or_miss(const KdTree& tree, const Ray& r, size_t at, Hit* hits,
-                              uint8_t* occluded, TraceCounters& counters) {
-    if (ray_is_valid(r) && !tree.bounds.empty()) return true;
+inline void answer_miss(size_t at, Hit* hits, uint8_t* occluded, TraceCounters& counters) {
     if constexpr (AnyHit)
         occluded[at] = 0;
     else
         hits[at] = Hit{};
     ++counters.invalid_rays;
-    return false;
 }
 
 /// Collects the valid rays of block[0, n) (indices into the block, keys with their octant) and
@@ -139,13 +155,15 @@ inline int collect_valid(const KdTree& tree, const Ray* block, size_t base, int 
                          uint8_t* occluded, TraceCounters& counters, uint32_t* key,
                          uint16_t* index) {
     int valid = 0;
+    const bool empty_tree = tree.bounds.empty();
     for (int i = 0; i < n; ++i) {
-        const Ray& r = block[i];
-        if (!traceable_or_miss<AnyHit>(tree, r, base + static_cast<size_t>(i), hits, occluded,
-                                       counters))
+        const int oct = octant_or_invalid(block[i]);
+        if (oct < 0 || empty_tree) {
+            answer_miss<AnyHit>(base + static_cast<size_t>(i), hits, occluded, counters);
             continue;
+        }
         index[valid] = static_cast<uint16_t>(i);
-        key[valid] = octant(r) << kOctantShift;
+        key[valid] = static_cast<uint32_t>(oct) << kOctantShift;
         ++valid;
     }
     return valid;
@@ -199,6 +217,10 @@ template <bool AnyHit, class TraceRun>
                                                  const TraceRun& trace_run) {
     uint32_t key[kBlockRays], key_tmp[kBlockRays];
     uint16_t index[kBlockRays], index_tmp[kBlockRays];
+    if (tree.bounds.empty()) {  // nothing to hit: every ray is answered as a miss
+        for (size_t i = 0; i < count; ++i) answer_miss<AnyHit>(i, hits, occluded, counters);
+        return;
+    }
     for (size_t base = 0; base < count; base += kBlockRays) {
         const int n = static_cast<int>(count - base < kBlockRays ? count - base : kBlockRays);
         const Ray* block = rays + base;
@@ -228,11 +250,12 @@ template <bool AnyHit, class TraceRun>
             uint16_t bucket[8][kCoherentRun];
             int bucket_size[8] = {0, 0, 0, 0, 0, 0, 0, 0};
             for (int i = 0; i < m; ++i) {
-                const Ray& r = run[i];
-                if (!traceable_or_miss<AnyHit>(tree, r, run_base + static_cast<size_t>(i), hits,
-                                               occluded, counters))
+                const int o = octant_or_invalid(run[i]);
+                if (o < 0) {
+                    answer_miss<AnyHit>(run_base + static_cast<size_t>(i), hits, occluded,
+                                        counters);
                     continue;
-                const uint32_t o = octant(r);
+                }
                 bucket[o][bucket_size[o]++] = static_cast<uint16_t>(i);
             }
             for (int o = 0; o < 8; ++o) {

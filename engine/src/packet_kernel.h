@@ -73,21 +73,133 @@ inline VF<W> abs(VF<W> x) {
     return x;
 }
 
+/// The rays rays[index[0..W)] as eight SoA vectors, one per field in Ray's order (ox, oy, oz,
+/// tmin, dx, dy, dz, tmax); lanes at or past `count` repeat ray index[0]. A 4x4 transpose of
+/// each half-ray (16 bytes) per group of four lanes: the copy costs about 3 instructions per
+/// ray instead of the 8 loads and 8 stores of a lane-by-lane copy.
+template <int W>
+inline void load_rays_soa(const Ray* rays, const uint16_t* index, int count, VF<W> field[8]) {
+    const float* ray[W];
+    for (int l = 0; l < W; ++l) ray[l] = &rays[index[l < count ? l : 0]].ox;
+    if constexpr (W == 4) {
+        for (int half = 0; half < 2; ++half) {
+            __m128 r0 = _mm_loadu_ps(ray[0] + 4 * half), r1 = _mm_loadu_ps(ray[1] + 4 * half),
+                   r2 = _mm_loadu_ps(ray[2] + 4 * half), r3 = _mm_loadu_ps(ray[3] + 4 * half);
+            _MM_TRANSPOSE4_PS(r0, r1, r2, r3);
+            field[4 * half + 0] = reinterpret_cast<VF<W>>(r0);
+            field[4 * half + 1] = reinterpret_cast<VF<W>>(r1);
+            field[4 * half + 2] = reinterpret_cast<VF<W>>(r2);
+            field[4 * half + 3] = reinterpret_cast<VF<W>>(r3);
+        }
+    } else {
+        // Groups of eight lanes: lanes g..g+3 in the low 128 bits, g+4..g+7 in the high ones.
+        __m256 out[W / 8][8];
+        for (int g = 0; g < W / 8; ++g) {
+            const float* const* r = &ray[8 * g];
+            for (int half = 0; half < 2; ++half) {
+                const int o = 4 * half;
+                const __m256 a = _mm256_insertf128_ps(
+                    _mm256_castps128_ps256(_mm_loadu_ps(r[0] + o)), _mm_loadu_ps(r[4] + o), 1);
+                const __m256 b = _mm256_insertf128_ps(
+                    _mm256_castps128_ps256(_mm_loadu_ps(r[1] + o)), _mm_loadu_ps(r[5] + o), 1);
+                const __m256 c = _mm256_insertf128_ps(
+                    _mm256_castps128_ps256(_mm_loadu_ps(r[2] + o)), _mm_loadu_ps(r[6] + o), 1);
+                const __m256 d = _mm256_insertf128_ps(
+                    _mm256_castps128_ps256(_mm_loadu_ps(r[3] + o)), _mm_loadu_ps(r[7] + o), 1);
+                const __m256 ab_lo = _mm256_unpacklo_ps(a, b), ab_hi = _mm256_unpackhi_ps(a, b);
+                const __m256 cd_lo = _mm256_unpacklo_ps(c, d), cd_hi = _mm256_unpackhi_ps(c, d);
+                out[g][o + 0] = _mm256_shuffle_ps(ab_lo, cd_lo, _MM_SHUFFLE(1, 0, 1, 0));
+                out[g][o + 1] = _mm256_shuffle_ps(ab_lo, cd_lo, _MM_SHUFFLE(3, 2, 3, 2));
+                out[g][o + 2] = _mm256_shuffle_ps(ab_hi, cd_hi, _MM_SHUFFLE(1, 0, 1, 0));
+                out[g][o + 3] = _mm256_shuffle_ps(ab_hi, cd_hi, _MM_SHUFFLE(3, 2, 3, 2));
+            }
+        }
+        for (int f = 0; f < 8; ++f) {
+            if constexpr (W == 8) {
+                field[f] = reinterpret_cast<VF<W>>(out[0][f]);
+            } else {
+                // (__builtin_shufflevector: the insert intrinsics trip GCC 12's uninitialized
+                // warnings on their undefined upper halves.)
+                field[f] = reinterpret_cast<VF<W>>(__builtin_shufflevector(
+                    out[0][f], out[1][f], 0, 1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12, 13, 14, 15));
+            }
+        }
+    }
+}
+
+/// One lane's Hit record (16 bytes) to hits[base + index[l]], if the lane holds a ray. (Helpers
+/// here are functions, not lambdas: a lambda would not inherit the ISA target.)
+inline void put_hit(Hit* hits, size_t base, const uint16_t* index, int count, int l,
+                    __m128 record) {
+    if (l < count) _mm_storeu_ps(reinterpret_cast<float*>(&hits[base + index[l]]), record);
+}
+
+/// Lanes 8g..8g+7 of a 16-lane vector (a template, so only the AVX-512 unit instantiates it).
+template <int W>
+inline __m256 half8(VF<W> x, int g) {
+    return g == 0 ? __builtin_shufflevector(x, x, 0, 1, 2, 3, 4, 5, 6, 7)
+                  : __builtin_shufflevector(x, x, 8, 9, 10, 11, 12, 13, 14, 15);
+}
+
+/// Writes lanes 0..count) of a packet's answers, as Hit records, to hits[base + index[l]]: a miss
+/// (prim kNoHit) as Hit{} (t = inf, u = v = 0). The four fields are transposed into records four
+/// lanes at a time.
+template <int W>
+inline void store_hits(const PacketHits<W>& best, const uint16_t* index, int count, size_t base,
+                       Hit* hits) {
+    const VM<W> miss = best.prim == simd::broadcast_u<W>(kNoHit);
+    const VF<W> t = simd::select<W>(miss, simd::broadcast<W>(__builtin_inff()), best.t);
+    const VF<W> u = simd::select<W>(miss, simd::broadcast<W>(0.0f), best.u);
+    const VF<W> v = simd::select<W>(miss, simd::broadcast<W>(0.0f), best.v);
+    VF<W> prim;
+    __builtin_memcpy(&prim, &best.prim, sizeof prim);
+    if constexpr (W == 4) {
+        __m128 r0 = reinterpret_cast<__m128>(t), r1 = reinterpret_cast<__m128>(prim),
+               r2 = reinterpret_cast<__m128>(u), r3 = reinterpret_cast<__m128>(v);
+        _MM_TRANSPOSE4_PS(r0, r1, r2, r3);
+        put_hit(hits, base, index, count, 0, r0);
+        put_hit(hits, base, index, count, 1, r1);
+        put_hit(hits, base, index, count, 2, r2);
+        put_hit(hits, base, index, count, 3, r3);
+    } else {
+        for (int g = 0; g < W / 8; ++g) {
+            __m256 tg, pg, ug, vg;
+            if constexpr (W == 8) {
+                tg = reinterpret_cast<__m256>(t);
+                pg = reinterpret_cast<__m256>(prim);
+                ug = reinterpret_cast<__m256>(u);
+                vg = reinterpret_cast<__m256>(v);
+            } else {
+                tg = half8<W>(t, g);
+                pg = half8<W>(prim, g);
+                ug = half8<W>(u, g);
+                vg = half8<W>(v, g);
+            }
+            const __m256 tp_lo = _mm256_unpacklo_ps(tg, pg), tp_hi = _mm256_unpackhi_ps(tg, pg);
+            const __m256 uv_lo = _mm256_unpacklo_ps(ug, vg), uv_hi = _mm256_unpackhi_ps(ug, vg);
+            const __m256 rec[4] = {_mm256_shuffle_ps(tp_lo, uv_lo, _MM_SHUFFLE(1, 0, 1, 0)),
+                                   _mm256_shuffle_ps(tp_lo, uv_lo, _MM_SHUFFLE(3, 2, 3, 2)),
+                                   _mm256_shuffle_ps(tp_hi, uv_hi, _MM_SHUFFLE(1, 0, 1, 0)),
+                                   _mm256_shuffle_ps(tp_hi, uv_hi, _MM_SHUFFLE(3, 2, 3, 2))};
+            for (int k = 0; k < 4; ++k) {
+                put_hit(hits, base, index, count, 8 * g + k, _mm256_castps256_ps128(rec[k]));
+                put_hit(hits, base, index, count, 8 * g + 4 + k, _mm256_extractf128_ps(rec[k], 1));
+            }
+        }
+    }
+}
+
 /// Loads `count` (1..W) valid rays into a packet, computing lane by lane what prepare_ray,
 /// clip_to_box and traversal_eps compute for a single ray, with the same operations in the same
 /// order. Lanes past `count` are dead (empty interval).
 template <int W>
 inline void setup_packet(const KdTree& tree, const Ray* rays, const uint16_t* index, int count,
                          Packet<W>& pk) {
-    alignas(64) float field[8][W];
-    for (int l = 0; l < W; ++l) {
-        float r[8];
-        __builtin_memcpy(r, &rays[index[l < count ? l : 0]], sizeof r);
-        for (int f = 0; f < 8; ++f) field[f][l] = r[f];
-    }
-    const VF<W> o[3] = {simd::load<W>(field[0]), simd::load<W>(field[1]), simd::load<W>(field[2])};
-    const VF<W> d[3] = {simd::load<W>(field[4]), simd::load<W>(field[5]), simd::load<W>(field[6])};
-    const VF<W> ray_tmin = simd::load<W>(field[3]), ray_tmax = simd::load<W>(field[7]);
+    VF<W> field[8];
+    load_rays_soa<W>(rays, index, count, field);
+    const VF<W> o[3] = {field[0], field[1], field[2]};
+    const VF<W> d[3] = {field[4], field[5], field[6]};
+    const VF<W> ray_tmin = field[3], ray_tmax = field[7];
     VF<W> inv[3];
     for (int a = 0; a < 3; ++a) inv[a] = 1.0f / d[a];
     // prepare_ray: kz where |d| is largest (first on ties), kx and ky after it, swapped when
@@ -145,7 +257,7 @@ inline void setup_packet(const KdTree& tree, const Ray* rays, const uint16_t* in
     }
     pk.ray_tmin = ray_tmin;
     pk.ray_tmax = ray_tmax;
-    for (int a = 0; a < 3; ++a) pk.near_is_high[a] = __builtin_signbit(field[4 + a][0]) ? 1u : 0u;
+    for (int a = 0; a < 3; ++a) pk.near_is_high[a] = __builtin_signbit(d[a][0]) ? 1u : 0u;
     const int kz0 = pk.kz[0];
     pk.uniform_k = simd::none<W>(kz != kz0) && simd::none<W>(kx != pk.kx[0]) ? kz0 : -1;
 }
@@ -371,15 +483,7 @@ template <int W, bool AnyHit, bool Count>
             const uint32_t mask = simd::bits<W>(occ);
             for (int l = 0; l < lanes; ++l) occluded[base + index[l]] = (mask >> l) & 1u;
         } else {
-            alignas(64) float t[W], u[W], v[W];
-            alignas(64) uint32_t prim[W];
-            simd::store<W>(t, best.t);
-            simd::store<W>(u, best.u);
-            simd::store<W>(v, best.v);
-            __builtin_memcpy(prim, &best.prim, sizeof prim);
-            for (int l = 0; l < lanes; ++l) {
-                hits[base + index[l]] = prim[l] == kNoHit ? Hit{} : Hit{t[l], prim[l], u[l], v[l]};
-            }
+            store_hits<W>(best, index, lanes, base, hits);
         }
     }
 }

@@ -131,6 +131,57 @@ TEST(BatchSchedule, OctantIsTheSignBitsOfTheDirection) {
     EXPECT_EQ(octant(ray({}, {-0.0f, 0.0f, 1})), 1u);
 }
 
+TEST(BatchSchedule, OctantOrInvalidAgreesWithRayIsValidOnEverySpecialValue) {
+    // Each of the ray's eight fields takes every special value while the others stay those of a
+    // valid ray; then random rays whose every field is drawn from the same values.
+    const float specials[] = {0.0f,
+                              -0.0f,
+                              1.0f,
+                              -2.5f,
+                              std::numeric_limits<float>::denorm_min(),
+                              -std::numeric_limits<float>::denorm_min(),
+                              std::numeric_limits<float>::min(),
+                              std::numeric_limits<float>::max(),
+                              -std::numeric_limits<float>::max(),
+                              kInf,
+                              -kInf,
+                              kNaN,
+                              -kNaN};
+    const auto check = [](const Ray& r, const char* what) {
+        const int got = detail::octant_or_invalid(r);
+        const int want = detail::ray_is_valid(r) ? static_cast<int>(octant(r)) : -1;
+        float f[8];
+        std::memcpy(f, &r, sizeof f);
+        EXPECT_EQ(got, want) << what << ": " << f[0] << " " << f[1] << " " << f[2] << " " << f[3]
+                             << " " << f[4] << " " << f[5] << " " << f[6] << " " << f[7];
+    };
+    const Ray base{0.5f, -0.5f, 0.25f, 0.0f, 0.3f, -0.4f, 0.5f, 10.0f};
+    int invalid = 0;
+    for (int field = 0; field < 8; ++field) {
+        for (const float x : specials) {
+            Ray r = base;
+            float f[8];
+            std::memcpy(f, &r, sizeof f);
+            f[field] = x;
+            std::memcpy(&r, f, sizeof f);
+            check(r, "one field");
+            invalid += detail::octant_or_invalid(r) < 0 ? 1 : 0;
+        }
+    }
+    EXPECT_GT(invalid, 20) << "the special values make invalid rays of every kind";
+    Rng rng(test_seed());
+    for (int i = 0; i < 20000; ++i) {
+        float f[8];
+        for (float& x : f) x = specials[rng.next() % (sizeof specials / sizeof specials[0])];
+        Ray r;
+        std::memcpy(&r, f, sizeof f);
+        check(r, "random fields");
+    }
+    // All three direction components zero (of either sign): invalid; one non-zero: valid.
+    check(ray({}, {-0.0f, 0.0f, -0.0f}), "zero direction");
+    check(ray({}, {-0.0f, std::numeric_limits<float>::denorm_min(), -0.0f}), "tiny direction");
+}
+
 TEST(BatchSchedule, MortonCodesInterleaveFourBitsPerAxis) {
     EXPECT_EQ(spread3(0xFu), 0x249u);
     EXPECT_EQ(spread3(0x1Fu), 0x249u) << "bits above the fourth are dropped";
