@@ -33,6 +33,9 @@ struct alignas(64) Packet {
     VF<W> org_k[3];  // the origin permuted into the lane's (kx, ky, kz) frame
     VF<W> sx, sy, sz;
     VM<W> kx, ky, kz;
+    // Per lane, which float of 16 loaded bytes is the lane's kx, ky, kz coordinate (sel[0..2]),
+    // and the same one float further on (sel[3..5]), in permute4's form for the ISA.
+    VM<W> sel[6];
     VF<W> ray_tmin, ray_tmax;
     VF<W> tmin, tmax;  // the root interval: the ray clipped to the scene box (empty for dead lanes)
     uint32_t near_is_high[3];
@@ -58,10 +61,34 @@ inline VF<W> pick(VM<W> k, VF<W> x, VF<W> y, VF<W> z) {
     return k == 0 ? x : (k == 1 ? y : z);
 }
 
-/// Lane-wise v[k]: one coordinate of a vertex, per lane's axis k.
+/// A lane selector for permute4: float `k` (0..3) of the 16 bytes.
 template <int W>
-inline VF<W> pick_coord(const float* v, VM<W> k) {
-    return pick<W>(k, simd::broadcast<W>(v[0]), simd::broadcast<W>(v[1]), simd::broadcast<W>(v[2]));
+inline VM<W> selector(VM<W> k) {
+    if constexpr (W == 4) {
+        return k * 0x04040404 + 0x03020100;  // pshufb: the four bytes of float k
+    } else {
+        return k;
+    }
+}
+
+/// Lane-wise v[sel]: per lane, one of the four floats at v (16 readable bytes), chosen by the
+/// lane's selector, in one permute (pshufb on SSE4, vpermps on AVX2 and AVX-512).
+template <int W>
+inline VF<W> permute4(const float* v, VM<W> sel) {
+    if constexpr (W == 4) {
+        const __m128i bytes = _mm_loadu_si128(reinterpret_cast<const __m128i*>(v));
+        return reinterpret_cast<VF<W>>(_mm_shuffle_epi8(bytes, reinterpret_cast<__m128i>(sel)));
+    } else if constexpr (W == 8) {
+        const __m256 four = _mm256_broadcast_ps(reinterpret_cast<const __m128*>(v));
+        return reinterpret_cast<VF<W>>(
+            _mm256_permutevar8x32_ps(four, reinterpret_cast<__m256i>(sel)));
+    } else {
+        // (The maskz forms with every lane set: the unmasked intrinsics trip GCC 12's
+        // uninitialized warnings on their undefined pass-through operand.)
+        const __m512 four = _mm512_maskz_broadcast_f32x4(0xFFFF, _mm_loadu_ps(v));
+        return reinterpret_cast<VF<W>>(
+            _mm512_maskz_permutexvar_ps(0xFFFF, reinterpret_cast<__m512i>(sel), four));
+    }
 }
 
 template <int W>
@@ -220,6 +247,12 @@ inline void setup_packet(const KdTree& tree, const Ray* rays, const uint16_t* in
     pk.kx = kx;
     pk.ky = ky;
     pk.kz = kz;
+    pk.sel[0] = selector<W>(kx);
+    pk.sel[1] = selector<W>(ky);
+    pk.sel[2] = selector<W>(kz);
+    pk.sel[3] = selector<W>(kx + 1);
+    pk.sel[4] = selector<W>(ky + 1);
+    pk.sel[5] = selector<W>(kz + 1);
     pk.org_k[0] = pick<W>(kx, o[0], o[1], o[2]);
     pk.org_k[1] = pick<W>(ky, o[0], o[1], o[2]);
     pk.org_k[2] = pick<W>(kz, o[0], o[1], o[2]);
@@ -278,16 +311,17 @@ inline VM<W> intersect_triangle_packet(const Packet<W>& pk, const TriVerts& tri,
         c_x = tri.v2[kx] - pk.org_k[0], c_y = tri.v2[ky] - pk.org_k[1],
         c_z = tri.v2[kz] - pk.org_k[2];
     } else {
-        // (A helper function, not a lambda: a lambda would not inherit the ISA target.)
-        a_x = pick_coord<W>(tri.v0, pk.kx) - pk.org_k[0],
-        a_y = pick_coord<W>(tri.v0, pk.ky) - pk.org_k[1];
-        a_z = pick_coord<W>(tri.v0, pk.kz) - pk.org_k[2];
-        b_x = pick_coord<W>(tri.v1, pk.kx) - pk.org_k[0],
-        b_y = pick_coord<W>(tri.v1, pk.ky) - pk.org_k[1];
-        b_z = pick_coord<W>(tri.v1, pk.kz) - pk.org_k[2];
-        c_x = pick_coord<W>(tri.v2, pk.kx) - pk.org_k[0],
-        c_y = pick_coord<W>(tri.v2, pk.ky) - pk.org_k[1];
-        c_z = pick_coord<W>(tri.v2, pk.kz) - pk.org_k[2];
+        // One permute per coordinate. The 16 bytes read stay inside the 36-byte triangle: v0 and
+        // v1 from their first float, v2 from v1[2] (so its selectors are one float further on).
+        a_x = permute4<W>(tri.v0, pk.sel[0]) - pk.org_k[0];
+        a_y = permute4<W>(tri.v0, pk.sel[1]) - pk.org_k[1];
+        a_z = permute4<W>(tri.v0, pk.sel[2]) - pk.org_k[2];
+        b_x = permute4<W>(tri.v1, pk.sel[0]) - pk.org_k[0];
+        b_y = permute4<W>(tri.v1, pk.sel[1]) - pk.org_k[1];
+        b_z = permute4<W>(tri.v1, pk.sel[2]) - pk.org_k[2];
+        c_x = permute4<W>(&tri.v1[2], pk.sel[3]) - pk.org_k[0];
+        c_y = permute4<W>(&tri.v1[2], pk.sel[4]) - pk.org_k[1];
+        c_z = permute4<W>(&tri.v1[2], pk.sel[5]) - pk.org_k[2];
     }
     const VF<W> ax = a_x - pk.sx * a_z, ay = a_y - pk.sy * a_z;
     const VF<W> bx = b_x - pk.sx * b_z, by = b_y - pk.sy * b_z;
