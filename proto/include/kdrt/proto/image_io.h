@@ -53,7 +53,19 @@ enum class ExrPixelType { kHalf, kFloat };
 /// Largest ImageEncodeOptions::png_compression (zlib's best compression).
 inline constexpr int kMaxPngCompression = 9;
 
+/// How PNG and JPEG turn a colour value into an 8-bit level.
+enum class EightBitTransfer {
+    /// Light (radiance): the sRGB transfer function, what a display expects of a photograph.
+    kSrgb,
+    /// Data (a fraction, a normal, a false colour): level = round(255 x value), no curve, so a
+    /// value of 0.5 shows as the middle grey level 128. Decoding such a file as sRGB does not
+    /// give the value back; decode_image always assumes kSrgb.
+    kData,
+};
+
 struct ImageEncodeOptions {
+    /// PNG and JPEG only (EXR always stores the linear values exactly).
+    EightBitTransfer transfer = EightBitTransfer::kSrgb;
     /// EXR: 16-bit half (compact; values above 65504 become +inf) or 32-bit float.
     ExrPixelType exr_pixel_type = ExrPixelType::kHalf;
     /// JPEG quality, 1 .. 100.
