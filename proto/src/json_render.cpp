@@ -198,11 +198,14 @@ Result<RenderRequest, JsonError> decode_render_request(std::string_view text,
     }
     if (const json* light = r.find("light")) {
         if (!light->is_object()) return schema_error("\"light\" must be an object");
-        ObjectReader l(*light, "light.", {"direction"});
+        ObjectReader l(*light, "light.", {"direction", "intensity"});
         Vec3& d = req.settings.light.direction;
         l.vec3("direction", d, true);
         if (l.error().empty() && !(d.x * d.x + d.y * d.y + d.z * d.z > 0.0f))
             l.fail("\"light.direction\" must not be the zero vector");
+        l.real("intensity", req.settings.light.intensity);
+        if (req.settings.light.intensity < 0.0f)
+            l.fail("\"light.intensity\" must be >= 0 (a radiance)");
         if (!l.error().empty()) return schema_error(l.error());
     }
     if (const json* tile = r.find("tile")) {
@@ -250,9 +253,13 @@ std::string encode_render_request(const RenderRequest& request) {
     const RenderSettings defaults;
     if (s.ao_samples != defaults.ao_samples) w.key("ao_samples").number(s.ao_samples);
     if (s.ao_distance != defaults.ao_distance) w.key("ao_distance").number(s.ao_distance);
-    if (!(s.light.direction == defaults.light.direction)) {
+    if (!(s.light.direction == defaults.light.direction) ||
+        s.light.intensity != defaults.light.intensity) {
         const Vec3& d = s.light.direction;
-        w.key("light").begin_object().key("direction").vec3(d.x, d.y, d.z).end_object();
+        w.key("light").begin_object().key("direction").vec3(d.x, d.y, d.z);
+        if (s.light.intensity != defaults.light.intensity)
+            w.key("intensity").number(s.light.intensity);
+        w.end_object();
     }
     if (s.bounces != defaults.bounces) w.key("bounces").number(s.bounces);
     if (s.sky != defaults.sky) w.key("sky").number(s.sky);

@@ -14,6 +14,10 @@ const BACKGROUND_LEVEL = 0.25;
 /// Modes whose PNG goes through the sRGB curve (the server's eight_bit_options); the others
 /// store their values directly.
 const LIGHT_MODES = new Set(['eyelight', 'diffuse']);
+/// diffuse: the sun's radiance. With the grey albedo 0.8, a face turned to the sun under the
+/// default sky (0.25) reflects 0.8 x (0.6 + 0.25) = 0.68 (sRGB level 0.85), so lit faces keep
+/// their shading instead of clipping to white, and a face in shadow 0.2 (0.48).
+const SUN = 0.6;
 /// Longest side of an interactive frame; larger frames are a job.
 const MAX_INTERACTIVE = 2048;
 /// Preview frames (while the camera moves) are this much smaller per side, with 1 spp.
@@ -76,8 +80,11 @@ function renderRequest({ preview = false, format = 'png', size = null, spp = nul
     // A sun that follows the view (from the upper left by default, so the shading shows the
     // shape and the shadows fall down and to the right), and a sky seen through one bounce, so
     // that shadowed parts are dim rather than black.
-    req.light = { direction: state.view.lightDirection(Number($('light-azimuth').value), Number($('light-elevation').value)) };
-    const sky = numberInput('sky', 0, 10, 0.35);
+    req.light = {
+      direction: state.view.lightDirection(Number($('light-azimuth').value), Number($('light-elevation').value)),
+      intensity: SUN,
+    };
+    const sky = numberInput('sky', 0, 10, 0.25);
     if (sky > 0) {
       req.bounces = 1;
       req.sky = sky;

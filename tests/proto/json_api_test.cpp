@@ -205,13 +205,14 @@ TEST(JsonRender, ShadingSettingsDecodeAndRoundTrip) {
 
     auto r = decode_render_request(
         "{" + mesh +
-        R"(,"shading":"diffuse","ao_samples":7,"ao_distance":0.125,"light":{"direction":[-1,2,0.5]},)"
-        R"("bounces":3,"sky":0.375,"background":[0.25,0.5,0.75]})");
+        R"(,"shading":"diffuse","ao_samples":7,"ao_distance":0.125,"light":{"direction":[-1,2,0.5],)"
+        R"("intensity":0.625},"bounces":3,"sky":0.375,"background":[0.25,0.5,0.75]})");
     ASSERT_TRUE(r) << r.error().detail;
     const RenderSettings& s = r->settings;
     EXPECT_EQ(s.ao_samples, 7u);
     EXPECT_EQ(s.ao_distance, 0.125f);
     EXPECT_EQ(s.light.direction, (Vec3{-1.0f, 2.0f, 0.5f}));
+    EXPECT_EQ(s.light.intensity, 0.625f);
     EXPECT_EQ(s.bounces, 3u);
     EXPECT_EQ(s.sky, 0.375f);
     EXPECT_EQ(s.background, (Vec3{0.25f, 0.5f, 0.75f}));
@@ -220,6 +221,7 @@ TEST(JsonRender, ShadingSettingsDecodeAndRoundTrip) {
     EXPECT_EQ(again->settings.ao_samples, s.ao_samples);
     EXPECT_EQ(again->settings.ao_distance, s.ao_distance);
     EXPECT_EQ(again->settings.light.direction, s.light.direction);
+    EXPECT_EQ(again->settings.light.intensity, s.light.intensity);
     EXPECT_EQ(again->settings.bounces, s.bounces);
     EXPECT_EQ(again->settings.sky, s.sky);
     EXPECT_EQ(again->settings.background, s.background);
@@ -239,6 +241,7 @@ TEST(JsonRender, BadShadingSettingsNameTheMember) {
         {R"("light":{"direction":[1,1,1],"colour":1})", "unknown member \"light.colour\""},
         {R"("bounces":65)", "\"bounces\" is 65, must be in 0 .. 64"},
         {R"("sky":-1)", "\"sky\" must be >= 0"},
+        {R"("light":{"direction":[1,1,1],"intensity":-2})", "\"light.intensity\" must be >= 0"},
         {R"("background":[0,0])", "\"background\" must be an array of 3 numbers"},
         {R"("background":[0,1e40,0])", "\"background\" must be an array of 3 finite numbers"},
     };

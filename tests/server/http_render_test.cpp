@@ -154,8 +154,10 @@ TEST_F(HttpRender, ShadingSettingsReachTheEngine) {
     const std::string mesh = "{\"mesh\":\"" + id_ + "\",\"width\":48,\"height\":40,";
     for (const std::string& settings : {
              std::string(R"("shading":"ao","ao_samples":3,"ao_distance":0.5)"),
-             std::string(R"("shading":"diffuse","light":{"direction":[-1,0.5,0.25]},"bounces":1,)"
-                         R"("sky":0.5,"spp":2)"),
+             std::string(
+                 R"("shading":"diffuse","light":{"direction":[-1,0.5,0.25],"intensity":0.5},)"
+                 R"("bounces":1,)"
+                 R"("sky":0.5,"spp":2)"),
              std::string(R"("shading":"eyelight","background":[0.25,0.5,0.125])"),
          }) {
         SCOPED_TRACE(settings);
