@@ -2,12 +2,12 @@
 // kdrt-server processes on ephemeral ports (tests/web/README.md). Registered with ctest as
 // web_viewer (label integration); scripts/test installs playwright-core with `npm ci`.
 //
-//   node viewer_test.mjs --server PATH/kdrt-server --data tests/data --modules DIR/node_modules
+//   node viewer_test.mjs --server PATH/kdrt-server --kdrt PATH/kdrt --data tests/data --modules DIR/node_modules
 //                        --out DIR/artifacts [--chromium /usr/bin/chromium]
 //
 // Every step saves a screenshot under --out. Exits 0 when every check passed, 1 otherwise.
 
-import { spawn } from 'node:child_process';
+import { execSync, spawn } from 'node:child_process';
 import { createRequire } from 'node:module';
 import fs from 'node:fs';
 import os from 'node:os';
@@ -18,7 +18,7 @@ function options() {
   const out = { chromium: '/usr/bin/chromium' };
   const argv = process.argv.slice(2);
   for (let i = 0; i < argv.length; i += 2) out[argv[i].replace(/^--/, '')] = argv[i + 1];
-  for (const need of ['server', 'data', 'modules', 'out']) {
+  for (const need of ['server', 'kdrt', 'data', 'modules', 'out']) {
     if (!out[need]) throw new Error(`missing --${need}`);
   }
   return out;
@@ -248,6 +248,43 @@ async function main() {
     log(`  diffuse: ${(changed * 100).toFixed(1)} % changed, mean ${s.mean.toFixed(1)}, sd ${s.sd.toFixed(1)}`);
     assert.ok(changed > 0.02, `switching to diffuse changed only ${(changed * 100).toFixed(2)} % of the pixels`);
     assertNotBlank(s, 'diffuse frame');
+  });
+
+  await step(page, 'export-and-commands', async () => {
+    // 4 spp for the downloads (and for the README's picture of this step).
+    const frames = await frameCount(page);
+    await page.fill('#spp', '4');
+    await page.dispatchEvent('#spp', 'change');
+    await fullFrameAfter(page, frames);
+    const dir = fs.mkdtempSync(path.join(scratch, 'export-'));
+    const [png] = await Promise.all([page.waitForEvent('download'), page.click('#download-png')]);
+    const pngPath = path.join(dir, 'downloaded.png');
+    await png.saveAs(pngPath);
+    const pngBytes = fs.readFileSync(pngPath);
+    assert.equal(pngBytes.subarray(1, 4).toString(), 'PNG');
+    const [exr] = await Promise.all([page.waitForEvent('download'), page.click('#download-exr')]);
+    assert.match(exr.suggestedFilename(), /\.exr$/);
+    const exrPath = path.join(dir, 'downloaded.exr');
+    await exr.saveAs(exrPath);
+    assert.equal(fs.readFileSync(exrPath).readUInt32LE(0), 20000630, 'the EXR magic number');
+
+    // The copied curl line, run as it is, gives the same bytes as the downloaded frame.
+    await page.click('#copy-curl');
+    const curl = await page.inputValue('#command');
+    assert.ok(curl.startsWith(`curl -sS --fail-with-body -X POST ${server.origin}/v1/render`), curl);
+    execSync(curl, { cwd: dir, shell: '/bin/bash', stdio: ['ignore', 'ignore', 'pipe'] });
+    assert.ok(fs.readFileSync(path.join(dir, 'frame.png')).equals(pngBytes), 'curl gave other bytes than the download');
+
+    // The kdrt line runs too (it has no flags for the viewer's background and light, so only
+    // the image's existence and size are checked).
+    await page.click('#copy-kdrt');
+    const kdrt = (await page.inputValue('#command')).replace(/^kdrt /, `${opt.kdrt} `);
+    assert.match(kdrt, /render [0-9a-f]{64} -o frame\.png/);
+    execSync(kdrt, { cwd: dir, shell: '/bin/bash', stdio: ['ignore', 'ignore', 'pipe'] });
+    const made = fs.readFileSync(path.join(dir, 'frame.png'));
+    assert.equal(made.readUInt32BE(16), pngBytes.readUInt32BE(16), 'kdrt render width');
+    assert.equal(made.readUInt32BE(20), pngBytes.readUInt32BE(20), 'kdrt render height');
+    fs.copyFileSync(pngPath, path.join(opt.out, 'frame-diffuse.png'));
   });
 
   await step(page, 'malformed-obj', async () => {
