@@ -37,9 +37,8 @@ bool etag_matches(std::string_view if_none_match, std::string_view etag) {
 }  // namespace
 
 void Routes::web_file(const httplib::Request& req, httplib::Response& res) {
-    const std::string_view name =
-        req.matches.size() > 1 ? std::string_view(req.matches[1].str()) : "index.html";
-    const std::string wanted(name);
+    // "/" has no capture: index.html.
+    const std::string wanted = req.matches.size() > 1 ? req.matches[1].str() : "index.html";
     const WebAsset* found = nullptr;
     for (const WebAsset& asset : web_assets())
         if (asset.name == wanted) found = &asset;

@@ -6,8 +6,10 @@
 /// Colour: Image values are linear. PNG and JPEG store 8-bit sRGB: each colour channel is clamped
 /// to [0, 1] (NaN -> 0), encoded with the sRGB transfer function (IEC 61966-2-1: 12.92 c below
 /// 0.0031308, else 1.055 c^(1/2.4) - 0.055) and rounded to the nearest of 256 levels; alpha is
-/// clamped and quantised linearly. EXR keeps linear values as half or float. Decoding inverts this:
-/// 8-bit sRGB comes back as linear float (exactly the value of the sRGB level), EXR as stored.
+/// clamped and quantised linearly (ImageEncodeOptions::transfer kData stores colour that way too,
+/// for images of data rather than light). EXR keeps linear values as half or float. Decoding
+/// inverts this: 8-bit sRGB comes back as linear float (exactly the value of the sRGB level), EXR
+/// as stored.
 ///
 /// Every function is thread-safe and returns errors instead of throwing (except std::bad_alloc).
 
