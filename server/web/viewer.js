@@ -371,18 +371,32 @@ canvas.addEventListener('keydown', (e) => {
 });
 
 // The canvas holds as many pixels as the screen shows (devicePixelRatio included).
-new ResizeObserver((entries) => {
-  for (const entry of entries) {
-    const box = entry.devicePixelContentBoxSize && entry.devicePixelContentBoxSize[0];
-    const w = box ? box.inlineSize : Math.round(entry.contentRect.width * devicePixelRatio);
-    const h = box ? box.blockSize : Math.round(entry.contentRect.height * devicePixelRatio);
-    if (w !== canvas.width || h !== canvas.height) {
-      canvas.width = w;
-      canvas.height = h;
-      viewChanged();
-    }
+// devicePixelContentBoxSize is exact on fractional ratios, but some browsers (headless Chromium
+// under device emulation) report CSS pixels there: it is used only when it agrees with the ratio.
+function fitCanvas(entry) {
+  const dpr = window.devicePixelRatio || 1;
+  const rect = canvas.getBoundingClientRect();
+  let w = Math.round(rect.width * dpr), h = Math.round(rect.height * dpr);
+  const box = entry && entry.devicePixelContentBoxSize && entry.devicePixelContentBoxSize[0];
+  if (box && Math.abs(box.inlineSize - w) <= 1 && Math.abs(box.blockSize - h) <= 1) {
+    w = box.inlineSize;
+    h = box.blockSize;
   }
-}).observe(canvas);
+  if (w !== canvas.width || h !== canvas.height) {
+    canvas.width = w;
+    canvas.height = h;
+    viewChanged();
+  }
+}
+new ResizeObserver((entries) => fitCanvas(entries[entries.length - 1])).observe(canvas);
+// A window moved to a screen of another pixel ratio (or a browser zoom) resizes no element.
+function watchPixelRatio() {
+  matchMedia(`(resolution: ${window.devicePixelRatio}dppx)`).addEventListener('change', () => {
+    fitCanvas(null);
+    watchPixelRatio();
+  }, { once: true });
+}
+watchPixelRatio();
 
 // ---- Export: downloads and command lines ---------------------------------------------------
 

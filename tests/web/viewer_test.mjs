@@ -21,6 +21,7 @@ function options() {
   for (const need of ['server', 'kdrt', 'data', 'modules', 'out']) {
     if (!out[need]) throw new Error(`missing --${need}`);
   }
+  for (const file of ['server', 'kdrt', 'data', 'modules', 'out']) out[file] = path.resolve(out[file]);
   return out;
 }
 
@@ -69,7 +70,7 @@ async function startServer(name, extraEnv = {}) {
 const failures = [];
 
 /// Opens a browser context that records console errors and every request's host.
-async function openBrowser(name, origin) {
+async function openBrowser(name, origin, deviceScaleFactor = 1) {
   const profile = fs.mkdtempSync(path.join(scratch, `profile-${name}-`));
   const context = await chromium.launchPersistentContext(profile, {
     executablePath: opt.chromium,
@@ -77,7 +78,7 @@ async function openBrowser(name, origin) {
     args: ['--no-sandbox', '--disable-gpu', '--disable-background-networking', '--disable-component-update',
       '--no-first-run', '--disable-sync', '--disable-quic'],
     viewport: { width: 1100, height: 720 },
-    deviceScaleFactor: 1,
+    deviceScaleFactor,
     acceptDownloads: true,
   });
   const page = context.pages()[0] || await context.newPage();
@@ -199,8 +200,18 @@ async function main() {
     assert.match(await page.textContent('#upload-state'), /75,408 triangles/);
   });
 
+  await step(page, 'labelled-controls', async () => {
+    // Every control has an accessible name and can take the keyboard focus.
+    const unlabelled = await page.evaluate(() => [...document.querySelectorAll('input, select, textarea, button, canvas')]
+      .filter((el) => !((el.labels && el.labels.length) || el.getAttribute('aria-label') || (el.tagName === 'BUTTON' && el.textContent.trim())) || el.tabIndex < 0)
+      .map((el) => el.id || el.outerHTML.slice(0, 60)));
+    assert.deepEqual(unlabelled, []);
+  });
+
   await step(page, 'first-frame', async () => {
     await fullFrameAfter(page, 0);
+    const dims = await page.evaluate(() => { const c = document.getElementById('view'); return [c.width, c.clientWidth, devicePixelRatio]; });
+    assert.equal(dims[0], Math.round(dims[1] * dims[2]), `canvas ${dims[0]} px for ${dims[1]} CSS px at ratio ${dims[2]}`);
     const s = await canvasStats(page);
     log(`  frame ${s.width}x${s.height}: mean ${s.mean.toFixed(1)}, sd ${s.sd.toFixed(1)}, foreground ${(s.foreground * 100).toFixed(1)} %, background ${s.bg}`);
     assertNotBlank(s, 'first frame');
@@ -222,6 +233,16 @@ async function main() {
     log(`  ${(changed * 100).toFixed(1)} % of the pixels changed`);
     assert.ok(changed > 0.02, `a drag changed only ${(changed * 100).toFixed(2)} % of the pixels`);
     assertNotBlank(await canvasStats(page), 'orbited frame');
+  });
+
+  await step(page, 'keyboard-orbit', async () => {
+    await snapshot(page);
+    const frames = await frameCount(page);
+    await page.focus('#view');
+    for (let i = 0; i < 4; ++i) await page.keyboard.press('ArrowLeft');
+    await fullFrameAfter(page, frames);
+    const changed = await changedShare(page);
+    assert.ok(changed > 0.02, `arrow keys changed only ${(changed * 100).toFixed(2)} % of the pixels`);
   });
 
   await step(page, 'ambient-occlusion', async () => {
@@ -332,7 +353,8 @@ async function main() {
 
   // ---- A token-protected server ---------------------------------------------------------
   const secured = await startServer('token', { KDRT_TOKEN: 's3cret-token' });
-  const t = await openBrowser('token', secured.origin);
+  // A high-DPI screen this time: the canvas holds twice the CSS pixels each way.
+  const t = await openBrowser('token', secured.origin, 2);
   t.record.expectedStatuses.add(401);
   await t.page.goto(`${secured.origin}/`);
   await step(t.page, 'token-asked', async () => {
@@ -346,7 +368,10 @@ async function main() {
     await t.page.setInputFiles('#file', bunny);
     await t.page.waitForSelector('#meshes tbody tr', { timeout: 30000 });
     await fullFrameAfter(t.page, 0);
-    assertNotBlank(await canvasStats(t.page), 'frame with a token');
+    const s = await canvasStats(t.page);
+    assertNotBlank(s, 'frame with a token');
+    const css = await t.page.evaluate(() => document.getElementById('view').clientWidth);
+    assert.equal(s.width, css * 2, `canvas ${s.width} px for ${css} CSS px at ratio 2`);
     const stored = await t.page.evaluate(() => ({ session: sessionStorage.getItem('kdrt.token'), local: localStorage.length, cookies: document.cookie }));
     assert.deepEqual(stored, { session: 's3cret-token', local: 0, cookies: '' });
   });
