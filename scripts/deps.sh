@@ -1,4 +1,5 @@
 # Sourced by scripts/test and scripts/run: installs the Debian packages kdrt needs, if missing.
+# kdrt_install_web_test_deps installs the browser test's npm packages from tests/web's lockfile.
 # Works on a fresh minimal Debian 12 (bookworm) as root, or with sudo. When every package is
 # already installed it does not call apt-get (or sudo) at all.
 
@@ -19,6 +20,13 @@ kdrt_packages+=(python3 python3-yaml python3-jsonschema)
 # The Python client (client/python): numpy, its tests (pytest), and its install test (a venv made
 # with --system-site-packages; setuptools and wheel build the package offline).
 kdrt_packages+=(python3-numpy python3-pytest python3-venv python3-setuptools python3-wheel)
+# The web viewer's browser test (tests/web): Debian's chromium, driven by playwright-core from npm
+# on Node.js. Debian's npm is its own package; a nodejs that bundles npm (NodeSource's) conflicts
+# with it, so npm is asked for only when no npm is installed.
+kdrt_packages+=(chromium nodejs)
+if ! command -v npm >/dev/null 2>&1; then
+    kdrt_packages+=(npm)
+fi
 
 # kdrt_missing_packages: prints the packages of kdrt_packages that are not installed, one a line.
 kdrt_missing_packages() {
@@ -61,4 +69,16 @@ kdrt_install_deps() {
         echo "kdrt: still not installed after apt-get: ${still//$'\n'/ }" >&2
         return 1
     fi
+}
+
+# kdrt_install_web_test_deps BUILD_DIR: `npm ci` of tests/web/package-lock.json into
+# BUILD_DIR/tests/web (where CMake copied package.json and the lockfile), for the web_viewer test.
+# One package (playwright-core, no dependencies); npm takes it from its cache once downloaded.
+kdrt_install_web_test_deps() {
+    local dir="$1/tests/web"
+    if [ ! -f "$dir/package-lock.json" ]; then
+        echo "kdrt: $dir/package-lock.json is missing (configure the build first)" >&2
+        return 1
+    fi
+    (cd "$dir" && npm ci --no-audit --no-fund --loglevel=error)
 }

@@ -18,6 +18,7 @@
 #include "http_server.h"
 #include "kdrt/proto/mesh_id.h"
 #include "kdrt/proto/mesh_io.h"
+#include "kdrt/trace.h"
 #include "log.h"
 #include "service.h"
 
@@ -234,8 +235,10 @@ int run_server(const ServerConfig& config) {
         return 1;
     }
     Service svc(config);
-    svc.metrics.set_build_info(
-        {{"version", KDRT_VERSION}, {"httplib", httplib_version()}, {"compiler", __VERSION__}});
+    svc.metrics.set_build_info({{"version", KDRT_VERSION},
+                                {"httplib", httplib_version()},
+                                {"compiler", __VERSION__},
+                                {"isa", std::string(isa_name(default_isa()))}});
     HttpServer http(svc);
     if (!bind_and_announce(http, svc, *listen)) return 1;
 

@@ -246,6 +246,10 @@ const std::vector<Setting>& settings() {
          .help = "text or json (one JSON object per line)",
          .text = &ServerConfig::log_format,
          .choices = {"text", "json"}},
+        {.key = "web_viewer",
+         .help = "on: serve the web viewer at / (server/web); off: / and /ui/ answer 404",
+         .text = &ServerConfig::web_viewer,
+         .choices = {"on", "off"}},
     };
     return table;
 }

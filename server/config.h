@@ -67,6 +67,9 @@ struct ServerConfig {
     std::string log_level = "info";   ///< trace, debug, info, warn, error, critical, off
     std::string log_format = "text";  ///< text or json
 
+    // Web viewer
+    std::string web_viewer = "on";  ///< "on": the viewer at / and /ui/; "off": those are 404
+
     std::string config_file;  ///< the file the settings came from (empty = none)
 };
 

@@ -36,6 +36,9 @@ public:
     void readyz(const httplib::Request& req, httplib::Response& res);
     void metrics(const httplib::Request& req, httplib::Response& res);
 
+    /// The web viewer's files (web_assets.h): / is index.html, /ui/<name> the others.
+    void web_file(const httplib::Request& req, httplib::Response& res);
+
 private:
     /// The batch's memory from batch_memory_budget; on refusal (503, or 413 when it could
     /// never fit) replies and returns nullopt.

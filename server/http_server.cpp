@@ -227,6 +227,11 @@ struct HttpServer::Impl {
         get("/healthz", "/healthz", {}, &Routes::healthz);
         get("/readyz", "/readyz", {}, &Routes::readyz);
         get("/metrics", "/metrics", {}, &Routes::metrics);
+        if (svc.config.web_viewer == "on") {
+            // The page is public (it holds no data); its API calls carry the token.
+            get("/", "/", {}, &Routes::web_file);
+            get("/ui/([A-Za-z0-9_-]+\\.[a-z]+)", "/ui/{file}", {}, &Routes::web_file);
+        }
     }
 
     /// The methods registered for `path` ("GET, DELETE"), and whether `method` is one of them

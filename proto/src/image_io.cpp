@@ -146,7 +146,9 @@ std::string check_image(const Image& image) {
 /// 8-bit sRGB pixels for PNG/JPEG. `out_channels` is 3 or 4 (4 only when the image has alpha).
 /// Image colour with alpha is premultiplied; PNG stores straight alpha, so colour is divided by
 /// alpha (in linear light) before the transfer function.
-std::vector<unsigned char> to_srgb8(const Image& image, uint32_t out_channels) {
+std::vector<unsigned char> to_srgb8(const Image& image, uint32_t out_channels,
+                                    EightBitTransfer transfer) {
+    const bool data = transfer == EightBitTransfer::kData;
     const size_t pixels = size_t{image.width} * image.height;
     std::vector<unsigned char> out(pixels * out_channels);
     const bool straight_alpha = out_channels == 4;
@@ -159,7 +161,8 @@ std::vector<unsigned char> to_srgb8(const Image& image, uint32_t out_channels) {
             if (alpha > 0.0f && alpha < 1.0f) scale = 1.0f / alpha;
             dst[3] = linear_to_unorm8(alpha);
         }
-        for (int c = 0; c < 3; ++c) dst[c] = linear_to_srgb8(in[c] * scale);
+        for (int c = 0; c < 3; ++c)
+            dst[c] = data ? linear_to_unorm8(in[c] * scale) : linear_to_srgb8(in[c] * scale);
     }
     return out;
 }
@@ -324,7 +327,7 @@ Result<std::vector<std::byte>, std::string> encode_image(const Image& image, Ima
             else if (options.png_compression <= 3)
                 spec.attribute("png:filter", kFilterSub);
         }
-        srgb = to_srgb8(image, channels);
+        srgb = to_srgb8(image, channels, options.transfer);
         data_type = OIIO::TypeDesc::UINT8;
         data = srgb.data();
     }

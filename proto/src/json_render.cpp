@@ -133,9 +133,10 @@ Result<RenderRequest, JsonError> decode_render_request(std::string_view text,
     if (!doc.is_object())
         return schema_error("expected a JSON object, got " + std::string(doc.type_name()));
     RenderRequest req;
-    ObjectReader r(doc, "",
-                   {"mesh", "camera", "width", "height", "spp", "seed", "shading", "format",
-                    "compression", "tile"});
+    ObjectReader r(
+        doc, "",
+        {"mesh", "camera", "width", "height", "spp", "seed", "shading", "format", "compression",
+         "tile", "ao_samples", "ao_distance", "light", "bounces", "sky", "background"});
     if (!r.find("mesh")) r.fail("missing member \"mesh\"");
     r.text("mesh", req.mesh);
     // A default never exceeds the server's limit (a 128-pixel limit renders 128 wide by default).
@@ -153,6 +154,14 @@ Result<RenderRequest, JsonError> decode_render_request(std::string_view text,
     else
         r.fail("unknown shading " + in_quotes(shading) +
                " (expected normals, eyelight, ao, diffuse, depth or primid)");
+    r.integer("ao_samples", req.settings.ao_samples, 1, kMaxAoSamples);
+    r.real("ao_distance", req.settings.ao_distance);
+    if (r.find("ao_distance") && !(req.settings.ao_distance > 0.0f))
+        r.fail("\"ao_distance\" must be > 0 (a share of the mesh's bounding-box diagonal)");
+    r.integer("bounces", req.settings.bounces, 0, kMaxBounces);
+    r.real("sky", req.settings.sky);
+    if (req.settings.sky < 0.0f) r.fail("\"sky\" must be >= 0 (a radiance)");
+    r.vec3("background", req.settings.background, false);
     r.text("format", req.format);
     if (req.format != "png" && req.format != "jpg" && req.format != "jpeg" && req.format != "exr")
         r.fail("unknown format " + in_quotes(req.format) + " (expected png, jpg or exr)");
@@ -186,6 +195,18 @@ Result<RenderRequest, JsonError> decode_render_request(std::string_view text,
                    " (expected perspective or orthographic)");
         if (!c.error().empty()) return schema_error(c.error());
         req.settings.camera = spec;
+    }
+    if (const json* light = r.find("light")) {
+        if (!light->is_object()) return schema_error("\"light\" must be an object");
+        ObjectReader l(*light, "light.", {"direction", "intensity"});
+        Vec3& d = req.settings.light.direction;
+        l.vec3("direction", d, true);
+        if (l.error().empty() && !(d.x * d.x + d.y * d.y + d.z * d.z > 0.0f))
+            l.fail("\"light.direction\" must not be the zero vector");
+        l.real("intensity", req.settings.light.intensity);
+        if (req.settings.light.intensity < 0.0f)
+            l.fail("\"light.intensity\" must be >= 0 (a radiance)");
+        if (!l.error().empty()) return schema_error(l.error());
     }
     if (const json* tile = r.find("tile")) {
         if (!tile->is_object()) return schema_error("\"tile\" must be an object");
@@ -228,6 +249,24 @@ std::string encode_render_request(const RenderRequest& request) {
     w.key("spp").number(s.spp);
     w.key("seed").number(s.seed);
     w.key("shading").string(shading_name(s.shading));
+    // Members at their defaults are left out (a request an older server also understands).
+    const RenderSettings defaults;
+    if (s.ao_samples != defaults.ao_samples) w.key("ao_samples").number(s.ao_samples);
+    if (s.ao_distance != defaults.ao_distance) w.key("ao_distance").number(s.ao_distance);
+    if (!(s.light.direction == defaults.light.direction) ||
+        s.light.intensity != defaults.light.intensity) {
+        const Vec3& d = s.light.direction;
+        w.key("light").begin_object().key("direction").vec3(d.x, d.y, d.z);
+        if (s.light.intensity != defaults.light.intensity)
+            w.key("intensity").number(s.light.intensity);
+        w.end_object();
+    }
+    if (s.bounces != defaults.bounces) w.key("bounces").number(s.bounces);
+    if (s.sky != defaults.sky) w.key("sky").number(s.sky);
+    if (!(s.background == defaults.background)) {
+        const Vec3& b = s.background;
+        w.key("background").vec3(b.x, b.y, b.z);
+    }
     w.key("format").string(request.format);
     if (request.compression) w.key("compression").number(*request.compression);
     if (s.region) {

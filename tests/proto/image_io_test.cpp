@@ -198,6 +198,42 @@ TEST(ImageIoPng, FileReadByOiioHasTheSrgbLevelsOfTheBuffer) {
     }
 }
 
+TEST(ImageIoPng, DataTransferStoresTheValuesWithoutTheCurve) {
+    // EightBitTransfer::kData (ao, normals, primid): level = round(255 x clamp(value)), so 0.5 is
+    // level 128 where sRGB would give 188; the same image as EXR is untouched.
+    const TempDir dir;
+    const Image image = gradient(37, 23, 3);
+    const auto path = dir.file("data.png");
+    ImageEncodeOptions options;
+    options.transfer = EightBitTransfer::kData;
+    ASSERT_TRUE(write_image_file(path, image, ImageFormat::kPng, options).ok());
+    const RawImage raw = read_with_oiio(path, OIIO::TypeDesc::UINT8);
+    ASSERT_EQ(raw.bytes.size(), image.pixels.size());
+    size_t differ_from_srgb = 0;
+    for (size_t i = 0; i < image.pixels.size(); ++i) {
+        const float v = image.pixels[i];
+        const float clamped = v > 0.0f ? std::min(v, 1.0f) : 0.0f;  // NaN -> 0
+        ASSERT_EQ(raw.bytes[i], static_cast<unsigned char>(std::lround(clamped * 255.0f)))
+            << "value " << i << " = " << v;
+        differ_from_srgb += raw.bytes[i] != expected_level(v);
+    }
+    EXPECT_GT(differ_from_srgb, image.pixels.size() / 2);
+
+    const Image half{1, 1, 3, {0.5f, 0.25f, 1.0f}};
+    auto bytes = encode_image(half, ImageFormat::kPng, options);
+    ASSERT_TRUE(bytes);
+    auto decoded = decode_image(*bytes);  // decoding assumes sRGB levels
+    ASSERT_TRUE(decoded);
+    EXPECT_EQ(decoded->pixels[0], srgb8_to_linear(128));
+    EXPECT_EQ(decoded->pixels[1], srgb8_to_linear(64));
+    EXPECT_EQ(decoded->pixels[2], 1.0f);
+    auto exr = encode_image(half, ImageFormat::kExr, options);
+    ASSERT_TRUE(exr);
+    auto exr_decoded = decode_image(*exr);
+    ASSERT_TRUE(exr_decoded);
+    EXPECT_EQ(exr_decoded->pixels, half.pixels);
+}
+
 TEST(ImageIoPng, DecodeMatchesTheBufferWithin8BitQuantisation) {
     const Image image = gradient(64, 40, 3);
     auto bytes = encode_image(image, ImageFormat::kPng);

@@ -190,6 +190,70 @@ TEST(JsonHits, Occlusion) {
     EXPECT_FALSE(decode_json_occlusion("{\"occluded\":[1]}"));
 }
 
+TEST(JsonRender, ShadingSettingsDecodeAndRoundTrip) {
+    const std::string mesh = "\"mesh\":\"" + std::string(64, 'b') + "\"";
+    auto plain = decode_render_request("{" + mesh + "}");
+    ASSERT_TRUE(plain) << plain.error().detail;
+    const RenderSettings defaults;
+    EXPECT_EQ(plain->settings.ao_samples, defaults.ao_samples);
+    EXPECT_EQ(plain->settings.background, defaults.background);
+    // Members at their defaults are not written: an older server understands the request.
+    const std::string plain_json = encode_render_request(*plain);
+    for (const char* key : {"\"ao_samples\"", "\"ao_distance\"", "\"light\"", "\"bounces\"",
+                            "\"sky\"", "\"background\""})
+        EXPECT_EQ(plain_json.find(key), std::string::npos) << key << " in " << plain_json;
+
+    auto r = decode_render_request(
+        "{" + mesh +
+        R"(,"shading":"diffuse","ao_samples":7,"ao_distance":0.125,"light":{"direction":[-1,2,0.5],)"
+        R"("intensity":0.625},"bounces":3,"sky":0.375,"background":[0.25,0.5,0.75]})");
+    ASSERT_TRUE(r) << r.error().detail;
+    const RenderSettings& s = r->settings;
+    EXPECT_EQ(s.ao_samples, 7u);
+    EXPECT_EQ(s.ao_distance, 0.125f);
+    EXPECT_EQ(s.light.direction, (Vec3{-1.0f, 2.0f, 0.5f}));
+    EXPECT_EQ(s.light.intensity, 0.625f);
+    EXPECT_EQ(s.bounces, 3u);
+    EXPECT_EQ(s.sky, 0.375f);
+    EXPECT_EQ(s.background, (Vec3{0.25f, 0.5f, 0.75f}));
+    auto again = decode_render_request(encode_render_request(*r));
+    ASSERT_TRUE(again) << again.error().detail;
+    EXPECT_EQ(again->settings.ao_samples, s.ao_samples);
+    EXPECT_EQ(again->settings.ao_distance, s.ao_distance);
+    EXPECT_EQ(again->settings.light.direction, s.light.direction);
+    EXPECT_EQ(again->settings.light.intensity, s.light.intensity);
+    EXPECT_EQ(again->settings.bounces, s.bounces);
+    EXPECT_EQ(again->settings.sky, s.sky);
+    EXPECT_EQ(again->settings.background, s.background);
+}
+
+TEST(JsonRender, BadShadingSettingsNameTheMember) {
+    const std::string mesh = "\"mesh\":\"" + std::string(64, 'b') + "\",";
+    const std::pair<std::string, std::string> cases[] = {
+        {R"("ao_samples":0)", "\"ao_samples\" is 0, must be in 1 .. 4096"},
+        {R"("ao_samples":5000)", "\"ao_samples\" is 5000"},
+        {R"("ao_distance":0)", "\"ao_distance\" must be > 0"},
+        {R"("ao_distance":"far")", "\"ao_distance\" must be a finite number"},
+        {R"("light":[1,1,1])", "\"light\" must be an object"},
+        {R"("light":{})", "missing member \"light.direction\""},
+        {R"("light":{"direction":[0,0,0]})", "\"light.direction\" must not be the zero vector"},
+        {R"("light":{"direction":[1,1]})", "\"light.direction\" must be an array of 3 numbers"},
+        {R"("light":{"direction":[1,1,1],"colour":1})", "unknown member \"light.colour\""},
+        {R"("bounces":65)", "\"bounces\" is 65, must be in 0 .. 64"},
+        {R"("sky":-1)", "\"sky\" must be >= 0"},
+        {R"("light":{"direction":[1,1,1],"intensity":-2})", "\"light.intensity\" must be >= 0"},
+        {R"("background":[0,0])", "\"background\" must be an array of 3 numbers"},
+        {R"("background":[0,1e40,0])", "\"background\" must be an array of 3 finite numbers"},
+    };
+    for (const auto& [member, detail] : cases) {
+        SCOPED_TRACE(member);
+        auto r = decode_render_request("{" + mesh + member + "}");
+        ASSERT_FALSE(r);
+        EXPECT_EQ(r.error().code, JsonError::Code::kSchema);
+        EXPECT_NE(r.error().detail.find(detail), std::string::npos) << r.error().detail;
+    }
+}
+
 TEST(JsonApi, MediaTypes) {
     EXPECT_EQ(mesh_format_from_media_type("model/obj"), MeshFormat::kObj);
     EXPECT_EQ(mesh_format_from_media_type("Model/STL"), MeshFormat::kStl);

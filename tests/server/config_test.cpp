@@ -52,6 +52,8 @@ TEST(Config, FlagsInBothFormsAndPreloadLists) {
     EXPECT_EQ(inv.config.preload, (std::vector<std::string>{"a.obj", "b.ply"}));
     EXPECT_EQ(inv.config.token, "t");
     EXPECT_EQ(inv.config.log_format, "json");
+    EXPECT_EQ(inv.config.web_viewer, "on");
+    EXPECT_EQ(parse_ok({"--web-viewer", "off"}).config.web_viewer, "off");
 }
 
 TEST(Config, FileThenEnvironmentThenFlags) {
@@ -89,6 +91,7 @@ TEST(Config, ErrorsNameTheSettingAndSource) {
               "--listen: \"h:99999\" has no port number 0..65535 after the last ':'");
     EXPECT_EQ(parse_error({"--log-level", "loud"}),
               "--log-level: \"loud\" is not one of trace, debug, info, warn, error, critical, off");
+    EXPECT_EQ(parse_error({"--web-viewer", "yes"}), "--web-viewer: \"yes\" is not one of on, off");
     EXPECT_EQ(parse_error({"--frobnicate"}),
               "unknown argument \"--frobnicate\" (kdrt-server --help lists the flags)");
     EXPECT_EQ(parse_error({}, {"KDRT_MAX_RAYS=0"}), "KDRT_MAX_RAYS: \"0\" is outside 1..67108864");

@@ -2,6 +2,8 @@
 
 #include <gtest/gtest.h>
 
+#include <algorithm>
+#include <cmath>
 #include <map>
 #include <optional>
 #include <thread>
@@ -44,6 +46,12 @@ protected:
         const Image image = render(*tree_, request.settings);
         proto::ImageEncodeOptions options;
         options.png_compression = request.compression.value_or(kDefaultPngCompression);
+        // 8-bit files: the light modes through the sRGB curve, the data modes (ao's fraction,
+        // normals, depth, false colours) as round(255 x value) (openapi.yaml).
+        const Shading mode = request.settings.shading;
+        options.transfer = mode == Shading::kEyelight || mode == Shading::kDiffuse
+                               ? proto::EightBitTransfer::kSrgb
+                               : proto::EightBitTransfer::kData;
         auto bytes =
             proto::encode_image(image, *proto::image_format_from_name(request.format), options);
         EXPECT_TRUE(bytes) << bytes.error();
@@ -139,6 +147,60 @@ TEST_F(HttpRender, DefaultsExrTilesAndExplicitCameras) {
     ASSERT_TRUE(res);
     ASSERT_EQ(res->status, 200) << res->body;
     EXPECT_EQ(res->get_header_value("Content-Type"), "image/jpeg");
+}
+
+TEST_F(HttpRender, ShadingSettingsReachTheEngine) {
+    auto cli = server_->client();
+    const std::string mesh = "{\"mesh\":\"" + id_ + "\",\"width\":48,\"height\":40,";
+    for (const std::string& settings : {
+             std::string(R"("shading":"ao","ao_samples":3,"ao_distance":0.5)"),
+             std::string(
+                 R"("shading":"diffuse","light":{"direction":[-1,0.5,0.25],"intensity":0.5},)"
+                 R"("bounces":1,)"
+                 R"("sky":0.5,"spp":2)"),
+             std::string(R"("shading":"eyelight","background":[0.25,0.5,0.125])"),
+         }) {
+        SCOPED_TRACE(settings);
+        const std::string json = mesh + settings + ",\"format\":\"exr\"}";
+        auto res = post_render(*cli, json);
+        ASSERT_TRUE(res);
+        ASSERT_EQ(res->status, 200) << res->body;
+        // EXR headers carry the time (capDate): compare the pixels.
+        auto got = proto::decode_image(string_to_bytes(res->body));
+        auto want = proto::decode_image(string_to_bytes(expected_image(request(json))));
+        ASSERT_TRUE(got && want);
+        EXPECT_EQ(got->pixels, want->pixels);
+        // Not the image of the defaults: the members changed something.
+        const std::string plain =
+            mesh + settings.substr(0, settings.find(',')) + ",\"format\":\"exr\"}";
+        auto defaults = proto::decode_image(string_to_bytes(expected_image(request(plain))));
+        ASSERT_TRUE(defaults);
+        EXPECT_NE(got->pixels, defaults->pixels);
+    }
+}
+
+TEST_F(HttpRender, AoPngLevelsAreTheUnoccludedShare) {
+    // The display transform of ao: PNG level = round(255 x unoccluded share), no sRGB curve
+    // (which would show a half-occluded crease as the light level 188 instead of 128).
+    auto cli = server_->client();
+    const std::string json = "{\"mesh\":\"" + id_ +
+                             R"(","width":40,"height":32,"shading":"ao","ao_samples":8,)"
+                             R"("background":[0.25,0.25,0.25]})";
+    auto res = post_render(*cli, json);
+    ASSERT_TRUE(res);
+    ASSERT_EQ(res->status, 200) << res->body;
+    auto png = proto::decode_image(string_to_bytes(res->body));
+    ASSERT_TRUE(png) << png.error();
+    const Image engine = render(*tree_, request(json).settings);
+    ASSERT_EQ(png->pixels.size(), engine.pixels.size());
+    size_t partly_occluded = 0;
+    for (size_t i = 0; i < engine.pixels.size(); ++i) {
+        const float v = engine.pixels[i];
+        const int level = proto::linear_to_srgb8(png->pixels[i]);  // the file's 8-bit level
+        ASSERT_EQ(level, std::lround(std::clamp(v, 0.0f, 1.0f) * 255.0f)) << "value " << v;
+        partly_occluded += v > 0.3f && v < 0.7f && v != 0.25f;
+    }
+    EXPECT_GT(partly_occluded, 0u);
 }
 
 TEST_F(HttpRender, PngCompressionLevelsDecodeToTheSamePixels) {

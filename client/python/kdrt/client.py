@@ -367,8 +367,9 @@ class Client:
         "primid"; camera: a dict {"eye", "look_at", "up", "fov", "projection", "ortho_height"}
         (None: a default view framing the mesh); tile (x, y, w, h): a part of the frame.
         output "uint8": an (H, W, C) uint8 array (C = 3, or 4 with alpha), "float": the same as
-        float32 in [0, 1] (sRGB-encoded, as in the PNG), "bytes": the encoded image (format
-        "png", "jpeg"/"jpg" or "exr")."""
+        float32 in [0, 1] (the PNG's levels / 255: sRGB-encoded for eyelight and diffuse, the
+        values themselves for ao, normals, depth and primid), "bytes": the encoded image (format
+        "png", "jpeg"/"jpg" or "exr"; EXR holds the linear values)."""
         self._check_output(output, format)
         request = self._render_request(mesh, width, height, shading, camera, spp, seed, format,
                                        compression, tile)

@@ -6,8 +6,10 @@
 /// Colour: Image values are linear. PNG and JPEG store 8-bit sRGB: each colour channel is clamped
 /// to [0, 1] (NaN -> 0), encoded with the sRGB transfer function (IEC 61966-2-1: 12.92 c below
 /// 0.0031308, else 1.055 c^(1/2.4) - 0.055) and rounded to the nearest of 256 levels; alpha is
-/// clamped and quantised linearly. EXR keeps linear values as half or float. Decoding inverts this:
-/// 8-bit sRGB comes back as linear float (exactly the value of the sRGB level), EXR as stored.
+/// clamped and quantised linearly (ImageEncodeOptions::transfer kData stores colour that way too,
+/// for images of data rather than light). EXR keeps linear values as half or float. Decoding
+/// inverts this: 8-bit sRGB comes back as linear float (exactly the value of the sRGB level), EXR
+/// as stored.
 ///
 /// Every function is thread-safe and returns errors instead of throwing (except std::bad_alloc).
 
@@ -53,7 +55,19 @@ enum class ExrPixelType { kHalf, kFloat };
 /// Largest ImageEncodeOptions::png_compression (zlib's best compression).
 inline constexpr int kMaxPngCompression = 9;
 
+/// How PNG and JPEG turn a colour value into an 8-bit level.
+enum class EightBitTransfer {
+    /// Light (radiance): the sRGB transfer function, what a display expects of a photograph.
+    kSrgb,
+    /// Data (a fraction, a normal, a false colour): level = round(255 x value), no curve, so a
+    /// value of 0.5 shows as the middle grey level 128. Decoding such a file as sRGB does not
+    /// give the value back; decode_image always assumes kSrgb.
+    kData,
+};
+
 struct ImageEncodeOptions {
+    /// PNG and JPEG only (EXR always stores the linear values exactly).
+    EightBitTransfer transfer = EightBitTransfer::kSrgb;
     /// EXR: 16-bit half (compact; values above 65504 become +inf) or 32-bit float.
     ExrPixelType exr_pixel_type = ExrPixelType::kHalf;
     /// JPEG quality, 1 .. 100.

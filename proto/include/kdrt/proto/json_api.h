@@ -149,14 +149,16 @@ struct RenderLimits {
 /// engine's validate_render_settings checks the rest (camera geometry, tile inside the frame).
 struct RenderRequest {
     std::string mesh;
-    RenderSettings settings;         ///< camera/region/size/spp/shading/seed from the request
-    std::string format = "png";      ///< "png", "jpg"/"jpeg" or "exr" (lower case, as sent)
+    RenderSettings settings;     ///< camera/region/size/spp/shading/seed, ao_samples/ao_distance,
+                                 ///< light.direction, bounces, sky and background from the request
+    std::string format = "png";  ///< "png", "jpg"/"jpeg" or "exr" (lower case, as sent)
     std::optional<int> compression;  ///< PNG zlib level 0 .. 9, when sent
 };
 
 [[nodiscard]] Result<RenderRequest, JsonError> decode_render_request(
     std::string_view text, const RenderLimits& limits = {});
-/// Writes every member decode_render_request reads (camera and tile only when set).
+/// Writes every member decode_render_request reads (camera and tile only when set; ao_samples,
+/// ao_distance, light, bounces, sky and background only when not at their defaults).
 [[nodiscard]] std::string encode_render_request(const RenderRequest& request);
 
 // ---- Jobs ---------------------------------------------------------------------------------------
