@@ -17,6 +17,7 @@
 #include <gtest/gtest.h>
 
 #include "http_test_util.h"
+#include "kdrt/client/client.h"
 #include "kdrt/proto/mesh_id.h"
 
 extern char** environ;
@@ -25,6 +26,8 @@ namespace kdrt::test {
 namespace {
 
 namespace fs = std::filesystem;
+using kdrt::Client;
+using kdrt::ClientOptions;
 constexpr const char* kNginx = "/usr/sbin/nginx";
 
 /// A free loopback port (bound and released: nginx cannot report a port 0 bind).
@@ -224,6 +227,35 @@ TEST_F(ScaleOut, EveryRequestForAMeshLandsOnOneReplica) {
         for (const auto& s : *listed) listed_ids.insert(s.id);
         for (const std::string& id : ids) EXPECT_TRUE(listed_ids.count(id)) << id;
     }
+}
+
+TEST_F(ScaleOut, ASplitBatchSpreadsOverReplicasAndEqualsTheOneReplicaAnswer) {
+    auto nginx = start_nginx();
+    const Mesh mesh = small_mesh(9050, 2000);
+    const std::string id = upload_id(*nginx->client(), mesh);
+    const auto rays = random_rays(mesh_bounds(mesh), 60000, 17);
+    // The answer of one replica, asked directly, unsplit.
+    auto direct = trace(*replicas_[0]->client(), id, rays);
+    ASSERT_TRUE(direct);
+    ASSERT_EQ(direct->status, 200) << direct->body;
+
+    std::vector<double> before;
+    for (size_t r = 0; r < replicas_.size(); ++r) before.push_back(traces_on(r));
+    ClientOptions options;
+    options.split = 6;
+    Client client("http://127.0.0.1:" + std::to_string(nginx->port()), options);
+    auto hits = client.intersect(id, rays);
+    ASSERT_TRUE(hits) << hits.error().to_string();
+    EXPECT_EQ(bytes_to_string(proto::encode_hits(*hits)), direct->body);
+    double parts = 0;
+    int serving = 0;
+    for (size_t r = 0; r < replicas_.size(); ++r) {
+        const double served = traces_on(r) - before[r];
+        parts += served;
+        serving += served > 0;
+    }
+    EXPECT_EQ(parts, 6.0);
+    EXPECT_GT(serving, 1) << "all six parts hashed to one replica";
 }
 
 TEST_F(ScaleOut, AsyncJobsAreRoutedToTheReplicaThatRunsThem) {
