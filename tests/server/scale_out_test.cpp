@@ -458,5 +458,38 @@ TEST_F(ScaleOut, AReplicaStartingBesideALiveOneLeavesItsUncommittedFilesAlone) {
     EXPECT_FALSE(fs::exists(store_ / "quarantine"));
 }
 
+TEST(ScaleOutConfig, TheComposeNginxConfigurationIsValid) {
+    // docker/nginx.conf as nginx -t sees it, with the Compose host names and include paths of
+    // this checkout (nginx -t resolves upstream hosts; it binds no port).
+    TempDir dir;
+    std::ifstream in(std::string(KDRT_SOURCE_DIR) + "/docker/nginx.conf");
+    std::string conf(std::istreambuf_iterator<char>(in), {});
+    ASSERT_FALSE(conf.empty());
+    const auto replace_all = [&](const std::string& from, const std::string& to) {
+        size_t count = 0;
+        for (size_t at = conf.find(from); at != std::string::npos; at = conf.find(from, at)) {
+            conf.replace(at, from.size(), to);
+            at += to.size();
+            ++count;
+        }
+        return count;
+    };
+    EXPECT_EQ(replace_all("/etc/nginx/kdrt/", std::string(KDRT_SOURCE_DIR) + "/docker/nginx/"), 2u);
+    for (const char* host : {"kdrt-1:8080", "kdrt-2:8080", "kdrt-3:8080"})
+        EXPECT_EQ(replace_all(host, "127.0.0.1:8080"), 3u) << host;
+    replace_all("pid /tmp/nginx.pid;", "pid " + (dir.path() / "nginx.pid").string() + ";");
+    replace_all("http {", "http {\n    client_body_temp_path " + dir.path().string() +
+                              "/body;\n    proxy_temp_path " + dir.path().string() + "/proxy;");
+    {
+        std::ofstream out(dir.path() / "nginx.conf");
+        out << conf;
+    }
+    const auto [code, output] = run_shell(std::string(kNginx) + " -t -p " + dir.path().string() +
+                                          "/ -e " + (dir.path() / "error.log").string() + " -c " +
+                                          (dir.path() / "nginx.conf").string());
+    EXPECT_EQ(code, 0) << output;
+    EXPECT_NE(output.find("syntax is ok"), std::string::npos) << output;
+}
+
 }  // namespace
 }  // namespace kdrt::test
