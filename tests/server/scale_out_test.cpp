@@ -408,7 +408,7 @@ TEST_F(ScaleOut, AFourthReplicaTakesAboutAQuarterOfTheMeshes) {
 
 TEST_F(ScaleOut, TheSameUploadToTwoReplicasAtOnceIsStoredOnce) {
     for (int round = 0; round < 3; ++round) {
-        const Mesh mesh = small_mesh(9400 + round, 20000);
+        const Mesh mesh = small_mesh(9400 + round, 5000);
         const std::string body = mesh_body(mesh, proto::MeshFormat::kPly);
         std::vector<int> statuses(2);
         std::vector<std::string> answered(2);
