@@ -15,6 +15,10 @@ kdrt_packages=(
 kdrt_packages+=(clang-format clang-tidy)
 # promtool (in Debian's prometheus package) checks the /metrics exposition in a server test.
 kdrt_packages+=(prometheus)
+# The scale-out tests (tests/server/scale_out_test.cpp) run Debian's nginx in front of replicas.
+kdrt_packages+=(nginx)
+# scripts/test validates docker/compose.yaml with `docker-compose config` (offline, no engine).
+kdrt_packages+=(docker-compose)
 # The client's OpenAPI test validates live answers against proto/openapi.yaml in Python.
 kdrt_packages+=(python3 python3-yaml python3-jsonschema)
 # The Python client (client/python): numpy, its tests (pytest), and its install test (a venv made

@@ -1,6 +1,7 @@
 #include "config.h"
 
 #include <algorithm>
+#include <cctype>
 #include <charconv>
 #include <limits>
 #include <optional>
@@ -129,6 +130,9 @@ const std::vector<Setting>& settings() {
         {.key = "cache_dir",
          .help = "directory of the stored meshes and trees",
          .text = &ServerConfig::cache_dir},
+        {.key = "replica",
+         .help = "name of this replica behind a proxy: prefixes job ids, X-Kdrt-Replica header",
+         .text = &ServerConfig::replica},
         {.key = "memory_budget",
          .help = "bytes of kD-trees kept in memory; least recently used are evicted",
          .u64 = &ServerConfig::memory_budget,
@@ -513,6 +517,12 @@ Result<Invocation, std::string> parse_invocation(const std::vector<std::string>&
         auto applied = apply(*found, *inline_value, inv.config);
         if (!applied) return Err{arg + ": " + applied.error()};
     }
+    if (inv.config.replica.size() > 64)
+        return Err{"replica: " + in_quotes(inv.config.replica) + " is longer than 64 characters"};
+    for (const char c : inv.config.replica)
+        if (!std::isalnum(static_cast<unsigned char>(c)) && c != '-' && c != '_')
+            return Err{"replica: " + in_quotes(inv.config.replica) +
+                       " may hold only letters, digits, '-' and '_'"};
     if (!inv.config.token_file.empty()) {
         if (!inv.config.token.empty())
             return Err{std::string("token and token_file are both set; give the token one way")};

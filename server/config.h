@@ -39,6 +39,8 @@ struct ServerConfig {
     uint64_t memory_budget = 2ull << 30;        ///< bytes of trees kept in memory (LRU beyond)
     std::vector<std::string> preload;           ///< mesh files uploaded at start-up
     uint64_t buffer_pool_bytes = 256ull << 20;  ///< idle ray-batch buffers kept for reuse
+    /// This replica's name ([A-Za-z0-9_-]{0,64}): prefixes job ids, sent as X-Kdrt-Replica.
+    std::string replica;
 
     // Limits
     uint64_t max_upload_bytes = 1ull << 30;     ///< mesh upload body

@@ -18,16 +18,20 @@ WriteError os_error(const std::string& what, const std::filesystem::path& path, 
 
 }  // namespace
 
-proto::Result<void, WriteError> write_file_durably(const std::filesystem::path& path,
-                                                   const std::filesystem::path& tmp_dir,
-                                                   std::span<const std::byte> bytes) {
+namespace {
+
+/// Writes and fsyncs `bytes` to a fresh temp file in `tmp_dir`; returns its path.
+proto::Result<std::filesystem::path, WriteError> write_temp(const std::filesystem::path& path,
+                                                            const std::filesystem::path& tmp_dir,
+                                                            std::span<const std::byte> bytes) {
     static std::atomic<uint64_t> counter{0};
     const std::filesystem::path tmp =
         tmp_dir / (path.filename().string() + "." + std::to_string(::getpid()) + "." +
                    std::to_string(counter.fetch_add(1)) + ".tmp");
     const int fd = ::open(tmp.c_str(), O_WRONLY | O_CREAT | O_EXCL | O_CLOEXEC, 0644);
     if (fd < 0) return proto::Err{os_error("cannot create", tmp, errno)};
-    const auto fail = [&](const std::string& what) -> proto::Result<void, WriteError> {
+    const auto fail =
+        [&](const std::string& what) -> proto::Result<std::filesystem::path, WriteError> {
         const int err = errno;
         ::close(fd);
         ::unlink(tmp.c_str());
@@ -48,12 +52,50 @@ proto::Result<void, WriteError> write_file_durably(const std::filesystem::path& 
         ::unlink(tmp.c_str());
         return proto::Err{os_error("cannot close", tmp, err)};
     }
-    if (::rename(tmp.c_str(), path.c_str()) != 0) {
+    return tmp;
+}
+
+}  // namespace
+
+proto::Result<void, WriteError> write_file_durably(const std::filesystem::path& path,
+                                                   const std::filesystem::path& tmp_dir,
+                                                   std::span<const std::byte> bytes) {
+    auto tmp = write_temp(path, tmp_dir, bytes);
+    if (!tmp) return proto::Err{std::move(tmp).error()};
+    if (::rename(tmp->c_str(), path.c_str()) != 0) {
         const int err = errno;
-        ::unlink(tmp.c_str());
+        ::unlink(tmp->c_str());
         return proto::Err{os_error("cannot rename into", path, err)};
     }
     return {};
+}
+
+proto::Result<bool, WriteError> write_file_once(const std::filesystem::path& path,
+                                                const std::filesystem::path& tmp_dir,
+                                                std::span<const std::byte> bytes) {
+    std::error_code ec;
+    if (std::filesystem::exists(path, ec)) return false;  // already there: nothing to write
+    auto tmp = write_temp(path, tmp_dir, bytes);
+    if (!tmp) return proto::Err{std::move(tmp).error()};
+    if (::link(tmp->c_str(), path.c_str()) == 0) {
+        ::unlink(tmp->c_str());
+        return true;
+    }
+    const int err = errno;
+    if (err == EEXIST) {
+        ::unlink(tmp->c_str());
+        return false;
+    }
+    if (err != EPERM && err != EOPNOTSUPP && err != ENOSYS) {
+        ::unlink(tmp->c_str());
+        return proto::Err{os_error("cannot link into", path, err)};
+    }
+    if (::rename(tmp->c_str(), path.c_str()) != 0) {  // no hard links on this file system
+        const int rename_err = errno;
+        ::unlink(tmp->c_str());
+        return proto::Err{os_error("cannot rename into", path, rename_err)};
+    }
+    return true;
 }
 
 proto::Result<void, WriteError> sync_directory(const std::filesystem::path& dir) {

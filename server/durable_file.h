@@ -25,6 +25,16 @@ struct WriteError {
     const std::filesystem::path& path, const std::filesystem::path& tmp_dir,
     std::span<const std::byte> bytes);
 
+/// Like write_file_durably, but never replaces an existing `path`: the temp file is hard-linked
+/// to `path` (atomic, fails if it exists) and then unlinked. For content-addressed files that
+/// several processes sharing one directory may write at once: the first one in wins, the others'
+/// (equal) content is discarded. Returns true when this call created `path`, false when it was
+/// already there. Where the file system has no hard links it falls back to rename() after an
+/// existence check (a narrow race in which an equal file may be replaced by an equal one).
+[[nodiscard]] proto::Result<bool, WriteError> write_file_once(const std::filesystem::path& path,
+                                                              const std::filesystem::path& tmp_dir,
+                                                              std::span<const std::byte> bytes);
+
 /// fsync of a directory, making renames and unlinks in it durable.
 [[nodiscard]] proto::Result<void, WriteError> sync_directory(const std::filesystem::path& dir);
 

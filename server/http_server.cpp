@@ -129,6 +129,10 @@ struct HttpServer::Impl {
         context.request_id = proto::hex(next_request_id.fetch_add(1), 16);
         res.headers.erase("X-Request-Id");
         res.set_header("X-Request-Id", context.request_id);
+        if (!svc.config.replica.empty()) {
+            res.headers.erase("X-Kdrt-Replica");
+            res.set_header("X-Kdrt-Replica", svc.config.replica);
+        }
     }
 
     /// Checks token, readiness and capacity. On refusal replies and returns false.

@@ -29,12 +29,13 @@ std::string random_id() {
 }  // namespace
 
 JobQueue::JobQueue(Compute& compute, Metrics& metrics, unsigned max_jobs, unsigned ttl_s,
-                   uint64_t max_result_bytes)
+                   uint64_t max_result_bytes, std::string replica)
     : compute_(compute),
       metrics_(metrics),
       max_jobs_(max_jobs),
       ttl_(ttl_s),
       max_result_bytes_(max_result_bytes),
+      id_prefix_(replica.empty() ? std::string() : replica + "."),
       worker_([this] { worker_loop(); }) {
     metrics_.add_collector([this](std::vector<proto::MetricFamily>& out) {
         proto::MetricFamily jobs;
@@ -78,7 +79,7 @@ proto::Result<proto::JobStatus, std::string> JobQueue::submit(RenderJob input) {
         return proto::Err{std::to_string(max_jobs_) +
                           " render jobs are queued or running (max_jobs)"};
     auto job = std::make_shared<Job>();
-    job->status.id = random_id();
+    job->status.id = id_prefix_ + random_id();
     job->status.mesh = input.mesh;
     job->status.format = std::string(proto::image_format_name(input.format));
     job->status.created = unix_now();

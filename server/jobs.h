@@ -42,8 +42,10 @@ class JobQueue {
 public:
     /// `max_result_bytes`: the finished jobs' images together (an image larger than this fails
     /// its job).
+    /// `replica` (may be empty) prefixes every job id as "<replica>.<32 hex digits>", so a
+    /// proxy in front of several replicas can send a job's URLs to the one that runs it.
     JobQueue(Compute& compute, Metrics& metrics, unsigned max_jobs, unsigned ttl_s,
-             uint64_t max_result_bytes);
+             uint64_t max_result_bytes, std::string replica = {});
     ~JobQueue();
     JobQueue(const JobQueue&) = delete;
     JobQueue& operator=(const JobQueue&) = delete;
@@ -98,6 +100,7 @@ private:
     const unsigned max_jobs_;
     const std::chrono::seconds ttl_;
     const uint64_t max_result_bytes_;
+    const std::string id_prefix_;  ///< "<replica>." or empty
 
     mutable std::mutex mutex_;
     std::condition_variable wake_;

@@ -2,6 +2,7 @@
 
 #include <algorithm>
 #include <chrono>
+#include <filesystem>
 
 #include "kdrt/proto/mesh_id.h"
 #include "kdrt/proto/text.h"
@@ -81,8 +82,15 @@ void MeshCache::note_problem(const char* file, const std::string& reason,
               {{"file", std::string(file)}, {"reason", reason}, {"error", detail}});
 }
 
-std::shared_ptr<MeshCache::Entry> MeshCache::recover(MeshStore::Listed& item) {
+std::shared_ptr<MeshCache::Entry> MeshCache::recover(MeshStore::Listed& item, bool may_quarantine) {
     const std::string& id = item.id;
+    if (!item.has_summary && !may_quarantine) {
+        // Another replica shares the store: these may be its upload, not yet committed.
+        log_event(LogLevel::kInfo,
+                  "store: uncommitted files left alone (another process shares the store)",
+                  {{"mesh", id}});
+        return nullptr;
+    }
     auto entry = std::make_shared<Entry>();
     entry->id = id;
     bool summary_ok = item.summary.has_value();
@@ -187,10 +195,12 @@ proto::Result<void, std::string> MeshCache::open() {
     for (const std::string& line : removed)
         log_event(LogLevel::kWarn, "cache: removed leftover", {{"what", line}});
     if (!listed) return Err{std::move(listed).error()};
+    // Checked after the listing: a process writing any listed file was alive when it was taken.
+    const bool may_quarantine = !store_.shared_with_live_process();
     for (MeshStore::Listed& item : *listed) {
         std::shared_ptr<Entry> entry;
         try {
-            entry = recover(item);
+            entry = recover(item, may_quarantine);
         } catch (const std::exception& e) {
             log_event(LogLevel::kError, "cache: cannot recover a stored mesh; left in place",
                       {{"mesh", item.id}, {"error", std::string(e.what())}});
@@ -206,6 +216,7 @@ proto::Result<void, std::string> MeshCache::open() {
 proto::Result<MeshCache::Added, CacheError> MeshCache::add(const Mesh& mesh) {
     const std::string id = proto::mesh_id(mesh);
     std::optional<proto::MeshSummary> previous;  // set when repairing a damaged mesh
+    adopt(id);                                   // another replica may have stored it already
     std::unique_lock lock(mutex_);
     for (;;) {
         const auto it = entries_.find(id);
@@ -245,11 +256,16 @@ proto::Result<MeshCache::Added, CacheError> MeshCache::add(const Mesh& mesh) {
         auto built = std::make_shared<KdTree>(compute_.build(mesh));
         metrics_.record_build(seconds_since(start));
         proto::MeshSummary summary = make_summary(id, mesh, *built);
-        auto saved = store_.save(summary, mesh, *built);
+        auto saved = store_.save(summary, mesh, *built, previous.has_value());
         if (saved) {
-            disk_bytes = *saved;
+            disk_bytes = saved->disk_bytes;
+            if (!saved->created) {
+                // Another replica committed the same mesh meanwhile: its summary is the record.
+                metrics_.uploads_deduplicated.fetch_add(1);
+                if (auto stored = store_.read_summary(id)) summary = std::move(*stored);
+            }
             tree = std::move(built);
-            outcome = Added{std::move(summary), true};
+            outcome = Added{std::move(summary), saved->created};
         } else {
             log_event(LogLevel::kError, "cache: cannot store mesh",
                       {{"mesh", id}, {"error", saved.error().message}});
@@ -290,12 +306,73 @@ proto::Result<MeshCache::Added, CacheError> MeshCache::add(const Mesh& mesh) {
     return outcome;
 }
 
-proto::Result<std::shared_ptr<const KdTree>, CacheError> MeshCache::acquire(const std::string& id) {
+std::shared_ptr<MeshCache::Entry> MeshCache::committed(const std::string& id) {
     std::unique_lock lock(mutex_);
-    const auto it = entries_.find(id);
-    if (it == entries_.end() || !it->second->summary)
-        return Err{CacheError{CacheError::Code::kUnknownMesh, "no mesh with id " + id}};
-    const std::shared_ptr<Entry> entry = it->second;
+    bool adopted = false;
+    for (;;) {
+        const auto it = entries_.find(id);
+        if (it != entries_.end() && it->second->summary) return it->second;
+        if (it != entries_.end() && it->second->flight.valid()) {
+            // Being uploaded, or adopted from the store: wait for that, then look again.
+            const Flight flight = it->second->flight;
+            lock.unlock();
+            flight.wait();
+            lock.lock();
+            continue;
+        }
+        if (adopted) return nullptr;
+        lock.unlock();
+        adopt(id);
+        adopted = true;
+        lock.lock();
+    }
+}
+
+void MeshCache::adopt(const std::string& id) {
+    if (!proto::is_mesh_id(id)) return;
+    std::unique_lock lock(mutex_);
+    if (entries_.count(id)) return;
+    auto placeholder = std::make_shared<Entry>();
+    placeholder->id = id;
+    std::promise<TreeResult> promise;
+    placeholder->flight = promise.get_future().share();
+    entries_[id] = placeholder;
+    lock.unlock();
+
+    std::shared_ptr<Entry> found;
+    try {
+        if (auto item = store_.list_one(id); item && item->summary) {
+            found = recover(*item, false);
+            if (found) log_event(LogLevel::kInfo, "cache: mesh found in the store", {{"mesh", id}});
+        }
+    } catch (const std::exception& e) {
+        log_event(LogLevel::kError, "cache: cannot read a stored mesh",
+                  {{"mesh", id}, {"error", std::string(e.what())}});
+    }
+
+    lock.lock();
+    placeholder->flight = Flight();
+    if (is_current(placeholder)) {
+        if (found) {
+            placeholder->summary = std::move(found->summary);
+            placeholder->damage = std::move(found->damage);
+            placeholder->disk_bytes = found->disk_bytes;
+            disk_bytes_ += placeholder->disk_bytes;
+        } else {
+            entries_.erase(id);
+        }
+    }
+    lock.unlock();
+    promise.set_value(Err{CacheError{CacheError::Code::kUnknownMesh, "no mesh with id " + id}});
+}
+
+proto::Result<std::shared_ptr<const KdTree>, CacheError> MeshCache::acquire(const std::string& id) {
+    const std::shared_ptr<Entry> entry = committed(id);
+    if (!entry) return Err{CacheError{CacheError::Code::kUnknownMesh, "no mesh with id " + id}};
+    std::unique_lock lock(mutex_);
+    if (!is_current(entry))
+        return Err{
+            CacheError{CacheError::Code::kUnknownMesh, "no mesh with id " + id + " (deleted)"}};
     if (!entry->damage.empty()) return Err{CacheError{CacheError::Code::kDamaged, entry->damage}};
     if (entry->tree) {
         metrics_.cache_hits.fetch_add(1, std::memory_order_relaxed);
@@ -408,14 +485,45 @@ proto::Result<MeshCache::Loaded, CacheError> MeshCache::load(const std::string& 
     return Loaded{std::shared_ptr<const KdTree>(std::move(built)), std::move(fixed)};
 }
 
-std::optional<proto::MeshSummary> MeshCache::find(const std::string& id) const {
+std::optional<proto::MeshSummary> MeshCache::find(const std::string& id) {
+    const std::shared_ptr<Entry> entry = committed(id);
+    if (!entry) return std::nullopt;
     std::lock_guard lock(mutex_);
-    const auto it = entries_.find(id);
-    if (it == entries_.end() || !it->second->summary) return std::nullopt;
-    return with_runtime(*it->second);
+    if (!entry->summary) return std::nullopt;
+    return with_runtime(*entry);
 }
 
-std::vector<proto::MeshSummary> MeshCache::list() const {
+std::vector<proto::MeshSummary> MeshCache::list() {
+    // The store is the index: meshes other replicas committed are adopted, and meshes they
+    // deleted (no summary and no mesh file left) are forgotten.
+    if (auto ids = store_.committed_ids(); ids) {
+        std::vector<std::string> unknown, gone;
+        {
+            std::lock_guard lock(mutex_);
+            for (const std::string& id : *ids)
+                if (!entries_.count(id)) unknown.push_back(id);
+            for (const auto& [id, entry] : entries_)
+                if (entry->summary && !entry->flight.valid() &&
+                    !std::binary_search(ids->begin(), ids->end(), id))
+                    gone.push_back(id);
+        }
+        for (const std::string& id : unknown) adopt(id);
+        for (const std::string& id : gone) {
+            std::error_code ec;
+            if (std::filesystem::exists(store_.summary_path(id), ec) ||
+                std::filesystem::exists(store_.mesh_path(id), ec))
+                continue;
+            std::lock_guard lock(mutex_);
+            const auto it = entries_.find(id);
+            if (it != entries_.end() && it->second->summary && !it->second->flight.valid()) {
+                log_event(LogLevel::kInfo, "cache: mesh deleted from the store elsewhere",
+                          {{"mesh", id}});
+                drop(*it->second);
+            }
+        }
+    } else {
+        log_event(LogLevel::kError, "cache: cannot list the store", {{"error", ids.error()}});
+    }
     std::vector<proto::MeshSummary> out;
     {
         std::lock_guard lock(mutex_);
@@ -428,6 +536,7 @@ std::vector<proto::MeshSummary> MeshCache::list() const {
 }
 
 bool MeshCache::remove(const std::string& id) {
+    if (!committed(id)) return false;  // adopts it from the store if another replica stored it
     std::unique_lock lock(mutex_);
     for (;;) {
         const auto it = entries_.find(id);

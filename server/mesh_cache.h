@@ -20,6 +20,12 @@
 /// - Nothing is acknowledged before it is durable; a full disk is kNoSpace (507).
 /// - Eviction drops the cache's reference only: traces in flight keep their tree alive. The
 ///   most recently used tree stays resident even if it alone exceeds the budget.
+/// - Shared stores (mesh_store.h): other replicas add and delete meshes in the same store. A
+///   mesh this cache does not know is looked up in the store (its summary file) when asked for,
+///   registered, and its tree loaded (or rebuilt) by one caller while the others wait (adopt());
+///   list() lists the store's committed meshes and forgets those another replica deleted.
+///   At start-up, files without a summary are quarantined only when no other live process has
+///   the store open (else they may be its upload in progress).
 /// All member functions are thread-safe.
 
 #include <cstdint>
@@ -77,9 +83,10 @@ public:
     [[nodiscard]] proto::Result<std::shared_ptr<const KdTree>, CacheError> acquire(
         const std::string& id);
 
-    [[nodiscard]] std::optional<proto::MeshSummary> find(const std::string& id) const;
-    /// Every acknowledged mesh, sorted by id.
-    [[nodiscard]] std::vector<proto::MeshSummary> list() const;
+    /// The mesh's summary, looking in the store when this cache does not know it.
+    [[nodiscard]] std::optional<proto::MeshSummary> find(const std::string& id);
+    /// Every acknowledged mesh in the store, sorted by id.
+    [[nodiscard]] std::vector<proto::MeshSummary> list();
     /// Forgets the mesh and deletes its files. False if there is no such mesh.
     bool remove(const std::string& id);
 
@@ -113,7 +120,14 @@ private:
     proto::Result<Loaded, CacheError> load(const std::string& id,
                                            const proto::MeshSummary& summary);
     /// open()'s decision for one listed id: the entry to register, or nullptr (quarantined).
-    std::shared_ptr<Entry> recover(MeshStore::Listed& item);
+    /// `may_quarantine`: files without a summary may be moved aside (no other live process
+    /// could be writing them); else they are left alone.
+    std::shared_ptr<Entry> recover(MeshStore::Listed& item, bool may_quarantine);
+    /// Registers mesh `id` from the store if it is committed there and not known here (one
+    /// caller per id does the work; others wait for it). Call without mutex_ held.
+    void adopt(const std::string& id);
+    /// The committed entry of `id` (adopted from the store if need be), or nullptr.
+    std::shared_ptr<Entry> committed(const std::string& id);
     void note_problem(const char* file, const std::string& reason, const std::string& detail);
     proto::MeshSummary with_runtime(const Entry& entry) const;
     void make_resident(Entry& entry, std::shared_ptr<const KdTree> tree);  // mutex_ held

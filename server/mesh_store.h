@@ -5,7 +5,9 @@
 ///                      is the id, so it verifies itself
 ///   meshes/<id>.tree   its kD-tree: the engine blob in a container naming the mesh (tree_file.h)
 ///   meshes/<id>.json   its summary (proto::MeshSummary) - the commit record, written last
-///   tmp/               spooled uploads and writes in progress; emptied at start-up
+///   tmp/<process>/     spooled uploads and writes in progress of one server process, which
+///                      holds an flock on tmp/<process>.lock while it runs; a directory whose
+///                      lock is free (its process is gone) is removed by the next open()
 ///   quarantine/        files of a mesh that could be neither served nor repaired, moved aside
 ///                      at start-up (never deleted), one directory per mesh and time
 ///
@@ -14,6 +16,14 @@
 /// complete or its files are complete but uncommitted (no summary). The store itself never
 /// deletes a file in meshes/ except on remove(): start-up decisions (repair, quarantine) are the
 /// cache's. Thread-safe for distinct ids; the cache serialises work per id.
+///
+/// Shared stores: any number of server processes (replicas, on one machine or on a shared file
+/// system such as NFS or CephFS) may use one store directory at once. Each has its own tmp/
+/// subdirectory; meshes/ files are content-addressed (the id is the mesh's hash) and only ever
+/// enter it by an atomic link or rename of a complete, fsync'd file, never by writing in place.
+/// There is no index file: the directory listing is the index, so two writers cannot lose each
+/// other's entries. save() never replaces an existing file (write_file_once): when two replicas
+/// store the same mesh at once, the first file in wins and both answer with the same id.
 
 #include <cstdint>
 #include <filesystem>
@@ -47,6 +57,9 @@ struct StoreError {
 class MeshStore {
 public:
     explicit MeshStore(std::filesystem::path root);
+    ~MeshStore();
+    MeshStore(const MeshStore&) = delete;
+    MeshStore& operator=(const MeshStore&) = delete;
 
     /// Every mesh id with at least one file in meshes/.
     struct Listed {
@@ -56,16 +69,36 @@ public:
         bool has_mesh = false, has_tree = false, has_summary = false;
     };
 
-    /// Creates the directories, empties tmp/ (`removed` receives a line per deleted file, for
-    /// the log) and lists every id found in meshes/. Deletes nothing in meshes/.
+    /// Creates the directories and this process's tmp/ directory (locked while the store
+    /// lives), removes the tmp/ directories of processes that are gone and loose files in tmp/
+    /// (`removed` receives a line per deleted file, for the log) and lists every id found in
+    /// meshes/. Deletes nothing in meshes/.
     [[nodiscard]] proto::Result<std::vector<Listed>, std::string> open(
         std::vector<std::string>& removed);
     /// The listing part of open() alone: reads, never writes (for --check-store).
     [[nodiscard]] proto::Result<std::vector<Listed>, std::string> list() const;
+    /// One id as list() would list it; nullopt when meshes/ holds no file of it.
+    [[nodiscard]] std::optional<Listed> list_one(const std::string& id) const;
+    /// The ids with a summary file (committed meshes), from the directory listing alone
+    /// (reads no file), sorted.
+    [[nodiscard]] proto::Result<std::vector<std::string>, std::string> committed_ids() const;
+    /// True when another live process has the store open (holds a tmp/ lock). Files of a mesh
+    /// without a summary may then be another process's write in progress.
+    [[nodiscard]] bool shared_with_live_process() const;
 
-    /// Stores mesh, tree and summary durably (in that order). Returns the bytes on disk.
-    [[nodiscard]] proto::Result<uint64_t, WriteError> save(const proto::MeshSummary& summary,
-                                                           const Mesh& mesh, const KdTree& tree);
+    struct Saved {
+        uint64_t disk_bytes = 0;
+        bool created = false;  ///< false: the summary was already there (another process)
+    };
+    /// Stores mesh, tree and summary durably (in that order). With `replace` false (a new
+    /// upload) existing files are kept, never rewritten (write_file_once); with `replace` true
+    /// (repairing a damaged mesh) they are replaced atomically.
+    [[nodiscard]] proto::Result<Saved, WriteError> save(const proto::MeshSummary& summary,
+                                                        const Mesh& mesh, const KdTree& tree,
+                                                        bool replace = false);
+    /// Reads one summary file (checked to name `id`).
+    [[nodiscard]] proto::Result<proto::MeshSummary, std::string> read_summary(
+        const std::string& id) const;
     /// Replaces one file (after a rebuild or a repair).
     [[nodiscard]] proto::Result<void, WriteError> save_mesh(const std::string& id,
                                                             const Mesh& mesh);
@@ -106,7 +139,9 @@ public:
     }
 
 private:
-    std::filesystem::path root_, meshes_dir_, tmp_dir_, quarantine_dir_;
+    std::filesystem::path root_, meshes_dir_, tmp_root_, tmp_dir_, quarantine_dir_;
+    std::string process_name_;  ///< this process's tmp/ subdirectory and lock file name
+    int lock_fd_ = -1;          ///< flock'd tmp/<process_name_>.lock while open
 };
 
 /// The mesh a tree was built from, as an unindexed triangle soup (the tree keeps every

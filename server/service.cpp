@@ -11,7 +11,8 @@ Service::Service(ServerConfig cfg)
       batch_budget(config.batch_memory_budget),
       renders(config.max_renders, config.max_queued),
       builds(config.max_builds, config.max_queued),
-      jobs(compute, metrics, config.max_jobs, config.job_ttl_s, config.job_result_bytes),
+      jobs(compute, metrics, config.max_jobs, config.job_ttl_s, config.job_result_bytes,
+           config.replica),
       batch_buffers(config.buffer_pool_bytes) {
     metrics.add_collector([this](std::vector<proto::MetricFamily>& out) {
         using proto::MetricType;

@@ -58,6 +58,11 @@ proto::Result<ClientOptions, int> trace_client_options(const Context& ctx) {
         if (!n) return proto::Err{ctx.usage_error("--chunk-rays: " + n.error())};
         options.chunk_rays = static_cast<size_t>(*n);
     }
+    if (auto text = ctx.args.value("split")) {
+        auto n = parse_uint(*text, 1, kMaxConnections);
+        if (!n) return proto::Err{ctx.usage_error("--split: " + n.error())};
+        options.split = static_cast<unsigned>(*n);
+    }
     return options;
 }
 

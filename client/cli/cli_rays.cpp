@@ -71,7 +71,8 @@ int run_rays(Context& ctx) {
 }
 
 constexpr std::string_view kTraceHelp =
-    R"(usage: kdrt trace ID RAYS.kdrr -o FILE [--connections N] [--chunk-rays N] [--json]
+    R"(usage: kdrt trace ID RAYS.kdrr -o FILE [--connections N] [--chunk-rays N] [--split N]
+                  [--json]
 
 Traces every ray of a KDRR file (kdrt rays, kdrt-bench rays, proto/FORMATS.md) against a stored
 mesh and writes the answers to FILE: KDRH closest hits, or KDRO occlusion bytes when the file's
@@ -81,14 +82,14 @@ Prints the ray count, time, Mrays/s and hits.
   -o, --output FILE    the KDRH / KDRO file (required)
   --connections N      chunks in flight at once (default 4)
   --chunk-rays N       rays per request (default 65536)
+  --split N            at least N requests, each with its own routing key (?route=ID.K), so a
+                       proxy in front of replicas spreads them (docs/scale-out.md)
   --json               print the summary as one JSON object
 )";
 
 constexpr OptionSpec kTraceOptions[] = {
-    {"output", true, 'o'},
-    {"connections", true},
-    {"chunk-rays", true},
-    {"json", false},
+    {"output", true, 'o'}, {"connections", true}, {"chunk-rays", true},
+    {"split", true},       {"json", false},
 };
 
 int run_trace(Context& ctx) {

@@ -71,6 +71,10 @@ std::vector<std::byte> to_byte_vector(const std::string& text) {
     return {bytes.begin(), bytes.end()};
 }
 
+/// 502 Bad Gateway, 504 Gateway Timeout: a proxy in front of replicas lost the request's replica
+/// (docs/scale-out.md). Retried like a transport error, on idempotent requests only.
+bool gateway_failure(int status) { return status == 502 || status == 504; }
+
 /// Retry-After in delta-seconds form; nullopt for an HTTP-date or garbage (then the backoff
 /// applies).
 std::optional<uint32_t> parse_retry_after(const std::string& value) {
@@ -344,6 +348,11 @@ struct Client::Impl {
             }
             httplib::Response& response = res.value();
             if (response.status >= 200 && response.status < 300) return std::move(response);
+            if (gateway_failure(response.status) && ex.resend_after_transport_error &&
+                attempt < attempts_allowed) {
+                std::this_thread::sleep_for(backoff(attempt - 1));
+                continue;
+            }
             if (response.status == 503 && ex.retry_unavailable && attempt < attempts_allowed) {
                 Millis delay = backoff(attempt - 1);
                 if (const auto after = parse_retry_after(response.get_header_value("Retry-After")))
@@ -382,6 +391,11 @@ struct Client::Impl {
             }
             const detail::DirectResponse& response = slot.response;
             if (response.status >= 200 && response.status < 300) return {};
+            if (gateway_failure(response.status) && ex.resend_after_transport_error &&
+                attempt < attempts_allowed) {
+                std::this_thread::sleep_for(backoff(attempt - 1));
+                continue;
+            }
             if (response.status == 503 && ex.retry_unavailable && attempt < attempts_allowed) {
                 Millis delay = backoff(attempt - 1);
                 if (const auto after = parse_retry_after(response.retry_after))
@@ -493,8 +507,16 @@ struct Client::Impl {
                                   std::to_string(rays.size()) +
                                       " rays in one call; a batch holds at most 4294967295")};
         const std::string path = api("/v1/meshes/" + escape_segment(id) + "/intersect");
-        const size_t chunk = options.chunk_rays;
+        // options.split parts at least, each with its own routing key (docs/scale-out.md).
+        const size_t split = std::max<size_t>(options.split, 1);
+        const size_t chunk =
+            split > 1 ? std::clamp<size_t>((rays.size() + split - 1) / split, 1, options.chunk_rays)
+                      : options.chunk_rays;
         const size_t chunks = rays.empty() ? 1 : (rays.size() - 1) / chunk + 1;
+        const auto chunk_path = [&](size_t k) {
+            if (split <= 1) return path;
+            return path + "?route=" + escape_segment(id) + "." + std::to_string(k % split);
+        };
         std::vector<T> out(rays.size());
 
         std::atomic<size_t> next{0};
@@ -521,8 +543,9 @@ struct Client::Impl {
                 const size_t count = std::min(chunk, rays.size() - first);
                 const auto part = rays.subspan(first, count);
                 const auto into = std::span<T>(out).subspan(first, count);
-                auto done = slot ? trace_chunk_direct<T>(*slot, path, part, occlusion, into)
-                                 : trace_chunk<T>(**lease, path, part, occlusion, into);
+                const std::string at = chunk_path(k);
+                auto done = slot ? trace_chunk_direct<T>(*slot, at, part, occlusion, into)
+                                 : trace_chunk<T>(**lease, at, part, occlusion, into);
                 if (!done) {
                     std::lock_guard lock(error_mutex);
                     // Report the earliest failing chunk among those that failed (deterministic
@@ -582,10 +605,12 @@ struct Client::Impl {
         return std::vector<std::byte>(answer.begin(), answer.end());
     }
 
-    [[nodiscard]] Exchange render_exchange() const {
+    /// The render's mesh id rides along as ?route= (ignored by the server): a proxy in front of
+    /// replicas hashes it, so the render runs where the mesh's tree is hot (docs/scale-out.md).
+    [[nodiscard]] Exchange render_exchange(const RenderRequest& request) const {
         Exchange ex;
         ex.method = "POST";
-        ex.path = api("/v1/render");
+        ex.path = api("/v1/render?route=" + escape_segment(request.mesh));
         ex.content_type = std::string(proto::kJsonMediaType);
         return ex;
     }
@@ -711,14 +736,14 @@ Result<std::vector<uint8_t>> Client::occluded(std::string_view id, std::span<con
 }
 
 Result<std::vector<std::byte>> Client::render(const RenderRequest& request) {
-    Exchange ex = impl_->render_exchange();
+    Exchange ex = impl_->render_exchange(request);
     const std::string body = proto::encode_render_request(request);
     ex.body = body;
     return impl_->image_call(ex, body, 200);
 }
 
 Result<Job> Client::submit(const RenderRequest& request) {
-    Exchange ex = impl_->render_exchange();
+    Exchange ex = impl_->render_exchange(request);
     const std::string body = proto::encode_render_request(request);
     ex.body = body;
     ex.headers.emplace("Prefer", "respond-async");

@@ -138,6 +138,8 @@ TEST_F(Cli, UsageErrorsExitTwoWithAMessage) {
         {{"trace", "abcd", "r.kdrr"}, "kdrt trace: missing -o FILE"},
         {{"trace", "abcd", "r.kdrr", "-o", "h", "--connections", "0"},
          "--connections: \"0\" is not in 1 .. 64"},
+        {{"trace", "abcd", "r.kdrr", "-o", "h", "--split", "0"},
+         "--split: \"0\" is not in 1 .. 64"},
         {{"rays", "m.obj"}, "kdrt rays: missing -o FILE"},
         {{"rays"}, "kdrt rays: missing MESH"},
         {{"rays", "m.obj", "-o", "r", "--kind", "sideways"},
@@ -527,6 +529,11 @@ TEST_F(Cli, TraceWritesTheEngineAnswers) {
         ASSERT_EQ(run.exit_code, 0) << run.err;
         auto batch = proto::decode_rays(read_bytes(rays));
         ASSERT_TRUE(batch);
+        // Split into 5 routed parts (docs/scale-out.md): the same answers, byte for byte.
+        const std::string split_out = path(std::string("t_") + kind + ".split.out");
+        const CliRun split = kdrt({"trace", id_, rays, "-o", split_out, "--split", "5"});
+        ASSERT_EQ(split.exit_code, 0) << split.err;
+        EXPECT_EQ(read_bytes(split_out), read_bytes(out));
         if (batch->occlusion) {
             std::vector<uint8_t> want(batch->rays.size());
             occluded(*tree_, batch->rays, want);

@@ -80,6 +80,24 @@ TEST_F(ClientRetry, Injected503sAreRetriedHonouringRetryAfter) {
     EXPECT_EQ(log[2], "GET /v1/meshes/" + id_ + " -> 200");
 }
 
+TEST_F(ClientRetry, GatewayErrorsAreRetriedOnlyWhenIdempotent) {
+    for (const int status : {502, 504}) {
+        FaultyProxy proxy(server_->port(), /*unavailable_first=*/2, /*retry_after_s=*/-1, status);
+        Client c(proxy.url(), fast_options());
+        const auto r = rays(300, 41);
+        auto hits = c.intersect(id_, r);  // a replica behind a proxy died twice: resent
+        ASSERT_TRUE(hits) << hits.error().to_string();
+        EXPECT_TRUE(same_bits(*hits, engine_hits(r)));
+        EXPECT_EQ(proxy.requests(), 3);
+    }
+    FaultyProxy proxy(server_->port(), /*unavailable_first=*/1, /*retry_after_s=*/-1, 502);
+    auto job = Client(proxy.url(), fast_options()).submit(small_render(id_));
+    ASSERT_FALSE(job);  // the job may have been queued before the replica died: not resent
+    EXPECT_EQ(job.error().status, 502);
+    EXPECT_EQ(job.error().attempts, 1u);
+    EXPECT_EQ(proxy.requests(), 1);
+}
+
 TEST_F(ClientRetry, Injected503sOnChunksStillGiveTheEngineAnswers) {
     FaultyProxy proxy(server_->port(), /*unavailable_first=*/2, /*retry_after_s=*/0);
     ClientOptions options = fast_options();

@@ -36,10 +36,11 @@ FakeServer::~FakeServer() {
     if (thread_.joinable()) thread_.join();
 }
 
-FaultyProxy::FaultyProxy(int upstream_port, int unavailable_first, int retry_after_s)
+FaultyProxy::FaultyProxy(int upstream_port, int unavailable_first, int retry_after_s, int status)
     : upstream_port_(upstream_port),
       unavailable_first_(unavailable_first),
-      retry_after_s_(retry_after_s) {
+      retry_after_s_(retry_after_s),
+      status_(status) {
     server_ = std::make_unique<FakeServer>([this](httplib::Server& http) {
         const auto handler = [this](const httplib::Request& req, httplib::Response& res) {
             handle(req, res);
@@ -60,14 +61,14 @@ void FaultyProxy::handle(const httplib::Request& req, httplib::Response& res) {
     if (index < unavailable_first_) {
         proto::Problem p;
         p.kind = proto::ProblemKind::kOverCapacity;
-        p.detail = "injected 503 number " + std::to_string(index + 1);
+        p.detail = "injected " + std::to_string(status_) + " number " + std::to_string(index + 1);
         p.instance = req.path;
         p.request_id = "fake";
         if (retry_after_s_ >= 0) {
             p.retry_after = static_cast<uint32_t>(retry_after_s_);
             res.set_header("Retry-After", std::to_string(retry_after_s_));
         }
-        res.status = 503;
+        res.status = status_;
         res.set_content(proto::encode_problem(p), std::string(proto::kProblemMediaType));
     } else {
         httplib::Client upstream("127.0.0.1", upstream_port_);

@@ -35,10 +35,11 @@ private:
 
 /// Forwards every request to the kdrt-server on 127.0.0.1:`upstream_port`, except that the first
 /// `unavailable_first` requests get 503 (problem+json, over capacity) with `Retry-After:
-/// retry_after_s` (no header when negative).
+/// retry_after_s` (no header when negative). `status` replaces 503 as the injected status (502
+/// or 504: what a reverse proxy answers when the replica behind it failed).
 class FaultyProxy {
 public:
-    FaultyProxy(int upstream_port, int unavailable_first, int retry_after_s = 1);
+    FaultyProxy(int upstream_port, int unavailable_first, int retry_after_s = 1, int status = 503);
 
     [[nodiscard]] std::string url() const { return server_->url(); }
     /// Requests received so far.
@@ -52,6 +53,7 @@ private:
     int upstream_port_;
     int unavailable_first_;
     int retry_after_s_;
+    int status_;
     std::atomic<int> requests_{0};
     mutable std::mutex mutex_;
     std::vector<std::string> log_;

@@ -56,7 +56,8 @@ struct ClientOptions {
     std::chrono::milliseconds connect_timeout{5'000};
     /// Per socket read and write (not per request): a render or a batch may take longer in total.
     std::chrono::milliseconds io_timeout{300'000};
-    /// Retries after the first attempt, on connection errors and on 503 (never on another status).
+    /// Retries after the first attempt, on connection errors and on 503; idempotent requests
+    /// (all but submit) also on 502 and 504, a proxy's answer when the replica behind it failed.
     unsigned max_retries = 4;
     /// Delay before retry k (0-based): min(backoff_initial * 2^k, backoff_max), unless a 503
     /// carries Retry-After (seconds), which is honoured up to max_retry_after.
@@ -70,6 +71,11 @@ struct ClientOptions {
     size_t chunk_rays = size_t{1} << 16;
     /// intersect/occluded: chunks in flight at once, each on its own keep-alive connection.
     unsigned connections = 4;
+    /// intersect/occluded: split every batch into at least this many chunks, chunk k carrying
+    /// the routing key "?route=<id>.<k mod split>" so a proxy that hashes it (nginx with
+    /// docker/nginx/, docs/scale-out.md) spreads one big batch over the replicas. The answers
+    /// are put back in ray order: the result equals the unsplit one. 0 or 1: no split, no key.
+    unsigned split = 0;
     /// wait(): time between two polls of the job.
     std::chrono::milliseconds poll_interval{100};
 };

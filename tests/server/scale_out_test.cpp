@@ -1,0 +1,495 @@
+// Scale-out: nginx (Debian's, with the routing of docker/nginx/) in front of kdrt-server
+// replicas sharing one store directory, all on loopback (docs/scale-out.md).
+
+#include <netinet/in.h>
+#include <signal.h>
+#include <spawn.h>
+#include <sys/socket.h>
+#include <sys/wait.h>
+#include <unistd.h>
+
+#include <atomic>
+#include <fstream>
+#include <map>
+#include <set>
+#include <thread>
+
+#include <gtest/gtest.h>
+
+#include "http_test_util.h"
+#include "kdrt/client/client.h"
+#include "kdrt/proto/mesh_id.h"
+
+extern char** environ;
+
+namespace kdrt::test {
+namespace {
+
+namespace fs = std::filesystem;
+using kdrt::Client;
+using kdrt::ClientOptions;
+constexpr const char* kNginx = "/usr/sbin/nginx";
+
+/// A free loopback port (bound and released: nginx cannot report a port 0 bind).
+int free_port() {
+    const int fd = ::socket(AF_INET, SOCK_STREAM, 0);
+    sockaddr_in addr{};
+    addr.sin_family = AF_INET;
+    addr.sin_addr.s_addr = htonl(INADDR_LOOPBACK);
+    addr.sin_port = 0;
+    ::bind(fd, reinterpret_cast<sockaddr*>(&addr), sizeof addr);
+    socklen_t len = sizeof addr;
+    ::getsockname(fd, reinterpret_cast<sockaddr*>(&addr), &len);
+    ::close(fd);
+    return ntohs(addr.sin_port);
+}
+
+/// nginx in the foreground with the shipped routing files and upstreams for `replicas`.
+class Nginx {
+public:
+    Nginx(const fs::path& dir, const std::vector<std::pair<std::string, int>>& replicas)
+        : dir_(dir) {
+        fs::create_directories(dir_ / "temp");
+        port_ = free_port();
+        const std::string source = KDRT_SOURCE_DIR;
+        std::string servers, replica_upstreams, job_map;
+        for (const auto& [name, port] : replicas) {
+            const std::string address = "127.0.0.1:" + std::to_string(port);
+            servers += "        server " + address + " max_fails=1 fail_timeout=5s;\n";
+            replica_upstreams += "    upstream kdrt_replica_" + name + " { server " + address +
+                                 "; keepalive 4; keepalive_timeout 1s; }\n";
+            job_map += "        " + name + " kdrt_replica_" + name + ";\n";
+        }
+        const std::string temp = (dir_ / "temp").string();
+        std::ofstream conf(dir_ / "nginx.conf");
+        conf << (::geteuid() == 0 ? "user root;\n" : "") << "daemon off;\nmaster_process on;\n"
+             << "worker_processes 2;\npid " << (dir_ / "nginx.pid").string() << ";\n"
+             << "error_log " << (dir_ / "error.log").string() << " warn;\n"
+             << "events { worker_connections 1024; }\nhttp {\n    access_log off;\n"
+             << "    client_body_temp_path " << temp << "/body;\n"
+             << "    proxy_temp_path " << temp << "/proxy;\n"
+             << "    fastcgi_temp_path " << temp << "/fastcgi;\n"
+             << "    uwsgi_temp_path " << temp << "/uwsgi;\n"
+             << "    scgi_temp_path " << temp << "/scgi;\n"
+             << "    include " << source << "/docker/nginx/kdrt-http.conf;\n"
+             << "    upstream kdrt_mesh {\n        hash $kdrt_route_key consistent;\n"
+             << servers << "        keepalive 16;\n        keepalive_timeout 1s;\n    }\n"
+             << "    upstream kdrt_any {\n        least_conn;\n"
+             << servers << "        keepalive 16;\n        keepalive_timeout 1s;\n    }\n"
+             << replica_upstreams << "    map $kdrt_job_replica $kdrt_job_upstream {\n"
+             << "        default kdrt_any;\n"
+             << job_map << "    }\n"
+             << "    server {\n        listen 127.0.0.1:" << port_ << ";\n"
+             << "        include " << source << "/docker/nginx/kdrt-locations.conf;\n    }\n}\n";
+        conf.close();
+        const std::string conf_path = (dir_ / "nginx.conf").string();
+        const std::string error_log = (dir_ / "error.log").string();
+        const std::string prefix = dir_.string() + "/";
+        std::vector<std::string> args = {kNginx, "-p", prefix, "-e", error_log, "-c", conf_path};
+        std::vector<char*> argv;
+        for (auto& a : args) argv.push_back(a.data());
+        argv.push_back(nullptr);
+        if (::posix_spawn(&pid_, kNginx, nullptr, nullptr, argv.data(), environ) != 0) {
+            ADD_FAILURE() << "cannot start " << kNginx << " (scripts/deps.sh installs nginx)";
+            pid_ = -1;
+            return;
+        }
+        for (int i = 0; i < 200; ++i) {
+            httplib::Client cli("127.0.0.1", port_);
+            cli.set_connection_timeout(std::chrono::milliseconds(200));
+            if (auto res = cli.Get("/healthz"); res && res->status == 200) return;
+            int status = 0;
+            if (::waitpid(pid_, &status, WNOHANG) == pid_) break;
+            std::this_thread::sleep_for(std::chrono::milliseconds(50));
+        }
+        std::ifstream log(dir_ / "error.log");
+        ADD_FAILURE() << "nginx did not come up: "
+                      << std::string(std::istreambuf_iterator<char>(log), {});
+    }
+    ~Nginx() {
+        if (pid_ <= 0) return;
+        ::kill(pid_, SIGQUIT);
+        int status = 0;
+        ::waitpid(pid_, &status, 0);
+    }
+    Nginx(const Nginx&) = delete;
+    Nginx& operator=(const Nginx&) = delete;
+    [[nodiscard]] int port() const noexcept { return port_; }
+    [[nodiscard]] std::unique_ptr<httplib::Client> client() const {
+        auto cli = std::make_unique<httplib::Client>("127.0.0.1", port_);
+        cli->set_read_timeout(std::chrono::seconds(60));
+        cli->set_keep_alive(true);
+        return cli;
+    }
+
+private:
+    fs::path dir_;
+    int port_ = 0;
+    pid_t pid_ = -1;
+};
+
+/// `request` until it gets an answer that is not a gateway or availability error (a client
+/// behind a proxy retries those: the kdrt client does).
+template <typename F>
+httplib::Result retrying(F&& request, int* retries = nullptr) {
+    for (int attempt = 0;; ++attempt) {
+        httplib::Result res = request();
+        const bool retry = !res || res->status == 502 || res->status == 503 || res->status == 504;
+        if (!retry || attempt == 50) return res;
+        if (retries) ++*retries;
+        std::this_thread::sleep_for(std::chrono::milliseconds(100));
+    }
+}
+
+class ScaleOut : public ::testing::Test {
+protected:
+    void SetUp() override {
+        store_ = dir_.path() / "store";
+        for (int i = 0; i < 3; ++i) add_replica();
+    }
+    void add_replica() {
+        std::string name = std::to_string(replicas_.size());
+        name.insert(0, 1, 'r');
+        replicas_.push_back(std::make_unique<ServerProcess>(ServerProcess::Options{
+            .cache_dir = store_,
+            .args = {"--replica", name, "--keep-alive-timeout-s", "3", "--memory-budget", "64M"}}));
+        names_.push_back(name);
+    }
+    std::vector<std::pair<std::string, int>> upstreams() const {
+        std::vector<std::pair<std::string, int>> out;
+        for (size_t i = 0; i < replicas_.size(); ++i)
+            if (replicas_[i]->running()) out.emplace_back(names_[i], replicas_[i]->port());
+        return out;
+    }
+    std::unique_ptr<Nginx> start_nginx() {
+        return std::make_unique<Nginx>(dir_.path() / ("nginx" + std::to_string(++nginx_count_)),
+                                       upstreams());
+    }
+    /// Traces (through `cli`) of mesh `id` counted by each replica's metrics.
+    double traces_on(size_t replica) const {
+        return replicas_[replica]
+            ->metric(
+                "kdrt_http_requests_total{route=\"/v1/meshes/{id}/intersect\",method=\"POST\","
+                "status=\"200\"}")
+            .value_or(0);
+    }
+    /// Which replica answers GET /v1/meshes/{id} through nginx.
+    static std::string owner(httplib::Client& cli, const std::string& id) {
+        auto res = retrying([&] { return cli.Get("/v1/meshes/" + id); });
+        EXPECT_TRUE(res && res->status == 200) << (res ? res->body : "no answer");
+        return res ? res->get_header_value("X-Kdrt-Replica") : "";
+    }
+
+    TempDir dir_;
+    fs::path store_;
+    std::vector<std::unique_ptr<ServerProcess>> replicas_;
+    std::vector<std::string> names_;
+    int nginx_count_ = 0;
+};
+
+TEST_F(ScaleOut, EveryRequestForAMeshLandsOnOneReplica) {
+    auto nginx = start_nginx();
+    auto cli = nginx->client();
+    std::vector<Mesh> meshes;
+    std::vector<std::string> ids;
+    for (int m = 0; m < 12; ++m) {
+        meshes.push_back(small_mesh(9000 + m, 200));
+        ids.push_back(upload_id(*cli, meshes.back()));
+    }
+    std::map<std::string, double> expected_traces;  // per replica name
+    std::set<std::string> used;
+    for (size_t m = 0; m < ids.size(); ++m) {
+        const auto rays = random_rays(mesh_bounds(meshes[m]), 64, 5 + m);
+        std::string replica;
+        for (int k = 0; k < 4; ++k) {
+            auto res = trace(*cli, ids[m], rays);
+            ASSERT_TRUE(res);
+            ASSERT_EQ(res->status, 200) << res->body;
+            EXPECT_EQ(res->body, engine_hits(meshes[m], rays));
+            const std::string served_by = res->get_header_value("X-Kdrt-Replica");
+            if (k == 0) replica = served_by;
+            EXPECT_EQ(served_by, replica) << "mesh " << ids[m] << " moved between replicas";
+        }
+        expected_traces[replica] += 4;
+        used.insert(replica);
+    }
+    // The replicas' own counts agree: each traced exactly the meshes that hash to it.
+    for (size_t r = 0; r < replicas_.size(); ++r)
+        EXPECT_EQ(traces_on(r), expected_traces[names_[r]]) << names_[r];
+    EXPECT_GT(used.size(), 1u) << "12 meshes all hashed to one replica";
+    // Every replica lists every mesh (the store is the index), whichever replica stored it.
+    for (const auto& replica : replicas_) {
+        auto res = replica->client()->Get("/v1/meshes");
+        ASSERT_TRUE(res);
+        auto listed = proto::decode_mesh_list(res->body);
+        ASSERT_TRUE(listed) << res->body;
+        std::set<std::string> listed_ids;
+        for (const auto& s : *listed) listed_ids.insert(s.id);
+        for (const std::string& id : ids) EXPECT_TRUE(listed_ids.count(id)) << id;
+    }
+}
+
+TEST_F(ScaleOut, ASplitBatchSpreadsOverReplicasAndEqualsTheOneReplicaAnswer) {
+    auto nginx = start_nginx();
+    const Mesh mesh = small_mesh(9050, 2000);
+    const std::string id = upload_id(*nginx->client(), mesh);
+    const auto rays = random_rays(mesh_bounds(mesh), 60000, 17);
+    // The answer of one replica, asked directly, unsplit.
+    auto direct = trace(*replicas_[0]->client(), id, rays);
+    ASSERT_TRUE(direct);
+    ASSERT_EQ(direct->status, 200) << direct->body;
+
+    std::vector<double> before;
+    for (size_t r = 0; r < replicas_.size(); ++r) before.push_back(traces_on(r));
+    ClientOptions options;
+    options.split = 6;
+    Client client("http://127.0.0.1:" + std::to_string(nginx->port()), options);
+    auto hits = client.intersect(id, rays);
+    ASSERT_TRUE(hits) << hits.error().to_string();
+    EXPECT_EQ(bytes_to_string(proto::encode_hits(*hits)), direct->body);
+    double parts = 0;
+    int serving = 0;
+    for (size_t r = 0; r < replicas_.size(); ++r) {
+        const double served = traces_on(r) - before[r];
+        parts += served;
+        serving += served > 0;
+    }
+    EXPECT_EQ(parts, 6.0);
+    EXPECT_GT(serving, 1) << "all six parts hashed to one replica";
+}
+
+TEST_F(ScaleOut, AsyncJobsAreRoutedToTheReplicaThatRunsThem) {
+    auto nginx = start_nginx();
+    auto cli = nginx->client();
+    const std::string id = upload_id(*cli, small_mesh(9100, 300));
+    std::set<std::string> replicas_seen;
+    for (int j = 0; j < 6; ++j) {
+        httplib::Headers headers = {{"Prefer", "respond-async"}};
+        auto res =
+            cli->Post("/v1/render", headers, "{\"mesh\":\"" + id + "\",\"width\":16,\"height\":16}",
+                      "application/json");
+        ASSERT_TRUE(res);
+        ASSERT_EQ(res->status, 202) << res->body;
+        const std::string job = proto::decode_job_status(res->body)->id;
+        const std::string replica = res->get_header_value("X-Kdrt-Replica");
+        replicas_seen.insert(replica);
+        EXPECT_EQ(job.substr(0, job.find('.')), replica);
+        for (int poll = 0; poll < 200; ++poll) {
+            auto status = cli->Get("/v1/jobs/" + job);
+            ASSERT_TRUE(status);
+            ASSERT_EQ(status->status, 200) << status->body;
+            EXPECT_EQ(status->get_header_value("X-Kdrt-Replica"), replica);
+            if (proto::decode_job_status(status->body)->state == proto::JobState::kDone) break;
+            std::this_thread::sleep_for(std::chrono::milliseconds(20));
+        }
+        auto image = cli->Get("/v1/jobs/" + job + "/result");
+        ASSERT_TRUE(image);
+        EXPECT_EQ(image->status, 200) << image->body;
+        EXPECT_EQ(image->get_header_value("X-Kdrt-Replica"), replica);
+    }
+    // Renders without ?route= go to any replica: the jobs did not all run on one.
+    EXPECT_GT(replicas_seen.size(), 1u);
+    // An id naming no replica is answered by one (404 unknown job), not by nginx.
+    auto unknown = cli->Get("/v1/jobs/nosuchreplica.0123456789abcdef0123456789abcdef");
+    ASSERT_TRUE(unknown);
+    EXPECT_EQ(unknown->status, 404);
+    EXPECT_EQ(unknown->get_header_value("Content-Type"), "application/problem+json");
+}
+
+TEST_F(ScaleOut, AReplicaKilledMidRunLosesNothing) {
+    auto nginx = start_nginx();
+    std::vector<Mesh> meshes;
+    std::vector<std::string> ids;
+    {
+        auto cli = nginx->client();
+        for (int m = 0; m < 9; ++m) {
+            meshes.push_back(small_mesh(9200 + m, 300));
+            ids.push_back(upload_id(*cli, meshes.back()));
+        }
+    }
+    // The victim: the replica the first mesh hashes to.
+    std::string victim_name;
+    {
+        auto cli = nginx->client();
+        victim_name = owner(*cli, ids[0]);
+    }
+    const size_t victim = std::find(names_.begin(), names_.end(), victim_name) - names_.begin();
+    ASSERT_LT(victim, replicas_.size());
+
+    std::atomic<int> done{0}, wrong{0}, failed{0}, retries{0};
+    std::atomic<bool> killed{false};
+    auto worker = [&](int seed) {
+        auto cli = nginx->client();
+        for (int i = 0; i < 40; ++i) {
+            const size_t m = static_cast<size_t>(seed * 7 + i) % ids.size();
+            int tries = 0;
+            if (i % 5 == 4) {
+                auto res = retrying(
+                    [&] {
+                        return cli->Post("/v1/render?route=" + ids[m],
+                                         "{\"mesh\":\"" + ids[m] + "\",\"width\":24,\"height\":24}",
+                                         "application/json");
+                    },
+                    &tries);
+                if (!res || res->status != 200) ++failed;
+            } else {
+                const auto rays = random_rays(mesh_bounds(meshes[m]), 2000, seed * 100 + i);
+                auto res = retrying([&] { return trace(*cli, ids[m], rays); }, &tries);
+                if (!res || res->status != 200)
+                    ++failed;
+                else if (res->body != engine_hits(meshes[m], rays))
+                    ++wrong;
+            }
+            retries += tries;
+            ++done;
+        }
+    };
+    std::vector<std::thread> clients;
+    for (int c = 0; c < 3; ++c) clients.emplace_back(worker, c);
+    while (done < 20) std::this_thread::sleep_for(std::chrono::milliseconds(5));
+    EXPECT_EQ(replicas_[victim]->stop(SIGKILL, std::chrono::seconds(10)), -1);
+    killed = true;
+    for (auto& t : clients) t.join();
+    EXPECT_EQ(done, 120);
+    EXPECT_EQ(failed, 0);
+    EXPECT_EQ(wrong, 0);
+
+    // Every acknowledged mesh is still served, the victim's by the survivors from the store.
+    auto cli = nginx->client();
+    for (size_t m = 0; m < ids.size(); ++m) {
+        const auto rays = random_rays(mesh_bounds(meshes[m]), 100, 77 + m);
+        auto res = retrying([&] { return trace(*cli, ids[m], rays); });
+        ASSERT_TRUE(res);
+        ASSERT_EQ(res->status, 200) << res->body;
+        EXPECT_EQ(res->body, engine_hits(meshes[m], rays));
+        EXPECT_NE(res->get_header_value("X-Kdrt-Replica"), victim_name);
+    }
+    auto res = retrying([&] { return cli->Get("/v1/meshes"); });
+    ASSERT_TRUE(res);
+    auto listed = proto::decode_mesh_list(res->body);
+    ASSERT_TRUE(listed) << res->body;
+    std::set<std::string> listed_ids;
+    for (const auto& s : *listed) listed_ids.insert(s.id);
+    for (const std::string& id : ids) EXPECT_TRUE(listed_ids.count(id)) << id;
+    // A survivor loaded the victim's first mesh from the store (a cache miss, no upload).
+    double misses = 0;
+    for (size_t r = 0; r < replicas_.size(); ++r)
+        if (r != victim) misses += replicas_[r]->metric("kdrt_cache_misses_total").value_or(0);
+    EXPECT_GE(misses, 1.0);
+    std::printf("kill -9 of %s: %d client retries\n", victim_name.c_str(), retries.load());
+}
+
+TEST_F(ScaleOut, AFourthReplicaTakesAboutAQuarterOfTheMeshes) {
+    constexpr int kMeshes = 80;
+    std::vector<std::string> ids;
+    std::map<std::string, std::string> before;
+    {
+        auto nginx = start_nginx();
+        auto cli = nginx->client();
+        for (int m = 0; m < kMeshes; ++m) ids.push_back(upload_id(*cli, small_mesh(9300 + m, 40)));
+        for (const std::string& id : ids) before[id] = owner(*cli, id);
+    }
+    add_replica();
+    auto nginx = start_nginx();
+    auto cli = nginx->client();
+    int moved = 0;
+    for (const std::string& id : ids) {
+        const std::string now = owner(*cli, id);
+        if (now == before[id]) continue;
+        ++moved;
+        // Consistent hashing: a mesh moves only to the new replica, never between old ones.
+        EXPECT_EQ(now, names_.back()) << id << " moved from " << before[id];
+    }
+    std::printf("adding a 4th replica moved %d of %d meshes\n", moved, kMeshes);
+    // About a quarter (20 of 80); the ring's points make it uneven, never most of them.
+    EXPECT_GE(moved, kMeshes / 10);
+    EXPECT_LE(moved, kMeshes * 45 / 100);
+}
+
+TEST_F(ScaleOut, TheSameUploadToTwoReplicasAtOnceIsStoredOnce) {
+    for (int round = 0; round < 3; ++round) {
+        const Mesh mesh = small_mesh(9400 + round, 5000);
+        const std::string body = mesh_body(mesh, proto::MeshFormat::kPly);
+        std::vector<int> statuses(2);
+        std::vector<std::string> answered(2);
+        std::atomic<int> ready{0};
+        std::vector<std::thread> uploads;
+        for (int r = 0; r < 2; ++r)
+            uploads.emplace_back([&, r] {
+                auto cli = replicas_[r]->client();
+                ++ready;
+                while (ready < 2) {
+                }
+                auto res = cli->Post("/v1/meshes", body, "application/ply");
+                statuses[r] = res ? res->status : -1;
+                if (res && res->status / 100 == 2)
+                    answered[r] = proto::decode_mesh_summary(res->body)->id;
+            });
+        for (auto& t : uploads) t.join();
+        const std::string id = proto::mesh_id(mesh);
+        EXPECT_EQ(answered[0], id);
+        EXPECT_EQ(answered[1], id);
+        // Exactly one replica created it (201); the other found it stored (200).
+        std::multiset<int> got(statuses.begin(), statuses.end());
+        EXPECT_EQ(got, (std::multiset<int>{200, 201})) << statuses[0] << " " << statuses[1];
+        // One copy of each file, nothing left in flight.
+        int files = 0;
+        for (const auto& f : fs::directory_iterator(store_ / "meshes"))
+            files += f.path().stem() == id;
+        EXPECT_EQ(files, 3);
+    }
+    for (const auto& f : fs::recursive_directory_iterator(store_ / "tmp"))
+        EXPECT_TRUE(f.is_directory() || f.path().extension() == ".lock") << f.path();
+}
+
+TEST_F(ScaleOut, AReplicaStartingBesideALiveOneLeavesItsUncommittedFilesAlone) {
+    // Files of a mesh without a summary: a live replica's upload in progress, for all a newly
+    // started replica knows. It must not quarantine them (a lone server does, see
+    // http_store_test).
+    const Mesh mesh = small_mesh(9500, 100);
+    const std::string id = proto::mesh_id(mesh);
+    {
+        std::ofstream out(store_ / "meshes" / (id + ".mesh"), std::ios::binary);
+        out << bytes_to_string(proto::write_mesh(mesh, proto::MeshFormat::kRaw));
+    }
+    add_replica();
+    ASSERT_TRUE(replicas_.back()->running());
+    EXPECT_TRUE(fs::exists(store_ / "meshes" / (id + ".mesh")));
+    EXPECT_FALSE(fs::exists(store_ / "quarantine"));
+}
+
+TEST(ScaleOutConfig, TheComposeNginxConfigurationIsValid) {
+    // docker/nginx.conf as nginx -t sees it, with the Compose host names and include paths of
+    // this checkout (nginx -t resolves upstream hosts; it binds no port).
+    TempDir dir;
+    std::ifstream in(std::string(KDRT_SOURCE_DIR) + "/docker/nginx.conf");
+    std::string conf(std::istreambuf_iterator<char>(in), {});
+    ASSERT_FALSE(conf.empty());
+    const auto replace_all = [&](const std::string& from, const std::string& to) {
+        size_t count = 0;
+        for (size_t at = conf.find(from); at != std::string::npos; at = conf.find(from, at)) {
+            conf.replace(at, from.size(), to);
+            at += to.size();
+            ++count;
+        }
+        return count;
+    };
+    EXPECT_EQ(replace_all("/etc/nginx/kdrt/", std::string(KDRT_SOURCE_DIR) + "/docker/nginx/"), 2u);
+    for (const char* host : {"kdrt-1:8080", "kdrt-2:8080", "kdrt-3:8080"})
+        EXPECT_EQ(replace_all(host, "127.0.0.1:8080"), 3u) << host;
+    replace_all("pid /tmp/nginx.pid;", "pid " + (dir.path() / "nginx.pid").string() + ";");
+    replace_all("http {", "http {\n    client_body_temp_path " + dir.path().string() +
+                              "/body;\n    proxy_temp_path " + dir.path().string() + "/proxy;");
+    {
+        std::ofstream out(dir.path() / "nginx.conf");
+        out << conf;
+    }
+    const auto [code, output] = run_shell(std::string(kNginx) + " -t -p " + dir.path().string() +
+                                          "/ -e " + (dir.path() / "error.log").string() + " -c " +
+                                          (dir.path() / "nginx.conf").string());
+    EXPECT_EQ(code, 0) << output;
+    EXPECT_NE(output.find("syntax is ok"), std::string::npos) << output;
+}
+
+}  // namespace
+}  // namespace kdrt::test
