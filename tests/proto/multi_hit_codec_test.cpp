@@ -1,0 +1,166 @@
+// KDRM / KDRC codecs: round trips in every layout, every layout's fields bit-identical to the
+// full record's, and each decoder refusal.
+
+#include <gtest/gtest.h>
+
+#include <bit>
+#include <cstring>
+
+#include "kdrt/proto/multi_hit.h"
+
+namespace kdrt::proto {
+namespace {
+
+struct Sample {
+    std::vector<uint64_t> offsets{0, 2, 2, 3};
+    std::vector<uint32_t> counts{5, 0, 1};
+    std::vector<Hit> hits{Hit{1.5f, 7, 0.25f, 0.125f}, Hit{2.75f, 3, 0.5f, 0.0f},
+                          Hit{0x1p-20f, 0xABCDEFu, 0.1f, 0.7f}};
+    std::vector<Vec3> normals{{0, 0, 1}, {0.6f, 0.8f, 0}, {-1, 0, 0}};
+    std::vector<Vec3> points{{1, 2, 3}, {-4, 5.5f, 6}, {7, 8, 9.25f}};
+
+    MultiHitsView view(HitLayout layout, bool merged = false) const {
+        return {layout, merged, 2, offsets, counts, hits, normals, points};
+    }
+};
+
+std::vector<HitLayout> all_layouts() {
+    std::vector<HitLayout> out;
+    for (HitFields f : {HitFields::kFull, HitFields::kT, HitFields::kTPrim})
+        for (bool n : {false, true})
+            for (bool p : {false, true}) out.push_back({f, n, p});
+    return out;
+}
+
+uint32_t bits(float f) { return std::bit_cast<uint32_t>(f); }
+
+TEST(MultiHitCodec, RoundTripsEveryLayoutBitIdentical) {
+    const Sample s;
+    for (const HitLayout layout : all_layouts()) {
+        SCOPED_TRACE(testing::Message() << hit_fields_name(layout.fields) << " n=" << layout.normal
+                                        << " p=" << layout.point);
+        const auto body = encode_multi_hits(s.view(layout, true));
+        EXPECT_EQ(body.size(), kdrm_body_size(3, 3, layout));
+        auto decoded = decode_multi_hits(body);
+        ASSERT_TRUE(decoded) << decoded.error().to_string();
+        EXPECT_EQ(decoded->layout, layout);
+        EXPECT_TRUE(decoded->merged);
+        EXPECT_EQ(decoded->max_hits, 2u);
+        EXPECT_EQ(decoded->offsets, s.offsets);
+        EXPECT_EQ(decoded->counts, s.counts);
+        ASSERT_EQ(decoded->hits.size(), 3u);
+        for (size_t i = 0; i < 3; ++i) {
+            const HitRecord& r = decoded->hits[i];
+            EXPECT_EQ(bits(r.t), bits(s.hits[i].t));
+            EXPECT_EQ(r.prim, layout.fields == HitFields::kT ? kNoHit : s.hits[i].prim);
+            const bool full = layout.fields == HitFields::kFull;
+            EXPECT_EQ(bits(r.u), full ? bits(s.hits[i].u) : 0u);
+            EXPECT_EQ(bits(r.v), full ? bits(s.hits[i].v) : 0u);
+            EXPECT_EQ(r.normal, layout.normal ? s.normals[i] : Vec3{});
+            EXPECT_EQ(r.point, layout.point ? s.points[i] : Vec3{});
+        }
+    }
+}
+
+TEST(MultiHitCodec, FullRecordsAreKdrhRecords) {
+    const Sample s;
+    const auto body = encode_multi_hits(s.view({}));
+    const size_t records = kdrm_body_size(3, 0, {});
+    ASSERT_EQ(body.size(), records + 3 * 16);
+    EXPECT_EQ(std::memcmp(body.data() + records, s.hits.data(), 3 * sizeof(Hit)), 0);
+}
+
+TEST(MultiHitCodec, FieldNames) {
+    for (HitFields f : {HitFields::kFull, HitFields::kT, HitFields::kTPrim})
+        EXPECT_EQ(parse_hit_fields(hit_fields_name(f)), f);
+    EXPECT_FALSE(parse_hit_fields("u"));
+    EXPECT_FALSE(parse_hit_fields(""));
+}
+
+DecodeErrorCode code_of(const std::vector<std::byte>& body, const DecodeLimits& limits = {}) {
+    auto r = decode_multi_hits(body, limits);
+    EXPECT_FALSE(r);
+    return r ? DecodeErrorCode::kTooShort : r.error().code;
+}
+
+TEST(MultiHitCodec, RefusesBadBodies) {
+    const Sample s;
+    const auto good = encode_multi_hits(s.view({HitFields::kTPrim, true, false}));
+    auto body = good;
+    body.resize(31);
+    EXPECT_EQ(code_of(body), DecodeErrorCode::kTooShort);
+    body = good;
+    body[3] = std::byte{'X'};
+    EXPECT_EQ(code_of(body), DecodeErrorCode::kBadMagic);
+    body = good;
+    body[4] = std::byte{2};
+    EXPECT_EQ(code_of(body), DecodeErrorCode::kBadVersion);
+    body = good;
+    body[6] = std::byte{0x23};  // unknown bit 5
+    EXPECT_EQ(code_of(body), DecodeErrorCode::kBadFlags);
+    body = good;
+    body[6] = std::byte{0x07};  // fields 3
+    EXPECT_EQ(code_of(body), DecodeErrorCode::kBadFlags);
+    body = good;
+    body[12] = std::byte{16};  // record bytes not what the flags say (20)
+    EXPECT_EQ(code_of(body), DecodeErrorCode::kBadFlags);
+    body = good;
+    body[28] = std::byte{1};
+    EXPECT_EQ(code_of(body), DecodeErrorCode::kBadReserved);
+    EXPECT_EQ(code_of(good, DecodeLimits{.max_rays = 2}), DecodeErrorCode::kTooManyRays);
+    body = good;
+    body.pop_back();
+    EXPECT_EQ(code_of(body), DecodeErrorCode::kLengthMismatch);
+    body = good;
+    body[16 + 7] = std::byte{0x80};  // H = 2^63 + 3: no overflow into a "matching" size
+    EXPECT_EQ(code_of(body), DecodeErrorCode::kLengthMismatch);
+    // Offsets: ray 1 ends before it starts.
+    body = good;
+    body[32 + 16] = std::byte{1};
+    EXPECT_EQ(code_of(body), DecodeErrorCode::kBadOffsets);
+    // Ray 0 keeps 2 hits but counts 1.
+    body = good;
+    body[32 + 32] = std::byte{1};
+    EXPECT_EQ(code_of(body), DecodeErrorCode::kBadOffsets);
+    // offsets[0] != 0.
+    body = good;
+    body[32] = std::byte{1};
+    EXPECT_EQ(code_of(body), DecodeErrorCode::kBadOffsets);
+    EXPECT_EQ(decode_error_code_name(DecodeErrorCode::kBadOffsets), "bad_offsets");
+}
+
+TEST(MultiHitCodec, EmptyAnswer) {
+    const std::vector<uint64_t> offsets{0};
+    MultiHitsView view;
+    view.offsets = offsets;
+    const auto body = encode_multi_hits(view);
+    EXPECT_EQ(body.size(), 40u);
+    auto decoded = decode_multi_hits(body);
+    ASSERT_TRUE(decoded);
+    EXPECT_TRUE(decoded->counts.empty());
+    EXPECT_TRUE(decoded->hits.empty());
+}
+
+TEST(HitCountCodec, RoundTripAndRefusals) {
+    const std::vector<uint32_t> counts{0, 1, 0xFFFFFFFFu, 42};
+    const auto body = encode_hit_counts(counts);
+    EXPECT_EQ(body.size(), kdrc_body_size(4));
+    auto decoded = decode_hit_counts(body);
+    ASSERT_TRUE(decoded);
+    EXPECT_EQ(*decoded, counts);
+    auto shorter = body;
+    shorter.pop_back();
+    auto r = decode_hit_counts(shorter);
+    ASSERT_FALSE(r);
+    EXPECT_EQ(r.error().code, DecodeErrorCode::kLengthMismatch);
+    auto flags = body;
+    flags[6] = std::byte{1};
+    ASSERT_FALSE(decode_hit_counts(flags));
+    EXPECT_EQ(decode_hit_counts(flags).error().code, DecodeErrorCode::kBadFlags);
+    auto magic = body;
+    magic[3] = std::byte{'H'};
+    EXPECT_EQ(decode_hit_counts(magic).error().code, DecodeErrorCode::kBadMagic);
+}
+
+}  // namespace
+}  // namespace kdrt::proto
