@@ -229,4 +229,36 @@ std::vector<Hit> brute_force_intersect_all(std::span<const TriVerts> tris, const
     return out;
 }
 
+Vec3 triangle_normal(const TriVerts& tri) noexcept {
+    const double e1[3] = {double{tri.v1[0]} - tri.v0[0], double{tri.v1[1]} - tri.v0[1],
+                          double{tri.v1[2]} - tri.v0[2]};
+    const double e2[3] = {double{tri.v2[0]} - tri.v0[0], double{tri.v2[1]} - tri.v0[1],
+                          double{tri.v2[2]} - tri.v0[2]};
+    const double n[3] = {e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2],
+                         e1[0] * e2[1] - e1[1] * e2[0]};
+    const double len = std::sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]);
+    if (!(len > 0.0) || !std::isfinite(len)) return {};
+    return {static_cast<float>(n[0] / len), static_cast<float>(n[1] / len),
+            static_cast<float>(n[2] / len)};
+}
+
+Vec3 hit_point(const TriVerts& tri, const Hit& hit) noexcept {
+    const Vec3 v0{tri.v0[0], tri.v0[1], tri.v0[2]};
+    const Vec3 v1{tri.v1[0], tri.v1[1], tri.v1[2]};
+    const Vec3 v2{tri.v2[0], tri.v2[1], tri.v2[2]};
+    return v0 * (1.0f - hit.u - hit.v) + v1 * hit.u + v2 * hit.v;
+}
+
+void hit_attributes(const KdTree& tree, std::span<const Hit> hits, std::span<Vec3> normals,
+                    std::span<Vec3> points) {
+    tbb::parallel_for(tbb::blocked_range<size_t>(0, hits.size(), 4096),
+                      [&](const tbb::blocked_range<size_t>& range) {
+                          for (size_t i = range.begin(); i != range.end(); ++i) {
+                              const TriVerts& tri = tree.triangle(hits[i].prim);
+                              if (!normals.empty()) normals[i] = triangle_normal(tri);
+                              if (!points.empty()) points[i] = hit_point(tri, hits[i]);
+                          }
+                      });
+}
+
 }  // namespace kdrt

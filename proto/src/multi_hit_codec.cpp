@@ -1,5 +1,6 @@
 // KDRM (every hit, CSR) and KDRC (hit counts) codecs.
 
+#include <charconv>
 #include <cstring>
 #include <limits>
 #include <stdexcept>
@@ -227,6 +228,59 @@ Result<std::vector<uint32_t>, DecodeError> decode_hit_counts(std::span<const std
     for (size_t i = 0; i < counts.size(); ++i)
         counts[i] = detail::load_le32(body.data() + kBatchHeaderBytes + 4 * i);
     return counts;
+}
+
+Result<MultiHitQuery, std::string> parse_multi_hit_query(
+    const std::function<std::optional<std::string>(std::string_view)>& param,
+    uint32_t max_hits_limit) {
+    MultiHitQuery q;
+    q.max_hits = std::min(kDefaultMaxHits, max_hits_limit);
+    auto quoted = [](const std::string& v) { return "\"" + v + "\""; };
+    if (auto v = param(kQueryMaxHits)) {
+        uint64_t n = 0;
+        const auto [end, ec] = std::from_chars(v->data(), v->data() + v->size(), n);
+        if (ec != std::errc{} || end != v->data() + v->size() || v->empty() || n < 1 ||
+            n > max_hits_limit) {
+            return Err{"query parameter max_hits is " + quoted(*v) + " (expected an integer 1 .. " +
+                       std::to_string(max_hits_limit) + ", the server's max_hits_per_ray)"};
+        }
+        q.max_hits = static_cast<uint32_t>(n);
+    }
+    std::string error;
+    auto flag = [&](std::string_view name, bool& out) {
+        auto v = param(name);
+        if (!v) return;
+        if (*v == "true" || *v == "1") {
+            out = true;
+        } else if (*v == "false" || *v == "0") {
+            out = false;
+        } else if (error.empty()) {
+            error = "query parameter " + std::string(name) + " is " + quoted(*v) +
+                    " (expected true or false)";
+        }
+    };
+    flag(kQueryMerge, q.merge_coincident);
+    flag(kQueryCountOnly, q.count_only);
+    flag(kQueryNormal, q.layout.normal);
+    flag(kQueryPoint, q.layout.point);
+    if (!error.empty()) return Err{std::move(error)};
+    if (auto v = param(kQueryFields)) {
+        auto f = parse_hit_fields(*v);
+        if (!f) {
+            return Err{"query parameter fields is " + quoted(*v) + " (expected full, t or t_prim)"};
+        }
+        q.layout.fields = *f;
+    }
+    return q;
+}
+
+std::string multi_hit_query_string(const MultiHitQuery& q) {
+    auto b = [](bool v) { return v ? "true" : "false"; };
+    return std::string(kQueryMaxHits) + "=" + std::to_string(q.max_hits) + "&" +
+           std::string(kQueryMerge) + "=" + b(q.merge_coincident) + "&" +
+           std::string(kQueryCountOnly) + "=" + b(q.count_only) + "&" + std::string(kQueryFields) +
+           "=" + std::string(hit_fields_name(q.layout.fields)) + "&" + std::string(kQueryNormal) +
+           "=" + b(q.layout.normal) + "&" + std::string(kQueryPoint) + "=" + b(q.layout.point);
 }
 
 }  // namespace kdrt::proto

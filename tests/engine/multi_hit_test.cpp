@@ -284,5 +284,40 @@ TEST(AllHits, InvalidRaysHaveNoHits) {
     EXPECT_EQ(intersect_all(tree, first_only, false, hits), 1u);
 }
 
+TEST(HitAttributes, NormalIsUnitRightHandedAndPointOnTheRay) {
+    // The cube is wound outwards: every normal points away from the centre.
+    const Mesh mesh = cube();
+    const KdTree tree = build_kdtree(mesh);
+    Rng rng(test_seed() + 40);
+    std::vector<Hit> hits;
+    size_t checked = 0;
+    for (int i = 0; i < 200; ++i) {
+        const Ray ray = make_ray(rng.on_sphere() * 3.0f, {1, 0, 0});
+        intersect_all(tree, make_ray({ray.ox, ray.oy, ray.oz}, Vec3{-ray.ox, -ray.oy, -ray.oz}),
+                      false, hits);
+        std::vector<Vec3> normals(hits.size()), points(hits.size());
+        hit_attributes(tree, hits, normals, points);
+        for (size_t k = 0; k < hits.size(); ++k) {
+            const Vec3 n = normals[k], p = points[k];
+            EXPECT_EQ(n, triangle_normal(tree.triangle(hits[k].prim)));
+            EXPECT_EQ(p, hit_point(tree.triangle(hits[k].prim), hits[k]));
+            EXPECT_NEAR(dot(n, n), 1.0f, 1e-6f);
+            EXPECT_GT(dot(n, p), 0.0f) << "outward normal";
+            // On the cube's surface: one coordinate is +-1.
+            const float m = std::max({std::fabs(p.x), std::fabs(p.y), std::fabs(p.z)});
+            EXPECT_NEAR(m, 1.0f, 1e-6f);
+            const Vec3 o{ray.ox, ray.oy, ray.oz};
+            const Vec3 on_ray = o + (o * -1.0f) * hits[k].t;
+            const Vec3 d = on_ray - p;
+            EXPECT_LT(std::sqrt(dot(d, d)), 1e-5f);
+            ++checked;
+        }
+    }
+    EXPECT_GE(checked, 400u);  // two faces per ray through the centre, or more at edges
+    EXPECT_EQ(triangle_normal(TriVerts{{0, 0, 0}, {1, 0, 0}, {0, 1, 0}}), (Vec3{0, 0, 1}));
+    EXPECT_EQ(triangle_normal(TriVerts{{0, 0, 0}, {0, 1, 0}, {1, 0, 0}}), (Vec3{0, 0, -1}));
+    EXPECT_EQ(triangle_normal(TriVerts{{0, 0, 0}, {1, 1, 1}, {2, 2, 2}}), (Vec3{}));
+}
+
 }  // namespace
 }  // namespace kdrt::test

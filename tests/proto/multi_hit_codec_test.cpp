@@ -5,6 +5,9 @@
 
 #include <bit>
 #include <cstring>
+#include <map>
+#include <optional>
+#include <string>
 
 #include "kdrt/proto/multi_hit.h"
 
@@ -160,6 +163,60 @@ TEST(HitCountCodec, RoundTripAndRefusals) {
     auto magic = body;
     magic[3] = std::byte{'H'};
     EXPECT_EQ(decode_hit_counts(magic).error().code, DecodeErrorCode::kBadMagic);
+}
+
+std::optional<MultiHitQuery> parse(const std::map<std::string, std::string>& params, uint32_t limit,
+                                   std::string* error = nullptr) {
+    auto r = parse_multi_hit_query(
+        [&](std::string_view name) -> std::optional<std::string> {
+            auto it = params.find(std::string(name));
+            if (it == params.end()) return std::nullopt;
+            return it->second;
+        },
+        limit);
+    if (!r) {
+        if (error) *error = r.error();
+        return std::nullopt;
+    }
+    return *r;
+}
+
+TEST(MultiHitQuery, DefaultsAndRoundTrip) {
+    auto q = parse({}, 1024);
+    ASSERT_TRUE(q);
+    EXPECT_EQ(q->max_hits, kDefaultMaxHits);
+    EXPECT_FALSE(q->merge_coincident);
+    EXPECT_EQ(parse({}, 4)->max_hits, 4u);  // the default never exceeds the limit
+    MultiHitQuery want{7, true, false, {HitFields::kTPrim, true, false}};
+    std::map<std::string, std::string> params;
+    const std::string text = multi_hit_query_string(want);
+    size_t start = 0;
+    while (start < text.size()) {
+        const size_t amp = std::min(text.find('&', start), text.size());
+        const std::string kv = text.substr(start, amp - start);
+        params[kv.substr(0, kv.find('='))] = kv.substr(kv.find('=') + 1);
+        start = amp + 1;
+    }
+    EXPECT_EQ(parse(params, 1024), want);
+}
+
+TEST(MultiHitQuery, RefusalsNameTheParameter) {
+    std::string error;
+    EXPECT_FALSE(parse({{"max_hits", "0"}}, 1024, &error));
+    EXPECT_NE(error.find("max_hits is \"0\""), std::string::npos) << error;
+    EXPECT_FALSE(parse({{"max_hits", "1025"}}, 1024, &error));
+    EXPECT_NE(error.find("max_hits"), std::string::npos) << error;
+    EXPECT_NE(error.find("1024"), std::string::npos) << error;
+    EXPECT_FALSE(parse({{"max_hits", "3x"}}, 1024, &error));
+    EXPECT_FALSE(parse({{"max_hits", ""}}, 1024, &error));
+    EXPECT_FALSE(parse({{"max_hits", "-1"}}, 1024, &error));
+    EXPECT_TRUE(parse({{"max_hits", "1024"}}, 1024));
+    EXPECT_FALSE(parse({{"merge_coincident", "yes"}}, 1024, &error));
+    EXPECT_NE(error.find("merge_coincident"), std::string::npos) << error;
+    EXPECT_FALSE(parse({{"normal", "2"}}, 1024, &error));
+    EXPECT_NE(error.find("normal"), std::string::npos) << error;
+    EXPECT_FALSE(parse({{"fields", "uv"}}, 1024, &error));
+    EXPECT_NE(error.find("fields"), std::string::npos) << error;
 }
 
 }  // namespace

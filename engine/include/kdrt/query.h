@@ -65,4 +65,18 @@ void count_intersections(const KdTree& tree, std::span<const Ray> rays, bool mer
 [[nodiscard]] std::vector<Hit> brute_force_intersect_all(std::span<const TriVerts> tris,
                                                          const Ray& ray, bool merge_coincident);
 
+/// Unit geometric normal of `tri`: the right-hand normal of v0 v1 v2 (its winding, not turned
+/// towards any ray), the cross product taken in double, then scaled and rounded to float. The
+/// zero vector for a degenerate triangle (which is never hit).
+[[nodiscard]] Vec3 triangle_normal(const TriVerts& tri) noexcept;
+
+/// The world-space point of `hit` on `tri`: (1-u-v) v0 + u v1 + v v2 in float (on the triangle to
+/// rounding, unlike o + t d, which is off by ulps of |t d|).
+[[nodiscard]] Vec3 hit_point(const TriVerts& tri, const Hit& hit) noexcept;
+
+/// triangle_normal and hit_point of each hit (of `tree`'s mesh), in parallel over the current
+/// arena. Either output may be empty (not computed); otherwise it has hits.size() entries.
+void hit_attributes(const KdTree& tree, std::span<const Hit> hits, std::span<Vec3> normals,
+                    std::span<Vec3> points);
+
 }  // namespace kdrt

@@ -9,8 +9,10 @@
 
 #include <cstddef>
 #include <cstdint>
+#include <functional>
 #include <optional>
 #include <span>
+#include <string>
 #include <string_view>
 #include <vector>
 
@@ -130,5 +132,27 @@ inline constexpr std::string_view kQueryCountOnly = "count_only";
 inline constexpr std::string_view kQueryFields = "fields";
 inline constexpr std::string_view kQueryNormal = "normal";
 inline constexpr std::string_view kQueryPoint = "point";
+
+/// max_hits when the request names none (or the server's limit, if lower).
+inline constexpr uint32_t kDefaultMaxHits = 16;
+
+/// The options of an intersect_all request.
+struct MultiHitQuery {
+    uint32_t max_hits = kDefaultMaxHits;
+    bool merge_coincident = false;
+    bool count_only = false;
+    HitLayout layout;
+    friend bool operator==(const MultiHitQuery&, const MultiHitQuery&) = default;
+};
+
+/// Reads the query parameters of an intersect_all request: `param(name)` gives a parameter's
+/// value, or nullopt when absent. Booleans are true/false/1/0; max_hits is a decimal integer in
+/// 1 .. max_hits_limit. The error names the parameter, its value and what was expected.
+[[nodiscard]] Result<MultiHitQuery, std::string> parse_multi_hit_query(
+    const std::function<std::optional<std::string>(std::string_view)>& param,
+    uint32_t max_hits_limit);
+/// The query string ("max_hits=16&merge_coincident=true...") of `query`, every parameter
+/// spelled out; parse_multi_hit_query reads it back.
+[[nodiscard]] std::string multi_hit_query_string(const MultiHitQuery& query);
 
 }  // namespace kdrt::proto
