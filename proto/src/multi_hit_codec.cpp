@@ -230,6 +230,35 @@ Result<std::vector<uint32_t>, DecodeError> decode_hit_counts(std::span<const std
     return counts;
 }
 
+std::vector<std::byte> encode_hit_points_ply(const MultiHits& a) {
+    if (!a.layout.point) throw std::invalid_argument("encode_hit_points_ply needs hit points");
+    const bool normals = a.layout.normal;
+    std::string header =
+        "ply\nformat binary_little_endian 1.0\ncomment hit points written by "
+        "kdrt (every hit along each ray)\nelement vertex " +
+        std::to_string(a.hits.size()) +
+        "\nproperty float x\nproperty float y\nproperty float z\n"
+        "property float t\nproperty uint ray\nproperty uint prim\n";
+    if (normals) header += "property float nx\nproperty float ny\nproperty float nz\n";
+    header += "end_header\n";
+    const size_t record = normals ? 36 : 24;
+    std::vector<std::byte> out(header.size() + record * a.hits.size());
+    std::memcpy(out.data(), header.data(), header.size());
+    std::byte* p = out.data() + header.size();
+    for (size_t ray = 0; ray + 1 < a.offsets.size(); ++ray) {
+        for (uint64_t k = a.offsets[ray]; k < a.offsets[ray + 1]; ++k) {
+            const HitRecord& h = a.hits[k];
+            store_vec(p, h.point);
+            detail::store_le_f32(p + 12, h.t);
+            detail::store_le32(p + 16, static_cast<uint32_t>(ray));
+            detail::store_le32(p + 20, h.prim);
+            if (normals) store_vec(p + 24, h.normal);
+            p += record;
+        }
+    }
+    return out;
+}
+
 Result<MultiHitQuery, std::string> parse_multi_hit_query(
     const std::function<std::optional<std::string>(std::string_view)>& param,
     uint32_t max_hits_limit) {

@@ -7,6 +7,7 @@
 #include <cstring>
 #include <map>
 #include <optional>
+#include <stdexcept>
 #include <string>
 
 #include "kdrt/proto/multi_hit.h"
@@ -142,6 +143,31 @@ TEST(MultiHitCodec, EmptyAnswer) {
     ASSERT_TRUE(decoded);
     EXPECT_TRUE(decoded->counts.empty());
     EXPECT_TRUE(decoded->hits.empty());
+}
+
+TEST(MultiHitCodec, HitPointsAsPly) {
+    const Sample s;
+    auto decoded = decode_multi_hits(encode_multi_hits(s.view({HitFields::kTPrim, true, true})));
+    ASSERT_TRUE(decoded);
+    const std::vector<std::byte> ply = encode_hit_points_ply(*decoded);
+    const std::string text(reinterpret_cast<const char*>(ply.data()), ply.size());
+    const size_t end = text.find("end_header\n");
+    ASSERT_NE(end, std::string::npos);
+    EXPECT_NE(text.find("element vertex 3\n"), std::string::npos);
+    EXPECT_NE(text.find("property uint ray\n"), std::string::npos);
+    const size_t data = end + 11;
+    ASSERT_EQ(ply.size(), data + 3 * 36);
+    // The third vertex belongs to ray 2 (offsets 0, 2, 2, 3), its point first.
+    float xyz[3];
+    uint32_t ray = 0, prim = 0;
+    std::memcpy(xyz, ply.data() + data + 2 * 36, 12);
+    std::memcpy(&ray, ply.data() + data + 2 * 36 + 16, 4);
+    std::memcpy(&prim, ply.data() + data + 2 * 36 + 20, 4);
+    EXPECT_EQ((Vec3{xyz[0], xyz[1], xyz[2]}), s.points[2]);
+    EXPECT_EQ(ray, 2u);
+    EXPECT_EQ(prim, s.hits[2].prim);
+    decoded->layout.point = false;
+    EXPECT_THROW((void)encode_hit_points_ply(*decoded), std::invalid_argument);
 }
 
 TEST(HitCountCodec, RoundTripAndRefusals) {

@@ -125,6 +125,12 @@ struct MultiHitsView {
 [[nodiscard]] Result<std::vector<uint32_t>, DecodeError> decode_hit_counts(
     std::span<const std::byte> body, const DecodeLimits& limits = {});
 
+/// The hit points of a KDRM answer as a binary little-endian PLY point cloud (proto/FORMATS.md):
+/// one vertex per kept hit, properties float x y z, float t, uint ray, uint prim, and float
+/// nx ny nz when the layout has normals. Precondition: answer.layout.point (else
+/// std::invalid_argument).
+[[nodiscard]] std::vector<std::byte> encode_hit_points_ply(const MultiHits& answer);
+
 /// Query parameter names of POST /v1/meshes/{id}/intersect_all.
 inline constexpr std::string_view kQueryMaxHits = "max_hits";
 inline constexpr std::string_view kQueryMerge = "merge_coincident";
