@@ -13,6 +13,7 @@
 #include "kdrt/proto/json_api.h"
 #include "kdrt/proto/ray_batch.h"
 #include "kdrt/proto/text.h"
+#include "kdrt/query.h"
 #include "kdrt/render.h"
 
 namespace kdrt::server {
@@ -163,6 +164,11 @@ const std::vector<Setting>& settings() {
          .u32 = &ServerConfig::max_rays,
          .min = 1,
          .max = proto::DecodeLimits{}.max_rays},
+        {.key = "max_hits_per_ray",
+         .help = "most hits kept per ray by intersect_all (its max_hits parameter)",
+         .u32 = &ServerConfig::max_hits_per_ray,
+         .min = 1,
+         .max = kMaxHitsPerRay},
         {.key = "max_json_rays",
          .help = "most rays in one JSON batch",
          .u32 = &ServerConfig::max_json_rays,

@@ -8,9 +8,14 @@
 #include <optional>
 
 #include "kdrt/proto/json_api.h"
+#include "kdrt/proto/multi_hit.h"
 #include "service.h"
 
 namespace kdrt::server {
+
+/// Bytes of batch_memory_budget one ray of an intersect_all request holds (its rays and its
+/// largest answer).
+[[nodiscard]] uint64_t intersect_all_bytes_per_ray(const proto::MultiHitQuery& query) noexcept;
 
 class Routes {
 public:
@@ -21,6 +26,8 @@ public:
                      const httplib::ContentReader& reader);
     void intersect(const httplib::Request& req, httplib::Response& res,
                    const httplib::ContentReader& reader);
+    void intersect_all(const httplib::Request& req, httplib::Response& res,
+                       const httplib::ContentReader& reader);
     void render(const httplib::Request& req, httplib::Response& res,
                 const httplib::ContentReader& reader);
 

@@ -92,7 +92,11 @@ struct HttpServer::Impl {
     [[nodiscard]] uint64_t body_limit(const httplib::Request& req) const {
         const ServerConfig& c = svc.config;
         if (req.path == "/v1/meshes") return c.max_upload_bytes;
-        if (req.path.size() > 10 && req.path.compare(req.path.size() - 10, 10, "/intersect") == 0 &&
+        auto ends_with = [&](std::string_view tail) {
+            return req.path.size() > tail.size() &&
+                   req.path.compare(req.path.size() - tail.size(), tail.size(), tail) == 0;
+        };
+        if ((ends_with("/intersect") || ends_with("/intersect_all")) &&
             proto::media_type_essence(req.get_header_value("Content-Type")) ==
                 proto::kRaysMediaType)
             return proto::kdrr_body_size(c.max_rays);
@@ -223,6 +227,8 @@ struct HttpServer::Impl {
         del(mesh, "/v1/meshes/{id}", {.api = true}, &Routes::delete_mesh);
         post(mesh + "/intersect", "/v1/meshes/{id}/intersect", {.api = true, .heavy = true},
              &Routes::intersect);
+        post(mesh + "/intersect_all", "/v1/meshes/{id}/intersect_all", {.api = true, .heavy = true},
+             &Routes::intersect_all);
         post("/v1/render", "/v1/render", {.api = true, .heavy = true}, &Routes::render);
         const std::string job = std::string("/v1/jobs/") + kIdPattern;
         get(job, "/v1/jobs/{id}", {.api = true}, &Routes::get_job);

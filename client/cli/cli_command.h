@@ -34,6 +34,7 @@ extern const Command kRmCommand;
 extern const Command kRenderCommand;
 // Ray files: generate them locally, trace them remotely (cli_rays.cpp).
 extern const Command kTraceCommand;
+extern const Command kHitsCommand;
 extern const Command kRaysCommand;
 // The server's state (cli_ops.cpp).
 extern const Command kHealthCommand;

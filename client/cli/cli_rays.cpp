@@ -1,5 +1,6 @@
-// kdrt rays, trace: KDRR ray files, generated locally and traced remotely.
+// kdrt rays, trace, hits: KDRR ray files, generated locally and traced remotely.
 
+#include <cctype>
 #include <vector>
 
 #include "cli_command.h"
@@ -8,7 +9,9 @@
 #include "cli_ray_sets.h"
 #include "kdrt/proto/file_io.h"
 #include "kdrt/proto/json_api.h"
+#include "kdrt/proto/multi_hit.h"
 #include "kdrt/proto/ray_batch.h"
+#include "kdrt/query.h"
 
 namespace kdrt::cli {
 namespace {
@@ -151,7 +154,158 @@ int run_trace(Context& ctx) {
     return kExitOk;
 }
 
+constexpr std::string_view kHitsHelp =
+    R"(usage: kdrt hits ID RAYS.kdrr --all -o FILE [--max-hits N] [--merge] [--count-only]
+                 [--fields full|t|t_prim] [--normal] [--point] [--json]
+
+Every hit along each ray of a KDRR file (POST /v1/meshes/{id}/intersect_all): all triangles hit
+within [tmin, tmax], each once, sorted by t, the nearest N kept per ray and the count of all
+reported. FILE gets the KDRM answer (proto/FORMATS.md), or KDRC counts with --count-only, or,
+when it ends in .ply, the hit points as a PLY point cloud (x y z t ray prim, and nx ny nz with
+--normal) that any point-cloud viewer opens.
+
+  --all               every hit (required: without it, use kdrt trace for closest hits)
+  -o, --output FILE   the KDRM / KDRC / .ply file (required)
+  --max-hits N        hits kept per ray (default 16; the server caps it, max_hits_per_ray)
+  --merge             report coincident hits at a shared edge or vertex once (crossing counts)
+  --count-only        only the number of hits of each ray (KDRC)
+  --fields F          record fields: full (t prim u v, default), t, t_prim
+  --normal            add the unit geometric normal of each hit
+  --point             add the world-space hit point (implied by a .ply FILE)
+  --chunk-rays N      rays per request (default 65536)
+  --json              print the summary as one JSON object
+)";
+
+constexpr OptionSpec kHitsOptions[] = {
+    {"all", false},        {"output", true, 'o'}, {"max-hits", true}, {"merge", false},
+    {"count-only", false}, {"fields", true},      {"normal", false},  {"point", false},
+    {"chunk-rays", true},  {"json", false},
+};
+
+bool ends_with_ply(std::string_view path) {
+    if (path.size() < 4) return false;
+    std::string tail(path.substr(path.size() - 4));
+    for (char& c : tail) c = static_cast<char>(std::tolower(static_cast<unsigned char>(c)));
+    return tail == ".ply";
+}
+
+int run_hits(Context& ctx) {
+    if (!ctx.args.has("all"))
+        return ctx.usage_error("kdrt hits needs --all (closest hits: kdrt trace)");
+    if (ctx.args.positional.size() < 2)
+        return ctx.usage_error("missing ID and RAYS (a mesh id and a KDRR file)");
+    if (ctx.args.positional.size() > 2)
+        return ctx.usage_error("unexpected argument \"" + ctx.args.positional[2] + "\"");
+    const auto output = ctx.args.value("output");
+    if (!output) return ctx.usage_error("missing -o FILE (the KDRM, KDRC or .ply file to write)");
+    proto::MultiHitQuery query;
+    if (auto text = ctx.args.value("max-hits")) {
+        auto n = parse_uint(*text, 1, kMaxHitsPerRay);
+        if (!n) return ctx.usage_error("--max-hits: " + n.error());
+        query.max_hits = static_cast<uint32_t>(*n);
+    }
+    if (auto text = ctx.args.value("fields")) {
+        auto f = proto::parse_hit_fields(*text);
+        if (!f) return ctx.usage_error("--fields: \"" + *text + "\" is not full, t or t_prim");
+        query.layout.fields = *f;
+    }
+    query.merge_coincident = ctx.args.has("merge");
+    query.count_only = ctx.args.has("count-only");
+    query.layout.normal = ctx.args.has("normal");
+    const bool ply = ends_with_ply(*output);
+    query.layout.point = ctx.args.has("point") || ply;
+    if (ply && query.count_only)
+        return ctx.usage_error("--count-only writes KDRC counts, not a .ply point cloud");
+    auto options = trace_client_options(ctx);
+    if (!options) return options.error();
+    const std::string& rays_path = ctx.args.positional[1];
+    auto set = rays_from_file(ctx, rays_path);
+    if (!set) return set.error();
+    if (set->occlusion)
+        return ctx.usage_error(rays_path +
+                               " is an occlusion ray set (flag bit 0); kdrt hits "
+                               "takes closest-hit rays");
+    Client& client = ctx.connect(*options);
+    auto id = ctx.resolve_mesh_id(ctx.args.positional[0]);
+    if (!id) return id.error();
+
+    const auto start = Clock::now();
+    std::vector<std::byte> answer;
+    uint64_t total = 0, kept = 0;
+    if (query.count_only) {
+        auto counts = client.count_intersections(*id, set->rays, query.merge_coincident);
+        if (!counts) return ctx.fail(counts.error());
+        for (uint32_t c : *counts) total += c;
+        answer = proto::encode_hit_counts(*counts);
+    } else {
+        auto all = client.intersect_all(*id, set->rays, query);
+        if (!all) return ctx.fail(all.error());
+        for (uint32_t c : all->counts) total += c;
+        kept = all->hits.size();
+        if (ply) {
+            answer = proto::encode_hit_points_ply(*all);
+        } else {
+            // Re-encoded from the decoded records: the same bytes the server sent per chunk.
+            std::vector<Hit> hits(all->hits.size());
+            std::vector<Vec3> normals, points;
+            for (size_t i = 0; i < hits.size(); ++i) {
+                const proto::HitRecord& r = all->hits[i];
+                hits[i] = Hit{r.t, r.prim, r.u, r.v};
+                if (query.layout.normal) normals.push_back(r.normal);
+                if (query.layout.point) points.push_back(r.point);
+            }
+            proto::MultiHitsView view;
+            view.layout = query.layout;
+            view.merged = query.merge_coincident;
+            view.max_hits = query.max_hits;
+            view.offsets = all->offsets;
+            view.counts = all->counts;
+            view.hits = hits;
+            view.normals = normals;
+            view.points = points;
+            answer = proto::encode_multi_hits(view);
+        }
+    }
+    const double seconds = seconds_since(start);
+    if (auto written = proto::write_file_bytes(*output, answer); !written)
+        return ctx.fail(
+            make_client_error(ErrorKind::kInput, "cannot write the answers", written.error()));
+    const double mrays = seconds > 0 ? static_cast<double>(set->rays.size()) / seconds / 1e6 : 0.0;
+    if (ctx.args.has("json")) {
+        const proto::JsonField fields[] = {{"command", std::string_view("hits")},
+                                           {"mesh", std::string_view(*id)},
+                                           {"rays_file", std::string_view(rays_path)},
+                                           {"rays", uint64_t{set->rays.size()}},
+                                           {"max_hits", uint64_t{query.max_hits}},
+                                           {"merge_coincident", query.merge_coincident},
+                                           {"count_only", query.count_only},
+                                           {"seconds", seconds},
+                                           {"mrays_per_s", mrays},
+                                           {"hits", total},
+                                           {"kept", kept},
+                                           {"out", std::string_view(*output)}};
+        ctx.console.out << proto::encode_flat_object(fields) << "\n";
+    } else {
+        ctx.console.out << "traced " << set->rays.size() << " rays (every hit) in "
+                        << fixed(seconds, 3) << " s, " << fixed(mrays, 2) << " Mrays/s: " << total
+                        << " hits";
+        if (!query.count_only) ctx.console.out << ", " << kept << " kept";
+        ctx.console.out << " -> " << *output << "\n";
+    }
+    return kExitOk;
+}
+
 }  // namespace
+
+constinit const Command kHitsCommand{
+    .name = "hits",
+    .synopsis = "hits ID RAYS --all -o FILE",
+    .summary = "every hit along each ray of a KDRR file (KDRM, KDRC counts, or a .ply of points)",
+    .help = kHitsHelp,
+    .options = kHitsOptions,
+    .needs_server = true,
+    .run = run_hits,
+};
 
 constinit const Command kTraceCommand{
     .name = "trace",

@@ -24,6 +24,7 @@
 #include "kdrt/client/client.h"
 #include "kdrt/proto/errors.h"
 #include "kdrt/proto/file_io.h"
+#include "kdrt/proto/multi_hit.h"
 #include "kdrt/proto/problem.h"
 #include "kdrt/proto/ray_batch.h"
 
@@ -733,6 +734,85 @@ Result<std::vector<Hit>> Client::intersect(std::string_view id, std::span<const 
 
 Result<std::vector<uint8_t>> Client::occluded(std::string_view id, std::span<const Ray> rays) {
     return impl_->trace<uint8_t>(id, rays, true);
+}
+
+namespace {
+
+std::string_view as_view(const std::vector<std::byte>& bytes) {
+    return {reinterpret_cast<const char*>(bytes.data()), bytes.size()};
+}
+
+}  // namespace
+
+Result<proto::MultiHits> Client::intersect_all(std::string_view id, std::span<const Ray> rays,
+                                               const proto::MultiHitQuery& query) {
+    proto::MultiHitQuery q = query;
+    q.count_only = false;
+    const std::string path = impl_->api("/v1/meshes/" + escape_segment(id) + "/intersect_all?" +
+                                        proto::multi_hit_query_string(q));
+    proto::MultiHits all;
+    all.layout = q.layout;
+    all.merged = q.merge_coincident;
+    all.max_hits = q.max_hits;
+    all.offsets.push_back(0);
+    const size_t chunk = impl_->options.chunk_rays;
+    size_t first = 0;
+    do {
+        const size_t count = std::min(chunk, rays.size() - first);
+        const std::vector<std::byte> body = proto::encode_rays(rays.subspan(first, count), false);
+        Exchange ex;
+        ex.method = "POST";
+        ex.path = path;
+        ex.body = as_view(body);
+        ex.content_type = std::string(proto::kRaysMediaType);
+        auto res = impl_->send(ex);
+        if (!res) return proto::Err{std::move(res).error()};
+        auto part = proto::decode_multi_hits(as_bytes(res->body),
+                                             {.max_rays = std::numeric_limits<uint32_t>::max()});
+        if (!part) return proto::Err{impl_->bad_response(ex, part.error().to_string())};
+        if (part->counts.size() != count || part->layout != q.layout)
+            return proto::Err{impl_->bad_response(ex, "the answer is for another batch")};
+        const uint64_t base = all.offsets.back();
+        for (size_t i = 1; i < part->offsets.size(); ++i)
+            all.offsets.push_back(base + part->offsets[i]);
+        all.counts.insert(all.counts.end(), part->counts.begin(), part->counts.end());
+        all.hits.insert(all.hits.end(), part->hits.begin(), part->hits.end());
+        first += count;
+    } while (first < rays.size());
+    return all;
+}
+
+Result<std::vector<uint32_t>> Client::count_intersections(std::string_view id,
+                                                          std::span<const Ray> rays,
+                                                          bool merge_coincident) {
+    proto::MultiHitQuery q;
+    q.count_only = true;
+    q.merge_coincident = merge_coincident;
+    q.max_hits = 1;
+    const std::string path = impl_->api("/v1/meshes/" + escape_segment(id) + "/intersect_all?" +
+                                        proto::multi_hit_query_string(q));
+    std::vector<uint32_t> counts;
+    const size_t chunk = impl_->options.chunk_rays;
+    size_t first = 0;
+    do {
+        const size_t count = std::min(chunk, rays.size() - first);
+        const std::vector<std::byte> body = proto::encode_rays(rays.subspan(first, count), false);
+        Exchange ex;
+        ex.method = "POST";
+        ex.path = path;
+        ex.body = as_view(body);
+        ex.content_type = std::string(proto::kRaysMediaType);
+        auto res = impl_->send(ex);
+        if (!res) return proto::Err{std::move(res).error()};
+        auto part = proto::decode_hit_counts(as_bytes(res->body),
+                                             {.max_rays = std::numeric_limits<uint32_t>::max()});
+        if (!part) return proto::Err{impl_->bad_response(ex, part.error().to_string())};
+        if (part->size() != count)
+            return proto::Err{impl_->bad_response(ex, "the answer is for another batch")};
+        counts.insert(counts.end(), part->begin(), part->end());
+        first += count;
+    } while (first < rays.size());
+    return counts;
 }
 
 Result<std::vector<std::byte>> Client::render(const RenderRequest& request) {

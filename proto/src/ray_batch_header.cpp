@@ -151,6 +151,8 @@ std::string_view decode_error_code_name(DecodeErrorCode code) noexcept {
             return "too_many_rays";
         case DecodeErrorCode::kBadFlags:
             return "bad_flags";
+        case DecodeErrorCode::kBadOffsets:
+            return "bad_offsets";
         case DecodeErrorCode::kNonFiniteRay:
             return "non_finite_ray";
         case DecodeErrorCode::kBadOcclusionValue:

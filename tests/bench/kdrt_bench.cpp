@@ -33,6 +33,7 @@
 #include "kdrt/proto/file_io.h"
 #include "kdrt/proto/mesh_io.h"
 #include "kdrt/proto/ray_batch.h"
+#include "kdrt/query.h"
 #include "kdrt/raygen.h"
 #include "kdrt/render.h"
 #include "kdrt/trace.h"
@@ -75,6 +76,18 @@ options:
   --c-isect X           SAH cost of a triangle test relative to a traversal step (default 0.3)
   --threads N           worker threads (default: all cores)
   --reps K              number of builds to time (default 1)
+)";
+
+constexpr std::string_view kAllHitsUsage =
+    R"(usage: kdrt-bench all-hits MESH RAYS.kdrr [--max-hits N] [--merge] [--threads N] [--reps K]
+
+Every hit along each ray (kdrt::intersect_all, kdrt/query.h) against closest hit on the same
+rays. Builds the tree of MESH, then times K passes (default 5, after an untimed warm-up) of:
+intersect_all with max_hits N (default 16), count_intersections, the closest-hit batch tracer
+(auto mode) and the single-ray closest-hit kernel (intersect_single, the same scalar traversal
+family as intersect_all). Prints one JSON line: rays, threads, max_hits, merge, hits_per_ray
+(mean of all hits), kept_hits, and for each query its median seconds and mrays_per_s, and
+all_vs_closest_single / all_vs_closest_auto (rays/s ratios).
 )";
 
 constexpr std::string_view kTraceUsage =
@@ -481,6 +494,73 @@ int run_trace(const Args& args) {
     return 0;
 }
 
+int run_all_hits(const Args& args) {
+    static constexpr std::array<std::string_view, 2> kNames = {"MESH", "RAYS.kdrr"};
+    args.expect_positional(kNames);
+    const std::string& mesh_path = args.positional()[0];
+    const std::string& rays_path = args.positional()[1];
+    const unsigned threads = thread_count(args);
+    const auto reps = static_cast<int>(args.get_uint("reps", 5, 1, 1000));
+    const auto max_hits = static_cast<uint32_t>(args.get_uint("max-hits", 16, 1, kMaxHitsPerRay));
+    const bool merge = args.flag("merge");
+    const LoadedMesh loaded = load_mesh(mesh_path);
+    const proto::RayBatch batch = load_rays(rays_path);
+    const std::span<const Ray> rays = batch.rays;
+    KdTree tree;
+    double build_ms = 0;
+    std::vector<double> all_s, count_s, auto_s, single_s;
+    uint64_t total_hits = 0, kept = 0;
+    with_threads(threads, [&] {
+        tree = build_tree(loaded.mesh, BuildOptions{}, build_ms);
+        std::vector<Hit> hits(rays.size());
+        std::vector<uint32_t> counts(rays.size());
+        const auto timed = [&](std::vector<double>& out, auto&& f) {
+            for (int pass = 0; pass <= reps; ++pass) {
+                const auto start = Clock::now();
+                f();
+                const double elapsed = std::chrono::duration<double>(Clock::now() - start).count();
+                if (pass > 0) out.push_back(elapsed);
+            }
+        };
+        timed(all_s, [&] {
+            const AllHits all = intersect_all(tree, rays, AllHitsOptions{max_hits, merge});
+            kept = all.hits.size();
+            total_hits = std::accumulate(all.counts.begin(), all.counts.end(), uint64_t{0});
+        });
+        timed(count_s, [&] { count_intersections(tree, rays, merge, counts); });
+        timed(auto_s, [&] { kdrt::intersect(tree, rays, hits); });
+        timed(single_s, [&] { intersect_single(tree, rays, hits); });
+    });
+    const auto mrays = [&](const std::vector<double>& s) {
+        const double m = median(s);
+        return m > 0 ? static_cast<double>(rays.size()) / m / 1e6 : 0.0;
+    };
+    Json line;
+    line["command"] = "all-hits";
+    line["mesh"] = std::filesystem::path(mesh_path).filename().string();
+    line["rays_file"] = std::filesystem::path(rays_path).filename().string();
+    line["rays"] = rays.size();
+    line["threads"] = threads;
+    line["reps"] = reps;
+    line["max_hits"] = max_hits;
+    line["merge"] = merge;
+    line["build_ms"] = rounded(build_ms, 3);
+    line["hits_per_ray"] = rounded(
+        rays.empty() ? 0.0 : static_cast<double>(total_hits) / static_cast<double>(rays.size()), 3);
+    line["kept_hits"] = kept;
+    line["all_seconds"] = rounded(median(all_s), 6);
+    line["all_mrays_per_s"] = rounded(mrays(all_s), 3);
+    line["count_mrays_per_s"] = rounded(mrays(count_s), 3);
+    line["closest_auto_mrays_per_s"] = rounded(mrays(auto_s), 3);
+    line["closest_single_mrays_per_s"] = rounded(mrays(single_s), 3);
+    line["all_vs_closest_single"] =
+        mrays(single_s) > 0 ? rounded(mrays(all_s) / mrays(single_s), 3) : 0.0;
+    line["all_vs_closest_auto"] =
+        mrays(auto_s) > 0 ? rounded(mrays(all_s) / mrays(auto_s), 3) : 0.0;
+    print_json(line);
+    return 0;
+}
+
 /// "X,Y,Z": three finite numbers.
 Vec3 parse_vec3(std::string_view option, const std::string& text) {
     Vec3 v;
@@ -752,9 +832,12 @@ constexpr std::array<std::string_view, 4> kSceneOptions = {"out", "size", "from"
 constexpr std::array<std::string_view, 13> kRenderOptions = {
     "shading",    "res",     "spp",     "tile",    "threads", "reps",   "seed",
     "ao-samples", "bounces", "builder", "c-isect", "out",     "compare"};
-constexpr std::array<Command, 5> kCommands = {{
+constexpr std::array<std::string_view, 3> kAllHitsOptions = {"max-hits", "threads", "reps"};
+constexpr std::array<std::string_view, 1> kAllHitsFlags = {"merge"};
+constexpr std::array<Command, 6> kCommands = {{
     {"build", kBuildUsage, kBuildOptions, &run_build},
     {"trace", kTraceUsage, kTraceOptions, &run_trace, kTraceFlags},
+    {"all-hits", kAllHitsUsage, kAllHitsOptions, &run_all_hits, kAllHitsFlags},
     {"rays", kRaysUsage, kRaysOptions, &run_rays},
     {"scene", kSceneUsage, kSceneOptions, &run_scene},
     {"render", kRenderUsage, kRenderOptions, &run_render},

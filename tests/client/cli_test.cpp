@@ -12,16 +12,18 @@
 #include "client_test_util.h"
 #include "fake_server.h"
 #include "kdrt/proto/mesh_id.h"
+#include "kdrt/proto/multi_hit.h"
 #include "kdrt/proto/problem.h"
 #include "kdrt/proto/ray_batch.h"
+#include "kdrt/query.h"
 #include "kdrt/raygen.h"
 #include "kdrt/trace.h"
 
 namespace kdrt::test {
 namespace {
 
-const char* const kCommands[] = {"upload", "meshes", "info",   "rm",      "render",
-                                 "trace",  "rays",   "health", "metrics", "bench-remote"};
+const char* const kCommands[] = {"upload", "meshes", "info",   "rm",      "render",      "trace",
+                                 "hits",   "rays",   "health", "metrics", "bench-remote"};
 
 std::vector<std::string> lines_of(const std::string& text) {
     std::vector<std::string> lines;
@@ -140,6 +142,14 @@ TEST_F(Cli, UsageErrorsExitTwoWithAMessage) {
          "--connections: \"0\" is not in 1 .. 64"},
         {{"trace", "abcd", "r.kdrr", "-o", "h", "--split", "0"},
          "--split: \"0\" is not in 1 .. 64"},
+        {{"hits", "abcd", "r.kdrr", "-o", "h"}, "kdrt hits needs --all"},
+        {{"hits", "abcd", "--all"}, "kdrt hits: missing ID and RAYS"},
+        {{"hits", "abcd", "r.kdrr", "--all"}, "kdrt hits: missing -o FILE"},
+        {{"hits", "abcd", "r.kdrr", "--all", "-o", "h", "--max-hits", "0"}, "--max-hits: \"0\""},
+        {{"hits", "abcd", "r.kdrr", "--all", "-o", "h", "--fields", "uv"},
+         "--fields: \"uv\" is not full, t or t_prim"},
+        {{"hits", "abcd", "r.kdrr", "--all", "-o", "h.ply", "--count-only"},
+         "--count-only writes KDRC counts"},
         {{"rays", "m.obj"}, "kdrt rays: missing -o FILE"},
         {{"rays"}, "kdrt rays: missing MESH"},
         {{"rays", "m.obj", "-o", "r", "--kind", "sideways"},
@@ -560,6 +570,52 @@ TEST_F(Cli, TraceWritesTheEngineAnswers) {
     EXPECT_EQ(line["rays"], 90000);
     EXPECT_EQ(line["connections"], 4);
     EXPECT_GT(line["mrays_per_s"].get<double>(), 0.0);
+}
+
+TEST_F(Cli, HitsAllWritesTheEngineAnswers) {
+    upload_suite_mesh();
+    const std::string rays = path("all.kdrr");
+    ASSERT_EQ(
+        run_cli({"rays", mesh_file_, "-o", rays, "--kind", "random", "--res", "60"}).exit_code, 0);
+    auto batch = proto::decode_rays(read_bytes(rays));
+    ASSERT_TRUE(batch);
+    // KDRM in two chunks, joined: the engine's answer.
+    const std::string out = path("all.kdrm");
+    CliRun run = kdrt({"hits", id_, rays, "--all", "-o", out, "--max-hits", "3", "--merge",
+                       "--normal", "--chunk-rays", "2000"});
+    ASSERT_EQ(run.exit_code, 0) << run.err;
+    const AllHits want = intersect_all(*tree_, batch->rays, AllHitsOptions{3, true});
+    std::vector<Vec3> normals(want.hits.size());
+    hit_attributes(*tree_, want.hits, normals, {});
+    proto::MultiHitsView view;
+    view.layout.normal = true;
+    view.merged = true;
+    view.max_hits = 3;
+    view.offsets = want.offsets;
+    view.counts = want.counts;
+    view.hits = want.hits;
+    view.normals = normals;
+    EXPECT_EQ(read_bytes(out), proto::encode_multi_hits(view));
+    uint64_t total = 0;
+    for (uint32_t c : want.counts) total += c;
+    EXPECT_TRUE(contains(run.out, ": " + std::to_string(total) + " hits, " +
+                                      std::to_string(want.hits.size()) + " kept -> " + out))
+        << run.out;
+    // Counts only.
+    run = kdrt({"hits", id_, rays, "--all", "--count-only", "-o", path("all.kdrc")});
+    ASSERT_EQ(run.exit_code, 0) << run.err;
+    std::vector<uint32_t> counts(batch->rays.size());
+    count_intersections(*tree_, batch->rays, false, counts);
+    EXPECT_EQ(read_bytes(path("all.kdrc")), proto::encode_hit_counts(counts));
+    // A PLY point cloud of the hit points.
+    run = kdrt({"hits", id_, rays, "--all", "-o", path("all.ply"), "--max-hits", "2"});
+    ASSERT_EQ(run.exit_code, 0) << run.err;
+    const std::vector<std::byte> ply = read_bytes(path("all.ply"));
+    const std::string head(reinterpret_cast<const char*>(ply.data()),
+                           std::min<size_t>(ply.size(), 400));
+    EXPECT_EQ(head.rfind("ply\nformat binary_little_endian 1.0\n", 0), 0u) << head;
+    const AllHits two = intersect_all(*tree_, batch->rays, AllHitsOptions{2, false});
+    EXPECT_TRUE(contains(head, "element vertex " + std::to_string(two.hits.size()) + "\n")) << head;
 }
 
 TEST_F(Cli, TraceErrors) {

@@ -205,6 +205,20 @@ TEST(OpenApiSchemas, ExamplesAndLiveAnswersValidate) {
           cli->Post("/v1/meshes/" + std::string(64, 'b') + "/intersect", json_rays,
                     "application/json"));
 
+    // Every hit along a ray.
+    const std::string all = "/v1/meshes/" + id + "/intersect_all";
+    const std::string kdrr = as_string(proto::encode_rays(rays, false));
+    for (const char* query : {"", "?count_only=true", "?fields=t_prim&normal=true&point=true",
+                              "?max_hits=0", "?fields=uv"})
+        c.add("POST", "/v1/meshes/{id}/intersect_all",
+              cli->Post(all + query, kdrr, "application/x-kdrt-rays"));
+    c.add("POST", "/v1/meshes/{id}/intersect_all",
+          cli->Post(all, as_string(proto::encode_rays(rays, true)), "application/x-kdrt-rays"));
+    c.add("POST", "/v1/meshes/{id}/intersect_all", cli->Post(all, "{}", "application/json"));
+    c.add("POST", "/v1/meshes/{id}/intersect_all",
+          cli->Post("/v1/meshes/" + std::string(64, 'b') + "/intersect_all", kdrr,
+                    "application/x-kdrt-rays"));
+
     // Renders and jobs.
     const std::string small = R"({"mesh": ")" + id + R"(", "width": 32, "height": 24)";
     for (const char* format : {"png", "jpg", "exr"})

@@ -42,6 +42,25 @@ write("rays", "long_body", header(b"KDRR", 1) + ray_body)
 write("rays", "huge_count", header(b"KDRR", 0xFFFFFFFF))
 write("rays", "truncated_header", b"KDRR\x01\x00")
 
+# ---- KDRM / KDRC ----
+def kdrm(flags, record, rays, offsets, counts, records, max_hits=2, reserved=0):
+    return (struct.pack("<4sHHIIQII", b"KDRM", 1, flags, rays, record, offsets[-1], max_hits,
+                        reserved) + struct.pack(f"<{len(offsets)}Q", *offsets) +
+            struct.pack(f"<{len(counts)}I", *counts) + records)
+
+
+full = struct.pack("<fIff", 1, 3, 0.25, 0.5) + struct.pack("<fIff", 2, 0, 0, 0.5)
+write("multi_hits", "valid_full", kdrm(0, 16, 2, [0, 2, 2], [3, 0], full))
+write("multi_hits", "valid_t_prim_normal_point",
+      kdrm(0x1E, 32, 1, [0, 1], [1], struct.pack("<fI6f", 1, 3, 0, 0, 1, 0.5, 0.5, 0)))
+write("multi_hits", "valid_empty", kdrm(0, 16, 0, [0], [], b""))
+write("multi_hits", "bad_offsets", kdrm(0, 16, 2, [0, 3, 2], [3, 0], full))
+write("multi_hits", "count_below_kept", kdrm(0, 16, 2, [0, 2, 2], [1, 0], full))
+write("multi_hits", "record_mismatch", kdrm(1, 16, 2, [0, 2, 2], [3, 0], full))
+write("multi_hits", "huge_hits", struct.pack("<4sHHIIQII", b"KDRM", 1, 0, 1, 16, 1 << 62, 2, 0))
+write("multi_hits", "valid_counts", header(b"KDRC", 2) + struct.pack("<II", 3, 0))
+write("multi_hits", "short_counts", header(b"KDRC", 2) + struct.pack("<I", 3))
+
 # ---- KDRH ----
 hit_body = struct.pack("<fIff", 5, 7, 0.25, 0.5) + struct.pack("<fIff", INF, 0xFFFFFFFF, 0, 0)
 write("hits", "valid_two_hits", header(b"KDRH", 2) + hit_body)

@@ -1,6 +1,6 @@
 // proto/FORMATS.md: every hex dump in the document is exactly what the codecs produce for the
-// content it describes, in document order (KDRR, KDRH, KDRO, raw mesh, binary STL, tree blob),
-// and the tree blob's checksum follows the documented algorithm.
+// content it describes, in document order (KDRR, KDRH, KDRO, KDRM, KDRC, raw mesh, binary STL, tree
+// blob), and the tree blob's checksum follows the documented algorithm.
 
 #include <gtest/gtest.h>
 
@@ -12,6 +12,7 @@
 #include "kdrt/kdtree.h"
 #include "kdrt/proto/file_io.h"
 #include "kdrt/proto/mesh_io.h"
+#include "kdrt/proto/multi_hit.h"
 #include "kdrt/proto/ray_batch.h"
 #include "kdrt/serialize.h"
 
@@ -107,6 +108,14 @@ TEST(FormatsDoc, HexExamplesAreWhatTheCodecsWrite) {
     const std::vector<Ray> rays = {Ray{0, 0, -5, 0, 0, 0, 1, 100},
                                    Ray{1, 2, 3, 0.5f, -1, 0, 0, inf}};
     const std::vector<Hit> hits = {Hit{5, 7, 0.25f, 0.5f}, Hit{}};
+    const std::vector<uint64_t> multi_offsets = {0, 2, 2};
+    const std::vector<uint32_t> multi_counts = {3, 0};
+    const std::vector<Hit> multi_hits = {Hit{1, 3, 0.25f, 0.5f}, Hit{2, 0, 0, 0.5f}};
+    proto::MultiHitsView multi_view;
+    multi_view.max_hits = 2;
+    multi_view.offsets = multi_offsets;
+    multi_view.counts = multi_counts;
+    multi_view.hits = multi_hits;
     Mesh triangle;
     triangle.positions = {0, 0, 0, 1, 0, 0, 0, 1, 0};
     triangle.indices = {0, 1, 2};
@@ -116,6 +125,8 @@ TEST(FormatsDoc, HexExamplesAreWhatTheCodecsWrite) {
         {"KDRR", proto::encode_rays(rays, false)},
         {"KDRH", proto::encode_hits(hits)},
         {"KDRO", proto::encode_occlusion(std::vector<uint8_t>{1, 0})},
+        {"KDRM", proto::encode_multi_hits(multi_view)},
+        {"KDRC", proto::encode_hit_counts(multi_counts)},
         {"raw mesh", proto::write_mesh(triangle, proto::MeshFormat::kRaw)},
         {"binary STL", proto::write_mesh(triangle, proto::MeshFormat::kStl)},
         {"tree blob", serialize_tree(tree)},

@@ -162,3 +162,72 @@ def raw_mesh(vertices, triangles) -> list:
     verts = np.ascontiguousarray(v, dtype="<f4")
     tris = np.ascontiguousarray(t, dtype="<u4")
     return [struct.pack("<II", v.shape[0], t.shape[0]), byte_view(verts), byte_view(tris)]
+
+
+# ---- Every hit along a ray: KDRM and KDRC (FORMATS.md, "Every hit along a ray") --------------
+
+#: The 32-byte KDRM header: magic, version, flags, rays, record bytes, hits (u64), max_hits,
+#: reserved.
+MULTI_HIT_HEADER = struct.Struct("<4sHHIIQII")
+MULTI_HIT_MAGIC = b"KDRM"
+HIT_COUNT_MAGIC = b"KDRC"
+MULTI_HIT_FIELDS = {"full": 0, "t": 1, "t_prim": 2}
+MULTI_HIT_FLAG_NORMAL = 0x0004
+MULTI_HIT_FLAG_POINT = 0x0008
+
+
+def _bad(detail: str) -> Error:
+    return Error(kind="protocol", title="bad response", detail=detail)
+
+
+def multi_hit_record_dtype(fields: str, normal: bool, point: bool) -> np.dtype:
+    """The numpy dtype of one KDRM record in a layout."""
+    parts = [("t", "<f4")]
+    if fields != "t":
+        parts.append(("prim", "<u4"))
+    if fields == "full":
+        parts += [("u", "<f4"), ("v", "<f4")]
+    if normal:
+        parts.append(("normal", "<f4", (3,)))
+    if point:
+        parts.append(("point", "<f4", (3,)))
+    return np.dtype(parts)
+
+
+def decode_multi_hits(body: bytes, rays: int) -> dict:
+    """A KDRM body (for `rays` rays) as arrays: offsets (uint64, rays + 1), counts (uint32),
+    records (structured, one per kept hit). Raises a "protocol" Error naming the field."""
+    if len(body) < MULTI_HIT_HEADER.size:
+        raise _bad(f"too_short: body has {len(body)} bytes, less than the 32-byte KDRM header")
+    magic, version, flags, n, record, hits, max_hits, reserved = MULTI_HIT_HEADER.unpack_from(body)
+    if magic != MULTI_HIT_MAGIC:
+        raise _bad(f'bad_magic: bad magic "{magic.decode("latin-1")}", expected "KDRM"')
+    if version != BATCH_VERSION:
+        raise _bad(f"bad_version: unsupported version {version}, expected 1")
+    fields = {v: k for k, v in MULTI_HIT_FIELDS.items()}.get(flags & 3)
+    if flags & ~0x1F or fields is None:
+        raise _bad(f"bad_flags: flags 0x{flags:04x}")
+    dtype = multi_hit_record_dtype(fields, bool(flags & MULTI_HIT_FLAG_NORMAL),
+                                   bool(flags & MULTI_HIT_FLAG_POINT))
+    if record != dtype.itemsize or reserved != 0:
+        raise _bad(f"bad_flags: record size {record}, expected {dtype.itemsize}")
+    if n != rays:
+        raise _bad(f"{n} answers for {rays} rays")
+    expected = 32 + 8 * (n + 1) + 4 * n + hits * record
+    if len(body) != expected:
+        raise _bad(f"length_mismatch: {len(body)} bytes, expected {expected}")
+    offsets = np.frombuffer(body, dtype="<u8", count=n + 1, offset=32)
+    counts = np.frombuffer(body, dtype="<u4", count=n, offset=32 + 8 * (n + 1))
+    records = np.frombuffer(body, dtype=dtype, count=hits, offset=32 + 12 * n + 8)
+    kept = np.diff(offsets)
+    if offsets[0] != 0 or offsets[-1] != hits or (kept.size and (kept > counts).any()):
+        raise _bad("bad_offsets: offsets and counts do not describe the records")
+    return {"offsets": offsets, "counts": counts, "records": records, "max_hits": max_hits}
+
+
+def decode_hit_counts(body: bytes, rays: int) -> np.ndarray:
+    """A KDRC body as a uint32 array; raises a "protocol" Error naming the field."""
+    check_answer_header(body, HIT_COUNT_MAGIC, rays)
+    if len(body) != HEADER_BYTES + 4 * rays:
+        raise _bad(f"length_mismatch: {len(body)} bytes, expected {HEADER_BYTES + 4 * rays}")
+    return np.frombuffer(body, dtype="<u4", count=rays, offset=HEADER_BYTES)

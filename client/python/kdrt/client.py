@@ -226,6 +226,84 @@ class Client:
         array shaped like the rays' leading dimensions. Rays as for cast_rays."""
         return self._trace(_mesh_id(mesh), rays, occlusion=True)
 
+    def list_intersections(self, mesh, rays, max_hits=16, merge_coincident=False,
+                           fields="full", normals=False, points=False) -> dict:
+        """Every hit along each ray, like Open3D's RaycastingScene.list_intersections
+        (POST /v1/meshes/{id}/intersect_all). Rays as for cast_rays. Each ray keeps its nearest
+        `max_hits` hits (1 .. the server's max_hits_per_ray), sorted by t then triangle; with
+        `merge_coincident` a ray through a shared edge or vertex counts it once (FORMATS.md).
+        Returns a dict of flat arrays over the kept hits, ray by ray:
+          ray_splits          uint64 (n + 1,)  hits of ray i are [ray_splits[i], ray_splits[i+1])
+          ray_ids             uint32 (hits,)   the ray of each hit (index into the flattened rays)
+          t_hit               float32 (hits,)
+          primitive_ids       uint32 (hits,)   unless fields="t"
+          primitive_uvs       float32 (hits, 2) only with fields="full"
+          primitive_normals   float32 (hits, 3) with normals=True: unit right-hand normals
+          points              float32 (hits, 3) with points=True: world-space hit points
+          counts              uint32 (n,)      all hits of each ray (may exceed those kept)"""
+        if fields not in _wire.MULTI_HIT_FIELDS:
+            raise _wire.input_error("bad fields", f"fields is {fields!r}, not full, t or t_prim")
+        query = (f"max_hits={int(max_hits)}&merge_coincident={str(bool(merge_coincident)).lower()}"
+                 f"&fields={fields}&normal={str(bool(normals)).lower()}"
+                 f"&point={str(bool(points)).lower()}")
+        parts = self._all_hits(_mesh_id(mesh), rays, query,
+                               lambda body, n: _wire.decode_multi_hits(body, n))
+        offsets, counts, records = [np.zeros(1, dtype=np.uint64)], [], []
+        for part in parts:
+            offsets.append(part["offsets"][1:] + offsets[-1][-1])
+            counts.append(part["counts"])
+            records.append(part["records"])
+        ray_splits = np.concatenate(offsets).astype(np.uint64)
+        rec = np.concatenate(records) if records else np.zeros(
+            0, _wire.multi_hit_record_dtype(fields, normals, points))
+        out = {
+            "ray_splits": ray_splits,
+            "ray_ids": np.repeat(np.arange(ray_splits.size - 1, dtype=np.uint32),
+                                 np.diff(ray_splits).astype(np.int64)),
+            "t_hit": np.ascontiguousarray(rec["t"]),
+            "counts": np.concatenate(counts) if counts else np.zeros(0, np.uint32),
+        }
+        if fields != "t":
+            out["primitive_ids"] = np.ascontiguousarray(rec["prim"])
+        if fields == "full":
+            out["primitive_uvs"] = np.stack([rec["u"], rec["v"]], axis=-1)
+        if normals:
+            out["primitive_normals"] = np.ascontiguousarray(rec["normal"])
+        if points:
+            out["points"] = np.ascontiguousarray(rec["point"])
+        return out
+
+    def count_intersections(self, mesh, rays, merge_coincident=False) -> np.ndarray:
+        """The number of hits of each ray (uint32, shaped like the rays' leading dimensions),
+        like Open3D's RaycastingScene.count_intersections. With `merge_coincident` a ray through
+        a shared edge or vertex counts it once, so on a closed mesh the count's parity tells
+        inside (odd, for a ray starting inside) from outside."""
+        arr = _wire.as_rays(rays)
+        query = f"count_only=true&merge_coincident={str(bool(merge_coincident)).lower()}"
+        parts = self._all_hits(_mesh_id(mesh), arr, query,
+                               lambda body, n: _wire.decode_hit_counts(body, n))
+        counts = np.concatenate(parts) if parts else np.zeros(0, np.uint32)
+        return counts.reshape(arr.shape[:-1])
+
+    def _all_hits(self, mesh_id, rays, query, decode):
+        """The intersect_all answers of `rays` in chunks of chunk_rays, one after another."""
+        arr = _wire.as_rays(rays)
+        flat = arr.reshape(-1, arr.shape[-1])
+        n = flat.shape[0]
+        path = self._t.api("/v1/meshes/" + _segment(mesh_id) + "/intersect_all") + "?" + query
+        parts = []
+        first = 0
+        while True:
+            count = min(self.chunk_rays, n - first)
+            records = _wire.kdrr_records(flat[first:first + count])
+            header = _wire.batch_header(_wire.RAY_MAGIC, 0, count)
+            body = self._t.request("POST", path, [header, _wire.byte_view(records)],
+                                   _wire.RAYS_MEDIA_TYPE, None, lambda r: r.read())
+            parts.append(decode(body, count))
+            first += count
+            if first >= n:
+                return parts
+
     def _workers(self):
         with self._pool_lock:
             if self._pool is None:

@@ -306,3 +306,93 @@ def test_the_token_is_sent_and_a_wrong_one_is_401():
         assert good.cast_rays(quad, quad_rays(10, np.random.default_rng(1))[0])["t_hit"].size
     finally:
         s.stop()
+
+
+# ---- Every hit along a ray ---------------------------------------------------------------------
+
+# The cube [0, 1]^3, 12 triangles wound outwards with shared vertices.
+CUBE_VERTICES = np.array([[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0],
+                          [0, 0, 1], [1, 0, 1], [1, 1, 1], [0, 1, 1]], dtype=np.float32)
+CUBE_TRIANGLES = np.array([[0, 3, 2], [0, 2, 1], [4, 5, 6], [4, 6, 7], [0, 1, 5], [0, 5, 4],
+                           [2, 3, 7], [2, 7, 6], [1, 2, 6], [1, 6, 5], [0, 4, 7], [0, 7, 3]],
+                          dtype=np.uint32)
+
+
+def test_list_and_count_intersections(client):
+    cube = client.upload(CUBE_VERTICES, CUBE_TRIANGLES)
+    rng = np.random.default_rng(3)
+    n = 200
+    # Straight down through the cube at random points, and through its face diagonals (a shared
+    # edge of two triangles), from above.
+    rays = np.zeros((n, 6), dtype=np.float32)
+    rays[:, 0] = rng.uniform(0.05, 0.95, n)
+    rays[:, 1] = rng.uniform(0.05, 0.95, n)
+    rays[n // 2:, 1] = rays[n // 2:, 0]  # on the diagonal x = y of the top and bottom faces
+    rays[:, 2] = 3.0
+    rays[:, 5] = -1.0
+    hits = client.list_intersections(cube, rays, max_hits=8, normals=True, points=True)
+    assert hits["ray_splits"].shape == (n + 1,) and hits["ray_splits"].dtype == np.uint64
+    assert hits["t_hit"].dtype == np.float32 and hits["primitive_ids"].dtype == np.uint32
+    kept = np.diff(hits["ray_splits"])
+    np.testing.assert_array_equal(kept, hits["counts"])
+    assert (kept[: n // 2] == 2).all()   # in at the top, out at the bottom
+    assert (kept[n // 2:] == 4).all()    # both triangles of each face on the diagonal
+    np.testing.assert_array_equal(hits["ray_ids"], np.repeat(np.arange(n), kept.astype(np.int64)))
+    # Sorted by t within each ray; points on the ray; normals unit and outward (z = +-1).
+    t = hits["t_hit"]
+    same_ray = hits["ray_ids"][1:] == hits["ray_ids"][:-1]
+    assert (t[1:][same_ray] >= t[:-1][same_ray]).all()
+    np.testing.assert_allclose(np.abs(hits["primitive_normals"][:, 2]), 1.0)
+    expect_z = 3.0 - t
+    np.testing.assert_allclose(hits["points"][:, 2], expect_z, atol=1e-6)
+    top = hits["points"][:, 2] > 0.5
+    assert (hits["primitive_normals"][top, 2] > 0).all()
+    # Merged, every ray crosses twice; the counts say the same.
+    merged = client.list_intersections(cube, rays, max_hits=8, merge_coincident=True,
+                                       fields="t_prim")
+    assert "primitive_uvs" not in merged
+    assert (np.diff(merged["ray_splits"]) == 2).all()
+    np.testing.assert_array_equal(client.count_intersections(cube, rays, merge_coincident=True),
+                                  np.full(n, 2, np.uint32))
+    counts = client.count_intersections(cube, rays.reshape(10, 20, 6))
+    assert counts.shape == (10, 20) and counts.dtype == np.uint32
+    np.testing.assert_array_equal(counts.reshape(-1), kept)
+    # max_hits keeps the nearest: the top face.
+    one = client.list_intersections(cube, rays, max_hits=1, fields="t")
+    np.testing.assert_allclose(one["t_hit"], 2.0)
+    np.testing.assert_array_equal(one["counts"], kept)
+
+
+def test_list_intersections_chunks_and_equals_the_cli(client, server, cli, tmp_path):
+    cube = client.upload(CUBE_VERTICES, CUBE_TRIANGLES)
+    rng = np.random.default_rng(5)
+    origins = rng.uniform(-1, 2, (500, 3)).astype(np.float32)
+    targets = rng.uniform(0, 1, (500, 3)).astype(np.float32)
+    rays = np.concatenate([origins, targets - origins, np.zeros((500, 1), np.float32),
+                           np.full((500, 1), np.inf, np.float32)], axis=1)
+    kdrr = tmp_path / "cube.kdrr"
+    records = rays[:, [0, 1, 2, 6, 3, 4, 5, 7]].astype("<f4")
+    kdrr.write_bytes(struct.pack("<4sHHII", b"KDRR", 1, 0, 500, 0) + records.tobytes())
+    out = tmp_path / "cube.kdrm"
+    cli("--server", server.url, "hits", cube.id, str(kdrr), "--all", "-o", str(out),
+        "--max-hits", "3", "--merge")
+    from kdrt import _wire
+    want = _wire.decode_multi_hits(out.read_bytes(), 500)
+    for c in (client, kdrt.Client(server.url, chunk_rays=77)):
+        got = c.list_intersections(cube, rays, max_hits=3, merge_coincident=True)
+        np.testing.assert_array_equal(got["ray_splits"], want["offsets"])
+        np.testing.assert_array_equal(got["counts"], want["counts"])
+        np.testing.assert_array_equal(got["t_hit"], want["records"]["t"])
+        np.testing.assert_array_equal(got["primitive_ids"], want["records"]["prim"])
+
+
+def test_list_intersections_errors_name_the_parameter(client):
+    cube = client.upload(CUBE_VERTICES, CUBE_TRIANGLES)
+    rays = np.array([[0.5, 0.5, 3, 0, 0, -1]], dtype=np.float32)
+    for kwargs, name in (({"max_hits": 0}, "max_hits"), ({"max_hits": 10**7}, "max_hits")):
+        with pytest.raises(kdrt.Error) as info:
+            client.list_intersections(cube, rays, **kwargs)
+        assert info.value.status == 400 and name in info.value.detail
+    with pytest.raises(kdrt.Error) as info:
+        client.list_intersections(cube, rays, fields="uv")
+    assert info.value.kind == "input"

@@ -32,6 +32,7 @@
 #include "kdrt/mesh_types.h"
 #include "kdrt/proto/json_api.h"
 #include "kdrt/proto/mesh_io.h"
+#include "kdrt/proto/multi_hit.h"
 #include "kdrt/types.h"
 
 namespace kdrt {
@@ -129,6 +130,21 @@ public:
     /// Occlusion of every ray (1 = something is hit within [tmin, tmax]), chunked the same way.
     [[nodiscard]] Result<std::vector<uint8_t>> occluded(std::string_view id,
                                                         std::span<const Ray> rays);
+
+    // ---- Every hit along a ray (POST /v1/meshes/{id}/intersect_all, KDRR -> KDRM / KDRC) -----
+
+    /// Every hit of every ray (the nearest query.max_hits of each, and the count of all), in
+    /// the record layout query.layout asks for (proto/FORMATS.md). query.count_only is ignored
+    /// (see count_intersections). Batches larger than options.chunk_rays go as several requests,
+    /// one after another, and are joined into one answer. Errors as for intersect (a bad option
+    /// is a kServer 400 naming it).
+    [[nodiscard]] Result<proto::MultiHits> intersect_all(std::string_view id,
+                                                         std::span<const Ray> rays,
+                                                         const proto::MultiHitQuery& query);
+    /// The number of hits of every ray (KDRC), merged as `merge_coincident` says.
+    [[nodiscard]] Result<std::vector<uint32_t>> count_intersections(std::string_view id,
+                                                                    std::span<const Ray> rays,
+                                                                    bool merge_coincident);
 
     // ---- Renders (POST /v1/render, /v1/jobs/{id}...) -----------------------------------------
 

@@ -73,6 +73,8 @@ enum class DecodeErrorCode {
     kBadFlags,           ///< a flag bit that this version does not define is set
     kNonFiniteRay,       ///< DecodeLimits::reject_non_finite and a ray has a NaN/Inf field
     kBadOcclusionValue,  ///< a KDRO byte other than 0 or 1
+    kBadOffsets,         ///< KDRM: offsets not starting at 0, decreasing, or not ending at the
+                         ///< hit count, or a ray's count below its kept hits
 };
 
 /// Stable snake_case name of a code ("too_short", "bad_magic", ...), e.g. for JSON error bodies.

@@ -1,0 +1,264 @@
+// Every hit along a ray: a scalar traversal that visits every leaf the ray passes within
+// [tmin, tmax] (the cells of the closest-hit kernel, without its early exit), the same triangle
+// test (ray_prep.h), then sort, de-duplication (a triangle referenced by several leaves) and the
+// optional merging of coincident hits.
+
+#include <algorithm>
+#include <array>
+#include <cmath>
+
+#include <tbb/blocked_range.h>
+#include <tbb/parallel_for.h>
+
+#include "kdrt/query.h"
+#include "ray_prep.h"
+
+namespace kdrt {
+namespace {
+
+struct StackEntry {
+    uint32_t node;
+    float tmin;
+    float tmax;
+};
+
+bool hit_less(const Hit& a, const Hit& b) noexcept {
+    return a.t < b.t || (a.t == b.t && a.prim < b.prim);
+}
+
+/// Appends every hit with ray.tmin <= t <= ray.tmax of a triangle in a leaf the ray passes;
+/// a triangle in several leaves is appended once per leaf (the caller removes the copies).
+void collect(const KdTree& tree, const Ray& ray, std::vector<Hit>& out) {
+    if (!detail::ray_is_valid(ray) || tree.bounds.empty()) return;
+    const detail::PreparedRay p = detail::prepare_ray(ray);
+    float tmin = ray.tmin, tmax = ray.tmax;
+    if (!detail::clip_to_box(p, tree.bounds, tmin, tmax)) return;
+    const uint32_t near_is_high[3] = {std::signbit(p.inv_dir[0]) ? 1u : 0u,
+                                      std::signbit(p.inv_dir[1]) ? 1u : 0u,
+                                      std::signbit(p.inv_dir[2]) ? 1u : 0u};
+    float eps[3];
+    detail::traversal_eps(p, tree.bounds, eps);
+    const KdNode* nodes = tree.nodes.data();
+    const uint32_t* refs = tree.leaf_refs.data();
+    const TriVerts* tris = tree.tris.data();
+    const uint32_t* ids = tree.tri_ids.data();
+
+    std::array<StackEntry, kMaxDepth + 2> stack;
+    int stack_size = 0;
+    uint32_t node_index = 0;
+    for (;;) {
+        KdNode node = nodes[node_index];
+        // The closest-hit kernel's cell decisions (trace.cpp): each side's interval widened by
+        // eps, a NaN split distance (a ray in the split plane) visiting both sides.
+        while (!node.is_leaf()) {
+            const int axis = node.axis();
+            const float t_split = (node.split() - p.org[axis]) * p.inv_dir[axis];
+            const uint32_t near_child = node.first_child() + near_is_high[axis];
+            const uint32_t far_child = node.first_child() + (near_is_high[axis] ^ 1u);
+            const float near_max = t_split + eps[axis], far_min = t_split - eps[axis];
+            const bool need_near = !(near_max < tmin), need_far = !(far_min > tmax);
+            if (need_near && need_far) {
+                stack[stack_size++] = {far_child, far_min > tmin ? far_min : tmin, tmax};
+                tmax = near_max < tmax ? near_max : tmax;
+            }
+            node_index = need_near ? near_child : far_child;
+            node = nodes[node_index];
+        }
+        const uint32_t end = node.first_ref() + node.prim_count();
+        for (uint32_t r = node.first_ref(); r < end; ++r) {
+            const uint32_t slot = refs[r];
+            float t, u, v;
+            if (!detail::intersect_triangle(p, tris[slot], ray.tmin, t, u, v)) continue;
+            if (t <= ray.tmax) out.push_back(Hit{t, ids[slot], u, v});
+        }
+        if (stack_size == 0) return;
+        const StackEntry& e = stack[--stack_size];
+        node_index = e.node;
+        tmin = e.tmin;
+        tmax = e.tmax;
+    }
+}
+
+bool shares_vertex(const TriVerts& a, const TriVerts& b) noexcept {
+    const float* pa[3] = {a.v0, a.v1, a.v2};
+    const float* pb[3] = {b.v0, b.v1, b.v2};
+    for (const float* x : pa)
+        for (const float* y : pb)
+            if (x[0] == y[0] && x[1] == y[1] && x[2] == y[2]) return true;
+    return false;
+}
+
+/// True when `ray` runs along the right-hand normal of `tri` (d . n > 0, in double).
+bool faces_along(const TriVerts& tri, const Ray& ray) noexcept {
+    const double e1[3] = {double{tri.v1[0]} - tri.v0[0], double{tri.v1[1]} - tri.v0[1],
+                          double{tri.v1[2]} - tri.v0[2]};
+    const double e2[3] = {double{tri.v2[0]} - tri.v0[0], double{tri.v2[1]} - tri.v0[1],
+                          double{tri.v2[2]} - tri.v0[2]};
+    const double n[3] = {e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2],
+                         e1[0] * e2[1] - e1[1] * e2[0]};
+    return n[0] * ray.dx + n[1] * ray.dy + n[2] * ray.dz > 0.0;
+}
+
+float max_abs(const TriVerts& tri, float m) noexcept {
+    for (const float* v : {tri.v0, tri.v1, tri.v2})
+        for (int a = 0; a < 3; ++a) m = std::max(m, std::fabs(v[a]));
+    return m;
+}
+
+/// AllHitsOptions::merge_coincident on hits sorted by (t, prim); `tri_of(prim)` gives a
+/// triangle. Returns the new count.
+template <class TriOf>
+size_t merge_groups(TriOf tri_of, const Ray& ray, Hit* hits, size_t n) {
+    const float dmax = std::max({std::fabs(ray.dx), std::fabs(ray.dy), std::fabs(ray.dz)});
+    const float org_max = std::max({std::fabs(ray.ox), std::fabs(ray.oy), std::fabs(ray.oz)});
+    size_t out = 0;
+    size_t i = 0;
+    while (i < n) {
+        const float tol = max_abs(tri_of(hits[i].prim), org_max) * 0x1p-18f / dmax;
+        size_t j = i + 1;
+        while (j < n && hits[j].t - hits[i].t <= tol) {
+            const TriVerts& tj = tri_of(hits[j].prim);
+            bool joined = false;
+            for (size_t k = i; k < j && !joined; ++k)
+                joined = shares_vertex(tj, tri_of(hits[k].prim));
+            if (!joined) break;
+            ++j;
+        }
+        // The lowest prim facing each way.
+        size_t along = n, against = n;
+        for (size_t k = i; k < j; ++k) {
+            size_t& pick = faces_along(tri_of(hits[k].prim), ray) ? along : against;
+            if (pick == n || hits[k].prim < hits[pick].prim) pick = k;
+        }
+        Hit picked[2];
+        size_t count = 0;
+        if (along != n) picked[count++] = hits[along];
+        if (against != n) picked[count++] = hits[against];
+        if (count == 2 && hit_less(picked[1], picked[0])) std::swap(picked[0], picked[1]);
+        for (size_t k = 0; k < count; ++k) hits[out++] = picked[k];
+        i = j;
+    }
+    return out;
+}
+
+void sort_unique(std::vector<Hit>& hits) {
+    std::sort(hits.begin(), hits.end(), hit_less);
+    // Copies of one triangle (from several leaves) have the same t and prim: adjacent.
+    hits.erase(
+        std::unique(hits.begin(), hits.end(),
+                    [](const Hit& a, const Hit& b) { return a.prim == b.prim && a.t == b.t; }),
+        hits.end());
+}
+
+constexpr size_t kBlockRays = 256;
+
+}  // namespace
+
+uint32_t intersect_all(const KdTree& tree, const Ray& ray, bool merge_coincident,
+                       std::vector<Hit>& out) {
+    out.clear();
+    collect(tree, ray, out);
+    sort_unique(out);
+    if (merge_coincident && out.size() > 1) {
+        const size_t n =
+            merge_groups([&](uint32_t prim) -> const TriVerts& { return tree.triangle(prim); }, ray,
+                         out.data(), out.size());
+        out.resize(n);
+    }
+    return static_cast<uint32_t>(out.size());
+}
+
+AllHits intersect_all(const KdTree& tree, std::span<const Ray> rays,
+                      const AllHitsOptions& options) {
+    AllHits result;
+    result.counts.resize(rays.size());
+    result.offsets.assign(rays.size() + 1, 0);
+    const size_t blocks = (rays.size() + kBlockRays - 1) / kBlockRays;
+    std::vector<std::vector<Hit>> kept(blocks);
+    tbb::parallel_for(
+        tbb::blocked_range<size_t>(0, blocks, 1), [&](const tbb::blocked_range<size_t>& range) {
+            std::vector<Hit> scratch;
+            for (size_t b = range.begin(); b != range.end(); ++b) {
+                const size_t end = std::min(rays.size(), (b + 1) * kBlockRays);
+                for (size_t i = b * kBlockRays; i < end; ++i) {
+                    const uint32_t n =
+                        intersect_all(tree, rays[i], options.merge_coincident, scratch);
+                    result.counts[i] = n;
+                    const size_t keep = std::min<size_t>(n, options.max_hits);
+                    result.offsets[i + 1] = keep;
+                    kept[b].insert(kept[b].end(), scratch.begin(),
+                                   scratch.begin() + static_cast<ptrdiff_t>(keep));
+                }
+            }
+        });
+    for (size_t i = 0; i < rays.size(); ++i) result.offsets[i + 1] += result.offsets[i];
+    result.hits.resize(result.offsets.back());
+    tbb::parallel_for(size_t{0}, blocks, [&](size_t b) {
+        std::copy(kept[b].begin(), kept[b].end(),
+                  result.hits.begin() + static_cast<ptrdiff_t>(result.offsets[b * kBlockRays]));
+    });
+    return result;
+}
+
+void count_intersections(const KdTree& tree, std::span<const Ray> rays, bool merge_coincident,
+                         std::span<uint32_t> counts) {
+    tbb::parallel_for(tbb::blocked_range<size_t>(0, rays.size(), kBlockRays),
+                      [&](const tbb::blocked_range<size_t>& range) {
+                          std::vector<Hit> scratch;
+                          for (size_t i = range.begin(); i != range.end(); ++i)
+                              counts[i] = intersect_all(tree, rays[i], merge_coincident, scratch);
+                      });
+}
+
+std::vector<Hit> brute_force_intersect_all(std::span<const TriVerts> tris, const Ray& ray,
+                                           bool merge_coincident) {
+    std::vector<Hit> out;
+    if (!detail::ray_is_valid(ray)) return out;
+    const detail::PreparedRay p = detail::prepare_ray(ray);
+    for (uint32_t prim = 0; prim < tris.size(); ++prim) {
+        float t, u, v;
+        if (!detail::intersect_triangle(p, tris[prim], ray.tmin, t, u, v)) continue;
+        if (t <= ray.tmax) out.push_back(Hit{t, prim, u, v});
+    }
+    std::sort(out.begin(), out.end(), hit_less);
+    if (merge_coincident && out.size() > 1) {
+        const size_t n = merge_groups([&](uint32_t prim) -> const TriVerts& { return tris[prim]; },
+                                      ray, out.data(), out.size());
+        out.resize(n);
+    }
+    return out;
+}
+
+Vec3 triangle_normal(const TriVerts& tri) noexcept {
+    const double e1[3] = {double{tri.v1[0]} - tri.v0[0], double{tri.v1[1]} - tri.v0[1],
+                          double{tri.v1[2]} - tri.v0[2]};
+    const double e2[3] = {double{tri.v2[0]} - tri.v0[0], double{tri.v2[1]} - tri.v0[1],
+                          double{tri.v2[2]} - tri.v0[2]};
+    const double n[3] = {e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2],
+                         e1[0] * e2[1] - e1[1] * e2[0]};
+    const double len = std::sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]);
+    if (!(len > 0.0) || !std::isfinite(len)) return {};
+    return {static_cast<float>(n[0] / len), static_cast<float>(n[1] / len),
+            static_cast<float>(n[2] / len)};
+}
+
+Vec3 hit_point(const TriVerts& tri, const Hit& hit) noexcept {
+    const Vec3 v0{tri.v0[0], tri.v0[1], tri.v0[2]};
+    const Vec3 v1{tri.v1[0], tri.v1[1], tri.v1[2]};
+    const Vec3 v2{tri.v2[0], tri.v2[1], tri.v2[2]};
+    return v0 * (1.0f - hit.u - hit.v) + v1 * hit.u + v2 * hit.v;
+}
+
+void hit_attributes(const KdTree& tree, std::span<const Hit> hits, std::span<Vec3> normals,
+                    std::span<Vec3> points) {
+    tbb::parallel_for(tbb::blocked_range<size_t>(0, hits.size(), 4096),
+                      [&](const tbb::blocked_range<size_t>& range) {
+                          for (size_t i = range.begin(); i != range.end(); ++i) {
+                              const TriVerts& tri = tree.triangle(hits[i].prim);
+                              if (!normals.empty()) normals[i] = triangle_normal(tri);
+                              if (!points.empty()) points[i] = hit_point(tri, hits[i]);
+                          }
+                      });
+}
+
+}  // namespace kdrt
