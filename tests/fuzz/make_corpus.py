@@ -42,6 +42,22 @@ write("rays", "long_body", header(b"KDRR", 1) + ray_body)
 write("rays", "huge_count", header(b"KDRR", 0xFFFFFFFF))
 write("rays", "truncated_header", b"KDRR\x01\x00")
 
+# ---- KDRR, incremental (ray_stream): mode byte (1 declared size, 2 refuse non-finite, 4 windows),
+# piece-size seed, body ----
+for name, body in [("valid_two_rays", header(b"KDRR", 2) + ray_body),
+                   ("valid_occlusion", header(b"KDRR", 2, flags=1) + ray_body),
+                   ("nan_ray", header(b"KDRR", 2) + ray_body[:32] + struct.pack("<8f", NAN, 0, 0, 0, 1, 0, 0, INF)),
+                   ("short_body", header(b"KDRR", 3) + ray_body),
+                   ("long_body", header(b"KDRR", 1) + ray_body),
+                   ("huge_count", header(b"KDRR", 0xFFFFFFFF) + ray_body)]:
+    for mode in (0, 3, 7):
+        write("ray_stream", "%s_mode%d" % (name, mode), bytes([mode, 17 * mode + 1]) + body)
+
+# ---- problem+json (json target, first byte 3: mesh list and problem decoders) ----
+write("json", "problem", '3{"type":"urn:kdrt:problem:forbidden","title":"Forbidden","status":403,'
+      '"detail":"DELETE /v1/meshes/{id} needs a token with the role write","code":"write",'
+      '"instance":"/v1/meshes/ab","request_id":"0000000000000007","retry_after":1,"limit":5,"line":2}')
+
 # ---- KDRH ----
 hit_body = struct.pack("<fIff", 5, 7, 0.25, 0.5) + struct.pack("<fIff", INF, 0xFFFFFFFF, 0, 0)
 write("hits", "valid_two_hits", header(b"KDRH", 2) + hit_body)
