@@ -20,6 +20,9 @@ kdrt_packages+=(nginx)
 # scripts/test validates docker/compose.yaml with `docker-compose config` (offline, no engine).
 kdrt_packages+=(docker-compose)
 # The client's OpenAPI test validates live answers against proto/openapi.yaml in Python.
+# (The ctest openapi_lint also needs node >= 20.19 and npm, which the CI machine image ships and
+# Debian 12's nodejs, 18, is too old for; it installs its linter with npm ci. Configure with
+# -DKDRT_OPENAPI_LINT=OFF where they are missing.)
 kdrt_packages+=(python3 python3-yaml python3-jsonschema)
 # The Python client (client/python): numpy, its tests (pytest), and its install test (a venv made
 # with --system-site-packages; setuptools and wheel build the package offline).

@@ -115,7 +115,7 @@ bool bind_and_announce(HttpServer& http, const Service& svc,
                {"http_threads", static_cast<uint64_t>(config.http_threads)},
                {"cache_dir", config.cache_dir},
                {"memory_budget", config.memory_budget},
-               {"auth", !config.token.empty()}});
+               {"auth", !accepted_tokens(config).empty()}});
     return true;
 }
 

@@ -37,6 +37,7 @@ constexpr uint64_t kMaxRequestHeadBytes = 1ull << 20;
 constexpr uint64_t kMaxRequestHeaders = 10000;
 constexpr uint64_t kMaxPrebufferBytes = 64ull << 20;
 constexpr uint64_t kMaxConnections = 1000000;
+constexpr uint64_t kMaxTokensFileBytes = 1ull << 20;
 
 /// One setting: its key, where it lives in ServerConfig, its range and its help line.
 struct Setting {
@@ -124,6 +125,10 @@ const std::vector<Setting>& settings() {
         {.key = "token_file",
          .help = "file holding the bearer token (one line; instead of token)",
          .text = &ServerConfig::token_file},
+        {.key = "tokens_file",
+         .help = "file of further bearer tokens with their roles, one 'ROLES TOKEN' line each "
+                 "(ROLES: read, write or read,write; write = upload and delete meshes)",
+         .text = &ServerConfig::tokens_file},
         {.key = "threads",
          .help = "tracing and build threads (0: all cores)",
          .u32 = &ServerConfig::threads,
@@ -544,7 +549,79 @@ Result<Invocation, std::string> parse_invocation(const std::vector<std::string>&
                            " holds more than one line, spaces or control characters"};
         inv.config.token = std::move(token);
     }
+    if (!inv.config.tokens_file.empty()) {
+        auto bytes = proto::read_file_bytes(inv.config.tokens_file, kMaxTokensFileBytes);
+        if (!bytes) return Err{"tokens_file: " + bytes.error()};
+        auto tokens = parse_tokens_text(
+            std::string_view(reinterpret_cast<const char*>(bytes->data()), bytes->size()),
+            "tokens_file " + in_quotes(inv.config.tokens_file));
+        if (!tokens) return Err{std::move(tokens).error()};
+        for (const ApiToken& t : *tokens)
+            if (t.token == inv.config.token)
+                return Err{"tokens_file " + in_quotes(inv.config.tokens_file) +
+                           " repeats the token of token/token_file"};
+        inv.config.role_tokens = std::move(*tokens);
+    }
     return inv;
+}
+
+std::string role_names(unsigned roles) {
+    std::string out;
+    if (roles & kRoleRead) out = "read";
+    if (roles & kRoleWrite) out += out.empty() ? "write" : ",write";
+    return out;
+}
+
+Result<std::vector<ApiToken>, std::string> parse_tokens_text(std::string_view text,
+                                                             const std::string& origin) {
+    std::vector<ApiToken> tokens;
+    size_t line_number = 0;
+    while (!text.empty()) {
+        ++line_number;
+        const size_t end = std::min(text.find('\n'), text.size());
+        std::string_view line = text.substr(0, end);
+        text.remove_prefix(std::min(end + 1, text.size()));
+        if (!line.empty() && line.back() == '\r') line.remove_suffix(1);
+        const auto where = [&] { return origin + " line " + std::to_string(line_number) + ": "; };
+        const auto blank = [](char c) { return c == ' ' || c == '\t'; };
+        while (!line.empty() && blank(line.front())) line.remove_prefix(1);
+        while (!line.empty() && blank(line.back())) line.remove_suffix(1);
+        if (line.empty() || line.front() == '#') continue;
+        const size_t gap = std::min(line.find_first_of(" \t"), line.size());
+        std::string_view roles = line.substr(0, gap);
+        std::string_view token = line.substr(gap);
+        while (!token.empty() && blank(token.front())) token.remove_prefix(1);
+        if (token.empty())
+            return Err{where() + "expected 'ROLES TOKEN' (ROLES: read, write or read,write)"};
+        ApiToken entry{.token = std::string(token), .roles = 0};
+        while (!roles.empty()) {
+            const size_t comma = std::min(roles.find(','), roles.size());
+            const std::string_view role = roles.substr(0, comma);
+            roles.remove_prefix(std::min(comma + 1, roles.size()));
+            if (role == "read")
+                entry.roles |= kRoleRead;
+            else if (role == "write")
+                entry.roles |= kRoleWrite;
+            else
+                return Err{where() + "unknown role " + in_quotes(role) + " (read, write)"};
+        }
+        for (const char c : entry.token)
+            if (static_cast<unsigned char>(c) <= ' ' || c == 0x7f)
+                return Err{where() + "the token holds a space or a control character"};
+        for (const ApiToken& other : tokens)
+            if (other.token == entry.token)
+                return Err{where() + "the token of an earlier line again"};
+        tokens.push_back(std::move(entry));
+    }
+    if (tokens.empty()) return Err{origin + " holds no token"};
+    return tokens;
+}
+
+std::vector<ApiToken> accepted_tokens(const ServerConfig& config) {
+    std::vector<ApiToken> tokens;
+    if (!config.token.empty()) tokens.push_back({config.token, kRoleRead | kRoleWrite});
+    tokens.insert(tokens.end(), config.role_tokens.begin(), config.role_tokens.end());
+    return tokens;
 }
 
 std::string help_text() {

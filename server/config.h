@@ -15,6 +15,21 @@
 
 namespace kdrt::server {
 
+/// What a bearer token may do on /v1 (a bit set). kRoleRead: every route that leaves the stored
+/// meshes as they are (listings, summaries, ray batches, renders, jobs); kRoleWrite: the routes
+/// that change them (uploads, deletions). `token` / `token_file` have both; a line of
+/// `tokens_file` names its own.
+enum TokenRole : unsigned { kRoleRead = 1, kRoleWrite = 2 };
+
+/// "read", "write" or "read,write".
+[[nodiscard]] std::string role_names(unsigned roles);
+
+/// One accepted bearer token and its roles.
+struct ApiToken {
+    std::string token;
+    unsigned roles = 0;  ///< TokenRole bits
+};
+
 struct ServerConfig {
     // Network
     std::string listen = "127.0.0.1:8080";  ///< HOST:PORT; port 0 picks a free port
@@ -31,7 +46,9 @@ struct ServerConfig {
     uint64_t request_prebuffer_bytes = 256ull << 10;  ///< body bytes read before a thread
     unsigned max_connections = 4096;                  ///< open connections; more are refused
     std::string token;                                ///< bearer token for /v1 (empty = no auth)
-    std::string token_file;  ///< file holding the token (read once at start; excludes `token`)
+    std::string token_file;   ///< file holding the token (read once at start; excludes `token`)
+    std::string tokens_file;  ///< file of "ROLES TOKEN" lines (read once at start)
+    std::vector<ApiToken> role_tokens;  ///< the tokens of tokens_file (not a setting)
 
     // Engine and cache
     unsigned threads = 0;                       ///< tracing/build threads (0 = all cores)
@@ -104,6 +121,15 @@ struct Invocation {
 
 /// The default value of a setting as config/kdrt.json spells it (JSON text), or empty if unknown.
 [[nodiscard]] std::string setting_default_json(std::string_view key);
+
+/// The tokens of a tokens_file's text: one `ROLES TOKEN` line per token, ROLES `read`, `write` or
+/// `read,write`; blank lines and lines starting with '#' are skipped. Errors name `origin`, the
+/// line and what is wrong.
+[[nodiscard]] proto::Result<std::vector<ApiToken>, std::string> parse_tokens_text(
+    std::string_view text, const std::string& origin);
+
+/// Every token /v1 accepts: `token` (read and write) and `role_tokens`. Empty: no authentication.
+[[nodiscard]] std::vector<ApiToken> accepted_tokens(const ServerConfig& config);
 
 /// Splits "HOST:PORT" ("[::1]:80" for IPv6). Errors name the value.
 [[nodiscard]] proto::Result<std::pair<std::string, int>, std::string> split_listen(

@@ -31,6 +31,7 @@ constexpr const char* kIdPattern = "([^/]+)";
 struct RouteFlags {
     bool api = false;    ///< /v1: bearer token and readiness
     bool heavy = false;  ///< counts against max_inflight (503 beyond)
+    bool write = false;  ///< changes the stored meshes: the token needs the write role
 };
 
 /// Compares a presented token with the configured one in time that depends only on the
@@ -51,10 +52,31 @@ bool is_identity(std::string_view encoding) {
            });
 }
 
+/// The connection layer's gauges as metric families (kdrt_http_connections, ...).
+void add_connection_families(std::vector<proto::MetricFamily>& families,
+                             const ConnectionGauges& gauges, unsigned threads) {
+    const auto gauge = [&](const char* name, const char* help, size_t value) {
+        proto::MetricFamily f;
+        f.name = name;
+        f.help = help;
+        f.type = proto::MetricType::kGauge;
+        f.samples.push_back({{}, static_cast<double>(value)});
+        families.push_back(std::move(f));
+    };
+    gauge("kdrt_http_connections",
+          "Open client connections (idle keep-alive, arriving, or being answered).",
+          gauges.open.load());
+    gauge("kdrt_http_threads", "Threads answering HTTP requests (http_threads).", threads);
+    gauge("kdrt_http_threads_busy", "HTTP threads answering a request now.", gauges.busy.load());
+    gauge("kdrt_http_requests_waiting", "Requests fully received and waiting for an HTTP thread.",
+          gauges.waiting.load());
+}
+
 }  // namespace
 
 struct HttpServer::Impl {
-    explicit Impl(Service& service) : svc(service), routes(service) {}
+    explicit Impl(Service& service)
+        : svc(service), routes(service), tokens(accepted_tokens(service.config)) {}
 
     Service& svc;
     Routes routes;
@@ -63,14 +85,17 @@ struct HttpServer::Impl {
         std::regex pattern;
         std::string method;
         std::string name;  ///< the path template, e.g. "/v1/meshes/{id}"
+        RouteFlags flags;
     };
     std::vector<Known> known;  ///< for 405 vs 404
     std::atomic<uint64_t> next_request_id{1};
+    const std::vector<ApiToken> tokens;  ///< empty: no authentication
 
-    /// Checks the bearer token when one is configured. On refusal replies 401 and returns false.
-    bool authorized(const httplib::Request& req, httplib::Response& res) {
-        const std::string& token = svc.config.token;
-        if (token.empty()) return true;
+    /// Checks the bearer token when tokens are configured, and that it has the role the route
+    /// needs (write for `write` routes, else read). On refusal replies 401 (no or an unknown
+    /// token) or 403 (a token without the role) and returns false.
+    bool authorized(const httplib::Request& req, httplib::Response& res, bool write) {
+        if (tokens.empty()) return true;
         const std::string auth = req.get_header_value("Authorization");
         if (auth.rfind("Bearer ", 0) != 0) {
             reply_problem(
@@ -79,13 +104,47 @@ struct HttpServer::Impl {
                              req.path + " " + std::string(proto::api_errors::kMissingToken)));
             return false;
         }
-        if (!same_secret(std::string_view(auth).substr(7), token)) {
+        // Every configured token is compared, in full: the time taken does not say which
+        // (or how much of one) matched.
+        const std::string_view given = std::string_view(auth).substr(7);
+        unsigned roles = 0;
+        bool found = false;
+        for (const ApiToken& t : tokens) {
+            const bool same = same_secret(given, t.token);
+            found |= same;
+            roles |= same ? t.roles : 0;
+        }
+        if (!found) {
             reply_problem(req, res,
                           make_problem(ProblemKind::kUnauthorized,
                                        "the " + std::string(proto::api_errors::kWrongToken)));
             return false;
         }
+        const unsigned needed = write ? kRoleWrite : kRoleRead;
+        if ((roles & needed) == 0) {
+            const std::string role = role_names(needed);
+            const std::string& route =
+                request_context().route.empty() ? req.path : request_context().route;
+            auto p = make_problem(ProblemKind::kForbidden,
+                                  req.method + " " + route + " " +
+                                      std::string(proto::api_errors::kMissingRole) + " " + role +
+                                      "; this token has the role " + role_names(roles));
+            p.code = role;
+            reply_problem(req, res, std::move(p));
+            // RFC 6750 section 3.1: the scope the request lacks.
+            res.set_header(
+                "WWW-Authenticate",
+                "Bearer realm=\"kdrt\", error=\"insufficient_scope\", scope=\"" + role + "\"");
+            return false;
+        }
         return true;
+    }
+
+    /// The route `req` goes to (by method and path), or null.
+    [[nodiscard]] const Known* find_route(const httplib::Request& req) const {
+        for (const Known& k : known)
+            if (k.method == req.method && std::regex_match(req.path, k.pattern)) return &k;
+        return nullptr;
     }
 
     /// The body limit of the route `req` is for (uploads, KDRR batches, JSON).
@@ -108,8 +167,10 @@ struct HttpServer::Impl {
     int on_expect_continue(const httplib::Request& req, httplib::Response& res) {
         begin_request(res);
         const bool api = req.path.rfind("/v1/", 0) == 0 || req.path == "/v1";
-        if (api && !svc.config.token.empty()) {
-            if (!authorized(req, res)) {
+        if (api && !tokens.empty()) {
+            const Known* route = find_route(req);
+            if (route) request_context().route = route->name;
+            if (!authorized(req, res, route && route->flags.write)) {
                 res.set_header("Connection", "close");
                 return res.status;
             }
@@ -142,7 +203,7 @@ struct HttpServer::Impl {
     /// Checks token, readiness and capacity. On refusal replies and returns false.
     bool admit(const RouteFlags& flags, const httplib::Request& req, httplib::Response& res,
                std::optional<AdmissionGate::Slot>& slot) {
-        if (flags.api && !authorized(req, res)) return false;
+        if (flags.api && !authorized(req, res, flags.write)) return false;
         if (flags.api && (svc.shutting_down || !svc.ready)) {
             reply_problem(req, res, not_ready_problem(svc.shutting_down));
             return false;
@@ -183,7 +244,7 @@ struct HttpServer::Impl {
 
     void get(const std::string& pattern, const std::string& name, RouteFlags flags,
              void (Routes::*handler)(const httplib::Request&, httplib::Response&)) {
-        known.push_back({std::regex(pattern), "GET", name});
+        known.push_back({std::regex(pattern), "GET", name, flags});
         http.Get(pattern,
                  [this, name, flags, handler](const httplib::Request& req, httplib::Response& res) {
                      request_context().route = name;
@@ -194,7 +255,7 @@ struct HttpServer::Impl {
 
     void del(const std::string& pattern, const std::string& name, RouteFlags flags,
              void (Routes::*handler)(const httplib::Request&, httplib::Response&)) {
-        known.push_back({std::regex(pattern), "DELETE", name});
+        known.push_back({std::regex(pattern), "DELETE", name, flags});
         http.Delete(pattern, [this, name, flags, handler](const httplib::Request& req,
                                                           httplib::Response& res) {
             request_context().route = name;
@@ -206,7 +267,7 @@ struct HttpServer::Impl {
     void post(const std::string& pattern, const std::string& name, RouteFlags flags,
               void (Routes::*handler)(const httplib::Request&, httplib::Response&,
                                       const httplib::ContentReader&)) {
-        known.push_back({std::regex(pattern), "POST", name});
+        known.push_back({std::regex(pattern), "POST", name, flags});
         http.Post(pattern,
                   [this, name, flags, handler](const httplib::Request& req, httplib::Response& res,
                                                const httplib::ContentReader& reader) {
@@ -221,10 +282,11 @@ struct HttpServer::Impl {
     void register_routes() {
         const std::string meshes = "/v1/meshes";
         const std::string mesh = meshes + "/" + kIdPattern;
-        post(meshes, "/v1/meshes", {.api = true, .heavy = true}, &Routes::upload_mesh);
+        post(meshes, "/v1/meshes", {.api = true, .heavy = true, .write = true},
+             &Routes::upload_mesh);
         get(meshes, "/v1/meshes", {.api = true}, &Routes::list_meshes);
         get(mesh, "/v1/meshes/{id}", {.api = true}, &Routes::get_mesh);
-        del(mesh, "/v1/meshes/{id}", {.api = true}, &Routes::delete_mesh);
+        del(mesh, "/v1/meshes/{id}", {.api = true, .write = true}, &Routes::delete_mesh);
         post(mesh + "/intersect", "/v1/meshes/{id}/intersect", {.api = true, .heavy = true},
              &Routes::intersect);
         post(mesh + "/intersect_all", "/v1/meshes/{id}/intersect_all", {.api = true, .heavy = true},
@@ -481,6 +543,10 @@ struct HttpServer::Impl {
         http.set_expect_100_continue_handler(
             [this](const auto& req, auto& res) { return on_expect_continue(req, res); });
         http.set_logger([this](const auto& req, const auto& res) { on_logged(req, res); });
+        svc.metrics.add_collector(
+            [gauges = http.gauges(), threads = c.http_threads](auto& families) {
+                add_connection_families(families, *gauges, threads);
+            });
         register_routes();
     }
 };

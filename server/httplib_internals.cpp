@@ -305,7 +305,8 @@ struct ConnectionServer::Reactor {
     bool stopping = false;
     bool running = false;
 
-    std::atomic<size_t> open{0};
+    std::shared_ptr<ConnectionGauges> gauges = std::make_shared<ConnectionGauges>();
+    std::atomic<size_t>& open = gauges->open;
     std::atomic<size_t> prebuffered{0};
     int epoll_fd = -1;
     int wake_fd = -1;
@@ -616,6 +617,7 @@ struct ConnectionServer::Reactor {
         {
             std::lock_guard lock(mutex);
             work.push_back(&c);
+            ++gauges->waiting;
         }
         work_cv.notify_one();
     }
@@ -674,8 +676,11 @@ struct ConnectionServer::Reactor {
                 c = work.front();
                 work.pop_front();
                 stop_after = stopping;
+                --gauges->waiting;
+                ++gauges->busy;
             }
             answer(*c, stop_after);
+            --gauges->busy;
         }
     }
 
@@ -740,6 +745,10 @@ bool ConnectionServer::set_listen_backlog(int backlog) {
 }
 
 size_t ConnectionServer::open_connections() const noexcept { return reactor_->open.load(); }
+
+std::shared_ptr<const ConnectionGauges> ConnectionServer::gauges() const noexcept {
+    return reactor_->gauges;
+}
 
 bool ConnectionServer::process_and_close_socket(socket_t sock) {
     reactor_->adopt(sock);

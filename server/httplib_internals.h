@@ -9,6 +9,7 @@
 
 #include <httplib.h>
 
+#include <atomic>
 #include <cstddef>
 #include <cstdint>
 #include <functional>
@@ -41,6 +42,14 @@ struct ConnectionLimits {
     size_t max_headers = 100;
     size_t prebuffer_bytes = size_t{256} << 10;  ///< body bytes read before a thread is given
     size_t max_connections = 4096;
+};
+
+/// Gauges of the connection layer (the kdrt_http_* metrics), readable from any thread while the
+/// server runs and after it has stopped.
+struct ConnectionGauges {
+    std::atomic<size_t> open{0};     ///< client connections open (idle, arriving or answered)
+    std::atomic<size_t> busy{0};     ///< worker threads answering a request
+    std::atomic<size_t> waiting{0};  ///< complete requests waiting for a worker thread
 };
 
 /// Bytes of request bodies the poll() loop holds, over all connections, while it waits for them
@@ -83,6 +92,9 @@ public:
 
     /// Open client connections (idle, arriving or being answered).
     [[nodiscard]] size_t open_connections() const noexcept;
+
+    /// The live gauges (shared: they outlive the server for a scrape that races its end).
+    [[nodiscard]] std::shared_ptr<const ConnectionGauges> gauges() const noexcept;
 
     struct Reactor;
 

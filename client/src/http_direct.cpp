@@ -79,7 +79,9 @@ std::string parse_head(std::string_view text, Head& head) {
     head.http10 = status_line[7] == '0';
     const auto [ptr, ec] =
         std::from_chars(status_line.data() + 9, status_line.data() + 12, head.status);
-    if (ec != std::errc() || ptr != status_line.data() + 12 || head.status < 100)
+    // RFC 9112: three digits, then a space (the reason may be empty); RFC 9110: 100-599.
+    if (ec != std::errc() || ptr != status_line.data() + 12 || head.status < 100 ||
+        head.status > 599 || (status_line.size() > 12 && status_line[12] != ' '))
         return "bad status in \"" + std::string(status_line.substr(0, 40)) + "\"";
     bool keep_alive = false;
     text = eol == std::string_view::npos ? std::string_view() : text.substr(eol + 2);
@@ -381,7 +383,7 @@ DirectFailure DirectConnection::exchange(std::string_view head, std::span<const 
         const auto size = static_cast<size_t>(length);
         std::byte* out = response.reserve(size);
         size_t got = std::min(size, buffered_.size());
-        std::memcpy(out, buffered_.data(), got);
+        if (got > 0) std::memcpy(out, buffered_.data(), got);  // out is null for an empty body
         buffered_.erase(0, got);
         while (got < size) {  // big reads straight into the answer's buffer
             const ptrdiff_t n = receive(out + got, size - got);
@@ -397,7 +399,7 @@ DirectFailure DirectConnection::exchange(std::string_view head, std::span<const 
             detail = "the answer is larger than " + std::to_string(max_body) + " bytes";
             return DirectFailure::kProtocol;
         }
-        std::memcpy(response.reserve(size), buffered_.data(), size);
+        if (size > 0) std::memcpy(response.reserve(size), buffered_.data(), size);
         response.set_size(size);  // reserve() keeps the first size() bytes when it grows
         buffered_.clear();
         for (;;) {

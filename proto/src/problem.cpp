@@ -15,10 +15,11 @@ struct KindInfo {
     std::string_view type;
 };
 
-constexpr std::array<KindInfo, 19> kKinds = {{
+constexpr std::array<KindInfo, 20> kKinds = {{
     {ProblemKind::kBadRequest, 400, "Bad request", "urn:kdrt:problem:bad-request"},
     {ProblemKind::kBadRayBatch, 400, "Malformed ray batch", "urn:kdrt:problem:bad-ray-batch"},
     {ProblemKind::kUnauthorized, 401, "Unauthorized", "urn:kdrt:problem:unauthorized"},
+    {ProblemKind::kForbidden, 403, "Forbidden", "urn:kdrt:problem:forbidden"},
     {ProblemKind::kNotFound, 404, "Not found", "urn:kdrt:problem:not-found"},
     {ProblemKind::kUnknownMesh, 404, "Unknown mesh", "urn:kdrt:problem:unknown-mesh"},
     {ProblemKind::kUnknownJob, 404, "Unknown job", "urn:kdrt:problem:unknown-job"},

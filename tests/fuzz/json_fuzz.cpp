@@ -1,5 +1,6 @@
 // The JSON request bodies (render requests, JSON ray batches) and the JSON documents the client
-// reads (mesh summaries and lists, job status, JSON hits). The first byte picks the decoder.
+// reads (mesh summaries and lists, problem+json errors, job status, JSON hits). The first byte
+// picks the decoder.
 // Oracles: a refusal says why; an accepted render request respects the limits it was decoded
 // with (defaults included) and re-encodes to a request that decodes to the same settings; an
 // accepted ray batch is within its limit.
@@ -8,6 +9,7 @@
 
 #include "fuzz_check.h"
 #include "kdrt/proto/json_api.h"
+#include "kdrt/proto/problem.h"
 
 extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
     using namespace kdrt;
@@ -49,9 +51,24 @@ extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
             }
             break;
         }
-        case 3:
+        case 3: {
             (void)proto::decode_mesh_list(text);
+            // The problem+json bodies every client reads: a decoded problem re-encodes to one
+            // that decodes the same.
+            const auto problem = proto::decode_problem(text);
+            if (problem) {
+                const auto again = proto::decode_problem(proto::encode_problem(*problem));
+                fuzz::require(again.ok());
+                fuzz::require(again->kind == problem->kind && again->detail == problem->detail &&
+                              again->code == problem->code && again->line == problem->line &&
+                              again->limit == problem->limit &&
+                              again->retry_after == problem->retry_after &&
+                              again->request_id == problem->request_id);
+            } else {
+                fuzz::require(!problem.error().empty());
+            }
             break;
+        }
         case 4:
             (void)proto::decode_job_status(text);
             break;

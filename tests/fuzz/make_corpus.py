@@ -61,6 +61,40 @@ write("multi_hits", "huge_hits", struct.pack("<4sHHIIQII", b"KDRM", 1, 0, 1, 16,
 write("multi_hits", "valid_counts", header(b"KDRC", 2) + struct.pack("<II", 3, 0))
 write("multi_hits", "short_counts", header(b"KDRC", 2) + struct.pack("<I", 3))
 
+# ---- KDRR, incremental (ray_stream): mode byte (1 declared size, 2 refuse non-finite, 4 windows),
+# piece-size seed, body ----
+for name, body in [("valid_two_rays", header(b"KDRR", 2) + ray_body),
+                   ("valid_occlusion", header(b"KDRR", 2, flags=1) + ray_body),
+                   ("nan_ray", header(b"KDRR", 2) + ray_body[:32] + struct.pack("<8f", NAN, 0, 0, 0, 1, 0, 0, INF)),
+                   ("short_body", header(b"KDRR", 3) + ray_body),
+                   ("long_body", header(b"KDRR", 1) + ray_body),
+                   ("huge_count", header(b"KDRR", 0xFFFFFFFF) + ray_body)]:
+    for mode in (0, 3, 7):
+        write("ray_stream", "%s_mode%d" % (name, mode), bytes([mode, 17 * mode + 1]) + body)
+
+# ---- problem+json (json target, first byte 3: mesh list and problem decoders) ----
+write("json", "problem", '3{"type":"urn:kdrt:problem:forbidden","title":"Forbidden","status":403,'
+      '"detail":"DELETE /v1/meshes/{id} needs a token with the role write","code":"write",'
+      '"instance":"/v1/meshes/ab","request_id":"0000000000000007","retry_after":1,"limit":5,"line":2}')
+
+# ---- the client's HTTP answer reader (http_answer): the server's whole answer ----
+write("http_answer", "content_length", "HTTP/1.1 200 OK\r\nContent-Type: application/x-kdrt-hits\r\n"
+      "Content-Length: 5\r\nX-Request-Id: 0000000000000001\r\n\r\nhello")
+write("http_answer", "chunked", "HTTP/1.1 200 OK\r\nTransfer-Encoding: chunked\r\n\r\n5\r\nhello\r\n"
+      "3;ext=1\r\nabc\r\n0\r\nTrailer: x\r\n\r\n")
+write("http_answer", "close_framing", "HTTP/1.0 200 OK\r\nContent-Type: image/png\r\n\r\nbody to the end")
+write("http_answer", "continue_then_503", "HTTP/1.1 100 Continue\r\n\r\nHTTP/1.1 503 Over capacity\r\n"
+      "Retry-After: 1\r\nContent-Type: application/problem+json\r\nContent-Length: 2\r\n"
+      "Connection: close\r\n\r\n{}")
+write("http_answer", "too_large", "HTTP/1.1 200 OK\r\nContent-Length: 999999\r\n\r\nabc")
+write("http_answer", "two_lengths", "HTTP/1.1 200 OK\r\nContent-Length: 1\r\ncontent-length: 2\r\n\r\nab")
+write("http_answer", "bad_status", "HTTP/1.1 2x0 OK\r\n\r\n")
+write("http_answer", "not_http", "SSH-2.0-OpenSSH_9.2\r\n\r\n")
+write("http_answer", "truncated_chunk", "HTTP/1.1 200 OK\r\nTransfer-Encoding: chunked\r\n\r\nff\r\nshort")
+write("http_answer", "bad_chunk_size", "HTTP/1.1 200 OK\r\nTransfer-Encoding: chunked\r\n\r\nzz\r\n")
+# (crash-empty-body-*: found by http_answer_fuzz, an empty body memcpy'd from a null buffer.)
+write("http_answer", "gzip_encoding", "HTTP/1.1 200 OK\r\nTransfer-Encoding: gzip\r\n\r\n")
+
 # ---- KDRH ----
 hit_body = struct.pack("<fIff", 5, 7, 0.25, 0.5) + struct.pack("<fIff", INF, 0xFFFFFFFF, 0, 0)
 write("hits", "valid_two_hits", header(b"KDRH", 2) + hit_body)

@@ -237,5 +237,48 @@ TEST(Config, TokenFromAFileOrTheEnvironmentNotOnlyTheCommandLine) {
     EXPECT_NE(help_text().find("/proc/PID/cmdline"), std::string::npos);
 }
 
+TEST(Config, TokensFileGivesEachTokenItsRoles) {
+    const std::filesystem::path file =
+        std::filesystem::temp_directory_path() / ("kdrt-tokens-" + std::to_string(::getpid()));
+    std::ofstream(file) << "# comment\nread r1\n\n  write\tw1 \r\nread,write rw1\nwrite,read wr1\n";
+    const ServerConfig c = parse_ok({"--tokens-file", file.string(), "--token", "full"}).config;
+    ASSERT_EQ(c.role_tokens.size(), 4u);
+    EXPECT_EQ(c.role_tokens[0].token, "r1");
+    EXPECT_EQ(c.role_tokens[0].roles, kRoleRead);
+    EXPECT_EQ(c.role_tokens[1].token, "w1");
+    EXPECT_EQ(c.role_tokens[1].roles, kRoleWrite);
+    EXPECT_EQ(c.role_tokens[2].roles, kRoleRead | kRoleWrite);
+    EXPECT_EQ(c.role_tokens[3].roles, kRoleRead | kRoleWrite);
+    // The single token keeps full access, beside the file's.
+    const std::vector<ApiToken> all = accepted_tokens(c);
+    ASSERT_EQ(all.size(), 5u);
+    EXPECT_EQ(all[0].token, "full");
+    EXPECT_EQ(all[0].roles, kRoleRead | kRoleWrite);
+    EXPECT_TRUE(accepted_tokens(ServerConfig{}).empty());
+    EXPECT_EQ(parse_ok({}, {"KDRT_TOKENS_FILE=" + file.string()}).config.role_tokens.size(), 4u);
+    EXPECT_EQ(role_names(kRoleRead), "read");
+    EXPECT_EQ(role_names(kRoleRead | kRoleWrite), "read,write");
+
+    const auto refused = [&](const std::string& text) {
+        std::ofstream(file, std::ios::trunc) << text;
+        return parse_error({"--tokens-file", file.string()});
+    };
+    const std::string origin = "tokens_file \"" + file.string() + "\"";
+    EXPECT_EQ(refused("read a\nadmin b\n"),
+              origin + " line 2: unknown role \"admin\" (read, write)");
+    EXPECT_EQ(refused("read\n"),
+              origin + " line 1: expected 'ROLES TOKEN' (ROLES: read, write or read,write)");
+    EXPECT_EQ(refused("read a b\n"),
+              origin + " line 1: the token holds a space or a control character");
+    EXPECT_EQ(refused("read a\nwrite a\n"), origin + " line 2: the token of an earlier line again");
+    EXPECT_EQ(refused("# nothing\n\n"), origin + " holds no token");
+    std::ofstream(file, std::ios::trunc) << "read same\n";
+    EXPECT_EQ(parse_error({"--tokens-file", file.string(), "--token", "same"}),
+              origin + " repeats the token of token/token_file");
+    std::filesystem::remove(file);
+    EXPECT_EQ(parse_error({"--tokens-file", file.string()}).rfind("tokens_file: ", 0), 0u);
+    EXPECT_NE(help_text().find("--tokens-file"), std::string::npos);
+}
+
 }  // namespace
 }  // namespace kdrt::server

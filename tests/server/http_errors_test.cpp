@@ -362,5 +362,85 @@ TEST(HttpAuth, BearerTokenGuardsV1Only) {
     EXPECT_EQ(open->Get("/metrics")->status, 200);
 }
 
+TEST(HttpAuth, TokenRolesGuardEachRouteClass) {
+    TempDir dir;
+    const std::filesystem::path tokens = dir.path() / "tokens";
+    std::ofstream(tokens) << "# role token\n"
+                             "read viewer-t0ken\n"
+                             "write uploader-t0ken\r\n"
+                             "\n"
+                             "  read,write   admin-t0ken  \n";
+    ServerProcess server({.cache_dir = dir.path() / "cache",
+                          .args = {"--token", "full-t0ken", "--tokens-file", tokens.string()}});
+    ASSERT_TRUE(server.running());
+    const auto as = [&](const std::string& token) {
+        auto cli = server.client();
+        cli->set_bearer_token_auth(token);
+        return cli;
+    };
+    const auto forbidden = [](const httplib::Result& res, const std::string& route,
+                              const std::string& role, const std::string& held) {
+        auto p = expect_problem(res, 403);
+        EXPECT_EQ(p.kind, ProblemKind::kForbidden);
+        EXPECT_EQ(p.code, role);
+        EXPECT_EQ(p.detail, route + " needs a token with the role " + role +
+                                "; this token has the role " + held);
+        EXPECT_EQ(res->get_header_value("WWW-Authenticate"),
+                  "Bearer realm=\"kdrt\", error=\"insufficient_scope\", scope=\"" + role + "\"");
+    };
+    auto viewer = as("viewer-t0ken"), uploader = as("uploader-t0ken"), admin = as("admin-t0ken");
+    auto full = as("full-t0ken");
+
+    // Writes: the write role (and the single `token`, which has both roles).
+    const Mesh mesh = small_mesh(3, 300);
+    forbidden(upload(*viewer, mesh), "POST /v1/meshes", "write", "read");
+    const std::string id = upload_id(*uploader, mesh);
+    ASSERT_EQ(id.size(), 64u);
+    EXPECT_EQ(upload_id(*full, small_mesh(4, 300)).size(), 64u);
+    const std::string other = upload_id(*admin, small_mesh(5, 300));
+    forbidden(viewer->Delete("/v1/meshes/" + id), "DELETE /v1/meshes/{id}", "write", "read");
+
+    // Reads, traces, renders and jobs: the read role.
+    const std::string render = "{\"mesh\":\"" + id + "\",\"width\":16,\"height\":8}";
+    for (auto* cli : {viewer.get(), admin.get(), full.get()}) {
+        EXPECT_EQ(cli->Get("/v1/meshes")->status, 200);
+        EXPECT_EQ(cli->Get("/v1/meshes/" + id)->status, 200);
+        EXPECT_EQ(trace(*cli, id, random_rays(mesh_bounds(mesh), 16, 1))->status, 200);
+        EXPECT_EQ(cli->Post("/v1/render", render, "application/json")->status, 200);
+    }
+    auto job =
+        viewer->Post("/v1/render", {{"Prefer", "respond-async"}}, render, "application/json");
+    ASSERT_EQ(job->status, 202) << job->body;
+    const std::string job_path = "/v1/jobs/" + proto::decode_job_status(job->body)->id;
+    EXPECT_EQ(viewer->Get(job_path)->status, 200);
+    forbidden(uploader->Get(job_path), "GET /v1/jobs/{id}", "read", "write");
+    forbidden(uploader->Get("/v1/meshes"), "GET /v1/meshes", "read", "write");
+    forbidden(uploader->Get("/v1/meshes/" + id), "GET /v1/meshes/{id}", "read", "write");
+    forbidden(trace(*uploader, id, random_rays(mesh_bounds(mesh), 16, 1)),
+              "POST /v1/meshes/{id}/intersect", "read", "write");
+    forbidden(uploader->Post("/v1/render", render, "application/json"), "POST /v1/render", "read",
+              "write");
+    EXPECT_NE(viewer->Delete(job_path)->status, 403);
+
+    // The refused deletion left the mesh; the write role deletes.
+    EXPECT_EQ(viewer->Get("/v1/meshes/" + id)->status, 200);
+    EXPECT_EQ(uploader->Delete("/v1/meshes/" + id)->status, 204);
+    EXPECT_EQ(admin->Delete("/v1/meshes/" + other)->status, 204);
+    EXPECT_EQ(viewer->Get("/v1/meshes/" + id)->status, 404);
+
+    // A token not in the file is still 401; an upload refused for its role is refused before
+    // its body is sent (Expect: 100-continue).
+    expect_problem(as("admin-t0ke")->Get("/v1/meshes"), 401);
+    const std::string answer = raw_exchange(
+        server.port(),
+        "POST /v1/meshes HTTP/1.1\r\nHost: x\r\nAuthorization: Bearer viewer-t0ken\r\n"
+        "Content-Type: model/obj\r\nContent-Length: 100000\r\nExpect: 100-continue\r\n\r\n",
+        std::chrono::seconds(10));
+    EXPECT_EQ(answer.rfind("HTTP/1.1 403", 0), 0u) << answer;
+    EXPECT_EQ(answer.find("100 Continue"), std::string::npos) << answer;
+    EXPECT_NE(answer.find("POST /v1/meshes needs a token with the role write"), std::string::npos)
+        << answer;
+}
+
 }  // namespace
 }  // namespace kdrt::test

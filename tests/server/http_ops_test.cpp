@@ -205,6 +205,50 @@ TEST(HttpOps, MetricsAreWhatAPrometheusUserExpects) {
     EXPECT_EQ(code, 0) << out;
 }
 
+TEST(HttpOps, MetricsCountOpenConnectionsAndBusyThreads) {
+    TempDir dir;
+    // No prebuffering: a request with a body gets a thread as soon as its head is in.
+    ServerProcess server({.cache_dir = dir.path() / "cache",
+                          .args = {"--http-threads", "4", "--request-prebuffer-bytes", "0"}});
+    const auto scrape = [&] {
+        const std::string answer = raw_exchange(
+            server.port(), "GET /metrics HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n",
+            std::chrono::seconds(10));
+        return answer.substr(std::min(answer.size(), answer.find("\r\n\r\n")));
+    };
+    // The connection layer sees a close when its loop next runs: poll until the gauges settle.
+    const auto settle = [&](double connections, double busy) {
+        std::string text;
+        for (int i = 0; i < 100; ++i) {
+            text = scrape();
+            if (find_metric(text, "kdrt_http_connections") == connections &&
+                find_metric(text, "kdrt_http_threads_busy") == busy)
+                break;
+            std::this_thread::sleep_for(std::chrono::milliseconds(100));
+        }
+        return text;
+    };
+    // Three idle connections and one upload whose body never comes: the upload holds a thread.
+    std::vector<int> idle;
+    for (int i = 0; i < 3; ++i) idle.push_back(connect_loopback(server.port()));
+    const int upload = connect_loopback(server.port());
+    ASSERT_TRUE(send_all(upload,
+                         "POST /v1/meshes HTTP/1.1\r\nHost: x\r\nContent-Type: model/stl\r\n"
+                         "Content-Length: 1000000\r\n\r\nsolid x\n"));
+    // The scrape itself is the fifth connection and the second busy thread.
+    std::string text = settle(5, 2);
+    EXPECT_EQ(find_metric(text, "kdrt_http_connections"), 5.0) << text;
+    EXPECT_EQ(find_metric(text, "kdrt_http_threads_busy"), 2.0) << text;
+    EXPECT_EQ(find_metric(text, "kdrt_http_threads"), 4.0) << text;
+    EXPECT_EQ(find_metric(text, "kdrt_http_requests_waiting"), 0.0) << text;
+
+    for (const int fd : idle) ::close(fd);
+    ::close(upload);
+    text = settle(1, 1);
+    EXPECT_EQ(find_metric(text, "kdrt_http_connections"), 1.0) << text;
+    EXPECT_EQ(find_metric(text, "kdrt_http_threads_busy"), 1.0) << text;
+}
+
 TEST(HttpOps, ASecondServerOnATakenPortRefusesToStart) {
     TempDir dir;
     ServerProcess first({.cache_dir = dir.path() / "cache"});

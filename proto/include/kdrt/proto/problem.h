@@ -27,6 +27,7 @@ enum class ProblemKind {
     kBadRequest,            ///< 400 malformed JSON, parameter or header
     kBadRayBatch,           ///< 400 malformed KDRR body (code = DecodeErrorCode name)
     kUnauthorized,          ///< 401 missing or wrong bearer token
+    kForbidden,             ///< 403 valid token without the route's role (code = the role)
     kNotFound,              ///< 404 no such route
     kUnknownMesh,           ///< 404 no mesh with that id
     kUnknownJob,            ///< 404 no job with that id
@@ -47,7 +48,7 @@ enum class ProblemKind {
 /// The last ProblemKind (for loops over every kind).
 inline constexpr ProblemKind kLastProblemKind = ProblemKind::kStoredMeshDamaged;
 
-/// HTTP status of a kind (400, 401, 404, 405, 408, 409, 413, 415, 422, 431, 500, 503, 507).
+/// HTTP status of a kind (400, 401, 403, 404, 405, 408, 409, 413, 415, 422, 431, 500, 503, 507).
 [[nodiscard]] int problem_status(ProblemKind kind) noexcept;
 /// Short constant title, e.g. "Unknown mesh".
 [[nodiscard]] std::string_view problem_title(ProblemKind kind) noexcept;
@@ -93,6 +94,7 @@ inline constexpr std::string_view kEmptyMesh = "has no triangles";
 inline constexpr std::string_view kBadJson = "invalid JSON";
 inline constexpr std::string_view kMissingToken = "requires an Authorization: Bearer token";
 inline constexpr std::string_view kWrongToken = "bearer token is not valid";
+inline constexpr std::string_view kMissingRole = "needs a token with the role";
 inline constexpr std::string_view kOverCapacity = "requests are in flight";
 inline constexpr std::string_view kQueueFull = "render jobs are queued";
 inline constexpr std::string_view kShuttingDown = "shutting down";
