@@ -2,7 +2,10 @@
 
 #include <atomic>
 #include <chrono>
+#include <cmath>
+#include <limits>
 #include <optional>
+#include <string>
 
 #include "cli_command.h"
 #include "cli_context.h"
@@ -17,7 +20,8 @@ namespace {
 constexpr std::string_view kRenderHelp =
     R"(usage: kdrt render ID -o FILE [--size WxH] [--eye X,Y,Z] [--look-at X,Y,Z] [--up X,Y,Z]
                    [--fov DEG] [--ortho HEIGHT] [--shading MODE] [--spp N] [--seed N]
-                   [--tile X,Y,W,H] [--quiet]
+                   [--ao-samples N] [--ao-distance D] [--light X,Y,Z] [--light-intensity I]
+                   [--bounces N] [--sky S] [--background R,G,B] [--tile X,Y,W,H] [--quiet]
 
 Renders an image of a stored mesh as an async job and writes the encoded image to FILE. The
 format follows the extension: .png, .jpg/.jpeg or .exr. Progress goes to stderr: a bar on a
@@ -35,15 +39,42 @@ terminal, a line per 10 % otherwise. Ctrl-C cancels the job (exit 130).
   --shading MODE      normals, eyelight (default), ao, diffuse, depth or primid
   --spp N             samples per pixel (default 1)
   --seed N            seed of every random number (default 1)
+  --ao-samples N      ao: occlusion rays per sample (default 16)
+  --ao-distance D     ao: occlusion ray length, a share of the mesh's bounding-box diagonal
+                      (default 0.25)
+  --light X,Y,Z       diffuse: direction from the scene towards the light (default 0.4,1,0.7)
+  --light-intensity I diffuse: the light's radiance (default 1)
+  --bounces N         diffuse: indirect bounces (default 0)
+  --sky S             diffuse: radiance of the sky that escaping bounce rays see (default 0)
+  --background R,G,B  linear colour of pixels whose camera rays miss (default 0,0,0)
   --tile X,Y,W,H      render only this part of the frame
   --quiet             no progress output
 )";
 
 constexpr OptionSpec kRenderOptions[] = {
-    {"output", true, 'o'}, {"size", true}, {"eye", true},   {"look-at", true},
-    {"up", true},          {"fov", true},  {"ortho", true}, {"shading", true},
-    {"spp", true},         {"seed", true}, {"tile", true},  {"quiet", false},
+    {"output", true, 'o'}, {"size", true},
+    {"eye", true},         {"look-at", true},
+    {"up", true},          {"fov", true},
+    {"ortho", true},       {"shading", true},
+    {"spp", true},         {"seed", true},
+    {"ao-samples", true},  {"ao-distance", true},
+    {"light", true},       {"light-intensity", true},
+    {"bounces", true},     {"sky", true},
+    {"background", true},  {"tile", true},
+    {"quiet", false},
 };
+
+/// A finite number >= `min` (> `min` when `strict`) from --NAME, into `out`.
+std::optional<std::string> parse_setting(const std::string& name, const std::string& text,
+                                         double min, bool strict, float& out) {
+    auto v = parse_number(text);
+    if (!v || !std::isfinite(*v) || (strict ? !(*v > min) : !(*v >= min)) ||
+        !(std::abs(*v) <= std::numeric_limits<float>::max()))
+        return "--" + name + ": \"" + text + "\" is not a number " + (strict ? "> " : ">= ") +
+               (min == 0 ? "0" : std::to_string(min));
+    out = static_cast<float>(*v);
+    return std::nullopt;
+}
 
 /// Fills `request.settings` from the command line. Returns an exit code on a usage error.
 std::optional<int> render_settings(Context& ctx, const std::string& id, RenderRequest& request) {
@@ -71,6 +102,39 @@ std::optional<int> render_settings(Context& ctx, const std::string& id, RenderRe
         auto n = parse_uint(*seed, 0, UINT64_MAX);
         if (!n) return ctx.usage_error("--seed: " + n.error());
         s.seed = *n;
+    }
+    if (auto text = a.value("ao-samples")) {
+        auto n = parse_uint(*text, 1, kMaxAoSamples);
+        if (!n) return ctx.usage_error("--ao-samples: " + n.error());
+        s.ao_samples = static_cast<uint32_t>(*n);
+    }
+    if (auto text = a.value("ao-distance")) {
+        if (auto e = parse_setting("ao-distance", *text, 0, true, s.ao_distance))
+            return ctx.usage_error(*e);
+    }
+    if (auto text = a.value("light")) {
+        auto v = parse_vec3(*text);
+        if (!v) return ctx.usage_error("--light: " + v.error());
+        if (!(v->x * v->x + v->y * v->y + v->z * v->z > 0.0f))
+            return ctx.usage_error("--light: the direction must not be the zero vector");
+        s.light.direction = *v;
+    }
+    if (auto text = a.value("light-intensity")) {
+        if (auto e = parse_setting("light-intensity", *text, 0, false, s.light.intensity))
+            return ctx.usage_error(*e);
+    }
+    if (auto text = a.value("bounces")) {
+        auto n = parse_uint(*text, 0, kMaxBounces);
+        if (!n) return ctx.usage_error("--bounces: " + n.error());
+        s.bounces = static_cast<uint32_t>(*n);
+    }
+    if (auto text = a.value("sky")) {
+        if (auto e = parse_setting("sky", *text, 0, false, s.sky)) return ctx.usage_error(*e);
+    }
+    if (auto text = a.value("background")) {
+        auto v = parse_vec3(*text);
+        if (!v) return ctx.usage_error("--background: " + v.error());
+        s.background = *v;
     }
     if (auto tile = a.value("tile")) {
         auto region = parse_region(*tile);

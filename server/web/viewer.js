@@ -439,8 +439,16 @@ function commands(request) {
   let kdrt = `kdrt --server ${origin}${api.token() ? ' --token "$KDRT_TOKEN"' : ''} render ${request.mesh} -o frame.${request.format} \\\n` +
     `  --size ${request.width}x${request.height} --eye ${c.eye.join(',')} --look-at ${c.look_at.join(',')} ` +
     `--up ${c.up.join(',')} --fov ${c.fov} --shading ${request.shading} --spp ${request.spp}`;
-  const missing = ['background', 'ao_samples', 'ao_distance', 'light', 'bounces', 'sky'].filter((k) => k in request);
-  if (missing.length) kdrt += `\n# kdrt render has no flags for ${missing.join(', ')}: the server's defaults apply`;
+  // The render settings beyond the camera, as kdrt render's flags (only those the request sets).
+  const flags = [];
+  if ('ao_samples' in request) flags.push(`--ao-samples ${request.ao_samples}`);
+  if ('ao_distance' in request) flags.push(`--ao-distance ${request.ao_distance}`);
+  if (request.light && request.light.direction) flags.push(`--light ${request.light.direction.join(',')}`);
+  if (request.light && 'intensity' in request.light) flags.push(`--light-intensity ${request.light.intensity}`);
+  if ('bounces' in request) flags.push(`--bounces ${request.bounces}`);
+  if ('sky' in request) flags.push(`--sky ${request.sky}`);
+  if ('background' in request) flags.push(`--background ${request.background.join(',')}`);
+  if (flags.length) kdrt += ` \\\n  ${flags.join(' ')}`;
   return { curl, kdrt };
 }
 

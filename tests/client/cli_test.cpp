@@ -193,6 +193,14 @@ TEST_F(Cli, RenderOptionsAreCheckedBeforeAnyRequest) {
         {{"--spp", "0"}, "--spp: \"0\" is not in 1 .. 65536"},
         {{"--seed", "-3"}, "--seed: \"-3\" is not a whole number"},
         {{"--tile", "1,2,3"}, "--tile: \"1,2,3\" is not x,y,w,h"},
+        {{"--ao-samples", "0"}, "--ao-samples: \"0\" is not in 1 .. 4096"},
+        {{"--ao-distance", "0"}, "--ao-distance: \"0\" is not a number > 0"},
+        {{"--light", "0,0,0"}, "--light: the direction must not be the zero vector"},
+        {{"--light", "1,2"}, "--light: \"1,2\" is not three numbers x,y,z"},
+        {{"--light-intensity", "-1"}, "--light-intensity: \"-1\" is not a number >= 0"},
+        {{"--bounces", "65"}, "--bounces: \"65\" is not in 0 .. 64"},
+        {{"--sky", "nan"}, "--sky: \"nan\" is not a number >= 0"},
+        {{"--background", "1,x,0"}, "--background: \"1,x,0\" is not three numbers x,y,z"},
     };
     for (const Case& c : cases) {
         SCOPED_TRACE(c.args[0]);
@@ -377,6 +385,46 @@ TEST_F(Cli, RenderWritesTheFormatOfTheExtension) {
         ASSERT_TRUE(expected) << expected.error().to_string();
         expect_same_image(bytes, *expected, k.format);
     }
+}
+
+TEST_F(Cli, RenderShadingSettingsReachTheServer) {
+    upload_suite_mesh();
+    // Every setting flag, each away from its default, gives the bytes of the same request made
+    // through the client library.
+    const CliRun diffuse =
+        kdrt({"render", id_, "-o", path("sun.png"), "--size", "48x40", "--shading", "diffuse",
+              "--light", "-1,2,0.5", "--light-intensity", "0.6", "--bounces", "1", "--sky", "0.25",
+              "--background", "0.1,0.2,0.3"});
+    ASSERT_EQ(diffuse.exit_code, 0) << diffuse.err;
+    RenderRequest sun = small_render(id_, Shading::kDiffuse);
+    sun.settings.width = 48;
+    sun.settings.height = 40;
+    sun.settings.light.direction = {-1.0f, 2.0f, 0.5f};
+    sun.settings.light.intensity = 0.6f;
+    sun.settings.bounces = 1;
+    sun.settings.sky = 0.25f;
+    sun.settings.background = {0.1f, 0.2f, 0.3f};
+    auto expected = Client(server_url(*server_), fast_options()).render(sun);
+    ASSERT_TRUE(expected) << expected.error().to_string();
+    EXPECT_EQ(read_bytes(path("sun.png")), *expected);
+    RenderRequest plain = small_render(id_, Shading::kDiffuse);
+    plain.settings.width = 48;
+    plain.settings.height = 40;
+    auto defaults = Client(server_url(*server_), fast_options()).render(plain);
+    ASSERT_TRUE(defaults) << defaults.error().to_string();
+    EXPECT_NE(*defaults, *expected) << "the settings changed the picture";
+
+    const CliRun ao = kdrt({"render", id_, "-o", path("ao.png"), "--size", "40x40", "--shading",
+                            "ao", "--ao-samples", "5", "--ao-distance", "0.5"});
+    ASSERT_EQ(ao.exit_code, 0) << ao.err;
+    RenderRequest occ = small_render(id_, Shading::kAo);
+    occ.settings.width = 40;
+    occ.settings.height = 40;
+    occ.settings.ao_samples = 5;
+    occ.settings.ao_distance = 0.5f;
+    auto expected_ao = Client(server_url(*server_), fast_options()).render(occ);
+    ASSERT_TRUE(expected_ao) << expected_ao.error().to_string();
+    EXPECT_EQ(read_bytes(path("ao.png")), *expected_ao);
 }
 
 TEST_F(Cli, RenderCameraOptionsOverrideTheDefaultView) {
