@@ -56,18 +56,26 @@ inline Vec3 direction(const Ray& r) noexcept { return {r.dx, r.dy, r.dz}; }
 /// so images and ray sets stay bit-identical to the ones they always gave.
 enum class NormalScaling { kReciprocal, kDivision };
 
+/// The cross product (v1 - v0) x (v2 - v0) of `tri`'s edges into `n`, in double (sliver
+/// triangles lose most of its bits in float), and its length.
+inline double edge_cross(const TriVerts& tri, double n[3]) noexcept {
+    const double e1[3] = {double{tri.v1[0]} - tri.v0[0], double{tri.v1[1]} - tri.v0[1],
+                          double{tri.v1[2]} - tri.v0[2]};
+    const double e2[3] = {double{tri.v2[0]} - tri.v0[0], double{tri.v2[1]} - tri.v0[1],
+                          double{tri.v2[2]} - tri.v0[2]};
+    n[0] = e1[1] * e2[2] - e1[2] * e2[1];
+    n[1] = e1[2] * e2[0] - e1[0] * e2[2];
+    n[2] = e1[0] * e2[1] - e1[1] * e2[0];
+    return std::sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]);
+}
+
 /// Unit geometric normal of `tri` facing against `dir` (towards where the ray came from), for
 /// spawning secondary rays. The cross product is taken in double: sliver triangles lose most bits
 /// of it in float, and a wrong side would start secondary rays inside the surface.
 template <NormalScaling kScaling>
 Vec3 facing_normal(const TriVerts& tri, Vec3 dir) noexcept {
-    const double e1[3] = {double{tri.v1[0]} - tri.v0[0], double{tri.v1[1]} - tri.v0[1],
-                          double{tri.v1[2]} - tri.v0[2]};
-    const double e2[3] = {double{tri.v2[0]} - tri.v0[0], double{tri.v2[1]} - tri.v0[1],
-                          double{tri.v2[2]} - tri.v0[2]};
-    const double n[3] = {e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2],
-                         e1[0] * e2[1] - e1[1] * e2[0]};
-    const double len = std::sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]);
+    double n[3];
+    const double len = edge_cross(tri, n);
     if (!(len > 0.0) || !std::isfinite(len)) {
         // The engine never reports hits on zero-area triangles; stay well defined regardless.
         return normalized(dir) * -1.0f;

@@ -10,6 +10,7 @@
 #include <tbb/blocked_range.h>
 #include <tbb/parallel_for.h>
 
+#include "geometry.h"
 #include "kdrt/query.h"
 #include "ray_prep.h"
 
@@ -230,13 +231,8 @@ std::vector<Hit> brute_force_intersect_all(std::span<const TriVerts> tris, const
 }
 
 Vec3 triangle_normal(const TriVerts& tri) noexcept {
-    const double e1[3] = {double{tri.v1[0]} - tri.v0[0], double{tri.v1[1]} - tri.v0[1],
-                          double{tri.v1[2]} - tri.v0[2]};
-    const double e2[3] = {double{tri.v2[0]} - tri.v0[0], double{tri.v2[1]} - tri.v0[1],
-                          double{tri.v2[2]} - tri.v0[2]};
-    const double n[3] = {e1[1] * e2[2] - e1[2] * e2[1], e1[2] * e2[0] - e1[0] * e2[2],
-                         e1[0] * e2[1] - e1[1] * e2[0]};
-    const double len = std::sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2]);
+    double n[3];
+    const double len = detail::edge_cross(tri, n);
     if (!(len > 0.0) || !std::isfinite(len)) return {};
     return {static_cast<float>(n[0] / len), static_cast<float>(n[1] / len),
             static_cast<float>(n[2] / len)};
