@@ -67,6 +67,10 @@ std::span<const std::byte> as_bytes(const std::string& text) noexcept {
     return {reinterpret_cast<const std::byte*>(text.data()), text.size()};
 }
 
+std::string_view as_view(const std::vector<std::byte>& bytes) {
+    return {reinterpret_cast<const char*>(bytes.data()), bytes.size()};
+}
+
 std::vector<std::byte> to_byte_vector(const std::string& text) {
     const auto bytes = as_bytes(text);
     return {bytes.begin(), bytes.end()};
@@ -425,6 +429,28 @@ struct Client::Impl {
             std::string(ex.method) + " " + ex.path + " from " + url.to_string() + ": " + why);
     }
 
+    /// POSTs `rays` to `path` as KDRR batches of options.chunk_rays, one after another, and hands
+    /// each answer to take(ex, answer body, rays in the chunk), which returns an error or nothing.
+    template <class Take>
+    Result<void> post_ray_chunks(const std::string& path, std::span<const Ray> rays, Take take) {
+        size_t first = 0;
+        do {
+            const size_t count = std::min(options.chunk_rays, rays.size() - first);
+            const std::vector<std::byte> body =
+                proto::encode_rays(rays.subspan(first, count), false);
+            Exchange ex;
+            ex.method = "POST";
+            ex.path = path;
+            ex.body = as_view(body);
+            ex.content_type = std::string(proto::kRaysMediaType);
+            auto res = send(ex);
+            if (!res) return proto::Err{std::move(res).error()};
+            if (auto failed = take(ex, as_bytes(res->body), count)) return proto::Err{*failed};
+            first += count;
+        } while (first < rays.size());
+        return {};
+    }
+
     template <class T, class Decode>
     Result<T> json_call(const Exchange& ex, Decode decode) {
         auto res = send(ex);
@@ -736,14 +762,6 @@ Result<std::vector<uint8_t>> Client::occluded(std::string_view id, std::span<con
     return impl_->trace<uint8_t>(id, rays, true);
 }
 
-namespace {
-
-std::string_view as_view(const std::vector<std::byte>& bytes) {
-    return {reinterpret_cast<const char*>(bytes.data()), bytes.size()};
-}
-
-}  // namespace
-
 Result<proto::MultiHits> Client::intersect_all(std::string_view id, std::span<const Ray> rays,
                                                const proto::MultiHitQuery& query) {
     proto::MultiHitQuery q = query;
@@ -755,30 +773,23 @@ Result<proto::MultiHits> Client::intersect_all(std::string_view id, std::span<co
     all.merged = q.merge_coincident;
     all.max_hits = q.max_hits;
     all.offsets.push_back(0);
-    const size_t chunk = impl_->options.chunk_rays;
-    size_t first = 0;
-    do {
-        const size_t count = std::min(chunk, rays.size() - first);
-        const std::vector<std::byte> body = proto::encode_rays(rays.subspan(first, count), false);
-        Exchange ex;
-        ex.method = "POST";
-        ex.path = path;
-        ex.body = as_view(body);
-        ex.content_type = std::string(proto::kRaysMediaType);
-        auto res = impl_->send(ex);
-        if (!res) return proto::Err{std::move(res).error()};
-        auto part = proto::decode_multi_hits(as_bytes(res->body),
-                                             {.max_rays = std::numeric_limits<uint32_t>::max()});
-        if (!part) return proto::Err{impl_->bad_response(ex, part.error().to_string())};
-        if (part->counts.size() != count || part->layout != q.layout)
-            return proto::Err{impl_->bad_response(ex, "the answer is for another batch")};
-        const uint64_t base = all.offsets.back();
-        for (size_t i = 1; i < part->offsets.size(); ++i)
-            all.offsets.push_back(base + part->offsets[i]);
-        all.counts.insert(all.counts.end(), part->counts.begin(), part->counts.end());
-        all.hits.insert(all.hits.end(), part->hits.begin(), part->hits.end());
-        first += count;
-    } while (first < rays.size());
+    auto sent = impl_->post_ray_chunks(
+        path, rays,
+        [&](const Exchange& ex, std::span<const std::byte> answer,
+            size_t count) -> std::optional<Error> {
+            auto part = proto::decode_multi_hits(
+                answer, {.max_rays = std::numeric_limits<uint32_t>::max()});
+            if (!part) return impl_->bad_response(ex, part.error().to_string());
+            if (part->counts.size() != count || part->layout != q.layout)
+                return impl_->bad_response(ex, "the answer is for another batch");
+            const uint64_t base = all.offsets.back();
+            for (size_t i = 1; i < part->offsets.size(); ++i)
+                all.offsets.push_back(base + part->offsets[i]);
+            all.counts.insert(all.counts.end(), part->counts.begin(), part->counts.end());
+            all.hits.insert(all.hits.end(), part->hits.begin(), part->hits.end());
+            return std::nullopt;
+        });
+    if (!sent) return proto::Err{std::move(sent).error()};
     return all;
 }
 
@@ -792,26 +803,19 @@ Result<std::vector<uint32_t>> Client::count_intersections(std::string_view id,
     const std::string path = impl_->api("/v1/meshes/" + escape_segment(id) + "/intersect_all?" +
                                         proto::multi_hit_query_string(q));
     std::vector<uint32_t> counts;
-    const size_t chunk = impl_->options.chunk_rays;
-    size_t first = 0;
-    do {
-        const size_t count = std::min(chunk, rays.size() - first);
-        const std::vector<std::byte> body = proto::encode_rays(rays.subspan(first, count), false);
-        Exchange ex;
-        ex.method = "POST";
-        ex.path = path;
-        ex.body = as_view(body);
-        ex.content_type = std::string(proto::kRaysMediaType);
-        auto res = impl_->send(ex);
-        if (!res) return proto::Err{std::move(res).error()};
-        auto part = proto::decode_hit_counts(as_bytes(res->body),
-                                             {.max_rays = std::numeric_limits<uint32_t>::max()});
-        if (!part) return proto::Err{impl_->bad_response(ex, part.error().to_string())};
-        if (part->size() != count)
-            return proto::Err{impl_->bad_response(ex, "the answer is for another batch")};
-        counts.insert(counts.end(), part->begin(), part->end());
-        first += count;
-    } while (first < rays.size());
+    auto sent = impl_->post_ray_chunks(
+        path, rays,
+        [&](const Exchange& ex, std::span<const std::byte> answer,
+            size_t count) -> std::optional<Error> {
+            auto part = proto::decode_hit_counts(
+                answer, {.max_rays = std::numeric_limits<uint32_t>::max()});
+            if (!part) return impl_->bad_response(ex, part.error().to_string());
+            if (part->size() != count)
+                return impl_->bad_response(ex, "the answer is for another batch");
+            counts.insert(counts.end(), part->begin(), part->end());
+            return std::nullopt;
+        });
+    if (!sent) return proto::Err{std::move(sent).error()};
     return counts;
 }
 
