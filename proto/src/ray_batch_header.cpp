@@ -157,6 +157,10 @@ std::string_view decode_error_code_name(DecodeErrorCode code) noexcept {
             return "non_finite_ray";
         case DecodeErrorCode::kBadOcclusionValue:
             return "bad_occlusion_value";
+        case DecodeErrorCode::kNonFinitePoint:
+            return "non_finite_point";
+        case DecodeErrorCode::kBadRecord:
+            return "bad_record";
     }
     return "unknown";
 }

@@ -1,6 +1,6 @@
 // proto/FORMATS.md: every hex dump in the document is exactly what the codecs produce for the
-// content it describes, in document order (KDRR, KDRH, KDRO, KDRM, KDRC, raw mesh, binary STL, tree
-// blob), and the tree blob's checksum follows the documented algorithm.
+// content it describes, in document order (KDRR, KDRH, KDRO, KDRM, KDRC, KDRP, KDRD, raw mesh,
+// binary STL, tree blob), and the tree blob's checksum follows the documented algorithm.
 
 #include <gtest/gtest.h>
 
@@ -10,6 +10,7 @@
 #include <sstream>
 
 #include "kdrt/kdtree.h"
+#include "kdrt/proto/distance.h"
 #include "kdrt/proto/file_io.h"
 #include "kdrt/proto/mesh_io.h"
 #include "kdrt/proto/multi_hit.h"
@@ -119,6 +120,9 @@ TEST(FormatsDoc, HexExamplesAreWhatTheCodecsWrite) {
     Mesh triangle;
     triangle.positions = {0, 0, 0, 1, 0, 0, 0, 1, 0};
     triangle.indices = {0, 1, 2};
+    const std::vector<Vec3> query_points = {{0.25f, 0.25f, 2}, {5, 0, 0}};
+    std::vector<ClosestPoint> closest(2);
+    closest[0] = {2, 4, 0.25f, 0.25f, {0.25f, 0.25f, 0}, Feature::kFace, Side::kOutside};
     KdTree tree = build_kdtree(triangle);
     tree.stats.build_ms = 0;
     const std::vector<std::pair<std::string, std::vector<std::byte>>> expected = {
@@ -127,6 +131,8 @@ TEST(FormatsDoc, HexExamplesAreWhatTheCodecsWrite) {
         {"KDRO", proto::encode_occlusion(std::vector<uint8_t>{1, 0})},
         {"KDRM", proto::encode_multi_hits(multi_view)},
         {"KDRC", proto::encode_hit_counts(multi_counts)},
+        {"KDRP", proto::encode_points(query_points)},
+        {"KDRD", proto::encode_distances(closest, true)},
         {"raw mesh", proto::write_mesh(triangle, proto::MeshFormat::kRaw)},
         {"binary STL", proto::write_mesh(triangle, proto::MeshFormat::kStl)},
         {"tree blob", serialize_tree(tree)},

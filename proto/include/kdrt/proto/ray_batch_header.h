@@ -75,6 +75,8 @@ enum class DecodeErrorCode {
     kBadOcclusionValue,  ///< a KDRO byte other than 0 or 1
     kBadOffsets,         ///< KDRM: offsets not starting at 0, decreasing, or not ending at the
                          ///< hit count, or a ray's count below its kept hits
+    kNonFinitePoint,     ///< KDRP with DecodeLimits::reject_non_finite: a NaN/Inf coordinate
+    kBadRecord,          ///< KDRD: a record's feature, side or reserved bytes out of range
 };
 
 /// Stable snake_case name of a code ("too_short", "bad_magic", ...), e.g. for JSON error bodies.
