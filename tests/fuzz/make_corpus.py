@@ -42,6 +42,20 @@ write("rays", "long_body", header(b"KDRR", 1) + ray_body)
 write("rays", "huge_count", header(b"KDRR", 0xFFFFFFFF))
 write("rays", "truncated_header", b"KDRR\x01\x00")
 
+# ---- KDRP / KDRD (distance queries) ----
+points = struct.pack("<3f", 0.25, 0.25, 2) + struct.pack("<3f", 5, 0, 0)
+write("distances", "valid_points", header(b"KDRP", 2) + points)
+write("distances", "nan_point", header(b"KDRP", 1) + struct.pack("<3f", 1, NAN, 3))
+write("distances", "short_points", header(b"KDRP", 3) + points)
+write("distances", "huge_points", header(b"KDRP", 0xFFFFFFFF))
+found = struct.pack("<fIff3fBBH", 2, 4, 0.25, 0.25, 0.25, 0.25, 0, 0, 0, 0)
+missing = struct.pack("<fIff3fBBH", INF, 0xFFFFFFFF, 0, 0, NAN, NAN, NAN, 7, 2, 0)
+write("distances", "valid_distances", header(b"KDRD", 2, flags=1) + found + missing)
+write("distances", "bad_feature", header(b"KDRD", 1) + struct.pack("<fIff3fBBH", 1, 0, 0, 0, 0, 0, 0, 9, 0, 0))
+write("distances", "bad_flags", header(b"KDRD", 1, flags=2) + found)
+write("distances", "points_text", "x,y,z\n1,2,3\n# c\n4 5 6 0 0 1\n")
+write("distances", "points_text_bad", "1 2 3\n4 nan 6\n")
+
 # ---- KDRM / KDRC ----
 def kdrm(flags, record, rays, offsets, counts, records, max_hits=2, reserved=0):
     return (struct.pack("<4sHHIIQII", b"KDRM", 1, flags, rays, record, offsets[-1], max_hits,
