@@ -66,6 +66,7 @@ struct ServerConfig {
     uint32_t max_rays = 1u << 24;               ///< rays per KDRR batch (body = 16 + 32 x rays)
     uint32_t max_json_rays = 100'000;           ///< rays per JSON batch
     uint32_t max_hits_per_ray = 1024;           ///< intersect_all's largest max_hits
+    uint32_t max_distance_points = 1u << 22;    ///< query points per distance request
     uint64_t max_json_bytes = 32ull << 20;      ///< JSON request body
     unsigned max_inflight = 64;                 ///< uploads/traces/renders in flight before 503
     uint32_t max_image_width = 8192;

@@ -30,6 +30,8 @@ public:
                        const httplib::ContentReader& reader);
     void render(const httplib::Request& req, httplib::Response& res,
                 const httplib::ContentReader& reader);
+    void distance(const httplib::Request& req, httplib::Response& res,
+                  const httplib::ContentReader& reader);
 
     void list_meshes(const httplib::Request& req, httplib::Response& res);
     void get_mesh(const httplib::Request& req, httplib::Response& res);
@@ -53,6 +55,15 @@ private:
                                                       httplib::Response& res,
                                                       const httplib::ContentReader& reader,
                                                       bool binary);
+    /// The tree of the mesh named by the path (req.matches[1]); on failure discards the body,
+    /// replies (404 unknown mesh, ...) and returns nullptr.
+    std::shared_ptr<const KdTree> acquire_tree(const httplib::Request& req, httplib::Response& res,
+                                               const httplib::ContentReader& reader);
+    /// `bytes` of batch_memory_budget, refused as take_batch_budget does.
+    std::optional<ByteBudget::Hold> take_budget_bytes(const httplib::Request& req,
+                                                      httplib::Response& res,
+                                                      const httplib::ContentReader& reader,
+                                                      uint64_t bytes);
     void intersect_binary(const httplib::Request& req, httplib::Response& res,
                           const httplib::ContentReader& reader, const KdTree& tree,
                           bool reject_invalid);

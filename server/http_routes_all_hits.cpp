@@ -56,12 +56,8 @@ void Routes::intersect_all(const httplib::Request& req, httplib::Response& res,
         discard_body(req, res, reader);
         return reply_problem(req, res, make_problem(ProblemKind::kBadRequest, query.error()));
     }
-    const std::string id = req.matches[1];
-    auto tree = svc_.cache.acquire(id);
-    if (!tree) {
-        discard_body(req, res, reader);
-        return reply_problem(req, res, mesh_lookup_problem(tree.error(), id));
-    }
+    const std::shared_ptr<const KdTree> tree = acquire_tree(req, res, reader);
+    if (!tree) return;
     // The batch's memory, its largest answer included, is taken from batch_memory_budget
     // before its body is read.
     const uint64_t body_limit = proto::kdrr_body_size(svc_.config.max_rays);
@@ -113,7 +109,7 @@ void Routes::intersect_all(const httplib::Request& req, httplib::Response& res,
     const std::span<const Ray> rays = batch->rays;
     request_context().rays = rays.size();
     svc_.metrics.add_rays(rays.size(), false);
-    const KdTree& t = **tree;
+    const KdTree& t = *tree;
     if (query->count_only) {
         std::vector<uint32_t> counts(rays.size());
         svc_.compute.run([&] { count_intersections(t, rays, query->merge_coincident, counts); });
@@ -139,6 +135,17 @@ void Routes::intersect_all(const httplib::Request& req, httplib::Response& res,
         reply_bytes(res, std::move(answer), proto::kMultiHitMediaType);
     }
     keep_until_sent(res, std::make_shared<ByteBudget::Hold>(std::move(*hold)));
+}
+
+std::shared_ptr<const KdTree> Routes::acquire_tree(const httplib::Request& req,
+                                                   httplib::Response& res,
+                                                   const httplib::ContentReader& reader) {
+    const std::string id = req.matches[1];
+    auto tree = svc_.cache.acquire(id);
+    if (tree) return std::move(tree).value();
+    discard_body(req, res, reader);
+    reply_problem(req, res, mesh_lookup_problem(tree.error(), id));
+    return nullptr;
 }
 
 }  // namespace kdrt::server

@@ -97,6 +97,13 @@ std::optional<ByteBudget::Hold> Routes::take_batch_budget(const httplib::Request
         bytes = declared.value_or(svc_.config.max_json_bytes) +
                 uint64_t{svc_.config.max_json_rays} * 48;
     }
+    return take_budget_bytes(req, res, reader, bytes);
+}
+
+std::optional<ByteBudget::Hold> Routes::take_budget_bytes(const httplib::Request& req,
+                                                          httplib::Response& res,
+                                                          const httplib::ContentReader& reader,
+                                                          uint64_t bytes) {
     auto hold = svc_.batch_budget.try_take(bytes);
     if (hold) return hold;
     discard_body(req, res, reader);

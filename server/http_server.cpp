@@ -11,6 +11,7 @@
 #include "http_routes.h"
 #include "http_util.h"
 #include "httplib_internals.h"
+#include "kdrt/proto/distance.h"
 #include "kdrt/proto/text.h"
 #include "log.h"
 #include "problems.h"
@@ -159,6 +160,9 @@ struct HttpServer::Impl {
             proto::media_type_essence(req.get_header_value("Content-Type")) ==
                 proto::kRaysMediaType)
             return proto::kdrr_body_size(c.max_rays);
+        if (ends_with("/distance") && proto::media_type_essence(req.get_header_value(
+                                          "Content-Type")) == proto::kPointMediaType)
+            return proto::kdrp_body_size(c.max_distance_points);
         return c.max_json_bytes;
     }
 
@@ -291,6 +295,8 @@ struct HttpServer::Impl {
              &Routes::intersect);
         post(mesh + "/intersect_all", "/v1/meshes/{id}/intersect_all", {.api = true, .heavy = true},
              &Routes::intersect_all);
+        post(mesh + "/distance", "/v1/meshes/{id}/distance", {.api = true, .heavy = true},
+             &Routes::distance);
         post("/v1/render", "/v1/render", {.api = true, .heavy = true}, &Routes::render);
         const std::string job = std::string("/v1/jobs/") + kIdPattern;
         get(job, "/v1/jobs/{id}", {.api = true}, &Routes::get_job);
