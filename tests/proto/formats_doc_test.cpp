@@ -1,6 +1,6 @@
 // proto/FORMATS.md: every hex dump in the document is exactly what the codecs produce for the
-// content it describes, in document order (KDRR, KDRH, KDRO, KDRM, KDRC, raw mesh, binary STL, tree
-// blob), and the tree blob's checksum follows the documented algorithm.
+// content it describes, in document order (KDRR, KDRH, KDRO, KDRM, KDRC, KDRI, raw mesh, binary
+// STL, tree blob), and the tree blob's checksum follows the documented algorithm.
 
 #include <gtest/gtest.h>
 
@@ -13,6 +13,7 @@
 #include "kdrt/proto/file_io.h"
 #include "kdrt/proto/mesh_io.h"
 #include "kdrt/proto/multi_hit.h"
+#include "kdrt/proto/raw_image.h"
 #include "kdrt/proto/ray_batch.h"
 #include "kdrt/serialize.h"
 
@@ -116,6 +117,7 @@ TEST(FormatsDoc, HexExamplesAreWhatTheCodecsWrite) {
     multi_view.offsets = multi_offsets;
     multi_view.counts = multi_counts;
     multi_view.hits = multi_hits;
+    const Image tile{2, 1, 3, {0.5f, 0.25f, 1.0f, 0.0f, 1.0f, 0.125f}};
     Mesh triangle;
     triangle.positions = {0, 0, 0, 1, 0, 0, 0, 1, 0};
     triangle.indices = {0, 1, 2};
@@ -127,6 +129,7 @@ TEST(FormatsDoc, HexExamplesAreWhatTheCodecsWrite) {
         {"KDRO", proto::encode_occlusion(std::vector<uint8_t>{1, 0})},
         {"KDRM", proto::encode_multi_hits(multi_view)},
         {"KDRC", proto::encode_hit_counts(multi_counts)},
+        {"KDRI", proto::encode_raw_image(tile, 1, 0, 3, 2)},
         {"raw mesh", proto::write_mesh(triangle, proto::MeshFormat::kRaw)},
         {"binary STL", proto::write_mesh(triangle, proto::MeshFormat::kStl)},
         {"tree blob", serialize_tree(tree)},
