@@ -187,6 +187,9 @@ void Routes::render_now(const httplib::Request& req, httplib::Response& res, con
     request_context().rays = image->stats.rays;
     res.set_header("X-Render-Ms", std::to_string(image->stats.seconds * 1e3));
     res.set_header("X-Encode-Ms", std::to_string(image->encode_ms));
+    // A client that stitches raw regions encodes the frame itself, at the server's PNG level.
+    if (job.format == proto::ImageFormat::kRaw)
+        res.set_header("X-Kdrt-Png-Compression", std::to_string(job.encode.png_compression));
     reply_bytes(res, std::move(image->bytes), proto::image_media_type(job.format));
 }
 

@@ -5,6 +5,7 @@
 #include <cmath>
 #include <limits>
 #include <optional>
+#include <set>
 #include <string>
 
 #include "cli_command.h"
@@ -13,6 +14,7 @@
 #include "cli_progress.h"
 #include "kdrt/camera.h"
 #include "kdrt/proto/file_io.h"
+#include "kdrt/proto/image_io.h"
 
 namespace kdrt::cli {
 namespace {
@@ -21,11 +23,18 @@ constexpr std::string_view kRenderHelp =
     R"(usage: kdrt render ID -o FILE [--size WxH] [--eye X,Y,Z] [--look-at X,Y,Z] [--up X,Y,Z]
                    [--fov DEG] [--ortho HEIGHT] [--shading MODE] [--spp N] [--seed N]
                    [--ao-samples N] [--ao-distance D] [--light X,Y,Z] [--light-intensity I]
-                   [--bounces N] [--sky S] [--background R,G,B] [--tile X,Y,W,H] [--quiet]
+                   [--bounces N] [--sky S] [--background R,G,B] [--tile X,Y,W,H]
+                   [--split N] [--connections N] [--quiet]
 
 Renders an image of a stored mesh as an async job and writes the encoded image to FILE. The
 format follows the extension: .png, .jpg/.jpeg or .exr. Progress goes to stderr: a bar on a
 terminal, a line per 10 % otherwise. Ctrl-C cancels the job (exit 130).
+
+With --split N the frame (or the --tile) is rendered as N bands of rows instead, each a
+synchronous request for its float pixels with its own routing key (?route=ID.K), so a proxy in
+front of replicas (docs/scale-out.md) spreads them; the bands are stitched and encoded here,
+byte for byte the image one server encodes (an EXR's header differs only in its capDate, the
+time of encoding). Ctrl-C stops asking for bands (exit 130).
 
   -o, --output FILE   the image file (required)
   --size WxH          image size in pixels (default 512x512)
@@ -48,6 +57,8 @@ terminal, a line per 10 % otherwise. Ctrl-C cancels the job (exit 130).
   --sky S             diffuse: radiance of the sky that escaping bounce rays see (default 0)
   --background R,G,B  linear colour of pixels whose camera rays miss (default 0,0,0)
   --tile X,Y,W,H      render only this part of the frame
+  --split N           render as N bands of rows, 1 .. the rows of the frame or tile
+  --connections N     with --split: bands in flight at once (default 4)
   --quiet             no progress output
 )";
 
@@ -61,8 +72,13 @@ constexpr OptionSpec kRenderOptions[] = {
     {"light", true},       {"light-intensity", true},
     {"bounces", true},     {"sky", true},
     {"background", true},  {"tile", true},
+    {"split", true},       {"connections", true},
     {"quiet", false},
 };
+
+/// The server's default png_compression (config/kdrt.json), for a split render whose server does
+/// not send X-Kdrt-Png-Compression.
+constexpr int kDefaultServerPngCompression = 1;
 
 /// A finite number >= `min` (> `min` when `strict`) from --NAME, into `out`.
 std::optional<std::string> parse_setting(const std::string& name, const std::string& text,
@@ -184,6 +200,63 @@ std::optional<int> render_settings(Context& ctx, const std::string& id, RenderRe
     return std::nullopt;
 }
 
+/// Largest --connections of a split render (as kdrt trace's).
+constexpr uint64_t kMaxRenderConnections = 64;
+
+/// --split N: the frame (or tile) as N bands of rows over up to --connections requests at once,
+/// stitched and encoded here (Client::render_split).
+int run_split_render(Context& ctx, const RenderRequest& request, unsigned parts,
+                     const std::string& output) {
+    const auto start = std::chrono::steady_clock::now();
+    ProgressReporter progress(ctx.console.err, ctx.console.err_is_tty, ctx.args.has("quiet"),
+                              "render");
+    const std::atomic<bool>* interrupted = ctx.console.interrupted;
+    if (ctx.console.waiting) ctx.console.waiting->store(true);
+    auto frame = ctx.client->render_split(request, parts, [&](unsigned done, unsigned all) {
+        progress.update("running", static_cast<double>(done) / all);
+        return !(interrupted && interrupted->load());
+    });
+    if (ctx.console.waiting) ctx.console.waiting->store(false);
+    if (!frame) {
+        if (frame.error().kind == ErrorKind::kCancelled && interrupted && interrupted->load()) {
+            progress.finish("interrupted");
+            return kExitInterrupted;
+        }
+        progress.finish("failed");
+        return ctx.fail(frame.error());
+    }
+    const proto::ImageFormat format = *proto::image_format_from_name(request.format);
+    proto::ImageEncodeOptions encode;
+    encode.transfer = proto::render_transfer(request.settings.shading);
+    // The server's level (X-Kdrt-Png-Compression); a server that does not say gets the default.
+    encode.png_compression = frame->png_compression.value_or(kDefaultServerPngCompression);
+    auto bytes = proto::encode_image(frame->image, format, encode);
+    if (!bytes) {
+        progress.finish("failed");
+        return ctx.fail(
+            make_client_error(ErrorKind::kInput, "cannot encode the image", bytes.error()));
+    }
+    const double seconds =
+        std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
+    if (auto written = proto::write_file_bytes(output, *bytes); !written) {
+        progress.finish("failed");
+        return ctx.fail(
+            make_client_error(ErrorKind::kInput, "cannot write the image", written.error()));
+    }
+    progress.finish("done in " + fixed(seconds, 2) + " s");
+    std::set<std::string> replicas(frame->replicas.begin(), frame->replicas.end());
+    replicas.erase("");
+    ctx.console.out << "wrote " << output << " (" << bytes->size() << " bytes, "
+                    << frame->image.width << "x" << frame->image.height << " "
+                    << shading_name(request.settings.shading) << ", " << request.settings.spp
+                    << " spp, " << parts << (parts == 1 ? " part" : " parts");
+    if (!replicas.empty())
+        ctx.console.out << " on " << replicas.size()
+                        << (replicas.size() == 1 ? " replica" : " replicas");
+    ctx.console.out << ")\n";
+    return kExitOk;
+}
+
 int run_render(Context& ctx) {
     int code = kExitOk;
     if (!positional_count_ok(ctx, 1, 1, "ID (the mesh to render)", code)) return code;
@@ -193,13 +266,37 @@ int run_render(Context& ctx) {
     if (!format)
         return ctx.usage_error("cannot tell the image format of \"" + *output +
                                "\" from its extension (use .png, .jpg, .jpeg or .exr)");
-    ctx.connect(ctx.client_options());
+    std::optional<unsigned> split;
+    if (auto text = ctx.args.value("split")) {
+        auto n = parse_uint(*text, 1, kMaxImageSize);
+        if (!n)
+            return ctx.usage_error("--split: " + n.error() +
+                                   " (bands of rows, at most one per row of the frame or tile)");
+        split = static_cast<unsigned>(*n);
+    }
+    ClientOptions options = ctx.client_options();
+    if (auto text = ctx.args.value("connections")) {
+        if (!split) return ctx.usage_error("--connections applies to --split renders only");
+        auto n = parse_uint(*text, 1, kMaxRenderConnections);
+        if (!n) return ctx.usage_error("--connections: " + n.error());
+        options.connections = static_cast<unsigned>(*n);
+    }
+    ctx.connect(options);
     auto id = ctx.resolve_mesh_id(ctx.args.positional[0]);
     if (!id) return id.error();
     RenderRequest request;
     request.mesh = *id;
     request.format = *format;
     if (auto failed = render_settings(ctx, *id, request)) return *failed;
+    if (split) {
+        const RenderSettings& s = request.settings;
+        const uint32_t rows = s.region ? s.region->height : s.height;
+        if (*split > rows)
+            return ctx.usage_error("--split: " + std::to_string(*split) + " bands, but the " +
+                                   (s.region ? "tile" : "frame") + " has only " +
+                                   std::to_string(rows) + " rows (at most one band per row)");
+        return run_split_render(ctx, request, *split, *output);
+    }
 
     const auto start = std::chrono::steady_clock::now();
     auto job = ctx.client->submit(request);

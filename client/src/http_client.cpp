@@ -12,6 +12,7 @@
 #include <atomic>
 #include <cerrno>
 #include <charconv>
+#include <condition_variable>
 #include <cstdlib>
 #include <cstring>
 #include <fstream>
@@ -26,6 +27,7 @@
 #include "kdrt/proto/file_io.h"
 #include "kdrt/proto/multi_hit.h"
 #include "kdrt/proto/problem.h"
+#include "kdrt/proto/raw_image.h"
 #include "kdrt/proto/ray_batch.h"
 
 namespace kdrt {
@@ -599,11 +601,18 @@ struct Client::Impl {
         return out;
     }
 
+    /// Headers of an image answer that render_split reads.
+    struct ImageHeaders {
+        std::string replica;          ///< X-Kdrt-Replica
+        std::string png_compression;  ///< X-Kdrt-Png-Compression
+    };
+
     /// An exchange whose answer is an image (a synchronous render, a job's result): on a direct
     /// connection for plain http (big reads), else through httplib. `required_status`, when
-    /// nonzero, is the only 2xx status accepted.
+    /// nonzero, is the only 2xx status accepted. `headers`, when set, receives ImageHeaders.
     Result<std::vector<std::byte>> image_call(const Exchange& ex, std::string_view body,
-                                              int required_status) {
+                                              int required_status,
+                                              ImageHeaders* headers = nullptr) {
         const auto check = [&](int status) -> Result<void> {
             if (required_status != 0 && status != required_status)
                 return proto::Err{bad_response(ex, "status " + std::to_string(status) +
@@ -615,6 +624,9 @@ struct Client::Impl {
             auto res = send(ex);
             if (!res) return proto::Err{std::move(res).error()};
             if (auto ok = check(res->status); !ok) return proto::Err{std::move(ok).error()};
+            if (headers)
+                *headers = {res->get_header_value("X-Kdrt-Replica"),
+                            res->get_header_value("X-Kdrt-Png-Compression")};
             return to_byte_vector(res->body);
         }
         struct SlotLease {
@@ -628,16 +640,21 @@ struct Client::Impl {
         if (!sent) return proto::Err{std::move(sent).error()};
         if (auto ok = check(lease.slot->response.status); !ok)
             return proto::Err{std::move(ok).error()};
+        if (headers)
+            *headers = {lease.slot->response.replica, lease.slot->response.png_compression};
         const auto answer = lease.slot->response.body();
         return std::vector<std::byte>(answer.begin(), answer.end());
     }
 
     /// The render's mesh id rides along as ?route= (ignored by the server): a proxy in front of
     /// replicas hashes it, so the render runs where the mesh's tree is hot (docs/scale-out.md).
-    [[nodiscard]] Exchange render_exchange(const RenderRequest& request) const {
+    /// `route_suffix` (".<k>" for region k of a split render) is appended to the mesh id.
+    [[nodiscard]] Exchange render_exchange(const RenderRequest& request,
+                                           std::string_view route_suffix = {}) const {
         Exchange ex;
         ex.method = "POST";
-        ex.path = api("/v1/render?route=" + escape_segment(request.mesh));
+        ex.path =
+            api("/v1/render?route=" + escape_segment(request.mesh) + escape_segment(route_suffix));
         ex.content_type = std::string(proto::kJsonMediaType);
         return ex;
     }
@@ -826,6 +843,126 @@ Result<std::vector<std::byte>> Client::render(const RenderRequest& request) {
     return impl_->image_call(ex, body, 200);
 }
 
+Result<StitchedFrame> Client::render_split(const RenderRequest& request, unsigned parts,
+                                           const RegionProgress& progress) {
+    const RenderSettings& s = request.settings;
+    const PixelRegion whole = s.region.value_or(PixelRegion{0, 0, s.width, s.height});
+    if (parts == 0 || parts > whole.height)
+        return proto::Err{
+            make_client_error(ErrorKind::kInput, "cannot split the render",
+                              std::to_string(parts) + " parts of a " + std::to_string(whole.width) +
+                                  " x " + std::to_string(whole.height) +
+                                  (s.region ? " tile" : " frame") + ": a render splits into 1 .. " +
+                                  std::to_string(whole.height) + " parts (bands of whole rows)")};
+    const std::vector<PixelRegion> bands = split_rows(whole, parts);
+    std::vector<proto::RawImage> images(parts);
+    StitchedFrame frame;
+    frame.replicas.resize(parts);
+    std::vector<std::string> levels(parts);
+
+    std::mutex mutex;
+    std::condition_variable changed;
+    unsigned done = 0, finished_workers = 0;
+    size_t next = 0;
+    bool stop = false;
+    std::optional<Error> error;
+    size_t error_part = parts;
+    const auto fail = [&](size_t k, Error e) {  // under `mutex`
+        if (k < error_part) {
+            error_part = k;
+            error = std::move(e);
+        }
+        stop = true;
+    };
+    const auto worker = [&] {
+        for (;;) {
+            size_t k = 0;
+            {
+                std::lock_guard lock(mutex);
+                if (stop || next == parts) break;
+                k = next++;
+            }
+            RenderRequest band = request;
+            band.format = std::string(proto::kRawImageFormatName);
+            band.compression.reset();  // PNG only; the caller encodes
+            band.settings.region = bands[k];
+            Exchange ex = impl_->render_exchange(band, parts > 1 ? "." + std::to_string(k) : "");
+            const std::string body = proto::encode_render_request(band);
+            ex.body = body;
+            Impl::ImageHeaders headers;
+            auto answer = impl_->image_call(ex, body, 200, &headers);
+            std::optional<Error> problem;
+            if (!answer) {
+                problem = std::move(answer).error();
+            } else if (auto raw = proto::decode_raw_image(*answer); !raw) {
+                problem = impl_->bad_response(ex, raw.error());
+            } else if (!(raw->region == bands[k]) || raw->frame_width != s.width ||
+                       raw->frame_height != s.height) {
+                problem = impl_->bad_response(
+                    ex, "the answer holds another region of the frame than the one asked for");
+            } else {
+                images[k] = std::move(*raw);
+            }
+            std::lock_guard lock(mutex);
+            if (problem) {
+                fail(k, std::move(*problem));
+            } else {
+                frame.replicas[k] = std::move(headers.replica);
+                levels[k] = std::move(headers.png_compression);
+                ++done;
+            }
+            changed.notify_all();
+        }
+        std::lock_guard lock(mutex);
+        ++finished_workers;
+        changed.notify_all();
+    };
+    const unsigned threads = std::min(impl_->options.connections, parts);
+    {
+        std::vector<std::jthread> pool;
+        pool.reserve(threads);
+        for (unsigned t = 0; t < threads; ++t) pool.emplace_back(worker);
+        // This thread reports progress (the callback runs on the caller's thread).
+        std::unique_lock lock(mutex);
+        unsigned reported = 0;
+        while (finished_workers < threads) {
+            changed.wait(lock, [&] { return finished_workers == threads || done != reported; });
+            if (done != reported && !stop && progress) {
+                reported = done;
+                lock.unlock();
+                const bool go_on = progress(reported, parts);
+                lock.lock();
+                if (!go_on && !stop) {
+                    stop = true;
+                    if (!error)
+                        error = make_client_error(ErrorKind::kCancelled, "cancelled",
+                                                  "split render of mesh " + request.mesh +
+                                                      " stopped after " + std::to_string(reported) +
+                                                      " of " + std::to_string(parts) + " regions");
+                }
+            }
+            reported = done;
+        }
+    }  // the jthreads join here
+    if (error) return proto::Err{std::move(*error)};
+    auto image = stitch_regions(whole, images);
+    if (!image)
+        return proto::Err{
+            make_client_error(ErrorKind::kProtocol, "bad response",
+                              "split render of mesh " + request.mesh + ": " + image.error())};
+    frame.image = std::move(*image);
+    if (request.compression) {
+        frame.png_compression = *request.compression;
+    } else {
+        int level = 0;
+        const std::string& text = levels.front();
+        const auto [end, ec] = std::from_chars(text.data(), text.data() + text.size(), level);
+        if (!text.empty() && ec == std::errc() && end == text.data() + text.size())
+            frame.png_compression = level;
+    }
+    return frame;
+}
+
 Result<Job> Client::submit(const RenderRequest& request) {
     Exchange ex = impl_->render_exchange(request);
     const std::string body = proto::encode_render_request(request);
@@ -916,6 +1053,78 @@ Result<std::string> Client::metrics() {
     auto res = impl_->send(ex);
     if (!res) return proto::Err{std::move(res).error()};
     return std::move(res->body);
+}
+
+std::vector<PixelRegion> split_rows(const PixelRegion& region, unsigned parts) {
+    if (parts == 0 || parts > region.height)
+        throw std::invalid_argument("split_rows: " + std::to_string(parts) + " parts of " +
+                                    std::to_string(region.height) + " rows");
+    std::vector<PixelRegion> bands;
+    bands.reserve(parts);
+    for (unsigned k = 0; k < parts; ++k) {
+        const auto row = [&](uint64_t i) {
+            return region.y + static_cast<uint32_t>(uint64_t{region.height} * i / parts);
+        };
+        bands.push_back(PixelRegion{region.x, row(k), region.width, row(k + 1) - row(k)});
+    }
+    return bands;
+}
+
+proto::Result<Image, std::string> stitch_regions(const PixelRegion& within,
+                                                 std::span<const proto::RawImage> parts) {
+    if (parts.empty()) return proto::Err{std::string("no regions to stitch")};
+    if (within.width == 0 || within.height == 0)
+        return proto::Err{std::string("the stitched rectangle is empty")};
+    const proto::RawImage& first = parts.front();
+    Image out;
+    out.width = within.width;
+    out.height = within.height;
+    out.channels = first.image.channels;
+    out.pixels.resize(size_t{within.width} * within.height * out.channels);
+    std::vector<uint8_t> covered(size_t{within.width} * within.height, 0);
+    for (size_t k = 0; k < parts.size(); ++k) {
+        const proto::RawImage& part = parts[k];
+        const PixelRegion& r = part.region;
+        const std::string name = "region " + std::to_string(k) + " (" + std::to_string(r.width) +
+                                 " x " + std::to_string(r.height) + " at " + std::to_string(r.x) +
+                                 ", " + std::to_string(r.y) + ")";
+        if (part.frame_width != first.frame_width || part.frame_height != first.frame_height)
+            return proto::Err{name + " belongs to a " + std::to_string(part.frame_width) + " x " +
+                              std::to_string(part.frame_height) + " frame, region 0 to a " +
+                              std::to_string(first.frame_width) + " x " +
+                              std::to_string(first.frame_height) + " one"};
+        if (part.image.channels != out.channels)
+            return proto::Err{name + " has " + std::to_string(part.image.channels) +
+                              " channels, region 0 " + std::to_string(out.channels)};
+        if (part.image.width != r.width || part.image.height != r.height ||
+            part.image.pixels.size() != size_t{r.width} * r.height * out.channels)
+            return proto::Err{name + " holds an image of another size"};
+        if (r.x < within.x || r.y < within.y ||
+            uint64_t{r.x} + r.width > uint64_t{within.x} + within.width ||
+            uint64_t{r.y} + r.height > uint64_t{within.y} + within.height)
+            return proto::Err{name + " lies outside the " + std::to_string(within.width) + " x " +
+                              std::to_string(within.height) + " rectangle at " +
+                              std::to_string(within.x) + ", " + std::to_string(within.y)};
+        const size_t row_floats = size_t{r.width} * out.channels;
+        for (uint32_t row = 0; row < r.height; ++row) {
+            const size_t y = r.y - within.y + row, x = r.x - within.x;
+            uint8_t* mark = &covered[y * within.width + x];
+            if (std::any_of(mark, mark + r.width, [](uint8_t m) { return m != 0; }))
+                return proto::Err{name + " overlaps another region at row " +
+                                  std::to_string(r.y + row)};
+            std::fill(mark, mark + r.width, uint8_t{1});
+            std::copy_n(&part.image.pixels[row * row_floats], row_floats,
+                        &out.pixels[(y * within.width + x) * out.channels]);
+        }
+    }
+    if (const auto gap = std::find(covered.begin(), covered.end(), uint8_t{0});
+        gap != covered.end()) {
+        const size_t at = static_cast<size_t>(gap - covered.begin());
+        return proto::Err{"no region covers pixel (" +
+                          std::to_string(within.x + at % within.width) + ", " +
+                          std::to_string(within.y + at / within.width) + ")"};
+    }
+    return out;
 }
 
 }  // namespace kdrt

@@ -66,7 +66,7 @@ struct Head {
     std::optional<uint64_t> content_length;
     bool chunked = false;
     bool close = false;  ///< Connection: close (or HTTP/1.0 without keep-alive)
-    std::string content_type, retry_after, request_id;
+    std::string content_type, retry_after, request_id, replica, png_compression;
 };
 
 /// Parses "HTTP/1.x SSS reason\r\n(name: value\r\n)*" (the blank line excluded). Empty on
@@ -114,6 +114,10 @@ std::string parse_head(std::string_view text, Head& head) {
             head.retry_after = value;
         } else if (iequals(name, "X-Request-Id")) {
             head.request_id = value;
+        } else if (iequals(name, "X-Kdrt-Replica")) {
+            head.replica = value;
+        } else if (iequals(name, "X-Kdrt-Png-Compression")) {
+            head.png_compression = value;
         }
     }
     if (head.http10 && !keep_alive) head.close = true;
@@ -321,6 +325,8 @@ DirectFailure DirectConnection::exchange(std::string_view head, std::span<const 
     response.content_type = std::move(parsed.content_type);
     response.retry_after = std::move(parsed.retry_after);
     response.request_id = std::move(parsed.request_id);
+    response.replica = std::move(parsed.replica);
+    response.png_compression = std::move(parsed.png_compression);
     response.set_size(0);
 
     bool close_after = parsed.close;

@@ -37,6 +37,8 @@ struct DirectResponse {
     std::string content_type;
     std::string retry_after;
     std::string request_id;
+    std::string replica;          ///< X-Kdrt-Replica (docs/scale-out.md)
+    std::string png_compression;  ///< X-Kdrt-Png-Compression (raw renders)
     /// The body: body()[0, size). Valid until the next exchange on the connection.
     [[nodiscard]] std::span<const std::byte> body() const noexcept { return {data_.get(), size_}; }
 

@@ -14,6 +14,7 @@
 
 #include "kdrt/proto/errors.h"
 #include "kdrt/proto/file_io.h"
+#include "kdrt/proto/raw_image.h"
 
 namespace kdrt::proto {
 namespace {
@@ -110,6 +111,7 @@ std::string_view oiio_extension(ImageFormat format) noexcept {
         case ImageFormat::kJpeg:
             return "jpg";
         case ImageFormat::kExr:
+        case ImageFormat::kRaw:  // never given to OIIO
             return "exr";
     }
     return "png";
@@ -185,6 +187,7 @@ std::optional<ImageFormat> sniff_format(std::span<const std::byte> bytes) noexce
     if (starts_with({0x89, 'P', 'N', 'G', 0x0D, 0x0A, 0x1A, 0x0A})) return ImageFormat::kPng;
     if (starts_with({0xFF, 0xD8, 0xFF})) return ImageFormat::kJpeg;
     if (starts_with({0x76, 0x2F, 0x31, 0x01})) return ImageFormat::kExr;
+    if (starts_with({'K', 'D', 'R', 'I'})) return ImageFormat::kRaw;
     return std::nullopt;
 }
 
@@ -225,13 +228,17 @@ std::optional<ImageFormat> image_format_from_name(std::string_view name) noexcep
     if (name == "png") return ImageFormat::kPng;
     if (name == "jpeg" || name == "jpg") return ImageFormat::kJpeg;
     if (name == "exr") return ImageFormat::kExr;
+    if (name == kRawImageFormatName) return ImageFormat::kRaw;
     return std::nullopt;
 }
 
 std::optional<ImageFormat> image_format_from_path(const std::filesystem::path& path) {
     const std::string ext = lower_extension(path);
     if (ext.size() < 2) return std::nullopt;
-    return image_format_from_name(std::string_view(ext).substr(1));
+    const auto format = image_format_from_name(std::string_view(ext).substr(1));
+    // ".raw" names a raw mesh (proto/FORMATS.md), never a KDRI image.
+    if (format == ImageFormat::kRaw) return std::nullopt;
+    return format;
 }
 
 std::string_view image_format_name(ImageFormat format) noexcept {
@@ -242,6 +249,8 @@ std::string_view image_format_name(ImageFormat format) noexcept {
             return "jpeg";
         case ImageFormat::kExr:
             return "exr";
+        case ImageFormat::kRaw:
+            return kRawImageFormatName;
     }
     return "unknown";
 }
@@ -254,6 +263,8 @@ std::string_view image_media_type(ImageFormat format) noexcept {
             return "image/jpeg";
         case ImageFormat::kExr:
             return "image/x-exr";
+        case ImageFormat::kRaw:
+            return kRawImageMediaType;
     }
     return "application/octet-stream";
 }
@@ -274,9 +285,16 @@ uint8_t linear_to_srgb8(float value) noexcept {
 
 float srgb8_to_linear(uint8_t level) noexcept { return levels()[level]; }
 
+EightBitTransfer render_transfer(Shading shading) noexcept {
+    const bool light = shading == Shading::kEyelight || shading == Shading::kDiffuse;
+    return light ? EightBitTransfer::kSrgb : EightBitTransfer::kData;
+}
+
 Result<std::vector<std::byte>, std::string> encode_image(const Image& image, ImageFormat format,
                                                          const ImageEncodeOptions& options) {
     if (std::string problem = check_image(image); !problem.empty()) return Err{std::move(problem)};
+    if (format == ImageFormat::kRaw)
+        return encode_raw_image(image, 0, 0, image.width, image.height);
     if (!is_known_format(format)) {
         return Err{"unknown image format " + std::to_string(static_cast<int>(format))};
     }
@@ -375,6 +393,11 @@ Result<Image, std::string> decode_image(std::span<const std::byte> bytes,
                                         const ImageDecodeLimits& limits) {
     const std::optional<ImageFormat> format = sniff_format(bytes);
     if (!format) return Err{std::string(image_errors::kUnknownMagic) + " (unknown magic bytes)"};
+    if (*format == ImageFormat::kRaw) {
+        auto raw = decode_raw_image(bytes, limits.max_pixels);
+        if (!raw) return Err{std::move(raw).error()};
+        return std::move(raw->image);
+    }
     if (*format == ImageFormat::kPng) {
         if (std::string problem = png_structure_problem(bytes); !problem.empty())
             return Err{std::move(problem)};

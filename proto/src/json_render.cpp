@@ -163,8 +163,9 @@ Result<RenderRequest, JsonError> decode_render_request(std::string_view text,
     if (req.settings.sky < 0.0f) r.fail("\"sky\" must be >= 0 (a radiance)");
     r.vec3("background", req.settings.background, false);
     r.text("format", req.format);
-    if (req.format != "png" && req.format != "jpg" && req.format != "jpeg" && req.format != "exr")
-        r.fail("unknown format " + in_quotes(req.format) + " (expected png, jpg or exr)");
+    if (req.format != "png" && req.format != "jpg" && req.format != "jpeg" && req.format != "exr" &&
+        req.format != "raw")
+        r.fail("unknown format " + in_quotes(req.format) + " (expected png, jpg, exr or raw)");
     if (r.find("compression")) {
         int level = 0;
         r.integer("compression", level, 0, kMaxPngCompression);

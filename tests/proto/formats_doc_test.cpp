@@ -1,6 +1,6 @@
 // proto/FORMATS.md: every hex dump in the document is exactly what the codecs produce for the
-// content it describes, in document order (KDRR, KDRH, KDRO, KDRM, KDRC, KDRP, KDRD, raw mesh,
-// binary STL, tree blob), and the tree blob's checksum follows the documented algorithm.
+// content it describes, in document order (KDRR, KDRH, KDRO, KDRM, KDRC, KDRP, KDRD, KDRI, raw
+// mesh, binary STL, tree blob), and the tree blob's checksum follows the documented algorithm.
 
 #include <gtest/gtest.h>
 
@@ -14,6 +14,7 @@
 #include "kdrt/proto/file_io.h"
 #include "kdrt/proto/mesh_io.h"
 #include "kdrt/proto/multi_hit.h"
+#include "kdrt/proto/raw_image.h"
 #include "kdrt/proto/ray_batch.h"
 #include "kdrt/serialize.h"
 
@@ -117,6 +118,7 @@ TEST(FormatsDoc, HexExamplesAreWhatTheCodecsWrite) {
     multi_view.offsets = multi_offsets;
     multi_view.counts = multi_counts;
     multi_view.hits = multi_hits;
+    const Image tile{2, 1, 3, {0.5f, 0.25f, 1.0f, 0.0f, 1.0f, 0.125f}};
     Mesh triangle;
     triangle.positions = {0, 0, 0, 1, 0, 0, 0, 1, 0};
     triangle.indices = {0, 1, 2};
@@ -133,6 +135,7 @@ TEST(FormatsDoc, HexExamplesAreWhatTheCodecsWrite) {
         {"KDRC", proto::encode_hit_counts(multi_counts)},
         {"KDRP", proto::encode_points(query_points)},
         {"KDRD", proto::encode_distances(closest, true)},
+        {"KDRI", proto::encode_raw_image(tile, 1, 0, 3, 2)},
         {"raw mesh", proto::write_mesh(triangle, proto::MeshFormat::kRaw)},
         {"binary STL", proto::write_mesh(triangle, proto::MeshFormat::kStl)},
         {"tree blob", serialize_tree(tree)},

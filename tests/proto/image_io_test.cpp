@@ -139,12 +139,40 @@ TEST(ImageFormatNames, NamesExtensionsAndMediaTypes) {
     EXPECT_EQ(image_format_from_path("depth.exr"), ImageFormat::kExr);
     EXPECT_EQ(image_format_from_path("noextension"), std::nullopt);
     EXPECT_EQ(image_format_from_path("image.tif"), std::nullopt);
-    for (ImageFormat f : {ImageFormat::kPng, ImageFormat::kJpeg, ImageFormat::kExr}) {
+    EXPECT_EQ(image_format_from_name("raw"), ImageFormat::kRaw);
+    EXPECT_EQ(image_format_from_path("mesh.raw"), std::nullopt);  // a raw mesh, not KDRI
+    for (ImageFormat f :
+         {ImageFormat::kPng, ImageFormat::kJpeg, ImageFormat::kExr, ImageFormat::kRaw}) {
         EXPECT_EQ(image_format_from_name(image_format_name(f)), f);
     }
     EXPECT_EQ(image_media_type(ImageFormat::kPng), "image/png");
     EXPECT_EQ(image_media_type(ImageFormat::kJpeg), "image/jpeg");
     EXPECT_EQ(image_media_type(ImageFormat::kExr), "image/x-exr");
+    EXPECT_EQ(image_media_type(ImageFormat::kRaw), "application/x-kdrt-image");
+}
+
+TEST(ImageIoRaw, EncodesAWholeFrameKdriAndDecodesItBitExact) {
+    const Image image{3, 2, 4, {0.1f, -2, 3e9f, 0.5f, 1,  2,  3,  4,  5,  6,  7,  8,
+                                9,    10, 11,   12,   13, 14, 15, 16, 17, 18, 19, 0.25f}};
+    auto bytes = encode_image(image, ImageFormat::kRaw);
+    ASSERT_TRUE(bytes) << bytes.error();
+    EXPECT_EQ(std::memcmp(bytes->data(), "KDRI", 4), 0);
+    auto back = decode_image(*bytes);
+    ASSERT_TRUE(back) << back.error();
+    EXPECT_EQ(back->width, 3u);
+    EXPECT_EQ(back->height, 2u);
+    EXPECT_EQ(back->channels, 4u);
+    EXPECT_EQ(back->pixels, image.pixels);
+    auto limited = decode_image(*bytes, ImageDecodeLimits{.max_pixels = 5});
+    ASSERT_FALSE(limited);
+    EXPECT_NE(limited.error().find("exceeds the limit of 5"), std::string::npos);
+}
+
+TEST(RenderTransfer, LightThroughTheCurveDataAsIs) {
+    EXPECT_EQ(render_transfer(Shading::kEyelight), EightBitTransfer::kSrgb);
+    EXPECT_EQ(render_transfer(Shading::kDiffuse), EightBitTransfer::kSrgb);
+    for (Shading data : {Shading::kAo, Shading::kNormals, Shading::kDepth, Shading::kPrimId})
+        EXPECT_EQ(render_transfer(data), EightBitTransfer::kData);
 }
 
 TEST(SrgbTransfer, KnownLevelsAndClamps) {

@@ -4,12 +4,14 @@
 
 #include <algorithm>
 #include <cmath>
+#include <cstring>
 #include <map>
 #include <optional>
 #include <thread>
 
 #include "http_test_util.h"
 #include "kdrt/proto/image_io.h"
+#include "kdrt/proto/raw_image.h"
 #include "kdrt/render.h"
 
 namespace kdrt::test {
@@ -253,6 +255,63 @@ TEST_F(HttpRender, PngCompressionLevelsDecodeToTheSamePixels) {
     FAIL() << "the job did not finish";
 }
 
+TEST_F(HttpRender, RawAnswersAreTheEnginePixelsOfTheTileAndSayWhereItLies) {
+    auto cli = server_->client();
+    for (const char* shading : {"diffuse", "normals"}) {
+        for (const std::string tile : {"", ",\"tile\":{\"x\":7,\"y\":11,\"w\":40,\"h\":9}"}) {
+            SCOPED_TRACE(std::string(shading) + (tile.empty() ? " frame" : " tile"));
+            const std::string json = "{\"mesh\":\"" + id_ + "\",\"shading\":\"" + shading +
+                                     "\",\"width\":96,\"height\":64,\"format\":\"raw\"" + tile +
+                                     "}";
+            auto res = post_render(*cli, json);
+            ASSERT_TRUE(res);
+            ASSERT_EQ(res->status, 200) << res->body;
+            EXPECT_EQ(res->get_header_value("Content-Type"), "application/x-kdrt-image");
+            EXPECT_EQ(res->get_header_value("X-Kdrt-Png-Compression"),
+                      std::to_string(kDefaultPngCompression));
+            auto raw = proto::decode_raw_image(string_to_bytes(res->body));
+            ASSERT_TRUE(raw) << raw.error();
+            const proto::RenderRequest r = request(json);
+            EXPECT_EQ(raw->region, r.settings.region.value_or(PixelRegion{0, 0, 96, 64}));
+            EXPECT_EQ(raw->frame_width, 96u);
+            EXPECT_EQ(raw->frame_height, 64u);
+            const Image engine = render(*tree_, r.settings);
+            EXPECT_EQ(raw->image.width, engine.width);
+            EXPECT_EQ(raw->image.height, engine.height);
+            EXPECT_EQ(raw->image.channels, engine.channels);
+            ASSERT_EQ(raw->image.pixels.size(), engine.pixels.size());
+            EXPECT_EQ(std::memcmp(raw->image.pixels.data(), engine.pixels.data(),
+                                  engine.pixels.size() * sizeof(float)),
+                      0);
+        }
+    }
+    // The header names the request's own level when it has one; raw takes no compression.
+    auto p = expect_problem(
+        post_render(*cli, "{\"mesh\":\"" + id_ + "\",\"format\":\"raw\",\"compression\":3}"), 400);
+    EXPECT_NE(p.detail.find("\"compression\" applies to png only, not \"raw\""), std::string::npos)
+        << p.detail;
+    // An async raw job keeps its KDRI answer.
+    auto queued = post_render(
+        *cli, "{\"mesh\":\"" + id_ + "\",\"width\":8,\"height\":4,\"format\":\"raw\"}", true);
+    ASSERT_TRUE(queued);
+    ASSERT_EQ(queued->status, 202) << queued->body;
+    EXPECT_EQ(proto::decode_job_status(queued->body)->format, "raw");
+    const std::string location = queued->get_header_value("Location");
+    for (int i = 0; i < 3000; ++i) {
+        auto result = cli->Get(location + "/result");
+        ASSERT_TRUE(result);
+        if (result->status == 200) {
+            EXPECT_EQ(result->get_header_value("Content-Type"), "application/x-kdrt-image");
+            auto raw = proto::decode_raw_image(string_to_bytes(result->body));
+            ASSERT_TRUE(raw) << raw.error();
+            EXPECT_EQ(raw->region, (PixelRegion{0, 0, 8, 4}));
+            return;
+        }
+        std::this_thread::sleep_for(std::chrono::milliseconds(10));
+    }
+    FAIL() << "the raw job did not finish";
+}
+
 TEST_F(HttpRender, BadRequestsNameTheProblem) {
     auto cli = server_->client();
     struct Case {
@@ -268,7 +327,7 @@ TEST_F(HttpRender, BadRequestsNameTheProblem) {
         {"{" + mesh + ",\"spp\":5000}", 400, "\"spp\" is 5000, must be in 1 .. 1024 (max_spp)"},
         {"{" + mesh + ",\"shading\":\"toon\"}", 400, "unknown shading \"toon\""},
         {"{" + mesh + ",\"format\":\"gif\"}", 400,
-         "unknown format \"gif\" (expected png, jpg or exr)"},
+         "unknown format \"gif\" (expected png, jpg, exr or raw)"},
         {"{" + mesh + ",\"colour\":1}", 400, "unknown member \"colour\""},
         {"{" + mesh + ",\"camera\":{\"eye\":[0,0,1]}}", 400, "missing member \"camera.look_at\""},
         {"{" + mesh + ",\"camera\":{\"eye\":[0,0,1],\"look_at\":[0,0,1]}}", 400,

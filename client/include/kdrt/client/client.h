@@ -10,7 +10,8 @@
 /// library adds transport: keep-alive connections, timeouts, a bearer token, retries with
 /// exponential backoff, and the splitting of large ray batches. Link target: kdrt::client
 /// (CMake: find_package(kdrt) after installing). It never links OpenImageIO: images travel as
-/// the encoded bytes the server produces.
+/// the encoded bytes the server produces, or as float pixels (render_split) that the caller
+/// encodes.
 ///
 /// Thread safety: a Client may be used from several threads at once; each call takes its own
 /// connection(s) from a pool. Callbacks run on the calling thread.
@@ -33,6 +34,7 @@
 #include "kdrt/proto/json_api.h"
 #include "kdrt/proto/mesh_io.h"
 #include "kdrt/proto/multi_hit.h"
+#include "kdrt/proto/raw_image.h"
 #include "kdrt/types.h"
 
 namespace kdrt {
@@ -43,6 +45,36 @@ using MeshInfo = proto::MeshSummary;
 using Job = proto::JobStatus;
 /// A render: mesh id, RenderSettings (camera, size, spp, shading, seed, tile) and image format.
 using RenderRequest = proto::RenderRequest;
+
+/// A frame rendered as regions and stitched (Client::render_split).
+struct StitchedFrame {
+    /// The frame's (or the request's tile's) linear float pixels: bit for bit what one server
+    /// renders for the whole request before it encodes the image.
+    Image image;
+    /// The PNG zlib level the server encodes this render with: the request's `compression`, else
+    /// the server's png_compression (its X-Kdrt-Png-Compression answer header); nullopt when
+    /// the server does not say. Encoding `image` with proto::encode_image, this level and
+    /// proto::render_transfer(shading) gives the bytes the server answers for the unsplit render.
+    std::optional<int> png_compression;
+    /// The X-Kdrt-Replica header of each region's answer, in region order ("" when none).
+    std::vector<std::string> replicas;
+};
+
+/// Called by Client::render_split on its calling thread after each region arrives, with the
+/// regions done and the regions in all. Return false to stop: no further region is asked for,
+/// and render_split returns ErrorKind::kCancelled once those in flight have answered.
+using RegionProgress = std::function<bool(unsigned done, unsigned parts)>;
+
+/// The `parts` bands of rows render_split cuts `region` into, top to bottom: band k is rows
+/// region.y + floor(k h / parts) .. region.y + floor((k + 1) h / parts) - 1 at the region's
+/// full width (h = region.height). Precondition: 1 <= parts <= region.height.
+[[nodiscard]] std::vector<PixelRegion> split_rows(const PixelRegion& region, unsigned parts);
+
+/// Places `parts` (regions of one frame, each decoded from a KDRI answer) into an image of
+/// `within` (a rectangle of that frame). Errors name the part: a part outside `within`, parts
+/// of different frames or channel counts, two parts covering one pixel, or a pixel no part covers.
+[[nodiscard]] proto::Result<Image, std::string> stitch_regions(
+    const PixelRegion& within, std::span<const proto::RawImage> parts);
 
 /// Called by Client::wait after every poll with the job's latest status. Return false to stop
 /// waiting: wait() then cancels the job and returns ErrorKind::kCancelled.
@@ -150,6 +182,15 @@ public:
 
     /// Renders synchronously and returns the encoded image (request.format: png, jpg/jpeg, exr).
     [[nodiscard]] Result<std::vector<std::byte>> render(const RenderRequest& request);
+    /// Renders request's frame (its tile, when settings.region is set) as `parts` bands of rows
+    /// (split_rows), each a synchronous render with "format": "raw" (KDRI, the float pixels) and
+    /// the routing key "?route=<mesh>.<k>", so a proxy that hashes it (docs/scale-out.md) spreads
+    /// them over the replicas; up to options.connections run at once, and the bands are stitched
+    /// (stitch_regions). request.format is not used (the caller encodes the image); its
+    /// compression is carried into the answer. Bands are retried like render(). `parts` must be
+    /// in 1 .. the rows of the frame or tile, else a kInput error.
+    [[nodiscard]] Result<StitchedFrame> render_split(const RenderRequest& request, unsigned parts,
+                                                     const RegionProgress& progress = {});
     /// Queues the render as an async job (Prefer: respond-async). Not retried after a lost
     /// connection once the request was sent (it could queue a second job); retried on 503.
     [[nodiscard]] Result<Job> submit(const RenderRequest& request);

@@ -24,6 +24,7 @@
 
 #include "kdrt/image.h"
 #include "kdrt/proto/result.h"
+#include "kdrt/render_settings.h"
 
 namespace kdrt::proto {
 
@@ -35,18 +36,21 @@ inline constexpr std::string_view kTruncatedPng = "PNG is truncated";
 inline constexpr std::string_view kUnknownExtension = "cannot tell the image format";
 }  // namespace image_errors
 
-enum class ImageFormat { kPng, kJpeg, kExr };
+/// kRaw is KDRI (kdrt/proto/raw_image.h): the linear float pixels themselves, not an image file
+/// format (no OIIO). encode_image writes it as a whole frame; decode_image reads it.
+enum class ImageFormat { kPng, kJpeg, kExr, kRaw };
 
-/// "png", "jpeg" or "jpg", "exr" (exact, lower case) -> format; anything else -> nullopt.
+/// "png", "jpeg" or "jpg", "exr", "raw" (exact, lower case) -> format; anything else -> nullopt.
 [[nodiscard]] std::optional<ImageFormat> image_format_from_name(std::string_view name) noexcept;
 
-/// Format from the file extension, case-insensitive: .png, .jpg/.jpeg, .exr; else nullopt.
+/// Format from the file extension, case-insensitive: .png, .jpg/.jpeg, .exr; else nullopt (also
+/// for .raw, a raw mesh's extension).
 [[nodiscard]] std::optional<ImageFormat> image_format_from_path(const std::filesystem::path& path);
 
-/// "png", "jpeg" or "exr".
+/// "png", "jpeg", "exr" or "raw".
 [[nodiscard]] std::string_view image_format_name(ImageFormat format) noexcept;
 
-/// The HTTP media type: "image/png", "image/jpeg", "image/x-exr".
+/// The HTTP media type: "image/png", "image/jpeg", "image/x-exr", "application/x-kdrt-image".
 [[nodiscard]] std::string_view image_media_type(ImageFormat format) noexcept;
 
 /// Sample type of an EXR file.
@@ -78,6 +82,13 @@ struct ImageEncodeOptions {
     /// let libpng choose a filter per row (smallest files, slowest; 9 can take seconds).
     int png_compression = 6;
 };
+
+/// The 8-bit transfer of a render shaded with `shading`: the sRGB curve for the modes that
+/// compute light (eyelight, diffuse); kData for the modes that compute data (ao's unoccluded
+/// fraction, normals, depth, primid's false colours), so that an ao value of 0.5 is the middle
+/// grey level and not the much lighter sRGB level 188. The server encodes renders with it; a
+/// client that stitches a frame from raw regions encodes with it to get the server's bytes.
+[[nodiscard]] EightBitTransfer render_transfer(Shading shading) noexcept;
 
 /// Encodes `image` (3 or 4 channels, width and height >= 1, pixels.size() matching) as a whole
 /// file in memory. PNG and EXR keep an alpha channel; JPEG has none and drops it. Errors name the

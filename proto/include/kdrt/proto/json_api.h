@@ -141,7 +141,8 @@ struct RenderLimits {
 ///               "ortho_height": 1},
 ///    "width": 512, "height": 512, "spp": 1, "seed": 1,
 ///    "shading": "normals|eyelight|ao|diffuse|depth|primid",   default eyelight
-///    "format": "png|exr|jpg",                                  default png
+///    "format": "png|exr|jpg|raw",       default png; raw: KDRI, the linear float pixels
+///                                       (kdrt/proto/raw_image.h), for stitching regions
 ///    "compression": 0..9,                     optional, png only: zlib level (ImageEncodeOptions::
 ///                                             png_compression); omitted = the server's default
 ///    "tile": {"x": 0, "y": 0, "w": 256, "h": 256}}             optional; omitted = whole frame
@@ -151,7 +152,7 @@ struct RenderRequest {
     std::string mesh;
     RenderSettings settings;     ///< camera/region/size/spp/shading/seed, ao_samples/ao_distance,
                                  ///< light.direction, bounces, sky and background from the request
-    std::string format = "png";  ///< "png", "jpg"/"jpeg" or "exr" (lower case, as sent)
+    std::string format = "png";  ///< "png", "jpg"/"jpeg", "exr" or "raw" (lower case, as sent)
     std::optional<int> compression;  ///< PNG zlib level 0 .. 9, when sent
 };
 
