@@ -67,14 +67,11 @@ inline void append(Mesh& dst, const Mesh& src) {
     for (uint32_t i : src.indices) dst.indices.push_back(i + base);
 }
 
-/// "Teapot in a stadium": a huge closed box (12 triangles, size `stadium`) around a tiny, finely
-/// tessellated sphere at its centre.
-inline Mesh teapot_in_stadium(float stadium = 1000.0f, uint32_t rings = 60,
-                              uint32_t segments = 120) {
+/// The closed box [lo, hi]^3: 12 triangles wound outwards, 8 shared vertices.
+inline Mesh box_mesh(float lo, float hi) {
     Mesh m;
-    const float h = stadium * 0.5f;
-    const Vec3 c[8] = {{-h, -h, -h}, {h, -h, -h}, {h, h, -h}, {-h, h, -h},
-                       {-h, -h, h},  {h, -h, h},  {h, h, h},  {-h, h, h}};
+    const Vec3 c[8] = {{lo, lo, lo}, {hi, lo, lo}, {hi, hi, lo}, {lo, hi, lo},
+                       {lo, lo, hi}, {hi, lo, hi}, {hi, hi, hi}, {lo, hi, hi}};
     for (const Vec3& v : c) add_vertex(m, v);
     const uint32_t faces[6][4] = {{0, 3, 2, 1}, {4, 5, 6, 7}, {0, 1, 5, 4},
                                   {2, 3, 7, 6}, {1, 2, 6, 5}, {0, 4, 7, 3}};
@@ -82,6 +79,15 @@ inline Mesh teapot_in_stadium(float stadium = 1000.0f, uint32_t rings = 60,
         add_indices(m, f[0], f[1], f[2]);
         add_indices(m, f[0], f[2], f[3]);
     }
+    return m;
+}
+
+/// "Teapot in a stadium": a huge closed box (12 triangles, size `stadium`) around a tiny, finely
+/// tessellated sphere at its centre.
+inline Mesh teapot_in_stadium(float stadium = 1000.0f, uint32_t rings = 60,
+                              uint32_t segments = 120) {
+    const float h = stadium * 0.5f;
+    Mesh m = box_mesh(-h, h);
     append(m, uv_sphere({0.3f, -0.2f, 0.1f}, 1.0f, rings, segments));
     return m;
 }

@@ -14,6 +14,7 @@
 #include "kdrt/distance.h"
 #include "kdrt/proto/mesh_io.h"
 #include "kdrt/query.h"
+#include "scenes.h"
 #include "test_util.h"
 
 namespace kdrt::test {
@@ -292,19 +293,7 @@ TEST(Distance, BatchIsTheSameAtAnyThreadCount) {
 }
 
 /// The cube [lo, hi]^3, 12 triangles wound outwards, shared vertices.
-Mesh cube(float lo = 0, float hi = 1) {
-    Mesh m;
-    const Vec3 c[8] = {{lo, lo, lo}, {hi, lo, lo}, {hi, hi, lo}, {lo, hi, lo},
-                       {lo, lo, hi}, {hi, lo, hi}, {hi, hi, hi}, {lo, hi, hi}};
-    for (const Vec3& v : c) add_vertex(m, v);
-    const uint32_t faces[6][4] = {{0, 3, 2, 1}, {4, 5, 6, 7}, {0, 1, 5, 4},
-                                  {2, 3, 7, 6}, {1, 2, 6, 5}, {0, 4, 7, 3}};
-    for (const auto& f : faces) {
-        add_indices(m, f[0], f[1], f[2]);
-        add_indices(m, f[0], f[2], f[3]);
-    }
-    return m;
-}
+Mesh cube(float lo = 0, float hi = 1) { return test::box_mesh(lo, hi); }
 
 /// The exact signed distance to the unit cube (negative inside).
 double cube_signed_distance(Vec3 p) {

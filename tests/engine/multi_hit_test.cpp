@@ -13,6 +13,7 @@
 #include "kdrt/proto/mesh_io.h"
 #include "kdrt/query.h"
 #include "kdrt/trace.h"
+#include "scenes.h"
 #include "test_util.h"
 
 namespace kdrt::test {
@@ -90,19 +91,7 @@ TEST(AllHits, MiddleTreeMatchesBruteForce) {
 }
 
 /// The cube [-1, 1]^3, 12 triangles wound outwards, shared vertices.
-Mesh cube() {
-    Mesh m;
-    const Vec3 c[8] = {{-1, -1, -1}, {1, -1, -1}, {1, 1, -1}, {-1, 1, -1},
-                       {-1, -1, 1},  {1, -1, 1},  {1, 1, 1},  {-1, 1, 1}};
-    for (const Vec3& v : c) add_vertex(m, v);
-    const uint32_t faces[6][4] = {{0, 3, 2, 1}, {4, 5, 6, 7}, {0, 1, 5, 4},
-                                  {2, 3, 7, 6}, {1, 2, 6, 5}, {0, 4, 7, 3}};
-    for (const auto& f : faces) {
-        add_indices(m, f[0], f[1], f[2]);
-        add_indices(m, f[0], f[2], f[3]);
-    }
-    return m;
-}
+Mesh cube() { return test::box_mesh(-1, 1); }
 
 /// Vertices, edge midpoints and points along edges of `mesh`: where coincident hits happen.
 std::vector<Vec3> vertex_and_edge_points(Rng& rng, const Mesh& mesh, size_t count) {
