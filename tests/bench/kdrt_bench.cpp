@@ -79,13 +79,15 @@ options:
 )";
 
 constexpr std::string_view kAllHitsUsage =
-    R"(usage: kdrt-bench all-hits MESH RAYS.kdrr [--max-hits N] [--merge] [--threads N] [--reps K]
+    R"(usage: kdrt-bench all-hits MESH RAYS.kdrr [--max-hits N] [--merge] [--mode single|packet|auto]
+                           [--threads N] [--reps K]
 
 Every hit along each ray (kdrt::intersect_all, kdrt/query.h) against closest hit on the same
 rays. Builds the tree of MESH, then times K passes (default 5, after an untimed warm-up) of:
-intersect_all with max_hits N (default 16), count_intersections, the closest-hit batch tracer
-(auto mode) and the single-ray closest-hit kernel (intersect_single, the same scalar traversal
-family as intersect_all). Prints one JSON line: rays, threads, max_hits, merge, hits_per_ray
+intersect_all with max_hits N (default 16) and count_intersections, both in --mode (default auto:
+packets where they pay), the closest-hit batch tracer (auto mode) and the single-ray closest-hit
+kernel (intersect_single, the same scalar traversal family as intersect_all's single rays).
+Prints one JSON line: rays, threads, mode, max_hits, merge, hits_per_ray
 (mean of all hits), kept_hits, and for each query its median seconds and mrays_per_s, and
 all_vs_closest_single / all_vs_closest_auto (rays/s ratios).
 )";
@@ -503,6 +505,14 @@ int run_all_hits(const Args& args) {
     const auto reps = static_cast<int>(args.get_uint("reps", 5, 1, 1000));
     const auto max_hits = static_cast<uint32_t>(args.get_uint("max-hits", 16, 1, kMaxHitsPerRay));
     const bool merge = args.flag("merge");
+    const std::string mode_text = args.get("mode").value_or("auto");
+    const auto mode = parse_trace_mode(mode_text);
+    if (!mode)
+        throw UsageError("option '--mode': '" + mode_text + "' is not one of single, packet, auto");
+    AllHitsOptions options;
+    options.max_hits = max_hits;
+    options.merge_coincident = merge;
+    options.mode = *mode;
     const LoadedMesh loaded = load_mesh(mesh_path);
     const proto::RayBatch batch = load_rays(rays_path);
     const std::span<const Ray> rays = batch.rays;
@@ -523,11 +533,11 @@ int run_all_hits(const Args& args) {
             }
         };
         timed(all_s, [&] {
-            const AllHits all = intersect_all(tree, rays, AllHitsOptions{max_hits, merge});
+            const AllHits all = intersect_all(tree, rays, options);
             kept = all.hits.size();
             total_hits = std::accumulate(all.counts.begin(), all.counts.end(), uint64_t{0});
         });
-        timed(count_s, [&] { count_intersections(tree, rays, merge, counts); });
+        timed(count_s, [&] { count_intersections(tree, rays, options, counts); });
         timed(auto_s, [&] { kdrt::intersect(tree, rays, hits); });
         timed(single_s, [&] { intersect_single(tree, rays, hits); });
     });
@@ -542,6 +552,7 @@ int run_all_hits(const Args& args) {
     line["rays"] = rays.size();
     line["threads"] = threads;
     line["reps"] = reps;
+    line["mode"] = trace_mode_name(*mode);
     line["max_hits"] = max_hits;
     line["merge"] = merge;
     line["build_ms"] = rounded(build_ms, 3);
@@ -832,7 +843,7 @@ constexpr std::array<std::string_view, 4> kSceneOptions = {"out", "size", "from"
 constexpr std::array<std::string_view, 13> kRenderOptions = {
     "shading",    "res",     "spp",     "tile",    "threads", "reps",   "seed",
     "ao-samples", "bounces", "builder", "c-isect", "out",     "compare"};
-constexpr std::array<std::string_view, 3> kAllHitsOptions = {"max-hits", "threads", "reps"};
+constexpr std::array<std::string_view, 4> kAllHitsOptions = {"max-hits", "mode", "threads", "reps"};
 constexpr std::array<std::string_view, 1> kAllHitsFlags = {"merge"};
 constexpr std::array<Command, 6> kCommands = {{
     {"build", kBuildUsage, kBuildOptions, &run_build},
