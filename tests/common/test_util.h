@@ -1,6 +1,7 @@
 #pragma once
 // Shared helpers for the engine tests: seeds, a small RNG, scene generators and ray generators.
 
+#include <algorithm>
 #include <cmath>
 #include <cstdint>
 #include <cstdlib>
