@@ -652,11 +652,12 @@ int run_distance(const Args& args) {
     const size_t triangles = std::max<size_t>(1, loaded.mesh.triangle_count());
     const auto brute_default = static_cast<uint64_t>(
         std::clamp<double>(1e8 / static_cast<double>(triangles), 32.0, 4096.0));
+    const size_t half = points / 2;  // of each kind (an odd --points loses one)
     const auto brute = static_cast<size_t>(
-        args.get_uint("brute", std::min<uint64_t>(brute_default, points), 2, points));
+        args.get_uint("brute", std::min<uint64_t>(brute_default, 2 * half), 2, 2 * half));
 
     std::vector<Vec3> uniform, near;
-    distance_query_points(loaded.mesh, points / 2, seed, uniform, near);
+    distance_query_points(loaded.mesh, half, seed, uniform, near);
     // The brute-force subset: its first half from each kind.
     std::vector<Vec3> subset(uniform.begin(),
                              uniform.begin() + static_cast<std::ptrdiff_t>(brute / 2));
