@@ -9,6 +9,7 @@
 #include <unistd.h>
 
 #include <atomic>
+#include <cstring>
 #include <fstream>
 #include <map>
 #include <set>
@@ -19,6 +20,7 @@
 #include "http_test_util.h"
 #include "kdrt/client/client.h"
 #include "kdrt/proto/mesh_id.h"
+#include "kdrt/proto/raw_image.h"
 
 extern char** environ;
 
@@ -256,6 +258,105 @@ TEST_F(ScaleOut, ASplitBatchSpreadsOverReplicasAndEqualsTheOneReplicaAnswer) {
     }
     EXPECT_EQ(parts, 6.0);
     EXPECT_GT(serving, 1) << "all six parts hashed to one replica";
+}
+
+/// Images a replica rendered (kdrt_renders_total: counted before the answer is sent, so a
+/// client that has its answer sees it counted; the per-request counters follow the answer).
+double renders_on(const ServerProcess& replica) {
+    return replica.metric("kdrt_renders_total").value_or(0);
+}
+
+TEST_F(ScaleOut, ASplitRenderSpreadsOverReplicasAndEqualsTheOneReplicaFrame) {
+    constexpr unsigned kParts = 6;
+    auto nginx = start_nginx();
+    auto cli = nginx->client();
+    // The replica each band's routing key "<id>.<k>" hashes to, as nginx answers a GET of the
+    // mesh with that key. The ring depends on the replicas' ephemeral ports: six keys all land
+    // on one of three replicas for one mesh in 243, so a mesh whose keys do not spread is
+    // replaced by another (the spread is what this test checks, not the ring's luck).
+    Mesh mesh;
+    std::string id;
+    std::vector<std::string> band_replica(kParts);
+    for (uint64_t seed = 0; seed < 8; ++seed) {
+        mesh = small_mesh(9600 + seed, 1500);
+        id = upload_id(*cli, mesh);
+        for (unsigned k = 0; k < kParts; ++k) {
+            auto res = retrying([&] {
+                return cli->Get("/v1/meshes/" + id + "?route=" + id + "." + std::to_string(k));
+            });
+            ASSERT_TRUE(res && res->status == 200) << (res ? res->body : "no answer");
+            band_replica[k] = res->get_header_value("X-Kdrt-Replica");
+        }
+        if (std::set<std::string>(band_replica.begin(), band_replica.end()).size() > 1) break;
+    }
+    const std::set<std::string> expected_replicas(band_replica.begin(), band_replica.end());
+    ASSERT_GT(expected_replicas.size(), 1u) << "8 meshes' band keys all hashed to one replica";
+
+    // The frame of one replica, asked directly and unsplit.
+    const std::string request = "{\"mesh\":\"" + id + "\",\"width\":96,\"height\":64}";
+    auto direct = replicas_[0]->client()->Post("/v1/render", request, "application/json");
+    ASSERT_TRUE(direct);
+    ASSERT_EQ(direct->status, 200) << direct->body;
+    ASSERT_EQ(direct->get_header_value("Content-Type"), "image/png");
+    auto direct_raw = replicas_[0]->client()->Post(
+        "/v1/render", "{\"mesh\":\"" + id + "\",\"width\":96,\"height\":64,\"format\":\"raw\"}",
+        "application/json");
+    ASSERT_TRUE(direct_raw);
+    ASSERT_EQ(direct_raw->status, 200) << direct_raw->body;
+    auto whole = proto::decode_raw_image(string_to_bytes(direct_raw->body));
+    ASSERT_TRUE(whole) << whole.error();
+
+    const auto served_since = [&](const std::vector<double>& before) {
+        std::map<std::string, double> served;
+        for (size_t r = 0; r < replicas_.size(); ++r) {
+            const double n = renders_on(*replicas_[r]) - before[r];
+            if (n != 0) served[names_[r]] = n;
+        }
+        return served;
+    };
+    std::map<std::string, double> expected_served;
+    for (const std::string& replica : band_replica) ++expected_served[replica];
+    std::vector<double> before;
+    for (const auto& replica : replicas_) before.push_back(renders_on(*replica));
+
+    // The kdrt CLI through nginx: the PNG is the one replica's file, byte for byte.
+    const fs::path out = dir_.path() / "split.png";
+    const std::string url = "http://127.0.0.1:" + std::to_string(nginx->port());
+    const auto [code, output] =
+        run_shell(std::string("env -u KDRT_TOKEN -u KDRT_SERVER ") + KDRT_CLI_BINARY +
+                  " --server " + url + " render " + id + " -o " + out.string() +
+                  " --size 96x64 --split " + std::to_string(kParts) + " --quiet");
+    ASSERT_EQ(code, 0) << output;
+    EXPECT_NE(output.find("6 parts on " + std::to_string(expected_replicas.size()) + " replicas"),
+              std::string::npos)
+        << output;
+    std::ifstream file(out, std::ios::binary);
+    const std::string png(std::istreambuf_iterator<char>(file), {});
+    EXPECT_EQ(png.size(), direct->body.size());
+    EXPECT_TRUE(png == direct->body) << "the split render's PNG differs from the one replica's";
+    // Each band was rendered by the replica its key hashes to: more than one served the frame.
+    EXPECT_EQ(served_since(before), expected_served);
+
+    // The client library: the stitched float pixels are the one replica's, bit for bit, and
+    // each band's answer names the replica its key hashes to.
+    before.clear();
+    for (const auto& replica : replicas_) before.push_back(renders_on(*replica));
+    Client client(url);
+    RenderRequest split_request;
+    split_request.mesh = id;
+    split_request.settings.width = 96;
+    split_request.settings.height = 64;
+    auto frame = client.render_split(split_request, kParts);
+    ASSERT_TRUE(frame) << frame.error().to_string();
+    EXPECT_EQ(frame->replicas, band_replica);
+    EXPECT_EQ(frame->image.width, whole->image.width);
+    EXPECT_EQ(frame->image.height, whole->image.height);
+    EXPECT_EQ(frame->image.channels, whole->image.channels);
+    ASSERT_EQ(frame->image.pixels.size(), whole->image.pixels.size());
+    EXPECT_EQ(std::memcmp(frame->image.pixels.data(), whole->image.pixels.data(),
+                          whole->image.pixels.size() * sizeof(float)),
+              0);
+    EXPECT_EQ(served_since(before), expected_served);
 }
 
 TEST_F(ScaleOut, AsyncJobsAreRoutedToTheReplicaThatRunsThem) {
