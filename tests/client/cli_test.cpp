@@ -874,6 +874,36 @@ TEST_F(Cli, Injected503sAreRetriedByTheCli) {
     EXPECT_EQ(always.requests(), 3);
 }
 
+TEST(CliSplit, BandsOverTheServersRawLimitAreRefusedAndMoreBandsFit) {
+    TempDir dir;
+    // 4 KiB: a 32 x 16 band (32 + 6144 bytes raw) is refused, a 32 x 8 band (32 + 3072) fits.
+    ServerProcess server(
+        {.cache_dir = dir.path() / "cache", .args = {"--max-raw-render-bytes", "4K"}});
+    const std::string url = server_url(server);
+    Client c(url, fast_options());
+    Rng rng(test_seed() + 41);
+    auto mesh = c.upload(random_soup(rng, 300));
+    ASSERT_TRUE(mesh) << mesh.error().to_string();
+    const std::string out = (dir.path() / "x.png").string();
+    const CliRun refused = run_cli(
+        {"render", mesh->id, "-o", out, "--size", "32x32", "--split", "2", "--server", url});
+    EXPECT_EQ(refused.exit_code, 1) << refused.err;
+    EXPECT_TRUE(contains(refused.err,
+                         "kdrt render: 400 Bad request: raw render answer of 6176 bytes (32 x 16 "
+                         "tile x 3 floats + a 32-byte header) exceeds max_raw_render_bytes 4096"))
+        << refused.err;
+    EXPECT_FALSE(std::filesystem::exists(out));
+    const CliRun fits = run_cli(
+        {"render", mesh->id, "-o", out, "--size", "32x32", "--split", "4", "--server", url});
+    ASSERT_EQ(fits.exit_code, 0) << fits.err;
+    RenderRequest same = small_render(mesh->id);
+    same.settings.width = 32;
+    same.settings.height = 32;
+    auto expected = c.render(same);
+    ASSERT_TRUE(expected) << expected.error().to_string();
+    EXPECT_EQ(read_bytes(out), *expected);
+}
+
 TEST(CliAuth, TokenFromFlagOrEnvironment) {
     TempDir dir;
     ServerProcess server({.cache_dir = dir.path() / "cache", .args = {"--token", "t0ken"}});
