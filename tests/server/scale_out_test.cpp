@@ -186,6 +186,31 @@ protected:
         }
         return now;
     }
+    /// A mesh uploaded through `cli` whose split keys "<id>.0" .. "<id>.<parts - 1>" do not all
+    /// hash to one replica, and the replica of each key (asked of nginx: the X-Kdrt-Replica of a
+    /// GET of the mesh with ?route=KEY). The ring depends on the replicas' ephemeral ports: six
+    /// keys all land on one of three replicas for one mesh in 243, so such a mesh is replaced by
+    /// another (the spread is what the split tests check, not the ring's luck).
+    static std::pair<Mesh, std::string> spread_mesh(httplib::Client& cli, uint64_t seed,
+                                                    size_t triangles, unsigned parts,
+                                                    std::vector<std::string>& key_replicas) {
+        key_replicas.assign(parts, "");
+        for (uint64_t attempt = 0; attempt < 8; ++attempt) {
+            Mesh mesh = small_mesh(seed + attempt, triangles);
+            std::string id = upload_id(cli, mesh);
+            for (unsigned k = 0; k < parts; ++k) {
+                auto res = retrying([&] {
+                    return cli.Get("/v1/meshes/" + id + "?route=" + id + "." + std::to_string(k));
+                });
+                EXPECT_TRUE(res && res->status == 200) << (res ? res->body : "no answer");
+                key_replicas[k] = res ? res->get_header_value("X-Kdrt-Replica") : "";
+            }
+            if (std::set<std::string>(key_replicas.begin(), key_replicas.end()).size() > 1)
+                return {std::move(mesh), std::move(id)};
+        }
+        ADD_FAILURE() << "8 meshes' split keys all hashed to one replica";
+        return {};
+    }
     /// Which replica answers GET /v1/meshes/{id} through nginx.
     static std::string owner(httplib::Client& cli, const std::string& id) {
         auto res = retrying([&] { return cli.Get("/v1/meshes/" + id); });
@@ -246,8 +271,9 @@ TEST_F(ScaleOut, EveryRequestForAMeshLandsOnOneReplica) {
 
 TEST_F(ScaleOut, ASplitBatchSpreadsOverReplicasAndEqualsTheOneReplicaAnswer) {
     auto nginx = start_nginx();
-    const Mesh mesh = small_mesh(9050, 2000);
-    const std::string id = upload_id(*nginx->client(), mesh);
+    std::vector<std::string> key_replicas;
+    const auto [mesh, id] = spread_mesh(*nginx->client(), 9050, 2000, 6, key_replicas);
+    ASSERT_FALSE(id.empty());
     const auto rays = random_rays(mesh_bounds(mesh), 60000, 17);
     // The answer of one replica, asked directly, unsplit.
     auto direct = trace(*replicas_[0]->client(), id, rays);
@@ -285,27 +311,11 @@ TEST_F(ScaleOut, ASplitRenderSpreadsOverReplicasAndEqualsTheOneReplicaFrame) {
     constexpr unsigned kParts = 6;
     auto nginx = start_nginx();
     auto cli = nginx->client();
-    // The replica each band's routing key "<id>.<k>" hashes to, as nginx answers a GET of the
-    // mesh with that key. The ring depends on the replicas' ephemeral ports: six keys all land
-    // on one of three replicas for one mesh in 243, so a mesh whose keys do not spread is
-    // replaced by another (the spread is what this test checks, not the ring's luck).
-    Mesh mesh;
-    std::string id;
-    std::vector<std::string> band_replica(kParts);
-    for (uint64_t seed = 0; seed < 8; ++seed) {
-        mesh = small_mesh(9600 + seed, 1500);
-        id = upload_id(*cli, mesh);
-        for (unsigned k = 0; k < kParts; ++k) {
-            auto res = retrying([&] {
-                return cli->Get("/v1/meshes/" + id + "?route=" + id + "." + std::to_string(k));
-            });
-            ASSERT_TRUE(res && res->status == 200) << (res ? res->body : "no answer");
-            band_replica[k] = res->get_header_value("X-Kdrt-Replica");
-        }
-        if (std::set<std::string>(band_replica.begin(), band_replica.end()).size() > 1) break;
-    }
+    // The replica each band's routing key "<id>.<k>" hashes to.
+    std::vector<std::string> band_replica;
+    const auto [mesh, id] = spread_mesh(*cli, 9600, 1500, kParts, band_replica);
+    ASSERT_FALSE(id.empty());
     const std::set<std::string> expected_replicas(band_replica.begin(), band_replica.end());
-    ASSERT_GT(expected_replicas.size(), 1u) << "8 meshes' band keys all hashed to one replica";
 
     // The frame of one replica, asked directly and unsplit.
     const std::string request = "{\"mesh\":\"" + id + "\",\"width\":96,\"height\":64}";
