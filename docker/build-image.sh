@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
 # Builds docker/Dockerfile with podman (no Docker engine needed), runs the image and renders one
 # frame through it; prints the image size and how long each step took. Not run by scripts/test:
-# the image build compiles kdrt-server from scratch inside the container (docker/README.md has
-# the times measured).
+# the image build compiles kdrt-server from scratch inside the container (docs/scale-out.md, "The
+# container image", has the times measured).
 #
 #   docker/build-image.sh              base image, build, run, one render
 #   KDRT_IMAGE=localhost/kdrt:test ... another tag (default localhost/kdrt:latest)

@@ -11,6 +11,7 @@
 #include "kdrt/proto/file_io.h"
 #include "kdrt/proto/image_io.h"
 #include "kdrt/proto/json_api.h"
+#include "kdrt/proto/raw_image.h"
 #include "kdrt/proto/ray_batch.h"
 #include "kdrt/proto/text.h"
 #include "kdrt/query.h"
@@ -241,6 +242,12 @@ const std::vector<Setting>& settings() {
          .help = "largest render: pixels x samples x rays per sample, refused before it starts",
          .u64 = &ServerConfig::max_render_rays,
          .min = 1},
+        {.key = "max_raw_render_bytes",
+         .help = "largest answer of a \"format\": \"raw\" render (32 + 12 bytes a pixel), "
+                 "refused before it starts",
+         .u64 = &ServerConfig::max_raw_render_bytes,
+         .bytes = true,
+         .min = proto::kRawImageHeaderBytes + 12},
         {.key = "max_renders",
          .help = "synchronous renders running at once (more wait in the queue, then 503)",
          .u32 = &ServerConfig::max_renders,

@@ -79,10 +79,11 @@ struct ServerConfig {
     uint64_t batch_memory_budget = 2ull
                                    << 30;   ///< ray batches in flight (rays + answers), 503 beyond
     uint64_t max_render_rays = 1ull << 36;  ///< pixels x spp x rays per sample of one render
-    unsigned max_renders = 2;               ///< synchronous renders running at once
-    unsigned max_builds = 2;                ///< uploads parsed and built at once
-    unsigned max_queued = 8;                ///< requests waiting for a render or build slot
-    unsigned shutdown_timeout_s = 10;       ///< in-flight requests get this long on SIGTERM
+    uint64_t max_raw_render_bytes = 512ull << 20;  ///< KDRI answer of one "format": "raw" render
+    unsigned max_renders = 2;                      ///< synchronous renders running at once
+    unsigned max_builds = 2;                       ///< uploads parsed and built at once
+    unsigned max_queued = 8;                       ///< requests waiting for a render or build slot
+    unsigned shutdown_timeout_s = 10;              ///< in-flight requests get this long on SIGTERM
 
     // Logging
     std::string log_level = "info";   ///< trace, debug, info, warn, error, critical, off

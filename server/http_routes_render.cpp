@@ -10,6 +10,7 @@
 #include "json_shape.h"
 #include "kdrt/proto/image_io.h"
 #include "kdrt/proto/json_api.h"
+#include "kdrt/proto/raw_image.h"
 #include "log.h"
 #include "problems.h"
 #include "rendering.h"
@@ -56,6 +57,28 @@ RenderCost render_cost(const RenderSettings& s) {
     if (s.shading == Shading::kDiffuse) cost.rays_per_sample = 2 + 2 * uint64_t{s.bounces};
     cost.rays = cost.pixels * s.spp * cost.rays_per_sample;
     return cost;
+}
+
+/// Why a "format": "raw" render's KDRI answer (kdrt/proto/raw_image.h) would be larger than
+/// `max_bytes` (max_raw_render_bytes), or nullopt when it fits or the format is another.
+std::optional<proto::Problem> raw_answer_problem(const proto::RenderRequest& request,
+                                                 proto::ImageFormat format, uint64_t max_bytes) {
+    if (format != proto::ImageFormat::kRaw) return std::nullopt;
+    const RenderSettings& s = request.settings;
+    const PixelRegion r = s.region.value_or(PixelRegion{0, 0, s.width, s.height});
+    const uint64_t channels = s.alpha ? 4 : 3;
+    const uint64_t bytes = proto::kdri_body_size(r.width, r.height, channels);
+    if (bytes <= max_bytes) return std::nullopt;
+    auto p = make_problem(
+        ProblemKind::kBadRequest,
+        "raw render answer of " + std::to_string(bytes) + " bytes (" + std::to_string(r.width) +
+            " x " + std::to_string(r.height) + (s.region ? " tile" : " frame") + " x " +
+            std::to_string(channels) + " floats + a " +
+            std::to_string(proto::kRawImageHeaderBytes) +
+            "-byte header) exceeds max_raw_render_bytes " + std::to_string(max_bytes) +
+            "; ask for smaller tiles (kdrt render --split N renders a frame as N bands)");
+    p.limit = max_bytes;
+    return p;
 }
 
 /// The shape a render request body may have before it is parsed (it has about 20 values).
@@ -131,6 +154,11 @@ std::optional<RenderJob> Routes::make_render_job(const httplib::Request& req,
                                                  httplib::Response& res,
                                                  proto::RenderRequest request) {
     const proto::ImageFormat format = *proto::image_format_from_name(request.format);
+    // Checked before the tree is looked up or loaded: it depends on the request alone.
+    if (auto p = raw_answer_problem(request, format, svc_.config.max_raw_render_bytes)) {
+        reply_problem(req, res, std::move(*p));
+        return std::nullopt;
+    }
     auto tree = svc_.cache.acquire(request.mesh);
     if (!tree) {
         reply_problem(req, res, mesh_lookup_problem(tree.error(), request.mesh));

@@ -34,7 +34,9 @@ With --split N the frame (or the --tile) is rendered as N bands of rows instead,
 synchronous request for its float pixels with its own routing key (?route=ID.K), so a proxy in
 front of replicas (docs/scale-out.md) spreads them; the bands are stitched and encoded here,
 byte for byte the image one server encodes (an EXR's header differs only in its capDate, the
-time of encoding). Ctrl-C stops asking for bands (exit 130).
+time of encoding). A band's pixels travel as floats, 12 bytes a pixel, and must fit the
+server's max_raw_render_bytes (512 MiB by default): split a huge frame into more bands. Ctrl-C
+stops asking for bands (exit 130).
 
   -o, --output FILE   the image file (required)
   --size WxH          image size in pixels (default 512x512)

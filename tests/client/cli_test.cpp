@@ -5,6 +5,7 @@
 #include <gtest/gtest.h>
 
 #include <nlohmann/json.hpp>
+#include <optional>
 #include <sstream>
 #include <thread>
 
@@ -528,6 +529,104 @@ TEST_F(Cli, RenderErrors) {
     EXPECT_TRUE(contains(unwritable.err, "cannot write the image: ")) << unwritable.err;
 }
 
+/// Images the suite's server has rendered (kdrt_renders_total: counted before the answer is
+/// sent, unlike the per-request counters, which follow it).
+double renders(const ServerProcess& server) {
+    return server.metric("kdrt_renders_total").value_or(-1);
+}
+
+TEST_F(Cli, SplitRenderWritesTheBytesOfTheUnsplitRender) {
+    upload_suite_mesh();
+    Client c(server_url(*server_), fast_options());
+    struct Case {
+        const char* file;
+        const char* format;
+        std::vector<std::string> args;
+        unsigned parts;
+        Shading shading;
+        std::optional<PixelRegion> tile;
+    };
+    const std::vector<Case> cases = {
+        {"split.png", "png", {"--shading", "normals", "--split", "6"}, 6, Shading::kNormals, {}},
+        {"split.jpg", "jpg", {"--shading", "normals", "--split", "6"}, 6, Shading::kNormals, {}},
+        {"split.exr", "exr", {"--shading", "normals", "--split", "6"}, 6, Shading::kNormals, {}},
+        // Random sampling (ao, 2 spp): every pixel's samples are the same in any band.
+        {"ao.png", "png", {"--shading", "ao", "--spp", "2", "--split", "5"}, 5, Shading::kAo, {}},
+        {"one.png", "png", {"--split", "1"}, 1, Shading::kEyelight, {}},
+        {"rows.png", "png", {"--split", "64"}, 64, Shading::kEyelight, {}},
+        // A tile in one band per row.
+        {"tile.png",
+         "png",
+         {"--tile", "10,5,50,33", "--split", "33"},
+         33,
+         Shading::kEyelight,
+         PixelRegion{10, 5, 50, 33}},
+    };
+    for (const Case& k : cases) {
+        SCOPED_TRACE(k.file);
+        std::vector<std::string> args = {
+            "render", id_, "-o", path(k.file), "--size", "96x64", "--connections", "3"};
+        args.insert(args.end(), k.args.begin(), k.args.end());
+        const double before = renders(*server_);
+        const CliRun run = kdrt(args);
+        ASSERT_EQ(run.exit_code, 0) << run.err;
+        const uint32_t width = k.tile ? k.tile->width : 96, height = k.tile ? k.tile->height : 64;
+        EXPECT_TRUE(contains(run.out, "wrote " + path(k.file) + " (")) << run.out;
+        EXPECT_TRUE(contains(run.out, std::to_string(width) + "x" + std::to_string(height) + " " +
+                                          std::string(shading_name(k.shading)) + ", " +
+                                          (k.shading == Shading::kAo ? "2" : "1") + " spp, " +
+                                          std::to_string(k.parts) +
+                                          (k.parts == 1 ? " part)" : " parts)")))
+            << run.out;
+        // One synchronous render per band.
+        EXPECT_EQ(renders(*server_) - before, k.parts);
+        RenderRequest same = small_render(id_, k.shading, k.format);
+        if (k.shading == Shading::kAo) same.settings.spp = 2;
+        same.settings.region = k.tile;
+        auto expected = c.render(same);
+        ASSERT_TRUE(expected) << expected.error().to_string();
+        expect_same_image(read_bytes(path(k.file)), *expected, k.format);
+    }
+}
+
+TEST_F(Cli, SplitRenderUsageErrors) {
+    upload_suite_mesh();
+    struct Case {
+        std::vector<std::string> args;
+        std::string message;
+    };
+    const std::vector<Case> cases = {
+        {{"--split", "0"},
+         "kdrt render: --split: \"0\" is not in 1 .. 16384 (bands of rows, at most one per row of "
+         "the frame or tile)"},
+        {{"--split", "16385"}, "--split: \"16385\" is not in 1 .. 16384"},
+        {{"--split", "two"}, "--split: \"two\" is not a whole number"},
+        {{"--size", "96x64", "--split", "65"},
+         "kdrt render: --split: 65 bands, but the frame has only 64 rows (at most one band per "
+         "row)"},
+        {{"--tile", "0,0,8,4", "--split", "5"},
+         "--split: 5 bands, but the tile has only 4 rows (at most one band per row)"},
+        {{"--connections", "2"}, "kdrt render: --connections applies to --split renders only"},
+        {{"--split", "2", "--connections", "0"}, "--connections: \"0\" is not in 1 .. 64"},
+        {{"--split", "2", "--connections", "65"}, "--connections: \"65\" is not in 1 .. 64"},
+    };
+    const double before = renders(*server_);
+    for (const Case& c : cases) {
+        std::string joined;
+        for (const auto& a : c.args) joined += a + " ";
+        SCOPED_TRACE(joined);
+        std::vector<std::string> args = {"render", id_, "-o", path("never.png")};
+        args.insert(args.end(), c.args.begin(), c.args.end());
+        const CliRun run = kdrt(args);
+        // 2: a usage error, found here (a server's refusal exits 1).
+        EXPECT_EQ(run.exit_code, 2) << run.err;
+        EXPECT_TRUE(contains(run.err, c.message)) << run.err;
+        EXPECT_TRUE(run.out.empty()) << run.out;
+        EXPECT_FALSE(std::filesystem::exists(path("never.png")));
+    }
+    EXPECT_EQ(renders(*server_), before);
+}
+
 // ---- rays, trace -------------------------------------------------------------------------------
 
 TEST_F(Cli, RaysWritesTheEngineRaySets) {
@@ -773,6 +872,36 @@ TEST_F(Cli, Injected503sAreRetriedByTheCli) {
     EXPECT_TRUE(contains(busy.err, "kdrt meshes: 503 Over capacity: injected 503 number 3"))
         << busy.err;
     EXPECT_EQ(always.requests(), 3);
+}
+
+TEST(CliSplit, BandsOverTheServersRawLimitAreRefusedAndMoreBandsFit) {
+    TempDir dir;
+    // 4 KiB: a 32 x 16 band (32 + 6144 bytes raw) is refused, a 32 x 8 band (32 + 3072) fits.
+    ServerProcess server(
+        {.cache_dir = dir.path() / "cache", .args = {"--max-raw-render-bytes", "4K"}});
+    const std::string url = server_url(server);
+    Client c(url, fast_options());
+    Rng rng(test_seed() + 41);
+    auto mesh = c.upload(random_soup(rng, 300));
+    ASSERT_TRUE(mesh) << mesh.error().to_string();
+    const std::string out = (dir.path() / "x.png").string();
+    const CliRun refused = run_cli(
+        {"render", mesh->id, "-o", out, "--size", "32x32", "--split", "2", "--server", url});
+    EXPECT_EQ(refused.exit_code, 1) << refused.err;
+    EXPECT_TRUE(contains(refused.err,
+                         "kdrt render: 400 Bad request: raw render answer of 6176 bytes (32 x 16 "
+                         "tile x 3 floats + a 32-byte header) exceeds max_raw_render_bytes 4096"))
+        << refused.err;
+    EXPECT_FALSE(std::filesystem::exists(out));
+    const CliRun fits = run_cli(
+        {"render", mesh->id, "-o", out, "--size", "32x32", "--split", "4", "--server", url});
+    ASSERT_EQ(fits.exit_code, 0) << fits.err;
+    RenderRequest same = small_render(mesh->id);
+    same.settings.width = 32;
+    same.settings.height = 32;
+    auto expected = c.render(same);
+    ASSERT_TRUE(expected) << expected.error().to_string();
+    EXPECT_EQ(read_bytes(out), *expected);
 }
 
 TEST(CliAuth, TokenFromFlagOrEnvironment) {

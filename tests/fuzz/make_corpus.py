@@ -56,6 +56,26 @@ write("distances", "bad_flags", header(b"KDRD", 1, flags=2) + found)
 write("distances", "points_text", "x,y,z\n1,2,3\n# c\n4 5 6 0 0 1\n")
 write("distances", "points_text_bad", "1 2 3\n4 nan 6\n")
 
+# ---- KDRI (raw render answers, raw_image target) ----
+def kdri(channels, width, height, x, y, frame_width, frame_height, pixels, version=1, magic=b"KDRI"):
+    return (magic + struct.pack("<HHIIIIII", version, channels, width, height, x, y, frame_width,
+                                frame_height) + struct.pack("<%df" % len(pixels), *pixels))
+
+
+write("raw_image", "valid_rgb", kdri(3, 2, 1, 1, 1, 4, 2, [0.5, 0.25, 1, 0, 0, 0]))
+write("raw_image", "valid_rgba", kdri(4, 1, 1, 0, 0, 1, 1, [NAN, INF, -0.0, 1]))
+write("raw_image", "valid_frame", kdri(3, 3, 2, 0, 0, 3, 2, [k / 18 for k in range(18)]))
+write("raw_image", "bad_magic", kdri(3, 1, 1, 0, 0, 1, 1, [0, 0, 0], magic=b"KDRH"))
+write("raw_image", "bad_version", kdri(3, 1, 1, 0, 0, 1, 1, [0, 0, 0], version=2))
+write("raw_image", "bad_channels", kdri(2, 1, 1, 0, 0, 1, 1, [0, 0]))
+write("raw_image", "empty_region", kdri(3, 0, 1, 0, 0, 1, 1, []))
+write("raw_image", "outside_frame", kdri(3, 2, 1, 1, 0, 2, 1, [0] * 6))
+write("raw_image", "wrapping_region", kdri(3, 2, 1, 0xFFFFFFFF, 0, 1, 1, [0] * 6))
+write("raw_image", "huge_region", kdri(4, 0xFFFFFFFF, 0xFFFFFFFF, 0, 0, 0xFFFFFFFF, 0xFFFFFFFF, []))
+write("raw_image", "short_body", kdri(3, 2, 1, 0, 0, 2, 1, [0] * 5))
+write("raw_image", "long_body", kdri(3, 1, 1, 0, 0, 1, 1, [0] * 4))
+write("raw_image", "truncated_header", b"KDRI\x01\x00\x03\x00")
+
 # ---- KDRM / KDRC ----
 def kdrm(flags, record, rays, offsets, counts, records, max_hits=2, reserved=0):
     return (struct.pack("<4sHHIIQII", b"KDRM", 1, flags, rays, record, offsets[-1], max_hits,

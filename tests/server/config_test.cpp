@@ -7,6 +7,7 @@
 #include <cstdio>
 #include <filesystem>
 #include <fstream>
+#include <limits>
 
 #include "kdrt/mesh.h"
 #include "kdrt/proto/config_json.h"
@@ -198,6 +199,12 @@ TEST(Config, RangesAreTheLimitsOfTheLayerThatEnforcesThem) {
     EXPECT_EQ(
         parse_error({"--png-compression", "10"}),
         "--png-compression: \"10\" is outside 0.." + std::to_string(proto::kMaxPngCompression));
+    // The smallest raw render answers one RGB pixel: its KDRI header and 3 floats, 44 bytes.
+    EXPECT_EQ(parse_ok({"--max-raw-render-bytes", "44"}).config.max_raw_render_bytes, 44u);
+    EXPECT_EQ(parse_ok({"--max-raw-render-bytes", "64M"}).config.max_raw_render_bytes, 64u << 20);
+    EXPECT_EQ(parse_error({"--max-raw-render-bytes", "43"}),
+              "--max-raw-render-bytes: \"43\" is outside 44.." +
+                  std::to_string(std::numeric_limits<uint64_t>::max()));
 }
 
 TEST(Config, ByteCountsAndListenAddresses) {

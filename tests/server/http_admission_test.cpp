@@ -157,6 +157,67 @@ TEST(HttpAdmission, RendersOverTheCostLimitAreRefusedBeforeTheyStart) {
         << p.detail;
 }
 
+TEST(HttpAdmission, RawRendersOverTheSizeLimitAreRefusedBeforeTheyStart) {
+    TempDir dir;
+    // 4 KiB: a 16 x 16 RGB raw answer (32 + 3072 bytes) fits, a 20 x 20 one (32 + 4800) not.
+    ServerProcess server(
+        {.cache_dir = dir.path() / "cache", .args = {"--max-raw-render-bytes", "4K"}});
+    ASSERT_TRUE(server.running());
+    auto cli = server.client();
+    const std::string id = upload_id(*cli, small_mesh(6));
+    const auto render = [&](const std::string& members, bool async = false) {
+        httplib::Headers headers;
+        if (async) headers.emplace("Prefer", "respond-async");
+        return cli->Post("/v1/render", headers, "{\"mesh\":\"" + id + "\"," + members + "}",
+                         "application/json");
+    };
+    auto fits = render("\"width\":16,\"height\":16,\"format\":\"raw\"");
+    ASSERT_TRUE(fits);
+    EXPECT_EQ(fits->status, 200) << fits->body;
+    EXPECT_EQ(fits->body.size(), 32u + 16 * 16 * 12);
+    const double renders = server.metric("kdrt_renders_total").value_or(-1);
+    EXPECT_EQ(renders, 1.0);
+
+    auto p = expect_problem(render("\"width\":20,\"height\":20,\"format\":\"raw\""), 400);
+    EXPECT_EQ(p.detail,
+              "raw render answer of 4832 bytes (20 x 20 frame x 3 floats + a 32-byte header) "
+              "exceeds max_raw_render_bytes 4096; ask for smaller tiles (kdrt render --split N "
+              "renders a frame as N bands)");
+    EXPECT_EQ(p.limit, 4096u);
+    // An async raw job is refused the same way, before it is queued.
+    p = expect_problem(render("\"width\":20,\"height\":20,\"format\":\"raw\"", true), 400);
+    EXPECT_NE(p.detail.find("exceeds max_raw_render_bytes 4096"), std::string::npos) << p.detail;
+    // The limit is checked before the mesh is looked up.
+    p = expect_problem(cli->Post("/v1/render",
+                                 "{\"mesh\":\"" + std::string(64, 'e') +
+                                     "\",\"width\":20,\"height\":20,\"format\":\"raw\"}",
+                                 "application/json"),
+                       400);
+    EXPECT_NE(p.detail.find("max_raw_render_bytes"), std::string::npos) << p.detail;
+    // Nothing was rendered.
+    EXPECT_EQ(server.metric("kdrt_renders_total").value_or(-1), renders);
+
+    // A tile is what is answered: a 10 x 10 tile of the 20 x 20 frame fits, a 20 x 18 one not.
+    auto tile = render(
+        "\"width\":20,\"height\":20,\"format\":\"raw\",\"tile\":{\"x\":5,\"y\":5,\"w\":10,\"h\":"
+        "10}");
+    ASSERT_TRUE(tile);
+    EXPECT_EQ(tile->status, 200) << tile->body;
+    p = expect_problem(
+        render("\"width\":20,\"height\":20,\"format\":\"raw\",\"tile\":{\"x\":0,\"y\":2,\"w\":20,"
+               "\"h\":18}"),
+        400);
+    EXPECT_EQ(p.detail.find("raw render answer of 4352 bytes (20 x 18 tile x 3 floats"), 0u)
+        << p.detail;
+    // Encoded formats are not bound by it.
+    for (const char* format : {"png", "exr"}) {
+        auto encoded =
+            render("\"width\":20,\"height\":20,\"format\":\"" + std::string(format) + "\"");
+        ASSERT_TRUE(encoded);
+        EXPECT_EQ(encoded->status, 200) << format << ": " << encoded->body;
+    }
+}
+
 /// A render of a minute or more on this machine (4M pixels x 16 samples x 17 rays).
 std::string long_render(const std::string& id) {
     return "{\"mesh\":\"" + id + "\",\"width\":2048,\"height\":2048,\"shading\":\"ao\",\"spp\":16}";

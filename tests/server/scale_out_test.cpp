@@ -9,6 +9,7 @@
 #include <unistd.h>
 
 #include <atomic>
+#include <cstring>
 #include <fstream>
 #include <map>
 #include <set>
@@ -19,6 +20,7 @@
 #include "http_test_util.h"
 #include "kdrt/client/client.h"
 #include "kdrt/proto/mesh_id.h"
+#include "kdrt/proto/raw_image.h"
 
 extern char** environ;
 
@@ -173,6 +175,42 @@ protected:
                 "status=\"200\"}")
             .value_or(0);
     }
+    /// `value()` once it equals `expected`, else its value after 5 s. The per-request counters
+    /// are updated just after the answer is sent, so a client may see the answer first.
+    template <typename F>
+    static double counted(F&& value, double expected) {
+        double now = value();
+        for (int i = 0; i < 100 && now != expected; ++i) {
+            std::this_thread::sleep_for(std::chrono::milliseconds(50));
+            now = value();
+        }
+        return now;
+    }
+    /// A mesh uploaded through `cli` whose split keys "<id>.0" .. "<id>.<parts - 1>" do not all
+    /// hash to one replica, and the replica of each key (asked of nginx: the X-Kdrt-Replica of a
+    /// GET of the mesh with ?route=KEY). The ring depends on the replicas' ephemeral ports: six
+    /// keys all land on one of three replicas for one mesh in 243, so such a mesh is replaced by
+    /// another (the spread is what the split tests check, not the ring's luck).
+    static std::pair<Mesh, std::string> spread_mesh(httplib::Client& cli, uint64_t seed,
+                                                    size_t triangles, unsigned parts,
+                                                    std::vector<std::string>& key_replicas) {
+        key_replicas.assign(parts, "");
+        for (uint64_t attempt = 0; attempt < 8; ++attempt) {
+            Mesh mesh = small_mesh(seed + attempt, triangles);
+            std::string id = upload_id(cli, mesh);
+            for (unsigned k = 0; k < parts; ++k) {
+                auto res = retrying([&] {
+                    return cli.Get("/v1/meshes/" + id + "?route=" + id + "." + std::to_string(k));
+                });
+                EXPECT_TRUE(res && res->status == 200) << (res ? res->body : "no answer");
+                key_replicas[k] = res ? res->get_header_value("X-Kdrt-Replica") : "";
+            }
+            if (std::set<std::string>(key_replicas.begin(), key_replicas.end()).size() > 1)
+                return {std::move(mesh), std::move(id)};
+        }
+        ADD_FAILURE() << "8 meshes' split keys all hashed to one replica";
+        return {};
+    }
     /// Which replica answers GET /v1/meshes/{id} through nginx.
     static std::string owner(httplib::Client& cli, const std::string& id) {
         auto res = retrying([&] { return cli.Get("/v1/meshes/" + id); });
@@ -215,7 +253,9 @@ TEST_F(ScaleOut, EveryRequestForAMeshLandsOnOneReplica) {
     }
     // The replicas' own counts agree: each traced exactly the meshes that hash to it.
     for (size_t r = 0; r < replicas_.size(); ++r)
-        EXPECT_EQ(traces_on(r), expected_traces[names_[r]]) << names_[r];
+        EXPECT_EQ(counted([&] { return traces_on(r); }, expected_traces[names_[r]]),
+                  expected_traces[names_[r]])
+            << names_[r];
     EXPECT_GT(used.size(), 1u) << "12 meshes all hashed to one replica";
     // Every replica lists every mesh (the store is the index), whichever replica stored it.
     for (const auto& replica : replicas_) {
@@ -231,14 +271,17 @@ TEST_F(ScaleOut, EveryRequestForAMeshLandsOnOneReplica) {
 
 TEST_F(ScaleOut, ASplitBatchSpreadsOverReplicasAndEqualsTheOneReplicaAnswer) {
     auto nginx = start_nginx();
-    const Mesh mesh = small_mesh(9050, 2000);
-    const std::string id = upload_id(*nginx->client(), mesh);
+    std::vector<std::string> key_replicas;
+    const auto [mesh, id] = spread_mesh(*nginx->client(), 9050, 2000, 6, key_replicas);
+    ASSERT_FALSE(id.empty());
     const auto rays = random_rays(mesh_bounds(mesh), 60000, 17);
     // The answer of one replica, asked directly, unsplit.
     auto direct = trace(*replicas_[0]->client(), id, rays);
     ASSERT_TRUE(direct);
     ASSERT_EQ(direct->status, 200) << direct->body;
 
+    // The direct trace is counted on replica 0 (the replicas are new: nothing else was traced).
+    EXPECT_EQ(counted([&] { return traces_on(0); }, 1.0), 1.0);
     std::vector<double> before;
     for (size_t r = 0; r < replicas_.size(); ++r) before.push_back(traces_on(r));
     ClientOptions options;
@@ -247,15 +290,98 @@ TEST_F(ScaleOut, ASplitBatchSpreadsOverReplicasAndEqualsTheOneReplicaAnswer) {
     auto hits = client.intersect(id, rays);
     ASSERT_TRUE(hits) << hits.error().to_string();
     EXPECT_EQ(bytes_to_string(proto::encode_hits(*hits)), direct->body);
-    double parts = 0;
+    const auto parts_served = [&] {
+        double parts = 0;
+        for (size_t r = 0; r < replicas_.size(); ++r) parts += traces_on(r) - before[r];
+        return parts;
+    };
+    EXPECT_EQ(counted(parts_served, 6.0), 6.0);
     int serving = 0;
-    for (size_t r = 0; r < replicas_.size(); ++r) {
-        const double served = traces_on(r) - before[r];
-        parts += served;
-        serving += served > 0;
-    }
-    EXPECT_EQ(parts, 6.0);
+    for (size_t r = 0; r < replicas_.size(); ++r) serving += traces_on(r) - before[r] > 0;
     EXPECT_GT(serving, 1) << "all six parts hashed to one replica";
+}
+
+/// Images a replica rendered (kdrt_renders_total: counted before the answer is sent, so a
+/// client that has its answer sees it counted; the per-request counters follow the answer).
+double renders_on(const ServerProcess& replica) {
+    return replica.metric("kdrt_renders_total").value_or(0);
+}
+
+TEST_F(ScaleOut, ASplitRenderSpreadsOverReplicasAndEqualsTheOneReplicaFrame) {
+    constexpr unsigned kParts = 6;
+    auto nginx = start_nginx();
+    auto cli = nginx->client();
+    // The replica each band's routing key "<id>.<k>" hashes to.
+    std::vector<std::string> band_replica;
+    const auto [mesh, id] = spread_mesh(*cli, 9600, 1500, kParts, band_replica);
+    ASSERT_FALSE(id.empty());
+    const std::set<std::string> expected_replicas(band_replica.begin(), band_replica.end());
+
+    // The frame of one replica, asked directly and unsplit.
+    const std::string request = "{\"mesh\":\"" + id + "\",\"width\":96,\"height\":64}";
+    auto direct = replicas_[0]->client()->Post("/v1/render", request, "application/json");
+    ASSERT_TRUE(direct);
+    ASSERT_EQ(direct->status, 200) << direct->body;
+    ASSERT_EQ(direct->get_header_value("Content-Type"), "image/png");
+    auto direct_raw = replicas_[0]->client()->Post(
+        "/v1/render", "{\"mesh\":\"" + id + "\",\"width\":96,\"height\":64,\"format\":\"raw\"}",
+        "application/json");
+    ASSERT_TRUE(direct_raw);
+    ASSERT_EQ(direct_raw->status, 200) << direct_raw->body;
+    auto whole = proto::decode_raw_image(string_to_bytes(direct_raw->body));
+    ASSERT_TRUE(whole) << whole.error();
+
+    const auto served_since = [&](const std::vector<double>& before) {
+        std::map<std::string, double> served;
+        for (size_t r = 0; r < replicas_.size(); ++r) {
+            const double n = renders_on(*replicas_[r]) - before[r];
+            if (n != 0) served[names_[r]] = n;
+        }
+        return served;
+    };
+    std::map<std::string, double> expected_served;
+    for (const std::string& replica : band_replica) ++expected_served[replica];
+    std::vector<double> before;
+    for (const auto& replica : replicas_) before.push_back(renders_on(*replica));
+
+    // The kdrt CLI through nginx: the PNG is the one replica's file, byte for byte.
+    const fs::path out = dir_.path() / "split.png";
+    const std::string url = "http://127.0.0.1:" + std::to_string(nginx->port());
+    const auto [code, output] =
+        run_shell(std::string("env -u KDRT_TOKEN -u KDRT_SERVER ") + KDRT_CLI_BINARY +
+                  " --server " + url + " render " + id + " -o " + out.string() +
+                  " --size 96x64 --split " + std::to_string(kParts) + " --quiet");
+    ASSERT_EQ(code, 0) << output;
+    EXPECT_NE(output.find("6 parts on " + std::to_string(expected_replicas.size()) + " replicas"),
+              std::string::npos)
+        << output;
+    std::ifstream file(out, std::ios::binary);
+    const std::string png(std::istreambuf_iterator<char>(file), {});
+    EXPECT_EQ(png.size(), direct->body.size());
+    EXPECT_TRUE(png == direct->body) << "the split render's PNG differs from the one replica's";
+    // Each band was rendered by the replica its key hashes to: more than one served the frame.
+    EXPECT_EQ(served_since(before), expected_served);
+
+    // The client library: the stitched float pixels are the one replica's, bit for bit, and
+    // each band's answer names the replica its key hashes to.
+    before.clear();
+    for (const auto& replica : replicas_) before.push_back(renders_on(*replica));
+    Client client(url);
+    RenderRequest split_request;
+    split_request.mesh = id;
+    split_request.settings.width = 96;
+    split_request.settings.height = 64;
+    auto frame = client.render_split(split_request, kParts);
+    ASSERT_TRUE(frame) << frame.error().to_string();
+    EXPECT_EQ(frame->replicas, band_replica);
+    EXPECT_EQ(frame->image.width, whole->image.width);
+    EXPECT_EQ(frame->image.height, whole->image.height);
+    EXPECT_EQ(frame->image.channels, whole->image.channels);
+    ASSERT_EQ(frame->image.pixels.size(), whole->image.pixels.size());
+    EXPECT_EQ(std::memcmp(frame->image.pixels.data(), whole->image.pixels.data(),
+                          whole->image.pixels.size() * sizeof(float)),
+              0);
+    EXPECT_EQ(served_since(before), expected_served);
 }
 
 TEST_F(ScaleOut, AsyncJobsAreRoutedToTheReplicaThatRunsThem) {
