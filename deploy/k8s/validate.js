@@ -1,7 +1,7 @@
 // Schema-checks Kubernetes manifests offline with the npm package kubernetes-models (its
-// validate() runs the API's OpenAPI schemas with ajv). Not run by scripts/test, whose
-// dependencies are Debian packages only:
-//   mkdir -p /tmp/k8sval && (cd /tmp/k8sval && npm install kubernetes-models@5.1.0 js-yaml)
+// validate() runs the API's OpenAPI schemas with ajv). The ctest k8s_manifests runs it
+// (tests/deploy/k8s_validate.sh, with the packages of tests/deploy/package-lock.json). By hand:
+//   npm ci --prefix /tmp/k8sval (after copying tests/deploy/package*.json there)
 //   NODE_PATH=/tmp/k8sval/node_modules node deploy/k8s/validate.js deploy/k8s/*.yaml
 const fs = require('fs');
 const path = require('path');
