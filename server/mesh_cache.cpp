@@ -370,8 +370,25 @@ void MeshCache::adopt(const std::string& id) {
     promise.set_value(Err{CacheError{CacheError::Code::kUnknownMesh, "no mesh with id " + id}});
 }
 
+bool MeshCache::deleted_elsewhere(const std::string& id) {
+    // One or two stat calls, next to a request that uses a tree: a replica that still holds the
+    // tree of a mesh deleted through another replica must not go on answering for it. A stat
+    // that fails for another reason than absence keeps the mesh.
+    std::error_code ec;
+    if (std::filesystem::exists(store_.summary_path(id), ec) || ec) return false;
+    if (std::filesystem::exists(store_.mesh_path(id), ec) || ec) return false;
+    std::lock_guard lock(mutex_);
+    const auto it = entries_.find(id);
+    if (it != entries_.end() && it->second->summary && !it->second->flight.valid()) {
+        log_event(LogLevel::kInfo, "cache: mesh deleted from the store elsewhere", {{"mesh", id}});
+        drop(*it->second);
+    }
+    return true;
+}
+
 proto::Result<std::shared_ptr<const KdTree>, CacheError> MeshCache::acquire(const std::string& id) {
-    const std::shared_ptr<Entry> entry = committed(id);
+    std::shared_ptr<Entry> entry = committed(id);
+    if (entry && deleted_elsewhere(id)) entry = nullptr;
     if (!entry) return Err{CacheError{CacheError::Code::kUnknownMesh, "no mesh with id " + id}};
     std::unique_lock lock(mutex_);
     if (!is_current(entry))
@@ -491,7 +508,7 @@ proto::Result<MeshCache::Loaded, CacheError> MeshCache::load(const std::string& 
 
 std::optional<proto::MeshSummary> MeshCache::find(const std::string& id) {
     const std::shared_ptr<Entry> entry = committed(id);
-    if (!entry) return std::nullopt;
+    if (!entry || deleted_elsewhere(id)) return std::nullopt;
     std::lock_guard lock(mutex_);
     if (!entry->summary) return std::nullopt;
     return with_runtime(*entry);

@@ -149,6 +149,10 @@ private:
     void evict_over_budget();                                              // mutex_ held
     void release_memory(Entry& entry);  // mutex_ held: forget the tree and the index
     void drop(Entry& entry);            // mutex_ held
+    /// True when another replica deleted mesh `id` from the shared store (neither its summary nor
+    /// its mesh file is left; remove() deletes the summary first), the entry then forgotten here
+    /// as list() would forget it. mutex_ not held.
+    bool deleted_elsewhere(const std::string& id);
     bool is_current(const std::shared_ptr<Entry>& entry) const;  // mutex_ held
 
     MeshStore& store_;

@@ -568,6 +568,38 @@ TEST_F(ScaleOut, TheSameUploadToTwoReplicasAtOnceIsStoredOnce) {
         EXPECT_TRUE(f.is_directory() || f.path().extension() == ".lock") << f.path();
 }
 
+TEST_F(ScaleOut, AMeshDeletedThroughOneReplicaIsGoneFromEveryReplica) {
+    // Every replica holds the tree in memory (each traced it); the delete reaches one of them.
+    const Mesh mesh = small_mesh(9700, 800);
+    const std::string id = upload_id(*replicas_[0]->client(), mesh);
+    const auto rays = random_rays(mesh_bounds(mesh), 32, 97);
+    for (auto& replica : replicas_) {
+        auto res = trace(*replica->client(), id, rays);
+        ASSERT_TRUE(res);
+        ASSERT_EQ(res->status, 200) << res->body;
+        EXPECT_EQ(res->body, engine_hits(mesh, rays));
+    }
+    auto deleted = replicas_[1]->client()->Delete("/v1/meshes/" + id);
+    ASSERT_TRUE(deleted);
+    ASSERT_EQ(deleted->status, 204) << deleted->body;
+    // The others answer as if they never had it, without a listing or a restart in between.
+    for (size_t r : {size_t{0}, size_t{2}}) {
+        SCOPED_TRACE(names_[r]);
+        auto cli = replicas_[r]->client();
+        expect_problem(trace(*cli, id, rays), 404);
+        auto info = cli->Get("/v1/meshes/" + id);
+        ASSERT_TRUE(info);
+        EXPECT_EQ(info->status, 404) << info->body;
+    }
+    // Uploading it again works everywhere.
+    EXPECT_EQ(upload_id(*replicas_[2]->client(), mesh), id);
+    for (auto& replica : replicas_) {
+        auto res = trace(*replica->client(), id, rays);
+        ASSERT_TRUE(res);
+        EXPECT_EQ(res->status, 200) << res->body;
+    }
+}
+
 TEST_F(ScaleOut, AReplicaStartingBesideALiveOneLeavesItsUncommittedFilesAlone) {
     // Files of a mesh without a summary: a live replica's upload in progress, for all a newly
     // started replica knows. It must not quarantine them (a lone server does, see
