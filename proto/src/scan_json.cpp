@@ -305,7 +305,11 @@ Result<ScanRequest, ScanRequestError> decode_scan_request(std::string_view text,
                                           : "pinhole scan (expected binary or exr)"));
         return req;
     } catch (const Failure& f) {
-        return Err{f.error};
+        ScanRequestError e = f.error;
+        // Every detail names its field, quoted as the request spells it.
+        if (!e.field.empty() && e.detail.find(in_quotes(e.field)) == std::string::npos)
+            e.detail = in_quotes(e.field) + ": " + e.detail;
+        return Err{std::move(e)};
     }
 }
 
