@@ -6,7 +6,9 @@
 ///   "prim" as 32-bit unsigned int, 4294967295 (0xFFFFFFFF) for a miss;
 ///   with normals, "N.X", "N.Y", "N.Z" as 32-bit float (0 0 0 for a miss).
 /// The header also carries the string attribute "kdrt:depth_kind" ("depth" or "range").
-/// Every value is stored exactly (no half floats), so decoding gives back the same bits.
+/// Every value is stored exactly (no half floats), so decoding gives back the same bits. The file
+/// also holds OpenImageIO's "DateTime" (the time of encoding): the only bytes two encodings of
+/// one image differ in.
 
 #include <cstddef>
 #include <span>
