@@ -1,6 +1,7 @@
 // POST /v1/meshes/{id}/scan: a JSON sensor description -> a KDRZ depth image (or EXR) for a
 // pinhole camera, a KDRL point cloud (or PLY) for a lidar (kdrt/scan.h).
 
+#include <optional>
 #include <string>
 
 #include "http_routes.h"
@@ -35,6 +36,41 @@ constexpr uint64_t kBytesPerReturn = 96;
 
 proto::Problem field_problem(const std::string& field, const std::string& why) {
     return make_problem(ProblemKind::kBadRequest, proto::in_quotes(field) + ": " + why);
+}
+
+/// Completes `request` with the engine (a look-at camera as intrinsics and a pose, a vertical
+/// field of view as elevations) and checks it (kdrt::validate); sets the rays it traces and the
+/// batch_memory_budget bytes it needs. A problem naming the field in the request's spelling when
+/// the sensor cannot scan.
+std::optional<proto::Problem> complete_and_check(proto::ScanRequest& request, uint64_t& rays,
+                                                 uint64_t& bytes) {
+    const std::string prefix(proto::scan_field_prefix(request));
+    try {
+        if (request.lidar) {
+            LidarSpec& spec = request.lidar_spec;
+            if (request.vertical_fov)
+                spec.elevation_deg =
+                    lidar_elevations(request.fov_lower, request.fov_upper, request.channels);
+            validate(spec);
+            rays = uint64_t{spec.elevation_deg.size()} * spec.azimuth_steps;
+            bytes = 64 + rays * (kBytesPerBeam + kBytesPerReturn * spec.returns);
+        } else {
+            if (request.look_at) {
+                const PinholeCamera pin = pinhole_from_look_at(request.camera, request.camera_width,
+                                                               request.camera_height);
+                request.pinhole.intrinsics = pin.intrinsics;
+                request.pinhole.pose = pin.pose;
+            }
+            validate(request.pinhole);
+            rays = uint64_t{request.pinhole.intrinsics.width} * request.pinhole.intrinsics.height;
+            bytes = 64 + rays * kBytesPerPixel;
+        }
+    } catch (const ScanError& e) {
+        return field_problem(prefix + e.field(), e.what());
+    } catch (const CameraError& e) {
+        return field_problem("pinhole.camera", e.what());
+    }
+    return std::nullopt;
 }
 
 /// A scan refused by batch_memory_budget: 413 if it could never fit, else 503.
@@ -72,6 +108,7 @@ void Routes::scan(const httplib::Request& req, httplib::Response& res,
     auto body = read_body(req, res, reader, svc_.config.max_json_bytes, svc_.config.max_json_bytes,
                           svc_.store.tmp_dir().string(), "a JSON request (max_json_bytes)");
     if (!body) return;
+    request_context().bytes_in += body->size();
     const std::string_view text = as_text(body->bytes());
     if (auto shape = json_shape_error(text, kScanJsonShape)) {
         return reply_problem(req, res,
@@ -95,40 +132,16 @@ void Routes::scan(const httplib::Request& req, httplib::Response& res,
     }
     // The engine's checks (a rigid pose, the intrinsics, the range window, the look-at camera),
     // before any work.
-    const std::string prefix(proto::scan_field_prefix(*request));
     uint64_t rays = 0, bytes = 0;
-    try {
-        if (request->lidar) {
-            LidarSpec& spec = request->lidar_spec;
-            if (request->vertical_fov)
-                spec.elevation_deg =
-                    lidar_elevations(request->fov_lower, request->fov_upper, request->channels);
-            validate(spec);
-            rays = uint64_t{spec.elevation_deg.size()} * spec.azimuth_steps;
-            bytes = rays * (kBytesPerBeam + kBytesPerReturn * spec.returns);
-        } else {
-            if (request->look_at) {
-                const PinholeCamera pin = pinhole_from_look_at(
-                    request->camera, request->camera_width, request->camera_height);
-                request->pinhole.intrinsics = pin.intrinsics;
-                request->pinhole.pose = pin.pose;
-            }
-            validate(request->pinhole);
-            rays = uint64_t{request->pinhole.intrinsics.width} * request->pinhole.intrinsics.height;
-            bytes = rays * kBytesPerPixel;
-        }
-    } catch (const ScanError& e) {
-        return reply_problem(req, res, field_problem(prefix + e.field(), e.what()));
-    } catch (const CameraError& e) {
-        return reply_problem(req, res, field_problem("pinhole.camera", e.what()));
-    }
+    if (auto problem = complete_and_check(*request, rays, bytes))
+        return reply_problem(req, res, std::move(*problem));
     // The body is read already: no acquire_tree / take_budget_bytes (they discard the body).
     const std::string id = req.matches[1];
     auto acquired = svc_.cache.acquire(id);
     if (!acquired) return reply_problem(req, res, mesh_lookup_problem(acquired.error(), id));
     const std::shared_ptr<const KdTree> tree = std::move(acquired).value();
-    auto hold = svc_.batch_budget.try_take(64 + bytes);
-    if (!hold) return reply_problem(req, res, budget_problem(svc_.batch_budget, 64 + bytes));
+    auto hold = svc_.batch_budget.try_take(bytes);
+    if (!hold) return reply_problem(req, res, budget_problem(svc_.batch_budget, bytes));
     request_context().rays = rays;
     svc_.metrics.add_rays(rays, false);
     const KdTree& t = *tree;
