@@ -6,7 +6,9 @@
 Starts BUILD_DIR/server/kdrt-server (use a release build) with --threads THREADS on an
 ephemeral port, uploads the mesh (default tests/data/bunny00.off), warms up, then times
 REQUESTS sequential requests on one keep-alive connection for each case:
-  lidar    64 channels (vertical_fov -25..15 deg) x 2048 azimuth steps, 1 and 2 returns, KDRL
+  lidar    64 channels (vertical_fov -25..15 deg) x 2048 azimuth steps, 1 and 2 returns, KDRL,
+           beside the bunny (most beams miss), and inside a room: the bunny in a closed box
+           (every beam returns)
   pinhole  640 x 480 depth, KDRZ (and with normals)
 and prints median and p90 wall time per request (sending the JSON, tracing, receiving the whole
 answer), answer bytes, and rays (and points) per second at the median. Standard library only.
@@ -45,13 +47,41 @@ def start_server(build, threads, workdir):
     sys.exit("kdrt-server did not become ready")
 
 
-def upload(port, path):
-    with open(path, "rb") as f:
-        data = f.read()
+def upload(port, path, data=None, media_type="application/x-off"):
+    if data is None:
+        with open(path, "rb") as f:
+            data = f.read()
     req = urllib.request.Request(f"http://127.0.0.1:{port}/v1/meshes", data=data, method="POST",
-                                 headers={"Content-Type": "application/x-off"})
+                                 headers={"Content-Type": media_type})
     with urllib.request.urlopen(req, timeout=600) as r:
         return json.loads(r.read())
+
+
+def room_obj(off_path, scale):
+    """The OFF mesh plus a closed box around it, `scale` times its size, as OBJ text."""
+    words = open(off_path).read().split()
+    assert words[0] == "OFF"
+    nv, nf = int(words[1]), int(words[2])
+    vs = [tuple(float(w) for w in words[4 + 3 * i:7 + 3 * i]) for i in range(nv)]
+    k = 4 + 3 * nv
+    faces = []
+    for _ in range(nf):
+        n = int(words[k])
+        faces.append([int(w) for w in words[k + 1:k + 1 + n]])
+        k += 1 + n
+    lo = [min(v[a] for v in vs) for a in range(3)]
+    hi = [max(v[a] for v in vs) for a in range(3)]
+    c = [(a + b) / 2 for a, b in zip(lo, hi)]
+    h = scale * max(b - a for a, b in zip(lo, hi)) / 2
+    box = [(c[0] + sx * h, c[1] + sy * h, c[2] + sz * h)
+           for sz in (-1, 1) for sy in (-1, 1) for sx in (-1, 1)]
+    quads = [(0, 2, 3, 1), (4, 5, 7, 6), (0, 1, 5, 4), (2, 6, 7, 3), (1, 3, 7, 5), (0, 4, 6, 2)]
+    lines = [f"v {x!r} {y!r} {z!r}" for x, y, z in vs + box]
+    lines += ["f " + " ".join(str(i + 1) for i in f) for f in faces]
+    for q in quads:
+        a, b, cc, d = (nv + i + 1 for i in q)
+        lines += [f"f {a} {b} {cc}", f"f {a} {cc} {d}"]
+    return "\n".join(lines) + "\n"
 
 
 def percentile(values, p):
@@ -112,11 +142,17 @@ def main():
                                    "width": 640, "height": 480}, "pose": cam_pose,
                     "normals": True}}),
             ]
+            room = upload(port, None, room_obj(args.mesh, 4.0).encode(), "model/obj")
+            room_pose = [[1, 0, 0, centre[0] + 1.2 * radius], [0, 1, 0, centre[1]],
+                         [0, 0, 1, centre[2]], [0, 0, 0, 1]]
+            cases.insert(2, ("lidar 64 x 2048 in a room, 2 returns", 64 * 2048, {"lidar": {
+                "vertical_fov": [-25, 15], "channels": 64, "azimuth_steps": 2048, "returns": 2,
+                "pose": room_pose}}, room["id"]))
             conn = http.client.HTTPConnection("127.0.0.1", port, timeout=600)
-            path = f"/v1/meshes/{mesh['id']}/scan"
             print(f"mesh {os.path.basename(args.mesh)}: {mesh['triangles']} triangles; "
                   f"kdrt-server --threads {args.threads}; {args.requests} requests per case")
-            for name, rays, body in cases:
+            for name, rays, body, *mesh_id in cases:
+                path = f"/v1/meshes/{(mesh_id or [mesh['id']])[0]}/scan"
                 times, data = time_case(conn, path, body, args.requests)
                 med, p90 = statistics.median(times), percentile(times, 0.9)
                 extra = ""
