@@ -311,13 +311,13 @@ TEST(ScanLidar, ReturnsMatchBruteForceOnTheBunny) {
     LidarSpec spec = lidar_at(origin, 10, steps);
     spec.returns = 3;
     const size_t all = check_lidar(s.tree, s.tris, spec);
-    EXPECT_GT(all, 50u);
+    EXPECT_GT(all, steps / 2) << "the bunny should fill part of the view";
     // A range window drops the near and far hits.
     spec.min_range = static_cast<float>(1.2 * s.radius);
     spec.max_range = static_cast<float>(1.8 * s.radius);
     spec.returns = 1;
     const size_t windowed = check_lidar(s.tree, s.tris, spec);
-    EXPECT_GT(windowed, 10u);
+    EXPECT_GT(windowed, steps / 8);
     EXPECT_LT(windowed, all);
 }
 
