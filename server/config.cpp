@@ -140,7 +140,9 @@ const std::vector<Setting>& settings() {
          .help = "name of this replica behind a proxy: prefixes job ids, X-Kdrt-Replica header",
          .text = &ServerConfig::replica},
         {.key = "memory_budget",
-         .help = "bytes of kD-trees kept in memory; least recently used are evicted",
+         .help = "bytes of kD-trees (and their distance surface indexes) kept in memory; least "
+                 "recently "
+                 "used are evicted",
          .u64 = &ServerConfig::memory_budget,
          .bytes = true},
         {.key = "preload",

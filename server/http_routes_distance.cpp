@@ -86,7 +86,7 @@ void Routes::distance(const httplib::Request& req, httplib::Response& res,
     std::vector<ClosestPoint> answers(points->size());
     const DistanceOptions options{query->max_distance, query->signed_query};
     svc_.compute.run([&] {
-        index = svc_.surfaces.get(tree);
+        index = svc_.cache.surface_index(req.matches[1], tree);
         closest_points(*tree, *index, *points, answers, options);
     });
     res.set_header("X-Kdrt-Surface", surface_text(*index));

@@ -62,6 +62,10 @@ uint64_t tree_memory_bytes(const KdTree& tree) noexcept {
            (tree.tri_ids.capacity() + tree.tri_slots.capacity()) * sizeof(uint32_t);
 }
 
+uint64_t surface_memory_bytes(const SurfaceIndex& index) noexcept {
+    return sizeof(SurfaceIndex) + index.pseudonormals.capacity() * sizeof(float);
+}
+
 proto::MeshSummary make_summary(std::string id, const Mesh& mesh, const KdTree& tree) {
     proto::MeshSummary s;
     s.id = std::move(id);
@@ -599,24 +603,60 @@ void MeshCache::make_resident(Entry& entry, std::shared_ptr<const KdTree> tree) 
     lru_.push_front(&entry);
     entry.lru_position = lru_.begin();
     entry.in_lru = true;
+    evict_over_budget();
+}
+
+void MeshCache::evict_over_budget() {
     while (memory_bytes_ > memory_budget_ && lru_.size() > 1) {
         Entry* victim = lru_.back();
         lru_.pop_back();
         victim->in_lru = false;
-        memory_bytes_ -= victim->tree_bytes;
-        victim->tree_bytes = 0;
-        victim->tree.reset();
+        release_memory(*victim);
         metrics_.cache_evictions.fetch_add(1);
         log_event(LogLevel::kDebug, "cache: evicted", {{"mesh", victim->id}});
     }
+}
+
+void MeshCache::release_memory(Entry& entry) {
+    memory_bytes_ -= entry.tree_bytes + entry.surface_bytes;
+    entry.tree_bytes = 0;
+    entry.surface_bytes = 0;
+    entry.tree.reset();
+    entry.surface.reset();
+}
+
+std::shared_ptr<const SurfaceIndex> MeshCache::surface_index(
+    const std::string& id, const std::shared_ptr<const KdTree>& tree) {
+    const auto resident = [&]() -> Entry* {  // mutex_ held
+        const auto it = entries_.find(id);
+        if (it == entries_.end() || !it->second->in_lru || it->second->tree != tree) return nullptr;
+        return it->second.get();
+    };
+    {
+        std::lock_guard lock(mutex_);
+        if (Entry* entry = resident(); entry && entry->surface) {
+            lru_.splice(lru_.begin(), lru_, entry->lru_position);
+            return entry->surface;
+        }
+    }
+    auto built = std::make_shared<const SurfaceIndex>(build_surface_index(*tree));
+    std::lock_guard lock(mutex_);
+    Entry* entry = resident();
+    if (!entry) return built;  // evicted or deleted meanwhile: this request's alone
+    lru_.splice(lru_.begin(), lru_, entry->lru_position);
+    if (entry->surface) return entry->surface;  // another first use won
+    entry->surface = std::move(built);
+    entry->surface_bytes = surface_memory_bytes(*entry->surface);
+    memory_bytes_ += entry->surface_bytes;
+    evict_over_budget();
+    return entry->surface;
 }
 
 void MeshCache::drop(Entry& entry) {
     if (entry.in_lru) {
         lru_.erase(entry.lru_position);
         entry.in_lru = false;
-        memory_bytes_ -= entry.tree_bytes;
-        entry.tree.reset();
+        release_memory(entry);
     }
     disk_bytes_ -= entry.disk_bytes;
     const std::string id = entry.id;  // erase() must not read a key owned by the erased node

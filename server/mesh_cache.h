@@ -20,6 +20,9 @@
 /// - Nothing is acknowledged before it is durable; a full disk is kNoSpace (507).
 /// - Eviction drops the cache's reference only: traces in flight keep their tree alive. The
 ///   most recently used tree stays resident even if it alone exceeds the budget.
+/// - The budget counts each resident tree's arrays and, once a distance query has asked for it,
+///   its SurfaceIndex (kdrt/distance.h: pseudonormals, about 84 bytes a triangle), which is
+///   kept with the tree and evicted with it, so memory_budget bounds both.
 /// - Shared stores (mesh_store.h): other replicas add and delete meshes in the same store. A
 ///   mesh this cache does not know is looked up in the store (its summary file) when asked for,
 ///   registered, and its tree loaded (or rebuilt) by one caller while the others wait (adopt());
@@ -39,6 +42,7 @@
 #include <vector>
 
 #include "compute.h"
+#include "kdrt/distance.h"
 #include "kdrt/kdtree.h"
 #include "kdrt/mesh.h"
 #include "kdrt/proto/json_api.h"
@@ -83,6 +87,15 @@ public:
     [[nodiscard]] proto::Result<std::shared_ptr<const KdTree>, CacheError> acquire(
         const std::string& id);
 
+    /// The SurfaceIndex of `tree`, the tree acquire(id) returned, built on its first use (outside
+    /// the lock; concurrent first uses may build it twice, the first kept wins) and kept with the
+    /// tree: its bytes count towards memory_budget (evicting least recently used entries as a
+    /// tree does, the asking entry becoming the most recent) and it is evicted and deleted with
+    /// the tree. When `tree` is no longer the resident tree of `id` (evicted or deleted
+    /// meanwhile), the index is built for the caller only and not kept. Throws std::bad_alloc.
+    [[nodiscard]] std::shared_ptr<const SurfaceIndex> surface_index(
+        const std::string& id, const std::shared_ptr<const KdTree>& tree);
+
     /// The mesh's summary, looking in the store when this cache does not know it.
     [[nodiscard]] std::optional<proto::MeshSummary> find(const std::string& id);
     /// Every acknowledged mesh in the store, sorted by id.
@@ -106,6 +119,8 @@ private:
         std::optional<proto::MeshSummary> summary;  ///< set once acknowledged (stored)
         std::shared_ptr<const KdTree> tree;         ///< set while resident
         uint64_t tree_bytes = 0;
+        std::shared_ptr<const SurfaceIndex> surface;  ///< while resident, once asked for
+        uint64_t surface_bytes = 0;
         uint64_t disk_bytes = 0;
         std::list<Entry*>::iterator lru_position;
         bool in_lru = false;
@@ -131,8 +146,10 @@ private:
     void note_problem(const char* file, const std::string& reason, const std::string& detail);
     proto::MeshSummary with_runtime(const Entry& entry) const;
     void make_resident(Entry& entry, std::shared_ptr<const KdTree> tree);  // mutex_ held
-    void drop(Entry& entry);                                               // mutex_ held
-    bool is_current(const std::shared_ptr<Entry>& entry) const;            // mutex_ held
+    void evict_over_budget();                                              // mutex_ held
+    void release_memory(Entry& entry);  // mutex_ held: forget the tree and the index
+    void drop(Entry& entry);            // mutex_ held
+    bool is_current(const std::shared_ptr<Entry>& entry) const;  // mutex_ held
 
     MeshStore& store_;
     Compute& compute_;
@@ -148,6 +165,8 @@ private:
 
 /// Memory held by a tree's arrays.
 [[nodiscard]] uint64_t tree_memory_bytes(const KdTree& tree) noexcept;
+/// Memory held by a SurfaceIndex (its pseudonormals: 84 bytes a triangle).
+[[nodiscard]] uint64_t surface_memory_bytes(const SurfaceIndex& index) noexcept;
 
 /// What `summary` says that a tree bound to the same mesh contradicts (triangle count, bounds);
 /// empty when they agree.

@@ -23,7 +23,6 @@
 #include "mesh_cache.h"
 #include "mesh_store.h"
 #include "metrics.h"
-#include "surface_cache.h"
 
 namespace kdrt::server {
 
@@ -230,7 +229,6 @@ struct Service {
     std::atomic<bool> ready{false};          ///< index loaded and preloads done
     std::atomic<bool> shutting_down{false};  ///< SIGTERM/SIGINT received
     RequestRegistry requests;                ///< what each HTTP thread serves now
-    SurfaceCache surfaces;                   ///< distance queries' per-tree surface indexes
 };
 
 }  // namespace kdrt::server

@@ -36,6 +36,8 @@ extern const Command kRenderCommand;
 extern const Command kTraceCommand;
 extern const Command kHitsCommand;
 extern const Command kRaysCommand;
+// Distance queries (cli_distance.cpp).
+extern const Command kDistanceCommand;
 // The server's state (cli_ops.cpp).
 extern const Command kHealthCommand;
 extern const Command kMetricsCommand;

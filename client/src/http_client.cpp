@@ -21,6 +21,7 @@
 #include <stdexcept>
 #include <thread>
 
+#include "client_access.h"
 #include "http_direct.h"
 #include "kdrt/client/client.h"
 #include "kdrt/proto/errors.h"
@@ -238,6 +239,8 @@ struct Client::Impl {
         std::vector<std::byte> body;
     };
     std::vector<std::unique_ptr<DirectSlot>> idle_direct;
+    /// distance(): the points per request a refusal for size taught (0: options.chunk_rays).
+    std::atomic<size_t> distance_chunk_limit{0};
 
     /// A pooled connection, returned to the pool when the lease ends.
     class Lease {
@@ -1066,6 +1069,47 @@ Result<std::string> Client::metrics() {
     if (!res) return proto::Err{std::move(res).error()};
     return std::move(res->body);
 }
+
+namespace detail {
+
+std::string ClientAccess::api_path(const Client& client, std::string_view path,
+                                   std::string_view id) {
+    std::string out(path);
+    if (const size_t at = out.find("{id}"); at != std::string::npos)
+        out.replace(at, 4, escape_segment(id));
+    return client.impl_->api(out);
+}
+
+Result<PostAnswer> ClientAccess::post(Client& client, const std::string& path,
+                                      std::string_view content_type,
+                                      std::span<const std::byte> body,
+                                      std::string_view answer_header) {
+    Exchange ex;
+    ex.method = "POST";
+    ex.path = path;
+    ex.body = std::string_view(reinterpret_cast<const char*>(body.data()), body.size());
+    ex.content_type = std::string(content_type);
+    auto res = client.impl_->send(ex);
+    if (!res) return proto::Err{std::move(res).error()};
+    PostAnswer answer;
+    answer.body = std::move(res->body);
+    if (!answer_header.empty()) answer.header = res->get_header_value(std::string(answer_header));
+    return answer;
+}
+
+std::atomic<size_t>& ClientAccess::distance_chunk_limit(Client& client) {
+    return client.impl_->distance_chunk_limit;
+}
+
+Error ClientAccess::bad_response(const Client& client, const std::string& path,
+                                 const std::string& why) {
+    Exchange ex;
+    ex.method = "POST";
+    ex.path = path;
+    return client.impl_->bad_response(ex, why);
+}
+
+}  // namespace detail
 
 std::vector<PixelRegion> split_rows(const PixelRegion& region, unsigned parts) {
     if (parts == 0 || parts > region.height)

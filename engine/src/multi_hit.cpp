@@ -1,7 +1,12 @@
 // Every hit along a ray: a scalar traversal that visits every leaf the ray passes within
 // [tmin, tmax] (the cells of the closest-hit kernel, without its early exit), the same triangle
 // test (ray_prep.h), then sort, de-duplication (a triangle referenced by several leaves) and the
-// optional merging of coincident hits.
+// optional merging of coincident hits. Batches go through the packet kernels' every-hit
+// traversal (packet_kernel.h, traverse_packet_all: each lane makes this traversal's decisions,
+// so it finds the same raw hits), which hands each ray's raw hits back here for the same sort,
+// de-duplication and merge; a ray with more raw hits than a packet lane keeps is traced again
+// alone. Measured on the bunny (2 threads, tests/bench/README.md): packets trace primary rays
+// 3x, diffuse 1.9x and random 1.15x as fast as single rays.
 
 #include <algorithm>
 #include <array>
@@ -12,6 +17,7 @@
 
 #include "geometry.h"
 #include "kdrt/query.h"
+#include "packet.h"
 #include "ray_prep.h"
 
 namespace kdrt {
@@ -151,7 +157,99 @@ void sort_unique(std::vector<Hit>& hits) {
         hits.end());
 }
 
-constexpr size_t kBlockRays = 256;
+/// Rays per parallel task of a batch: a few of the kernels' scheduling blocks' worth of sorting
+/// freedom (an incoherent block is sorted whole), and enough tasks to keep every core busy.
+constexpr size_t kTaskRays = 1024;
+
+/// One task's answers, kept in the order the rays were traced: ray i's kept hits are
+/// arena[start[i], + kept[i]).
+struct TaskAnswers {
+    std::vector<Hit> arena;
+    std::vector<uint64_t> start;
+    std::vector<uint32_t> kept;
+};
+
+/// The AllHitsSink of one task (rays [0, count) of `rays`): each ray's raw hits sorted, made
+/// unique and merged here, its count written to counts[i], its nearest max_hits kept.
+struct TaskSink : detail::AllHitsSink {
+    const KdTree* tree;
+    const Ray* rays;
+    bool merge_coincident;
+    uint32_t max_hits;
+    uint32_t* counts;
+    TaskAnswers* out;
+    std::vector<Hit> scratch;
+
+    void finish(size_t i) {
+        sort_unique(scratch);
+        size_t n = scratch.size();
+        if (merge_coincident && n > 1)
+            n = merge_groups([&](uint32_t prim) -> const TriVerts& { return tree->triangle(prim); },
+                             rays[i], scratch.data(), n);
+        counts[i] = static_cast<uint32_t>(n);
+        const size_t keep = std::min<size_t>(n, max_hits);
+        out->start[i] = out->arena.size();
+        out->kept[i] = static_cast<uint32_t>(keep);
+        out->arena.insert(out->arena.end(), scratch.begin(),
+                          scratch.begin() + static_cast<ptrdiff_t>(keep));
+    }
+
+    static void trace_single(AllHitsSink& base, size_t i) {
+        auto& self = static_cast<TaskSink&>(base);
+        self.scratch.clear();
+        collect(*self.tree, self.rays[i], self.scratch);
+        self.finish(i);
+    }
+
+    static void take_packet(AllHitsSink& base, const size_t* ids, int lanes, const Hit* raw,
+                            const uint32_t* count) {
+        auto& self = static_cast<TaskSink&>(base);
+        for (int l = 0; l < lanes; ++l) {
+            if (count[l] > detail::kPacketHitCapacity) {  // overflowed: this ray on its own
+                trace_single(base, ids[l]);
+                continue;
+            }
+            const Hit* first = raw + static_cast<size_t>(l) * detail::kPacketHitCapacity;
+            self.scratch.assign(first, first + count[l]);
+            self.finish(ids[l]);
+        }
+    }
+};
+
+Isa resolve(const AllHitsOptions& options) noexcept {
+    if (options.isa && isa_supported(*options.isa)) return *options.isa;
+    return default_isa();
+}
+
+detail::Policy policy_for(TraceMode mode) noexcept {
+    return mode == TraceMode::kPacket ? detail::Policy::kPacket : detail::Policy::kAuto;
+}
+
+/// Every hit of rays[0, count) on the calling thread: counts[i] written for each ray, the kept
+/// hits (up to max_hits a ray) into `out`, which is sized here.
+void trace_task(const KdTree& tree, const Ray* rays, size_t count, const AllHitsOptions& options,
+                uint32_t max_hits, uint32_t* counts, TaskAnswers& out) {
+    out.arena.clear();
+    out.start.assign(count, 0);
+    out.kept.assign(count, 0);
+    std::fill(counts, counts + count, 0u);  // invalid rays reach neither sink call
+    TaskSink sink;
+    sink.single = &TaskSink::trace_single;
+    sink.packet = &TaskSink::take_packet;
+    sink.tree = &tree;
+    sink.rays = rays;
+    sink.merge_coincident = options.merge_coincident;
+    sink.max_hits = max_hits;
+    sink.counts = counts;
+    sink.out = &out;
+    const detail::PacketKernels* kernels =
+        options.mode == TraceMode::kSingle ? nullptr : detail::packet_kernels_for(resolve(options));
+    if (kernels == nullptr) {
+        for (size_t i = 0; i < count; ++i) TaskSink::trace_single(sink, i);
+        return;
+    }
+    kernels->all_hits(tree, rays, count, sink, policy_for(options.mode));
+}
 
 }  // namespace
 
@@ -174,41 +272,47 @@ AllHits intersect_all(const KdTree& tree, std::span<const Ray> rays,
     AllHits result;
     result.counts.resize(rays.size());
     result.offsets.assign(rays.size() + 1, 0);
-    const size_t blocks = (rays.size() + kBlockRays - 1) / kBlockRays;
-    std::vector<std::vector<Hit>> kept(blocks);
-    tbb::parallel_for(
-        tbb::blocked_range<size_t>(0, blocks, 1), [&](const tbb::blocked_range<size_t>& range) {
-            std::vector<Hit> scratch;
-            for (size_t b = range.begin(); b != range.end(); ++b) {
-                const size_t end = std::min(rays.size(), (b + 1) * kBlockRays);
-                for (size_t i = b * kBlockRays; i < end; ++i) {
-                    const uint32_t n =
-                        intersect_all(tree, rays[i], options.merge_coincident, scratch);
-                    result.counts[i] = n;
-                    const size_t keep = std::min<size_t>(n, options.max_hits);
-                    result.offsets[i + 1] = keep;
-                    kept[b].insert(kept[b].end(), scratch.begin(),
-                                   scratch.begin() + static_cast<ptrdiff_t>(keep));
-                }
-            }
-        });
+    const size_t tasks = (rays.size() + kTaskRays - 1) / kTaskRays;
+    std::vector<TaskAnswers> answers(tasks);
+    tbb::parallel_for(size_t{0}, tasks, [&](size_t b) {
+        const size_t first = b * kTaskRays, n = std::min(kTaskRays, rays.size() - first);
+        trace_task(tree, rays.data() + first, n, options, options.max_hits,
+                   result.counts.data() + first, answers[b]);
+        for (size_t i = 0; i < n; ++i) result.offsets[first + i + 1] = answers[b].kept[i];
+    });
     for (size_t i = 0; i < rays.size(); ++i) result.offsets[i + 1] += result.offsets[i];
     result.hits.resize(result.offsets.back());
-    tbb::parallel_for(size_t{0}, blocks, [&](size_t b) {
-        std::copy(kept[b].begin(), kept[b].end(),
-                  result.hits.begin() + static_cast<ptrdiff_t>(result.offsets[b * kBlockRays]));
+    tbb::parallel_for(size_t{0}, tasks, [&](size_t b) {
+        const TaskAnswers& a = answers[b];
+        const size_t first = b * kTaskRays;
+        for (size_t i = 0; i < a.kept.size(); ++i) {
+            const auto from = a.arena.begin() + static_cast<ptrdiff_t>(a.start[i]);
+            std::copy(from, from + a.kept[i],
+                      result.hits.begin() + static_cast<ptrdiff_t>(result.offsets[first + i]));
+        }
     });
     return result;
 }
 
+void count_intersections(const KdTree& tree, std::span<const Ray> rays,
+                         const AllHitsOptions& options, std::span<uint32_t> counts) {
+    const size_t tasks = (rays.size() + kTaskRays - 1) / kTaskRays;
+    tbb::parallel_for(
+        tbb::blocked_range<size_t>(0, tasks, 1), [&](const tbb::blocked_range<size_t>& range) {
+            TaskAnswers unused;
+            for (size_t b = range.begin(); b != range.end(); ++b) {
+                const size_t first = b * kTaskRays;
+                trace_task(tree, rays.data() + first, std::min(kTaskRays, rays.size() - first),
+                           options, 0, counts.data() + first, unused);
+            }
+        });
+}
+
 void count_intersections(const KdTree& tree, std::span<const Ray> rays, bool merge_coincident,
                          std::span<uint32_t> counts) {
-    tbb::parallel_for(tbb::blocked_range<size_t>(0, rays.size(), kBlockRays),
-                      [&](const tbb::blocked_range<size_t>& range) {
-                          std::vector<Hit> scratch;
-                          for (size_t i = range.begin(); i != range.end(); ++i)
-                              counts[i] = intersect_all(tree, rays[i], merge_coincident, scratch);
-                      });
+    AllHitsOptions options;
+    options.merge_coincident = merge_coincident;
+    count_intersections(tree, rays, options, counts);
 }
 
 std::vector<Hit> brute_force_intersect_all(std::span<const TriVerts> tris, const Ray& ray,

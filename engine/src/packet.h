@@ -40,6 +40,27 @@ using IntersectKernel = void (*)(const KdTree& tree, const Ray* rays, size_t cou
 using OccludedKernel = void (*)(const KdTree& tree, const Ray* rays, size_t count,
                                 uint8_t* occluded, Policy policy, TraceCounters& counters);
 
+/// Where an every-hit kernel delivers its rays' hits (multi_hit.cpp implements it, outside the
+/// per-ISA translation units, so no standard-library code is instantiated for an ISA).
+struct AllHitsSink {
+    /// Ray `ray` (an index into the kernel's rays) is left to the caller's single-ray traversal.
+    void (*single)(AllHitsSink& self, size_t ray);
+    /// A packet's answers: lane l is ray rays[l]; its raw hits (every hit in [tmin, tmax] of each
+    /// leaf the ray passes, unsorted; a triangle in several leaves once per leaf) are
+    /// raw[l * capacity, + min(count[l], capacity)). count[l] > capacity: the lane overflowed and
+    /// only the first `capacity` were kept (the caller traces that ray again on its own).
+    void (*packet)(AllHitsSink& self, const size_t* rays, int lanes, const Hit* raw,
+                   const uint32_t* count);
+};
+
+/// Raw hits a packet keeps per lane before the lane overflows (AllHitsSink::packet).
+inline constexpr uint32_t kPacketHitCapacity = 48;
+
+/// Every hit of `count` rays: each valid ray goes to sink.packet (within a packet of same-octant
+/// rays) or sink.single, as the policy decides (invalid ones to neither: they have no hits).
+using AllHitsKernel = void (*)(const KdTree& tree, const Ray* rays, size_t count, AllHitsSink& sink,
+                               Policy policy);
+
 /// One ISA's kernels. Each traces `count` rays on the calling thread, answers in input order. The
 /// counting ones also fill the work counters of TraceCounters (slower; same answers).
 struct PacketKernels {
@@ -48,6 +69,7 @@ struct PacketKernels {
     OccludedKernel occluded;
     IntersectKernel intersect_counted;
     OccludedKernel occluded_counted;
+    AllHitsKernel all_hits;
 };
 
 /// Defined in packet_sse4.cpp, packet_avx2.cpp, packet_avx512.cpp. Call only when the CPU has the

@@ -17,8 +17,12 @@
 namespace kdrt::detail {
 
 const PacketKernels* packet_kernels_avx2() noexcept {
-    static constexpr PacketKernels kKernels{8, &intersect_rays<8, false>, &occluded_rays<8, false>,
-                                            &intersect_rays<8, true>, &occluded_rays<8, true>};
+    static constexpr PacketKernels kKernels{8,
+                                            &intersect_rays<8, false>,
+                                            &occluded_rays<8, false>,
+                                            &intersect_rays<8, true>,
+                                            &occluded_rays<8, true>,
+                                            &all_hits_rays<8>};
     return &kKernels;
 }
 

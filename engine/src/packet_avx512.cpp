@@ -17,9 +17,12 @@
 namespace kdrt::detail {
 
 const PacketKernels* packet_kernels_avx512() noexcept {
-    static constexpr PacketKernels kKernels{16, &intersect_rays<16, false>,
-                                            &occluded_rays<16, false>, &intersect_rays<16, true>,
-                                            &occluded_rays<16, true>};
+    static constexpr PacketKernels kKernels{16,
+                                            &intersect_rays<16, false>,
+                                            &occluded_rays<16, false>,
+                                            &intersect_rays<16, true>,
+                                            &occluded_rays<16, true>,
+                                            &all_hits_rays<16>};
     return &kKernels;
 }
 

@@ -475,6 +475,131 @@ inline VM<W> traverse_packet(const KdTree& tree, const Packet<W>& pk, PacketHits
     }
 }
 
+/// Every hit of one packet's rays: traverse_packet's per-lane cell decisions without its cut at
+/// the closest hit (each lane visits the leaves multi_hit.cpp's single-ray traversal visits, with
+/// the same intervals), each leaf's triangles tested against the lanes live there. Lane l's hits
+/// with ray tmin <= t <= ray tmax go to raw[l * kPacketHitCapacity + k] while k < the capacity;
+/// count[l] (zeroed by the caller) counts them all.
+template <int W>
+inline void traverse_packet_all(const KdTree& tree, const Packet<W>& pk, Hit* raw,
+                                uint32_t* count) {
+    const KdNode* nodes = tree.nodes.data();
+    const uint32_t* refs = tree.leaf_refs.data();
+    const TriVerts* tris = tree.tris.data();
+    const uint32_t* ids = tree.tri_ids.data();
+    StackEntry<W> stack[kMaxDepth + 1];
+    int stack_size = 0;
+    VF<W> tmin = pk.tmin, tmax = pk.tmax;
+    uint32_t node_index = 0;
+    if (simd::none<W>(tmin <= tmax)) return;
+    for (;;) {
+        KdNode node = nodes[node_index];
+        while (!node.is_leaf()) {
+            const int axis = node.axis();
+            const VF<W> t_split = (node.split() - pk.org[axis]) * pk.inv[axis];
+            const VF<W> near_max = t_split + pk.eps[axis], far_min = t_split - pk.eps[axis];
+            const VM<W> active = tmin <= tmax;
+            const uint32_t near_child = node.first_child() + pk.near_is_high[axis];
+            const uint32_t far_child = node.first_child() + (pk.near_is_high[axis] ^ 1u);
+            const VM<W> need_near = active & ~(near_max < tmin);
+            const VM<W> need_far = active & ~(far_min > tmax);
+            const bool go_near = simd::any<W>(need_near), go_far = simd::any<W>(need_far);
+            if (go_near && go_far) {
+                StackEntry<W>& e = stack[stack_size++];
+                e.tmin = simd::max<W>(far_min, tmin);
+                e.tmax = tmax;
+                e.node = far_child;
+                tmax = simd::min<W>(near_max, tmax);
+                node_index = near_child;
+            } else if (go_near) {
+                node_index = near_child;
+            } else if (go_far) {
+                node_index = far_child;
+            } else {
+                break;
+            }
+            node = nodes[node_index];
+        }
+        if (node.is_leaf()) {
+            const VM<W> active = tmin <= tmax;
+            const uint32_t end = node.first_ref() + node.prim_count();
+            for (uint32_t r = node.first_ref(); r < end; ++r) {
+                const uint32_t slot = refs[r];
+                VF<W> t, u, v;
+                VM<W> hit = intersect_triangle_packet<W>(pk, tris[slot], active, t, u, v);
+                if (simd::none<W>(hit)) continue;
+                hit &= t <= pk.ray_tmax;
+                for (uint32_t m = simd::bits<W>(hit); m; m &= m - 1) {
+                    const int l = __builtin_ctz(m);
+                    const uint32_t k = count[l]++;
+                    if (k < kPacketHitCapacity)
+                        raw[static_cast<uint32_t>(l) * kPacketHitCapacity + k] =
+                            Hit{t[l], ids[slot], u[l], v[l]};
+                }
+            }
+        }
+        for (;;) {
+            if (stack_size == 0) return;
+            const StackEntry<W>& e = stack[--stack_size];
+            const VM<W> live = e.tmin <= e.tmax;
+            if (simd::any<W>(live)) {
+                tmin = simd::select<W>(live, e.tmin, simd::broadcast<W>(__builtin_inff()));
+                tmax = e.tmax;
+                node_index = e.node;
+                break;
+            }
+        }
+    }
+}
+
+/// The every-hit kernel's answer to schedule_rays: one octant run W rays at a time, each group as
+/// a packet (its raw hits to sink.packet) or as single rays (sink.single), as the policy decides.
+template <int W>
+struct AllHitsRunTracer {
+    const KdTree& tree;
+    AllHitsSink& sink;
+    Policy policy;
+    size_t offset;  ///< of the scheduled rays in the kernel's
+
+    [[gnu::always_inline]] void operator()(const Ray* block, size_t base, const uint16_t* order,
+                                           int count) const {
+        for (int p = 0; p < count; p += W) {
+            const int lanes = count - p < W ? count - p : W;
+            const uint16_t* index = &order[p];
+            const bool as_packet =
+                policy == Policy::kPacket || (policy == Policy::kAuto && packet_pays(lanes, W));
+            if (!as_packet) {
+                for (int l = 0; l < lanes; ++l) sink.single(sink, offset + base + index[l]);
+                continue;
+            }
+            Packet<W> pk;
+            setup_packet<W>(tree, block, index, lanes, pk);
+            // Raw storage, not Hit[]: Hit's default member initialisers would clear it all.
+            alignas(64) unsigned char storage[sizeof(Hit) * W * kPacketHitCapacity];
+            Hit* raw = reinterpret_cast<Hit*>(storage);
+            uint32_t n[W] = {};
+            traverse_packet_all<W>(tree, pk, raw, n);
+            size_t rays[W];
+            for (int l = 0; l < lanes; ++l) rays[l] = offset + base + index[l];
+            sink.packet(sink, rays, lanes, raw, n);
+        }
+    }
+};
+
+/// PacketKernels::all_hits: schedule_rays's blocks and octant runs (its answers for invalid rays,
+/// "not occluded", go to a scratch array: such rays have no hits and reach neither sink call).
+template <int W>
+void all_hits_rays(const KdTree& tree, const Ray* rays, size_t count, AllHitsSink& sink,
+                   Policy policy) {
+    TraceCounters counters;
+    for (size_t first = 0; first < count; first += kBlockRays) {
+        const size_t n = count - first < kBlockRays ? count - first : kBlockRays;
+        uint8_t unused[kBlockRays];
+        schedule_rays<true>(tree, rays + first, n, nullptr, unused, counters,
+                            AllHitsRunTracer<W>{tree, sink, policy, first});
+    }
+}
+
 /// Traces `count` rays of one octant, block[order[0..count)], W at a time: each group as a packet
 /// or as single rays (the policy).
 template <int W, bool AnyHit, bool Count>

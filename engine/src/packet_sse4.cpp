@@ -17,8 +17,12 @@
 namespace kdrt::detail {
 
 const PacketKernels* packet_kernels_sse4() noexcept {
-    static constexpr PacketKernels kKernels{4, &intersect_rays<4, false>, &occluded_rays<4, false>,
-                                            &intersect_rays<4, true>, &occluded_rays<4, true>};
+    static constexpr PacketKernels kKernels{4,
+                                            &intersect_rays<4, false>,
+                                            &occluded_rays<4, false>,
+                                            &intersect_rays<4, true>,
+                                            &occluded_rays<4, true>,
+                                            &all_hits_rays<4>};
     return &kKernels;
 }
 

@@ -181,6 +181,22 @@ run_bench(stadium_line scene stadium --out "${WORK_DIR}/stadium.ply")
 expect_value("${stadium_line}" triangles 128892)
 expect_failure(2 "not one of stadium, grid" scene bogus --out "${WORK_DIR}/x.ply")
 
+# distance: the JSON keys, and the kD answers equal to brute force on the subset
+set(distance_keys mesh triangles closed threads reps points build_ms surface_ms kd_points_per_s
+                  kd_uniform_points_per_s kd_near_points_per_s signed_points_per_s
+                  signed_uniform_points_per_s signed_near_points_per_s brute_points brute_seconds
+                  brute_points_per_s ratio cpu_util matches_brute_force mismatches)
+run_bench(distance_line distance "${MESH}" --points 2000 --brute 64 --reps 1 --threads 2)
+expect_keys("${distance_line}" ${distance_keys})
+expect_value("${distance_line}" points 2000)
+expect_value("${distance_line}" brute_points 64)
+expect_value("${distance_line}" closed ON)
+expect_value("${distance_line}" matches_brute_force ON)
+expect_value("${distance_line}" mismatches 0)
+expect_failure(2 "--points" distance "${MESH}" --points 1)
+expect_failure(2 "--brute" distance "${MESH}" --points 100 --brute 101)
+expect_failure(2 "missing argument MESH" distance)
+
 # render: the JSON keys, the image through the kdrt-image helper, and secondary-ray shadings
 set(render_png "${WORK_DIR}/render64.png")
 file(REMOVE "${render_png}")

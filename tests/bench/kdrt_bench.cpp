@@ -3,10 +3,12 @@
 
 #include <tbb/global_control.h>
 #include <tbb/info.h>
+#include <tbb/parallel_for.h>
 #include <tbb/task_arena.h>
 
 #include <algorithm>
 #include <array>
+#include <bit>
 #include <charconv>
 #include <chrono>
 #include <cmath>
@@ -28,6 +30,7 @@
 #include "bench_args.h"
 #include "embree_compare.h"
 #include "image_helper.h"
+#include "kdrt/distance.h"
 #include "kdrt/kdtree.h"
 #include "kdrt/mesh.h"
 #include "kdrt/proto/file_io.h"
@@ -38,6 +41,7 @@
 #include "kdrt/render.h"
 #include "kdrt/trace.h"
 #include "scenes.h"
+#include "test_util.h"
 
 namespace kdrt::bench {
 namespace {
@@ -58,6 +62,7 @@ commands:
   rays MESH     write a deterministic KDRR ray set (primary, shadow, diffuse, random)
   scene KIND    write a generated benchmark scene (stadium, grid) as a mesh file
   render MESH   render the default view of a mesh, timed against its camera rays as a batch
+  distance MESH time closest-point and signed-distance queries (kD search against brute force)
 
 MESH is any mesh file kdrt reads, chosen by extension: .obj .ply .off .stl .raw/.kdrtmesh.
 Run 'kdrt-bench <command> --help' for the options of a command.
@@ -79,15 +84,45 @@ options:
 )";
 
 constexpr std::string_view kAllHitsUsage =
-    R"(usage: kdrt-bench all-hits MESH RAYS.kdrr [--max-hits N] [--merge] [--threads N] [--reps K]
+    R"(usage: kdrt-bench all-hits MESH RAYS.kdrr [--max-hits N] [--merge] [--mode single|packet|auto]
+                           [--threads N] [--reps K]
 
 Every hit along each ray (kdrt::intersect_all, kdrt/query.h) against closest hit on the same
 rays. Builds the tree of MESH, then times K passes (default 5, after an untimed warm-up) of:
-intersect_all with max_hits N (default 16), count_intersections, the closest-hit batch tracer
-(auto mode) and the single-ray closest-hit kernel (intersect_single, the same scalar traversal
-family as intersect_all). Prints one JSON line: rays, threads, max_hits, merge, hits_per_ray
+intersect_all with max_hits N (default 16) and count_intersections, both in --mode (default auto:
+packets where they pay), the closest-hit batch tracer (auto mode) and the single-ray closest-hit
+kernel (intersect_single, the same scalar traversal family as intersect_all's single rays).
+Prints one JSON line: rays, threads, mode, max_hits, merge, hits_per_ray
 (mean of all hits), kept_hits, and for each query its median seconds and mrays_per_s, and
 all_vs_closest_single / all_vs_closest_auto (rays/s ratios).
+)";
+
+constexpr std::string_view kDistanceUsage =
+    R"(usage: kdrt-bench distance MESH [--points N] [--brute N] [--threads N] [--reps K] [--seed S]
+
+Distance queries (kdrt::closest_points, kdrt/distance.h) against the brute-force scan. Builds the
+tree and the surface index of MESH, then makes N query points (default 100000): half uniform in
+the mesh's bounding box grown by 10% (5% of each side's length on both sides), half near the
+surface (area-uniform surface samples, each moved in a random direction by up to 1% of the
+box's diagonal). Times K passes (default 5, after an untimed warm-up) of the kD search unsigned
+and signed over each half, and one pass of brute_force_closest_point (signed) over a subset of the points
+(--brute, default enough for about 1e8 triangle tests, at least 32, at most 4096; half from each
+kind), in parallel over the same threads. Checks that the kD answers on the subset equal brute
+force bit for bit (signed; unsigned but for the side, which is then unknown), and exits 1 if any
+differs. Prints one JSON line:
+  mesh, triangles, closed, threads, reps, points, build_ms, surface_ms (build_surface_index),
+  kd_points_per_s (unsigned, all points, from the medians), kd_uniform_points_per_s,
+  kd_near_points_per_s, signed_points_per_s, signed_uniform_points_per_s,
+  signed_near_points_per_s, brute_points, brute_seconds, brute_points_per_s, ratio
+  (kd_points_per_s / brute_points_per_s), cpu_util (process CPU seconds per wall second over the
+  timed kD passes), matches_brute_force, mismatches.
+
+options:
+  --points N   query points (default 100000)
+  --brute N    points checked and timed by brute force (default: see above)
+  --threads N  worker threads (default: all cores)
+  --reps K     timed passes of the kD search (default 5)
+  --seed S     random seed of the points (default 1)
 )";
 
 constexpr std::string_view kTraceUsage =
@@ -503,6 +538,14 @@ int run_all_hits(const Args& args) {
     const auto reps = static_cast<int>(args.get_uint("reps", 5, 1, 1000));
     const auto max_hits = static_cast<uint32_t>(args.get_uint("max-hits", 16, 1, kMaxHitsPerRay));
     const bool merge = args.flag("merge");
+    const std::string mode_text = args.get("mode").value_or("auto");
+    const auto mode = parse_trace_mode(mode_text);
+    if (!mode)
+        throw UsageError("option '--mode': '" + mode_text + "' is not one of single, packet, auto");
+    AllHitsOptions options;
+    options.max_hits = max_hits;
+    options.merge_coincident = merge;
+    options.mode = *mode;
     const LoadedMesh loaded = load_mesh(mesh_path);
     const proto::RayBatch batch = load_rays(rays_path);
     const std::span<const Ray> rays = batch.rays;
@@ -523,11 +566,11 @@ int run_all_hits(const Args& args) {
             }
         };
         timed(all_s, [&] {
-            const AllHits all = intersect_all(tree, rays, AllHitsOptions{max_hits, merge});
+            const AllHits all = intersect_all(tree, rays, options);
             kept = all.hits.size();
             total_hits = std::accumulate(all.counts.begin(), all.counts.end(), uint64_t{0});
         });
-        timed(count_s, [&] { count_intersections(tree, rays, merge, counts); });
+        timed(count_s, [&] { count_intersections(tree, rays, options, counts); });
         timed(auto_s, [&] { kdrt::intersect(tree, rays, hits); });
         timed(single_s, [&] { intersect_single(tree, rays, hits); });
     });
@@ -542,6 +585,7 @@ int run_all_hits(const Args& args) {
     line["rays"] = rays.size();
     line["threads"] = threads;
     line["reps"] = reps;
+    line["mode"] = trace_mode_name(*mode);
     line["max_hits"] = max_hits;
     line["merge"] = merge;
     line["build_ms"] = rounded(build_ms, 3);
@@ -558,6 +602,164 @@ int run_all_hits(const Args& args) {
     line["all_vs_closest_auto"] =
         mrays(auto_s) > 0 ? rounded(mrays(all_s) / mrays(auto_s), 3) : 0.0;
     print_json(line);
+    return 0;
+}
+
+/// The query points of `kdrt-bench distance`: `count` uniform in the mesh's box grown by 10%,
+/// and `count` near the surface (area-uniform samples moved by up to 1% of the diagonal).
+float norm(Vec3 v) { return std::sqrt(dot(v, v)); }
+
+void distance_query_points(const Mesh& mesh, size_t count, uint64_t seed,
+                           std::vector<Vec3>& uniform, std::vector<Vec3>& near) {
+    test::Rng rng(seed);
+    Aabb box = mesh_bounds(mesh);
+    const Vec3 extent = box.hi - box.lo;
+    box.lo = box.lo - extent * 0.05f;
+    box.hi = box.hi + extent * 0.05f;
+    const float jitter = 0.01f * norm(extent);
+    uniform.resize(count);
+    for (Vec3& p : uniform) p = rng.in_box(box);
+    std::vector<double> area(mesh.triangle_count());
+    double total = 0;
+    for (size_t t = 0; t < area.size(); ++t) {
+        total += 0.5 * static_cast<double>(norm(cross(mesh.corner(t, 1) - mesh.corner(t, 0),
+                                                      mesh.corner(t, 2) - mesh.corner(t, 0))));
+        area[t] = total;
+    }
+    near.resize(count);
+    for (Vec3& p : near) {
+        const double pick = static_cast<double>(rng.uniform()) * total;
+        const size_t t = std::min<size_t>(
+            static_cast<size_t>(std::upper_bound(area.begin(), area.end(), pick) - area.begin()),
+            area.size() - 1);
+        float u = rng.uniform(), v = rng.uniform();
+        if (u + v > 1.0f) {  // fold the far half of the square back onto the triangle
+            u = 1.0f - u;
+            v = 1.0f - v;
+        }
+        const Vec3 a = mesh.corner(t, 0), b = mesh.corner(t, 1), c = mesh.corner(t, 2);
+        p = a + (b - a) * u + (c - a) * v + rng.on_sphere() * (jitter * rng.uniform());
+    }
+}
+
+bool same_closest_point(const ClosestPoint& a, const ClosestPoint& b) {
+    const auto same = [](float x, float y) {
+        return std::bit_cast<uint32_t>(x) == std::bit_cast<uint32_t>(y);
+    };
+    return same(a.distance, b.distance) && a.prim == b.prim && same(a.u, b.u) && same(a.v, b.v) &&
+           same(a.point.x, b.point.x) && same(a.point.y, b.point.y) && same(a.point.z, b.point.z) &&
+           a.feature == b.feature && a.side == b.side;
+}
+
+int run_distance(const Args& args) {
+    static constexpr std::array<std::string_view, 1> kNames = {"MESH"};
+    args.expect_positional(kNames);
+    const std::string& mesh_path = args.positional()[0];
+    const unsigned threads = thread_count(args);
+    const auto reps = static_cast<int>(args.get_uint("reps", 5, 1, 1000));
+    const auto points = static_cast<size_t>(args.get_uint("points", 100000, 2, 1u << 26));
+    const uint64_t seed = args.get_uint("seed", 1, 0, std::numeric_limits<uint64_t>::max());
+    const LoadedMesh loaded = load_mesh(mesh_path);
+    const size_t triangles = std::max<size_t>(1, loaded.mesh.triangle_count());
+    const auto brute_default = static_cast<uint64_t>(
+        std::clamp<double>(1e8 / static_cast<double>(triangles), 32.0, 4096.0));
+    const size_t half = points / 2;  // of each kind (an odd --points loses one)
+    const auto brute = static_cast<size_t>(
+        args.get_uint("brute", std::min<uint64_t>(brute_default, 2 * half), 2, 2 * half));
+
+    std::vector<Vec3> uniform, near;
+    distance_query_points(loaded.mesh, half, seed, uniform, near);
+    // The brute-force subset: its first half from each kind.
+    std::vector<Vec3> subset(uniform.begin(),
+                             uniform.begin() + static_cast<std::ptrdiff_t>(brute / 2));
+    subset.insert(subset.end(), near.begin(),
+                  near.begin() + static_cast<std::ptrdiff_t>(brute - brute / 2));
+
+    KdTree tree;
+    SurfaceIndex index;
+    double build_ms = 0, surface_ms = 0, brute_seconds = 0, cpu_seconds = 0, wall_seconds = 0;
+    std::vector<double> kd_uniform, kd_near, signed_uniform, signed_near;
+    uint64_t mismatches = 0;
+    with_threads(threads, [&] {
+        tree = build_tree(loaded.mesh, BuildOptions{}, build_ms);
+        auto start = Clock::now();
+        index = build_surface_index(tree);
+        surface_ms = ms_since(start);
+        std::vector<ClosestPoint> out(uniform.size());
+        const auto timed = [&](std::vector<double>& seconds, std::span<const Vec3> query,
+                               bool sign) {
+            for (int pass = 0; pass <= reps; ++pass) {
+                const double cpu0 = process_cpu_seconds();
+                const auto t0 = Clock::now();
+                closest_points(tree, index, query, std::span(out).first(query.size()),
+                               {INFINITY, sign});
+                const double elapsed = std::chrono::duration<double>(Clock::now() - t0).count();
+                if (pass == 0) continue;
+                seconds.push_back(elapsed);
+                wall_seconds += elapsed;
+                cpu_seconds += process_cpu_seconds() - cpu0;
+            }
+        };
+        timed(kd_uniform, uniform, false);
+        timed(kd_near, near, false);
+        timed(signed_uniform, uniform, true);
+        timed(signed_near, near, true);
+
+        // Brute force over the subset (signed: the side costs one dot product), and the kD
+        // answers to compare: signed ones equal to it, unsigned ones too but for the side.
+        const std::vector<TriVerts> tris = triangles_by_id(tree);
+        std::vector<ClosestPoint> truth(subset.size());
+        start = Clock::now();
+        tbb::parallel_for(size_t{0}, subset.size(), [&](size_t i) {
+            truth[i] = brute_force_closest_point(tris, index, subset[i], {INFINITY, true});
+        });
+        brute_seconds = std::chrono::duration<double>(Clock::now() - start).count();
+        std::vector<ClosestPoint> kd(subset.size()), kd_signed(subset.size());
+        closest_points(tree, index, subset, kd, {INFINITY, false});
+        closest_points(tree, index, subset, kd_signed, {INFINITY, true});
+        for (size_t i = 0; i < subset.size(); ++i) {
+            ClosestPoint unsigned_truth = truth[i];
+            unsigned_truth.side = Side::kUnknown;
+            mismatches += same_closest_point(kd[i], unsigned_truth) ? 0 : 1;
+            mismatches += same_closest_point(kd_signed[i], truth[i]) ? 0 : 1;
+        }
+    });
+    const auto rate = [](size_t count, double seconds) {
+        return seconds > 0 ? static_cast<double>(count) / seconds : 0.0;
+    };
+    const double kd_rate = rate(uniform.size() + near.size(), median(kd_uniform) + median(kd_near));
+    const double signed_rate =
+        rate(uniform.size() + near.size(), median(signed_uniform) + median(signed_near));
+    const double brute_rate = rate(subset.size(), brute_seconds);
+    Json line;
+    line["command"] = "distance";
+    line["mesh"] = std::filesystem::path(mesh_path).filename().string();
+    line["triangles"] = loaded.mesh.triangle_count();
+    line["closed"] = index.closed;
+    line["threads"] = threads;
+    line["reps"] = reps;
+    line["points"] = uniform.size() + near.size();
+    line["build_ms"] = rounded(build_ms, 3);
+    line["surface_ms"] = rounded(surface_ms, 3);
+    line["kd_points_per_s"] = rounded(kd_rate, 0);
+    line["kd_uniform_points_per_s"] = rounded(rate(uniform.size(), median(kd_uniform)), 0);
+    line["kd_near_points_per_s"] = rounded(rate(near.size(), median(kd_near)), 0);
+    line["signed_points_per_s"] = rounded(signed_rate, 0);
+    line["signed_uniform_points_per_s"] = rounded(rate(uniform.size(), median(signed_uniform)), 0);
+    line["signed_near_points_per_s"] = rounded(rate(near.size(), median(signed_near)), 0);
+    line["brute_points"] = subset.size();
+    line["brute_seconds"] = rounded(brute_seconds, 4);
+    line["brute_points_per_s"] = rounded(brute_rate, 1);
+    line["ratio"] = brute_rate > 0 ? rounded(kd_rate / brute_rate, 1) : 0.0;
+    line["cpu_util"] = rounded(wall_seconds > 0 ? cpu_seconds / wall_seconds : 0.0, 2);
+    line["matches_brute_force"] = mismatches == 0;
+    line["mismatches"] = mismatches;
+    print_json(line);
+    if (mismatches != 0) {
+        std::cerr << "kdrt-bench distance: error: " << mismatches << " of " << 2 * subset.size()
+                  << " kD answers differ from brute force\n";
+        return 1;
+    }
     return 0;
 }
 
@@ -832,15 +1034,18 @@ constexpr std::array<std::string_view, 4> kSceneOptions = {"out", "size", "from"
 constexpr std::array<std::string_view, 13> kRenderOptions = {
     "shading",    "res",     "spp",     "tile",    "threads", "reps",   "seed",
     "ao-samples", "bounces", "builder", "c-isect", "out",     "compare"};
-constexpr std::array<std::string_view, 3> kAllHitsOptions = {"max-hits", "threads", "reps"};
+constexpr std::array<std::string_view, 4> kAllHitsOptions = {"max-hits", "mode", "threads", "reps"};
 constexpr std::array<std::string_view, 1> kAllHitsFlags = {"merge"};
-constexpr std::array<Command, 6> kCommands = {{
+constexpr std::array<std::string_view, 5> kDistanceOptions = {"points", "brute", "threads", "reps",
+                                                              "seed"};
+constexpr std::array<Command, 7> kCommands = {{
     {"build", kBuildUsage, kBuildOptions, &run_build},
     {"trace", kTraceUsage, kTraceOptions, &run_trace, kTraceFlags},
     {"all-hits", kAllHitsUsage, kAllHitsOptions, &run_all_hits, kAllHitsFlags},
     {"rays", kRaysUsage, kRaysOptions, &run_rays},
     {"scene", kSceneUsage, kSceneOptions, &run_scene},
     {"render", kRenderUsage, kRenderOptions, &run_render},
+    {"distance", kDistanceUsage, kDistanceOptions, &run_distance},
 }};
 
 int run_main(int argc, char** argv) {

@@ -22,8 +22,8 @@
 namespace kdrt::test {
 namespace {
 
-const char* const kCommands[] = {"upload", "meshes", "info",   "rm",      "render",      "trace",
-                                 "hits",   "rays",   "health", "metrics", "bench-remote"};
+const char* const kCommands[] = {"upload", "meshes",   "info", "rm",     "render",  "trace",
+                                 "hits",   "distance", "rays", "health", "metrics", "bench-remote"};
 
 std::vector<std::string> lines_of(const std::string& text) {
     std::vector<std::string> lines;

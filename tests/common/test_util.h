@@ -1,6 +1,7 @@
 #pragma once
 // Shared helpers for the engine tests: seeds, a small RNG, scene generators and ray generators.
 
+#include <algorithm>
 #include <cmath>
 #include <cstdint>
 #include <cstdlib>
@@ -27,6 +28,12 @@ inline double test_scale() {
 }
 inline size_t scaled(size_t n) {
     return std::max<size_t>(1, static_cast<size_t>(static_cast<double>(n) * test_scale()));
+}
+/// An image side for an oracle over `res` x `res` pixels, scaled so the pixel count follows
+/// test_scale(), and at least `floor`.
+inline uint32_t scaled_res(uint32_t res, uint32_t floor = 32) {
+    const double side = static_cast<double>(res) * std::sqrt(std::min(1.0, test_scale()));
+    return std::max(floor, static_cast<uint32_t>(side));
 }
 
 /// splitmix64: small, fast, good enough for test data.

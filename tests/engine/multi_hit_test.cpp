@@ -10,9 +10,11 @@
 
 #include <tbb/task_arena.h>
 
+#include "kdrt/camera.h"
 #include "kdrt/proto/mesh_io.h"
 #include "kdrt/query.h"
 #include "kdrt/trace.h"
+#include "packet.h"
 #include "scenes.h"
 #include "test_util.h"
 
@@ -256,6 +258,113 @@ TEST(AllHits, SameAtAnyThreadCount) {
     EXPECT_EQ(a.counts, b.counts);
     ASSERT_EQ(a.hits.size(), b.hits.size());
     EXPECT_EQ(std::memcmp(a.hits.data(), b.hits.data(), a.hits.size() * sizeof(Hit)), 0);
+}
+
+std::vector<Isa> supported_isas() {
+    std::vector<Isa> isas;
+    for (Isa isa : {Isa::kScalar, Isa::kSse4, Isa::kAvx2, Isa::kAvx512})
+        if (isa_supported(isa)) isas.push_back(isa);
+    return isas;
+}
+
+/// Camera rays (coherent: the packet path), the oracle's mixed bag, rays through the mesh's
+/// vertices and edges (coincident hits), and invalid rays sprinkled in.
+std::vector<Ray> packet_test_rays(Rng& rng, const Mesh& mesh, const KdTree& tree, size_t count,
+                                  uint32_t res = 48) {
+    std::vector<Ray> rays;
+    const Camera cam(default_camera(tree.bounds, 1.0f), res, res);
+    for (uint32_t y = 0; y < res; ++y)
+        for (uint32_t x = 0; x < res; ++x) rays.push_back(cam.ray(x + 0.5f, y + 0.5f));
+    const std::vector<Ray> bag = oracle_rays(rng, mesh, tree, count);
+    rays.insert(rays.end(), bag.begin(), bag.end());
+    const Vec3 from = tree.bounds.lo - tree.bounds.extent();
+    for (const Vec3& p : vertex_and_edge_points(rng, mesh, count / 4))
+        rays.push_back(make_ray(from, p - from));
+    for (size_t i = 0; i < rays.size(); i += 89) {
+        rays[i].dx = (i % 2) ? NAN : 0.0f;
+        if (i % 2 == 0) rays[i].dy = rays[i].dz = 0.0f;
+    }
+    return rays;
+}
+
+enum class Truth { kBruteForce, kScalarKernel };
+
+/// The batch every-hit answers of every ISA and mode (packets, single rays, auto) equal the
+/// brute-force lists (or, on big meshes, the single-ray scalar kernel's, which the tests above
+/// hold to brute force) bit for bit, merged or not, counts included, for rays with more raw hits
+/// than a packet lane keeps (the overflow path) too.
+void check_every_isa_and_mode(const Mesh& mesh, std::span<const Ray> rays, Truth truth,
+                              bool want_overflow) {
+    const KdTree tree = build_kdtree(mesh);
+    const std::vector<TriVerts> tris = make_tri_verts(mesh);
+    for (const bool merge : {false, true}) {
+        std::vector<std::vector<Hit>> want(rays.size());
+        uint32_t most = 0;
+        for (size_t i = 0; i < rays.size(); ++i) {
+            if (truth == Truth::kBruteForce)
+                want[i] = brute_force_intersect_all(tris, rays[i], merge);
+            else
+                intersect_all(tree, rays[i], merge, want[i]);
+            most = std::max(most, static_cast<uint32_t>(want[i].size()));
+        }
+        if (want_overflow && !merge) {
+            EXPECT_GT(most, detail::kPacketHitCapacity) << "no ray takes the overflow path";
+        }
+        for (Isa isa : supported_isas()) {
+            for (TraceMode mode : {TraceMode::kPacket, TraceMode::kAuto, TraceMode::kSingle}) {
+                SCOPED_TRACE(testing::Message() << "isa=" << isa_name(isa) << " mode="
+                                                << trace_mode_name(mode) << " merge=" << merge);
+                AllHitsOptions options;
+                options.max_hits = kMaxHitsPerRay;
+                options.merge_coincident = merge;
+                options.mode = mode;
+                options.isa = isa;
+                const AllHits got = intersect_all(tree, rays, options);
+                std::vector<uint32_t> counts(rays.size());
+                count_intersections(tree, rays, options, counts);
+                size_t bad = 0;
+                for (size_t i = 0; i < rays.size(); ++i) {
+                    const size_t n = got.offsets[i + 1] - got.offsets[i];
+                    const bool same =
+                        n == want[i].size() && got.counts[i] == n && counts[i] == n &&
+                        std::equal(want[i].begin(), want[i].end(),
+                                   got.hits.begin() + static_cast<ptrdiff_t>(got.offsets[i]),
+                                   same_bits);
+                    if (!same && ++bad <= 3)
+                        ADD_FAILURE()
+                            << "ray " << i << ": " << n << " hits (count " << got.counts[i]
+                            << ", counted " << counts[i] << "), brute force " << want[i].size();
+                }
+                EXPECT_EQ(bad, 0u);
+            }
+        }
+    }
+}
+
+TEST(AllHits, EveryIsaAndModeEqualsTheScalarKernelOnTheBunny) {
+    const Mesh mesh = load_data_mesh("bunny00.off");
+    const KdTree tree = build_kdtree(mesh);
+    Rng rng(test_seed() + 41);
+    check_every_isa_and_mode(mesh, packet_test_rays(rng, mesh, tree, scaled(2000)),
+                             Truth::kScalarKernel, false);
+}
+
+TEST(AllHits, EveryIsaAndModeEqualsBruteForceOnADenseSoup) {
+    Rng rng(test_seed() + 42);
+    // Big overlapping triangles: rays with more hits than a packet lane holds.
+    const Mesh mesh = random_soup(rng, 4000, 0.6f);
+    const KdTree tree = build_kdtree(mesh);
+    check_every_isa_and_mode(mesh, packet_test_rays(rng, mesh, tree, scaled(600), 24),
+                             Truth::kBruteForce, true);
+}
+
+TEST(AllHits, EveryIsaAndModeKeepsParityOnClosedMeshes) {
+    Rng rng(test_seed() + 43);
+    for (const Mesh& mesh : {cube(), uv_sphere({0.2f, -0.1f, 0.3f}, 1.5f, 24, 48)}) {
+        const KdTree tree = build_kdtree(mesh);
+        check_every_isa_and_mode(mesh, packet_test_rays(rng, mesh, tree, scaled(1500)),
+                                 Truth::kBruteForce, false);
+    }
 }
 
 TEST(AllHits, InvalidRaysHaveNoHits) {

@@ -216,7 +216,8 @@ TEST(RenderOracle, BunnyNormalsDepthPrimIdEqualBruteForce) {
     const KdTree& tree = bunny_tree();
     // One camera ray per pixel through its centre: the three modes trace the same rays, so the
     // brute force runs once for all of them, and the ties are the same.
-    const std::vector<Ray> rays = render_camera_rays(tree, bunny_settings(Shading::kNormals, 128));
+    const uint32_t res = scaled_res(128);
+    const std::vector<Ray> rays = render_camera_rays(tree, bunny_settings(Shading::kNormals, res));
     const std::vector<Hit> want = brute_force_all(triangles_by_id(tree), rays);
     BruteForce oracle(tree);
     oracle.remember(rays, want);
@@ -224,15 +225,15 @@ TEST(RenderOracle, BunnyNormalsDepthPrimIdEqualBruteForce) {
     for (Shading shading : {Shading::kNormals, Shading::kDepth, Shading::kPrimId}) {
         SCOPED_TRACE(shading_name(shading));
         const size_t hit_pixels =
-            expect_matches_oracle(tree, bunny_settings(shading, 128), oracle, ties);
-        EXPECT_GT(hit_pixels, 128u * 128u / 5)
+            expect_matches_oracle(tree, bunny_settings(shading, res), oracle, ties);
+        EXPECT_GT(hit_pixels, res * res / 5)
             << "the default camera should fill the frame with the bunny";
-        EXPECT_LT(hit_pixels, 128u * 128u) << "and show some background";
+        EXPECT_LT(hit_pixels, res * res) << "and show some background";
     }
 }
 
 TEST(RenderOracle, BunnyEyelightWithJitterEqualsBruteForce) {
-    RenderSettings s = bunny_settings(Shading::kEyelight, 64);
+    RenderSettings s = bunny_settings(Shading::kEyelight, scaled_res(64, 24));
     s.spp = 3;
     s.seed = test_seed();
     SCOPED_TRACE(testing::Message() << "seed=" << s.seed);
@@ -244,7 +245,7 @@ TEST(RenderOracle, BunnyEyelightWithJitterEqualsBruteForce) {
 
 TEST(RenderOracle, BunnyAoCloseToBruteForceWithTheSameSeed) {
     const KdTree& tree = bunny_tree();
-    RenderSettings s = bunny_settings(Shading::kAo, 128);
+    RenderSettings s = bunny_settings(Shading::kAo, scaled_res(128));
     s.ao_samples = 4;
     s.seed = test_seed();
     SCOPED_TRACE(testing::Message() << "seed=" << s.seed);

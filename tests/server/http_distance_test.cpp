@@ -145,6 +145,34 @@ TEST_F(HttpDistance, BadBodiesAreRefused) {
                    404);
 }
 
+/// kdrt_cache_bytes{where="memory"} of /metrics.
+double cache_memory_bytes(ServerProcess& server) {
+    auto res = server.client()->Get("/metrics");
+    if (!res || res->status != 200) return -1;
+    const std::string key = "\nkdrt_cache_bytes{where=\"memory\"} ";
+    const size_t at = res->body.find(key);
+    return at == std::string::npos ? -1 : std::stod(res->body.substr(at + key.size()));
+}
+
+TEST_F(HttpDistance, SurfaceIndexCountsTowardsTheMemoryBudget) {
+    // A mesh no other test has asked a distance of: its first query builds its index, which
+    // the cache's memory (what memory_budget bounds) then counts, 84 bytes a triangle.
+    Rng rng(test_seed() + 91);
+    const Mesh mesh = random_soup(rng, 2000, 0.1f);
+    const std::string id = upload_id(*server_->client(), mesh);
+    const double before = cache_memory_bytes(*server_);
+    ASSERT_GT(before, 0);
+    auto res = post(id, "", bytes_to_string(proto::encode_points(*points_)));
+    ASSERT_TRUE(res);
+    ASSERT_EQ(res->status, 200) << res->body;
+    const double after = cache_memory_bytes(*server_);
+    EXPECT_GE(after - before, 84.0 * 2000);
+    EXPECT_LE(after - before, 84.0 * 2000 + 4096);
+    // A second query reuses it.
+    ASSERT_TRUE(post(id, "", bytes_to_string(proto::encode_points(*points_))));
+    EXPECT_EQ(cache_memory_bytes(*server_), after);
+}
+
 TEST_F(HttpDistance, EmptyBatchIsAnEmptyAnswer) {
     auto res = post(sphere_id_, "", bytes_to_string(proto::encode_points({})));
     ASSERT_TRUE(res);

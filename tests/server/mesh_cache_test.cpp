@@ -10,6 +10,7 @@
 #include <fstream>
 #include <thread>
 
+#include "kdrt/distance.h"
 #include "kdrt/proto/mesh_id.h"
 #include "kdrt/trace.h"
 #include "test_util.h"
@@ -111,6 +112,54 @@ TEST_F(MeshCacheTest, BudgetEvictsLeastRecentlyUsed) {
     EXPECT_EQ(metrics_.cache_misses.load(), 1u);
     EXPECT_EQ(metrics_.builds(), 3u);
     EXPECT_FALSE((*held)->nodes.empty());
+    (void)ic;
+}
+
+TEST_F(MeshCacheTest, SurfaceIndexCountsTowardsTheBudgetAndIsEvictedWithItsTree) {
+    MeshStore store(dir_);
+    const Mesh a = mesh(6), b = mesh(7), c = mesh(8);
+    const KdTree reference = build_kdtree(a);
+    const uint64_t one_tree = tree_memory_bytes(reference);
+    const uint64_t one_index = surface_memory_bytes(build_surface_index(reference));
+    ASSERT_GT(one_index, 300u * 84u);  // 7 x 3 floats a triangle
+    // Room for two trees, not for two trees and an index.
+    MeshCache cache(store, compute_, metrics_, 2 * one_tree + one_index / 2);
+    ASSERT_TRUE(cache.open());
+    const std::string ia = cache.add(a)->summary.id, ib = cache.add(b)->summary.id;
+    ASSERT_EQ(cache.resident_count(), 2u);
+    const uint64_t trees_only = cache.memory_bytes();
+    auto tree_a = cache.acquire(ia);
+    ASSERT_TRUE(tree_a);
+    const auto index = cache.surface_index(ia, *tree_a);
+    ASSERT_TRUE(index);
+    EXPECT_EQ(index->pseudonormals, build_surface_index(reference).pseudonormals);
+    // a's index is counted: the budget is exceeded, so b (least recently used) is evicted.
+    EXPECT_EQ(cache.resident_count(), 1u);
+    EXPECT_EQ(metrics_.cache_evictions.load(), 1u);
+    EXPECT_FALSE(cache.find(ib)->in_memory.value());
+    EXPECT_EQ(cache.memory_bytes(), trees_only - tree_memory_bytes(build_kdtree(b)) + one_index);
+    // Asked again, the same index, not a new one.
+    EXPECT_EQ(cache.surface_index(ia, *tree_a), index);
+    // Evicting a's tree (b and c reloaded and added) drops its index and its bytes.
+    ASSERT_TRUE(cache.acquire(ib));
+    const std::string ic = cache.add(c)->summary.id;
+    EXPECT_FALSE(cache.find(ia)->in_memory.value());
+    EXPECT_EQ(cache.memory_bytes(),
+              tree_memory_bytes(build_kdtree(b)) + tree_memory_bytes(build_kdtree(c)));
+    // The evicted tree still held by a request gets an index that is not kept.
+    const auto transient = cache.surface_index(ia, *tree_a);
+    EXPECT_NE(transient, index);
+    EXPECT_EQ(transient->pseudonormals, index->pseudonormals);
+    EXPECT_EQ(cache.memory_bytes(),
+              tree_memory_bytes(build_kdtree(b)) + tree_memory_bytes(build_kdtree(c)));
+    // Reloaded, a gets its index again (a new one), counted again; removing a returns its bytes.
+    auto reloaded = cache.acquire(ia);
+    ASSERT_TRUE(reloaded);
+    const auto again = cache.surface_index(ia, *reloaded);
+    EXPECT_NE(again, index);
+    const uint64_t with_index = cache.memory_bytes();
+    EXPECT_TRUE(cache.remove(ia));
+    EXPECT_EQ(cache.memory_bytes(), with_index - one_tree - one_index);
     (void)ic;
 }
 

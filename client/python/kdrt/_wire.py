@@ -231,3 +231,89 @@ def decode_hit_counts(body: bytes, rays: int) -> np.ndarray:
     if len(body) != HEADER_BYTES + 4 * rays:
         raise _bad(f"length_mismatch: {len(body)} bytes, expected {HEADER_BYTES + 4 * rays}")
     return np.frombuffer(body, dtype="<u4", count=rays, offset=HEADER_BYTES)
+
+
+# ---- Distance queries: KDRP and KDRD (FORMATS.md, "Distance queries") -------------------------
+
+POINT_MAGIC = b"KDRP"
+DISTANCE_MAGIC = b"KDRD"
+POINTS_MEDIA_TYPE = "application/x-kdrt-points"
+DISTANCES_MEDIA_TYPE = "application/x-kdrt-distances"
+POINT_RECORD_BYTES = 12
+#: KDRD flag bit 0: the sides were asked for (signed=true).
+DISTANCE_FLAG_SIGNED = 0x0001
+#: One KDRD record: f32 distance, u32 prim, f32 u, f32 v, f32 px py pz, u8 feature, u8 side, u16 0.
+DISTANCE_RECORD = np.dtype([("distance", "<f4"), ("prim", "<u4"), ("u", "<f4"), ("v", "<f4"),
+                            ("point", "<f4", (3,)), ("feature", "u1"), ("side", "u1"),
+                            ("reserved", "<u2")])
+#: KDRD feature codes: where on its triangle a closest point lies.
+FEATURES = ("face", "edge01", "edge12", "edge20", "vertex0", "vertex1", "vertex2", "none")
+#: KDRD side codes.
+SIDE_OUTSIDE, SIDE_INSIDE, SIDE_UNKNOWN = 0, 1, 2
+_AXES = "xyz"
+
+
+def as_points(points) -> np.ndarray:
+    """Checks a point array of shape (..., 3) and returns it as float32 (no copy when it already
+    is). A NaN or infinite coordinate is an "input" Error naming the first such point (its index
+    in the flattened array) and field, as the server would."""
+    arr = np.asarray(points)
+    if arr.ndim < 1 or arr.shape[-1] != 3:
+        raise input_error("bad query points",
+                          f"query points must have shape (..., 3) [x, y, z]; got shape {arr.shape}")
+    if not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)):
+        raise input_error("bad query points", f"query points must be a float array; got dtype "
+                          f"{arr.dtype}")
+    out = arr.astype(np.float32, copy=False)
+    count = out.size // 3
+    if count > MAX_BATCH_RAYS:
+        raise input_error("too many points", f"{count} query points in one call; a batch holds "
+                          f"at most {MAX_BATCH_RAYS}")
+    flat = out.reshape(-1, 3)
+    bad = ~np.isfinite(flat)
+    if bad.any():
+        i, axis = (int(k) for k in np.argwhere(bad)[0])
+        value = float(flat[i, axis])
+        name = "NaN" if np.isnan(value) else ("+inf" if value > 0 else "-inf")
+        err = input_error("bad query point", f"point {i}: field {_AXES[axis]} is {name}")
+        err.code = "non_finite_point"
+        raise err
+    return out
+
+
+def kdrp_records(points: np.ndarray) -> np.ndarray:
+    """(n, 3) float32 points -> (n, 3) little-endian KDRP records."""
+    return np.ascontiguousarray(points, dtype="<f4")
+
+
+def decode_distances(body: bytes, count: int, signed: bool) -> np.ndarray:
+    """A KDRD body for `count` points as a structured array of DISTANCE_RECORD (a view of the
+    body). Checks the header (magic, version, flags: only bit 0, and it must be `signed`, count,
+    reserved), the size, and every record's feature (0..7), side (0..2) and reserved bytes,
+    naming the first bad point. Raises a "protocol" Error."""
+    if len(body) < HEADER_BYTES:
+        raise _bad(f"too_short: body has {len(body)} bytes, less than the 16-byte header")
+    magic, version, flags, n, reserved = BATCH_HEADER.unpack_from(body)
+    if magic != DISTANCE_MAGIC:
+        raise _bad(f'bad_magic: bad magic "{magic.decode("latin-1")}", expected "KDRD"')
+    if version != BATCH_VERSION:
+        raise _bad(f"bad_version: unsupported version {version}, expected {BATCH_VERSION}")
+    if flags & ~DISTANCE_FLAG_SIGNED or bool(flags & DISTANCE_FLAG_SIGNED) != bool(signed):
+        raise _bad(f"bad_flags: flags 0x{flags:04x} for a {'signed' if signed else 'unsigned'} "
+                   f"query")
+    if reserved != 0:
+        raise _bad(f"bad_reserved: reserved header field is 0x{reserved:08x}, expected 0")
+    if n != count:
+        raise _bad(f"{n} answers for {count} points")
+    expected = HEADER_BYTES + DISTANCE_RECORD.itemsize * n
+    if len(body) != expected:
+        raise _bad(f"length_mismatch: {len(body)} bytes, expected {expected}")
+    records = np.frombuffer(body, dtype=DISTANCE_RECORD, count=n, offset=HEADER_BYTES)
+    bad = np.flatnonzero((records["feature"] > 7) | (records["side"] > 2) |
+                         (records["reserved"] != 0))
+    if bad.size:
+        i = int(bad[0])
+        r = records[i]
+        raise _bad(f"bad_record: point {i}: feature {int(r['feature'])}, side {int(r['side'])}, "
+                   f"reserved {int(r['reserved'])}")
+    return records

@@ -110,7 +110,8 @@ class Client:
     timeout:     seconds per socket read or write (a long batch may take longer in total).
     connect_timeout: seconds to set a connection up.
     max_retries: retries after the first attempt, on connection errors and 503 answers.
-    chunk_rays:  rays per request; larger batches are split into chunks of this many...
+    chunk_rays:  rays (and distance query points) per request; larger batches are split into
+                 chunks of this many...
     connections: ...sent at once on this many keep-alive connections (one thread each).
     poll_interval: seconds between two polls of a job in wait().
     """
@@ -132,6 +133,7 @@ class Client:
         self.poll_interval = poll_interval
         self._pool = None
         self._pool_lock = threading.Lock()
+        self._distance_chunk = 0  # points per distance request a 413 taught (0: chunk_rays)
 
     def close(self):
         """Closes the idle connections and the worker threads (the client stays usable)."""
@@ -399,6 +401,141 @@ class Client:
             _wire.check_occlusion_records(out)
             return out.view(np.bool_).reshape(lead)
         return out.reshape(lead + (4,))
+
+    # ---- Distance queries (POST /v1/meshes/{id}/distance) -----------------------------------
+
+    def compute_closest_points(self, mesh, query_points, max_distance=np.inf) -> dict:
+        """The closest point on the mesh to every query point, like Open3D's
+        RaycastingScene.compute_closest_points, with what the wire (KDRD) carries.
+
+        query_points: float array of shape (..., 3). Only triangles at most `max_distance` away
+        count (>= 0; default: no limit). Returns a dict of arrays shaped like the points'
+        leading dimensions:
+          points         float32 (..., 3) the closest point; NaN where nothing was found
+          distance       float32 (...)    to the closest point; inf where nothing was found
+          primitive_ids  uint32 (...)     the triangle, 0xFFFFFFFF (kdrt.NO_HIT) where none
+          primitive_uvs  float32 (..., 2) barycentric weights of v1 and v2 (point = (1-u-v) v0
+                                          + u v1 + v v2), 0 where nothing was found
+          features       uint8 (...)      where on the triangle: 0 face, 1 edge v0-v1, 2 edge
+                                          v1-v2, 3 edge v2-v0, 4..6 vertex v0..v2, 7 none
+                                          (names: kdrt.FEATURES)
+        A NaN or infinite coordinate raises kdrt.Error (kind "input") naming the point before
+        anything is sent."""
+        records, _, lead = self._distance(_mesh_id(mesh), query_points, max_distance, False)
+        return {
+            "points": np.ascontiguousarray(records["point"]).reshape(lead + (3,)),
+            "distance": np.ascontiguousarray(records["distance"]).reshape(lead),
+            "primitive_ids": np.ascontiguousarray(records["prim"]).reshape(lead),
+            "primitive_uvs": np.stack([records["u"], records["v"]], axis=-1).reshape(lead + (2,)),
+            "features": np.ascontiguousarray(records["feature"]).reshape(lead),
+        }
+
+    def compute_distance(self, mesh, query_points, max_distance=np.inf) -> np.ndarray:
+        """The distance from every query point to the mesh (float32, shaped like the points'
+        leading dimensions; inf where no triangle is within `max_distance`), like Open3D's
+        RaycastingScene.compute_distance."""
+        records, _, lead = self._distance(_mesh_id(mesh), query_points, max_distance, False)
+        return np.ascontiguousarray(records["distance"]).reshape(lead)
+
+    def compute_signed_distance(self, mesh, query_points, max_distance=np.inf) -> np.ndarray:
+        """The signed distance of every query point (float32, shaped like the points' leading
+        dimensions): negative inside, positive outside (0 on the surface), like Open3D's
+        RaycastingScene.compute_signed_distance. The server decides the side by the
+        angle-weighted pseudonormal of the closest feature, exact on a closed, consistently
+        oriented mesh (proto/FORMATS.md). Where the sign is undefined the value is NaN, as the
+        server reports it: on a mesh that is not closed (every point; see surface()), and where
+        no triangle is within `max_distance`."""
+        records, _, lead = self._distance(_mesh_id(mesh), query_points, max_distance, True)
+        d = records["distance"]
+        side = records["side"]
+        out = np.where(side == _wire.SIDE_INSIDE, -d,
+                       np.where(side == _wire.SIDE_OUTSIDE, d, np.float32(np.nan)))
+        return out.astype(np.float32, copy=False).reshape(lead)
+
+    def compute_occupancy(self, mesh, query_points) -> np.ndarray:
+        """1.0 for every query point inside the mesh, 0.0 outside (on the surface counts as
+        outside), float32 shaped like the points' leading dimensions, like Open3D's
+        RaycastingScene.compute_occupancy. Only a closed, consistently oriented mesh has an
+        inside: on any other mesh this raises kdrt.Error (kind "input", title "mesh not
+        closed", the detail saying how many boundary, non-manifold and misoriented edges it
+        has) rather than guessing."""
+        mesh_id = _mesh_id(mesh)
+        records, surface, lead = self._distance(mesh_id, query_points, np.inf, True,
+                                                require_closed=True)
+        return (records["side"] == _wire.SIDE_INSIDE).astype(np.float32).reshape(lead)
+
+    def surface(self, mesh) -> str:
+        """Whether the mesh has an inside, as the server says (its X-Kdrt-Surface header):
+        "closed", or "not closed: B boundary edges, N non-manifold edges, M misoriented
+        edges"."""
+        _, surface, _ = self._distance(_mesh_id(mesh), np.zeros((0, 3), np.float32), np.inf,
+                                       True)
+        return surface
+
+    def _distance(self, mesh_id, query_points, max_distance, signed, require_closed=False):
+        """The KDRD records (one structured array, in point order), the X-Kdrt-Surface header
+        and the points' leading shape. Points go chunk_rays at a time, one request after
+        another; a chunk refused as too large (413: over the server's max_distance_points or
+        batch_memory_budget) is sent again in smaller chunks (what its `limit` allows, else
+        half), and later calls start from that size. With `require_closed`, a mesh that is not
+        closed raises after the first answer."""
+        arr = _wire.as_points(query_points)
+        lead = arr.shape[:-1]
+        flat = arr.reshape(-1, 3)
+        n = flat.shape[0]
+        max_distance = float(max_distance)
+        query = f"signed={'true' if signed else 'false'}"
+        if not np.isinf(max_distance) or max_distance < 0:
+            query += f"&max_distance={max_distance!r}"
+        path = (self._t.api("/v1/meshes/" + _segment(mesh_id) + "/distance") + "?" + query)
+        parts, surface, first = [], None, 0
+        while True:
+            chunk = min(self.chunk_rays, self._distance_chunk or self.chunk_rays)
+            count = min(chunk, n - first)
+            header = _wire.batch_header(_wire.POINT_MAGIC, 0, count)
+            body = _wire.byte_view(_wire.kdrp_records(flat[first:first + count]))
+            try:
+                _, headers, answer = self._t.request("POST", path, [header, body],
+                                                     _wire.POINTS_MEDIA_TYPE)
+            except Error as err:
+                if err.kind == "server" and err.status == 413 and count > 1:
+                    smaller = self._smaller_chunk(err, count)
+                    with self._pool_lock:
+                        if not self._distance_chunk or smaller < self._distance_chunk:
+                            self._distance_chunk = smaller
+                    continue
+                raise
+            parts.append(_wire.decode_distances(answer, count, signed))
+            got = headers.get("X-Kdrt-Surface", "")
+            if surface is None:
+                surface = got
+                if require_closed and surface != "closed":
+                    raise Error(kind="input", title="mesh not closed",
+                                detail=f"mesh {mesh_id} has no inside, so no occupancy: it is "
+                                f"{surface or 'of unknown closedness'} (only a closed, "
+                                f"consistently oriented mesh has one)")
+            elif got != surface:
+                raise Error(kind="protocol", title="bad response",
+                            detail=f"POST {path}: X-Kdrt-Surface changed between chunks: "
+                            f"{surface!r}, then {got!r}")
+            first += count
+            if first >= n:
+                break
+        records = np.concatenate(parts) if len(parts) > 1 else parts[0]
+        return records, surface, lead
+
+    @staticmethod
+    def _smaller_chunk(err, count):
+        """After a 413 for `count` points: the points to send at once from now on (< count)."""
+        allowed = 0
+        if err.limit:
+            if err.code == "too_many_rays":
+                allowed = int(err.limit)
+            elif err.limit >= _wire.HEADER_BYTES + _wire.POINT_RECORD_BYTES:
+                allowed = (int(err.limit) - _wire.HEADER_BYTES) // _wire.POINT_RECORD_BYTES
+        if allowed <= 0 or allowed >= count:
+            allowed = count // 2
+        return allowed
 
     # ---- Renders ------------------------------------------------------------------------------
 

@@ -2,10 +2,12 @@
 /// Queries beyond the closest hit: every hit along a ray.
 
 #include <cstdint>
+#include <optional>
 #include <span>
 #include <vector>
 
 #include "kdrt/kdtree.h"
+#include "kdrt/trace.h"
 #include "kdrt/types.h"
 
 namespace kdrt {
@@ -32,6 +34,11 @@ struct AllHitsOptions {
     /// a vertex where the surface also crosses the ray would be reported as a touch; such a group
     /// needs the ray through the vertex's rounded position and is not otherwise told apart.)
     bool merge_coincident = false;
+    /// How the batch is traversed, as for closest hit (TraceOptions): packets of same-octant rays
+    /// (every lane making its own single-ray cell decisions) or single rays; auto uses packets
+    /// where they pay. Every mode and ISA gives the same answers, bit for bit.
+    TraceMode mode = TraceMode::kAuto;
+    std::optional<Isa> isa = std::nullopt;  ///< default: default_isa(); unsupported: falls back
 };
 
 /// Every hit of a batch of rays, in CSR form: the kept hits of ray i are
@@ -59,6 +66,9 @@ uint32_t intersect_all(const KdTree& tree, const Ray& ray, bool merge_coincident
 /// The number of hits of each ray (what AllHits::counts holds), without keeping the hits.
 void count_intersections(const KdTree& tree, std::span<const Ray> rays, bool merge_coincident,
                          std::span<uint32_t> counts);
+/// The same with the traversal of `options` (its max_hits is not used).
+void count_intersections(const KdTree& tree, std::span<const Ray> rays,
+                         const AllHitsOptions& options, std::span<uint32_t> counts);
 
 /// The oracle: every hit by testing every triangle (`tris` indexed by mesh triangle id, as
 /// triangles_by_id gives them), sorted and merged like intersect_all.

@@ -30,7 +30,9 @@
 
 #include "kdrt/client/error.h"
 #include "kdrt/client/server_url.h"
+#include "kdrt/distance_types.h"
 #include "kdrt/mesh_types.h"
+#include "kdrt/proto/distance.h"
 #include "kdrt/proto/json_api.h"
 #include "kdrt/proto/mesh_io.h"
 #include "kdrt/proto/multi_hit.h"
@@ -39,6 +41,10 @@
 #include "kdrt/types.h"
 
 namespace kdrt {
+
+namespace detail {
+struct ClientAccess;
+}
 
 /// What the server reports about a stored mesh: id, triangles, vertices, bounds, build statistics.
 using MeshInfo = proto::MeshSummary;
@@ -76,6 +82,23 @@ using RegionProgress = std::function<bool(unsigned done, unsigned parts)>;
 /// of different frames or channel counts, two parts covering one pixel, or a pixel no part covers.
 [[nodiscard]] proto::Result<Image, std::string> stitch_regions(
     const PixelRegion& within, std::span<const proto::RawImage> parts);
+
+/// The options of a distance query: max_distance (>= 0, +inf: no limit) and signed_query.
+using DistanceQuery = proto::DistanceQuery;
+
+/// The answer of Client::distance.
+struct DistanceAnswer {
+    /// One closest point per query point, in query order: the server's KDRD records decoded
+    /// (proto::decode_distances). A point with nothing within max_distance: found() is false.
+    std::vector<ClosestPoint> points;
+    /// The query asked for sides (DistanceQuery::signed_query). Without it every side is kUnknown.
+    bool signed_query = false;
+    /// The server's X-Kdrt-Surface header: "closed", or "not closed: B boundary edges, N
+    /// non-manifold edges, M misoriented edges" (sides are then kUnknown and signed distances NaN).
+    std::string surface;
+    /// surface == "closed": the mesh is closed and consistently oriented, so sides are decided.
+    [[nodiscard]] bool closed() const noexcept { return surface == "closed"; }
+};
 
 /// Called by Client::wait after every poll with the job's latest status. Return false to stop
 /// waiting: wait() then cancels the job and returns ErrorKind::kCancelled.
@@ -191,6 +214,22 @@ public:
     /// A lidar scan, asked for as KDRL (request.format is ignored) and decoded.
     [[nodiscard]] Result<PointCloud> scan_lidar(std::string_view id, proto::ScanRequest request);
 
+    // ---- Distance queries (POST /v1/meshes/{id}/distance, KDRP -> KDRD) -----------------------
+
+    /// The closest point on the mesh to every query point (within query.max_distance), its
+    /// distance, triangle, barycentrics and feature, and with query.signed_query its side. Points
+    /// go options.chunk_rays at a time, one request after another, joined in query order (the
+    /// answer equals one unsplit request's). A chunk the server refuses as too large (413: more
+    /// than its max_distance_points, or than its batch_memory_budget could ever hold) is sent
+    /// again in smaller chunks (the size its `limit` allows, else half), and later calls on this
+    /// Client start from that size, so no number of points is refused for its size. A point with
+    /// a NaN or infinite coordinate is a kInput error naming it ("point 17: field y is NaN")
+    /// before anything is sent; more than 2^32 - 1 points too. An empty span still asks the
+    /// server (so an unknown id is reported). Other errors as for intersect (a bad max_distance is
+    /// a kServer 400 naming it).
+    [[nodiscard]] Result<DistanceAnswer> distance(std::string_view id, std::span<const Vec3> points,
+                                                  const DistanceQuery& query = {});
+
     // ---- Renders (POST /v1/render, /v1/jobs/{id}...) -----------------------------------------
 
     /// Renders synchronously and returns the encoded image (request.format: png, jpg/jpeg, exr).
@@ -231,6 +270,7 @@ public:
     [[nodiscard]] Result<std::string> metrics();
 
 private:
+    friend struct detail::ClientAccess;
     struct Impl;
     std::unique_ptr<Impl> impl_;
 };
