@@ -32,6 +32,8 @@ public:
                 const httplib::ContentReader& reader);
     void distance(const httplib::Request& req, httplib::Response& res,
                   const httplib::ContentReader& reader);
+    void scan(const httplib::Request& req, httplib::Response& res,
+              const httplib::ContentReader& reader);
 
     void list_meshes(const httplib::Request& req, httplib::Response& res);
     void get_mesh(const httplib::Request& req, httplib::Response& res);

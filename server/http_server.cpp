@@ -297,6 +297,7 @@ struct HttpServer::Impl {
              &Routes::intersect_all);
         post(mesh + "/distance", "/v1/meshes/{id}/distance", {.api = true, .heavy = true},
              &Routes::distance);
+        post(mesh + "/scan", "/v1/meshes/{id}/scan", {.api = true, .heavy = true}, &Routes::scan);
         post("/v1/render", "/v1/render", {.api = true, .heavy = true}, &Routes::render);
         const std::string job = std::string("/v1/jobs/") + kIdPattern;
         get(job, "/v1/jobs/{id}", {.api = true}, &Routes::get_job);

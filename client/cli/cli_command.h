@@ -41,6 +41,8 @@ extern const Command kDistanceCommand;
 // The server's state (cli_ops.cpp).
 extern const Command kHealthCommand;
 extern const Command kMetricsCommand;
+// Sensor scans (cli_scan.cpp).
+extern const Command kScanCommand;
 // Remote tracing speed (cli_bench_remote.cpp).
 extern const Command kBenchRemoteCommand;
 

@@ -45,9 +45,9 @@ written); 3 cannot connect to the server; 130 interrupted while waiting for a re
 )";
 
 constexpr const Command* kCommands[] = {
-    &kUploadCommand, &kMeshesCommand, &kInfoCommand,    &kRmCommand,
-    &kRenderCommand, &kTraceCommand,  &kHitsCommand,    &kDistanceCommand,
-    &kRaysCommand,   &kHealthCommand, &kMetricsCommand, &kBenchRemoteCommand,
+    &kUploadCommand, &kMeshesCommand,  &kInfoCommand,        &kRmCommand,   &kRenderCommand,
+    &kTraceCommand,  &kHitsCommand,    &kDistanceCommand,    &kRaysCommand, &kScanCommand,
+    &kHealthCommand, &kMetricsCommand, &kBenchRemoteCommand,
 };
 
 void append_command_line(std::string& out, std::string_view synopsis, std::string_view summary) {

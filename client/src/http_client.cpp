@@ -839,6 +839,18 @@ Result<std::vector<uint32_t>> Client::count_intersections(std::string_view id,
     return counts;
 }
 
+Result<std::vector<std::byte>> Client::scan(std::string_view id,
+                                            const proto::ScanRequest& request) {
+    // The mesh id rides along as ?route= like a render's, for a proxy that hashes it.
+    Exchange ex;
+    ex.method = "POST";
+    ex.path = impl_->api("/v1/meshes/" + escape_segment(id) + "/scan?route=" + escape_segment(id));
+    ex.content_type = std::string(proto::kJsonMediaType);
+    const std::string body = proto::encode_scan_request(request);
+    ex.body = body;
+    return impl_->image_call(ex, body, 200);
+}
+
 Result<std::vector<std::byte>> Client::render(const RenderRequest& request) {
     Exchange ex = impl_->render_exchange(request);
     const std::string body = proto::encode_render_request(request);

@@ -219,6 +219,31 @@ TEST(OpenApiSchemas, ExamplesAndLiveAnswersValidate) {
           cli->Post("/v1/meshes/" + std::string(64, 'b') + "/intersect_all", kdrr,
                     "application/x-kdrt-rays"));
 
+    // Sensor scans.
+    const std::string scan = "/v1/meshes/" + id + "/scan";
+    const std::string pin =
+        R"({"pinhole": {"intrinsics": {"fx": 20, "fy": 20, "cx": 8, "cy": 6, "width": 16, )"
+        R"("height": 12}, "pose": [[1,0,0,0.5],[0,1,0,0.5],[0,0,1,-3],[0,0,0,1]], "normals": true})";
+    const std::string lid =
+        R"({"lidar": {"vertical_fov": [-20, 20], "channels": 8, "azimuth_steps": 32, )"
+        R"("returns": 2, "pose": [[1,0,0,0.5],[0,1,0,0.5],[0,0,1,0.5],[0,0,0,1]]})";
+    for (const std::string format : {"binary", "exr"})
+        c.add("POST", "/v1/meshes/{id}/scan",
+              cli->Post(scan, pin + R"(, "format": ")" + format + R"("})", "application/json"));
+    for (const std::string format : {"binary", "ply"})
+        c.add("POST", "/v1/meshes/{id}/scan",
+              cli->Post(scan, lid + R"(, "format": ")" + format + R"("})", "application/json"));
+    c.add("POST", "/v1/meshes/{id}/scan",
+          cli->Post(scan, R"({"lidar": {"elevation_deg": [0], "azimuth_steps": 4, "pose": 1}})",
+                    "application/json"));
+    c.add("POST", "/v1/meshes/{id}/scan",
+          cli->Post(scan,
+                    R"({"lidar": {"elevation_deg": [0], "azimuth_steps": 4, "returns": 99999}})",
+                    "application/json"));
+    c.add("POST", "/v1/meshes/{id}/scan", cli->Post(scan, pin + "}", "text/plain"));
+    c.add("POST", "/v1/meshes/{id}/scan",
+          cli->Post("/v1/meshes/" + std::string(64, 'b') + "/scan", pin + "}", "application/json"));
+
     // Renders and jobs.
     const std::string small = R"({"mesh": ")" + id + R"(", "width": 32, "height": 24)";
     for (const char* format : {"png", "jpg", "exr"})

@@ -10,6 +10,7 @@
 #include "fuzz_check.h"
 #include "kdrt/proto/json_api.h"
 #include "kdrt/proto/problem.h"
+#include "kdrt/proto/scan.h"
 
 extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
     using namespace kdrt;
@@ -69,9 +70,26 @@ extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
             }
             break;
         }
-        case 4:
+        case 4: {
             (void)proto::decode_job_status(text);
+            // Scan requests share this slot: an accepted one respects the limits and re-encodes
+            // to a request that encodes the same again.
+            const proto::ScanLimits limits{.max_width = 64,
+                                           .max_height = 64,
+                                           .max_beams = 4096,
+                                           .max_points = 8192,
+                                           .max_returns = 4};
+            const auto scan = proto::decode_scan_request(text, limits);
+            if (scan) {
+                const std::string once = proto::encode_scan_request(*scan);
+                const auto again = proto::decode_scan_request(once, limits);
+                fuzz::require(again && proto::encode_scan_request(*again) == once);
+                fuzz::require(!scan->lidar || scan->lidar_spec.returns <= limits.max_returns);
+            } else {
+                fuzz::require(!scan.error().detail.empty());
+            }
             break;
+        }
         default:
             (void)proto::decode_json_hits(text);
             (void)proto::decode_json_occlusion(text);

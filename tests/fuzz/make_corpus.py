@@ -76,6 +76,37 @@ write("raw_image", "short_body", kdri(3, 2, 1, 0, 0, 2, 1, [0] * 5))
 write("raw_image", "long_body", kdri(3, 1, 1, 0, 0, 1, 1, [0] * 4))
 write("raw_image", "truncated_header", b"KDRI\x01\x00\x03\x00")
 
+# ---- KDRZ / KDRL (sensor scans) ----
+def kdrz(flags, width, height, planes, version=1):
+    return b"KDRZ" + struct.pack("<HHII", version, flags, width, height) + planes
+
+
+def kdrl(points, channels=2, steps=4, returns=2, count=None, flags=0, reserved=0):
+    n = len(points) if count is None else count
+    return (b"KDRL" + struct.pack("<HHIIIIQ", 1, flags, n, channels, steps, returns, reserved) +
+            b"".join(struct.pack("<4f4I", *p) for p in points))
+
+
+depth_planes = struct.pack("<2f", 2, INF) + struct.pack("<2I", 4, 0xFFFFFFFF)
+normal_plane = struct.pack("<6f", 0, 0, -1, 0, 0, 0)
+write("scans", "valid_depth", kdrz(0, 2, 1, depth_planes))
+write("scans", "valid_depth_normals", kdrz(3, 2, 1, depth_planes + normal_plane))
+write("scans", "depth_miss_with_depth", kdrz(0, 2, 1, struct.pack("<2f", 2, 3) + struct.pack("<2I", 4, 0xFFFFFFFF)))
+write("scans", "depth_bad_flags", kdrz(4, 2, 1, depth_planes))
+write("scans", "depth_short", kdrz(2, 2, 1, depth_planes))
+write("scans", "depth_huge", kdrz(0, 0xFFFFFFFF, 0xFFFFFFFF, b""))
+write("scans", "depth_zero_width", kdrz(0, 0, 1, b""))
+cloud = [(2, 0, 0, 2, 1, 0, 0, 7), (0, 3, 0, 3, 1, 1, 0, 2), (0, 4, 0, 4, 1, 1, 1, 3)]
+write("scans", "valid_cloud", kdrl(cloud))
+write("scans", "valid_empty_cloud", kdrl([]))
+write("scans", "cloud_out_of_order", kdrl(cloud[::-1]))
+write("scans", "cloud_bad_channel", kdrl([(2, 0, 0, 2, 5, 0, 0, 7)]))
+write("scans", "cloud_nan", kdrl([(NAN, 0, 0, 2, 1, 0, 0, 7)]))
+write("scans", "cloud_miss", kdrl([(2, 0, 0, 2, 1, 0, 0, 0xFFFFFFFF)]))
+write("scans", "cloud_huge", kdrl([], count=0xFFFFFFFF))
+write("scans", "cloud_reserved", kdrl(cloud, reserved=1))
+write("scans", "cloud_zero_returns", kdrl(cloud, returns=0))
+
 # ---- KDRM / KDRC ----
 def kdrm(flags, record, rays, offsets, counts, records, max_hits=2, reserved=0):
     return (struct.pack("<4sHHIIQII", b"KDRM", 1, flags, rays, record, offsets[-1], max_hits,
@@ -105,6 +136,16 @@ for name, body in [("valid_two_rays", header(b"KDRR", 2) + ray_body),
                    ("huge_count", header(b"KDRR", 0xFFFFFFFF) + ray_body)]:
     for mode in (0, 3, 7):
         write("ray_stream", "%s_mode%d" % (name, mode), bytes([mode, 17 * mode + 1]) + body)
+
+# ---- scan requests (json target, first byte 4: job status and scan request decoders) ----
+write("json", "scan_lidar", '4{"lidar": {"vertical_fov": [-10, 10], "channels": 4, "azimuth_steps": 8, '
+      '"returns": 2, "pose": [[1,0,0,0],[0,1,0,0],[0,0,1,1],[0,0,0,1]]}, "format": "ply"}')
+write("json", "scan_pinhole", '4{"pinhole": {"intrinsics": {"fx": 10, "fy": 10, "cx": 2, "cy": 2, '
+      '"width": 4, "height": 4}, "pose": [[1,0,0,0],[0,1,0,0],[0,0,1,-2],[0,0,0,1]], '
+      '"output": "range", "normals": true, "max_range": 9}, "format": "exr"}')
+write("json", "scan_look_at", '4{"pinhole": {"camera": {"eye": [0,0,1], "look_at": [0,0,0], "fov": 30}, '
+      '"width": 8, "height": 6}}')
+write("json", "scan_bad", '4{"pinhole": {"camera": {"eye": [0,0,1]}, "width": 2}}')
 
 # ---- problem+json (json target, first byte 3: mesh list and problem decoders) ----
 write("json", "problem", '3{"type":"urn:kdrt:problem:forbidden","title":"Forbidden","status":403,'

@@ -1,6 +1,7 @@
 // proto/FORMATS.md: every hex dump in the document is exactly what the codecs produce for the
-// content it describes, in document order (KDRR, KDRH, KDRO, KDRM, KDRC, KDRP, KDRD, KDRI, raw
-// mesh, binary STL, tree blob), and the tree blob's checksum follows the documented algorithm.
+// content it describes, in document order (KDRR, KDRH, KDRO, KDRM, KDRC, KDRP, KDRD, KDRI, KDRZ,
+// KDRL, raw mesh, binary STL, tree blob), and the tree blob's checksum follows the documented
+// algorithm.
 
 #include <gtest/gtest.h>
 
@@ -16,6 +17,7 @@
 #include "kdrt/proto/multi_hit.h"
 #include "kdrt/proto/raw_image.h"
 #include "kdrt/proto/ray_batch.h"
+#include "kdrt/proto/scan.h"
 #include "kdrt/serialize.h"
 
 namespace kdrt {
@@ -125,6 +127,17 @@ TEST(FormatsDoc, HexExamplesAreWhatTheCodecsWrite) {
     const std::vector<Vec3> query_points = {{0.25f, 0.25f, 2}, {5, 0, 0}};
     std::vector<ClosestPoint> closest(2);
     closest[0] = {2, 4, 0.25f, 0.25f, {0.25f, 0.25f, 0}, Feature::kFace, Side::kOutside};
+    DepthImage depth;
+    depth.width = 2;
+    depth.height = 1;
+    depth.depth = {2.0f, inf};
+    depth.prim = {4, kNoHit};
+    depth.normals = {{0, 0, -1}, {0, 0, 0}};
+    PointCloud cloud;
+    cloud.channels = 2;
+    cloud.azimuth_steps = 4;
+    cloud.returns = 2;
+    cloud.points = {LidarPoint{2, 0, 0, 2, 1, 0, 0, 7}, LidarPoint{0, 3, 0, 3, 1, 1, 0, 2}};
     KdTree tree = build_kdtree(triangle);
     tree.stats.build_ms = 0;
     const std::vector<std::pair<std::string, std::vector<std::byte>>> expected = {
@@ -136,6 +149,8 @@ TEST(FormatsDoc, HexExamplesAreWhatTheCodecsWrite) {
         {"KDRP", proto::encode_points(query_points)},
         {"KDRD", proto::encode_distances(closest, true)},
         {"KDRI", proto::encode_raw_image(tile, 1, 0, 3, 2)},
+        {"KDRZ", proto::encode_depth_image(depth)},
+        {"KDRL", proto::encode_point_cloud(cloud)},
         {"raw mesh", proto::write_mesh(triangle, proto::MeshFormat::kRaw)},
         {"binary STL", proto::write_mesh(triangle, proto::MeshFormat::kStl)},
         {"tree blob", serialize_tree(tree)},

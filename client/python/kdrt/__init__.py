@@ -10,6 +10,7 @@ Depends on numpy only; HTTP goes through the standard library's http.client. See
 """
 
 from ._errors import Error
+from ._scan import LIDAR_POINT_DTYPE
 from ._wire import FEATURES, NO_HIT
 from .client import Client, Job, Mesh
 from .png import read_png, write_png
@@ -19,4 +20,5 @@ for _public in (Error, Client, Job, Mesh):
 del _public
 
 __version__ = "0.1.0"
-__all__ = ["Client", "Error", "FEATURES", "Job", "Mesh", "NO_HIT", "read_png", "write_png", "__version__"]
+__all__ = ["Client", "Error", "FEATURES", "Job", "LIDAR_POINT_DTYPE", "Mesh", "NO_HIT", "read_png",
+           "write_png", "__version__"]

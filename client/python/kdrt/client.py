@@ -10,7 +10,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-from . import _wire
+from . import _scan, _wire
 from ._errors import Error
 from ._transport import FileBody, Transport
 from .png import read_png
@@ -656,6 +656,51 @@ class Client:
         """Cancels a queued or running job, or forgets a finished one."""
         job_id = job.id if isinstance(job, Job) else job
         self._t.request("DELETE", self._t.api("/v1/jobs/" + _segment(job_id)))
+
+    # ---- Sensor scans (POST /v1/meshes/{id}/scan) ---------------------------------------------
+
+    def _scan(self, mesh, request) -> bytes:
+        mesh_id = _mesh_id(mesh)
+        path = self._t.api("/v1/meshes/" + _segment(mesh_id) + "/scan?route=" + _segment(mesh_id))
+        _, _, data = self._t.request("POST", path, [json.dumps(request).encode()],
+                                     "application/json")
+        return data
+
+    def scan_pinhole(self, mesh, intrinsics=None, pose=None, camera=None, width=None,
+                     height=None, output="depth", normals=False, min_range=None,
+                     max_range=None) -> dict:
+        """A depth camera scan, its rays made on the server. Give intrinsics (fx, fy, cx, cy,
+        width, height; a dict or a sequence) and pose (4 x 4 camera-to-world, OpenCV frame: +x
+        right, +y down, +z forward), or camera (the renderer's look-at camera: a dict with
+        "eye", "look_at", optional "up" and "fov") with width and height. Pixel (i, j) looks
+        through (i + 0.5, j + 0.5). Returns {"depth" (or "range" with output="range"): (H, W)
+        float32, inf on a miss; "prim": (H, W) uint32, NO_HIT on a miss; with normals=True
+        "normals": (H, W, 3) float32 unit geometric normals (the triangle's winding), 0 on a
+        miss}. Only hits min_range <= range <= max_range count."""
+        request = {"pinhole": _scan.pinhole_request(intrinsics, pose, camera, width, height,
+                                                    output, normals, min_range, max_range),
+                   "format": "binary"}
+        return _scan.decode_depth_image(self._scan(mesh, request))
+
+    def scan_lidar(self, mesh, azimuth_steps, elevation_deg=None, vertical_fov=None,
+                   channels=None, returns=1, pose=None, min_range=None,
+                   max_range=None) -> np.ndarray:
+        """A spinning lidar scan, its rays made on the server: per-channel elevation_deg, or
+        vertical_fov (lower, upper) with channels (channel 0 the highest); azimuth_steps
+        firings over 360 degrees (sensor frame: +x forward = azimuth 0, +y left, +z up,
+        counter-clockwise seen from above); up to `returns` hits per beam, nearest first, a beam
+        through a shared edge giving one; pose 4 x 4 sensor-to-world (default identity).
+        Returns a structured array (fields x, y, z, range, channel, azimuth_index,
+        return_index, prim) in beam order (azimuth-major); beams without a hit have no row."""
+        request = {"lidar": _scan.lidar_request(azimuth_steps, elevation_deg, vertical_fov,
+                                                channels, returns, pose, min_range, max_range),
+                   "format": "binary"}
+        return _scan.decode_point_cloud(self._scan(mesh, request))
+
+    def scan_bytes(self, mesh, request: dict) -> bytes:
+        """The server's answer to a scan request dict as it is sent (request["format"]:
+        "binary", "exr" for a pinhole, "ply" for a lidar), e.g. to save an EXR or PLY file."""
+        return self._scan(mesh, request)
 
     # ---- Operations ---------------------------------------------------------------------------
 

@@ -37,6 +37,7 @@
 #include "kdrt/proto/mesh_io.h"
 #include "kdrt/proto/multi_hit.h"
 #include "kdrt/proto/raw_image.h"
+#include "kdrt/proto/scan.h"
 #include "kdrt/types.h"
 
 namespace kdrt {
@@ -200,6 +201,18 @@ public:
     [[nodiscard]] Result<std::vector<uint32_t>> count_intersections(std::string_view id,
                                                                     std::span<const Ray> rays,
                                                                     bool merge_coincident);
+
+    // ---- Sensor scans (POST /v1/meshes/{id}/scan; client/src/scan.cpp) ------------------------
+
+    /// The answer to a scan request as the server encodes it (request.format: KDRZ or EXR for a
+    /// pinhole, KDRL or PLY for a lidar), checked to be a 200 answer only. Errors as for render
+    /// (a bad field is a kServer 400 naming it, a limit a 413).
+    [[nodiscard]] Result<std::vector<std::byte>> scan(std::string_view id,
+                                                      const proto::ScanRequest& request);
+    /// A pinhole scan, asked for as KDRZ (request.format is ignored) and decoded.
+    [[nodiscard]] Result<DepthImage> scan_pinhole(std::string_view id, proto::ScanRequest request);
+    /// A lidar scan, asked for as KDRL (request.format is ignored) and decoded.
+    [[nodiscard]] Result<PointCloud> scan_lidar(std::string_view id, proto::ScanRequest request);
 
     // ---- Distance queries (POST /v1/meshes/{id}/distance, KDRP -> KDRD) -----------------------
 

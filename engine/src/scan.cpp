@@ -1,0 +1,278 @@
+// Sensor scans: rays made from a pinhole camera or a spinning lidar, traced with the closest-hit
+// batch tracer (pinhole) or intersect_all (lidar). Rays are built in double and rounded once, and
+// every answer is written by index, so the result does not depend on the thread count.
+
+#include "kdrt/scan.h"
+
+#include <cmath>
+#include <numbers>
+#include <string>
+
+#include <tbb/blocked_range.h>
+#include <tbb/parallel_for.h>
+
+#include "kdrt/camera.h"
+#include "kdrt/query.h"
+#include "kdrt/trace.h"
+
+namespace kdrt {
+namespace {
+
+std::string num(double v) {
+    char buf[64];
+    std::snprintf(buf, sizeof buf, "%.17g", v);
+    return buf;
+}
+
+void require_range(float min_range, float max_range) {
+    if (!(min_range >= 0.0f) || !std::isfinite(min_range))
+        throw ScanError("min_range", "min_range " + num(min_range) + " must be finite and >= 0");
+    if (!(max_range > min_range))
+        throw ScanError("max_range", "max_range " + num(max_range) +
+                                         " must be greater than min_range " + num(min_range));
+}
+
+/// The ray from the pose's origin along R * v / |v|.
+Ray pose_ray(const Pose& pose, const double v[3], float min_range, float max_range,
+             double* inv_len) noexcept {
+    const double len = std::sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]);
+    const double* m = pose.m.data();
+    double d[3];
+    for (int r = 0; r < 3; ++r)
+        d[r] = (m[4 * r] * v[0] + m[4 * r + 1] * v[1] + m[4 * r + 2] * v[2]) / len;
+    if (inv_len) *inv_len = 1.0 / len;
+    return Ray{
+        static_cast<float>(m[3]), static_cast<float>(m[7]), static_cast<float>(m[11]), min_range,
+        static_cast<float>(d[0]), static_cast<float>(d[1]), static_cast<float>(d[2]),  max_range};
+}
+
+constexpr size_t kRowBlock = 1;
+constexpr double kDegToRad = std::numbers::pi / 180.0;
+
+}  // namespace
+
+void validate_pose(const Pose& pose, std::string_view field) {
+    const std::string f(field);
+    const double* m = pose.m.data();
+    for (int k = 0; k < 16; ++k) {
+        if (!std::isfinite(m[k]))
+            throw ScanError(f, f + " entry [" + std::to_string(k / 4) + "][" +
+                                   std::to_string(k % 4) + "] is NaN or infinite");
+    }
+    if (m[12] != 0.0 || m[13] != 0.0 || m[14] != 0.0 || m[15] != 1.0)
+        throw ScanError(f, f + " last row is " + num(m[12]) + " " + num(m[13]) + " " + num(m[14]) +
+                               " " + num(m[15]) + ", not 0 0 0 1: not a rigid transform");
+    for (int a = 0; a < 3; ++a) {
+        for (int b = 0; b < 3; ++b) {
+            double s = 0.0;
+            for (int r = 0; r < 3; ++r) s += m[4 * r + a] * m[4 * r + b];
+            const double e = s - (a == b ? 1.0 : 0.0);
+            if (!(std::fabs(e) <= kPoseTolerance))
+                throw ScanError(f, f + " rotation is not orthonormal: (R^T R)[" +
+                                       std::to_string(a) + "][" + std::to_string(b) +
+                                       "] = " + num(s) + " (tolerance " + num(kPoseTolerance) +
+                                       "): not a rigid transform");
+        }
+    }
+    const double det = m[0] * (m[5] * m[10] - m[6] * m[9]) - m[1] * (m[4] * m[10] - m[6] * m[8]) +
+                       m[2] * (m[4] * m[9] - m[5] * m[8]);
+    if (!(std::fabs(det - 1.0) <= kPoseTolerance))
+        throw ScanError(f, f + " rotation has determinant " + num(det) +
+                               ", not +1: a reflection, not a rigid transform");
+}
+
+void validate(const PinholeSpec& spec) {
+    const PinholeIntrinsics& k = spec.intrinsics;
+    if (!(k.fx > 0.0) || !std::isfinite(k.fx))
+        throw ScanError("intrinsics.fx", "intrinsics.fx " + num(k.fx) + " must be finite and > 0");
+    if (!(k.fy > 0.0) || !std::isfinite(k.fy))
+        throw ScanError("intrinsics.fy", "intrinsics.fy " + num(k.fy) + " must be finite and > 0");
+    if (!std::isfinite(k.cx))
+        throw ScanError("intrinsics.cx", "intrinsics.cx " + num(k.cx) + " must be finite");
+    if (!std::isfinite(k.cy))
+        throw ScanError("intrinsics.cy", "intrinsics.cy " + num(k.cy) + " must be finite");
+    if (k.width == 0) throw ScanError("intrinsics.width", "intrinsics.width must be at least 1");
+    if (k.height == 0) throw ScanError("intrinsics.height", "intrinsics.height must be at least 1");
+    if (spec.kind != DepthKind::kDepth && spec.kind != DepthKind::kRange)
+        throw ScanError("output", "output " + std::to_string(static_cast<uint32_t>(spec.kind)) +
+                                      " is neither depth (0) nor range (1)");
+    require_range(spec.min_range, spec.max_range);
+    validate_pose(spec.pose);
+}
+
+void validate(const LidarSpec& spec) {
+    if (spec.elevation_deg.empty())
+        throw ScanError("elevation_deg",
+                        "a lidar needs at least 1 channel (elevation_deg is empty)");
+    for (size_t c = 0; c < spec.elevation_deg.size(); ++c) {
+        const double e = spec.elevation_deg[c];
+        if (!(e >= -90.0 && e <= 90.0))
+            throw ScanError("elevation_deg[" + std::to_string(c) + "]",
+                            "elevation_deg[" + std::to_string(c) + "] " + num(e) +
+                                " is outside [-90, 90] degrees");
+    }
+    if (spec.azimuth_steps == 0)
+        throw ScanError("azimuth_steps", "azimuth_steps must be at least 1");
+    if (spec.returns == 0 || spec.returns > kMaxHitsPerRay)
+        throw ScanError("returns", "returns " + std::to_string(spec.returns) + " is outside 1 .. " +
+                                       std::to_string(kMaxHitsPerRay));
+    require_range(spec.min_range, spec.max_range);
+    validate_pose(spec.pose);
+}
+
+PinholeCamera pinhole_from_look_at(const CameraSpec& camera, uint32_t width, uint32_t height) {
+    if (camera.projection != Projection::kPerspective)
+        throw ScanError("camera.projection", "a scan camera must be perspective");
+    const Camera checked(camera, width, height);  // throws CameraError naming the field
+    // Camera's basis, in double (camera.cpp).
+    const double eye[3] = {camera.eye.x, camera.eye.y, camera.eye.z};
+    double fwd[3] = {double{camera.look_at.x} - eye[0], double{camera.look_at.y} - eye[1],
+                     double{camera.look_at.z} - eye[2]};
+    const double fl = std::sqrt(fwd[0] * fwd[0] + fwd[1] * fwd[1] + fwd[2] * fwd[2]);
+    for (double& c : fwd) c /= fl;
+    double up[3] = {camera.up.x, camera.up.y, camera.up.z};
+    const double ul = std::sqrt(up[0] * up[0] + up[1] * up[1] + up[2] * up[2]);
+    for (double& c : up) c /= ul;
+    double right[3] = {fwd[1] * up[2] - fwd[2] * up[1], fwd[2] * up[0] - fwd[0] * up[2],
+                       fwd[0] * up[1] - fwd[1] * up[0]};
+    const double rl = std::sqrt(right[0] * right[0] + right[1] * right[1] + right[2] * right[2]);
+    for (double& c : right) c /= rl;
+    const double true_up[3] = {right[1] * fwd[2] - right[2] * fwd[1],
+                               right[2] * fwd[0] - right[0] * fwd[2],
+                               right[0] * fwd[1] - right[1] * fwd[0]};
+    PinholeCamera out;
+    for (int r = 0; r < 3; ++r) {
+        out.pose.m[4 * r + 0] = right[r];
+        out.pose.m[4 * r + 1] = -true_up[r];  // OpenCV: +y down
+        out.pose.m[4 * r + 2] = fwd[r];
+        out.pose.m[4 * r + 3] = eye[r];
+    }
+    const double half_h =
+        std::tan(static_cast<double>(camera.fov_deg) * (std::numbers::pi / 360.0));
+    out.intrinsics.fy = 0.5 * static_cast<double>(height) / half_h;
+    out.intrinsics.fx = out.intrinsics.fy;
+    out.intrinsics.cx = 0.5 * static_cast<double>(width);
+    out.intrinsics.cy = 0.5 * static_cast<double>(height);
+    out.intrinsics.width = width;
+    out.intrinsics.height = height;
+    return out;
+}
+
+Ray pinhole_ray(const PinholeSpec& spec, uint32_t i, uint32_t j, double* cos_axis) noexcept {
+    const PinholeIntrinsics& k = spec.intrinsics;
+    const double v[3] = {(static_cast<double>(i) + 0.5 - k.cx) / k.fx,
+                         (static_cast<double>(j) + 0.5 - k.cy) / k.fy, 1.0};
+    return pose_ray(spec.pose, v, spec.min_range, spec.max_range, cos_axis);  // v_z = 1
+}
+
+std::vector<double> lidar_elevations(double lower_deg, double upper_deg, uint32_t channels) {
+    if (!(lower_deg >= -90.0 && upper_deg <= 90.0 && lower_deg <= upper_deg))
+        throw ScanError("vertical_fov", "vertical_fov [" + num(lower_deg) + ", " + num(upper_deg) +
+                                            "] must satisfy -90 <= lower <= upper <= 90 degrees");
+    if (channels == 0) throw ScanError("channels", "channels must be at least 1");
+    std::vector<double> out(channels);
+    if (channels == 1) {
+        out[0] = 0.5 * (lower_deg + upper_deg);
+        return out;
+    }
+    for (uint32_t c = 0; c < channels; ++c)
+        out[c] = upper_deg - (upper_deg - lower_deg) * static_cast<double>(c) /
+                                 static_cast<double>(channels - 1);
+    return out;
+}
+
+Ray lidar_ray(const LidarSpec& spec, uint32_t channel, uint32_t azimuth_index) noexcept {
+    const double e = spec.elevation_deg[channel] * kDegToRad;
+    const double a = 2.0 * std::numbers::pi * static_cast<double>(azimuth_index) /
+                     static_cast<double>(spec.azimuth_steps);
+    const double v[3] = {std::cos(e) * std::cos(a), std::cos(e) * std::sin(a), std::sin(e)};
+    return pose_ray(spec.pose, v, spec.min_range, spec.max_range, nullptr);
+}
+
+DepthImage scan_pinhole(const KdTree& tree, const PinholeSpec& spec) {
+    validate(spec);
+    const uint32_t w = spec.intrinsics.width, h = spec.intrinsics.height;
+    const size_t n = static_cast<size_t>(w) * h;
+    DepthImage image;
+    image.width = w;
+    image.height = h;
+    image.kind = spec.kind;
+    std::vector<Ray> rays(n);
+    std::vector<double> cosines(spec.kind == DepthKind::kDepth ? n : 0);
+    tbb::parallel_for(tbb::blocked_range<uint32_t>(0, h, kRowBlock),
+                      [&](const tbb::blocked_range<uint32_t>& rows) {
+                          for (uint32_t j = rows.begin(); j != rows.end(); ++j) {
+                              for (uint32_t i = 0; i < w; ++i) {
+                                  const size_t p = static_cast<size_t>(j) * w + i;
+                                  rays[p] = pinhole_ray(spec, i, j,
+                                                        cosines.empty() ? nullptr : &cosines[p]);
+                              }
+                          }
+                      });
+    std::vector<Hit> hits(n);
+    intersect(tree, rays, hits);
+    image.depth.resize(n);
+    image.prim.resize(n);
+    if (spec.normals) image.normals.resize(n);
+    tbb::parallel_for(
+        tbb::blocked_range<size_t>(0, n, 4096), [&](const tbb::blocked_range<size_t>& r) {
+            for (size_t p = r.begin(); p != r.end(); ++p) {
+                const Hit& hit = hits[p];
+                if (!hit.is_hit()) {
+                    image.depth[p] = std::numeric_limits<float>::infinity();
+                    image.prim[p] = kNoHit;
+                    if (spec.normals) image.normals[p] = Vec3{};
+                    continue;
+                }
+                image.depth[p] = cosines.empty()
+                                     ? hit.t
+                                     : static_cast<float>(static_cast<double>(hit.t) * cosines[p]);
+                image.prim[p] = hit.prim;
+                if (spec.normals) image.normals[p] = triangle_normal(tree.triangle(hit.prim));
+            }
+        });
+    return image;
+}
+
+PointCloud scan_lidar(const KdTree& tree, const LidarSpec& spec) {
+    validate(spec);
+    const uint32_t channels = static_cast<uint32_t>(spec.elevation_deg.size());
+    const size_t beams = static_cast<size_t>(channels) * spec.azimuth_steps;
+    std::vector<Ray> rays(beams);
+    tbb::parallel_for(tbb::blocked_range<uint32_t>(0, spec.azimuth_steps, 16),
+                      [&](const tbb::blocked_range<uint32_t>& steps) {
+                          for (uint32_t a = steps.begin(); a != steps.end(); ++a)
+                              for (uint32_t c = 0; c < channels; ++c)
+                                  rays[static_cast<size_t>(a) * channels + c] =
+                                      lidar_ray(spec, c, a);
+                      });
+    AllHitsOptions options;
+    options.max_hits = spec.returns;
+    options.merge_coincident = true;
+    const AllHits all = intersect_all(tree, rays, options);
+    PointCloud cloud;
+    cloud.channels = channels;
+    cloud.azimuth_steps = spec.azimuth_steps;
+    cloud.returns = spec.returns;
+    cloud.points.resize(all.hits.size());
+    tbb::parallel_for(
+        tbb::blocked_range<size_t>(0, beams, 1024), [&](const tbb::blocked_range<size_t>& r) {
+            for (size_t b = r.begin(); b != r.end(); ++b) {
+                for (uint64_t k = all.offsets[b]; k < all.offsets[b + 1]; ++k) {
+                    const Hit& hit = all.hits[k];
+                    const Vec3 p = hit_point(tree.triangle(hit.prim), hit);
+                    cloud.points[k] = LidarPoint{p.x,
+                                                 p.y,
+                                                 p.z,
+                                                 hit.t,
+                                                 static_cast<uint32_t>(b % channels),
+                                                 static_cast<uint32_t>(b / channels),
+                                                 static_cast<uint32_t>(k - all.offsets[b]),
+                                                 hit.prim};
+                }
+            }
+        });
+    return cloud;
+}
+
+}  // namespace kdrt

@@ -1,0 +1,247 @@
+// KDRZ (depth image) and KDRL (lidar point cloud) codecs, and point clouds as PLY.
+
+#include <cmath>
+#include <cstring>
+#include <limits>
+#include <optional>
+#include <stdexcept>
+#include <string>
+
+#include "byte_io.h"
+#include "kdrt/proto/scan.h"
+#include "kdrt/proto/text.h"
+
+namespace kdrt::proto {
+namespace {
+
+Err<DecodeError> fail(DecodeErrorCode code, std::string detail) {
+    return Err{DecodeError{code, std::move(detail)}};
+}
+
+/// The checks both headers share: size, magic, version.
+std::optional<DecodeError> check_magic(std::span<const std::byte> body, std::string_view magic,
+                                       size_t header_bytes) {
+    if (body.size() < header_bytes)
+        return DecodeError{DecodeErrorCode::kTooShort, "body has " + std::to_string(body.size()) +
+                                                           " bytes, fewer than the " +
+                                                           std::to_string(header_bytes) + "-byte " +
+                                                           std::string(magic) + " header"};
+    if (std::memcmp(body.data(), magic.data(), 4) != 0) {
+        std::string got;
+        for (int i = 0; i < 4; ++i) {
+            const auto c = static_cast<unsigned char>(body[static_cast<size_t>(i)]);
+            got += c >= 0x20 && c < 0x7f ? static_cast<char>(c) : '?';
+        }
+        return DecodeError{DecodeErrorCode::kBadMagic,
+                           "bad magic " + in_quotes(got) + ", expected " + in_quotes(magic)};
+    }
+    const uint16_t version = detail::load_le16(body.data() + 4);
+    if (version != kBatchVersion)
+        return DecodeError{DecodeErrorCode::kBadVersion,
+                           "version " + std::to_string(version) + ", expected 1"};
+    return std::nullopt;
+}
+
+bool is_zero(Vec3 v) { return v.x == 0.0f && v.y == 0.0f && v.z == 0.0f; }
+bool is_finite(Vec3 v) { return std::isfinite(v.x) && std::isfinite(v.y) && std::isfinite(v.z); }
+
+}  // namespace
+
+std::vector<std::byte> encode_depth_image(const DepthImage& image) {
+    const uint64_t n = uint64_t{image.width} * image.height;
+    const bool normals = !image.normals.empty();
+    if (image.depth.size() != n || image.prim.size() != n || (normals && image.normals.size() != n))
+        throw std::invalid_argument("encode_depth_image: planes do not match width x height");
+    std::vector<std::byte> out(kdrz_body_size(n, normals));
+    std::byte* p = out.data();
+    std::memcpy(p, kDepthImageMagic.data(), 4);
+    detail::store_le16(p + 4, kBatchVersion);
+    uint16_t flags = 0;
+    if (image.kind == DepthKind::kRange) flags |= kDepthFlagRange;
+    if (normals) flags |= kDepthFlagNormals;
+    detail::store_le16(p + 6, flags);
+    detail::store_le32(p + 8, image.width);
+    detail::store_le32(p + 12, image.height);
+    p += kDepthImageHeaderBytes;
+    // The host is little-endian (byte_io.h): the planes are the vectors' bytes.
+    std::memcpy(p, image.depth.data(), n * 4);
+    std::memcpy(p + n * 4, image.prim.data(), n * 4);
+    if (normals) std::memcpy(p + n * 8, image.normals.data(), n * 12);
+    return out;
+}
+
+Result<DepthImage, DecodeError> decode_depth_image(std::span<const std::byte> body,
+                                                   uint64_t max_pixels) {
+    if (auto e = check_magic(body, kDepthImageMagic, kDepthImageHeaderBytes)) return Err{*e};
+    const uint16_t flags = detail::load_le16(body.data() + 6);
+    if ((flags & ~(kDepthFlagRange | kDepthFlagNormals)) != 0)
+        return fail(DecodeErrorCode::kBadFlags,
+                    "unknown flag bits 0x" +
+                        hex(flags & ~(kDepthFlagRange | kDepthFlagNormals), 4) + " in flags 0x" +
+                        hex(flags, 4) + " (bit 0 range and bit 1 normals are defined for KDRZ)");
+    DepthImage image;
+    image.width = detail::load_le32(body.data() + 8);
+    image.height = detail::load_le32(body.data() + 12);
+    image.kind = (flags & kDepthFlagRange) ? DepthKind::kRange : DepthKind::kDepth;
+    const bool normals = (flags & kDepthFlagNormals) != 0;
+    if (image.width == 0 || image.height == 0)
+        return fail(DecodeErrorCode::kBadRecord, "image is " + std::to_string(image.width) + " x " +
+                                                     std::to_string(image.height) +
+                                                     " pixels (each must be at least 1)");
+    const uint64_t n = uint64_t{image.width} * image.height;
+    if (n > max_pixels)
+        return fail(DecodeErrorCode::kTooManyRays, "image has " + std::to_string(n) +
+                                                       " pixels, more than the limit of " +
+                                                       std::to_string(max_pixels));
+    const uint64_t want = kdrz_body_size(n, normals);
+    if (body.size() != want)
+        return fail(DecodeErrorCode::kLengthMismatch,
+                    "header says " + std::to_string(image.width) + " x " +
+                        std::to_string(image.height) + " pixels" +
+                        (normals ? " with normals" : "") + " (" + std::to_string(want) +
+                        " bytes) but body has " + std::to_string(body.size()) + " bytes");
+    const std::byte* p = body.data() + kDepthImageHeaderBytes;
+    image.depth.resize(n);
+    image.prim.resize(n);
+    std::memcpy(image.depth.data(), p, n * 4);
+    std::memcpy(image.prim.data(), p + n * 4, n * 4);
+    if (normals) {
+        image.normals.resize(n);
+        std::memcpy(image.normals.data(), p + n * 8, n * 12);
+    }
+    for (uint64_t i = 0; i < n; ++i) {
+        const float d = image.depth[i];
+        const bool miss = image.prim[i] == kNoHit;
+        const Vec3 nrm = normals ? image.normals[i] : Vec3{};
+        const bool ok = miss ? (d == std::numeric_limits<float>::infinity() && is_zero(nrm))
+                             : (std::isfinite(d) && d >= 0.0f && is_finite(nrm));
+        if (!ok)
+            return fail(DecodeErrorCode::kBadRecord,
+                        "pixel (" + std::to_string(i % image.width) + ", " +
+                            std::to_string(i / image.width) + "): " +
+                            (miss ? "a miss (prim 0xffffffff) must have depth +inf and normal 0 0 0"
+                                  : "a hit must have a finite depth >= 0 and a finite normal"));
+    }
+    return image;
+}
+
+std::vector<std::byte> encode_point_cloud(const PointCloud& cloud) {
+    if (cloud.points.size() > std::numeric_limits<uint32_t>::max())
+        throw std::length_error("KDRL point cloud exceeds the u32 count field");
+    std::vector<std::byte> out(kdrl_body_size(cloud.points.size()));
+    std::byte* p = out.data();
+    std::memcpy(p, kPointCloudMagic.data(), 4);
+    detail::store_le16(p + 4, kBatchVersion);
+    detail::store_le16(p + 6, 0);
+    detail::store_le32(p + 8, static_cast<uint32_t>(cloud.points.size()));
+    detail::store_le32(p + 12, cloud.channels);
+    detail::store_le32(p + 16, cloud.azimuth_steps);
+    detail::store_le32(p + 20, cloud.returns);
+    detail::store_le32(p + 24, 0);
+    detail::store_le32(p + 28, 0);
+    static_assert(sizeof(LidarPoint) == kLidarPointBytes);
+    if (!cloud.points.empty())
+        std::memcpy(p + kPointCloudHeaderBytes, cloud.points.data(),
+                    cloud.points.size() * kLidarPointBytes);
+    return out;
+}
+
+Result<PointCloud, DecodeError> decode_point_cloud(std::span<const std::byte> body,
+                                                   uint32_t max_points) {
+    if (auto e = check_magic(body, kPointCloudMagic, kPointCloudHeaderBytes)) return Err{*e};
+    const uint16_t flags = detail::load_le16(body.data() + 6);
+    if (flags != 0)
+        return fail(DecodeErrorCode::kBadFlags,
+                    "flags 0x" + hex(flags, 4) + " (no flag is defined for KDRL)");
+    const uint32_t count = detail::load_le32(body.data() + 8);
+    PointCloud cloud;
+    cloud.channels = detail::load_le32(body.data() + 12);
+    cloud.azimuth_steps = detail::load_le32(body.data() + 16);
+    cloud.returns = detail::load_le32(body.data() + 20);
+    if (detail::load_le32(body.data() + 24) != 0 || detail::load_le32(body.data() + 28) != 0)
+        return fail(DecodeErrorCode::kBadReserved, "reserved bytes 24..31 must be 0");
+    if (cloud.channels == 0 || cloud.azimuth_steps == 0 || cloud.returns == 0)
+        return fail(DecodeErrorCode::kBadRecord,
+                    "channels " + std::to_string(cloud.channels) + ", azimuth_steps " +
+                        std::to_string(cloud.azimuth_steps) + ", returns " +
+                        std::to_string(cloud.returns) + " (each must be at least 1)");
+    if (count > max_points)
+        return fail(DecodeErrorCode::kTooManyRays, "header says " + std::to_string(count) +
+                                                       " points, more than the limit of " +
+                                                       std::to_string(max_points));
+    const uint64_t want = kdrl_body_size(count);
+    if (body.size() != want)
+        return fail(DecodeErrorCode::kLengthMismatch,
+                    "header says " + std::to_string(count) + " points (" + std::to_string(want) +
+                        " bytes) but body has " + std::to_string(body.size()) + " bytes");
+    cloud.points.resize(count);
+    if (count > 0)
+        std::memcpy(cloud.points.data(), body.data() + kPointCloudHeaderBytes,
+                    size_t{count} * kLidarPointBytes);
+    uint64_t last_beam = 0;
+    uint32_t last_return = 0;
+    for (uint32_t i = 0; i < count; ++i) {
+        const LidarPoint& q = cloud.points[i];
+        std::string why;
+        if (!std::isfinite(q.x) || !std::isfinite(q.y) || !std::isfinite(q.z))
+            why = "x, y and z must be finite";
+        else if (!std::isfinite(q.range) || !(q.range >= 0.0f))
+            why = "range must be finite and >= 0";
+        else if (q.channel >= cloud.channels)
+            why = "channel " + std::to_string(q.channel) + " >= channels " +
+                  std::to_string(cloud.channels);
+        else if (q.azimuth_index >= cloud.azimuth_steps)
+            why = "azimuth_index " + std::to_string(q.azimuth_index) + " >= azimuth_steps " +
+                  std::to_string(cloud.azimuth_steps);
+        else if (q.return_index >= cloud.returns)
+            why = "return_index " + std::to_string(q.return_index) + " >= returns " +
+                  std::to_string(cloud.returns);
+        else if (q.prim == kNoHit)
+            why = "prim 0xffffffff (a miss) is not a return";
+        if (why.empty()) {
+            const uint64_t beam = uint64_t{q.azimuth_index} * cloud.channels + q.channel;
+            const bool first_of_beam = i == 0 || beam != last_beam;
+            if (i > 0 && beam < last_beam)
+                why = "beam (channel " + std::to_string(q.channel) + ", azimuth_index " +
+                      std::to_string(q.azimuth_index) + ") comes after a later beam";
+            else if (first_of_beam ? q.return_index != 0 : q.return_index != last_return + 1)
+                why = "return_index " + std::to_string(q.return_index) + " out of sequence";
+            last_beam = beam;
+            last_return = q.return_index;
+        }
+        if (!why.empty())
+            return fail(DecodeErrorCode::kBadRecord, "point " + std::to_string(i) + ": " + why);
+    }
+    return cloud;
+}
+
+std::vector<std::byte> encode_point_cloud_ply(const PointCloud& cloud) {
+    const std::string header =
+        "ply\nformat binary_little_endian 1.0\ncomment kdrt lidar scan\ncomment channels " +
+        std::to_string(cloud.channels) + "\ncomment azimuth_steps " +
+        std::to_string(cloud.azimuth_steps) + "\ncomment returns " + std::to_string(cloud.returns) +
+        "\nelement vertex " + std::to_string(cloud.points.size()) +
+        "\nproperty float x\nproperty float y\nproperty float z\nproperty float range\n"
+        "property uint channel\nproperty uint azimuth_index\nproperty uint return_index\n"
+        "property uint prim\nend_header\n";
+    std::vector<std::byte> out(header.size() + cloud.points.size() * kLidarPointBytes);
+    std::memcpy(out.data(), header.data(), header.size());
+    if (!cloud.points.empty())
+        std::memcpy(out.data() + header.size(), cloud.points.data(),
+                    cloud.points.size() * kLidarPointBytes);
+    return out;
+}
+
+std::string_view scan_format_name(ScanFormat format) noexcept {
+    switch (format) {
+        case ScanFormat::kBinary:
+            return "binary";
+        case ScanFormat::kExr:
+            return "exr";
+        case ScanFormat::kPly:
+            return "ply";
+    }
+    return "binary";
+}
+
+}  // namespace kdrt::proto
