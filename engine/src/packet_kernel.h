@@ -477,7 +477,10 @@ inline VM<W> traverse_packet(const KdTree& tree, const Packet<W>& pk, PacketHits
 
 /// Every hit of one packet's rays: traverse_packet's per-lane cell decisions without its cut at
 /// the closest hit (each lane visits the leaves multi_hit.cpp's single-ray traversal visits, with
-/// the same intervals), each leaf's triangles tested against the lanes live there. Lane l's hits
+/// the same intervals), each leaf's triangles tested against the lanes live there. (The descent
+/// loop is traverse_packet's, written out again: a shared always-inline helper taking the node,
+/// index and intervals by reference cost the closest-hit kernel 2.2% more instructions in
+/// callgrind on the bunny's diffuse rays.) Lane l's hits
 /// with ray tmin <= t <= ray tmax go to raw[l * kPacketHitCapacity + k] while k < the capacity;
 /// count[l] (zeroed by the caller) counts them all.
 template <int W>
