@@ -529,19 +529,7 @@ std::vector<proto::MeshSummary> MeshCache::list() {
                     gone.push_back(id);
         }
         for (const std::string& id : unknown) adopt(id);
-        for (const std::string& id : gone) {
-            std::error_code ec;
-            if (std::filesystem::exists(store_.summary_path(id), ec) ||
-                std::filesystem::exists(store_.mesh_path(id), ec))
-                continue;
-            std::lock_guard lock(mutex_);
-            const auto it = entries_.find(id);
-            if (it != entries_.end() && it->second->summary && !it->second->flight.valid()) {
-                log_event(LogLevel::kInfo, "cache: mesh deleted from the store elsewhere",
-                          {{"mesh", id}});
-                drop(*it->second);
-            }
-        }
+        for (const std::string& id : gone) deleted_elsewhere(id);
     } else {
         log_event(LogLevel::kError, "cache: cannot list the store", {{"error", ids.error()}});
     }

@@ -3,37 +3,17 @@
 // http_client.cpp's, through client_access.h.
 
 #include <algorithm>
-#include <cmath>
 #include <limits>
 #include <vector>
 
 #include "client_access.h"
 #include "kdrt/client/client.h"
 #include "kdrt/proto/distance.h"
-#include "kdrt/proto/text.h"
 
 namespace kdrt {
 namespace {
 
 constexpr std::string_view kSurfaceHeader = "X-Kdrt-Surface";
-constexpr std::string_view kAxisNames[3] = {"x", "y", "z"};
-
-/// The first point with a NaN or infinite coordinate as a kInput error, worded as the server's
-/// refusal ("point 17: field y is NaN"), with the index in the whole span.
-std::optional<Error> non_finite_point(std::span<const Vec3> points) {
-    for (size_t i = 0; i < points.size(); ++i) {
-        for (int a = 0; a < 3; ++a) {
-            if (std::isfinite(points[i][a])) continue;
-            Error e = make_client_error(ErrorKind::kInput, "bad query point",
-                                        "point " + std::to_string(i) + ": field " +
-                                            std::string(kAxisNames[a]) + " is " +
-                                            proto::non_finite_name(points[i][a]));
-            e.code = "non_finite_point";
-            return e;
-        }
-    }
-    return std::nullopt;
-}
 
 /// After a 413 for a chunk of `count` points: the points to send at once from now on, smaller
 /// than `count`. The server's `limit` is the most points (code too_many_rays) or the most body
@@ -59,7 +39,12 @@ Result<DistanceAnswer> Client::distance(std::string_view id, std::span<const Vec
         return proto::Err{make_client_error(
             ErrorKind::kInput, "too many points",
             std::to_string(points.size()) + " query points; at most 2^32 - 1 per call")};
-    if (auto bad = non_finite_point(points)) return proto::Err{std::move(*bad)};
+    // Refused here, as the server would, but with the index in the whole call, not the chunk.
+    if (auto bad = proto::non_finite_point(points)) {
+        Error e = make_client_error(ErrorKind::kInput, "bad query point", std::move(*bad));
+        e.code = "non_finite_point";
+        return proto::Err{std::move(e)};
+    }
     const std::string path = detail::ClientAccess::api_path(
         *this, "/v1/meshes/{id}/distance?" + proto::distance_query_string(query), id);
     std::atomic<size_t>& learned = detail::ClientAccess::distance_chunk_limit(*this);

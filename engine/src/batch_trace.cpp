@@ -14,23 +14,6 @@
 namespace kdrt {
 namespace {
 
-Isa resolve(const TraceOptions& options) noexcept {
-    if (options.isa && isa_supported(*options.isa)) return *options.isa;
-    return default_isa();
-}
-
-detail::Policy policy_for(TraceMode mode) noexcept {
-    switch (mode) {
-        case TraceMode::kSingle:
-            return detail::Policy::kSingle;
-        case TraceMode::kPacket:
-            return detail::Policy::kPacket;
-        case TraceMode::kAuto:
-            break;
-    }
-    return detail::Policy::kAuto;
-}
-
 /// The scalar "kernel": every valid ray alone.
 template <bool AnyHit>
 void trace_scalar(const KdTree& tree, const Ray* rays, size_t count, Hit* hits, uint8_t* occ,
@@ -52,16 +35,16 @@ void trace_scalar(const KdTree& tree, const Ray* rays, size_t count, Hit* hits, 
 template <bool AnyHit>
 void trace_block(const KdTree& tree, std::span<const Ray> rays, Hit* hits, uint8_t* occ,
                  const TraceOptions& options, detail::TraceCounters& counters) noexcept {
-    const detail::PacketKernels* k = detail::packet_kernels_for(resolve(options));
+    const detail::PacketKernels* k = detail::packet_kernels_for(detail::resolve_isa(options.isa));
     if (k == nullptr) {
         trace_scalar<AnyHit>(tree, rays.data(), rays.size(), hits, occ, options.count_work,
                              counters);
     } else if constexpr (AnyHit) {
         (options.count_work ? k->occluded_counted : k->occluded)(
-            tree, rays.data(), rays.size(), occ, policy_for(options.mode), counters);
+            tree, rays.data(), rays.size(), occ, detail::policy_for(options.mode), counters);
     } else {
         (options.count_work ? k->intersect_counted : k->intersect)(
-            tree, rays.data(), rays.size(), hits, policy_for(options.mode), counters);
+            tree, rays.data(), rays.size(), hits, detail::policy_for(options.mode), counters);
     }
 }
 
@@ -81,7 +64,7 @@ void trace_batch(const KdTree& tree, std::span<const Ray> rays, Hit* hits, uint8
                       });
     if (stats != nullptr) {
         *stats = TraceStats{};
-        stats->isa = resolve(options);
+        stats->isa = detail::resolve_isa(options.isa);
         stats->width = isa_width(stats->isa);
         stats->rays = rays.size();
         counters.combine_each([&](const detail::TraceCounters& c) {

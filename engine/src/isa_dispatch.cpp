@@ -98,6 +98,23 @@ std::string_view default_isa_reason() noexcept { return choice().reason; }
 
 namespace detail {
 
+Isa resolve_isa(const std::optional<Isa>& isa) noexcept {
+    if (isa && isa_supported(*isa)) return *isa;
+    return default_isa();
+}
+
+Policy policy_for(TraceMode mode) noexcept {
+    switch (mode) {
+        case TraceMode::kSingle:
+            return Policy::kSingle;
+        case TraceMode::kPacket:
+            return Policy::kPacket;
+        case TraceMode::kAuto:
+            break;
+    }
+    return Policy::kAuto;
+}
+
 const PacketKernels* packet_kernels_for(Isa isa) noexcept {
     switch (isa) {
         case Isa::kSse4:

@@ -216,15 +216,6 @@ struct TaskSink : detail::AllHitsSink {
     }
 };
 
-Isa resolve(const AllHitsOptions& options) noexcept {
-    if (options.isa && isa_supported(*options.isa)) return *options.isa;
-    return default_isa();
-}
-
-detail::Policy policy_for(TraceMode mode) noexcept {
-    return mode == TraceMode::kPacket ? detail::Policy::kPacket : detail::Policy::kAuto;
-}
-
 /// Every hit of rays[0, count) on the calling thread: counts[i] written for each ray, the kept
 /// hits (up to max_hits a ray) into `out`, which is sized here.
 void trace_task(const KdTree& tree, const Ray* rays, size_t count, const AllHitsOptions& options,
@@ -243,12 +234,14 @@ void trace_task(const KdTree& tree, const Ray* rays, size_t count, const AllHits
     sink.counts = counts;
     sink.out = &out;
     const detail::PacketKernels* kernels =
-        options.mode == TraceMode::kSingle ? nullptr : detail::packet_kernels_for(resolve(options));
+        options.mode == TraceMode::kSingle
+            ? nullptr
+            : detail::packet_kernels_for(detail::resolve_isa(options.isa));
     if (kernels == nullptr) {
         for (size_t i = 0; i < count; ++i) TaskSink::trace_single(sink, i);
         return;
     }
-    kernels->all_hits(tree, rays, count, sink, policy_for(options.mode));
+    kernels->all_hits(tree, rays, count, sink, detail::policy_for(options.mode));
 }
 
 }  // namespace

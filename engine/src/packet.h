@@ -3,6 +3,7 @@
 
 #include <cstddef>
 #include <cstdint>
+#include <optional>
 
 #include "kdrt/kdtree.h"
 #include "kdrt/trace.h"
@@ -80,6 +81,13 @@ const PacketKernels* packet_kernels_avx512() noexcept;
 
 /// The kernels of `isa`, nullptr for Isa::kScalar (isa_dispatch.cpp). `isa` must be supported.
 const PacketKernels* packet_kernels_for(Isa isa) noexcept;
+
+/// The ISA a batch asked for runs on: `isa` when given and supported, else default_isa()
+/// (isa_dispatch.cpp).
+Isa resolve_isa(const std::optional<Isa>& isa) noexcept;
+
+/// The kernels' policy for a TraceMode (isa_dispatch.cpp).
+Policy policy_for(TraceMode mode) noexcept;
 
 /// Rays per block a kernel sorts for coherence (batch_schedule.h, schedule_rays): big enough that
 /// rays from a few image rows find their neighbours across rows, small enough that the keys and

@@ -55,26 +55,32 @@ std::vector<std::byte> encode_points(std::span<const Vec3> points) {
     return out;
 }
 
+std::optional<std::string> non_finite_point(std::span<const Vec3> points) {
+    for (size_t i = 0; i < points.size(); ++i) {
+        for (int a = 0; a < 3; ++a) {
+            if (std::isfinite(points[i][a])) continue;
+            std::string detail = "point " + std::to_string(i) + ": field ";
+            detail += kAxisNames[a];
+            detail += " is ";
+            detail += non_finite_name(points[i][a]);
+            return detail;
+        }
+    }
+    return std::nullopt;
+}
+
 Result<std::vector<Vec3>, DecodeError> decode_points(std::span<const std::byte> body,
                                                      const DecodeLimits& limits) {
     auto header = detail::check_header(body, kPoints, limits);
     if (!header) return Err{std::move(header).error()};
     std::vector<Vec3> points(header->count);
     const std::byte* p = body.data() + kBatchHeaderBytes;
-    for (size_t i = 0; i < points.size(); ++i, p += kPointRecordBytes) {
+    for (size_t i = 0; i < points.size(); ++i, p += kPointRecordBytes)
         points[i] = {detail::load_le_f32(p), detail::load_le_f32(p + 4),
                      detail::load_le_f32(p + 8)};
-        if (!limits.reject_non_finite) continue;
-        for (int a = 0; a < 3; ++a) {
-            if (!std::isfinite(points[i][a])) {
-                std::string detail = "point " + std::to_string(i) + ": field ";
-                detail += kAxisNames[a];
-                detail += " is ";
-                detail += non_finite_name(points[i][a]);
-                return Err{DecodeError{DecodeErrorCode::kNonFinitePoint, std::move(detail)}};
-            }
-        }
-    }
+    if (limits.reject_non_finite)
+        if (auto bad = non_finite_point(points))
+            return Err{DecodeError{DecodeErrorCode::kNonFinitePoint, std::move(*bad)}};
     return points;
 }
 

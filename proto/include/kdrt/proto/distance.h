@@ -44,6 +44,9 @@ inline constexpr uint16_t kDistanceFlagSigned = 0x0001;
 
 /// Encodes a KDRP body (flags 0). Precondition: points.size() < 2^32.
 [[nodiscard]] std::vector<std::byte> encode_points(std::span<const Vec3> points);
+/// The first point of `points` with a NaN or infinite coordinate, worded as decode_points refuses
+/// it ("point 17: field y is NaN"); nullopt when every coordinate is finite.
+[[nodiscard]] std::optional<std::string> non_finite_point(std::span<const Vec3> points);
 /// Decodes a KDRP body: the batch header's checks (magic, version 1, flags 0, reserved 0,
 /// count <= limits.max_rays, the exact size), then, with limits.reject_non_finite, the first point
 /// with a NaN or infinite coordinate as kNonFinitePoint ("point 17: field y is NaN").
