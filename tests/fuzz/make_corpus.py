@@ -147,6 +147,25 @@ write("json", "scan_look_at", '4{"pinhole": {"camera": {"eye": [0,0,1], "look_at
       '"width": 8, "height": 6}}')
 write("json", "scan_bad", '4{"pinhole": {"camera": {"eye": [0,0,1]}, "width": 2}}')
 
+# ---- scenes (scene target; first byte: 0 create, 1 stored, 2 poses, 3 edit, 4 KDRX, 5 plane) ----
+MESH_A = "a" * 64
+write("scene", "create", '\x00{"instances": [{"mesh": "%s", "transform": [1,0,0,0, 0,1,0,0, 0,0,1,2], '
+      '"name": "shelf-1"}, {"mesh": "%s", "transform": [[0,-1,0,4],[1,0,0,0],[0,0,1,0],[0,0,0,1]]}]}'
+      % (MESH_A, MESH_A))
+write("scene", "create_bad_transform", '\x00{"instances": [{"mesh": "%s", "transform": [1,0,0]}]}' % MESH_A)
+write("scene", "stored", '\x01{"format":"kdrt-scene","id":"%s","revision":3,"instances":[{"geometry_id":0,'
+      '"mesh":"%s","transform":[1,0,0,0,0,1,0,0,0,0,1,2],"name":"a"}]}' % ("0" * 32, MESH_A))
+write("scene", "poses", '\x02{"poses": [{"geometry_id": 3, "transform": [1,0,0,0.5,0,1,0,0,0,0,1,0]}, '
+      '{"name": "car", "transform": [[1,0,0,0],[0,1,0,0],[0,0,1,0]]}]}')
+write("scene", "edit", '\x03{"remove": [0, "a"], "add": [{"mesh": "%s", "name": "bus"}]}' % MESH_A)
+POSE = struct.pack("<I12f", 2, 0, -1, 0, 1, 1, 0, 0, 2, 0, 0, 1, 3)
+write("scene", "kdrx", b"\x04" + header(b"KDRX", 1) + POSE)
+write("scene", "kdrx_nan", b"\x04" + header(b"KDRX", 1) + POSE[:8] + struct.pack("<f", NAN) + POSE[12:])
+write("scene", "kdrx_huge", b"\x04" + header(b"KDRX", 0xFFFFFFFF) + POSE)
+HITS = struct.pack("<fIff", 5, 7, 0.25, 0.5) + struct.pack("<fIff", INF, 0xFFFFFFFF, 0, 0)
+write("scene", "kdrh_plane", b"\x05" + header(b"KDRH", 2, flags=0x100) + HITS + struct.pack("<II", 3, 0xFFFFFFFF))
+write("scene", "kdrz_plane_short", b"\x05" + b"KDRZ" + struct.pack("<HHII", 1, 0x100, 1000, 1000) + b"\x00" * 8)
+
 # ---- problem+json (json target, first byte 3: mesh list and problem decoders) ----
 write("json", "problem", '3{"type":"urn:kdrt:problem:forbidden","title":"Forbidden","status":403,'
       '"detail":"DELETE /v1/meshes/{id} needs a token with the role write","code":"write",'

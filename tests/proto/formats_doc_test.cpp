@@ -1,7 +1,7 @@
 // proto/FORMATS.md: every hex dump in the document is exactly what the codecs produce for the
 // content it describes, in document order (KDRR, KDRH, KDRO, KDRM, KDRC, KDRP, KDRD, KDRI, KDRZ,
-// KDRL, raw mesh, binary STL, tree blob), and the tree blob's checksum follows the documented
-// algorithm.
+// KDRL, KDRX, a scene's KDRH, raw mesh, binary STL, tree blob), and the tree blob's checksum
+// follows the documented algorithm.
 
 #include <gtest/gtest.h>
 
@@ -18,6 +18,7 @@
 #include "kdrt/proto/raw_image.h"
 #include "kdrt/proto/ray_batch.h"
 #include "kdrt/proto/scan.h"
+#include "kdrt/proto/scene.h"
 #include "kdrt/serialize.h"
 
 namespace kdrt {
@@ -138,6 +139,11 @@ TEST(FormatsDoc, HexExamplesAreWhatTheCodecsWrite) {
     cloud.azimuth_steps = 4;
     cloud.returns = 2;
     cloud.points = {LidarPoint{2, 0, 0, 2, 1, 0, 0, 7}, LidarPoint{0, 3, 0, 3, 1, 1, 0, 2}};
+    std::vector<proto::PoseEntry> poses(1);
+    poses[0].geometry_id = 2;
+    poses[0].transform.m = {0, -1, 0, 1, 1, 0, 0, 2, 0, 0, 1, 3};
+    std::vector<std::byte> scene_hits = proto::encode_hits(hits);
+    proto::append_geometry_ids(scene_hits, std::vector<uint32_t>{3, kNoHit});
     KdTree tree = build_kdtree(triangle);
     tree.stats.build_ms = 0;
     const std::vector<std::pair<std::string, std::vector<std::byte>>> expected = {
@@ -151,6 +157,8 @@ TEST(FormatsDoc, HexExamplesAreWhatTheCodecsWrite) {
         {"KDRI", proto::encode_raw_image(tile, 1, 0, 3, 2)},
         {"KDRZ", proto::encode_depth_image(depth)},
         {"KDRL", proto::encode_point_cloud(cloud)},
+        {"KDRX", proto::encode_pose_batch(poses)},
+        {"KDRH with geometry ids", scene_hits},
         {"raw mesh", proto::write_mesh(triangle, proto::MeshFormat::kRaw)},
         {"binary STL", proto::write_mesh(triangle, proto::MeshFormat::kStl)},
         {"tree blob", serialize_tree(tree)},

@@ -1,0 +1,274 @@
+// The scene JSON documents (kdrt/proto/scene.h): create requests, stored revisions, pose
+// updates and instance edits, each refusal naming the instance or pose index and the field.
+
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <string>
+
+#include "kdrt/proto/scene.h"
+
+namespace kdrt::proto {
+namespace {
+
+const std::string kMeshA(64, 'a');
+const std::string kMeshB(64, 'b');
+
+std::string instance_json(const std::string& mesh, const std::string& transform,
+                          const std::string& extra = "") {
+    return "{\"mesh\":\"" + mesh + "\",\"transform\":" + transform + extra + "}";
+}
+
+SceneRequestError scene_error(const std::string& text, const SceneLimits& limits = {}) {
+    auto r = decode_scene_json(text, limits);
+    EXPECT_FALSE(r.ok()) << text;
+    return r.ok() ? SceneRequestError{} : r.error();
+}
+
+TEST(SceneJson, DecodesTheThreeTransformShapesAndTheIdentityDefault) {
+    const std::string text =
+        "{\"instances\":[" +
+        instance_json(kMeshA, "[1,0,0,5, 0,2,0,6, 0,0,3,7]", ",\"name\":\"a\"") + "," +
+        instance_json(kMeshB, "[[1,0,0,5],[0,2,0,6],[0,0,3,7]]") + "," +
+        instance_json(kMeshB, "[[1,0,0,5],[0,2,0,6],[0,0,3,7],[0,0,0,1]]") + ",{\"mesh\":\"" +
+        kMeshA + "\"}]}";
+    auto r = decode_scene_json(text);
+    ASSERT_TRUE(r.ok()) << r.error().detail;
+    ASSERT_EQ(r->instances.size(), 4u);
+    const Transform expected{{1, 0, 0, 5, 0, 2, 0, 6, 0, 0, 3, 7}};
+    for (size_t i = 0; i < 3; ++i) EXPECT_EQ(r->instances[i].transform, expected) << i;
+    EXPECT_EQ(r->instances[3].transform, Transform{});
+    EXPECT_EQ(r->instances[0].name, "a");
+    EXPECT_EQ(r->instances[1].mesh, kMeshB);
+    EXPECT_TRUE(r->instances[1].name.empty());
+}
+
+TEST(SceneJson, NamesTheInstanceAndEntryOfABadTransform) {
+    // NaN cannot be written in JSON; a number beyond float range and a string can.
+    auto e = scene_error("{\"instances\":[" + instance_json(kMeshA, "[1,0,0,0,0,1,0,0,0,0,1,0]") +
+                         "," + instance_json(kMeshA, "[[1,0,0,0],[0,1,1e39,0],[0,0,1,0]]") + "]}");
+    EXPECT_EQ(e.field, "instances[1].transform[1][2]");
+    EXPECT_EQ(e.index, 1u);
+    EXPECT_NE(e.detail.find("outside float range"), std::string::npos) << e.detail;
+
+    e = scene_error("{\"instances\":[" + instance_json(kMeshA, "[1,0,0,0,0,1,0,0,0,0,\"x\",0]") +
+                    "]}");
+    EXPECT_EQ(e.field, "instances[0].transform[2][2]");
+
+    e = scene_error("{\"instances\":[" + instance_json(kMeshA, "[1,0,0,0,0,1,0,0,0,0,1]") + "]}");
+    EXPECT_EQ(e.field, "instances[0].transform");
+    EXPECT_NE(e.detail.find("12 numbers"), std::string::npos) << e.detail;
+
+    e = scene_error("{\"instances\":[" +
+                    instance_json(kMeshA, "[[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,1,1]]") + "]}");
+    EXPECT_EQ(e.field, "instances[0].transform[3]");
+
+    e = scene_error("{\"instances\":[" + instance_json(kMeshA, "[[1,0,0],[0,1,0],[0,0,1]]") + "]}");
+    EXPECT_EQ(e.field, "instances[0].transform[0]");
+}
+
+TEST(SceneJson, RefusesBadMeshIdsNamesAndMembers) {
+    auto e =
+        scene_error("{\"instances\":[" + instance_json("abc", "[1,0,0,0,0,1,0,0,0,0,1,0]") + "]}");
+    EXPECT_EQ(e.field, "instances[0].mesh");
+    EXPECT_NE(e.detail.find("not a mesh id"), std::string::npos);
+
+    e = scene_error("{\"instances\":[" +
+                    instance_json(std::string(64, 'A'), "[1,0,0,0,0,1,0,0,0,0,1,0]") + "]}");
+    EXPECT_EQ(e.field, "instances[0].mesh");
+
+    e = scene_error("{\"instances\":[{\"transform\":[1,0,0,0,0,1,0,0,0,0,1,0]}]}");
+    EXPECT_EQ(e.field, "instances[0].mesh");
+
+    e = scene_error("{\"instances\":[{\"mesh\":\"" + kMeshA + "\",\"name\":\"x\"},{\"mesh\":\"" +
+                    kMeshB + "\",\"name\":\"x\"}]}");
+    EXPECT_EQ(e.field, "instances[1].name");
+    EXPECT_EQ(e.index, 1u);
+
+    e = scene_error("{\"instances\":[{\"mesh\":\"" + kMeshA + "\",\"name\":\"a b\"}]}");
+    EXPECT_EQ(e.field, "instances[0].name");
+
+    e = scene_error("{\"instances\":[{\"mesh\":\"" + kMeshA + "\",\"colour\":1}]}");
+    EXPECT_EQ(e.field, "instances[0].colour");
+
+    e = scene_error("{\"instances\":[],\"instances\":[]}");
+    EXPECT_TRUE(e.field.empty());
+    EXPECT_NE(e.detail.find("duplicate"), std::string::npos);
+
+    e = scene_error("{\"instances\":{}}");
+    EXPECT_EQ(e.field, "instances");
+    e = scene_error("{}");
+    EXPECT_EQ(e.field, "instances");
+    e = scene_error("[");
+    EXPECT_NE(e.detail.find("invalid JSON"), std::string::npos);
+    // A create request may not set what the server assigns.
+    e = scene_error("{\"id\":\"" + std::string(32, '0') + "\",\"instances\":[]}");
+    EXPECT_EQ(e.field, "id");
+}
+
+TEST(SceneJson, CountsInstancesAgainstTheLimitBeforeDecodingThem) {
+    // The third instance is malformed, but the count is refused first.
+    const std::string text = "{\"instances\":[{\"mesh\":\"" + kMeshA + "\"},{\"mesh\":\"" + kMeshA +
+                             "\"},{\"mesh\":1}]}";
+    auto e = scene_error(text, SceneLimits{2});
+    EXPECT_EQ(e.field, "instances");
+    EXPECT_TRUE(e.over_limit);
+    EXPECT_NE(e.detail.find("max_instances (2)"), std::string::npos) << e.detail;
+    e = scene_error(text, SceneLimits{3});
+    EXPECT_EQ(e.field, "instances[2].mesh");
+    EXPECT_FALSE(e.over_limit);
+}
+
+TEST(SceneJson, StoredDocumentsRoundTripEveryFloatBit) {
+    SceneDocument doc;
+    doc.id = "0123456789abcdef0123456789abcdef";
+    doc.revision = 42;
+    doc.instances.push_back(
+        {kMeshA,
+         Transform{{0.1f, -1e-38f, 1e-30f, 3.4e38f, 0, 1, 0, -7.25f, 0.3333333f, 0, 1, 1e7f}},
+         "shelf-1"});
+    doc.instances.push_back({kMeshB, Transform{}, ""});
+    const std::string text = encode_scene_json(doc);
+    auto back = decode_scene_json(text, {}, true);
+    ASSERT_TRUE(back.ok()) << back.error().detail;
+    EXPECT_EQ(*back, doc);
+    // -0 is read as 0 (one transform, one spelling).
+    auto zero = decode_scene_json("{\"instances\":[{\"mesh\":\"" + kMeshA +
+                                  "\",\"transform\":[1,-0.0,0,0,0,1,0,0,0,0,1,0]}]}");
+    ASSERT_TRUE(zero.ok());
+    EXPECT_FALSE(std::signbit(zero->instances[0].transform.m[1]));
+    // A stored document's geometry ids must be the indices.
+    std::string wrong = text;
+    wrong.replace(wrong.find("\"geometry_id\":1"), 15, "\"geometry_id\":7");
+    auto bad = decode_scene_json(wrong, {}, true);
+    ASSERT_FALSE(bad.ok());
+    EXPECT_EQ(bad.error().field, "instances[1].geometry_id");
+    // A create request may not carry them.
+    EXPECT_FALSE(decode_scene_json(text).ok());
+}
+
+TEST(PoseJson, DecodesByIdOrNameAndNamesTheBadEntry) {
+    auto r = decode_pose_json(
+        "{\"poses\":[{\"geometry_id\":3,\"transform\":[1,0,0,1,0,1,0,2,0,0,1,3]},"
+        "{\"name\":\"car\",\"transform\":[[1,0,0,0],[0,1,0,0],[0,0,1,0]]}]}");
+    ASSERT_TRUE(r.ok()) << r.error().detail;
+    ASSERT_EQ(r->size(), 2u);
+    EXPECT_EQ((*r)[0].geometry_id, 3u);
+    EXPECT_EQ((*r)[0].transform.m[11], 3.0f);
+    EXPECT_EQ((*r)[1].name, "car");
+    auto again = decode_pose_json(encode_pose_json(*r));
+    ASSERT_TRUE(again.ok());
+    EXPECT_EQ((*again)[0].transform, (*r)[0].transform);
+    EXPECT_EQ((*again)[1].name, "car");
+
+    auto e = decode_pose_json(
+        "{\"poses\":[{\"geometry_id\":0,\"transform\":[1,0,0,0,0,1,0,0,0,0,1,0]},"
+        "{\"geometry_id\":1,\"name\":\"x\",\"transform\":[1,0,0,0,0,1,0,0,0,0,1,0]}]}");
+    ASSERT_FALSE(e.ok());
+    EXPECT_EQ(e.error().field, "poses[1].name");
+    EXPECT_EQ(e.error().index, 1u);
+    e = decode_pose_json(
+        "{\"poses\":[{\"geometry_id\":-1,\"transform\":[1,0,0,0,0,1,0,0,0,0,1,0]}]}");
+    ASSERT_FALSE(e.ok());
+    EXPECT_EQ(e.error().field, "poses[0].geometry_id");
+    e = decode_pose_json("{\"poses\":[{\"geometry_id\":0}]}");
+    ASSERT_FALSE(e.ok());
+    EXPECT_EQ(e.error().field, "poses[0].transform");
+    e = decode_pose_json(
+        "{\"poses\":[{\"geometry_id\":0,\"transform\":[1,0,0,0,0,1,0,0,0,0,1,1e300]}]}");
+    ASSERT_FALSE(e.ok());
+    EXPECT_EQ(e.error().field, "poses[0].transform[2][3]");
+    e = decode_pose_json("{\"poses\":[]}");
+    ASSERT_FALSE(e.ok());
+    EXPECT_EQ(e.error().field, "poses");
+    e = decode_pose_json(
+        "{\"poses\":[{\"geometry_id\":0,\"transform\":[1,0,0,0,0,1,0,0,0,0,1,0]},"
+        "{\"geometry_id\":0,\"transform\":[1,0,0,0,0,1,0,0,0,0,1,0]}]}",
+        SceneLimits{1});
+    ASSERT_FALSE(e.ok());
+    EXPECT_TRUE(e.error().over_limit);
+}
+
+SceneDocument three_instances() {
+    SceneDocument doc;
+    doc.id = std::string(32, 'c');
+    doc.revision = 5;
+    doc.instances = {{kMeshA, {}, "a"}, {kMeshB, {}, ""}, {kMeshA, {}, "c"}};
+    return doc;
+}
+
+TEST(PoseJson, ResolvesIdsAndNamesAgainstTheScene) {
+    const SceneDocument doc = three_instances();
+    std::vector<PoseEntry> poses(2);
+    poses[0].name = "c";
+    poses[1].geometry_id = 1;
+    auto r = resolve_poses(doc, poses);
+    ASSERT_TRUE(r.ok());
+    EXPECT_EQ((*r)[0].geometry_id, 2u);
+    EXPECT_EQ((*r)[1].geometry_id, 1u);
+    poses[1].geometry_id = 3;
+    r = resolve_poses(doc, poses);
+    ASSERT_FALSE(r.ok());
+    EXPECT_EQ(r.error().field, "poses[1].geometry_id");
+    EXPECT_TRUE(r.error().unknown_reference);
+    poses[0].name = "zz";
+    r = resolve_poses(doc, poses);
+    ASSERT_FALSE(r.ok());
+    EXPECT_EQ(r.error().field, "poses[0].name");
+}
+
+TEST(InstanceEdit, RemovesThenAppendsAndNamesBadEntries) {
+    const SceneDocument doc = three_instances();
+    auto edit = decode_instance_edit_json("{\"remove\":[\"a\",1],\"add\":[{\"mesh\":\"" + kMeshB +
+                                          "\",\"name\":\"d\"}]}");
+    ASSERT_TRUE(edit.ok()) << edit.error().detail;
+    auto next = apply_instance_edit(doc, *edit);
+    ASSERT_TRUE(next.ok()) << next.error().detail;
+    ASSERT_EQ(next->instances.size(), 2u);
+    EXPECT_EQ(next->instances[0].name, "c");
+    EXPECT_EQ(next->instances[1].name, "d");
+    EXPECT_EQ(next->id, doc.id);
+    auto again = decode_instance_edit_json(encode_instance_edit_json(*edit));
+    ASSERT_TRUE(again.ok());
+    EXPECT_EQ(again->remove, edit->remove);
+    EXPECT_EQ(again->add, edit->add);
+
+    auto bad = apply_instance_edit(doc, *decode_instance_edit_json("{\"remove\":[0,\"a\"]}"));
+    ASSERT_FALSE(bad.ok());
+    EXPECT_EQ(bad.error().field, "remove[1]");
+    bad = apply_instance_edit(doc, *decode_instance_edit_json("{\"remove\":[9]}"));
+    ASSERT_FALSE(bad.ok());
+    EXPECT_TRUE(bad.error().unknown_reference);
+    bad = apply_instance_edit(doc, *decode_instance_edit_json("{\"add\":[{\"mesh\":\"" + kMeshA +
+                                                              "\",\"name\":\"c\"}]}"));
+    ASSERT_FALSE(bad.ok());
+    EXPECT_EQ(bad.error().field, "add[0].name");
+    bad = apply_instance_edit(
+        doc, *decode_instance_edit_json("{\"add\":[{\"mesh\":\"" + kMeshA + "\"}]}"),
+        SceneLimits{3});
+    ASSERT_FALSE(bad.ok());
+    EXPECT_TRUE(bad.error().over_limit);
+
+    auto e = decode_instance_edit_json("{}");
+    ASSERT_FALSE(e.ok());
+    e = decode_instance_edit_json("{\"remove\":[true]}");
+    ASSERT_FALSE(e.ok());
+    EXPECT_EQ(e.error().field, "remove[0]");
+    e = decode_instance_edit_json("{\"add\":[{\"mesh\":\"x\"}]}");
+    ASSERT_FALSE(e.ok());
+    EXPECT_EQ(e.error().field, "add[0].mesh");
+}
+
+TEST(SceneIds, SceneIdsAndInstanceNames) {
+    EXPECT_TRUE(is_scene_id(std::string(32, 'f')));
+    EXPECT_FALSE(is_scene_id(std::string(31, 'f')));
+    EXPECT_FALSE(is_scene_id(std::string(32, 'F')));
+    EXPECT_FALSE(is_scene_id(std::string(64, 'a')));
+    EXPECT_TRUE(is_instance_name("robot/arm:1.link_2-a"));
+    EXPECT_FALSE(is_instance_name(""));
+    EXPECT_FALSE(is_instance_name(std::string(129, 'a')));
+    EXPECT_FALSE(is_instance_name("a\"b"));
+}
+
+}  // namespace
+}  // namespace kdrt::proto
