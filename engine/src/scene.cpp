@@ -254,6 +254,8 @@ struct TopBuilder {
 /// Builds the top level and the statistics of `d` (its instances and inst filled).
 void build_top(SceneData& d, std::chrono::steady_clock::time_point start) {
     d.bounds = Aabb{};
+    d.first_not_similar.reset();
+    d.first_without_surface.reset();
     d.kappa_max = 1.0;
     d.size_max = 0.0;
     std::vector<uint32_t> geoms;
@@ -262,6 +264,8 @@ void build_top(SceneData& d, std::chrono::steady_clock::time_point start) {
         d.kappa_max = std::max(d.kappa_max, in.kappa);
         d.size_max = std::max({d.size_max, in.trans_mag, in.lin_bounds});
         if (in.world.empty()) continue;
+        if (!in.scale && !d.first_not_similar) d.first_not_similar = g;
+        if (!d.instances[g].surface && !d.first_without_surface) d.first_without_surface = g;
         d.bounds.extend(in.world.lo);
         d.bounds.extend(in.world.hi);
         geoms.push_back(g);

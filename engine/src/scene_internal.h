@@ -64,6 +64,9 @@ struct SceneData {
     /// root's coordinates.
     double kappa_max = 1.0;
     double size_max = 0.0;
+    /// The first instance with geometry whose transform is not a similarity, and the first
+    /// without a surface index (check_distance_query).
+    std::optional<uint32_t> first_not_similar, first_without_surface;
     SceneBuildOptions options;
     SceneStats stats;
 };

@@ -248,7 +248,8 @@ void occluded(const Scene& scene, std::span<const Ray> rays, std::span<uint8_t> 
 
 void intersect_block(const Scene& scene, std::span<const Ray> rays, std::span<SceneHit> hits,
                      const TraceOptions& options) noexcept {
-    BlockScratch scratch;
+    // Per thread, kept between calls: the renderer calls this once per tile and sample.
+    thread_local BlockScratch scratch;
     Counts counts;
     for (size_t lo = 0; lo < rays.size(); lo += kBlock) {
         const size_t len = std::min(kBlock, rays.size() - lo);
@@ -259,7 +260,7 @@ void intersect_block(const Scene& scene, std::span<const Ray> rays, std::span<Sc
 
 void occluded_block(const Scene& scene, std::span<const Ray> rays, std::span<uint8_t> occluded_out,
                     const TraceOptions& options) noexcept {
-    BlockScratch scratch;
+    thread_local BlockScratch scratch;
     Counts counts;
     for (size_t lo = 0; lo < rays.size(); lo += kBlock) {
         const size_t len = std::min(kBlock, rays.size() - lo);

@@ -9,7 +9,10 @@
 #include <numbers>
 
 #include "kdrt/camera.h"
+#include "kdrt/distance.h"
 #include "kdrt/query.h"
+#include "kdrt/render.h"
+#include "kdrt/scan.h"
 #include "kdrt/scene.h"
 #include "kdrt/trace.h"
 #include "test_util.h"
@@ -409,6 +412,303 @@ TEST(Scene, PoseUpdatesAnswerAsAFreshBuild) {
         ASSERT_TRUE(same_bits(intersect(moved, rays[i]), intersect(fresh, rays[i]))) << i;
     s.scene = moved;
     expect_matches_oracle(s, rays);
+}
+
+bool same_lists(const std::vector<SceneHit>& a, const std::vector<SceneHit>& b) {
+    return a.size() == b.size() &&
+           (a.empty() || std::memcmp(a.data(), b.data(), a.size() * sizeof(SceneHit)) == 0);
+}
+
+TEST(SceneAllHits, MatchOracleSingleAndBatch) {
+    const uint64_t seed = test_seed();
+    SCOPED_TRACE(testing::Message() << "seed=" << seed);
+    const TestScene s = mixed_scene(seed + 11, 16);
+    Rng rng(seed + 12);
+    const std::vector<Ray> rays = scene_rays(rng, s.scene, s.meshes, s.mesh_of, scaled(1500));
+    const SceneOracle oracle(s.scene);
+    for (bool merge : {false, true}) {
+        SCOPED_TRACE(merge ? "merged" : "raw");
+        AllHitsOptions options;
+        options.merge_coincident = merge;
+        options.max_hits = 3;
+        const SceneAllHits batch = intersect_all(s.scene, rays, options);
+        std::vector<uint32_t> counts(rays.size());
+        count_intersections(s.scene, rays, options, counts);
+        ASSERT_EQ(batch.offsets.size(), rays.size() + 1);
+        size_t multi = 0;
+        for (size_t i = 0; i < rays.size(); ++i) {
+            const std::vector<SceneHit> want = oracle.intersect_all(rays[i], merge);
+            std::vector<SceneHit> got;
+            ASSERT_EQ(intersect_all(s.scene, rays[i], merge, got), want.size()) << "ray " << i;
+            ASSERT_TRUE(same_lists(got, want)) << "ray " << i;
+            ASSERT_EQ(batch.counts[i], want.size()) << "ray " << i;
+            ASSERT_EQ(counts[i], want.size()) << "ray " << i;
+            const std::vector<SceneHit> kept(
+                want.begin(),
+                want.begin() + static_cast<std::ptrdiff_t>(std::min<size_t>(3, want.size())));
+            const std::vector<SceneHit> batch_kept(
+                batch.hits.begin() + static_cast<std::ptrdiff_t>(batch.offsets[i]),
+                batch.hits.begin() + static_cast<std::ptrdiff_t>(batch.offsets[i + 1]));
+            ASSERT_TRUE(same_lists(batch_kept, kept)) << "ray " << i;
+            // The first hit is the closest hit.
+            if (!merge) {
+                const SceneHit first = want.empty() ? SceneHit{} : want[0];
+                ASSERT_TRUE(same_bits(intersect(s.scene, rays[i]), first)) << "ray " << i;
+            }
+            multi += want.size() > 1;
+        }
+        EXPECT_GT(multi, rays.size() / 20) << "overlapping instances give several hits per ray";
+    }
+}
+
+TEST(SceneAttributes, NormalsFaceTheWorldWindingAndPointsLieOnTheHit) {
+    const uint64_t seed = test_seed();
+    SCOPED_TRACE(testing::Message() << "seed=" << seed);
+    const TestScene s = mixed_scene(seed + 21, 16);
+    Rng rng(seed + 22);
+    const std::vector<Ray> rays = scene_rays(rng, s.scene, s.meshes, s.mesh_of, scaled(2000));
+    std::vector<SceneHit> hits(rays.size());
+    intersect(s.scene, rays, hits);
+    std::vector<Vec3> normals(rays.size()), points(rays.size());
+    hit_attributes(s.scene, hits, normals, points);
+    size_t checked = 0;
+    for (size_t i = 0; i < rays.size(); ++i) {
+        if (!hits[i].is_hit()) {
+            EXPECT_EQ(normals[i], Vec3{});
+            EXPECT_TRUE(std::isnan(points[i].x));
+            continue;
+        }
+        ASSERT_EQ(normals[i], hit_normal(s.scene, hits[i]));
+        ASSERT_EQ(points[i], hit_point(s.scene, hits[i]));
+        const TriVerts w = world_triangle(s.scene, hits[i].geom, hits[i].prim);
+        const Vec3 a{w.v0[0], w.v0[1], w.v0[2]}, b{w.v1[0], w.v1[1], w.v1[2]},
+            c{w.v2[0], w.v2[1], w.v2[2]};
+        const Vec3 cr = cross(b - a, c - a);
+        const float len = std::sqrt(dot(cr, cr));
+        if (!(len > 1e-6f)) continue;
+        // Unit, and along the world triangle's right-hand normal (mirrors included).
+        EXPECT_NEAR(dot(normals[i], normals[i]), 1.0f, 1e-5f) << "ray " << i;
+        EXPECT_GT(dot(normals[i], cr * (1.0f / len)), 0.999f) << "ray " << i;
+        // The point is o + t d up to rounding, and on the triangle's plane.
+        const Ray& r = rays[i];
+        const Vec3 along{r.ox + hits[i].t * r.dx, r.oy + hits[i].t * r.dy, r.oz + hits[i].t * r.dz};
+        const Vec3 e = points[i] - along;
+        EXPECT_LT(std::sqrt(dot(e, e)), 1e-3f) << "ray " << i;
+        EXPECT_LT(std::fabs(dot(points[i] - a, cr * (1.0f / len))), 1e-4f) << "ray " << i;
+        ++checked;
+    }
+    EXPECT_GT(checked, rays.size() / 10);
+}
+
+/// A scene of closed spheres placed by similarities (rotations, mirrors, uniform scales).
+TestScene similarity_scene(uint64_t seed, uint32_t instances, bool surfaces) {
+    Rng rng(seed);
+    TestScene s;
+    s.meshes.push_back(uv_sphere({0.5f, 0.5f, 0.5f}, 0.5f, 10, 14));
+    s.meshes.push_back(random_soup(rng, 200));
+    for (const Mesh& m : s.meshes)
+        s.trees.push_back(std::make_shared<const KdTree>(build_kdtree(m)));
+    auto sphere_surface = std::make_shared<const SurfaceIndex>(build_surface_index(*s.trees[0]));
+    auto soup_surface = std::make_shared<const SurfaceIndex>(build_surface_index(*s.trees[1]));
+    std::vector<SceneInstance> list;
+    for (uint32_t i = 0; i < instances; ++i) {
+        std::array<double, 9> l = random_rotation(rng);
+        const double k = rng.uniform(0.5f, 2.0f) * (i % 3 == 1 ? -1.0 : 1.0);  // some mirrored
+        for (double& v : l) v *= k;
+        const uint32_t mesh = i % 4 == 3 ? 1 : 0;
+        s.mesh_of.push_back(mesh);
+        list.push_back({s.trees[mesh], affine(l, rng.in_box({{-2, -2, -2}, {2, 2, 2}})),
+                        surfaces ? (mesh == 0 ? sphere_surface : soup_surface) : nullptr});
+    }
+    s.scene = build_scene(std::move(list));
+    return s;
+}
+
+bool same_closest(const SceneClosestPoint& a, const SceneClosestPoint& b) {
+    const ClosestPoint &x = a.closest, &y = b.closest;
+    return a.geom == b.geom && std::memcmp(&x.distance, &y.distance, 4) == 0 && x.prim == y.prim &&
+           std::memcmp(&x.u, &y.u, 4) == 0 && std::memcmp(&x.v, &y.v, 4) == 0 &&
+           std::memcmp(&x.point, &y.point, sizeof(Vec3)) == 0 && x.feature == y.feature &&
+           x.side == y.side;
+}
+
+TEST(SceneDistance, MatchesOracleWithAndWithoutLimitAndSign) {
+    const uint64_t seed = test_seed();
+    SCOPED_TRACE(testing::Message() << "seed=" << seed);
+    const TestScene s = similarity_scene(seed + 31, 20, true);
+    const SceneOracle oracle(s.scene);
+    Rng rng(seed + 32);
+    Aabb box = s.scene.bounds();
+    box.lo = box.lo - Vec3{1, 1, 1};
+    box.hi = box.hi + Vec3{1, 1, 1};
+    std::vector<Vec3> points;
+    for (size_t i = 0; i < scaled(1500); ++i) points.push_back(rng.in_box(box));
+    points.push_back({NAN, 0, 0});
+    for (const DistanceOptions options :
+         {DistanceOptions{}, DistanceOptions{0.3f, false}, DistanceOptions{INFINITY, true}}) {
+        SCOPED_TRACE(testing::Message()
+                     << "max " << options.max_distance << " sign " << options.sign);
+        std::vector<SceneClosestPoint> batch(points.size());
+        closest_points(s.scene, points, batch, options);
+        size_t found = 0, inside = 0;
+        for (size_t i = 0; i < points.size(); ++i) {
+            const SceneClosestPoint want = oracle.closest_point(points[i], options);
+            ASSERT_TRUE(same_closest(closest_point(s.scene, points[i], options), want)) << i;
+            ASSERT_TRUE(same_closest(batch[i], want)) << i;
+            found += want.found();
+            inside += want.closest.side == Side::kInside;
+        }
+        EXPECT_GT(found, points.size() / 20);
+        if (options.sign) {
+            EXPECT_GT(inside, 0u);
+        }
+    }
+}
+
+TEST(SceneDistance, IdentityInstanceAnswersAsTheMesh) {
+    Rng rng(test_seed() + 41);
+    const Mesh mesh = uv_sphere({0, 0, 0}, 1.0f, 12, 16);
+    auto tree = std::make_shared<const KdTree>(build_kdtree(mesh));
+    auto surface = std::make_shared<const SurfaceIndex>(build_surface_index(*tree));
+    const Scene scene = build_scene({{tree, Affine3x4{}, surface}});
+    for (int i = 0; i < 500; ++i) {
+        const Vec3 p = rng.in_box({{-2, -2, -2}, {2, 2, 2}});
+        for (const DistanceOptions options :
+             {DistanceOptions{INFINITY, true}, DistanceOptions{0.5f, false}}) {
+            const ClosestPoint want = closest_point(*tree, *surface, p, options);
+            const SceneClosestPoint got = closest_point(scene, p, options);
+            ASSERT_EQ(std::memcmp(&got.closest, &want, sizeof want), 0) << i;
+            ASSERT_EQ(got.geom, want.found() ? 0u : kNoHit);
+        }
+    }
+}
+
+TEST(SceneDistance, RefusesShearedInstancesAndMissingSurfaces) {
+    TestScene s = similarity_scene(5, 6, false);
+    expect_scene_error(
+        [&] {
+            (void)closest_point(s.scene, {0, 0, 0}, {INFINITY, true});
+        },
+        0u, "surface");
+    EXPECT_NO_THROW((void)closest_point(s.scene, {0, 0, 0}, {}));
+    Affine3x4 sheared;
+    sheared.m[0][1] = 0.5f;
+    const Scene moved = s.scene.with_transform(4, sheared);
+    expect_scene_error([&] { (void)closest_point(moved, {0, 0, 0}, {}); }, 4u, "transform");
+    std::vector<SceneClosestPoint> out(1);
+    const Vec3 p{0, 0, 0};
+    expect_scene_error([&] { closest_points(moved, std::span(&p, 1), out, {}); }, 4u, "transform");
+}
+
+TEST(SceneScan, IdentitySceneScansAsTheMeshAndNamesInstances) {
+    Rng rng(test_seed() + 51);
+    const Mesh mesh = uv_sphere({0, 0, 0}, 1.0f, 16, 24);
+    auto tree = std::make_shared<const KdTree>(build_kdtree(mesh));
+    PinholeSpec pin;
+    pin.intrinsics = {40, 40, 32, 24, 64, 48};
+    pin.pose.m[3] = 0.2f;
+    pin.pose.m[11] = -4.0;
+    pin.normals = true;
+    LidarSpec lidar;
+    lidar.elevation_deg = lidar_elevations(-30, 30, 16);
+    lidar.azimuth_steps = 90;
+    lidar.returns = 2;
+    lidar.pose.m[3] = 3.0;
+    const Scene scene = build_scene({{tree, Affine3x4{}, nullptr}});
+    const DepthImage want = scan_pinhole(*tree, pin);
+    const SceneDepthImage got = scan_pinhole(scene, pin);
+    EXPECT_EQ(got.image.depth, want.depth);
+    EXPECT_EQ(got.image.prim, want.prim);
+    EXPECT_EQ(got.image.normals.size(), want.normals.size());
+    for (size_t p = 0; p < want.prim.size(); ++p) {
+        ASSERT_EQ(got.image.normals[p], want.normals[p]) << p;
+        ASSERT_EQ(got.geom[p], want.prim[p] == kNoHit ? kNoHit : 0u) << p;
+    }
+    const PointCloud want_cloud = scan_lidar(*tree, lidar);
+    const ScenePointCloud got_cloud = scan_lidar(scene, lidar);
+    ASSERT_EQ(got_cloud.cloud.points.size(), want_cloud.points.size());
+    EXPECT_GT(want_cloud.points.size(), 100u);
+    EXPECT_EQ(std::memcmp(got_cloud.cloud.points.data(), want_cloud.points.data(),
+                          want_cloud.points.size() * sizeof(LidarPoint)),
+              0);
+
+    // Two spheres: the second moved by +3 in x. Every return's geometry id is the instance whose
+    // surface the point lies on, and every pixel's depth is the oracle's.
+    Affine3x4 moved;
+    moved.m[0][3] = 3.0f;
+    const Scene two = build_scene({{tree, Affine3x4{}, nullptr}, {tree, moved, nullptr}});
+    lidar.pose.m[3] = 1.5;
+    const ScenePointCloud both = scan_lidar(two, lidar);
+    std::array<size_t, 2> per{};
+    for (size_t k = 0; k < both.cloud.points.size(); ++k) {
+        const LidarPoint& pt = both.cloud.points[k];
+        const float cx = both.geom[k] == 0 ? 0.0f : 3.0f;
+        const float r = std::sqrt((pt.x - cx) * (pt.x - cx) + pt.y * pt.y + pt.z * pt.z);
+        ASSERT_NEAR(r, 1.0f, 0.05f) << k;
+        ++per[both.geom[k]];
+    }
+    EXPECT_GT(per[0], 50u);
+    EXPECT_GT(per[1], 50u);
+    const SceneDepthImage two_image = scan_pinhole(two, pin);
+    const SceneOracle oracle(two);
+    for (uint32_t j = 0; j < pin.intrinsics.height; ++j) {
+        for (uint32_t i = 0; i < pin.intrinsics.width; ++i) {
+            const size_t p = size_t{j} * pin.intrinsics.width + i;
+            const SceneHit h = oracle.intersect(pinhole_ray(pin, i, j));
+            ASSERT_EQ(two_image.geom[p], h.geom) << p;
+            ASSERT_EQ(two_image.image.prim[p], h.prim) << p;
+        }
+    }
+}
+
+TEST(SceneRender, IdentitySceneRendersAsTheMeshInEveryMode) {
+    Rng rng(test_seed() + 61);
+    const Mesh mesh = random_soup(rng, 400, 0.3f);
+    auto tree = std::make_shared<const KdTree>(build_kdtree(mesh));
+    const Scene scene = build_scene({{tree, Affine3x4{}, nullptr}});
+    for (Shading shading : {Shading::kNormals, Shading::kEyelight, Shading::kDepth,
+                            Shading::kPrimId, Shading::kAo, Shading::kDiffuse}) {
+        SCOPED_TRACE(std::string(shading_name(shading)));
+        RenderSettings settings;
+        settings.width = 48;
+        settings.height = 40;
+        settings.shading = shading;
+        settings.spp = 2;
+        settings.ao_samples = 4;
+        settings.bounces = 2;
+        settings.sky = 0.5f;
+        const Image want = render(*tree, settings);
+        const Image got = render(scene, settings);
+        ASSERT_EQ(got.pixels.size(), want.pixels.size());
+        EXPECT_EQ(std::memcmp(got.pixels.data(), want.pixels.data(), want.pixels.size() * 4), 0);
+    }
+}
+
+TEST(SceneRender, InstancesOfOneMeshGetTheirOwnPrimIdColours) {
+    Mesh quad;
+    add_triangle(quad, {0, 0, 0}, {1, 0, 0}, {1, 1, 0});
+    add_triangle(quad, {0, 0, 0}, {1, 1, 0}, {0, 1, 0});
+    auto tree = std::make_shared<const KdTree>(build_kdtree(quad));
+    Affine3x4 right;
+    right.m[0][3] = 1.0f;
+    const Scene scene = build_scene({{tree, Affine3x4{}, nullptr}, {tree, right, nullptr}});
+    RenderSettings settings;
+    settings.width = 64;
+    settings.height = 32;
+    settings.shading = Shading::kPrimId;
+    settings.camera = CameraSpec{{1, 0.5f, 2}, {1, 0.5f, 0}, {0, 1, 0}, 60.0f};
+    const Image image = render(scene, settings);
+    // The left and right halves' centres show triangle 0 or 1 of different instances.
+    const auto pixel = [&](uint32_t x, uint32_t y) {
+        const float* p = &image.pixels[(size_t{y} * 64 + x) * 3];
+        return std::array<float, 3>{p[0], p[1], p[2]};
+    };
+    EXPECT_NE(pixel(20, 20), pixel(44, 20));
+    EXPECT_NE(pixel(20, 12), pixel(44, 12));
+    // Rendering is deterministic at any thread count and tile size.
+    RenderSettings small_tiles = settings;
+    small_tiles.tile_size = 8;
+    EXPECT_EQ(render(scene, small_tiles).pixels, image.pixels);
 }
 
 }  // namespace
