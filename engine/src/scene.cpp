@@ -168,15 +168,6 @@ struct TopBuilder {
     int depth_cap = 0;
     uint64_t leaves = 0;
 
-    Aabb clipped(uint32_t geom, const Aabb& cell) const noexcept {
-        Aabb b = scene.inst[geom].world;
-        for (int a = 0; a < 3; ++a) {
-            b.lo[a] = std::max(b.lo[a], cell.lo[a]);
-            b.hi[a] = std::min(b.hi[a], cell.hi[a]);
-        }
-        return b;
-    }
-
     void make_leaf(uint32_t index, std::vector<uint32_t>& geoms) {
         std::sort(geoms.begin(), geoms.end());
         nodes[index] = TopNode{(static_cast<uint32_t>(geoms.size()) << 2) | 3u,
@@ -194,30 +185,41 @@ struct TopBuilder {
         double best_cost = std::numeric_limits<double>::infinity();
         int best_axis = -1;
         float best_split = 0.0f;
+        const Vec3 ext = cell.extent();
+        const double side_sum[3] = {static_cast<double>(ext.y) + ext.z,
+                                    static_cast<double>(ext.x) + ext.z,
+                                    static_cast<double>(ext.x) + ext.y};
+        const double side_product[3] = {static_cast<double>(ext.y) * ext.z,
+                                        static_cast<double>(ext.x) * ext.z,
+                                        static_cast<double>(ext.x) * ext.y};
+        // Few references need few candidate planes: the per-node cost stays O(n), not O(bins).
+        const int bins = std::min(kBins, 4 * static_cast<int>(geoms.size()));
         for (int axis = 0; axis < 3; ++axis) {
             const double lo = cell.lo[axis], hi = cell.hi[axis], extent = hi - lo;
             if (!(extent > 0.0)) continue;
+            const double to_bin = bins / extent;
             std::array<uint32_t, kBins> starts{}, ends{};
             for (uint32_t g : geoms) {
-                const Aabb b = clipped(g, cell);
-                const auto bin = [&](double x) {
-                    return std::clamp(static_cast<int>((x - lo) / extent * kBins), 0, kBins - 1);
+                const Aabb& b = scene.inst[g].world;  // clamped into the cell's bins below
+                const auto bin = [&](float x) {
+                    return static_cast<size_t>(
+                        std::clamp(static_cast<int>((x - lo) * to_bin), 0, bins - 1));
                 };
-                ++starts[static_cast<size_t>(bin(b.lo[axis]))];
-                ++ends[static_cast<size_t>(bin(b.hi[axis]))];
+                ++starts[bin(std::max(b.lo[axis], cell.lo[axis]))];
+                ++ends[bin(std::min(b.hi[axis], cell.hi[axis]))];
             }
             uint32_t left = 0, right = static_cast<uint32_t>(geoms.size());
-            for (int k = 1; k < kBins; ++k) {
+            for (int k = 1; k < bins; ++k) {
                 left += starts[static_cast<size_t>(k - 1)];
                 right -= ends[static_cast<size_t>(k - 1)];
-                const auto split = static_cast<float>(lo + extent * k / kBins);
+                const auto split = static_cast<float>(lo + extent * k / bins);
                 if (!(split > cell.lo[axis] && split < cell.hi[axis])) continue;
-                Aabb lbox = cell, rbox = cell;
-                lbox.hi[axis] = split;
-                rbox.lo[axis] = split;
+                // Half the surface of each side: its length here times the sum of the cell's
+                // other two extents, plus their product.
+                const double la = (split - lo) * side_sum[axis] + side_product[axis];
+                const double ra = (hi - split) * side_sum[axis] + side_product[axis];
                 double cost =
-                    opt.traversal_cost +
-                    opt.instance_cost * (half_area(lbox) * left + half_area(rbox) * right) / area;
+                    opt.traversal_cost + opt.instance_cost * (la * left + ra * right) / area;
                 if (left == 0 || right == 0) cost *= 1.0 - opt.empty_bonus;
                 if (cost < best_cost) {
                     best_cost = cost;
