@@ -176,9 +176,10 @@ private:
 /// Checks, in order, each naming the instance and field (SceneError): more than
 /// options.max_instances (or kMaxSceneInstances) instances ("instances"); per instance, a null
 /// tree ("tree"), a NaN or infinite entry ("transform[r][c]"), a singular or nearly singular L
-/// ("transform": |det L| below 1e-9 of the product of its row lengths, or an inverse or world box
-/// that overflows float). Uses the calling thread's oneTBB arena; O(n log n) in the instance
-/// count; never reads a mesh tree beyond its bounds. Throws std::bad_alloc.
+/// ("transform": |det L| below 1e-9 of the product of its row lengths, a condition number
+/// || |L| |L^-1| ||_inf above 2^24, or an inverse or world box beyond float range). Uses the
+/// calling thread's oneTBB arena; O(n log n) in the instance count; never reads a mesh tree beyond
+/// its bounds. Throws std::bad_alloc.
 [[nodiscard]] Scene build_scene(std::vector<SceneInstance> instances,
                                 const SceneBuildOptions& options = {});
 
