@@ -41,80 +41,61 @@ constexpr double kRelativeTolerance = 1e-4;
 
 // Embree 4 replaced the intersect context (rtcInitIntersectContext, passed before the rays) by
 // optional argument structs passed after them, and dropped the ray-stream calls (rtc*1M).
+// QueryArgs holds what a query call needs; query() and query_packet() pass it where the API
+// version wants it.
 #if RTC_VERSION_MAJOR >= 4
 constexpr bool kHasRayStreams = false;
 
-/// The per-call query settings: coherent or incoherent rays.
-struct QueryArgs {
-    RTCIntersectArguments intersect;
-    RTCOccludedArguments occluded;
+class QueryArgs {
+public:
     explicit QueryArgs(bool coherent) {
-        rtcInitIntersectArguments(&intersect);
-        rtcInitOccludedArguments(&occluded);
+        rtcInitIntersectArguments(&intersect_);
+        rtcInitOccludedArguments(&occluded_);
         const RTCRayQueryFlags flags =
             coherent ? RTC_RAY_QUERY_FLAG_COHERENT : RTC_RAY_QUERY_FLAG_INCOHERENT;
-        intersect.flags = flags;
-        occluded.flags = flags;
+        intersect_.flags = flags;
+        occluded_.flags = flags;
     }
+    RTCIntersectArguments* intersect_args() noexcept { return &intersect_; }
+    RTCOccludedArguments* occluded_args() noexcept { return &occluded_; }
+
+private:
+    RTCIntersectArguments intersect_;
+    RTCOccludedArguments occluded_;
 };
 
-void intersect1(RTCScene scene, QueryArgs& q, RTCRayHit& rh) {
-    rtcIntersect1(scene, &rh, &q.intersect);
+template <typename Fn, typename Rays, typename Args>
+void query(Fn fn, RTCScene scene, Rays* rays, Args* args) {
+    fn(scene, rays, args);
 }
-void occluded1(RTCScene scene, QueryArgs& q, RTCRay& ray) {
-    rtcOccluded1(scene, &ray, &q.occluded);
-}
-void intersect_packet(const int* valid, RTCScene scene, QueryArgs& q, RTCRayHit4& rh) {
-    rtcIntersect4(valid, scene, &rh, &q.intersect);
-}
-void intersect_packet(const int* valid, RTCScene scene, QueryArgs& q, RTCRayHit8& rh) {
-    rtcIntersect8(valid, scene, &rh, &q.intersect);
-}
-void intersect_packet(const int* valid, RTCScene scene, QueryArgs& q, RTCRayHit16& rh) {
-    rtcIntersect16(valid, scene, &rh, &q.intersect);
-}
-void occluded_packet(const int* valid, RTCScene scene, QueryArgs& q, RTCRay4& ray) {
-    rtcOccluded4(valid, scene, &ray, &q.occluded);
-}
-void occluded_packet(const int* valid, RTCScene scene, QueryArgs& q, RTCRay8& ray) {
-    rtcOccluded8(valid, scene, &ray, &q.occluded);
-}
-void occluded_packet(const int* valid, RTCScene scene, QueryArgs& q, RTCRay16& ray) {
-    rtcOccluded16(valid, scene, &ray, &q.occluded);
+template <typename Fn, typename Rays, typename Args>
+void query_packet(Fn fn, const int* valid, RTCScene scene, Rays* rays, Args* args) {
+    fn(valid, scene, rays, args);
 }
 #else
 constexpr bool kHasRayStreams = true;
 
-struct QueryArgs {
-    RTCIntersectContext context;
+class QueryArgs {
+public:
     explicit QueryArgs(bool coherent) {
-        rtcInitIntersectContext(&context);
-        context.flags =
+        rtcInitIntersectContext(&context_);
+        context_.flags =
             coherent ? RTC_INTERSECT_CONTEXT_FLAG_COHERENT : RTC_INTERSECT_CONTEXT_FLAG_INCOHERENT;
     }
+    RTCIntersectContext* intersect_args() noexcept { return &context_; }
+    RTCIntersectContext* occluded_args() noexcept { return &context_; }
+
+private:
+    RTCIntersectContext context_;
 };
 
-void intersect1(RTCScene scene, QueryArgs& q, RTCRayHit& rh) {
-    rtcIntersect1(scene, &q.context, &rh);
+template <typename Fn, typename Rays, typename Args>
+void query(Fn fn, RTCScene scene, Rays* rays, Args* args) {
+    fn(scene, args, rays);
 }
-void occluded1(RTCScene scene, QueryArgs& q, RTCRay& ray) { rtcOccluded1(scene, &q.context, &ray); }
-void intersect_packet(const int* valid, RTCScene scene, QueryArgs& q, RTCRayHit4& rh) {
-    rtcIntersect4(valid, scene, &q.context, &rh);
-}
-void intersect_packet(const int* valid, RTCScene scene, QueryArgs& q, RTCRayHit8& rh) {
-    rtcIntersect8(valid, scene, &q.context, &rh);
-}
-void intersect_packet(const int* valid, RTCScene scene, QueryArgs& q, RTCRayHit16& rh) {
-    rtcIntersect16(valid, scene, &q.context, &rh);
-}
-void occluded_packet(const int* valid, RTCScene scene, QueryArgs& q, RTCRay4& ray) {
-    rtcOccluded4(valid, scene, &q.context, &ray);
-}
-void occluded_packet(const int* valid, RTCScene scene, QueryArgs& q, RTCRay8& ray) {
-    rtcOccluded8(valid, scene, &q.context, &ray);
-}
-void occluded_packet(const int* valid, RTCScene scene, QueryArgs& q, RTCRay16& ray) {
-    rtcOccluded16(valid, scene, &q.context, &ray);
+template <typename Fn, typename Rays, typename Args>
+void query_packet(Fn fn, const int* valid, RTCScene scene, Rays* rays, Args* args) {
+    fn(valid, scene, args, rays);
 }
 #endif
 
@@ -234,20 +215,20 @@ uint8_t read_occluded(const EmbreeRay& ray, int lane) noexcept {
 /// Traces rays [begin, end) with the given API shape; `W` = 1 (rtc*1), 0 (rtc*1M stream, Embree 3
 /// only) or a packet width. Answers go to hits[i] or occluded[i].
 template <int W, bool Occlusion>
-void trace_block(RTCScene scene, QueryArgs& query, std::span<const Ray> rays, size_t begin,
+void trace_block(RTCScene scene, QueryArgs& args, std::span<const Ray> rays, size_t begin,
                  size_t end, std::span<Hit> hits, std::span<uint8_t> occluded) {
     if constexpr (W == 1) {
         for (size_t i = begin; i < end; ++i) {
             if constexpr (Occlusion) {
                 RTCRay ray;
                 set_lane(ray, 0, rays[i]);
-                occluded1(scene, query, ray);
+                query(rtcOccluded1, scene, &ray, args.occluded_args());
                 occluded[i] = ray_is_valid(rays[i]) ? read_occluded(ray, 0) : 0;
             } else {
                 RTCRayHit rh;
                 set_lane(rh.ray, 0, rays[i]);
                 clear_hit(rh.hit, 0);
-                intersect1(scene, query, rh);
+                query(rtcIntersect1, scene, &rh, args.intersect_args());
                 hits[i] = read_hit(rh, 0);
             }
         }
@@ -257,7 +238,7 @@ void trace_block(RTCScene scene, QueryArgs& query, std::span<const Ray> rays, si
         if constexpr (Occlusion) {
             RTCRay stream[kBlockRays];
             for (unsigned k = 0; k < count; ++k) set_lane(stream[k], 0, rays[begin + k]);
-            rtcOccluded1M(scene, &query.context, stream, count, sizeof(RTCRay));
+            rtcOccluded1M(scene, args.occluded_args(), stream, count, sizeof(RTCRay));
             for (unsigned k = 0; k < count; ++k) {
                 occluded[begin + k] =
                     ray_is_valid(rays[begin + k]) ? read_occluded(stream[k], 0) : 0;
@@ -268,7 +249,7 @@ void trace_block(RTCScene scene, QueryArgs& query, std::span<const Ray> rays, si
                 set_lane(stream[k].ray, 0, rays[begin + k]);
                 clear_hit(stream[k].hit, 0);
             }
-            rtcIntersect1M(scene, &query.context, stream, count, sizeof(RTCRayHit));
+            rtcIntersect1M(scene, args.intersect_args(), stream, count, sizeof(RTCRayHit));
             for (unsigned k = 0; k < count; ++k) hits[begin + k] = read_hit(stream[k], 0);
         }
 #endif
@@ -287,13 +268,23 @@ void trace_block(RTCScene scene, QueryArgs& query, std::span<const Ray> rays, si
                 clear_hit(rh.hit, lane);
             }
             if constexpr (Occlusion) {
-                occluded_packet(valid, scene, query, rh.ray);
+                if constexpr (W == 4)
+                    query_packet(rtcOccluded4, valid, scene, &rh.ray, args.occluded_args());
+                if constexpr (W == 8)
+                    query_packet(rtcOccluded8, valid, scene, &rh.ray, args.occluded_args());
+                if constexpr (W == 16)
+                    query_packet(rtcOccluded16, valid, scene, &rh.ray, args.occluded_args());
                 for (size_t lane = 0; lane < lanes; ++lane) {
                     occluded[first + lane] =
                         valid[lane] ? read_occluded(rh.ray, static_cast<int>(lane)) : 0;
                 }
             } else {
-                intersect_packet(valid, scene, query, rh);
+                if constexpr (W == 4)
+                    query_packet(rtcIntersect4, valid, scene, &rh, args.intersect_args());
+                if constexpr (W == 8)
+                    query_packet(rtcIntersect8, valid, scene, &rh, args.intersect_args());
+                if constexpr (W == 16)
+                    query_packet(rtcIntersect16, valid, scene, &rh, args.intersect_args());
                 for (size_t lane = 0; lane < lanes; ++lane) {
                     hits[first + lane] = valid[lane] ? read_hit(rh, static_cast<int>(lane)) : Hit{};
                 }
@@ -310,10 +301,10 @@ double trace_pass(RTCScene scene, bool coherent, std::span<const Ray> rays, std:
     const auto start = Clock::now();
     tbb::parallel_for(tbb::blocked_range<size_t>(0, blocks),
                       [&](const tbb::blocked_range<size_t>& range) {
-                          QueryArgs query(coherent);
+                          QueryArgs args(coherent);
                           for (size_t block = range.begin(); block != range.end(); ++block) {
                               const size_t begin = block * kBlockRays;
-                              trace_block<W, Occlusion>(scene, query, rays, begin,
+                              trace_block<W, Occlusion>(scene, args, rays, begin,
                                                         std::min(begin + kBlockRays, rays.size()),
                                                         hits, occluded);
                           }
