@@ -971,8 +971,12 @@ int run_scene_instances(const Args& args) {
             };
             merged_pass();
             scene_pass();
+            const double cpu_start = process_cpu_seconds();
+            const auto wall_start = Clock::now();
             const double merged_mrays = n / median_seconds(reps, merged_pass) / 1e6;
             const double scene_mrays = n / median_seconds(reps, scene_pass) / 1e6;
+            const double wall = std::chrono::duration<double>(Clock::now() - wall_start).count();
+            const double cpu_util = (process_cpu_seconds() - cpu_start) / wall;
             SceneTraceStats stats;
             if (!occlusion) intersect(scene, rays, sh, {}, &stats);
             Json k;
@@ -981,6 +985,7 @@ int run_scene_instances(const Args& args) {
             k["merged_mrays_per_s"] = rounded(merged_mrays, 3);
             k["scene_mrays_per_s"] = rounded(scene_mrays, 3);
             k["ratio_vs_merged"] = rounded(scene_mrays / merged_mrays, 3);
+            k["cpu_util"] = rounded(cpu_util, 2);  // CPU seconds per wall second, kdrt passes
             if (!occlusion) {
                 k["instance_visits_per_ray"] =
                     rounded(static_cast<double>(stats.instance_visits) / n, 3);
