@@ -29,6 +29,7 @@
 
 #include "bench_args.h"
 #include "embree_compare.h"
+#include "embree_scene.h"
 #include "image_helper.h"
 #include "kdrt/distance.h"
 #include "kdrt/kdtree.h"
@@ -39,6 +40,7 @@
 #include "kdrt/query.h"
 #include "kdrt/raygen.h"
 #include "kdrt/render.h"
+#include "kdrt/scene.h"
 #include "kdrt/trace.h"
 #include "scenes.h"
 #include "test_util.h"
@@ -60,7 +62,8 @@ commands:
   trace MESH RAYS.kdrr
                 trace a KDRR ray batch (closest hit, or occlusion when the batch says so)
   rays MESH     write a deterministic KDRR ray set (primary, shadow, diffuse, random)
-  scene KIND    write a generated benchmark scene (stadium, grid) as a mesh file
+  scene KIND    write a generated benchmark scene (stadium, grid) as a mesh file, or time a
+                two-level scene of instances (scene instances)
   render MESH   render the default view of a mesh, timed against its camera rays as a batch
   distance MESH time closest-point and signed-distance queries (kD search against brute force)
 
@@ -871,21 +874,210 @@ int run_rays(const Args& args) {
     return 0;
 }
 
+/// Instance transforms of `copies` copies of a mesh with bounds `b` on replicate_grid's grid
+/// (the same translations, so the merged mesh holds the same triangles), each moved up by
+/// `lift` (a pose change).
+std::vector<Affine3x4> grid_transforms(const Aabb& b, uint32_t copies, float lift) {
+    uint32_t side = 1;
+    while (side * side < copies) ++side;
+    const Vec3 e = b.extent();
+    std::vector<Affine3x4> out(copies);
+    for (uint32_t c = 0; c < copies; ++c) {
+        out[c].m[0][3] = 1.1f * e.x * static_cast<float>(c % side);
+        out[c].m[1][3] = lift;
+        out[c].m[2][3] = 1.1f * e.z * static_cast<float>(c / side);
+    }
+    return out;
+}
+
+template <typename F>
+double median_seconds(int reps, F&& f) {
+    std::vector<double> s;
+    for (int r = 0; r < reps; ++r) {
+        const auto start = Clock::now();
+        f();
+        s.push_back(std::chrono::duration<double>(Clock::now() - start).count());
+    }
+    return median(s);
+}
+
+/// Answers that differ between two scene answers of the same ray (geometry or triangle, or t
+/// beyond 1e-4 relative): the merged mesh and Embree compute the same triangles in other
+/// arithmetic, so a few rays through edges differ.
+bool differs(const SceneHit& a, const SceneHit& b) {
+    if (a.is_hit() != b.is_hit()) return true;
+    if (!a.is_hit()) return false;
+    return a.geom != b.geom || a.prim != b.prim ||
+           std::fabs(static_cast<double>(a.t) - b.t) > 1e-4 * std::fabs(static_cast<double>(a.t));
+}
+
+int run_scene_instances(const Args& args) {
+    const std::string from = args.require("from");
+    const auto copies = static_cast<uint32_t>(args.get_uint("copies", 16, 1, kMaxSceneInstances));
+    const auto res = static_cast<uint32_t>(args.get_uint("res", 512, 16, 4096));
+    const int reps = static_cast<int>(args.get_uint("reps", 5, 1, 1000));
+    const bool embree = args.get("compare").has_value();
+    if (embree && *args.get("compare") != "embree")
+        throw UsageError("option '--compare': only 'embree' is supported");
+    if (embree && !kEmbreeAvailable)
+        throw UsageError("option '--compare': this kdrt-bench was built without Embree");
+    const Mesh mesh =
+        from == "sphere" ? test::uv_sphere({0, 0, 0}, 1.0f, 24, 48) : load_mesh(from).mesh;
+    Json line;
+    line["command"] = "scene";
+    line["kind"] = "instances";
+    line["from"] = from;
+    line["triangles_per_instance"] = mesh.triangle_count();
+    line["instances"] = copies;
+    line["threads"] = thread_count(args);
+    with_threads(thread_count(args), [&] {
+        const Aabb bounds = mesh_bounds(mesh);
+        auto start = Clock::now();
+        auto tree = std::make_shared<const KdTree>(build_kdtree(mesh));
+        line["mesh_build_ms"] = rounded(ms_since(start), 3);
+        const std::vector<Affine3x4> poses = grid_transforms(bounds, copies, 0.0f);
+        std::vector<SceneInstance> list;
+        for (const Affine3x4& t : poses) list.push_back({tree, t, nullptr});
+        const Scene scene = build_scene(std::move(list));
+        line["scene_build_ms"] = rounded(scene.stats().build_ms, 3);
+        line["top_nodes"] = scene.stats().nodes;
+        line["top_refs"] = scene.stats().refs;
+        line["top_depth"] = scene.stats().max_depth;
+        line["bytes_per_instance"] = rounded(scene.stats().bytes_per_instance, 1);
+        // Every instance moved (alternately up and back), only the top level rebuilt.
+        const std::vector<Affine3x4> moved =
+            grid_transforms(bounds, copies, 0.01f * bounds.extent().y);
+        std::vector<InstancePose> updates(copies);
+        for (uint32_t g = 0; g < copies; ++g) updates[g] = {g, moved[g]};
+        double pose_ms = 1e3 * median_seconds(std::max(reps, 5), [&] {
+                             const Scene next = scene.with_transforms(updates);
+                             if (next.size() != copies)
+                                 throw BenchError("pose update lost instances");
+                         });
+        line["pose_update_ms"] = rounded(pose_ms, 4);
+
+        start = Clock::now();
+        const Mesh merged = test::replicate_grid(mesh, copies);
+        const KdTree merged_tree = build_kdtree(merged);
+        line["merged_build_ms"] = rounded(ms_since(start), 3);
+        line["merged_bytes"] = merged_tree.stats.bytes;
+
+        std::unique_ptr<EmbreeInstanceScene> em;
+        if (embree) {
+            em = std::make_unique<EmbreeInstanceScene>(mesh, poses);
+            line["embree_blas_build_ms"] = rounded(em->blas_build_ms(), 3);
+            line["embree_top_build_ms"] = rounded(em->top_build_ms(), 3);
+            line["embree_pose_update_ms"] = rounded(
+                1e3 * median_seconds(std::max(reps, 5), [&] { em->set_transforms(moved); }), 4);
+            em->set_transforms(poses);
+        }
+        Json kinds = Json::array();
+        for (RayKind kind :
+             {RayKind::kPrimary, RayKind::kShadow, RayKind::kDiffuse, RayKind::kRandom}) {
+            RayGenOptions gen;
+            gen.kind = kind;
+            gen.res = res;
+            const std::vector<Ray> rays = generate_rays(merged_tree, gen);
+            const bool occlusion = kind == RayKind::kShadow;
+            const double n = static_cast<double>(rays.size());
+            std::vector<Hit> mh(rays.size());
+            std::vector<SceneHit> sh(rays.size()), eh(rays.size());
+            std::vector<uint8_t> mo(rays.size()), so(rays.size()), eo(rays.size());
+            const auto merged_pass = [&] {
+                if (occlusion)
+                    occluded(merged_tree, rays, mo);
+                else
+                    intersect(merged_tree, rays, mh);
+            };
+            const auto scene_pass = [&] {
+                if (occlusion)
+                    occluded(scene, rays, so);
+                else
+                    intersect(scene, rays, sh);
+            };
+            merged_pass();
+            scene_pass();
+            const double cpu_start = process_cpu_seconds();
+            const auto wall_start = Clock::now();
+            const double merged_mrays = n / median_seconds(reps, merged_pass) / 1e6;
+            const double scene_mrays = n / median_seconds(reps, scene_pass) / 1e6;
+            const double wall = std::chrono::duration<double>(Clock::now() - wall_start).count();
+            const double cpu_util = (process_cpu_seconds() - cpu_start) / wall;
+            SceneTraceStats stats;
+            if (!occlusion) intersect(scene, rays, sh, {}, &stats);
+            Json k;
+            k["kind"] = std::string(ray_kind_name(kind));
+            k["rays"] = rays.size();
+            k["merged_mrays_per_s"] = rounded(merged_mrays, 3);
+            k["scene_mrays_per_s"] = rounded(scene_mrays, 3);
+            k["ratio_vs_merged"] = rounded(scene_mrays / merged_mrays, 3);
+            k["cpu_util"] = rounded(cpu_util, 2);  // CPU seconds per wall second, kdrt passes
+            if (!occlusion) {
+                k["instance_visits_per_ray"] =
+                    rounded(static_cast<double>(stats.instance_visits) / n, 3);
+                k["batched_calls"] = stats.instance_batches;
+            }
+            // The merged mesh's triangle ids: instance g's triangle p is g * T + p.
+            const uint64_t tri_count = mesh.triangle_count();
+            uint64_t merged_diff = 0;
+            for (size_t i = 0; i < rays.size(); ++i) {
+                if (occlusion) {
+                    merged_diff += mo[i] != so[i];
+                } else {
+                    const Hit& h = mh[i];
+                    const SceneHit m =
+                        h.is_hit() ? SceneHit{h.t, static_cast<uint32_t>(h.prim % tri_count), h.u,
+                                              h.v, static_cast<uint32_t>(h.prim / tri_count)}
+                                   : SceneHit{};
+                    merged_diff += differs(m, sh[i]);
+                }
+            }
+            k["differences_vs_merged"] = merged_diff;
+            if (em) {
+                const EmbreeSceneTiming et = em->trace(rays, occlusion, reps, eh, eo);
+                k["embree_mrays_per_s"] = rounded(et.best_mrays_per_s, 3);
+                k["embree_best_mode"] = et.best_mode;
+                k["ratio_vs_embree"] = rounded(scene_mrays / et.best_mrays_per_s, 3);
+                uint64_t ediff = 0;
+                for (size_t i = 0; i < rays.size(); ++i)
+                    ediff += occlusion ? eo[i] != so[i] : differs(eh[i], sh[i]);
+                k["differences_vs_embree"] = ediff;
+            }
+            kinds.push_back(k);
+        }
+        line["kinds"] = kinds;
+    });
+    print_json(line);
+    return 0;
+}
+
 constexpr std::string_view kSceneUsage =
     R"(usage: kdrt-bench scene stadium --out FILE [--size S]
        kdrt-bench scene grid --from MESH --copies N --out FILE
+       kdrt-bench scene instances --from MESH|sphere --copies N [--res R] [--reps K]
+                                  [--threads T] [--compare embree]
 
 Writes a generated scene; the format follows the extension of FILE (.ply is binary PLY).
   stadium  a closed box of side S (default 1000) around a finely tessellated unit sphere
            (180 x 360 segments, ~130k triangles): the "teapot in a stadium"
   grid     N copies of MESH (default 16) on a square grid: 16 bunnies are 1.2M triangles
 Prints one JSON line: kind, triangles, vertices, out, bytes.
+
+  instances  times a two-level scene (kdrt/scene.h) of N instances of MESH (or a generated
+           2,256-triangle sphere) on the grid layout, against the same triangles merged into one
+           mesh (grid) traced by the mesh kernel, and with --compare embree against Embree's
+           instancing (RTC_GEOMETRY_TYPE_INSTANCE over one BLAS). Ray sets of the merged mesh
+           (primary, shadow, diffuse, random; R x R, default 512), K passes each (median, default
+           5). Prints one JSON line: build times, bytes_per_instance, pose_update_ms (every
+           instance moved, the top level rebuilt), and per ray kind the Mrays/s of each tracer,
+           ratio_vs_merged, ratio_vs_embree and the answers that differ.
 )";
 
 int run_scene(const Args& args) {
     static constexpr std::array<std::string_view, 1> kNames = {"KIND"};
     args.expect_positional(kNames);
     const std::string& kind = args.positional()[0];
+    if (kind == "instances") return run_scene_instances(args);
     const std::string out_path = args.require("out");
     const auto format = proto::mesh_format_from_path(out_path);
     if (!format)
@@ -1052,7 +1244,8 @@ constexpr std::array<std::string_view, 8> kTraceOptions = {"mode", "isa",     "t
 constexpr std::array<std::string_view, 1> kTraceFlags = {"stats"};
 constexpr std::array<std::string_view, 7> kRaysOptions = {"kind", "res",     "seed",   "out",
                                                           "eye",  "look-at", "threads"};
-constexpr std::array<std::string_view, 4> kSceneOptions = {"out", "size", "from", "copies"};
+constexpr std::array<std::string_view, 8> kSceneOptions = {"out", "size", "from",    "copies",
+                                                           "res", "reps", "threads", "compare"};
 constexpr std::array<std::string_view, 13> kRenderOptions = {
     "shading",    "res",     "spp",     "tile",    "threads", "reps",   "seed",
     "ao-samples", "bounces", "builder", "c-isect", "out",     "compare"};
