@@ -86,11 +86,46 @@ struct Counts {
 
 /// One block of the batch, on the calling thread. AnyHit: occlusion into `occ_out`; else closest
 /// hits into `hits_out`.
+/// True when the rounds pay for a block: its rays share an origin (camera rays) or go nearly the
+/// same way (every unit direction component within 0.5 of the others', as shadow rays towards a
+/// light), so the rays reaching one instance in a round are many and coherent. Otherwise
+/// (diffuse bounces, random rays) each ray walks alone and stops at its first cell past its
+/// closest hit, which costs less than collecting every instance along it.
+bool rounds_pay(std::span<const Ray> rays) noexcept {
+    bool one_origin = true;
+    float lo[3] = {2, 2, 2}, hi[3] = {-2, -2, -2};
+    for (const Ray& r : rays) {
+        one_origin = one_origin && r.ox == rays[0].ox && r.oy == rays[0].oy && r.oz == rays[0].oz;
+        const float len = std::sqrt(r.dx * r.dx + r.dy * r.dy + r.dz * r.dz);
+        if (!(len > 0.0f) || !std::isfinite(len)) continue;
+        const float d[3] = {r.dx / len, r.dy / len, r.dz / len};
+        for (int a = 0; a < 3; ++a) {
+            lo[a] = std::min(lo[a], d[a]);
+            hi[a] = std::max(hi[a], d[a]);
+        }
+    }
+    return one_origin || (hi[0] - lo[0] < 0.5f && hi[1] - lo[1] < 0.5f && hi[2] - lo[2] < 0.5f);
+}
+
+SceneHit intersect_one(const SceneData& s, const Ray& ray, uint64_t* visits) noexcept;
+bool occluded_one(const SceneData& s, const Ray& ray, uint64_t* visits) noexcept;
+
 template <bool AnyHit>
 void trace_block(const SceneData& s, std::span<const Ray> rays, std::span<SceneHit> hits_out,
                  std::span<uint8_t> occ_out, const TraceOptions& options, BlockScratch& b,
                  Counts& counts) {
     const size_t n = rays.size();
+    if (options.mode == TraceMode::kSingle ||
+        (options.mode == TraceMode::kAuto && !rounds_pay(rays))) {
+        for (size_t i = 0; i < n; ++i) {
+            counts.invalid += detail::ray_is_valid(rays[i]) ? 0 : 1;
+            if constexpr (AnyHit)
+                occ_out[i] = occluded_one(s, rays[i], &counts.visits) ? 1 : 0;
+            else
+                hits_out[i] = intersect_one(s, rays[i], &counts.visits);
+        }
+        return;
+    }
     b.cands.clear();
     b.begin.assign(n, 0);
     b.end.assign(n, 0);
@@ -105,7 +140,6 @@ void trace_block(const SceneData& s, std::span<const Ray> rays, std::span<SceneH
             ++counts.invalid;
         b.end[i] = static_cast<uint32_t>(b.cands.size());
     }
-    const bool single = options.mode == TraceMode::kSingle;
     for (;;) {
         b.pairs.clear();
         for (size_t i = 0; i < n; ++i) {
@@ -135,7 +169,7 @@ void trace_block(const SceneData& s, std::span<const Ray> rays, std::span<SceneH
                 b.rays[k] = o;
             }
             counts.visits += count;
-            const bool batch = !single && count >= kMinGroup;
+            const bool batch = count >= kMinGroup;
             counts.batches += batch ? 1 : 0;
             if constexpr (AnyHit) {
                 b.occ.resize(count);
@@ -202,8 +236,11 @@ void trace_batch(const Scene& scene, std::span<const Ray> rays, std::span<SceneH
 
 }  // namespace
 
-SceneHit intersect(const Scene& scene, const Ray& ray) noexcept {
-    const SceneData& s = scene.data();
+namespace {
+
+/// The single-ray closest hit: instances in the order the walk meets them, each traced with
+/// tmax = the closest hit so far; the walk stops at the first cell beyond it.
+SceneHit intersect_one(const SceneData& s, const Ray& ray, uint64_t* visits) noexcept {
     if (!detail::ray_is_valid(ray)) return SceneHit{};
     SceneHit best = no_hit_yet(ray);
     detail::Mailbox mailbox;
@@ -214,14 +251,14 @@ SceneHit intersect(const Scene& scene, const Ray& ray) noexcept {
             if (mailbox.seen(geom)) return true;
             Ray o = detail::to_object(s.inst[geom], ray);
             o.tmax = best.t;
+            if (visits) ++*visits;
             offer(best, intersect(*s.instances[geom].tree, o), geom);
             return true;
         });
     return finish(best);
 }
 
-bool occluded(const Scene& scene, const Ray& ray) noexcept {
-    const SceneData& s = scene.data();
+bool occluded_one(const SceneData& s, const Ray& ray, uint64_t* visits) noexcept {
     if (!detail::ray_is_valid(ray)) return false;
     bool hit = false;
     detail::Mailbox mailbox;
@@ -230,10 +267,21 @@ bool occluded(const Scene& scene, const Ray& ray) noexcept {
         s, ray, p, [&] { return ray.tmax; },
         [&](uint32_t geom, float) {
             if (mailbox.seen(geom)) return true;
+            if (visits) ++*visits;
             hit = occluded(*s.instances[geom].tree, detail::to_object(s.inst[geom], ray));
             return !hit;
         });
     return hit;
+}
+
+}  // namespace
+
+SceneHit intersect(const Scene& scene, const Ray& ray) noexcept {
+    return intersect_one(scene.data(), ray, nullptr);
+}
+
+bool occluded(const Scene& scene, const Ray& ray) noexcept {
+    return occluded_one(scene.data(), ray, nullptr);
 }
 
 void intersect(const Scene& scene, std::span<const Ray> rays, std::span<SceneHit> hits,

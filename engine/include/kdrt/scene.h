@@ -21,7 +21,11 @@
 ///
 /// Tie rule: the closest t wins; at exactly equal t the lowest geometry id, then the lowest prim
 /// (the mesh kernel's rule within an instance). So an answer does not depend on traversal order,
-/// ISA, mode or thread count, and equals SceneOracle's bit for bit (tested on every ISA).
+/// ISA, mode or thread count. The top-level walk widens its cells by a margin over the rounding
+/// of object_ray, so it never skips an instance that holds a hit: every answer is the minimum, by
+/// the tie rule, of the mesh queries of every instance on its object ray, and so equals
+/// SceneOracle's bit for bit wherever the mesh kernel equals its own brute force (tested on every
+/// ISA and mode).
 ///
 /// Thread safety: a Scene is immutable after build_scene (copies share its data); every query is
 /// safe concurrently from any number of threads.
@@ -220,10 +224,13 @@ struct SceneTraceStats {
 
 /// Batch queries over all threads of the current oneTBB arena, answers in input order (`hits` /
 /// `occluded_out` have rays.size() elements; 1 = occluded). The answers are those of the
-/// single-ray functions, bit for bit, in every mode and ISA. kSingle traces ray by ray; kAuto and
-/// kPacket trace blocks of rays in rounds: each ray's top-level candidates in order of entry,
-/// the rays that reach one instance in a round handed together to the mesh's batch entry
-/// (intersect_block / occluded_block with options.mode and options.isa).
+/// single-ray functions, bit for bit, in every mode and ISA. Rays go in blocks of 1024.
+/// kSingle traces ray by ray (the single-ray functions). kPacket traces a block in rounds: each
+/// ray takes its next top-level candidate in order of entry (none once they start beyond its
+/// closest hit), and the rays that reach one instance in a round go together to the mesh's batch
+/// entry (intersect_block / occluded_block with options.mode and options.isa) when they are 8 or
+/// more. kAuto uses rounds for a coherent block (one origin, or unit directions within 0.5 of
+/// each other in every component: camera and shadow rays) and ray by ray otherwise.
 void intersect(const Scene& scene, std::span<const Ray> rays, std::span<SceneHit> hits,
                const TraceOptions& options = {}, SceneTraceStats* stats = nullptr) noexcept;
 void occluded(const Scene& scene, std::span<const Ray> rays, std::span<uint8_t> occluded_out,
