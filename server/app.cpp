@@ -47,6 +47,12 @@ bool start_up(Service& svc) {
     log_event(LogLevel::kInfo, "mesh index loaded",
               {{"meshes", static_cast<uint64_t>(svc.cache.mesh_count())},
                {"disk_bytes", svc.cache.disk_bytes()}});
+    if (auto opened = svc.scene_store.open(); !opened) {
+        log_event(LogLevel::kCritical, "cannot open the scene store", {{"error", opened.error()}});
+        return false;
+    }
+    log_event(LogLevel::kInfo, "scene store opened",
+              {{"scenes", static_cast<uint64_t>(svc.scenes.scene_count())}});
     for (const std::string& file : svc.config.preload) {
         if (svc.shutting_down) return true;
         proto::MeshLimits limits;

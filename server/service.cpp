@@ -7,6 +7,10 @@ Service::Service(ServerConfig cfg)
       compute(config.threads),
       store(config.cache_dir),
       cache(store, compute, metrics, config.memory_budget),
+      scene_store(config.cache_dir, store.tmp_dir(), config.scene_revisions_kept),
+      scenes(
+          scene_store, cache, compute, metrics,
+          SceneCacheOptions{config.max_instances, config.max_scenes, config.scene_memory_budget}),
       gate(config.max_inflight),
       batch_budget(config.batch_memory_budget),
       renders(config.max_renders, config.max_queued),
@@ -45,6 +49,14 @@ Service::Service(ServerConfig cfg)
               "Acknowledged meshes whose mesh file and tree are both damaged (not served until "
               "uploaded again).",
               {}, static_cast<double>(cache.damaged_count()));
+        gauge("kdrt_scenes", "Stored scenes, and how many built revisions are in memory.",
+              {{"state", "stored"}}, static_cast<double>(scenes.scene_count()));
+        gauge("kdrt_scenes", "Stored scenes, and how many built revisions are in memory.",
+              {{"state", "resident"}}, static_cast<double>(scenes.resident_count()));
+        gauge("kdrt_scene_bytes",
+              "Bytes of built scenes in memory (at most scene_memory_budget; their meshes' trees "
+              "are in kdrt_cache_bytes).",
+              {}, static_cast<double>(scenes.memory_bytes()));
         gauge("kdrt_inflight_requests", "Uploads, traces and renders in flight.", {},
               static_cast<double>(gate.in_flight()));
         gauge("kdrt_batch_bytes", "Bytes of ray batches in flight (at most batch_memory_budget).",

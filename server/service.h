@@ -23,6 +23,8 @@
 #include "core/metrics.h"
 #include "store/mesh_cache.h"
 #include "store/mesh_store.h"
+#include "store/scene_cache.h"
+#include "store/scene_store.h"
 
 namespace kdrt::server {
 
@@ -220,6 +222,8 @@ struct Service {
     Compute compute;
     MeshStore store;
     MeshCache cache;
+    SceneStore scene_store;  ///< scenes/ under cache_dir (revision files)
+    SceneCache scenes;       ///< built scenes, limits, pose updates
     AdmissionGate gate;
     ByteBudget batch_budget;  ///< bytes of ray batches in flight (batch_memory_budget)
     WorkGate renders;         ///< synchronous renders (max_renders, max_queued)

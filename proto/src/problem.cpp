@@ -15,7 +15,7 @@ struct KindInfo {
     std::string_view type;
 };
 
-constexpr std::array<KindInfo, 20> kKinds = {{
+constexpr std::array<KindInfo, 26> kKinds = {{
     {ProblemKind::kBadRequest, 400, "Bad request", "urn:kdrt:problem:bad-request"},
     {ProblemKind::kBadRayBatch, 400, "Malformed ray batch", "urn:kdrt:problem:bad-ray-batch"},
     {ProblemKind::kUnauthorized, 401, "Unauthorized", "urn:kdrt:problem:unauthorized"},
@@ -41,6 +41,15 @@ constexpr std::array<KindInfo, 20> kKinds = {{
      "urn:kdrt:problem:insufficient-storage"},
     {ProblemKind::kStoredMeshDamaged, 500, "Stored mesh damaged",
      "urn:kdrt:problem:stored-mesh-damaged"},
+    {ProblemKind::kUnknownScene, 404, "Unknown scene", "urn:kdrt:problem:unknown-scene"},
+    {ProblemKind::kUnknownReference, 422, "Unknown reference",
+     "urn:kdrt:problem:unknown-reference"},
+    {ProblemKind::kMeshInUse, 409, "Mesh in use", "urn:kdrt:problem:mesh-in-use"},
+    {ProblemKind::kStaleRevision, 412, "Stale revision", "urn:kdrt:problem:stale-revision"},
+    {ProblemKind::kSceneMeshDeleted, 409, "Scene mesh deleted",
+     "urn:kdrt:problem:scene-mesh-deleted"},
+    {ProblemKind::kStoredSceneDamaged, 500, "Stored scene damaged",
+     "urn:kdrt:problem:stored-scene-damaged"},
 }};
 
 const KindInfo& info(ProblemKind kind) noexcept {
@@ -71,6 +80,8 @@ std::string encode_problem(const Problem& problem) {
     if (problem.limit) w.key("limit").number(*problem.limit);
     if (problem.retry_after) w.key("retry_after").number(*problem.retry_after);
     if (!problem.request_id.empty()) w.key("request_id").string(problem.request_id);
+    if (!problem.field.empty()) w.key("field").string(problem.field);
+    if (problem.index) w.key("index").number(*problem.index);
     w.end_object();
     return w.take();
 }
@@ -107,6 +118,10 @@ Result<Problem, std::string> decode_problem(std::string_view body) {
     text("instance", p.instance);
     text("code", p.code);
     text("request_id", p.request_id);
+    text("field", p.field);
+    if (const auto index = doc.find("index");
+        index != doc.end() && index->is_number_unsigned() && index->get<uint64_t>() <= UINT32_MAX)
+        p.index = index->get<uint32_t>();
     number("line", p.line);
     number("byte_offset", p.byte_offset);
     number("limit", p.limit);

@@ -354,4 +354,28 @@ std::string encode_instance_edit_json(const InstanceEdit& edit) {
     return w.take();
 }
 
+namespace {
+void write_list_item(detail::JsonWriter& w, const SceneListItem& item) {
+    w.begin_object();
+    w.key("id").string(item.id);
+    w.key("revision").number(item.revision);
+    w.key("instances").number(item.instances);
+    w.end_object();
+}
+}  // namespace
+
+std::string encode_scene_list(std::span<const SceneListItem> scenes) {
+    detail::JsonWriter w(32 + 96 * scenes.size());
+    w.begin_object().key("scenes").begin_array();
+    for (const SceneListItem& item : scenes) write_list_item(w, item);
+    w.end_array().end_object();
+    return w.take();
+}
+
+std::string encode_scene_revision(const SceneListItem& scene) {
+    detail::JsonWriter w(96);
+    write_list_item(w, scene);
+    return w.take();
+}
+
 }  // namespace kdrt::proto

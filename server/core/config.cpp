@@ -16,6 +16,7 @@
 #include "kdrt/proto/text.h"
 #include "kdrt/query.h"
 #include "kdrt/render.h"
+#include "kdrt/scene.h"
 
 namespace kdrt::server {
 namespace {
@@ -192,6 +193,26 @@ const std::vector<Setting>& settings() {
          .u32 = &ServerConfig::max_scan_points,
          .min = 1,
          .max = 1u << 28},
+        {.key = "max_instances",
+         .help = "most instances in one scene, and most poses in one pose update",
+         .u32 = &ServerConfig::max_instances,
+         .min = 1,
+         .max = kMaxSceneInstances},
+        {.key = "max_scenes",
+         .help = "most scenes in the store (POST /v1/scenes beyond it: 413)",
+         .u32 = &ServerConfig::max_scenes,
+         .min = 1,
+         .max = 1u << 24},
+        {.key = "scene_revisions_kept",
+         .help = "newest revisions of each scene kept on disk for queries that pin a revision",
+         .u32 = &ServerConfig::scene_revisions_kept,
+         .min = 1,
+         .max = 1024},
+        {.key = "scene_memory_budget",
+         .help = "bytes of built scenes (top levels and instance data, not their meshes' trees) "
+                 "kept in memory; least recently used are dropped and rebuilt when needed",
+         .u64 = &ServerConfig::scene_memory_budget,
+         .bytes = true},
         {.key = "max_json_rays",
          .help = "most rays in one JSON batch",
          .u32 = &ServerConfig::max_json_rays,

@@ -69,8 +69,12 @@ struct ServerConfig {
     uint32_t max_distance_points = 1u << 22;    ///< query points per distance request
     uint32_t max_sensor_beams = 1u << 21;       ///< channels x azimuth_steps of a lidar scan
     uint32_t max_scan_points = 1u << 24;        ///< a scan's pixels, or beams x returns
-    uint64_t max_json_bytes = 32ull << 20;      ///< JSON request body
-    unsigned max_inflight = 64;                 ///< uploads/traces/renders in flight before 503
+    uint32_t max_instances = 65536;     ///< instances of one scene (and poses of one update)
+    uint32_t max_scenes = 10000;        ///< scenes in the store
+    uint32_t scene_revisions_kept = 8;  ///< newest revisions of a scene kept (pinned queries)
+    uint64_t scene_memory_budget = 256ull << 20;  ///< built scenes kept in memory (LRU beyond)
+    uint64_t max_json_bytes = 32ull << 20;        ///< JSON request body
+    unsigned max_inflight = 64;                   ///< uploads/traces/renders in flight before 503
     uint32_t max_image_width = 8192;
     uint32_t max_image_height = 8192;
     uint32_t max_spp = 1024;

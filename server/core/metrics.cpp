@@ -266,6 +266,15 @@ std::string Metrics::render() const {
              store_repairs);
     counter("kdrt_uploads_deduplicated_total",
             "Uploads of a mesh that was already stored (not rebuilt).", uploads_deduplicated);
+    counter("kdrt_scene_revisions_total",
+            "Scene revisions written: created scenes, pose updates and instance edits.",
+            scene_revisions);
+    counter("kdrt_scene_evictions_total",
+            "Built scenes dropped from memory to stay within scene_memory_budget.",
+            scene_evictions);
+    counter("kdrt_scene_conflicts_total",
+            "Scene updates refused because If-Match named an older revision (412).",
+            scene_conflicts);
     counter("kdrt_renders_total", "Images rendered (synchronous and jobs).", renders);
 
     for (const auto& collect : collectors) collect(families);

@@ -73,6 +73,9 @@ public:
     /// Stored files rewritten from what remained, by {file}.
     LabelledCounter store_repairs;
     std::atomic<uint64_t> uploads_deduplicated{0};  ///< uploads of a mesh already stored
+    std::atomic<uint64_t> scene_revisions{0};  ///< scene revisions written (created or changed)
+    std::atomic<uint64_t> scene_evictions{0};  ///< built scenes dropped from memory
+    std::atomic<uint64_t> scene_conflicts{0};  ///< scene updates refused as stale (412)
     std::atomic<uint64_t> renders{0};
 
     /// Adds families computed at scrape time (cache sizes, job counts). Called under no lock of

@@ -7,8 +7,12 @@
 
 #include <optional>
 
+#include "http/json_shape.h"
 #include "kdrt/proto/json_api.h"
 #include "kdrt/proto/multi_hit.h"
+#include "kdrt/proto/problem.h"
+#include "kdrt/proto/ray_batch_codec.h"
+#include "kdrt/proto/scan.h"
 #include "service.h"
 
 namespace kdrt::server {
@@ -16,6 +20,18 @@ namespace kdrt::server {
 /// Bytes of batch_memory_budget one ray of an intersect_all request holds (its rays and its
 /// largest answer).
 [[nodiscard]] uint64_t intersect_all_bytes_per_ray(const proto::MultiHitQuery& query) noexcept;
+
+/// A scan request is a few dozen values, plus one per lidar channel given by elevation_deg.
+inline constexpr JsonShapeLimits kScanJsonShape{.max_depth = 6, .max_values = 16384};
+
+/// Completes a scan request with the engine (a look-at camera as intrinsics and a pose, a
+/// vertical field of view as elevations) and checks it (kdrt::validate); sets the rays it traces
+/// and the batch_memory_budget bytes it needs. A problem naming the field in the request's
+/// spelling when the sensor cannot scan (http_routes_scan.cpp; mesh and scene scans).
+[[nodiscard]] std::optional<proto::Problem> complete_scan_request(proto::ScanRequest& request,
+                                                                  uint64_t& rays, uint64_t& bytes);
+/// A scan refused by batch_memory_budget: 413 if it could never fit, else 503.
+[[nodiscard]] proto::Problem scan_budget_problem(const ByteBudget& budget, uint64_t bytes);
 
 class Routes {
 public:
@@ -34,6 +50,25 @@ public:
                   const httplib::ContentReader& reader);
     void scan(const httplib::Request& req, httplib::Response& res,
               const httplib::ContentReader& reader);
+
+    // Scenes (http_routes_scenes.cpp).
+    void create_scene(const httplib::Request& req, httplib::Response& res,
+                      const httplib::ContentReader& reader);
+    void set_poses(const httplib::Request& req, httplib::Response& res,
+                   const httplib::ContentReader& reader);
+    void edit_instances(const httplib::Request& req, httplib::Response& res,
+                        const httplib::ContentReader& reader);
+    void scene_intersect(const httplib::Request& req, httplib::Response& res,
+                         const httplib::ContentReader& reader);
+    void scene_intersect_all(const httplib::Request& req, httplib::Response& res,
+                             const httplib::ContentReader& reader);
+    void scene_distance(const httplib::Request& req, httplib::Response& res,
+                        const httplib::ContentReader& reader);
+    void scene_scan(const httplib::Request& req, httplib::Response& res,
+                    const httplib::ContentReader& reader);
+    void list_scenes(const httplib::Request& req, httplib::Response& res);
+    void get_scene(const httplib::Request& req, httplib::Response& res);
+    void delete_scene(const httplib::Request& req, httplib::Response& res);
 
     void list_meshes(const httplib::Request& req, httplib::Response& res);
     void get_mesh(const httplib::Request& req, httplib::Response& res);
@@ -81,6 +116,20 @@ private:
                                              proto::RenderRequest request);
     void render_now(const httplib::Request& req, httplib::Response& res, const RenderJob& job);
     void submit_job(const httplib::Request& req, httplib::Response& res, RenderJob job);
+
+    /// The scene revision a query names (the path's id, ?revision=N or the current one); on
+    /// failure discards the body, replies and returns nullptr.
+    SceneCache::EntryPtr query_scene(const httplib::Request& req, httplib::Response& res,
+                                     const httplib::ContentReader& reader);
+    /// A KDRR body read whole within max_rays and `bytes_per_ray` of batch_memory_budget; on
+    /// failure replies and returns nullopt.
+    struct RayBody {
+        proto::RayBatch batch;
+        ByteBudget::Hold hold;
+    };
+    std::optional<RayBody> read_ray_body(const httplib::Request& req, httplib::Response& res,
+                                         const httplib::ContentReader& reader,
+                                         uint64_t bytes_per_ray);
 
     Service& svc_;
 };

@@ -4,6 +4,7 @@
 #include "http/http_util.h"
 #include "http/problems.h"
 #include "kdrt/proto/json_api.h"
+#include "kdrt/proto/mesh_id.h"
 #include "kdrt/proto/mesh_io.h"
 
 namespace kdrt::server {
@@ -90,6 +91,22 @@ void Routes::get_mesh(const httplib::Request& req, httplib::Response& res) {
 
 void Routes::delete_mesh(const httplib::Request& req, httplib::Response& res) {
     const std::string id = req.matches[1];
+    // A mesh that the current revision of a scene uses stays: 409 naming the scenes.
+    if (proto::is_mesh_id(id)) {
+        const std::vector<std::string> users = svc_.scenes.mesh_users(id);
+        if (!users.empty()) {
+            std::string names;
+            for (size_t i = 0; i < users.size() && i < 16; ++i)
+                names += (i > 0 ? ", " : "") + users[i];
+            if (users.size() > 16) names += ", ...";
+            return reply_problem(
+                req, res,
+                make_problem(ProblemKind::kMeshInUse,
+                             "mesh " + id + " is used by " + std::to_string(users.size()) +
+                                 " scene(s): " + names +
+                                 "; remove its instances from them (or delete them) first"));
+        }
+    }
     if (!svc_.cache.remove(id)) return reply_problem(req, res, unknown_mesh_problem(id));
     res.status = 204;
 }

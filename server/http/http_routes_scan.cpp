@@ -23,9 +23,6 @@ using proto::ProblemKind;
 
 namespace {
 
-/// A scan request is a few dozen values, plus one per lidar channel given by elevation_deg.
-constexpr JsonShapeLimits kScanJsonShape{.max_depth = 6, .max_values = 16384};
-
 /// batch_memory_budget bytes per pixel: the ray and its cosine, the hit, the image planes with
 /// normals, and the encoded answer (40 + 16 + 20 + 20, rounded up for EXR's buffers).
 constexpr uint64_t kBytesPerPixel = 128;
@@ -38,12 +35,14 @@ proto::Problem field_problem(const std::string& field, const std::string& why) {
     return make_problem(ProblemKind::kBadRequest, proto::in_quotes(field) + ": " + why);
 }
 
+}  // namespace
+
 /// Completes `request` with the engine (a look-at camera as intrinsics and a pose, a vertical
 /// field of view as elevations) and checks it (kdrt::validate); sets the rays it traces and the
 /// batch_memory_budget bytes it needs. A problem naming the field in the request's spelling when
 /// the sensor cannot scan.
-std::optional<proto::Problem> complete_and_check(proto::ScanRequest& request, uint64_t& rays,
-                                                 uint64_t& bytes) {
+std::optional<proto::Problem> complete_scan_request(proto::ScanRequest& request, uint64_t& rays,
+                                                    uint64_t& bytes) {
     const std::string prefix(proto::scan_field_prefix(request));
     try {
         if (request.lidar) {
@@ -73,8 +72,7 @@ std::optional<proto::Problem> complete_and_check(proto::ScanRequest& request, ui
     return std::nullopt;
 }
 
-/// A scan refused by batch_memory_budget: 413 if it could never fit, else 503.
-proto::Problem budget_problem(const ByteBudget& budget, uint64_t bytes) {
+proto::Problem scan_budget_problem(const ByteBudget& budget, uint64_t bytes) {
     const uint64_t limit = budget.limit();
     if (bytes > limit) {
         auto p = make_problem(ProblemKind::kPayloadTooLarge,
@@ -93,8 +91,6 @@ proto::Problem budget_problem(const ByteBudget& budget, uint64_t bytes) {
     p.limit = limit;
     return p;
 }
-
-}  // namespace
 
 void Routes::scan(const httplib::Request& req, httplib::Response& res,
                   const httplib::ContentReader& reader) {
@@ -133,7 +129,7 @@ void Routes::scan(const httplib::Request& req, httplib::Response& res,
     // The engine's checks (a rigid pose, the intrinsics, the range window, the look-at camera),
     // before any work.
     uint64_t rays = 0, bytes = 0;
-    if (auto problem = complete_and_check(*request, rays, bytes))
+    if (auto problem = complete_scan_request(*request, rays, bytes))
         return reply_problem(req, res, std::move(*problem));
     // The body is read already: no acquire_tree / take_budget_bytes (they discard the body).
     const std::string id = req.matches[1];
@@ -141,7 +137,7 @@ void Routes::scan(const httplib::Request& req, httplib::Response& res,
     if (!acquired) return reply_problem(req, res, mesh_lookup_problem(acquired.error(), id));
     const std::shared_ptr<const KdTree> tree = std::move(acquired).value();
     auto hold = svc_.batch_budget.try_take(bytes);
-    if (!hold) return reply_problem(req, res, budget_problem(svc_.batch_budget, bytes));
+    if (!hold) return reply_problem(req, res, scan_budget_problem(svc_.batch_budget, bytes));
     request_context().rays = rays;
     svc_.metrics.add_rays(rays, false);
     const KdTree& t = *tree;

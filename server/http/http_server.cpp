@@ -283,6 +283,21 @@ struct HttpServer::Impl {
                   });
     }
 
+    void patch(const std::string& pattern, const std::string& name, RouteFlags flags,
+               void (Routes::*handler)(const httplib::Request&, httplib::Response&,
+                                       const httplib::ContentReader&)) {
+        known.push_back({std::regex(pattern), "PATCH", name, flags});
+        http.Patch(pattern,
+                   [this, name, flags, handler](const httplib::Request& req, httplib::Response& res,
+                                                const httplib::ContentReader& reader) {
+                       request_context().route = name;
+                       std::optional<AdmissionGate::Slot> slot;
+                       if (!admit(flags, req, res, slot)) return discard_body(req, res, reader);
+                       (routes.*handler)(req, res, reader);
+                       if (slot) hold_until_sent(res, std::move(*slot));
+                   });
+    }
+
     void register_routes() {
         const std::string meshes = "/v1/meshes";
         const std::string mesh = meshes + "/" + kIdPattern;
@@ -299,6 +314,28 @@ struct HttpServer::Impl {
              &Routes::distance);
         post(mesh + "/scan", "/v1/meshes/{id}/scan", {.api = true, .heavy = true}, &Routes::scan);
         post("/v1/render", "/v1/render", {.api = true, .heavy = true}, &Routes::render);
+        const std::string scenes = "/v1/scenes";
+        const std::string scene = scenes + "/" + kIdPattern;
+        post(scenes, "/v1/scenes", {.api = true, .heavy = true, .write = true},
+             &Routes::create_scene);
+        get(scenes, "/v1/scenes", {.api = true}, &Routes::list_scenes);
+        get(scene, "/v1/scenes/{id}", {.api = true}, &Routes::get_scene);
+        del(scene, "/v1/scenes/{id}", {.api = true, .write = true}, &Routes::delete_scene);
+        // PATCH is the method; POST is accepted too for clients that cannot send PATCH.
+        patch(scene + "/poses", "/v1/scenes/{id}/poses", {.api = true, .write = true},
+              &Routes::set_poses);
+        post(scene + "/poses", "/v1/scenes/{id}/poses", {.api = true, .write = true},
+             &Routes::set_poses);
+        post(scene + "/instances", "/v1/scenes/{id}/instances",
+             {.api = true, .heavy = true, .write = true}, &Routes::edit_instances);
+        post(scene + "/intersect", "/v1/scenes/{id}/intersect", {.api = true, .heavy = true},
+             &Routes::scene_intersect);
+        post(scene + "/intersect_all", "/v1/scenes/{id}/intersect_all",
+             {.api = true, .heavy = true}, &Routes::scene_intersect_all);
+        post(scene + "/distance", "/v1/scenes/{id}/distance", {.api = true, .heavy = true},
+             &Routes::scene_distance);
+        post(scene + "/scan", "/v1/scenes/{id}/scan", {.api = true, .heavy = true},
+             &Routes::scene_scan);
         const std::string job = std::string("/v1/jobs/") + kIdPattern;
         get(job, "/v1/jobs/{id}", {.api = true}, &Routes::get_job);
         del(job, "/v1/jobs/{id}", {.api = true}, &Routes::delete_job);

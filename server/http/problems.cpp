@@ -90,4 +90,56 @@ proto::Problem not_ready_problem(bool shutting_down) {
     return p;
 }
 
+proto::Problem scene_problem(const SceneProblem& error) {
+    using Code = SceneProblem::Code;
+    ProblemKind kind = ProblemKind::kInternal;
+    switch (error.code) {
+        case Code::kUnknownScene:
+        case Code::kUnknownRevision:
+            kind = ProblemKind::kUnknownScene;
+            break;
+        case Code::kInvalid:
+            kind = ProblemKind::kBadRequest;
+            break;
+        case Code::kUnknownReference:
+            kind = ProblemKind::kUnknownReference;
+            break;
+        case Code::kTooLarge:
+            kind = ProblemKind::kPayloadTooLarge;
+            break;
+        case Code::kStale:
+            kind = ProblemKind::kStaleRevision;
+            break;
+        case Code::kMeshGone:
+            kind = ProblemKind::kSceneMeshDeleted;
+            break;
+        case Code::kNoSpace:
+            kind = ProblemKind::kInsufficientStorage;
+            break;
+        case Code::kDamaged:
+            kind = ProblemKind::kStoredSceneDamaged;
+            break;
+        case Code::kInternal:
+            kind = ProblemKind::kInternal;
+            break;
+    }
+    proto::Problem p = make_problem(kind, error.detail);
+    p.field = error.field;
+    p.index = error.index;
+    p.limit = error.limit;
+    return p;
+}
+
+proto::Problem scene_request_problem(const proto::SceneRequestError& error,
+                                     uint32_t max_instances) {
+    const ProblemKind kind = error.over_limit          ? ProblemKind::kPayloadTooLarge
+                             : error.unknown_reference ? ProblemKind::kUnknownReference
+                                                       : ProblemKind::kBadRequest;
+    proto::Problem p = make_problem(kind, error.detail);
+    p.field = error.field;
+    p.index = error.index;
+    if (error.over_limit) p.limit = max_instances;
+    return p;
+}
+
 }  // namespace kdrt::server

@@ -9,6 +9,7 @@
 #include "kdrt/proto/problem.h"
 #include "kdrt/proto/ray_batch.h"
 #include "store/mesh_cache.h"
+#include "store/scene_cache.h"
 
 namespace kdrt::server {
 
@@ -29,6 +30,14 @@ namespace kdrt::server {
 /// A failed cache lookup of mesh `id`: unknown_mesh_problem(id) for an unknown mesh, else
 /// cache_problem(error).
 [[nodiscard]] proto::Problem mesh_lookup_problem(const CacheError& error, const std::string& id);
+/// Scene errors: 404 unknown scene or revision, 400 invalid field, 422 unknown reference, 413
+/// over max_instances / max_scenes, 412 stale revision, 409 a deleted mesh, 507, 500; with
+/// `field` and `index` when the problem has them.
+[[nodiscard]] proto::Problem scene_problem(const SceneProblem& error);
+/// A scene request body refused by proto (400, or 413 over a limit, 422 an unknown reference),
+/// naming the field and index.
+[[nodiscard]] proto::Problem scene_request_problem(const proto::SceneRequestError& error,
+                                                   uint32_t max_instances);
 /// 503 kNotReady with Retry-After: 1: "the server is shutting down", or when not
 /// `shutting_down`, "the server is starting; retry shortly".
 [[nodiscard]] proto::Problem not_ready_problem(bool shutting_down);

@@ -19,15 +19,19 @@ std::string read_openapi() {
 TEST(OpenApi, DocumentsEveryRoute) {
     const std::string doc = read_openapi();
     EXPECT_EQ(doc.rfind("openapi: 3.1.0\n", 0), 0u);
-    for (const char* path : {"/v1/meshes", "/v1/meshes/{id}", "/v1/meshes/{id}/intersect",
-                             "/v1/meshes/{id}/intersect_all", "/v1/render", "/v1/jobs/{id}",
-                             "/v1/jobs/{id}/result", "/healthz", "/readyz", "/metrics"})
+    for (const char* path :
+         {"/v1/meshes", "/v1/meshes/{id}", "/v1/meshes/{id}/intersect",
+          "/v1/meshes/{id}/intersect_all", "/v1/render", "/v1/jobs/{id}", "/v1/jobs/{id}/result",
+          "/healthz", "/readyz", "/metrics", "/v1/scenes", "/v1/scenes/{id}",
+          "/v1/scenes/{id}/poses", "/v1/scenes/{id}/instances", "/v1/scenes/{id}/intersect",
+          "/v1/scenes/{id}/intersect_all", "/v1/scenes/{id}/distance", "/v1/scenes/{id}/scan"})
         EXPECT_NE(doc.find("\n  " + std::string(path) + ":\n"), std::string::npos) << path;
     for (const char* media :
          {"model/obj", "model/stl", "application/ply", "application/x-off",
           "application/x-kdrt-mesh", "application/x-kdrt-rays", "application/x-kdrt-hits",
           "application/x-kdrt-occlusion", "application/x-kdrt-multi-hits",
-          "application/x-kdrt-hit-counts", "application/problem+json", "image/png", "image/x-exr"})
+          "application/x-kdrt-hit-counts", "application/problem+json", "image/png", "image/x-exr",
+          "application/x-kdrt-poses"})
         EXPECT_NE(doc.find(media), std::string::npos) << media;
 }
 

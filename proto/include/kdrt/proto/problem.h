@@ -8,7 +8,8 @@
 /// `type` is a stable URN per ProblemKind (clients branch on it, or on `status`); `detail` is
 /// the human-readable, request-specific explanation. Optional extension members: `code` (a
 /// machine-readable sub-reason such as the ray-batch DecodeErrorCode name `bad_magic`), `line`
-/// and `byte_offset` (where a mesh file is wrong), `request_id`, `retry_after` (seconds, also
+/// and `byte_offset` (where a mesh file is wrong), `field` and `index` (the member and the
+/// instance or entry of a scene request that is wrong), `request_id`, `retry_after` (seconds, also
 /// sent as the Retry-After header) and `limit` (the limit that was exceeded).
 
 #include <cstdint>
@@ -44,11 +45,19 @@ enum class ProblemKind {
     kNotReady,              ///< 503 starting up or shutting down
     kInsufficientStorage,   ///< 507 the disk is full; nothing was stored
     kStoredMeshDamaged,     ///< 500 the stored mesh and its tree are both damaged (detail says how)
+    kUnknownScene,          ///< 404 no scene with that id, or no such (kept) revision of it
+    kUnknownReference,    ///< 422 a scene names a mesh, geometry id or instance name that does not
+                          ///< exist
+    kMeshInUse,           ///< 409 a mesh that a scene's current revision uses cannot be deleted
+    kStaleRevision,       ///< 412 If-Match names an older revision than the scene's current one
+    kSceneMeshDeleted,    ///< 409 a kept scene revision uses a mesh that was deleted since
+    kStoredSceneDamaged,  ///< 500 a stored scene revision is damaged (detail names the file)
 };
 /// The last ProblemKind (for loops over every kind).
-inline constexpr ProblemKind kLastProblemKind = ProblemKind::kStoredMeshDamaged;
+inline constexpr ProblemKind kLastProblemKind = ProblemKind::kStoredSceneDamaged;
 
-/// HTTP status of a kind (400, 401, 403, 404, 405, 408, 409, 413, 415, 422, 431, 500, 503, 507).
+/// HTTP status of a kind (400, 401, 403, 404, 405, 408, 409, 412, 413, 415, 422, 431, 500, 503,
+/// 507).
 [[nodiscard]] int problem_status(ProblemKind kind) noexcept;
 /// Short constant title, e.g. "Unknown mesh".
 [[nodiscard]] std::string_view problem_title(ProblemKind kind) noexcept;
@@ -66,6 +75,10 @@ struct Problem {
     std::optional<uint64_t> limit;        ///< the configured limit that was exceeded
     std::optional<uint32_t> retry_after;  ///< seconds (503)
     std::string request_id;
+    /// Scene requests: the member at fault as the request spells it ("instances[3].transform"),
+    /// and the instance (or pose entry) index.
+    std::string field;
+    std::optional<uint32_t> index;
 
     [[nodiscard]] int status() const noexcept { return problem_status(kind); }
 };

@@ -107,6 +107,17 @@ struct SceneRequestError {
 /// the same float. decode_scene_json(text, limits, true) reads it back equal.
 [[nodiscard]] std::string encode_scene_json(const SceneDocument& scene);
 
+/// One scene of GET /v1/scenes.
+struct SceneListItem {
+    std::string id;
+    uint64_t revision = 0;
+    uint64_t instances = 0;
+};
+/// {"scenes": [{"id", "revision", "instances"}, ...]}.
+[[nodiscard]] std::string encode_scene_list(std::span<const SceneListItem> scenes);
+/// {"id", "revision", "instances"}: the answer to a pose update (small, whatever the scene's size).
+[[nodiscard]] std::string encode_scene_revision(const SceneListItem& scene);
+
 /// One entry of a pose update: the instance by geometry id or by name (exactly one), and its pose.
 struct PoseEntry {
     std::optional<uint32_t> geometry_id;

@@ -1,0 +1,478 @@
+#include "store/scene_cache.h"
+
+#include <algorithm>
+#include <cstring>
+#include <new>
+#include <unordered_map>
+#include <unordered_set>
+
+namespace kdrt::server {
+
+namespace {
+
+using Code = SceneProblem::Code;
+
+SceneProblem problem(Code code, std::string detail, std::string field = {},
+                     std::optional<uint32_t> index = std::nullopt) {
+    SceneProblem p;
+    p.code = code;
+    p.detail = std::move(detail);
+    p.field = std::move(field);
+    p.index = index;
+    return p;
+}
+
+SceneProblem store_problem(const SceneStoreError& e, const std::string& id,
+                           std::optional<uint64_t> revision) {
+    switch (e.code) {
+        case SceneStoreError::Code::kMissing:
+            if (revision)
+                return problem(Code::kUnknownRevision,
+                               "scene " + id + " has no revision " + std::to_string(*revision) +
+                                   " (never written, or older than the kept revisions)");
+            return problem(Code::kUnknownScene, "no scene with id " + id);
+        case SceneStoreError::Code::kCorrupt:
+            return problem(Code::kDamaged, e.detail);
+        case SceneStoreError::Code::kIo:
+            break;
+    }
+    return problem(Code::kInternal, e.detail);
+}
+
+SceneProblem write_problem(const WriteError& e) {
+    return problem(e.no_space ? Code::kNoSpace : Code::kInternal, e.message);
+}
+
+Affine3x4 affine(const proto::Transform& t) {
+    Affine3x4 a;
+    static_assert(sizeof a.m == sizeof t.m);
+    std::memcpy(a.m, t.m.data(), sizeof a.m);
+    return a;
+}
+
+/// The engine's SceneError as a problem about entry `index` of `array_name`.
+SceneProblem scene_error_problem(const SceneError& e, const std::string& array_name,
+                                 std::optional<uint32_t> index) {
+    const bool over = e.field() == "instances";
+    std::string field = array_name;
+    if (!over && index) {
+        field += "[" + std::to_string(*index) + "]";
+        if (!e.field().empty() && e.field() != "geom") field += "." + e.field();
+    }
+    return problem(over ? Code::kTooLarge : Code::kInvalid, e.what(), field,
+                   over ? std::nullopt : index);
+}
+
+uint64_t entry_bytes(const SceneEntry& e) {
+    uint64_t doc = sizeof(SceneEntry);
+    for (const auto& inst : e.doc.instances)
+        doc += sizeof inst + inst.mesh.capacity() + inst.name.capacity();
+    return doc + e.scene.stats().bytes;
+}
+
+}  // namespace
+
+SceneCache::SceneCache(SceneStore& store, MeshCache& meshes, Compute& compute, Metrics& metrics,
+                       SceneCacheOptions options)
+    : store_(store), meshes_(meshes), compute_(compute), metrics_(metrics), options_(options) {}
+
+SceneCache::Result<SceneCache::EntryPtr> SceneCache::build(proto::SceneDocument doc,
+                                                           const char* array_name, bool stored) {
+    if (doc.instances.size() > options_.max_instances) {
+        SceneProblem p = problem(Code::kTooLarge,
+                                 "the scene would have " + std::to_string(doc.instances.size()) +
+                                     " instances, more than max_instances (" +
+                                     std::to_string(options_.max_instances) + ")",
+                                 array_name);
+        p.limit = options_.max_instances;
+        return proto::Err{std::move(p)};
+    }
+    try {
+        std::unordered_map<std::string, std::shared_ptr<const KdTree>> trees;
+        std::vector<SceneInstance> instances(doc.instances.size());
+        for (size_t i = 0; i < doc.instances.size(); ++i) {
+            const std::string& mesh = doc.instances[i].mesh;
+            auto it = trees.find(mesh);
+            if (it == trees.end()) {
+                auto tree = meshes_.acquire(mesh);
+                if (!tree) {
+                    const auto index = static_cast<uint32_t>(i);
+                    const std::string field =
+                        std::string(array_name) + "[" + std::to_string(i) + "].mesh";
+                    switch (tree.error().code) {
+                        case CacheError::Code::kUnknownMesh:
+                            return proto::Err{problem(
+                                stored ? Code::kMeshGone : Code::kUnknownReference,
+                                "instance " + std::to_string(i) + ": no mesh with id " + mesh +
+                                    (stored ? " (it was deleted after this revision was written)"
+                                            : ""),
+                                field, index)};
+                        case CacheError::Code::kDamaged:
+                            return proto::Err{problem(
+                                Code::kDamaged,
+                                "instance " + std::to_string(i) + ": " + tree.error().detail, field,
+                                index)};
+                        default:
+                            return proto::Err{
+                                problem(Code::kInternal, tree.error().detail, field, index)};
+                    }
+                }
+                it = trees.emplace(mesh, std::move(tree).value()).first;
+            }
+            instances[i].tree = it->second;
+            instances[i].transform = affine(doc.instances[i].transform);
+        }
+        SceneBuildOptions build_options;
+        build_options.max_instances = options_.max_instances;
+        auto entry = std::make_shared<SceneEntry>();
+        entry->scene =
+            compute_.run([&] { return build_scene(std::move(instances), build_options); });
+        entry->doc = std::move(doc);
+        entry->bytes = entry_bytes(*entry);
+        return EntryPtr(std::move(entry));
+    } catch (const SceneError& e) {
+        return proto::Err{scene_error_problem(e, array_name, e.instance_index())};
+    } catch (const std::bad_alloc&) {
+        return proto::Err{problem(Code::kInternal, "out of memory building the scene")};
+    }
+}
+
+SceneCache::Result<SceneCache::EntryPtr> SceneCache::create(
+    std::vector<proto::SceneInstanceSpec> instances) {
+    if (auto ids = store_.ids(); ids && ids->size() >= options_.max_scenes) {
+        SceneProblem p =
+            problem(Code::kTooLarge,
+                    "the store holds " + std::to_string(ids->size()) + " scenes, max_scenes is " +
+                        std::to_string(options_.max_scenes) + "; delete one first",
+                    "");
+        p.limit = options_.max_scenes;
+        return proto::Err{std::move(p)};
+    }
+    proto::SceneDocument doc;
+    doc.id = SceneStore::new_id();
+    doc.revision = 1;
+    doc.instances = std::move(instances);
+    // Built before it is stored: nothing is acknowledged that cannot be queried.
+    auto entry = build(std::move(doc), "instances", false);
+    if (!entry) return entry;
+    if (auto w = store_.create((*entry)->doc); !w) return proto::Err{write_problem(w.error())};
+    metrics_.scene_revisions.fetch_add(1);
+    keep(*entry);
+    return entry;
+}
+
+SceneCache::EntryPtr SceneCache::find(const std::string& id, uint64_t revision) {
+    std::lock_guard lock(mutex_);
+    const auto it = by_key_.find({id, revision});
+    if (it == by_key_.end()) return nullptr;
+    lru_.splice(lru_.begin(), lru_, it->second);
+    return *it->second;
+}
+
+SceneCache::Result<SceneCache::EntryPtr> SceneCache::load(const std::string& id,
+                                                          uint64_t revision) {
+    auto doc = store_.read(id, revision);
+    if (!doc) return proto::Err{store_problem(doc.error(), id, revision)};
+    auto entry = build(std::move(doc).value(), "instances", true);
+    if (!entry) {
+        // A stored revision's refusal is the store's damage or a deleted mesh, not the caller's.
+        if (entry.error().code == Code::kInvalid || entry.error().code == Code::kTooLarge)
+            entry.error().code = Code::kDamaged;
+        return entry;
+    }
+    keep(*entry);
+    return entry;
+}
+
+SceneCache::Result<SceneCache::EntryPtr> SceneCache::current(const std::string& id) {
+    if (!proto::is_scene_id(id))
+        return proto::Err{problem(Code::kUnknownScene, "no scene with id " + id)};
+    uint64_t known = 0;
+    {
+        std::lock_guard lock(mutex_);
+        if (const auto it = latest_.find(id); it != latest_.end()) known = it->second;
+    }
+    if (known > 0 && store_.has_revision(id, known) && !store_.has_revision(id, known + 1))
+        if (EntryPtr hit = find(id, known)) return hit;
+    auto latest = store_.latest(id);
+    if (!latest) {
+        if (latest.error().code == SceneStoreError::Code::kMissing) forget(id);
+        return proto::Err{store_problem(latest.error(), id, std::nullopt)};
+    }
+    if (EntryPtr hit = find(id, *latest)) {
+        std::lock_guard lock(mutex_);
+        latest_[id] = std::max(latest_[id], *latest);
+        return hit;
+    }
+    return load(id, *latest);
+}
+
+SceneCache::Result<SceneCache::EntryPtr> SceneCache::get(const std::string& id,
+                                                         std::optional<uint64_t> revision) {
+    if (!revision) return current(id);
+    if (!proto::is_scene_id(id))
+        return proto::Err{problem(Code::kUnknownScene, "no scene with id " + id)};
+    if (EntryPtr hit = find(id, *revision); hit && store_.has_revision(id, *revision)) {
+        // A kept revision may name a mesh deleted since (deleting is refused only while the
+        // current revision uses it): answer as a revision loaded now would.
+        std::unordered_set<std::string_view> checked;
+        for (size_t i = 0; i < hit->doc.instances.size(); ++i) {
+            const std::string& mesh = hit->doc.instances[i].mesh;
+            if (!checked.insert(mesh).second || meshes_.find(mesh)) continue;
+            return proto::Err{
+                problem(Code::kMeshGone,
+                        "instance " + std::to_string(i) + ": no mesh with id " + mesh +
+                            " (it was deleted after this revision was written)",
+                        "instances[" + std::to_string(i) + "].mesh", static_cast<uint32_t>(i))};
+        }
+        return hit;
+    }
+    if (!store_.has_revision(id, *revision)) {
+        auto latest = store_.latest(id);
+        if (!latest) return proto::Err{store_problem(latest.error(), id, std::nullopt)};
+        return proto::Err{
+            store_problem(SceneStoreError{SceneStoreError::Code::kMissing, ""}, id, revision)};
+    }
+    return load(id, *revision);
+}
+
+SceneCache::Result<bool> SceneCache::commit(const EntryPtr& next) {
+    auto committed = store_.commit(next->doc);
+    if (!committed) return proto::Err{write_problem(committed.error())};
+    if (*committed) {
+        metrics_.scene_revisions.fetch_add(1);
+        keep(next);
+    }
+    return *committed;
+}
+
+namespace {
+SceneProblem stale(Metrics& metrics, const std::string& id, uint64_t if_match, uint64_t current) {
+    metrics.scene_conflicts.fetch_add(1);
+    return problem(Code::kStale,
+                   "If-Match names revision " + std::to_string(if_match) + " of scene " + id +
+                       ", but the current revision is " + std::to_string(current),
+                   "If-Match");
+}
+}  // namespace
+
+SceneCache::Result<SceneCache::EntryPtr> SceneCache::set_poses(
+    const std::string& id, std::optional<uint64_t> if_match,
+    std::span<const proto::PoseEntry> poses) {
+    // Without If-Match a lost race is retried on the newer revision (the poses are absolute).
+    for (int attempt = 0; attempt < 16; ++attempt) {
+        auto base = current(id);
+        if (!base) return base;
+        const EntryPtr& b = *base;
+        if (if_match && *if_match != b->doc.revision)
+            return proto::Err{stale(metrics_, id, *if_match, b->doc.revision)};
+        auto resolved = proto::resolve_poses(b->doc, poses);
+        if (!resolved) {
+            const auto& e = resolved.error();
+            return proto::Err{problem(Code::kUnknownReference, e.detail, e.field, e.index)};
+        }
+        std::vector<InstancePose> engine_poses(resolved->size());
+        // The last pose entry of each instance: what the engine's error about it refers to.
+        std::unordered_map<uint32_t, uint32_t> entry_of;
+        for (size_t k = 0; k < resolved->size(); ++k) {
+            engine_poses[k] = {(*resolved)[k].geometry_id, affine((*resolved)[k].transform)};
+            entry_of[(*resolved)[k].geometry_id] = static_cast<uint32_t>(k);
+        }
+        auto next = std::make_shared<SceneEntry>();
+        try {
+            next->scene = compute_.run([&] { return b->scene.with_transforms(engine_poses); });
+        } catch (const SceneError& e) {
+            std::optional<uint32_t> k;
+            if (e.instance_index()) {
+                const auto it = entry_of.find(*e.instance_index());
+                if (it != entry_of.end()) k = it->second;
+            }
+            SceneProblem p = scene_error_problem(e, "poses", k);
+            p.detail = "geometry id " +
+                       (e.instance_index() ? std::to_string(*e.instance_index()) : "?") + ": " +
+                       e.what();
+            return proto::Err{std::move(p)};
+        } catch (const std::bad_alloc&) {
+            return proto::Err{problem(Code::kInternal, "out of memory updating the scene")};
+        }
+        next->doc = b->doc;
+        next->doc.revision = b->doc.revision + 1;
+        for (const proto::ResolvedPose& p : *resolved)
+            next->doc.instances[p.geometry_id].transform = p.transform;
+        next->bytes = entry_bytes(*next);
+        EntryPtr entry = std::move(next);
+        auto committed = commit(entry);
+        if (!committed) return proto::Err{std::move(committed).error()};
+        if (*committed) return entry;
+        if (if_match) {  // someone else committed base + 1 first
+            auto now = store_.latest(id);
+            if (!now) return proto::Err{store_problem(now.error(), id, std::nullopt)};
+            return proto::Err{stale(metrics_, id, *if_match, *now)};
+        }
+    }
+    return proto::Err{problem(Code::kInternal,
+                              "scene " + id + " changed 16 times while this update was applied")};
+}
+
+SceneCache::Result<SceneCache::EntryPtr> SceneCache::edit(const std::string& id,
+                                                          std::optional<uint64_t> if_match,
+                                                          const proto::InstanceEdit& edit) {
+    for (int attempt = 0; attempt < 16; ++attempt) {
+        auto base = current(id);
+        if (!base) return base;
+        const EntryPtr& b = *base;
+        if (if_match && *if_match != b->doc.revision)
+            return proto::Err{stale(metrics_, id, *if_match, b->doc.revision)};
+        proto::SceneLimits limits;
+        limits.max_instances = options_.max_instances;
+        auto doc = proto::apply_instance_edit(b->doc, edit, limits);
+        if (!doc) {
+            const auto& e = doc.error();
+            SceneProblem p = problem(e.unknown_reference ? Code::kUnknownReference
+                                     : e.over_limit      ? Code::kTooLarge
+                                                         : Code::kInvalid,
+                                     e.detail, e.field, e.index);
+            if (e.over_limit) p.limit = options_.max_instances;
+            return proto::Err{std::move(p)};
+        }
+        doc->revision = b->doc.revision + 1;
+        // The added instances are checked against their place in "add".
+        const size_t kept = doc->instances.size() - edit.add.size();
+        auto next = build(std::move(doc).value(), "instances", true);
+        if (!next) {
+            SceneProblem p = std::move(next).error();
+            if (p.index && *p.index >= kept) {
+                const uint32_t k = *p.index - static_cast<uint32_t>(kept);
+                const std::string old_prefix = "instances[" + std::to_string(*p.index) + "]";
+                if (p.field.rfind(old_prefix, 0) == 0)
+                    p.field = "add[" + std::to_string(k) + "]" + p.field.substr(old_prefix.size());
+                p.index = k;
+                if (p.code == Code::kMeshGone) p.code = Code::kUnknownReference;
+            }
+            return proto::Err{std::move(p)};
+        }
+        auto committed = commit(*next);
+        if (!committed) return proto::Err{std::move(committed).error()};
+        if (*committed) return next;
+        if (if_match) {
+            auto now = store_.latest(id);
+            if (!now) return proto::Err{store_problem(now.error(), id, std::nullopt)};
+            return proto::Err{stale(metrics_, id, *if_match, *now)};
+        }
+    }
+    return proto::Err{
+        problem(Code::kInternal, "scene " + id + " changed 16 times while this edit was applied")};
+}
+
+SceneCache::Result<bool> SceneCache::remove(const std::string& id,
+                                            std::optional<uint64_t> if_match) {
+    if (!proto::is_scene_id(id)) return false;
+    if (if_match) {
+        auto latest = store_.latest(id);
+        if (!latest) {
+            if (latest.error().code == SceneStoreError::Code::kMissing) return false;
+            return proto::Err{store_problem(latest.error(), id, std::nullopt)};
+        }
+        if (*latest != *if_match) return proto::Err{stale(metrics_, id, *if_match, *latest)};
+    }
+    auto removed = store_.remove(id);
+    if (!removed) return proto::Err{write_problem(removed.error())};
+    forget(id);
+    return *removed;
+}
+
+std::vector<SceneCache::EntryPtr> SceneCache::list(std::vector<std::string>* damaged) {
+    std::vector<EntryPtr> out;
+    auto ids = store_.ids();
+    if (!ids) return out;
+    for (const std::string& id : *ids) {
+        // The document is enough for a listing: no need to build scenes that are not resident.
+        auto latest = store_.latest(id);
+        if (!latest) continue;  // deleted meanwhile
+        if (EntryPtr hit = find(id, *latest)) {
+            out.push_back(hit);
+            continue;
+        }
+        auto doc = store_.read(id, *latest);
+        if (!doc) {
+            if (damaged && doc.error().code != SceneStoreError::Code::kMissing)
+                damaged->push_back(doc.error().detail);
+            continue;
+        }
+        auto entry = std::make_shared<SceneEntry>();
+        entry->doc = std::move(doc).value();
+        out.push_back(std::move(entry));
+    }
+    return out;
+}
+
+std::vector<std::string> SceneCache::mesh_users(const std::string& mesh_id) {
+    std::vector<std::string> users;
+    auto ids = store_.ids();
+    if (!ids) return users;
+    for (const std::string& id : *ids) {
+        auto latest = store_.latest(id);
+        if (!latest) continue;
+        EntryPtr hit = find(id, *latest);
+        proto::SceneDocument doc;
+        if (hit) {
+            doc = hit->doc;
+        } else if (auto read = store_.read(id, *latest)) {
+            doc = std::move(read).value();
+        } else {
+            continue;
+        }
+        for (const auto& inst : doc.instances)
+            if (inst.mesh == mesh_id) {
+                users.push_back(id);
+                break;
+            }
+    }
+    return users;
+}
+
+void SceneCache::keep(const EntryPtr& entry) {
+    std::lock_guard lock(mutex_);
+    const Key key{entry->doc.id, entry->doc.revision};
+    uint64_t& latest = latest_[entry->doc.id];
+    latest = std::max(latest, entry->doc.revision);
+    if (by_key_.count(key)) return;
+    lru_.push_front(entry);
+    by_key_[key] = lru_.begin();
+    bytes_ += entry->bytes;
+    // Evict least recently used beyond the budget, always keeping the newest entry.
+    while (bytes_ > options_.memory_budget && lru_.size() > 1) {
+        const EntryPtr& victim = lru_.back();
+        bytes_ -= victim->bytes;
+        by_key_.erase({victim->doc.id, victim->doc.revision});
+        lru_.pop_back();
+        metrics_.scene_evictions.fetch_add(1);
+    }
+}
+
+void SceneCache::forget(const std::string& id) {
+    std::lock_guard lock(mutex_);
+    latest_.erase(id);
+    for (auto it = by_key_.lower_bound({id, 0}); it != by_key_.end() && it->first.first == id;) {
+        bytes_ -= (*it->second)->bytes;
+        lru_.erase(it->second);
+        it = by_key_.erase(it);
+    }
+}
+
+uint64_t SceneCache::memory_bytes() const {
+    std::lock_guard lock(mutex_);
+    return bytes_;
+}
+
+size_t SceneCache::resident_count() const {
+    std::lock_guard lock(mutex_);
+    return lru_.size();
+}
+
+size_t SceneCache::scene_count() const {
+    auto ids = store_.ids();
+    return ids ? ids->size() : 0;
+}
+
+}  // namespace kdrt::server

@@ -1,0 +1,151 @@
+#pragma once
+/// Scenes in memory, in front of the SceneStore: every operation on a scene (create, read a
+/// revision, pose update, instance edit, delete, list) goes through here, which checks the
+/// limits, resolves the instances' meshes through the MeshCache (their trees are shared, never
+/// copied or rebuilt for a scene), builds the engine's two-level kdrt::Scene and keeps it.
+///
+/// - A pose update builds the next revision from the current one with Scene::with_transforms
+///   (only the top level is rebuilt), writes it to the store (the store's compare-and-set
+///   commit decides a race, in one process or across replicas) and answers once it is durable.
+/// - Built scenes are kept by (id, revision) in LRU order within `memory_budget` bytes
+///   (kdrt::SceneStats::bytes plus the document); a scene asked for again after eviction, or
+///   written by another replica, is read from the store and built again, its meshes' trees
+///   coming through the MeshCache (loaded from the shared store when this replica never saw
+///   them).
+/// - Another replica's newer revision or deletion is noticed on the next request for the scene
+///   (one or two stats of the store).
+///
+/// Deleting a mesh that the current revision of a scene uses is refused (mesh_users names the
+/// scenes; the route answers 409). Older kept revisions are not checked: querying one whose
+/// mesh was deleted answers 409 naming the instance and the mesh.
+///
+/// Thread-safe.
+
+#include <cstdint>
+#include <list>
+#include <map>
+#include <memory>
+#include <mutex>
+#include <optional>
+#include <span>
+#include <string>
+#include <vector>
+
+#include "core/compute.h"
+#include "core/metrics.h"
+#include "kdrt/proto/result.h"
+#include "kdrt/proto/scene.h"
+#include "kdrt/scene.h"
+#include "store/mesh_cache.h"
+#include "store/scene_store.h"
+
+namespace kdrt::server {
+
+/// Why a scene operation was refused. The route maps it to problem+json (problems.h).
+struct SceneProblem {
+    enum class Code {
+        kUnknownScene,      ///< 404 no such scene
+        kUnknownRevision,   ///< 404 the revision was never written or is no longer kept
+        kInvalid,           ///< 400 a field is wrong (field, index)
+        kUnknownReference,  ///< 422 a mesh id, geometry id or name names nothing (field, index)
+        kTooLarge,          ///< 413 max_instances or max_scenes (field, limit)
+        kStale,             ///< 412 If-Match names an older revision
+        kMeshGone,          ///< 409 a kept revision's mesh was deleted (field, index)
+        kNoSpace,           ///< 507
+        kDamaged,           ///< 500 a stored revision is damaged (detail names the file)
+        kInternal,          ///< 500
+    };
+    Code code = Code::kInternal;
+    std::string detail;
+    std::string field;              ///< as the request spells it: "instances[3].transform"
+    std::optional<uint32_t> index;  ///< the instance or pose entry
+    std::optional<uint64_t> limit;
+};
+
+/// A scene revision: its document and its engine scene.
+struct SceneEntry {
+    proto::SceneDocument doc;
+    Scene scene;
+    uint64_t bytes = 0;  ///< what it counts in the budget
+};
+
+struct SceneCacheOptions {
+    uint32_t max_instances = 65536;
+    uint32_t max_scenes = 10000;
+    uint64_t memory_budget = 256ull << 20;
+};
+
+class SceneCache {
+public:
+    SceneCache(SceneStore& store, MeshCache& meshes, Compute& compute, Metrics& metrics,
+               SceneCacheOptions options);
+
+    using EntryPtr = std::shared_ptr<const SceneEntry>;
+    template <class T>
+    using Result = proto::Result<T, SceneProblem>;
+
+    /// A new scene of `instances` at revision 1: max_scenes (counted in the store), every mesh
+    /// known (422 naming the first instance of an unknown one), every transform accepted by the
+    /// engine (400 naming the instance and field), then stored durably.
+    [[nodiscard]] Result<EntryPtr> create(std::vector<proto::SceneInstanceSpec> instances);
+
+    /// Revision `revision` of scene `id`, or its current revision.
+    [[nodiscard]] Result<EntryPtr> get(const std::string& id,
+                                       std::optional<uint64_t> revision = std::nullopt);
+
+    /// The next revision with the poses applied (in order; later entries for one instance
+    /// win). `if_match`: refuse with kStale unless it is the current revision. Without it the
+    /// update applies to whatever is current (retried when another writer commits first).
+    [[nodiscard]] Result<EntryPtr> set_poses(const std::string& id,
+                                             std::optional<uint64_t> if_match,
+                                             std::span<const proto::PoseEntry> poses);
+    /// The next revision with instances removed and added (proto::apply_instance_edit).
+    [[nodiscard]] Result<EntryPtr> edit(const std::string& id, std::optional<uint64_t> if_match,
+                                        const proto::InstanceEdit& edit);
+
+    /// Deletes the scene. `if_match` as above. False when there was no such scene.
+    [[nodiscard]] Result<bool> remove(const std::string& id, std::optional<uint64_t> if_match);
+
+    /// Current revision of every stored scene (damaged ones left out and logged by the caller
+    /// through `damaged`).
+    [[nodiscard]] std::vector<EntryPtr> list(std::vector<std::string>* damaged = nullptr);
+
+    /// The scenes whose current revision uses mesh `mesh_id` (reads every scene's current
+    /// revision from the store), sorted.
+    [[nodiscard]] std::vector<std::string> mesh_users(const std::string& mesh_id);
+
+    [[nodiscard]] uint64_t memory_bytes() const;
+    [[nodiscard]] size_t resident_count() const;
+    /// Stored scenes (a directory listing).
+    [[nodiscard]] size_t scene_count() const;
+    [[nodiscard]] const SceneCacheOptions& options() const noexcept { return options_; }
+
+private:
+    /// Builds a revision's scene from its document. `stored`: the instances were accepted
+    /// before, so a missing mesh was deleted since (kMeshGone), not unknown (kUnknownReference).
+    Result<EntryPtr> build(proto::SceneDocument doc, const char* array_name, bool stored);
+    /// Reads and builds revision `revision` of `id` from the store.
+    Result<EntryPtr> load(const std::string& id, uint64_t revision);
+    /// The current revision (the cached one when the store has nothing newer).
+    Result<EntryPtr> current(const std::string& id);
+    /// Writes `next` (revision base + 1) and caches it; false when another writer was first.
+    Result<bool> commit(const EntryPtr& next);
+    void keep(const EntryPtr& entry);  ///< into the LRU (evicting beyond the budget)
+    void forget(const std::string& id);
+    EntryPtr find(const std::string& id, uint64_t revision);
+
+    SceneStore& store_;
+    MeshCache& meshes_;
+    Compute& compute_;
+    Metrics& metrics_;
+    const SceneCacheOptions options_;
+
+    mutable std::mutex mutex_;
+    using Key = std::pair<std::string, uint64_t>;
+    std::list<EntryPtr> lru_;  ///< most recent first
+    std::map<Key, std::list<EntryPtr>::iterator> by_key_;
+    std::map<std::string, uint64_t> latest_;  ///< the newest revision seen per scene
+    uint64_t bytes_ = 0;
+};
+
+}  // namespace kdrt::server

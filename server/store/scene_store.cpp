@@ -1,0 +1,234 @@
+#include "store/scene_store.h"
+
+#include <algorithm>
+#include <cerrno>
+#include <cstdio>
+#include <random>
+#include <system_error>
+
+#include "kdrt/proto/file_io.h"
+
+namespace kdrt::server {
+namespace fs = std::filesystem;
+
+namespace {
+
+constexpr size_t kRevisionDigits = 20;
+
+WriteError os_error(const std::string& what, const fs::path& path, const std::error_code& ec) {
+    const int err = ec.value();
+    return WriteError{what + " \"" + path.string() + "\": " + ec.message(),
+                      err == ENOSPC || err == EDQUOT || err == EFBIG};
+}
+
+/// The revision number of a file name "<20 digits>.json"; nullopt for any other name.
+std::optional<uint64_t> revision_of(const std::string& name) {
+    if (name.size() != kRevisionDigits + 5 || name.substr(kRevisionDigits) != ".json")
+        return std::nullopt;
+    uint64_t value = 0;
+    for (size_t i = 0; i < kRevisionDigits; ++i) {
+        const char c = name[i];
+        if (c < '0' || c > '9') return std::nullopt;
+        if (value > (UINT64_MAX - static_cast<uint64_t>(c - '0')) / 10) return std::nullopt;
+        value = value * 10 + static_cast<uint64_t>(c - '0');
+    }
+    return value == 0 ? std::nullopt : std::optional<uint64_t>(value);
+}
+
+SceneStoreError damaged(const fs::path& path, const std::string& why) {
+    std::string detail = "\"";
+    detail += path.string();
+    detail += "\" is damaged: ";
+    detail += why;
+    return SceneStoreError{SceneStoreError::Code::kCorrupt, std::move(detail)};
+}
+
+std::span<const std::byte> as_bytes(const std::string& text) {
+    return {reinterpret_cast<const std::byte*>(text.data()), text.size()};
+}
+
+}  // namespace
+
+SceneStore::SceneStore(fs::path root, fs::path tmp_dir, uint32_t revisions_kept)
+    : scenes_dir_(std::move(root) / "scenes"),
+      tmp_dir_(std::move(tmp_dir)),
+      revisions_kept_(std::max<uint32_t>(1, revisions_kept)) {}
+
+proto::Result<void, std::string> SceneStore::open() {
+    std::error_code ec;
+    fs::create_directories(scenes_dir_, ec);
+    if (ec) return proto::Err{"cannot create \"" + scenes_dir_.string() + "\": " + ec.message()};
+    return {};
+}
+
+std::string SceneStore::new_id() {
+    std::random_device device;
+    std::string id;
+    id.reserve(proto::kSceneIdLength);
+    static constexpr char kHex[] = "0123456789abcdef";
+    for (size_t i = 0; i < proto::kSceneIdLength / 8; ++i) {
+        const uint32_t word = device();
+        for (int k = 0; k < 8; ++k) id.push_back(kHex[(word >> (4 * k)) & 0xF]);
+    }
+    return id;
+}
+
+fs::path SceneStore::revision_path(const std::string& id, uint64_t revision) const {
+    char name[kRevisionDigits + 6];
+    std::snprintf(name, sizeof name, "%020llu.json", static_cast<unsigned long long>(revision));
+    return scene_dir(id) / name;
+}
+
+proto::Result<void, WriteError> SceneStore::create(const proto::SceneDocument& scene) {
+    // Build the whole scene directory in tmp/, then rename it into scenes/ (atomic).
+    const fs::path staging = tmp_dir_ / ("scene-" + scene.id);
+    std::error_code ec;
+    fs::remove_all(staging, ec);
+    fs::create_directory(staging, ec);
+    if (ec) return proto::Err{os_error("cannot create", staging, ec)};
+    const auto cleanup = [&] {
+        std::error_code ignored;
+        fs::remove_all(staging, ignored);
+    };
+    const std::string text = proto::encode_scene_json(scene);
+    const fs::path file = staging / revision_path(scene.id, scene.revision).filename();
+    if (auto w = write_file_durably(file, tmp_dir_, as_bytes(text)); !w) {
+        cleanup();
+        return w;
+    }
+    if (auto s = sync_directory(staging); !s) {
+        cleanup();
+        return s;
+    }
+    fs::rename(staging, scene_dir(scene.id), ec);
+    if (ec) {
+        cleanup();
+        return proto::Err{os_error("cannot rename into", scene_dir(scene.id), ec)};
+    }
+    return sync_directory(scenes_dir_);
+}
+
+proto::Result<bool, WriteError> SceneStore::commit(const proto::SceneDocument& scene) {
+    const fs::path dir = scene_dir(scene.id);
+    std::error_code ec;
+    if (!fs::is_directory(dir, ec)) return false;  // deleted meanwhile
+    const std::string text = proto::encode_scene_json(scene);
+    auto created =
+        write_file_once(revision_path(scene.id, scene.revision), tmp_dir_, as_bytes(text));
+    if (!created) {
+        if (!fs::is_directory(dir, ec)) return false;  // deleted while the file was written
+        return proto::Err{std::move(created).error()};
+    }
+    if (!*created) return false;
+    if (auto s = sync_directory(dir); !s) return proto::Err{std::move(s).error()};
+    // The scene may have been deleted between the check and the link: the link then went into
+    // the renamed directory (being removed) or failed; either way this revision is not visible.
+    if (!fs::exists(revision_path(scene.id, scene.revision), ec)) return false;
+    if (scene.revision > revisions_kept_) {
+        if (auto all = revisions(scene.id)) {
+            for (const uint64_t r : *all)
+                if (r + revisions_kept_ <= scene.revision)
+                    fs::remove(revision_path(scene.id, r), ec);
+        }
+    }
+    return true;
+}
+
+proto::Result<std::vector<uint64_t>, SceneStoreError> SceneStore::revisions(
+    const std::string& id) const {
+    std::vector<uint64_t> out;
+    std::error_code ec;
+    fs::directory_iterator it(scene_dir(id), ec);
+    if (ec) {
+        if (ec == std::errc::no_such_file_or_directory || ec == std::errc::not_a_directory)
+            return proto::Err{SceneStoreError{SceneStoreError::Code::kMissing, "no scene " + id}};
+        return proto::Err{
+            SceneStoreError{SceneStoreError::Code::kIo,
+                            "cannot list \"" + scene_dir(id).string() + "\": " + ec.message()}};
+    }
+    for (const auto& entry : it)
+        if (const auto r = revision_of(entry.path().filename().string())) out.push_back(*r);
+    std::sort(out.begin(), out.end());
+    if (out.empty())  // a directory being deleted (its files removed first)
+        return proto::Err{SceneStoreError{SceneStoreError::Code::kMissing, "no scene " + id}};
+    return out;
+}
+
+proto::Result<uint64_t, SceneStoreError> SceneStore::latest(const std::string& id) const {
+    auto all = revisions(id);
+    if (!all) return proto::Err{std::move(all).error()};
+    return all->back();
+}
+
+bool SceneStore::has_revision(const std::string& id, uint64_t revision) const {
+    std::error_code ec;
+    return fs::exists(revision_path(id, revision), ec);
+}
+
+proto::Result<proto::SceneDocument, SceneStoreError> SceneStore::read(const std::string& id,
+                                                                      uint64_t revision) const {
+    const fs::path path = revision_path(id, revision);
+    auto bytes = proto::read_file_bytes(path);
+    if (!bytes) {
+        std::error_code ec;
+        const bool missing = !fs::exists(path, ec);
+        return proto::Err{
+            SceneStoreError{missing ? SceneStoreError::Code::kMissing : SceneStoreError::Code::kIo,
+                            missing ? "no revision " + std::to_string(revision) + " of scene " + id
+                                    : bytes.error()}};
+    }
+    const std::string_view text(reinterpret_cast<const char*>(bytes->data()), bytes->size());
+    // Stored revisions are read without the instance limit: a lower max_instances after a
+    // restart must not make an acknowledged scene unreadable.
+    auto doc = proto::decode_scene_json(text, proto::SceneLimits{UINT32_MAX}, true);
+    if (!doc) {
+        std::string why = doc.error().field;
+        if (!why.empty()) why += ": ";
+        why += doc.error().detail;
+        return proto::Err{damaged(path, why)};
+    }
+    if (doc->id != id || doc->revision != revision)
+        return proto::Err{damaged(
+            path, "it holds revision " + std::to_string(doc->revision) + " of scene " + doc->id)};
+    return std::move(doc).value();
+}
+
+proto::Result<std::vector<std::string>, std::string> SceneStore::ids() const {
+    std::vector<std::string> out;
+    std::error_code ec;
+    fs::directory_iterator it(scenes_dir_, ec);
+    if (ec) return proto::Err{"cannot list \"" + scenes_dir_.string() + "\": " + ec.message()};
+    for (const auto& entry : it) {
+        const std::string name = entry.path().filename().string();
+        if (proto::is_scene_id(name)) out.push_back(name);
+    }
+    std::sort(out.begin(), out.end());
+    return out;
+}
+
+proto::Result<bool, WriteError> SceneStore::remove(const std::string& id) {
+    const fs::path dir = scene_dir(id);
+    const fs::path doomed = tmp_dir_ / ("deleted-scene-" + id);
+    std::error_code ec;
+    fs::remove_all(doomed, ec);
+    fs::rename(dir, doomed, ec);
+    if (ec) {
+        if (ec == std::errc::no_such_file_or_directory) return false;
+        return proto::Err{os_error("cannot delete", dir, ec)};
+    }
+    if (auto s = sync_directory(scenes_dir_); !s) return proto::Err{std::move(s).error()};
+    fs::remove_all(doomed, ec);  // best effort: a leftover is swept with tmp/ at start-up
+    return true;
+}
+
+uint64_t SceneStore::disk_bytes(const std::string& id) const {
+    uint64_t total = 0;
+    std::error_code ec;
+    for (const auto& entry : fs::directory_iterator(scene_dir(id), ec)) {
+        const auto size = entry.file_size(ec);
+        if (!ec) total += size;
+    }
+    return total;
+}
+
+}  // namespace kdrt::server

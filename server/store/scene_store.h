@@ -1,0 +1,105 @@
+#pragma once
+/// Durable storage of scenes under the cache directory:
+///
+///   scenes/<id>/<revision>.json   one file per revision (20 decimal digits, zero-padded, so the
+///                                 names sort as the numbers), the scene JSON of
+///                                 proto::encode_scene_json; immutable once written
+///
+/// The current revision is the highest-numbered file: there is no pointer file to update.
+/// A revision enters the directory only by write_file_once (an atomic link of a complete,
+/// fsync'd file that fails when the name exists), followed by an fsync of the directory before
+/// the caller acknowledges it. That link is the commit and the compare-and-set of optimistic
+/// concurrency at once: of two writers (threads or replicas sharing the store) that both read
+/// revision N and write N + 1, exactly one succeeds and the other learns it is stale. After a
+/// crash a revision is either wholly there or absent; no acknowledged revision is lost, and no
+/// reader ever sees a partly written one.
+///
+/// A scene is created whole: its directory and revision 1 are written under this process's tmp/
+/// and renamed into scenes/ (atomic), so scenes/ never holds an empty or half-made scene. It is
+/// deleted by renaming its directory into tmp/ (atomic: it disappears at once for every reader)
+/// and then removing the files. After a commit, revisions older than the newest
+/// `revisions_kept` are deleted (pinned queries may use the kept ones).
+///
+/// Thread-safe; any number of processes may share one store (each passes its own tmp_dir, the
+/// MeshStore's locked tmp/<process>/).
+
+#include <cstdint>
+#include <filesystem>
+#include <optional>
+#include <string>
+#include <vector>
+
+#include "kdrt/proto/result.h"
+#include "kdrt/proto/scene.h"
+#include "store/durable_file.h"
+
+namespace kdrt::server {
+
+/// Why a scene or revision could not be read.
+struct SceneStoreError {
+    enum class Code {
+        kMissing,  ///< no such scene, or no such revision (never written, or no longer kept)
+        kCorrupt,  ///< the revision file exists but does not decode, or names another scene
+        kIo,       ///< the operating system refused
+    };
+    Code code = Code::kIo;
+    std::string detail;  ///< names the file and what is wrong
+};
+
+class SceneStore {
+public:
+    /// `root` is the cache directory; `tmp_dir` this process's private temp directory on the
+    /// same file system. `revisions_kept` >= 1.
+    SceneStore(std::filesystem::path root, std::filesystem::path tmp_dir, uint32_t revisions_kept);
+
+    /// Creates scenes/ when missing.
+    [[nodiscard]] proto::Result<void, std::string> open();
+
+    /// A new scene id: 32 lower-case hex digits from 128 random bits.
+    [[nodiscard]] static std::string new_id();
+
+    /// Stores `scene` as revision 1 of a new scene (scene.id must be a fresh id, revision 1).
+    /// Durable when it returns success.
+    [[nodiscard]] proto::Result<void, WriteError> create(const proto::SceneDocument& scene);
+
+    /// Stores `scene` as revision scene.revision (>= 2) of an existing scene. Returns false,
+    /// writing nothing, when that revision exists already (another writer committed it first:
+    /// the caller's base revision is stale) or the scene was deleted. Durable on true. Then
+    /// deletes the revisions older than the newest revisions_kept.
+    [[nodiscard]] proto::Result<bool, WriteError> commit(const proto::SceneDocument& scene);
+
+    /// The newest revision of scene `id` (a directory listing); kMissing when there is no such
+    /// scene.
+    [[nodiscard]] proto::Result<uint64_t, SceneStoreError> latest(const std::string& id) const;
+    /// True when revision `revision` of `id` is on disk (one stat).
+    [[nodiscard]] bool has_revision(const std::string& id, uint64_t revision) const;
+    /// Reads and decodes one revision, checking that it names `id` and `revision`.
+    [[nodiscard]] proto::Result<proto::SceneDocument, SceneStoreError> read(
+        const std::string& id, uint64_t revision) const;
+
+    /// Every scene id in scenes/, sorted (a directory listing; reads no revision).
+    [[nodiscard]] proto::Result<std::vector<std::string>, std::string> ids() const;
+
+    /// Deletes the scene with all its revisions. Returns false when there was no such scene.
+    [[nodiscard]] proto::Result<bool, WriteError> remove(const std::string& id);
+
+    /// Bytes of the scene's revision files.
+    [[nodiscard]] uint64_t disk_bytes(const std::string& id) const;
+
+    [[nodiscard]] std::filesystem::path scene_dir(const std::string& id) const {
+        return scenes_dir_ / id;
+    }
+    [[nodiscard]] std::filesystem::path revision_path(const std::string& id,
+                                                      uint64_t revision) const;
+    [[nodiscard]] uint32_t revisions_kept() const noexcept { return revisions_kept_; }
+
+private:
+    /// The revisions of `id` on disk, ascending; kMissing for no such scene directory.
+    [[nodiscard]] proto::Result<std::vector<uint64_t>, SceneStoreError> revisions(
+        const std::string& id) const;
+
+    std::filesystem::path scenes_dir_, tmp_dir_;
+    uint32_t revisions_kept_;
+};
+
+}  // namespace kdrt::server

@@ -1,0 +1,449 @@
+// Scenes against the real binary: every query answer (closest hit, occlusion, every hit,
+// distance, lidar scan) equals the engine's kdrt::Scene built here from the same meshes, bit for
+// bit, with the geometry ids; pose updates make revisions (If-Match, 412 on a stale one, pinned
+// queries of older revisions); bad input is problem+json naming the instance index and field;
+// a mesh a scene uses cannot be deleted (409 naming the scene); scenes and their revisions
+// survive kill -9 and a restart.
+
+#include <gtest/gtest.h>
+
+#include <csignal>
+#include <cstring>
+
+#include "http_test_util.h"
+#include "kdrt/proto/distance.h"
+#include "kdrt/proto/multi_hit.h"
+#include "kdrt/proto/ray_batch.h"
+#include "kdrt/proto/scan.h"
+#include "kdrt/proto/scene.h"
+#include "kdrt/scene.h"
+
+namespace kdrt::test {
+namespace {
+
+const proto::Transform kIdentity{};
+/// Scaled by 0.5 and moved.
+const proto::Transform kMoved{{0.5f, 0, 0, 1.25f, 0, 0.5f, 0, 0.1f, 0, 0, 0.5f, -0.2f}};
+/// A mirror (negative determinant), moved.
+const proto::Transform kMirrored{{-1, 0, 0, 0.9f, 0, 1, 0, 0.3f, 0, 0, 1, 0}};
+
+std::string transform_json(const proto::Transform& t) {
+    std::string out = "[";
+    for (size_t k = 0; k < 12; ++k) {
+        if (k > 0) out += ",";
+        char buf[32];
+        std::snprintf(buf, sizeof buf, "%.9g", static_cast<double>(t.m[k]));
+        out += buf;
+    }
+    return out + "]";
+}
+
+std::string instance_json(const std::string& mesh, const proto::Transform& t,
+                          const std::string& name = "") {
+    return "{\"mesh\":\"" + mesh + "\",\"transform\":" + transform_json(t) +
+           (name.empty() ? "" : ",\"name\":\"" + name + "\"") + "}";
+}
+
+Affine3x4 affine(const proto::Transform& t) {
+    Affine3x4 a;
+    std::memcpy(a.m, t.m.data(), sizeof a.m);
+    return a;
+}
+
+class HttpScenes : public ::testing::Test {
+protected:
+    static void SetUpTestSuite() {
+        dir_ = new TempDir();
+        start();
+        a_ = new Mesh(small_mesh(test_seed() + 31, 400));
+        b_ = new Mesh(small_mesh(test_seed() + 32, 300));
+        a_id_ = upload_id(*server_->client(), *a_);
+        b_id_ = upload_id(*server_->client(), *b_);
+        a_tree_ = std::make_shared<const KdTree>(build_kdtree(*a_));
+        b_tree_ = std::make_shared<const KdTree>(build_kdtree(*b_));
+    }
+    static void TearDownTestSuite() {
+        delete server_;
+        delete dir_;
+        delete a_;
+        delete b_;
+        a_tree_.reset();
+        b_tree_.reset();
+    }
+    static void start() {
+        server_ =
+            new ServerProcess({.cache_dir = dir_->path() / "cache",
+                               .args = {"--max-instances", "6", "--scene-revisions-kept", "3"}});
+    }
+
+    /// The engine's scene of `instances` (mesh a or b by id).
+    static Scene local_scene(const std::vector<std::pair<std::string, proto::Transform>>& inst) {
+        std::vector<SceneInstance> out;
+        for (const auto& [mesh, t] : inst) {
+            SceneInstance s;
+            s.tree = mesh == a_id_ ? a_tree_ : b_tree_;
+            s.transform = affine(t);
+            out.push_back(s);
+        }
+        return build_scene(std::move(out));
+    }
+
+    static httplib::Result create(const std::string& body) {
+        return server_->client()->Post("/v1/scenes", body, "application/json");
+    }
+    static std::string create_id(const std::string& body) {
+        auto res = create(body);
+        if (!res || res->status != 201) {
+            ADD_FAILURE() << (res ? res->body : "no response");
+            return {};
+        }
+        auto doc = proto::decode_scene_json(res->body, {}, true);
+        EXPECT_TRUE(doc.ok()) << res->body;
+        EXPECT_EQ(res->get_header_value("ETag"), "\"1\"");
+        return doc ? doc->id : std::string();
+    }
+    static httplib::Result query(const std::string& id, const std::string& route,
+                                 const std::string& body, const std::string& type) {
+        return server_->client()->Post("/v1/scenes/" + id + "/" + route, body, type);
+    }
+
+    static std::vector<Ray> rays(size_t n, uint64_t seed) {
+        return random_rays(Aabb{{-0.5f, -0.5f, -0.5f}, {2.0f, 1.5f, 1.5f}}, n, seed);
+    }
+
+    static TempDir* dir_;
+    static ServerProcess* server_;
+    static Mesh *a_, *b_;
+    static std::string a_id_, b_id_;
+    static std::shared_ptr<const KdTree> a_tree_, b_tree_;
+};
+TempDir* HttpScenes::dir_ = nullptr;
+ServerProcess* HttpScenes::server_ = nullptr;
+Mesh* HttpScenes::a_ = nullptr;
+Mesh* HttpScenes::b_ = nullptr;
+std::string HttpScenes::a_id_, HttpScenes::b_id_;
+std::shared_ptr<const KdTree> HttpScenes::a_tree_, HttpScenes::b_tree_;
+
+TEST_F(HttpScenes, EveryQueryEqualsTheEngineWithGeometryIds) {
+    const std::vector<std::pair<std::string, proto::Transform>> inst = {
+        {a_id_, kIdentity}, {b_id_, kMoved}, {a_id_, kMirrored}};
+    const std::string id =
+        create_id("{\"instances\":[" + instance_json(a_id_, kIdentity, "one") + "," +
+                  instance_json(b_id_, kMoved) + "," + instance_json(a_id_, kMirrored) + "]}");
+    ASSERT_FALSE(id.empty());
+    const Scene local = local_scene(inst);
+    const std::vector<Ray> batch = rays(3000, test_seed() + 5);
+
+    // Closest hit.
+    auto res = query(id, "intersect", bytes_to_string(proto::encode_rays(batch, false)),
+                     "application/x-kdrt-rays");
+    ASSERT_TRUE(res);
+    ASSERT_EQ(res->status, 200) << res->body;
+    EXPECT_EQ(res->get_header_value("X-Kdrt-Scene-Revision"), "1");
+    auto split = proto::split_geometry_ids(string_to_bytes(res->body));
+    ASSERT_TRUE(split.ok()) << split.error().detail;
+    auto hits = proto::decode_hits(split->mesh_body);
+    ASSERT_TRUE(hits.ok());
+    std::vector<SceneHit> expected(batch.size());
+    intersect(local, batch, expected);
+    size_t hit_count = 0;
+    std::vector<size_t> per_geom(3, 0);
+    for (size_t i = 0; i < batch.size(); ++i) {
+        const SceneHit got{(*hits)[i].t, (*hits)[i].prim, (*hits)[i].u, (*hits)[i].v,
+                           split->geometry_ids[i]};
+        ASSERT_EQ(got, expected[i]) << "ray " << i;
+        if (got.is_hit()) {
+            ++hit_count;
+            ++per_geom[got.geom];
+        }
+    }
+    EXPECT_GT(hit_count, batch.size() / 10);
+    for (size_t g = 0; g < 3; ++g) EXPECT_GT(per_geom[g], 0u) << "geometry " << g;
+
+    // Occlusion.
+    res = query(id, "intersect", bytes_to_string(proto::encode_rays(batch, true)),
+                "application/x-kdrt-rays");
+    ASSERT_TRUE(res);
+    ASSERT_EQ(res->status, 200) << res->body;
+    auto occ = proto::decode_occlusion(string_to_bytes(res->body));
+    ASSERT_TRUE(occ.ok());
+    for (size_t i = 0; i < batch.size(); ++i)
+        ASSERT_EQ((*occ)[i] != 0, expected[i].is_hit()) << "ray " << i;
+
+    // Every hit.
+    res = query(id, "intersect_all?max_hits=8", bytes_to_string(proto::encode_rays(batch, false)),
+                "application/x-kdrt-rays");
+    ASSERT_TRUE(res);
+    ASSERT_EQ(res->status, 200) << res->body;
+    split = proto::split_geometry_ids(string_to_bytes(res->body));
+    ASSERT_TRUE(split.ok()) << split.error().detail;
+    auto multi = proto::decode_multi_hits(split->mesh_body);
+    ASSERT_TRUE(multi.ok()) << multi.error().detail;
+    const SceneAllHits all = intersect_all(local, batch, AllHitsOptions{8, false});
+    ASSERT_EQ(multi->offsets, all.offsets);
+    ASSERT_EQ(multi->counts, all.counts);
+    ASSERT_EQ(multi->hits.size(), all.hits.size());
+    for (size_t k = 0; k < all.hits.size(); ++k) {
+        ASSERT_EQ(multi->hits[k].t, all.hits[k].t) << k;
+        ASSERT_EQ(multi->hits[k].prim, all.hits[k].prim) << k;
+        ASSERT_EQ(split->geometry_ids[k], all.hits[k].geom) << k;
+    }
+
+    // A lidar scan.
+    res = query(id, "scan",
+                "{\"lidar\": {\"vertical_fov\": [-30, 30], \"channels\": 16, \"azimuth_steps\": "
+                "64, \"returns\": 2, \"pose\": [[1,0,0,0.5],[0,1,0,0.5],[0,0,1,0.5],[0,0,0,1]]}}",
+                "application/json");
+    ASSERT_TRUE(res);
+    ASSERT_EQ(res->status, 200) << res->body;
+    split = proto::split_geometry_ids(string_to_bytes(res->body));
+    ASSERT_TRUE(split.ok()) << split.error().detail;
+    auto cloud = proto::decode_point_cloud(split->mesh_body);
+    ASSERT_TRUE(cloud.ok()) << cloud.error().detail;
+    LidarSpec spec;
+    spec.elevation_deg = lidar_elevations(-30, 30, 16);
+    spec.azimuth_steps = 64;
+    spec.returns = 2;
+    spec.pose.m[3] = spec.pose.m[7] = spec.pose.m[11] = 0.5;
+    const ScenePointCloud local_cloud = scan_lidar(local, spec);
+    ASSERT_EQ(cloud->points.size(), local_cloud.cloud.points.size());
+    EXPECT_EQ(split->geometry_ids, local_cloud.geom);
+    EXPECT_EQ(std::memcmp(cloud->points.data(), local_cloud.cloud.points.data(),
+                          cloud->points.size() * sizeof(LidarPoint)),
+              0);
+}
+
+TEST_F(HttpScenes, DistanceNeedsSimilarityTransformsAndAnswersAsTheEngine) {
+    const std::vector<std::pair<std::string, proto::Transform>> inst = {{a_id_, kIdentity},
+                                                                        {b_id_, kMoved}};
+    const std::string id = create_id("{\"instances\":[" + instance_json(a_id_, kIdentity) + "," +
+                                     instance_json(b_id_, kMoved) + "]}");
+    const Scene local = local_scene(inst);
+    Rng rng(test_seed() + 9);
+    std::vector<Vec3> points;
+    for (int i = 0; i < 200; ++i) points.push_back(rng.in_box({{-0.5f, -0.5f, -0.5f}, {2, 2, 2}}));
+    auto res = query(id, "distance", bytes_to_string(proto::encode_points(points)),
+                     std::string(proto::kPointMediaType));
+    ASSERT_TRUE(res);
+    ASSERT_EQ(res->status, 200) << res->body;
+    auto split = proto::split_geometry_ids(string_to_bytes(res->body));
+    ASSERT_TRUE(split.ok());
+    auto got = proto::decode_distances(split->mesh_body);
+    ASSERT_TRUE(got.ok());
+    std::vector<SceneClosestPoint> expected(points.size());
+    closest_points(local, points, expected, DistanceOptions{});
+    for (size_t i = 0; i < points.size(); ++i) {
+        EXPECT_EQ(got->points[i].distance, expected[i].closest.distance) << i;
+        EXPECT_EQ(got->points[i].prim, expected[i].closest.prim) << i;
+        EXPECT_EQ(split->geometry_ids[i], expected[i].geom) << i;
+    }
+    // A sheared instance has no single world distance scale: refused naming it.
+    const proto::Transform sheared{{1, 0.5f, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0}};
+    const std::string bad = create_id("{\"instances\":[" + instance_json(a_id_, kIdentity) + "," +
+                                      instance_json(a_id_, sheared) + "]}");
+    res = query(bad, "distance", bytes_to_string(proto::encode_points(points)),
+                std::string(proto::kPointMediaType));
+    const auto p = expect_problem(res, 400);
+    EXPECT_EQ(p.index, 1u);
+    EXPECT_EQ(p.field.rfind("instances[1]", 0), 0u) << p.field;
+}
+
+TEST_F(HttpScenes, PoseUpdatesMakeRevisionsAndStaleOnesAreRefused) {
+    const std::string id = create_id("{\"instances\":[" + instance_json(a_id_, kIdentity, "car") +
+                                     "," + instance_json(b_id_, kIdentity) + "]}");
+    const auto cli = server_->client();
+    const std::string poses =
+        "{\"poses\":[{\"name\":\"car\",\"transform\":" + transform_json(kMoved) +
+        "},{\"geometry_id\":1,\"transform\":" + transform_json(kMirrored) + "}]}";
+    httplib::Headers headers{{"If-Match", "\"1\""}};
+    auto res = cli->Patch("/v1/scenes/" + id + "/poses", headers, poses, "application/json");
+    ASSERT_TRUE(res);
+    ASSERT_EQ(res->status, 200) << res->body;
+    EXPECT_EQ(res->get_header_value("ETag"), "\"2\"");
+    // The same base revision again: stale.
+    res = cli->Patch("/v1/scenes/" + id + "/poses", headers, poses, "application/json");
+    auto p = expect_problem(res, 412);
+    EXPECT_EQ(p.field, "If-Match");
+    // A malformed If-Match.
+    res = cli->Patch("/v1/scenes/" + id + "/poses", {{"If-Match", "\"two\""}}, poses,
+                     "application/json");
+    p = expect_problem(res, 400);
+    EXPECT_EQ(p.field, "If-Match");
+    // KDRX, without If-Match (applies to the current revision), through POST.
+    std::vector<proto::PoseEntry> binary(1);
+    binary[0].geometry_id = 0;
+    binary[0].transform = kIdentity;
+    res =
+        cli->Post("/v1/scenes/" + id + "/poses", bytes_to_string(proto::encode_pose_batch(binary)),
+                  std::string(proto::kPoseBatchMediaType));
+    ASSERT_TRUE(res);
+    ASSERT_EQ(res->status, 200) << res->body;
+    EXPECT_EQ(res->get_header_value("ETag"), "\"3\"");
+
+    // Revision 2 (pinned) and 3 (current) answer as their own poses.
+    const std::vector<Ray> batch = rays(800, test_seed() + 11);
+    const std::string body = bytes_to_string(proto::encode_rays(batch, false));
+    for (const auto& [revision, pose0, pose1] :
+         {std::tuple{2, kMoved, kMirrored}, std::tuple{3, kIdentity, kMirrored}}) {
+        const Scene local = local_scene({{a_id_, pose0}, {b_id_, pose1}});
+        res = query(id, "intersect?revision=" + std::to_string(revision), body,
+                    "application/x-kdrt-rays");
+        ASSERT_TRUE(res);
+        ASSERT_EQ(res->status, 200) << res->body;
+        auto split = proto::split_geometry_ids(string_to_bytes(res->body));
+        ASSERT_TRUE(split.ok());
+        auto hits = proto::decode_hits(split->mesh_body);
+        std::vector<SceneHit> expected(batch.size());
+        intersect(local, batch, expected);
+        for (size_t i = 0; i < batch.size(); ++i) {
+            ASSERT_EQ((*hits)[i].t, expected[i].t) << "revision " << revision << " ray " << i;
+            ASSERT_EQ(split->geometry_ids[i], expected[i].geom);
+        }
+    }
+    // Bad poses name the entry and field.
+    res = cli->Patch(
+        "/v1/scenes/" + id + "/poses",
+        "{\"poses\":[{\"name\":\"bus\",\"transform\":" + transform_json(kIdentity) + "}]}",
+        "application/json");
+    p = expect_problem(res, 422);
+    EXPECT_EQ(p.field, "poses[0].name");
+    res = cli->Patch("/v1/scenes/" + id + "/poses",
+                     "{\"poses\":[{\"geometry_id\":0,\"transform\":[1,0,0,0,0,1,0,0,0,0,1,0]},"
+                     "{\"geometry_id\":1,\"transform\":[1,0,0,0,0,0,0,0,0,0,1,0]}]}",
+                     "application/json");
+    p = expect_problem(res, 400);
+    EXPECT_EQ(p.field, "poses[1].transform");
+    EXPECT_EQ(p.index, 1u);
+    // Revisions older than the kept 3 are gone; a revision never written does not exist.
+    for (int k = 0; k < 3; ++k)
+        ASSERT_EQ(cli->Post("/v1/scenes/" + id + "/poses",
+                            bytes_to_string(proto::encode_pose_batch(binary)),
+                            std::string(proto::kPoseBatchMediaType))
+                      ->status,
+                  200);
+    expect_problem(cli->Get("/v1/scenes/" + id + "?revision=2"), 404);
+    expect_problem(cli->Get("/v1/scenes/" + id + "?revision=99"), 404);
+    res = cli->Get("/v1/scenes/" + id);
+    ASSERT_EQ(res->status, 200);
+    EXPECT_EQ(res->get_header_value("ETag"), "\"6\"");
+}
+
+TEST_F(HttpScenes, BadScenesNameTheInstanceAndField) {
+    const std::string unknown(64, '0');
+    auto p = expect_problem(create("{\"instances\":[" + instance_json(a_id_, kIdentity) + "," +
+                                   instance_json(unknown, kIdentity) + "]}"),
+                            422);
+    EXPECT_EQ(p.field, "instances[1].mesh");
+    EXPECT_EQ(p.index, 1u);
+    EXPECT_NE(p.detail.find(unknown), std::string::npos);
+
+    const proto::Transform singular{{1, 0, 0, 0, 0, 0, 0, 0, 0, 0, 1, 0}};
+    p = expect_problem(create("{\"instances\":[" + instance_json(a_id_, kIdentity) + "," +
+                              instance_json(a_id_, singular) + "]}"),
+                       400);
+    EXPECT_EQ(p.field, "instances[1].transform");
+    EXPECT_EQ(p.index, 1u);
+
+    p = expect_problem(create("{\"instances\":[{\"mesh\":\"" + a_id_ +
+                              "\",\"transform\":[1,0,0,0,0,1,1e39,0,0,0,1,0]}]}"),
+                       400);
+    EXPECT_EQ(p.field, "instances[0].transform[1][2]");
+
+    p = expect_problem(create("{\"instances\":[{\"mesh\":\"" + a_id_ + "\",\"transform\":[1,0]}]}"),
+                       400);
+    EXPECT_EQ(p.field, "instances[0].transform");
+
+    std::string seven = "{\"instances\":[";
+    for (int i = 0; i < 7; ++i) {
+        if (i > 0) seven += ',';
+        seven += instance_json(a_id_, kIdentity);
+    }
+    p = expect_problem(create(seven + "]}"), 413);
+    EXPECT_EQ(p.field, "instances");
+    EXPECT_EQ(p.limit, 6u);
+
+    expect_problem(create("{\"instances\":[], \"x\": 1}"), 400);
+    expect_problem(server_->client()->Get("/v1/scenes/" + std::string(32, 'f')), 404);
+    expect_problem(server_->client()->Get("/v1/scenes/nonsense"), 404);
+}
+
+TEST_F(HttpScenes, InstanceEditsAndMeshesInUse) {
+    const Mesh c = small_mesh(test_seed() + 77, 100);
+    const std::string c_id = upload_id(*server_->client(), c);
+    const std::string id = create_id("{\"instances\":[" + instance_json(c_id, kIdentity, "x") +
+                                     "," + instance_json(a_id_, kMoved) + "]}");
+    const auto cli = server_->client();
+    auto p = expect_problem(cli->Delete("/v1/meshes/" + c_id), 409);
+    EXPECT_NE(p.detail.find(id), std::string::npos) << p.detail;
+
+    auto res =
+        cli->Post("/v1/scenes/" + id + "/instances",
+                  "{\"remove\":[\"x\"],\"add\":[" + instance_json(b_id_, kIdentity, "y") + "]}",
+                  "application/json");
+    ASSERT_TRUE(res);
+    ASSERT_EQ(res->status, 200) << res->body;
+    auto doc = proto::decode_scene_json(res->body, {}, true);
+    ASSERT_TRUE(doc.ok());
+    ASSERT_EQ(doc->instances.size(), 2u);
+    EXPECT_EQ(doc->instances[0].mesh, a_id_);
+    EXPECT_EQ(doc->instances[1].name, "y");
+    EXPECT_EQ(doc->revision, 2u);
+    // The current revision no longer uses c: it may go. Kept revision 1 then answers 409.
+    res = cli->Delete("/v1/meshes/" + c_id);
+    ASSERT_TRUE(res);
+    EXPECT_EQ(res->status, 204);
+    p = expect_problem(
+        query(id, "intersect?revision=1", bytes_to_string(proto::encode_rays(rays(4, 1), false)),
+              "application/x-kdrt-rays"),
+        409);
+    EXPECT_EQ(p.field, "instances[0].mesh");
+
+    p = expect_problem(
+        cli->Post("/v1/scenes/" + id + "/instances",
+                  "{\"add\":[" + instance_json(std::string(64, '1'), kIdentity) + "]}",
+                  "application/json"),
+        422);
+    EXPECT_EQ(p.field, "add[0].mesh");
+
+    res = cli->Delete("/v1/scenes/" + id, {{"If-Match", "\"1\""}});
+    expect_problem(res, 412);
+    res = cli->Delete("/v1/scenes/" + id);
+    ASSERT_TRUE(res);
+    EXPECT_EQ(res->status, 204);
+    expect_problem(cli->Get("/v1/scenes/" + id), 404);
+    expect_problem(cli->Delete("/v1/scenes/" + id), 404);
+}
+
+TEST_F(HttpScenes, AcknowledgedRevisionsSurviveKillMinus9) {
+    const std::string id = create_id("{\"instances\":[" + instance_json(a_id_, kIdentity) + "]}");
+    std::vector<proto::PoseEntry> pose(1);
+    pose[0].geometry_id = 0;
+    uint64_t last = 1;
+    for (int k = 1; k <= 5; ++k) {
+        pose[0].transform.m[3] = 0.1f * static_cast<float>(k);
+        auto res = server_->client()->Post("/v1/scenes/" + id + "/poses",
+                                           bytes_to_string(proto::encode_pose_batch(pose)),
+                                           std::string(proto::kPoseBatchMediaType));
+        ASSERT_TRUE(res);
+        ASSERT_EQ(res->status, 200);
+        last = std::stoull(res->get_header_value("X-Kdrt-Scene-Revision"));
+    }
+    server_->stop(SIGKILL, std::chrono::seconds(10));
+    delete server_;
+    start();
+    auto res = server_->client()->Get("/v1/scenes/" + id);
+    ASSERT_TRUE(res);
+    ASSERT_EQ(res->status, 200) << res->body;
+    auto doc = proto::decode_scene_json(res->body, {}, true);
+    ASSERT_TRUE(doc.ok());
+    EXPECT_EQ(doc->revision, last);
+    EXPECT_EQ(doc->instances[0].transform.m[3], 0.5f);
+    res = server_->client()->Get("/v1/scenes");
+    ASSERT_TRUE(res);
+    EXPECT_NE(res->body.find(id), std::string::npos);
+    EXPECT_NE(server_->client()->Get("/metrics")->body.find("kdrt_scenes{state=\"stored\"}"),
+              std::string::npos);
+}
+
+}  // namespace
+}  // namespace kdrt::test
