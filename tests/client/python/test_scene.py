@@ -1,0 +1,100 @@
+"""kdrt.Scene against a real server: Open3D-shaped answers with geometry ids, a one-instance
+identity scene answering exactly as its mesh, batch pose updates as revisions, and refusals
+naming the instance and field."""
+
+import numpy as np
+import pytest
+
+import kdrt
+
+
+def _box():
+    v = np.array([[x, y, z] for x in (0, 1) for y in (0, 1) for z in (0, 1)], dtype=np.float32)
+    t = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
+                  [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]], dtype=np.int32)
+    return v, t
+
+
+def _rays_at(x, n=64, seed=1):
+    """Rays along -z through the unit square shifted by x."""
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform(0.05, 0.95, size=(n, 2)).astype(np.float32)
+    rays = np.zeros((n, 6), dtype=np.float32)
+    rays[:, 0] = xy[:, 0] + x
+    rays[:, 1] = xy[:, 1]
+    rays[:, 2] = 5
+    rays[:, 5] = -1
+    return rays
+
+
+def test_identity_scene_answers_as_the_mesh(server):
+    client = kdrt.Client(server.url)
+    v, t = _box()
+    mesh = client.upload(v, t)
+    scene = kdrt.Scene(client)
+    assert scene.add_triangles(mesh) == 0
+    rays = _rays_at(0, 200, seed=3)
+    rays[::7, 3:] = [0.3, 0.2, -1]
+    got = scene.cast_rays(rays)
+    want = client.cast_rays(mesh, rays)
+    assert np.array_equal(got["t_hit"], want["t_hit"])
+    assert np.array_equal(got["primitive_ids"], want["primitive_ids"])
+    assert np.array_equal(got["primitive_uvs"], want["primitive_uvs"])
+    hit = np.isfinite(got["t_hit"])
+    assert hit.any()
+    assert (got["geometry_ids"][hit] == 0).all()
+    assert (got["geometry_ids"][~hit] == kdrt.NO_GEOMETRY).all()
+    assert np.array_equal(scene.test_occlusions(rays), client.test_occlusions(mesh, rays))
+
+
+def test_geometry_ids_poses_and_revisions(server):
+    client = kdrt.Client(server.url)
+    v, t = _box()
+    a = scene_a = kdrt.Scene(client)
+    g0 = a.add_triangles(v, t)
+    g1 = a.add_triangles(v, t, transform=np.array([[1, 0, 0, 3], [0, 1, 0, 0], [0, 0, 1, 0],
+                                                   [0, 0, 0, 1]]))
+    assert (g0, g1) == (0, 1)
+    hits = a.cast_rays(np.concatenate([_rays_at(0), _rays_at(3)]))
+    assert (hits["geometry_ids"][:64] == 0).all() and (hits["geometry_ids"][64:] == 1).all()
+    assert np.allclose(hits["t_hit"], 4.0)
+    first = scene_a.revision
+    # Move instance 1 up by 10 (one batch of one pose): its rays miss at the new revision...
+    revision = a.set_transforms([g1], [[[1, 0, 0, 3], [0, 1, 0, 0], [0, 0, 1, 10]]])
+    assert revision == first + 1
+    moved = a.cast_rays(_rays_at(3))
+    assert (moved["geometry_ids"] == kdrt.NO_GEOMETRY).all() and np.isinf(moved["t_hit"]).all()
+    # ...and answer as before at the pinned older revision.
+    pinned = a.cast_rays(_rays_at(3), revision=first)
+    assert (pinned["geometry_ids"] == 1).all()
+    # A stale If-Match is refused.
+    with pytest.raises(kdrt.Error) as e:
+        a.set_transforms([g0], [np.eye(4)], if_revision=first)
+    assert e.value.status == 412
+    # Every hit along rays through both boxes (moved back in line).
+    a.set_transform(g1, [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, -3], [0, 0, 0, 1]])
+    all_hits = a.list_intersections(_rays_at(0, 8), max_hits=8)
+    assert np.array_equal(np.diff(all_hits["ray_splits"].astype(np.int64)), np.full(8, 4))
+    assert sorted(set(all_hits["geometry_ids"].tolist())) == [0, 1]
+    # Distances with geometry ids.
+    d = a.compute_closest_points(np.array([[0.5, 0.5, 2.0], [0.5, 0.5, -5.0]], np.float32))
+    assert d["geometry_ids"].tolist() == [0, 1]
+    assert np.allclose(d["distance"], [1.0, 2.0])
+
+
+def test_refusals_name_the_instance_and_field(server):
+    client = kdrt.Client(server.url)
+    v, t = _box()
+    mesh = client.upload(v, t)
+    scene = kdrt.Scene(client)
+    scene.add_triangles(mesh)
+    scene.add_triangles("0" * 64)
+    with pytest.raises(kdrt.Error) as e:
+        scene.commit()
+    assert e.value.status == 422
+    assert "instances[1].mesh" in str(e.value) or "0" * 64 in e.value.detail
+    bad = kdrt.Scene(client)
+    bad.add_triangles(mesh, transform=[[1, 0, 0, 0], [0, 0, 0, 0], [0, 0, 1, 0]])
+    with pytest.raises(kdrt.Error) as e:
+        bad.commit()
+    assert e.value.status == 400 and "singular" in e.value.detail
