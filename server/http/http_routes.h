@@ -54,18 +54,13 @@ private:
     /// The batch's memory from batch_memory_budget; on refusal (503, or 413 when it could
     /// never fit) replies and returns nullopt.
     std::optional<ByteBudget::Hold> take_batch_budget(const httplib::Request& req,
-                                                      httplib::Response& res,
-                                                      const httplib::ContentReader& reader,
-                                                      bool binary);
+                                                      httplib::Response& res, bool binary);
     /// The tree of the mesh named by the path (req.matches[1]); on failure discards the body,
     /// replies (404 unknown mesh, ...) and returns nullptr.
-    std::shared_ptr<const KdTree> acquire_tree(const httplib::Request& req, httplib::Response& res,
-                                               const httplib::ContentReader& reader);
+    std::shared_ptr<const KdTree> acquire_tree(const httplib::Request& req, httplib::Response& res);
     /// `bytes` of batch_memory_budget, refused as take_batch_budget does.
     std::optional<ByteBudget::Hold> take_budget_bytes(const httplib::Request& req,
-                                                      httplib::Response& res,
-                                                      const httplib::ContentReader& reader,
-                                                      uint64_t bytes);
+                                                      httplib::Response& res, uint64_t bytes);
     void intersect_binary(const httplib::Request& req, httplib::Response& res,
                           const httplib::ContentReader& reader, const KdTree& tree,
                           bool reject_invalid);

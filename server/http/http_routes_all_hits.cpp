@@ -2,9 +2,9 @@
 
 #include <span>
 
+#include "http/http_front.h"
 #include "http/http_routes.h"
 #include "http/http_util.h"
-#include "http/httplib_internals.h"
 #include "http/problems.h"
 #include "kdrt/proto/multi_hit.h"
 #include "kdrt/proto/ray_batch.h"
@@ -33,7 +33,6 @@ void Routes::intersect_all(const httplib::Request& req, httplib::Response& res,
                            const httplib::ContentReader& reader) {
     const std::string type = proto::media_type_essence(req.get_header_value("Content-Type"));
     if (type != proto::kRaysMediaType) {
-        discard_body(req, res, reader);
         return reply_problem(req, res,
                              make_problem(ProblemKind::kUnsupportedMediaType,
                                           "intersect_all expects Content-Type " +
@@ -53,24 +52,21 @@ void Routes::intersect_all(const httplib::Request& req, httplib::Response& res,
                            " (expected refuse or miss)"};
     }
     if (!query) {
-        discard_body(req, res, reader);
         return reply_problem(req, res, make_problem(ProblemKind::kBadRequest, query.error()));
     }
-    const std::shared_ptr<const KdTree> tree = acquire_tree(req, res, reader);
+    const std::shared_ptr<const KdTree> tree = acquire_tree(req, res);
     if (!tree) return;
     // The batch's memory, its largest answer included, is taken from batch_memory_budget
     // before its body is read.
     const uint64_t body_limit = proto::kdrr_body_size(svc_.config.max_rays);
     const uint64_t declared = declared_body_bytes(req).value_or(body_limit);
     if (declared > body_limit) {
-        discard_body(req, res, reader);
         return reply_problem(req, res, body_too_large_problem(body_limit, kAllHitsBodyWhat));
     }
     const uint64_t rays_at_most = declared / proto::kRayRecordBytes;
     const uint64_t bytes = 64 + rays_at_most * intersect_all_bytes_per_ray(*query);
     auto hold = svc_.batch_budget.try_take(bytes);
     if (!hold) {
-        discard_body(req, res, reader);
         const uint64_t limit = svc_.batch_budget.limit();
         if (bytes > limit) {
             auto p = make_problem(
@@ -134,16 +130,14 @@ void Routes::intersect_all(const httplib::Request& req, httplib::Response& res,
         all = {};
         reply_bytes(res, std::move(answer), proto::kMultiHitMediaType);
     }
-    keep_until_sent(res, std::make_shared<ByteBudget::Hold>(std::move(*hold)));
+    keep_until_sent(std::make_shared<ByteBudget::Hold>(std::move(*hold)));
 }
 
 std::shared_ptr<const KdTree> Routes::acquire_tree(const httplib::Request& req,
-                                                   httplib::Response& res,
-                                                   const httplib::ContentReader& reader) {
+                                                   httplib::Response& res) {
     const std::string id = req.matches[1];
     auto tree = svc_.cache.acquire(id);
     if (tree) return std::move(tree).value();
-    discard_body(req, res, reader);
     reply_problem(req, res, mesh_lookup_problem(tree.error(), id));
     return nullptr;
 }

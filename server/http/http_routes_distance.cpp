@@ -2,9 +2,9 @@
 
 #include <span>
 
+#include "http/http_front.h"
 #include "http/http_routes.h"
 #include "http/http_util.h"
-#include "http/httplib_internals.h"
 #include "http/problems.h"
 #include "kdrt/distance.h"
 #include "kdrt/proto/distance.h"
@@ -44,7 +44,6 @@ void Routes::distance(const httplib::Request& req, httplib::Response& res,
                       const httplib::ContentReader& reader) {
     const std::string type = proto::media_type_essence(req.get_header_value("Content-Type"));
     if (type != proto::kPointMediaType) {
-        discard_body(req, res, reader);
         return reply_problem(
             req, res,
             make_problem(ProblemKind::kUnsupportedMediaType,
@@ -58,20 +57,18 @@ void Routes::distance(const httplib::Request& req, httplib::Response& res,
             return req.get_param_value(key);
         });
     if (!query) {
-        discard_body(req, res, reader);
         return reply_problem(req, res, make_problem(ProblemKind::kBadRequest, query.error()));
     }
-    const std::shared_ptr<const KdTree> tree = acquire_tree(req, res, reader);
+    const std::shared_ptr<const KdTree> tree = acquire_tree(req, res);
     if (!tree) return;
     const uint32_t max_points = svc_.config.max_distance_points;
     const uint64_t body_limit = proto::kdrp_body_size(max_points);
     const uint64_t declared = declared_body_bytes(req).value_or(body_limit);
     if (declared > body_limit) {
-        discard_body(req, res, reader);
         return reply_problem(req, res, body_too_large_problem(body_limit, kDistanceBodyWhat));
     }
-    auto hold = take_budget_bytes(req, res, reader,
-                                  64 + declared / proto::kPointRecordBytes * kBytesPerPoint);
+    auto hold =
+        take_budget_bytes(req, res, 64 + declared / proto::kPointRecordBytes * kBytesPerPoint);
     if (!hold) return;
     auto body = read_body(req, res, reader, body_limit, body_limit, svc_.store.tmp_dir().string(),
                           kDistanceBodyWhat);
@@ -92,7 +89,7 @@ void Routes::distance(const httplib::Request& req, httplib::Response& res,
     res.set_header("X-Kdrt-Surface", surface_text(*index));
     reply_bytes(res, proto::encode_distances(answers, query->signed_query),
                 proto::kDistanceMediaType);
-    keep_until_sent(res, std::make_shared<ByteBudget::Hold>(std::move(*hold)));
+    keep_until_sent(std::make_shared<ByteBudget::Hold>(std::move(*hold)));
 }
 
 }  // namespace kdrt::server

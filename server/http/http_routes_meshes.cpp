@@ -36,7 +36,6 @@ void Routes::upload_mesh(const httplib::Request& req, httplib::Response& res,
                          const httplib::ContentReader& reader) {
     const auto format = upload_format(req);
     if (!format) {
-        discard_body(req, res, reader);
         return reply_problem(req, res, format.error());
     }
     auto body =

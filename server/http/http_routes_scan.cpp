@@ -4,9 +4,9 @@
 #include <optional>
 #include <string>
 
+#include "http/http_front.h"
 #include "http/http_routes.h"
 #include "http/http_util.h"
-#include "http/httplib_internals.h"
 #include "http/json_shape.h"
 #include "http/problems.h"
 #include "kdrt/camera.h"
@@ -99,7 +99,6 @@ proto::Problem budget_problem(const ByteBudget& budget, uint64_t bytes) {
 void Routes::scan(const httplib::Request& req, httplib::Response& res,
                   const httplib::ContentReader& reader) {
     if (proto::media_type_essence(req.get_header_value("Content-Type")) != proto::kJsonMediaType) {
-        discard_body(req, res, reader);
         return reply_problem(
             req, res,
             make_problem(ProblemKind::kUnsupportedMediaType,
@@ -164,7 +163,7 @@ void Routes::scan(const httplib::Request& req, httplib::Response& res,
             reply_bytes(res, proto::encode_depth_image(image), proto::kDepthImageMediaType);
         }
     }
-    keep_until_sent(res, std::make_shared<ByteBudget::Hold>(std::move(*hold)));
+    keep_until_sent(std::make_shared<ByteBudget::Hold>(std::move(*hold)));
 }
 
 }  // namespace kdrt::server

@@ -1,5 +1,5 @@
 #pragma once
-/// Helpers shared by the http_*.cpp files (the only files that see httplib.h): the per-request
+/// Helpers shared by the http/*.cpp files (the only files that see httplib.h): the per-request
 /// context used by the access log, problem and body replies, and body reading with limits.
 
 #include <httplib.h>
@@ -41,24 +41,19 @@ void reply_problem(const httplib::Request& req, httplib::Response& res, proto::P
 /// Replies `status` with a JSON body (moved, not copied).
 void reply_json(httplib::Response& res, int status, std::string json);
 
-/// Replies 200 with a binary body; large bodies are streamed from memory by a content provider,
-/// and their vector goes back to `pool` (if given) once sent.
+/// Replies 200 with a binary body; large bodies are sent from the vector itself (no copy,
+/// reply_from_memory), which goes back to `pool` (if given) once sent.
 void reply_bytes(httplib::Response& res, std::vector<std::byte> bytes,
                  std::string_view content_type, VectorPool<std::byte>* pool = nullptr);
 
 /// Replies 200 with the first `size` bytes of `buffer`: small bodies are copied into the
-/// response, large ones are streamed from the buffer itself by a content provider (no copy); the
-/// buffer goes back to its pool once copied, or once sent or abandoned.
+/// response, large ones are sent from the buffer itself (no copy, reply_from_memory); the buffer
+/// goes back to its pool once copied, or once sent or abandoned.
 void reply_buffer(httplib::Response& res, PooledBuffer buffer, size_t size,
                   std::string_view content_type);
 
 /// 408 for a body that did not arrive within the request's deadline (request_timeout_s).
 [[nodiscard]] proto::Problem body_timeout_problem();
-
-/// After an early error reply on a streamed route, the body has not been read: drain it if it
-/// is small, else ask the client to close the connection (never parse it as the next request).
-void discard_body(const httplib::Request& req, httplib::Response& res,
-                  const httplib::ContentReader& reader);
 
 /// Reads the request body through `reader` into a RequestBody (memory up to `memory_bytes`, then
 /// spooled to `spool_dir`). Refuses more than `limit` bytes with 413 (`what` names the body in
