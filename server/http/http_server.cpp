@@ -90,8 +90,8 @@ ConnectionLimits connection_limits(const ServerConfig& c) {
 
 /// True for the methods HTTP defines that a route could take (RFC 9110, RFC 5789).
 bool is_known_method(std::string_view method) {
-    static constexpr std::array<std::string_view, 7> kMethods = {
-        "GET", "HEAD", "POST", "PUT", "DELETE", "PATCH", "OPTIONS"};
+    static constexpr std::array<std::string_view, 7> kMethods = {"GET",    "HEAD",  "POST",   "PUT",
+                                                                 "DELETE", "PATCH", "OPTIONS"};
     return std::find(kMethods.begin(), kMethods.end(), method) != kMethods.end();
 }
 
