@@ -95,30 +95,6 @@ std::optional<ByteBudget::Hold> Routes::take_batch_budget(const httplib::Request
     return take_budget_bytes(req, res, bytes);
 }
 
-std::optional<ByteBudget::Hold> Routes::take_budget_bytes(const httplib::Request& req,
-                                                          httplib::Response& res, uint64_t bytes) {
-    auto hold = svc_.batch_budget.try_take(bytes);
-    if (hold) return hold;
-    const uint64_t limit = svc_.batch_budget.limit();
-    if (bytes > limit) {
-        reply_problem(req, res,
-                      make_problem(ProblemKind::kPayloadTooLarge,
-                                   "this batch needs " + std::to_string(bytes) +
-                                       " bytes of memory, more than batch_memory_budget (" +
-                                       std::to_string(limit) + ")"));
-        return std::nullopt;
-    }
-    auto p = make_problem(ProblemKind::kOverCapacity,
-                          "ray batches in flight hold " + std::to_string(svc_.batch_budget.held()) +
-                              " of " + std::to_string(limit) +
-                              " bytes (batch_memory_budget); this batch needs " +
-                              std::to_string(bytes) + "; retry later");
-    p.retry_after = 1;
-    p.limit = limit;
-    reply_problem(req, res, std::move(p));
-    return std::nullopt;
-}
-
 void Routes::intersect_binary(const httplib::Request& req, httplib::Response& res,
                               const httplib::ContentReader& reader, const KdTree& tree,
                               bool reject_invalid) {

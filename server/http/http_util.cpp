@@ -6,6 +6,7 @@
 
 #include "http/http_front.h"
 #include "http/problems.h"
+#include "kdrt/proto/text.h"
 
 namespace kdrt::server {
 namespace {
@@ -43,6 +44,26 @@ void reply_problem(const httplib::Request& req, httplib::Response& res, proto::P
         res.set_header("WWW-Authenticate", "Bearer realm=\"kdrt\"");
     res.body = proto::encode_problem(problem);
     res.set_header("Content-Type", std::string(proto::kProblemMediaType));
+}
+
+bool has_media_type(const httplib::Request& req, httplib::Response& res, std::string_view type,
+                    std::string_view route) {
+    const std::string given = req.get_header_value("Content-Type");
+    if (proto::media_type_essence(given) == type) return true;
+    reply_problem(req, res,
+                  make_problem(proto::ProblemKind::kUnsupportedMediaType,
+                               std::string(route) + " expects Content-Type " + std::string(type) +
+                                   ", not \"" + given + "\""));
+    return false;
+}
+
+std::function<std::optional<std::string>(std::string_view)> query_params(
+    const httplib::Request& req) {
+    return [&req](std::string_view name) -> std::optional<std::string> {
+        const std::string key(name);
+        if (!req.has_param(key)) return std::nullopt;
+        return req.get_param_value(key);
+    };
 }
 
 void reply_json(httplib::Response& res, int status, std::string json) {
@@ -89,7 +110,8 @@ proto::Problem body_timeout_problem() {
 std::unique_ptr<RequestBody> read_body(const httplib::Request& req, httplib::Response& res,
                                        const httplib::ContentReader& reader, uint64_t limit,
                                        uint64_t memory_bytes, const std::string& spool_dir,
-                                       const std::string& what, std::vector<std::byte> buffer) {
+                                       const std::string& what, std::vector<std::byte> buffer,
+                                       const BodyProgress& progress) {
     const uint64_t declared = declared_body_bytes(req).value_or(0);
     if (declared > limit) {
         reply_problem(req, res, body_too_large_problem(limit, what));
@@ -99,10 +121,17 @@ std::unique_ptr<RequestBody> read_body(const httplib::Request& req, httplib::Res
         std::make_unique<RequestBody>(limit, memory_bytes, spool_dir, declared, std::move(buffer));
     RequestContext& context = request_context();
     const bool has_body = declared > 0 || req.has_header("Transfer-Encoding");
+    std::optional<proto::Problem> stopped;
     const bool read_ok = !has_body || reader([&](const char* data, size_t size) {
         context.bytes_in += size;
-        return body->append(data, size);
+        if (!body->append(data, size)) return false;
+        if (progress) stopped = progress(body->size());
+        return !stopped;
     });
+    if (stopped) {
+        reply_problem(req, res, std::move(*stopped));
+        return nullptr;
+    }
     if (body->too_large()) {
         reply_problem(req, res, body_too_large_problem(limit, what));
         res.set_header("Connection", "close");

@@ -91,6 +91,7 @@ std::optional<HeadError> parse_request_line(std::string_view line, RequestHead& 
                          "ASCII"};
     head.method = std::string(method);
     head.version = std::string(version);
+    head.keep_alive = version == "HTTP/1.1";  // 1.0: only with Connection: keep-alive
     // RFC 9112 3.2.2: a server accepts the absolute form; only its path and query matter here.
     for (std::string_view scheme : {"http://", "https://"}) {
         if (target.size() > scheme.size() && iequals(target.substr(0, scheme.size()), scheme)) {
@@ -244,14 +245,8 @@ proto::Result<RequestHead, HeadError> parse_request_head(std::string_view head,
         out.headers.emplace_back(std::string(name), std::string(value));
     }
     if (line_number == 0) return Err{HeadError{400, "the request head is empty"}};
-    if (out.version == "HTTP/1.0") {
-        const bool asked = std::any_of(out.headers.begin(), out.headers.end(), [](const auto& h) {
-            return iequals(h.first, "Connection") &&
-                   h.second.find("eep-alive") != std::string::npos;
-        });
-        out.keep_alive = asked && out.keep_alive;
-        if (out.chunked) return Err{HeadError{400, "Transfer-Encoding in an HTTP/1.0 request"}};
-    }
+    if (out.version == "HTTP/1.0" && out.chunked)
+        return Err{HeadError{400, "Transfer-Encoding in an HTTP/1.0 request"}};
     // RFC 9112 6.3: both framings is a smuggling attempt, or a broken client.
     if (out.chunked && out.content_length)
         return Err{HeadError{400, "the request has both Content-Length and Transfer-Encoding"}};
