@@ -29,6 +29,7 @@
 
 #include "http/request_body.h"
 #include "http/request_head.h"
+#include "kdrt/proto/problem.h"
 
 namespace kdrt::server {
 namespace {
@@ -465,7 +466,7 @@ struct HttpFront::Impl {
     void send_early(int fd, int status, std::string_view method, const std::string& detail) const {
         const std::string body = early_reply ? early_reply(status, method, detail) : detail;
         std::string reply = "HTTP/1.1 " + std::to_string(status) + " " +
-                            std::string(reason_phrase(status)) +
+                            std::string(proto::http_reason_phrase(status)) +
                             "\r\nContent-Type: application/problem+json\r\nContent-Length: " +
                             std::to_string(body.size()) + "\r\nConnection: close\r\n";
         if (status == 503) reply += "Retry-After: 1\r\n";
@@ -829,7 +830,7 @@ struct HttpFront::Impl {
         }
         // A reply held in res.body needs nothing kept: budgets and slots go back before it is
         // written, as soon as the route is done (a memory body keeps them until it is sent).
-        if (!exchange.memory_owner) exchange.kept.clear();
+        if (!exchange.memory_owner || !res.body.empty()) exchange.kept.clear();
         const bool body_read = exchange.body_done || drain(exchange);
         const bool keep = !stopping_now && head.keep_alive && !c.peer_closed && body_read &&
                           !exchange.timed_out && !asks_close(res) &&
@@ -852,10 +853,11 @@ struct HttpFront::Impl {
 
     bool write_response(Exchange& exchange, const httplib::Request& req,
                         const httplib::Response& res, bool keep) {
-        const bool memory = exchange.memory_owner != nullptr;
+        // A body set after a memory body (an error reply replacing it) wins.
+        const bool memory = exchange.memory_owner != nullptr && res.body.empty();
         const size_t body_size = memory ? exchange.memory_body.size() : res.body.size();
         std::string head = "HTTP/1.1 " + std::to_string(res.status) + " " +
-                           std::string(reason_phrase(res.status)) + "\r\n";
+                           std::string(proto::http_reason_phrase(res.status)) + "\r\n";
         for (const auto& [name, value] : res.headers)
             if (!front_owned(name)) head += name + ": " + value + "\r\n";
         const bool no_body = res.status == 204 || res.status == 304 || res.status < 200;
@@ -920,7 +922,8 @@ void reply_from_memory(httplib::Response& res, std::span<const std::byte> bytes,
 }
 
 uint64_t response_body_bytes(const httplib::Response& res) noexcept {
-    if (t_exchange != nullptr && t_exchange->memory_owner) return t_exchange->memory_body.size();
+    if (t_exchange != nullptr && t_exchange->memory_owner && res.body.empty())
+        return t_exchange->memory_body.size();
     return res.body.size();
 }
 

@@ -110,12 +110,14 @@ private:
 
 /// The body of the response being answered on this thread, sent from memory the route keeps
 /// (no copy): `bytes` must stay valid until the response is written, which `owner` ensures
-/// (released once sent or abandoned). Sets the status to 200 and the Content-Type. Outside a
+/// (released once sent or abandoned). Sets the status to 200 and the Content-Type, and empties
+/// `res.body`; a body set into `res.body` afterwards (an error reply) replaces it. Outside a
 /// front worker the bytes are copied into `res.body`.
 void reply_from_memory(httplib::Response& res, std::span<const std::byte> bytes,
                        std::shared_ptr<const void> owner, std::string_view content_type);
 
-/// The response body's size: the memory body's if set (reply_from_memory), else `res.body`'s.
+/// The response body's size: the memory body's if set (reply_from_memory) and `res.body` is
+/// empty, else `res.body`'s.
 [[nodiscard]] uint64_t response_body_bytes(const httplib::Response& res) noexcept;
 
 /// Keeps `resource` alive until the response being answered on this thread has been sent or

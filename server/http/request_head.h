@@ -67,9 +67,6 @@ struct HeadScan {
 [[nodiscard]] proto::Result<RequestHead, HeadError> parse_request_head(std::string_view head,
                                                                        const HeadLimits& limits);
 
-/// The reason phrase of an HTTP status ("Not Found"; "" for an unknown one).
-[[nodiscard]] std::string_view reason_phrase(int status) noexcept;
-
 /// True when `a` and `b` are equal ignoring ASCII case.
 [[nodiscard]] bool iequals(std::string_view a, std::string_view b) noexcept;
 
