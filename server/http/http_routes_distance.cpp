@@ -2,9 +2,9 @@
 
 #include <span>
 
+#include "http/http_front.h"
 #include "http/http_routes.h"
 #include "http/http_util.h"
-#include "http/httplib_internals.h"
 #include "http/problems.h"
 #include "kdrt/distance.h"
 #include "kdrt/proto/distance.h"
@@ -42,41 +42,21 @@ std::string surface_text(const SurfaceIndex& index) {
 
 void Routes::distance(const httplib::Request& req, httplib::Response& res,
                       const httplib::ContentReader& reader) {
-    const std::string type = proto::media_type_essence(req.get_header_value("Content-Type"));
-    if (type != proto::kPointMediaType) {
-        discard_body(req, res, reader);
-        return reply_problem(
-            req, res,
-            make_problem(ProblemKind::kUnsupportedMediaType,
-                         "distance expects Content-Type " + std::string(proto::kPointMediaType) +
-                             ", not \"" + req.get_header_value("Content-Type") + "\""));
-    }
-    auto query =
-        proto::parse_distance_query([&](std::string_view name) -> std::optional<std::string> {
-            const std::string key(name);
-            if (!req.has_param(key)) return std::nullopt;
-            return req.get_param_value(key);
-        });
-    if (!query) {
-        discard_body(req, res, reader);
+    if (!has_media_type(req, res, proto::kPointMediaType, "distance")) return;
+    auto query = proto::parse_distance_query(query_params(req));
+    if (!query)
         return reply_problem(req, res, make_problem(ProblemKind::kBadRequest, query.error()));
-    }
-    const std::shared_ptr<const KdTree> tree = acquire_tree(req, res, reader);
+    const std::shared_ptr<const KdTree> tree = acquire_tree(req, res);
     if (!tree) return;
     const uint32_t max_points = svc_.config.max_distance_points;
-    const uint64_t body_limit = proto::kdrp_body_size(max_points);
-    const uint64_t declared = declared_body_bytes(req).value_or(body_limit);
-    if (declared > body_limit) {
-        discard_body(req, res, reader);
-        return reply_problem(req, res, body_too_large_problem(body_limit, kDistanceBodyWhat));
-    }
-    auto hold = take_budget_bytes(req, res, reader,
-                                  64 + declared / proto::kPointRecordBytes * kBytesPerPoint);
-    if (!hold) return;
-    auto body = read_body(req, res, reader, body_limit, body_limit, svc_.store.tmp_dir().string(),
-                          kDistanceBodyWhat);
+    auto body = read_batch(req, res, reader,
+                           {.limit = proto::kdrp_body_size(max_points),
+                            .what = kDistanceBodyWhat,
+                            .record_bytes = proto::kPointRecordBytes,
+                            .memory_per_record = kBytesPerPoint,
+                            .records = "points",
+                            .advice = "; send fewer points"});
     if (!body) return;
-    request_context().bytes_in += body->size();
     auto points =
         proto::decode_points(body->bytes(), {.max_rays = max_points, .reject_non_finite = true});
     body.reset();
@@ -92,7 +72,6 @@ void Routes::distance(const httplib::Request& req, httplib::Response& res,
     res.set_header("X-Kdrt-Surface", surface_text(*index));
     reply_bytes(res, proto::encode_distances(answers, query->signed_query),
                 proto::kDistanceMediaType);
-    keep_until_sent(res, std::make_shared<ByteBudget::Hold>(std::move(*hold)));
 }
 
 }  // namespace kdrt::server

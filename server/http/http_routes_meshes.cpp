@@ -30,15 +30,23 @@ proto::Result<proto::MeshFormat, proto::Problem> upload_format(const httplib::Re
                                        "or ?format=obj|ply|off|stl|raw")};
 }
 
+/// 503 for an upload that finds max_builds building and max_queued waiting.
+proto::Problem builds_busy_problem(const WorkGate& builds) {
+    auto p = make_problem(
+        ProblemKind::kOverCapacity,
+        std::to_string(builds.running_limit()) + " uploads are being built (max_builds) and " +
+            std::to_string(builds.queue_limit()) + " waiting (max_queued); retry later");
+    p.retry_after = 1;
+    p.limit = builds.running_limit();
+    return p;
+}
+
 }  // namespace
 
 void Routes::upload_mesh(const httplib::Request& req, httplib::Response& res,
                          const httplib::ContentReader& reader) {
     const auto format = upload_format(req);
-    if (!format) {
-        discard_body(req, res, reader);
-        return reply_problem(req, res, format.error());
-    }
+    if (!format) return reply_problem(req, res, format.error());
     auto body =
         read_body(req, res, reader, svc_.config.max_upload_bytes, svc_.config.upload_memory_bytes,
                   svc_.store.tmp_dir().string(), "a mesh upload (max_upload_bytes)");
@@ -47,16 +55,7 @@ void Routes::upload_mesh(const httplib::Request& req, httplib::Response& res,
     // max_queued waiting, the rest shed. (Taken once the body is in: a slow upload holds no
     // slot, and the body is spooled to disk beyond upload_memory_bytes.)
     auto slot = svc_.builds.enter(svc_.shutting_down);
-    if (!slot) {
-        auto p = make_problem(ProblemKind::kOverCapacity,
-                              std::to_string(svc_.builds.running_limit()) +
-                                  " uploads are being built (max_builds) and " +
-                                  std::to_string(svc_.builds.queue_limit()) +
-                                  " waiting (max_queued); retry later");
-        p.retry_after = 1;
-        p.limit = svc_.builds.running_limit();
-        return reply_problem(req, res, std::move(p));
-    }
+    if (!slot) return reply_problem(req, res, builds_busy_problem(svc_.builds));
     proto::MeshLimits limits;
     limits.max_triangles = svc_.config.max_triangles;
     std::vector<std::string> warnings;

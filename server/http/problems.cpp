@@ -90,4 +90,25 @@ proto::Problem not_ready_problem(bool shutting_down) {
     return p;
 }
 
+proto::Problem budget_problem(const ByteBudget& budget, uint64_t bytes, const std::string& subject,
+                              const std::string& advice, const std::string& short_subject) {
+    const uint64_t limit = budget.limit();
+    if (bytes > limit) {
+        auto p = make_problem(proto::ProblemKind::kPayloadTooLarge,
+                              subject + " needs " + std::to_string(bytes) +
+                                  " bytes of memory, more than batch_memory_budget (" +
+                                  std::to_string(limit) + ")" + advice);
+        p.limit = limit;
+        return p;
+    }
+    auto p = make_problem(proto::ProblemKind::kOverCapacity,
+                          "ray batches in flight hold " + std::to_string(budget.held()) + " of " +
+                              std::to_string(limit) + " bytes (batch_memory_budget); " +
+                              (short_subject.empty() ? subject : short_subject) + " needs " +
+                              std::to_string(bytes) + "; retry later");
+    p.retry_after = 1;
+    p.limit = limit;
+    return p;
+}
+
 }  // namespace kdrt::server

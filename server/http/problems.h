@@ -8,6 +8,7 @@
 #include "kdrt/proto/mesh_io.h"
 #include "kdrt/proto/problem.h"
 #include "kdrt/proto/ray_batch.h"
+#include "service.h"
 #include "store/mesh_cache.h"
 
 namespace kdrt::server {
@@ -29,6 +30,13 @@ namespace kdrt::server {
 /// A failed cache lookup of mesh `id`: unknown_mesh_problem(id) for an unknown mesh, else
 /// cache_problem(error).
 [[nodiscard]] proto::Problem mesh_lookup_problem(const CacheError& error, const std::string& id);
+/// A refusal by batch_memory_budget of work needing `bytes`: 413 naming the budget when it could
+/// never fit ("`subject` needs N bytes of memory, more than batch_memory_budget (L)`advice`"),
+/// else 503 with Retry-After: 1 ("... hold H of L bytes (batch_memory_budget); `short_subject`
+/// needs N; retry later"). An empty `short_subject` is `subject`.
+[[nodiscard]] proto::Problem budget_problem(const ByteBudget& budget, uint64_t bytes,
+                                            const std::string& subject, const std::string& advice,
+                                            const std::string& short_subject = "");
 /// 503 kNotReady with Retry-After: 1: "the server is shutting down", or when not
 /// `shutting_down`, "the server is starting; retry shortly".
 [[nodiscard]] proto::Problem not_ready_problem(bool shutting_down);
