@@ -124,8 +124,7 @@ TEST_F(CliWithoutModule, AModuleThatCannotLoadIsNamedWithDlopensReason) {
     const CliRun run = kdrt({"render", kId, "-o", out_ + ".png", "--split", "2"});
     EXPECT_EQ(run.exit_code, 1) << run.err;
     EXPECT_TRUE(contains(run.err, "cannot load the image module")) << run.err;
-    EXPECT_TRUE(contains(run.err, (libdir / "kdrt-image-module.so").string()))
-        << run.err;
+    EXPECT_TRUE(contains(run.err, (libdir / "kdrt-image-module.so").string())) << run.err;
     EXPECT_TRUE(contains(run.err, "libopenimageio")) << run.err;
 }
 
