@@ -167,7 +167,8 @@ when it ends in .ply, the hit points as a PLY point cloud (x y z t ray prim, and
 
   --all               every hit (required: without it, use kdrt trace for closest hits)
   -o, --output FILE   the KDRM / KDRC / .ply file (required; - for standard output)
-  --format ply        a .ply point cloud whatever FILE's extension (-o -)
+  --format ply        a .ply point cloud whatever FILE's extension (-o -); kdrm or kdrc:
+                      the binary answer (the default)
   --max-hits N        hits kept per ray (default 16; the server caps it, max_hits_per_ray)
   --merge             report coincident hits at a shared edge or vertex once (crossing counts)
   --count-only        only the number of hits of each ray (KDRC)
@@ -215,6 +216,9 @@ int run_hits(Context& ctx) {
     query.merge_coincident = ctx.args.has("merge");
     query.count_only = ctx.args.has("count-only");
     query.layout.normal = ctx.args.has("normal");
+    if (auto format = ctx.args.value("format");
+        format && *format != "ply" && *format != "kdrm" && *format != "kdrc")
+        return ctx.usage_error("--format: \"" + *format + "\" is not ply, kdrm or kdrc");
     const bool ply = ends_with_ply(ctx.format_path(*output));
     query.layout.point = ctx.args.has("point") || ply;
     if (ply && query.count_only)

@@ -1075,6 +1075,10 @@ TEST_F(Cli, DashOutputWritesTheDataToStdoutAndEveryHumanLineToStderr) {
     EXPECT_EQ(bad_format.exit_code, 2);
     EXPECT_TRUE(contains(bad_format.err, "--format: \"gif\" is not png, jpg or exr"))
         << bad_format.err;
+    const CliRun bad_hits = kdrt({"hits", id_, rays, "--all", "-o", "-", "--format", "csv"});
+    EXPECT_EQ(bad_hits.exit_code, 2);
+    EXPECT_TRUE(contains(bad_hits.err, "--format: \"csv\" is not ply, kdrm or kdrc"))
+        << bad_hits.err;
     const CliRun split = kdrt(
         {"render", id_, "-o", "-", "--format", "png", "--size", "40x30", "--split", "3", "-q"});
     ASSERT_EQ(split.exit_code, 0) << split.err;
