@@ -34,11 +34,12 @@ void Routes::intersect_all(const httplib::Request& req, httplib::Response& res,
     const std::string type = proto::media_type_essence(req.get_header_value("Content-Type"));
     if (type != proto::kRaysMediaType) {
         discard_body(req, res, reader);
-        return reply_problem(req, res,
-                             make_problem(ProblemKind::kUnsupportedMediaType,
-                                          "intersect_all expects Content-Type " +
-                                              std::string(proto::kRaysMediaType) + ", not \"" +
-                                              req.get_header_value("Content-Type") + "\""));
+        return reply_problem(
+            req, res,
+            make_problem(ProblemKind::kUnsupportedMediaType,
+                         "intersect_all expects Content-Type " +
+                             std::string(proto::kRaysMediaType) + ", not " +
+                             proto::quote_value(req.get_header_value("Content-Type"))));
     }
     auto query = proto::parse_multi_hit_query(
         [&](std::string_view name) -> std::optional<std::string> {
@@ -49,7 +50,7 @@ void Routes::intersect_all(const httplib::Request& req, httplib::Response& res,
         svc_.config.max_hits_per_ray);
     const std::string invalid = req.get_param_value("invalid_rays");
     if (query && !invalid.empty() && invalid != "refuse" && invalid != "miss") {
-        query = proto::Err{"query parameter invalid_rays is " + proto::in_quotes(invalid) +
+        query = proto::Err{"query parameter invalid_rays is " + proto::quote_value(invalid) +
                            " (expected refuse or miss)"};
     }
     if (!query) {

@@ -10,6 +10,7 @@
 #include "http/problems.h"
 #include "kdrt/distance.h"
 #include "kdrt/proto/distance.h"
+#include "kdrt/proto/text.h"
 
 namespace kdrt::server {
 
@@ -66,7 +67,7 @@ void Routes::distance(const httplib::Request& req, httplib::Response& res,
             req, res,
             make_problem(ProblemKind::kUnsupportedMediaType,
                          "distance expects Content-Type " + std::string(proto::kPointMediaType) +
-                             ", not \"" + req.get_header_value("Content-Type") + "\""));
+                             ", not " + proto::quote_value(req.get_header_value("Content-Type"))));
     }
     auto query =
         proto::parse_distance_query([&](std::string_view name) -> std::optional<std::string> {
