@@ -199,7 +199,8 @@ Result<DistanceQuery, std::string> parse_distance_query(
         } else if (*v == "false" || *v == "0") {
             q.signed_query = false;
         } else {
-            return Err{"query parameter signed is " + quote_value(*v) + " (expected true or false)"};
+            return Err{"query parameter signed is " + quote_value(*v) +
+                       " (expected true or false)"};
         }
     }
     return q;

@@ -26,7 +26,8 @@ public:
             bool ok = false;
             for (const char* k : known) ok = ok || key == k;
             if (!ok) {
-                std::string message = "unknown member " + quote_value(prefix_ + key) + " (expected ";
+                std::string message =
+                    "unknown member " + quote_value(prefix_ + key) + " (expected ";
                 for (size_t i = 0; const char* k : known) {
                     if (i++ > 0) message += ", ";
                     message += k;
