@@ -4,6 +4,7 @@
 #include <nlohmann/json.hpp>
 
 #include "json_writer.h"
+#include "kdrt/proto/text.h"
 
 namespace kdrt::proto {
 namespace {
@@ -90,7 +91,7 @@ Result<Problem, std::string> decode_problem(std::string_view body) {
             known = true;
         }
     }
-    if (!known) return Err{"unknown problem type \"" + type->get<std::string>() + "\""};
+    if (!known) return Err{"unknown problem type " + quote_value(type->get<std::string>())};
     const auto status = doc.find("status");
     if (status == doc.end() || !status->is_number_integer() || status->get<int>() != p.status())
         return Err{std::string("problem \"status\" is missing or does not match its type")};

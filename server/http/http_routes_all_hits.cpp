@@ -26,7 +26,7 @@ proto::Result<proto::MultiHitQuery, std::string> multi_hit_query(const httplib::
     auto query = proto::parse_multi_hit_query(query_params(req), max_hits);
     const std::string invalid = req.get_param_value("invalid_rays");
     if (query && !invalid.empty() && invalid != "refuse" && invalid != "miss")
-        return proto::Err{"query parameter invalid_rays is " + proto::in_quotes(invalid) +
+        return proto::Err{"query parameter invalid_rays is " + proto::quote_value(invalid) +
                           " (expected refuse or miss)"};
     return query;
 }

@@ -1,13 +1,16 @@
 // POST /v1/meshes/{id}/distance: KDRP query points -> KDRD closest points (kdrt/distance.h).
 
+#include <atomic>
 #include <span>
 
 #include "http/http_front.h"
+#include "core/log.h"
 #include "http/http_routes.h"
 #include "http/http_util.h"
 #include "http/problems.h"
 #include "kdrt/distance.h"
 #include "kdrt/proto/distance.h"
+#include "kdrt/proto/text.h"
 
 namespace kdrt::server {
 
@@ -38,6 +41,21 @@ std::string surface_text(const SurfaceIndex& index) {
            std::to_string(index.misoriented_edges) + " misoriented edges";
 }
 
+/// A batch whose work (cells visited + triangles tested) passes max_distance_work: refused when
+/// its point count alone does (`work` 0), or stopped when its search did.
+proto::Problem distance_work_problem(uint64_t limit, uint64_t work, size_t points) {
+    auto p = make_problem(
+        ProblemKind::kBadRequest,
+        work == 0 ? std::to_string(points) + " points exceed max_distance_work " +
+                        std::to_string(limit) + " (every point costs at least 1)"
+                  : "distance work (cells visited + triangles tested) passed max_distance_work " +
+                        std::to_string(limit) + " for " + std::to_string(points) +
+                        " points; stopped. Points very far from the mesh (about 1e13 of its "
+                        "size) cost the most: send fewer points per request");
+    p.limit = limit;
+    return p;
+}
+
 }  // namespace
 
 void Routes::distance(const httplib::Request& req, httplib::Response& res,
@@ -62,13 +80,35 @@ void Routes::distance(const httplib::Request& req, httplib::Response& res,
     body.reset();
     if (!points) return reply_problem(req, res, point_batch_problem(points.error(), max_points));
     request_context().rays = points->size();
+    const uint64_t max_work = svc_.config.max_distance_work;
+    if (points->size() > max_work)  // every point visits at least the root cell
+        return reply_problem(req, res, distance_work_problem(max_work, 0, points->size()));
     std::shared_ptr<const SurfaceIndex> index;
     std::vector<ClosestPoint> answers(points->size());
     const DistanceOptions options{query->max_distance, query->signed_query};
-    svc_.compute.run([&] {
+    // Stopped when the client goes away (checked about every millisecond of work) or the work
+    // passes max_distance_work, as renders are.
+    std::atomic<bool> cancel{false};
+    DistanceControl control;
+    control.cancel = &cancel;
+    control.max_work = max_work;
+    control.poll = [gone = client_gone_check(), &cancel] {
+        if (gone()) cancel = true;
+    };
+    const DistanceStats stats = svc_.compute.run([&] {
         index = svc_.cache.surface_index(req.matches[1], tree);
-        closest_points(*tree, *index, *points, answers, options);
+        return closest_points(*tree, *index, *points, answers, options, control);
     });
+    if (stats.status == DistanceStatus::kCancelled) {
+        log_event(LogLevel::kInfo, "distance cancelled: the client closed the connection",
+                  {{"id", request_context().request_id}});
+        res.set_header("Connection", "close");
+        return reply_problem(req, res,
+                             make_problem(ProblemKind::kBadRequest,
+                                          "the client closed the connection; distance cancelled"));
+    }
+    if (stats.status == DistanceStatus::kOverWork)
+        return reply_problem(req, res, distance_work_problem(max_work, stats.work, points->size()));
     res.set_header("X-Kdrt-Surface", surface_text(*index));
     reply_bytes(res, proto::encode_distances(answers, query->signed_query),
                 proto::kDistanceMediaType);

@@ -5,6 +5,7 @@
 #include "http/problems.h"
 #include "kdrt/proto/json_api.h"
 #include "kdrt/proto/mesh_io.h"
+#include "kdrt/proto/text.h"
 
 namespace kdrt::server {
 namespace {
@@ -16,16 +17,16 @@ proto::Result<proto::MeshFormat, proto::Problem> upload_format(const httplib::Re
     if (req.has_param("format")) {
         const std::string name = req.get_param_value("format");
         if (const auto format = proto::mesh_format_from_name(name)) return *format;
-        return proto::Err{make_problem(
-            ProblemKind::kUnsupportedMediaType,
-            "unknown mesh format \"" + name + "\" (expected obj, ply, off, stl or raw)")};
+        return proto::Err{make_problem(ProblemKind::kUnsupportedMediaType,
+                                       "unknown mesh format " + proto::quote_value(name) +
+                                           " (expected obj, ply, off, stl or raw)")};
     }
     const std::string type = req.get_header_value("Content-Type");
     if (const auto format = proto::mesh_format_from_media_type(type)) return *format;
     return proto::Err{make_problem(ProblemKind::kUnsupportedMediaType,
                                    std::string(proto::api_errors::kUnsupportedMeshType) +
-                                       " from Content-Type \"" + type +
-                                       "\": use model/obj, model/stl, application/ply, "
+                                       " from Content-Type " + proto::quote_value(type) +
+                                       ": use model/obj, model/stl, application/ply, "
                                        "application/x-off or application/x-kdrt-mesh, "
                                        "or ?format=obj|ply|off|stl|raw")};
 }

@@ -52,7 +52,7 @@ void Routes::intersect(const httplib::Request& req, httplib::Response& res,
             req, res,
             make_problem(ProblemKind::kUnsupportedMediaType,
                          "intersect " + std::string(proto::api_errors::kUnsupportedRayType) +
-                             ", not \"" + req.get_header_value("Content-Type") + "\""));
+                             ", not " + proto::quote_value(req.get_header_value("Content-Type"))));
     }
     // ?invalid_rays=refuse (default): a ray with a NaN/Inf field makes the KDRR batch a 400
     // naming its index; =miss: such rays are answered as misses (as Embree and Open3D do).
@@ -61,7 +61,7 @@ void Routes::intersect(const httplib::Request& req, httplib::Response& res,
         return reply_problem(
             req, res,
             make_problem(ProblemKind::kBadRequest, "query parameter invalid_rays is " +
-                                                       proto::in_quotes(invalid) +
+                                                       proto::quote_value(invalid) +
                                                        " (expected refuse or miss)"));
     }
     const std::string id = req.matches[1];

@@ -35,7 +35,7 @@ constexpr uint64_t kBytesPerBeam = 64;
 constexpr uint64_t kBytesPerReturn = 96;
 
 proto::Problem field_problem(const std::string& field, const std::string& why) {
-    return make_problem(ProblemKind::kBadRequest, proto::in_quotes(field) + ": " + why);
+    return make_problem(ProblemKind::kBadRequest, proto::quote_value(field) + ": " + why);
 }
 
 /// Completes `request` with the engine (a look-at camera as intrinsics and a pose, a vertical

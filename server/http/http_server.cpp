@@ -4,6 +4,7 @@
 
 #include <algorithm>
 #include <array>
+#include <cctype>
 #include <cstring>
 #include <regex>
 #include <utility>
@@ -143,7 +144,13 @@ struct HttpServer::Impl {
     bool authorized(const httplib::Request& req, httplib::Response& res, bool write) {
         if (tokens.empty()) return true;
         const std::string auth = req.get_header_value("Authorization");
-        if (auth.rfind("Bearer ", 0) != 0) {
+        // RFC 9110 11.1: the scheme is case-insensitive, and one or more spaces end it.
+        const bool bearer =
+            auth.size() > 7 && auth[6] == ' ' &&
+            std::equal(auth.begin(), auth.begin() + 6, "bearer", [](char a, char b) {
+                return std::tolower(static_cast<unsigned char>(a)) == b;
+            });
+        if (!bearer) {
             reply_problem(
                 req, res,
                 make_problem(ProblemKind::kUnauthorized,
@@ -152,7 +159,9 @@ struct HttpServer::Impl {
         }
         // Every configured token is compared, in full: the time taken does not say which
         // (or how much of one) matched.
-        const std::string_view given = std::string_view(auth).substr(7);
+        const std::string_view given = std::string_view(auth).substr(
+            auth.find_first_not_of(' ', 6) == std::string::npos ? auth.size()
+                                                                : auth.find_first_not_of(' ', 6));
         unsigned roles = 0;
         bool found = false;
         for (const ApiToken& t : tokens) {
@@ -464,7 +473,7 @@ struct HttpServer::Impl {
             request_context().route = "unmatched";
             reply_problem(req, res,
                           make_problem(ProblemKind::kUnsupportedMediaType,
-                                       "Content-Encoding " + proto::in_quotes(encoding) +
+                                       "Content-Encoding " + proto::quote_value(encoding) +
                                            " is not accepted; send request bodies "
                                            "uncompressed (identity)"));
             res.set_header("Accept-Encoding", "identity");

@@ -53,7 +53,7 @@ bool has_media_type(const httplib::Request& req, httplib::Response& res, std::st
     reply_problem(req, res,
                   make_problem(proto::ProblemKind::kUnsupportedMediaType,
                                std::string(route) + " expects Content-Type " + std::string(type) +
-                                   ", not \"" + given + "\""));
+                                   ", not " + proto::quote_value(given)));
     return false;
 }
 

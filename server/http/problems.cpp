@@ -5,8 +5,8 @@
 
 namespace kdrt::server {
 
-using proto::in_quotes;
 using proto::ProblemKind;
+using proto::quote_value;
 
 proto::Problem make_problem(ProblemKind kind, std::string detail) {
     proto::Problem p;
@@ -70,7 +70,7 @@ proto::Problem body_too_large_problem(uint64_t limit, const std::string& what) {
 proto::Problem unknown_mesh_problem(const std::string& id) {
     if (!proto::is_mesh_id(id))
         return make_problem(ProblemKind::kUnknownMesh,
-                            in_quotes(id) + " " + std::string(proto::api_errors::kBadMeshId) +
+                            quote_value(id) + " " + std::string(proto::api_errors::kBadMeshId) +
                                 " (64 lower-case hex digits)");
     return make_problem(ProblemKind::kUnknownMesh,
                         std::string(proto::api_errors::kUnknownMesh) + " " + id);
