@@ -20,13 +20,6 @@
 namespace kdrt::test {
 namespace {
 
-std::vector<Isa> supported_isas() {
-    std::vector<Isa> isas;
-    for (Isa isa : {Isa::kScalar, Isa::kSse4, Isa::kAvx2, Isa::kAvx512})
-        if (isa_supported(isa)) isas.push_back(isa);
-    return isas;
-}
-
 bool same_bits(const SceneHit& a, const SceneHit& b) { return std::memcmp(&a, &b, sizeof a) == 0; }
 
 std::string describe(const SceneHit& h) {
@@ -128,6 +121,14 @@ std::vector<Ray> scene_rays(Rng& rng, const Scene& scene, const std::vector<Mesh
         rays.push_back(r);
     }
     return rays;
+}
+
+/// The unit square in z = 0 as two triangles.
+Mesh unit_quad() {
+    Mesh quad;
+    add_triangle(quad, {0, 0, 0}, {1, 0, 0}, {1, 1, 0});
+    add_triangle(quad, {0, 0, 0}, {1, 1, 0}, {0, 1, 0});
+    return quad;
 }
 
 /// A mixed scene: a few meshes, many instances of every kind of transform, overlapping.
@@ -283,9 +284,7 @@ TEST(Scene, InstancesSharingAnEdgeInWorldSpace) {
     // Two unit squares (two triangles each) side by side: instance 1 is instance 0 moved by +1 in
     // x, and instance 2 is a mirrored copy lying on instance 0 (coplanar overlap). Rays aimed at
     // the shared edge x = 1 and at the shared vertices.
-    Mesh quad;
-    add_triangle(quad, {0, 0, 0}, {1, 0, 0}, {1, 1, 0});
-    add_triangle(quad, {0, 0, 0}, {1, 1, 0}, {0, 1, 0});
+    const Mesh quad = unit_quad();
     auto tree = std::make_shared<const KdTree>(build_kdtree(quad));
     Affine3x4 moved;
     moved.m[0][3] = 1.0f;
@@ -762,9 +761,7 @@ TEST(SceneRender, IdentitySceneRendersAsTheMeshInEveryMode) {
 }
 
 TEST(SceneRender, InstancesOfOneMeshGetTheirOwnPrimIdColours) {
-    Mesh quad;
-    add_triangle(quad, {0, 0, 0}, {1, 0, 0}, {1, 1, 0});
-    add_triangle(quad, {0, 0, 0}, {1, 1, 0}, {0, 1, 0});
+    const Mesh quad = unit_quad();
     auto tree = std::make_shared<const KdTree>(build_kdtree(quad));
     Affine3x4 right;
     right.m[0][3] = 1.0f;
