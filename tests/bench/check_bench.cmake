@@ -169,7 +169,13 @@ expect_failure(2 "takes no value" trace "${MESH}" "${primary}" --stats=yes)
 if(EMBREE)
     run_bench(embree_line trace "${MESH}" "${primary}" --reps 1 --compare embree)
     expect_keys("${embree_line}" ${trace_keys} embree_mrays_per_s embree_best_mode ratio
-                embree_build_ms embree_bytes_per_triangle differences)
+                embree_build_ms embree_bytes_per_triangle differences embree_best_flags
+                embree_default_mrays_per_s embree_robust_mrays_per_s embree_robust_best_mode
+                ratio_robust embree_robust_build_ms embree_robust_differences embree_version)
+    # Both scene flags measured: the default's modes unprefixed, the robust scene's prefixed.
+    if(NOT embree_line MATCHES "\"intersect1\":" OR NOT embree_line MATCHES "\"robust_intersect1\":")
+        message(FATAL_ERROR "--compare embree must time both scene flags: ${embree_line}")
+    endif()
 endif()
 
 # generated scenes
@@ -228,7 +234,7 @@ endif()
 if(EMBREE)
     run_bench(render_embree_line render "${MESH}" --res 64 --reps 1 --compare embree)
     expect_keys("${render_embree_line}" ${render_keys} embree_mrays_per_s embree_best_mode embree_fps ratio
-                differences)
+                differences ratio_robust embree_robust_mrays_per_s)
 endif()
 
 # scene instances: a small two-level scene against the merged mesh (and Embree's instancing)

@@ -140,15 +140,21 @@ warm-up pass: closest hits, or occlusion when the batch has flag bit 0 set. Prin
   seconds (tracing only, median of the K passes), seconds_min, mrays_per_s (from the median),
   hits (rays that hit, or are occluded), cpu_util (process CPU seconds per wall second while
   tracing: near `threads` only when the workers had their cores; lower = a noisy measurement)
-With --compare embree it also traces the rays with Embree 3 (RTC_BUILD_QUALITY_HIGH) through
-rtcIntersect1/1M/4/8/16 (rtcOccluded* for occlusion), incoherent and coherent, and adds
-  embree_mrays_per_s and embree_best_mode (the fastest of those), ratio (mrays_per_s divided by
-  embree_mrays_per_s), embree_build_ms, embree_bytes_per_triangle (memory Embree keeps after the
-  build), differences (rays whose answer differs in the best mode: another prim, or t off by
+With --compare embree it also traces the rays with Embree 4 or 3 (RTC_BUILD_QUALITY_HIGH), in two
+scenes: default flags (Embree's fast, non-watertight triangle test) and RTC_SCENE_FLAG_ROBUST
+(watertight, as kdrt's), each through rtcIntersect1/4/8/16 and, with Embree 3, 1M (rtcOccluded*
+for occlusion), incoherent and coherent, and adds
+  embree_mrays_per_s, embree_best_mode and embree_best_flags (default or robust: the fastest of
+  all those), ratio (mrays_per_s divided by embree_mrays_per_s), embree_default_mrays_per_s,
+  embree_robust_mrays_per_s, embree_robust_best_mode and ratio_robust (each flag's own best),
+  embree_build_ms and embree_robust_build_ms, embree_bytes_per_triangle (memory the default
+  scene keeps after the build), embree_version (major), differences (rays whose answer differs in the best mode: another prim, or t off by
   more than 1e-4 relative and 1e-7 of the scene diagonal; for occlusion another bit), ties (of those, rays where both hit at
   the same t on triangles that share a corner, or that kdrt's test hits too: both answers
   right), kdrt_matches_oracle (of the other differences, rays where kdrt's answer is the
-  brute-force oracle's) and embree_modes (Mrays/s of every mode).
+  brute-force oracle's), the same three counts for the robust scene's best mode
+  (embree_robust_differences, embree_robust_ties, embree_robust_kdrt_matches_oracle) and
+  embree_modes (Mrays/s of every mode; the robust scene's prefixed robust_).
 With --stats it traces once more, untimed, with the counting kernels and adds the work per ray:
   steps_per_ray (inner nodes visited), leaves_per_ray, tri_tests_per_ray (a packet's visit or
   test counts once per live lane), packet_visits (node visits by packets) and lane_utilisation
@@ -162,7 +168,7 @@ options:
   --out FILE                 write the answers as KDRH (hits) or KDRO (occlusion) to FILE
   --builder sah|middle       tree builder (default sah)
   --c-isect X                SAH cost of a triangle test relative to a traversal step (default 0.3)
-  --compare embree           also trace with Embree 3 and compare speed and answers
+  --compare embree           also trace with Embree (default and robust) and compare speed and answers
   --stats                    also count the work per ray (an extra, untimed pass)
 )";
 
@@ -204,10 +210,9 @@ loop's overhead is the difference. Prints one JSON line:
   / median), cpu_util, batch_rays, batch_seconds (median), batch_mrays_per_s, and for shadings
   that trace camera rays only (normals, eyelight, depth, primid) overhead = seconds / (spp *
   batch_seconds) - 1: what tiling, ray generation and shading add to tracing the same rays
-With --compare embree the same camera rays also go through Embree 3 (as in `trace --compare
-embree`), adding embree_mrays_per_s, embree_best_mode, embree_fps (camera rays of a frame at
-Embree's best speed), ratio (mrays_per_s / embree_mrays_per_s), embree_build_ms, differences, ties,
-kdrt_matches_oracle and embree_modes.
+With --compare embree the same camera rays also go through Embree (as in `trace --compare
+embree`, both scene flags), adding embree_fps (camera rays of a frame at Embree's best speed) and
+the speed and answer keys of `trace --compare embree` (ratio is mrays_per_s / embree_mrays_per_s).
 
 options:
   --shading MODE    normals, eyelight, depth, primid, ao, diffuse (default eyelight)
@@ -224,7 +229,7 @@ options:
   --out FILE        write the last image: .png/.jpg/.jpeg (8-bit sRGB) or .exr (linear half),
                     through the kdrt-image helper built next to kdrt-bench (kdrt-bench itself
                     does not load OpenImageIO, which would add ~0.2 s to every start)
-  --compare embree  also trace the camera rays with Embree 3
+  --compare embree  also trace the camera rays with Embree (default and robust)
 )";
 
 double ms_since(Clock::time_point start) {
@@ -318,12 +323,37 @@ void write_output(const std::string& path, std::span<const std::byte> bytes) {
 /// The keys both --compare embree outputs end with: how the answers compare, and every mode's
 /// speed.
 void put_embree_answers(Json& line, const EmbreeReport& embree) {
-    line["differences"] = embree.differences;
-    line["ties"] = embree.ties;
-    line["kdrt_matches_oracle"] = embree.kdrt_matches_oracle;
+    const EmbreeSceneReport& best = embree.best();
+    line["differences"] = best.differences;
+    line["ties"] = best.ties;
+    line["kdrt_matches_oracle"] = best.kdrt_matches_oracle;
+    line["embree_robust_differences"] = embree.robust.differences;
+    line["embree_robust_ties"] = embree.robust.ties;
+    line["embree_robust_kdrt_matches_oracle"] = embree.robust.kdrt_matches_oracle;
+    line["embree_version"] = embree.version_major;
     Json modes = Json::object();
-    for (const EmbreeModeTiming& m : embree.modes) modes[m.name] = rounded(m.mrays_per_s, 3);
+    for (const EmbreeSceneReport* scene : {&embree.standard, &embree.robust})
+        for (const EmbreeModeTiming& m : scene->modes) modes[m.name] = rounded(m.mrays_per_s, 3);
     line["embree_modes"] = modes;
+}
+
+/// The speed keys both --compare embree outputs share: Embree's best over both scene flags (the
+/// yardstick of `ratio`), then each flag's own best, and the default scene's build.
+void put_embree_speeds(Json& line, const EmbreeReport& embree, double mrays_per_s) {
+    const EmbreeSceneReport& best = embree.best();
+    auto ratio = [&](double embree_mrays) {
+        return embree_mrays > 0 ? rounded(mrays_per_s / embree_mrays, 4) : 0.0;
+    };
+    line["embree_mrays_per_s"] = rounded(best.best_mrays_per_s, 3);
+    line["embree_best_mode"] = best.best_mode;
+    line["embree_best_flags"] = embree.best_flags();
+    line["ratio"] = ratio(best.best_mrays_per_s);
+    line["embree_default_mrays_per_s"] = rounded(embree.standard.best_mrays_per_s, 3);
+    line["embree_robust_mrays_per_s"] = rounded(embree.robust.best_mrays_per_s, 3);
+    line["embree_robust_best_mode"] = embree.robust.best_mode;
+    line["ratio_robust"] = ratio(embree.robust.best_mrays_per_s);
+    line["embree_build_ms"] = rounded(embree.standard.build_ms, 3);
+    line["embree_robust_build_ms"] = rounded(embree.robust.build_ms, 3);
 }
 
 int run_build(const Args& args) {
@@ -412,7 +442,7 @@ int run_trace(const Args& args) {
     }
     if (compare && !kEmbreeAvailable) {
         throw BenchError(
-            "--compare embree is not available in this build (Embree 3 was not found "
+            "--compare embree is not available in this build (neither Embree 4 nor 3 was found "
             "when it was configured)");
     }
 
@@ -520,12 +550,8 @@ int run_trace(const Args& args) {
     const double wall_total = std::accumulate(seconds.begin(), seconds.end(), 0.0);
     line["cpu_util"] = rounded(wall_total > 0 ? cpu_seconds / wall_total : 0.0, 2);
     if (embree) {
-        line["embree_mrays_per_s"] = rounded(embree->best_mrays_per_s, 3);
-        line["embree_best_mode"] = embree->best_mode;
-        line["ratio"] =
-            embree->best_mrays_per_s > 0 ? rounded(mrays_per_s / embree->best_mrays_per_s, 4) : 0.0;
-        line["embree_build_ms"] = rounded(embree->build_ms, 3);
-        line["embree_bytes_per_triangle"] = rounded(embree->bytes_per_triangle, 2);
+        put_embree_speeds(line, *embree, mrays_per_s);
+        line["embree_bytes_per_triangle"] = rounded(embree->standard.bytes_per_triangle, 2);
         put_embree_answers(line, *embree);
     }
     print_json(line);
@@ -1113,7 +1139,7 @@ int run_render(const Args& args) {
         throw UsageError("option '--compare': '" + *compare + "' is not embree");
     if (compare && !kEmbreeAvailable) {
         throw BenchError(
-            "--compare embree is not available in this build (Embree 3 was not found "
+            "--compare embree is not available in this build (neither Embree 4 nor 3 was found "
             "when it was configured)");
     }
     const bool camera_rays_only =
@@ -1194,13 +1220,9 @@ int run_render(const Args& args) {
         line["overhead"] = rounded(median_seconds / (settings.spp * median_batch) - 1.0, 4);
     }
     if (embree) {
-        line["embree_mrays_per_s"] = rounded(embree->best_mrays_per_s, 3);
-        line["embree_best_mode"] = embree->best_mode;
-        line["embree_fps"] =
-            rounded(embree->best_mrays_per_s * 1e6 / static_cast<double>(stats.primary_rays), 3);
-        line["ratio"] =
-            embree->best_mrays_per_s > 0 ? rounded(mrays_per_s / embree->best_mrays_per_s, 4) : 0.0;
-        line["embree_build_ms"] = rounded(embree->build_ms, 3);
+        put_embree_speeds(line, *embree, mrays_per_s);
+        line["embree_fps"] = rounded(
+            embree->best().best_mrays_per_s * 1e6 / static_cast<double>(stats.primary_rays), 3);
         put_embree_answers(line, *embree);
     }
     if (out_path) line["out"] = *out_path;
