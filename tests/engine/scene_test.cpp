@@ -619,6 +619,10 @@ TEST(SceneDistance, MatchesOracleWithAndWithoutLimitAndSign) {
     box.hi = box.hi + Vec3{1, 1, 1};
     std::vector<Vec3> points;
     for (size_t i = 0; i < scaled(1500); ++i) points.push_back(rng.in_box(box));
+    for (uint32_t g = 0; g < s.scene.size(); ++g) {  // box centres: inside every sphere instance
+        const Aabb w = s.scene.world_bounds(g);
+        points.push_back((w.lo + w.hi) * 0.5f);
+    }
     points.push_back({NAN, 0, 0});
     for (const DistanceOptions options :
          {DistanceOptions{}, DistanceOptions{0.3f, false}, DistanceOptions{INFINITY, true}}) {
