@@ -10,6 +10,7 @@
 
 #include "kdrt/kdtree.h"
 #include "kdrt/mesh.h"
+#include "kdrt/trace.h"
 #include "kdrt/types.h"
 #include "scenes.h"
 
@@ -34,6 +35,14 @@ inline size_t scaled(size_t n) {
 inline uint32_t scaled_res(uint32_t res, uint32_t floor = 32) {
     const double side = static_cast<double>(res) * std::sqrt(std::min(1.0, test_scale()));
     return std::max(floor, static_cast<uint32_t>(side));
+}
+
+/// Every instruction set this CPU can run, narrowest first (the tests run each).
+inline std::vector<Isa> supported_isas() {
+    std::vector<Isa> isas;
+    for (Isa isa : {Isa::kScalar, Isa::kSse4, Isa::kAvx2, Isa::kAvx512})
+        if (isa_supported(isa)) isas.push_back(isa);
+    return isas;
 }
 
 /// splitmix64: small, fast, good enough for test data.
