@@ -15,11 +15,11 @@
 #include <thread>
 #include <utility>
 
-#include "http_server.h"
+#include "core/log.h"
+#include "http/http_server.h"
 #include "kdrt/proto/mesh_id.h"
 #include "kdrt/proto/mesh_io.h"
 #include "kdrt/trace.h"
-#include "log.h"
 #include "service.h"
 
 namespace kdrt::server {

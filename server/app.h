@@ -3,7 +3,7 @@
 /// mark ready, serve; on SIGTERM/SIGINT stop accepting, let in-flight requests finish (bounded
 /// by shutdown_timeout_s) and return 0.
 
-#include "config.h"
+#include "core/config.h"
 
 namespace kdrt::server {
 

@@ -1,4 +1,4 @@
-// kdrt-server: the kdrt HTTP service. See server/config.h for the settings, app.h for the life
+// kdrt-server: the kdrt HTTP service. See server/core/config.h for the settings, app.h for the life
 // cycle and proto/openapi.yaml for the API.
 
 #include <csignal>
@@ -8,9 +8,9 @@
 #include <vector>
 
 #include "app.h"
-#include "config.h"
-#include "log.h"
-#include "store_check.h"
+#include "core/config.h"
+#include "core/log.h"
+#include "store/store_check.h"
 
 extern char** environ;
 

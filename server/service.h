@@ -16,13 +16,13 @@
 #include <utility>
 #include <vector>
 
-#include "buffer_pool.h"
-#include "compute.h"
-#include "config.h"
-#include "jobs.h"
-#include "mesh_cache.h"
-#include "mesh_store.h"
-#include "metrics.h"
+#include "core/buffer_pool.h"
+#include "core/compute.h"
+#include "core/config.h"
+#include "core/jobs.h"
+#include "core/metrics.h"
+#include "store/mesh_cache.h"
+#include "store/mesh_store.h"
 
 namespace kdrt::server {
 

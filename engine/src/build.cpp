@@ -101,7 +101,8 @@ std::vector<TriVerts> make_tri_verts(const Mesh& mesh) {
     return tris;
 }
 
-KdTree build_kdtree(const Mesh& mesh, const BuildOptions& options) {
+KdTree detail::build_kdtree_with(const Mesh& mesh, const BuildOptions& options,
+                                 const BinnedParams& params) {
     const auto start = std::chrono::steady_clock::now();
     validate_mesh(mesh);
     KdTree tree;
@@ -114,13 +115,17 @@ KdTree build_kdtree(const Mesh& mesh, const BuildOptions& options) {
         if (options.builder == Builder::kMiddle) {
             detail::build_middle(by_id, degenerate, tree.bounds, options, sub);
         } else {
-            detail::build_sah(by_id, degenerate, tree.bounds, options, sub);
+            detail::build_binned(by_id, degenerate, tree.bounds, options, params, sub);
         }
     }
     tree.stats.build_ms =
         std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
     detail::finish_tree(tree, std::move(sub), by_id);
     return tree;
+}
+
+KdTree build_kdtree(const Mesh& mesh, const BuildOptions& options) {
+    return detail::build_kdtree_with(mesh, options, detail::BinnedParams{});
 }
 
 }  // namespace kdrt

@@ -1,7 +1,9 @@
 #pragma once
-// Internal: the two builders behind build_kdtree.
+// Internal: the builders behind build_kdtree.
 
 #include <cstdint>
+#include <memory>
+#include <span>
 #include <vector>
 
 #include "build_common.h"
@@ -9,9 +11,64 @@
 
 namespace kdrt::detail {
 
-/// Wald & Havran 2006 SAH build over the non-degenerate triangles into `out`.
-void build_sah(const std::vector<TriVerts>& tris, const std::vector<uint8_t>& degenerate,
-               const Aabb& root, const BuildOptions& options, SubTree& out);
+/// A triangle of a node under construction and its bounds within the node's cell.
+struct PrimBox {
+    Aabb box;
+    uint32_t prim = 0;
+};
+
+/// The exact SAH builder (Wald & Havran 2006, build_sah.cpp), callable on any cell: the whole
+/// mesh, or a node the binned top levels (build_binned.cpp) hand down. One instance serves a whole
+/// build (its per-thread scratch is sized by the triangle count); build() may be called
+/// concurrently from oneTBB tasks of the same arena.
+class ExactSahBuilder {
+public:
+    ExactSahBuilder(const std::vector<TriVerts>& tris, const BuildOptions& options);
+    ~ExactSahBuilder();
+    ExactSahBuilder(const ExactSahBuilder&) = delete;
+    ExactSahBuilder& operator=(const ExactSahBuilder&) = delete;
+
+    /// Builds the subtree over `prims` into slot 0 of `out`, its root at depth `depth`. Each
+    /// box must be the triangle clipped to `cell` (clip_to_cell), and prims must be in
+    /// increasing triangle order (the event sort relies on it), each triangle at most once.
+    void build(SubTree& out, const Aabb& cell, std::span<const PrimBox> prims, uint32_t depth);
+
+private:
+    struct Impl;
+    std::unique_ptr<Impl> impl_;
+};
+
+/// Bounds of `tri` clipped to the closed box `cell` (Sutherland-Hodgman in double, rounded
+/// outwards to float), or, where clipping leaves nothing (a triangle that only touches the cell
+/// within rounding), its vertex bounds within the cell. False if even those do not overlap.
+bool clip_to_cell(const TriVerts& tri, const Aabb& cell, Aabb& out);
+
+/// True only if `tri` is clearly apart from `cell`: it misses the cell grown by a margin far
+/// larger than rounding errors (a triangle that merely touches the cell is never reported).
+bool misses_cell(const TriVerts& tri, const Aabb& cell);
+
+/// Bounds of the triangle's vertices intersected with `cell`; false if they do not overlap.
+bool vertex_bounds_in_cell(const TriVerts& tri, const Aabb& cell, Aabb& out);
+
+/// Where the binned top levels hand over to the exact sweep.
+struct BinnedParams {
+    /// Nodes with fewer references than this are built by the exact sweep (UINT32_MAX: the
+    /// whole build is exact; 0: binned as long as the bins find a split that beats a leaf).
+    uint32_t exact_below = 4096;
+    uint32_t bins = 64;  ///< per axis, clamped to [4, 256]
+};
+
+/// SAH build with min-max binned splits (Shevtsov et al. 2007, all three axes in one pass,
+/// parallel over references) on nodes of at least params.exact_below references, and the exact
+/// sweep below. Deterministic: byte-identical output at any thread count.
+void build_binned(const std::vector<TriVerts>& tris, const std::vector<uint8_t>& degenerate,
+                  const Aabb& root, const BuildOptions& options, const BinnedParams& params,
+                  SubTree& out);
+
+/// build_kdtree with explicit binning parameters (build_kdtree uses the defaults); tests use it to
+/// force the binned or the exact phase.
+[[nodiscard]] KdTree build_kdtree_with(const Mesh& mesh, const BuildOptions& options,
+                                       const BinnedParams& params);
 
 /// The "hack" tree: middle of the largest extent, fixed leaf size and depth. Baseline only.
 void build_middle(const std::vector<TriVerts>& tris, const std::vector<uint8_t>& degenerate,

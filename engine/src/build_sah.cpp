@@ -33,6 +33,7 @@
 #include <cstring>
 #include <limits>
 #include <memory>
+#include <span>
 #include <vector>
 
 #include <tbb/enumerable_thread_specific.h>
@@ -213,8 +214,9 @@ constexpr uint32_t kParallelSubtrees = 4096;  // nodes at least this big build c
 constexpr size_t kParallelAxes = 1u
                                  << 15;  // events per axis above which axes/chunks run concurrently
 constexpr size_t kChunk = 1u << 14;      // events per chunk of a parallel sweep
-constexpr size_t kPooledEvents = 1u << 13;  // buffers up to this size are recycled per thread
-constexpr size_t kPoolSlots = 48;           // at most this many free buffers kept per thread
+constexpr size_t kPooledEvents = 1u << 13;     // buffers up to this size are recycled per thread
+constexpr size_t kPoolSlots = 48;              // at most this many free buffers kept per thread
+constexpr size_t kRadixSortEvents = 1u << 14;  // a node's first sort: radix from this many events
 
 /// Per-thread scratch memory. Used only between TBB wait points, or inside isolated parallel
 /// regions that touch nothing but the calling node's data, so nested tasks never see it half-used.
@@ -630,40 +632,83 @@ void radix_sort_events(Event* ev, size_t n) {
 
 }  // namespace
 
-void build_sah(const std::vector<TriVerts>& tris, const std::vector<uint8_t>& degenerate,
-               const Aabb& root, const BuildOptions& options, SubTree& out) {
-    // The root's events go straight into its buffer (at most two per triangle and axis, plus the
-    // sentinel), in triangle order; each axis is then radix-sorted.
+struct ExactSahBuilder::Impl {
+    SahBuilder builder;
+};
+
+ExactSahBuilder::ExactSahBuilder(const std::vector<TriVerts>& tris, const BuildOptions& options)
+    : impl_(std::make_unique<Impl>(Impl{SahBuilder(tris, options)})) {}
+
+ExactSahBuilder::~ExactSahBuilder() = default;
+
+void ExactSahBuilder::build(SubTree& out, const Aabb& cell, std::span<const PrimBox> prims,
+                            uint32_t depth) {
+    // The node's events go straight into its buffer (at most two per triangle and axis, plus the
+    // sentinel), in triangle order; each axis is then sorted.
     NodeInput in;
-    in.cell = root;
-    const size_t stride = 2 * tris.size() + 1;
+    in.cell = cell;
+    in.depth = depth;
+    const size_t stride = 2 * prims.size() + 1;
     in.buffer = {std::make_unique_for_overwrite<Event[]>(3 * stride), 3 * stride};
     for (int a = 0; a < 3; ++a) in.offset[a] = a * stride;
     Event* const ev = in.buffer.data.get();
-    for (uint32_t prim = 0; prim < tris.size(); ++prim) {
-        if (degenerate[prim]) continue;
-        Aabb box;
-        if (!vertex_bounds_in(tris[prim], root, box)) continue;
+    for (const PrimBox& p : prims) {
         for (int a = 0; a < 3; ++a) {
             Event* dst = ev + in.offset[a] + in.count[a];
-            if (box.lo[a] == box.hi[a]) {
-                dst[0] = make_event(box.lo[a], kPlanar, prim);
+            if (p.box.lo[a] == p.box.hi[a]) {
+                dst[0] = make_event(p.box.lo[a], kPlanar, p.prim);
                 in.count[a] += 1;
             } else {
-                dst[0] = make_event(box.lo[a], kStart, prim);
-                dst[1] = make_event(box.hi[a], kEnd, prim);
+                dst[0] = make_event(p.box.lo[a], kStart, p.prim);
+                dst[1] = make_event(p.box.hi[a], kEnd, p.prim);
                 in.count[a] += 2;
             }
         }
-        ++in.prim_count;
     }
+    in.prim_count = static_cast<uint32_t>(prims.size());
     auto sort_axis = [&](int a) {
-        radix_sort_events(ev + in.offset[a], in.count[a]);
-        ev[in.offset[a] + in.count[a]] = kSentinel;
+        Event* first = ev + in.offset[a];
+        // Both give the order of the 64-bit integers; the radix sort (stable, prims ascending)
+        // only pays on long lists.
+        if (in.count[a] >= kRadixSortEvents) {
+            radix_sort_events(first, in.count[a]);
+        } else {
+            std::sort(first, first + in.count[a]);
+        }
+        first[in.count[a]] = kSentinel;
     };
-    tbb::parallel_invoke([&] { sort_axis(0); }, [&] { sort_axis(1); }, [&] { sort_axis(2); });
-    SahBuilder builder(tris, options);
-    builder.build_root(out, std::move(in));
+    if (prims.size() >= kParallelSubtrees) {
+        tbb::this_task_arena::isolate([&] {
+            tbb::parallel_invoke([&] { sort_axis(0); }, [&] { sort_axis(1); },
+                                 [&] { sort_axis(2); });
+        });
+    } else {
+        for (int a = 0; a < 3; ++a) sort_axis(a);
+    }
+    impl_->builder.build_root(out, std::move(in));
+}
+
+bool clip_to_cell(const TriVerts& tri, const Aabb& cell, Aabb& out) {
+    return clipped_bounds(tri, cell, out) || vertex_bounds_in(tri, cell, out);
+}
+
+bool misses_cell(const TriVerts& tri, const Aabb& cell) {
+    // Grown by 2^-20 of the cell's size or position, whichever is larger: far more than the
+    // clipping's rounding, so a triangle that touches the cell is never reported as missing it.
+    Aabb grown = cell;
+    for (int a = 0; a < 3; ++a) {
+        const float margin =
+            std::max({std::fabs(cell.lo[a]), std::fabs(cell.hi[a]), cell.hi[a] - cell.lo[a]}) *
+            0x1p-20f;
+        grown.lo[a] -= margin;
+        grown.hi[a] += margin;
+    }
+    Aabb unused;
+    return !clipped_bounds(tri, grown, unused);
+}
+
+bool vertex_bounds_in_cell(const TriVerts& tri, const Aabb& cell, Aabb& out) {
+    return vertex_bounds_in(tri, cell, out);
 }
 
 }  // namespace kdrt::detail

@@ -15,6 +15,7 @@
 #include <span>
 #include <string>
 
+#include "kdrt/scene.h"
 #include "kdrt/trace.h"
 #include "render_frame.h"
 #include "render_internal.h"
@@ -42,10 +43,12 @@ constexpr uint64_t kProgressSteps = 256;
 // ---------------------------------------------------------------------------------------------
 // Tracing
 
-/// The tree's own block queries: direct calls, no indirection per block or ray.
+/// The tree's own block queries: direct calls, no indirection per block or ray. A mesh has no
+/// geometry ids (Frame::triangle does not read them).
 struct TreeTracer {
     const KdTree& tree;
-    void intersect(std::span<const Ray> rays, std::span<Hit> hits) const noexcept {
+    void intersect(std::span<const Ray> rays, std::span<Hit> hits,
+                   std::span<uint32_t> /*geoms*/) const noexcept {
         intersect_block(tree, rays, hits);
     }
     void occluded(std::span<const Ray> rays, std::span<uint8_t> out) const noexcept {
@@ -56,11 +59,31 @@ struct TreeTracer {
 /// Queries through caller-supplied functions (tests: the brute-force oracle), one call per block.
 struct FunctionTracer {
     const detail::TraceFunctions& functions;
-    void intersect(std::span<const Ray> rays, std::span<Hit> hits) const noexcept {
+    void intersect(std::span<const Ray> rays, std::span<Hit> hits,
+                   std::span<uint32_t> /*geoms*/) const noexcept {
         functions.intersect(functions.context, rays, hits);
     }
     void occluded(std::span<const Ray> rays, std::span<uint8_t> out) const noexcept {
         functions.occluded(functions.context, rays, out);
+    }
+};
+
+/// A scene's block queries (kdrt/scene.h): the mesh-level part of each answer into `hits`, the
+/// geometry ids into `geoms`. Blocks are at most a tile's pixels.
+struct SceneTracer {
+    const Scene& scene;
+    void intersect(std::span<const Ray> rays, std::span<Hit> hits,
+                   std::span<uint32_t> geoms) const noexcept {
+        std::array<SceneHit, detail::kMaxTilePixels> answers;
+        const std::span<SceneHit> out(answers.data(), rays.size());
+        intersect_block(scene, rays, out);
+        for (size_t i = 0; i < rays.size(); ++i) {
+            hits[i] = out[i].hit();
+            geoms[i] = out[i].geom;
+        }
+    }
+    void occluded(std::span<const Ray> rays, std::span<uint8_t> out) const noexcept {
+        occluded_block(scene, rays, out);
     }
 };
 
@@ -133,7 +156,8 @@ uint64_t render_tile(const Frame& f, const Tracer& tracer, uint32_t tile_index, 
             for (uint32_t i = 0; i < n; ++i)
                 s.rays[i] = f.camera_ray(tile.px(i), tile.py(i), sample);
         }
-        tracer.intersect(std::span<const Ray>(s.rays.data(), n), std::span<Hit>(s.hits.data(), n));
+        tracer.intersect(std::span<const Ray>(s.rays.data(), n), std::span<Hit>(s.hits.data(), n),
+                         std::span<uint32_t>(s.geoms.data(), n));
         rays += n;
         switch (f.settings.shading) {
             case Shading::kAo:
@@ -218,10 +242,10 @@ private:
 };
 
 template <class Tracer>
-Image render_frame(const KdTree& tree, const RenderSettings& settings, const Tracer& tracer,
-                   const RenderControl& control, RenderStats* stats) {
+Image render_frame(const KdTree* tree, const Scene* scene, const RenderSettings& settings,
+                   const Tracer& tracer, const RenderControl& control, RenderStats* stats) {
     const auto start = Clock::now();
-    const Frame frame = make_frame(tree, settings);
+    const Frame frame = make_frame(tree, scene, settings);
     Image image;
     image.width = frame.region.width;
     image.height = frame.region.height;
@@ -267,12 +291,17 @@ Image render_frame(const KdTree& tree, const RenderSettings& settings, const Tra
 
 Image render(const KdTree& tree, const RenderSettings& settings, const RenderControl& control,
              RenderStats* stats) {
-    return render_frame(tree, settings, TreeTracer{tree}, control, stats);
+    return render_frame(&tree, nullptr, settings, TreeTracer{tree}, control, stats);
+}
+
+Image render(const Scene& scene, const RenderSettings& settings, const RenderControl& control,
+             RenderStats* stats) {
+    return render_frame(nullptr, &scene, settings, SceneTracer{scene}, control, stats);
 }
 
 std::vector<Ray> render_camera_rays(const KdTree& tree, const RenderSettings& settings,
                                     uint32_t sample) {
-    const Frame frame = make_frame(tree, settings);
+    const Frame frame = make_frame(&tree, nullptr, settings);
     if (sample >= settings.spp) {
         render_fail("camera ray sample " + std::to_string(sample) + " must be below spp " +
                     std::to_string(settings.spp));
@@ -291,7 +320,7 @@ namespace detail {
 
 Image render_with(const KdTree& tree, const RenderSettings& settings, const TraceFunctions& trace,
                   const RenderControl& control, RenderStats* stats) {
-    return render_frame(tree, settings, FunctionTracer{trace}, control, stats);
+    return render_frame(&tree, nullptr, settings, FunctionTracer{trace}, control, stats);
 }
 
 }  // namespace detail

@@ -11,12 +11,11 @@ PixelRegion region_of(const RenderSettings& s) noexcept {
     return s.region ? *s.region : PixelRegion{0, 0, s.width, s.height};
 }
 
-Camera make_camera(const KdTree& tree, const RenderSettings& s) {
+Camera make_camera(const Aabb& bounds, const RenderSettings& s) {
     try {
         const CameraSpec spec =
-            s.camera
-                ? *s.camera
-                : default_camera(tree.bounds, static_cast<float>(static_cast<double>(s.width) /
+            s.camera ? *s.camera
+                     : default_camera(bounds, static_cast<float>(static_cast<double>(s.width) /
                                                                  static_cast<double>(s.height)));
         return Camera(spec, s.width, s.height);
     } catch (const CameraError& e) {
@@ -34,17 +33,19 @@ SampleGrid sample_grid(uint32_t spp) noexcept {
 
 }  // namespace
 
-Frame make_frame(const KdTree& tree, const RenderSettings& s) {
+Frame make_frame(const KdTree* tree, const Scene* scene, const RenderSettings& s) {
     validate_render_settings(s);
-    const Aabb box = scene_box(tree.bounds);
+    const Aabb& bounds = scene ? scene->bounds() : tree->bounds;
+    const Aabb box = scene_box(bounds);
     const float diag = diagonal(box);
     const PixelRegion region = region_of(s);
     const uint32_t tile = s.tile_size;
     return Frame{
         .settings = s,
-        .camera = make_camera(tree, s),
+        .camera = make_camera(bounds, s),
         .region = region,
         .tree = tree,
+        .scene = scene,
         .channels = s.alpha ? 4u : 3u,
         .tiles_x = (region.width + tile - 1) / tile,
         .tiles_y = (region.height + tile - 1) / tile,

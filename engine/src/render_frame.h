@@ -11,6 +11,7 @@
 #include "kdrt/camera.h"
 #include "kdrt/kdtree.h"
 #include "kdrt/render.h"
+#include "kdrt/scene.h"
 #include "random.h"
 
 namespace kdrt::detail {
@@ -29,12 +30,15 @@ struct SampleGrid {
     uint32_t rows = 1;
 };
 
+struct TileScratch;
+
 /// Everything fixed for one render.
 struct Frame {
     const RenderSettings& settings;
     Camera camera;
     PixelRegion region;
-    const KdTree& tree;  ///< for the hit triangles' normals (KdTree::triangle)
+    const KdTree* tree;  ///< a mesh render: the hit triangles (KdTree::triangle); else null
+    const Scene* scene;  ///< a scene render: the hit triangles (world_triangle); else null
     uint32_t channels;
     uint32_t tiles_x, tiles_y;
     SampleGrid grid;
@@ -57,11 +61,14 @@ struct Frame {
         }
         return camera.ray(static_cast<float>(x) + jx, static_cast<float>(y) + jy);
     }
+
+    /// The world-space triangle of the hit in slot i of a tile's scratch.
+    [[nodiscard]] TriVerts triangle(const TileScratch& s, uint32_t i) const noexcept;
 };
 
 /// Validates `s` (validate_render_settings) and fixes everything else of the render: camera,
-/// region, tiles, stratification grid, ray offsets and lengths.
-[[nodiscard]] Frame make_frame(const KdTree& tree, const RenderSettings& s);
+/// region, tiles, stratification grid, ray offsets and lengths. One of tree and scene is given.
+[[nodiscard]] Frame make_frame(const KdTree* tree, const Scene* scene, const RenderSettings& s);
 
 /// A tile's pixels, in Morton order: pixel i is (x + dx[i], y + dy[i]) of the full frame.
 struct TilePixels {
@@ -89,6 +96,13 @@ struct TileScratch {
     std::array<float, kMaxTilePixels> ray_weight;     ///< per ray: light or throughput weight
     std::array<float, kMaxTilePixels> value;          ///< per tile pixel: this sample's grey value
     std::array<std::array<float, 4>, kMaxTilePixels> sum;  ///< per tile pixel: RGB + coverage
+    std::array<uint32_t, kMaxTilePixels> geoms;  ///< scene renders: the geometry id of hits[i]
 };
+
+/// The world-space triangle of hit i of `s`.
+inline TriVerts Frame::triangle(const TileScratch& s, uint32_t i) const noexcept {
+    return scene ? world_triangle(*scene, s.geoms[i], s.hits[i].prim)
+                 : tree->triangle(s.hits[i].prim);
+}
 
 }  // namespace kdrt::detail

@@ -41,9 +41,10 @@ inline Vec3 display_normal(const TriVerts& tri, Vec3 dir) noexcept {
     return dot(normal, dir) > 0.0f ? normal * -1.0f : normal;
 }
 
-/// A fixed colour per triangle id: three bytes of a hash of the id.
-inline std::array<float, 3> prim_colour(uint32_t prim) noexcept {
-    const uint64_t h = mix64(0x6B64727450726D49ull ^ prim);
+/// A fixed colour per triangle id (and geometry id, in a scene; 0 for a mesh): three bytes of a
+/// hash of both.
+inline std::array<float, 3> prim_colour(uint32_t prim, uint32_t geom) noexcept {
+    const uint64_t h = mix64(0x6B64727450726D49ull ^ (uint64_t{geom} << 32 | prim));
     return {static_cast<float>(h & 0xFFu) / 255.0f, static_cast<float>((h >> 8) & 0xFFu) / 255.0f,
             static_cast<float>((h >> 16) & 0xFFu) / 255.0f};
 }
@@ -70,19 +71,18 @@ void shade_primary(const Frame& f, const TilePixels& tile, TileScratch& s) noexc
             continue;
         }
         if constexpr (kShading == Shading::kNormals) {
-            const Vec3 n = display_normal(f.tree.triangle(hit.prim), direction(s.rays[i]));
+            const Vec3 n = display_normal(f.triangle(s, i), direction(s.rays[i]));
             add(s.sum[i], 0.5f * n.x + 0.5f, 0.5f * n.y + 0.5f, 0.5f * n.z + 0.5f, 1.0f);
         } else if constexpr (kShading == Shading::kEyelight) {
             const Vec3 d = direction(s.rays[i]);
             // Camera directions are unit vectors; the clamp only absorbs rounding.
-            const float c =
-                std::min(1.0f, std::fabs(dot(display_normal(f.tree.triangle(hit.prim), d), d)));
+            const float c = std::min(1.0f, std::fabs(dot(display_normal(f.triangle(s, i), d), d)));
             add(s.sum[i], c, c, c, 1.0f);
         } else if constexpr (kShading == Shading::kDepth) {
             add(s.sum[i], hit.t, hit.t, hit.t, 1.0f);
         } else {
             static_assert(kShading == Shading::kPrimId);
-            const auto c = prim_colour(hit.prim);
+            const auto c = prim_colour(hit.prim, f.scene ? s.geoms[i] : 0u);
             add(s.sum[i], c[0], c[1], c[2], 1.0f);
         }
     }
@@ -97,8 +97,8 @@ inline uint32_t gather_surfaces(const Frame& f, const TilePixels& tile, TileScra
             add_background(f, s.sum[i]);
             continue;
         }
-        s.surfaces[count] = surface_at<NormalScaling::kReciprocal>(f.tree.triangle(s.hits[i].prim),
-                                                                   s.rays[i], s.hits[i], f.offset);
+        s.surfaces[count] = surface_at<NormalScaling::kReciprocal>(f.triangle(s, i), s.rays[i],
+                                                                   s.hits[i], f.offset);
         s.path_pixel[count] = static_cast<uint16_t>(i);
         ++count;
     }
@@ -216,7 +216,8 @@ uint64_t shade_diffuse(const Frame& f, const Tracer& tracer, const TilePixels& t
         }
         if (count == 0) break;
         tracer.intersect(std::span<const Ray>(s.rays.data(), count),
-                         std::span<Hit>(s.hits.data(), count));
+                         std::span<Hit>(s.hits.data(), count),
+                         std::span<uint32_t>(s.geoms.data(), count));
         rays += count;
         // Compact the surviving paths in place: ray r belongs to path ray_path[r] >= r >= the
         // slot written, so every slot is read before it is overwritten.
@@ -227,8 +228,8 @@ uint64_t shade_diffuse(const Frame& f, const Tracer& tracer, const TilePixels& t
                 s.value[pixel] += s.ray_weight[r] * f.settings.sky;
                 continue;
             }
-            s.surfaces[live] = surface_at<NormalScaling::kReciprocal>(
-                f.tree.triangle(s.hits[r].prim), s.rays[r], s.hits[r], f.offset);
+            s.surfaces[live] = surface_at<NormalScaling::kReciprocal>(f.triangle(s, r), s.rays[r],
+                                                                      s.hits[r], f.offset);
             s.path_pixel[live] = static_cast<uint16_t>(pixel);
             s.throughput[live] = s.ray_weight[r];
             ++live;

@@ -14,6 +14,7 @@
 #include "kdrt/camera.h"
 #include "kdrt/query.h"
 #include "kdrt/trace.h"
+#include "scan_internal.h"
 
 namespace kdrt {
 namespace {
@@ -189,16 +190,13 @@ Ray lidar_ray(const LidarSpec& spec, uint32_t channel, uint32_t azimuth_index) n
     return pose_ray(spec.pose, v, spec.min_range, spec.max_range, nullptr);
 }
 
-DepthImage scan_pinhole(const KdTree& tree, const PinholeSpec& spec) {
-    validate(spec);
+namespace detail {
+
+void pinhole_rays(const PinholeSpec& spec, std::vector<Ray>& rays, std::vector<double>& cosines) {
     const uint32_t w = spec.intrinsics.width, h = spec.intrinsics.height;
     const size_t n = static_cast<size_t>(w) * h;
-    DepthImage image;
-    image.width = w;
-    image.height = h;
-    image.kind = spec.kind;
-    std::vector<Ray> rays(n);
-    std::vector<double> cosines(spec.kind == DepthKind::kDepth ? n : 0);
+    rays.resize(n);
+    cosines.assign(spec.kind == DepthKind::kDepth ? n : 0, 0.0);
     tbb::parallel_for(tbb::blocked_range<uint32_t>(0, h, kRowBlock),
                       [&](const tbb::blocked_range<uint32_t>& rows) {
                           for (uint32_t j = rows.begin(); j != rows.end(); ++j) {
@@ -209,36 +207,11 @@ DepthImage scan_pinhole(const KdTree& tree, const PinholeSpec& spec) {
                               }
                           }
                       });
-    std::vector<Hit> hits(n);
-    intersect(tree, rays, hits);
-    image.depth.resize(n);
-    image.prim.resize(n);
-    if (spec.normals) image.normals.resize(n);
-    tbb::parallel_for(
-        tbb::blocked_range<size_t>(0, n, 4096), [&](const tbb::blocked_range<size_t>& r) {
-            for (size_t p = r.begin(); p != r.end(); ++p) {
-                const Hit& hit = hits[p];
-                if (!hit.is_hit()) {
-                    image.depth[p] = std::numeric_limits<float>::infinity();
-                    image.prim[p] = kNoHit;
-                    if (spec.normals) image.normals[p] = Vec3{};
-                    continue;
-                }
-                image.depth[p] = cosines.empty()
-                                     ? hit.t
-                                     : static_cast<float>(static_cast<double>(hit.t) * cosines[p]);
-                image.prim[p] = hit.prim;
-                if (spec.normals) image.normals[p] = triangle_normal(tree.triangle(hit.prim));
-            }
-        });
-    return image;
 }
 
-PointCloud scan_lidar(const KdTree& tree, const LidarSpec& spec) {
-    validate(spec);
-    const uint32_t channels = static_cast<uint32_t>(spec.elevation_deg.size());
-    const size_t beams = static_cast<size_t>(channels) * spec.azimuth_steps;
-    std::vector<Ray> rays(beams);
+std::vector<Ray> lidar_rays(const LidarSpec& spec) {
+    const auto channels = static_cast<uint32_t>(spec.elevation_deg.size());
+    std::vector<Ray> rays(static_cast<size_t>(channels) * spec.azimuth_steps);
     tbb::parallel_for(tbb::blocked_range<uint32_t>(0, spec.azimuth_steps, 16),
                       [&](const tbb::blocked_range<uint32_t>& steps) {
                           for (uint32_t a = steps.begin(); a != steps.end(); ++a)
@@ -246,6 +219,51 @@ PointCloud scan_lidar(const KdTree& tree, const LidarSpec& spec) {
                                   rays[static_cast<size_t>(a) * channels + c] =
                                       lidar_ray(spec, c, a);
                       });
+    return rays;
+}
+
+}  // namespace detail
+
+DepthImage scan_pinhole(const KdTree& tree, const PinholeSpec& spec) {
+    validate(spec);
+    const uint32_t w = spec.intrinsics.width, h = spec.intrinsics.height;
+    const size_t n = static_cast<size_t>(w) * h;
+    DepthImage image;
+    image.width = w;
+    image.height = h;
+    image.kind = spec.kind;
+    std::vector<Ray> rays;
+    std::vector<double> cosines;
+    detail::pinhole_rays(spec, rays, cosines);
+    std::vector<Hit> hits(n);
+    intersect(tree, rays, hits);
+    image.depth.resize(n);
+    image.prim.resize(n);
+    if (spec.normals) image.normals.resize(n);
+    tbb::parallel_for(tbb::blocked_range<size_t>(0, n, 4096),
+                      [&](const tbb::blocked_range<size_t>& r) {
+                          for (size_t p = r.begin(); p != r.end(); ++p) {
+                              const Hit& hit = hits[p];
+                              if (!hit.is_hit()) {
+                                  image.depth[p] = std::numeric_limits<float>::infinity();
+                                  image.prim[p] = kNoHit;
+                                  if (spec.normals) image.normals[p] = Vec3{};
+                                  continue;
+                              }
+                              image.depth[p] = detail::pinhole_depth(hit.t, cosines, p);
+                              image.prim[p] = hit.prim;
+                              if (spec.normals)
+                                  image.normals[p] = triangle_normal(tree.triangle(hit.prim));
+                          }
+                      });
+    return image;
+}
+
+PointCloud scan_lidar(const KdTree& tree, const LidarSpec& spec) {
+    validate(spec);
+    const uint32_t channels = static_cast<uint32_t>(spec.elevation_deg.size());
+    const size_t beams = static_cast<size_t>(channels) * spec.azimuth_steps;
+    const std::vector<Ray> rays = detail::lidar_rays(spec);
     AllHitsOptions options;
     options.max_hits = spec.returns;
     options.merge_coincident = true;

@@ -169,7 +169,13 @@ expect_failure(2 "takes no value" trace "${MESH}" "${primary}" --stats=yes)
 if(EMBREE)
     run_bench(embree_line trace "${MESH}" "${primary}" --reps 1 --compare embree)
     expect_keys("${embree_line}" ${trace_keys} embree_mrays_per_s embree_best_mode ratio
-                embree_build_ms embree_bytes_per_triangle differences)
+                embree_build_ms embree_bytes_per_triangle differences embree_best_flags
+                embree_default_mrays_per_s embree_robust_mrays_per_s embree_robust_best_mode
+                ratio_robust embree_robust_build_ms embree_robust_differences embree_version)
+    # Both scene flags measured: the default's modes unprefixed, the robust scene's prefixed.
+    if(NOT embree_line MATCHES "\"intersect1\":" OR NOT embree_line MATCHES "\"robust_intersect1\":")
+        message(FATAL_ERROR "--compare embree must time both scene flags: ${embree_line}")
+    endif()
 endif()
 
 # generated scenes
@@ -228,8 +234,27 @@ endif()
 if(EMBREE)
     run_bench(render_embree_line render "${MESH}" --res 64 --reps 1 --compare embree)
     expect_keys("${render_embree_line}" ${render_keys} embree_mrays_per_s embree_best_mode embree_fps ratio
-                differences)
+                differences ratio_robust embree_robust_mrays_per_s)
 endif()
+
+# scene instances: a small two-level scene against the merged mesh (and Embree's instancing)
+set(scene_keys command kind instances bytes_per_instance pose_update_ms scene_build_ms top_nodes kinds)
+set(kind_keys kind rays merged_mrays_per_s scene_mrays_per_s ratio_vs_merged cpu_util
+    differences_vs_merged)
+set(scene_compare)
+if(EMBREE)
+    set(scene_compare --compare embree)
+    list(APPEND scene_keys embree_pose_update_ms)
+    list(APPEND kind_keys embree_mrays_per_s embree_best_mode ratio_vs_embree differences_vs_embree)
+endif()
+run_bench(scene_line scene instances --from sphere --copies 9 --res 32 --reps 1 ${scene_compare})
+expect_keys("${scene_line}" ${scene_keys})
+expect_value("${scene_line}" instances 9)
+foreach(k 0 1 2 3)  # primary, shadow, diffuse, random
+    string(JSON kind_line GET "${scene_line}" kinds ${k})
+    expect_keys("${kind_line}" ${kind_keys})
+endforeach()
+expect_failure(2 "--compare" scene instances --from sphere --compare optix)
 
 # exit codes: 2 for the command line, 1 for a failed run naming the file
 expect_failure(2 "missing argument RAYS.kdrr" trace "${MESH}")

@@ -1,6 +1,11 @@
 #include "embree_compare.h"
 
+// Embree 4 and 3 through their public headers: CMake passes the major version it found.
+#if KDRT_EMBREE_MAJOR >= 4
+#include <embree4/rtcore.h>
+#else
 #include <embree3/rtcore.h>
+#endif
 #include <sys/types.h>
 #include <tbb/blocked_range.h>
 #include <tbb/parallel_for.h>
@@ -11,6 +16,7 @@
 #include <chrono>
 #include <cmath>
 #include <cstring>
+#include <iterator>
 #include <limits>
 #include <memory>
 #include <mutex>
@@ -32,6 +38,66 @@ constexpr size_t kBlockRays = 256;
 
 // Relative t tolerance of the answer comparison (kdrt and Embree use different triangle tests).
 constexpr double kRelativeTolerance = 1e-4;
+
+// Embree 4 replaced the intersect context (rtcInitIntersectContext, passed before the rays) by
+// optional argument structs passed after them, and dropped the ray-stream calls (rtc*1M).
+// QueryArgs holds what a query call needs; query() and query_packet() pass it where the API
+// version wants it.
+#if RTC_VERSION_MAJOR >= 4
+constexpr bool kHasRayStreams = false;
+
+class QueryArgs {
+public:
+    explicit QueryArgs(bool coherent) {
+        rtcInitIntersectArguments(&intersect_);
+        rtcInitOccludedArguments(&occluded_);
+        const RTCRayQueryFlags flags =
+            coherent ? RTC_RAY_QUERY_FLAG_COHERENT : RTC_RAY_QUERY_FLAG_INCOHERENT;
+        intersect_.flags = flags;
+        occluded_.flags = flags;
+    }
+    RTCIntersectArguments* intersect_args() noexcept { return &intersect_; }
+    RTCOccludedArguments* occluded_args() noexcept { return &occluded_; }
+
+private:
+    RTCIntersectArguments intersect_;
+    RTCOccludedArguments occluded_;
+};
+
+template <typename Fn, typename Rays, typename Args>
+void query(Fn fn, RTCScene scene, Rays* rays, Args* args) {
+    fn(scene, rays, args);
+}
+template <typename Fn, typename Rays, typename Args>
+void query_packet(Fn fn, const int* valid, RTCScene scene, Rays* rays, Args* args) {
+    fn(valid, scene, rays, args);
+}
+#else
+constexpr bool kHasRayStreams = true;
+
+class QueryArgs {
+public:
+    explicit QueryArgs(bool coherent) {
+        rtcInitIntersectContext(&context_);
+        context_.flags =
+            coherent ? RTC_INTERSECT_CONTEXT_FLAG_COHERENT : RTC_INTERSECT_CONTEXT_FLAG_INCOHERENT;
+    }
+    RTCIntersectContext* intersect_args() noexcept { return &context_; }
+    RTCIntersectContext* occluded_args() noexcept { return &context_; }
+
+private:
+    RTCIntersectContext context_;
+};
+
+template <typename Fn, typename Rays, typename Args>
+void query(Fn fn, RTCScene scene, Rays* rays, Args* args) {
+    fn(scene, args, rays);
+}
+template <typename Fn, typename Rays, typename Args>
+void query_packet(Fn fn, const int* valid, RTCScene scene, Rays* rays, Args* args) {
+    fn(valid, scene, args, rays);
+}
+#endif
 
 /// Error and memory bookkeeping shared with Embree's callbacks (called from any thread).
 struct DeviceState {
@@ -146,32 +212,33 @@ uint8_t read_occluded(const EmbreeRay& ray, int lane) noexcept {
     }
 }
 
-/// Traces rays [begin, end) with the given API shape; `W` = 1 (rtc*1), 0 (rtc*1M stream) or a
-/// packet width. Answers go to hits[i] or occluded[i].
+/// Traces rays [begin, end) with the given API shape; `W` = 1 (rtc*1), 0 (rtc*1M stream, Embree 3
+/// only) or a packet width. Answers go to hits[i] or occluded[i].
 template <int W, bool Occlusion>
-void trace_block(RTCScene scene, RTCIntersectContext& context, std::span<const Ray> rays,
-                 size_t begin, size_t end, std::span<Hit> hits, std::span<uint8_t> occluded) {
+void trace_block(RTCScene scene, QueryArgs& args, std::span<const Ray> rays, size_t begin,
+                 size_t end, std::span<Hit> hits, std::span<uint8_t> occluded) {
     if constexpr (W == 1) {
         for (size_t i = begin; i < end; ++i) {
             if constexpr (Occlusion) {
                 RTCRay ray;
                 set_lane(ray, 0, rays[i]);
-                rtcOccluded1(scene, &context, &ray);
+                query(rtcOccluded1, scene, &ray, args.occluded_args());
                 occluded[i] = ray_is_valid(rays[i]) ? read_occluded(ray, 0) : 0;
             } else {
                 RTCRayHit rh;
                 set_lane(rh.ray, 0, rays[i]);
                 clear_hit(rh.hit, 0);
-                rtcIntersect1(scene, &context, &rh);
+                query(rtcIntersect1, scene, &rh, args.intersect_args());
                 hits[i] = read_hit(rh, 0);
             }
         }
     } else if constexpr (W == 0) {
+#if RTC_VERSION_MAJOR < 4
         const auto count = static_cast<unsigned>(end - begin);
         if constexpr (Occlusion) {
             RTCRay stream[kBlockRays];
             for (unsigned k = 0; k < count; ++k) set_lane(stream[k], 0, rays[begin + k]);
-            rtcOccluded1M(scene, &context, stream, count, sizeof(RTCRay));
+            rtcOccluded1M(scene, args.occluded_args(), stream, count, sizeof(RTCRay));
             for (unsigned k = 0; k < count; ++k) {
                 occluded[begin + k] =
                     ray_is_valid(rays[begin + k]) ? read_occluded(stream[k], 0) : 0;
@@ -182,9 +249,10 @@ void trace_block(RTCScene scene, RTCIntersectContext& context, std::span<const R
                 set_lane(stream[k].ray, 0, rays[begin + k]);
                 clear_hit(stream[k].hit, 0);
             }
-            rtcIntersect1M(scene, &context, stream, count, sizeof(RTCRayHit));
+            rtcIntersect1M(scene, args.intersect_args(), stream, count, sizeof(RTCRayHit));
             for (unsigned k = 0; k < count; ++k) hits[begin + k] = read_hit(stream[k], 0);
         }
+#endif
     } else {
         using RayHitW = std::conditional_t<W == 4, RTCRayHit4,
                                            std::conditional_t<W == 8, RTCRayHit8, RTCRayHit16>>;
@@ -200,17 +268,23 @@ void trace_block(RTCScene scene, RTCIntersectContext& context, std::span<const R
                 clear_hit(rh.hit, lane);
             }
             if constexpr (Occlusion) {
-                if constexpr (W == 4) rtcOccluded4(valid, scene, &context, &rh.ray);
-                if constexpr (W == 8) rtcOccluded8(valid, scene, &context, &rh.ray);
-                if constexpr (W == 16) rtcOccluded16(valid, scene, &context, &rh.ray);
+                if constexpr (W == 4)
+                    query_packet(rtcOccluded4, valid, scene, &rh.ray, args.occluded_args());
+                if constexpr (W == 8)
+                    query_packet(rtcOccluded8, valid, scene, &rh.ray, args.occluded_args());
+                if constexpr (W == 16)
+                    query_packet(rtcOccluded16, valid, scene, &rh.ray, args.occluded_args());
                 for (size_t lane = 0; lane < lanes; ++lane) {
                     occluded[first + lane] =
                         valid[lane] ? read_occluded(rh.ray, static_cast<int>(lane)) : 0;
                 }
             } else {
-                if constexpr (W == 4) rtcIntersect4(valid, scene, &context, &rh);
-                if constexpr (W == 8) rtcIntersect8(valid, scene, &context, &rh);
-                if constexpr (W == 16) rtcIntersect16(valid, scene, &context, &rh);
+                if constexpr (W == 4)
+                    query_packet(rtcIntersect4, valid, scene, &rh, args.intersect_args());
+                if constexpr (W == 8)
+                    query_packet(rtcIntersect8, valid, scene, &rh, args.intersect_args());
+                if constexpr (W == 16)
+                    query_packet(rtcIntersect16, valid, scene, &rh, args.intersect_args());
                 for (size_t lane = 0; lane < lanes; ++lane) {
                     hits[first + lane] = valid[lane] ? read_hit(rh, static_cast<int>(lane)) : Hit{};
                 }
@@ -227,13 +301,10 @@ double trace_pass(RTCScene scene, bool coherent, std::span<const Ray> rays, std:
     const auto start = Clock::now();
     tbb::parallel_for(tbb::blocked_range<size_t>(0, blocks),
                       [&](const tbb::blocked_range<size_t>& range) {
-                          RTCIntersectContext context;
-                          rtcInitIntersectContext(&context);
-                          context.flags = coherent ? RTC_INTERSECT_CONTEXT_FLAG_COHERENT
-                                                   : RTC_INTERSECT_CONTEXT_FLAG_INCOHERENT;
+                          QueryArgs args(coherent);
                           for (size_t block = range.begin(); block != range.end(); ++block) {
                               const size_t begin = block * kBlockRays;
-                              trace_block<W, Occlusion>(scene, context, rays, begin,
+                              trace_block<W, Occlusion>(scene, args, rays, begin,
                                                         std::min(begin + kBlockRays, rays.size()),
                                                         hits, occluded);
                           }
@@ -300,81 +371,92 @@ struct ModeSpec {
     RTCDeviceProperty support;
 };
 
-}  // namespace
+constexpr ModeSpec kModes[] = {
+    {"1", 1, RTC_DEVICE_PROPERTY_TRIANGLE_GEOMETRY_SUPPORTED},
+#if RTC_VERSION_MAJOR < 4
+    {"1M", 0, RTC_DEVICE_PROPERTY_RAY_STREAM_SUPPORTED},
+#endif
+    {"4", 4, RTC_DEVICE_PROPERTY_NATIVE_RAY4_SUPPORTED},
+    {"8", 8, RTC_DEVICE_PROPERTY_NATIVE_RAY8_SUPPORTED},
+    {"16", 16, RTC_DEVICE_PROPERTY_NATIVE_RAY16_SUPPORTED},
+};
+static_assert(kHasRayStreams == (std::size(kModes) == 5));
 
-EmbreeReport compare_with_embree(const Mesh& mesh, const proto::RayBatch& batch,
-                                 std::span<const Hit> kd_hits, std::span<const uint8_t> kd_occluded,
-                                 const EmbreeOptions& options) {
-    DeviceState state;
-    const int threads = tbb::this_task_arena::max_concurrency();
-    const std::string config = "threads=" + std::to_string(threads) + ",set_affinity=0,verbose=0";
-    DevicePtr device(rtcNewDevice(config.c_str()));
-    if (!device) {
-        throw EmbreeError("rtcNewDevice(\"" + config + "\") failed: Embree error " +
-                          std::to_string(static_cast<int>(rtcGetDeviceError(nullptr))));
-    }
-    rtcSetDeviceErrorFunction(device.get(), on_error, &state);
-    rtcSetDeviceMemoryMonitorFunction(device.get(), on_memory, &state);
+/// What every scene's comparison shares: the device, the rays, kdrt's answers, the oracle's
+/// triangles.
+struct Comparison {
+    DeviceState& state;
+    RTCDevice device;
+    const Mesh& mesh;
+    const proto::RayBatch& batch;
+    std::span<const Hit> kd_hits;
+    std::span<const uint8_t> kd_occluded;
+    std::span<const TriVerts> tris;  // by id, to recognise ties
+    TScale t_scale;
+    int reps;
+};
 
-    EmbreeReport report;
-    const int64_t bytes_before = state.bytes.load();
-    ScenePtr scene(rtcNewScene(device.get()));
-    check(state, device.get(), "rtcNewScene");
-    rtcSetSceneBuildQuality(scene.get(), RTC_BUILD_QUALITY_HIGH);
+/// A committed scene of the mesh, with its build time and the memory it keeps.
+struct BuiltScene {
+    ScenePtr scene;
+    double build_ms = 0;
+    double bytes_per_triangle = 0;
+};
+
+BuiltScene build_scene(const Comparison& c, RTCSceneFlags flags) {
+    BuiltScene built;
+    const int64_t bytes_before = c.state.bytes.load();
+    built.scene.reset(rtcNewScene(c.device));
+    check(c.state, c.device, "rtcNewScene");
+    rtcSetSceneFlags(built.scene.get(), flags);
+    rtcSetSceneBuildQuality(built.scene.get(), RTC_BUILD_QUALITY_HIGH);
+    const Mesh& mesh = c.mesh;
     const size_t tri_count = mesh.triangle_count();
     if (tri_count > 0) {
-        RTCGeometry geometry = rtcNewGeometry(device.get(), RTC_GEOMETRY_TYPE_TRIANGLE);
-        check(state, device.get(), "rtcNewGeometry");
+        RTCGeometry geometry = rtcNewGeometry(c.device, RTC_GEOMETRY_TYPE_TRIANGLE);
+        check(c.state, c.device, "rtcNewGeometry");
         auto* vertices = static_cast<float*>(
             rtcSetNewGeometryBuffer(geometry, RTC_BUFFER_TYPE_VERTEX, 0, RTC_FORMAT_FLOAT3,
                                     3 * sizeof(float), mesh.vertex_count()));
         auto* indices = static_cast<uint32_t*>(rtcSetNewGeometryBuffer(
             geometry, RTC_BUFFER_TYPE_INDEX, 0, RTC_FORMAT_UINT3, 3 * sizeof(uint32_t), tri_count));
-        check(state, device.get(), "rtcSetNewGeometryBuffer");
+        check(c.state, c.device, "rtcSetNewGeometryBuffer");
         std::memcpy(vertices, mesh.positions.data(), mesh.positions.size() * sizeof(float));
         std::memcpy(indices, mesh.indices.data(), mesh.indices.size() * sizeof(uint32_t));
         rtcSetGeometryBuildQuality(geometry, RTC_BUILD_QUALITY_HIGH);
         rtcCommitGeometry(geometry);
-        rtcAttachGeometry(scene.get(), geometry);
+        rtcAttachGeometry(built.scene.get(), geometry);
         rtcReleaseGeometry(geometry);
-        check(state, device.get(), "creating the Embree triangle geometry");
+        check(c.state, c.device, "creating the Embree triangle geometry");
     }
     const auto build_start = Clock::now();
-    rtcCommitScene(scene.get());
-    report.build_ms = std::chrono::duration<double, std::milli>(Clock::now() - build_start).count();
-    check(state, device.get(), "rtcCommitScene");
+    rtcCommitScene(built.scene.get());
+    built.build_ms = std::chrono::duration<double, std::milli>(Clock::now() - build_start).count();
+    check(c.state, c.device, "rtcCommitScene");
     // What the scene keeps after the build (vertex and index buffers included), per triangle.
-    report.bytes_per_triangle = tri_count > 0
-                                    ? static_cast<double>(state.bytes.load() - bytes_before) /
-                                          static_cast<double>(tri_count)
-                                    : 0.0;
+    built.bytes_per_triangle = tri_count > 0
+                                   ? static_cast<double>(c.state.bytes.load() - bytes_before) /
+                                         static_cast<double>(tri_count)
+                                   : 0.0;
+    return built;
+}
 
-    static constexpr ModeSpec kModes[] = {
-        {"1", 1, RTC_DEVICE_PROPERTY_TRIANGLE_GEOMETRY_SUPPORTED},
-        {"1M", 0, RTC_DEVICE_PROPERTY_RAY_STREAM_SUPPORTED},
-        {"4", 4, RTC_DEVICE_PROPERTY_NATIVE_RAY4_SUPPORTED},
-        {"8", 8, RTC_DEVICE_PROPERTY_NATIVE_RAY8_SUPPORTED},
-        {"16", 16, RTC_DEVICE_PROPERTY_NATIVE_RAY16_SUPPORTED},
-    };
+/// Builds the scene with `flags` and times every mode on it; mode names get `name_prefix`.
+EmbreeSceneReport measure_scene(const Comparison& c, RTCSceneFlags flags,
+                                const std::string& name_prefix) {
+    EmbreeSceneReport report;
+    BuiltScene built = build_scene(c, flags);
+    report.build_ms = built.build_ms;
+    report.bytes_per_triangle = built.bytes_per_triangle;
+    const ScenePtr& scene = built.scene;
+
+    const proto::RayBatch& batch = c.batch;
     const std::span<const Ray> rays = batch.rays;
-    const std::vector<TriVerts> tris = make_tri_verts(mesh);  // to recognise ties
-    TScale t_scale;
-    {
-        Aabb box;
-        for (const TriVerts& t : tris) {
-            for (const float* c : {t.v0, t.v1, t.v2}) box.extend({c[0], c[1], c[2]});
-        }
-        if (!box.empty()) {
-            const Vec3 e = box.extent();
-            t_scale.floor =
-                1e-7 * std::sqrt(double{e.x} * e.x + double{e.y} * e.y + double{e.z} * e.z);
-        }
-    }
     std::vector<Hit> hits(batch.occlusion ? 0 : rays.size());
     std::vector<uint8_t> occluded(batch.occlusion ? rays.size() : 0);
     const std::string prefix = batch.occlusion ? "occluded" : "intersect";
     for (const ModeSpec& spec : kModes) {
-        if (rtcGetDeviceProperty(device.get(), spec.support) == 0) continue;
+        if (rtcGetDeviceProperty(c.device, spec.support) == 0) continue;
         for (bool coherent : {false, true}) {
             auto pass = [&] {
                 const auto run = [&]<int W>() {
@@ -396,31 +478,31 @@ EmbreeReport compare_with_embree(const Mesh& mesh, const proto::RayBatch& batch,
                 }
             };
             std::vector<double> seconds;
-            for (int rep = 0; rep <= options.reps; ++rep) {  // pass 0 is the warm-up
+            for (int rep = 0; rep <= c.reps; ++rep) {  // pass 0 is the warm-up
                 const double s = pass();
                 if (rep > 0) seconds.push_back(s);
             }
-            check(state, device.get(), ("rtc" + prefix + spec.suffix).c_str());
+            check(c.state, c.device, ("rtc" + prefix + spec.suffix).c_str());
 
             EmbreeModeTiming timing;
-            timing.name = prefix + spec.suffix + (coherent ? "_coherent" : "");
+            timing.name = name_prefix + prefix + spec.suffix + (coherent ? "_coherent" : "");
             const double median_seconds = median(seconds);
             timing.mrays_per_s =
                 median_seconds > 0 ? static_cast<double>(rays.size()) / median_seconds / 1e6 : 0.0;
             for (size_t i = 0; i < rays.size(); ++i) {
                 const bool differ = batch.occlusion
-                                        ? (occluded[i] != 0) != (kd_occluded[i] != 0)
-                                        : hits_differ(t_scale, rays[i], kd_hits[i], hits[i]);
+                                        ? (occluded[i] != 0) != (c.kd_occluded[i] != 0)
+                                        : hits_differ(c.t_scale, rays[i], c.kd_hits[i], hits[i]);
                 if (!differ) continue;
                 ++timing.differences;
                 if (batch.occlusion) continue;
-                if (is_tie(t_scale, tris, rays[i], kd_hits[i], hits[i])) {
+                if (is_tie(c.t_scale, c.tris, rays[i], c.kd_hits[i], hits[i])) {
                     ++timing.ties;
                 } else {
                     // Who is right? The brute-force oracle (every triangle, kdrt's watertight
                     // test).
-                    const Hit truth = brute_force_intersect(tris, rays[i]);
-                    if (std::memcmp(&truth, &kd_hits[i], sizeof(Hit)) == 0)
+                    const Hit truth = brute_force_intersect(c.tris, rays[i]);
+                    if (std::memcmp(&truth, &c.kd_hits[i], sizeof(Hit)) == 0)
                         ++timing.kdrt_matches_oracle;
                 }
             }
@@ -434,6 +516,49 @@ EmbreeReport compare_with_embree(const Mesh& mesh, const proto::RayBatch& batch,
             report.modes.push_back(std::move(timing));
         }
     }
+    return report;
+}
+
+}  // namespace
+
+EmbreeReport compare_with_embree(const Mesh& mesh, const proto::RayBatch& batch,
+                                 std::span<const Hit> kd_hits, std::span<const uint8_t> kd_occluded,
+                                 const EmbreeOptions& options) {
+    DeviceState state;
+    const int threads = tbb::this_task_arena::max_concurrency();
+    const std::string config = "threads=" + std::to_string(threads) + ",set_affinity=0,verbose=0";
+    DevicePtr device(rtcNewDevice(config.c_str()));
+    if (!device) {
+        throw EmbreeError("rtcNewDevice(\"" + config + "\") failed: Embree error " +
+                          std::to_string(static_cast<int>(rtcGetDeviceError(nullptr))));
+    }
+    rtcSetDeviceErrorFunction(device.get(), on_error, &state);
+    rtcSetDeviceMemoryMonitorFunction(device.get(), on_memory, &state);
+
+    const std::vector<TriVerts> tris = make_tri_verts(mesh);
+    TScale t_scale;
+    {
+        Aabb box;
+        for (const TriVerts& t : tris) {
+            for (const float* c : {t.v0, t.v1, t.v2}) box.extend({c[0], c[1], c[2]});
+        }
+        if (!box.empty()) {
+            const Vec3 e = box.extent();
+            t_scale.floor =
+                1e-7 * std::sqrt(double{e.x} * e.x + double{e.y} * e.y + double{e.z} * e.z);
+        }
+    }
+    const Comparison comparison{state,       device.get(), mesh,    batch,       kd_hits,
+                                kd_occluded, tris,         t_scale, options.reps};
+    EmbreeReport report;
+    report.version_major =
+        static_cast<int>(rtcGetDeviceProperty(device.get(), RTC_DEVICE_PROPERTY_VERSION_MAJOR));
+    // The first commit of a device also starts Embree's worker threads and first touches its
+    // allocator's memory; an untimed build first makes both timed builds warm, as kdrt's build
+    // time (the median of several builds in one process) is.
+    build_scene(comparison, RTC_SCENE_FLAG_NONE);
+    report.standard = measure_scene(comparison, RTC_SCENE_FLAG_NONE, "");
+    report.robust = measure_scene(comparison, RTC_SCENE_FLAG_ROBUST, "robust_");
     return report;
 }
 

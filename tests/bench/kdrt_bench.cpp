@@ -29,6 +29,7 @@
 
 #include "bench_args.h"
 #include "embree_compare.h"
+#include "embree_scene.h"
 #include "image_helper.h"
 #include "kdrt/distance.h"
 #include "kdrt/kdtree.h"
@@ -39,6 +40,7 @@
 #include "kdrt/query.h"
 #include "kdrt/raygen.h"
 #include "kdrt/render.h"
+#include "kdrt/scene.h"
 #include "kdrt/trace.h"
 #include "scenes.h"
 #include "test_util.h"
@@ -60,7 +62,8 @@ commands:
   trace MESH RAYS.kdrr
                 trace a KDRR ray batch (closest hit, or occlusion when the batch says so)
   rays MESH     write a deterministic KDRR ray set (primary, shadow, diffuse, random)
-  scene KIND    write a generated benchmark scene (stadium, grid) as a mesh file
+  scene KIND    write a generated benchmark scene (stadium, grid) as a mesh file, or time a
+                two-level scene of instances (scene instances)
   render MESH   render the default view of a mesh, timed against its camera rays as a batch
   distance MESH time closest-point and signed-distance queries (kD search against brute force)
 
@@ -137,15 +140,21 @@ warm-up pass: closest hits, or occlusion when the batch has flag bit 0 set. Prin
   seconds (tracing only, median of the K passes), seconds_min, mrays_per_s (from the median),
   hits (rays that hit, or are occluded), cpu_util (process CPU seconds per wall second while
   tracing: near `threads` only when the workers had their cores; lower = a noisy measurement)
-With --compare embree it also traces the rays with Embree 3 (RTC_BUILD_QUALITY_HIGH) through
-rtcIntersect1/1M/4/8/16 (rtcOccluded* for occlusion), incoherent and coherent, and adds
-  embree_mrays_per_s and embree_best_mode (the fastest of those), ratio (mrays_per_s divided by
-  embree_mrays_per_s), embree_build_ms, embree_bytes_per_triangle (memory Embree keeps after the
-  build), differences (rays whose answer differs in the best mode: another prim, or t off by
+With --compare embree it also traces the rays with Embree 4 or 3 (RTC_BUILD_QUALITY_HIGH), in two
+scenes: default flags (Embree's fast, non-watertight triangle test) and RTC_SCENE_FLAG_ROBUST
+(watertight, as kdrt's), each through rtcIntersect1/4/8/16 and, with Embree 3, 1M (rtcOccluded*
+for occlusion), incoherent and coherent, and adds
+  embree_mrays_per_s, embree_best_mode and embree_best_flags (default or robust: the fastest of
+  all those), ratio (mrays_per_s divided by embree_mrays_per_s), embree_default_mrays_per_s,
+  embree_robust_mrays_per_s, embree_robust_best_mode and ratio_robust (each flag's own best),
+  embree_build_ms and embree_robust_build_ms, embree_bytes_per_triangle (memory the default
+  scene keeps after the build), embree_version (major), differences (rays whose answer differs in the best mode: another prim, or t off by
   more than 1e-4 relative and 1e-7 of the scene diagonal; for occlusion another bit), ties (of those, rays where both hit at
   the same t on triangles that share a corner, or that kdrt's test hits too: both answers
   right), kdrt_matches_oracle (of the other differences, rays where kdrt's answer is the
-  brute-force oracle's) and embree_modes (Mrays/s of every mode).
+  brute-force oracle's), the same three counts for the robust scene's best mode
+  (embree_robust_differences, embree_robust_ties, embree_robust_kdrt_matches_oracle) and
+  embree_modes (Mrays/s of every mode; the robust scene's prefixed robust_).
 With --stats it traces once more, untimed, with the counting kernels and adds the work per ray:
   steps_per_ray (inner nodes visited), leaves_per_ray, tri_tests_per_ray (a packet's visit or
   test counts once per live lane), packet_visits (node visits by packets) and lane_utilisation
@@ -159,7 +168,7 @@ options:
   --out FILE                 write the answers as KDRH (hits) or KDRO (occlusion) to FILE
   --builder sah|middle       tree builder (default sah)
   --c-isect X                SAH cost of a triangle test relative to a traversal step (default 0.3)
-  --compare embree           also trace with Embree 3 and compare speed and answers
+  --compare embree           also trace with Embree (default and robust) and compare speed and answers
   --stats                    also count the work per ray (an extra, untimed pass)
 )";
 
@@ -201,10 +210,9 @@ loop's overhead is the difference. Prints one JSON line:
   / median), cpu_util, batch_rays, batch_seconds (median), batch_mrays_per_s, and for shadings
   that trace camera rays only (normals, eyelight, depth, primid) overhead = seconds / (spp *
   batch_seconds) - 1: what tiling, ray generation and shading add to tracing the same rays
-With --compare embree the same camera rays also go through Embree 3 (as in `trace --compare
-embree`), adding embree_mrays_per_s, embree_best_mode, embree_fps (camera rays of a frame at
-Embree's best speed), ratio (mrays_per_s / embree_mrays_per_s), embree_build_ms, differences, ties,
-kdrt_matches_oracle and embree_modes.
+With --compare embree the same camera rays also go through Embree (as in `trace --compare
+embree`, both scene flags), adding embree_fps (camera rays of a frame at Embree's best speed) and
+the speed and answer keys of `trace --compare embree` (ratio is mrays_per_s / embree_mrays_per_s).
 
 options:
   --shading MODE    normals, eyelight, depth, primid, ao, diffuse (default eyelight)
@@ -221,7 +229,7 @@ options:
   --out FILE        write the last image: .png/.jpg/.jpeg (8-bit sRGB) or .exr (linear half),
                     through the kdrt-image helper built next to kdrt-bench (kdrt-bench itself
                     does not load OpenImageIO, which would add ~0.2 s to every start)
-  --compare embree  also trace the camera rays with Embree 3
+  --compare embree  also trace the camera rays with Embree (default and robust)
 )";
 
 double ms_since(Clock::time_point start) {
@@ -315,12 +323,37 @@ void write_output(const std::string& path, std::span<const std::byte> bytes) {
 /// The keys both --compare embree outputs end with: how the answers compare, and every mode's
 /// speed.
 void put_embree_answers(Json& line, const EmbreeReport& embree) {
-    line["differences"] = embree.differences;
-    line["ties"] = embree.ties;
-    line["kdrt_matches_oracle"] = embree.kdrt_matches_oracle;
+    const EmbreeSceneReport& best = embree.best();
+    line["differences"] = best.differences;
+    line["ties"] = best.ties;
+    line["kdrt_matches_oracle"] = best.kdrt_matches_oracle;
+    line["embree_robust_differences"] = embree.robust.differences;
+    line["embree_robust_ties"] = embree.robust.ties;
+    line["embree_robust_kdrt_matches_oracle"] = embree.robust.kdrt_matches_oracle;
+    line["embree_version"] = embree.version_major;
     Json modes = Json::object();
-    for (const EmbreeModeTiming& m : embree.modes) modes[m.name] = rounded(m.mrays_per_s, 3);
+    for (const EmbreeSceneReport* scene : {&embree.standard, &embree.robust})
+        for (const EmbreeModeTiming& m : scene->modes) modes[m.name] = rounded(m.mrays_per_s, 3);
     line["embree_modes"] = modes;
+}
+
+/// The speed keys both --compare embree outputs share: Embree's best over both scene flags (the
+/// yardstick of `ratio`), then each flag's own best, and the default scene's build.
+void put_embree_speeds(Json& line, const EmbreeReport& embree, double mrays_per_s) {
+    const EmbreeSceneReport& best = embree.best();
+    auto ratio = [&](double embree_mrays) {
+        return embree_mrays > 0 ? rounded(mrays_per_s / embree_mrays, 4) : 0.0;
+    };
+    line["embree_mrays_per_s"] = rounded(best.best_mrays_per_s, 3);
+    line["embree_best_mode"] = best.best_mode;
+    line["embree_best_flags"] = embree.best_flags();
+    line["ratio"] = ratio(best.best_mrays_per_s);
+    line["embree_default_mrays_per_s"] = rounded(embree.standard.best_mrays_per_s, 3);
+    line["embree_robust_mrays_per_s"] = rounded(embree.robust.best_mrays_per_s, 3);
+    line["embree_robust_best_mode"] = embree.robust.best_mode;
+    line["ratio_robust"] = ratio(embree.robust.best_mrays_per_s);
+    line["embree_build_ms"] = rounded(embree.standard.build_ms, 3);
+    line["embree_robust_build_ms"] = rounded(embree.robust.build_ms, 3);
 }
 
 int run_build(const Args& args) {
@@ -409,7 +442,7 @@ int run_trace(const Args& args) {
     }
     if (compare && !kEmbreeAvailable) {
         throw BenchError(
-            "--compare embree is not available in this build (Embree 3 was not found "
+            "--compare embree is not available in this build (neither Embree 4 nor 3 was found "
             "when it was configured)");
     }
 
@@ -528,12 +561,8 @@ int run_trace(const Args& args) {
     const double wall_total = std::accumulate(seconds.begin(), seconds.end(), 0.0);
     line["cpu_util"] = rounded(wall_total > 0 ? cpu_seconds / wall_total : 0.0, 2);
     if (embree) {
-        line["embree_mrays_per_s"] = rounded(embree->best_mrays_per_s, 3);
-        line["embree_best_mode"] = embree->best_mode;
-        line["ratio"] =
-            embree->best_mrays_per_s > 0 ? rounded(mrays_per_s / embree->best_mrays_per_s, 4) : 0.0;
-        line["embree_build_ms"] = rounded(embree->build_ms, 3);
-        line["embree_bytes_per_triangle"] = rounded(embree->bytes_per_triangle, 2);
+        put_embree_speeds(line, *embree, mrays_per_s);
+        line["embree_bytes_per_triangle"] = rounded(embree->standard.bytes_per_triangle, 2);
         put_embree_answers(line, *embree);
     }
     print_json(line);
@@ -856,21 +885,210 @@ int run_rays(const Args& args) {
     return 0;
 }
 
+/// Instance transforms of `copies` copies of a mesh with bounds `b` on replicate_grid's grid
+/// (the same translations, so the merged mesh holds the same triangles), each moved up by
+/// `lift` (a pose change).
+std::vector<Affine3x4> grid_transforms(const Aabb& b, uint32_t copies, float lift) {
+    uint32_t side = 1;
+    while (side * side < copies) ++side;
+    const Vec3 e = b.extent();
+    std::vector<Affine3x4> out(copies);
+    for (uint32_t c = 0; c < copies; ++c) {
+        out[c].m[0][3] = 1.1f * e.x * static_cast<float>(c % side);
+        out[c].m[1][3] = lift;
+        out[c].m[2][3] = 1.1f * e.z * static_cast<float>(c / side);
+    }
+    return out;
+}
+
+template <typename F>
+double median_seconds(int reps, F&& f) {
+    std::vector<double> s;
+    for (int r = 0; r < reps; ++r) {
+        const auto start = Clock::now();
+        f();
+        s.push_back(std::chrono::duration<double>(Clock::now() - start).count());
+    }
+    return median(s);
+}
+
+/// Answers that differ between two scene answers of the same ray (geometry or triangle, or t
+/// beyond 1e-4 relative): the merged mesh and Embree compute the same triangles in other
+/// arithmetic, so a few rays through edges differ.
+bool differs(const SceneHit& a, const SceneHit& b) {
+    if (a.is_hit() != b.is_hit()) return true;
+    if (!a.is_hit()) return false;
+    return a.geom != b.geom || a.prim != b.prim ||
+           std::fabs(static_cast<double>(a.t) - b.t) > 1e-4 * std::fabs(static_cast<double>(a.t));
+}
+
+int run_scene_instances(const Args& args) {
+    const std::string from = args.require("from");
+    const auto copies = static_cast<uint32_t>(args.get_uint("copies", 16, 1, kMaxSceneInstances));
+    const auto res = static_cast<uint32_t>(args.get_uint("res", 512, 16, 4096));
+    const int reps = static_cast<int>(args.get_uint("reps", 5, 1, 1000));
+    const bool embree = args.get("compare").has_value();
+    if (embree && *args.get("compare") != "embree")
+        throw UsageError("option '--compare': only 'embree' is supported");
+    if (embree && !kEmbreeAvailable)
+        throw UsageError("option '--compare': this kdrt-bench was built without Embree");
+    const Mesh mesh =
+        from == "sphere" ? test::uv_sphere({0, 0, 0}, 1.0f, 24, 48) : load_mesh(from).mesh;
+    Json line;
+    line["command"] = "scene";
+    line["kind"] = "instances";
+    line["from"] = from;
+    line["triangles_per_instance"] = mesh.triangle_count();
+    line["instances"] = copies;
+    line["threads"] = thread_count(args);
+    with_threads(thread_count(args), [&] {
+        const Aabb bounds = mesh_bounds(mesh);
+        auto start = Clock::now();
+        auto tree = std::make_shared<const KdTree>(build_kdtree(mesh));
+        line["mesh_build_ms"] = rounded(ms_since(start), 3);
+        const std::vector<Affine3x4> poses = grid_transforms(bounds, copies, 0.0f);
+        std::vector<SceneInstance> list;
+        for (const Affine3x4& t : poses) list.push_back({tree, t, nullptr});
+        const Scene scene = build_scene(std::move(list));
+        line["scene_build_ms"] = rounded(scene.stats().build_ms, 3);
+        line["top_nodes"] = scene.stats().nodes;
+        line["top_refs"] = scene.stats().refs;
+        line["top_depth"] = scene.stats().max_depth;
+        line["bytes_per_instance"] = rounded(scene.stats().bytes_per_instance, 1);
+        // Every instance moved (alternately up and back), only the top level rebuilt.
+        const std::vector<Affine3x4> moved =
+            grid_transforms(bounds, copies, 0.01f * bounds.extent().y);
+        std::vector<InstancePose> updates(copies);
+        for (uint32_t g = 0; g < copies; ++g) updates[g] = {g, moved[g]};
+        double pose_ms = 1e3 * median_seconds(std::max(reps, 5), [&] {
+                             const Scene next = scene.with_transforms(updates);
+                             if (next.size() != copies)
+                                 throw BenchError("pose update lost instances");
+                         });
+        line["pose_update_ms"] = rounded(pose_ms, 4);
+
+        start = Clock::now();
+        const Mesh merged = test::replicate_grid(mesh, copies);
+        const KdTree merged_tree = build_kdtree(merged);
+        line["merged_build_ms"] = rounded(ms_since(start), 3);
+        line["merged_bytes"] = merged_tree.stats.bytes;
+
+        std::unique_ptr<EmbreeInstanceScene> em;
+        if (embree) {
+            em = std::make_unique<EmbreeInstanceScene>(mesh, poses);
+            line["embree_blas_build_ms"] = rounded(em->blas_build_ms(), 3);
+            line["embree_top_build_ms"] = rounded(em->top_build_ms(), 3);
+            line["embree_pose_update_ms"] = rounded(
+                1e3 * median_seconds(std::max(reps, 5), [&] { em->set_transforms(moved); }), 4);
+            em->set_transforms(poses);
+        }
+        Json kinds = Json::array();
+        for (RayKind kind :
+             {RayKind::kPrimary, RayKind::kShadow, RayKind::kDiffuse, RayKind::kRandom}) {
+            RayGenOptions gen;
+            gen.kind = kind;
+            gen.res = res;
+            const std::vector<Ray> rays = generate_rays(merged_tree, gen);
+            const bool occlusion = kind == RayKind::kShadow;
+            const double n = static_cast<double>(rays.size());
+            std::vector<Hit> mh(rays.size());
+            std::vector<SceneHit> sh(rays.size()), eh(rays.size());
+            std::vector<uint8_t> mo(rays.size()), so(rays.size()), eo(rays.size());
+            const auto merged_pass = [&] {
+                if (occlusion)
+                    occluded(merged_tree, rays, mo);
+                else
+                    intersect(merged_tree, rays, mh);
+            };
+            const auto scene_pass = [&] {
+                if (occlusion)
+                    occluded(scene, rays, so);
+                else
+                    intersect(scene, rays, sh);
+            };
+            merged_pass();
+            scene_pass();
+            const double cpu_start = process_cpu_seconds();
+            const auto wall_start = Clock::now();
+            const double merged_mrays = n / median_seconds(reps, merged_pass) / 1e6;
+            const double scene_mrays = n / median_seconds(reps, scene_pass) / 1e6;
+            const double wall = std::chrono::duration<double>(Clock::now() - wall_start).count();
+            const double cpu_util = (process_cpu_seconds() - cpu_start) / wall;
+            SceneTraceStats stats;
+            if (!occlusion) intersect(scene, rays, sh, {}, &stats);
+            Json k;
+            k["kind"] = std::string(ray_kind_name(kind));
+            k["rays"] = rays.size();
+            k["merged_mrays_per_s"] = rounded(merged_mrays, 3);
+            k["scene_mrays_per_s"] = rounded(scene_mrays, 3);
+            k["ratio_vs_merged"] = rounded(scene_mrays / merged_mrays, 3);
+            k["cpu_util"] = rounded(cpu_util, 2);  // CPU seconds per wall second, kdrt passes
+            if (!occlusion) {
+                k["instance_visits_per_ray"] =
+                    rounded(static_cast<double>(stats.instance_visits) / n, 3);
+                k["batched_calls"] = stats.instance_batches;
+            }
+            // The merged mesh's triangle ids: instance g's triangle p is g * T + p.
+            const uint64_t tri_count = mesh.triangle_count();
+            uint64_t merged_diff = 0;
+            for (size_t i = 0; i < rays.size(); ++i) {
+                if (occlusion) {
+                    merged_diff += mo[i] != so[i];
+                } else {
+                    const Hit& h = mh[i];
+                    const SceneHit m =
+                        h.is_hit() ? SceneHit{h.t, static_cast<uint32_t>(h.prim % tri_count), h.u,
+                                              h.v, static_cast<uint32_t>(h.prim / tri_count)}
+                                   : SceneHit{};
+                    merged_diff += differs(m, sh[i]);
+                }
+            }
+            k["differences_vs_merged"] = merged_diff;
+            if (em) {
+                const EmbreeSceneTiming et = em->trace(rays, occlusion, reps, eh, eo);
+                k["embree_mrays_per_s"] = rounded(et.best_mrays_per_s, 3);
+                k["embree_best_mode"] = et.best_mode;
+                k["ratio_vs_embree"] = rounded(scene_mrays / et.best_mrays_per_s, 3);
+                uint64_t ediff = 0;
+                for (size_t i = 0; i < rays.size(); ++i)
+                    ediff += occlusion ? eo[i] != so[i] : differs(eh[i], sh[i]);
+                k["differences_vs_embree"] = ediff;
+            }
+            kinds.push_back(k);
+        }
+        line["kinds"] = kinds;
+    });
+    print_json(line);
+    return 0;
+}
+
 constexpr std::string_view kSceneUsage =
     R"(usage: kdrt-bench scene stadium --out FILE [--size S]
        kdrt-bench scene grid --from MESH --copies N --out FILE
+       kdrt-bench scene instances --from MESH|sphere --copies N [--res R] [--reps K]
+                                  [--threads T] [--compare embree]
 
 Writes a generated scene; the format follows the extension of FILE (.ply is binary PLY).
   stadium  a closed box of side S (default 1000) around a finely tessellated unit sphere
            (180 x 360 segments, ~130k triangles): the "teapot in a stadium"
   grid     N copies of MESH (default 16) on a square grid: 16 bunnies are 1.2M triangles
 Prints one JSON line: kind, triangles, vertices, out, bytes.
+
+  instances  times a two-level scene (kdrt/scene.h) of N instances of MESH (or a generated
+           2,256-triangle sphere) on the grid layout, against the same triangles merged into one
+           mesh (grid) traced by the mesh kernel, and with --compare embree against Embree's
+           instancing (RTC_GEOMETRY_TYPE_INSTANCE over one BLAS). Ray sets of the merged mesh
+           (primary, shadow, diffuse, random; R x R, default 512), K passes each (median, default
+           5). Prints one JSON line: build times, bytes_per_instance, pose_update_ms (every
+           instance moved, the top level rebuilt), and per ray kind the Mrays/s of each tracer,
+           ratio_vs_merged, ratio_vs_embree and the answers that differ.
 )";
 
 int run_scene(const Args& args) {
     static constexpr std::array<std::string_view, 1> kNames = {"KIND"};
     args.expect_positional(kNames);
     const std::string& kind = args.positional()[0];
+    if (kind == "instances") return run_scene_instances(args);
     const std::string out_path = args.require("out");
     const auto format = proto::mesh_format_from_path(out_path);
     if (!format)
@@ -932,7 +1150,7 @@ int run_render(const Args& args) {
         throw UsageError("option '--compare': '" + *compare + "' is not embree");
     if (compare && !kEmbreeAvailable) {
         throw BenchError(
-            "--compare embree is not available in this build (Embree 3 was not found "
+            "--compare embree is not available in this build (neither Embree 4 nor 3 was found "
             "when it was configured)");
     }
     const bool camera_rays_only =
@@ -1013,13 +1231,9 @@ int run_render(const Args& args) {
         line["overhead"] = rounded(median_seconds / (settings.spp * median_batch) - 1.0, 4);
     }
     if (embree) {
-        line["embree_mrays_per_s"] = rounded(embree->best_mrays_per_s, 3);
-        line["embree_best_mode"] = embree->best_mode;
-        line["embree_fps"] =
-            rounded(embree->best_mrays_per_s * 1e6 / static_cast<double>(stats.primary_rays), 3);
-        line["ratio"] =
-            embree->best_mrays_per_s > 0 ? rounded(mrays_per_s / embree->best_mrays_per_s, 4) : 0.0;
-        line["embree_build_ms"] = rounded(embree->build_ms, 3);
+        put_embree_speeds(line, *embree, mrays_per_s);
+        line["embree_fps"] = rounded(
+            embree->best().best_mrays_per_s * 1e6 / static_cast<double>(stats.primary_rays), 3);
         put_embree_answers(line, *embree);
     }
     if (out_path) line["out"] = *out_path;
@@ -1041,7 +1255,8 @@ constexpr std::array<std::string_view, 8> kTraceOptions = {"mode", "isa",     "t
 constexpr std::array<std::string_view, 1> kTraceFlags = {"stats"};
 constexpr std::array<std::string_view, 7> kRaysOptions = {"kind", "res",     "seed",   "out",
                                                           "eye",  "look-at", "threads"};
-constexpr std::array<std::string_view, 4> kSceneOptions = {"out", "size", "from", "copies"};
+constexpr std::array<std::string_view, 8> kSceneOptions = {"out", "size", "from",    "copies",
+                                                           "res", "reps", "threads", "compare"};
 constexpr std::array<std::string_view, 13> kRenderOptions = {
     "shading",    "res",     "spp",     "tile",    "threads", "reps",   "seed",
     "ao-samples", "bounces", "builder", "c-isect", "out",     "compare"};

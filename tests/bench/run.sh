@@ -14,12 +14,14 @@
 #   THREADS="1 2"   thread counts, one column each
 #   MODE=auto       traversal mode passed to kdrt-bench trace (auto|packet|single)
 #   SCENES="..."    scene names to run (default: all six; e.g. SCENES="bunny00.off")
-#   COMPARE=embree  also trace with Embree (if kdrt-bench was built with it) and add its columns
+#   COMPARE=embree  also trace with Embree (if kdrt-bench was built with it) and add its columns:
+#                   its best over both scene flags (the goals' yardstick), its robust (watertight)
+#                   scene alone, and the default scene's RTC_BUILD_QUALITY_HIGH build time
 # The table goes to stdout, progress to stderr; the raw JSON lines are kept in WORK_DIR/results.jsonl.
 set -euo pipefail
 
 if [[ $# -lt 1 || $# -gt 2 || "$1" == "-h" || "$1" == "--help" ]]; then
-    sed -n '2,16s/^# \{0,1\}//p' "$0" >&2
+    sed -n '2,18s/^# \{0,1\}//p' "$0" >&2
     exit 2
 fi
 build_dir=$1
@@ -51,7 +53,9 @@ json_get() {
 columns=(scene triangles "build ms" "ray set" rays "hit %")
 for t in $threads_list; do columns+=("${t}T Mrays/s"); done
 if [[ -n $compare ]]; then
-    for t in $threads_list; do columns+=("Embree ${t}T Mrays/s (mode)" "kdrt/Embree ${t}T"); done
+    for t in $threads_list; do
+        columns+=("Embree ${t}T Mrays/s (mode)" "kdrt/Embree ${t}T" "Embree robust ${t}T Mrays/s" "kdrt/robust ${t}T")
+    done
     columns+=("Embree build ms" "bytes/tri kdrt / Embree" "differences (ties, kdrt = oracle)")
 fi
 printf '| %s ' "${columns[@]}"
@@ -109,6 +113,8 @@ for scene in "${scenes[@]}"; do
             if [[ -n $compare ]]; then
                 embree_cols+=" $(json_get "$line" embree_mrays_per_s) ($(json_get "$line" embree_best_mode)) |"
                 embree_cols+=" $(json_get "$line" ratio) |"
+                embree_cols+=" $(json_get "$line" embree_robust_mrays_per_s) |"
+                embree_cols+=" $(json_get "$line" ratio_robust) |"
             fi
         done
         if [[ -n $compare ]]; then  # from the last thread count's run

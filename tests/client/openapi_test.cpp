@@ -18,7 +18,7 @@
 #include <sstream>
 #include <thread>
 
-#include "http_server.h"
+#include "http/http_server.h"
 #include "kdrt/proto/file_io.h"
 #include "kdrt/proto/json_api.h"
 #include "kdrt/proto/mesh_io.h"

@@ -1,10 +1,10 @@
 // The server's config file: parse_config_object (proto) and every setting applied over the
-// defaults (server/config.cpp). Oracles: no crash or abort for any text (1e400 used to abort);
+// defaults (server/core/config.cpp). Oracles: no crash or abort for any text (1e400 used to abort);
 // a refusal names the problem; an accepted file leaves every limit inside its documented range.
 
 #include <string_view>
 
-#include "config.h"
+#include "core/config.h"
 #include "fuzz_check.h"
 
 extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {

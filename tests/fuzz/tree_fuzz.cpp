@@ -1,4 +1,4 @@
-// The store's tree file (server/tree_file.cpp: the container naming the mesh id) around the
+// The store's tree file (server/store/tree_file.cpp: the container naming the mesh id) around the
 // engine's tree blob (engine/src/serialize.cpp: sizes, permutation and structure checks). A stored
 // tree file is read back from disk on every cache miss, so a damaged or planted file must be
 // refused with a reason, never crash the server or load a tree that is unsafe to trace.
@@ -20,7 +20,7 @@
 #include "fuzz_check.h"
 #include "kdrt/serialize.h"
 #include "kdrt/trace.h"
-#include "tree_file.h"
+#include "store/tree_file.h"
 
 namespace {
 

@@ -3,7 +3,7 @@
 // encode_hits / encode_occlusion); refusals carry decode_rays' error and the drain-or-close
 // verdict; pooled buffers go back to the pool on every exit.
 
-#include "batch_ingest.h"
+#include "http/batch_ingest.h"
 
 #include <gtest/gtest.h>
 

@@ -1,4 +1,4 @@
-#include "buffer_pool.h"
+#include "core/buffer_pool.h"
 
 #include <gtest/gtest.h>
 

@@ -18,7 +18,7 @@
 #include <string>
 #include <thread>
 
-#include "http_server.h"
+#include "http/http_server.h"
 #include "kdrt/proto/problem.h"
 #include "service.h"
 

@@ -1,6 +1,6 @@
 // The JSON shape bound checked before a body is parsed into a DOM.
 
-#include "json_shape.h"
+#include "http/json_shape.h"
 
 #include <gtest/gtest.h>
 

@@ -1,7 +1,7 @@
 // The mesh cache in process: deduplication, single-flight builds, LRU eviction and reload,
 // corrupt files, removal. (http_cache_test.cpp covers the same through the binary.)
 
-#include "mesh_cache.h"
+#include "store/mesh_cache.h"
 
 #include <gtest/gtest.h>
 #include <unistd.h>

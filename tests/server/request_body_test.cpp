@@ -1,4 +1,4 @@
-#include "request_body.h"
+#include "http/request_body.h"
 
 #include <gtest/gtest.h>
 #include <unistd.h>

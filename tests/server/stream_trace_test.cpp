@@ -8,7 +8,7 @@
 #include <span>
 #include <vector>
 
-#include "compute.h"
+#include "core/compute.h"
 #include "kdrt/trace.h"
 #include "test_util.h"
 

@@ -1,12 +1,12 @@
 // The store's tree file container: binds the engine blob to its mesh and names each refusal.
 
-#include "tree_file.h"
+#include "store/tree_file.h"
 
 #include <gtest/gtest.h>
 
 #include "kdrt/proto/mesh_id.h"
 #include "kdrt/serialize.h"
-#include "mesh_store.h"
+#include "store/mesh_store.h"
 #include "test_util.h"
 
 namespace kdrt::server {

@@ -1,0 +1,364 @@
+// The top levels of the SAH build: min-max binned splits (Shevtsov, Soupikov and Kapustin 2007,
+// "Highly parallel fast kd-tree construction for interactive ray tracing of dynamic scenes"),
+// handing every node of fewer than BinnedParams::exact_below references to the exact sweep of
+// build_sah.cpp.
+//
+// Why: the exact sweep keeps three sorted event lists per node and touches every event of every
+// node, so the top levels, where a few nodes hold most of the events, cost O(N) event passes each
+// and run on one or two threads. Binning needs one pass over the references per node (all three
+// axes together, in parallel chunks) and O(bins) to evaluate the candidates.
+//
+// - A reference is a triangle and its bounds within the node's cell. Straddlers go to both
+//   children with their bounds cut at the plane on the split axis only; they are clipped exactly
+//   (Sutherland-Hodgman, as in the exact builder) once, when their node reaches the exact phase.
+// - Candidates per axis: the bins-1 inner bin boundaries between the node's tight geometry
+//   bounds, plus the two tight bounds themselves. The latter are the empty-space cuts (one side
+//   holds nothing) that the exact sweep would also find; without them a big empty region would be
+//   cut only at a bin boundary, leaving slivers of empty space in the non-empty child.
+// - Counts at a boundary are min-max bin estimates (a reference's lower bound counts it on the
+//   left, its upper bound on the right); the partition itself compares exactly, so the tree is
+//   correct whatever the estimate. The cost formula is the exact sweep's (empty bonus included).
+// - A node whose best binned split does not beat making it a leaf goes to the exact sweep, which
+//   makes the final decision with perfect splits.
+// Determinism: bins and bounds are integer sums and min/max over fixed-size chunks, combined in
+// chunk order; the partition writes each chunk's references at offsets from a prefix sum. So the
+// references keep their (triangle id) order and the tree is the same at any thread count.
+
+#include <algorithm>
+#include <array>
+#include <cmath>
+#include <cstdint>
+#include <span>
+#include <vector>
+
+#include <tbb/parallel_for.h>
+#include <tbb/parallel_invoke.h>
+
+#include "build_common.h"
+#include "build_internal.h"
+#include "geometry.h"
+
+namespace kdrt::detail {
+namespace {
+
+/// A reference: a triangle id (bits 0..30) and its bounds within the node's cell. Bit 31 is set
+/// when a binned split has cut the bounds (the triangle needs clipping before the exact phase).
+struct Ref {
+    Aabb box;
+    uint32_t prim_and_flag;
+};
+constexpr uint32_t kCut = 0x80000000u;
+
+constexpr uint32_t kMaxBins = 256;
+constexpr size_t kChunkRefs = size_t{1} << 13;     // references per parallel chunk
+constexpr size_t kParallelRefs = size_t{1} << 15;  // nodes this big bin and partition in parallel
+constexpr size_t kParallelSubtrees = 4096;         // ... and build their children concurrently
+
+struct BinnedSplit {
+    bool valid = false;
+    int axis = 0;
+    float pos = 0;
+    bool planar_left = false;  ///< where a reference lying in the plane goes
+    double cost = INFINITY;
+};
+
+/// Per-axis bins of a range of references: how many start / end in each bin, and the lowest
+/// start / highest end in it (the tight planes next to each boundary).
+struct Bins {
+    std::array<std::array<uint32_t, kMaxBins>, 3> starts{};
+    std::array<std::array<uint32_t, kMaxBins>, 3> ends{};
+    std::array<std::array<float, kMaxBins>, 3> min_start;
+    std::array<std::array<float, kMaxBins>, 3> max_end;
+    Bins() {
+        for (int a = 0; a < 3; ++a) {
+            min_start[a].fill(INFINITY);
+            max_end[a].fill(-INFINITY);
+        }
+    }
+};
+
+/// Maps a coordinate to its bin on one axis: [lo, hi] in `count` equal bins.
+struct BinMap {
+    double lo = 0, scale = 0;
+    uint32_t count = 1;
+    [[nodiscard]] uint32_t operator()(float x) const noexcept {
+        const double f = (double{x} - lo) * scale;
+        const auto b = f > 0 ? static_cast<uint32_t>(f) : 0u;
+        return b < count ? b : count - 1;
+    }
+};
+
+/// Calls body(begin, end) for the chunks of [0, n), in parallel when n is big.
+template <typename Body>
+void for_chunks(size_t n, const Body& body) {
+    const size_t chunks = (n + kChunkRefs - 1) / kChunkRefs;
+    if (n < kParallelRefs) {
+        for (size_t c = 0; c < chunks; ++c)
+            body(c, c * kChunkRefs, std::min(n, (c + 1) * kChunkRefs));
+        return;
+    }
+    tbb::parallel_for(size_t{0}, chunks, [&](size_t c) {
+        body(c, c * kChunkRefs, std::min(n, (c + 1) * kChunkRefs));
+    });
+}
+
+class BinnedBuilder {
+public:
+    BinnedBuilder(const std::vector<TriVerts>& tris, const BuildOptions& options,
+                  const BinnedParams& params)
+        : tris_(tris),
+          options_(options),
+          params_(params),
+          bins_(std::clamp(params.bins, 4u, kMaxBins)),
+          max_depth_(static_cast<uint32_t>(std::clamp(options.max_depth, 0, kMaxDepth))),
+          exact_(tris, options) {}
+
+    void build(SubTree& out, uint32_t slot, const Aabb& cell, std::vector<Ref>&& refs,
+               uint32_t depth) {
+        if (refs.size() < params_.exact_below || depth >= max_depth_) {
+            to_exact(out, slot, cell, refs, depth);
+            return;
+        }
+        const BinnedSplit split = find_split(cell, refs);
+        const double leaf_cost = double{options_.intersection_cost} * refs.size();
+        if (!split.valid || !(split.cost < leaf_cost)) {
+            to_exact(out, slot, cell, refs, depth);
+            return;
+        }
+        Aabb left_cell = cell, right_cell = cell;
+        left_cell.hi[split.axis] = split.pos;
+        right_cell.lo[split.axis] = split.pos;
+        std::vector<Ref> left, right;
+        partition(refs, split, left, right);
+        refs = {};  // free the parent's references before descending
+        if (left.size() + right.size() >= kParallelSubtrees) {
+            SubTree left_tree, right_tree;
+            tbb::parallel_invoke(
+                [&] { build(left_tree, 0, left_cell, std::move(left), depth + 1); },
+                [&] { build(right_tree, 0, right_cell, std::move(right), depth + 1); });
+            const uint32_t first = add_child_pair(out, slot, split.axis, split.pos);
+            splice(out, first, left_tree);
+            splice(out, first + 1, right_tree);
+        } else {
+            const uint32_t first = add_child_pair(out, slot, split.axis, split.pos);
+            build(out, first, left_cell, std::move(left), depth + 1);
+            build(out, first + 1, right_cell, std::move(right), depth + 1);
+        }
+    }
+
+private:
+    /// Clips the references cut by binned splits to `cell` and builds the node exactly.
+    void to_exact(SubTree& out, uint32_t slot, const Aabb& cell, const std::vector<Ref>& refs,
+                  uint32_t depth) {
+        std::vector<PrimBox> prims;
+        prims.reserve(refs.size());
+        for (const Ref& r : refs) {
+            PrimBox p{r.box, r.prim_and_flag & ~kCut};
+            // An uncut reference's bounds are its vertex bounds, which the clipped bounds equal
+            // for a triangle inside the cell. A cut one was sent to both sides by its bounds
+            // alone: the triangle itself may miss this cell, and is then dropped here.
+            if (r.prim_and_flag & kCut) {
+                const TriVerts& tri = tris_[p.prim];
+                if (misses_cell(tri, cell) || !clip_to_cell(tri, cell, p.box)) continue;
+            }
+            prims.push_back(p);
+        }
+        if (slot == 0 && out.nodes.size() == 1) {
+            exact_.build(out, cell, prims, depth);
+        } else {
+            SubTree sub;
+            exact_.build(sub, cell, prims, depth);
+            splice(out, slot, sub);
+        }
+    }
+
+    /// The tight bounds of the references (each already within the cell).
+    static Aabb geometry_bounds(const std::vector<Ref>& refs) {
+        const size_t chunks = (refs.size() + kChunkRefs - 1) / kChunkRefs;
+        std::vector<Aabb> partial(chunks);
+        for_chunks(refs.size(), [&](size_t c, size_t begin, size_t end) {
+            Aabb b;
+            for (size_t i = begin; i < end; ++i) {
+                for (int a = 0; a < 3; ++a) {
+                    b.lo[a] = std::min(b.lo[a], refs[i].box.lo[a]);
+                    b.hi[a] = std::max(b.hi[a], refs[i].box.hi[a]);
+                }
+            }
+            partial[c] = b;
+        });
+        Aabb bounds;
+        for (const Aabb& b : partial) {
+            for (int a = 0; a < 3; ++a) {
+                bounds.lo[a] = std::min(bounds.lo[a], b.lo[a]);
+                bounds.hi[a] = std::max(bounds.hi[a], b.hi[a]);
+            }
+        }
+        return bounds;
+    }
+
+    BinnedSplit find_split(const Aabb& cell, const std::vector<Ref>& refs) const {
+        const double area = half_area(cell);
+        if (!(area > 0)) return {};
+        const double inv_area = 1.0 / area;
+        const Aabb geom = geometry_bounds(refs);
+        std::array<BinMap, 3> maps;
+        for (int a = 0; a < 3; ++a) {
+            const double extent = double{geom.hi[a]} - geom.lo[a];
+            maps[a] = extent > 0 ? BinMap{geom.lo[a], bins_ / extent, bins_} : BinMap{};
+        }
+
+        // One pass over the references bins all three axes.
+        const size_t chunks = (refs.size() + kChunkRefs - 1) / kChunkRefs;
+        std::vector<Bins> partial(chunks);
+        for_chunks(refs.size(), [&](size_t c, size_t begin, size_t end) {
+            Bins& bins = partial[c];
+            for (size_t i = begin; i < end; ++i) {
+                for (int a = 0; a < 3; ++a) {
+                    const float lo = refs[i].box.lo[a], hi = refs[i].box.hi[a];
+                    const uint32_t bl = maps[a](lo), bh = maps[a](hi);
+                    ++bins.starts[a][bl];
+                    ++bins.ends[a][bh];
+                    bins.min_start[a][bl] = std::min(bins.min_start[a][bl], lo);
+                    bins.max_end[a][bh] = std::max(bins.max_end[a][bh], hi);
+                }
+            }
+        });
+        Bins total;
+        for (const Bins& bins : partial) {
+            for (int a = 0; a < 3; ++a) {
+                for (uint32_t b = 0; b < bins_; ++b) {
+                    total.starts[a][b] += bins.starts[a][b];
+                    total.ends[a][b] += bins.ends[a][b];
+                    total.min_start[a][b] = std::min(total.min_start[a][b], bins.min_start[a][b]);
+                    total.max_end[a][b] = std::max(total.max_end[a][b], bins.max_end[a][b]);
+                }
+            }
+        }
+
+        const auto n = static_cast<uint32_t>(refs.size());
+        const double c_trav = options_.traversal_cost, c_isect = options_.intersection_cost;
+        const double empty_scale = 1.0 - double{options_.empty_bonus};
+        BinnedSplit best;
+        for (int a = 0; a < 3; ++a) {
+            const float lo = cell.lo[a], hi = cell.hi[a];
+            if (!(lo < hi)) continue;  // flat along this axis: nothing to split
+            const int a1 = (a + 1) % 3, a2 = (a + 2) % 3;
+            const double e1 = double{cell.hi[a1]} - cell.lo[a1];
+            const double e2 = double{cell.hi[a2]} - cell.lo[a2];
+            const double cap = e1 * e2, ring = e1 + e2;
+            // Candidates strictly inside the cell; ties keep the earlier (lower axis, lower pos).
+            auto consider = [&](float pos, uint32_t nl, uint32_t nr, bool planar_left) {
+                if (!(pos > lo && pos < hi)) return;
+                const double pl = (cap + ring * (double{pos} - lo)) * inv_area;
+                const double pr = (cap + ring * (double{hi} - pos)) * inv_area;
+                double cost = c_isect * (pl * nl + pr * nr);
+                if (nl == 0 || nr == 0) cost *= empty_scale;
+                cost += c_trav;
+                if (cost < best.cost) best = {true, a, pos, planar_left, cost};
+            };
+            // At each bin boundary b (b = 0 and b = bins: the geometry's tight bounds), three
+            // planes share the same estimated counts: the boundary itself, the highest end of the
+            // references ending below it (references in that plane go left) and the lowest start
+            // of those starting above it (they go right). The two tight planes are where the
+            // empty space between neighbouring geometry is cut off, as the exact sweep would.
+            std::array<float, kMaxBins + 1> lowest_start_above;
+            lowest_start_above[bins_] = INFINITY;
+            for (uint32_t b = bins_; b-- > 0;)
+                lowest_start_above[b] = std::min(lowest_start_above[b + 1], total.min_start[a][b]);
+            const double extent = double{geom.hi[a]} - geom.lo[a];
+            uint32_t nl = 0, nr = n;
+            float highest_end_below = -INFINITY;
+            for (uint32_t b = 0; b <= bins_; ++b) {
+                if (b > 0) {
+                    nl += total.starts[a][b - 1];
+                    nr -= total.ends[a][b - 1];
+                    highest_end_below = std::max(highest_end_below, total.max_end[a][b - 1]);
+                }
+                consider(highest_end_below, nl, nr, true);
+                if (b > 0 && b < bins_ && extent > 0) {
+                    const auto pos = static_cast<float>(geom.lo[a] + extent * b / bins_);
+                    if (pos > highest_end_below && pos < lowest_start_above[b])
+                        consider(pos, nl, nr, false);
+                }
+                consider(lowest_start_above[b], nl, nr, false);
+            }
+        }
+        return best;
+    }
+
+    /// Splits the references at the plane, keeping their order on each side. A reference that
+    /// crosses the plane goes to both sides, its bounds cut at the plane and marked for clipping.
+    static void partition(const std::vector<Ref>& refs, const BinnedSplit& split,
+                          std::vector<Ref>& left, std::vector<Ref>& right) {
+        const int k = split.axis;
+        const float p = split.pos;
+        const bool planar_left = split.planar_left;
+        // 1: left only, 2: right only, 3: both.
+        auto side = [&](const Ref& r) -> uint32_t {
+            const float lo = r.box.lo[k], hi = r.box.hi[k];
+            if (hi < p || (hi == p && (lo < p || planar_left))) return 1;
+            if (lo >= p) return 2;
+            return 3;
+        };
+        auto place = [&](const Ref& r, uint32_t s, Ref*& l, Ref*& rr) {
+            if (s == 3) {
+                Ref cut = r;
+                cut.prim_and_flag |= kCut;
+                cut.box.hi[k] = p;
+                *l++ = cut;
+                cut.box.hi[k] = r.box.hi[k];
+                cut.box.lo[k] = p;
+                *rr++ = cut;
+            } else if (s == 1) {
+                *l++ = r;
+            } else {
+                *rr++ = r;
+            }
+        };
+        const size_t chunks = (refs.size() + kChunkRefs - 1) / kChunkRefs;
+        std::vector<std::array<size_t, 2>> counts(chunks + 1);
+        for_chunks(refs.size(), [&](size_t c, size_t begin, size_t end) {
+            size_t nl = 0, nr = 0;
+            for (size_t i = begin; i < end; ++i) {
+                const uint32_t s = side(refs[i]);
+                nl += s & 1u;
+                nr += s >> 1;
+            }
+            counts[c + 1] = {nl, nr};
+        });
+        for (size_t c = 1; c <= chunks; ++c) {
+            counts[c][0] += counts[c - 1][0];
+            counts[c][1] += counts[c - 1][1];
+        }
+        left.resize(counts[chunks][0]);
+        right.resize(counts[chunks][1]);
+        for_chunks(refs.size(), [&](size_t c, size_t begin, size_t end) {
+            Ref* l = left.data() + counts[c][0];
+            Ref* r = right.data() + counts[c][1];
+            for (size_t i = begin; i < end; ++i) place(refs[i], side(refs[i]), l, r);
+        });
+    }
+
+    const std::vector<TriVerts>& tris_;
+    BuildOptions options_;
+    BinnedParams params_;
+    uint32_t bins_;
+    uint32_t max_depth_;
+    ExactSahBuilder exact_;
+};
+
+}  // namespace
+
+void build_binned(const std::vector<TriVerts>& tris, const std::vector<uint8_t>& degenerate,
+                  const Aabb& root, const BuildOptions& options, const BinnedParams& params,
+                  SubTree& out) {
+    std::vector<Ref> refs;
+    refs.reserve(tris.size());
+    for (uint32_t prim = 0; prim < tris.size(); ++prim) {
+        Ref r{{}, prim};
+        if (!degenerate[prim] && vertex_bounds_in_cell(tris[prim], root, r.box)) refs.push_back(r);
+    }
+    BinnedBuilder(tris, options, params).build(out, 0, root, std::move(refs), 0);
+}
+
+}  // namespace kdrt::detail

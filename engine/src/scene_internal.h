@@ -1,0 +1,256 @@
+#pragma once
+// Internal: a scene's data (per-instance transforms, inverses and world boxes, the top-level
+// kD-tree) and the top-level traversals every scene query shares (scene.cpp builds it;
+// scene_trace.cpp, scene_distance.cpp and scene_scan.cpp query it).
+
+#include <array>
+#include <cmath>
+#include <cstdint>
+#include <optional>
+#include <vector>
+
+#include "kdrt/scene.h"
+
+namespace kdrt::detail {
+
+/// What a query needs of one instance, fixed at build time.
+struct InstanceData {
+    std::array<double, 9> lin{};  ///< L, row-major (the float entries, exact in double)
+    std::array<double, 3> trans{};
+    std::array<double, 9> inv{};  ///< L^-1 in double
+    double det = 1.0;
+    bool identity_linear = false;  ///< L is exactly I (then normals and points are the mesh's)
+    std::optional<double> scale;   ///< similarity scale, when L is one
+    Aabb world;                    ///< exact image of the tree's root box, rounded outwards
+    /// The rounding of object_ray, mapped back to world space, is below kMarginUlps ulps of
+    /// kappa * (|o| + |t| + |t_hit d|) (kappa = the inf-norm of |L| |L^-1|), and the mesh
+    /// kernel's own rounding of t below lin_bounds = |L|_inf * (largest coordinate of the root
+    /// box).
+    double kappa = 1.0;
+    double trans_mag = 0.0;
+    double lin_bounds = 0.0;
+};
+
+/// A top-level node: the KdNode encoding (kdrt/kdtree.h) kept in a type of its own, so the mesh
+/// tree's layout may change without touching scenes. word0: axis (0..2) or 3 = leaf in bits 0..1,
+/// first child / reference count above; word1: split (f32 bits) or first reference.
+struct TopNode {
+    uint32_t word0 = 3;
+    uint32_t word1 = 0;
+    [[nodiscard]] bool is_leaf() const noexcept { return (word0 & 3u) == 3u; }
+    [[nodiscard]] int axis() const noexcept { return static_cast<int>(word0 & 3u); }
+    [[nodiscard]] uint32_t first_child() const noexcept { return word0 >> 2; }
+    [[nodiscard]] uint32_t count() const noexcept { return word0 >> 2; }
+    [[nodiscard]] uint32_t first_ref() const noexcept { return word1; }
+    [[nodiscard]] float split() const noexcept {
+        float s;
+        static_assert(sizeof s == sizeof word1);
+        __builtin_memcpy(&s, &word1, sizeof s);
+        return s;
+    }
+};
+static_assert(sizeof(TopNode) == 8);
+
+/// Depth cap of the top level (the traversal stack has room for it).
+inline constexpr int kTopMaxDepth = 48;
+
+struct SceneData {
+    std::vector<SceneInstance> instances;
+    std::vector<InstanceData> inst;
+    std::vector<TopNode> nodes;  ///< nodes[0] is the root (a leaf for an empty scene)
+    std::vector<uint32_t> refs;  ///< geometry ids, per leaf contiguous and ascending
+    Aabb bounds;                 ///< union of the world boxes (the root cell)
+    /// Traversal margin (margin()): the largest kappa, and the largest of |t|, |L| * box and the
+    /// root's coordinates.
+    double kappa_max = 1.0;
+    double size_max = 0.0;
+    /// The first instance with geometry whose transform is not a similarity, and the first
+    /// without a surface index (check_distance_query).
+    std::optional<uint32_t> first_not_similar, first_without_surface;
+    SceneBuildOptions options;
+    SceneStats stats;
+};
+
+/// The rounding of object_ray is at most a few float ulps of the quantities in InstanceData's
+/// comment; the margin takes 2^-18 of them (16 ulps and more), as the mesh kernel widens its cells
+/// by 2^-20 of its coordinates.
+inline constexpr double kMarginScale = 0x1p-18;
+
+/// Spatial margin of the top-level traversal for a ray with origin magnitude `origin_mag`: any
+/// instance that can hold a hit at parameter t has its world box within this distance of the world
+/// ray's point at t. The hit's t is bounded by the root box, so t |d| <= |o| + root + margin.
+inline float margin(const SceneData& s, double origin_mag) noexcept {
+    return static_cast<float>(kMarginScale * s.kappa_max * (3.0 * origin_mag + 3.0 * s.size_max));
+}
+
+/// The world ray of every top-level query: origin, reciprocal direction, and the margin.
+struct TopRay {
+    float org[3];
+    float dir[3];
+    float inv[3];
+    float delta;   ///< spatial margin
+    float eps[3];  ///< delta in t along each axis (0 for a zero direction component)
+};
+
+/// Same rule as the mesh kernels: finite origin and direction, non-zero direction, tmin <= tmax.
+inline bool ray_is_valid(const Ray& r) noexcept {
+    const bool finite = std::isfinite(r.ox) && std::isfinite(r.oy) && std::isfinite(r.oz) &&
+                        std::isfinite(r.dx) && std::isfinite(r.dy) && std::isfinite(r.dz);
+    const bool nonzero = r.dx != 0.0f || r.dy != 0.0f || r.dz != 0.0f;
+    return finite && nonzero && r.tmin <= r.tmax;
+}
+
+inline TopRay make_top_ray(const SceneData& s, const Ray& r) noexcept {
+    TopRay p;
+    p.org[0] = r.ox, p.org[1] = r.oy, p.org[2] = r.oz;
+    p.dir[0] = r.dx, p.dir[1] = r.dy, p.dir[2] = r.dz;
+    double mag = 0.0;
+    for (int a = 0; a < 3; ++a) {
+        p.inv[a] = 1.0f / p.dir[a];
+        mag = std::max(mag, static_cast<double>(std::fabs(p.org[a])));
+    }
+    p.delta = margin(s, mag);
+    for (int a = 0; a < 3; ++a) p.eps[a] = p.dir[a] == 0.0f ? 0.0f : p.delta * std::fabs(p.inv[a]);
+    return p;
+}
+
+/// Clips [tmin, tmax] to `box` widened by the margin; false when the ray passes farther away.
+inline bool clip_widened(const TopRay& p, const Aabb& box, float& tmin, float& tmax) noexcept {
+    for (int a = 0; a < 3; ++a) {
+        const float lo = box.lo[a] - p.delta, hi = box.hi[a] + p.delta;
+        if (p.dir[a] == 0.0f) {
+            if (p.org[a] < lo || p.org[a] > hi) return false;
+            continue;
+        }
+        float t0 = (lo - p.org[a]) * p.inv[a], t1 = (hi - p.org[a]) * p.inv[a];
+        if (t0 > t1) std::swap(t0, t1);
+        // The rounding of these products is covered by the margin (it is far above an ulp of
+        // (|o| + |box|) / |d|), so the widened entry never lies beyond a real hit's t.
+        tmin = t0 > tmin ? t0 : tmin;
+        tmax = t1 < tmax ? t1 : tmax;
+    }
+    return tmin <= tmax;
+}
+
+/// Front-to-back traversal of the top level along `ray` (valid), widened by the margin as the mesh
+/// kernel widens its cells. For each instance referenced by a leaf the ray's widened segment
+/// reaches, calls visit(geom, entry) with `entry` the widened box entry t (instances are offered
+/// once per leaf that holds them; the caller de-duplicates if it matters). limit() is the current
+/// upper bound of t (the best hit so far for closest hit): cells starting beyond it are skipped
+/// and the walk stops. visit returns false to stop at once (any hit).
+template <class Limit, class Visit>
+void walk_top(const SceneData& s, const Ray& ray, const TopRay& p, Limit&& limit, Visit&& visit) {
+    float tmin = ray.tmin, tmax = ray.tmax;
+    if (s.refs.empty() || !clip_widened(p, s.bounds, tmin, tmax)) return;
+    struct Entry {
+        uint32_t node;
+        float tmin, tmax;
+    };
+    std::array<Entry, kTopMaxDepth + 2> stack;
+    int size = 0;
+    uint32_t index = 0;
+    for (;;) {
+        TopNode node = s.nodes[index];
+        while (!node.is_leaf()) {
+            const int axis = node.axis();
+            const uint32_t low = node.first_child(), high = low + 1;
+            const float split = node.split();
+            uint32_t near, far;
+            bool need_near, need_far;
+            float near_max = tmax, far_min = tmin;
+            if (p.dir[axis] == 0.0f) {
+                // Parallel to the plane: the origin's side, and the other when within the margin.
+                const bool low_side = p.org[axis] < split;
+                near = low_side ? low : high;
+                far = low_side ? high : low;
+                need_near = true;
+                need_far = std::fabs(p.org[axis] - split) <= p.delta;
+            } else {
+                const bool forward = p.dir[axis] > 0.0f;
+                near = forward ? low : high;
+                far = forward ? high : low;
+                const float t_split = (split - p.org[axis]) * p.inv[axis];
+                near_max = t_split + p.eps[axis];
+                far_min = t_split - p.eps[axis];
+                need_near = !(near_max < tmin);
+                need_far = !(far_min > tmax);
+            }
+            if (need_near && need_far) {
+                stack[size++] = {far, far_min > tmin ? far_min : tmin, tmax};
+                tmax = near_max < tmax ? near_max : tmax;
+                index = near;
+            } else {
+                index = need_near ? near : far;
+                if (!need_near) tmin = far_min > tmin ? far_min : tmin;
+                if (!need_far) tmax = near_max < tmax ? near_max : tmax;
+            }
+            node = s.nodes[index];
+        }
+        const uint32_t end = node.first_ref() + node.count();
+        for (uint32_t r = node.first_ref(); r < end; ++r) {
+            const uint32_t geom = s.refs[r];
+            float t0 = ray.tmin, t1 = limit();
+            if (!clip_widened(p, s.inst[geom].world, t0, t1)) continue;
+            if (!visit(geom, t0)) return;
+        }
+        for (;;) {
+            if (size == 0) return;
+            const Entry& e = stack[--size];
+            if (e.tmin > limit()) return;  // front to back: every later cell starts later still
+            index = e.node;
+            tmin = e.tmin;
+            tmax = e.tmax;
+            break;
+        }
+    }
+}
+
+/// A tiny mailbox: the last few instances a ray traced, so an instance referenced by several
+/// leaves along the ray is traced once (correctness does not depend on it: a second trace of an
+/// instance with a smaller tmax finds nothing new).
+struct Mailbox {
+    std::array<uint32_t, 8> geoms;
+    uint32_t next = 0;
+    Mailbox() noexcept { geoms.fill(kNoHit); }
+    /// True when `geom` was seen; records it otherwise.
+    bool seen(uint32_t geom) noexcept {
+        for (uint32_t g : geoms)
+            if (g == geom) return true;
+        geoms[next++ & 7u] = geom;
+        return false;
+    }
+};
+
+/// object_ray with the instance data at hand.
+inline Ray to_object(const InstanceData& d, const Ray& r) noexcept {
+    const double o[3] = {static_cast<double>(r.ox) - d.trans[0],
+                         static_cast<double>(r.oy) - d.trans[1],
+                         static_cast<double>(r.oz) - d.trans[2]};
+    const double v[3] = {r.dx, r.dy, r.dz};
+    float oo[3], dd[3];
+    for (int i = 0; i < 3; ++i) {
+        const double* row = &d.inv[3 * i];
+        oo[i] = static_cast<float>(row[0] * o[0] + row[1] * o[1] + row[2] * o[2]);
+        dd[i] = static_cast<float>(row[0] * v[0] + row[1] * v[1] + row[2] * v[2]);
+    }
+    return Ray{oo[0], oo[1], oo[2], r.tmin, dd[0], dd[1], dd[2], r.tmax};
+}
+
+/// The tie rule: (t, geom, prim) lexicographically.
+inline bool scene_hit_less(const SceneHit& a, const SceneHit& b) noexcept {
+    if (a.t != b.t) return a.t < b.t;
+    if (a.geom != b.geom) return a.geom < b.geom;
+    return a.prim < b.prim;
+}
+
+/// L * p + t in double, rounded to float.
+inline Vec3 to_world(const InstanceData& d, const double p[3]) noexcept {
+    Vec3 w;
+    for (int i = 0; i < 3; ++i) {
+        const double* row = &d.lin[3 * i];
+        w[i] = static_cast<float>(row[0] * p[0] + row[1] * p[1] + row[2] * p[2] + d.trans[i]);
+    }
+    return w;
+}
+
+}  // namespace kdrt::detail

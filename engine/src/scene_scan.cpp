@@ -1,0 +1,79 @@
+// Scene scans: the mesh scans' rays (scan_internal.h), traced through the scene's closest hit
+// and every-hit queries, with the geometry id beside each answer.
+
+#include <tbb/blocked_range.h>
+#include <tbb/parallel_for.h>
+
+#include "kdrt/scene.h"
+#include "scan_internal.h"
+
+namespace kdrt {
+
+SceneDepthImage scan_pinhole(const Scene& scene, const PinholeSpec& spec) {
+    validate(spec);
+    SceneDepthImage out;
+    DepthImage& image = out.image;
+    image.width = spec.intrinsics.width;
+    image.height = spec.intrinsics.height;
+    image.kind = spec.kind;
+    std::vector<Ray> rays;
+    std::vector<double> cosines;
+    detail::pinhole_rays(spec, rays, cosines);
+    const size_t n = rays.size();
+    std::vector<SceneHit> hits(n);
+    intersect(scene, rays, hits);
+    image.depth.resize(n);
+    image.prim.resize(n);
+    out.geom.resize(n);
+    if (spec.normals) image.normals.resize(n);
+    tbb::parallel_for(
+        tbb::blocked_range<size_t>(0, n, 4096), [&](const tbb::blocked_range<size_t>& r) {
+            for (size_t p = r.begin(); p != r.end(); ++p) {
+                const SceneHit& hit = hits[p];
+                image.depth[p] = hit.is_hit() ? detail::pinhole_depth(hit.t, cosines, p)
+                                              : std::numeric_limits<float>::infinity();
+                image.prim[p] = hit.prim;
+                out.geom[p] = hit.geom;
+                if (spec.normals) image.normals[p] = hit_normal(scene, hit);  // zero on a miss
+            }
+        });
+    return out;
+}
+
+ScenePointCloud scan_lidar(const Scene& scene, const LidarSpec& spec) {
+    validate(spec);
+    const auto channels = static_cast<uint32_t>(spec.elevation_deg.size());
+    const std::vector<Ray> rays = detail::lidar_rays(spec);
+    AllHitsOptions options;
+    options.max_hits = spec.returns;
+    options.merge_coincident = true;
+    const SceneAllHits all = intersect_all(scene, rays, options);
+    ScenePointCloud out;
+    PointCloud& cloud = out.cloud;
+    cloud.channels = channels;
+    cloud.azimuth_steps = spec.azimuth_steps;
+    cloud.returns = spec.returns;
+    cloud.points.resize(all.hits.size());
+    out.geom.resize(all.hits.size());
+    tbb::parallel_for(
+        tbb::blocked_range<size_t>(0, rays.size(), 1024), [&](const tbb::blocked_range<size_t>& r) {
+            for (size_t b = r.begin(); b != r.end(); ++b) {
+                for (uint64_t k = all.offsets[b]; k < all.offsets[b + 1]; ++k) {
+                    const SceneHit& hit = all.hits[k];
+                    const Vec3 p = hit_point(scene, hit);
+                    cloud.points[k] = LidarPoint{p.x,
+                                                 p.y,
+                                                 p.z,
+                                                 hit.t,
+                                                 static_cast<uint32_t>(b % channels),
+                                                 static_cast<uint32_t>(b / channels),
+                                                 static_cast<uint32_t>(k - all.offsets[b]),
+                                                 hit.prim};
+                    out.geom[k] = hit.geom;
+                }
+            }
+        });
+    return out;
+}
+
+}  // namespace kdrt

@@ -1,0 +1,496 @@
+// Scene ray queries: the top-level walk (scene_internal.h) hands each instance it reaches to the
+// mesh's public queries (kdrt/trace.h, kdrt/query.h) on the object-space ray. Batches trace blocks
+// of rays in rounds: every ray takes its next candidate instance in order of entry (skipping the
+// rest once they start beyond its closest hit), and the rays that reach one instance in a round go
+// to the mesh's batch entry together, so coherent rays become the mesh kernel's packets.
+
+#include <algorithm>
+#include <cmath>
+#include <map>
+
+#include <tbb/blocked_range.h>
+#include <tbb/enumerable_thread_specific.h>
+#include <tbb/parallel_for.h>
+
+#include "kdrt/query.h"
+#include "kdrt/scene.h"
+#include "kdrt/trace.h"
+#include "scene_internal.h"
+
+namespace kdrt {
+namespace {
+
+using detail::InstanceData;
+using detail::SceneData;
+
+/// The "not found yet" answer: t = tmax, so a hit exactly at tmax still counts, and geom = kNoHit,
+/// so the tie rule lets any instance's hit at tmax win.
+SceneHit no_hit_yet(const Ray& ray) noexcept {
+    return SceneHit{ray.tmax, kNoHit, 0.0f, 0.0f, kNoHit};
+}
+
+SceneHit finish(const SceneHit& best) noexcept { return best.is_hit() ? best : SceneHit{}; }
+
+void offer(SceneHit& best, const Hit& h, uint32_t geom) noexcept {
+    if (!h.is_hit()) return;
+    const SceneHit c{h.t, h.prim, h.u, h.v, geom};
+    if (detail::scene_hit_less(c, best)) best = c;
+}
+
+/// A ray's candidate instance: its geometry id and the widened entry t of its world box.
+struct Candidate {
+    float entry;
+    uint32_t geom;
+};
+
+/// Every instance the top-level walk reaches for `ray` (valid) within [tmin, tmax], once each, in
+/// order of entry (then geometry id).
+void candidates(const SceneData& s, const Ray& ray, std::vector<Candidate>& out) {
+    const size_t first = out.size();
+    const detail::TopRay p = detail::make_top_ray(s, ray);
+    detail::walk_top(
+        s, ray, p, [&] { return ray.tmax; },
+        [&](uint32_t geom, float entry) {
+            out.push_back({entry, geom});
+            return true;
+        });
+    const auto begin = out.begin() + static_cast<std::ptrdiff_t>(first);
+    std::sort(begin, out.end(), [](const Candidate& a, const Candidate& b) {
+        return a.entry < b.entry || (a.entry == b.entry && a.geom < b.geom);
+    });
+    out.erase(std::unique(begin, out.end(),
+                          [](const Candidate& a, const Candidate& b) { return a.geom == b.geom; }),
+              out.end());
+}
+
+/// Fewer rays than this reaching one instance in a round are traced one by one (a batch call's
+/// set-up would cost more than its packets save).
+constexpr size_t kMinGroup = 8;
+/// Rays per block of a parallel batch.
+constexpr size_t kBlock = 1024;
+
+struct BlockScratch {
+    std::vector<Candidate> cands;
+    std::vector<uint32_t> begin, end;  ///< per ray: its candidates
+    std::vector<SceneHit> best;
+    std::vector<uint8_t> done;
+    std::vector<std::pair<uint32_t, uint32_t>> pairs;  ///< (geom, ray) of a round
+    std::vector<Ray> rays;
+    std::vector<Hit> hits;
+    std::vector<uint8_t> occ;
+};
+
+struct Counts {
+    uint64_t invalid = 0, visits = 0, batches = 0;
+};
+
+/// One block of the batch, on the calling thread. AnyHit: occlusion into `occ_out`; else closest
+/// hits into `hits_out`.
+/// True when the rounds pay for a block: its rays share an origin (camera rays) or go nearly the
+/// same way (every unit direction component within 0.5 of the others', as shadow rays towards a
+/// light), so the rays reaching one instance in a round are many and coherent. Otherwise
+/// (diffuse bounces, random rays) each ray walks alone and stops at its first cell past its
+/// closest hit, which costs less than collecting every instance along it.
+bool rounds_pay(std::span<const Ray> rays) noexcept {
+    bool one_origin = true;
+    float lo[3] = {2, 2, 2}, hi[3] = {-2, -2, -2};
+    for (const Ray& r : rays) {
+        one_origin = one_origin && r.ox == rays[0].ox && r.oy == rays[0].oy && r.oz == rays[0].oz;
+        const float len = std::sqrt(r.dx * r.dx + r.dy * r.dy + r.dz * r.dz);
+        if (!(len > 0.0f) || !std::isfinite(len)) continue;
+        const float d[3] = {r.dx / len, r.dy / len, r.dz / len};
+        for (int a = 0; a < 3; ++a) {
+            lo[a] = std::min(lo[a], d[a]);
+            hi[a] = std::max(hi[a], d[a]);
+        }
+    }
+    return one_origin || (hi[0] - lo[0] < 0.5f && hi[1] - lo[1] < 0.5f && hi[2] - lo[2] < 0.5f);
+}
+
+SceneHit intersect_one(const SceneData& s, const Ray& ray, uint64_t* visits) noexcept;
+bool occluded_one(const SceneData& s, const Ray& ray, uint64_t* visits) noexcept;
+
+template <bool AnyHit>
+void trace_block(const SceneData& s, std::span<const Ray> rays, std::span<SceneHit> hits_out,
+                 std::span<uint8_t> occ_out, const TraceOptions& options, BlockScratch& b,
+                 Counts& counts) {
+    const size_t n = rays.size();
+    if (options.mode == TraceMode::kSingle ||
+        (options.mode == TraceMode::kAuto && !rounds_pay(rays))) {
+        for (size_t i = 0; i < n; ++i) {
+            counts.invalid += detail::ray_is_valid(rays[i]) ? 0 : 1;
+            if constexpr (AnyHit)
+                occ_out[i] = occluded_one(s, rays[i], &counts.visits) ? 1 : 0;
+            else
+                hits_out[i] = intersect_one(s, rays[i], &counts.visits);
+        }
+        return;
+    }
+    b.cands.clear();
+    b.begin.assign(n, 0);
+    b.end.assign(n, 0);
+    b.best.resize(n);
+    b.done.assign(n, 0);
+    for (size_t i = 0; i < n; ++i) {
+        b.best[i] = no_hit_yet(rays[i]);
+        b.begin[i] = static_cast<uint32_t>(b.cands.size());
+        if (detail::ray_is_valid(rays[i]))
+            candidates(s, rays[i], b.cands);
+        else
+            ++counts.invalid;
+        b.end[i] = static_cast<uint32_t>(b.cands.size());
+    }
+    for (;;) {
+        b.pairs.clear();
+        for (size_t i = 0; i < n; ++i) {
+            if (b.begin[i] == b.end[i] || b.done[i]) continue;
+            const Candidate& c = b.cands[b.begin[i]++];
+            // Sorted by entry: once one starts beyond the closest hit, so do the rest.
+            if (!AnyHit && c.entry > b.best[i].t) {
+                b.begin[i] = b.end[i];
+                continue;
+            }
+            b.pairs.emplace_back(c.geom, static_cast<uint32_t>(i));
+        }
+        if (b.pairs.empty()) break;
+        std::sort(b.pairs.begin(), b.pairs.end());
+        for (size_t g0 = 0; g0 < b.pairs.size();) {
+            const uint32_t geom = b.pairs[g0].first;
+            size_t g1 = g0;
+            while (g1 < b.pairs.size() && b.pairs[g1].first == geom) ++g1;
+            const size_t count = g1 - g0;
+            const InstanceData& in = s.inst[geom];
+            const KdTree& tree = *s.instances[geom].tree;
+            b.rays.resize(count);
+            for (size_t k = 0; k < count; ++k) {
+                const uint32_t i = b.pairs[g0 + k].second;
+                Ray o = detail::to_object(in, rays[i]);
+                if constexpr (!AnyHit) o.tmax = b.best[i].t;
+                b.rays[k] = o;
+            }
+            counts.visits += count;
+            const bool batch = count >= kMinGroup;
+            counts.batches += batch ? 1 : 0;
+            if constexpr (AnyHit) {
+                b.occ.resize(count);
+                if (batch) {
+                    occluded_block(tree, b.rays, b.occ, options);
+                } else {
+                    for (size_t k = 0; k < count; ++k) b.occ[k] = occluded(tree, b.rays[k]) ? 1 : 0;
+                }
+                for (size_t k = 0; k < count; ++k)
+                    if (b.occ[k]) b.done[b.pairs[g0 + k].second] = 1;
+            } else {
+                b.hits.resize(count);
+                if (batch) {
+                    intersect_block(tree, b.rays, b.hits, options);
+                } else {
+                    for (size_t k = 0; k < count; ++k) b.hits[k] = intersect(tree, b.rays[k]);
+                }
+                for (size_t k = 0; k < count; ++k)
+                    offer(b.best[b.pairs[g0 + k].second], b.hits[k], geom);
+            }
+            g0 = g1;
+        }
+    }
+    for (size_t i = 0; i < n; ++i) {
+        if constexpr (AnyHit)
+            occ_out[i] = b.done[i];
+        else
+            hits_out[i] = finish(b.best[i]);
+    }
+}
+
+Isa resolved_isa(const TraceOptions& options) noexcept {
+    return options.isa && isa_supported(*options.isa) ? *options.isa : default_isa();
+}
+
+template <bool AnyHit>
+void trace_batch(const Scene& scene, std::span<const Ray> rays, std::span<SceneHit> hits,
+                 std::span<uint8_t> occ, const TraceOptions& options, SceneTraceStats* stats) {
+    const SceneData& s = scene.data();
+    tbb::enumerable_thread_specific<BlockScratch> scratch;
+    tbb::enumerable_thread_specific<Counts> counts;
+    const size_t blocks = (rays.size() + kBlock - 1) / kBlock;
+    tbb::parallel_for(
+        tbb::blocked_range<size_t>(0, blocks, 1), [&](const tbb::blocked_range<size_t>& range) {
+            for (size_t k = range.begin(); k != range.end(); ++k) {
+                const size_t lo = k * kBlock, len = std::min(kBlock, rays.size() - lo);
+                trace_block<AnyHit>(s, rays.subspan(lo, len),
+                                    AnyHit ? std::span<SceneHit>() : hits.subspan(lo, len),
+                                    AnyHit ? occ.subspan(lo, len) : std::span<uint8_t>(), options,
+                                    scratch.local(), counts.local());
+            }
+        });
+    if (stats) {
+        *stats = SceneTraceStats{};
+        stats->isa = resolved_isa(options);
+        stats->rays = rays.size();
+        for (const Counts& c : counts) {
+            stats->invalid_rays += c.invalid;
+            stats->instance_visits += c.visits;
+            stats->instance_batches += c.batches;
+        }
+    }
+}
+
+}  // namespace
+
+namespace {
+
+/// The single-ray closest hit: instances in the order the walk meets them, each traced with
+/// tmax = the closest hit so far; the walk stops at the first cell beyond it.
+SceneHit intersect_one(const SceneData& s, const Ray& ray, uint64_t* visits) noexcept {
+    if (!detail::ray_is_valid(ray)) return SceneHit{};
+    SceneHit best = no_hit_yet(ray);
+    detail::Mailbox mailbox;
+    const detail::TopRay p = detail::make_top_ray(s, ray);
+    detail::walk_top(
+        s, ray, p, [&] { return best.t; },
+        [&](uint32_t geom, float) {
+            if (mailbox.seen(geom)) return true;
+            Ray o = detail::to_object(s.inst[geom], ray);
+            o.tmax = best.t;
+            if (visits) ++*visits;
+            offer(best, intersect(*s.instances[geom].tree, o), geom);
+            return true;
+        });
+    return finish(best);
+}
+
+bool occluded_one(const SceneData& s, const Ray& ray, uint64_t* visits) noexcept {
+    if (!detail::ray_is_valid(ray)) return false;
+    bool hit = false;
+    detail::Mailbox mailbox;
+    const detail::TopRay p = detail::make_top_ray(s, ray);
+    detail::walk_top(
+        s, ray, p, [&] { return ray.tmax; },
+        [&](uint32_t geom, float) {
+            if (mailbox.seen(geom)) return true;
+            if (visits) ++*visits;
+            hit = occluded(*s.instances[geom].tree, detail::to_object(s.inst[geom], ray));
+            return !hit;
+        });
+    return hit;
+}
+
+}  // namespace
+
+SceneHit intersect(const Scene& scene, const Ray& ray) noexcept {
+    return intersect_one(scene.data(), ray, nullptr);
+}
+
+bool occluded(const Scene& scene, const Ray& ray) noexcept {
+    return occluded_one(scene.data(), ray, nullptr);
+}
+
+void intersect(const Scene& scene, std::span<const Ray> rays, std::span<SceneHit> hits,
+               const TraceOptions& options, SceneTraceStats* stats) noexcept {
+    trace_batch<false>(scene, rays, hits, {}, options, stats);
+}
+
+void occluded(const Scene& scene, std::span<const Ray> rays, std::span<uint8_t> occluded_out,
+              const TraceOptions& options, SceneTraceStats* stats) noexcept {
+    trace_batch<true>(scene, rays, {}, occluded_out, options, stats);
+}
+
+void intersect_block(const Scene& scene, std::span<const Ray> rays, std::span<SceneHit> hits,
+                     const TraceOptions& options) noexcept {
+    // Per thread, kept between calls: the renderer calls this once per tile and sample.
+    thread_local BlockScratch scratch;
+    Counts counts;
+    for (size_t lo = 0; lo < rays.size(); lo += kBlock) {
+        const size_t len = std::min(kBlock, rays.size() - lo);
+        trace_block<false>(scene.data(), rays.subspan(lo, len), hits.subspan(lo, len), {}, options,
+                           scratch, counts);
+    }
+}
+
+void occluded_block(const Scene& scene, std::span<const Ray> rays, std::span<uint8_t> occluded_out,
+                    const TraceOptions& options) noexcept {
+    thread_local BlockScratch scratch;
+    Counts counts;
+    for (size_t lo = 0; lo < rays.size(); lo += kBlock) {
+        const size_t len = std::min(kBlock, rays.size() - lo);
+        trace_block<true>(scene.data(), rays.subspan(lo, len), {}, occluded_out.subspan(lo, len),
+                          options, scratch, counts);
+    }
+}
+
+// ---------------------------------------------------------------------------------------------
+// Every hit
+
+namespace {
+
+void sort_hits(std::vector<SceneHit>& hits) {
+    std::sort(hits.begin(), hits.end(), detail::scene_hit_less);
+}
+
+/// Every hit of `ray` into `out` (replaced), sorted; `tmp` and `cands` are scratch.
+void all_hits(const SceneData& s, const Ray& ray, bool merge, std::vector<SceneHit>& out,
+              std::vector<Hit>& tmp, std::vector<Candidate>& cands) {
+    out.clear();
+    if (!detail::ray_is_valid(ray)) return;
+    cands.clear();
+    candidates(s, ray, cands);
+    for (const Candidate& c : cands) {
+        intersect_all(*s.instances[c.geom].tree, detail::to_object(s.inst[c.geom], ray), merge,
+                      tmp);
+        for (const Hit& h : tmp) out.push_back({h.t, h.prim, h.u, h.v, c.geom});
+    }
+    sort_hits(out);
+}
+
+struct AllScratch {
+    std::vector<SceneHit> hits;
+    std::vector<Hit> tmp;
+    std::vector<Candidate> cands;
+};
+
+}  // namespace
+
+uint32_t intersect_all(const Scene& scene, const Ray& ray, bool merge_coincident,
+                       std::vector<SceneHit>& out) {
+    std::vector<Hit> tmp;
+    std::vector<Candidate> cands;
+    all_hits(scene.data(), ray, merge_coincident, out, tmp, cands);
+    return static_cast<uint32_t>(out.size());
+}
+
+SceneAllHits intersect_all(const Scene& scene, std::span<const Ray> rays,
+                           const AllHitsOptions& options) {
+    const SceneData& s = scene.data();
+    SceneAllHits result;
+    result.counts.assign(rays.size(), 0);
+    std::vector<std::vector<SceneHit>> kept(rays.size());
+    tbb::enumerable_thread_specific<AllScratch> scratch;
+    tbb::parallel_for(
+        tbb::blocked_range<size_t>(0, rays.size(), 256),
+        [&](const tbb::blocked_range<size_t>& range) {
+            AllScratch& a = scratch.local();
+            for (size_t i = range.begin(); i != range.end(); ++i) {
+                all_hits(s, rays[i], options.merge_coincident, a.hits, a.tmp, a.cands);
+                result.counts[i] = static_cast<uint32_t>(a.hits.size());
+                const size_t keep = std::min<size_t>(a.hits.size(), options.max_hits);
+                kept[i].assign(a.hits.begin(), a.hits.begin() + static_cast<std::ptrdiff_t>(keep));
+            }
+        });
+    result.offsets.assign(rays.size() + 1, 0);
+    for (size_t i = 0; i < rays.size(); ++i)
+        result.offsets[i + 1] = result.offsets[i] + kept[i].size();
+    result.hits.reserve(result.offsets.back());
+    for (auto& k : kept) result.hits.insert(result.hits.end(), k.begin(), k.end());
+    return result;
+}
+
+void count_intersections(const Scene& scene, std::span<const Ray> rays,
+                         const AllHitsOptions& options, std::span<uint32_t> counts) {
+    const SceneData& s = scene.data();
+    tbb::enumerable_thread_specific<AllScratch> scratch;
+    tbb::parallel_for(tbb::blocked_range<size_t>(0, rays.size(), 256),
+                      [&](const tbb::blocked_range<size_t>& range) {
+                          AllScratch& a = scratch.local();
+                          for (size_t i = range.begin(); i != range.end(); ++i) {
+                              all_hits(s, rays[i], options.merge_coincident, a.hits, a.tmp,
+                                       a.cands);
+                              counts[i] = static_cast<uint32_t>(a.hits.size());
+                          }
+                      });
+}
+
+// ---------------------------------------------------------------------------------------------
+// Hit attributes
+
+Vec3 hit_normal(const Scene& scene, const SceneHit& hit) noexcept {
+    if (!hit.is_hit()) return Vec3{};
+    const SceneData& s = scene.data();
+    const InstanceData& in = s.inst[hit.geom];
+    const Vec3 n = triangle_normal(s.instances[hit.geom].tree->triangle(hit.prim));
+    if (in.identity_linear) return n;
+    double w[3];
+    for (int j = 0; j < 3; ++j)  // (L^-T n)_j = sum_i Linv[i][j] n_i
+        w[j] = in.inv[j] * n.x + in.inv[3 + j] * n.y + in.inv[6 + j] * n.z;
+    const double len = std::sqrt(w[0] * w[0] + w[1] * w[1] + w[2] * w[2]);
+    if (!(len > 0.0)) return Vec3{};
+    const double scale = (in.det < 0.0 ? -1.0 : 1.0) / len;
+    return Vec3{static_cast<float>(w[0] * scale), static_cast<float>(w[1] * scale),
+                static_cast<float>(w[2] * scale)};
+}
+
+Vec3 hit_point(const Scene& scene, const SceneHit& hit) noexcept {
+    if (!hit.is_hit()) {
+        const float nan = std::numeric_limits<float>::quiet_NaN();
+        return Vec3{nan, nan, nan};
+    }
+    const SceneData& s = scene.data();
+    const Vec3 p = hit_point(s.instances[hit.geom].tree->triangle(hit.prim), hit.hit());
+    const double q[3] = {p.x, p.y, p.z};
+    return detail::to_world(s.inst[hit.geom], q);
+}
+
+void hit_attributes(const Scene& scene, std::span<const SceneHit> hits, std::span<Vec3> normals,
+                    std::span<Vec3> points) {
+    tbb::parallel_for(tbb::blocked_range<size_t>(0, hits.size(), 4096),
+                      [&](const tbb::blocked_range<size_t>& range) {
+                          for (size_t i = range.begin(); i != range.end(); ++i) {
+                              if (!normals.empty()) normals[i] = hit_normal(scene, hits[i]);
+                              if (!points.empty()) points[i] = hit_point(scene, hits[i]);
+                          }
+                      });
+}
+
+TriVerts world_triangle(const Scene& scene, uint32_t geom, uint32_t prim) noexcept {
+    const SceneData& s = scene.data();
+    const TriVerts& t = s.instances[geom].tree->triangle(prim);
+    TriVerts w;
+    const float* in[3] = {t.v0, t.v1, t.v2};
+    float* out[3] = {w.v0, w.v1, w.v2};
+    for (int c = 0; c < 3; ++c) {
+        const double p[3] = {in[c][0], in[c][1], in[c][2]};
+        const Vec3 v = detail::to_world(s.inst[geom], p);
+        out[c][0] = v.x, out[c][1] = v.y, out[c][2] = v.z;
+    }
+    return w;
+}
+
+// ---------------------------------------------------------------------------------------------
+// The oracle
+
+SceneOracle::SceneOracle(const Scene& scene) : scene_(scene) {
+    std::map<const KdTree*, std::shared_ptr<const std::vector<TriVerts>>> by_tree;
+    for (uint32_t g = 0; g < scene.size(); ++g) {
+        const KdTree* tree = scene.instance(g).tree.get();
+        auto& tris = by_tree[tree];
+        if (!tris) tris = std::make_shared<const std::vector<TriVerts>>(triangles_by_id(*tree));
+        tris_.push_back(tris);
+    }
+}
+
+SceneHit SceneOracle::intersect(const Ray& ray) const noexcept {
+    if (!detail::ray_is_valid(ray)) return SceneHit{};
+    SceneHit best = no_hit_yet(ray);
+    for (uint32_t g = 0; g < scene_.size(); ++g)
+        offer(best, brute_force_intersect(*tris_[g], scene_.object_ray(g, ray)), g);
+    return finish(best);
+}
+
+bool SceneOracle::occluded(const Ray& ray) const noexcept {
+    if (!detail::ray_is_valid(ray)) return false;
+    for (uint32_t g = 0; g < scene_.size(); ++g)
+        if (brute_force_occluded(*tris_[g], scene_.object_ray(g, ray))) return true;
+    return false;
+}
+
+std::vector<SceneHit> SceneOracle::intersect_all(const Ray& ray, bool merge_coincident) const {
+    std::vector<SceneHit> out;
+    if (!detail::ray_is_valid(ray)) return out;
+    for (uint32_t g = 0; g < scene_.size(); ++g) {
+        for (const Hit& h :
+             brute_force_intersect_all(*tris_[g], scene_.object_ray(g, ray), merge_coincident))
+            out.push_back({h.t, h.prim, h.u, h.v, g});
+    }
+    sort_hits(out);
+    return out;
+}
+
+}  // namespace kdrt

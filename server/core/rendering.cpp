@@ -1,0 +1,41 @@
+#include "core/rendering.h"
+
+#include <chrono>
+
+#include "kdrt/proto/raw_image.h"
+
+namespace kdrt::server {
+
+proto::ImageEncodeOptions eight_bit_options(const RenderSettings& settings,
+                                            proto::ImageEncodeOptions options) {
+    options.transfer = proto::render_transfer(settings.shading);
+    return options;
+}
+
+proto::Result<RenderedImage, std::string> render_and_encode(Compute& compute, const KdTree& tree,
+                                                            const RenderSettings& settings,
+                                                            proto::ImageFormat format,
+                                                            const proto::ImageEncodeOptions& encode,
+                                                            const RenderControl& control) {
+    RenderedImage out;
+    const Image image = compute.run([&] { return render(tree, settings, control, &out.stats); });
+    const auto start = std::chrono::steady_clock::now();
+    if (format == proto::ImageFormat::kRaw) {
+        const PixelRegion region =
+            settings.region.value_or(PixelRegion{0, 0, settings.width, settings.height});
+        out.bytes =
+            proto::encode_raw_image(image, region.x, region.y, settings.width, settings.height);
+        out.encode_ms =
+            std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start)
+                .count();
+        return out;
+    }
+    auto encoded = proto::encode_image(image, format, eight_bit_options(settings, encode));
+    if (!encoded) return proto::Err{"encoding the image failed: " + encoded.error()};
+    out.encode_ms =
+        std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
+    out.bytes = std::move(*encoded);
+    return out;
+}
+
+}  // namespace kdrt::server

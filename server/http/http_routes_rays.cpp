@@ -1,0 +1,177 @@
+// POST /v1/meshes/{id}/intersect: KDRR -> KDRH/KDRO, or JSON -> JSON.
+
+#include <span>
+
+#include "http/batch_ingest.h"
+#include "http/http_routes.h"
+#include "http/http_util.h"
+#include "http/httplib_internals.h"
+#include "http/problems.h"
+#include "kdrt/proto/json_api.h"
+#include "kdrt/proto/ray_batch.h"
+#include "kdrt/proto/text.h"
+
+namespace kdrt::server {
+
+using proto::ProblemKind;
+
+namespace {
+
+/// Bodies from this size on are read from the socket directly, past httplib (read_body_direct).
+constexpr uint64_t kDirectReadBytes = 256u << 10;
+
+/// How a KDRR body over the limit is named in the 413 detail.
+constexpr const char* kBatchLimitWhat = "a KDRR batch (16 + 32 x max_rays)";
+
+/// The problem a batch without an answer is reported as. `http_status`: what httplib set when
+/// its reader failed (413 over its payload limit, else 400).
+proto::Problem ingest_problem(const IngestFailure& failure, int http_status, uint64_t limit) {
+    switch (failure.kind) {
+        case IngestFailure::Kind::kTooLarge:
+            return body_too_large_problem(limit, kBatchLimitWhat);
+        case IngestFailure::Kind::kRefused:
+            return ray_batch_problem(*failure.error);
+        case IngestFailure::Kind::kUnreadable:
+            break;
+    }
+    // The connection broke, the request's deadline passed, or the framing was invalid.
+    if (request_deadline_passed()) return body_timeout_problem();
+    return http_status == 413
+               ? body_too_large_problem(limit, kBatchLimitWhat)
+               : make_problem(ProblemKind::kBadRequest, "the request body could not be read");
+}
+
+}  // namespace
+
+void Routes::intersect(const httplib::Request& req, httplib::Response& res,
+                       const httplib::ContentReader& reader) {
+    const std::string type = proto::media_type_essence(req.get_header_value("Content-Type"));
+    const bool binary = type == proto::kRaysMediaType;
+    if (!binary && type != proto::kJsonMediaType) {
+        discard_body(req, res, reader);
+        return reply_problem(
+            req, res,
+            make_problem(ProblemKind::kUnsupportedMediaType,
+                         "intersect " + std::string(proto::api_errors::kUnsupportedRayType) +
+                             ", not \"" + req.get_header_value("Content-Type") + "\""));
+    }
+    // ?invalid_rays=refuse (default): a ray with a NaN/Inf field makes the KDRR batch a 400
+    // naming its index; =miss: such rays are answered as misses (as Embree and Open3D do).
+    const std::string invalid = req.get_param_value("invalid_rays");
+    if (!invalid.empty() && invalid != "refuse" && invalid != "miss") {
+        discard_body(req, res, reader);
+        return reply_problem(
+            req, res,
+            make_problem(ProblemKind::kBadRequest, "query parameter invalid_rays is " +
+                                                       proto::in_quotes(invalid) +
+                                                       " (expected refuse or miss)"));
+    }
+    const std::string id = req.matches[1];
+    auto tree = svc_.cache.acquire(id);
+    if (!tree) {
+        discard_body(req, res, reader);
+        return reply_problem(req, res, mesh_lookup_problem(tree.error(), id));
+    }
+    // The batch's memory (its rays and its answer) is taken from batch_memory_budget before its
+    // body is read, and held until the answer has been sent.
+    auto hold = take_batch_budget(req, res, reader, binary);
+    if (!hold) return;
+    if (binary)
+        intersect_binary(req, res, reader, **tree, invalid != "miss");
+    else
+        intersect_json(req, res, reader, **tree);
+    keep_until_sent(res, std::make_shared<ByteBudget::Hold>(std::move(*hold)));
+}
+
+std::optional<ByteBudget::Hold> Routes::take_batch_budget(const httplib::Request& req,
+                                                          httplib::Response& res,
+                                                          const httplib::ContentReader& reader,
+                                                          bool binary) {
+    const std::optional<uint64_t> declared = declared_body_bytes(req);
+    uint64_t bytes = 0;
+    if (binary) {
+        // 32 bytes a ray in, at most 16 out (KDRH), and the 16-byte header.
+        const uint64_t body = declared.value_or(proto::kdrr_body_size(svc_.config.max_rays));
+        bytes = proto::kdrr_body_size(0) + (body / 32) * 48;
+    } else {
+        bytes = declared.value_or(svc_.config.max_json_bytes) +
+                uint64_t{svc_.config.max_json_rays} * 48;
+    }
+    return take_budget_bytes(req, res, reader, bytes);
+}
+
+std::optional<ByteBudget::Hold> Routes::take_budget_bytes(const httplib::Request& req,
+                                                          httplib::Response& res,
+                                                          const httplib::ContentReader& reader,
+                                                          uint64_t bytes) {
+    auto hold = svc_.batch_budget.try_take(bytes);
+    if (hold) return hold;
+    discard_body(req, res, reader);
+    const uint64_t limit = svc_.batch_budget.limit();
+    if (bytes > limit) {
+        reply_problem(req, res,
+                      make_problem(ProblemKind::kPayloadTooLarge,
+                                   "this batch needs " + std::to_string(bytes) +
+                                       " bytes of memory, more than batch_memory_budget (" +
+                                       std::to_string(limit) + ")"));
+        return std::nullopt;
+    }
+    auto p = make_problem(ProblemKind::kOverCapacity,
+                          "ray batches in flight hold " + std::to_string(svc_.batch_budget.held()) +
+                              " of " + std::to_string(limit) +
+                              " bytes (batch_memory_budget); this batch needs " +
+                              std::to_string(bytes) + "; retry later");
+    p.retry_after = 1;
+    p.limit = limit;
+    reply_problem(req, res, std::move(p));
+    return std::nullopt;
+}
+
+void Routes::intersect_binary(const httplib::Request& req, httplib::Response& res,
+                              const httplib::ContentReader& reader, const KdTree& tree,
+                              bool reject_invalid) {
+    BatchIngest ingest(svc_.compute, svc_.batch_buffers, tree, svc_.config.max_rays,
+                       declared_body_bytes(req), reject_invalid);
+    if (ingest.declared_too_large()) {
+        discard_body(req, res, reader);
+        return reply_problem(req, res, body_too_large_problem(ingest.limit(), kBatchLimitWhat));
+    }
+    const bool read_ok = read_body_direct(
+        req, reader, kDirectReadBytes,
+        [&](std::span<const std::byte> piece) { return ingest.feed(piece); },
+        [&](const SocketReceive& receive) { return ingest.receive_rest(receive); });
+    request_context().bytes_in += ingest.received();
+    auto answer = ingest.finish(read_ok);
+    if (!answer) {
+        reply_problem(req, res, ingest_problem(answer.error(), res.status, ingest.limit()));
+        if (answer.error().close_connection) res.set_header("Connection", "close");
+        return;
+    }
+    request_context().rays = answer->count;
+    svc_.metrics.add_rays(answer->count, answer->occlusion);
+    reply_buffer(res, std::move(answer->body), answer->size,
+                 answer->occlusion ? proto::kOcclusionMediaType : proto::kHitsMediaType);
+}
+
+void Routes::intersect_json(const httplib::Request& req, httplib::Response& res,
+                            const httplib::ContentReader& reader, const KdTree& tree) {
+    auto body = read_body(req, res, reader, svc_.config.max_json_bytes, svc_.config.max_json_bytes,
+                          svc_.store.tmp_dir().string(), "a JSON request (max_json_bytes)");
+    if (!body) return;
+    auto request = proto::decode_json_rays(as_text(body->bytes()), svc_.config.max_json_rays);
+    body.reset();
+    if (!request)
+        return reply_problem(req, res, json_problem(request.error(), svc_.config.max_json_rays));
+    request_context().rays = request->rays.size();
+    svc_.metrics.add_rays(request->rays.size(), request->occlusion);
+    if (request->occlusion) {
+        std::vector<uint8_t> occluded(request->rays.size());
+        svc_.compute.occluded(tree, request->rays, occluded);
+        return reply_json(res, 200, proto::encode_json_occlusion(occluded));
+    }
+    std::vector<Hit> hits(request->rays.size());
+    svc_.compute.intersect(tree, request->rays, hits);
+    reply_json(res, 200, proto::encode_json_hits(hits));
+}
+
+}  // namespace kdrt::server

@@ -1,0 +1,170 @@
+// POST /v1/meshes/{id}/scan: a JSON sensor description -> a KDRZ depth image (or EXR) for a
+// pinhole camera, a KDRL point cloud (or PLY) for a lidar (kdrt/scan.h).
+
+#include <optional>
+#include <string>
+
+#include "http/http_routes.h"
+#include "http/http_util.h"
+#include "http/httplib_internals.h"
+#include "http/json_shape.h"
+#include "http/problems.h"
+#include "kdrt/camera.h"
+#include "kdrt/proto/json_api.h"
+#include "kdrt/proto/problem.h"
+#include "kdrt/proto/scan.h"
+#include "kdrt/proto/scan_image.h"
+#include "kdrt/proto/text.h"
+#include "kdrt/scan.h"
+
+namespace kdrt::server {
+
+using proto::ProblemKind;
+
+namespace {
+
+/// A scan request is a few dozen values, plus one per lidar channel given by elevation_deg.
+constexpr JsonShapeLimits kScanJsonShape{.max_depth = 6, .max_values = 16384};
+
+/// batch_memory_budget bytes per pixel: the ray and its cosine, the hit, the image planes with
+/// normals, and the encoded answer (40 + 16 + 20 + 20, rounded up for EXR's buffers).
+constexpr uint64_t kBytesPerPixel = 128;
+/// Per beam: the ray, intersect_all's offsets and counts; per kept return: the engine's two
+/// copies of the hit, the point and its encoded record.
+constexpr uint64_t kBytesPerBeam = 64;
+constexpr uint64_t kBytesPerReturn = 96;
+
+proto::Problem field_problem(const std::string& field, const std::string& why) {
+    return make_problem(ProblemKind::kBadRequest, proto::in_quotes(field) + ": " + why);
+}
+
+/// Completes `request` with the engine (a look-at camera as intrinsics and a pose, a vertical
+/// field of view as elevations) and checks it (kdrt::validate); sets the rays it traces and the
+/// batch_memory_budget bytes it needs. A problem naming the field in the request's spelling when
+/// the sensor cannot scan.
+std::optional<proto::Problem> complete_and_check(proto::ScanRequest& request, uint64_t& rays,
+                                                 uint64_t& bytes) {
+    const std::string prefix(proto::scan_field_prefix(request));
+    try {
+        if (request.lidar) {
+            LidarSpec& spec = request.lidar_spec;
+            if (request.vertical_fov)
+                spec.elevation_deg =
+                    lidar_elevations(request.fov_lower, request.fov_upper, request.channels);
+            validate(spec);
+            rays = uint64_t{spec.elevation_deg.size()} * spec.azimuth_steps;
+            bytes = 64 + rays * (kBytesPerBeam + kBytesPerReturn * spec.returns);
+        } else {
+            if (request.look_at) {
+                const PinholeCamera pin = pinhole_from_look_at(request.camera, request.camera_width,
+                                                               request.camera_height);
+                request.pinhole.intrinsics = pin.intrinsics;
+                request.pinhole.pose = pin.pose;
+            }
+            validate(request.pinhole);
+            rays = uint64_t{request.pinhole.intrinsics.width} * request.pinhole.intrinsics.height;
+            bytes = 64 + rays * kBytesPerPixel;
+        }
+    } catch (const ScanError& e) {
+        return field_problem(prefix + e.field(), e.what());
+    } catch (const CameraError& e) {
+        return field_problem("pinhole.camera", e.what());
+    }
+    return std::nullopt;
+}
+
+/// A scan refused by batch_memory_budget: 413 if it could never fit, else 503.
+proto::Problem budget_problem(const ByteBudget& budget, uint64_t bytes) {
+    const uint64_t limit = budget.limit();
+    if (bytes > limit) {
+        auto p = make_problem(ProblemKind::kPayloadTooLarge,
+                              "this scan needs " + std::to_string(bytes) +
+                                  " bytes of memory, more than batch_memory_budget (" +
+                                  std::to_string(limit) + "); scan fewer pixels or beams");
+        p.limit = limit;
+        return p;
+    }
+    auto p =
+        make_problem(ProblemKind::kOverCapacity,
+                     "ray batches in flight hold " + std::to_string(budget.held()) + " of " +
+                         std::to_string(limit) + " bytes (batch_memory_budget); this scan needs " +
+                         std::to_string(bytes) + "; retry later");
+    p.retry_after = 1;
+    p.limit = limit;
+    return p;
+}
+
+}  // namespace
+
+void Routes::scan(const httplib::Request& req, httplib::Response& res,
+                  const httplib::ContentReader& reader) {
+    if (proto::media_type_essence(req.get_header_value("Content-Type")) != proto::kJsonMediaType) {
+        discard_body(req, res, reader);
+        return reply_problem(
+            req, res,
+            make_problem(ProblemKind::kUnsupportedMediaType,
+                         "scan " + std::string(proto::api_errors::kUnsupportedJsonType)));
+    }
+    auto body = read_body(req, res, reader, svc_.config.max_json_bytes, svc_.config.max_json_bytes,
+                          svc_.store.tmp_dir().string(), "a JSON request (max_json_bytes)");
+    if (!body) return;
+    request_context().bytes_in += body->size();
+    const std::string_view text = as_text(body->bytes());
+    if (auto shape = json_shape_error(text, kScanJsonShape)) {
+        return reply_problem(req, res,
+                             make_problem(ProblemKind::kBadRequest,
+                                          "scan request: " + *shape + " (a scan request has " +
+                                              std::to_string(kScanJsonShape.max_values) +
+                                              " values at most, nested " +
+                                              std::to_string(kScanJsonShape.max_depth) + " deep)"));
+    }
+    const ServerConfig& c = svc_.config;
+    const proto::ScanLimits limits{c.max_image_width, c.max_image_height, c.max_sensor_beams,
+                                   c.max_scan_points, c.max_hits_per_ray};
+    auto request = proto::decode_scan_request(text, limits);
+    body.reset();
+    if (!request) {
+        const proto::ScanRequestError& e = request.error();
+        return reply_problem(
+            req, res,
+            make_problem(e.over_limit ? ProblemKind::kPayloadTooLarge : ProblemKind::kBadRequest,
+                         e.detail));
+    }
+    // The engine's checks (a rigid pose, the intrinsics, the range window, the look-at camera),
+    // before any work.
+    uint64_t rays = 0, bytes = 0;
+    if (auto problem = complete_and_check(*request, rays, bytes))
+        return reply_problem(req, res, std::move(*problem));
+    // The body is read already: no acquire_tree / take_budget_bytes (they discard the body).
+    const std::string id = req.matches[1];
+    auto acquired = svc_.cache.acquire(id);
+    if (!acquired) return reply_problem(req, res, mesh_lookup_problem(acquired.error(), id));
+    const std::shared_ptr<const KdTree> tree = std::move(acquired).value();
+    auto hold = svc_.batch_budget.try_take(bytes);
+    if (!hold) return reply_problem(req, res, budget_problem(svc_.batch_budget, bytes));
+    request_context().rays = rays;
+    svc_.metrics.add_rays(rays, false);
+    const KdTree& t = *tree;
+    if (request->lidar) {
+        const PointCloud cloud =
+            svc_.compute.run([&] { return scan_lidar(t, request->lidar_spec); });
+        if (request->format == proto::ScanFormat::kPly)
+            reply_bytes(res, proto::encode_point_cloud_ply(cloud), proto::kPlyMediaType);
+        else
+            reply_bytes(res, proto::encode_point_cloud(cloud), proto::kPointCloudMediaType);
+    } else {
+        const DepthImage image =
+            svc_.compute.run([&] { return scan_pinhole(t, request->pinhole); });
+        if (request->format == proto::ScanFormat::kExr) {
+            auto exr = proto::encode_depth_exr(image);
+            if (!exr)
+                return reply_problem(req, res, make_problem(ProblemKind::kInternal, exr.error()));
+            reply_bytes(res, std::move(*exr), "image/x-exr");
+        } else {
+            reply_bytes(res, proto::encode_depth_image(image), proto::kDepthImageMediaType);
+        }
+    }
+    keep_until_sent(res, std::make_shared<ByteBudget::Hold>(std::move(*hold)));
+}
+
+}  // namespace kdrt::server

@@ -1,0 +1,210 @@
+// The binned top levels of the SAH build (build_binned.cpp): where they hand over to the exact
+// sweep, determinism, empty-space cuts, degenerate inputs, and tree quality against the exact
+// build. Every tree here is also traced against the brute-force oracle.
+
+#include <gtest/gtest.h>
+
+#include <cstdint>
+#include <limits>
+#include <string>
+#include <vector>
+
+#include <tbb/task_arena.h>
+
+#include "build_internal.h"
+#include "kdrt/proto/mesh_io.h"
+#include "oracle.h"
+#include "test_util.h"
+
+namespace kdrt::test {
+namespace {
+
+using detail::BinnedParams;
+using detail::build_kdtree_with;
+
+constexpr uint32_t kAllExact = std::numeric_limits<uint32_t>::max();
+
+BinnedParams binned_below(uint32_t exact_below, uint32_t bins = 64) {
+    BinnedParams params;
+    params.exact_below = exact_below;
+    params.bins = bins;
+    return params;
+}
+
+bool same_tree(const KdTree& a, const KdTree& b) {
+    return a.nodes == b.nodes && a.leaf_refs == b.leaf_refs && a.tri_ids == b.tri_ids;
+}
+
+/// The tree answers every oracle ray as brute force does.
+void expect_traces_like_brute_force(const Mesh& mesh, const KdTree& tree, uint64_t seed,
+                                    size_t ray_count = 20'000) {
+    SCOPED_TRACE(testing::Message() << "seed=" << seed << " (replay with KDRT_TEST_SEED)");
+    Rng rng(seed);
+    const std::vector<Ray> rays = oracle_rays(rng, mesh, tree, scaled(ray_count));
+    const std::vector<TriVerts> tris = make_tri_verts(mesh);
+    expect_same_hits(tree_all(tree, rays), brute_force_all(tris, rays), rays, tris);
+}
+
+/// Does some inner node split `axis` exactly at `pos`?
+bool has_split(const KdTree& tree, int axis, float pos) {
+    for (const KdNode& n : tree.nodes)
+        if (!n.is_leaf() && n.axis() == axis && n.split() == pos) return true;
+    return false;
+}
+
+Mesh load_bunny() {
+    auto mesh = proto::load_mesh_file(std::string(KDRT_TEST_DATA_DIR) + "/bunny00.off");
+    if (!mesh) throw std::runtime_error(mesh.error().to_string());
+    return std::move(mesh).value();
+}
+
+TEST(KdBinned, NodesBelowTheThresholdAreBuiltExactly) {
+    Rng rng(test_seed() + 300);
+    const Mesh mesh = random_soup(rng, 3000);
+    const KdTree exact = build_kdtree_with(mesh, {}, binned_below(kAllExact));
+    // More references than triangles never occur at the root, so a threshold above the triangle
+    // count leaves the whole build to the exact sweep ...
+    EXPECT_TRUE(same_tree(build_kdtree_with(mesh, {}, binned_below(3001)), exact));
+    // ... and one at the triangle count bins the root (and the default build is exact here).
+    const KdTree binned = build_kdtree_with(mesh, {}, binned_below(3000));
+    EXPECT_FALSE(same_tree(binned, exact)) << "the root split should come from the bins";
+    EXPECT_TRUE(same_tree(build_kdtree(mesh), exact));
+    expect_traces_like_brute_force(mesh, binned, test_seed() + 301);
+    // Binned all the way down to small nodes.
+    expect_traces_like_brute_force(mesh, build_kdtree_with(mesh, {}, binned_below(16)),
+                                   test_seed() + 302);
+}
+
+TEST(KdBinned, SameBytesAtAnyThreadCount) {
+    Rng rng(test_seed() + 310);
+    // Big enough that the root bins and partitions in parallel chunks (kParallelRefs).
+    const Mesh mesh = random_soup(rng, 60000);
+    for (uint32_t exact_below : {64u, 6144u}) {
+        SCOPED_TRACE(exact_below);
+        auto build_with = [&](int threads) {
+            tbb::task_arena arena(threads);
+            return arena.execute(
+                [&] { return build_kdtree_with(mesh, {}, binned_below(exact_below)); });
+        };
+        const KdTree one = build_with(1), two = build_with(2), four = build_with(4);
+        EXPECT_TRUE(same_tree(one, two));
+        EXPECT_TRUE(same_tree(one, four));
+    }
+}
+
+TEST(KdBinned, EmptySpaceIsCutAtTheGeometry) {
+    // A small cluster in one corner of a big closed box: the empty space around the cluster must
+    // be cut off by planes exactly at the cluster's bounds, not at the nearest bin boundary.
+    Mesh mesh;
+    const float lo = -100, hi = 100;
+    const Vec3 c[8] = {{lo, lo, lo}, {hi, lo, lo}, {lo, hi, lo}, {hi, hi, lo},
+                       {lo, lo, hi}, {hi, lo, hi}, {lo, hi, hi}, {hi, hi, hi}};
+    const int faces[6][4] = {{0, 1, 3, 2}, {4, 6, 7, 5}, {0, 4, 5, 1},
+                             {2, 3, 7, 6}, {0, 2, 6, 4}, {1, 5, 7, 3}};
+    for (const auto& f : faces) {
+        add_triangle(mesh, c[f[0]], c[f[1]], c[f[2]]);
+        add_triangle(mesh, c[f[0]], c[f[2]], c[f[3]]);
+    }
+    Rng rng(test_seed() + 320);
+    const Mesh cluster = random_soup(rng, 5000, 0.05f);  // in about [0, 1]^3
+    for (size_t t = 0; t < cluster.triangle_count(); ++t)
+        add_triangle(mesh, cluster.corner(t, 0) + Vec3{30, 40, 50},
+                     cluster.corner(t, 1) + Vec3{30, 40, 50},
+                     cluster.corner(t, 2) + Vec3{30, 40, 50});
+    Aabb box;
+    for (size_t t = 12; t < mesh.triangle_count(); ++t)
+        for (int k = 0; k < 3; ++k) box.extend(mesh.corner(t, k));
+
+    const KdTree binned = build_kdtree_with(mesh, {}, binned_below(64, 32));
+    for (int a = 0; a < 3; ++a) {
+        EXPECT_TRUE(has_split(binned, a, box.lo[a])) << "axis " << a << " at " << box.lo[a];
+        EXPECT_TRUE(has_split(binned, a, box.hi[a])) << "axis " << a << " at " << box.hi[a];
+    }
+    const KdTree exact = build_kdtree_with(mesh, {}, binned_below(kAllExact));
+    EXPECT_LE(binned.stats.sah_cost, 1.05 * exact.stats.sah_cost);
+    expect_traces_like_brute_force(mesh, binned, test_seed() + 321);
+}
+
+TEST(KdBinned, AllTrianglesInOnePlane) {
+    Mesh mesh;  // a 96x96 grid of triangle pairs in the plane z = 0.5
+    const int n = 96;
+    for (int i = 0; i < n; ++i)
+        for (int j = 0; j < n; ++j) {
+            const float x = i / float(n), y = j / float(n), s = 1.0f / n;
+            add_triangle(mesh, {x, y, 0.5f}, {x + s, y, 0.5f}, {x + s, y + s, 0.5f});
+            add_triangle(mesh, {x, y, 0.5f}, {x + s, y + s, 0.5f}, {x, y + s, 0.5f});
+        }
+    const KdTree tree = build_kdtree_with(mesh, {}, binned_below(32));
+    EXPECT_GT(tree.stats.leaves, 1000u) << "planar triangles must still be split up";
+    expect_traces_like_brute_force(mesh, tree, test_seed() + 330);
+    Rng rng(test_seed() + 331);
+    std::vector<Ray> rays;
+    for (int i = 0; i < 5000; ++i) {  // in the plane itself, and straight down onto it
+        rays.push_back(make_ray({rng.uniform(), rng.uniform(), 0.5f},
+                                {rng.uniform(-1, 1), rng.uniform(-1, 1), 0}));
+        rays.push_back(make_ray({rng.uniform(), rng.uniform(), 3.0f}, {0, 0, -1}));
+    }
+    const std::vector<TriVerts> tris = make_tri_verts(mesh);
+    expect_same_hits(tree_all(tree, rays), brute_force_all(tris, rays), rays, tris);
+}
+
+TEST(KdBinned, ManyIdenticalTriangles) {
+    Mesh mesh;
+    Rng rng(test_seed() + 340);
+    const Mesh soup = random_soup(rng, 2000);
+    for (size_t t = 0; t < soup.triangle_count(); ++t)
+        add_triangle(mesh, soup.corner(t, 0), soup.corner(t, 1), soup.corner(t, 2));
+    for (int i = 0; i < 8000; ++i)  // above the soup
+        add_triangle(mesh, {0.4f, 0.4f, 1.4f}, {0.6f, 0.4f, 1.5f}, {0.5f, 0.6f, 1.6f});
+    const KdTree tree = build_kdtree_with(mesh, {}, binned_below(64));
+    EXPECT_LE(tree.stats.max_depth, static_cast<uint32_t>(kMaxDepth));
+    // The copies cannot be separated: cutting them only duplicates references.
+    EXPECT_LT(tree.stats.refs, 4 * mesh.triangle_count()) << "no runaway duplication";
+    expect_traces_like_brute_force(mesh, tree, test_seed() + 341);
+    const Hit h = intersect(tree, make_ray({0.5f, 0.5f, 3}, {0, 0, -1}));
+    ASSERT_TRUE(h.is_hit());
+    EXPECT_EQ(h.prim, 2000u) << "ties go to the lowest id";
+}
+
+TEST(KdBinned, HugeAndTinyCoordinates) {
+    for (const float scale : {1e30f, 1e-30f, 1e-3f}) {
+        SCOPED_TRACE(scale);
+        Rng rng(test_seed() + 350);
+        const Mesh soup = random_soup(rng, 4000);
+        Mesh mesh;
+        for (size_t t = 0; t < soup.triangle_count(); ++t)
+            add_triangle(mesh, soup.corner(t, 0) * scale, soup.corner(t, 1) * scale,
+                         soup.corner(t, 2) * scale);
+        const KdTree tree = build_kdtree_with(mesh, {}, binned_below(32));
+        EXPECT_GT(tree.stats.leaves, 100u);
+        expect_traces_like_brute_force(mesh, tree, test_seed() + 351);
+    }
+}
+
+// Quality: the binned top levels may choose other splits than the exact sweep, but the tree's
+// SAH cost stays within 1% of the exact build's with the default parameters, and within 5% when
+// binning goes all the way down to nodes of 64 references.
+TEST(KdBinned, SahCostStaysCloseToTheExactBuild) {
+    Rng rng(test_seed() + 360);
+    const Mesh soup = random_soup(rng, 40000);
+    const Mesh bunny = load_bunny();
+    const Mesh stadium = teapot_in_stadium();
+    for (const Mesh* mesh : {&soup, &bunny, &stadium}) {
+        const double exact = build_kdtree_with(*mesh, {}, binned_below(kAllExact)).stats.sah_cost;
+        const double defaults = build_kdtree_with(*mesh, {}, BinnedParams{}).stats.sah_cost;
+        const double deep = build_kdtree_with(*mesh, {}, binned_below(64)).stats.sah_cost;
+        SCOPED_TRACE(testing::Message() << mesh->triangle_count() << " triangles: exact " << exact
+                                        << ", default " << defaults << ", binned to 64 " << deep);
+        EXPECT_LE(defaults, 1.01 * exact);
+        EXPECT_LE(deep, 1.05 * exact);
+    }
+}
+
+TEST(KdBinned, BunnyTracesLikeBruteForceWhenBinnedDeep) {
+    const Mesh bunny = load_bunny();
+    expect_traces_like_brute_force(bunny, build_kdtree_with(bunny, {}, binned_below(64)),
+                                   test_seed() + 370, 50'000);
+}
+
+}  // namespace
+}  // namespace kdrt::test

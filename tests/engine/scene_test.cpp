@@ -1,0 +1,792 @@
+// Scenes (kdrt/scene.h): every query against the brute-force SceneOracle, bit for bit, on every
+// ISA and mode; a one-identity-instance scene against the mesh; bad input naming the instance.
+
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <cstring>
+#include <memory>
+#include <numbers>
+
+#include "kdrt/camera.h"
+#include "kdrt/distance.h"
+#include "kdrt/query.h"
+#include "kdrt/render.h"
+#include "kdrt/scan.h"
+#include "kdrt/scene.h"
+#include "kdrt/trace.h"
+#include "test_util.h"
+
+namespace kdrt::test {
+namespace {
+
+std::vector<Isa> supported_isas() {
+    std::vector<Isa> isas;
+    for (Isa isa : {Isa::kScalar, Isa::kSse4, Isa::kAvx2, Isa::kAvx512})
+        if (isa_supported(isa)) isas.push_back(isa);
+    return isas;
+}
+
+bool same_bits(const SceneHit& a, const SceneHit& b) { return std::memcmp(&a, &b, sizeof a) == 0; }
+
+std::string describe(const SceneHit& h) {
+    return "t=" + std::to_string(h.t) + " prim=" + std::to_string(h.prim) +
+           " geom=" + std::to_string(h.geom) + " u=" + std::to_string(h.u) +
+           " v=" + std::to_string(h.v);
+}
+
+/// Rotation about a random unit axis by a random angle, in double, as a 3x3 row-major array.
+std::array<double, 9> random_rotation(Rng& rng) {
+    const Vec3 axis = rng.on_sphere();
+    const double ang = rng.uniform(0.0f, 6.2831853f);
+    const double c = std::cos(ang), s = std::sin(ang), t = 1 - c;
+    const double x = axis.x, y = axis.y, z = axis.z;
+    const double len = std::sqrt(x * x + y * y + z * z);
+    const double ux = x / len, uy = y / len, uz = z / len;
+    return {t * ux * ux + c,      t * ux * uy - s * uz, t * ux * uz + s * uy,
+            t * ux * uy + s * uz, t * uy * uy + c,      t * uy * uz - s * ux,
+            t * ux * uz - s * uy, t * uy * uz + s * ux, t * uz * uz + c};
+}
+
+Affine3x4 affine(const std::array<double, 9>& l, Vec3 t) {
+    Affine3x4 a;
+    for (int r = 0; r < 3; ++r) {
+        for (int c = 0; c < 3; ++c) a.m[r][c] = static_cast<float>(l[3 * r + c]);
+        a.m[r][3] = t[r];
+    }
+    return a;
+}
+
+enum class Kind { kRigid, kScaled, kSheared, kMirrored };
+
+/// A random transform of `kind` placing the unit cube somewhere in [-2, 2]^3.
+Affine3x4 random_transform(Rng& rng, Kind kind) {
+    std::array<double, 9> l = random_rotation(rng);
+    if (kind == Kind::kScaled) {
+        const double s[3] = {rng.uniform(0.3f, 2.0f), rng.uniform(0.3f, 2.0f),
+                             rng.uniform(0.3f, 2.0f)};
+        for (int r = 0; r < 3; ++r)
+            for (int c = 0; c < 3; ++c) l[3 * r + c] *= s[c];
+    } else if (kind == Kind::kSheared) {
+        l[1] += rng.uniform(-0.8f, 0.8f);
+        l[5] += rng.uniform(-0.8f, 0.8f);
+    } else if (kind == Kind::kMirrored) {
+        for (int r = 0; r < 3; ++r) l[3 * r] = -l[3 * r];
+    }
+    return affine(l, rng.in_box({{-2, -2, -2}, {2, 2, 2}}));
+}
+
+/// World rays for a scene: from outside its box towards points inside, from inside in any
+/// direction, axis-parallel ones, windows [tmin, tmax], and rays aimed at world-space vertices and
+/// edge midpoints of random instances (the shared-edge and shared-vertex cases).
+std::vector<Ray> scene_rays(Rng& rng, const Scene& scene, const std::vector<Mesh>& meshes,
+                            const std::vector<uint32_t>& mesh_of, size_t count) {
+    std::vector<Ray> rays;
+    const Aabb inner = scene.bounds();
+    Aabb outer = inner;
+    const Vec3 e = inner.extent();
+    const float m = std::max({e.x, e.y, e.z}) * 0.5f;
+    outer.lo = outer.lo - Vec3{m, m, m};
+    outer.hi = outer.hi + Vec3{m, m, m};
+    while (rays.size() < count) {
+        const Vec3 o = rng.in_box(outer), target = rng.in_box(inner);
+        Ray r;
+        switch (rng.below(5)) {
+            case 0:
+                r = make_ray(o, target - o);
+                break;
+            case 1:
+                r = make_ray(target, rng.on_sphere() * rng.uniform(0.01f, 10.0f));
+                break;
+            case 2: {
+                Vec3 d{0, 0, 0};
+                d[static_cast<int>(rng.below(3))] = rng.below(2) ? 1.0f : -1.0f;
+                r = make_ray(o, d);
+                break;
+            }
+            case 3:
+                r = make_ray(o, target - o);
+                r.tmin = rng.uniform(0.0f, 1.0f);
+                r.tmax = r.tmin + rng.uniform(0.0f, 1.0f);
+                break;
+            default: {
+                const uint32_t g = rng.below(scene.size());
+                const Mesh& mesh = meshes[mesh_of[g]];
+                const auto tri = rng.below(static_cast<uint32_t>(mesh.triangle_count()));
+                const Vec3 a = mesh.corner(tri, 0), b = mesh.corner(tri, 1);
+                const Vec3 p = rng.below(2) ? a : (a + b) * 0.5f;
+                const double q[3] = {p.x, p.y, p.z};
+                const Affine3x4& t = scene.instance(g).transform;
+                Vec3 w;
+                for (int i = 0; i < 3; ++i)
+                    w[i] = static_cast<float>(t.m[i][0] * q[0] + t.m[i][1] * q[1] +
+                                              t.m[i][2] * q[2] + t.m[i][3]);
+                r = make_ray(o, w - o);
+                break;
+            }
+        }
+        rays.push_back(r);
+    }
+    return rays;
+}
+
+/// A mixed scene: a few meshes, many instances of every kind of transform, overlapping.
+struct TestScene {
+    std::vector<Mesh> meshes;
+    std::vector<std::shared_ptr<const KdTree>> trees;
+    std::vector<uint32_t> mesh_of;  ///< per instance
+    Scene scene;
+};
+
+TestScene mixed_scene(uint64_t seed, uint32_t instances) {
+    Rng rng(seed);
+    TestScene s;
+    s.meshes.push_back(random_soup(rng, 300));
+    s.meshes.push_back(uv_sphere({0.5f, 0.5f, 0.5f}, 0.5f, 12, 16));
+    s.meshes.push_back(random_soup(rng, 40, 0.4f));
+    for (const Mesh& m : s.meshes)
+        s.trees.push_back(std::make_shared<const KdTree>(build_kdtree(m)));
+    std::vector<SceneInstance> list;
+    for (uint32_t i = 0; i < instances; ++i) {
+        const uint32_t mesh = i % 3;
+        const Kind kind = static_cast<Kind>(rng.below(4));
+        s.mesh_of.push_back(mesh);
+        list.push_back({s.trees[mesh], random_transform(rng, kind), nullptr});
+    }
+    s.scene = build_scene(std::move(list));
+    return s;
+}
+
+void expect_matches_oracle(const TestScene& s, const std::vector<Ray>& rays,
+                           size_t min_hits_share = 10) {
+    const SceneOracle oracle(s.scene);
+    std::vector<SceneHit> want(rays.size());
+    std::vector<uint8_t> want_occ(rays.size());
+    size_t hits = 0;
+    for (size_t i = 0; i < rays.size(); ++i) {
+        want[i] = oracle.intersect(rays[i]);
+        want_occ[i] = oracle.occluded(rays[i]) ? 1 : 0;
+        hits += want[i].is_hit();
+        const SceneHit got = intersect(s.scene, rays[i]);
+        ASSERT_TRUE(same_bits(got, want[i]))
+            << "ray " << i << ": got " << describe(got) << ", want " << describe(want[i]);
+        ASSERT_EQ(occluded(s.scene, rays[i]), want_occ[i] != 0) << "ray " << i;
+    }
+    EXPECT_GT(hits, rays.size() / min_hits_share) << "the rays should hit the scene often";
+    for (Isa isa : supported_isas()) {
+        for (TraceMode mode : {TraceMode::kAuto, TraceMode::kSingle, TraceMode::kPacket}) {
+            SCOPED_TRACE(std::string(isa_name(isa)) + " " + std::string(trace_mode_name(mode)));
+            std::vector<SceneHit> got(rays.size());
+            std::vector<uint8_t> occ(rays.size(), 7);
+            SceneTraceStats stats;
+            intersect(s.scene, rays, got, TraceOptions{mode, isa}, &stats);
+            occluded(s.scene, rays, occ, TraceOptions{mode, isa});
+            EXPECT_EQ(stats.rays, rays.size());
+            for (size_t i = 0; i < rays.size(); ++i) {
+                ASSERT_TRUE(same_bits(got[i], want[i]))
+                    << "ray " << i << ": got " << describe(got[i]) << ", want "
+                    << describe(want[i]);
+                ASSERT_EQ(occ[i], want_occ[i]) << "ray " << i;
+            }
+        }
+    }
+}
+
+TEST(Scene, MatchesOracleOnMixedTransforms) {
+    const uint64_t seed = test_seed();
+    SCOPED_TRACE(testing::Message() << "seed=" << seed);
+    const TestScene s = mixed_scene(seed, 24);
+    Rng rng(seed + 1);
+    const std::vector<Ray> rays = scene_rays(rng, s.scene, s.meshes, s.mesh_of, scaled(3000));
+    expect_matches_oracle(s, rays);
+}
+
+TEST(Scene, CameraRaysMatchOracleInEveryMode) {
+    const uint64_t seed = test_seed();
+    SCOPED_TRACE(testing::Message() << "seed=" << seed);
+    const TestScene s = mixed_scene(seed + 7, 12);
+    const uint32_t res = scaled_res(64);
+    const Camera cam(default_camera(s.scene.bounds(), 1.0f), res, res);
+    std::vector<Ray> rays;
+    for (uint32_t y = 0; y < res; ++y)
+        for (uint32_t x = 0; x < res; ++x) rays.push_back(cam.ray(x + 0.5f, y + 0.5f));
+    // Invalid rays sprinkled in.
+    for (size_t i = 0; i < rays.size(); i += 97) {
+        if (i % 3 == 0) rays[i].dx = NAN;
+        if (i % 3 == 1) rays[i].dx = rays[i].dy = rays[i].dz = 0;
+        if (i % 3 == 2) rays[i].tmin = 2 * rays[i].tmax;
+    }
+    expect_matches_oracle(s, rays, 40);
+}
+
+TEST(Scene, OneIdentityInstanceAnswersAsTheMesh) {
+    const uint64_t seed = test_seed();
+    SCOPED_TRACE(testing::Message() << "seed=" << seed);
+    Rng rng(seed);
+    const Mesh mesh = random_soup(rng, 500);
+    auto tree = std::make_shared<const KdTree>(build_kdtree(mesh));
+    const Scene scene = build_scene({{tree, Affine3x4{}, nullptr}});
+    const std::vector<Ray> rays = oracle_rays(rng, mesh, *tree, scaled(4000));
+    std::vector<Hit> mesh_hits(rays.size());
+    std::vector<SceneHit> scene_hits(rays.size());
+    intersect(*tree, rays, mesh_hits);
+    intersect(scene, rays, scene_hits);
+    for (size_t i = 0; i < rays.size(); ++i) {
+        const Hit want = intersect(*tree, rays[i]);
+        const SceneHit got = intersect(scene, rays[i]);
+        ASSERT_EQ(std::memcmp(&want, &mesh_hits[i], sizeof want), 0) << "ray " << i;
+        const Hit got_mesh = got.hit();
+        ASSERT_EQ(std::memcmp(&got_mesh, &want, sizeof want), 0) << "ray " << i;
+        ASSERT_EQ(got.geom, want.is_hit() ? 0u : kNoHit) << "ray " << i;
+        ASSERT_TRUE(same_bits(scene_hits[i], got)) << "ray " << i;
+        ASSERT_EQ(occluded(scene, rays[i]), occluded(*tree, rays[i])) << "ray " << i;
+        for (bool merge : {false, true}) {
+            std::vector<Hit> mesh_all;
+            std::vector<SceneHit> scene_all;
+            intersect_all(*tree, rays[i], merge, mesh_all);
+            ASSERT_EQ(intersect_all(scene, rays[i], merge, scene_all), mesh_all.size()) << i;
+            for (size_t k = 0; k < mesh_all.size(); ++k) {
+                const Hit h = scene_all[k].hit();
+                ASSERT_EQ(std::memcmp(&h, &mesh_all[k], sizeof h), 0) << "ray " << i;
+                ASSERT_EQ(scene_all[k].geom, 0u);
+            }
+        }
+        if (!want.is_hit()) continue;
+        const TriVerts& tri = tree->triangle(want.prim);
+        ASSERT_EQ(hit_normal(scene, got), triangle_normal(tri)) << "ray " << i;
+        ASSERT_EQ(hit_point(scene, got), hit_point(tri, want)) << "ray " << i;
+    }
+}
+
+TEST(Scene, ThousandInstancesOfOneMesh) {
+    const uint64_t seed = test_seed();
+    SCOPED_TRACE(testing::Message() << "seed=" << seed);
+    Rng rng(seed);
+    TestScene s;
+    s.meshes.push_back(uv_sphere({0, 0, 0}, 0.05f, 6, 8));
+    s.trees.push_back(std::make_shared<const KdTree>(build_kdtree(s.meshes[0])));
+    std::vector<SceneInstance> list;
+    for (uint32_t i = 0; i < 1000; ++i) {
+        s.mesh_of.push_back(0);
+        list.push_back({s.trees[0],
+                        affine(random_rotation(rng), rng.in_box({{0, 0, 0}, {1, 1, 1}})), nullptr});
+    }
+    s.scene = build_scene(std::move(list));
+    EXPECT_EQ(s.scene.size(), 1000u);
+    EXPECT_EQ(s.trees[0].use_count(), 1001) << "every instance shares the one tree";
+    EXPECT_GT(s.scene.stats().nodes, 100u);
+    const std::vector<Ray> rays = scene_rays(rng, s.scene, s.meshes, s.mesh_of, scaled(600));
+    expect_matches_oracle(s, rays);
+}
+
+TEST(Scene, InstancesSharingAnEdgeInWorldSpace) {
+    // Two unit squares (two triangles each) side by side: instance 1 is instance 0 moved by +1 in
+    // x, and instance 2 is a mirrored copy lying on instance 0 (coplanar overlap). Rays aimed at
+    // the shared edge x = 1 and at the shared vertices.
+    Mesh quad;
+    add_triangle(quad, {0, 0, 0}, {1, 0, 0}, {1, 1, 0});
+    add_triangle(quad, {0, 0, 0}, {1, 1, 0}, {0, 1, 0});
+    auto tree = std::make_shared<const KdTree>(build_kdtree(quad));
+    Affine3x4 moved;
+    moved.m[0][3] = 1.0f;
+    Affine3x4 mirrored;
+    mirrored.m[0][0] = -1.0f;
+    mirrored.m[0][3] = 1.0f;
+    TestScene s;
+    s.meshes.push_back(quad);
+    s.trees.push_back(tree);
+    s.mesh_of = {0, 0, 0};
+    s.scene = build_scene(
+        {{tree, Affine3x4{}, nullptr}, {tree, moved, nullptr}, {tree, mirrored, nullptr}});
+    const uint64_t seed = test_seed();
+    SCOPED_TRACE(testing::Message() << "seed=" << seed);
+    Rng rng(seed);
+    std::vector<Ray> rays;
+    for (int i = 0; i < 2000; ++i) {
+        const Vec3 o{rng.uniform(-1, 3), rng.uniform(-1, 2), rng.uniform(0.5f, 3)};
+        const Vec3 target = i % 4 == 0   ? Vec3{1, rng.uniform(0, 1), 0}
+                            : i % 4 == 1 ? Vec3{static_cast<float>(rng.below(3)),
+                                                static_cast<float>(rng.below(2)), 0}
+                                         : Vec3{rng.uniform(0, 2), rng.uniform(0, 1), 0};
+        rays.push_back(make_ray(o, target - o));
+    }
+    rays.push_back(make_ray({1, 0.5f, 1}, {0, 0, -1}));  // straight down the shared edge
+    expect_matches_oracle(s, rays);
+    // Straight down onto instance 0, where instance 2 lies in the same plane: the tie goes to the
+    // lowest geometry id.
+    const SceneHit h = intersect(s.scene, make_ray({0.3f, 0.6f, 1}, {0, 0, -1}));
+    EXPECT_EQ(h.geom, 0u);
+    EXPECT_EQ(h.t, 1.0f);
+}
+
+TEST(Scene, FarRaysAtInstanceCornersMatchOracle) {
+    // Rays from far away (1e3 .. 1e6 units) aimed at the corners and edges of rotated, scaled and
+    // sheared boxes: the rounding of the object ray then moves the hit by far more than the mesh
+    // tree's padding of its root box, and only the top level's margin keeps such an instance
+    // reachable.
+    const uint64_t seed = test_seed();
+    SCOPED_TRACE(testing::Message() << "seed=" << seed);
+    Rng rng(seed);
+    TestScene s;
+    Mesh box;
+    const Vec3 c[8] = {{0, 0, 0}, {1, 0, 0}, {1, 1, 0}, {0, 1, 0},
+                       {0, 0, 1}, {1, 0, 1}, {1, 1, 1}, {0, 1, 1}};
+    for (const Vec3& v : c) add_vertex(box, v);
+    const uint32_t faces[12][3] = {{0, 2, 1}, {0, 3, 2}, {4, 5, 6}, {4, 6, 7},
+                                   {0, 1, 5}, {0, 5, 4}, {2, 3, 7}, {2, 7, 6},
+                                   {1, 2, 6}, {1, 6, 5}, {0, 4, 7}, {0, 7, 3}};
+    for (const auto& f : faces) add_indices(box, f[0], f[1], f[2]);
+    s.meshes.push_back(box);
+    s.trees.push_back(std::make_shared<const KdTree>(build_kdtree(box)));
+    std::vector<SceneInstance> list;
+    for (uint32_t i = 0; i < 12; ++i) {
+        s.mesh_of.push_back(0);
+        list.push_back({s.trees[0], random_transform(rng, static_cast<Kind>(i % 4)), nullptr});
+    }
+    s.scene = build_scene(std::move(list));
+    std::vector<Ray> rays;
+    for (size_t i = 0; i < scaled(4000); ++i) {
+        const uint32_t g = rng.below(s.scene.size());
+        const Affine3x4& t = s.scene.instance(g).transform;
+        // A corner, or a point on an edge, of the box, in world space.
+        Vec3 p = c[rng.below(8)];
+        if (rng.below(2)) p[static_cast<int>(rng.below(3))] = rng.uniform(0, 1);
+        Vec3 w;
+        for (int k = 0; k < 3; ++k)
+            w[k] = static_cast<float>(double{t.m[k][0]} * p.x + double{t.m[k][1]} * p.y +
+                                      double{t.m[k][2]} * p.z + t.m[k][3]);
+        const float far = std::pow(10.0f, rng.uniform(3.0f, 6.0f));
+        const Vec3 o = w + rng.on_sphere() * far;
+        rays.push_back(make_ray(o, w - o));
+    }
+    // The mesh kernel itself misses some of these rays that its brute force hits (its root-box
+    // clip has no margin, and a ray from 1e5 away aimed at a corner rounds past it): so the
+    // reference here is every instance through the mesh kernel, which isolates the top level.
+    std::vector<SceneHit> got(rays.size());
+    for (Isa isa : supported_isas()) {
+        for (TraceMode mode : {TraceMode::kAuto, TraceMode::kSingle, TraceMode::kPacket}) {
+            SCOPED_TRACE(std::string(isa_name(isa)) + " " + std::string(trace_mode_name(mode)));
+            intersect(s.scene, rays, got, TraceOptions{mode, isa});
+            size_t hits = 0;
+            for (size_t i = 0; i < rays.size(); ++i) {
+                SceneHit want;
+                for (uint32_t g = 0; g < s.scene.size(); ++g) {
+                    const Hit h = intersect(*s.trees[0], s.scene.object_ray(g, rays[i]));
+                    const SceneHit c{h.t, h.prim, h.u, h.v, g};
+                    if (h.is_hit() && (!want.is_hit() || c.t < want.t)) want = c;
+                }
+                hits += want.is_hit();
+                ASSERT_TRUE(same_bits(got[i], want))
+                    << "ray " << i << ": got " << describe(got[i]) << ", want " << describe(want);
+                ASSERT_TRUE(same_bits(intersect(s.scene, rays[i]), want)) << "ray " << i;
+            }
+            EXPECT_GT(hits, rays.size() / 2);
+        }
+    }
+}
+
+TEST(Scene, EmptyScenesMiss) {
+    const Scene empty;
+    EXPECT_EQ(empty.size(), 0u);
+    EXPECT_FALSE(intersect(empty, make_ray({0, 0, 0}, {1, 0, 0})).is_hit());
+    EXPECT_FALSE(occluded(empty, make_ray({0, 0, 0}, {1, 0, 0})));
+    const Scene none = build_scene({});
+    EXPECT_FALSE(intersect(none, make_ray({0, 0, 0}, {1, 0, 0})).is_hit());
+    // An instance of a mesh without triangles has an empty world box and is never hit.
+    auto tree = std::make_shared<const KdTree>(build_kdtree(Mesh{}));
+    const Scene hollow = build_scene({{tree, Affine3x4{}, nullptr}});
+    EXPECT_TRUE(hollow.world_bounds(0).empty());
+    EXPECT_FALSE(intersect(hollow, make_ray({0, 0, 0}, {1, 0, 0})).is_hit());
+    std::vector<SceneHit> hits(3);
+    std::vector<Ray> rays(3, make_ray({0, 0, 0}, {1, 0, 0}));
+    intersect(hollow, rays, hits);
+    for (const SceneHit& h : hits) EXPECT_TRUE(same_bits(h, SceneHit{}));
+}
+
+/// Expects `f` to throw SceneError naming `index` and `field`, with both in the message.
+template <class F>
+void expect_scene_error(F&& f, std::optional<uint32_t> index, const std::string& field) {
+    try {
+        f();
+        ADD_FAILURE() << "no SceneError for " << field;
+    } catch (const SceneError& e) {
+        EXPECT_EQ(e.instance_index(), index) << e.what();
+        EXPECT_EQ(e.field(), field) << e.what();
+        if (index) {
+            EXPECT_NE(std::string(e.what()).find(std::to_string(*index)), std::string::npos);
+        }
+        EXPECT_NE(std::string(e.what()).find(field == "instances" ? "limit" : field),
+                  std::string::npos)
+            << e.what();
+    }
+}
+
+TEST(Scene, RefusesBadInstancesNamingIndexAndField) {
+    Rng rng(1);
+    auto tree = std::make_shared<const KdTree>(build_kdtree(random_soup(rng, 10)));
+    const auto with = [&](uint32_t bad, Affine3x4 t) {
+        std::vector<SceneInstance> list(5, SceneInstance{tree, Affine3x4{}, nullptr});
+        list[bad].transform = t;
+        return list;
+    };
+    Affine3x4 nan;
+    nan.m[1][2] = NAN;
+    expect_scene_error([&] { (void)build_scene(with(3, nan)); }, 3u, "transform[1][2]");
+    Affine3x4 inf;
+    inf.m[2][3] = INFINITY;
+    expect_scene_error([&] { (void)build_scene(with(0, inf)); }, 0u, "transform[2][3]");
+    Affine3x4 singular;
+    singular.m[2][2] = 0.0f;
+    expect_scene_error([&] { (void)build_scene(with(4, singular)); }, 4u, "transform");
+    Affine3x4 flat;  // rank 2: row 2 = row 0 + row 1
+    flat.m[2][0] = 1.0f;
+    flat.m[2][1] = 1.0f;
+    flat.m[2][2] = 0.0f;
+    expect_scene_error([&] { (void)build_scene(with(1, flat)); }, 1u, "transform");
+    Affine3x4 tiny;  // invertible in exact arithmetic, rows dependent to 1e-12
+    tiny.m[2][0] = 1.0f;
+    tiny.m[2][1] = 1.0f;
+    tiny.m[2][2] = 1e-12f;
+    expect_scene_error([&] { (void)build_scene(with(2, tiny)); }, 2u, "transform");
+    Affine3x4 huge;  // the mesh would land beyond float range
+    huge.m[0][0] = huge.m[1][1] = huge.m[2][2] = 3e38f;
+    huge.m[0][3] = 3e38f;
+    expect_scene_error([&] { (void)build_scene(with(2, huge)); }, 2u, "transform");
+    Affine3x4 flattened;  // a flat but well-conditioned scale is fine (ray transforms are exact)
+    flattened.m[2][2] = 1e-12f;
+    EXPECT_NO_THROW((void)build_scene(with(2, flattened)));
+    std::vector<SceneInstance> null_tree(3, SceneInstance{tree, Affine3x4{}, nullptr});
+    null_tree[2].tree = nullptr;
+    expect_scene_error([&] { (void)build_scene(null_tree); }, 2u, "tree");
+    SceneBuildOptions small;
+    small.max_instances = 4;
+    expect_scene_error([&] { (void)build_scene(with(0, Affine3x4{}), small); }, 4u, "instances");
+    EXPECT_NO_THROW((void)build_scene(with(0, Affine3x4{}), SceneBuildOptions{.max_instances = 5}));
+    // Pose updates are checked the same way, naming the instance.
+    const Scene scene = build_scene(with(0, Affine3x4{}));
+    const InstancePose poses[] = {{1, Affine3x4{}}, {3, nan}};
+    expect_scene_error([&] { (void)scene.with_transforms(poses); }, 3u, "transform[1][2]");
+    expect_scene_error([&] { (void)scene.with_transform(9, Affine3x4{}); }, 9u, "geom");
+}
+
+TEST(Scene, PoseUpdatesAnswerAsAFreshBuild) {
+    const uint64_t seed = test_seed();
+    SCOPED_TRACE(testing::Message() << "seed=" << seed);
+    TestScene s = mixed_scene(seed + 3, 16);
+    Rng rng(seed + 4);
+    std::vector<InstancePose> poses;
+    std::vector<SceneInstance> list = s.scene.instances();
+    for (uint32_t g = 0; g < 16; g += 2) {
+        const Affine3x4 t = random_transform(rng, static_cast<Kind>(rng.below(4)));
+        poses.push_back({g, t});
+        list[g].transform = t;
+    }
+    const Scene moved = s.scene.with_transforms(poses);
+    const Scene fresh = build_scene(list);
+    EXPECT_EQ(moved.instance(1).tree, s.scene.instance(1).tree);
+    const std::vector<Ray> rays = scene_rays(rng, fresh, s.meshes, s.mesh_of, scaled(2000));
+    for (size_t i = 0; i < rays.size(); ++i)
+        ASSERT_TRUE(same_bits(intersect(moved, rays[i]), intersect(fresh, rays[i]))) << i;
+    s.scene = moved;
+    expect_matches_oracle(s, rays);
+}
+
+bool same_lists(const std::vector<SceneHit>& a, const std::vector<SceneHit>& b) {
+    return a.size() == b.size() &&
+           (a.empty() || std::memcmp(a.data(), b.data(), a.size() * sizeof(SceneHit)) == 0);
+}
+
+TEST(SceneAllHits, MatchOracleSingleAndBatch) {
+    const uint64_t seed = test_seed();
+    SCOPED_TRACE(testing::Message() << "seed=" << seed);
+    const TestScene s = mixed_scene(seed + 11, 16);
+    Rng rng(seed + 12);
+    const std::vector<Ray> rays = scene_rays(rng, s.scene, s.meshes, s.mesh_of, scaled(1500));
+    const SceneOracle oracle(s.scene);
+    for (bool merge : {false, true}) {
+        SCOPED_TRACE(merge ? "merged" : "raw");
+        AllHitsOptions options;
+        options.merge_coincident = merge;
+        options.max_hits = 3;
+        const SceneAllHits batch = intersect_all(s.scene, rays, options);
+        std::vector<uint32_t> counts(rays.size());
+        count_intersections(s.scene, rays, options, counts);
+        ASSERT_EQ(batch.offsets.size(), rays.size() + 1);
+        size_t multi = 0;
+        for (size_t i = 0; i < rays.size(); ++i) {
+            const std::vector<SceneHit> want = oracle.intersect_all(rays[i], merge);
+            std::vector<SceneHit> got;
+            ASSERT_EQ(intersect_all(s.scene, rays[i], merge, got), want.size()) << "ray " << i;
+            ASSERT_TRUE(same_lists(got, want)) << "ray " << i;
+            ASSERT_EQ(batch.counts[i], want.size()) << "ray " << i;
+            ASSERT_EQ(counts[i], want.size()) << "ray " << i;
+            const std::vector<SceneHit> kept(
+                want.begin(),
+                want.begin() + static_cast<std::ptrdiff_t>(std::min<size_t>(3, want.size())));
+            const std::vector<SceneHit> batch_kept(
+                batch.hits.begin() + static_cast<std::ptrdiff_t>(batch.offsets[i]),
+                batch.hits.begin() + static_cast<std::ptrdiff_t>(batch.offsets[i + 1]));
+            ASSERT_TRUE(same_lists(batch_kept, kept)) << "ray " << i;
+            // The first hit is the closest hit.
+            if (!merge) {
+                const SceneHit first = want.empty() ? SceneHit{} : want[0];
+                ASSERT_TRUE(same_bits(intersect(s.scene, rays[i]), first)) << "ray " << i;
+            }
+            multi += want.size() > 1;
+        }
+        EXPECT_GT(multi, rays.size() / 20) << "overlapping instances give several hits per ray";
+    }
+}
+
+TEST(SceneAttributes, NormalsFaceTheWorldWindingAndPointsLieOnTheHit) {
+    const uint64_t seed = test_seed();
+    SCOPED_TRACE(testing::Message() << "seed=" << seed);
+    const TestScene s = mixed_scene(seed + 21, 16);
+    Rng rng(seed + 22);
+    const std::vector<Ray> rays = scene_rays(rng, s.scene, s.meshes, s.mesh_of, scaled(2000));
+    std::vector<SceneHit> hits(rays.size());
+    intersect(s.scene, rays, hits);
+    std::vector<Vec3> normals(rays.size()), points(rays.size());
+    hit_attributes(s.scene, hits, normals, points);
+    size_t checked = 0;
+    for (size_t i = 0; i < rays.size(); ++i) {
+        if (!hits[i].is_hit()) {
+            EXPECT_EQ(normals[i], Vec3{});
+            EXPECT_TRUE(std::isnan(points[i].x));
+            continue;
+        }
+        ASSERT_EQ(normals[i], hit_normal(s.scene, hits[i]));
+        ASSERT_EQ(points[i], hit_point(s.scene, hits[i]));
+        const TriVerts w = world_triangle(s.scene, hits[i].geom, hits[i].prim);
+        const Vec3 a{w.v0[0], w.v0[1], w.v0[2]}, b{w.v1[0], w.v1[1], w.v1[2]},
+            c{w.v2[0], w.v2[1], w.v2[2]};
+        const Vec3 cr = cross(b - a, c - a);
+        const float len = std::sqrt(dot(cr, cr));
+        if (!(len > 1e-6f)) continue;
+        // Unit, and along the world triangle's right-hand normal (mirrors included).
+        EXPECT_NEAR(dot(normals[i], normals[i]), 1.0f, 1e-5f) << "ray " << i;
+        EXPECT_GT(dot(normals[i], cr * (1.0f / len)), 0.999f) << "ray " << i;
+        // The point is o + t d up to rounding, and on the triangle's plane.
+        const Ray& r = rays[i];
+        const Vec3 along{r.ox + hits[i].t * r.dx, r.oy + hits[i].t * r.dy, r.oz + hits[i].t * r.dz};
+        const Vec3 e = points[i] - along;
+        EXPECT_LT(std::sqrt(dot(e, e)), 1e-3f) << "ray " << i;
+        EXPECT_LT(std::fabs(dot(points[i] - a, cr * (1.0f / len))), 1e-4f) << "ray " << i;
+        ++checked;
+    }
+    EXPECT_GT(checked, rays.size() / 10);
+}
+
+/// A scene of closed spheres placed by similarities (rotations, mirrors, uniform scales).
+TestScene similarity_scene(uint64_t seed, uint32_t instances, bool surfaces) {
+    Rng rng(seed);
+    TestScene s;
+    s.meshes.push_back(uv_sphere({0.5f, 0.5f, 0.5f}, 0.5f, 10, 14));
+    s.meshes.push_back(random_soup(rng, 200));
+    for (const Mesh& m : s.meshes)
+        s.trees.push_back(std::make_shared<const KdTree>(build_kdtree(m)));
+    auto sphere_surface = std::make_shared<const SurfaceIndex>(build_surface_index(*s.trees[0]));
+    auto soup_surface = std::make_shared<const SurfaceIndex>(build_surface_index(*s.trees[1]));
+    std::vector<SceneInstance> list;
+    for (uint32_t i = 0; i < instances; ++i) {
+        std::array<double, 9> l = random_rotation(rng);
+        const double k = rng.uniform(0.5f, 2.0f) * (i % 3 == 1 ? -1.0 : 1.0);  // some mirrored
+        for (double& v : l) v *= k;
+        const uint32_t mesh = i % 4 == 3 ? 1 : 0;
+        s.mesh_of.push_back(mesh);
+        list.push_back({s.trees[mesh], affine(l, rng.in_box({{-2, -2, -2}, {2, 2, 2}})),
+                        surfaces ? (mesh == 0 ? sphere_surface : soup_surface) : nullptr});
+    }
+    s.scene = build_scene(std::move(list));
+    return s;
+}
+
+bool same_closest(const SceneClosestPoint& a, const SceneClosestPoint& b) {
+    const ClosestPoint &x = a.closest, &y = b.closest;
+    return a.geom == b.geom && std::memcmp(&x.distance, &y.distance, 4) == 0 && x.prim == y.prim &&
+           std::memcmp(&x.u, &y.u, 4) == 0 && std::memcmp(&x.v, &y.v, 4) == 0 &&
+           std::memcmp(&x.point, &y.point, sizeof(Vec3)) == 0 && x.feature == y.feature &&
+           x.side == y.side;
+}
+
+TEST(SceneDistance, MatchesOracleWithAndWithoutLimitAndSign) {
+    const uint64_t seed = test_seed();
+    SCOPED_TRACE(testing::Message() << "seed=" << seed);
+    const TestScene s = similarity_scene(seed + 31, 20, true);
+    const SceneOracle oracle(s.scene);
+    Rng rng(seed + 32);
+    Aabb box = s.scene.bounds();
+    box.lo = box.lo - Vec3{1, 1, 1};
+    box.hi = box.hi + Vec3{1, 1, 1};
+    std::vector<Vec3> points;
+    for (size_t i = 0; i < scaled(1500); ++i) points.push_back(rng.in_box(box));
+    points.push_back({NAN, 0, 0});
+    for (const DistanceOptions options :
+         {DistanceOptions{}, DistanceOptions{0.3f, false}, DistanceOptions{INFINITY, true}}) {
+        SCOPED_TRACE(testing::Message()
+                     << "max " << options.max_distance << " sign " << options.sign);
+        std::vector<SceneClosestPoint> batch(points.size());
+        closest_points(s.scene, points, batch, options);
+        size_t found = 0, inside = 0;
+        for (size_t i = 0; i < points.size(); ++i) {
+            const SceneClosestPoint want = oracle.closest_point(points[i], options);
+            ASSERT_TRUE(same_closest(closest_point(s.scene, points[i], options), want)) << i;
+            ASSERT_TRUE(same_closest(batch[i], want)) << i;
+            found += want.found();
+            inside += want.closest.side == Side::kInside;
+        }
+        EXPECT_GT(found, points.size() / 20);
+        if (options.sign) {
+            EXPECT_GT(inside, 0u);
+        }
+    }
+}
+
+TEST(SceneDistance, IdentityInstanceAnswersAsTheMesh) {
+    Rng rng(test_seed() + 41);
+    const Mesh mesh = uv_sphere({0, 0, 0}, 1.0f, 12, 16);
+    auto tree = std::make_shared<const KdTree>(build_kdtree(mesh));
+    auto surface = std::make_shared<const SurfaceIndex>(build_surface_index(*tree));
+    const Scene scene = build_scene({{tree, Affine3x4{}, surface}});
+    for (int i = 0; i < 500; ++i) {
+        const Vec3 p = rng.in_box({{-2, -2, -2}, {2, 2, 2}});
+        for (const DistanceOptions options :
+             {DistanceOptions{INFINITY, true}, DistanceOptions{0.5f, false}}) {
+            const ClosestPoint want = closest_point(*tree, *surface, p, options);
+            const SceneClosestPoint got = closest_point(scene, p, options);
+            ASSERT_EQ(std::memcmp(&got.closest, &want, sizeof want), 0) << i;
+            ASSERT_EQ(got.geom, want.found() ? 0u : kNoHit);
+        }
+    }
+}
+
+TEST(SceneDistance, RefusesShearedInstancesAndMissingSurfaces) {
+    TestScene s = similarity_scene(5, 6, false);
+    expect_scene_error(
+        [&] {
+            (void)closest_point(s.scene, {0, 0, 0}, {INFINITY, true});
+        },
+        0u, "surface");
+    EXPECT_NO_THROW((void)closest_point(s.scene, {0, 0, 0}, {}));
+    Affine3x4 sheared;
+    sheared.m[0][1] = 0.5f;
+    const Scene moved = s.scene.with_transform(4, sheared);
+    expect_scene_error([&] { (void)closest_point(moved, {0, 0, 0}, {}); }, 4u, "transform");
+    std::vector<SceneClosestPoint> out(1);
+    const Vec3 p{0, 0, 0};
+    expect_scene_error([&] { closest_points(moved, std::span(&p, 1), out, {}); }, 4u, "transform");
+}
+
+TEST(SceneScan, IdentitySceneScansAsTheMeshAndNamesInstances) {
+    Rng rng(test_seed() + 51);
+    const Mesh mesh = uv_sphere({0, 0, 0}, 1.0f, 16, 24);
+    auto tree = std::make_shared<const KdTree>(build_kdtree(mesh));
+    PinholeSpec pin;
+    pin.intrinsics = {40, 40, 32, 24, 64, 48};
+    pin.pose.m[3] = 0.2f;
+    pin.pose.m[11] = -4.0;
+    pin.normals = true;
+    LidarSpec lidar;
+    lidar.elevation_deg = lidar_elevations(-30, 30, 16);
+    lidar.azimuth_steps = 90;
+    lidar.returns = 2;
+    lidar.pose.m[3] = 3.0;
+    const Scene scene = build_scene({{tree, Affine3x4{}, nullptr}});
+    const DepthImage want = scan_pinhole(*tree, pin);
+    const SceneDepthImage got = scan_pinhole(scene, pin);
+    EXPECT_EQ(got.image.depth, want.depth);
+    EXPECT_EQ(got.image.prim, want.prim);
+    EXPECT_EQ(got.image.normals.size(), want.normals.size());
+    for (size_t p = 0; p < want.prim.size(); ++p) {
+        ASSERT_EQ(got.image.normals[p], want.normals[p]) << p;
+        ASSERT_EQ(got.geom[p], want.prim[p] == kNoHit ? kNoHit : 0u) << p;
+    }
+    const PointCloud want_cloud = scan_lidar(*tree, lidar);
+    const ScenePointCloud got_cloud = scan_lidar(scene, lidar);
+    ASSERT_EQ(got_cloud.cloud.points.size(), want_cloud.points.size());
+    EXPECT_GT(want_cloud.points.size(), 100u);
+    EXPECT_EQ(std::memcmp(got_cloud.cloud.points.data(), want_cloud.points.data(),
+                          want_cloud.points.size() * sizeof(LidarPoint)),
+              0);
+
+    // Two spheres: the second moved by +3 in x. Every return's geometry id is the instance whose
+    // surface the point lies on, and every pixel's depth is the oracle's.
+    Affine3x4 moved;
+    moved.m[0][3] = 3.0f;
+    const Scene two = build_scene({{tree, Affine3x4{}, nullptr}, {tree, moved, nullptr}});
+    lidar.pose.m[3] = 1.5;
+    const ScenePointCloud both = scan_lidar(two, lidar);
+    std::array<size_t, 2> per{};
+    for (size_t k = 0; k < both.cloud.points.size(); ++k) {
+        const LidarPoint& pt = both.cloud.points[k];
+        const float cx = both.geom[k] == 0 ? 0.0f : 3.0f;
+        const float r = std::sqrt((pt.x - cx) * (pt.x - cx) + pt.y * pt.y + pt.z * pt.z);
+        ASSERT_NEAR(r, 1.0f, 0.05f) << k;
+        ++per[both.geom[k]];
+    }
+    EXPECT_GT(per[0], 50u);
+    EXPECT_GT(per[1], 50u);
+    const SceneDepthImage two_image = scan_pinhole(two, pin);
+    const SceneOracle oracle(two);
+    for (uint32_t j = 0; j < pin.intrinsics.height; ++j) {
+        for (uint32_t i = 0; i < pin.intrinsics.width; ++i) {
+            const size_t p = size_t{j} * pin.intrinsics.width + i;
+            const SceneHit h = oracle.intersect(pinhole_ray(pin, i, j));
+            ASSERT_EQ(two_image.geom[p], h.geom) << p;
+            ASSERT_EQ(two_image.image.prim[p], h.prim) << p;
+        }
+    }
+}
+
+TEST(SceneRender, IdentitySceneRendersAsTheMeshInEveryMode) {
+    Rng rng(test_seed() + 61);
+    const Mesh mesh = random_soup(rng, 400, 0.3f);
+    auto tree = std::make_shared<const KdTree>(build_kdtree(mesh));
+    const Scene scene = build_scene({{tree, Affine3x4{}, nullptr}});
+    for (Shading shading : {Shading::kNormals, Shading::kEyelight, Shading::kDepth,
+                            Shading::kPrimId, Shading::kAo, Shading::kDiffuse}) {
+        SCOPED_TRACE(std::string(shading_name(shading)));
+        RenderSettings settings;
+        settings.width = 48;
+        settings.height = 40;
+        settings.shading = shading;
+        settings.spp = 2;
+        settings.ao_samples = 4;
+        settings.bounces = 2;
+        settings.sky = 0.5f;
+        const Image want = render(*tree, settings);
+        const Image got = render(scene, settings);
+        ASSERT_EQ(got.pixels.size(), want.pixels.size());
+        EXPECT_EQ(std::memcmp(got.pixels.data(), want.pixels.data(), want.pixels.size() * 4), 0);
+    }
+}
+
+TEST(SceneRender, InstancesOfOneMeshGetTheirOwnPrimIdColours) {
+    Mesh quad;
+    add_triangle(quad, {0, 0, 0}, {1, 0, 0}, {1, 1, 0});
+    add_triangle(quad, {0, 0, 0}, {1, 1, 0}, {0, 1, 0});
+    auto tree = std::make_shared<const KdTree>(build_kdtree(quad));
+    Affine3x4 right;
+    right.m[0][3] = 1.0f;
+    const Scene scene = build_scene({{tree, Affine3x4{}, nullptr}, {tree, right, nullptr}});
+    RenderSettings settings;
+    settings.width = 64;
+    settings.height = 32;
+    settings.shading = Shading::kPrimId;
+    settings.camera = CameraSpec{{1, 0.5f, 2}, {1, 0.5f, 0}, {0, 1, 0}, 60.0f};
+    const Image image = render(scene, settings);
+    // The left and right halves' centres show triangle 0 or 1 of different instances.
+    const auto pixel = [&](uint32_t x, uint32_t y) {
+        const float* p = &image.pixels[(size_t{y} * 64 + x) * 3];
+        return std::array<float, 3>{p[0], p[1], p[2]};
+    };
+    EXPECT_NE(pixel(20, 20), pixel(44, 20));
+    EXPECT_NE(pixel(20, 12), pixel(44, 12));
+    // Rendering is deterministic at any thread count and tile size.
+    RenderSettings small_tiles = settings;
+    small_tiles.tile_size = 8;
+    EXPECT_EQ(render(scene, small_tiles).pixels, image.pixels);
+}
+
+}  // namespace
+}  // namespace kdrt::test
