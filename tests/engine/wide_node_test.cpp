@@ -147,23 +147,6 @@ void expand(const KdTree& tree, uint32_t wide_index,
     }
 }
 
-std::vector<std::pair<uint32_t, uint32_t>> binary_shape(const KdTree& tree) {
-    std::vector<std::pair<uint32_t, uint32_t>> out;
-    std::vector<uint32_t> stack{0};
-    while (!stack.empty()) {
-        const KdNode n = tree.nodes[stack.back()];
-        stack.pop_back();
-        if (n.is_leaf()) {
-            out.emplace_back(n.word0(), n.word1());
-            continue;
-        }
-        out.emplace_back(static_cast<uint32_t>(n.axis()), n.word1());
-        stack.push_back(n.first_child() + 1);
-        stack.push_back(n.first_child());
-    }
-    return out;
-}
-
 void expect_wide_nodes_are_the_tree(const KdTree& tree, const std::string& what) {
     if (tree.nodes[0].is_leaf()) {
         EXPECT_TRUE(tree.wide_nodes.empty()) << what;
@@ -172,7 +155,7 @@ void expect_wide_nodes_are_the_tree(const KdTree& tree, const std::string& what)
     ASSERT_FALSE(tree.wide_nodes.empty()) << what;
     std::vector<std::pair<uint32_t, uint32_t>> wide;
     expand(tree, 0, wide);
-    EXPECT_TRUE(wide == binary_shape(tree)) << what;
+    EXPECT_TRUE(wide == tree_shape(tree.nodes)) << what;
     // Children after their parents (the conversion numbers them depth first).
     for (size_t i = 0; i < tree.wide_nodes.size(); ++i) {
         for (uint32_t word : tree.wide_nodes[i].slot) {
