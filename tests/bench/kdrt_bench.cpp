@@ -542,6 +542,17 @@ int run_trace(const Args& args) {
         line["leaves_per_ray"] = per_ray(work.leaves_visited);
         line["tri_tests_per_ray"] = per_ray(work.triangle_tests);
         line["packet_visits"] = work.packet_visits;
+        // Wide-node visits per single-traced ray (the dependent node loads of the single-ray
+        // kernel), and the share of rays traced as single rays.
+        line["wide_visits_per_single_ray"] = rounded(
+            work.single_rays == 0
+                ? 0.0
+                : static_cast<double>(work.wide_visits) / static_cast<double>(work.single_rays),
+            3);
+        line["single_ray_share"] = rounded(
+            rays.empty() ? 0.0
+                         : static_cast<double>(work.single_rays) / static_cast<double>(rays.size()),
+            3);
         line["lane_utilisation"] = rounded(
             work.packet_visits == 0 ? 0.0
                                     : static_cast<double>(work.packet_lanes) /
