@@ -3,8 +3,8 @@
 #include <atomic>
 #include <span>
 
-#include "http/http_front.h"
 #include "core/log.h"
+#include "http/http_front.h"
 #include "http/http_routes.h"
 #include "http/http_util.h"
 #include "http/problems.h"
