@@ -31,6 +31,10 @@ kdrt_packages+=(python3-numpy python3-pytest python3-venv python3-setuptools pyt
 # on Node.js. Debian's npm is its own package; a nodejs that bundles npm (NodeSource's) conflicts
 # with it, so npm is asked for only when no npm is installed.
 kdrt_packages+=(chromium nodejs)
+# Installed like a daemon (packaging/): the systemd unit's test runs systemd-analyze verify
+# (systemd); cpack -G DEB finds the package's Depends with dpkg-shlibdeps (dpkg-dev);
+# scripts/deb-install-test installs the .deb into a fresh debootstrap chroot.
+kdrt_packages+=(systemd dpkg-dev debootstrap)
 if ! command -v npm >/dev/null 2>&1; then
     kdrt_packages+=(npm)
 fi

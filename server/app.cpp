@@ -16,6 +16,7 @@
 #include <utility>
 
 #include "core/log.h"
+#include "core/systemd_notify.h"
 #include "http/http_server.h"
 #include "kdrt/proto/mesh_id.h"
 #include "kdrt/proto/mesh_io.h"
@@ -140,6 +141,12 @@ std::thread start_listener(HttpServer& http, const Service& svc, HelperFailures&
     });
 }
 
+/// notify_systemd, with a failure logged (the server runs on: systemd then times the start out).
+void tell_systemd(const std::string& state) {
+    if (auto sent = notify_systemd(state); !sent)
+        log_event(LogLevel::kError, "cannot notify systemd", {{"error", sent.error()}});
+}
+
 /// Loads the mesh index and the preloads on a new thread, then marks the service ready; a
 /// failure is reported to this thread.
 std::thread start_loading(Service& svc, HelperFailures& failed) {
@@ -153,6 +160,9 @@ std::thread start_loading(Service& svc, HelperFailures& failed) {
         svc.ready = true;
         log_event(LogLevel::kInfo, "ready",
                   {{"meshes", static_cast<uint64_t>(svc.cache.mesh_count())}});
+        // systemd's Type=notify (deploy/systemd/kdrt.service): started once /readyz says 200.
+        tell_systemd("READY=1\nSTATUS=ready, " + std::to_string(svc.cache.mesh_count()) +
+                     " meshes");
     });
 }
 
@@ -219,6 +229,7 @@ private:
 /// New /v1 requests now get 503; uploads, traces and renders already admitted run to the end
 /// before the listener stops (httplib cuts streamed responses short once it is stopped).
 void drain_and_stop(Service& svc, HttpServer& http, const HelperFailures& helpers) {
+    tell_systemd("STOPPING=1\nSTATUS=draining requests in flight");
     svc.shutting_down = true;
     svc.ready = false;
     svc.jobs.shutdown();  // cancels queued and running render jobs

@@ -4,7 +4,8 @@ namespace kdrt::server {
 
 Service::Service(ServerConfig cfg)
     : config(std::move(cfg)),
-      compute(config.threads),
+      // Every HTTP thread, the job thread and the start-up loader may call into the arena.
+      compute(config.threads, config.http_threads + 2),
       store(config.cache_dir),
       cache(store, compute, metrics, config.memory_budget),
       scene_store(config.cache_dir, store.tmp_dir(), config.scene_revisions_kept),

@@ -116,33 +116,47 @@ public:
     /// Held bytes; given back on destruction.
     class Hold {
     public:
-        Hold(std::atomic<uint64_t>& held, uint64_t bytes) : held_(&held), bytes_(bytes) {}
+        Hold(ByteBudget& budget, uint64_t bytes) : budget_(&budget), bytes_(bytes) {}
         Hold(Hold&& other) noexcept
-            : held_(std::exchange(other.held_, nullptr)), bytes_(other.bytes_) {}
+            : budget_(std::exchange(other.budget_, nullptr)), bytes_(other.bytes_) {}
         Hold(const Hold&) = delete;
         Hold& operator=(const Hold&) = delete;
         Hold& operator=(Hold&&) = delete;
         ~Hold() {
-            if (held_) held_->fetch_sub(bytes_);
+            if (budget_) budget_->held_.fetch_sub(bytes_);
         }
 
+        /// Holds `more` bytes besides, when they fit next to what is held now (a body whose
+        /// size is learnt as it arrives). False, holding what it held, when they do not.
+        [[nodiscard]] bool grow(uint64_t more) {
+            if (budget_ == nullptr || !budget_->take(more)) return false;
+            bytes_ += more;
+            return true;
+        }
+        [[nodiscard]] uint64_t bytes() const noexcept { return bytes_; }
+
     private:
-        std::atomic<uint64_t>* held_;
+        ByteBudget* budget_;
         uint64_t bytes_;
     };
 
     /// `bytes` of the budget, or nullopt when they do not fit next to what is held.
     [[nodiscard]] std::optional<Hold> try_take(uint64_t bytes) {
-        uint64_t held = held_.load();
-        do {
-            if (bytes > limit_ || held > limit_ - bytes) return std::nullopt;
-        } while (!held_.compare_exchange_weak(held, held + bytes));
-        return Hold(held_, bytes);
+        if (!take(bytes)) return std::nullopt;
+        return Hold(*this, bytes);
     }
     [[nodiscard]] uint64_t held() const noexcept { return held_.load(); }
     [[nodiscard]] uint64_t limit() const noexcept { return limit_; }
 
 private:
+    bool take(uint64_t bytes) {
+        uint64_t held = held_.load();
+        do {
+            if (bytes > limit_ || held > limit_ - bytes) return false;
+        } while (!held_.compare_exchange_weak(held, held + bytes));
+        return true;
+    }
+
     const uint64_t limit_;
     std::atomic<uint64_t> held_{0};
 };

@@ -59,6 +59,11 @@ inline constexpr OptionSpec kGlobalOptions[] = {
     {"server", true}, {"token", true}, {"timeout", true}, {"retries", true}, {"help", false, 'h'},
 };
 
+/// Options of every command: how it reports (cli_context.h, Context::report).
+///   --json       the report as JSON (one object per line)
+///   -q, --quiet  no human-readable lines (progress, summaries); errors are still printed
+inline constexpr OptionSpec kReportOptions[] = {{"json", false}, {"quiet", false, 'q'}};
+
 /// Connection settings from the global options and the environment (KDRT_SERVER, KDRT_TOKEN).
 struct GlobalSettings {
     std::string server;               ///< --server, else KDRT_SERVER, else kDefaultServerUrl

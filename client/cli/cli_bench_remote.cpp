@@ -39,8 +39,8 @@ Rays:
 )";
 
 constexpr OptionSpec kBenchRemoteOptions[] = {
-    {"kind", true},        {"res", true},        {"seed", true}, {"mesh", true},  {"rays", true},
-    {"connections", true}, {"chunk-rays", true}, {"reps", true}, {"json", false},
+    {"kind", true}, {"res", true},         {"seed", true},       {"mesh", true},
+    {"rays", true}, {"connections", true}, {"chunk-rays", true}, {"reps", true},
 };
 
 int run_bench_remote(Context& ctx) {
@@ -99,7 +99,7 @@ int run_bench_remote(Context& ctx) {
     std::sort(times.begin(), times.end());
     const double median = times[times.size() / 2];
     const double mrays = median > 0 ? static_cast<double>(set->rays.size()) / median / 1e6 : 0.0;
-    if (ctx.args.has("json")) {
+    if (ctx.json()) {
         const proto::JsonField fields[] = {{"command", std::string_view("bench-remote")},
                                            {"mesh", std::string_view(*id)},
                                            {"kind", std::string_view(set->kind)},
@@ -114,7 +114,7 @@ int run_bench_remote(Context& ctx) {
                                            {"mrays_per_s", mrays},
                                            {"hits", hits}};
         ctx.console.out << proto::encode_flat_object(fields) << "\n";
-    } else {
+    } else if (!ctx.quiet()) {
         ctx.console.out << set->kind << " rays (" << set->source << "): " << set->rays.size()
                         << " rays, " << options->connections
                         << (options->connections == 1 ? " connection" : " connections")

@@ -34,8 +34,14 @@ Options of every command that talks to the server (before or after COMMAND):
   --timeout S       seconds one socket read or write may take (default 300)
   --retries N       retries on connection errors and 503 answers, with exponential backoff
                     (Retry-After honoured; never on other errors; default 4)
+  --json            the report as JSON, one object per line (every command)
+  -q, --quiet       no human-readable lines: progress and summaries (errors still print)
   -h, --help        help
   --version         print the version
+
+-o FILE writes a command's data (rays, hits, images, scans, distances) to FILE; -o - writes it to
+standard output. Progress and summaries always go to standard error; --json reports go to standard
+output, or to standard error when -o - puts the data there.
 
 A mesh ID may be shortened to a unique prefix of 4 or more hex digits.
 
@@ -64,6 +70,15 @@ bool is_global_value_option(std::string_view arg) {
         const std::string flag = "--" + std::string(s.name);
         if (arg == flag || arg.rfind(flag + "=", 0) == 0) return true;
     }
+    return false;
+}
+
+/// --json, --quiet, -q: accepted before the command too.
+bool is_report_flag(std::string_view arg) {
+    for (const OptionSpec& s : kReportOptions)
+        if (arg == "--" + std::string(s.name) ||
+            (s.short_name && arg.size() == 2 && arg[0] == '-' && arg[1] == s.short_name))
+            return true;
     return false;
 }
 
@@ -106,6 +121,7 @@ int run(std::span<const std::string> args, const std::map<std::string, std::stri
             if (arg.find('=') == std::string::npos) ++i;
             continue;
         }
+        if (is_report_flag(arg)) continue;
         if (arg.size() > 1 && arg[0] == '-') {
             console.err << "kdrt: unknown option \"" << arg << "\" before the command\n"
                         << "run 'kdrt --help' for usage\n";
@@ -145,6 +161,7 @@ int run(std::span<const std::string> args, const std::map<std::string, std::stri
                 args.end());
     std::vector<OptionSpec> options(spec->options.begin(), spec->options.end());
     options.insert(options.end(), std::begin(kGlobalOptions), std::end(kGlobalOptions));
+    options.insert(options.end(), std::begin(kReportOptions), std::end(kReportOptions));
 
     Context ctx{console, spec->name, {}, {}, std::nullopt};
     auto parsed = parse_args(rest, options, "kdrt " + std::string(spec->name));

@@ -8,6 +8,8 @@
 #include <cmath>
 #include <vector>
 
+#include "image_module.h"
+#include "kdrt/proto/file_io.h"
 #include "kdrt/proto/mesh_id.h"
 
 namespace kdrt::cli {
@@ -83,6 +85,44 @@ proto::Result<std::string, int> Context::resolve_mesh_id(std::string_view arg) {
                                       " is ambiguous: " + std::to_string(matches.size()) +
                                       " stored meshes start with it; give more digits")};
     return matches.front();
+}
+
+std::optional<int> Context::need_image_module() const {
+    auto module = image_module();
+    if (module) return std::nullopt;
+    console.err << "kdrt " << command << ": " << module.error() << "\n";
+    return kExitRefused;
+}
+
+std::string Context::format_path(const std::string& output) const {
+    if (auto format = args.value("format")) return "x." + *format;
+    return output;
+}
+
+std::optional<int> Context::write_output(const std::string& output,
+                                         std::span<const std::byte> bytes,
+                                         std::string_view what) const {
+    if (is_stdout(output)) {
+        console.out.write(reinterpret_cast<const char*>(bytes.data()),
+                          static_cast<std::streamsize>(bytes.size()));
+        console.out.flush();
+        if (console.out) return std::nullopt;
+        return fail(make_client_error(ErrorKind::kInput, "cannot write " + std::string(what),
+                                      "standard output is closed or full"));
+    }
+    if (auto written = proto::write_file_bytes(output, bytes); !written)
+        return fail(make_client_error(ErrorKind::kInput, "cannot write " + std::string(what),
+                                      written.error()));
+    return std::nullopt;
+}
+
+void Context::report(std::string_view output, std::string_view human,
+                     std::string_view json_line) const {
+    if (json()) {
+        (is_stdout(output) ? console.err : console.out) << json_line << "\n";
+    } else if (!quiet()) {
+        console.err << human << "\n";
+    }
 }
 
 bool positional_count_ok(Context& ctx, size_t min, size_t max, std::string_view what, int& code) {

@@ -39,6 +39,30 @@ struct Context {
     /// resolved against the stored meshes (ambiguous: usage error); anything else as is (the
     /// server then answers 404).
     [[nodiscard]] proto::Result<std::string, int> resolve_mesh_id(std::string_view arg);
+    /// Loads the image module (image_module.h) for a command about to write an image: on failure
+    /// prints "kdrt <command>: <why and what to install>" and returns kExitRefused. Commands call
+    /// it before they start work on the server.
+    [[nodiscard]] std::optional<int> need_image_module() const;
+
+    /// --json was given: the report is JSON.
+    [[nodiscard]] bool json() const { return args.has("json"); }
+    /// --quiet was given: no human-readable lines.
+    [[nodiscard]] bool quiet() const { return args.has("quiet"); }
+    /// -o's value: "-" is standard output.
+    [[nodiscard]] static bool is_stdout(std::string_view output) noexcept { return output == "-"; }
+    /// The path whose extension tells the format of -o's file: "x.<--format>" when --format is
+    /// given (needed with -o -, which has no extension), else `output` itself.
+    [[nodiscard]] std::string format_path(const std::string& output) const;
+    /// Writes the command's data to `output` (created or truncated; "-": standard output, as
+    /// is). On failure prints "kdrt <command>: cannot write <what>: <why>" and returns its exit
+    /// code (kExitUsage).
+    [[nodiscard]] std::optional<int> write_output(const std::string& output,
+                                                  std::span<const std::byte> bytes,
+                                                  std::string_view what) const;
+    /// The report of a command that wrote its data to `output`: with --json the line `json` on
+    /// standard output (standard error when the data went there, -o -); otherwise the line
+    /// `human` on standard error (never mixed into the data), unless --quiet.
+    void report(std::string_view output, std::string_view human, std::string_view json) const;
 };
 
 /// Exit code of an Error kind (see Context::fail).

@@ -4,6 +4,7 @@
 #include <cctype>
 #include <cmath>
 #include <limits>
+#include <sstream>
 #include <string>
 #include <vector>
 
@@ -34,14 +35,16 @@ finite. OUT is written by its extension:
           (signed_distance and prim empty where undefined)
   .kdrd   the server's KDRD records (proto/FORMATS.md)
 
-  -o, --output OUT     the .csv or .kdrd file (required)
+  -o, --output OUT     the .csv or .kdrd file (required; - for standard output)
+  --format NAME        csv or kdrd: the format when OUT's extension does not say
   --max-distance D     only triangles at most D away count (D >= 0; default: no limit); a
                        point with none gets distance inf, no prim and feature "none"
   --signed             decide inside / outside: exact on a closed, consistently oriented mesh;
                        on any other mesh every side is "unknown" (the summary says why)
   --chunk-points N     points per request (default 65536; smaller when the server's
                        max_distance_points is)
-  --json               print the summary as one JSON object
+  --json               the summary as one JSON object (on stdout; stderr with -o -)
+  -q, --quiet          no summary line
 
 Prints the point count, time, points/s, the points found and, with --signed, how many are
 inside and outside.
@@ -49,7 +52,7 @@ inside and outside.
 
 constexpr OptionSpec kDistanceOptions[] = {
     {"output", true, 'o'},  {"max-distance", true}, {"signed", false},
-    {"chunk-points", true}, {"json", false},
+    {"chunk-points", true}, {"format", true},
 };
 
 /// Most points per request --chunk-points accepts (the server's default max_distance_points).
@@ -101,7 +104,7 @@ int run_distance(Context& ctx) {
         return ctx.usage_error("unexpected argument \"" + ctx.args.positional[2] + "\"");
     const auto output = ctx.args.value("output");
     if (!output) return ctx.usage_error("missing -o OUT (the .csv or .kdrd file to write)");
-    const auto kind = output_kind(*output);
+    const auto kind = output_kind(ctx.format_path(*output));
     if (!kind)
         return ctx.usage_error("cannot tell the output format of \"" + *output +
                                "\" from its extension (.csv or .kdrd)");
@@ -141,9 +144,7 @@ int run_distance(Context& ctx) {
             return std::vector<std::byte>(p, p + csv.size());
         }()
                                   : proto::encode_distances(answer->points, query.signed_query);
-    if (auto written = proto::write_file_bytes(*output, bytes); !written)
-        return ctx.fail(
-            make_client_error(ErrorKind::kInput, "cannot write the answers", written.error()));
+    if (auto failed = ctx.write_output(*output, bytes, "the answers")) return *failed;
     uint64_t found = 0, inside = 0, outside = 0;
     for (const ClosestPoint& c : answer->points) {
         found += c.found() ? 1 : 0;
@@ -151,31 +152,28 @@ int run_distance(Context& ctx) {
         outside += c.side == Side::kOutside ? 1 : 0;
     }
     const double rate = seconds > 0 ? static_cast<double>(points->size()) / seconds : 0.0;
-    if (ctx.args.has("json")) {
-        const proto::JsonField fields[] = {{"command", std::string_view("distance")},
-                                           {"mesh", std::string_view(*id)},
-                                           {"points_file", std::string_view(points_path)},
-                                           {"points", uint64_t{points->size()}},
-                                           {"signed", query.signed_query},
-                                           {"surface", std::string_view(answer->surface)},
-                                           {"closed", answer->closed()},
-                                           {"seconds", seconds},
-                                           {"points_per_s", rate},
-                                           {"found", found},
-                                           {"inside", inside},
-                                           {"outside", outside},
-                                           {"out", std::string_view(*output)}};
-        ctx.console.out << proto::encode_flat_object(fields) << "\n";
-    } else {
-        ctx.console.out << "queried " << points->size() << " points in " << fixed(seconds, 3)
-                        << " s, " << fixed(rate, 0) << " points/s: " << found << " found";
-        if (query.signed_query) {
-            ctx.console.out << ", " << inside << " inside, " << outside << " outside";
-            if (!answer->closed())
-                ctx.console.out << " (sides unknown: the mesh is " << answer->surface << ")";
-        }
-        ctx.console.out << " -> " << *output << "\n";
+    const proto::JsonField fields[] = {{"command", std::string_view("distance")},
+                                       {"mesh", std::string_view(*id)},
+                                       {"points_file", std::string_view(points_path)},
+                                       {"points", uint64_t{points->size()}},
+                                       {"signed", query.signed_query},
+                                       {"surface", std::string_view(answer->surface)},
+                                       {"closed", answer->closed()},
+                                       {"seconds", seconds},
+                                       {"points_per_s", rate},
+                                       {"found", found},
+                                       {"inside", inside},
+                                       {"outside", outside},
+                                       {"out", std::string_view(*output)}};
+    std::ostringstream human;
+    human << "queried " << points->size() << " points in " << fixed(seconds, 3) << " s, "
+          << fixed(rate, 0) << " points/s: " << found << " found";
+    if (query.signed_query) {
+        human << ", " << inside << " inside, " << outside << " outside";
+        if (!answer->closed()) human << " (sides unknown: the mesh is " << answer->surface << ")";
     }
+    human << " -> " << *output;
+    ctx.report(*output, human.str(), proto::encode_flat_object(fields));
     return kExitOk;
 }
 

@@ -6,12 +6,13 @@
 #include "cli_command.h"
 #include "cli_context.h"
 #include "cli_output.h"
+#include "kdrt/proto/json_api.h"
 
 namespace kdrt::cli {
 namespace {
 
 constexpr std::string_view kUploadHelp =
-    R"(usage: kdrt upload FILE... [--format obj|ply|off|stl|raw] [--json]
+    R"(usage: kdrt upload FILE... [--format obj|ply|off|stl|raw] [--json] [--quiet]
 
 Uploads each mesh file; the server builds its kD-tree and stores it. Prints one line per file:
   ID  TRIANGLES triangles  BUILD_MS ms  FILE
@@ -21,12 +22,13 @@ Uploading the same triangles again (in any format) returns the stored mesh witho
                .raw/.kdrtmesh for the raw format)
   --json       print one JSON object per file, one per line: "file" and the server's fields
                (id, triangles, vertices, bounds, build_ms, tree, in_memory)
+  -q, --quiet  print only each mesh's ID
 
 A file the server cannot parse is reported with its line or byte (exit 1); the other files are
 still uploaded.
 )";
 
-constexpr OptionSpec kUploadOptions[] = {{"format", true}, {"json", false}};
+constexpr OptionSpec kUploadOptions[] = {{"format", true}};
 
 int run_upload(Context& ctx) {
     int code = kExitOk;
@@ -38,7 +40,7 @@ int run_upload(Context& ctx) {
         if (!format)
             return ctx.usage_error("--format: \"" + *name + "\" is not obj, ply, off, stl or raw");
     }
-    const bool json = ctx.args.has("json");
+    const bool json = ctx.json();
     Client& client = ctx.connect(ctx.client_options());
     for (const std::string& file : ctx.args.positional) {
         auto mesh = client.upload(file, format);
@@ -49,28 +51,32 @@ int run_upload(Context& ctx) {
             code = std::max(code, failed);
             continue;
         }
-        ctx.console.out << (json ? mesh_json_line(*mesh, file) : upload_line(*mesh, file)) << "\n"
+        ctx.console.out << (json          ? mesh_json_line(*mesh, file)
+                            : ctx.quiet() ? mesh->id
+                                          : upload_line(*mesh, file))
+                        << "\n"
                         << std::flush;
     }
     return code;
 }
 
-constexpr std::string_view kMeshesHelp = R"(usage: kdrt meshes [--json]
+constexpr std::string_view kMeshesHelp = R"(usage: kdrt meshes [--json] [--quiet]
 
 Lists the stored meshes, sorted by id: ID, TRIANGLES, VERTICES, BUILD_MS, IN_MEMORY.
 
-  --json   one JSON object per mesh, one per line (the server's fields)
+  --json        one JSON object per mesh, one per line (the server's fields)
+  -q, --quiet   print only the IDs, one per line
 )";
-
-constexpr OptionSpec kMeshesOptions[] = {{"json", false}};
 
 int run_meshes(Context& ctx) {
     int code = kExitOk;
     if (!positional_count_ok(ctx, 0, 0, "", code)) return code;
     auto list = ctx.connect(ctx.client_options()).meshes();
     if (!list) return ctx.fail(list.error());
-    if (ctx.args.has("json")) {
+    if (ctx.json()) {
         for (const MeshInfo& m : *list) ctx.console.out << mesh_json_line(m) << "\n";
+    } else if (ctx.quiet()) {
+        for (const MeshInfo& m : *list) ctx.console.out << m.id << "\n";
     } else if (list->empty()) {
         ctx.console.out << "no meshes stored\n";
     } else {
@@ -79,14 +85,13 @@ int run_meshes(Context& ctx) {
     return kExitOk;
 }
 
-constexpr std::string_view kInfoHelp = R"(usage: kdrt info ID [--json]
+constexpr std::string_view kInfoHelp = R"(usage: kdrt info ID [--json] [--quiet]
 
 Shows one stored mesh: triangles, vertices, bounds, build time and kD-tree statistics.
 
-  --json   the server's JSON object on one line
+  --json        the server's JSON object on one line
+  -q, --quiet   print only the full ID (e.g. of a prefix), exit 1 if there is no such mesh
 )";
-
-constexpr OptionSpec kInfoOptions[] = {{"json", false}};
 
 int run_info(Context& ctx) {
     int code = kExitOk;
@@ -96,13 +101,18 @@ int run_info(Context& ctx) {
     if (!id) return id.error();
     auto mesh = ctx.client->mesh(*id);
     if (!mesh) return ctx.fail(mesh.error());
-    ctx.console.out << (ctx.args.has("json") ? mesh_json_line(*mesh) + "\n" : mesh_details(*mesh));
+    ctx.console.out << (ctx.json()    ? mesh_json_line(*mesh) + "\n"
+                        : ctx.quiet() ? mesh->id + "\n"
+                                      : mesh_details(*mesh));
     return kExitOk;
 }
 
-constexpr std::string_view kRmHelp = R"(usage: kdrt rm ID...
+constexpr std::string_view kRmHelp = R"(usage: kdrt rm ID... [--json] [--quiet]
 
 Deletes stored meshes (their files on the server too). Prints "removed ID" per mesh.
+
+  --json        {"removed": ID} per mesh instead
+  -q, --quiet   print nothing but errors
 )";
 
 int run_rm(Context& ctx) {
@@ -123,7 +133,12 @@ int run_rm(Context& ctx) {
             code = std::max(code, failed);
             continue;
         }
-        ctx.console.out << "removed " << *id << "\n" << std::flush;
+        if (ctx.json()) {
+            const proto::JsonField fields[] = {{"removed", std::string_view(*id)}};
+            ctx.console.out << proto::encode_flat_object(fields) << "\n" << std::flush;
+        } else if (!ctx.quiet()) {
+            ctx.console.out << "removed " << *id << "\n" << std::flush;
+        }
     }
     return code;
 }
@@ -145,7 +160,7 @@ constinit const Command kMeshesCommand{
     .synopsis = "meshes",
     .summary = "list the stored meshes",
     .help = kMeshesHelp,
-    .options = kMeshesOptions,
+    .options = {},
     .needs_server = true,
     .run = run_meshes,
 };
@@ -155,7 +170,7 @@ constinit const Command kInfoCommand{
     .synopsis = "info ID",
     .summary = "show one stored mesh",
     .help = kInfoHelp,
-    .options = kInfoOptions,
+    .options = {},
     .needs_server = true,
     .run = run_info,
 };

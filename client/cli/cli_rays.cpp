@@ -1,6 +1,7 @@
 // kdrt rays, trace, hits: KDRR ray files, generated locally and traced remotely.
 
 #include <cctype>
+#include <sstream>
 #include <vector>
 
 #include "cli_command.h"
@@ -18,22 +19,27 @@ namespace {
 
 constexpr std::string_view kRaysHelp =
     R"(usage: kdrt rays MESH -o FILE [--kind primary|shadow|diffuse|random] [--res N] [--seed N] [--json]
+                 [--quiet]
 
 Generates a deterministic KDRR ray set for a mesh file, locally (no server): the same bytes as
 `kdrt-bench rays` on every machine. The mesh's kD-tree is built in this process.
 
-  -o, --output FILE   the KDRR file (required)
+  -o, --output FILE   the KDRR file (required; - for standard output)
   --kind K            primary: R x R camera rays of the default view (default)
                       shadow: from each primary hit towards a point light (occlusion query)
                       diffuse: from each primary hit, cosine-weighted
                       random: R x R rays with random origins in the bounds, random directions
   --res R             resolution (default 1024, at most 8192)
   --seed N            seed (default 1)
-  --json              print the summary as one JSON object
+  --json              the summary as one JSON object (on stdout; stderr with -o -)
+  -q, --quiet         no summary line
 )";
 
 constexpr OptionSpec kRaysOptions[] = {
-    {"output", true, 'o'}, {"kind", true}, {"res", true}, {"seed", true}, {"json", false},
+    {"output", true, 'o'},
+    {"kind", true},
+    {"res", true},
+    {"seed", true},
 };
 
 int run_rays(Context& ctx) {
@@ -50,26 +56,22 @@ int run_rays(Context& ctx) {
     if (!set) return set.error();
     const double generate_ms = seconds_since(start) * 1e3;
     const std::vector<std::byte> bytes = proto::encode_rays(set->rays, set->occlusion);
-    if (auto written = proto::write_file_bytes(*output, bytes); !written)
-        return ctx.fail(
-            make_client_error(ErrorKind::kInput, "cannot write the rays", written.error()));
-    if (ctx.args.has("json")) {
-        const proto::JsonField fields[] = {{"command", std::string_view("rays")},
-                                           {"mesh", std::string_view(mesh_path)},
-                                           {"kind", std::string_view(set->kind)},
-                                           {"res", uint64_t{options->res}},
-                                           {"seed", options->seed},
-                                           {"rays", uint64_t{set->rays.size()}},
-                                           {"occlusion", set->occlusion},
-                                           {"out", std::string_view(*output)},
-                                           {"bytes", uint64_t{bytes.size()}},
-                                           {"generate_ms", generate_ms}};
-        ctx.console.out << proto::encode_flat_object(fields) << "\n";
-    } else {
-        ctx.console.out << "wrote " << set->rays.size() << " " << set->kind << " rays"
-                        << (set->occlusion ? " (occlusion query)" : "") << " to " << *output << " ("
-                        << bytes.size() << " bytes)\n";
-    }
+    if (auto failed = ctx.write_output(*output, bytes, "the rays")) return *failed;
+    const proto::JsonField fields[] = {{"command", std::string_view("rays")},
+                                       {"mesh", std::string_view(mesh_path)},
+                                       {"kind", std::string_view(set->kind)},
+                                       {"res", uint64_t{options->res}},
+                                       {"seed", options->seed},
+                                       {"rays", uint64_t{set->rays.size()}},
+                                       {"occlusion", set->occlusion},
+                                       {"out", std::string_view(*output)},
+                                       {"bytes", uint64_t{bytes.size()}},
+                                       {"generate_ms", generate_ms}};
+    std::ostringstream human;
+    human << "wrote " << set->rays.size() << " " << set->kind << " rays"
+          << (set->occlusion ? " (occlusion query)" : "") << " to " << *output << " ("
+          << bytes.size() << " bytes)";
+    ctx.report(*output, human.str(), proto::encode_flat_object(fields));
     return kExitOk;
 }
 
@@ -82,17 +84,20 @@ mesh and writes the answers to FILE: KDRH closest hits, or KDRO occlusion bytes 
 occlusion flag is set. Large files go in chunks over several keep-alive connections in parallel.
 Prints the ray count, time, Mrays/s and hits.
 
-  -o, --output FILE    the KDRH / KDRO file (required)
+  -o, --output FILE    the KDRH / KDRO file (required; - for standard output)
   --connections N      chunks in flight at once (default 4)
   --chunk-rays N       rays per request (default 65536)
   --split N            at least N requests, each with its own routing key (?route=ID.K), so a
                        proxy in front of replicas spreads them (docs/scale-out.md)
-  --json               print the summary as one JSON object
+  --json               the summary as one JSON object (on stdout; stderr with -o -)
+  -q, --quiet          no summary line
 )";
 
 constexpr OptionSpec kTraceOptions[] = {
-    {"output", true, 'o'}, {"connections", true}, {"chunk-rays", true},
-    {"split", true},       {"json", false},
+    {"output", true, 'o'},
+    {"connections", true},
+    {"chunk-rays", true},
+    {"split", true},
 };
 
 int run_trace(Context& ctx) {
@@ -126,37 +131,33 @@ int run_trace(Context& ctx) {
         answer = proto::encode_hits(*found);
     }
     const double seconds = seconds_since(start);
-    if (auto written = proto::write_file_bytes(*output, answer); !written)
-        return ctx.fail(
-            make_client_error(ErrorKind::kInput, "cannot write the answers", written.error()));
+    if (auto failed = ctx.write_output(*output, answer, "the answers")) return *failed;
     const double mrays = seconds > 0 ? static_cast<double>(set->rays.size()) / seconds / 1e6 : 0.0;
-    if (ctx.args.has("json")) {
-        const proto::JsonField fields[] = {{"command", std::string_view("trace")},
-                                           {"mesh", std::string_view(*id)},
-                                           {"rays_file", std::string_view(rays_path)},
-                                           {"rays", uint64_t{set->rays.size()}},
-                                           {"occlusion", set->occlusion},
-                                           {"connections", uint64_t{options->connections}},
-                                           {"chunk_rays", uint64_t{options->chunk_rays}},
-                                           {"seconds", seconds},
-                                           {"mrays_per_s", mrays},
-                                           {"hits", hits},
-                                           {"out", std::string_view(*output)}};
-        ctx.console.out << proto::encode_flat_object(fields) << "\n";
-    } else {
-        ctx.console.out << "traced " << set->rays.size() << " rays ("
-                        << (set->occlusion ? "occlusion" : "closest hits") << ") in "
-                        << fixed(seconds, 3) << " s, " << fixed(mrays, 2) << " Mrays/s over "
-                        << options->connections
-                        << (options->connections == 1 ? " connection: " : " connections: ") << hits
-                        << (set->occlusion ? " occluded" : " hits") << " -> " << *output << "\n";
-    }
+    const proto::JsonField fields[] = {{"command", std::string_view("trace")},
+                                       {"mesh", std::string_view(*id)},
+                                       {"rays_file", std::string_view(rays_path)},
+                                       {"rays", uint64_t{set->rays.size()}},
+                                       {"occlusion", set->occlusion},
+                                       {"connections", uint64_t{options->connections}},
+                                       {"chunk_rays", uint64_t{options->chunk_rays}},
+                                       {"seconds", seconds},
+                                       {"mrays_per_s", mrays},
+                                       {"hits", hits},
+                                       {"out", std::string_view(*output)}};
+    std::ostringstream human;
+    human << "traced " << set->rays.size() << " rays ("
+          << (set->occlusion ? "occlusion" : "closest hits") << ") in " << fixed(seconds, 3)
+          << " s, " << fixed(mrays, 2) << " Mrays/s over " << options->connections
+          << (options->connections == 1 ? " connection: " : " connections: ") << hits
+          << (set->occlusion ? " occluded" : " hits") << " -> " << *output;
+    ctx.report(*output, human.str(), proto::encode_flat_object(fields));
     return kExitOk;
 }
 
 constexpr std::string_view kHitsHelp =
     R"(usage: kdrt hits ID RAYS.kdrr --all -o FILE [--max-hits N] [--merge] [--count-only]
-                 [--fields full|t|t_prim] [--normal] [--point] [--json]
+                 [--fields full|t|t_prim] [--normal] [--point] [--format ply]
+                 [--json] [--quiet]
 
 Every hit along each ray of a KDRR file (POST /v1/meshes/{id}/intersect_all): all triangles hit
 within [tmin, tmax], each once, sorted by t, the nearest N kept per ray and the count of all
@@ -165,7 +166,9 @@ when it ends in .ply, the hit points as a PLY point cloud (x y z t ray prim, and
 --normal) that any point-cloud viewer opens.
 
   --all               every hit (required: without it, use kdrt trace for closest hits)
-  -o, --output FILE   the KDRM / KDRC / .ply file (required)
+  -o, --output FILE   the KDRM / KDRC / .ply file (required; - for standard output)
+  --format ply        a .ply point cloud whatever FILE's extension (-o -); kdrm or kdrc:
+                      the binary answer (the default)
   --max-hits N        hits kept per ray (default 16; the server caps it, max_hits_per_ray)
   --merge             report coincident hits at a shared edge or vertex once (crossing counts)
   --count-only        only the number of hits of each ray (KDRC)
@@ -173,13 +176,14 @@ when it ends in .ply, the hit points as a PLY point cloud (x y z t ray prim, and
   --normal            add the unit geometric normal of each hit
   --point             add the world-space hit point (implied by a .ply FILE)
   --chunk-rays N      rays per request (default 65536)
-  --json              print the summary as one JSON object
+  --json              the summary as one JSON object (on stdout; stderr with -o -)
+  -q, --quiet         no summary line
 )";
 
 constexpr OptionSpec kHitsOptions[] = {
     {"all", false},        {"output", true, 'o'}, {"max-hits", true}, {"merge", false},
     {"count-only", false}, {"fields", true},      {"normal", false},  {"point", false},
-    {"chunk-rays", true},  {"json", false},
+    {"chunk-rays", true},  {"format", true},
 };
 
 bool ends_with_ply(std::string_view path) {
@@ -212,7 +216,10 @@ int run_hits(Context& ctx) {
     query.merge_coincident = ctx.args.has("merge");
     query.count_only = ctx.args.has("count-only");
     query.layout.normal = ctx.args.has("normal");
-    const bool ply = ends_with_ply(*output);
+    if (auto format = ctx.args.value("format");
+        format && *format != "ply" && *format != "kdrm" && *format != "kdrc")
+        return ctx.usage_error("--format: \"" + *format + "\" is not ply, kdrm or kdrc");
+    const bool ply = ends_with_ply(ctx.format_path(*output));
     query.layout.point = ctx.args.has("point") || ply;
     if (ply && query.count_only)
         return ctx.usage_error("--count-only writes KDRC counts, not a .ply point cloud");
@@ -267,31 +274,26 @@ int run_hits(Context& ctx) {
         }
     }
     const double seconds = seconds_since(start);
-    if (auto written = proto::write_file_bytes(*output, answer); !written)
-        return ctx.fail(
-            make_client_error(ErrorKind::kInput, "cannot write the answers", written.error()));
+    if (auto failed = ctx.write_output(*output, answer, "the answers")) return *failed;
     const double mrays = seconds > 0 ? static_cast<double>(set->rays.size()) / seconds / 1e6 : 0.0;
-    if (ctx.args.has("json")) {
-        const proto::JsonField fields[] = {{"command", std::string_view("hits")},
-                                           {"mesh", std::string_view(*id)},
-                                           {"rays_file", std::string_view(rays_path)},
-                                           {"rays", uint64_t{set->rays.size()}},
-                                           {"max_hits", uint64_t{query.max_hits}},
-                                           {"merge_coincident", query.merge_coincident},
-                                           {"count_only", query.count_only},
-                                           {"seconds", seconds},
-                                           {"mrays_per_s", mrays},
-                                           {"hits", total},
-                                           {"kept", kept},
-                                           {"out", std::string_view(*output)}};
-        ctx.console.out << proto::encode_flat_object(fields) << "\n";
-    } else {
-        ctx.console.out << "traced " << set->rays.size() << " rays (every hit) in "
-                        << fixed(seconds, 3) << " s, " << fixed(mrays, 2) << " Mrays/s: " << total
-                        << " hits";
-        if (!query.count_only) ctx.console.out << ", " << kept << " kept";
-        ctx.console.out << " -> " << *output << "\n";
-    }
+    const proto::JsonField fields[] = {{"command", std::string_view("hits")},
+                                       {"mesh", std::string_view(*id)},
+                                       {"rays_file", std::string_view(rays_path)},
+                                       {"rays", uint64_t{set->rays.size()}},
+                                       {"max_hits", uint64_t{query.max_hits}},
+                                       {"merge_coincident", query.merge_coincident},
+                                       {"count_only", query.count_only},
+                                       {"seconds", seconds},
+                                       {"mrays_per_s", mrays},
+                                       {"hits", total},
+                                       {"kept", kept},
+                                       {"out", std::string_view(*output)}};
+    std::ostringstream human;
+    human << "traced " << set->rays.size() << " rays (every hit) in " << fixed(seconds, 3) << " s, "
+          << fixed(mrays, 2) << " Mrays/s: " << total << " hits";
+    if (!query.count_only) human << ", " << kept << " kept";
+    human << " -> " << *output;
+    ctx.report(*output, human.str(), proto::encode_flat_object(fields));
     return kExitOk;
 }
 

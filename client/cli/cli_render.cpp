@@ -12,9 +12,10 @@
 #include "cli_context.h"
 #include "cli_output.h"
 #include "cli_progress.h"
+#include "image_module.h"
 #include "kdrt/camera.h"
 #include "kdrt/proto/file_io.h"
-#include "kdrt/proto/image_io.h"
+#include "kdrt/proto/json_api.h"
 
 namespace kdrt::cli {
 namespace {
@@ -24,11 +25,12 @@ constexpr std::string_view kRenderHelp =
                    [--fov DEG] [--ortho HEIGHT] [--shading MODE] [--spp N] [--seed N]
                    [--ao-samples N] [--ao-distance D] [--light X,Y,Z] [--light-intensity I]
                    [--bounces N] [--sky S] [--background R,G,B] [--tile X,Y,W,H]
-                   [--split N] [--connections N] [--quiet]
+                   [--split N] [--connections N] [--format png|jpg|exr] [--json] [--quiet]
 
-Renders an image of a stored mesh as an async job and writes the encoded image to FILE. The
-format follows the extension: .png, .jpg/.jpeg or .exr. Progress goes to stderr: a bar on a
-terminal, a line per 10 % otherwise. Ctrl-C cancels the job (exit 130).
+Renders an image of a stored mesh as an async job and writes the encoded image to FILE (-o -:
+standard output). The format follows the extension: .png, .jpg/.jpeg or .exr (or --format,
+needed with -o -). Progress and the summary go to stderr: a bar on a terminal, a line per 10 %
+otherwise. Ctrl-C cancels the job (exit 130).
 
 With --split N the frame (or the --tile) is rendered as N bands of rows instead, each a
 synchronous request for its float pixels with its own routing key (?route=ID.K), so a proxy in
@@ -38,7 +40,8 @@ time of encoding). A band's pixels travel as floats, 12 bytes a pixel, and must 
 server's max_raw_render_bytes (512 MiB by default): split a huge frame into more bands. Ctrl-C
 stops asking for bands (exit 130).
 
-  -o, --output FILE   the image file (required)
+  -o, --output FILE   the image file (required; - for standard output)
+  --format NAME       png, jpg or exr: the format when FILE's extension does not say
   --size WxH          image size in pixels (default 512x512)
   --eye X,Y,Z         camera position
   --look-at X,Y,Z     point the camera looks at
@@ -61,7 +64,8 @@ stops asking for bands (exit 130).
   --tile X,Y,W,H      render only this part of the frame
   --split N           render as N bands of rows, 1 .. the rows of the frame or tile
   --connections N     with --split: bands in flight at once (default 4)
-  --quiet             no progress output
+  --json              the summary as one JSON object (on stdout; stderr with -o -)
+  -q, --quiet         no progress or summary
 )";
 
 constexpr OptionSpec kRenderOptions[] = {
@@ -75,7 +79,7 @@ constexpr OptionSpec kRenderOptions[] = {
     {"bounces", true},     {"sky", true},
     {"background", true},  {"tile", true},
     {"split", true},       {"connections", true},
-    {"quiet", false},
+    {"format", true},
 };
 
 /// The server's default png_compression (config/kdrt.json), for a split render whose server does
@@ -205,13 +209,40 @@ std::optional<int> render_settings(Context& ctx, const std::string& id, RenderRe
 /// Largest --connections of a split render (as kdrt trace's).
 constexpr uint64_t kMaxRenderConnections = 64;
 
+/// The summary of a written image (human line or --json).
+void report_image(const Context& ctx, const std::string& output, const RenderRequest& request,
+                  size_t bytes, uint32_t width, uint32_t height, double seconds, unsigned parts,
+                  size_t replicas) {
+    const RenderSettings& s = request.settings;
+    std::string human = "wrote " + output + " (" + std::to_string(bytes) + " bytes, " +
+                        std::to_string(width) + "x" + std::to_string(height) + " " +
+                        std::string(shading_name(s.shading)) + ", " + std::to_string(s.spp) +
+                        " spp";
+    if (parts > 0) human += ", " + std::to_string(parts) + (parts == 1 ? " part" : " parts");
+    if (replicas > 0)
+        human += " on " + std::to_string(replicas) + (replicas == 1 ? " replica" : " replicas");
+    human += ")";  // the time is on the progress line
+    const proto::JsonField fields[] = {{"command", std::string_view("render")},
+                                       {"mesh", std::string_view(request.mesh)},
+                                       {"out", std::string_view(output)},
+                                       {"format", std::string_view(request.format)},
+                                       {"bytes", uint64_t{bytes}},
+                                       {"width", uint64_t{width}},
+                                       {"height", uint64_t{height}},
+                                       {"shading", shading_name(s.shading)},
+                                       {"spp", uint64_t{s.spp}},
+                                       {"parts", uint64_t{parts}},
+                                       {"replicas", uint64_t{replicas}},
+                                       {"seconds", seconds}};
+    ctx.report(output, human, proto::encode_flat_object(fields));
+}
+
 /// --split N: the frame (or tile) as N bands of rows over up to --connections requests at once,
 /// stitched and encoded here (Client::render_split).
 int run_split_render(Context& ctx, const RenderRequest& request, unsigned parts,
                      const std::string& output) {
     const auto start = std::chrono::steady_clock::now();
-    ProgressReporter progress(ctx.console.err, ctx.console.err_is_tty, ctx.args.has("quiet"),
-                              "render");
+    ProgressReporter progress(ctx.console.err, ctx.console.err_is_tty, ctx.quiet(), "render");
     const std::atomic<bool>* interrupted = ctx.console.interrupted;
     if (ctx.console.waiting) ctx.console.waiting->store(true);
     auto frame = ctx.client->render_split(request, parts, [&](unsigned done, unsigned all) {
@@ -227,12 +258,10 @@ int run_split_render(Context& ctx, const RenderRequest& request, unsigned parts,
         progress.finish("failed");
         return ctx.fail(frame.error());
     }
-    const proto::ImageFormat format = *proto::image_format_from_name(request.format);
-    proto::ImageEncodeOptions encode;
-    encode.transfer = proto::render_transfer(request.settings.shading);
     // The server's level (X-Kdrt-Png-Compression); a server that does not say gets the default.
-    encode.png_compression = frame->png_compression.value_or(kDefaultServerPngCompression);
-    auto bytes = proto::encode_image(frame->image, format, encode);
+    auto bytes = (*image_module())
+                     ->encode_render(frame->image, request.format, request.settings.shading,
+                                     frame->png_compression.value_or(kDefaultServerPngCompression));
     if (!bytes) {
         progress.finish("failed");
         return ctx.fail(
@@ -240,22 +269,12 @@ int run_split_render(Context& ctx, const RenderRequest& request, unsigned parts,
     }
     const double seconds =
         std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
-    if (auto written = proto::write_file_bytes(output, *bytes); !written) {
-        progress.finish("failed");
-        return ctx.fail(
-            make_client_error(ErrorKind::kInput, "cannot write the image", written.error()));
-    }
     progress.finish("done in " + fixed(seconds, 2) + " s");
+    if (auto failed = ctx.write_output(output, *bytes, "the image")) return *failed;
     std::set<std::string> replicas(frame->replicas.begin(), frame->replicas.end());
     replicas.erase("");
-    ctx.console.out << "wrote " << output << " (" << bytes->size() << " bytes, "
-                    << frame->image.width << "x" << frame->image.height << " "
-                    << shading_name(request.settings.shading) << ", " << request.settings.spp
-                    << " spp, " << parts << (parts == 1 ? " part" : " parts");
-    if (!replicas.empty())
-        ctx.console.out << " on " << replicas.size()
-                        << (replicas.size() == 1 ? " replica" : " replicas");
-    ctx.console.out << ")\n";
+    report_image(ctx, output, request, bytes->size(), frame->image.width, frame->image.height,
+                 seconds, parts, replicas.size());
     return kExitOk;
 }
 
@@ -264,10 +283,13 @@ int run_render(Context& ctx) {
     if (!positional_count_ok(ctx, 1, 1, "ID (the mesh to render)", code)) return code;
     const auto output = ctx.args.value("output");
     if (!output) return ctx.usage_error("missing -o FILE (the image to write)");
-    const auto format = image_format_for_path(*output);
+    const auto format = image_format_for_path(ctx.format_path(*output));
     if (!format)
-        return ctx.usage_error("cannot tell the image format of \"" + *output +
-                               "\" from its extension (use .png, .jpg, .jpeg or .exr)");
+        return ctx.usage_error(
+            ctx.args.has("format")
+                ? "--format: \"" + *ctx.args.value("format") + "\" is not png, jpg or exr"
+                : "cannot tell the image format of \"" + *output +
+                      "\" from its extension (use .png, .jpg, .jpeg or .exr, or --format)");
     std::optional<unsigned> split;
     if (auto text = ctx.args.value("split")) {
         auto n = parse_uint(*text, 1, kMaxImageSize);
@@ -275,6 +297,8 @@ int run_render(Context& ctx) {
             return ctx.usage_error("--split: " + n.error() +
                                    " (bands of rows, at most one per row of the frame or tile)");
         split = static_cast<unsigned>(*n);
+        // The stitched frame is encoded here: the encoder must load before the job starts.
+        if (auto failed = ctx.need_image_module()) return *failed;
     }
     ClientOptions options = ctx.client_options();
     if (auto text = ctx.args.value("connections")) {
@@ -303,8 +327,7 @@ int run_render(Context& ctx) {
     const auto start = std::chrono::steady_clock::now();
     auto job = ctx.client->submit(request);
     if (!job) return ctx.fail(job.error());
-    ProgressReporter progress(ctx.console.err, ctx.console.err_is_tty, ctx.args.has("quiet"),
-                              "render");
+    ProgressReporter progress(ctx.console.err, ctx.console.err_is_tty, ctx.quiet(), "render");
     const std::atomic<bool>* interrupted = ctx.console.interrupted;
     if (ctx.console.waiting) ctx.console.waiting->store(true);
     auto image = ctx.client->wait(*job, [&](const Job& status) {
@@ -324,16 +347,11 @@ int run_render(Context& ctx) {
         *job);  // forget the finished job: the server keeps its image otherwise
     const double seconds =
         std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
-    if (auto written = proto::write_file_bytes(*output, *image); !written) {
-        progress.finish("failed");
-        return ctx.fail(
-            make_client_error(ErrorKind::kInput, "cannot write the image", written.error()));
-    }
     progress.finish("done in " + fixed(seconds, 2) + " s");
-    ctx.console.out << "wrote " << *output << " (" << image->size() << " bytes, "
-                    << request.settings.width << "x" << request.settings.height << " "
-                    << shading_name(request.settings.shading) << ", " << request.settings.spp
-                    << " spp)\n";
+    if (auto failed = ctx.write_output(*output, *image, "the image")) return *failed;
+    const RenderSettings& s = request.settings;
+    report_image(ctx, *output, request, image->size(), s.region ? s.region->width : s.width,
+                 s.region ? s.region->height : s.height, seconds, 0, 0);
     return kExitOk;
 }
 

@@ -10,9 +10,10 @@
 #include "cli_command.h"
 #include "cli_context.h"
 #include "cli_output.h"
+#include "image_module.h"
 #include "kdrt/proto/file_io.h"
+#include "kdrt/proto/json_api.h"
 #include "kdrt/proto/scan.h"
-#include "kdrt/proto/scan_image.h"
 
 namespace kdrt::cli {
 namespace {
@@ -37,7 +38,9 @@ Misses: depth +inf, prim 4294967295; a lidar beam without a hit has no point.
                         pixel (i, j)'s ray through (i + 0.5, j + 0.5))
   --lidar               a spinning lidar (frame: +x forward = azimuth 0, +y left, +z up;
                         azimuth counter-clockwise seen from above)
-  -o, --output FILE     the file to write (required)
+  -o, --output FILE     the file to write (required; - for standard output)
+  --format NAME         exr, kdrz (pinhole), ply or kdrl (lidar): the format when FILE's
+                        extension does not say
   --intrinsics FX,FY,CX,CY  focal lengths and principal point in pixels (with --size, --pose)
   --size WxH            image size in pixels (default 640x480 with --eye)
   --pose M              sensor-to-world rigid transform: 16 numbers, row-major, comma-separated
@@ -55,7 +58,8 @@ Misses: depth +inf, prim 4294967295; a lidar beam without a hit has no point.
   --returns N           hits kept per beam, nearest first (default 1)
   --min-range R         only hits at least R away (default 0)
   --max-range R         only hits at most R away (default: no limit)
-  --quiet               no summary line
+  --json                the summary as one JSON object (on stdout; stderr with -o -)
+  -q, --quiet           no summary line (it goes to stderr)
 )";
 
 constexpr OptionSpec kScanOptions[] = {
@@ -63,7 +67,7 @@ constexpr OptionSpec kScanOptions[] = {
     {"size", true},     {"pose", true},         {"eye", true},         {"look-at", true},
     {"up", true},       {"fov", true},          {"range", false},      {"normals", false},
     {"channels", true}, {"vertical-fov", true}, {"elevations", true},  {"azimuth-steps", true},
-    {"returns", true},  {"min-range", true},    {"max-range", true},   {"quiet", false},
+    {"returns", true},  {"min-range", true},    {"max-range", true},   {"format", true},
 };
 
 /// Comma-separated finite numbers.
@@ -224,11 +228,17 @@ int run_scan(Context& ctx) {
     if (pinhole == lidar) return ctx.usage_error("give exactly one of --pinhole and --lidar");
     const auto output = ctx.args.value("output");
     if (!output) return ctx.usage_error("missing -o FILE (the scan to write)");
-    const bool binary = ends_with(*output, pinhole ? ".kdrz" : ".kdrl");
-    if (!binary && !ends_with(*output, pinhole ? ".exr" : ".ply"))
+    const std::string format_path = ctx.format_path(*output);
+    const bool binary = ends_with(format_path, pinhole ? ".kdrz" : ".kdrl");
+    if (!binary && !ends_with(format_path, pinhole ? ".exr" : ".ply"))
         return ctx.usage_error(
-            "cannot tell the format of \"" + *output + "\" from its extension (" +
+            (ctx.args.has("format")
+                 ? "--format: \"" + *ctx.args.value("format") + "\" is not "
+                 : "cannot tell the format of \"" + *output + "\" from its extension (") +
             (pinhole ? "a pinhole scan is .exr or .kdrz" : "a lidar scan is .ply or .kdrl") + ")");
+    // An EXR is encoded here: its encoder must load before the scan starts.
+    if (pinhole && !binary)
+        if (auto failed = ctx.need_image_module()) return *failed;
     proto::ScanRequest request;
     if (auto failed = pinhole ? pinhole_request(ctx, request) : lidar_request(ctx, request))
         return *failed;
@@ -239,12 +249,12 @@ int run_scan(Context& ctx) {
     const auto start = std::chrono::steady_clock::now();
     std::vector<std::byte> bytes;
     std::string summary;
+    uint64_t hits = 0, points = 0;
     // The answer is KDRZ / KDRL, decoded (checked) by the client library; EXR and PLY are
     // encoded here with proto, as the server would.
     if (pinhole) {
         auto image = ctx.client->scan_pinhole(*id, request);
         if (!image) return ctx.fail(image.error());
-        size_t hits = 0;
         for (const uint32_t p : image->prim) hits += p != kNoHit;
         summary = std::to_string(image->width) + "x" + std::to_string(image->height) + " " +
                   (image->kind == DepthKind::kRange ? "range" : "depth") + ", " +
@@ -252,7 +262,7 @@ int run_scan(Context& ctx) {
         if (binary) {
             bytes = proto::encode_depth_image(*image);
         } else {
-            auto exr = proto::encode_depth_exr(*image);
+            auto exr = (*image_module())->encode_depth_exr(*image);
             if (!exr)
                 return ctx.fail(
                     make_client_error(ErrorKind::kInput, "cannot encode the EXR", exr.error()));
@@ -261,6 +271,7 @@ int run_scan(Context& ctx) {
     } else {
         auto cloud = ctx.client->scan_lidar(*id, request);
         if (!cloud) return ctx.fail(cloud.error());
+        points = cloud->points.size();
         summary = std::to_string(cloud->points.size()) + " points from " +
                   std::to_string(cloud->channels) + " x " + std::to_string(cloud->azimuth_steps) +
                   " beams";
@@ -268,12 +279,19 @@ int run_scan(Context& ctx) {
     }
     const double seconds =
         std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();
-    if (auto written = proto::write_file_bytes(*output, bytes); !written)
-        return ctx.fail(
-            make_client_error(ErrorKind::kInput, "cannot write the scan", written.error()));
-    if (!ctx.args.has("quiet"))
-        ctx.console.out << "wrote " << *output << " (" << bytes.size() << " bytes, " << summary
-                        << ", " << fixed(seconds, 3) << " s)\n";
+    if (auto failed = ctx.write_output(*output, bytes, "the scan")) return *failed;
+    const proto::JsonField fields[] = {{"command", std::string_view("scan")},
+                                       {"mesh", std::string_view(*id)},
+                                       {"sensor", std::string_view(pinhole ? "pinhole" : "lidar")},
+                                       {"out", std::string_view(*output)},
+                                       {"bytes", uint64_t{bytes.size()}},
+                                       {"hits", hits},
+                                       {"points", points},
+                                       {"seconds", seconds}};
+    ctx.report(*output,
+               "wrote " + *output + " (" + std::to_string(bytes.size()) + " bytes, " + summary +
+                   ", " + fixed(seconds, 3) + " s)",
+               proto::encode_flat_object(fields));
     return kExitOk;
 }
 

@@ -10,44 +10,8 @@ namespace {
 constexpr size_t kMaxDetailBytes = 300;
 
 std::string_view reason_phrase(int status) noexcept {
-    switch (status) {
-        case 400:
-            return "Bad Request";
-        case 401:
-            return "Unauthorized";
-        case 403:
-            return "Forbidden";
-        case 404:
-            return "Not Found";
-        case 405:
-            return "Method Not Allowed";
-        case 408:
-            return "Request Timeout";
-        case 409:
-            return "Conflict";
-        case 411:
-            return "Length Required";
-        case 413:
-            return "Payload Too Large";
-        case 415:
-            return "Unsupported Media Type";
-        case 422:
-            return "Unprocessable Content";
-        case 429:
-            return "Too Many Requests";
-        case 500:
-            return "Internal Server Error";
-        case 501:
-            return "Not Implemented";
-        case 502:
-            return "Bad Gateway";
-        case 503:
-            return "Service Unavailable";
-        case 504:
-            return "Gateway Timeout";
-        default:
-            break;
-    }
+    const std::string_view known = proto::http_reason_phrase(status);
+    if (!known.empty()) return known;
     if (status >= 500) return "Server Error";
     if (status >= 400) return "Client Error";
     return "Unexpected Status";

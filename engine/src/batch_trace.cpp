@@ -78,6 +78,7 @@ void trace_batch(const KdTree& tree, std::span<const Ray> rays, Hit* hits, uint8
             stats->triangle_tests += c.tri_tests;
             stats->packet_visits += c.packet_visits;
             stats->packet_lanes += c.packet_lanes;
+            stats->wide_visits += c.wide_visits;
         });
     }
 }

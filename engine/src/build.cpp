@@ -78,6 +78,7 @@ void order_triangles(KdTree& tree, const std::vector<TriVerts>& by_id) {
 
 void finish_tree(KdTree& tree, SubTree&& sub, const std::vector<TriVerts>& by_id) {
     tree.nodes = cluster_nodes(sub.nodes);
+    tree.wide_nodes = make_wide_nodes(tree.nodes);
     tree.leaf_refs.assign(sub.refs.begin(), sub.refs.end());
     order_triangles(tree, by_id);
     const double build_ms = tree.stats.build_ms;

@@ -53,12 +53,18 @@ constexpr uint32_t kMaxBins = 256;
 constexpr size_t kChunkRefs = size_t{1} << 13;     // references per parallel chunk
 constexpr size_t kParallelRefs = size_t{1} << 15;  // nodes this big bin and partition in parallel
 constexpr size_t kParallelSubtrees = 4096;         // ... and build their children concurrently
+/// A binned split with at most 1/kNearlyEmpty of the node's references on one side is a cut of
+/// (nearly) empty space. On the stadium (a small dense sphere inside a big box of 12 triangles)
+/// the binned root took such a cut around the sphere where the exact sweep splits the sphere, and
+/// shadow rays from the walls then tested 9.0 instead of 6.7 triangles each.
+constexpr uint32_t kNearlyEmpty = 64;
 
 struct BinnedSplit {
     bool valid = false;
     int axis = 0;
     float pos = 0;
     bool planar_left = false;  ///< where a reference lying in the plane goes
+    bool cuts_empty = false;   ///< one side holds (almost) no reference: see kNearlyEmpty
     double cost = INFINITY;
 };
 
@@ -121,7 +127,10 @@ public:
         }
         const BinnedSplit split = find_split(cell, refs);
         const double leaf_cost = double{options_.intersection_cost} * refs.size();
-        if (!split.valid || !(split.cost < leaf_cost)) {
+        // A node whose best binned split cuts off (nearly) empty space goes to the exact sweep
+        // too: its geometry is concentrated in a few bins, and their coarse boundaries miss the
+        // split through it that the exact sweep finds (the stadium: see kNearlyEmpty).
+        if (!split.valid || !(split.cost < leaf_cost) || split.cuts_empty) {
             to_exact(out, slot, cell, refs, depth);
             return;
         }
@@ -254,7 +263,8 @@ private:
                 double cost = c_isect * (pl * nl + pr * nr);
                 if (nl == 0 || nr == 0) cost *= empty_scale;
                 cost += c_trav;
-                if (cost < best.cost) best = {true, a, pos, planar_left, cost};
+                if (cost < best.cost)
+                    best = {true, a, pos, planar_left, std::min(nl, nr) <= n / kNearlyEmpty, cost};
             };
             // At each bin boundary b (b = 0 and b = bins: the geometry's tight bounds), three
             // planes share the same estimated counts: the boundary itself, the highest end of the

@@ -6,11 +6,17 @@
 
 #include <algorithm>
 #include <array>
+#include <atomic>
+#include <climits>
 #include <cmath>
+#include <cstdint>
+#include <mutex>
 #include <tuple>
+#include <vector>
 
 #include <tbb/blocked_range.h>
 #include <tbb/parallel_for.h>
+#include <tbb/partitioner.h>
 
 #include "geometry.h"
 
@@ -94,6 +100,14 @@ ClosestPoint finish(const Best& best, const SurfaceIndex& index, const double p[
                  static_cast<float>(c.point[2])};
     out.feature = c.feature;
     if (options.sign && index.closed) {
+        // The interior of a closed mesh lies within its bounding box: a point outside the box is
+        // outside, whatever the rounding of a far point's closest feature says (issue 25).
+        for (int a = 0; a < 3; ++a) {
+            if (p[a] < index.bounds.lo[a] || p[a] > index.bounds.hi[a]) {
+                out.side = Side::kOutside;
+                return out;
+            }
+        }
         const float* n =
             &index.pseudonormals[(size_t{best.prim} * 7 + static_cast<size_t>(c.feature)) * 3];
         const double s =
@@ -103,16 +117,122 @@ ClosestPoint finish(const Best& best, const SurfaceIndex& index, const double p[
     return out;
 }
 
-struct StackEntry {
+/// A cell waiting in the best-first search: its node, its box and its squared distance from p.
+struct Cell {
+    double d2;
     uint32_t node;
-    double off[3];  ///< per axis, the distance from p to the cell's slab (0 inside it)
+    float lo[3], hi[3];
 };
 
-double norm2(const double off[3]) noexcept {
-    return off[0] * off[0] + off[1] * off[1] + off[2] * off[2];
+/// Squared distance from p to the box [lo, hi] (0 inside it). Each axis's difference of two floats
+/// is rounded once in double, so the result is within a few ulps of the exact distance.
+double cell_distance2(const float lo[3], const float hi[3], const double p[3]) noexcept {
+    double d2 = 0.0;
+    for (int a = 0; a < 3; ++a) {
+        const double d = p[a] < lo[a] ? lo[a] - p[a] : (p[a] > hi[a] ? p[a] - hi[a] : 0.0);
+        d2 += d * d;
+    }
+    return d2;
 }
 
-constexpr size_t kBlockPoints = 256;
+/// Min-heap order on the cells' distance.
+bool farther(const Cell& a, const Cell& b) noexcept { return a.d2 > b.d2; }
+
+/// The search of one point: the heap of cells to visit (kept across the points of a block so it
+/// is allocated once) and the work done.
+struct Search {
+    std::vector<Cell> heap;
+    uint64_t work = 0;  ///< cells visited + triangles tested
+};
+
+/// Points per task of closest_points: small, so a batch of costly points (far away, where every
+/// triangle's rounded distance ties) leaves the arena's workers free for other requests often.
+constexpr size_t kBlockPoints = 16;
+
+/// Work between two calls of DistanceControl::poll (about a millisecond of one thread).
+constexpr uint64_t kPollWork = uint64_t{1} << 16;
+
+ClosestPoint search_closest(const KdTree& tree, const SurfaceIndex& index, Vec3 p,
+                            const DistanceOptions& options, Search& search) {
+    if (!valid_query(p, options) || tree.bounds.empty()) return {};
+    const double q[3] = {p.x, p.y, p.z};
+    const double max_d = options.max_distance;
+    Best best{max_d * max_d, kNoHit, {}};
+    // A cell or triangle box is skipped only when every triangle in it has a computed squared
+    // distance strictly above the best one, so the answer (ties to the lowest prim included) is
+    // brute force's. A computed closest point lies within a few ulps of the mesh's largest
+    // coordinate M of its triangle (closest_on_triangle keeps its weights in the triangle), and
+    // its squared distance, like a box's, is within a few ulps of the exact one: the bound grows
+    // the best distance by 2^-46 of itself (relative rounding, over 100 ulps) plus 2^-40 M
+    // (the closest point's error). The slack does not grow with p's own magnitude, so a far point
+    // prunes as well as a near one, until its distance is so large (about 10^13 M) that the
+    // triangles' rounded distances tie and all must be tested.
+    double magnitude = 0.0;
+    for (int a = 0; a < 3; ++a)
+        magnitude = std::max({magnitude, std::fabs(double{tree.bounds.lo[a]}),
+                              std::fabs(double{tree.bounds.hi[a]})});
+    const double slack = magnitude * 0x1p-40;
+    auto bound_of = [slack](double d2) {
+        const double r = std::sqrt(d2) * (1.0 + 0x1p-46) + slack;
+        return r * r;
+    };
+    double bound2 = bound_of(best.d2);
+
+    const KdNode* nodes = tree.nodes.data();
+    const uint32_t* refs = tree.leaf_refs.data();
+    const TriVerts* tris = tree.tris.data();
+    const uint32_t* ids = tree.tri_ids.data();
+    // Best first: the heap holds the cells not visited yet by their box distance; the nearest is
+    // taken, and its descent follows the child on p's side (at the same distance) while the
+    // other child joins the heap. The search ends when the nearest waiting cell is beyond the
+    // bound, which shrinks with every better triangle.
+    std::vector<Cell>& heap = search.heap;
+    heap.clear();
+    Cell root{0.0, 0, {}, {}};
+    for (int a = 0; a < 3; ++a) {
+        root.lo[a] = tree.bounds.lo[a];
+        root.hi[a] = tree.bounds.hi[a];
+    }
+    root.d2 = cell_distance2(root.lo, root.hi, q);
+    if (root.d2 <= bound2) heap.push_back(root);
+    while (!heap.empty()) {
+        std::pop_heap(heap.begin(), heap.end(), farther);
+        Cell cell = heap.back();
+        heap.pop_back();
+        if (cell.d2 > bound2) break;  // every other waiting cell is at least as far
+        KdNode node = nodes[cell.node];
+        ++search.work;
+        while (!node.is_leaf()) {
+            const int axis = node.axis();
+            const float split = node.split();
+            const bool high_side = q[axis] >= double{split};
+            Cell far = cell;
+            far.node = high_side ? node.first_child() : node.first_child() + 1;
+            (high_side ? far.hi : far.lo)[axis] = split;
+            far.d2 = cell_distance2(far.lo, far.hi, q);
+            if (far.d2 <= bound2) {
+                heap.push_back(far);
+                std::push_heap(heap.begin(), heap.end(), farther);
+            }
+            // The near child keeps the cell's distance.
+            (high_side ? cell.lo : cell.hi)[axis] = split;
+            cell.node = high_side ? node.first_child() + 1 : node.first_child();
+            node = nodes[cell.node];
+            ++search.work;
+        }
+        const uint32_t end = node.first_ref() + node.prim_count();
+        for (uint32_t r = node.first_ref(); r < end; ++r) {
+            const uint32_t slot = refs[r];
+            if (box_distance2(tris[slot], q) > bound2) continue;
+            ++search.work;
+            const uint32_t before = best.prim;
+            const double before_d2 = best.d2;
+            consider(tris[slot], ids[slot], q, best);
+            if (best.prim != before || best.d2 != before_d2) bound2 = bound_of(best.d2);
+        }
+    }
+    return finish(best, index, q, options);
+}
 
 }  // namespace
 
@@ -157,14 +277,18 @@ TriangleClosest closest_on_triangle(const TriVerts& tri, const double p[3]) noex
     } else if (va <= 0.0 && d4 - d3 >= 0.0 && d5 - d6 >= 0.0) {
         const double t = (d4 - d3) / ((d4 - d3) + (d5 - d6));
         on_edge(b, sub(c, b), t, Feature::kEdge12, 1.0 - t, t);
-    } else if (const double denom = va + vb + vc; denom > 0.0 && std::isfinite(denom)) {
+    } else if (const double denom = va + vb + vc;
+               va >= 0.0 && vb >= 0.0 && vc >= 0.0 && denom > 0.0 && std::isfinite(denom)) {
+        // The weights are all >= 0, so the point is on the triangle up to rounding: the kD search
+        // relies on every computed closest point lying within a few ulps of its triangle.
         const double v = vb / denom, w = vc / denom;
         r.feature = Feature::kFace;
         r.u = v;
         r.v = w;
         for (int k = 0; k < 3; ++k) r.point[k] = a[k] + ab[k] * v + ac[k] * w;
     } else {
-        // A sliver so thin that the region tests disagree in rounding: the nearest of its edges.
+        // A sliver so thin, or a point so far, that the region tests disagree in rounding: the
+        // nearest of its edges.
         const TriangleClosest e[3] = {
             on_segment(a, b, p, Feature::kEdge01, Feature::kVertex0, Feature::kVertex1,
                        [](TriangleClosest& x, double t) { x.u = t, x.v = 0.0; }),
@@ -186,72 +310,54 @@ TriangleClosest closest_on_triangle(const TriVerts& tri, const double p[3]) noex
 }
 
 ClosestPoint closest_point(const KdTree& tree, const SurfaceIndex& index, Vec3 p,
-                           const DistanceOptions& options) noexcept {
-    if (!valid_query(p, options) || tree.bounds.empty()) return {};
-    const double q[3] = {p.x, p.y, p.z};
-    const double max_d = options.max_distance;
-    Best best{max_d * max_d, kNoHit, {}};
-    // Cells are pruned against the best distance plus a margin far above the rounding of the
-    // double arithmetic (2^-20 of the coordinates' magnitude), so that no cell holding a triangle
-    // whose computed distance ties or beats the best is ever skipped: the answer is brute force's.
-    double magnitude = std::max({std::fabs(q[0]), std::fabs(q[1]), std::fabs(q[2])});
-    for (int a = 0; a < 3; ++a)
-        magnitude = std::max({magnitude, std::fabs(double{tree.bounds.lo[a]}),
-                              std::fabs(double{tree.bounds.hi[a]})});
-    const double slack = magnitude * 0x1p-20;
-    auto bound_of = [slack](double d2) {
-        const double r = std::sqrt(d2) + slack;
-        return r * r;
-    };
-    double bound2 = bound_of(best.d2);
-
-    const KdNode* nodes = tree.nodes.data();
-    const uint32_t* refs = tree.leaf_refs.data();
-    const TriVerts* tris = tree.tris.data();
-    const uint32_t* ids = tree.tri_ids.data();
-    std::array<StackEntry, kMaxDepth + 2> stack;
-    int stack_size = 0;
-    StackEntry& root = stack[stack_size++];
-    root.node = 0;
-    for (int a = 0; a < 3; ++a) {
-        const double lo = tree.bounds.lo[a], hi = tree.bounds.hi[a];
-        root.off[a] = q[a] < lo ? lo - q[a] : (q[a] > hi ? q[a] - hi : 0.0);
-    }
-    while (stack_size > 0) {
-        StackEntry e = stack[--stack_size];
-        if (norm2(e.off) > bound2) continue;
-        KdNode node = nodes[e.node];
-        while (!node.is_leaf()) {
-            const int axis = node.axis();
-            const double diff = q[axis] - double{node.split()};
-            const uint32_t high = node.first_child() + 1, low = node.first_child();
-            // The near child keeps the cell's distance; the far one is at least |diff| away on
-            // this axis.
-            StackEntry far{diff >= 0.0 ? low : high, {e.off[0], e.off[1], e.off[2]}};
-            far.off[axis] = std::max(far.off[axis], std::fabs(diff));
-            if (norm2(far.off) <= bound2) stack[stack_size++] = far;
-            node = nodes[diff >= 0.0 ? high : low];
-        }
-        const uint32_t end = node.first_ref() + node.prim_count();
-        for (uint32_t r = node.first_ref(); r < end; ++r) {
-            const uint32_t slot = refs[r];
-            if (box_distance2(tris[slot], q) > bound2) continue;
-            const uint32_t before = best.prim;
-            const double before_d2 = best.d2;
-            consider(tris[slot], ids[slot], q, best);
-            if (best.prim != before || best.d2 != before_d2) bound2 = bound_of(best.d2);
-        }
-    }
-    return finish(best, index, q, options);
+                           const DistanceOptions& options) {
+    Search search;
+    return search_closest(tree, index, p, options, search);
 }
 
-void closest_points(const KdTree& tree, const SurfaceIndex& index, std::span<const Vec3> points,
-                    std::span<ClosestPoint> out, const DistanceOptions& options) {
-    tbb::parallel_for(tbb::blocked_range<size_t>(0, points.size(), kBlockPoints),
-                      [&](const tbb::blocked_range<size_t>& range) {
-                          for (size_t i = range.begin(); i != range.end(); ++i)
-                              out[i] = closest_point(tree, index, points[i], options);
-                      });
+DistanceStats closest_points(const KdTree& tree, const SurfaceIndex& index,
+                             std::span<const Vec3> points, std::span<ClosestPoint> out,
+                             const DistanceOptions& options, const DistanceControl& control) {
+    std::atomic<uint64_t> work{0};
+    std::atomic<int> stop{static_cast<int>(DistanceStatus::kDone)};
+    std::mutex poll_mutex;
+    const uint64_t max_work = control.max_work == 0 ? UINT64_MAX : control.max_work;
+    auto stopped = [&] {
+        if (stop.load(std::memory_order_relaxed) != static_cast<int>(DistanceStatus::kDone))
+            return true;
+        if (control.cancel != nullptr && control.cancel->load(std::memory_order_relaxed)) {
+            int done = static_cast<int>(DistanceStatus::kDone);
+            stop.compare_exchange_strong(done, static_cast<int>(DistanceStatus::kCancelled));
+            return true;
+        }
+        return false;
+    };
+    tbb::parallel_for(
+        tbb::blocked_range<size_t>(0, points.size(), kBlockPoints),
+        [&](const tbb::blocked_range<size_t>& range) {
+            Search search;
+            for (size_t i = range.begin(); i != range.end(); ++i) {
+                if (stopped()) return;
+                search.work = 0;
+                out[i] = search_closest(tree, index, points[i], options, search);
+                const uint64_t before = work.fetch_add(search.work, std::memory_order_relaxed);
+                const uint64_t after = before + search.work;
+                if (after > max_work) {
+                    int done = static_cast<int>(DistanceStatus::kDone);
+                    stop.compare_exchange_strong(done, static_cast<int>(DistanceStatus::kOverWork));
+                    return;
+                }
+                // The thread whose point crosses a multiple of kPollWork polls.
+                if (control.poll && before / kPollWork != after / kPollWork) {
+                    if (std::unique_lock lock(poll_mutex, std::try_to_lock); lock) control.poll();
+                }
+            }
+        },
+        tbb::simple_partitioner());
+    DistanceStats stats;
+    stats.work = work.load();
+    stats.status = static_cast<DistanceStatus>(stop.load());
+    return stats;
 }
 
 ClosestPoint brute_force_closest_point(std::span<const TriVerts> tris, const SurfaceIndex& index,
@@ -276,6 +382,7 @@ SurfaceIndex build_surface_index(const KdTree& tree) {
     corners.reserve(n * 3);
     for (uint32_t t = 0; t < n; ++t) {
         const float* c[3] = {tris[t].v0, tris[t].v1, tris[t].v2};
+        for (uint32_t k = 0; k < 3; ++k) index.bounds.extend({c[k][0], c[k][1], c[k][2]});
         for (uint32_t k = 0; k < 3; ++k)
             corners.emplace_back(c[k][0] + 0.0f, c[k][1] + 0.0f, c[k][2] + 0.0f, t * 3 + k);
     }

@@ -115,6 +115,11 @@ Policy policy_for(TraceMode mode) noexcept {
     return Policy::kAuto;
 }
 
+const PacketKernels* single_ray_kernels() noexcept {
+    static const PacketKernels* const kernels = packet_kernels_for(default_isa());
+    return kernels;
+}
+
 const PacketKernels* packet_kernels_for(Isa isa) noexcept {
     switch (isa) {
         case Isa::kSse4:

@@ -13,6 +13,9 @@
 
 #include <cstdint>
 #include <deque>
+#include <limits>
+#include <stdexcept>
+#include <utility>
 #include <vector>
 
 namespace kdrt::detail {
@@ -69,3 +72,76 @@ NodeArray cluster_nodes(std::span<const KdNode> nodes) {
 }
 
 }  // namespace kdrt::detail
+
+namespace kdrt {
+
+// Wide nodes (issue 23): each binary inner node that starts a treelet is collapsed with the two
+// levels below it. Treelets are numbered depth first, so a subtree's wide nodes are close together.
+TreeArray<WideNode> make_wide_nodes(std::span<const KdNode> nodes) {
+    TreeArray<WideNode> out;
+    if (nodes.empty() || nodes[0].is_leaf()) return out;
+    constexpr uint32_t kMaxIndex = KdNode::kMaxField;
+    const auto leaf_slot = [](const KdNode& n, uint32_t index) {
+        return WideNode::make_slot(n.prim_count() == 0 ? WideNode::kSlotEmpty : WideNode::kSlotLeaf,
+                                   index);
+    };
+    std::vector<std::pair<uint32_t, uint32_t>> pending{{0u, 0u}};  // (binary root, wide index)
+    out.emplace_back();
+    while (!pending.empty()) {
+        const auto [root, at] = pending.back();
+        pending.pop_back();
+        WideNode w{};
+        w.axes = 0;
+        for (int j = 0; j < WideNode::kPlanes; ++j) w.split[j] = 0.0f;
+        for (int s = 0; s < WideNode::kSlots; ++s) w.slot[s] = WideNode::kSlotNone;
+        const auto set_plane = [&w](int j, const KdNode& n) {
+            w.split[j] = n.split();
+            if (n.axis() == 0) w.axes |= 1u << j;
+            if (n.axis() == 1) w.axes |= 1u << (8 + j);
+        };
+        const auto pad_plane = [&w](int j) {
+            // +inf on x: every ray keeps its whole interval on the low side (b = 0).
+            w.split[j] = std::numeric_limits<float>::infinity();
+            w.axes |= 1u << j;
+        };
+        set_plane(0, nodes[root]);
+        for (uint32_t b0 = 0; b0 < 2; ++b0) {
+            const uint32_t c1 = nodes[root].first_child() + b0;
+            const int p1 = 1 + static_cast<int>(b0);
+            if (nodes[c1].is_leaf()) {
+                pad_plane(p1);
+                pad_plane(3 + 2 * static_cast<int>(b0));
+                w.slot[4 * b0] = leaf_slot(nodes[c1], c1);
+                continue;
+            }
+            set_plane(p1, nodes[c1]);
+            for (uint32_t b1 = 0; b1 < 2; ++b1) {
+                const uint32_t c2 = nodes[c1].first_child() + b1;
+                const int p2 = 3 + static_cast<int>(2 * b0 + b1);
+                if (nodes[c2].is_leaf()) {
+                    pad_plane(p2);
+                    w.slot[4 * b0 + 2 * b1] = leaf_slot(nodes[c2], c2);
+                    continue;
+                }
+                set_plane(p2, nodes[c2]);
+                for (uint32_t b2 = 0; b2 < 2; ++b2) {
+                    const uint32_t c3 = nodes[c2].first_child() + b2;
+                    const uint32_t s = 4 * b0 + 2 * b1 + b2;
+                    if (nodes[c3].is_leaf()) {
+                        w.slot[s] = leaf_slot(nodes[c3], c3);
+                        continue;
+                    }
+                    if (out.size() > kMaxIndex) throw std::length_error("too many wide nodes");
+                    const auto child = static_cast<uint32_t>(out.size());
+                    out.emplace_back();
+                    w.slot[s] = WideNode::make_slot(WideNode::kSlotNode, child);
+                    pending.emplace_back(c3, child);
+                }
+            }
+        }
+        out[at] = w;
+    }
+    return out;
+}
+
+}  // namespace kdrt

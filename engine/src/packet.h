@@ -30,6 +30,7 @@ struct TraceCounters {
     uint64_t tri_tests = 0;      ///< ray-triangle tests
     uint64_t packet_visits = 0;  ///< nodes (inner and leaf) visited by packets
     uint64_t packet_lanes = 0;   ///< live lanes summed over those visits
+    uint64_t wide_visits = 0;    ///< wide nodes visited by the single-ray kernel
 };
 
 /// The scalar kernel (trace.cpp) with its work counted: the same answers as intersect/occluded.
@@ -62,6 +63,15 @@ inline constexpr uint32_t kPacketHitCapacity = 48;
 using AllHitsKernel = void (*)(const KdTree& tree, const Ray* rays, size_t count, AllHitsSink& sink,
                                Policy policy);
 
+/// The single-ray kernel (wide_kernel.h) compiled for one ISA: intersect / occluded of trace.h,
+/// and the counting copies (intersect_counted / occluded_counted).
+using SingleIntersect = Hit (*)(const KdTree& tree, const Ray& ray) noexcept;
+using SingleOccluded = bool (*)(const KdTree& tree, const Ray& ray) noexcept;
+using SingleIntersectCounted = Hit (*)(const KdTree& tree, const Ray& ray,
+                                       TraceCounters& counters) noexcept;
+using SingleOccludedCounted = bool (*)(const KdTree& tree, const Ray& ray,
+                                       TraceCounters& counters) noexcept;
+
 /// One ISA's kernels. Each traces `count` rays on the calling thread, answers in input order. The
 /// counting ones also fill the work counters of TraceCounters (slower; same answers).
 struct PacketKernels {
@@ -71,7 +81,15 @@ struct PacketKernels {
     IntersectKernel intersect_counted;
     OccludedKernel occluded_counted;
     AllHitsKernel all_hits;
+    SingleIntersect single_intersect;
+    SingleOccluded single_occluded;
+    SingleIntersectCounted single_intersect_counted;
+    SingleOccludedCounted single_occluded_counted;
 };
+
+/// The kernels the single-ray queries of trace.h run on: those of default_isa(), nullptr when
+/// that is Isa::kScalar (then trace.cpp's baseline copy runs). Chosen once.
+const PacketKernels* single_ray_kernels() noexcept;
 
 /// Defined in packet_sse4.cpp, packet_avx2.cpp, packet_avx512.cpp. Call only when the CPU has the
 /// instruction set (isa_supported).

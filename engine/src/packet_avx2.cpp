@@ -11,6 +11,7 @@
 
 #pragma GCC push_options
 #pragma GCC target("avx2,popcnt")
+#define KDRT_WIDE_AVX2 1  // wide_kernel.h: 8-lane permutes
 #include "packet_kernel.h"
 #pragma GCC pop_options
 
@@ -22,7 +23,11 @@ const PacketKernels* packet_kernels_avx2() noexcept {
                                             &occluded_rays<8, false>,
                                             &intersect_rays<8, true>,
                                             &occluded_rays<8, true>,
-                                            &all_hits_rays<8>};
+                                            &all_hits_rays<8>,
+                                            &wide_intersect,
+                                            &wide_occluded,
+                                            &wide_intersect_counted,
+                                            &wide_occluded_counted};
     return &kKernels;
 }
 

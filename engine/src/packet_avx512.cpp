@@ -11,6 +11,7 @@
 
 #pragma GCC push_options
 #pragma GCC target("avx512f,avx512dq,avx512vl,avx512bw,popcnt")
+#define KDRT_WIDE_AVX2 1  // wide_kernel.h: 8-lane permutes
 #include "packet_kernel.h"
 #pragma GCC pop_options
 
@@ -22,7 +23,11 @@ const PacketKernels* packet_kernels_avx512() noexcept {
                                             &occluded_rays<16, false>,
                                             &intersect_rays<16, true>,
                                             &occluded_rays<16, true>,
-                                            &all_hits_rays<16>};
+                                            &all_hits_rays<16>,
+                                            &wide_intersect,
+                                            &wide_occluded,
+                                            &wide_intersect_counted,
+                                            &wide_occluded_counted};
     return &kKernels;
 }
 

@@ -13,6 +13,7 @@
 #include "packet.h"
 #include "ray_prep.h"
 #include "simd.h"
+#include "wide_kernel.h"
 
 namespace kdrt::detail {
 namespace {
@@ -618,14 +619,15 @@ template <int W, bool AnyHit, bool Count>
         if (!as_packet) {
             for (int l = 0; l < lanes; ++l) {
                 const size_t i = base + index[l];
+                // The single-ray kernel, compiled for this ISA.
                 if constexpr (AnyHit) {
-                    occluded[i] = (Count ? occluded_counted(tree, block[index[l]], counters)
-                                         : kdrt::occluded(tree, block[index[l]]))
+                    occluded[i] = (Count ? wide_occluded_counted(tree, block[index[l]], counters)
+                                         : wide_occluded(tree, block[index[l]]))
                                       ? 1
                                       : 0;
                 } else {
-                    hits[i] = Count ? intersect_counted(tree, block[index[l]], counters)
-                                    : kdrt::intersect(tree, block[index[l]]);
+                    hits[i] = Count ? wide_intersect_counted(tree, block[index[l]], counters)
+                                    : wide_intersect(tree, block[index[l]]);
                 }
             }
             counters.single_rays += static_cast<uint64_t>(lanes);

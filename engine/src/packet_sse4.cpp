@@ -22,7 +22,11 @@ const PacketKernels* packet_kernels_sse4() noexcept {
                                             &occluded_rays<4, false>,
                                             &intersect_rays<4, true>,
                                             &occluded_rays<4, true>,
-                                            &all_hits_rays<4>};
+                                            &all_hits_rays<4>,
+                                            &wide_intersect,
+                                            &wide_occluded,
+                                            &wide_intersect_counted,
+                                            &wide_occluded_counted};
     return &kKernels;
 }
 

@@ -262,7 +262,6 @@ DepthImage scan_pinhole(const KdTree& tree, const PinholeSpec& spec) {
 PointCloud scan_lidar(const KdTree& tree, const LidarSpec& spec) {
     validate(spec);
     const uint32_t channels = static_cast<uint32_t>(spec.elevation_deg.size());
-    const size_t beams = static_cast<size_t>(channels) * spec.azimuth_steps;
     const std::vector<Ray> rays = detail::lidar_rays(spec);
     AllHitsOptions options;
     options.max_hits = spec.returns;
@@ -272,24 +271,9 @@ PointCloud scan_lidar(const KdTree& tree, const LidarSpec& spec) {
     cloud.channels = channels;
     cloud.azimuth_steps = spec.azimuth_steps;
     cloud.returns = spec.returns;
-    cloud.points.resize(all.hits.size());
-    tbb::parallel_for(
-        tbb::blocked_range<size_t>(0, beams, 1024), [&](const tbb::blocked_range<size_t>& r) {
-            for (size_t b = r.begin(); b != r.end(); ++b) {
-                for (uint64_t k = all.offsets[b]; k < all.offsets[b + 1]; ++k) {
-                    const Hit& hit = all.hits[k];
-                    const Vec3 p = hit_point(tree.triangle(hit.prim), hit);
-                    cloud.points[k] = LidarPoint{p.x,
-                                                 p.y,
-                                                 p.z,
-                                                 hit.t,
-                                                 static_cast<uint32_t>(b % channels),
-                                                 static_cast<uint32_t>(b / channels),
-                                                 static_cast<uint32_t>(k - all.offsets[b]),
-                                                 hit.prim};
-                }
-            }
-        });
+    detail::lidar_points(
+        std::span<const uint64_t>(all.offsets), std::span<const Hit>(all.hits), channels,
+        [&](const Hit& hit) { return hit_point(tree.triangle(hit.prim), hit); }, cloud);
     return cloud;
 }
 

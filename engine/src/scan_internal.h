@@ -3,7 +3,12 @@
 // (scene_scan.cpp), so both trace exactly the same rays and compute depth the same way.
 
 #include <cstddef>
+#include <cstdint>
+#include <span>
 #include <vector>
+
+#include <tbb/blocked_range.h>
+#include <tbb/parallel_for.h>
 
 #include "kdrt/scan.h"
 
@@ -20,5 +25,33 @@ inline float pinhole_depth(float t, const std::vector<double>& cosines, size_t p
 
 /// The beams of a lidar scan (`spec` validated), azimuth-major. Parallel over the arena.
 [[nodiscard]] std::vector<Ray> lidar_rays(const LidarSpec& spec);
+
+/// The cloud of a lidar scan from its every-hit answer in CSR form (`offsets`, one entry per beam
+/// and one more; `hits`, each with t and prim), the point of a hit from point_of(hit): the
+/// returns of beam b are its hits in order, channel b % channels, azimuth step b / channels.
+/// Parallel over the arena.
+template <class HitT, class PointOf>
+void lidar_points(std::span<const uint64_t> offsets, std::span<const HitT> hits, uint32_t channels,
+                  PointOf&& point_of, PointCloud& cloud) {
+    cloud.points.resize(hits.size());
+    const size_t beams = offsets.size() - 1;
+    tbb::parallel_for(
+        tbb::blocked_range<size_t>(0, beams, 1024), [&](const tbb::blocked_range<size_t>& r) {
+            for (size_t b = r.begin(); b != r.end(); ++b) {
+                for (uint64_t k = offsets[b]; k < offsets[b + 1]; ++k) {
+                    const HitT& hit = hits[k];
+                    const Vec3 p = point_of(hit);
+                    cloud.points[k] = LidarPoint{p.x,
+                                                 p.y,
+                                                 p.z,
+                                                 hit.t,
+                                                 static_cast<uint32_t>(b % channels),
+                                                 static_cast<uint32_t>(b / channels),
+                                                 static_cast<uint32_t>(k - offsets[b]),
+                                                 hit.prim};
+                }
+            }
+        });
+}
 
 }  // namespace kdrt::detail

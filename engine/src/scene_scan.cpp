@@ -53,26 +53,11 @@ ScenePointCloud scan_lidar(const Scene& scene, const LidarSpec& spec) {
     cloud.channels = channels;
     cloud.azimuth_steps = spec.azimuth_steps;
     cloud.returns = spec.returns;
-    cloud.points.resize(all.hits.size());
+    detail::lidar_points(
+        std::span<const uint64_t>(all.offsets), std::span<const SceneHit>(all.hits), channels,
+        [&](const SceneHit& hit) { return hit_point(scene, hit); }, cloud);
     out.geom.resize(all.hits.size());
-    tbb::parallel_for(
-        tbb::blocked_range<size_t>(0, rays.size(), 1024), [&](const tbb::blocked_range<size_t>& r) {
-            for (size_t b = r.begin(); b != r.end(); ++b) {
-                for (uint64_t k = all.offsets[b]; k < all.offsets[b + 1]; ++k) {
-                    const SceneHit& hit = all.hits[k];
-                    const Vec3 p = hit_point(scene, hit);
-                    cloud.points[k] = LidarPoint{p.x,
-                                                 p.y,
-                                                 p.z,
-                                                 hit.t,
-                                                 static_cast<uint32_t>(b % channels),
-                                                 static_cast<uint32_t>(b / channels),
-                                                 static_cast<uint32_t>(k - all.offsets[b]),
-                                                 hit.prim};
-                    out.geom[k] = hit.geom;
-                }
-            }
-        });
+    for (size_t k = 0; k < all.hits.size(); ++k) out.geom[k] = all.hits[k].geom;
     return out;
 }
 

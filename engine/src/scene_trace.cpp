@@ -294,27 +294,33 @@ void occluded(const Scene& scene, std::span<const Ray> rays, std::span<uint8_t> 
     trace_batch<true>(scene, rays, {}, occluded_out, options, stats);
 }
 
-void intersect_block(const Scene& scene, std::span<const Ray> rays, std::span<SceneHit> hits,
-                     const TraceOptions& options) noexcept {
-    // Per thread, kept between calls: the renderer calls this once per tile and sample.
+namespace {
+
+/// The calling thread's blocks of a batch. Its scratch is kept per thread between calls: the
+/// renderer calls this once per tile and sample.
+template <bool AnyHit>
+void trace_on_this_thread(const Scene& scene, std::span<const Ray> rays, std::span<SceneHit> hits,
+                          std::span<uint8_t> occ, const TraceOptions& options) noexcept {
     thread_local BlockScratch scratch;
     Counts counts;
     for (size_t lo = 0; lo < rays.size(); lo += kBlock) {
         const size_t len = std::min(kBlock, rays.size() - lo);
-        trace_block<false>(scene.data(), rays.subspan(lo, len), hits.subspan(lo, len), {}, options,
-                           scratch, counts);
+        trace_block<AnyHit>(scene.data(), rays.subspan(lo, len),
+                            AnyHit ? hits : hits.subspan(lo, len),
+                            AnyHit ? occ.subspan(lo, len) : occ, options, scratch, counts);
     }
+}
+
+}  // namespace
+
+void intersect_block(const Scene& scene, std::span<const Ray> rays, std::span<SceneHit> hits,
+                     const TraceOptions& options) noexcept {
+    trace_on_this_thread<false>(scene, rays, hits, {}, options);
 }
 
 void occluded_block(const Scene& scene, std::span<const Ray> rays, std::span<uint8_t> occluded_out,
                     const TraceOptions& options) noexcept {
-    thread_local BlockScratch scratch;
-    Counts counts;
-    for (size_t lo = 0; lo < rays.size(); lo += kBlock) {
-        const size_t len = std::min(kBlock, rays.size() - lo);
-        trace_block<true>(scene.data(), rays.subspan(lo, len), {}, occluded_out.subspan(lo, len),
-                          options, scratch, counts);
-    }
+    trace_on_this_thread<true>(scene, rays, {}, occluded_out, options);
 }
 
 // ---------------------------------------------------------------------------------------------

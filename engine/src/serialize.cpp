@@ -272,6 +272,12 @@ KdTree deserialize_tree(std::span<const std::byte> blob) {
         tree.tri_slots[id] = static_cast<uint32_t>(slot);
     }
     validate_structure(tree);
+    // The wide nodes are derived, not stored: a blob of this format from any build loads with
+    // them, and the memory figures describe this process's arrays.
+    tree.wide_nodes = make_wide_nodes(tree.nodes);
+    const TreeStats now = compute_stats(tree);
+    s.bytes = now.bytes;
+    s.bytes_per_triangle = now.bytes_per_triangle;
     return tree;
 }
 

@@ -14,8 +14,8 @@ TreeStats compute_stats(const KdTree& tree) {
     // s.nodes counts the nodes reachable from the root (the cache-line layout leaves slot 1
     // unused); s.bytes counts the array as allocated.
     s.refs = tree.leaf_refs.size();
-    s.bytes = tree.nodes.size() * sizeof(KdNode) + tree.leaf_refs.size() * sizeof(uint32_t) +
-              tree.tris.size() * sizeof(TriVerts) +
+    s.bytes = tree.nodes.size() * sizeof(KdNode) + tree.wide_nodes.size() * sizeof(WideNode) +
+              tree.leaf_refs.size() * sizeof(uint32_t) + tree.tris.size() * sizeof(TriVerts) +
               (tree.tri_ids.size() + tree.tri_slots.size()) * sizeof(uint32_t);
     s.bytes_per_triangle =
         s.triangles ? static_cast<double>(s.bytes) / static_cast<double>(s.triangles) : 0.0;

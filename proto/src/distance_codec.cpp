@@ -188,7 +188,7 @@ Result<DistanceQuery, std::string> parse_distance_query(
         const bool is_inf = *v == "inf";
         if (!is_inf && (ec != std::errc{} || stop != end || v->empty() || !(value >= 0.0f) ||
                         !std::isfinite(value))) {
-            return Err{"query parameter max_distance is " + in_quotes(*v) +
+            return Err{"query parameter max_distance is " + quote_value(*v) +
                        " (expected a finite number >= 0, or inf)"};
         }
         q.max_distance = is_inf ? std::numeric_limits<float>::infinity() : value;
@@ -199,7 +199,8 @@ Result<DistanceQuery, std::string> parse_distance_query(
         } else if (*v == "false" || *v == "0") {
             q.signed_query = false;
         } else {
-            return Err{"query parameter signed is " + in_quotes(*v) + " (expected true or false)"};
+            return Err{"query parameter signed is " + quote_value(*v) +
+                       " (expected true or false)"};
         }
     }
     return q;

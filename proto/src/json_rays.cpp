@@ -9,6 +9,7 @@
 #include "json_writer.h"
 #include "kdrt/proto/json_api.h"
 #include "kdrt/proto/problem.h"
+#include "kdrt/proto/text.h"
 
 namespace kdrt::proto {
 namespace {
@@ -61,9 +62,9 @@ public:
             state_ = State::kOcclusionValue;
             return true;
         }
-        return fail(
-            JsonError::Code::kSchema,
-            "unknown member \"" + name + "\" (expected \"rays\" and optionally \"occlusion\")");
+        return fail(JsonError::Code::kSchema,
+                    "unknown member " + quote_value(name) +
+                        " (expected \"rays\" and optionally \"occlusion\")");
     }
     bool end_object() {
         state_ = State::kDone;

@@ -26,7 +26,8 @@ public:
             bool ok = false;
             for (const char* k : known) ok = ok || key == k;
             if (!ok) {
-                std::string message = "unknown member " + in_quotes(prefix_ + key) + " (expected ";
+                std::string message =
+                    "unknown member " + quote_value(prefix_ + key) + " (expected ";
                 for (size_t i = 0; const char* k : known) {
                     if (i++ > 0) message += ", ";
                     message += k;
@@ -48,7 +49,7 @@ public:
             if (v->is_string())
                 out = v->get<std::string>();
             else
-                fail(in_quotes(prefix_ + key) + " must be a string");
+                fail(quote_value(prefix_ + key) + " must be a string");
         }
     }
 
@@ -59,12 +60,12 @@ public:
         const json* v = find(key);
         if (!v) return;
         if (!v->is_number_unsigned()) {
-            fail(in_quotes(prefix_ + key) + " must be a non-negative integer");
+            fail(quote_value(prefix_ + key) + " must be a non-negative integer");
             return;
         }
         const uint64_t value = v->get<uint64_t>();
         if (value < min || value > max) {
-            std::string why = in_quotes(prefix_ + key) + " is " + std::to_string(value) +
+            std::string why = quote_value(prefix_ + key) + " is " + std::to_string(value) +
                               ", must be in " + std::to_string(min) + " .. " + std::to_string(max);
             if (limit_name) why += std::string(" (") + limit_name + ")";
             fail(why);
@@ -78,24 +79,24 @@ public:
             if (v->is_number() && std::isfinite(static_cast<float>(v->get<double>())))
                 out = static_cast<float>(v->get<double>());
             else
-                fail(in_quotes(prefix_ + key) + " must be a finite number");
+                fail(quote_value(prefix_ + key) + " must be a finite number");
         }
     }
 
     void vec3(const char* key, Vec3& out, bool required) {
         const json* v = find(key);
         if (!v) {
-            if (required) fail("missing member " + in_quotes(prefix_ + key));
+            if (required) fail("missing member " + quote_value(prefix_ + key));
             return;
         }
         if (!v->is_array() || v->size() != 3) {
-            fail(in_quotes(prefix_ + key) + " must be an array of 3 numbers");
+            fail(quote_value(prefix_ + key) + " must be an array of 3 numbers");
             return;
         }
         for (int a = 0; a < 3; ++a) {
             const json& c = (*v)[static_cast<size_t>(a)];
             if (!c.is_number() || !std::isfinite(static_cast<float>(c.get<double>()))) {
-                fail(in_quotes(prefix_ + key) + " must be an array of 3 finite numbers");
+                fail(quote_value(prefix_ + key) + " must be an array of 3 finite numbers");
                 return;
             }
             out[a] = static_cast<float>(c.get<double>());
@@ -152,7 +153,7 @@ Result<RenderRequest, JsonError> decode_render_request(std::string_view text,
     if (const auto parsed = parse_shading(shading))
         req.settings.shading = *parsed;
     else
-        r.fail("unknown shading " + in_quotes(shading) +
+        r.fail("unknown shading " + quote_value(shading) +
                " (expected normals, eyelight, ao, diffuse, depth or primid)");
     r.integer("ao_samples", req.settings.ao_samples, 1, kMaxAoSamples);
     r.real("ao_distance", req.settings.ao_distance);
@@ -165,12 +166,12 @@ Result<RenderRequest, JsonError> decode_render_request(std::string_view text,
     r.text("format", req.format);
     if (req.format != "png" && req.format != "jpg" && req.format != "jpeg" && req.format != "exr" &&
         req.format != "raw")
-        r.fail("unknown format " + in_quotes(req.format) + " (expected png, jpg, exr or raw)");
+        r.fail("unknown format " + quote_value(req.format) + " (expected png, jpg, exr or raw)");
     if (r.find("compression")) {
         int level = 0;
         r.integer("compression", level, 0, kMaxPngCompression);
         if (req.format != "png")
-            r.fail("\"compression\" applies to png only, not " + in_quotes(req.format));
+            r.fail("\"compression\" applies to png only, not " + quote_value(req.format));
         req.compression = level;
     }
     if (!r.error().empty()) return schema_error(r.error());
@@ -192,7 +193,7 @@ Result<RenderRequest, JsonError> decode_render_request(std::string_view text,
         else if (projection == "orthographic")
             spec.projection = Projection::kOrthographic;
         else
-            c.fail("unknown camera.projection " + in_quotes(projection) +
+            c.fail("unknown camera.projection " + quote_value(projection) +
                    " (expected perspective or orthographic)");
         if (!c.error().empty()) return schema_error(c.error());
         req.settings.camera = spec;
@@ -214,7 +215,7 @@ Result<RenderRequest, JsonError> decode_render_request(std::string_view text,
         PixelRegion region;
         ObjectReader t(*tile, "tile.", {"x", "y", "w", "h"});
         for (const char* key : {"x", "y", "w", "h"})
-            if (!t.find(key)) t.fail("missing member " + in_quotes(std::string("tile.") + key));
+            if (!t.find(key)) t.fail("missing member " + quote_value(std::string("tile.") + key));
         t.integer("x", region.x, 0, req.settings.width - 1);
         t.integer("y", region.y, 0, req.settings.height - 1);
         t.integer("w", region.width, 1, req.settings.width - region.x);
@@ -332,7 +333,7 @@ Result<JobStatus, std::string> decode_job_status(std::string_view text) {
         s.id = doc.at("id").get<std::string>();
         const auto state = parse_job_state(doc.at("state").get<std::string>());
         if (!state)
-            return Err{"unknown job state " + in_quotes(doc.at("state").get<std::string>())};
+            return Err{"unknown job state " + quote_value(doc.at("state").get<std::string>())};
         s.state = *state;
         s.progress = doc.at("progress").get<double>();
         s.mesh = doc.at("mesh").get<std::string>();

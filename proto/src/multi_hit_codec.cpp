@@ -8,6 +8,7 @@
 
 #include "byte_io.h"
 #include "kdrt/proto/multi_hit.h"
+#include "kdrt/proto/text.h"
 #include "ray_batch_checks.h"
 
 namespace kdrt::proto {
@@ -264,7 +265,7 @@ Result<MultiHitQuery, std::string> parse_multi_hit_query(
     uint32_t max_hits_limit) {
     MultiHitQuery q;
     q.max_hits = std::min(kDefaultMaxHits, max_hits_limit);
-    auto quoted = [](const std::string& v) { return "\"" + v + "\""; };
+    auto quoted = [](const std::string& v) { return quote_value(v); };
     if (auto v = param(kQueryMaxHits)) {
         uint64_t n = 0;
         const auto [end, ec] = std::from_chars(v->data(), v->data() + v->size(), n);

@@ -4,6 +4,7 @@
 #include <nlohmann/json.hpp>
 
 #include "json_writer.h"
+#include "kdrt/proto/text.h"
 
 namespace kdrt::proto {
 namespace {
@@ -101,7 +102,7 @@ Result<Problem, std::string> decode_problem(std::string_view body) {
             known = true;
         }
     }
-    if (!known) return Err{"unknown problem type \"" + type->get<std::string>() + "\""};
+    if (!known) return Err{"unknown problem type " + quote_value(type->get<std::string>())};
     const auto status = doc.find("status");
     if (status == doc.end() || !status->is_number_integer() || status->get<int>() != p.status())
         return Err{std::string("problem \"status\" is missing or does not match its type")};
@@ -128,6 +129,89 @@ Result<Problem, std::string> decode_problem(std::string_view body) {
     const auto retry = doc.find("retry_after");
     if (retry != doc.end() && retry->is_number_unsigned()) p.retry_after = retry->get<uint32_t>();
     return p;
+}
+
+std::string_view http_reason_phrase(int status) noexcept {
+    switch (status) {
+        case 100:
+            return "Continue";
+        case 200:
+            return "OK";
+        case 201:
+            return "Created";
+        case 202:
+            return "Accepted";
+        case 204:
+            return "No Content";
+        case 206:
+            return "Partial Content";
+        case 301:
+            return "Moved Permanently";
+        case 302:
+            return "Found";
+        case 303:
+            return "See Other";
+        case 304:
+            return "Not Modified";
+        case 307:
+            return "Temporary Redirect";
+        case 308:
+            return "Permanent Redirect";
+        case 400:
+            return "Bad Request";
+        case 401:
+            return "Unauthorized";
+        case 403:
+            return "Forbidden";
+        case 404:
+            return "Not Found";
+        case 405:
+            return "Method Not Allowed";
+        case 406:
+            return "Not Acceptable";
+        case 408:
+            return "Request Timeout";
+        case 409:
+            return "Conflict";
+        case 410:
+            return "Gone";
+        case 411:
+            return "Length Required";
+        case 412:
+            return "Precondition Failed";
+        case 413:
+            return "Content Too Large";
+        case 414:
+            return "URI Too Long";
+        case 415:
+            return "Unsupported Media Type";
+        case 416:
+            return "Range Not Satisfiable";
+        case 417:
+            return "Expectation Failed";
+        case 422:
+            return "Unprocessable Content";
+        case 429:
+            return "Too Many Requests";
+        case 431:
+            return "Request Header Fields Too Large";
+        case 500:
+            return "Internal Server Error";
+        case 501:
+            return "Not Implemented";
+        case 502:
+            return "Bad Gateway";
+        case 503:
+            return "Service Unavailable";
+        case 504:
+            return "Gateway Timeout";
+        case 505:
+            return "HTTP Version Not Supported";
+        case 507:
+            return "Insufficient Storage";
+        default:
+            return "";
+    }
 }
 
 }  // namespace kdrt::proto

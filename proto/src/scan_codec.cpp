@@ -33,7 +33,7 @@ std::optional<DecodeError> check_magic(std::span<const std::byte> body, std::str
             got += c >= 0x20 && c < 0x7f ? static_cast<char>(c) : '?';
         }
         return DecodeError{DecodeErrorCode::kBadMagic,
-                           "bad magic " + in_quotes(got) + ", expected " + in_quotes(magic)};
+                           "bad magic " + quote_value(got) + ", expected " + quote_value(magic)};
     }
     const uint16_t version = detail::load_le16(body.data() + 4);
     if (version != kBatchVersion)

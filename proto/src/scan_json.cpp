@@ -29,12 +29,12 @@ class Members {
 public:
     Members(const json& object, std::string prefix, std::initializer_list<const char*> known)
         : object_(object), prefix_(std::move(prefix)) {
-        if (!object.is_object()) fail(trimmed(), in_quotes(trimmed()) + " must be an object");
+        if (!object.is_object()) fail(trimmed(), quote_value(trimmed()) + " must be an object");
         for (const auto& [key, value] : object.items()) {
             bool ok = false;
             for (const char* k : known) ok = ok || key == k;
             if (ok) continue;
-            std::string message = "unknown member " + in_quotes(prefix_ + key) + " (expected ";
+            std::string message = "unknown member " + quote_value(prefix_ + key) + " (expected ";
             for (size_t i = 0; const char* k : known) {
                 if (i++ > 0) message += ", ";
                 message += k;
@@ -50,14 +50,14 @@ public:
     [[nodiscard]] std::string name(const char* key) const { return prefix_ + key; }
     [[nodiscard]] const json& required(const char* key) const {
         const json* v = find(key);
-        if (!v) fail(name(key), "missing member " + in_quotes(name(key)));
+        if (!v) fail(name(key), "missing member " + quote_value(name(key)));
         return *v;
     }
 
     double number(const json& v, const std::string& field) const {
-        if (!v.is_number()) fail(field, in_quotes(field) + " must be a number");
+        if (!v.is_number()) fail(field, quote_value(field) + " must be a number");
         const double d = v.get<double>();
-        if (!std::isfinite(d)) fail(field, in_quotes(field) + " must be finite");
+        if (!std::isfinite(d)) fail(field, quote_value(field) + " must be finite");
         return d;
     }
     void real(const char* key, double& out) const {
@@ -67,7 +67,7 @@ public:
         if (const json* v = find(key)) {
             const double d = number(*v, name(key));
             if (!std::isfinite(static_cast<float>(d)))
-                fail(name(key), in_quotes(name(key)) + " is outside the range of a float");
+                fail(name(key), quote_value(name(key)) + " is outside the range of a float");
             out = static_cast<float>(d);
         }
     }
@@ -76,14 +76,14 @@ public:
                      bool required_member = true) const {
         const json* v = find(key);
         if (!v) {
-            if (required_member) fail(name(key), "missing member " + in_quotes(name(key)));
+            if (required_member) fail(name(key), "missing member " + quote_value(name(key)));
             return min;
         }
         if (!v->is_number_unsigned())
-            fail(name(key), in_quotes(name(key)) + " must be a non-negative integer");
+            fail(name(key), quote_value(name(key)) + " must be a non-negative integer");
         const uint64_t value = v->get<uint64_t>();
         if (value < min || value > max) {
-            std::string why = in_quotes(name(key)) + " is " + std::to_string(value) +
+            std::string why = quote_value(name(key)) + " is " + std::to_string(value) +
                               ", must be in " + std::to_string(min) + " .. " + std::to_string(max);
             if (limit) why += std::string(" (") + limit + ")";
             fail(name(key), why, limit != nullptr && value > max);
@@ -93,29 +93,29 @@ public:
     bool boolean(const char* key, bool fallback) const {
         const json* v = find(key);
         if (!v) return fallback;
-        if (!v->is_boolean()) fail(name(key), in_quotes(name(key)) + " must be true or false");
+        if (!v->is_boolean()) fail(name(key), quote_value(name(key)) + " must be true or false");
         return v->get<bool>();
     }
     std::string text(const char* key, std::string fallback) const {
         const json* v = find(key);
         if (!v) return fallback;
-        if (!v->is_string()) fail(name(key), in_quotes(name(key)) + " must be a string");
+        if (!v->is_string()) fail(name(key), quote_value(name(key)) + " must be a string");
         return v->get<std::string>();
     }
     Vec3 vec3(const char* key, Vec3 fallback, bool required_member) const {
         const json* v = find(key);
         if (!v) {
-            if (required_member) fail(name(key), "missing member " + in_quotes(name(key)));
+            if (required_member) fail(name(key), "missing member " + quote_value(name(key)));
             return fallback;
         }
         if (!v->is_array() || v->size() != 3)
-            fail(name(key), in_quotes(name(key)) + " must be an array of 3 numbers");
+            fail(name(key), quote_value(name(key)) + " must be an array of 3 numbers");
         Vec3 out;
         for (int a = 0; a < 3; ++a) {
             const double d = number((*v)[static_cast<size_t>(a)], name(key));
             out[a] = static_cast<float>(d);
             if (!std::isfinite(out[a]))
-                fail(name(key), in_quotes(name(key)) + " is outside the range of a float");
+                fail(name(key), quote_value(name(key)) + " is outside the range of a float");
         }
         return out;
     }
@@ -123,18 +123,23 @@ public:
         const json* v = find(key);
         Pose pose;
         if (!v) {
-            if (required_member) fail(name(key), "missing member " + in_quotes(name(key)));
+            if (required_member) fail(name(key), "missing member " + quote_value(name(key)));
             return pose;
         }
         const std::string field = name(key);
-        const std::string shape = in_quotes(field) + " must be 4 rows of 4 numbers (row-major)";
+        const std::string shape = quote_value(field) + " must be 4 rows of 4 numbers (row-major)";
         if (!v->is_array() || v->size() != 4) fail(field, shape);
         for (size_t r = 0; r < 4; ++r) {
             const json& row = (*v)[r];
             if (!row.is_array() || row.size() != 4) fail(field, shape);
             for (size_t c = 0; c < 4; ++c) {
                 if (!row[c].is_number()) fail(field, shape);
-                pose.m[4 * r + c] = row[c].get<double>();  // finiteness: kdrt::validate_pose
+                const double d = row[c].get<double>();  // finiteness: kdrt::validate_pose
+                // A finite value beyond a float's range would make every beam miss (issue 25).
+                if (std::isfinite(d) && std::fabs(d) > std::numeric_limits<float>::max())
+                    fail(field, quote_value(field) + " row " + std::to_string(r) + " column " +
+                                    std::to_string(c) + " is outside the range of a float");
+                pose.m[4 * r + c] = d;
             }
         }
         return pose;
@@ -190,7 +195,7 @@ void decode_pinhole(const json& doc, ScanRequest& req, const ScanLimits& limits)
     } else {
         for (const char* k : {"width", "height"})
             if (m.find(k))
-                fail(m.name(k), in_quotes(m.name(k)) +
+                fail(m.name(k), quote_value(m.name(k)) +
                                     " goes with \"pinhole.camera\"; with intrinsics it is "
                                     "\"pinhole.intrinsics." +
                                     k + "\"");
@@ -216,7 +221,7 @@ void decode_pinhole(const json& doc, ScanRequest& req, const ScanLimits& limits)
         spec.kind = DepthKind::kRange;
     else
         fail("pinhole.output",
-             "unknown pinhole.output " + in_quotes(output) + " (expected depth or range)");
+             "unknown pinhole.output " + quote_value(output) + " (expected depth or range)");
     spec.normals = m.boolean("normals", false);
     range_window(m, spec.min_range, spec.max_range);
 }
@@ -300,15 +305,15 @@ Result<ScanRequest, ScanRequestError> decode_scan_request(std::string_view text,
         else if (format == "ply" && req.lidar)
             req.format = ScanFormat::kPly;
         else
-            fail("format", "unknown format " + in_quotes(format) + " for a " +
+            fail("format", "unknown format " + quote_value(format) + " for a " +
                                (req.lidar ? "lidar scan (expected binary or ply)"
                                           : "pinhole scan (expected binary or exr)"));
         return req;
     } catch (const Failure& f) {
         ScanRequestError e = f.error;
         // Every detail names its field, quoted as the request spells it.
-        if (!e.field.empty() && e.detail.find(in_quotes(e.field)) == std::string::npos)
-            e.detail = in_quotes(e.field) + ": " + e.detail;
+        if (!e.field.empty() && e.detail.find(quote_value(e.field)) == std::string::npos)
+            e.detail = quote_value(e.field) + ": " + e.detail;
         return Err{std::move(e)};
     }
 }

@@ -19,6 +19,16 @@ std::string in_quotes(std::string_view text) {
     return out;
 }
 
+std::string quote_value(std::string_view text) {
+    if (text.size() <= kQuotedValueBytes) return in_quotes(text);
+    // Cut at a character boundary: a continuation byte (10xxxxxx) at the cut belongs to a
+    // sequence that started before it, which is left out whole (at most 3 bytes back).
+    size_t cut = kQuotedValueBytes;
+    while (cut > kQuotedValueBytes - 3 && (static_cast<unsigned char>(text[cut]) & 0xC0) == 0x80)
+        --cut;
+    return in_quotes(text.substr(0, cut)) + "... (" + std::to_string(text.size()) + " bytes)";
+}
+
 std::string hex(uint64_t value, int digits) {
     std::string out(static_cast<size_t>(digits), '0');
     for (int i = digits - 1; i >= 0; --i, value >>= 4)

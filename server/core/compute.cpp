@@ -16,15 +16,18 @@ unsigned resolve_threads(unsigned requested) {
 
 }  // namespace
 
-Compute::Compute(unsigned threads)
+Compute::Compute(unsigned threads, unsigned callers)
     : threads_(resolve_threads(threads)),
-      // Caps oneTBB's worker pool at the arena size: nothing else in the process may add threads.
+      // Caps oneTBB's worker pool at threads - 1: nothing else in the process may add threads.
       control_(std::make_unique<tbb::global_control>(tbb::global_control::max_allowed_parallelism,
                                                      threads_)),
-      arena_(static_cast<int>(threads_)) {}
+      // threads - 1 worker slots, plus one slot reserved for each calling thread, so that a
+      // caller never waits for a slot held by another request (a caller without a slot would
+      // have its work queued until a worker ran out of the other requests' tasks).
+      arena_(static_cast<int>(threads_ - 1 + std::max(callers, 1u)), std::max(callers, 1u)) {}
 
 KdTree Compute::build(const Mesh& mesh) {
-    return arena_.execute([&] { return build_kdtree(mesh, BuildOptions{}); });
+    return run([&] { return build_kdtree(mesh, BuildOptions{}); });
 }
 
 void Compute::intersect(const KdTree& tree, std::span<const Ray> rays, std::span<Hit> hits) {
@@ -32,7 +35,7 @@ void Compute::intersect(const KdTree& tree, std::span<const Ray> rays, std::span
         intersect_block(tree, rays, hits);
         return;
     }
-    arena_.execute([&] { kdrt::intersect(tree, rays, hits); });
+    run([&] { kdrt::intersect(tree, rays, hits); });
 }
 
 void Compute::occluded(const KdTree& tree, std::span<const Ray> rays, std::span<uint8_t> occluded) {
@@ -40,7 +43,7 @@ void Compute::occluded(const KdTree& tree, std::span<const Ray> rays, std::span<
         occluded_block(tree, rays, occluded);
         return;
     }
-    arena_.execute([&] { kdrt::occluded(tree, rays, occluded); });
+    run([&] { kdrt::occluded(tree, rays, occluded); });
 }
 
 StreamTrace::StreamTrace(Compute& compute, const KdTree& tree, std::span<const Ray> rays,

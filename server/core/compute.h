@@ -1,6 +1,14 @@
 #pragma once
 /// The process-wide oneTBB arena: every parallel build and trace runs inside it, so the engine
 /// never oversubscribes the machine however many HTTP threads call it (STYLE §1). Thread-safe.
+///
+/// Fairness (server/README.md, "Compute"): a request's calling thread always gets a slot of its
+/// own in the arena (one is reserved for each of `callers` threads), and inside run(),
+/// intersect(), occluded() and build() it only runs tasks of its own request
+/// (tbb::this_task_arena::isolate), while the `threads - 1` workers serve whichever requests
+/// have tasks. So a long request of one kind (a distance batch of far points, a big render)
+/// never keeps a small one waiting for a slot or running the long one's tasks: the small one
+/// makes progress on its own thread from the moment it arrives.
 
 #include <tbb/global_control.h>
 #include <tbb/task_arena.h>
@@ -18,8 +26,10 @@ namespace kdrt::server {
 
 class Compute {
 public:
-    /// `threads` = arena concurrency; 0 = every core.
-    explicit Compute(unsigned threads);
+    /// `threads` = workers + 1 (the arena's concurrency for one request); 0 = every core.
+    /// `callers`: how many threads may call into the arena at once (the server's HTTP threads
+    /// and its job thread), each of which gets a reserved slot.
+    explicit Compute(unsigned threads, unsigned callers = 1);
 
     [[nodiscard]] unsigned threads() const noexcept { return threads_; }
 
@@ -32,10 +42,11 @@ public:
     void intersect(const KdTree& tree, std::span<const Ray> rays, std::span<Hit> hits);
     void occluded(const KdTree& tree, std::span<const Ray> rays, std::span<uint8_t> occluded);
 
-    /// Runs `f` inside the arena and returns its result (for the renderer).
+    /// Runs `f` inside the arena, isolated (the calling thread runs only tasks `f` spawns), and
+    /// returns its result (renders, scans, every-hit and distance queries).
     template <class F>
     auto run(F&& f) {
-        return arena_.execute(std::forward<F>(f));
+        return arena_.execute([&] { return tbb::this_task_arena::isolate(f); });
     }
 
     static constexpr size_t kInlineRays = 256;

@@ -183,6 +183,11 @@ const std::vector<Setting>& settings() {
          .u32 = &ServerConfig::max_distance_points,
          .min = 1,
          .max = proto::DecodeLimits{}.max_rays},
+        {.key = "max_distance_work",
+         .help = "most work of one distance request (cells visited + triangles tested), "
+                 "stopped with 400 beyond it",
+         .u64 = &ServerConfig::max_distance_work,
+         .min = 1},
         {.key = "max_sensor_beams",
          .help = "most beams (channels x azimuth_steps) in one lidar scan",
          .u32 = &ServerConfig::max_sensor_beams,

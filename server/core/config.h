@@ -67,6 +67,7 @@ struct ServerConfig {
     uint32_t max_json_rays = 100'000;           ///< rays per JSON batch
     uint32_t max_hits_per_ray = 1024;           ///< intersect_all's largest max_hits
     uint32_t max_distance_points = 1u << 22;    ///< query points per distance request
+    uint64_t max_distance_work = 1ull << 32;    ///< distance request work (cells + triangles)
     uint32_t max_sensor_beams = 1u << 21;       ///< channels x azimuth_steps of a lidar scan
     uint32_t max_scan_points = 1u << 24;        ///< a scan's pixels, or beams x returns
     uint32_t max_instances = 65536;     ///< instances of one scene (and poses of one update)

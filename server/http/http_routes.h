@@ -5,9 +5,12 @@
 
 #include <httplib.h>
 
+#include <memory>
 #include <optional>
+#include <string>
 
 #include "http/json_shape.h"
+#include "http/request_body.h"
 #include "kdrt/proto/json_api.h"
 #include "kdrt/proto/multi_hit.h"
 #include "kdrt/proto/problem.h"
@@ -32,6 +35,17 @@ inline constexpr JsonShapeLimits kScanJsonShape{.max_depth = 6, .max_values = 16
                                                                   uint64_t& rays, uint64_t& bytes);
 /// A scan refused by batch_memory_budget: 413 if it could never fit, else 503.
 [[nodiscard]] proto::Problem scan_budget_problem(const ByteBudget& budget, uint64_t bytes);
+
+/// A batch body of fixed-size records (rays, points): its limits and the memory it holds.
+struct BatchBody {
+    uint64_t limit = 0;              ///< body bytes at most (413 beyond)
+    std::string what;                ///< names the body in a 413 detail
+    uint64_t record_bytes = 32;      ///< body bytes of one record
+    uint64_t memory_per_record = 0;  ///< batch_memory_budget bytes each record holds
+    uint64_t memory_fixed = 64;      ///< held whatever the count
+    std::string records = "rays";    ///< what a record is, for the 413 detail
+    std::string advice;              ///< ends a memory 413, e.g. "; send fewer rays"
+};
 
 class Routes {
 public:
@@ -86,27 +100,37 @@ public:
     void web_file(const httplib::Request& req, httplib::Response& res);
 
 private:
+    /// The shared path of the batch routes: admission against batch_memory_budget, body
+    /// reading and their problems. A body declared over `spec.limit` is 413 before it is read;
+    /// the batch's memory is taken before reading for a declared size, or as the body arrives
+    /// for a chunked one (so a small chunked batch is not refused for the largest one's
+    /// memory), 413 when it could never fit the budget, 503 when it does not fit now. The
+    /// memory is held until the answer has been sent. On refusal replies and returns nullptr.
+    std::unique_ptr<RequestBody> read_batch(const httplib::Request& req, httplib::Response& res,
+                                            const httplib::ContentReader& reader,
+                                            const BatchBody& spec);
+
     /// The batch's memory from batch_memory_budget; on refusal (503, or 413 when it could
     /// never fit) replies and returns nullopt.
     std::optional<ByteBudget::Hold> take_batch_budget(const httplib::Request& req,
-                                                      httplib::Response& res,
-                                                      const httplib::ContentReader& reader,
-                                                      bool binary);
+                                                      httplib::Response& res, bool binary);
     /// The tree of the mesh named by the path (req.matches[1]); on failure discards the body,
     /// replies (404 unknown mesh, ...) and returns nullptr.
-    std::shared_ptr<const KdTree> acquire_tree(const httplib::Request& req, httplib::Response& res,
-                                               const httplib::ContentReader& reader);
+    std::shared_ptr<const KdTree> acquire_tree(const httplib::Request& req, httplib::Response& res);
     /// `bytes` of batch_memory_budget, refused as take_batch_budget does.
     std::optional<ByteBudget::Hold> take_budget_bytes(const httplib::Request& req,
-                                                      httplib::Response& res,
-                                                      const httplib::ContentReader& reader,
-                                                      uint64_t bytes);
+                                                      httplib::Response& res, uint64_t bytes);
     void intersect_binary(const httplib::Request& req, httplib::Response& res,
                           const httplib::ContentReader& reader, const KdTree& tree,
                           bool reject_invalid);
     void intersect_json(const httplib::Request& req, httplib::Response& res,
                         const httplib::ContentReader& reader, const KdTree& tree);
 
+    /// The scan request in the body (JSON, its shape and limits checked); on failure the reply
+    /// is set and nullopt returned.
+    std::optional<proto::ScanRequest> read_scan_request(const httplib::Request& req,
+                                                        httplib::Response& res,
+                                                        const httplib::ContentReader& reader);
     /// The render request in the body; on failure the reply is set and nullopt returned.
     std::optional<proto::RenderRequest> read_render_request(const httplib::Request& req,
                                                             httplib::Response& res,

@@ -1,13 +1,16 @@
 // POST /v1/meshes/{id}/distance: KDRP query points -> KDRD closest points (kdrt/distance.h).
 
+#include <atomic>
 #include <span>
 
+#include "core/log.h"
+#include "http/http_front.h"
 #include "http/http_routes.h"
 #include "http/http_util.h"
-#include "http/httplib_internals.h"
 #include "http/problems.h"
 #include "kdrt/distance.h"
 #include "kdrt/proto/distance.h"
+#include "kdrt/proto/text.h"
 
 namespace kdrt::server {
 
@@ -38,61 +41,77 @@ std::string surface_text(const SurfaceIndex& index) {
            std::to_string(index.misoriented_edges) + " misoriented edges";
 }
 
+/// A batch whose work (cells visited + triangles tested) passes max_distance_work: refused when
+/// its point count alone does (`work` 0), or stopped when its search did.
+proto::Problem distance_work_problem(uint64_t limit, uint64_t work, size_t points) {
+    auto p = make_problem(
+        ProblemKind::kBadRequest,
+        work == 0 ? std::to_string(points) + " points exceed max_distance_work " +
+                        std::to_string(limit) + " (every point costs at least 1)"
+                  : "distance work (cells visited + triangles tested) passed max_distance_work " +
+                        std::to_string(limit) + " for " + std::to_string(points) +
+                        " points; stopped. Points very far from the mesh (about 1e13 of its "
+                        "size) cost the most: send fewer points per request");
+    p.limit = limit;
+    return p;
+}
+
 }  // namespace
 
 void Routes::distance(const httplib::Request& req, httplib::Response& res,
                       const httplib::ContentReader& reader) {
-    const std::string type = proto::media_type_essence(req.get_header_value("Content-Type"));
-    if (type != proto::kPointMediaType) {
-        discard_body(req, res, reader);
-        return reply_problem(
-            req, res,
-            make_problem(ProblemKind::kUnsupportedMediaType,
-                         "distance expects Content-Type " + std::string(proto::kPointMediaType) +
-                             ", not \"" + req.get_header_value("Content-Type") + "\""));
-    }
-    auto query =
-        proto::parse_distance_query([&](std::string_view name) -> std::optional<std::string> {
-            const std::string key(name);
-            if (!req.has_param(key)) return std::nullopt;
-            return req.get_param_value(key);
-        });
-    if (!query) {
-        discard_body(req, res, reader);
+    if (!has_media_type(req, res, proto::kPointMediaType, "distance")) return;
+    auto query = proto::parse_distance_query(query_params(req));
+    if (!query)
         return reply_problem(req, res, make_problem(ProblemKind::kBadRequest, query.error()));
-    }
-    const std::shared_ptr<const KdTree> tree = acquire_tree(req, res, reader);
+    const std::shared_ptr<const KdTree> tree = acquire_tree(req, res);
     if (!tree) return;
     const uint32_t max_points = svc_.config.max_distance_points;
-    const uint64_t body_limit = proto::kdrp_body_size(max_points);
-    const uint64_t declared = declared_body_bytes(req).value_or(body_limit);
-    if (declared > body_limit) {
-        discard_body(req, res, reader);
-        return reply_problem(req, res, body_too_large_problem(body_limit, kDistanceBodyWhat));
-    }
-    auto hold = take_budget_bytes(req, res, reader,
-                                  64 + declared / proto::kPointRecordBytes * kBytesPerPoint);
-    if (!hold) return;
-    auto body = read_body(req, res, reader, body_limit, body_limit, svc_.store.tmp_dir().string(),
-                          kDistanceBodyWhat);
+    auto body = read_batch(req, res, reader,
+                           {.limit = proto::kdrp_body_size(max_points),
+                            .what = kDistanceBodyWhat,
+                            .record_bytes = proto::kPointRecordBytes,
+                            .memory_per_record = kBytesPerPoint,
+                            .records = "points",
+                            .advice = "; send fewer points"});
     if (!body) return;
-    request_context().bytes_in += body->size();
     auto points =
         proto::decode_points(body->bytes(), {.max_rays = max_points, .reject_non_finite = true});
     body.reset();
     if (!points) return reply_problem(req, res, point_batch_problem(points.error(), max_points));
     request_context().rays = points->size();
+    const uint64_t max_work = svc_.config.max_distance_work;
+    if (points->size() > max_work)  // every point visits at least the root cell
+        return reply_problem(req, res, distance_work_problem(max_work, 0, points->size()));
     std::shared_ptr<const SurfaceIndex> index;
     std::vector<ClosestPoint> answers(points->size());
     const DistanceOptions options{query->max_distance, query->signed_query};
-    svc_.compute.run([&] {
+    // Stopped when the client goes away (checked about every millisecond of work) or the work
+    // passes max_distance_work, as renders are.
+    std::atomic<bool> cancel{false};
+    DistanceControl control;
+    control.cancel = &cancel;
+    control.max_work = max_work;
+    control.poll = [gone = client_gone_check(), &cancel] {
+        if (gone()) cancel = true;
+    };
+    const DistanceStats stats = svc_.compute.run([&] {
         index = svc_.cache.surface_index(req.matches[1], tree);
-        closest_points(*tree, *index, *points, answers, options);
+        return closest_points(*tree, *index, *points, answers, options, control);
     });
+    if (stats.status == DistanceStatus::kCancelled) {
+        log_event(LogLevel::kInfo, "distance cancelled: the client closed the connection",
+                  {{"id", request_context().request_id}});
+        res.set_header("Connection", "close");
+        return reply_problem(req, res,
+                             make_problem(ProblemKind::kBadRequest,
+                                          "the client closed the connection; distance cancelled"));
+    }
+    if (stats.status == DistanceStatus::kOverWork)
+        return reply_problem(req, res, distance_work_problem(max_work, stats.work, points->size()));
     res.set_header("X-Kdrt-Surface", surface_text(*index));
     reply_bytes(res, proto::encode_distances(answers, query->signed_query),
                 proto::kDistanceMediaType);
-    keep_until_sent(res, std::make_shared<ByteBudget::Hold>(std::move(*hold)));
 }
 
 }  // namespace kdrt::server

@@ -6,6 +6,7 @@
 #include "kdrt/proto/json_api.h"
 #include "kdrt/proto/mesh_id.h"
 #include "kdrt/proto/mesh_io.h"
+#include "kdrt/proto/text.h"
 
 namespace kdrt::server {
 namespace {
@@ -17,18 +18,29 @@ proto::Result<proto::MeshFormat, proto::Problem> upload_format(const httplib::Re
     if (req.has_param("format")) {
         const std::string name = req.get_param_value("format");
         if (const auto format = proto::mesh_format_from_name(name)) return *format;
-        return proto::Err{make_problem(
-            ProblemKind::kUnsupportedMediaType,
-            "unknown mesh format \"" + name + "\" (expected obj, ply, off, stl or raw)")};
+        return proto::Err{make_problem(ProblemKind::kUnsupportedMediaType,
+                                       "unknown mesh format " + proto::quote_value(name) +
+                                           " (expected obj, ply, off, stl or raw)")};
     }
     const std::string type = req.get_header_value("Content-Type");
     if (const auto format = proto::mesh_format_from_media_type(type)) return *format;
     return proto::Err{make_problem(ProblemKind::kUnsupportedMediaType,
                                    std::string(proto::api_errors::kUnsupportedMeshType) +
-                                       " from Content-Type \"" + type +
-                                       "\": use model/obj, model/stl, application/ply, "
+                                       " from Content-Type " + proto::quote_value(type) +
+                                       ": use model/obj, model/stl, application/ply, "
                                        "application/x-off or application/x-kdrt-mesh, "
                                        "or ?format=obj|ply|off|stl|raw")};
+}
+
+/// 503 for an upload that finds max_builds building and max_queued waiting.
+proto::Problem builds_busy_problem(const WorkGate& builds) {
+    auto p = make_problem(
+        ProblemKind::kOverCapacity,
+        std::to_string(builds.running_limit()) + " uploads are being built (max_builds) and " +
+            std::to_string(builds.queue_limit()) + " waiting (max_queued); retry later");
+    p.retry_after = 1;
+    p.limit = builds.running_limit();
+    return p;
 }
 
 }  // namespace
@@ -36,10 +48,7 @@ proto::Result<proto::MeshFormat, proto::Problem> upload_format(const httplib::Re
 void Routes::upload_mesh(const httplib::Request& req, httplib::Response& res,
                          const httplib::ContentReader& reader) {
     const auto format = upload_format(req);
-    if (!format) {
-        discard_body(req, res, reader);
-        return reply_problem(req, res, format.error());
-    }
+    if (!format) return reply_problem(req, res, format.error());
     auto body =
         read_body(req, res, reader, svc_.config.max_upload_bytes, svc_.config.upload_memory_bytes,
                   svc_.store.tmp_dir().string(), "a mesh upload (max_upload_bytes)");
@@ -48,16 +57,7 @@ void Routes::upload_mesh(const httplib::Request& req, httplib::Response& res,
     // max_queued waiting, the rest shed. (Taken once the body is in: a slow upload holds no
     // slot, and the body is spooled to disk beyond upload_memory_bytes.)
     auto slot = svc_.builds.enter(svc_.shutting_down);
-    if (!slot) {
-        auto p = make_problem(ProblemKind::kOverCapacity,
-                              std::to_string(svc_.builds.running_limit()) +
-                                  " uploads are being built (max_builds) and " +
-                                  std::to_string(svc_.builds.queue_limit()) +
-                                  " waiting (max_queued); retry later");
-        p.retry_after = 1;
-        p.limit = svc_.builds.running_limit();
-        return reply_problem(req, res, std::move(p));
-    }
+    if (!slot) return reply_problem(req, res, builds_busy_problem(svc_.builds));
     proto::MeshLimits limits;
     limits.max_triangles = svc_.config.max_triangles;
     std::vector<std::string> warnings;

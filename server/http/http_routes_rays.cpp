@@ -3,9 +3,9 @@
 #include <span>
 
 #include "http/batch_ingest.h"
+#include "http/http_front.h"
 #include "http/http_routes.h"
 #include "http/http_util.h"
-#include "http/httplib_internals.h"
 #include "http/problems.h"
 #include "kdrt/proto/json_api.h"
 #include "kdrt/proto/ray_batch.h"
@@ -48,45 +48,40 @@ void Routes::intersect(const httplib::Request& req, httplib::Response& res,
     const std::string type = proto::media_type_essence(req.get_header_value("Content-Type"));
     const bool binary = type == proto::kRaysMediaType;
     if (!binary && type != proto::kJsonMediaType) {
-        discard_body(req, res, reader);
         return reply_problem(
             req, res,
             make_problem(ProblemKind::kUnsupportedMediaType,
                          "intersect " + std::string(proto::api_errors::kUnsupportedRayType) +
-                             ", not \"" + req.get_header_value("Content-Type") + "\""));
+                             ", not " + proto::quote_value(req.get_header_value("Content-Type"))));
     }
     // ?invalid_rays=refuse (default): a ray with a NaN/Inf field makes the KDRR batch a 400
     // naming its index; =miss: such rays are answered as misses (as Embree and Open3D do).
     const std::string invalid = req.get_param_value("invalid_rays");
     if (!invalid.empty() && invalid != "refuse" && invalid != "miss") {
-        discard_body(req, res, reader);
         return reply_problem(
             req, res,
             make_problem(ProblemKind::kBadRequest, "query parameter invalid_rays is " +
-                                                       proto::in_quotes(invalid) +
+                                                       proto::quote_value(invalid) +
                                                        " (expected refuse or miss)"));
     }
     const std::string id = req.matches[1];
     auto tree = svc_.cache.acquire(id);
     if (!tree) {
-        discard_body(req, res, reader);
         return reply_problem(req, res, mesh_lookup_problem(tree.error(), id));
     }
     // The batch's memory (its rays and its answer) is taken from batch_memory_budget before its
     // body is read, and held until the answer has been sent.
-    auto hold = take_batch_budget(req, res, reader, binary);
+    auto hold = take_batch_budget(req, res, binary);
     if (!hold) return;
     if (binary)
         intersect_binary(req, res, reader, **tree, invalid != "miss");
     else
         intersect_json(req, res, reader, **tree);
-    keep_until_sent(res, std::make_shared<ByteBudget::Hold>(std::move(*hold)));
+    keep_until_sent(std::make_shared<ByteBudget::Hold>(std::move(*hold)));
 }
 
 std::optional<ByteBudget::Hold> Routes::take_batch_budget(const httplib::Request& req,
-                                                          httplib::Response& res,
-                                                          const httplib::ContentReader& reader,
-                                                          bool binary) {
+                                                          httplib::Response& res, bool binary) {
     const std::optional<uint64_t> declared = declared_body_bytes(req);
     uint64_t bytes = 0;
     if (binary) {
@@ -97,34 +92,7 @@ std::optional<ByteBudget::Hold> Routes::take_batch_budget(const httplib::Request
         bytes = declared.value_or(svc_.config.max_json_bytes) +
                 uint64_t{svc_.config.max_json_rays} * 48;
     }
-    return take_budget_bytes(req, res, reader, bytes);
-}
-
-std::optional<ByteBudget::Hold> Routes::take_budget_bytes(const httplib::Request& req,
-                                                          httplib::Response& res,
-                                                          const httplib::ContentReader& reader,
-                                                          uint64_t bytes) {
-    auto hold = svc_.batch_budget.try_take(bytes);
-    if (hold) return hold;
-    discard_body(req, res, reader);
-    const uint64_t limit = svc_.batch_budget.limit();
-    if (bytes > limit) {
-        reply_problem(req, res,
-                      make_problem(ProblemKind::kPayloadTooLarge,
-                                   "this batch needs " + std::to_string(bytes) +
-                                       " bytes of memory, more than batch_memory_budget (" +
-                                       std::to_string(limit) + ")"));
-        return std::nullopt;
-    }
-    auto p = make_problem(ProblemKind::kOverCapacity,
-                          "ray batches in flight hold " + std::to_string(svc_.batch_budget.held()) +
-                              " of " + std::to_string(limit) +
-                              " bytes (batch_memory_budget); this batch needs " +
-                              std::to_string(bytes) + "; retry later");
-    p.retry_after = 1;
-    p.limit = limit;
-    reply_problem(req, res, std::move(p));
-    return std::nullopt;
+    return take_budget_bytes(req, res, bytes);
 }
 
 void Routes::intersect_binary(const httplib::Request& req, httplib::Response& res,
@@ -133,7 +101,6 @@ void Routes::intersect_binary(const httplib::Request& req, httplib::Response& re
     BatchIngest ingest(svc_.compute, svc_.batch_buffers, tree, svc_.config.max_rays,
                        declared_body_bytes(req), reject_invalid);
     if (ingest.declared_too_large()) {
-        discard_body(req, res, reader);
         return reply_problem(req, res, body_too_large_problem(ingest.limit(), kBatchLimitWhat));
     }
     const bool read_ok = read_body_direct(

@@ -6,9 +6,9 @@
 
 #include "core/log.h"
 #include "core/rendering.h"
+#include "http/http_front.h"
 #include "http/http_routes.h"
 #include "http/http_util.h"
-#include "http/httplib_internals.h"
 #include "http/json_shape.h"
 #include "http/problems.h"
 #include "kdrt/proto/image_io.h"
@@ -22,9 +22,10 @@ using proto::ProblemKind;
 
 /// True when the Prefer header (RFC 7240) asks for respond-async.
 bool prefers_async(const httplib::Request& req) {
-    const size_t headers = req.get_header_value_count("Prefer");
-    for (size_t i = 0; i < headers; ++i) {
-        std::string value = req.get_header_value("Prefer", i);
+    // Every Prefer header (equal_range: the header map compares names without case).
+    const auto [first, last] = req.headers.equal_range("Prefer");
+    for (auto it = first; it != last; ++it) {
+        std::string value = it->second;
         std::transform(value.begin(), value.end(), value.begin(),
                        [](unsigned char c) { return static_cast<char>(std::tolower(c)); });
         size_t start = 0;
@@ -119,7 +120,6 @@ void Routes::render(const httplib::Request& req, httplib::Response& res,
 std::optional<proto::RenderRequest> Routes::read_render_request(
     const httplib::Request& req, httplib::Response& res, const httplib::ContentReader& reader) {
     if (proto::media_type_essence(req.get_header_value("Content-Type")) != proto::kJsonMediaType) {
-        discard_body(req, res, reader);
         reply_problem(
             req, res,
             make_problem(ProblemKind::kUnsupportedMediaType,

@@ -4,9 +4,9 @@
 #include <optional>
 #include <string>
 
+#include "http/http_front.h"
 #include "http/http_routes.h"
 #include "http/http_util.h"
-#include "http/httplib_internals.h"
 #include "http/json_shape.h"
 #include "http/problems.h"
 #include "kdrt/camera.h"
@@ -32,7 +32,7 @@ constexpr uint64_t kBytesPerBeam = 64;
 constexpr uint64_t kBytesPerReturn = 96;
 
 proto::Problem field_problem(const std::string& field, const std::string& why) {
-    return make_problem(ProblemKind::kBadRequest, proto::in_quotes(field) + ": " + why);
+    return make_problem(ProblemKind::kBadRequest, proto::quote_value(field) + ": " + why);
 }
 
 }  // namespace
@@ -73,94 +73,74 @@ std::optional<proto::Problem> complete_scan_request(proto::ScanRequest& request,
 }
 
 proto::Problem scan_budget_problem(const ByteBudget& budget, uint64_t bytes) {
-    const uint64_t limit = budget.limit();
-    if (bytes > limit) {
-        auto p = make_problem(ProblemKind::kPayloadTooLarge,
-                              "this scan needs " + std::to_string(bytes) +
-                                  " bytes of memory, more than batch_memory_budget (" +
-                                  std::to_string(limit) + "); scan fewer pixels or beams");
-        p.limit = limit;
-        return p;
-    }
-    auto p =
-        make_problem(ProblemKind::kOverCapacity,
-                     "ray batches in flight hold " + std::to_string(budget.held()) + " of " +
-                         std::to_string(limit) + " bytes (batch_memory_budget); this scan needs " +
-                         std::to_string(bytes) + "; retry later");
-    p.retry_after = 1;
-    p.limit = limit;
-    return p;
+    return budget_problem(budget, bytes, "this scan", "; scan fewer pixels or beams");
 }
 
 void Routes::scan(const httplib::Request& req, httplib::Response& res,
                   const httplib::ContentReader& reader) {
-    if (proto::media_type_essence(req.get_header_value("Content-Type")) != proto::kJsonMediaType) {
-        discard_body(req, res, reader);
-        return reply_problem(
-            req, res,
-            make_problem(ProblemKind::kUnsupportedMediaType,
-                         "scan " + std::string(proto::api_errors::kUnsupportedJsonType)));
-    }
-    auto body = read_body(req, res, reader, svc_.config.max_json_bytes, svc_.config.max_json_bytes,
-                          svc_.store.tmp_dir().string(), "a JSON request (max_json_bytes)");
-    if (!body) return;
-    request_context().bytes_in += body->size();
-    const std::string_view text = as_text(body->bytes());
-    if (auto shape = json_shape_error(text, kScanJsonShape)) {
-        return reply_problem(req, res,
-                             make_problem(ProblemKind::kBadRequest,
-                                          "scan request: " + *shape + " (a scan request has " +
-                                              std::to_string(kScanJsonShape.max_values) +
-                                              " values at most, nested " +
-                                              std::to_string(kScanJsonShape.max_depth) + " deep)"));
-    }
-    const ServerConfig& c = svc_.config;
-    const proto::ScanLimits limits{c.max_image_width, c.max_image_height, c.max_sensor_beams,
-                                   c.max_scan_points, c.max_hits_per_ray};
-    auto request = proto::decode_scan_request(text, limits);
-    body.reset();
-    if (!request) {
-        const proto::ScanRequestError& e = request.error();
-        return reply_problem(
-            req, res,
-            make_problem(e.over_limit ? ProblemKind::kPayloadTooLarge : ProblemKind::kBadRequest,
-                         e.detail));
-    }
+    auto request = read_scan_request(req, res, reader);
+    if (!request) return;
     // The engine's checks (a rigid pose, the intrinsics, the range window, the look-at camera),
     // before any work.
     uint64_t rays = 0, bytes = 0;
     if (auto problem = complete_scan_request(*request, rays, bytes))
         return reply_problem(req, res, std::move(*problem));
-    // The body is read already: no acquire_tree / take_budget_bytes (they discard the body).
-    const std::string id = req.matches[1];
-    auto acquired = svc_.cache.acquire(id);
-    if (!acquired) return reply_problem(req, res, mesh_lookup_problem(acquired.error(), id));
-    const std::shared_ptr<const KdTree> tree = std::move(acquired).value();
+    const std::shared_ptr<const KdTree> tree = acquire_tree(req, res);
+    if (!tree) return;
     auto hold = svc_.batch_budget.try_take(bytes);
     if (!hold) return reply_problem(req, res, scan_budget_problem(svc_.batch_budget, bytes));
+    keep_until_sent(std::make_shared<ByteBudget::Hold>(std::move(*hold)));
     request_context().rays = rays;
     svc_.metrics.add_rays(rays, false);
-    const KdTree& t = *tree;
     if (request->lidar) {
         const PointCloud cloud =
-            svc_.compute.run([&] { return scan_lidar(t, request->lidar_spec); });
+            svc_.compute.run([&] { return scan_lidar(*tree, request->lidar_spec); });
         if (request->format == proto::ScanFormat::kPly)
-            reply_bytes(res, proto::encode_point_cloud_ply(cloud), proto::kPlyMediaType);
-        else
-            reply_bytes(res, proto::encode_point_cloud(cloud), proto::kPointCloudMediaType);
-    } else {
-        const DepthImage image =
-            svc_.compute.run([&] { return scan_pinhole(t, request->pinhole); });
-        if (request->format == proto::ScanFormat::kExr) {
-            auto exr = proto::encode_depth_exr(image);
-            if (!exr)
-                return reply_problem(req, res, make_problem(ProblemKind::kInternal, exr.error()));
-            reply_bytes(res, std::move(*exr), "image/x-exr");
-        } else {
-            reply_bytes(res, proto::encode_depth_image(image), proto::kDepthImageMediaType);
-        }
+            return reply_bytes(res, proto::encode_point_cloud_ply(cloud), proto::kPlyMediaType);
+        return reply_bytes(res, proto::encode_point_cloud(cloud), proto::kPointCloudMediaType);
     }
-    keep_until_sent(res, std::make_shared<ByteBudget::Hold>(std::move(*hold)));
+    const DepthImage image =
+        svc_.compute.run([&] { return scan_pinhole(*tree, request->pinhole); });
+    if (request->format != proto::ScanFormat::kExr)
+        return reply_bytes(res, proto::encode_depth_image(image), proto::kDepthImageMediaType);
+    auto exr = proto::encode_depth_exr(image);
+    if (!exr) return reply_problem(req, res, make_problem(ProblemKind::kInternal, exr.error()));
+    reply_bytes(res, std::move(*exr), "image/x-exr");
+}
+
+std::optional<proto::ScanRequest> Routes::read_scan_request(const httplib::Request& req,
+                                                            httplib::Response& res,
+                                                            const httplib::ContentReader& reader) {
+    if (proto::media_type_essence(req.get_header_value("Content-Type")) != proto::kJsonMediaType) {
+        reply_problem(req, res,
+                      make_problem(ProblemKind::kUnsupportedMediaType,
+                                   "scan " + std::string(proto::api_errors::kUnsupportedJsonType)));
+        return std::nullopt;
+    }
+    auto body = read_body(req, res, reader, svc_.config.max_json_bytes, svc_.config.max_json_bytes,
+                          svc_.store.tmp_dir().string(), "a JSON request (max_json_bytes)");
+    if (!body) return std::nullopt;
+    const std::string_view text = as_text(body->bytes());
+    if (auto shape = json_shape_error(text, kScanJsonShape)) {
+        reply_problem(req, res,
+                      make_problem(ProblemKind::kBadRequest,
+                                   "scan request: " + *shape + " (a scan request has " +
+                                       std::to_string(kScanJsonShape.max_values) +
+                                       " values at most, nested " +
+                                       std::to_string(kScanJsonShape.max_depth) + " deep)"));
+        return std::nullopt;
+    }
+    const ServerConfig& c = svc_.config;
+    auto request =
+        proto::decode_scan_request(text, {c.max_image_width, c.max_image_height, c.max_sensor_beams,
+                                          c.max_scan_points, c.max_hits_per_ray});
+    if (request) return std::move(request).value();
+    const proto::ScanRequestError& e = request.error();
+    reply_problem(
+        req, res,
+        make_problem(e.over_limit ? ProblemKind::kPayloadTooLarge : ProblemKind::kBadRequest,
+                     e.detail));
+    return std::nullopt;
 }
 
 }  // namespace kdrt::server

@@ -8,9 +8,9 @@
 #include <string>
 #include <unordered_map>
 
+#include "http/http_front.h"
 #include "http/http_routes.h"
 #include "http/http_util.h"
-#include "http/httplib_internals.h"
 #include "http/json_shape.h"
 #include "http/problems.h"
 #include "kdrt/proto/distance.h"
@@ -114,7 +114,6 @@ void split_hits(std::span<const SceneHit> in, std::vector<Hit>& hits,
 void Routes::create_scene(const httplib::Request& req, httplib::Response& res,
                           const httplib::ContentReader& reader) {
     if (proto::media_type_essence(req.get_header_value("Content-Type")) != proto::kJsonMediaType) {
-        discard_body(req, res, reader);
         return reply_problem(req, res,
                              make_problem(ProblemKind::kUnsupportedMediaType,
                                           "POST /v1/scenes expects Content-Type application/json"));
@@ -174,7 +173,6 @@ void Routes::set_poses(const httplib::Request& req, httplib::Response& res,
     const std::string type = proto::media_type_essence(req.get_header_value("Content-Type"));
     const bool binary = type == proto::kPoseBatchMediaType;
     if (!binary && type != proto::kJsonMediaType) {
-        discard_body(req, res, reader);
         return reply_problem(req, res,
                              make_problem(ProblemKind::kUnsupportedMediaType,
                                           "poses expects Content-Type application/json or " +
@@ -182,7 +180,6 @@ void Routes::set_poses(const httplib::Request& req, httplib::Response& res,
     }
     auto condition = if_match(req);
     if (!condition) {
-        discard_body(req, res, reader);
         return reply_problem(req, res, std::move(condition).error());
     }
     const uint64_t limit = binary
@@ -230,14 +227,12 @@ void Routes::set_poses(const httplib::Request& req, httplib::Response& res,
 void Routes::edit_instances(const httplib::Request& req, httplib::Response& res,
                             const httplib::ContentReader& reader) {
     if (proto::media_type_essence(req.get_header_value("Content-Type")) != proto::kJsonMediaType) {
-        discard_body(req, res, reader);
         return reply_problem(req, res,
                              make_problem(ProblemKind::kUnsupportedMediaType,
                                           "instances expects Content-Type application/json"));
     }
     auto condition = if_match(req);
     if (!condition) {
-        discard_body(req, res, reader);
         return reply_problem(req, res, std::move(condition).error());
     }
     auto body = read_body(req, res, reader, svc_.config.max_json_bytes, svc_.config.max_json_bytes,
@@ -260,17 +255,16 @@ void Routes::edit_instances(const httplib::Request& req, httplib::Response& res,
 
 // ---- Queries -----------------------------------------------------------------------------------
 
-SceneCache::EntryPtr Routes::query_scene(const httplib::Request& req, httplib::Response& res,
-                                         const httplib::ContentReader& reader) {
+SceneCache::EntryPtr Routes::query_scene(
+    const httplib::Request& req, httplib::Response& res,
+    const httplib::ContentReader& /*reader: a refused body is left to the front*/) {
     auto revision = pinned_revision(req);
     if (!revision) {
-        discard_body(req, res, reader);
         reply_problem(req, res, std::move(revision).error());
         return nullptr;
     }
     auto entry = svc_.scenes.get(req.matches[1], *revision);
     if (!entry) {
-        discard_body(req, res, reader);
         reply_problem(req, res, scene_problem(entry.error()));
         return nullptr;
     }
@@ -285,7 +279,6 @@ std::optional<Routes::RayBody> Routes::read_ray_body(const httplib::Request& req
     const std::string invalid =
         req.has_param("invalid_rays") ? req.get_param_value("invalid_rays") : "refuse";
     if (invalid != "refuse" && invalid != "miss") {
-        discard_body(req, res, reader);
         reply_problem(req, res,
                       field_problem(ProblemKind::kBadRequest, "invalid_rays",
                                     "invalid_rays=" + proto::in_quotes(invalid) +
@@ -295,12 +288,10 @@ std::optional<Routes::RayBody> Routes::read_ray_body(const httplib::Request& req
     const uint64_t body_limit = proto::kdrr_body_size(svc_.config.max_rays);
     const uint64_t declared = declared_body_bytes(req).value_or(body_limit);
     if (declared > body_limit) {
-        discard_body(req, res, reader);
         reply_problem(req, res, body_too_large_problem(body_limit, kRayBodyWhat));
         return std::nullopt;
     }
-    auto hold =
-        take_budget_bytes(req, res, reader, 64 + declared / proto::kRayRecordBytes * bytes_per_ray);
+    auto hold = take_budget_bytes(req, res, 64 + declared / proto::kRayRecordBytes * bytes_per_ray);
     if (!hold) return std::nullopt;
     auto body = read_body(req, res, reader, body_limit, body_limit, svc_.store.tmp_dir().string(),
                           kRayBodyWhat);
@@ -339,7 +330,7 @@ void Routes::scene_intersect(const httplib::Request& req, httplib::Response& res
         proto::append_geometry_ids(answer, geoms);
         reply_bytes(res, std::move(answer), proto::kHitsMediaType);
     }
-    keep_until_sent(res, std::make_shared<ByteBudget::Hold>(std::move(body->hold)));
+    keep_until_sent(std::make_shared<ByteBudget::Hold>(std::move(body->hold)));
 }
 
 void Routes::scene_intersect_all(const httplib::Request& req, httplib::Response& res,
@@ -352,7 +343,6 @@ void Routes::scene_intersect_all(const httplib::Request& req, httplib::Response&
         },
         svc_.config.max_hits_per_ray);
     if (!query) {
-        discard_body(req, res, reader);
         return reply_problem(req, res, make_problem(ProblemKind::kBadRequest, query.error()));
     }
     const SceneCache::EntryPtr entry = query_scene(req, res, reader);
@@ -396,13 +386,12 @@ void Routes::scene_intersect_all(const httplib::Request& req, httplib::Response&
         proto::append_geometry_ids(answer, geoms);
         reply_bytes(res, std::move(answer), proto::kMultiHitMediaType);
     }
-    keep_until_sent(res, std::make_shared<ByteBudget::Hold>(std::move(body->hold)));
+    keep_until_sent(std::make_shared<ByteBudget::Hold>(std::move(body->hold)));
 }
 
 void Routes::scene_distance(const httplib::Request& req, httplib::Response& res,
                             const httplib::ContentReader& reader) {
     if (proto::media_type_essence(req.get_header_value("Content-Type")) != proto::kPointMediaType) {
-        discard_body(req, res, reader);
         return reply_problem(
             req, res,
             make_problem(ProblemKind::kUnsupportedMediaType,
@@ -415,7 +404,6 @@ void Routes::scene_distance(const httplib::Request& req, httplib::Response& res,
             return req.get_param_value(key);
         });
     if (!query) {
-        discard_body(req, res, reader);
         return reply_problem(req, res, make_problem(ProblemKind::kBadRequest, query.error()));
     }
     const SceneCache::EntryPtr entry = query_scene(req, res, reader);
@@ -426,7 +414,6 @@ void Routes::scene_distance(const httplib::Request& req, httplib::Response& res,
     try {
         check_distance_query(scene, false);
     } catch (const SceneError& e) {
-        discard_body(req, res, reader);
         proto::Problem p = make_problem(ProblemKind::kBadRequest, e.what());
         if (e.instance_index()) {
             p.index = e.instance_index();
@@ -438,11 +425,10 @@ void Routes::scene_distance(const httplib::Request& req, httplib::Response& res,
     const uint64_t body_limit = proto::kdrp_body_size(max_points);
     const uint64_t declared = declared_body_bytes(req).value_or(body_limit);
     if (declared > body_limit) {
-        discard_body(req, res, reader);
         return reply_problem(req, res, body_too_large_problem(body_limit, kPointBodyWhat));
     }
-    auto hold = take_budget_bytes(req, res, reader,
-                                  64 + declared / proto::kPointRecordBytes * kSceneBytesPerPoint);
+    auto hold =
+        take_budget_bytes(req, res, 64 + declared / proto::kPointRecordBytes * kSceneBytesPerPoint);
     if (!hold) return;
     auto body = read_body(req, res, reader, body_limit, body_limit, svc_.store.tmp_dir().string(),
                           kPointBodyWhat);
@@ -491,13 +477,12 @@ void Routes::scene_distance(const httplib::Request& req, httplib::Response& res,
     std::vector<std::byte> answer = proto::encode_distances(answers, query->signed_query);
     proto::append_geometry_ids(answer, geoms);
     reply_bytes(res, std::move(answer), proto::kDistanceMediaType);
-    keep_until_sent(res, std::make_shared<ByteBudget::Hold>(std::move(*hold)));
+    keep_until_sent(std::make_shared<ByteBudget::Hold>(std::move(*hold)));
 }
 
 void Routes::scene_scan(const httplib::Request& req, httplib::Response& res,
                         const httplib::ContentReader& reader) {
     if (proto::media_type_essence(req.get_header_value("Content-Type")) != proto::kJsonMediaType) {
-        discard_body(req, res, reader);
         return reply_problem(
             req, res,
             make_problem(ProblemKind::kUnsupportedMediaType,
@@ -558,7 +543,7 @@ void Routes::scene_scan(const httplib::Request& req, httplib::Response& res,
         proto::append_geometry_ids(answer, image.geom);
         reply_bytes(res, std::move(answer), proto::kDepthImageMediaType);
     }
-    keep_until_sent(res, std::make_shared<ByteBudget::Hold>(std::move(*hold)));
+    keep_until_sent(std::make_shared<ByteBudget::Hold>(std::move(*hold)));
 }
 
 }  // namespace kdrt::server

@@ -45,7 +45,7 @@ void Routes::web_file(const httplib::Request& req, httplib::Response& res) {
     if (!found)
         return reply_problem(req, res,
                              make_problem(proto::ProblemKind::kNotFound,
-                                          "no web viewer file " + proto::in_quotes(wanted)));
+                                          "no web viewer file " + proto::quote_value(wanted)));
     // The viewer's file names are not versioned, so the browser revalidates every file on each
     // load (no-cache) and gets 304 while the ETag (a hash of the bytes) is unchanged.
     res.set_header("Cache-Control", "no-cache");

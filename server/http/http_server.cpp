@@ -4,14 +4,15 @@
 
 #include <algorithm>
 #include <array>
+#include <cctype>
 #include <cstring>
 #include <regex>
 #include <utility>
 
 #include "core/log.h"
+#include "http/http_front.h"
 #include "http/http_routes.h"
 #include "http/http_util.h"
-#include "http/httplib_internals.h"
 #include "http/problems.h"
 #include "kdrt/proto/distance.h"
 #include "kdrt/proto/text.h"
@@ -21,8 +22,8 @@ namespace {
 
 using proto::ProblemKind;
 
-/// Connections waiting to be accepted (httplib 0.11.4 listens with 5: a burst of new
-/// connections beyond that waits for SYN retransmits, 1 s and more).
+/// Connections waiting to be accepted (a small backlog makes a burst of new connections wait
+/// for SYN retransmits, 1 s and more).
 constexpr int kListenBacklog = 1024;
 
 /// A path segment (mesh or job id) in a route pattern.
@@ -73,24 +74,69 @@ void add_connection_families(std::vector<proto::MetricFamily>& families,
           gauges.waiting.load());
 }
 
+/// The connection layer's limits from the configuration.
+ConnectionLimits connection_limits(const ServerConfig& c) {
+    return {.threads = c.http_threads,
+            .keep_alive_timeout_s = c.keep_alive_timeout_s,
+            .keep_alive_max_requests = c.keep_alive_max_requests,
+            .read_timeout_s = c.read_timeout_s,
+            .write_timeout_s = c.write_timeout_s,
+            .head_timeout_s = c.request_head_timeout_s,
+            .request_timeout_s = c.request_timeout_s,
+            .max_head_bytes = static_cast<size_t>(c.max_request_head_bytes),
+            .max_headers = c.max_request_headers,
+            .prebuffer_bytes = static_cast<size_t>(c.request_prebuffer_bytes),
+            .max_connections = c.max_connections};
+}
+
+/// True for the methods HTTP defines that a route could take (RFC 9110, RFC 5789).
+bool is_known_method(std::string_view method) {
+    static constexpr std::array<std::string_view, 7> kMethods = {"GET",    "HEAD",  "POST",   "PUT",
+                                                                 "DELETE", "PATCH", "OPTIONS"};
+    return std::find(kMethods.begin(), kMethods.end(), method) != kMethods.end();
+}
+
+/// True when the request asks for `100 Continue` before it sends its body.
+bool expects_continue(const httplib::Request& req) {
+    return req.has_header("Expect");  // the front accepts no other expectation
+}
+
 }  // namespace
 
 struct HttpServer::Impl {
     explicit Impl(Service& service)
-        : svc(service), routes(service), tokens(accepted_tokens(service.config)) {}
+        : svc(service),
+          routes(service),
+          tokens(accepted_tokens(service.config)),
+          http(
+              connection_limits(service.config),
+              [this](int status, std::string_view method, const std::string& detail) {
+                  return early_reply(status, method, detail);
+              },
+              [this](httplib::Request& req, httplib::Response& res,
+                     const httplib::ContentReader& reader) { answer(req, res, reader); },
+              [this](const httplib::Request& req, const httplib::Response& res) {
+                  on_logged(req, res);
+              }) {}
+
+    /// A route's handler (GET and DELETE handlers ignore the reader).
+    using Handler = std::function<void(const httplib::Request&, httplib::Response&,
+                                       const httplib::ContentReader&)>;
 
     Service& svc;
     Routes routes;
-    ConnectionServer http;
     struct Known {
         std::regex pattern;
         std::string method;
         std::string name;  ///< the path template, e.g. "/v1/meshes/{id}"
         RouteFlags flags;
+        Handler handler;
+        bool listed = true;  ///< false for add_route_for_tests
     };
-    std::vector<Known> known;  ///< for 405 vs 404
+    std::vector<Known> known;  ///< the router: first match by method and path
     std::atomic<uint64_t> next_request_id{1};
     const std::vector<ApiToken> tokens;  ///< empty: no authentication
+    HttpFront http;                      ///< last: its callbacks use the members above
 
     /// Checks the bearer token when tokens are configured, and that it has the role the route
     /// needs (write for `write` routes, else read). On refusal replies 401 (no or an unknown
@@ -98,7 +144,13 @@ struct HttpServer::Impl {
     bool authorized(const httplib::Request& req, httplib::Response& res, bool write) {
         if (tokens.empty()) return true;
         const std::string auth = req.get_header_value("Authorization");
-        if (auth.rfind("Bearer ", 0) != 0) {
+        // RFC 9110 11.1: the scheme is case-insensitive, and one or more spaces end it.
+        const bool bearer =
+            auth.size() > 7 && auth[6] == ' ' &&
+            std::equal(auth.begin(), auth.begin() + 6, "bearer", [](char a, char b) {
+                return std::tolower(static_cast<unsigned char>(a)) == b;
+            });
+        if (!bearer) {
             reply_problem(
                 req, res,
                 make_problem(ProblemKind::kUnauthorized,
@@ -107,7 +159,9 @@ struct HttpServer::Impl {
         }
         // Every configured token is compared, in full: the time taken does not say which
         // (or how much of one) matched.
-        const std::string_view given = std::string_view(auth).substr(7);
+        const std::string_view given = std::string_view(auth).substr(
+            auth.find_first_not_of(' ', 6) == std::string::npos ? auth.size()
+                                                                : auth.find_first_not_of(' ', 6));
         unsigned roles = 0;
         bool found = false;
         for (const ApiToken& t : tokens) {
@@ -141,10 +195,12 @@ struct HttpServer::Impl {
         return true;
     }
 
-    /// The route `req` goes to (by method and path), or null.
-    [[nodiscard]] const Known* find_route(const httplib::Request& req) const {
+    /// The route `req` goes to (by method and path; HEAD is answered as GET), or null. Sets
+    /// req.matches (the path's captures: a mesh or job id).
+    const Known* find_route(httplib::Request& req) const {
+        const std::string& method = req.method == "HEAD" ? std::string("GET") : req.method;
         for (const Known& k : known)
-            if (k.method == req.method && std::regex_match(req.path, k.pattern)) return &k;
+            if (k.method == method && std::regex_match(req.path, req.matches, k.pattern)) return &k;
         return nullptr;
     }
 
@@ -164,28 +220,6 @@ struct HttpServer::Impl {
                                           "Content-Type")) == proto::kPointMediaType)
             return proto::kdrp_body_size(c.max_distance_points);
         return c.max_json_bytes;
-    }
-
-    /// `Expect: 100-continue`: refuse before the client sends the body when the token is wrong
-    /// or the declared length is over the route's limit (curl asks for bodies over 1 MiB).
-    int on_expect_continue(const httplib::Request& req, httplib::Response& res) {
-        begin_request(res);
-        const bool api = req.path.rfind("/v1/", 0) == 0 || req.path == "/v1";
-        if (api && !tokens.empty()) {
-            const Known* route = find_route(req);
-            if (route) request_context().route = route->name;
-            if (!authorized(req, res, route && route->flags.write)) {
-                res.set_header("Connection", "close");
-                return res.status;
-            }
-        }
-        const uint64_t limit = body_limit(req);
-        if (req.get_header_value<uint64_t>("Content-Length") > limit) {
-            reply_problem(req, res, body_too_large_problem(limit, "this route"));
-            res.set_header("Connection", "close");
-            return res.status;
-        }
-        return 100;
     }
 
     /// Starts the per-request context (id, clock). Called again by the pre-routing handler
@@ -239,63 +273,61 @@ struct HttpServer::Impl {
         return true;
     }
 
-    /// A streamed response is written after the handler returns, and httplib stops streaming
-    /// once the server is stopped: keep the admission slot until the response is gone, so the
-    /// shutdown sequence (which waits for zero slots) never cuts a reply short.
-    static void hold_until_sent(httplib::Response& res, AdmissionGate::Slot slot) {
-        keep_until_sent(res, std::make_shared<AdmissionGate::Slot>(std::move(slot)));
+    /// Registers a GET or DELETE route.
+    void add(const char* method, const std::string& pattern, const std::string& name,
+             RouteFlags flags,
+             void (Routes::*handler)(const httplib::Request&, httplib::Response&)) {
+        known.push_back(
+            {std::regex(pattern), method, name, flags,
+             [this, name, flags, handler](const httplib::Request& req, httplib::Response& res,
+                                          const httplib::ContentReader&) {
+                 request_context().route = name;
+                 std::optional<AdmissionGate::Slot> slot;
+                 if (admit(flags, req, res, slot)) (routes.*handler)(req, res);
+             }});
     }
 
     void get(const std::string& pattern, const std::string& name, RouteFlags flags,
              void (Routes::*handler)(const httplib::Request&, httplib::Response&)) {
-        known.push_back({std::regex(pattern), "GET", name, flags});
-        http.Get(pattern,
-                 [this, name, flags, handler](const httplib::Request& req, httplib::Response& res) {
-                     request_context().route = name;
-                     std::optional<AdmissionGate::Slot> slot;
-                     if (admit(flags, req, res, slot)) (routes.*handler)(req, res);
-                 });
+        add("GET", pattern, name, flags, handler);
     }
 
     void del(const std::string& pattern, const std::string& name, RouteFlags flags,
              void (Routes::*handler)(const httplib::Request&, httplib::Response&)) {
-        known.push_back({std::regex(pattern), "DELETE", name, flags});
-        http.Delete(pattern, [this, name, flags, handler](const httplib::Request& req,
-                                                          httplib::Response& res) {
-            request_context().route = name;
-            std::optional<AdmissionGate::Slot> slot;
-            if (admit(flags, req, res, slot)) (routes.*handler)(req, res);
-        });
+        add("DELETE", pattern, name, flags, handler);
     }
 
+    /// A POST route. A refused request's body is left unread (the front drains or closes), and
+    /// with `Expect: 100-continue` a body declared over the route's limit is refused before the
+    /// client sends it. The admission slot is kept until the response has been written, so the
+    /// shutdown sequence (which waits for zero slots) never cuts a reply short.
     void post(const std::string& pattern, const std::string& name, RouteFlags flags,
               void (Routes::*handler)(const httplib::Request&, httplib::Response&,
-                                      const httplib::ContentReader&)) {
-        known.push_back({std::regex(pattern), "POST", name, flags});
-        http.Post(pattern,
-                  [this, name, flags, handler](const httplib::Request& req, httplib::Response& res,
-                                               const httplib::ContentReader& reader) {
-                      request_context().route = name;
-                      std::optional<AdmissionGate::Slot> slot;
-                      if (!admit(flags, req, res, slot)) return discard_body(req, res, reader);
-                      (routes.*handler)(req, res, reader);
-                      if (slot) hold_until_sent(res, std::move(*slot));
-                  });
+                                      const httplib::ContentReader&),
+              const char* method = "POST") {
+        known.push_back(
+            {std::regex(pattern), method, name, flags,
+             [this, name, flags, handler](const httplib::Request& req, httplib::Response& res,
+                                          const httplib::ContentReader& reader) {
+                 request_context().route = name;
+                 std::optional<AdmissionGate::Slot> slot;
+                 if (!admit(flags, req, res, slot)) return;
+                 if (expects_continue(req)) {
+                     const uint64_t limit = body_limit(req);
+                     if (declared_body_bytes(req).value_or(0) > limit)
+                         return reply_problem(req, res,
+                                              body_too_large_problem(limit, "this route"));
+                 }
+                 (routes.*handler)(req, res, reader);
+                 if (slot) keep_until_sent(std::make_shared<AdmissionGate::Slot>(std::move(*slot)));
+             }});
     }
 
+    /// A PATCH route: as post().
     void patch(const std::string& pattern, const std::string& name, RouteFlags flags,
                void (Routes::*handler)(const httplib::Request&, httplib::Response&,
                                        const httplib::ContentReader&)) {
-        known.push_back({std::regex(pattern), "PATCH", name, flags});
-        http.Patch(pattern,
-                   [this, name, flags, handler](const httplib::Request& req, httplib::Response& res,
-                                                const httplib::ContentReader& reader) {
-                       request_context().route = name;
-                       std::optional<AdmissionGate::Slot> slot;
-                       if (!admit(flags, req, res, slot)) return discard_body(req, res, reader);
-                       (routes.*handler)(req, res, reader);
-                       if (slot) hold_until_sent(res, std::move(*slot));
-                   });
+        post(pattern, name, flags, handler, "PATCH");
     }
 
     void register_routes() {
@@ -379,26 +411,21 @@ struct HttpServer::Impl {
             "malformed HTTP request (status " + std::to_string(status) + " from the HTTP layer)");
     }
 
-    /// Fills the body of errors httplib produced itself (unknown route, malformed request,
-    /// Content-Length over the payload limit).
-    httplib::Server::HandlerResponse on_error(const httplib::Request& req, httplib::Response& res) {
-        fresh_context_if_rejected(res);
-        if (response_has_content(res)) return httplib::Server::HandlerResponse::Unhandled;
+    /// 404 for a path no route serves, 405 (with Allow) for a wrong method on one.
+    void route_not_found(const httplib::Request& req, httplib::Response& res) {
+        request_context().route = "unmatched";
         const auto [allowed, method_allowed] = allowed_methods(req.path, req.method);
-        if ((res.status == 404 || res.status == 400) && !allowed.empty() && !method_allowed) {
-            // httplib answers 404 (or 400 for methods it has no handlers for) when only the
-            // method is wrong.
-            res.status = 405;
-            res.set_header("Allow", allowed);
-            reply_problem(
+        if (allowed.empty() || method_allowed)
+            return reply_problem(
                 req, res,
-                make_problem(ProblemKind::kMethodNotAllowed,
-                             req.path + " " + std::string(proto::api_errors::kMethodNotAllowed) +
-                                 " " + req.method + " (allowed: " + allowed + ")"));
-        } else {
-            reply_problem(req, res, http_layer_problem(req, res.status));
-        }
-        return httplib::Server::HandlerResponse::Handled;
+                make_problem(ProblemKind::kNotFound, std::string(proto::api_errors::kNoRoute) +
+                                                         " " + req.method + " " + req.path));
+        res.set_header("Allow", allowed);
+        reply_problem(
+            req, res,
+            make_problem(ProblemKind::kMethodNotAllowed,
+                         req.path + " " + std::string(proto::api_errors::kMethodNotAllowed) + " " +
+                             req.method + " (allowed: " + allowed + ")"));
     }
 
     void on_exception(const httplib::Request& req, httplib::Response& res, std::exception_ptr ep) {
@@ -423,36 +450,51 @@ struct HttpServer::Impl {
         res.set_header("Connection", "close");
     }
 
-    /// Starts the per-request context; answers requests httplib would mishandle.
-    httplib::Server::HandlerResponse on_pre_routing(const httplib::Request& req,
-                                                    httplib::Response& res) {
+    /// One request, from the front (on a worker thread): the per-request context, the checks
+    /// every request passes, the router, and the handler inside the exception handling.
+    void answer(httplib::Request& req, httplib::Response& res,
+                const httplib::ContentReader& reader) {
         begin_request(res);
         svc.requests.begin(request_context().request_id, method_label(req.method), req.path);
-        // httplib reads Content-Length with strtoull: "abc" is 0, "0x10" is 0, "1, 2" is 1.
-        // RFC 9110: one value of decimal digits (a list of equal values is not worth the risk).
-        if (req.has_header("Content-Length")) {
-            const std::string value = req.get_header_value("Content-Length");
-            const bool digits = !value.empty() && value.size() <= 19 &&
-                                value.find_first_not_of("0123456789") == std::string::npos;
-            if (!digits || req.get_header_value_count("Content-Length") != 1) {
-                request_context().route = "unmatched";
-                reply_problem(req, res,
-                              make_problem(ProblemKind::kBadRequest,
-                                           "invalid Content-Length " + proto::in_quotes(value) +
-                                               " (one decimal number of bytes)"));
-                res.set_header("Connection", "close");
-                return httplib::Server::HandlerResponse::Handled;
-            }
+        if (!is_known_method(req.method)) {
+            // Not a method of RFC 9110 or 5789: no route could take it.
+            request_context().route = "rejected";
+            reply_problem(req, res,
+                          make_problem(ProblemKind::kBadRequest,
+                                       "unknown request method (GET, HEAD, POST, PUT, DELETE, "
+                                       "PATCH, OPTIONS are the ones HTTP defines here)"));
+            res.set_header("Connection", "close");
+            return;
         }
-        // httplib 0.11.4 reads a POST without Content-Length or chunked framing until the peer
-        // closes; HTTP/1.1 says such a body is empty. Answer now instead of hanging.
+        if (refused_before_routing(req, res)) return;
+        const Known* route = find_route(req);
+        if (route == nullptr) return route_not_found(req, res);
+        try {
+            route->handler(req, res, reader);
+        } catch (...) {
+            on_exception(req, res, std::current_exception());
+        }
+        if (res.status == -1) res.status = res.body.empty() ? 204 : 200;
+    }
+
+    /// Answers what no route should see: a POST without a framed body, a compressed body, a
+    /// body over the largest any route takes. True when it answered.
+    bool refused_before_routing(const httplib::Request& req, httplib::Response& res) {
+        // HTTP/1.1 says a POST without Content-Length or chunked framing has an empty body;
+        // every kdrt POST needs one, and saying so is clearer than a decoder's complaint.
         if (req.method == "POST" && !req.has_header("Content-Length") &&
             !req.has_header("Transfer-Encoding")) {
             request_context().route = "unmatched";
             reply_problem(req, res,
                           make_problem(ProblemKind::kBadRequest,
                                        "a POST needs a Content-Length (or chunked) body"));
-            return httplib::Server::HandlerResponse::Handled;
+            return true;
+        }
+        if (declared_body_bytes(req).value_or(0) > largest_body()) {
+            request_context().route = "unmatched";
+            reply_problem(req, res, body_too_large_problem(largest_body(), "any request"));
+            res.set_header("Connection", "close");  // the body is not read
+            return true;
         }
         // Compressed request bodies are refused (RFC 7694): httplib would inflate them with no
         // bound on the decoded size (a 2 MB gzip body becomes a 1 GiB spooled upload).
@@ -461,26 +503,14 @@ struct HttpServer::Impl {
             request_context().route = "unmatched";
             reply_problem(req, res,
                           make_problem(ProblemKind::kUnsupportedMediaType,
-                                       "Content-Encoding " + proto::in_quotes(encoding) +
+                                       "Content-Encoding " + proto::quote_value(encoding) +
                                            " is not accepted; send request bodies "
                                            "uncompressed (identity)"));
             res.set_header("Accept-Encoding", "identity");
             res.set_header("Connection", "close");  // the body is not read
-            return httplib::Server::HandlerResponse::Handled;
+            return true;
         }
-        return httplib::Server::HandlerResponse::Unhandled;
-    }
-
-    /// A request httplib refused before routing (malformed request line, unknown method) never
-    /// reached the pre-routing handler: give it its own context instead of the previous
-    /// request's on this thread (id, route "rejected").
-    void fresh_context_if_rejected(httplib::Response& res) {
-        if (request_context().active) return;
-        begin_request(res);
-        request_context().route = "rejected";
-        // What follows an unparsed request line on the connection cannot be framed: answer and
-        // close (the connection layer closes a connection whose response says so).
-        res.set_header("Connection", "close");
+        return false;
     }
 
     /// One access-log line and the request metrics, after the response is written.
@@ -514,11 +544,10 @@ struct HttpServer::Impl {
                    {"id", context.request_id}});
         context.active = false;
         svc.requests.end();
-        note_response_sent(res);
     }
 
-    /// The problem+json body of a refusal the connection layer sends before httplib parses the
-    /// request (408, 431, 503); logged and counted like a request on no route.
+    /// The problem+json body of a refusal the front sends itself (400, 408, 431, 503: see
+    /// HttpFront); logged and counted like a request on no route.
     std::string early_reply(int status, std::string_view method, const std::string& detail) {
         const ProblemKind kind = status == 408   ? ProblemKind::kRequestTimeout
                                  : status == 431 ? ProblemKind::kHeadersTooLarge
@@ -528,14 +557,13 @@ struct HttpServer::Impl {
         problem.request_id = proto::hex(next_request_id.fetch_add(1), 16);
         if (status == 503) problem.retry_after = 1;
         std::string body = proto::encode_problem(problem);
-        static constexpr std::array<std::string_view, 7> kMethods = {
-            "GET", "HEAD", "POST", "PUT", "DELETE", "PATCH", "OPTIONS"};
-        const bool known_method =
-            std::find(kMethods.begin(), kMethods.end(), method) != kMethods.end();
-        const std::string method_label = known_method ? std::string(method) : "other";
-        svc.metrics.record_request("unmatched", method_label, status, 0, 0, body.size());
+        const std::string method_label = is_known_method(method) ? std::string(method) : "other";
+        // A head the front could not parse is "rejected"; one refused for a limit "unmatched".
+        const std::string route = status == 400 ? "rejected" : "unmatched";
+        svc.metrics.record_request(route, method_label, status, 0, 0, body.size());
         log_event(LogLevel::kWarn, "request refused",
                   {{"method", method_label},
+                   {"route", route},
                    {"status", static_cast<int64_t>(status)},
                    {"error", detail},
                    {"id", problem.request_id}});
@@ -548,47 +576,8 @@ struct HttpServer::Impl {
     }
 
     void configure() {
-        const ServerConfig& c = svc.config;
-        http.set_connection_limits(
-            {.threads = c.http_threads,
-             .keep_alive_timeout_s = c.keep_alive_timeout_s,
-             .keep_alive_max_requests = c.keep_alive_max_requests,
-             .read_timeout_s = c.read_timeout_s,
-             .write_timeout_s = c.write_timeout_s,
-             .head_timeout_s = c.request_head_timeout_s,
-             .request_timeout_s = c.request_timeout_s,
-             .max_head_bytes = static_cast<size_t>(c.max_request_head_bytes),
-             .max_headers = c.max_request_headers,
-             .prebuffer_bytes = static_cast<size_t>(c.request_prebuffer_bytes),
-             .max_connections = c.max_connections},
-            [this](int status, std::string_view method, const std::string& detail) {
-                return early_reply(status, method, detail);
-            });
-        http.set_tcp_nodelay(true);
-        // httplib's default also sets SO_REUSEPORT, which lets a second server bind the same
-        // port and take half the connections. SO_REUSEADDR alone still allows a restart while
-        // old connections are in TIME_WAIT.
-        http.set_socket_options([](socket_t sock) {
-            int yes = 1;
-            ::setsockopt(sock, SOL_SOCKET, SO_REUSEADDR, &yes, sizeof yes);
-        });
-        http.set_keep_alive_max_count(c.keep_alive_max_requests);
-        http.set_keep_alive_timeout(c.keep_alive_timeout_s);
-        http.set_read_timeout(c.read_timeout_s, 0);
-        http.set_write_timeout(c.write_timeout_s, 0);
-        http.set_payload_max_length(largest_body());
-        http.set_pre_routing_handler(
-            [this](const auto& req, auto& res) { return on_pre_routing(req, res); });
-        http.set_error_handler(httplib::Server::HandlerWithResponse(
-            [this](const auto& req, auto& res) { return on_error(req, res); }));
-        http.set_exception_handler([this](const auto& req, auto& res, std::exception_ptr ep) {
-            on_exception(req, res, std::move(ep));
-        });
-        http.set_expect_100_continue_handler(
-            [this](const auto& req, auto& res) { return on_expect_continue(req, res); });
-        http.set_logger([this](const auto& req, const auto& res) { on_logged(req, res); });
         svc.metrics.add_collector(
-            [gauges = http.gauges(), threads = c.http_threads](auto& families) {
+            [gauges = http.gauges(), threads = svc.config.http_threads](auto& families) {
                 add_connection_families(families, *gauges, threads);
             });
         register_routes();
@@ -602,46 +591,35 @@ HttpServer::HttpServer(Service& service) : impl_(std::make_unique<Impl>(service)
 HttpServer::~HttpServer() = default;
 
 proto::Result<int, std::string> HttpServer::bind(const std::string& host, int port) {
-    if (port == 0) {
-        const int bound = impl_->http.bind_to_any_port(host);
-        if (bound <= 0)
-            return proto::Err{"cannot listen on " + host + ":0: " + std::strerror(errno)};
-        if (!impl_->http.set_listen_backlog(kListenBacklog))
-            return proto::Err{"cannot set the listen backlog of " + host + ": " +
-                              std::strerror(errno)};
-        return bound;
-    }
-    errno = 0;
-    if (!impl_->http.bind_to_port(host, port)) {
-        const int err = errno;
-        std::string why = err ? std::strerror(err) : "bind failed";
-        if (err == EADDRINUSE)
-            why += " (another process, perhaps another kdrt-server, listens there)";
-        return proto::Err{"cannot listen on " + host + ":" + std::to_string(port) + ": " + why};
-    }
-    if (!impl_->http.set_listen_backlog(kListenBacklog))
-        return proto::Err{"cannot set the listen backlog of " + host + ":" + std::to_string(port) +
-                          ": " + std::strerror(errno)};
-    return port;
+    auto bound = impl_->http.bind(host, port, kListenBacklog);
+    if (bound) return *bound;
+    std::string why = bound.error();
+    if (why == std::strerror(EADDRINUSE))
+        why += " (another process, perhaps another kdrt-server, listens there)";
+    return proto::Err{"cannot listen on " + host + ":" + std::to_string(port) + ": " + why};
 }
 
-bool HttpServer::serve() { return impl_->http.listen_after_bind(); }
+bool HttpServer::serve() { return impl_->http.serve(); }
 
 void HttpServer::stop() { impl_->http.stop(); }
 
 std::vector<RouteInfo> HttpServer::routes() const {
     std::vector<RouteInfo> out;
-    for (const Impl::Known& k : impl_->known) out.push_back({k.method, k.name});
+    for (const Impl::Known& k : impl_->known)
+        if (k.listed) out.push_back({k.method, k.name});
     return out;
 }
 
 void HttpServer::add_route_for_tests(const std::string& path, std::function<void()> action) {
-    impl_->http.Get(
-        path, [path, action = std::move(action)](const httplib::Request&, httplib::Response& res) {
-            request_context().route = path;
-            action();
-            res.status = 204;
-        });
+    impl_->known.push_back(
+        {std::regex(path), "GET", path, RouteFlags{},
+         [path, action = std::move(action)](const httplib::Request&, httplib::Response& res,
+                                            const httplib::ContentReader&) {
+             request_context().route = path;
+             action();
+             res.status = 204;
+         },
+         false});
 }
 
 std::string httplib_version() { return CPPHTTPLIB_VERSION; }

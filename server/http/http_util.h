@@ -1,11 +1,12 @@
 #pragma once
-/// Helpers shared by the http_*.cpp files (the only files that see httplib.h): the per-request
+/// Helpers shared by the http/*.cpp files (the only files that see httplib.h): the per-request
 /// context used by the access log, problem and body replies, and body reading with limits.
 
 #include <httplib.h>
 
 #include <chrono>
 #include <cstdint>
+#include <functional>
 #include <memory>
 #include <optional>
 #include <span>
@@ -38,35 +39,44 @@ struct RequestContext {
 /// and request_id, and Retry-After when set.
 void reply_problem(const httplib::Request& req, httplib::Response& res, proto::Problem problem);
 
+/// True when the request's Content-Type (its essence) is `type`; else replies 415 naming the
+/// route (`route`, e.g. "distance"), the type it expects and the one given, and returns false.
+[[nodiscard]] bool has_media_type(const httplib::Request& req, httplib::Response& res,
+                                  std::string_view type, std::string_view route);
+
+/// The request's query parameters as proto's query parsers read them: a value, or nullopt.
+[[nodiscard]] std::function<std::optional<std::string>(std::string_view)> query_params(
+    const httplib::Request& req);
+
 /// Replies `status` with a JSON body (moved, not copied).
 void reply_json(httplib::Response& res, int status, std::string json);
 
-/// Replies 200 with a binary body; large bodies are streamed from memory by a content provider,
-/// and their vector goes back to `pool` (if given) once sent.
+/// Replies 200 with a binary body; large bodies are sent from the vector itself (no copy,
+/// reply_from_memory), which goes back to `pool` (if given) once sent.
 void reply_bytes(httplib::Response& res, std::vector<std::byte> bytes,
                  std::string_view content_type, VectorPool<std::byte>* pool = nullptr);
 
 /// Replies 200 with the first `size` bytes of `buffer`: small bodies are copied into the
-/// response, large ones are streamed from the buffer itself by a content provider (no copy); the
-/// buffer goes back to its pool once copied, or once sent or abandoned.
+/// response, large ones are sent from the buffer itself (no copy, reply_from_memory); the buffer
+/// goes back to its pool once copied, or once sent or abandoned.
 void reply_buffer(httplib::Response& res, PooledBuffer buffer, size_t size,
                   std::string_view content_type);
 
 /// 408 for a body that did not arrive within the request's deadline (request_timeout_s).
 [[nodiscard]] proto::Problem body_timeout_problem();
 
-/// After an early error reply on a streamed route, the body has not been read: drain it if it
-/// is small, else ask the client to close the connection (never parse it as the next request).
-void discard_body(const httplib::Request& req, httplib::Response& res,
-                  const httplib::ContentReader& reader);
+/// Checked as a body arrives, with the bytes received so far: a problem stops reading and is
+/// the reply (a budget that does not stretch to the body's size).
+using BodyProgress = std::function<std::optional<proto::Problem>(uint64_t received)>;
 
 /// Reads the request body through `reader` into a RequestBody (memory up to `memory_bytes`, then
 /// spooled to `spool_dir`). Refuses more than `limit` bytes with 413 (`what` names the body in
-/// the detail). On failure the reply is already set and nullptr is returned.
+/// the detail). Counts the bytes in the request context (bytes_in), once. `progress` (if set)
+/// is asked after every piece. On failure the reply is already set and nullptr is returned.
 [[nodiscard]] std::unique_ptr<RequestBody> read_body(
     const httplib::Request& req, httplib::Response& res, const httplib::ContentReader& reader,
     uint64_t limit, uint64_t memory_bytes, const std::string& spool_dir, const std::string& what,
-    std::vector<std::byte> buffer = {});
+    std::vector<std::byte> buffer = {}, const BodyProgress& progress = {});
 
 /// True when the request body is framed as chunks (Transfer-Encoding: chunked).
 [[nodiscard]] bool is_chunked(const httplib::Request& req);

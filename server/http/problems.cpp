@@ -5,8 +5,8 @@
 
 namespace kdrt::server {
 
-using proto::in_quotes;
 using proto::ProblemKind;
+using proto::quote_value;
 
 proto::Problem make_problem(ProblemKind kind, std::string detail) {
     proto::Problem p;
@@ -70,7 +70,7 @@ proto::Problem body_too_large_problem(uint64_t limit, const std::string& what) {
 proto::Problem unknown_mesh_problem(const std::string& id) {
     if (!proto::is_mesh_id(id))
         return make_problem(ProblemKind::kUnknownMesh,
-                            in_quotes(id) + " " + std::string(proto::api_errors::kBadMeshId) +
+                            quote_value(id) + " " + std::string(proto::api_errors::kBadMeshId) +
                                 " (64 lower-case hex digits)");
     return make_problem(ProblemKind::kUnknownMesh,
                         std::string(proto::api_errors::kUnknownMesh) + " " + id);
@@ -139,6 +139,27 @@ proto::Problem scene_request_problem(const proto::SceneRequestError& error,
     p.field = error.field;
     p.index = error.index;
     if (error.over_limit) p.limit = max_instances;
+    return p;
+}
+
+proto::Problem budget_problem(const ByteBudget& budget, uint64_t bytes, const std::string& subject,
+                              const std::string& advice, const std::string& short_subject) {
+    const uint64_t limit = budget.limit();
+    if (bytes > limit) {
+        auto p = make_problem(proto::ProblemKind::kPayloadTooLarge,
+                              subject + " needs " + std::to_string(bytes) +
+                                  " bytes of memory, more than batch_memory_budget (" +
+                                  std::to_string(limit) + ")" + advice);
+        p.limit = limit;
+        return p;
+    }
+    auto p = make_problem(proto::ProblemKind::kOverCapacity,
+                          "ray batches in flight hold " + std::to_string(budget.held()) + " of " +
+                              std::to_string(limit) + " bytes (batch_memory_budget); " +
+                              (short_subject.empty() ? subject : short_subject) + " needs " +
+                              std::to_string(bytes) + "; retry later");
+    p.retry_after = 1;
+    p.limit = limit;
     return p;
 }
 

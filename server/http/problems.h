@@ -8,6 +8,7 @@
 #include "kdrt/proto/mesh_io.h"
 #include "kdrt/proto/problem.h"
 #include "kdrt/proto/ray_batch.h"
+#include "service.h"
 #include "store/mesh_cache.h"
 #include "store/scene_cache.h"
 
@@ -38,6 +39,13 @@ namespace kdrt::server {
 /// naming the field and index.
 [[nodiscard]] proto::Problem scene_request_problem(const proto::SceneRequestError& error,
                                                    uint32_t max_instances);
+/// A refusal by batch_memory_budget of work needing `bytes`: 413 naming the budget when it could
+/// never fit ("`subject` needs N bytes of memory, more than batch_memory_budget (L)`advice`"),
+/// else 503 with Retry-After: 1 ("... hold H of L bytes (batch_memory_budget); `short_subject`
+/// needs N; retry later"). An empty `short_subject` is `subject`.
+[[nodiscard]] proto::Problem budget_problem(const ByteBudget& budget, uint64_t bytes,
+                                            const std::string& subject, const std::string& advice,
+                                            const std::string& short_subject = "");
 /// 503 kNotReady with Retry-After: 1: "the server is shutting down", or when not
 /// `shutting_down`, "the server is starting; retry shortly".
 [[nodiscard]] proto::Problem not_ready_problem(bool shutting_down);

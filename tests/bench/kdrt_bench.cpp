@@ -102,6 +102,7 @@ all_vs_closest_single / all_vs_closest_auto (rays/s ratios).
 
 constexpr std::string_view kDistanceUsage =
     R"(usage: kdrt-bench distance MESH [--points N] [--brute N] [--threads N] [--reps K] [--seed S]
+                            [--far D]
 
 Distance queries (kdrt::closest_points, kdrt/distance.h) against the brute-force scan. Builds the
 tree and the surface index of MESH, then makes N query points (default 100000): half uniform in
@@ -126,6 +127,8 @@ options:
   --threads N  worker threads (default: all cores)
   --reps K     timed passes of the kD search (default 5)
   --seed S     random seed of the points (default 1)
+  --far D      the "uniform" half is instead on a sphere D box diagonals from the mesh's
+               centre (far points: 1e6 is a point a million mesh sizes away); printed as far
 )";
 
 constexpr std::string_view kTraceUsage =
@@ -539,6 +542,17 @@ int run_trace(const Args& args) {
         line["leaves_per_ray"] = per_ray(work.leaves_visited);
         line["tri_tests_per_ray"] = per_ray(work.triangle_tests);
         line["packet_visits"] = work.packet_visits;
+        // Wide-node visits per single-traced ray (the dependent node loads of the single-ray
+        // kernel), and the share of rays traced as single rays.
+        line["wide_visits_per_single_ray"] = rounded(
+            work.single_rays == 0
+                ? 0.0
+                : static_cast<double>(work.wide_visits) / static_cast<double>(work.single_rays),
+            3);
+        line["single_ray_share"] = rounded(
+            rays.empty() ? 0.0
+                         : static_cast<double>(work.single_rays) / static_cast<double>(rays.size()),
+            3);
         line["lane_utilisation"] = rounded(
             work.packet_visits == 0 ? 0.0
                                     : static_cast<double>(work.packet_lanes) /
@@ -634,20 +648,23 @@ int run_all_hits(const Args& args) {
     return 0;
 }
 
-/// The query points of `kdrt-bench distance`: `count` uniform in the mesh's box grown by 10%,
-/// and `count` near the surface (area-uniform samples moved by up to 1% of the diagonal).
+/// The query points of `kdrt-bench distance`: `count` uniform in the mesh's box grown by 10%
+/// (or, when `far` > 0, on the sphere `far` diagonals from its centre), and `count` near the
+/// surface (area-uniform samples moved by up to 1% of the diagonal).
 float norm(Vec3 v) { return std::sqrt(dot(v, v)); }
 
-void distance_query_points(const Mesh& mesh, size_t count, uint64_t seed,
+void distance_query_points(const Mesh& mesh, size_t count, uint64_t seed, float far,
                            std::vector<Vec3>& uniform, std::vector<Vec3>& near) {
     test::Rng rng(seed);
     Aabb box = mesh_bounds(mesh);
     const Vec3 extent = box.hi - box.lo;
+    const Vec3 centre = (box.lo + box.hi) * 0.5f;
     box.lo = box.lo - extent * 0.05f;
     box.hi = box.hi + extent * 0.05f;
     const float jitter = 0.01f * norm(extent);
     uniform.resize(count);
-    for (Vec3& p : uniform) p = rng.in_box(box);
+    for (Vec3& p : uniform)
+        p = far > 0 ? centre + rng.on_sphere() * (far * norm(extent)) : rng.in_box(box);
     std::vector<double> area(mesh.triangle_count());
     double total = 0;
     for (size_t t = 0; t < area.size(); ++t) {
@@ -688,6 +705,7 @@ int run_distance(const Args& args) {
     const auto reps = static_cast<int>(args.get_uint("reps", 5, 1, 1000));
     const auto points = static_cast<size_t>(args.get_uint("points", 100000, 2, 1u << 26));
     const uint64_t seed = args.get_uint("seed", 1, 0, std::numeric_limits<uint64_t>::max());
+    const float far = args.get_float("far", 0.0f, 0.0f, 1e30f);
     const LoadedMesh loaded = load_mesh(mesh_path);
     const size_t triangles = std::max<size_t>(1, loaded.mesh.triangle_count());
     const auto brute_default = static_cast<uint64_t>(
@@ -697,7 +715,7 @@ int run_distance(const Args& args) {
         args.get_uint("brute", std::min<uint64_t>(brute_default, 2 * half), 2, 2 * half));
 
     std::vector<Vec3> uniform, near;
-    distance_query_points(loaded.mesh, half, seed, uniform, near);
+    distance_query_points(loaded.mesh, half, seed, far, uniform, near);
     // The brute-force subset: its first half from each kind.
     std::vector<Vec3> subset(uniform.begin(),
                              uniform.begin() + static_cast<std::ptrdiff_t>(brute / 2));
@@ -768,6 +786,7 @@ int run_distance(const Args& args) {
     line["threads"] = threads;
     line["reps"] = reps;
     line["points"] = uniform.size() + near.size();
+    line["far"] = far;
     line["build_ms"] = rounded(build_ms, 3);
     line["surface_ms"] = rounded(surface_ms, 3);
     line["kd_points_per_s"] = rounded(kd_rate, 0);
@@ -1251,8 +1270,8 @@ constexpr std::array<std::string_view, 13> kRenderOptions = {
     "ao-samples", "bounces", "builder", "c-isect", "out",     "compare"};
 constexpr std::array<std::string_view, 4> kAllHitsOptions = {"max-hits", "mode", "threads", "reps"};
 constexpr std::array<std::string_view, 1> kAllHitsFlags = {"merge"};
-constexpr std::array<std::string_view, 5> kDistanceOptions = {"points", "brute", "threads", "reps",
-                                                              "seed"};
+constexpr std::array<std::string_view, 6> kDistanceOptions = {"points", "brute", "threads",
+                                                              "reps",   "seed",  "far"};
 constexpr std::array<Command, 7> kCommands = {{
     {"build", kBuildUsage, kBuildOptions, &run_build},
     {"trace", kTraceUsage, kTraceOptions, &run_trace, kTraceFlags},

@@ -50,7 +50,8 @@ void traversal_step_scalar(benchmark::State& state) {
         const float t_split = (node.split() - p.org[axis]) * p.inv_dir[axis];
         const float near_max = t_split + eps[axis], far_min = t_split - eps[axis];
         visited += (far_min > tmax) ? 1u : (near_max < tmin ? 2u : 3u);
-        const float new_tmax = near_max < tmax ? near_max : tmax;
+        // Not const: Google Benchmark 1.8 deprecates DoNotOptimize of a const value.
+        float new_tmax = near_max < tmax ? near_max : tmax;
         benchmark::DoNotOptimize(new_tmax);
     }
     benchmark::DoNotOptimize(visited);
@@ -59,7 +60,7 @@ void traversal_step_scalar(benchmark::State& state) {
 
 void leaf_test_scalar(benchmark::State& state) {
     const MicroFixture& f = micro_fixture();
-    const detail::PreparedRay p = detail::prepare_ray(f.rays[0]);
+    detail::PreparedRay p = detail::prepare_ray(f.rays[0]);  // not const: as new_tmax above
     const TriVerts& tri = f.tree.triangle(f.triangle);
     uint32_t hits = 0;
     for ([[maybe_unused]] auto _ : state) {

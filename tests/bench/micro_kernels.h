@@ -33,7 +33,8 @@ void bench_traversal_step(benchmark::State& state, Isa isa) {
         const detail::VM<W> active = tmin <= tmax;
         const detail::VM<W> need_near = active & ~(near_max < tmin);
         const detail::VM<W> need_far = active & ~(far_min > tmax);
-        const detail::VF<W> new_tmax = simd::min<W>(near_max, tmax);
+        // Not const: Google Benchmark 1.8 deprecates DoNotOptimize of a const value.
+        detail::VF<W> new_tmax = simd::min<W>(near_max, tmax);
         visited += simd::bits<W>(need_near) + simd::bits<W>(need_far);
         benchmark::DoNotOptimize(new_tmax);
     }

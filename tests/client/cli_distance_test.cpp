@@ -232,8 +232,8 @@ TEST_F(CliDistance, TextInCsvOutIsTheEnginesAnswer) {
             kdrt({"distance", box_id_, in, "-o", out, "--max-distance", "0.2", "--signed"});
         ASSERT_EQ(run.exit_code, 0) << run.err;
         EXPECT_EQ(read_text(out), want);
-        EXPECT_TRUE(contains(run.out, "queried 500 points in ")) << run.out;
-        EXPECT_TRUE(contains(run.out, " inside, ")) << run.out;
+        EXPECT_TRUE(contains(run.err, "queried 500 points in ")) << run.err;
+        EXPECT_TRUE(contains(run.err, " inside, ")) << run.err;
     }
     // Some points are farther than 0.2 from the box: their rows have no prim.
     EXPECT_TRUE(contains(want, ",unknown,,")) << want.substr(0, 400);
@@ -250,7 +250,7 @@ TEST_F(CliDistance, OpenMeshSaysWhySidesAreUnknown) {
     const CliRun run =
         kdrt({"distance", proto::mesh_id(open), points, "-o", path("open.csv"), "--signed"});
     ASSERT_EQ(run.exit_code, 0) << run.err;
-    EXPECT_TRUE(contains(run.out,
+    EXPECT_TRUE(contains(run.err,
                          "0 inside, 0 outside (sides unknown: the mesh is not closed: 3 "
                          "boundary edges"))
         << run.out;

@@ -30,7 +30,8 @@ bool drain(int fd, std::string& out) {
 }  // namespace
 
 CliRun run_cli(const std::vector<std::string>& args, const CliOptions& options) {
-    std::vector<std::string> argv_strings = {KDRT_CLI_BINARY};
+    std::vector<std::string> argv_strings = {options.binary.empty() ? std::string(KDRT_CLI_BINARY)
+                                                                    : options.binary};
     argv_strings.insert(argv_strings.end(), args.begin(), args.end());
     std::vector<std::string> env;
     for (char** e = environ; *e; ++e)

@@ -21,6 +21,7 @@ struct CliOptions {
     bool stderr_tty = false;  ///< stderr on a pseudo-terminal (progress bar)
     std::string interrupt_when = {};    ///< send SIGINT once stderr contains this text
     std::chrono::seconds timeout{120};  ///< then SIGKILL, exit_code -1
+    std::string binary = {};            ///< the program to run; empty: KDRT_CLI_BINARY
 };
 
 /// Runs `kdrt args...` and waits for it.

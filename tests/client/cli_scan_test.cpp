@@ -21,10 +21,6 @@ bool contains(const std::string& text, const std::string& part) {
     return text.find(part) != std::string::npos;
 }
 
-std::string as_string(const std::vector<std::byte>& bytes) {
-    return {reinterpret_cast<const char*>(bytes.data()), bytes.size()};
-}
-
 class CliScan : public ::testing::Test {
 protected:
     static void SetUpTestSuite() {
@@ -90,8 +86,8 @@ TEST_F(CliScan, PinholeFilesHoldTheEnginesScan) {
         kdrt({"scan", id_, "--pinhole", "-o", path("depth.exr"), "--intrinsics", "40,38,19.5,15",
               "--size", "40x30", "--pose", kPoseText, "--range", "--normals", "--max-range", "9"});
     ASSERT_EQ(exr.exit_code, 0) << exr.err;
-    EXPECT_TRUE(contains(exr.out, "wrote " + path("depth.exr"))) << exr.out;
-    EXPECT_TRUE(contains(exr.out, "40x30 range")) << exr.out;
+    EXPECT_TRUE(contains(exr.err, "wrote " + path("depth.exr"))) << exr.err;
+    EXPECT_TRUE(contains(exr.err, "40x30 range")) << exr.err;
     auto back = proto::decode_depth_exr(read_bytes(path("depth.exr")));
     ASSERT_TRUE(back) << back.error();
     EXPECT_EQ(as_string(proto::encode_depth_image(*back)),
@@ -146,7 +142,7 @@ TEST_F(CliScan, LidarFilesHoldTheEnginesScan) {
         args.insert(args.end(), sensor.begin(), sensor.end());
         const CliRun run = kdrt(args);
         ASSERT_EQ(run.exit_code, 0) << run.err;
-        EXPECT_TRUE(contains(run.out, std::to_string(want.points.size()) + " points")) << run.out;
+        EXPECT_TRUE(contains(run.err, std::to_string(want.points.size()) + " points")) << run.err;
         EXPECT_EQ(as_string(read_bytes(path(file))), as_string(bytes)) << file;
     }
     // --elevations, and the library call.

@@ -374,8 +374,8 @@ TEST_F(Cli, RenderWritesTheFormatOfTheExtension) {
         const CliRun run =
             kdrt({"render", id_, "-o", path(k.file), "--size", "80x60", "--shading", "normals"});
         ASSERT_EQ(run.exit_code, 0) << run.err;
-        EXPECT_TRUE(contains(run.out, "wrote " + path(k.file) + " (")) << run.out;
-        EXPECT_TRUE(contains(run.out, "80x60 normals, 1 spp)")) << run.out;
+        EXPECT_TRUE(contains(run.err, "wrote " + path(k.file) + " (")) << run.err;
+        EXPECT_TRUE(contains(run.err, "80x60 normals, 1 spp)")) << run.err;
         const std::vector<std::byte> bytes = read_bytes(path(k.file));
         ASSERT_GE(bytes.size(), k.magic.size());
         EXPECT_EQ(std::memcmp(bytes.data(), k.magic.data(), k.magic.size()), 0);
@@ -474,8 +474,13 @@ TEST_F(Cli, RenderProgressIsPlainLinesWithoutATerminal) {
     EXPECT_EQ(run.err.find('\r'), std::string::npos);
     const auto lines = lines_of(run.err);
     ASSERT_FALSE(lines.empty());
-    for (const std::string& line : lines) EXPECT_EQ(line.rfind("render: ", 0), 0u) << line;
-    EXPECT_EQ(lines.back().rfind("render: done in ", 0), 0u) << run.err;
+    // Progress lines, then the summary (stderr too: stdout stays empty).
+    ASSERT_GE(lines.size(), 2u);
+    for (size_t i = 0; i + 1 < lines.size(); ++i)
+        EXPECT_EQ(lines[i].rfind("render: ", 0), 0u) << lines[i];
+    EXPECT_EQ(lines[lines.size() - 2].rfind("render: done in ", 0), 0u) << run.err;
+    EXPECT_EQ(lines.back().rfind("wrote " + path("progress.png") + " (", 0), 0u) << run.err;
+    EXPECT_EQ(run.out, "");
     const CliRun quiet =
         kdrt({"render", id_, "-o", path("quiet.png"), "--size", "64x64", "--quiet"});
     ASSERT_EQ(quiet.exit_code, 0);
@@ -571,8 +576,8 @@ TEST_F(Cli, SplitRenderWritesTheBytesOfTheUnsplitRender) {
         const CliRun run = kdrt(args);
         ASSERT_EQ(run.exit_code, 0) << run.err;
         const uint32_t width = k.tile ? k.tile->width : 96, height = k.tile ? k.tile->height : 64;
-        EXPECT_TRUE(contains(run.out, "wrote " + path(k.file) + " (")) << run.out;
-        EXPECT_TRUE(contains(run.out, std::to_string(width) + "x" + std::to_string(height) + " " +
+        EXPECT_TRUE(contains(run.err, "wrote " + path(k.file) + " (")) << run.err;
+        EXPECT_TRUE(contains(run.err, std::to_string(width) + "x" + std::to_string(height) + " " +
                                           std::string(shading_name(k.shading)) + ", " +
                                           (k.shading == Shading::kAo ? "2" : "1") + " spp, " +
                                           std::to_string(k.parts) +
@@ -643,8 +648,8 @@ TEST_F(Cli, RaysWritesTheEngineRaySets) {
             generate_rays(*tree_, {.kind = *parsed, .res = 64, .seed = 5});
         EXPECT_EQ(read_bytes(out), proto::encode_rays(want, *parsed == RayKind::kShadow));
         EXPECT_TRUE(
-            contains(run.out, "wrote " + std::to_string(want.size()) + " " + kind + " rays"))
-            << run.out;
+            contains(run.err, "wrote " + std::to_string(want.size()) + " " + kind + " rays"))
+            << run.err;
     }
     const CliRun json =
         run_cli({"rays", mesh_file_, "-o", path("j.kdrr"), "--res", "16", "--json"});
@@ -695,19 +700,19 @@ TEST_F(Cli, TraceWritesTheEngineAnswers) {
             std::vector<uint8_t> want(batch->rays.size());
             occluded(*tree_, batch->rays, want);
             EXPECT_EQ(read_bytes(out), proto::encode_occlusion(want));
-            EXPECT_TRUE(contains(run.out, " occluded -> " + out)) << run.out;
+            EXPECT_TRUE(contains(run.err, " occluded -> " + out)) << run.err;
         } else {
             std::vector<Hit> want(batch->rays.size());
             intersect(*tree_, batch->rays, want);
             EXPECT_EQ(read_bytes(out), proto::encode_hits(want));
             const auto hits =
                 std::count_if(want.begin(), want.end(), [](const Hit& h) { return h.is_hit(); });
-            EXPECT_TRUE(contains(run.out,
+            EXPECT_TRUE(contains(run.err,
                                  "over 2 connections: " + std::to_string(hits) + " hits -> " + out))
-                << run.out;
+                << run.err;
         }
-        EXPECT_EQ(run.out.rfind("traced " + std::to_string(batch->rays.size()) + " rays (", 0), 0u)
-            << run.out;
+        EXPECT_EQ(run.err.rfind("traced " + std::to_string(batch->rays.size()) + " rays (", 0), 0u)
+            << run.err;
     }
     const CliRun json =
         kdrt({"trace", id_.substr(0, 10), path("t_primary.kdrr"), "-o", path("j.kdrh"), "--json"});
@@ -745,9 +750,9 @@ TEST_F(Cli, HitsAllWritesTheEngineAnswers) {
     EXPECT_EQ(read_bytes(out), proto::encode_multi_hits(view));
     uint64_t total = 0;
     for (uint32_t c : want.counts) total += c;
-    EXPECT_TRUE(contains(run.out, ": " + std::to_string(total) + " hits, " +
+    EXPECT_TRUE(contains(run.err, ": " + std::to_string(total) + " hits, " +
                                       std::to_string(want.hits.size()) + " kept -> " + out))
-        << run.out;
+        << run.err;
     // Counts only.
     run = kdrt({"hits", id_, rays, "--all", "--count-only", "-o", path("all.kdrc")});
     ASSERT_EQ(run.exit_code, 0) << run.err;
@@ -1007,6 +1012,173 @@ TEST_F(Cli, BenchRemoteErrors) {
     const CliRun unknown = kdrt({"bench-remote", std::string(64, '9')});
     EXPECT_EQ(unknown.exit_code, 1);
     EXPECT_TRUE(contains(unknown.err, "404 Unknown mesh")) << unknown.err;
+}
+
+// ---- output conventions: -o -, --json, --quiet
+// ---------------------------------------------------
+
+/// Parses one JSON object per line; fails the test on anything else.
+std::vector<nlohmann::json> json_lines(const std::string& text) {
+    std::vector<nlohmann::json> out;
+    for (const std::string& line : lines_of(text)) {
+        auto j = nlohmann::json::parse(line, nullptr, false);
+        EXPECT_TRUE(j.is_object()) << line;
+        out.push_back(j);
+    }
+    return out;
+}
+
+TEST_F(Cli, DashOutputWritesTheDataToStdoutAndEveryHumanLineToStderr) {
+    upload_suite_mesh();
+    const std::string rays = path("dash.kdrr"), hits = path("dash.kdrh");
+    // kdrt rays -o -: the KDRR bytes on stdout, the summary on stderr.
+    const CliRun gen = run_cli({"rays", mesh_file_, "-o", "-", "--res", "40"});
+    ASSERT_EQ(gen.exit_code, 0) << gen.err;
+    ASSERT_EQ(run_cli({"rays", mesh_file_, "-o", rays, "--res", "40"}).exit_code, 0);
+    EXPECT_EQ(gen.out, as_string(read_bytes(rays)));
+    EXPECT_TRUE(contains(gen.err, "wrote 1600 primary rays to - (")) << gen.err;
+    EXPECT_FALSE(std::filesystem::exists("-"));
+    // kdrt trace: to a file, stdout stays empty; to -, stdout is exactly the file's bytes.
+    const CliRun file = kdrt({"trace", id_, rays, "-o", hits});
+    ASSERT_EQ(file.exit_code, 0) << file.err;
+    EXPECT_EQ(file.out, "");
+    EXPECT_TRUE(contains(file.err, "traced 1600 rays (closest hits)")) << file.err;
+    const CliRun dash = kdrt({"trace", id_, rays, "-o", "-"});
+    ASSERT_EQ(dash.exit_code, 0) << dash.err;
+    EXPECT_EQ(dash.out, as_string(read_bytes(hits)));
+    EXPECT_TRUE(contains(dash.err, "traced 1600 rays (closest hits)")) << dash.err;
+    // --json with -o -: the JSON summary goes to stderr, the data alone to stdout.
+    const CliRun json = kdrt({"trace", id_, rays, "-o", "-", "--json"});
+    ASSERT_EQ(json.exit_code, 0) << json.err;
+    EXPECT_EQ(json.out, as_string(read_bytes(hits)));
+    const auto summary = json_lines(json.err);
+    ASSERT_EQ(summary.size(), 1u) << json.err;
+    EXPECT_EQ(summary[0]["rays"], 1600);
+    EXPECT_EQ(summary[0]["out"], "-");
+    // --quiet: nothing on stderr.
+    const CliRun quiet = kdrt({"trace", id_, rays, "-o", "-", "-q"});
+    ASSERT_EQ(quiet.exit_code, 0) << quiet.err;
+    EXPECT_EQ(quiet.out, as_string(read_bytes(hits)));
+    EXPECT_EQ(quiet.err, "");
+    // Commands whose format comes from the extension take --format with -o -.
+    const CliRun png = kdrt({"render", id_, "-o", path("dash.png"), "--size", "40x30", "-q"});
+    ASSERT_EQ(png.exit_code, 0) << png.err;
+    const CliRun png_dash =
+        kdrt({"render", id_, "-o", "-", "--format", "png", "--size", "40x30", "-q"});
+    ASSERT_EQ(png_dash.exit_code, 0) << png_dash.err;
+    EXPECT_EQ(png_dash.out, as_string(read_bytes(path("dash.png"))));
+    EXPECT_EQ(png_dash.err, "");
+    const CliRun no_format = kdrt({"render", id_, "-o", "-"});
+    EXPECT_EQ(no_format.exit_code, 2);
+    EXPECT_TRUE(contains(no_format.err, "or --format")) << no_format.err;
+    const CliRun bad_format = kdrt({"render", id_, "-o", "-", "--format", "gif"});
+    EXPECT_EQ(bad_format.exit_code, 2);
+    EXPECT_TRUE(contains(bad_format.err, "--format: \"gif\" is not png, jpg or exr"))
+        << bad_format.err;
+    const CliRun bad_hits = kdrt({"hits", id_, rays, "--all", "-o", "-", "--format", "csv"});
+    EXPECT_EQ(bad_hits.exit_code, 2);
+    EXPECT_TRUE(contains(bad_hits.err, "--format: \"csv\" is not ply, kdrm or kdrc"))
+        << bad_hits.err;
+    const CliRun split = kdrt(
+        {"render", id_, "-o", "-", "--format", "png", "--size", "40x30", "--split", "3", "-q"});
+    ASSERT_EQ(split.exit_code, 0) << split.err;
+    EXPECT_EQ(split.out, as_string(read_bytes(path("dash.png"))));
+    const CliRun kdrz = kdrt({"scan", id_, "--pinhole", "-o", path("dash.kdrz"), "--eye", "0,0,5",
+                              "--look-at", "0,0,0", "--size", "20x10"});
+    ASSERT_EQ(kdrz.exit_code, 0) << kdrz.err;
+    EXPECT_EQ(kdrz.out, "");
+    const CliRun kdrz_dash = kdrt({"scan", id_, "--pinhole", "-o", "-", "--format", "kdrz", "--eye",
+                                   "0,0,5", "--look-at", "0,0,0", "--size", "20x10"});
+    ASSERT_EQ(kdrz_dash.exit_code, 0) << kdrz_dash.err;
+    EXPECT_EQ(kdrz_dash.out, as_string(read_bytes(path("dash.kdrz"))));
+    EXPECT_TRUE(contains(kdrz_dash.err, "wrote - (")) << kdrz_dash.err;
+}
+
+TEST_F(Cli, JsonReportsOfEveryCommand) {
+    upload_suite_mesh();
+    // --json before the command, like --server.
+    const CliRun health = kdrt({"--json", "health"});
+    ASSERT_EQ(health.exit_code, 0) << health.err;
+    auto h = json_lines(health.out);
+    ASSERT_EQ(h.size(), 1u);
+    EXPECT_EQ(h[0]["url"], server_url(*server_));
+    EXPECT_EQ(h[0]["alive"], true);
+    EXPECT_EQ(h[0]["ready"], true);
+    // metrics: one object per sample of the text format, labels unescaped, non-finite values
+    // as words (a fixed text from a fake server, so the answer is known).
+    FakeServer fake([](httplib::Server& http) {
+        http.Get("/metrics", [](const httplib::Request&, httplib::Response& res) {
+            res.set_content(
+                "# HELP a_total A.\n# TYPE a_total counter\na_total 3\n"
+                "b_seconds_bucket{route=\"/v1/x\",le=\"+Inf\"} 7\n"
+                "c{path=\"q\\\"uote\\\\back\\nline\"} 0.25\n"
+                "d +Inf\ne NaN\n",
+                "text/plain; version=0.0.4");
+        });
+    });
+    const CliRun metrics = run_cli({"metrics", "--json", "--server", fake.url()});
+    ASSERT_EQ(metrics.exit_code, 0) << metrics.err;
+    EXPECT_EQ(metrics.out,
+              "{\"name\":\"a_total\",\"labels\":{},\"value\":3}\n"
+              "{\"name\":\"b_seconds_bucket\",\"labels\":{\"route\":\"/v1/x\",\"le\":\"+Inf\"},"
+              "\"value\":7}\n"
+              "{\"name\":\"c\",\"labels\":{\"path\":\"q\\\"uote\\\\back\\nline\"},\"value\":0.25}\n"
+              "{\"name\":\"d\",\"labels\":{},\"value\":\"+Inf\"}\n"
+              "{\"name\":\"e\",\"labels\":{},\"value\":\"NaN\"}\n");
+    // And the real server's: every line parses.
+    const CliRun real = kdrt({"metrics", "--json"});
+    ASSERT_EQ(real.exit_code, 0) << real.err;
+    EXPECT_GT(json_lines(real.out).size(), 10u);
+    // render and scan: the summary as JSON on stdout, nothing human anywhere.
+    const CliRun render =
+        kdrt({"render", id_, "-o", path("json.png"), "--size", "40x30", "--json"});
+    ASSERT_EQ(render.exit_code, 0) << render.err;
+    auto r = json_lines(render.out);
+    ASSERT_EQ(r.size(), 1u) << render.out;
+    EXPECT_EQ(r[0]["out"], path("json.png"));
+    EXPECT_EQ(r[0]["width"], 40);
+    EXPECT_EQ(r[0]["bytes"], std::filesystem::file_size(path("json.png")));
+    EXPECT_FALSE(contains(render.err, "wrote")) << render.err;
+    const CliRun scan = kdrt({"scan", id_, "--pinhole", "-o", path("json.kdrz"), "--eye", "0,0,5",
+                              "--look-at", "0,0,0", "--size", "20x10", "--json"});
+    ASSERT_EQ(scan.exit_code, 0) << scan.err;
+    auto sc = json_lines(scan.out);
+    ASSERT_EQ(sc.size(), 1u) << scan.out;
+    EXPECT_EQ(sc[0]["sensor"], "pinhole");
+    EXPECT_EQ(scan.err, "");
+    // rm: {"removed": ID}.
+    const CliRun rm = kdrt({"rm", id_, "--json"});
+    ASSERT_EQ(rm.exit_code, 0) << rm.err;
+    auto gone = json_lines(rm.out);
+    ASSERT_EQ(gone.size(), 1u);
+    EXPECT_EQ(gone[0]["removed"], id_);
+}
+
+TEST_F(Cli, QuietPrintsOnlyDataAndErrors) {
+    const CliRun upload = kdrt({"upload", mesh_file_, "-q"});
+    ASSERT_EQ(upload.exit_code, 0) << upload.err;
+    EXPECT_EQ(upload.out, id_ + "\n");
+    const CliRun meshes = kdrt({"--quiet", "meshes"});
+    ASSERT_EQ(meshes.exit_code, 0) << meshes.err;
+    EXPECT_TRUE(contains("\n" + meshes.out, "\n" + id_ + "\n")) << meshes.out;
+    for (const std::string& line : lines_of(meshes.out)) EXPECT_EQ(line.size(), 64u) << line;
+    const CliRun info = kdrt({"info", id_.substr(0, 12), "-q"});
+    ASSERT_EQ(info.exit_code, 0) << info.err;
+    EXPECT_EQ(info.out, id_ + "\n");
+    const CliRun health = kdrt({"health", "-q"});
+    EXPECT_EQ(health.exit_code, 0) << health.err;
+    EXPECT_EQ(health.out + health.err, "");
+    const CliRun rays = run_cli({"rays", mesh_file_, "-o", path("q.kdrr"), "--res", "8", "-q"});
+    EXPECT_EQ(rays.exit_code, 0) << rays.err;
+    EXPECT_EQ(rays.out + rays.err, "");
+    // Errors still print.
+    const CliRun down =
+        run_cli({"health", "-q", "--server", "http://127.0.0.1:9", "--retries", "0"});
+    EXPECT_EQ(down.exit_code, 3);
+    EXPECT_TRUE(contains(down.err, "kdrt health: ")) << down.err;
+    const CliRun rm = kdrt({"rm", id_, "-q"});
+    EXPECT_EQ(rm.exit_code, 0) << rm.err;
+    EXPECT_EQ(rm.out + rm.err, "");
 }
 
 }  // namespace

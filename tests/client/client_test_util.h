@@ -45,6 +45,11 @@ inline std::vector<std::byte> read_bytes(const std::filesystem::path& path) {
     return std::move(*bytes);
 }
 
+/// The bytes as a std::string (to compare with a CLI's captured stdout).
+inline std::string as_string(const std::vector<std::byte>& bytes) {
+    return {reinterpret_cast<const char*>(bytes.data()), bytes.size()};
+}
+
 /// Options that make failures fast in tests: short backoff.
 inline ClientOptions fast_options() {
     ClientOptions options;

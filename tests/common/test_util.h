@@ -5,11 +5,14 @@
 #include <cmath>
 #include <cstdint>
 #include <cstdlib>
+#include <span>
 #include <string>
+#include <utility>
 #include <vector>
 
 #include "kdrt/kdtree.h"
 #include "kdrt/mesh.h"
+#include "kdrt/trace.h"
 #include "kdrt/types.h"
 #include "scenes.h"
 
@@ -34,6 +37,14 @@ inline size_t scaled(size_t n) {
 inline uint32_t scaled_res(uint32_t res, uint32_t floor = 32) {
     const double side = static_cast<double>(res) * std::sqrt(std::min(1.0, test_scale()));
     return std::max(floor, static_cast<uint32_t>(side));
+}
+
+/// Every instruction set this CPU can run, narrowest first (the tests run each).
+inline std::vector<Isa> supported_isas() {
+    std::vector<Isa> isas;
+    for (Isa isa : {Isa::kScalar, Isa::kSse4, Isa::kAvx2, Isa::kAvx512})
+        if (isa_supported(isa)) isas.push_back(isa);
+    return isas;
 }
 
 /// splitmix64: small, fast, good enough for test data.
@@ -163,6 +174,26 @@ inline std::vector<Ray> oracle_rays(Rng& rng, const Mesh& mesh, const KdTree& tr
         rays.push_back(r);
     }
     return rays;
+}
+
+/// A tree's nodes in depth-first order from the root (low child first), indices dropped:
+/// (axis, split bits) for an inner node, (word0, word1) for a leaf. Two layouts of one tree give
+/// the same sequence.
+inline std::vector<std::pair<uint32_t, uint32_t>> tree_shape(std::span<const KdNode> nodes) {
+    std::vector<std::pair<uint32_t, uint32_t>> out;
+    std::vector<uint32_t> stack{0};
+    while (!stack.empty()) {
+        const KdNode n = nodes[stack.back()];
+        stack.pop_back();
+        if (n.is_leaf()) {
+            out.emplace_back(n.word0(), n.word1());
+            continue;
+        }
+        out.emplace_back(static_cast<uint32_t>(n.axis()), n.word1());
+        stack.push_back(n.first_child() + 1);
+        stack.push_back(n.first_child());
+    }
+    return out;
 }
 
 }  // namespace kdrt::test

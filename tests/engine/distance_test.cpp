@@ -92,9 +92,11 @@ std::vector<Vec3> query_points(Rng& rng, const Mesh& mesh, const KdTree& tree, s
             case 4:
                 points.push_back(a + (b - a) * rng.uniform());
                 break;
-            default:  // far away
-                points.push_back(rng.on_sphere() * (scale * 100.0f));
+            default: {  // far away: 10^3 .. 10^16 mesh sizes from its centre
+                const float far = scale * std::pow(10.0f, static_cast<float>(3 + rng.below(14)));
+                points.push_back((tree.bounds.lo + tree.bounds.hi) * 0.5f + rng.on_sphere() * far);
                 break;
+            }
         }
     }
     return points;
@@ -292,6 +294,75 @@ TEST(Distance, BatchIsTheSameAtAnyThreadCount) {
     }
 }
 
+TEST(Distance, FarPointsCostWhatPointsJustOutsideDo) {
+    const Mesh mesh = load_data_mesh("bunny00.off");
+    const KdTree tree = build_kdtree(mesh);
+    const SurfaceIndex index = build_surface_index(tree);
+    Rng rng(test_seed() + 37);
+    SCOPED_TRACE(testing::Message() << "seed=" << test_seed() + 37);
+    const float size = diagonal_of(tree);
+    const Vec3 centre = (tree.bounds.lo + tree.bounds.hi) * 0.5f;
+    // Points one bunny size from its centre: just outside it, where the pruning slack was
+    // always small.
+    std::vector<Vec3> close;
+    for (size_t i = 0; i < 200; ++i) close.push_back(centre + rng.on_sphere() * size);
+    std::vector<ClosestPoint> out(close.size());
+    const uint64_t close_work = closest_points(tree, index, close, out, {}).work;
+    ASSERT_GT(close_work, 0u);
+    // A far point's search ends once the nearest waiting cell is beyond the best triangle, and
+    // its slack does not grow with its distance: up to 10^8 sizes away, its work is that of a
+    // point just outside, far below the triangle count (brute force's).
+    for (const float far : {1e3f, 1e4f, 1e6f, 1e8f}) {
+        SCOPED_TRACE(testing::Message() << "distance " << far << " sizes");
+        std::vector<Vec3> points;
+        for (size_t i = 0; i < close.size(); ++i)
+            points.push_back(centre + rng.on_sphere() * (far * size));
+        const uint64_t work = closest_points(tree, index, points, out, {}).work;
+        EXPECT_LT(work, 2 * close_work) << "one size away: " << close_work;
+        EXPECT_LT(work, points.size() * mesh.triangle_count() / 20);
+        check_against_brute_force(tree, index, points, far * size);
+    }
+}
+
+TEST(Distance, BatchStopsWhenCancelledOrOverItsWork) {
+    Rng rng(test_seed() + 38);
+    const Mesh mesh = random_soup(rng, 2000);
+    const KdTree tree = build_kdtree(mesh);
+    const SurfaceIndex index = build_surface_index(tree);
+    const std::vector<Vec3> points = query_points(rng, mesh, tree, 4000);
+    std::vector<ClosestPoint> out(points.size());
+    const DistanceStats all = closest_points(tree, index, points, out, {});
+    EXPECT_EQ(all.status, DistanceStatus::kDone);
+    // The same limit as the work done is enough; one less is not, and the batch stops early.
+    DistanceControl control;
+    control.max_work = all.work;
+    EXPECT_EQ(closest_points(tree, index, points, out, {}, control).status, DistanceStatus::kDone);
+    control.max_work = all.work / 10;
+    const DistanceStats capped = closest_points(tree, index, points, out, {}, control);
+    EXPECT_EQ(capped.status, DistanceStatus::kOverWork);
+    EXPECT_LT(capped.work, all.work);
+    // Cancelled before it starts: nothing is searched. Cancelled by the poll hook: it stops.
+    std::atomic<bool> cancel{true};
+    control = {};
+    control.cancel = &cancel;
+    const DistanceStats none = closest_points(tree, index, points, out, {}, control);
+    EXPECT_EQ(none.status, DistanceStatus::kCancelled);
+    EXPECT_EQ(none.work, 0u);
+    cancel = false;
+    std::atomic<int> polls{0};
+    control.poll = [&] {
+        ++polls;
+        cancel = true;
+    };
+    std::vector<Vec3> many;
+    for (int k = 0; k < 20; ++k) many.insert(many.end(), points.begin(), points.end());
+    std::vector<ClosestPoint> many_out(many.size());
+    const DistanceStats polled = closest_points(tree, index, many, many_out, {}, control);
+    EXPECT_EQ(polled.status, DistanceStatus::kCancelled);
+    EXPECT_GE(polls.load(), 1);
+    EXPECT_LT(polled.work, 20 * all.work);
+}
+
 /// The cube [lo, hi]^3, 12 triangles wound outwards, shared vertices.
 Mesh cube(float lo = 0, float hi = 1) { return test::box_mesh(lo, hi); }
 
@@ -343,6 +414,32 @@ TEST(SignedDistance, CubeMatchesTheAnalyticDistance) {
         const ClosestPoint c = closest_point(tree, index, p, {INFINITY, true});
         EXPECT_EQ(c.distance, 0.0f);
         EXPECT_EQ(c.side, Side::kOutside);
+    }
+}
+
+TEST(SignedDistance, FarPointsAreNeverInside) {
+    // A closed 2-unit cube: from 10^16 away the closest feature is decided by rounding (it was
+    // once a far face, whose normal then said "inside"). Outside the box, a point is outside.
+    const Mesh mesh = cube(-1, 1);
+    const KdTree tree = build_kdtree(mesh);
+    const SurfaceIndex index = build_surface_index(tree);
+    ASSERT_TRUE(index.closed);
+    const std::vector<TriVerts> tris = triangles_by_id(tree);
+    Rng rng(test_seed() + 39);
+    for (int e = 1; e <= 30; ++e) {
+        const float far = std::pow(10.0f, static_cast<float>(e));
+        for (int i = 0; i < 50; ++i) {
+            const Vec3 p = rng.on_sphere() * far;
+            const ClosestPoint c = closest_point(tree, index, p, {INFINITY, true});
+            ASSERT_TRUE(c.found()) << "1e" << e;
+            EXPECT_EQ(c.side, Side::kOutside)
+                << "1e" << e << " " << p.x << " " << p.y << " " << p.z;
+            EXPECT_TRUE(same_bits(c, brute_force_closest_point(tris, index, p, {INFINITY, true})));
+        }
+        for (const Vec3 axis : {Vec3{1, 0, 0}, Vec3{0, -1, 0}, Vec3{0, 0, 1}}) {
+            const ClosestPoint c = closest_point(tree, index, axis * far, {INFINITY, true});
+            EXPECT_EQ(c.side, Side::kOutside) << "1e" << e;
+        }
     }
 }
 

@@ -172,8 +172,10 @@ TEST(KdBuild, SahTreeHasTheExpectedShape) {
         << "leaves hold a few triangles (C_isect 0.3: about 9 on the bunny)";
     EXPECT_LT(s.sah_cost, middle.stats.sah_cost)
         << "SAH must beat the middle-split tree on its own metric";
-    EXPECT_EQ(s.bytes, sah.nodes.size() * 8 + s.refs * 4 + s.triangles * (sizeof(TriVerts) + 8))
-        << "nodes, references, triangles and their two id maps";
+    EXPECT_EQ(s.bytes, sah.nodes.size() * 8 + sah.wide_nodes.size() * 64 + s.refs * 4 +
+                           s.triangles * (sizeof(TriVerts) + 8))
+        << "nodes, wide nodes, references, triangles and their two id maps";
+    EXPECT_LE(s.bytes_per_triangle, 88.0) << "within Embree's bytes per triangle";
     EXPECT_EQ(sah.nodes.size(), s.nodes + 1) << "the line layout leaves one slot unused";
     EXPECT_GT(s.build_ms, 0.0);
 }

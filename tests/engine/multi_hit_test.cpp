@@ -260,13 +260,6 @@ TEST(AllHits, SameAtAnyThreadCount) {
     EXPECT_EQ(std::memcmp(a.hits.data(), b.hits.data(), a.hits.size() * sizeof(Hit)), 0);
 }
 
-std::vector<Isa> supported_isas() {
-    std::vector<Isa> isas;
-    for (Isa isa : {Isa::kScalar, Isa::kSse4, Isa::kAvx2, Isa::kAvx512})
-        if (isa_supported(isa)) isas.push_back(isa);
-    return isas;
-}
-
 /// Camera rays (coherent: the packet path), the oracle's mixed bag, rays through the mesh's
 /// vertices and edges (coincident hits), and invalid rays sprinkled in.
 std::vector<Ray> packet_test_rays(Rng& rng, const Mesh& mesh, const KdTree& tree, size_t count,

@@ -16,25 +16,6 @@
 namespace kdrt::test {
 namespace {
 
-/// The tree's nodes in depth-first order from the root (near child first), indices dropped:
-/// two layouts of one tree give the same sequence.
-std::vector<std::pair<uint32_t, uint32_t>> shape(std::span<const KdNode> nodes) {
-    std::vector<std::pair<uint32_t, uint32_t>> out;
-    std::vector<uint32_t> stack{0};
-    while (!stack.empty()) {
-        const KdNode n = nodes[stack.back()];
-        stack.pop_back();
-        if (n.is_leaf()) {
-            out.emplace_back(n.word0(), n.word1());
-            continue;
-        }
-        out.emplace_back(static_cast<uint32_t>(n.axis()), n.word1());
-        stack.push_back(n.first_child() + 1);
-        stack.push_back(n.first_child());
-    }
-    return out;
-}
-
 /// A depth-first node array as the builders make it, of a tree with `depth` full levels.
 std::vector<KdNode> full_tree(int depth) {
     std::vector<KdNode> nodes{KdNode{}};
@@ -62,7 +43,7 @@ std::vector<KdNode> full_tree(int depth) {
 }
 
 void expect_valid_layout(std::span<const KdNode> dfs, const NodeArray& lines) {
-    EXPECT_EQ(shape(dfs), shape(lines)) << "the same tree";
+    EXPECT_EQ(tree_shape(dfs), tree_shape(lines)) << "the same tree";
     EXPECT_EQ(reinterpret_cast<uintptr_t>(lines.data()) % 64, 0u) << "the array starts a line";
     if (dfs.size() > 1) {
         EXPECT_EQ(lines.size(), dfs.size() + 1) << "one unused slot, no holes";

@@ -18,13 +18,6 @@
 namespace kdrt::test {
 namespace {
 
-std::vector<Isa> supported_isas() {
-    std::vector<Isa> isas;
-    for (Isa isa : {Isa::kScalar, Isa::kSse4, Isa::kAvx2, Isa::kAvx512})
-        if (isa_supported(isa)) isas.push_back(isa);
-    return isas;
-}
-
 std::vector<Hit> reference_hits(const KdTree& tree, std::span<const Ray> rays) {
     std::vector<Hit> hits(rays.size());
     for (size_t i = 0; i < rays.size(); ++i) hits[i] = intersect(tree, rays[i]);

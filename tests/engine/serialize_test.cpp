@@ -22,6 +22,13 @@ TEST(TreeBlob, RoundTripGivesIdenticalTreeAndAnswers) {
     EXPECT_TRUE(loaded.leaf_refs == tree.leaf_refs);
     EXPECT_TRUE(loaded.tri_ids == tree.tri_ids);
     EXPECT_TRUE(loaded.tri_slots == tree.tri_slots);
+    // The wide nodes are not stored: the load derives the same ones the build made.
+    ASSERT_EQ(loaded.wide_nodes.size(), tree.wide_nodes.size());
+    EXPECT_FALSE(tree.wide_nodes.empty());
+    EXPECT_EQ(std::memcmp(loaded.wide_nodes.data(), tree.wide_nodes.data(),
+                          tree.wide_nodes.size() * sizeof(WideNode)),
+              0);
+    EXPECT_EQ(loaded.stats.bytes, tree.stats.bytes);
     EXPECT_EQ(loaded.bounds, tree.bounds);
     EXPECT_EQ(loaded.options, tree.options);
     EXPECT_EQ(loaded.stats.sah_cost, tree.stats.sah_cost);

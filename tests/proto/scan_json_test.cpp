@@ -121,6 +121,13 @@ TEST(ScanJson, EachRefusalNamesItsField) {
                  "unknown member \"pinhole.fov\"");
     expect_error(R"({"pinhole": {)" + pose + "}}", "pinhole.intrinsics", "missing member");
     expect_error(R"({"pinhole": {)" + k + "}}", "pinhole.pose", "missing member");
+    // A pose beyond the float range (a translation of 1e39) is refused naming the field.
+    expect_error(
+        R"({"pinhole": {)" + k + R"(, "pose": [[1,0,0,1e39],[0,1,0,0],[0,0,1,0],[0,0,0,1]]}})",
+        "pinhole.pose", "row 0 column 3 is outside the range of a float");
+    expect_error(R"({"lidar": {"elevation_deg": [0], "azimuth_steps": 4, )"
+                 R"("pose": [[1,0,0,0],[0,1,0,0],[0,0,-4e38,0],[0,0,0,1]]}})",
+                 "lidar.pose", "row 2 column 2 is outside the range of a float");
     expect_error(
         R"({"pinhole": {"intrinsics": {"fy": 1, "cx": 1, "cy": 1, "width": 1, "height": 1},)" +
             pose + "}}",

@@ -16,6 +16,29 @@ TEST(Text, InQuotesAddsDoubleQuotesWithoutEscaping) {
     EXPECT_EQ(in_quotes("a\"b\\c"), "\"a\"b\\c\"");
 }
 
+TEST(Text, QuoteValueQuotesAShortPrefixOfALongValue) {
+    EXPECT_EQ(quote_value("abc"), "\"abc\"");
+    const std::string limit(kQuotedValueBytes, 'x');
+    EXPECT_EQ(quote_value(limit), in_quotes(limit));
+    const std::string huge((32u << 20) + 1, 'y');
+    const std::string q = quote_value(huge);
+    EXPECT_EQ(q, in_quotes(std::string(kQuotedValueBytes, 'y')) + "... (33554433 bytes)");
+    // A UTF-8 sequence the cut would split is left out whole: "é" is 2 bytes, "€" 3.
+    for (const char* wide : {"\xc3\xa9", "\xe2\x82\xac"}) {
+        for (size_t pad = kQuotedValueBytes - 3; pad <= kQuotedValueBytes; ++pad) {
+            std::string text(pad, 'a');
+            for (int i = 0; i < 10; ++i) text += wide;
+            const std::string out = quote_value(text);
+            const std::string inside = out.substr(1, out.find("\"... (") - 1);
+            ASSERT_LE(inside.size(), kQuotedValueBytes) << pad;
+            EXPECT_EQ(text.compare(0, inside.size(), inside), 0);
+            // It ends on a whole character: the next byte of the text starts one.
+            EXPECT_NE(static_cast<unsigned char>(text[inside.size()]) & 0xC0, 0x80) << pad;
+            EXPECT_GE(inside.size(), kQuotedValueBytes - 2) << pad;
+        }
+    }
+}
+
 TEST(Text, HexWritesExactlyTheGivenDigitCount) {
     EXPECT_EQ(hex(0x1f, 4), "001f");
     EXPECT_EQ(hex(0xab, 2), "ab");

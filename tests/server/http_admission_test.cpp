@@ -7,13 +7,18 @@
 #include <sys/socket.h>
 #include <unistd.h>
 
+#include <cerrno>
 #include <chrono>
+#include <cmath>
 #include <fstream>
+#include <iterator>
+#include <sstream>
 #include <string>
 #include <thread>
 #include <vector>
 
 #include "http_test_util.h"
+#include "kdrt/proto/distance.h"
 #include "kdrt/proto/ray_batch.h"
 
 namespace kdrt::test {
@@ -355,6 +360,96 @@ TEST(HttpAdmission, HostileBodiesOfEveryKindStayWithinTheMemoryBound) {
     const uint64_t bound = before + 4 * uint64_t{kBody} + (64u << 20);
     EXPECT_LE(peak_rss_bytes(server.pid()), bound)
         << "peak RSS " << peak_rss_bytes(server.pid()) << " bytes, before " << before;
+}
+
+/// `count` points `far` from the origin in random directions, as a KDRP body.
+std::string far_points(size_t count, float far, uint64_t seed) {
+    Rng rng(seed);
+    std::vector<Vec3> points(count);
+    for (Vec3& p : points) p = rng.on_sphere() * far;
+    return bytes_to_string(proto::encode_points(points));
+}
+
+/// The server's user + system CPU seconds (/proc/PID/stat).
+double cpu_seconds(int pid) {
+    std::ifstream in("/proc/" + std::to_string(pid) + "/stat");
+    std::string stat((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+    std::istringstream fields(stat.substr(stat.rfind(')') + 2));
+    std::string field;
+    double ticks = 0;
+    for (int i = 3; i <= 15 && fields >> field; ++i)
+        if (i == 14 || i == 15) ticks += std::stod(field);
+    return ticks / static_cast<double>(::sysconf(_SC_CLK_TCK));
+}
+
+TEST(HttpAdmission, ALongDistanceBatchHoldsUpNoOtherRequest) {
+    // 100000 points 1e16 away from a 20000-triangle mesh: at that distance every triangle's
+    // rounded distance ties, so each point tests them all (minutes of work on two threads).
+    TempDir dir;
+    ServerProcess server({.cache_dir = dir.path() / "cache", .args = {"--threads", "2"}});
+    ASSERT_TRUE(server.running());
+    auto cli = server.client();
+    const std::string id = upload_id(*cli, small_mesh(10, 20000));
+    const std::string body = far_points(100000, 1e16f, 11);
+    const int fd = connect_loopback(server.port());
+    ASSERT_GE(fd, 0);
+    ASSERT_TRUE(
+        send_all(fd, "POST /v1/meshes/" + id + "/distance HTTP/1.1\r\nHost: x\r\nContent-Type: " +
+                         std::string(proto::kPointMediaType) +
+                         "\r\nContent-Length: " + std::to_string(body.size()) + "\r\n\r\n" + body));
+    // It is being computed: an HTTP thread is on it (besides the one answering /metrics) and
+    // the server has spent a CPU second since.
+    ASSERT_TRUE(eventually([&] { return server.metric("kdrt_http_threads_busy") == 2; }));
+    const double cpu0 = cpu_seconds(server.pid());
+    ASSERT_TRUE(eventually([&] { return cpu_seconds(server.pid()) > cpu0 + 1.0; }));
+    // A small render and a small distance query are answered while it still runs (it once held
+    // both the arena's slots, and they waited for it to finish).
+    auto render = cli->Post("/v1/render", "{\"mesh\":\"" + id + "\",\"width\":8,\"height\":8}",
+                            "application/json");
+    ASSERT_TRUE(render);
+    EXPECT_EQ(render->status, 200) << render->body;
+    auto small = cli->Post("/v1/meshes/" + id + "/distance", far_points(10, 2.0f, 12),
+                           std::string(proto::kPointMediaType));
+    ASSERT_TRUE(small);
+    EXPECT_EQ(small->status, 200) << small->body;
+    auto rays = cli->Post("/v1/meshes/" + id + "/intersect", kdrr(1000, 13), kRays);
+    ASSERT_TRUE(rays);
+    EXPECT_EQ(rays->status, 200);
+    char byte = 0;
+    EXPECT_EQ(::recv(fd, &byte, 1, MSG_DONTWAIT), -1) << "the long batch was answered already";
+    EXPECT_TRUE(errno == EAGAIN || errno == EWOULDBLOCK);
+    // The client leaves: the batch stops.
+    ::close(fd);
+    EXPECT_TRUE(eventually([&] {
+        return server.log().find("distance cancelled: the client closed the connection") !=
+               std::string::npos;
+    }));
+    EXPECT_TRUE(eventually([&] { return server.metric("kdrt_http_threads_busy") == 1; }));
+}
+
+TEST(HttpAdmission, DistanceWorkIsCappedBeforeAndDuringTheSearch) {
+    TempDir dir;
+    ServerProcess server(
+        {.cache_dir = dir.path() / "cache", .args = {"--max-distance-work", "100000"}});
+    ASSERT_TRUE(server.running());
+    auto cli = server.client();
+    const std::string id = upload_id(*cli, small_mesh(14, 20000));
+    const std::string path = "/v1/meshes/" + id + "/distance";
+    const std::string type(proto::kPointMediaType);
+    // More points than the limit: refused before any search.
+    auto p = expect_problem(cli->Post(path, far_points(100001, 2.0f, 15), type), 400);
+    EXPECT_EQ(p.limit, 100000u);
+    EXPECT_NE(p.detail.find("100001 points exceed max_distance_work 100000"), std::string::npos)
+        << p.detail;
+    // Points 1e16 away test every triangle: the search passes the limit and stops.
+    p = expect_problem(cli->Post(path, far_points(1000, 1e16f, 16), type), 400);
+    EXPECT_EQ(p.limit, 100000u);
+    EXPECT_NE(p.detail.find("passed max_distance_work 100000 for 1000 points"), std::string::npos)
+        << p.detail;
+    // Points near the mesh stay well within it.
+    auto ok = cli->Post(path, far_points(100, 1.0f, 17), type);
+    ASSERT_TRUE(ok);
+    EXPECT_EQ(ok->status, 200) << ok->body;
 }
 
 }  // namespace

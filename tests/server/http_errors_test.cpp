@@ -12,6 +12,7 @@
 
 #include "http_test_util.h"
 #include "kdrt/proto/ray_batch.h"
+#include "kdrt/proto/text.h"
 
 namespace kdrt::test {
 namespace {
@@ -272,6 +273,50 @@ TEST_F(HttpErrors, ExpectContinueIsRefusedBeforeTheBodyIsSent) {
     EXPECT_EQ(reply.find("100 Continue"), std::string::npos) << reply;
 }
 
+TEST(HttpEcho, HugeRequestValuesAreQuotedByAShortPrefix) {
+    // A 32 MiB value where a short word is expected: the refusal quotes 64 bytes of it and its
+    // length (it once came back whole, a 32 MiB answer per request).
+    TempDir dir;
+    ServerProcess server(
+        {.cache_dir = dir.path() / "cache", .args = {"--max-json-bytes", "40000000"}});
+    ASSERT_TRUE(server.running());
+    auto cli = server.client();
+    const std::string id = upload_id(*cli, small_mesh(4));
+    const std::string huge(32u << 20, 'x');
+    const std::string quoted = proto::in_quotes(std::string(64, 'x')) + "... (33554432 bytes)";
+    struct Case {
+        std::string path, body;
+    };
+    const std::string mesh = "{\"mesh\":\"" + id + "\",\"width\":8,\"height\":8,";
+    const std::string scan = "/v1/meshes/" + id + "/scan";
+    const std::vector<Case> cases = {
+        {"/v1/render", mesh + "\"shading\":\"" + huge + "\"}"},
+        {"/v1/render", mesh + "\"format\":\"" + huge + "\"}"},
+        {"/v1/render", mesh + "\"" + huge + "\":1}"},
+        {scan,
+         "{\"format\":\"" + huge + "\",\"lidar\":{\"elevation_deg\":[0],\"azimuth_steps\":4}}"},
+        {scan,
+         "{\"pinhole\":{\"camera\":{\"eye\":[0,0,-5],\"look_at\":[0,0,0],\"fov\":50},"
+         "\"width\":4,\"height\":4,\"output\":\"" +
+             huge + "\"}}"},
+        {"/v1/meshes/" + id + "/intersect", "{\"" + huge + "\":[]}"},
+    };
+    for (const Case& c : cases) {
+        SCOPED_TRACE(c.path + " " + c.body.substr(0, 90));
+        auto res = cli->Post(c.path, c.body, "application/json");
+        auto p = expect_problem(res, 400);
+        EXPECT_NE(p.detail.find(quoted), std::string::npos) << p.detail.substr(0, 300);
+        EXPECT_LT(res->body.size(), 2048u);
+    }
+    // A long header value in a refusal (4000 bytes: the HTTP layer takes lines up to 8 KiB): the
+    // same.
+    auto res =
+        cli->Post("/v1/meshes/" + id + "/distance", {}, "", "application/" + huge.substr(0, 3988));
+    auto p = expect_problem(res, 415);
+    EXPECT_NE(p.detail.find("... (4000 bytes)"), std::string::npos) << p.detail.substr(0, 300);
+    EXPECT_LT(res->body.size(), 2048u);
+}
+
 TEST(HttpStartup, V1IsUnavailableUntilTheIndexAndPreloadsAreDone) {
     TempDir dir;
     const std::string bunny =
@@ -355,6 +400,18 @@ TEST(HttpAuth, BearerTokenGuardsV1Only) {
     cli->set_bearer_token_auth("s3cret");
     EXPECT_EQ(cli->Get("/v1/meshes")->status, 200);
     EXPECT_EQ(upload_id(*cli, small_mesh(1)).size(), 64u);
+    // The scheme is case-insensitive (RFC 9110 11.1) and may be followed by several spaces; a
+    // scheme that merely starts with "bearer" is not it.
+    for (const char* value : {"bearer s3cret", "BEARER s3cret", "BeArEr   s3cret"}) {
+        auto other = server.client();
+        auto r = other->Get("/v1/meshes", {{"Authorization", value}});
+        ASSERT_TRUE(r);
+        EXPECT_EQ(r->status, 200) << value;
+    }
+    for (const char* value : {"Bearers3cret", "Basic s3cret", "bearer", "bearer "}) {
+        auto other = server.client();
+        expect_problem(other->Get("/v1/meshes", {{"Authorization", value}}), 401);
+    }
     // Health and metrics stay open.
     auto open = server.client();
     EXPECT_EQ(open->Get("/healthz")->status, 200);

@@ -350,10 +350,12 @@ TEST_F(ScaleOut, ASplitRenderSpreadsOverReplicasAndEqualsTheOneReplicaFrame) {
     const auto [code, output] =
         run_shell(std::string("env -u KDRT_TOKEN -u KDRT_SERVER ") + KDRT_CLI_BINARY +
                   " --server " + url + " render " + id + " -o " + out.string() +
-                  " --size 96x64 --split " + std::to_string(kParts) + " --quiet");
+                  " --size 96x64 --split " + std::to_string(kParts) + " --quiet --json");
     ASSERT_EQ(code, 0) << output;
-    EXPECT_NE(output.find("6 parts on " + std::to_string(expected_replicas.size()) + " replicas"),
-              std::string::npos)
+    // --quiet: no progress; --json: the summary alone, with the parts and replicas that served.
+    EXPECT_NE(
+        output.find("\"parts\":6,\"replicas\":" + std::to_string(expected_replicas.size()) + ","),
+        std::string::npos)
         << output;
     std::ifstream file(out, std::ios::binary);
     const std::string png(std::istreambuf_iterator<char>(file), {});

@@ -16,12 +16,16 @@
 /// the feature q lies on: the face normal for the interior of a triangle, the sum of the two face
 /// normals for an edge, the angle-weighted sum of the face normals around a vertex. This is exact
 /// on a closed, consistently oriented (edge-manifold) mesh, outside being where the right-hand
-/// normals of v0 v1 v2 point. On any other mesh (an edge with one triangle or more than two, or two
-/// triangles running along it the same way) the side is Side::kUnknown. A point on the surface
-/// (distance 0) is outside. Vertices are identified by position (bitwise equal coordinates), not
-/// by index, so a mesh whose triangles were uploaded as a soup still counts as closed.
+/// normals of v0 v1 v2 point. A point outside the mesh's bounding box is outside without that
+/// test: however far it is, whatever its rounded closest feature, it is never inside. On any other
+/// mesh (an edge with one triangle or more than two, or two triangles running along it the same
+/// way) the side is Side::kUnknown. A point on the surface (distance 0) is outside. Vertices are
+/// identified by position (bitwise equal coordinates), not by index, so a mesh whose triangles were
+/// uploaded as a soup still counts as closed.
 
+#include <atomic>
 #include <cstdint>
+#include <functional>
 #include <span>
 #include <vector>
 
@@ -43,6 +47,7 @@ struct SurfaceIndex {
     uint32_t nonmanifold_edges = 0;  ///< edges with more than two
     uint32_t misoriented_edges = 0;  ///< edges with two triangles running along it the same way
     uint32_t degenerate_triangles = 0;
+    Aabb bounds;  ///< of every triangle's corners (the interior of a closed mesh is inside it)
 };
 
 /// Builds the SurfaceIndex of `tree`'s mesh. O(N log N). Throws std::bad_alloc.
@@ -68,17 +73,49 @@ struct DistanceOptions {
     bool sign = false;
 };
 
-/// The closest point of `tree`'s mesh to `p`: a kD-tree search, near child first, that skips a
-/// cell whose box (from the split planes) is farther than the best triangle so far. A NaN or
-/// infinite p finds nothing. `index` must be build_surface_index(tree) (read only when
-/// options.sign). Thread-safe.
+/// The closest point of `tree`'s mesh to `p`: a best-first kD-tree search over the cells by their
+/// box distance (the boxes from the root bounds and the split planes), which ends as soon as the
+/// nearest waiting cell is farther than the best triangle so far. Its rounding slack is relative
+/// to the best distance and to the mesh's coordinates, not to p's, so a point 10^6 mesh sizes
+/// away costs about what a near one does; beyond about 10^13 the triangles' rounded distances tie
+/// and every tying one is tested (DistanceControl::max_work bounds a batch of such points). A NaN
+/// or infinite p finds nothing. `index` must be build_surface_index(tree) (read only when
+/// options.sign). Thread-safe. Throws std::bad_alloc (the search's heap).
 [[nodiscard]] ClosestPoint closest_point(const KdTree& tree, const SurfaceIndex& index, Vec3 p,
-                                         const DistanceOptions& options) noexcept;
+                                         const DistanceOptions& options);
+
+/// Limits and cancellation of a batch of distance queries (the server's requests).
+struct DistanceControl {
+    /// Checked before each point; once seen true, the batch stops (DistanceStatus::kCancelled).
+    /// The pointee must outlive the call. nullptr: never cancelled.
+    const std::atomic<bool>* cancel = nullptr;
+    /// Work units (cells visited plus triangles tested) the batch may use; when the total passes
+    /// it, the batch stops (DistanceStatus::kOverWork). 0: no limit.
+    uint64_t max_work = 0;
+    /// Called from worker threads, one call at a time, about every 2^16 work units of the batch
+    /// (a millisecond or so of one thread), e.g. to set *cancel when the client has gone. Must
+    /// not throw.
+    std::function<void()> poll;
+};
+
+enum class DistanceStatus : int {
+    kDone = 0,       ///< every answer was written
+    kCancelled = 1,  ///< DistanceControl::cancel was set: the answers are incomplete
+    kOverWork = 2,   ///< DistanceControl::max_work was exceeded: the answers are incomplete
+};
+
+/// What a batch did.
+struct DistanceStats {
+    uint64_t work = 0;  ///< cells visited plus triangles tested, over the points searched
+    DistanceStatus status = DistanceStatus::kDone;
+};
 
 /// The same for a batch (out.size() == points.size()), in parallel over the current oneTBB
-/// arena; the same answer at any thread count.
-void closest_points(const KdTree& tree, const SurfaceIndex& index, std::span<const Vec3> points,
-                    std::span<ClosestPoint> out, const DistanceOptions& options);
+/// arena, in tasks of a few points; the same answers at any thread count. Stops early, leaving
+/// some answers unwritten, when `control` says so (the status tells). Throws std::bad_alloc.
+DistanceStats closest_points(const KdTree& tree, const SurfaceIndex& index,
+                             std::span<const Vec3> points, std::span<ClosestPoint> out,
+                             const DistanceOptions& options, const DistanceControl& control = {});
 
 /// The oracle: the closest point by testing every triangle (`tris` indexed by mesh triangle id, as
 /// triangles_by_id gives them), with the same tie rule and sign.

@@ -5,6 +5,7 @@
 #include <cstddef>
 #include <cstdint>
 #include <new>
+#include <span>
 #include <vector>
 
 #include "kdrt/mesh.h"
@@ -60,6 +61,46 @@ private:
     uint32_t word1_ = 0;
 };
 static_assert(sizeof(KdNode) == 8);
+
+/// A wide node: a complete 3-level treelet of the binary tree (7 split planes, 8 child slots) in
+/// one 64-byte line, so a single ray makes three levels of decisions per dependent load
+/// (issue 23). Derived from the binary nodes after a build or a load (make_wide_nodes).
+///
+///   bytes  0..27 : split[0..6], f32. Plane 0 is the treelet root; plane 1 + b0 its child on side
+///                  b0 (0 = low, 1 = high); plane 3 + 2 b0 + b1 the grandchild on sides b0, b1.
+///   bytes 28..31 : axes, u32: bits 0..6 set where plane j splits x, bits 8..14 where it splits
+///                  y (neither: z); the other bits are 0.
+///   bytes 32..63 : slot[0..7], u32: the child on sides (b0, b1, b2), slot index 4 b0 + 2 b1 + b2.
+///                  bits 0..1: kSlotNone (padding, never visited), kSlotEmpty (an empty leaf),
+///                  kSlotLeaf, kSlotNode; bits 2..31: the leaf's index in KdTree::nodes
+///                  (kSlotEmpty, kSlotLeaf) or the child's index in KdTree::wide_nodes (kSlotNode).
+///
+/// A binary leaf above the third level is padded down: its subtree's missing planes split at
+/// +inf on x, so every ray keeps its interval on the low side, where the leaf sits (slot with
+/// b = 0 below it); the other slots are kSlotNone.
+struct alignas(64) WideNode {
+    static constexpr uint32_t kSlotNone = 0;
+    static constexpr uint32_t kSlotEmpty = 1;
+    static constexpr uint32_t kSlotLeaf = 2;
+    static constexpr uint32_t kSlotNode = 3;
+    static constexpr int kPlanes = 7;
+    static constexpr int kSlots = 8;
+
+    float split[kPlanes];
+    uint32_t axes;
+    uint32_t slot[kSlots];
+
+    [[nodiscard]] static constexpr uint32_t make_slot(uint32_t tag, uint32_t index) noexcept {
+        return (index << 2) | tag;
+    }
+    [[nodiscard]] constexpr int axis(int plane) const noexcept {
+        return (axes >> plane) & 1u ? 0 : ((axes >> (8 + plane)) & 1u ? 1 : 2);
+    }
+    [[nodiscard]] static constexpr uint32_t slot_tag(uint32_t s) noexcept { return s & 3u; }
+    [[nodiscard]] static constexpr uint32_t slot_index(uint32_t s) noexcept { return s >> 2; }
+};
+static_assert(sizeof(WideNode) == 64 && alignof(WideNode) == 64);
+static_assert(offsetof(WideNode, axes) == 28 && offsetof(WideNode, slot) == 32);
 
 /// Pre-processed triangle for the watertight intersection test: its three vertices, copied from
 /// the mesh so traversal never touches the cold mesh arrays. 36 bytes.
@@ -127,6 +168,9 @@ struct BuildOptions {
 struct KdTree {
     Aabb bounds;      ///< root cell (mesh bounds, padded slightly)
     NodeArray nodes;  ///< nodes[0] is the root; in cache lines, children after their parent
+    /// The same tree as 3-level treelets (the single-ray kernel's): wide_nodes[0] holds the top
+    /// three levels; empty when the root is a leaf. Derived from `nodes` (make_wide_nodes).
+    TreeArray<WideNode> wide_nodes;
     TreeArray<uint32_t> leaf_refs;  ///< indices into tris, per leaf contiguous
     /// Every triangle of the mesh, in leaf order: the order of first reference in leaf_refs, then
     /// the triangles no leaf references (degenerate ones) by id. A leaf's triangles are mostly
@@ -154,5 +198,10 @@ struct KdTree {
 
 /// Recomputes the structural statistics of `tree` (everything but build_ms, which it keeps).
 [[nodiscard]] TreeStats compute_stats(const KdTree& tree);
+
+/// The wide nodes of a tree whose binary `nodes` are given (root at 0, children adjacent):
+/// KdTree::wide_nodes. Linear in the node count. Throws std::length_error when the tree has
+/// 2^30 wide nodes or more.
+[[nodiscard]] TreeArray<WideNode> make_wide_nodes(std::span<const KdNode> nodes);
 
 }  // namespace kdrt

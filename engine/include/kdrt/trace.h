@@ -84,8 +84,11 @@ struct TraceStats {
     uint64_t triangle_tests = 0;   ///< ray-triangle tests
     uint64_t packet_visits = 0;    ///< nodes (inner and leaf) visited by packets
     uint64_t packet_lanes = 0;     ///< live lanes summed over those visits
-    int width = 1;                 ///< lanes per packet (isa_width): utilisation is
-                                   ///< packet_lanes / (packet_visits * width)
+    /// Wide nodes (3-level treelets, KdTree::wide_nodes) visited by the single-ray kernel; each
+    /// stands for up to 7 of traversal_steps, at one dependent load.
+    uint64_t wide_visits = 0;
+    int width = 1;  ///< lanes per packet (isa_width): utilisation is
+                    ///< packet_lanes / (packet_visits * width)
 };
 
 /// Batch queries for arbitrary input, over all threads of the current oneTBB arena. Answers come

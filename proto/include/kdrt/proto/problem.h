@@ -64,6 +64,10 @@ inline constexpr ProblemKind kLastProblemKind = ProblemKind::kStoredSceneDamaged
 /// Stable type URI, e.g. "urn:kdrt:problem:unknown-mesh".
 [[nodiscard]] std::string_view problem_type(ProblemKind kind) noexcept;
 
+/// The reason phrase of an HTTP status (RFC 9110, e.g. "Not Found"), "" for one it does not
+/// know.
+[[nodiscard]] std::string_view http_reason_phrase(int status) noexcept;
+
 /// One error reply.
 struct Problem {
     ProblemKind kind = ProblemKind::kInternal;

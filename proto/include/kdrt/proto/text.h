@@ -3,6 +3,7 @@
 /// message, hexadecimal digits, the names of non-finite numbers and JSON string escaping. One
 /// definition each, so every message spells them the same way.
 
+#include <cstddef>
 #include <cstdint>
 #include <span>
 #include <string>
@@ -13,6 +14,16 @@ namespace kdrt::proto {
 /// `text` between double quotes, as it is (no escaping): how error messages name a value, e.g.
 /// `"x" is not a whole number`.
 [[nodiscard]] std::string in_quotes(std::string_view text);
+
+/// Bytes of a client's value an error message quotes (quote_value).
+inline constexpr size_t kQuotedValueBytes = 64;
+
+/// A value that came from a client (a JSON member or its string, a query parameter, a header, a
+/// path) as an error message names it: in_quotes when it has at most kQuotedValueBytes bytes;
+/// otherwise its first bytes up to that many (cut before a UTF-8 sequence that would not fit
+/// whole), quoted, then "... (N bytes)". So a refusal never echoes a huge request value: every
+/// client value in an error goes through this one helper.
+[[nodiscard]] std::string quote_value(std::string_view text);
 
 /// The low `4 * digits` bits of `value` as exactly `digits` lower-case hexadecimal digits, most
 /// significant first, without a "0x" prefix: hex(0x1f, 4) == "001f". `digits` is 0 .. 16.

@@ -1,0 +1,64 @@
+#pragma once
+/// The image writer of `kdrt` as a run-time module. Encoding PNG, JPEG and EXR needs OpenImageIO,
+/// whose dependencies are ~250 shared libraries and a third of a second to load; the commands that
+/// never write an image (most of them) must not pay for it. So the encoders (kdrt_proto_image)
+/// live in a shared module, kdrt-image-module.so, which `kdrt render --split` and `kdrt scan -o
+/// X.exr` load with dlopen when they need it. Internal to the CLI.
+///
+/// Where it is looked for, relative to the running executable (/proc/self/exe), so the build
+/// tree and any install prefix work without configuration:
+///   <dir of kdrt>/kdrt-image-module.so                  the build tree (the module is built beside
+///   kdrt) <dir of kdrt>/<KDRT_IMAGE_MODULE_RELDIR>/kdrt-image-module.so
+///                                                the install: bindir/../<libdir>/kdrt
+/// The module and the CLI exchange C++ types (Image, DepthImage, Result), so they must come from
+/// the same build: the module's entry point returns its ABI number and kdrt version, and a module
+/// of another version is refused with a message saying so.
+
+#include <cstddef>
+#include <cstdint>
+#include <string>
+#include <vector>
+
+#include <string_view>
+
+#include "kdrt/image.h"
+#include "kdrt/proto/result.h"
+#include "kdrt/render_settings.h"
+#include "kdrt/scan_types.h"
+
+namespace kdrt::cli {
+
+/// The file name of the module.
+inline constexpr const char* kImageModuleFile = "kdrt-image-module.so";
+
+/// The name of the function the module exports (extern "C", returns const ImageModuleTable*).
+inline constexpr const char* kImageModuleEntry = "kdrt_image_module_v1";
+
+/// Bumped whenever ImageModuleTable or a type it passes changes layout.
+inline constexpr uint32_t kImageModuleAbi = 1;
+
+using EncodedBytes = proto::Result<std::vector<std::byte>, std::string>;
+
+/// What the module exports: its identity and the encoders of kdrt_proto_image.
+struct ImageModuleTable {
+    uint32_t abi;         ///< kImageModuleAbi of the build that made the module
+    const char* version;  ///< KDRT_VERSION of that build
+    /// A rendered frame as the server encodes it: proto::encode_image in the format the API
+    /// names `format` ("png", "jpg"/"jpeg", "exr"; anything else is an error), with the 8-bit
+    /// transfer of `shading` (proto::render_transfer) and PNG level `png_compression`.
+    EncodedBytes (*encode_render)(const Image& image, std::string_view format, Shading shading,
+                                  int png_compression);
+    /// proto::encode_depth_exr.
+    EncodedBytes (*encode_depth_exr)(const DepthImage& image);
+};
+
+/// The module's table, loaded on the first call (thread-safe; later calls return the same
+/// answer). The error is a sentence for the user: which paths were tried and what to install
+/// (the module itself, or the OpenImageIO library it needs, by Debian package name), or dlerror's
+/// message and why the module was refused.
+[[nodiscard]] proto::Result<const ImageModuleTable*, std::string> image_module();
+
+/// The paths image_module() tries, in order (exposed for the tests and the error message).
+[[nodiscard]] std::vector<std::string> image_module_candidates();
+
+}  // namespace kdrt::cli

@@ -1,0 +1,355 @@
+#pragma once
+// Internal: the single-ray kernel over wide nodes (issue 23). One step decodes a 3-level treelet
+// (WideNode): the seven plane crossings in one 8-lane operation, each of the eight slots' cell
+// interval from its three ancestors' crossings through fixed shuffles, the slots' front-to-back
+// order from the ray's near sides through a table (exact for a kD-tree: the cells do not
+// overlap). Written with GCC vector extensions only, so every translation unit compiles it for its
+// own instruction set (two SSE2 operations per 8-lane one at the baseline, one on AVX2).
+//
+// Per slot the kernel makes exactly the binary kernel's decisions (Stoll 2005, as the packet
+// kernels make them per lane): at a plane with crossing t and tolerance eps, near is needed
+// unless t + eps < tmin, far unless t - eps > tmax; only when both are needed is near's tmax cut
+// to t + eps and far's tmin raised to t - eps; a NaN crossing (a ray in the plane) needs both with
+// unchanged intervals. Cells come off the stack front to back, and the traversal ends at the first
+// one that starts beyond the closest hit. So a ray visits the leaves and tests the triangles the
+// binary traversal would, in the same order, and the work counters (Count) count the binary
+// kernel's steps as well as the wide nodes.
+//
+// Everything is in an anonymous namespace and `static inline` (see ray_prep.h): each translation
+// unit keeps its own copy for its own target. A unit compiled for AVX2 or later defines
+// KDRT_WIDE_AVX2 before including this (a target pragma does not set __AVX2__), for the 8-lane
+// permutes and movemask.
+
+#include <immintrin.h>
+
+#include <cstdint>
+
+#include "kdrt/kdtree.h"
+#include "packet.h"
+#include "ray_prep.h"
+
+// The 8-lane helpers take and return 32-byte vectors; at the baseline (no AVX) GCC warns that such
+// a function's ABI differs between targets. They have internal linkage and are inlined, so no
+// call crosses targets. (GCC reports it where a template is instantiated, so the setting stays on
+// for the rest of the including translation unit.)
+#pragma GCC diagnostic ignored "-Wpsabi"
+
+namespace kdrt::detail {
+namespace {
+
+namespace wide {
+
+using F8 = float __attribute__((vector_size(32)));
+using I8 = int32_t __attribute__((vector_size(32)));
+using U8 = uint32_t __attribute__((vector_size(32)));
+
+/// order[nh] packs the front-to-back slot order of a treelet, 3 bits a position (position p in
+/// bits 3p..3p+2), for the near sides nh (bit j set: plane j's near side is its high side).
+/// Position p = 4 c0 + 2 c1 + c2 with c = 0 for the near side, 1 for the far side at each level.
+struct OrderTable {
+    uint32_t order[128];
+    constexpr OrderTable() : order{} {
+        for (uint32_t nh = 0; nh < 128; ++nh) {
+            uint32_t packed = 0;
+            for (uint32_t p = 0; p < 8; ++p) {
+                const uint32_t b0 = ((p >> 2) & 1u) ^ (nh & 1u);
+                const uint32_t b1 = ((p >> 1) & 1u) ^ ((nh >> (1 + b0)) & 1u);
+                const uint32_t b2 = (p & 1u) ^ ((nh >> (3 + 2 * b0 + b1)) & 1u);
+                packed |= (4 * b0 + 2 * b1 + b2) << (3 * p);
+            }
+            order[nh] = packed;
+        }
+    }
+};
+inline constexpr OrderTable kOrder{};
+
+/// The same orders one byte a position (position p in byte p): permute indices for AVX2.
+struct OrderBytes {
+    uint64_t order[128];
+    constexpr OrderBytes() : order{} {
+        for (uint32_t nh = 0; nh < 128; ++nh)
+            for (uint32_t p = 0; p < 8; ++p)
+                order[nh] |= static_cast<uint64_t>((kOrder.order[nh] >> (3 * p)) & 7u) << (8 * p);
+    }
+};
+inline constexpr OrderBytes kOrderBytes{};
+
+/// The slots of `valid` (bit s for slot s) as positions (bit p for position p): each level's
+/// near sides swap the halves below their plane. Branch-free.
+static inline uint32_t positions(uint32_t valid, uint32_t nh) {
+    // Level 2: plane 3 + k decides slots 2k and 2k + 1.
+    const uint32_t n2 = (nh >> 3) & 15u;
+    const uint32_t s2 =
+        (n2 & 1u) * 0x03u | (n2 & 2u) * 0x06u | (n2 & 4u) * 0x0Cu | (n2 & 8u) * 0x18u;
+    uint32_t v = (valid & ~s2) | ((valid & s2 & 0x55u) << 1) | ((valid & s2 & 0xAAu) >> 1);
+    // Level 1: plane 1 decides slots 0..3, plane 2 slots 4..7.
+    const uint32_t s1 = ((nh >> 1) & 1u) * 0x0Fu | ((nh >> 2) & 1u) * 0xF0u;
+    v = (v & ~s1) | ((v & s1 & 0x33u) << 2) | ((v & s1 & 0xCCu) >> 2);
+    // Level 0.
+    const uint32_t s0 = (nh & 1u) * 0xFFu;
+    return (v & ~s0) | (((v << 4) | (v >> 4)) & s0 & 0xFFu);
+}
+
+/// One bit per lane of an 8-lane mask (bit i set when lane i is true).
+static inline uint32_t bits8(I8 m) {
+#if defined(KDRT_WIDE_AVX2)
+    return static_cast<uint32_t>(_mm256_movemask_ps(reinterpret_cast<__m256>(m)));
+#else
+    using I4 = int32_t __attribute__((vector_size(16)));
+    const I4 lo = __builtin_shufflevector(m, m, 0, 1, 2, 3);
+    const I4 hi = __builtin_shufflevector(m, m, 4, 5, 6, 7);
+    return static_cast<uint32_t>(_mm_movemask_ps(reinterpret_cast<__m128>(lo)) |
+                                 (_mm_movemask_ps(reinterpret_cast<__m128>(hi)) << 4));
+#endif
+}
+
+template <class V>
+static inline V pick(I8 m, V a, V b) {
+    return m ? a : b;
+}
+
+/// A ray's per-axis values as 8-lane broadcasts.
+struct Ray8 {
+    F8 org[3], inv[3], eps[3];
+};
+
+/// One cell to visit: a slot word of WideNode (tag and index) with the ray's interval there.
+/// `steps`: the binary kernel's inner nodes this cell's visit stands for (counting kernels only).
+struct Cell {
+    uint32_t slot;
+    float tmin, tmax;
+    uint32_t steps;
+};
+
+/// Stack depth: a path crosses at most kMaxDepth / 3 + 1 wide nodes, each leaving at most seven
+/// cells behind.
+inline constexpr int kStackCells = 7 * (kMaxDepth / 3 + 1) + 1;
+
+/// Decodes wide node `w` for a ray whose interval in its cell is [tmin, tmax]: writes the
+/// slots to visit, back to front (the nearest last), to `out` and returns how many. CountEmpty:
+/// empty leaves are visited too (the counting kernels count them as the binary kernel does).
+template <bool CountEmpty, bool CountSteps>
+static inline int decode(const WideNode& w, const Ray8& r, float tmin, float tmax, Cell* out) {
+    F8 split;
+    __builtin_memcpy(&split, &w, sizeof split);
+    const I8 lane = {0, 1, 2, 3, 4, 5, 6, 7};
+    split = pick(lane < 7, split, F8{});  // lane 7 holds the axis bits
+    const U8 axes = U8{} + w.axes;
+    const I8 is_x = reinterpret_cast<I8>((axes & (U8{1, 2, 4, 8, 16, 32, 64, 0})) != 0);
+    const I8 is_y = reinterpret_cast<I8>((axes & (U8{1, 2, 4, 8, 16, 32, 64, 0} << 8)) != 0);
+    const F8 org = pick(is_x, r.org[0], pick(is_y, r.org[1], r.org[2]));
+    const F8 inv = pick(is_x, r.inv[0], pick(is_y, r.inv[1], r.inv[2]));
+    const F8 eps = pick(is_x, r.eps[0], pick(is_y, r.eps[1], r.eps[2]));
+    const F8 t = (split - org) * inv;
+    const F8 near_max = t + eps, far_min = t - eps;
+    const I8 near_high = reinterpret_cast<I8>(inv) < 0;  // the sign bit, -0 and -inf included
+    const uint32_t nh = bits8(near_high) & 0x7Fu;
+
+    // Each level: lane s takes its ancestor plane's crossing and whether it lies on that plane's
+    // far side (its side bit differs from the plane's near side). The far side's tmin is raised to
+    // t - eps, the near side's tmax cut to t + eps, always: where the binary kernel leaves an
+    // interval alone (only one side needed) the cut is a no-op, since t - eps > tmax (or
+    // t + eps < tmin) there; a NaN crossing changes nothing. A slot is visited when its interval
+    // is not empty, which holds exactly when each level needed its side.
+    F8 lo = F8{} + tmin, hi = F8{} + tmax;
+#define KDRT_WIDE_LEVEL(i0, i1, i2, i3, i4, i5, i6, i7, side)                                      \
+    {                                                                                              \
+        const F8 nm = __builtin_shufflevector(near_max, near_max, i0, i1, i2, i3, i4, i5, i6, i7); \
+        const F8 fm = __builtin_shufflevector(far_min, far_min, i0, i1, i2, i3, i4, i5, i6, i7);   \
+        const I8 far =                                                                             \
+            __builtin_shufflevector(near_high, near_high, i0, i1, i2, i3, i4, i5, i6, i7) ^        \
+            (side);                                                                                \
+        lo = pick(far & (fm > lo), fm, lo);                                                        \
+        hi = pick(~far & (nm < hi), nm, hi);                                                       \
+    }
+    KDRT_WIDE_LEVEL(0, 0, 0, 0, 0, 0, 0, 0, (I8{0, 0, 0, 0, -1, -1, -1, -1}))
+    KDRT_WIDE_LEVEL(1, 1, 1, 1, 2, 2, 2, 2, (I8{0, 0, -1, -1, 0, 0, -1, -1}))
+    KDRT_WIDE_LEVEL(3, 3, 4, 4, 5, 5, 6, 6, (I8{0, -1, 0, -1, 0, -1, 0, -1}))
+#undef KDRT_WIDE_LEVEL
+    I8 valid = lo <= hi;
+    U8 slots;
+    __builtin_memcpy(&slots, w.slot, sizeof slots);
+    const U8 tag = slots & 3u;
+    valid &=
+        reinterpret_cast<I8>(CountEmpty ? tag != WideNode::kSlotNone : tag >= WideNode::kSlotLeaf);
+    int n = 0;
+    uint32_t slot_of[8];
+#if defined(KDRT_WIDE_AVX2)
+    // Everything into position order with one permute each; the valid positions in one movemask.
+    const __m256i perm =
+        _mm256_cvtepu8_epi32(_mm_cvtsi64_si128(static_cast<long long>(kOrderBytes.order[nh])));
+    const __m256i valid_p = _mm256_permutevar8x32_epi32(reinterpret_cast<__m256i>(valid), perm);
+    uint32_t pos = static_cast<uint32_t>(_mm256_movemask_ps(_mm256_castsi256_ps(valid_p)));
+    alignas(32) float lo_a[8], hi_a[8];
+    alignas(32) uint32_t slot_a[8], index_a[8];
+    _mm256_store_ps(lo_a, _mm256_permutevar8x32_ps(reinterpret_cast<__m256>(lo), perm));
+    _mm256_store_ps(hi_a, _mm256_permutevar8x32_ps(reinterpret_cast<__m256>(hi), perm));
+    _mm256_store_si256(reinterpret_cast<__m256i*>(slot_a),
+                       _mm256_permutevar8x32_epi32(reinterpret_cast<__m256i>(slots), perm));
+    if constexpr (CountSteps) _mm256_store_si256(reinterpret_cast<__m256i*>(index_a), perm);
+    for (; pos; pos &= ~(0x80000000u >> __builtin_clz(pos))) {
+        const auto p = static_cast<uint32_t>(31 - __builtin_clz(pos));
+        if constexpr (CountSteps) slot_of[n] = index_a[p];
+        out[n++] = {slot_a[p], lo_a[p], hi_a[p], 0};
+    }
+#else
+    uint32_t pos = positions(bits8(valid), nh);
+    alignas(32) float lo_a[8], hi_a[8];
+    __builtin_memcpy(lo_a, &lo, sizeof lo_a);
+    __builtin_memcpy(hi_a, &hi, sizeof hi_a);
+    const uint32_t order = kOrder.order[nh];
+    for (; pos; pos &= ~(0x80000000u >> __builtin_clz(pos))) {
+        const auto p = static_cast<uint32_t>(31 - __builtin_clz(pos));
+        const uint32_t s = (order >> (3 * p)) & 7u;
+        slot_of[n] = s;
+        out[n++] = {w.slot[s], lo_a[s], hi_a[s], 0};
+    }
+#endif
+    if constexpr (CountSteps) {
+        // A binary inner node is visited when the first cell below it is (the binary kernel
+        // descends to it without a check): credit each real plane (not padding) to that cell.
+        constexpr uint32_t kFirst[7] = {0, 0, 4, 0, 2, 4, 6}, kCount[7] = {8, 4, 4, 2, 2, 2, 2};
+        for (int j = 0; j < WideNode::kPlanes; ++j) {
+            if (!__builtin_isfinite(w.split[j])) continue;
+            for (int c = n - 1; c >= 0; --c) {
+                if (slot_of[c] >= kFirst[j] && slot_of[c] < kFirst[j] + kCount[j]) {
+                    ++out[c].steps;
+                    break;
+                }
+            }
+        }
+    }
+    return n;
+}
+
+}  // namespace wide
+
+/// Closest hit so far. Initialised to (ray.tmax, kNoHit) so a hit at exactly tmax still counts.
+struct Best {
+    float t;
+    uint32_t prim;
+    float u, v;
+};
+
+/// No counting: the public queries.
+struct NoCount {
+    static constexpr bool kCounts = false;
+    void steps(uint32_t) noexcept {}
+    void wide() noexcept {}
+    void leaf(uint32_t) noexcept {}
+};
+/// Counting into TraceCounters: kdrt-bench trace --stats.
+struct Count {
+    static constexpr bool kCounts = true;
+    TraceCounters& c;
+    void steps(uint32_t n) noexcept { c.steps += n; }
+    void wide() noexcept { ++c.wide_visits; }
+    void leaf(uint32_t tris) noexcept {
+        ++c.leaves;
+        c.tri_tests += tris;
+    }
+};
+
+/// The single-ray kernel: with AnyHit it returns at the first hit in [ray tmin, ray tmax];
+/// otherwise it keeps the lexicographically smallest (t, prim) so ties do not depend on the
+/// traversal order. Counter: NoCount, or Count (the work counters of kdrt-bench trace --stats).
+template <bool AnyHit, class Counter>
+static inline bool traverse_wide(const KdTree& tree, const Ray& ray, Best& best,
+                                 Counter counter) noexcept {
+    if (!ray_is_valid(ray) || tree.bounds.empty()) return false;
+    const PreparedRay p = prepare_ray(ray);
+    float tmin = ray.tmin, tmax = ray.tmax;
+    if (!clip_to_box(p, tree.bounds, tmin, tmax)) return false;
+    float eps[3];
+    traversal_eps(p, tree.bounds, eps);
+    wide::Ray8 r8;
+    for (int a = 0; a < 3; ++a) {
+        r8.org[a] = wide::F8{} + p.org[a];
+        r8.inv[a] = wide::F8{} + p.inv_dir[a];
+        r8.eps[a] = wide::F8{} + eps[a];
+    }
+    const KdNode* nodes = tree.nodes.data();
+    const WideNode* wides = tree.wide_nodes.data();
+    const uint32_t* refs = tree.leaf_refs.data();
+    const TriVerts* tris = tree.tris.data();
+    const uint32_t* ids = tree.tri_ids.data();
+
+    wide::Cell stack[wide::kStackCells + 8];  // +8: a decode writes up to eight cells
+    int stack_size = 0;
+    // The root: a wide node, or (a tree of one leaf) that leaf.
+    wide::Cell cell{tree.wide_nodes.empty() ? WideNode::make_slot(WideNode::kSlotLeaf, 0)
+                                            : WideNode::make_slot(WideNode::kSlotNode, 0),
+                    tmin, tmax, 0};
+    bool found = false;
+    for (;;) {
+        counter.steps(cell.steps);
+        const uint32_t index = WideNode::slot_index(cell.slot);
+        if (WideNode::slot_tag(cell.slot) == WideNode::kSlotNode) {
+            counter.wide();
+            // Straight onto the stack, farthest first, so the nearest comes off first; the
+            // nearest is visited now, without a check (the binary kernel descends to it).
+            const int n = wide::decode<Counter::kCounts, Counter::kCounts>(
+                wides[index], r8, cell.tmin, cell.tmax, &stack[stack_size]);
+            if (n > 0) {
+                stack_size += n - 1;
+                cell = stack[stack_size];
+                continue;
+            }
+        } else {
+            const KdNode leaf = nodes[index];
+            counter.leaf(leaf.prim_count());
+            const uint32_t end = leaf.first_ref() + leaf.prim_count();
+            for (uint32_t ref = leaf.first_ref(); ref < end; ++ref) {
+                const uint32_t slot = refs[ref];
+                float t, u, v;
+                if (!intersect_triangle(p, tris[slot], ray.tmin, t, u, v)) continue;
+                if constexpr (AnyHit) {
+                    if (t <= ray.tmax) return true;
+                } else {
+                    const uint32_t prim = ids[slot];  // the tie rule and the answer use mesh ids
+                    if (t < best.t || (t == best.t && prim < best.prim)) {
+                        best = {t, prim, u, v};
+                        found = true;
+                    }
+                }
+            }
+        }
+        // Cells come off the stack front to back; once one starts beyond the closest hit, so do
+        // all the rest (a hit exactly at a cell's entry may still have a lower-id tie inside it).
+        if (stack_size == 0) return found;
+        cell = stack[--stack_size];
+        if constexpr (!AnyHit) {
+            if (cell.tmin > best.t) return found;
+        }
+    }
+}
+
+static inline Hit to_hit(bool found, const Best& best) noexcept {
+    return found ? Hit{best.t, best.prim, best.u, best.v} : Hit{};
+}
+
+/// The single-ray queries (PacketKernels::single_*): intersect / occluded of trace.h, and their
+/// counting copies.
+static inline Hit wide_intersect(const KdTree& tree, const Ray& ray) noexcept {
+    Best best{ray.tmax, kNoHit, 0.0f, 0.0f};
+    const bool found = traverse_wide<false>(tree, ray, best, NoCount{});
+    return to_hit(found, best);
+}
+static inline bool wide_occluded(const KdTree& tree, const Ray& ray) noexcept {
+    Best best{ray.tmax, kNoHit, 0.0f, 0.0f};
+    return traverse_wide<true>(tree, ray, best, NoCount{});
+}
+static inline Hit wide_intersect_counted(const KdTree& tree, const Ray& ray,
+                                         TraceCounters& counters) noexcept {
+    Best best{ray.tmax, kNoHit, 0.0f, 0.0f};
+    const bool found = traverse_wide<false>(tree, ray, best, Count{counters});
+    return to_hit(found, best);
+}
+static inline bool wide_occluded_counted(const KdTree& tree, const Ray& ray,
+                                         TraceCounters& counters) noexcept {
+    Best best{ray.tmax, kNoHit, 0.0f, 0.0f};
+    return traverse_wide<true>(tree, ray, best, Count{counters});
+}
+
+}  // namespace
+}  // namespace kdrt::detail

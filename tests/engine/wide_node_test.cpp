@@ -1,0 +1,262 @@
+// Wide nodes (KdTree::wide_nodes, make_wide_nodes in engine/src/node_layout.cpp) and the
+// single-ray kernel over them (engine/src/wide_kernel.h): the bit layout, the conversion back to
+// the binary tree, and the kernel of every ISA against brute force on adversarial rays.
+
+#include <gtest/gtest.h>
+
+#include <cmath>
+#include <cstddef>
+#include <cstdint>
+#include <cstring>
+#include <limits>
+#include <string>
+#include <utility>
+#include <vector>
+
+#include "kdrt/kdtree.h"
+#include "kdrt/proto/mesh_io.h"
+#include "kdrt/trace.h"
+#include "oracle.h"
+#include "scenes.h"
+#include "test_util.h"
+
+namespace kdrt::test {
+namespace {
+
+static_assert(sizeof(WideNode) == 64 && alignof(WideNode) == 64, "one cache line");
+static_assert(offsetof(WideNode, split) == 0 && offsetof(WideNode, axes) == 28 &&
+              offsetof(WideNode, slot) == 32);
+static_assert(WideNode::kSlotNone == 0 && WideNode::kSlotEmpty == 1 && WideNode::kSlotLeaf == 2 &&
+              WideNode::kSlotNode == 3);
+
+TEST(WideNodeLayout, SlotWordsAndAxisBitsAreAsDocumented) {
+    const uint32_t s = WideNode::make_slot(WideNode::kSlotLeaf, 12345);
+    EXPECT_EQ(s, (12345u << 2) | 2u);
+    EXPECT_EQ(WideNode::slot_tag(s), WideNode::kSlotLeaf);
+    EXPECT_EQ(WideNode::slot_index(s), 12345u);
+    EXPECT_EQ(WideNode::slot_index(WideNode::make_slot(WideNode::kSlotNode, KdNode::kMaxField)),
+              KdNode::kMaxField);
+    WideNode w{};
+    w.axes = (1u << 0) | (1u << (8 + 1));  // plane 0 on x, plane 1 on y, the rest on z
+    EXPECT_EQ(w.axis(0), 0);
+    EXPECT_EQ(w.axis(1), 1);
+    for (int j = 2; j < WideNode::kPlanes; ++j) EXPECT_EQ(w.axis(j), 2);
+    unsigned char bytes[64];
+    w.split[3] = 1.5f;
+    w.slot[5] = s;
+    std::memcpy(bytes, &w, sizeof bytes);
+    uint32_t word;
+    std::memcpy(&word, bytes + 28, 4);
+    EXPECT_EQ(word, w.axes);
+    std::memcpy(&word, bytes + 32 + 5 * 4, 4);
+    EXPECT_EQ(word, s);
+    float f;
+    std::memcpy(&f, bytes + 3 * 4, 4);
+    EXPECT_EQ(f, 1.5f);
+}
+
+TEST(WideNodeLayout, ShallowLeavesArePaddedAndDeepSubtreesGetTheirOwnNode) {
+    // root (x = 1): low child a leaf of 2 triangles; high child (y = 2) with an empty leaf low and
+    // (z = 3) high, whose children are a leaf and an inner node (x = 4) over two leaves.
+    std::vector<KdNode> nodes(9);
+    nodes[0] = KdNode::inner(0, 1.0f, 1);
+    nodes[1] = KdNode::leaf(2, 0);
+    nodes[2] = KdNode::inner(1, 2.0f, 3);
+    nodes[3] = KdNode::leaf(0, 2);
+    nodes[4] = KdNode::inner(2, 3.0f, 5);
+    nodes[5] = KdNode::leaf(1, 2);
+    nodes[6] = KdNode::inner(0, 4.0f, 7);
+    nodes[7] = KdNode::leaf(1, 3);
+    nodes[8] = KdNode::leaf(1, 4);
+    const TreeArray<WideNode> wide = make_wide_nodes(nodes);
+    ASSERT_EQ(wide.size(), 2u);
+    const WideNode& w = wide[0];
+    const float inf = std::numeric_limits<float>::infinity();
+    EXPECT_EQ(w.split[0], 1.0f);
+    EXPECT_EQ(w.axis(0), 0);
+    EXPECT_EQ(w.split[1], inf) << "the leaf's level-1 plane is padding";
+    EXPECT_EQ(w.split[3], inf) << "and so is its level-2 plane";
+    EXPECT_EQ(w.axis(1), 0);
+    EXPECT_EQ(w.split[2], 2.0f);
+    EXPECT_EQ(w.axis(2), 1);
+    EXPECT_EQ(w.split[5], inf) << "the empty leaf at level 2 is padded once";
+    EXPECT_EQ(w.split[6], 3.0f);
+    EXPECT_EQ(w.axis(6), 2);
+    const uint32_t none = WideNode::kSlotNone;
+    const uint32_t expected[8] = {WideNode::make_slot(WideNode::kSlotLeaf, 1),
+                                  none,
+                                  none,
+                                  none,
+                                  WideNode::make_slot(WideNode::kSlotEmpty, 3),
+                                  none,
+                                  WideNode::make_slot(WideNode::kSlotLeaf, 5),
+                                  WideNode::make_slot(WideNode::kSlotNode, 1)};
+    for (int s = 0; s < 8; ++s) EXPECT_EQ(w.slot[s], expected[s]) << "slot " << s;
+    const WideNode& c = wide[1];
+    EXPECT_EQ(c.split[0], 4.0f);
+    EXPECT_EQ(c.slot[0], WideNode::make_slot(WideNode::kSlotLeaf, 7));
+    EXPECT_EQ(c.slot[4], WideNode::make_slot(WideNode::kSlotLeaf, 8));
+    EXPECT_EQ(c.axes & ~0x7F7Fu, 0u) << "unused axis bits stay 0";
+
+    EXPECT_TRUE(make_wide_nodes(std::vector<KdNode>{KdNode::leaf(3, 0)}).empty())
+        << "a tree of one leaf has no wide node";
+}
+
+/// The binary tree a tree's wide nodes stand for, depth first, low side first: (axis, split
+/// bits) for an inner node, (word0, word1) for a leaf. Padding planes are skipped.
+void expand(const KdTree& tree, uint32_t wide_index,
+            std::vector<std::pair<uint32_t, uint32_t>>& out) {
+    const WideNode& w = tree.wide_nodes[wide_index];
+    const auto plane = [&](int j) {
+        uint32_t bits;
+        std::memcpy(&bits, &w.split[j], 4);
+        out.emplace_back(static_cast<uint32_t>(w.axis(j)), bits);
+    };
+    const auto slot = [&](uint32_t s) {
+        const uint32_t word = w.slot[s];
+        if (WideNode::slot_tag(word) == WideNode::kSlotNode) {
+            expand(tree, WideNode::slot_index(word), out);
+        } else {
+            ASSERT_NE(WideNode::slot_tag(word), WideNode::kSlotNone);
+            const KdNode leaf = tree.nodes[WideNode::slot_index(word)];
+            ASSERT_TRUE(leaf.is_leaf());
+            EXPECT_EQ(WideNode::slot_tag(word) == WideNode::kSlotEmpty, leaf.prim_count() == 0);
+            out.emplace_back(leaf.word0(), leaf.word1());
+        }
+    };
+    plane(0);
+    for (uint32_t b0 = 0; b0 < 2; ++b0) {
+        if (std::isinf(w.split[1 + b0])) {
+            for (uint32_t s = 4 * b0 + 1; s < 4 * b0 + 4; ++s)
+                EXPECT_EQ(w.slot[s], WideNode::kSlotNone);
+            slot(4 * b0);
+            continue;
+        }
+        plane(static_cast<int>(1 + b0));
+        for (uint32_t b1 = 0; b1 < 2; ++b1) {
+            const int p2 = static_cast<int>(3 + 2 * b0 + b1);
+            if (std::isinf(w.split[p2])) {
+                EXPECT_EQ(w.slot[4 * b0 + 2 * b1 + 1], WideNode::kSlotNone);
+                slot(4 * b0 + 2 * b1);
+                continue;
+            }
+            plane(p2);
+            slot(4 * b0 + 2 * b1);
+            slot(4 * b0 + 2 * b1 + 1);
+        }
+    }
+}
+
+void expect_wide_nodes_are_the_tree(const KdTree& tree, const std::string& what) {
+    if (tree.nodes[0].is_leaf()) {
+        EXPECT_TRUE(tree.wide_nodes.empty()) << what;
+        return;
+    }
+    ASSERT_FALSE(tree.wide_nodes.empty()) << what;
+    std::vector<std::pair<uint32_t, uint32_t>> wide;
+    expand(tree, 0, wide);
+    EXPECT_TRUE(wide == tree_shape(tree.nodes)) << what;
+    // Children after their parents (the conversion numbers them depth first).
+    for (size_t i = 0; i < tree.wide_nodes.size(); ++i) {
+        for (uint32_t word : tree.wide_nodes[i].slot) {
+            if (WideNode::slot_tag(word) == WideNode::kSlotNode) {
+                EXPECT_GT(WideNode::slot_index(word), i) << what;
+            }
+        }
+    }
+}
+
+TEST(WideNodeLayout, BunnyAndSoupTreesExpandBackToTheBinaryTree) {
+    auto mesh = proto::load_mesh_file(std::string(KDRT_TEST_DATA_DIR) + "/bunny00.off");
+    ASSERT_TRUE(mesh.ok());
+    const KdTree bunny = build_kdtree(*mesh);
+    expect_wide_nodes_are_the_tree(bunny, "bunny");
+    // A wide node stands for several binary inner nodes: about a third as many dependent loads.
+    const size_t inner = bunny.stats.nodes - bunny.stats.leaves;
+    EXPECT_LT(bunny.wide_nodes.size() * 3, inner) << inner << " inner nodes";
+    BuildOptions middle;
+    middle.builder = Builder::kMiddle;
+    expect_wide_nodes_are_the_tree(build_kdtree(*mesh, middle), "bunny, middle split");
+    Rng rng(test_seed());
+    for (size_t n : {3, 40, 1000}) {
+        const Mesh soup = random_soup(rng, n);
+        expect_wide_nodes_are_the_tree(build_kdtree(soup), "soup of " + std::to_string(n));
+    }
+}
+
+std::vector<Isa> isas_here() {
+    std::vector<Isa> out;
+    for (Isa isa : {Isa::kScalar, Isa::kSse4, Isa::kAvx2, Isa::kAvx512})
+        if (isa_supported(isa)) out.push_back(isa);
+    return out;
+}
+
+/// Single rays of every ISA's wide kernel against brute force: closest hits (ties as the oracle
+/// helpers accept them) and occlusion, on oracle_rays' adversarial mix (axis-parallel rays, rays
+/// in split planes, through vertices and edge midpoints, from inside, tmin/tmax windows).
+void expect_single_rays_match_brute_force(const Mesh& mesh, const std::string& what) {
+    const KdTree tree = build_kdtree(mesh);
+    const std::vector<TriVerts> tris = triangles_by_id(tree);
+    Rng rng(test_seed() ^ 0x5157);
+    const std::vector<Ray> rays = oracle_rays(rng, mesh, tree, scaled(6000));
+    const std::vector<Hit> want = brute_force_all(tris, rays);
+    std::vector<uint8_t> want_occ(rays.size());
+    for (size_t i = 0; i < rays.size(); ++i)
+        want_occ[i] = brute_force_occluded(tris, rays[i]) ? 1 : 0;
+    for (Isa isa : isas_here()) {
+        SCOPED_TRACE(what + " / " + std::string(isa_name(isa)));
+        std::vector<Hit> got(rays.size());
+        intersect(tree, rays, got, {TraceMode::kSingle, isa});
+        expect_same_hits(got, want, rays, tris);
+        std::vector<uint8_t> occ(rays.size());
+        occluded(tree, rays, occ, {TraceMode::kSingle, isa});
+        EXPECT_TRUE(occ == want_occ);
+    }
+}
+
+TEST(WideKernel, MatchesBruteForceOnAdversarialRaysEveryIsa) {
+    Rng rng(test_seed() ^ 0xA11);
+    expect_single_rays_match_brute_force(random_soup(rng, 2000), "soup");
+    expect_single_rays_match_brute_force(random_soup(rng, 300, 0.6f), "big triangles");
+    auto mesh = proto::load_mesh_file(std::string(KDRT_TEST_DATA_DIR) + "/bunny00.off");
+    ASSERT_TRUE(mesh.ok());
+    expect_single_rays_match_brute_force(*mesh, "bunny");
+}
+
+TEST(WideKernel, AxisAlignedGridRaysAlongAndAcrossEverySplitPlane) {
+    // A grid of unit squares in z = 0, 1, 2: many split planes coincide with triangle edges and
+    // with the rays below, which run along those planes, through grid vertices, and from inside.
+    Mesh m;
+    for (int z = 0; z < 3; ++z)
+        for (int y = 0; y < 6; ++y)
+            for (int x = 0; x < 6; ++x) {
+                const Vec3 a{float(x), float(y), float(z)}, b{float(x + 1), float(y), float(z)},
+                    c{float(x + 1), float(y + 1), float(z)}, d{float(x), float(y + 1), float(z)};
+                add_triangle(m, a, b, c);
+                add_triangle(m, a, c, d);
+            }
+    const KdTree tree = build_kdtree(m);
+    const std::vector<TriVerts> tris = triangles_by_id(tree);
+    std::vector<Ray> rays;
+    for (int y = 0; y <= 12; ++y)
+        for (int x = 0; x <= 12; ++x) {
+            const float fx = 0.5f * float(x), fy = 0.5f * float(y);
+            rays.push_back(make_ray({fx, fy, -1.0f}, {0, 0, 1}));
+            rays.push_back(make_ray({fx, fy, 3.5f}, {0, 0, -1}));
+            rays.push_back(make_ray({fx, fy, 1.5f}, {0, 0, 1}, 0.0f, 1.0f));
+            rays.push_back(make_ray({fx, fy, 0.0f}, {1, 0, 0}));     // in a triangle plane
+            rays.push_back(make_ray({-1.0f, fy, 1.0f}, {1, 0, 0}));  // along a split plane
+            rays.push_back(make_ray({fx, fy, -1.0f}, {0.25f, 0.5f, 1}));
+            rays.push_back(make_ray({fx, fy, 1.0f}, {-0.0f, -0.0f, -1}, 0.5f, 0.5f));
+        }
+    const std::vector<Hit> want = brute_force_all(tris, rays);
+    for (Isa isa : isas_here()) {
+        SCOPED_TRACE(std::string(isa_name(isa)));
+        std::vector<Hit> got(rays.size());
+        intersect(tree, rays, got, {TraceMode::kSingle, isa});
+        expect_same_hits(got, want, rays, tris);
+    }
+}
+
+}  // namespace
+}  // namespace kdrt::test
