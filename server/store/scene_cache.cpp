@@ -256,16 +256,35 @@ SceneProblem stale(Metrics& metrics, const std::string& id, uint64_t if_match, u
 }
 }  // namespace
 
-SceneCache::Result<SceneCache::EntryPtr> SceneCache::set_poses(
-    const std::string& id, std::optional<uint64_t> if_match,
-    std::span<const proto::PoseEntry> poses) {
-    // Without If-Match a lost race is retried on the newer revision (the poses are absolute).
+SceneCache::Result<SceneCache::EntryPtr> SceneCache::update(
+    const std::string& id, std::optional<uint64_t> if_match, const char* what,
+    const std::function<Result<EntryPtr>(const EntryPtr& base)>& next) {
     for (int attempt = 0; attempt < 16; ++attempt) {
         auto base = current(id);
         if (!base) return base;
         const EntryPtr& b = *base;
         if (if_match && *if_match != b->doc.revision)
             return proto::Err{stale(metrics_, id, *if_match, b->doc.revision)};
+        auto entry = next(b);
+        if (!entry) return entry;
+        auto committed = commit(*entry);
+        if (!committed) return proto::Err{std::move(committed).error()};
+        if (*committed) return entry;
+        if (if_match) {  // someone else committed base + 1 first
+            auto now = store_.latest(id);
+            if (!now) return proto::Err{store_problem(now.error(), id, std::nullopt)};
+            return proto::Err{stale(metrics_, id, *if_match, *now)};
+        }
+    }
+    return proto::Err{problem(
+        Code::kInternal, "scene " + id + " changed 16 times while this " + what + " was applied")};
+}
+
+SceneCache::Result<SceneCache::EntryPtr> SceneCache::set_poses(
+    const std::string& id, std::optional<uint64_t> if_match,
+    std::span<const proto::PoseEntry> poses) {
+    // Without If-Match a lost race is retried on the newer revision (the poses are absolute).
+    return update(id, if_match, "update", [&](const EntryPtr& b) -> Result<EntryPtr> {
         auto resolved = proto::resolve_poses(b->doc, poses);
         if (!resolved) {
             const auto& e = resolved.error();
@@ -300,29 +319,14 @@ SceneCache::Result<SceneCache::EntryPtr> SceneCache::set_poses(
         for (const proto::ResolvedPose& p : *resolved)
             next->doc.instances[p.geometry_id].transform = p.transform;
         next->bytes = entry_bytes(*next);
-        EntryPtr entry = std::move(next);
-        auto committed = commit(entry);
-        if (!committed) return proto::Err{std::move(committed).error()};
-        if (*committed) return entry;
-        if (if_match) {  // someone else committed base + 1 first
-            auto now = store_.latest(id);
-            if (!now) return proto::Err{store_problem(now.error(), id, std::nullopt)};
-            return proto::Err{stale(metrics_, id, *if_match, *now)};
-        }
-    }
-    return proto::Err{problem(Code::kInternal,
-                              "scene " + id + " changed 16 times while this update was applied")};
+        return EntryPtr(std::move(next));
+    });
 }
 
 SceneCache::Result<SceneCache::EntryPtr> SceneCache::edit(const std::string& id,
                                                           std::optional<uint64_t> if_match,
                                                           const proto::InstanceEdit& edit) {
-    for (int attempt = 0; attempt < 16; ++attempt) {
-        auto base = current(id);
-        if (!base) return base;
-        const EntryPtr& b = *base;
-        if (if_match && *if_match != b->doc.revision)
-            return proto::Err{stale(metrics_, id, *if_match, b->doc.revision)};
+    return update(id, if_match, "edit", [&](const EntryPtr& b) -> Result<EntryPtr> {
         proto::SceneLimits limits;
         limits.max_instances = options_.max_instances;
         auto doc = proto::apply_instance_edit(b->doc, edit, limits);
@@ -351,17 +355,8 @@ SceneCache::Result<SceneCache::EntryPtr> SceneCache::edit(const std::string& id,
             }
             return proto::Err{std::move(p)};
         }
-        auto committed = commit(*next);
-        if (!committed) return proto::Err{std::move(committed).error()};
-        if (*committed) return next;
-        if (if_match) {
-            auto now = store_.latest(id);
-            if (!now) return proto::Err{store_problem(now.error(), id, std::nullopt)};
-            return proto::Err{stale(metrics_, id, *if_match, *now)};
-        }
-    }
-    return proto::Err{
-        problem(Code::kInternal, "scene " + id + " changed 16 times while this edit was applied")};
+        return next;
+    });
 }
 
 SceneCache::Result<bool> SceneCache::remove(const std::string& id,

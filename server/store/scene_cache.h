@@ -22,6 +22,7 @@
 /// Thread-safe.
 
 #include <cstdint>
+#include <functional>
 #include <list>
 #include <map>
 #include <memory>
@@ -130,6 +131,13 @@ private:
     Result<EntryPtr> current(const std::string& id);
     /// Writes `next` (revision base + 1) and caches it; false when another writer was first.
     Result<bool> commit(const EntryPtr& next);
+    /// The compare-and-set loop of set_poses and edit: `next` makes revision base + 1 from the
+    /// current revision `base`, which is committed; `if_match` refuses a stale base (kStale), and
+    /// without it a lost race is retried on the newer revision, up to 16 times (`what` names
+    /// the update in that error).
+    Result<EntryPtr> update(const std::string& id, std::optional<uint64_t> if_match,
+                            const char* what,
+                            const std::function<Result<EntryPtr>(const EntryPtr& base)>& next);
     void keep(const EntryPtr& entry);  ///< into the LRU (evicting beyond the budget)
     void forget(const std::string& id);
     EntryPtr find(const std::string& id, uint64_t revision);

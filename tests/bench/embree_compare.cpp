@@ -1,11 +1,5 @@
 #include "embree_compare.h"
 
-// Embree 4 and 3 through their public headers: CMake passes the major version it found.
-#if KDRT_EMBREE_MAJOR >= 4
-#include <embree4/rtcore.h>
-#else
-#include <embree3/rtcore.h>
-#endif
 #include <sys/types.h>
 #include <tbb/blocked_range.h>
 #include <tbb/parallel_for.h>
@@ -23,6 +17,7 @@
 #include <string>
 #include <type_traits>
 
+#include "embree_api.h"
 #include "kdrt/trace.h"
 
 namespace kdrt::bench {
@@ -38,66 +33,6 @@ constexpr size_t kBlockRays = 256;
 
 // Relative t tolerance of the answer comparison (kdrt and Embree use different triangle tests).
 constexpr double kRelativeTolerance = 1e-4;
-
-// Embree 4 replaced the intersect context (rtcInitIntersectContext, passed before the rays) by
-// optional argument structs passed after them, and dropped the ray-stream calls (rtc*1M).
-// QueryArgs holds what a query call needs; query() and query_packet() pass it where the API
-// version wants it.
-#if RTC_VERSION_MAJOR >= 4
-constexpr bool kHasRayStreams = false;
-
-class QueryArgs {
-public:
-    explicit QueryArgs(bool coherent) {
-        rtcInitIntersectArguments(&intersect_);
-        rtcInitOccludedArguments(&occluded_);
-        const RTCRayQueryFlags flags =
-            coherent ? RTC_RAY_QUERY_FLAG_COHERENT : RTC_RAY_QUERY_FLAG_INCOHERENT;
-        intersect_.flags = flags;
-        occluded_.flags = flags;
-    }
-    RTCIntersectArguments* intersect_args() noexcept { return &intersect_; }
-    RTCOccludedArguments* occluded_args() noexcept { return &occluded_; }
-
-private:
-    RTCIntersectArguments intersect_;
-    RTCOccludedArguments occluded_;
-};
-
-template <typename Fn, typename Rays, typename Args>
-void query(Fn fn, RTCScene scene, Rays* rays, Args* args) {
-    fn(scene, rays, args);
-}
-template <typename Fn, typename Rays, typename Args>
-void query_packet(Fn fn, const int* valid, RTCScene scene, Rays* rays, Args* args) {
-    fn(valid, scene, rays, args);
-}
-#else
-constexpr bool kHasRayStreams = true;
-
-class QueryArgs {
-public:
-    explicit QueryArgs(bool coherent) {
-        rtcInitIntersectContext(&context_);
-        context_.flags =
-            coherent ? RTC_INTERSECT_CONTEXT_FLAG_COHERENT : RTC_INTERSECT_CONTEXT_FLAG_INCOHERENT;
-    }
-    RTCIntersectContext* intersect_args() noexcept { return &context_; }
-    RTCIntersectContext* occluded_args() noexcept { return &context_; }
-
-private:
-    RTCIntersectContext context_;
-};
-
-template <typename Fn, typename Rays, typename Args>
-void query(Fn fn, RTCScene scene, Rays* rays, Args* args) {
-    fn(scene, args, rays);
-}
-template <typename Fn, typename Rays, typename Args>
-void query_packet(Fn fn, const int* valid, RTCScene scene, Rays* rays, Args* args) {
-    fn(valid, scene, args, rays);
-}
-#endif
 
 /// Error and memory bookkeeping shared with Embree's callbacks (called from any thread).
 struct DeviceState {

@@ -1,13 +1,10 @@
 // Embree instancing for `kdrt-bench scene instances --compare embree` (embree_scene.h). Embree 4
-// or 3 through its public headers, selected as embree_compare.cpp selects them.
+// or 3 through its public headers, selected by embree_api.h.
 
 #include "embree_scene.h"
 
-#if KDRT_EMBREE_MAJOR >= 4
-#include <embree4/rtcore.h>
-#else
-#include <embree3/rtcore.h>
-#endif
+#include "embree_api.h"
+
 #include <tbb/blocked_range.h>
 #include <tbb/parallel_for.h>
 
@@ -27,46 +24,6 @@ double ms_since(Clock::time_point start) {
 }
 
 constexpr size_t kBlock = 256;
-
-#if RTC_VERSION_MAJOR >= 4
-struct Query {
-    RTCIntersectArguments intersect;
-    RTCOccludedArguments occluded;
-    explicit Query(bool coherent) {
-        rtcInitIntersectArguments(&intersect);
-        rtcInitOccludedArguments(&occluded);
-        const RTCRayQueryFlags flags =
-            coherent ? RTC_RAY_QUERY_FLAG_COHERENT : RTC_RAY_QUERY_FLAG_INCOHERENT;
-        intersect.flags = flags;
-        occluded.flags = flags;
-    }
-    void intersect1(RTCScene s, RTCRayHit& rh) { rtcIntersect1(s, &rh, &intersect); }
-    void occluded1(RTCScene s, RTCRay& r) { rtcOccluded1(s, &r, &occluded); }
-    void intersect8(const int* valid, RTCScene s, RTCRayHit8& rh) {
-        rtcIntersect8(valid, s, &rh, &intersect);
-    }
-    void occluded8(const int* valid, RTCScene s, RTCRay8& r) {
-        rtcOccluded8(valid, s, &r, &occluded);
-    }
-};
-#else
-struct Query {
-    RTCIntersectContext context;
-    explicit Query(bool coherent) {
-        rtcInitIntersectContext(&context);
-        context.flags =
-            coherent ? RTC_INTERSECT_CONTEXT_FLAG_COHERENT : RTC_INTERSECT_CONTEXT_FLAG_INCOHERENT;
-    }
-    void intersect1(RTCScene s, RTCRayHit& rh) { rtcIntersect1(s, &context, &rh); }
-    void occluded1(RTCScene s, RTCRay& r) { rtcOccluded1(s, &context, &r); }
-    void intersect8(const int* valid, RTCScene s, RTCRayHit8& rh) {
-        rtcIntersect8(valid, s, &context, &rh);
-    }
-    void occluded8(const int* valid, RTCScene s, RTCRay8& r) {
-        rtcOccluded8(valid, s, &context, &r);
-    }
-};
-#endif
 
 std::mutex g_error_mutex;
 std::string g_first_error;
@@ -132,7 +89,7 @@ struct EmbreeInstanceScene::Impl {
         const size_t blocks = (rays.size() + kBlock - 1) / kBlock;
         tbb::parallel_for(
             tbb::blocked_range<size_t>(0, blocks), [&](const tbb::blocked_range<size_t>& br) {
-                Query q(coherent);
+                QueryArgs q(coherent);
                 for (size_t b = br.begin(); b != br.end(); ++b) {
                     const size_t lo = b * kBlock, hi = std::min(rays.size(), lo + kBlock);
                     if constexpr (W == 1) {
@@ -140,14 +97,14 @@ struct EmbreeInstanceScene::Impl {
                             if constexpr (Occlusion) {
                                 RTCRay r;
                                 set_ray(r, 0, rays[i]);
-                                q.occluded1(top, r);
+                                query(rtcOccluded1, top, &r, q.occluded_args());
                                 occ[i] = r.tfar == -std::numeric_limits<float>::infinity() ? 1 : 0;
                             } else {
                                 RTCRayHit rh;
                                 set_ray(rh.ray, 0, rays[i]);
                                 rh.hit.geomID = RTC_INVALID_GEOMETRY_ID;
                                 rh.hit.instID[0] = RTC_INVALID_GEOMETRY_ID;
-                                q.intersect1(top, rh);
+                                query(rtcIntersect1, top, &rh, q.intersect_args());
                                 hits[i] = rh.hit.geomID == RTC_INVALID_GEOMETRY_ID
                                               ? SceneHit{}
                                               : SceneHit{rh.ray.tfar, rh.hit.primID, rh.hit.u,
@@ -164,7 +121,7 @@ struct EmbreeInstanceScene::Impl {
                                     valid[l] = static_cast<size_t>(l) < n ? -1 : 0;
                                     set_ray(r, l, rays[first + std::min<size_t>(l, n - 1)]);
                                 }
-                                q.occluded8(valid, top, r);
+                                query_packet(rtcOccluded8, valid, top, &r, q.occluded_args());
                                 for (size_t l = 0; l < n; ++l)
                                     occ[first + l] =
                                         r.tfar[l] == -std::numeric_limits<float>::infinity() ? 1
@@ -177,7 +134,7 @@ struct EmbreeInstanceScene::Impl {
                                     rh.hit.geomID[l] = RTC_INVALID_GEOMETRY_ID;
                                     rh.hit.instID[0][l] = RTC_INVALID_GEOMETRY_ID;
                                 }
-                                q.intersect8(valid, top, rh);
+                                query_packet(rtcIntersect8, valid, top, &rh, q.intersect_args());
                                 for (size_t l = 0; l < n; ++l)
                                     hits[first + l] =
                                         rh.hit.geomID[l] == RTC_INVALID_GEOMETRY_ID
