@@ -147,13 +147,10 @@ private:
                                      const httplib::ContentReader& reader);
     /// A KDRR body read whole within max_rays and `bytes_per_ray` of batch_memory_budget; on
     /// failure replies and returns nullopt.
-    struct RayBody {
-        proto::RayBatch batch;
-        ByteBudget::Hold hold;
-    };
-    std::optional<RayBody> read_ray_body(const httplib::Request& req, httplib::Response& res,
-                                         const httplib::ContentReader& reader,
-                                         uint64_t bytes_per_ray);
+    std::optional<proto::RayBatch> read_ray_body(const httplib::Request& req,
+                                                 httplib::Response& res,
+                                                 const httplib::ContentReader& reader,
+                                                 uint64_t bytes_per_ray);
 
     Service& svc_;
 };

@@ -121,7 +121,6 @@ void Routes::create_scene(const httplib::Request& req, httplib::Response& res,
     auto body = read_body(req, res, reader, svc_.config.max_json_bytes, svc_.config.max_json_bytes,
                           svc_.store.tmp_dir().string(), "a scene (max_json_bytes)");
     if (!body) return;
-    request_context().bytes_in += body->size();
     const std::string_view text = as_text(body->bytes());
     if (auto shape = json_shape_error(text, scene_shape(svc_.config.max_instances)))
         return reply_problem(req, res, make_problem(ProblemKind::kBadRequest, "scene: " + *shape));
@@ -190,7 +189,6 @@ void Routes::set_poses(const httplib::Request& req, httplib::Response& res,
         req, res, reader, limit, limit, svc_.store.tmp_dir().string(),
         binary ? "a KDRX pose batch (16 + 52 x max_instances)" : "a pose update (max_json_bytes)");
     if (!body) return;
-    request_context().bytes_in += body->size();
     std::vector<proto::PoseEntry> poses;
     if (binary) {
         auto decoded = proto::decode_pose_batch(body->bytes(), scene_limits(svc_.config));
@@ -238,7 +236,6 @@ void Routes::edit_instances(const httplib::Request& req, httplib::Response& res,
     auto body = read_body(req, res, reader, svc_.config.max_json_bytes, svc_.config.max_json_bytes,
                           svc_.store.tmp_dir().string(), "an instance edit (max_json_bytes)");
     if (!body) return;
-    request_context().bytes_in += body->size();
     const std::string_view text = as_text(body->bytes());
     if (auto shape = json_shape_error(text, scene_shape(svc_.config.max_instances)))
         return reply_problem(req, res, make_problem(ProblemKind::kBadRequest, "edit: " + *shape));
@@ -272,7 +269,7 @@ SceneCache::EntryPtr Routes::query_scene(
     return std::move(entry).value();
 }
 
-std::optional<Routes::RayBody> Routes::read_ray_body(const httplib::Request& req,
+std::optional<proto::RayBatch> Routes::read_ray_body(const httplib::Request& req,
                                                      httplib::Response& res,
                                                      const httplib::ContentReader& reader,
                                                      uint64_t bytes_per_ray) {
@@ -281,22 +278,18 @@ std::optional<Routes::RayBody> Routes::read_ray_body(const httplib::Request& req
     if (invalid != "refuse" && invalid != "miss") {
         reply_problem(req, res,
                       field_problem(ProblemKind::kBadRequest, "invalid_rays",
-                                    "invalid_rays=" + proto::in_quotes(invalid) +
+                                    "invalid_rays=" + proto::quote_value(invalid) +
                                         " (expected refuse or miss)"));
         return std::nullopt;
     }
-    const uint64_t body_limit = proto::kdrr_body_size(svc_.config.max_rays);
-    const uint64_t declared = declared_body_bytes(req).value_or(body_limit);
-    if (declared > body_limit) {
-        reply_problem(req, res, body_too_large_problem(body_limit, kRayBodyWhat));
-        return std::nullopt;
-    }
-    auto hold = take_budget_bytes(req, res, 64 + declared / proto::kRayRecordBytes * bytes_per_ray);
-    if (!hold) return std::nullopt;
-    auto body = read_body(req, res, reader, body_limit, body_limit, svc_.store.tmp_dir().string(),
-                          kRayBodyWhat);
+    auto body = read_batch(req, res, reader,
+                           {.limit = proto::kdrr_body_size(svc_.config.max_rays),
+                            .what = kRayBodyWhat,
+                            .record_bytes = proto::kRayRecordBytes,
+                            .memory_per_record = bytes_per_ray,
+                            .records = "rays",
+                            .advice = "; send fewer rays"});
     if (!body) return std::nullopt;
-    request_context().bytes_in += body->size();
     auto batch = proto::decode_rays(
         body->bytes(), {.max_rays = svc_.config.max_rays, .reject_non_finite = invalid != "miss"});
     if (!batch) {
@@ -304,7 +297,7 @@ std::optional<Routes::RayBody> Routes::read_ray_body(const httplib::Request& req
         return std::nullopt;
     }
     request_context().rays = batch->rays.size();
-    return RayBody{std::move(batch).value(), std::move(*hold)};
+    return std::move(batch).value();
 }
 
 void Routes::scene_intersect(const httplib::Request& req, httplib::Response& res,
@@ -314,9 +307,9 @@ void Routes::scene_intersect(const httplib::Request& req, httplib::Response& res
     auto body = read_ray_body(req, res, reader, kSceneBytesPerRay);
     if (!body) return;
     const Scene& scene = entry->scene;
-    const std::span<const Ray> rays = body->batch.rays;
-    svc_.metrics.add_rays(rays.size(), body->batch.occlusion);
-    if (body->batch.occlusion) {
+    const std::span<const Ray> rays = body->rays;
+    svc_.metrics.add_rays(rays.size(), body->occlusion);
+    if (body->occlusion) {
         std::vector<uint8_t> occluded_out(rays.size());
         svc_.compute.run([&] { kdrt::occluded(scene, rays, occluded_out); });
         reply_bytes(res, proto::encode_occlusion(occluded_out), proto::kOcclusionMediaType);
@@ -330,18 +323,11 @@ void Routes::scene_intersect(const httplib::Request& req, httplib::Response& res
         proto::append_geometry_ids(answer, geoms);
         reply_bytes(res, std::move(answer), proto::kHitsMediaType);
     }
-    keep_until_sent(std::make_shared<ByteBudget::Hold>(std::move(body->hold)));
 }
 
 void Routes::scene_intersect_all(const httplib::Request& req, httplib::Response& res,
                                  const httplib::ContentReader& reader) {
-    auto query = proto::parse_multi_hit_query(
-        [&](std::string_view name) -> std::optional<std::string> {
-            const std::string key(name);
-            if (!req.has_param(key)) return std::nullopt;
-            return req.get_param_value(key);
-        },
-        svc_.config.max_hits_per_ray);
+    auto query = proto::parse_multi_hit_query(query_params(req), svc_.config.max_hits_per_ray);
     if (!query) {
         return reply_problem(req, res, make_problem(ProblemKind::kBadRequest, query.error()));
     }
@@ -349,14 +335,14 @@ void Routes::scene_intersect_all(const httplib::Request& req, httplib::Response&
     if (!entry) return;
     auto body = read_ray_body(req, res, reader, intersect_all_bytes_per_ray(*query) + 8);
     if (!body) return;
-    if (body->batch.occlusion)
+    if (body->occlusion)
         return reply_problem(
             req, res,
             make_problem(ProblemKind::kBadRequest,
                          "intersect_all takes a KDRR batch without the occlusion flag (bit 0 of "
                          "flags); occlusion queries go to /intersect"));
     const Scene& scene = entry->scene;
-    const std::span<const Ray> rays = body->batch.rays;
+    const std::span<const Ray> rays = body->rays;
     svc_.metrics.add_rays(rays.size(), false);
     const AllHitsOptions options{query->max_hits, query->merge_coincident};
     if (query->count_only) {
@@ -386,23 +372,12 @@ void Routes::scene_intersect_all(const httplib::Request& req, httplib::Response&
         proto::append_geometry_ids(answer, geoms);
         reply_bytes(res, std::move(answer), proto::kMultiHitMediaType);
     }
-    keep_until_sent(std::make_shared<ByteBudget::Hold>(std::move(body->hold)));
 }
 
 void Routes::scene_distance(const httplib::Request& req, httplib::Response& res,
                             const httplib::ContentReader& reader) {
-    if (proto::media_type_essence(req.get_header_value("Content-Type")) != proto::kPointMediaType) {
-        return reply_problem(
-            req, res,
-            make_problem(ProblemKind::kUnsupportedMediaType,
-                         "distance expects Content-Type " + std::string(proto::kPointMediaType)));
-    }
-    auto query =
-        proto::parse_distance_query([&](std::string_view name) -> std::optional<std::string> {
-            const std::string key(name);
-            if (!req.has_param(key)) return std::nullopt;
-            return req.get_param_value(key);
-        });
+    if (!has_media_type(req, res, proto::kPointMediaType, "distance")) return;
+    auto query = proto::parse_distance_query(query_params(req));
     if (!query) {
         return reply_problem(req, res, make_problem(ProblemKind::kBadRequest, query.error()));
     }
@@ -422,18 +397,14 @@ void Routes::scene_distance(const httplib::Request& req, httplib::Response& res,
         return reply_problem(req, res, std::move(p));
     }
     const uint32_t max_points = svc_.config.max_distance_points;
-    const uint64_t body_limit = proto::kdrp_body_size(max_points);
-    const uint64_t declared = declared_body_bytes(req).value_or(body_limit);
-    if (declared > body_limit) {
-        return reply_problem(req, res, body_too_large_problem(body_limit, kPointBodyWhat));
-    }
-    auto hold =
-        take_budget_bytes(req, res, 64 + declared / proto::kPointRecordBytes * kSceneBytesPerPoint);
-    if (!hold) return;
-    auto body = read_body(req, res, reader, body_limit, body_limit, svc_.store.tmp_dir().string(),
-                          kPointBodyWhat);
+    auto body = read_batch(req, res, reader,
+                           {.limit = proto::kdrp_body_size(max_points),
+                            .what = kPointBodyWhat,
+                            .record_bytes = proto::kPointRecordBytes,
+                            .memory_per_record = kSceneBytesPerPoint,
+                            .records = "points",
+                            .advice = "; send fewer points"});
     if (!body) return;
-    request_context().bytes_in += body->size();
     auto points =
         proto::decode_points(body->bytes(), {.max_rays = max_points, .reject_non_finite = true});
     body.reset();
@@ -477,7 +448,6 @@ void Routes::scene_distance(const httplib::Request& req, httplib::Response& res,
     std::vector<std::byte> answer = proto::encode_distances(answers, query->signed_query);
     proto::append_geometry_ids(answer, geoms);
     reply_bytes(res, std::move(answer), proto::kDistanceMediaType);
-    keep_until_sent(std::make_shared<ByteBudget::Hold>(std::move(*hold)));
 }
 
 void Routes::scene_scan(const httplib::Request& req, httplib::Response& res,
@@ -491,7 +461,6 @@ void Routes::scene_scan(const httplib::Request& req, httplib::Response& res,
     auto body = read_body(req, res, reader, svc_.config.max_json_bytes, svc_.config.max_json_bytes,
                           svc_.store.tmp_dir().string(), "a JSON request (max_json_bytes)");
     if (!body) return;
-    request_context().bytes_in += body->size();
     const std::string_view text = as_text(body->bytes());
     if (auto shape = json_shape_error(text, kScanJsonShape))
         return reply_problem(req, res,

@@ -11,9 +11,11 @@
 #include <chrono>
 #include <regex>
 #include <string>
+#include <thread>
 
 #include "http_test_util.h"
 #include "kdrt/proto/distance.h"
+#include "kdrt/proto/scene.h"
 
 namespace kdrt::test {
 namespace {
@@ -173,6 +175,54 @@ TEST_F(HttpFront, RequestBytesAreCountedOnce) {
     EXPECT_EQ(logged_bytes_in(log, "/v1/meshes/{id}/intersect_all"), rays.size());
     EXPECT_EQ(logged_bytes_in(log, "/v1/meshes/{id}/distance"), kdrp.size());
     EXPECT_EQ(logged_bytes_in(log, "/v1/meshes/{id}/scan"), scan.size()) << scanned->body;
+}
+
+TEST_F(HttpFront, SceneBatchesTakeTheSharedPath) {
+    // The scene query routes read their bodies as the mesh routes do: a chunked batch is admitted
+    // as it arrives, and the request's bytes are counted once.
+    auto cli = server_->client();
+    auto created = cli->Post(
+        "/v1/scenes",
+        R"({"instances": [{"mesh": ")" + id_ + R"(", "transform": [1,0,0,0, 0,1,0,0, 0,0,1,0]}]})",
+        "application/json");
+    ASSERT_TRUE(created);
+    ASSERT_EQ(created->status, 201) << created->body;
+    auto doc = proto::decode_scene_json(created->body, {}, true);
+    ASSERT_TRUE(doc.ok()) << created->body;
+    const std::string scene = "/v1/scenes/" + doc->id;
+    const std::string body = bytes_to_string(proto::encode_rays(*rays_, false));
+    const std::string head = "POST " + scene +
+                             "/intersect_all?max_hits=1 HTTP/1.1\r\nHost: x\r\n"
+                             "Content-Type: application/x-kdrt-rays\r\n";
+    const std::string with_length =
+        raw_exchange(server_->port(),
+                     head + "Content-Length: " + std::to_string(body.size()) +
+                         "\r\nConnection: close\r\n\r\n" + body,
+                     10s);
+    const std::string with_chunks = raw_exchange(
+        server_->port(),
+        head + "Transfer-Encoding: chunked\r\nConnection: close\r\n\r\n" + chunked(body, 100), 10s);
+    ASSERT_EQ(with_length.rfind("HTTP/1.1 200", 0), 0u) << with_length.substr(0, 400);
+    ASSERT_EQ(with_chunks.rfind("HTTP/1.1 200", 0), 0u) << with_chunks.substr(0, 400);
+    const auto body_of = [](const std::string& reply) {
+        return reply.substr(reply.find("\r\n\r\n") + 4);
+    };
+    EXPECT_EQ(body_of(with_chunks), body_of(with_length));
+
+    ASSERT_EQ(cli->Post(scene + "/intersect", body, "application/x-kdrt-rays")->status, 200);
+    const std::vector<Vec3> points = {{0, 0, 0}, {1, 2, 3}};
+    const std::string kdrp = bytes_to_string(proto::encode_points(points));
+    ASSERT_EQ(cli->Post(scene + "/distance", kdrp, std::string(proto::kPointMediaType))->status,
+              200);
+    // The access-log line is written after the answer is sent: wait for it.
+    std::string log = server_->log();
+    for (int i = 0; i < 200 && log.find("route=/v1/scenes/{id}/distance ") == std::string::npos;
+         ++i) {
+        std::this_thread::sleep_for(10ms);
+        log = server_->log();
+    }
+    EXPECT_EQ(logged_bytes_in(log, "/v1/scenes/{id}/intersect"), body.size());
+    EXPECT_EQ(logged_bytes_in(log, "/v1/scenes/{id}/distance"), kdrp.size());
 }
 
 TEST_F(HttpFront, LongTargetsUpToTheHeadLimitAreServed) {
