@@ -10,10 +10,10 @@
 // kernels make them per lane): at a plane with crossing t and tolerance eps, near is needed
 // unless t + eps < tmin, far unless t - eps > tmax; only when both are needed is near's tmax cut
 // to t + eps and far's tmin raised to t - eps; a NaN crossing (a ray in the plane) needs both with
-// unchanged intervals. Cells come off the stack front to back, and the traversal ends at the first
-// one that starts beyond the closest hit. So a ray visits the leaves and tests the triangles the
-// binary traversal would, in the same order, and the work counters (Count) count the binary
-// kernel's steps as well as the wide nodes.
+// unchanged intervals. Cells come off the stack front to back, and those that start beyond the
+// closest hit are skipped (as the packet kernels skip them lane by lane). So a ray visits the
+// leaves and tests the triangles the binary traversal would, in the same order, and the work
+// counters (Count) count the binary kernel's steps as well as the wide nodes.
 //
 // Everything is in an anonymous namespace and `static inline` (see ray_prep.h): each translation
 // unit keeps its own copy for its own target. A unit compiled for AVX2 or later defines
@@ -258,10 +258,10 @@ static inline bool traverse_wide(const KdTree& tree, const Ray& ray, Best& best,
                                  Counter counter) noexcept {
     if (!ray_is_valid(ray) || tree.bounds.empty()) return false;
     const PreparedRay p = prepare_ray(ray);
-    float tmin = ray.tmin, tmax = ray.tmax;
-    if (!clip_to_box(p, tree.bounds, tmin, tmax)) return false;
     float eps[3];
     traversal_eps(p, tree.bounds, eps);
+    float tmin = ray.tmin, tmax = ray.tmax;
+    if (!clip_to_box(p, tree.bounds, eps, tmin, tmax)) return false;
     wide::Ray8 r8;
     for (int a = 0; a < 3; ++a) {
         r8.org[a] = wide::F8{} + p.org[a];
@@ -314,13 +314,15 @@ static inline bool traverse_wide(const KdTree& tree, const Ray& ray, Best& best,
                 }
             }
         }
-        // Cells come off the stack front to back; once one starts beyond the closest hit, so do
-        // all the rest (a hit exactly at a cell's entry may still have a lower-id tie inside it).
-        if (stack_size == 0) return found;
-        cell = stack[--stack_size];
-        if constexpr (!AnyHit) {
-            if (cell.tmin > best.t) return found;
-        }
+        // The next cell that starts no later than the closest hit (a hit exactly at a cell's
+        // entry may still have a lower-id tie inside it). Cells come off the stack front to back,
+        // but their intervals are widened by eps, so a later cell (the far side of a plane higher
+        // up) may start before an earlier one (a deep near-side cell): the rest of the stack is
+        // skipped through, not cut off at the first cell beyond the hit.
+        do {
+            if (stack_size == 0) return found;
+            cell = stack[--stack_size];
+        } while (!AnyHit && cell.tmin > best.t);
     }
 }
 
