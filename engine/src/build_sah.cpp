@@ -254,7 +254,8 @@ struct Scratch {
 struct SweepSetup {
     int axis;
     float lo, hi;
-    double cap, ring, inv_area, c_trav, c_isect, empty_scale;
+    double cap, ring, inv_area;
+    SahCost cost;
     uint32_t n_total;
 };
 
@@ -262,7 +263,7 @@ class SahBuilder {
 public:
     SahBuilder(const std::vector<TriVerts>& tris, const BuildOptions& options)
         : tris_(tris),
-          options_(options),
+          cost_(SahCost::from(options)),
           max_depth_(static_cast<uint32_t>(std::clamp(options.max_depth, 0, kMaxDepth))),
           scratch_([n = tris.size()] {
               Scratch s;
@@ -274,8 +275,7 @@ public:
     /// that may run on another thread looks up its own.
     void build(SubTree& out, uint32_t slot, NodeInput&& in, Scratch& scratch) {
         const Split split = in.depth < max_depth_ && in.prim_count > 0 ? find_split(in) : Split{};
-        const double leaf_cost = double{options_.intersection_cost} * in.prim_count;
-        if (!split.valid || !(split.cost < leaf_cost)) {
+        if (!split.valid || !(split.cost < cost_.leaf(in.prim_count))) {
             make_leaf(out, slot, leaf_prims(in, scratch.prims));
             scratch.give_back(std::move(in.buffer));
             out.max_depth = std::max(out.max_depth, in.depth);
@@ -307,16 +307,8 @@ private:
         const Aabb& cell = in.cell;
         const int a1 = (axis + 1) % 3, a2 = (axis + 2) % 3;
         const double e1 = double{cell.hi[a1]} - cell.lo[a1], e2 = double{cell.hi[a2]} - cell.lo[a2];
-        return {axis,
-                cell.lo[axis],
-                cell.hi[axis],
-                e1 * e2,
-                e1 + e2,
-                inv_area,
-                options_.traversal_cost,
-                options_.intersection_cost,
-                1.0 - double{options_.empty_bonus},
-                in.prim_count};
+        return {axis,    cell.lo[axis], cell.hi[axis], e1 * e2,
+                e1 + e2, inv_area,      cost_,         in.prim_count};
     }
 
     /// The SAH of every candidate plane in ev[begin, end) (whole position groups), swept in one
@@ -351,9 +343,7 @@ private:
                     // hold fewer triangles, or the split makes no progress.
                     if (pos == s.lo && nr >= s.n_total) continue;
                     if (pos == s.hi && nl >= s.n_total) continue;
-                    double cost = s.c_isect * (pl * nl + pr * nr);
-                    if (nl == 0 || nr == 0) cost *= s.empty_scale;
-                    cost += s.c_trav;
+                    const double cost = s.cost.split(pl, pr, nl, nr);
                     // Branch-free update: which candidates win is hard to predict.
                     const bool better = cost < best_cost;
                     best_cost = better ? cost : best_cost;
@@ -502,15 +492,21 @@ private:
                                                                   const Event*& nl,
                                                                   const Event*& nr, Event* l,
                                                                   Event* r) {
-        for (size_t i = 0; i < n; ++i) {
-            const Event e = ev[i];
-            while (*nl < e) *l++ = *nl++;
-            while (*nr < e) *r++ = *nr++;
-            const uint8_t s = side[event_prim(e)];
-            *l = e;
-            *r = e;
-            l += s & 1u;
-            r += s >> 1;
+        // Runs of events below the next new event need no merge step: one compare per event.
+        // ev[n] is kSentinel, which no run passes.
+        const Event* const end = ev + n;
+        while (ev < end) {
+            while (*nl < *ev) *l++ = *nl++;
+            while (*nr < *ev) *r++ = *nr++;
+            const Event next_new = std::min(*nl, *nr);
+            do {
+                const Event e = *ev++;
+                const uint8_t s = side[event_prim(e)];
+                *l = e;
+                *r = e;
+                l += s & 1u;
+                r += s >> 1;
+            } while (*ev < next_new);
         }
         return {l, r};
     }
@@ -592,7 +588,7 @@ private:
     }
 
     const std::vector<TriVerts>& tris_;
-    BuildOptions options_;
+    SahCost cost_;
     uint32_t max_depth_;
     tbb::enumerable_thread_specific<Scratch> scratch_;
 };
