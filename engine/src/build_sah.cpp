@@ -121,50 +121,89 @@ int clip_polygon(const Point* src, int n, int a, double bound, Point* dst) {
     return m;
 }
 
+/// A polygon being clipped: up to 16 points (a triangle clipped by 6 planes has at most 9), in
+/// one of two buffers.
+struct Polygon {
+    std::array<Point, 16> a, b;
+    Point* src = a.data();
+    Point* dst = b.data();
+    int n = 0;
+
+    explicit Polygon(const TriVerts& tri) noexcept : n(3) {
+        for (int k = 0; k < 3; ++k) {
+            a[0][k] = tri.v0[k];
+            a[1][k] = tri.v1[k];
+            a[2][k] = tri.v2[k];
+        }
+    }
+    Polygon(const Polygon& other) noexcept : n(other.n) {
+        std::copy(other.src, other.src + other.n, a.data());
+    }
+    Polygon& operator=(const Polygon&) = delete;
+
+    /// Clips against the planes of `cell` on axes [first_axis, end_axis), low then high plane of
+    /// each axis in turn, until nothing remains.
+    void clip(const Aabb& cell, int first_axis, int end_axis) noexcept {
+        for (int axis = first_axis; axis < end_axis && n > 0; ++axis) {
+            // Planes that cut nothing off the current polygon (the common case) are skipped.
+            const double lo = cell.lo[axis], hi = cell.hi[axis];
+            bool all_inside = true;
+            for (int i = 0; i < n && all_inside; ++i) all_inside = src[i][axis] >= lo;
+            if (!all_inside) {
+                n = clip_polygon<true>(src, n, axis, lo, dst);
+                std::swap(src, dst);
+                if (n == 0) break;
+            }
+            all_inside = true;
+            for (int i = 0; i < n && all_inside; ++i) all_inside = src[i][axis] <= hi;
+            if (!all_inside) {
+                n = clip_polygon<false>(src, n, axis, hi, dst);
+                std::swap(src, dst);
+            }
+        }
+    }
+
+    /// The bounds of what remains, rounded outwards to float and clamped to `cell`; false if
+    /// nothing does.
+    bool bounds(const Aabb& cell, Aabb& out) const noexcept {
+        if (n == 0) return false;
+        for (int axis = 0; axis < 3; ++axis) {
+            double lo = src[0][axis], hi = src[0][axis];
+            for (int i = 1; i < n; ++i) {
+                lo = std::min(lo, src[i][axis]);
+                hi = std::max(hi, src[i][axis]);
+            }
+            float flo = static_cast<float>(lo), fhi = static_cast<float>(hi);
+            if (static_cast<double>(flo) > lo) flo = next_down(flo);
+            if (static_cast<double>(fhi) < hi) fhi = next_up(fhi);
+            out.lo[axis] = std::max(flo, cell.lo[axis]);
+            out.hi[axis] = std::min(fhi, cell.hi[axis]);
+            if (out.lo[axis] > out.hi[axis]) return false;
+        }
+        return true;
+    }
+};
+
 /// Bounds of triangle `tri` clipped to the closed box `cell` (Sutherland-Hodgman in double),
 /// rounded outwards to float and clamped to the cell. Returns false if nothing remains.
 bool clipped_bounds(const TriVerts& tri, const Aabb& cell, Aabb& out) {
-    std::array<Point, 16> poly_a, poly_b;
-    int n = 3;
-    for (int a = 0; a < 3; ++a) {
-        poly_a[0][a] = tri.v0[a];
-        poly_a[1][a] = tri.v1[a];
-        poly_a[2][a] = tri.v2[a];
-    }
-    Point* src = poly_a.data();
-    Point* dst = poly_b.data();
-    for (int a = 0; a < 3 && n > 0; ++a) {
-        // Planes that cut nothing off the current polygon (the common case) are skipped.
-        const double lo = cell.lo[a], hi = cell.hi[a];
-        bool all_inside = true;
-        for (int i = 0; i < n && all_inside; ++i) all_inside = src[i][a] >= lo;
-        if (!all_inside) {
-            n = clip_polygon<true>(src, n, a, lo, dst);
-            std::swap(src, dst);
-            if (n == 0) break;
-        }
-        all_inside = true;
-        for (int i = 0; i < n && all_inside; ++i) all_inside = src[i][a] <= hi;
-        if (!all_inside) {
-            n = clip_polygon<false>(src, n, a, hi, dst);
-            std::swap(src, dst);
-        }
-    }
-    if (n == 0) return false;
-    for (int a = 0; a < 3; ++a) {
-        double lo = src[0][a], hi = src[0][a];
-        for (int i = 1; i < n; ++i) {
-            lo = std::min(lo, src[i][a]);
-            hi = std::max(hi, src[i][a]);
-        }
-        float flo = static_cast<float>(lo), fhi = static_cast<float>(hi);
-        if (static_cast<double>(flo) > lo) flo = next_down(flo);
-        if (static_cast<double>(fhi) < hi) fhi = next_up(fhi);
-        out.lo[a] = std::max(flo, cell.lo[a]);
-        out.hi[a] = std::min(fhi, cell.hi[a]);
-        if (out.lo[a] > out.hi[a]) return false;
-    }
-    return true;
+    Polygon poly(tri);
+    poly.clip(cell, 0, 3);
+    return poly.bounds(cell, out);
+}
+
+/// clipped_bounds of `tri` in both children of a split on `axis`, computed together: the
+/// children's cells agree on the axes before `axis`, so those planes are clipped once. The same
+/// arithmetic in the same order as two clipped_bounds calls, so the same bounds.
+void clipped_bounds_in_children(const TriVerts& tri, const Aabb& left, const Aabb& right, int axis,
+                                bool& left_ok, Aabb& left_box, bool& right_ok, Aabb& right_box) {
+    Polygon poly(tri);
+    poly.clip(left, 0, axis);
+    Polygon right_poly(poly);
+    poly.clip(left, axis, 3);
+    left_ok = poly.bounds(left, left_box);
+    right_poly.clip(right, axis, 3);
+    right_ok = right_poly.bounds(right, right_box);
 }
 
 /// Bounds of a triangle's vertices intersected with `cell`; false if they do not overlap.
@@ -535,15 +574,16 @@ private:
         EventLists& new_right = scratch.new_right;
         for (int a = 0; a < 3; ++a) new_left[a].clear(), new_right[a].clear();
         for (uint32_t prim : straddling) {
-            Aabb box;
-            if (clipped_bounds(tris_[prim], left.cell, box) ||
-                vertex_bounds_in(tris_[prim], left.cell, box)) {
-                add_events(new_left, box, prim);
+            Aabb left_box, right_box;
+            bool left_ok = false, right_ok = false;
+            clipped_bounds_in_children(tris_[prim], left.cell, right.cell, k, left_ok, left_box,
+                                       right_ok, right_box);
+            if (left_ok || vertex_bounds_in(tris_[prim], left.cell, left_box)) {
+                add_events(new_left, left_box, prim);
                 ++left_only;
             }
-            if (clipped_bounds(tris_[prim], right.cell, box) ||
-                vertex_bounds_in(tris_[prim], right.cell, box)) {
-                add_events(new_right, box, prim);
+            if (right_ok || vertex_bounds_in(tris_[prim], right.cell, right_box)) {
+                add_events(new_right, right_box, prim);
                 ++right_only;
             }
         }
