@@ -200,11 +200,16 @@ TEST_F(HttpErrors, BodiesOverTheLimitsAre413) {
 
 TEST_F(HttpErrors, UnknownRoutesAndMethods) {
     auto cli = server_->client();
-    auto p = expect_problem(cli->Get("/v2/meshes"), 404);
+    auto missing = cli->Get("/v2/meshes");
+    auto p = expect_problem(missing, 404);
     EXPECT_EQ(p.kind, ProblemKind::kNotFound);
-    EXPECT_EQ(p.detail, "no route for GET /v2/meshes");
+    // The path once, as the instance (issue 25 item 11).
+    EXPECT_EQ(p.detail, "no route for GET at this path");
+    EXPECT_EQ(p.instance, "/v2/meshes");
+    EXPECT_EQ(missing->body.find("/v2/meshes"), missing->body.rfind("/v2/meshes")) << missing->body;
     auto res = cli->Put("/v1/meshes", "x", "text/plain");
     p = expect_problem(res, 405);
+    EXPECT_EQ(p.detail, "this path does not support method PUT (allowed: POST, GET)");
     EXPECT_EQ(p.kind, ProblemKind::kMethodNotAllowed);
     EXPECT_EQ(res->get_header_value("Allow"), "POST, GET");
     p = expect_problem(cli->Post("/healthz", "x", "text/plain"), 405);

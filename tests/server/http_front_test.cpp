@@ -278,6 +278,52 @@ TEST_F(HttpFront, HeadIsAnsweredAsGetWithoutABody) {
     EXPECT_EQ(reply.substr(reply.find("\r\n\r\n") + 4), "");
 }
 
+TEST_F(HttpFront, EveryAnswerCarriesNoSniff) {
+    // X-Content-Type-Options: nosniff, once, on every answer: routed ones of each kind and the
+    // front's own refusals (issue 25 item 11).
+    auto page = server_->client()->Get("/");
+    ASSERT_TRUE(page);
+    const std::string etag = page->get_header_value("ETag");
+    const std::string rays = bytes_to_string(proto::encode_rays(*rays_, false));
+    // 5000 rays: a KDRH answer over 64 KiB, sent from the route's memory.
+    const std::string many =
+        bytes_to_string(proto::encode_rays(random_rays(mesh_bounds(*mesh_), 5000, 4), false));
+    const auto post = [&](const std::string& body) {
+        return "POST /v1/meshes/" + id_ +
+               "/intersect HTTP/1.1\r\nHost: x\r\nContent-Type: application/x-kdrt-rays\r\n"
+               "Connection: close\r\nContent-Length: " +
+               std::to_string(body.size()) + "\r\n\r\n" + body;
+    };
+    const struct {
+        std::string request;
+        const char* status;
+    } cases[] = {
+        {"GET /healthz HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n", "200"},
+        {"GET /v1/meshes HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n", "200"},
+        {"GET /metrics HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n", "200"},
+        {"HEAD /healthz HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n", "200"},
+        {"GET / HTTP/1.1\r\nHost: x\r\nIf-None-Match: " + etag + "\r\nConnection: close\r\n\r\n",
+         "304"},
+        {"GET /ui/viewer.js HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n", "200"},
+        {post(rays), "200"},
+        {post(many), "200"},
+        {post("KDRR"), "400"},
+        {"GET /v2/x HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n", "404"},
+        {"DELETE /healthz HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n", "405"},
+        {"GET /he%zzlthz HTTP/1.1\r\nHost: x\r\n\r\n", "400"},  // the front's refusal
+        {"GET /healthz?pad=" + std::string(40 << 10, 'a') + " HTTP/1.1\r\nHost: x\r\n\r\n", "431"},
+    };
+    for (const auto& c : cases) {
+        SCOPED_TRACE(c.request.substr(0, 40));
+        const std::string reply = raw_exchange(server_->port(), c.request, 10s);
+        EXPECT_EQ(reply.rfind(std::string("HTTP/1.1 ") + c.status, 0), 0u) << reply.substr(0, 300);
+        const std::string head = reply.substr(0, reply.find("\r\n\r\n") + 2);
+        const size_t at = head.find("\r\nX-Content-Type-Options: nosniff\r\n");
+        EXPECT_NE(at, std::string::npos) << head;
+        EXPECT_EQ(head.find("X-Content-Type-Options", at + 3), std::string::npos) << head;
+    }
+}
+
 TEST_F(HttpFront, Http10ClosesUnlessAskedToKeepAlive) {
     const std::string reply = raw_exchange(
         server_->port(), "GET /healthz HTTP/1.0\r\n\r\nGET /healthz HTTP/1.0\r\n\r\n", 5s);
