@@ -24,8 +24,13 @@ namespace kdrt::server {
 /// largest answer).
 [[nodiscard]] uint64_t intersect_all_bytes_per_ray(const proto::MultiHitQuery& query) noexcept;
 
-/// A scan request is a few dozen values, plus one per lidar channel given by elevation_deg.
-inline constexpr JsonShapeLimits kScanJsonShape{.max_depth = 6, .max_values = 16384};
+/// Values a scan request may have besides its lidar elevations (it has a few dozen).
+inline constexpr size_t kScanOtherValues = 256;
+/// The shape of a scan request: 6 levels deep, one value a lidar channel given by
+/// lidar.elevation_deg (up to max_sensor_beams) and kScanOtherValues others.
+[[nodiscard]] constexpr JsonShapeLimits scan_json_shape(uint64_t max_sensor_beams) noexcept {
+    return {.max_depth = 6, .max_values = static_cast<size_t>(max_sensor_beams) + kScanOtherValues};
+}
 
 /// Completes a scan request with the engine (a look-at camera as intrinsics and a pose, a
 /// vertical field of view as elevations) and checks it (kdrt::validate); sets the rays it traces

@@ -142,7 +142,7 @@ std::optional<proto::RenderRequest> Routes::read_render_request(
     if (auto shape = json_shape_error(as_text(body->bytes()), kRenderJsonShape)) {
         reply_problem(req, res,
                       make_problem(ProblemKind::kBadRequest,
-                                   "render request: " + *shape + " (a render request has " +
+                                   "render request: " + shape->detail + " (a render request has " +
                                        std::to_string(kRenderJsonShape.max_values) +
                                        " values at most, nested " +
                                        std::to_string(kRenderJsonShape.max_depth) + " deep)"));
