@@ -9,6 +9,7 @@
 #include <unistd.h>
 
 #include <chrono>
+#include <cstdio>
 #include <regex>
 #include <string>
 #include <thread>
@@ -151,6 +152,69 @@ TEST_F(HttpFront, ChunkedIntersectAllIsAdmittedAsItArrives) {
             chunked(big, 65536),
         10s);
     EXPECT_EQ(refused.rfind("HTTP/1.1 413", 0), 0u) << refused.substr(0, 400);
+}
+
+TEST_F(HttpFront, ChunkedIntersectTakesTheSharedBatchPath) {
+    // /intersect reads its batch through Routes::read_batch, as intersect_all does (issue 24):
+    // chunked, its memory is taken once its header says how many rays follow, not for max_rays
+    // (16 + 48 x 2^24 bytes, far over this server's 4 MiB: 413 before), and its bytes are
+    // counted once.
+    const auto body_of = [](const std::string& reply) {
+        return reply.substr(reply.find("\r\n\r\n") + 4);
+    };
+    const std::string head = "POST /v1/meshes/" + id_ +
+                             "/intersect HTTP/1.1\r\nHost: x\r\n"
+                             "Content-Type: application/x-kdrt-rays\r\n";
+    const std::string route = "route=/v1/meshes/{id}/intersect ";
+    const auto lines = [&](const std::string& log) {
+        size_t n = 0;
+        for (size_t at = log.find(route); at != std::string::npos; at = log.find(route, at + 1))
+            ++n;
+        return n;
+    };
+    const size_t logged_before = lines(server_->log());
+    std::string body;
+    for (const bool occlusion : {false, true}) {
+        SCOPED_TRACE(occlusion ? "occlusion" : "closest hit");
+        body = bytes_to_string(proto::encode_rays(*rays_, occlusion));
+        const std::string with_length =
+            raw_exchange(server_->port(),
+                         head + "Content-Length: " + std::to_string(body.size()) +
+                             "\r\nConnection: close\r\n\r\n" + body,
+                         10s);
+        const std::string with_chunks = raw_exchange(
+            server_->port(),
+            head + "Transfer-Encoding: chunked\r\nConnection: close\r\n\r\n" + chunked(body, 100),
+            10s);
+        ASSERT_EQ(with_length.rfind("HTTP/1.1 200", 0), 0u) << with_length.substr(0, 400);
+        ASSERT_EQ(with_chunks.rfind("HTTP/1.1 200", 0), 0u) << with_chunks.substr(0, 400);
+        EXPECT_EQ(body_of(with_chunks), body_of(with_length));
+        if (!occlusion) {
+            EXPECT_EQ(body_of(with_chunks), engine_hits(*mesh_, *rays_));
+        }
+    }
+    // The access-log line is written after the answer is sent: wait for the last one.
+    std::string log = server_->log();
+    for (int i = 0; i < 200 && lines(log) < logged_before + 4; ++i) {
+        std::this_thread::sleep_for(10ms);
+        log = server_->log();
+    }
+    EXPECT_EQ(logged_bytes_in(log, "/v1/meshes/{id}/intersect"), body.size());
+
+    // A chunked batch whose header asks for more rays than the budget could ever hold is 413
+    // once the header is in, before the rest of its body.
+    const std::vector<Ray> many(100000, (*rays_)[0]);
+    const std::string start = bytes_to_string(proto::encode_rays(many, false)).substr(0, 4096);
+    const int fd = connect_loopback(server_->port());
+    ASSERT_GE(fd, 0);
+    char size[32];
+    std::snprintf(size, sizeof size, "%zx\r\n", start.size());
+    ASSERT_TRUE(send_all(fd, head + "Transfer-Encoding: chunked\r\n\r\n" + size + start + "\r\n"));
+    const std::string refused = receive_for(fd, 5s);
+    ::close(fd);
+    EXPECT_EQ(refused.rfind("HTTP/1.1 413", 0), 0u) << refused.substr(0, 400);
+    EXPECT_NE(refused.find("more than batch_memory_budget"), std::string::npos) << refused;
+    EXPECT_NE(refused.find("100000 rays"), std::string::npos) << refused;
 }
 
 TEST_F(HttpFront, RequestBytesAreCountedOnce) {
