@@ -58,6 +58,9 @@ constexpr size_t kParallelSubtrees = 4096;         // ... and build their childr
 /// the binned root took such a cut around the sphere where the exact sweep splits the sphere, and
 /// shadow rays from the walls then tested 9.0 instead of 6.7 triangles each.
 constexpr uint32_t kNearlyEmpty = 64;
+/// Small nodes get fewer bins: one per kRefsPerBin references, at least kMinBins.
+constexpr uint32_t kRefsPerBin = 8;
+constexpr uint32_t kMinBins = 16;
 
 struct BinnedSplit {
     bool valid = false;
@@ -69,16 +72,30 @@ struct BinnedSplit {
 };
 
 /// Per-axis bins of a range of references: how many start / end in each bin, and the lowest
-/// start / highest end in it (the tight planes next to each boundary).
+/// start / highest end in it (the tight planes next to each boundary). Only the first `count`
+/// bins of each axis are used (and cleared by reset): small nodes do not pay for kMaxBins.
 struct Bins {
-    std::array<std::array<uint32_t, kMaxBins>, 3> starts{};
-    std::array<std::array<uint32_t, kMaxBins>, 3> ends{};
+    std::array<std::array<uint32_t, kMaxBins>, 3> starts;
+    std::array<std::array<uint32_t, kMaxBins>, 3> ends;
     std::array<std::array<float, kMaxBins>, 3> min_start;
     std::array<std::array<float, kMaxBins>, 3> max_end;
-    Bins() {
+
+    void reset(uint32_t count) noexcept {
         for (int a = 0; a < 3; ++a) {
-            min_start[a].fill(INFINITY);
-            max_end[a].fill(-INFINITY);
+            std::fill_n(starts[a].begin(), count, 0u);
+            std::fill_n(ends[a].begin(), count, 0u);
+            std::fill_n(min_start[a].begin(), count, INFINITY);
+            std::fill_n(max_end[a].begin(), count, -INFINITY);
+        }
+    }
+    void add(const Bins& other, uint32_t count) noexcept {
+        for (int a = 0; a < 3; ++a) {
+            for (uint32_t b = 0; b < count; ++b) {
+                starts[a][b] += other.starts[a][b];
+                ends[a][b] += other.ends[a][b];
+                min_start[a][b] = std::min(min_start[a][b], other.min_start[a][b]);
+                max_end[a][b] = std::max(max_end[a][b], other.max_end[a][b]);
+            }
         }
     }
 };
@@ -113,8 +130,8 @@ public:
     BinnedBuilder(const std::vector<TriVerts>& tris, const BuildOptions& options,
                   const BinnedParams& params)
         : tris_(tris),
-          options_(options),
           params_(params),
+          cost_(SahCost::from(options)),
           bins_(std::clamp(params.bins, 4u, kMaxBins)),
           max_depth_(static_cast<uint32_t>(std::clamp(options.max_depth, 0, kMaxDepth))),
           exact_(tris, options) {}
@@ -126,7 +143,7 @@ public:
             return;
         }
         const BinnedSplit split = find_split(cell, refs);
-        const double leaf_cost = double{options_.intersection_cost} * refs.size();
+        const double leaf_cost = cost_.leaf(static_cast<uint32_t>(refs.size()));
         // A node whose best binned split cuts off (nearly) empty space goes to the exact sweep
         // too: its geometry is concentrated in a few bins, and their coarse boundaries miss the
         // split through it that the exact sweep finds (the stadium: see kNearlyEmpty).
@@ -183,9 +200,7 @@ private:
 
     /// The tight bounds of the references (each already within the cell).
     static Aabb geometry_bounds(const std::vector<Ref>& refs) {
-        const size_t chunks = (refs.size() + kChunkRefs - 1) / kChunkRefs;
-        std::vector<Aabb> partial(chunks);
-        for_chunks(refs.size(), [&](size_t c, size_t begin, size_t end) {
+        auto bounds_of = [&](size_t begin, size_t end) {
             Aabb b;
             for (size_t i = begin; i < end; ++i) {
                 for (int a = 0; a < 3; ++a) {
@@ -193,8 +208,13 @@ private:
                     b.hi[a] = std::max(b.hi[a], refs[i].box.hi[a]);
                 }
             }
-            partial[c] = b;
-        });
+            return b;
+        };
+        if (refs.size() <= kChunkRefs) return bounds_of(0, refs.size());
+        const size_t chunks = (refs.size() + kChunkRefs - 1) / kChunkRefs;
+        std::vector<Aabb> partial(chunks);
+        for_chunks(refs.size(),
+                   [&](size_t c, size_t begin, size_t end) { partial[c] = bounds_of(begin, end); });
         Aabb bounds;
         for (const Aabb& b : partial) {
             for (int a = 0; a < 3; ++a) {
@@ -205,48 +225,61 @@ private:
         return bounds;
     }
 
+    /// The number of bins per axis for a node of `n` references: BinnedParams::bins, fewer for
+    /// small nodes (evaluating the candidates costs O(bins), binning O(n)).
+    [[nodiscard]] uint32_t bin_count(size_t n) const noexcept {
+        const auto wanted = static_cast<uint32_t>(std::min<size_t>(n / kRefsPerBin, kMaxBins));
+        return std::clamp(wanted, std::min(kMinBins, bins_), bins_);
+    }
+
     BinnedSplit find_split(const Aabb& cell, const std::vector<Ref>& refs) const {
         const double area = half_area(cell);
         if (!(area > 0)) return {};
         const double inv_area = 1.0 / area;
         const Aabb geom = geometry_bounds(refs);
+        const uint32_t bins = bin_count(refs.size());
+        Bins total;
+        return best_binned_split(cell, inv_area, refs, geom, bins, total);
+    }
+
+    /// Bins the references, each axis over [range.lo, range.hi] of that axis (references
+    /// outside fall into the end bins), and returns the best candidate plane. `total` is scratch
+    /// space.
+    BinnedSplit best_binned_split(const Aabb& cell, double inv_area, const std::vector<Ref>& refs,
+                                  const Aabb& range, uint32_t bins, Bins& total) const {
         std::array<BinMap, 3> maps;
         for (int a = 0; a < 3; ++a) {
-            const double extent = double{geom.hi[a]} - geom.lo[a];
-            maps[a] = extent > 0 ? BinMap{geom.lo[a], bins_ / extent, bins_} : BinMap{};
+            const double extent = double{range.hi[a]} - range.lo[a];
+            maps[a] = extent > 0 ? BinMap{range.lo[a], bins / extent, bins} : BinMap{};
         }
 
         // One pass over the references bins all three axes.
-        const size_t chunks = (refs.size() + kChunkRefs - 1) / kChunkRefs;
-        std::vector<Bins> partial(chunks);
-        for_chunks(refs.size(), [&](size_t c, size_t begin, size_t end) {
-            Bins& bins = partial[c];
+        auto bin_range = [&](Bins& into, size_t begin, size_t end) {
+            into.reset(bins);
             for (size_t i = begin; i < end; ++i) {
                 for (int a = 0; a < 3; ++a) {
                     const float lo = refs[i].box.lo[a], hi = refs[i].box.hi[a];
                     const uint32_t bl = maps[a](lo), bh = maps[a](hi);
-                    ++bins.starts[a][bl];
-                    ++bins.ends[a][bh];
-                    bins.min_start[a][bl] = std::min(bins.min_start[a][bl], lo);
-                    bins.max_end[a][bh] = std::max(bins.max_end[a][bh], hi);
+                    ++into.starts[a][bl];
+                    ++into.ends[a][bh];
+                    into.min_start[a][bl] = std::min(into.min_start[a][bl], lo);
+                    into.max_end[a][bh] = std::max(into.max_end[a][bh], hi);
                 }
             }
-        });
-        Bins total;
-        for (const Bins& bins : partial) {
-            for (int a = 0; a < 3; ++a) {
-                for (uint32_t b = 0; b < bins_; ++b) {
-                    total.starts[a][b] += bins.starts[a][b];
-                    total.ends[a][b] += bins.ends[a][b];
-                    total.min_start[a][b] = std::min(total.min_start[a][b], bins.min_start[a][b]);
-                    total.max_end[a][b] = std::max(total.max_end[a][b], bins.max_end[a][b]);
-                }
-            }
+        };
+        if (refs.size() <= kChunkRefs) {
+            bin_range(total, 0, refs.size());
+        } else {
+            const size_t chunks = (refs.size() + kChunkRefs - 1) / kChunkRefs;
+            std::vector<Bins> partial(chunks);
+            for_chunks(refs.size(), [&](size_t c, size_t begin, size_t end) {
+                bin_range(partial[c], begin, end);
+            });
+            total.reset(bins);
+            for (const Bins& part : partial) total.add(part, bins);
         }
 
         const auto n = static_cast<uint32_t>(refs.size());
-        const double c_trav = options_.traversal_cost, c_isect = options_.intersection_cost;
-        const double empty_scale = 1.0 - double{options_.empty_bonus};
         BinnedSplit best;
         for (int a = 0; a < 3; ++a) {
             const float lo = cell.lo[a], hi = cell.hi[a];
@@ -260,33 +293,31 @@ private:
                 if (!(pos > lo && pos < hi)) return;
                 const double pl = (cap + ring * (double{pos} - lo)) * inv_area;
                 const double pr = (cap + ring * (double{hi} - pos)) * inv_area;
-                double cost = c_isect * (pl * nl + pr * nr);
-                if (nl == 0 || nr == 0) cost *= empty_scale;
-                cost += c_trav;
+                const double cost = cost_.split(pl, pr, nl, nr);
                 if (cost < best.cost)
                     best = {true, a, pos, planar_left, std::min(nl, nr) <= n / kNearlyEmpty, cost};
             };
-            // At each bin boundary b (b = 0 and b = bins: the geometry's tight bounds), three
-            // planes share the same estimated counts: the boundary itself, the highest end of the
+            // At each bin boundary b (b = 0 and b = bins: the ends of the range), three planes
+            // share the same estimated counts: the boundary itself, the highest end of the
             // references ending below it (references in that plane go left) and the lowest start
             // of those starting above it (they go right). The two tight planes are where the
             // empty space between neighbouring geometry is cut off, as the exact sweep would.
             std::array<float, kMaxBins + 1> lowest_start_above;
-            lowest_start_above[bins_] = INFINITY;
-            for (uint32_t b = bins_; b-- > 0;)
+            lowest_start_above[bins] = INFINITY;
+            for (uint32_t b = bins; b-- > 0;)
                 lowest_start_above[b] = std::min(lowest_start_above[b + 1], total.min_start[a][b]);
-            const double extent = double{geom.hi[a]} - geom.lo[a];
+            const double extent = double{range.hi[a]} - range.lo[a];
             uint32_t nl = 0, nr = n;
             float highest_end_below = -INFINITY;
-            for (uint32_t b = 0; b <= bins_; ++b) {
+            for (uint32_t b = 0; b <= bins; ++b) {
                 if (b > 0) {
                     nl += total.starts[a][b - 1];
                     nr -= total.ends[a][b - 1];
                     highest_end_below = std::max(highest_end_below, total.max_end[a][b - 1]);
                 }
                 consider(highest_end_below, nl, nr, true);
-                if (b > 0 && b < bins_ && extent > 0) {
-                    const auto pos = static_cast<float>(geom.lo[a] + extent * b / bins_);
+                if (b > 0 && b < bins && extent > 0) {
+                    const auto pos = static_cast<float>(range.lo[a] + extent * b / bins);
                     if (pos > highest_end_below && pos < lowest_start_above[b])
                         consider(pos, nl, nr, false);
                 }
@@ -350,8 +381,8 @@ private:
     }
 
     const std::vector<TriVerts>& tris_;
-    BuildOptions options_;
     BinnedParams params_;
+    SahCost cost_;
     uint32_t bins_;
     uint32_t max_depth_;
     ExactSahBuilder exact_;

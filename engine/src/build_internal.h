@@ -17,6 +17,32 @@ struct PrimBox {
     uint32_t prim = 0;
 };
 
+/// The surface area heuristic, as both SAH builders (binned and exact) evaluate it, in one place:
+/// a change to the cost of a leaf (e.g. counting SIMD blocks instead of triangles) is made here
+/// and reaches every candidate of both phases. Costs are in units of BuildOptions' C_trav and
+/// C_isect; probabilities are a child's surface area over its parent's.
+struct SahCost {
+    double c_trav = 1.0;
+    double c_isect = 0.3;
+    double empty_scale = 0.9;  ///< 1 - empty_bonus
+
+    [[nodiscard]] static SahCost from(const BuildOptions& options) noexcept {
+        return {double{options.traversal_cost}, double{options.intersection_cost},
+                1.0 - double{options.empty_bonus}};
+    }
+    /// What intersecting a leaf of `n` triangles costs, in triangle tests.
+    [[nodiscard]] static double tests(uint32_t n) noexcept { return static_cast<double>(n); }
+    /// Cost of making a node of `n` triangles a leaf.
+    [[nodiscard]] double leaf(uint32_t n) const noexcept { return c_isect * tests(n); }
+    /// Cost of splitting a node into children reached with probabilities `pl`, `pr` holding
+    /// `nl`, `nr` triangles. A split with an empty side earns the empty bonus.
+    [[nodiscard]] double split(double pl, double pr, uint32_t nl, uint32_t nr) const noexcept {
+        double cost = c_isect * (pl * tests(nl) + pr * tests(nr));
+        if (nl == 0 || nr == 0) cost *= empty_scale;
+        return cost + c_trav;
+    }
+};
+
 /// The exact SAH builder (Wald & Havran 2006, build_sah.cpp), callable on any cell: the whole
 /// mesh, or a node the binned top levels (build_binned.cpp) hand down. One instance serves a whole
 /// build (its per-thread scratch is sized by the triangle count); build() may be called
@@ -55,7 +81,7 @@ struct BinnedParams {
     /// Nodes with fewer references than this are built by the exact sweep (UINT32_MAX: the
     /// whole build is exact; 0: binned as long as the bins find a split that beats a leaf).
     uint32_t exact_below = 4096;
-    uint32_t bins = 64;  ///< per axis, clamped to [4, 256]
+    uint32_t bins = 64;  ///< per axis, clamped to [4, 256]; small nodes use fewer
 };
 
 /// SAH build with min-max binned splits (Shevtsov et al. 2007, all three axes in one pass,

@@ -121,50 +121,89 @@ int clip_polygon(const Point* src, int n, int a, double bound, Point* dst) {
     return m;
 }
 
+/// A polygon being clipped: up to 16 points (a triangle clipped by 6 planes has at most 9), in
+/// one of two buffers.
+struct Polygon {
+    std::array<Point, 16> a, b;
+    Point* src = a.data();
+    Point* dst = b.data();
+    int n = 0;
+
+    explicit Polygon(const TriVerts& tri) noexcept : n(3) {
+        for (int k = 0; k < 3; ++k) {
+            a[0][k] = tri.v0[k];
+            a[1][k] = tri.v1[k];
+            a[2][k] = tri.v2[k];
+        }
+    }
+    Polygon(const Polygon& other) noexcept : n(other.n) {
+        std::copy(other.src, other.src + other.n, a.data());
+    }
+    Polygon& operator=(const Polygon&) = delete;
+
+    /// Clips against the planes of `cell` on axes [first_axis, end_axis), low then high plane of
+    /// each axis in turn, until nothing remains.
+    void clip(const Aabb& cell, int first_axis, int end_axis) noexcept {
+        for (int axis = first_axis; axis < end_axis && n > 0; ++axis) {
+            // Planes that cut nothing off the current polygon (the common case) are skipped.
+            const double lo = cell.lo[axis], hi = cell.hi[axis];
+            bool all_inside = true;
+            for (int i = 0; i < n && all_inside; ++i) all_inside = src[i][axis] >= lo;
+            if (!all_inside) {
+                n = clip_polygon<true>(src, n, axis, lo, dst);
+                std::swap(src, dst);
+                if (n == 0) break;
+            }
+            all_inside = true;
+            for (int i = 0; i < n && all_inside; ++i) all_inside = src[i][axis] <= hi;
+            if (!all_inside) {
+                n = clip_polygon<false>(src, n, axis, hi, dst);
+                std::swap(src, dst);
+            }
+        }
+    }
+
+    /// The bounds of what remains, rounded outwards to float and clamped to `cell`; false if
+    /// nothing does.
+    bool bounds(const Aabb& cell, Aabb& out) const noexcept {
+        if (n == 0) return false;
+        for (int axis = 0; axis < 3; ++axis) {
+            double lo = src[0][axis], hi = src[0][axis];
+            for (int i = 1; i < n; ++i) {
+                lo = std::min(lo, src[i][axis]);
+                hi = std::max(hi, src[i][axis]);
+            }
+            float flo = static_cast<float>(lo), fhi = static_cast<float>(hi);
+            if (static_cast<double>(flo) > lo) flo = next_down(flo);
+            if (static_cast<double>(fhi) < hi) fhi = next_up(fhi);
+            out.lo[axis] = std::max(flo, cell.lo[axis]);
+            out.hi[axis] = std::min(fhi, cell.hi[axis]);
+            if (out.lo[axis] > out.hi[axis]) return false;
+        }
+        return true;
+    }
+};
+
 /// Bounds of triangle `tri` clipped to the closed box `cell` (Sutherland-Hodgman in double),
 /// rounded outwards to float and clamped to the cell. Returns false if nothing remains.
 bool clipped_bounds(const TriVerts& tri, const Aabb& cell, Aabb& out) {
-    std::array<Point, 16> poly_a, poly_b;
-    int n = 3;
-    for (int a = 0; a < 3; ++a) {
-        poly_a[0][a] = tri.v0[a];
-        poly_a[1][a] = tri.v1[a];
-        poly_a[2][a] = tri.v2[a];
-    }
-    Point* src = poly_a.data();
-    Point* dst = poly_b.data();
-    for (int a = 0; a < 3 && n > 0; ++a) {
-        // Planes that cut nothing off the current polygon (the common case) are skipped.
-        const double lo = cell.lo[a], hi = cell.hi[a];
-        bool all_inside = true;
-        for (int i = 0; i < n && all_inside; ++i) all_inside = src[i][a] >= lo;
-        if (!all_inside) {
-            n = clip_polygon<true>(src, n, a, lo, dst);
-            std::swap(src, dst);
-            if (n == 0) break;
-        }
-        all_inside = true;
-        for (int i = 0; i < n && all_inside; ++i) all_inside = src[i][a] <= hi;
-        if (!all_inside) {
-            n = clip_polygon<false>(src, n, a, hi, dst);
-            std::swap(src, dst);
-        }
-    }
-    if (n == 0) return false;
-    for (int a = 0; a < 3; ++a) {
-        double lo = src[0][a], hi = src[0][a];
-        for (int i = 1; i < n; ++i) {
-            lo = std::min(lo, src[i][a]);
-            hi = std::max(hi, src[i][a]);
-        }
-        float flo = static_cast<float>(lo), fhi = static_cast<float>(hi);
-        if (static_cast<double>(flo) > lo) flo = next_down(flo);
-        if (static_cast<double>(fhi) < hi) fhi = next_up(fhi);
-        out.lo[a] = std::max(flo, cell.lo[a]);
-        out.hi[a] = std::min(fhi, cell.hi[a]);
-        if (out.lo[a] > out.hi[a]) return false;
-    }
-    return true;
+    Polygon poly(tri);
+    poly.clip(cell, 0, 3);
+    return poly.bounds(cell, out);
+}
+
+/// clipped_bounds of `tri` in both children of a split on `axis`, computed together: the
+/// children's cells agree on the axes before `axis`, so those planes are clipped once. The same
+/// arithmetic in the same order as two clipped_bounds calls, so the same bounds.
+void clipped_bounds_in_children(const TriVerts& tri, const Aabb& left, const Aabb& right, int axis,
+                                bool& left_ok, Aabb& left_box, bool& right_ok, Aabb& right_box) {
+    Polygon poly(tri);
+    poly.clip(left, 0, axis);
+    Polygon right_poly(poly);
+    poly.clip(left, axis, 3);
+    left_ok = poly.bounds(left, left_box);
+    right_poly.clip(right, axis, 3);
+    right_ok = right_poly.bounds(right, right_box);
 }
 
 /// Bounds of a triangle's vertices intersected with `cell`; false if they do not overlap.
@@ -254,7 +293,8 @@ struct Scratch {
 struct SweepSetup {
     int axis;
     float lo, hi;
-    double cap, ring, inv_area, c_trav, c_isect, empty_scale;
+    double cap, ring, inv_area;
+    SahCost cost;
     uint32_t n_total;
 };
 
@@ -262,7 +302,7 @@ class SahBuilder {
 public:
     SahBuilder(const std::vector<TriVerts>& tris, const BuildOptions& options)
         : tris_(tris),
-          options_(options),
+          cost_(SahCost::from(options)),
           max_depth_(static_cast<uint32_t>(std::clamp(options.max_depth, 0, kMaxDepth))),
           scratch_([n = tris.size()] {
               Scratch s;
@@ -274,8 +314,7 @@ public:
     /// that may run on another thread looks up its own.
     void build(SubTree& out, uint32_t slot, NodeInput&& in, Scratch& scratch) {
         const Split split = in.depth < max_depth_ && in.prim_count > 0 ? find_split(in) : Split{};
-        const double leaf_cost = double{options_.intersection_cost} * in.prim_count;
-        if (!split.valid || !(split.cost < leaf_cost)) {
+        if (!split.valid || !(split.cost < cost_.leaf(in.prim_count))) {
             make_leaf(out, slot, leaf_prims(in, scratch.prims));
             scratch.give_back(std::move(in.buffer));
             out.max_depth = std::max(out.max_depth, in.depth);
@@ -307,16 +346,8 @@ private:
         const Aabb& cell = in.cell;
         const int a1 = (axis + 1) % 3, a2 = (axis + 2) % 3;
         const double e1 = double{cell.hi[a1]} - cell.lo[a1], e2 = double{cell.hi[a2]} - cell.lo[a2];
-        return {axis,
-                cell.lo[axis],
-                cell.hi[axis],
-                e1 * e2,
-                e1 + e2,
-                inv_area,
-                options_.traversal_cost,
-                options_.intersection_cost,
-                1.0 - double{options_.empty_bonus},
-                in.prim_count};
+        return {axis,    cell.lo[axis], cell.hi[axis], e1 * e2,
+                e1 + e2, inv_area,      cost_,         in.prim_count};
     }
 
     /// The SAH of every candidate plane in ev[begin, end) (whole position groups), swept in one
@@ -351,9 +382,7 @@ private:
                     // hold fewer triangles, or the split makes no progress.
                     if (pos == s.lo && nr >= s.n_total) continue;
                     if (pos == s.hi && nl >= s.n_total) continue;
-                    double cost = s.c_isect * (pl * nl + pr * nr);
-                    if (nl == 0 || nr == 0) cost *= s.empty_scale;
-                    cost += s.c_trav;
+                    const double cost = s.cost.split(pl, pr, nl, nr);
                     // Branch-free update: which candidates win is hard to predict.
                     const bool better = cost < best_cost;
                     best_cost = better ? cost : best_cost;
@@ -502,15 +531,21 @@ private:
                                                                   const Event*& nl,
                                                                   const Event*& nr, Event* l,
                                                                   Event* r) {
-        for (size_t i = 0; i < n; ++i) {
-            const Event e = ev[i];
-            while (*nl < e) *l++ = *nl++;
-            while (*nr < e) *r++ = *nr++;
-            const uint8_t s = side[event_prim(e)];
-            *l = e;
-            *r = e;
-            l += s & 1u;
-            r += s >> 1;
+        // Runs of events below the next new event need no merge step: one compare per event.
+        // ev[n] is kSentinel, which no run passes.
+        const Event* const end = ev + n;
+        while (ev < end) {
+            while (*nl < *ev) *l++ = *nl++;
+            while (*nr < *ev) *r++ = *nr++;
+            const Event next_new = std::min(*nl, *nr);
+            do {
+                const Event e = *ev++;
+                const uint8_t s = side[event_prim(e)];
+                *l = e;
+                *r = e;
+                l += s & 1u;
+                r += s >> 1;
+            } while (*ev < next_new);
         }
         return {l, r};
     }
@@ -539,15 +574,16 @@ private:
         EventLists& new_right = scratch.new_right;
         for (int a = 0; a < 3; ++a) new_left[a].clear(), new_right[a].clear();
         for (uint32_t prim : straddling) {
-            Aabb box;
-            if (clipped_bounds(tris_[prim], left.cell, box) ||
-                vertex_bounds_in(tris_[prim], left.cell, box)) {
-                add_events(new_left, box, prim);
+            Aabb left_box, right_box;
+            bool left_ok = false, right_ok = false;
+            clipped_bounds_in_children(tris_[prim], left.cell, right.cell, k, left_ok, left_box,
+                                       right_ok, right_box);
+            if (left_ok || vertex_bounds_in(tris_[prim], left.cell, left_box)) {
+                add_events(new_left, left_box, prim);
                 ++left_only;
             }
-            if (clipped_bounds(tris_[prim], right.cell, box) ||
-                vertex_bounds_in(tris_[prim], right.cell, box)) {
-                add_events(new_right, box, prim);
+            if (right_ok || vertex_bounds_in(tris_[prim], right.cell, right_box)) {
+                add_events(new_right, right_box, prim);
                 ++right_only;
             }
         }
@@ -592,7 +628,7 @@ private:
     }
 
     const std::vector<TriVerts>& tris_;
-    BuildOptions options_;
+    SahCost cost_;
     uint32_t max_depth_;
     tbb::enumerable_thread_specific<Scratch> scratch_;
 };

@@ -38,13 +38,13 @@ bool hit_less(const Hit& a, const Hit& b) noexcept {
 void collect(const KdTree& tree, const Ray& ray, std::vector<Hit>& out) {
     if (!detail::ray_is_valid(ray) || tree.bounds.empty()) return;
     const detail::PreparedRay p = detail::prepare_ray(ray);
+    float eps[3];
+    detail::traversal_eps(p, tree.bounds, eps);
     float tmin = ray.tmin, tmax = ray.tmax;
-    if (!detail::clip_to_box(p, tree.bounds, tmin, tmax)) return;
+    if (!detail::clip_to_box(p, tree.bounds, eps, tmin, tmax)) return;
     const uint32_t near_is_high[3] = {std::signbit(p.inv_dir[0]) ? 1u : 0u,
                                       std::signbit(p.inv_dir[1]) ? 1u : 0u,
                                       std::signbit(p.inv_dir[2]) ? 1u : 0u};
-    float eps[3];
-    detail::traversal_eps(p, tree.bounds, eps);
     const KdNode* nodes = tree.nodes.data();
     const uint32_t* refs = tree.leaf_refs.data();
     const TriVerts* tris = tree.tris.data();

@@ -257,22 +257,33 @@ inline void setup_packet(const KdTree& tree, const Ray* rays, const uint16_t* in
     pk.org_k[0] = pick<W>(kx, o[0], o[1], o[2]);
     pk.org_k[1] = pick<W>(ky, o[0], o[1], o[2]);
     pk.org_k[2] = pick<W>(kz, o[0], o[1], o[2]);
-    // clip_to_box
+    // traversal_eps (interval_margin first: the clip is widened by it)
     const VF<W> inf = simd::broadcast<W>(__builtin_inff());
+    VF<W> m = simd::broadcast<W>(bounds_magnitude(tree.bounds));
+    for (int a = 0; a < 3; ++a) {
+        const VF<W> oa = abs<W>(o[a]);
+        m = simd::select<W>(oa > m, oa, m);
+    }
+    const VF<W> delta = m * 0x1p-20f;
+    for (int a = 0; a < 3; ++a) {
+        const VF<W> ai = abs<W>(inv[a]);
+        pk.eps[a] = simd::select<W>(ai == inf, simd::broadcast<W>(0.0f), delta * ai);
+        pk.org[a] = o[a];
+        pk.inv[a] = inv[a];
+    }
+    // clip_to_box
     VF<W> tmin = ray_tmin, tmax = ray_tmax;
     VM<W> miss = simd::broadcast_i<W>(0);
-    VF<W> m = simd::broadcast<W>(bounds_magnitude(tree.bounds));
     for (int a = 0; a < 3; ++a) {
         const VM<W> parallel = abs<W>(inv[a]) == inf;
         miss |= parallel & ((o[a] < tree.bounds.lo[a]) | (o[a] > tree.bounds.hi[a]));
         const VF<W> t0 = (tree.bounds.lo[a] - o[a]) * inv[a],
                     t1 = (tree.bounds.hi[a] - o[a]) * inv[a];
         const VM<W> order = t0 > t1;
-        const VF<W> near = simd::select<W>(order, t1, t0), far = simd::select<W>(order, t0, t1);
+        const VF<W> near = simd::select<W>(order, t1, t0) - pk.eps[a],
+                    far = simd::select<W>(order, t0, t1) + pk.eps[a];
         tmin = simd::select<W>(parallel, tmin, simd::select<W>(near > tmin, near, tmin));
         tmax = simd::select<W>(parallel, tmax, simd::select<W>(far < tmax, far, tmax));
-        const VF<W> oa = abs<W>(o[a]);
-        m = simd::select<W>(oa > m, oa, m);  // interval_margin
     }
     alignas(64) int32_t lane[W];
     for (int l = 0; l < W; ++l) lane[l] = l;
@@ -281,14 +292,6 @@ inline void setup_packet(const KdTree& tree, const Ray* rays, const uint16_t* in
     const VM<W> alive = (lane_v < count) & ~miss & (tmin <= tmax);
     pk.tmin = simd::select<W>(alive, tmin, inf);
     pk.tmax = simd::select<W>(alive, tmax, -inf);
-    // traversal_eps
-    const VF<W> delta = m * 0x1p-20f;
-    for (int a = 0; a < 3; ++a) {
-        const VF<W> ai = abs<W>(inv[a]);
-        pk.eps[a] = simd::select<W>(ai == inf, simd::broadcast<W>(0.0f), delta * ai);
-        pk.org[a] = o[a];
-        pk.inv[a] = inv[a];
-    }
     pk.ray_tmin = ray_tmin;
     pk.ray_tmax = ray_tmax;
     for (int a = 0; a < 3; ++a) pk.near_is_high[a] = __builtin_signbit(d[a][0]) ? 1u : 0u;

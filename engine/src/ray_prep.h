@@ -106,10 +106,14 @@ static inline bool intersect_triangle(const PreparedRay& p, const TriVerts& tri,
     return true;
 }
 
-/// Clips [tmin, tmax] of a ray to a box; false when the ray misses it. Zero direction components
-/// are handled without NaN: the slab either contains the origin (no constraint) or not (miss).
-static inline bool clip_to_box(const PreparedRay& p, const Aabb& box, float& tmin,
-                               float& tmax) noexcept {
+/// Clips [tmin, tmax] of a ray to a box, widened by the traversal tolerance `eps` (traversal_eps)
+/// as every cell's interval is: the slab distances of a ray from far away round by a few ulps of
+/// its origin, far more than the box's padding, and an unwidened clip would cut off hits near the
+/// box's corners and edges that the triangle test reports. False when the ray misses the box.
+/// Zero direction components are handled without NaN: the slab either contains the origin (no
+/// constraint; the triangle test is exact in that axis) or not (miss).
+static inline bool clip_to_box(const PreparedRay& p, const Aabb& box, const float eps[3],
+                               float& tmin, float& tmax) noexcept {
     for (int a = 0; a < 3; ++a) {
         if (__builtin_isinf(p.inv_dir[a])) {
             if (p.org[a] < box.lo[a] || p.org[a] > box.hi[a]) return false;
@@ -122,6 +126,8 @@ static inline bool clip_to_box(const PreparedRay& p, const Aabb& box, float& tmi
             t0 = t1;
             t1 = tmp;
         }
+        t0 -= eps[a];
+        t1 += eps[a];
         tmin = t0 > tmin ? t0 : tmin;
         tmax = t1 < tmax ? t1 : tmax;
     }

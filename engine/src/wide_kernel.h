@@ -10,10 +10,10 @@
 // kernels make them per lane): at a plane with crossing t and tolerance eps, near is needed
 // unless t + eps < tmin, far unless t - eps > tmax; only when both are needed is near's tmax cut
 // to t + eps and far's tmin raised to t - eps; a NaN crossing (a ray in the plane) needs both with
-// unchanged intervals. Cells come off the stack front to back, and the traversal ends at the first
-// one that starts beyond the closest hit. So a ray visits the leaves and tests the triangles the
-// binary traversal would, in the same order, and the work counters (Count) count the binary
-// kernel's steps as well as the wide nodes.
+// unchanged intervals. Cells come off the stack front to back, and those that start beyond the
+// closest hit are skipped (as the packet kernels skip them lane by lane). So a ray visits the
+// leaves and tests the triangles the binary traversal would, in the same order, and the work
+// counters (Count) count the binary kernel's steps as well as the wide nodes.
 //
 // Everything is in an anonymous namespace and `static inline` (see ray_prep.h): each translation
 // unit keeps its own copy for its own target. A unit compiled for AVX2 or later defines
@@ -74,6 +74,33 @@ struct OrderBytes {
 };
 inline constexpr OrderBytes kOrderBytes{};
 
+/// The orders reversed, farthest first (byte j: the slot at position 7 - j): a decode pushes its
+/// cells farthest first, so the nearest ends on top of the stack.
+struct FarFirstBytes {
+    uint64_t order[128];
+    constexpr FarFirstBytes() : order{} {
+        for (uint32_t nh = 0; nh < 128; ++nh)
+            for (uint32_t j = 0; j < 8; ++j)
+                order[nh] |= static_cast<uint64_t>((kOrder.order[nh] >> (3 * (7 - j))) & 7u)
+                             << (8 * j);
+    }
+};
+inline constexpr FarFirstBytes kFarFirstBytes{};
+
+/// index[m] packs the lanes set in the 8-bit mask m, in increasing order, one byte each: a
+/// permute by it moves the chosen lanes to the front, so one whole-vector store pushes them.
+struct CompactBytes {
+    uint64_t index[256];
+    constexpr CompactBytes() : index{} {
+        for (uint32_t m = 0; m < 256; ++m) {
+            uint32_t k = 0;
+            for (uint32_t lane = 0; lane < 8; ++lane)
+                if (m & (1u << lane)) index[m] |= static_cast<uint64_t>(lane) << (8 * k++);
+        }
+    }
+};
+inline constexpr CompactBytes kCompactBytes{};
+
 /// The slots of `valid` (bit s for slot s) as positions (bit p for position p): each level's
 /// near sides swap the halves below their plane. Branch-free.
 static inline uint32_t positions(uint32_t valid, uint32_t nh) {
@@ -125,11 +152,26 @@ struct Cell {
 /// cells behind.
 inline constexpr int kStackCells = 7 * (kMaxDepth / 3 + 1) + 1;
 
-/// Decodes wide node `w` for a ray whose interval in its cell is [tmin, tmax]: writes the
-/// slots to visit, back to front (the nearest last), to `out` and returns how many. CountEmpty:
-/// empty leaves are visited too (the counting kernels count them as the binary kernel does).
+/// The cells still to visit, the nearest on top, one array per field so that a decode pushes its
+/// cells with whole-vector stores (+8: those stores write eight lanes whatever the count).
+/// `steps` is written and read by the counting kernels only.
+struct Stack {
+    uint32_t slot[kStackCells + 8];
+    float tmin[kStackCells + 8], tmax[kStackCells + 8];
+    uint32_t steps[kStackCells + 8];
+
+    [[nodiscard]] Cell at(int i, bool counts) const noexcept {
+        return {slot[i], tmin[i], tmax[i], counts ? steps[i] : 0u};
+    }
+};
+
+/// Decodes wide node `w` for a ray whose interval in its cell is [tmin, tmax]: pushes the slots
+/// to visit onto `st` at `top`, back to front (the nearest last), and returns how many.
+/// CountEmpty: empty leaves are visited too (the counting kernels count them as the binary
+/// kernel does).
 template <bool CountEmpty, bool CountSteps>
-static inline int decode(const WideNode& w, const Ray8& r, float tmin, float tmax, Cell* out) {
+static inline int decode(const WideNode& w, const Ray8& r, float tmin, float tmax, Stack& st,
+                         int top) {
     F8 split;
     __builtin_memcpy(&split, &w, sizeof split);
     const I8 lane = {0, 1, 2, 3, 4, 5, 6, 7};
@@ -172,8 +214,50 @@ static inline int decode(const WideNode& w, const Ray8& r, float tmin, float tma
     const U8 tag = slots & 3u;
     valid &=
         reinterpret_cast<I8>(CountEmpty ? tag != WideNode::kSlotNone : tag >= WideNode::kSlotLeaf);
+#if defined(KDRT_WIDE_AVX2)
+    if constexpr (!CountSteps) {
+        // Branch-free: the valid slots, farthest first, moved to the front by one permute per
+        // field (the order table's permute composed with the mask's compaction) and pushed with
+        // one whole-vector store per field.
+        const __m256i far_first = _mm256_cvtepu8_epi32(
+            _mm_cvtsi64_si128(static_cast<long long>(kFarFirstBytes.order[nh])));
+        const auto mask = static_cast<uint32_t>(_mm256_movemask_ps(_mm256_castsi256_ps(
+            _mm256_permutevar8x32_epi32(reinterpret_cast<__m256i>(valid), far_first))));
+        const __m256i compact = _mm256_cvtepu8_epi32(
+            _mm_cvtsi64_si128(static_cast<long long>(kCompactBytes.index[mask])));
+        const __m256i pick_lanes = _mm256_permutevar8x32_epi32(far_first, compact);
+        _mm256_storeu_si256(
+            reinterpret_cast<__m256i*>(&st.slot[top]),
+            _mm256_permutevar8x32_epi32(reinterpret_cast<__m256i>(slots), pick_lanes));
+        _mm256_storeu_ps(&st.tmin[top],
+                         _mm256_permutevar8x32_ps(reinterpret_cast<__m256>(lo), pick_lanes));
+        _mm256_storeu_ps(&st.tmax[top],
+                         _mm256_permutevar8x32_ps(reinterpret_cast<__m256>(hi), pick_lanes));
+        return __builtin_popcount(mask);
+    }
+#else
+    if constexpr (!CountSteps) {
+        // Branch-free: every slot written, farthest first, the top advanced past the valid ones.
+        alignas(32) float lo_a[8], hi_a[8];
+        __builtin_memcpy(lo_a, &lo, sizeof lo_a);
+        __builtin_memcpy(hi_a, &hi, sizeof hi_a);
+        const uint32_t valid_bits = bits8(valid);
+        const uint32_t order = kOrder.order[nh];
+        int n = 0;
+        for (int p = 7; p >= 0; --p) {
+            const uint32_t s = (order >> (3 * p)) & 7u;
+            st.slot[top + n] = w.slot[s];
+            st.tmin[top + n] = lo_a[s];
+            st.tmax[top + n] = hi_a[s];
+            n += static_cast<int>((valid_bits >> s) & 1u);
+        }
+        return n;
+    }
+#endif
+    // The counting kernels: the cells in a loop, and each one's binary steps.
     int n = 0;
     uint32_t slot_of[8];
+    Cell out[8];
 #if defined(KDRT_WIDE_AVX2)
     // Everything into position order with one permute each; the valid positions in one movemask.
     const __m256i perm =
@@ -219,6 +303,12 @@ static inline int decode(const WideNode& w, const Ray8& r, float tmin, float tma
             }
         }
     }
+    for (int c = 0; c < n; ++c) {
+        st.slot[top + c] = out[c].slot;
+        st.tmin[top + c] = out[c].tmin;
+        st.tmax[top + c] = out[c].tmax;
+        if constexpr (CountSteps) st.steps[top + c] = out[c].steps;
+    }
     return n;
 }
 
@@ -258,10 +348,10 @@ static inline bool traverse_wide(const KdTree& tree, const Ray& ray, Best& best,
                                  Counter counter) noexcept {
     if (!ray_is_valid(ray) || tree.bounds.empty()) return false;
     const PreparedRay p = prepare_ray(ray);
-    float tmin = ray.tmin, tmax = ray.tmax;
-    if (!clip_to_box(p, tree.bounds, tmin, tmax)) return false;
     float eps[3];
     traversal_eps(p, tree.bounds, eps);
+    float tmin = ray.tmin, tmax = ray.tmax;
+    if (!clip_to_box(p, tree.bounds, eps, tmin, tmax)) return false;
     wide::Ray8 r8;
     for (int a = 0; a < 3; ++a) {
         r8.org[a] = wide::F8{} + p.org[a];
@@ -274,7 +364,7 @@ static inline bool traverse_wide(const KdTree& tree, const Ray& ray, Best& best,
     const TriVerts* tris = tree.tris.data();
     const uint32_t* ids = tree.tri_ids.data();
 
-    wide::Cell stack[wide::kStackCells + 8];  // +8: a decode writes up to eight cells
+    wide::Stack stack;  // NOLINT(cppcoreguidelines-pro-type-member-init): written before read
     int stack_size = 0;
     // The root: a wide node, or (a tree of one leaf) that leaf.
     wide::Cell cell{tree.wide_nodes.empty() ? WideNode::make_slot(WideNode::kSlotLeaf, 0)
@@ -289,10 +379,10 @@ static inline bool traverse_wide(const KdTree& tree, const Ray& ray, Best& best,
             // Straight onto the stack, farthest first, so the nearest comes off first; the
             // nearest is visited now, without a check (the binary kernel descends to it).
             const int n = wide::decode<Counter::kCounts, Counter::kCounts>(
-                wides[index], r8, cell.tmin, cell.tmax, &stack[stack_size]);
+                wides[index], r8, cell.tmin, cell.tmax, stack, stack_size);
             if (n > 0) {
                 stack_size += n - 1;
-                cell = stack[stack_size];
+                cell = stack.at(stack_size, Counter::kCounts);
                 continue;
             }
         } else {
@@ -314,13 +404,16 @@ static inline bool traverse_wide(const KdTree& tree, const Ray& ray, Best& best,
                 }
             }
         }
-        // Cells come off the stack front to back; once one starts beyond the closest hit, so do
-        // all the rest (a hit exactly at a cell's entry may still have a lower-id tie inside it).
-        if (stack_size == 0) return found;
-        cell = stack[--stack_size];
-        if constexpr (!AnyHit) {
-            if (cell.tmin > best.t) return found;
-        }
+        // The next cell that starts no later than the closest hit (a hit exactly at a cell's
+        // entry may still have a lower-id tie inside it). Cells come off the stack front to back,
+        // but their intervals are widened by eps, so a later cell (the far side of a plane higher
+        // up) may start before an earlier one (a deep near-side cell): the rest of the stack is
+        // skipped through, not cut off at the first cell beyond the hit.
+        do {
+            if (stack_size == 0) return found;
+            --stack_size;
+        } while (!AnyHit && stack.tmin[stack_size] > best.t);
+        cell = stack.at(stack_size, Counter::kCounts);
     }
 }
 

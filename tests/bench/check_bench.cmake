@@ -64,7 +64,8 @@ file(REMOVE "${primary}" "${shadow}" "${hits}" "${occl}")
 # build
 run_bench(build_line build "${MESH}" --reps 2 --threads 2)
 expect_keys("${build_line}" triangles node_bytes nodes leaves empty_leaves max_depth mean_leaf_depth
-            mean_tris_per_leaf sah_cost bytes bytes_per_triangle build_ms builder threads parse_ms)
+            mean_tris_per_leaf sah_cost bytes bytes_per_triangle build_ms builder threads parse_ms
+            cpu_util)
 expect_value("${build_line}" node_bytes 8)
 expect_value("${build_line}" builder sah)
 expect_value("${build_line}" threads 2)

@@ -77,18 +77,23 @@ TEST(KdBinned, NodesBelowTheThresholdAreBuiltExactly) {
 
 TEST(KdBinned, SameBytesAtAnyThreadCount) {
     Rng rng(test_seed() + 310);
-    // Big enough that the root bins and partitions in parallel chunks (kParallelRefs).
-    const Mesh mesh = random_soup(rng, 60000);
-    for (uint32_t exact_below : {64u, 6144u}) {
-        SCOPED_TRACE(exact_below);
-        auto build_with = [&](int threads) {
-            tbb::task_arena arena(threads);
-            return arena.execute(
-                [&] { return build_kdtree_with(mesh, {}, binned_below(exact_below)); });
-        };
-        const KdTree one = build_with(1), two = build_with(2), four = build_with(4);
-        EXPECT_TRUE(same_tree(one, two));
-        EXPECT_TRUE(same_tree(one, four));
+    // Big enough that the root bins and partitions in parallel chunks (kParallelRefs); the
+    // stadium's nearly empty cuts take the exact sweep's split.
+    const Mesh soup = random_soup(rng, 60000);
+    const Mesh stadium = teapot_in_stadium(1000.0f, 120, 240);
+    for (const Mesh* mesh : {&soup, &stadium}) {
+        for (uint32_t exact_below : {64u, 6144u}) {
+            SCOPED_TRACE(testing::Message()
+                         << mesh->triangle_count() << " triangles, exact below " << exact_below);
+            auto build_with = [&](int threads) {
+                tbb::task_arena arena(threads);
+                return arena.execute(
+                    [&] { return build_kdtree_with(*mesh, {}, binned_below(exact_below)); });
+            };
+            const KdTree one = build_with(1), two = build_with(2), four = build_with(4);
+            EXPECT_TRUE(same_tree(one, two));
+            EXPECT_TRUE(same_tree(one, four));
+        }
     }
 }
 
@@ -222,6 +227,38 @@ TEST(KdBinned, BunnyTracesLikeBruteForceWhenBinnedDeep) {
     const Mesh bunny = load_bunny();
     expect_traces_like_brute_force(bunny, build_kdtree_with(bunny, {}, binned_below(64)),
                                    test_seed() + 370, 50'000);
+}
+
+// Around the threshold and the bin-count steps of small nodes: a node of n references is binned
+// at exact_below = n and built exactly at n + 1; binned down to single references (exact_below
+// 0), every size still traces like brute force.
+TEST(KdBinned, ThresholdEdges) {
+    for (const uint32_t n : {1u, 2u, 3u, 15u, 16u, 17u, 127u, 128u, 129u, 300u, 1100u}) {
+        SCOPED_TRACE(testing::Message() << n << " triangles");
+        Rng rng(test_seed() + 380 + n);
+        const Mesh mesh = random_soup(rng, n, 0.3f);
+        const KdTree exact = build_kdtree_with(mesh, {}, binned_below(kAllExact));
+        EXPECT_TRUE(same_tree(build_kdtree_with(mesh, {}, binned_below(n + 1)), exact));
+        for (const uint32_t exact_below : {0u, n}) {
+            SCOPED_TRACE(testing::Message() << "exact_below " << exact_below);
+            const KdTree tree = build_kdtree_with(mesh, {}, binned_below(exact_below));
+            EXPECT_LE(tree.stats.sah_cost, 1.10 * exact.stats.sah_cost);
+            expect_traces_like_brute_force(mesh, tree, test_seed() + 381 + n, 4000);
+        }
+    }
+}
+
+// A tiny dense cluster in a huge range: the root's bins span 2e30 and the cluster falls into one
+// of them; the nodes below must still bin (and split) it correctly.
+TEST(KdBinned, TinyClusterInAHugeRange) {
+    Rng rng(test_seed() + 390);
+    Mesh mesh = random_soup(rng, 6000, 0.05f);
+    add_triangle(mesh, {-1e30f, -1e30f, -1e30f}, {1e30f, -1e30f, -1e30f}, {0, 1e30f, -1e30f});
+    add_triangle(mesh, {-1e30f, -1e30f, 1e30f}, {1e30f, -1e30f, 1e30f}, {0, 1e30f, 1e30f});
+    add_triangle(mesh, {1e30f, 1e30f, 1e30f}, {1e30f, 0, 1e30f}, {1e30f, 1e30f, 0});
+    const KdTree tree = build_kdtree_with(mesh, {}, binned_below(64));
+    EXPECT_GT(tree.stats.leaves, 500u) << "the cluster must be split up";
+    expect_traces_like_brute_force(mesh, tree, test_seed() + 391);
 }
 
 }  // namespace
