@@ -56,6 +56,28 @@ std::string chunked(const std::string& data, size_t piece) {
     return out + "0\r\n\r\n";
 }
 
+/// The body of an HTTP reply.
+std::string body_of(const std::string& reply) { return reply.substr(reply.find("\r\n\r\n") + 4); }
+
+/// The answers to a POST (`head`: its request line and headers, no framing) of `body`, sent once
+/// with a Content-Length and once chunked; each must be 200.
+struct SizedAndChunked {
+    std::string sized, chunked;
+};
+SizedAndChunked post_sized_and_chunked(int port, const std::string& head, const std::string& body) {
+    SizedAndChunked out;
+    out.sized = raw_exchange(port,
+                             head + "Content-Length: " + std::to_string(body.size()) +
+                                 "\r\nConnection: close\r\n\r\n" + body,
+                             10s);
+    out.chunked = raw_exchange(
+        port, head + "Transfer-Encoding: chunked\r\nConnection: close\r\n\r\n" + chunked(body, 100),
+        10s);
+    EXPECT_EQ(out.sized.rfind("HTTP/1.1 200", 0), 0u) << out.sized.substr(0, 400);
+    EXPECT_EQ(out.chunked.rfind("HTTP/1.1 200", 0), 0u) << out.chunked.substr(0, 400);
+    return out;
+}
+
 class HttpFront : public ::testing::Test {
 protected:
     static void SetUpTestSuite() {
@@ -127,20 +149,8 @@ TEST_F(HttpFront, ChunkedIntersectAllIsAdmittedAsItArrives) {
     const std::string head = "POST /v1/meshes/" + id_ +
                              "/intersect_all?max_hits=1 HTTP/1.1\r\nHost: x\r\n"
                              "Content-Type: application/x-kdrt-rays\r\n";
-    const std::string with_length =
-        raw_exchange(server_->port(),
-                     head + "Content-Length: " + std::to_string(body.size()) +
-                         "\r\nConnection: close\r\n\r\n" + body,
-                     10s);
-    const std::string with_chunks = raw_exchange(
-        server_->port(),
-        head + "Transfer-Encoding: chunked\r\nConnection: close\r\n\r\n" + chunked(body, 100), 10s);
-    ASSERT_EQ(with_length.rfind("HTTP/1.1 200", 0), 0u) << with_length;
-    ASSERT_EQ(with_chunks.rfind("HTTP/1.1 200", 0), 0u) << with_chunks;
-    const auto body_of = [](const std::string& reply) {
-        return reply.substr(reply.find("\r\n\r\n") + 4);
-    };
-    EXPECT_EQ(body_of(with_chunks), body_of(with_length));
+    const SizedAndChunked answers = post_sized_and_chunked(server_->port(), head, body);
+    EXPECT_EQ(body_of(answers.chunked), body_of(answers.sized));
     // A chunked batch past the budget is still refused, once it has grown past it.
     const std::vector<Ray> many(100000, (*rays_)[0]);
     const std::string big = bytes_to_string(proto::encode_rays(many, false));
@@ -159,9 +169,6 @@ TEST_F(HttpFront, ChunkedIntersectTakesTheSharedBatchPath) {
     // chunked, its memory is taken once its header says how many rays follow, not for max_rays
     // (16 + 48 x 2^24 bytes, far over this server's 4 MiB: 413 before), and its bytes are
     // counted once.
-    const auto body_of = [](const std::string& reply) {
-        return reply.substr(reply.find("\r\n\r\n") + 4);
-    };
     const std::string head = "POST /v1/meshes/" + id_ +
                              "/intersect HTTP/1.1\r\nHost: x\r\n"
                              "Content-Type: application/x-kdrt-rays\r\n";
@@ -177,20 +184,10 @@ TEST_F(HttpFront, ChunkedIntersectTakesTheSharedBatchPath) {
     for (const bool occlusion : {false, true}) {
         SCOPED_TRACE(occlusion ? "occlusion" : "closest hit");
         body = bytes_to_string(proto::encode_rays(*rays_, occlusion));
-        const std::string with_length =
-            raw_exchange(server_->port(),
-                         head + "Content-Length: " + std::to_string(body.size()) +
-                             "\r\nConnection: close\r\n\r\n" + body,
-                         10s);
-        const std::string with_chunks = raw_exchange(
-            server_->port(),
-            head + "Transfer-Encoding: chunked\r\nConnection: close\r\n\r\n" + chunked(body, 100),
-            10s);
-        ASSERT_EQ(with_length.rfind("HTTP/1.1 200", 0), 0u) << with_length.substr(0, 400);
-        ASSERT_EQ(with_chunks.rfind("HTTP/1.1 200", 0), 0u) << with_chunks.substr(0, 400);
-        EXPECT_EQ(body_of(with_chunks), body_of(with_length));
+        const SizedAndChunked answers = post_sized_and_chunked(server_->port(), head, body);
+        EXPECT_EQ(body_of(answers.chunked), body_of(answers.sized));
         if (!occlusion) {
-            EXPECT_EQ(body_of(with_chunks), engine_hits(*mesh_, *rays_));
+            EXPECT_EQ(body_of(answers.chunked), engine_hits(*mesh_, *rays_));
         }
     }
     // The access-log line is written after the answer is sent: wait for the last one.
@@ -258,20 +255,8 @@ TEST_F(HttpFront, SceneBatchesTakeTheSharedPath) {
     const std::string head = "POST " + scene +
                              "/intersect_all?max_hits=1 HTTP/1.1\r\nHost: x\r\n"
                              "Content-Type: application/x-kdrt-rays\r\n";
-    const std::string with_length =
-        raw_exchange(server_->port(),
-                     head + "Content-Length: " + std::to_string(body.size()) +
-                         "\r\nConnection: close\r\n\r\n" + body,
-                     10s);
-    const std::string with_chunks = raw_exchange(
-        server_->port(),
-        head + "Transfer-Encoding: chunked\r\nConnection: close\r\n\r\n" + chunked(body, 100), 10s);
-    ASSERT_EQ(with_length.rfind("HTTP/1.1 200", 0), 0u) << with_length.substr(0, 400);
-    ASSERT_EQ(with_chunks.rfind("HTTP/1.1 200", 0), 0u) << with_chunks.substr(0, 400);
-    const auto body_of = [](const std::string& reply) {
-        return reply.substr(reply.find("\r\n\r\n") + 4);
-    };
-    EXPECT_EQ(body_of(with_chunks), body_of(with_length));
+    const SizedAndChunked answers = post_sized_and_chunked(server_->port(), head, body);
+    EXPECT_EQ(body_of(answers.chunked), body_of(answers.sized));
 
     ASSERT_EQ(cli->Post(scene + "/intersect", body, "application/x-kdrt-rays")->status, 200);
     const std::vector<Vec3> points = {{0, 0, 0}, {1, 2, 3}};
