@@ -123,7 +123,9 @@ void Routes::create_scene(const httplib::Request& req, httplib::Response& res,
     if (!body) return;
     const std::string_view text = as_text(body->bytes());
     if (auto shape = json_shape_error(text, scene_shape(svc_.config.max_instances)))
-        return reply_problem(req, res, make_problem(ProblemKind::kBadRequest, "scene: " + *shape));
+        return reply_problem(
+            req, res,
+            field_problem(ProblemKind::kBadRequest, shape->path, "scene: " + shape->detail));
     auto doc = proto::decode_scene_json(text, scene_limits(svc_.config));
     body.reset();
     if (!doc)
@@ -206,8 +208,9 @@ void Routes::set_poses(const httplib::Request& req, httplib::Response& res,
     } else {
         const std::string_view text = as_text(body->bytes());
         if (auto shape = json_shape_error(text, scene_shape(svc_.config.max_instances)))
-            return reply_problem(req, res,
-                                 make_problem(ProblemKind::kBadRequest, "poses: " + *shape));
+            return reply_problem(
+                req, res,
+                field_problem(ProblemKind::kBadRequest, shape->path, "poses: " + shape->detail));
         auto decoded = proto::decode_pose_json(text, scene_limits(svc_.config));
         if (!decoded)
             return reply_problem(req, res,
@@ -238,7 +241,9 @@ void Routes::edit_instances(const httplib::Request& req, httplib::Response& res,
     if (!body) return;
     const std::string_view text = as_text(body->bytes());
     if (auto shape = json_shape_error(text, scene_shape(svc_.config.max_instances)))
-        return reply_problem(req, res, make_problem(ProblemKind::kBadRequest, "edit: " + *shape));
+        return reply_problem(
+            req, res,
+            field_problem(ProblemKind::kBadRequest, shape->path, "edit: " + shape->detail));
     auto edit = proto::decode_instance_edit_json(text, scene_limits(svc_.config));
     body.reset();
     if (!edit)
@@ -452,31 +457,8 @@ void Routes::scene_distance(const httplib::Request& req, httplib::Response& res,
 
 void Routes::scene_scan(const httplib::Request& req, httplib::Response& res,
                         const httplib::ContentReader& reader) {
-    if (proto::media_type_essence(req.get_header_value("Content-Type")) != proto::kJsonMediaType) {
-        return reply_problem(
-            req, res,
-            make_problem(ProblemKind::kUnsupportedMediaType,
-                         "scan " + std::string(proto::api_errors::kUnsupportedJsonType)));
-    }
-    auto body = read_body(req, res, reader, svc_.config.max_json_bytes, svc_.config.max_json_bytes,
-                          svc_.store.tmp_dir().string(), "a JSON request (max_json_bytes)");
-    if (!body) return;
-    const std::string_view text = as_text(body->bytes());
-    if (auto shape = json_shape_error(text, kScanJsonShape))
-        return reply_problem(req, res,
-                             make_problem(ProblemKind::kBadRequest, "scan request: " + *shape));
-    const ServerConfig& c = svc_.config;
-    const proto::ScanLimits limits{c.max_image_width, c.max_image_height, c.max_sensor_beams,
-                                   c.max_scan_points, c.max_hits_per_ray};
-    auto request = proto::decode_scan_request(text, limits);
-    body.reset();
-    if (!request) {
-        const proto::ScanRequestError& e = request.error();
-        return reply_problem(
-            req, res,
-            field_problem(e.over_limit ? ProblemKind::kPayloadTooLarge : ProblemKind::kBadRequest,
-                          e.field, e.detail));
-    }
+    auto request = read_scan_request(req, res, reader);
+    if (!request) return;
     if (request->format != proto::ScanFormat::kBinary)
         return reply_problem(
             req, res,
