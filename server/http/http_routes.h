@@ -5,14 +5,17 @@
 
 #include <httplib.h>
 
+#include <cstdint>
 #include <functional>
 #include <memory>
 #include <optional>
 #include <string>
+#include <vector>
 
 #include "http/http_util.h"
 #include "http/json_shape.h"
 #include "http/request_body.h"
+#include "kdrt/distance.h"
 #include "kdrt/proto/json_api.h"
 #include "kdrt/proto/multi_hit.h"
 #include "kdrt/proto/problem.h"
@@ -154,6 +157,21 @@ private:
                                              proto::RenderRequest request);
     void render_now(const httplib::Request& req, httplib::Response& res, const RenderJob& job);
     void submit_job(const httplib::Request& req, httplib::Response& res, RenderJob job);
+
+    /// A KDRP body read whole (max_distance_points, `memory_per_point` bytes of
+    /// batch_memory_budget each) and decoded, NaN/Inf points refused naming the point; more
+    /// points than max_distance_work refused before any search (every point costs at least 1).
+    /// On refusal replies and returns nullopt (http_routes_distance.cpp; meshes and scenes).
+    std::optional<std::vector<Vec3>> read_points(const httplib::Request& req,
+                                                 httplib::Response& res,
+                                                 const httplib::ContentReader& reader,
+                                                 uint64_t memory_per_point);
+    /// Runs `search`, a distance batch of `points` points under the request's DistanceControl
+    /// (max_distance_work; cancelled when the client leaves), in the compute arena. True when it
+    /// finished; otherwise replies (400 naming max_distance_work, or the cancellation, logged
+    /// and the connection closed) and returns false.
+    bool run_distance(const httplib::Request& req, httplib::Response& res, size_t points,
+                      const std::function<DistanceStats(const DistanceControl&)>& search);
 
     /// The scene revision a query names (the path's id, ?revision=N or the current one); on
     /// failure discards the body, replies and returns nullptr.

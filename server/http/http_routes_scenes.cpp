@@ -28,7 +28,6 @@ using proto::ProblemKind;
 namespace {
 
 constexpr const char* kRayBodyWhat = "a KDRR batch (16 + 32 x max_rays)";
-constexpr const char* kPointBodyWhat = "a KDRP batch (16 + 12 x max_distance_points)";
 /// batch_memory_budget per ray of a scene query: the ray, the engine's answer and its encoding
 /// with the geometry id (32 + 20 + 20), rounded up.
 constexpr uint64_t kSceneBytesPerRay = 96;
@@ -105,6 +104,17 @@ void split_hits(std::span<const SceneHit> in, std::vector<Hit>& hits,
         hits[i] = in[i].hit();
         geoms[i] = in[i].geom;
     }
+}
+
+/// A scene distance queries cannot run on (kdrt::check_distance_query): 400 naming the instance
+/// and its field ("instances[4].transform").
+proto::Problem distance_scene_problem(const SceneError& e) {
+    proto::Problem p = make_problem(ProblemKind::kBadRequest, e.what());
+    if (e.instance_index()) {
+        p.index = e.instance_index();
+        p.field = "instances[" + std::to_string(*e.instance_index()) + "]." + e.field();
+    }
+    return p;
 }
 
 }  // namespace
@@ -394,38 +404,15 @@ void Routes::scene_distance(const httplib::Request& req, httplib::Response& res,
     try {
         check_distance_query(scene, false);
     } catch (const SceneError& e) {
-        proto::Problem p = make_problem(ProblemKind::kBadRequest, e.what());
-        if (e.instance_index()) {
-            p.index = e.instance_index();
-            p.field = "instances[" + std::to_string(*e.instance_index()) + "]." + e.field();
-        }
-        return reply_problem(req, res, std::move(p));
+        return reply_problem(req, res, distance_scene_problem(e));
     }
-    const uint32_t max_points = svc_.config.max_distance_points;
-    auto body = read_batch(req, res, reader,
-                           {.limit = proto::kdrp_body_size(max_points),
-                            .what = kPointBodyWhat,
-                            .record_bytes = proto::kPointRecordBytes,
-                            .memory_per_record = kSceneBytesPerPoint,
-                            .records = "points",
-                            .advice = "; send fewer points"});
-    if (!body) return;
-    auto points =
-        proto::decode_points(body->bytes(), {.max_rays = max_points, .reject_non_finite = true});
-    body.reset();
-    if (!points) {
-        const bool too_many = points.error().code == proto::DecodeErrorCode::kTooManyRays;
-        proto::Problem p =
-            make_problem(too_many ? ProblemKind::kPayloadTooLarge : ProblemKind::kBadRequest,
-                         "malformed KDRP batch: " + points.error().detail);
-        p.code = std::string(proto::decode_error_code_name(points.error().code));
-        return reply_problem(req, res, std::move(p));
-    }
-    request_context().rays = points->size();
+    const auto points = read_points(req, res, reader, kSceneBytesPerPoint);
+    if (!points) return;
     std::vector<SceneClosestPoint> found(points->size());
     const DistanceOptions options{query->max_distance, query->signed_query};
+    bool done = false;
     try {
-        svc_.compute.run([&] {
+        done = run_distance(req, res, points->size(), [&](const DistanceControl& control) {
             if (query->signed_query) {
                 // Each distinct mesh's surface index, kept with its tree by the mesh cache.
                 std::vector<SceneInstance> instances = scene.instances();
@@ -439,11 +426,12 @@ void Routes::scene_distance(const httplib::Request& req, httplib::Response& res,
                 }
                 scene = build_scene(std::move(instances), scene.options());
             }
-            closest_points(scene, *points, found, options);
+            return closest_points(scene, *points, found, options, control);
         });
     } catch (const SceneError& e) {
-        return reply_problem(req, res, make_problem(ProblemKind::kBadRequest, e.what()));
+        return reply_problem(req, res, distance_scene_problem(e));
     }
+    if (!done) return;
     std::vector<ClosestPoint> answers(found.size());
     std::vector<uint32_t> geoms(found.size());
     for (size_t i = 0; i < found.size(); ++i) {
