@@ -604,7 +604,12 @@ or point: KDRZ with a geometry-id plane for --pinhole (.kdrz), KDRL with one for
 (.kdrl); proto/FORMATS.md, "Scenes".
 
   -o, --output FILE   the .kdrz or .kdrl file (required; - for standard output)
+  --format NAME       kdrz or kdrl: the format when FILE's extension does not say (-o -)
   --revision N        that revision instead of the current one
+
+SENSOR OPTIONS (kdrt scan --help describes them): --pinhole with --intrinsics, --size and --pose,
+or --eye, --look-at, --up, --fov; --range, --normals; --lidar with --channels and --vertical-fov,
+or --elevations; --azimuth-steps, --returns, --pose; --min-range, --max-range.
   --json              the summary as one JSON object (on stdout; stderr with -o -)
   -q, --quiet         no summary line
 )";
