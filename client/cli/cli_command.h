@@ -16,13 +16,17 @@ struct Context;
 /// One subcommand. All members point at static storage (literals, constant arrays), so a
 /// Command is a constant and the table needs no initialisation order.
 struct Command {
-    std::string_view name;                ///< "upload": what follows `kdrt`
-    std::string_view synopsis;            ///< its line in `kdrt --help`: "upload FILE..."
-    std::string_view summary;             ///< what it does, after the synopsis in `kdrt --help`
-    std::string_view help;                ///< `kdrt NAME --help` and `kdrt help NAME`
-    std::span<const OptionSpec> options;  ///< its options besides kGlobalOptions
-    bool needs_server = true;             ///< reads --server, --token, --timeout, --retries
-    int (*run)(Context&) = nullptr;       ///< runs it; returns the exit code (ExitCode)
+    std::string_view name;      ///< "upload": what follows `kdrt`
+    std::string_view synopsis;  ///< its line in `kdrt --help`: "upload FILE..."
+    std::string_view summary;   ///< what it does, after the synopsis in `kdrt --help`
+    std::string_view help;      ///< `kdrt NAME --help` and `kdrt help NAME`
+    std::span<const OptionSpec> options = {};  ///< its options besides kGlobalOptions
+    bool needs_server = true;                  ///< reads --server, --token, --timeout, --retries
+    int (*run)(Context&) = nullptr;            ///< runs it; returns the exit code (ExitCode)
+    /// A family of commands (`kdrt scene create ...`): the argument after the name picks one of
+    /// these, whose name is "<family> <subcommand>"; it takes its own options and this
+    /// Command's. `help` then describes the family; `run` is not used.
+    std::span<const Command* const> subcommands = {};
 };
 
 // The mesh commands (cli_meshes.cpp).
@@ -43,6 +47,8 @@ extern const Command kHealthCommand;
 extern const Command kMetricsCommand;
 // Sensor scans (cli_scan.cpp).
 extern const Command kScanCommand;
+// Scenes: kdrt scene create|get|list|rm|poses|trace|hits|distance|scan (cli_scene.cpp).
+extern const Command kSceneCommand;
 // Remote tracing speed (cli_bench_remote.cpp).
 extern const Command kBenchRemoteCommand;
 

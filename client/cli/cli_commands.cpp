@@ -51,9 +51,9 @@ written); 3 cannot connect to the server; 130 interrupted while waiting for a re
 )";
 
 constexpr const Command* kCommands[] = {
-    &kUploadCommand, &kMeshesCommand,  &kInfoCommand,        &kRmCommand,   &kRenderCommand,
-    &kTraceCommand,  &kHitsCommand,    &kDistanceCommand,    &kRaysCommand, &kScanCommand,
-    &kHealthCommand, &kMetricsCommand, &kBenchRemoteCommand,
+    &kUploadCommand, &kMeshesCommand, &kInfoCommand,     &kRmCommand,          &kRenderCommand,
+    &kTraceCommand,  &kHitsCommand,   &kDistanceCommand, &kRaysCommand,        &kScanCommand,
+    &kSceneCommand,  &kHealthCommand, &kMetricsCommand,  &kBenchRemoteCommand,
 };
 
 void append_command_line(std::string& out, std::string_view synopsis, std::string_view summary) {
@@ -155,11 +155,37 @@ int run(std::span<const std::string> args, const std::map<std::string, std::stri
                     << "run 'kdrt --help' for the list of commands\n";
         return kExitUsage;
     }
+    size_t skip = 1;  // the command's name, and a family's subcommand
+    const Command* family = nullptr;
+    if (!spec->subcommands.empty()) {
+        const std::string sub =
+            command_index + 1 < args.size() ? args[command_index + 1] : std::string();
+        if (sub == "--help" || sub == "-h") {
+            console.out << spec->help;
+            return kExitOk;
+        }
+        const Command* found = nullptr;
+        for (const Command* c : spec->subcommands)
+            if (c->name.size() > name.size() && c->name.substr(name.size() + 1) == sub) found = c;
+        if (found == nullptr) {
+            console.err << "kdrt " << name << ": "
+                        << (sub.empty() ? "missing subcommand"
+                                        : "unknown subcommand \"" + sub + "\"")
+                        << "\n\n"
+                        << spec->help;
+            return kExitUsage;
+        }
+        family = spec;
+        spec = found;
+        skip = 2;
+    }
     std::vector<std::string> rest(args.begin(),
                                   args.begin() + static_cast<std::ptrdiff_t>(command_index));
-    rest.insert(rest.end(), args.begin() + static_cast<std::ptrdiff_t>(command_index) + 1,
+    rest.insert(rest.end(), args.begin() + static_cast<std::ptrdiff_t>(command_index + skip),
                 args.end());
     std::vector<OptionSpec> options(spec->options.begin(), spec->options.end());
+    if (family != nullptr)
+        options.insert(options.end(), family->options.begin(), family->options.end());
     options.insert(options.end(), std::begin(kGlobalOptions), std::end(kGlobalOptions));
     options.insert(options.end(), std::begin(kReportOptions), std::end(kReportOptions));
 

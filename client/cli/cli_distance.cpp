@@ -58,20 +58,81 @@ constexpr OptionSpec kDistanceOptions[] = {
 /// Most points per request --chunk-points accepts (the server's default max_distance_points).
 constexpr uint64_t kMaxChunkPoints = uint64_t{1} << 22;
 
-enum class OutputKind { kCsv, kKdrd };
+int run_distance(Context& ctx) {
+    if (ctx.args.positional.size() < 2)
+        return ctx.usage_error("missing ID and POINTS (a mesh id and a points file)");
+    if (ctx.args.positional.size() > 2)
+        return ctx.usage_error("unexpected argument \"" + ctx.args.positional[2] + "\"");
+    const auto output = ctx.args.value("output");
+    if (!output) return ctx.usage_error("missing -o OUT (the .csv or .kdrd file to write)");
+    const auto kind = distance_output(ctx.format_path(*output));
+    if (!kind)
+        return ctx.usage_error("cannot tell the output format of \"" + *output +
+                               "\" from its extension (.csv or .kdrd)");
+    auto query = distance_query_options(ctx);
+    if (!query) return query.error();
+    auto options = distance_client_options(ctx);
+    if (!options) return options.error();
+    const std::string& points_path = ctx.args.positional[1];
+    auto points = points_from_file(ctx, points_path);
+    if (!points) return points.error();
+    Client& client = ctx.connect(*options);
+    auto id = ctx.resolve_mesh_id(ctx.args.positional[0]);
+    if (!id) return id.error();
 
-std::optional<OutputKind> output_kind(std::string_view path) {
+    const auto start = Clock::now();
+    auto answer = client.distance(*id, *points, *query);
+    if (!answer) return ctx.fail(answer.error());
+    const double seconds = seconds_since(start);
+    const std::vector<std::byte> bytes =
+        *kind == DistanceOutput::kCsv ? [&] {
+            const std::string csv = proto::distances_csv(*points, answer->points);
+            const auto* p = reinterpret_cast<const std::byte*>(csv.data());
+            return std::vector<std::byte>(p, p + csv.size());
+        }()
+                                  : proto::encode_distances(answer->points, query->signed_query);
+    if (auto failed = ctx.write_output(*output, bytes, "the answers")) return *failed;
+    const auto [found, inside, outside] = count_sides(answer->points);
+    const double rate = seconds > 0 ? static_cast<double>(points->size()) / seconds : 0.0;
+    const proto::JsonField fields[] = {{"command", std::string_view("distance")},
+                                       {"mesh", std::string_view(*id)},
+                                       {"points_file", std::string_view(points_path)},
+                                       {"points", uint64_t{points->size()}},
+                                       {"signed", query->signed_query},
+                                       {"surface", std::string_view(answer->surface)},
+                                       {"closed", answer->closed()},
+                                       {"seconds", seconds},
+                                       {"points_per_s", rate},
+                                       {"found", found},
+                                       {"inside", inside},
+                                       {"outside", outside},
+                                       {"out", std::string_view(*output)}};
+    std::ostringstream human;
+    human << "queried " << points->size() << " points in " << fixed(seconds, 3) << " s, "
+          << fixed(rate, 0) << " points/s: " << found << " found";
+    if (query->signed_query) {
+        human << ", " << inside << " inside, " << outside << " outside";
+        if (!answer->closed()) human << " (sides unknown: the mesh is " << answer->surface << ")";
+    }
+    human << " -> " << *output;
+    ctx.report(*output, human.str(), proto::encode_flat_object(fields));
+    return kExitOk;
+}
+
+}  // namespace
+
+std::optional<DistanceOutput> distance_output(std::string_view path) {
     const size_t dot = path.rfind('.');
     if (dot == std::string_view::npos) return std::nullopt;
     std::string ext(path.substr(dot + 1));
     for (char& c : ext) c = static_cast<char>(std::tolower(static_cast<unsigned char>(c)));
-    if (ext == "csv") return OutputKind::kCsv;
-    if (ext == "kdrd") return OutputKind::kKdrd;
+    if (ext == "csv") return DistanceOutput::kCsv;
+    if (ext == "kdrd") return DistanceOutput::kKdrd;
     return std::nullopt;
 }
 
-/// The query points of `path`: a KDRP batch when the file starts with its magic, else text.
-proto::Result<std::vector<Vec3>, int> read_points(const Context& ctx, const std::string& path) {
+proto::Result<std::vector<Vec3>, int> points_from_file(const Context& ctx,
+                                                       const std::string& path) {
     auto bytes = proto::read_file_bytes(path);
     if (!bytes)
         return proto::Err{ctx.fail(
@@ -97,17 +158,17 @@ proto::Result<std::vector<Vec3>, int> read_points(const Context& ctx, const std:
     return std::move(*points);
 }
 
-int run_distance(Context& ctx) {
-    if (ctx.args.positional.size() < 2)
-        return ctx.usage_error("missing ID and POINTS (a mesh id and a points file)");
-    if (ctx.args.positional.size() > 2)
-        return ctx.usage_error("unexpected argument \"" + ctx.args.positional[2] + "\"");
-    const auto output = ctx.args.value("output");
-    if (!output) return ctx.usage_error("missing -o OUT (the .csv or .kdrd file to write)");
-    const auto kind = output_kind(ctx.format_path(*output));
-    if (!kind)
-        return ctx.usage_error("cannot tell the output format of \"" + *output +
-                               "\" from its extension (.csv or .kdrd)");
+SideCounts count_sides(std::span<const ClosestPoint> points) {
+    SideCounts counts;
+    for (const ClosestPoint& c : points) {
+        counts.found += c.found() ? 1 : 0;
+        counts.inside += c.side == Side::kInside ? 1 : 0;
+        counts.outside += c.side == Side::kOutside ? 1 : 0;
+    }
+    return counts;
+}
+
+proto::Result<DistanceQuery, int> distance_query_options(const Context& ctx) {
     DistanceQuery query;
     if (auto text = ctx.args.value("max-distance")) {
         // proto's reading of the query parameter: a number >= 0, or inf.
@@ -116,68 +177,22 @@ int run_distance(Context& ctx) {
                 if (name == proto::kQueryMaxDistance) return *text;
                 return std::nullopt;
             });
-        if (!parsed) return ctx.usage_error("--max-distance: " + parsed.error());
+        if (!parsed) return proto::Err{ctx.usage_error("--max-distance: " + parsed.error())};
         query.max_distance = parsed->max_distance;
     }
     query.signed_query = ctx.args.has("signed");
+    return query;
+}
+
+proto::Result<ClientOptions, int> distance_client_options(const Context& ctx) {
     ClientOptions options = ctx.client_options();
     if (auto text = ctx.args.value("chunk-points")) {
         auto n = parse_uint(*text, 1, kMaxChunkPoints);
-        if (!n) return ctx.usage_error("--chunk-points: " + n.error());
+        if (!n) return proto::Err{ctx.usage_error("--chunk-points: " + n.error())};
         options.chunk_rays = static_cast<size_t>(*n);
     }
-    const std::string& points_path = ctx.args.positional[1];
-    auto points = read_points(ctx, points_path);
-    if (!points) return points.error();
-    Client& client = ctx.connect(options);
-    auto id = ctx.resolve_mesh_id(ctx.args.positional[0]);
-    if (!id) return id.error();
-
-    const auto start = Clock::now();
-    auto answer = client.distance(*id, *points, query);
-    if (!answer) return ctx.fail(answer.error());
-    const double seconds = seconds_since(start);
-    const std::vector<std::byte> bytes =
-        *kind == OutputKind::kCsv ? [&] {
-            const std::string csv = proto::distances_csv(*points, answer->points);
-            const auto* p = reinterpret_cast<const std::byte*>(csv.data());
-            return std::vector<std::byte>(p, p + csv.size());
-        }()
-                                  : proto::encode_distances(answer->points, query.signed_query);
-    if (auto failed = ctx.write_output(*output, bytes, "the answers")) return *failed;
-    uint64_t found = 0, inside = 0, outside = 0;
-    for (const ClosestPoint& c : answer->points) {
-        found += c.found() ? 1 : 0;
-        inside += c.side == Side::kInside ? 1 : 0;
-        outside += c.side == Side::kOutside ? 1 : 0;
-    }
-    const double rate = seconds > 0 ? static_cast<double>(points->size()) / seconds : 0.0;
-    const proto::JsonField fields[] = {{"command", std::string_view("distance")},
-                                       {"mesh", std::string_view(*id)},
-                                       {"points_file", std::string_view(points_path)},
-                                       {"points", uint64_t{points->size()}},
-                                       {"signed", query.signed_query},
-                                       {"surface", std::string_view(answer->surface)},
-                                       {"closed", answer->closed()},
-                                       {"seconds", seconds},
-                                       {"points_per_s", rate},
-                                       {"found", found},
-                                       {"inside", inside},
-                                       {"outside", outside},
-                                       {"out", std::string_view(*output)}};
-    std::ostringstream human;
-    human << "queried " << points->size() << " points in " << fixed(seconds, 3) << " s, "
-          << fixed(rate, 0) << " points/s: " << found << " found";
-    if (query.signed_query) {
-        human << ", " << inside << " inside, " << outside << " outside";
-        if (!answer->closed()) human << " (sides unknown: the mesh is " << answer->surface << ")";
-    }
-    human << " -> " << *output;
-    ctx.report(*output, human.str(), proto::encode_flat_object(fields));
-    return kExitOk;
+    return options;
 }
-
-}  // namespace
 
 constinit const Command kDistanceCommand{
     .name = "distance",

@@ -1,17 +1,24 @@
 #pragma once
 /// The ray sets of kdrt rays, trace and bench-remote: read from a KDRR file, generated from a
-/// mesh file as kdrt-bench rays does, or primary rays from the bounds the server reports; and the
-/// options they share (internal to the CLI). Every function that fails has already printed why
+/// mesh file as kdrt-bench rays does, or primary rays from the bounds the server reports; the
+/// point sets of the distance commands; and the options and outputs the mesh and scene commands
+/// share (internal to the CLI). Every function that fails has already printed why
 /// and returns the exit code as its error.
 
 #include <algorithm>
 #include <chrono>
+#include <cstddef>
 #include <cstdint>
+#include <optional>
+#include <span>
 #include <string>
+#include <string_view>
 #include <type_traits>
 #include <vector>
 
 #include "cli_context.h"
+#include "kdrt/distance_types.h"
+#include "kdrt/proto/multi_hit.h"
 #include "kdrt/raygen.h"
 #include "kdrt/types.h"
 
@@ -51,6 +58,30 @@ struct RaySet {
 /// generate_rays' primary set does with the tree's padded bounds).
 [[nodiscard]] proto::Result<RaySet, int> primary_rays_from_bounds(const Context& ctx,
                                                                   const Aabb& bounds, uint32_t res);
+
+/// The query points of `path` (kdrt distance, kdrt scene distance): a KDRP batch when the file
+/// starts with its magic, else text (proto::parse_points_text).
+[[nodiscard]] proto::Result<std::vector<Vec3>, int> points_from_file(const Context& ctx,
+                                                                     const std::string& path);
+/// --max-distance and --signed.
+[[nodiscard]] proto::Result<DistanceQuery, int> distance_query_options(const Context& ctx);
+/// --chunk-points on top of the global client options.
+[[nodiscard]] proto::Result<ClientOptions, int> distance_client_options(const Context& ctx);
+/// The output of a distance command, by the path's extension: .csv or .kdrd.
+enum class DistanceOutput { kCsv, kKdrd };
+[[nodiscard]] std::optional<DistanceOutput> distance_output(std::string_view path);
+
+/// Closest points found, and of those the ones inside and outside.
+struct SideCounts {
+    uint64_t found = 0, inside = 0, outside = 0;
+};
+[[nodiscard]] SideCounts count_sides(std::span<const ClosestPoint> points);
+
+/// --max-hits, --fields, --merge, --count-only, --normal, --point (kdrt hits, kdrt scene hits).
+[[nodiscard]] proto::Result<proto::MultiHitQuery, int> multi_hit_options(const Context& ctx);
+/// The KDRM bytes of every-hit answers joined from several requests: what one request for the
+/// whole batch would have answered (kdrt hits, kdrt scene hits).
+[[nodiscard]] std::vector<std::byte> multi_hits_bytes(const proto::MultiHits& all);
 
 /// The hits among closest-hit answers, or the occluded rays among occlusion bytes.
 template <class T>

@@ -202,25 +202,14 @@ int run_hits(Context& ctx) {
         return ctx.usage_error("unexpected argument \"" + ctx.args.positional[2] + "\"");
     const auto output = ctx.args.value("output");
     if (!output) return ctx.usage_error("missing -o FILE (the KDRM, KDRC or .ply file to write)");
-    proto::MultiHitQuery query;
-    if (auto text = ctx.args.value("max-hits")) {
-        auto n = parse_uint(*text, 1, kMaxHitsPerRay);
-        if (!n) return ctx.usage_error("--max-hits: " + n.error());
-        query.max_hits = static_cast<uint32_t>(*n);
-    }
-    if (auto text = ctx.args.value("fields")) {
-        auto f = proto::parse_hit_fields(*text);
-        if (!f) return ctx.usage_error("--fields: \"" + *text + "\" is not full, t or t_prim");
-        query.layout.fields = *f;
-    }
-    query.merge_coincident = ctx.args.has("merge");
-    query.count_only = ctx.args.has("count-only");
-    query.layout.normal = ctx.args.has("normal");
+    auto parsed = multi_hit_options(ctx);
+    if (!parsed) return parsed.error();
+    proto::MultiHitQuery query = *parsed;
     if (auto format = ctx.args.value("format");
         format && *format != "ply" && *format != "kdrm" && *format != "kdrc")
         return ctx.usage_error("--format: \"" + *format + "\" is not ply, kdrm or kdrc");
     const bool ply = ends_with_ply(ctx.format_path(*output));
-    query.layout.point = ctx.args.has("point") || ply;
+    query.layout.point = query.layout.point || ply;
     if (ply && query.count_only)
         return ctx.usage_error("--count-only writes KDRC counts, not a .ply point cloud");
     auto options = trace_client_options(ctx);
@@ -249,29 +238,7 @@ int run_hits(Context& ctx) {
         if (!all) return ctx.fail(all.error());
         for (uint32_t c : all->counts) total += c;
         kept = all->hits.size();
-        if (ply) {
-            answer = proto::encode_hit_points_ply(*all);
-        } else {
-            // Re-encoded from the decoded records: the same bytes the server sent per chunk.
-            std::vector<Hit> hits(all->hits.size());
-            std::vector<Vec3> normals, points;
-            for (size_t i = 0; i < hits.size(); ++i) {
-                const proto::HitRecord& r = all->hits[i];
-                hits[i] = Hit{r.t, r.prim, r.u, r.v};
-                if (query.layout.normal) normals.push_back(r.normal);
-                if (query.layout.point) points.push_back(r.point);
-            }
-            proto::MultiHitsView view;
-            view.layout = query.layout;
-            view.merged = query.merge_coincident;
-            view.max_hits = query.max_hits;
-            view.offsets = all->offsets;
-            view.counts = all->counts;
-            view.hits = hits;
-            view.normals = normals;
-            view.points = points;
-            answer = proto::encode_multi_hits(view);
-        }
+        answer = ply ? proto::encode_hit_points_ply(*all) : multi_hits_bytes(*all);
     }
     const double seconds = seconds_since(start);
     if (auto failed = ctx.write_output(*output, answer, "the answers")) return *failed;
@@ -298,6 +265,49 @@ int run_hits(Context& ctx) {
 }
 
 }  // namespace
+
+proto::Result<proto::MultiHitQuery, int> multi_hit_options(const Context& ctx) {
+    proto::MultiHitQuery query;
+    if (auto text = ctx.args.value("max-hits")) {
+        auto n = parse_uint(*text, 1, kMaxHitsPerRay);
+        if (!n) return proto::Err{ctx.usage_error("--max-hits: " + n.error())};
+        query.max_hits = static_cast<uint32_t>(*n);
+    }
+    if (auto text = ctx.args.value("fields")) {
+        auto f = proto::parse_hit_fields(*text);
+        if (!f)
+            return proto::Err{
+                ctx.usage_error("--fields: \"" + *text + "\" is not full, t or t_prim")};
+        query.layout.fields = *f;
+    }
+    query.merge_coincident = ctx.args.has("merge");
+    query.count_only = ctx.args.has("count-only");
+    query.layout.normal = ctx.args.has("normal");
+    query.layout.point = ctx.args.has("point");
+    return query;
+}
+
+std::vector<std::byte> multi_hits_bytes(const proto::MultiHits& all) {
+    // Re-encoded from the decoded records: the same bytes the server sent per chunk.
+    std::vector<Hit> hits(all.hits.size());
+    std::vector<Vec3> normals, points;
+    for (size_t i = 0; i < hits.size(); ++i) {
+        const proto::HitRecord& r = all.hits[i];
+        hits[i] = Hit{r.t, r.prim, r.u, r.v};
+        if (all.layout.normal) normals.push_back(r.normal);
+        if (all.layout.point) points.push_back(r.point);
+    }
+    proto::MultiHitsView view;
+    view.layout = all.layout;
+    view.merged = all.merged;
+    view.max_hits = all.max_hits;
+    view.offsets = all.offsets;
+    view.counts = all.counts;
+    view.hits = hits;
+    view.normals = normals;
+    view.points = points;
+    return proto::encode_multi_hits(view);
+}
 
 constinit const Command kHitsCommand{
     .name = "hits",

@@ -10,6 +10,7 @@
 #include "cli_command.h"
 #include "cli_context.h"
 #include "cli_output.h"
+#include "cli_scan.h"
 #include "image_module.h"
 #include "kdrt/proto/file_io.h"
 #include "kdrt/proto/json_api.h"
@@ -61,14 +62,6 @@ Misses: depth +inf, prim 4294967295; a lidar beam without a hit has no point.
   --json                the summary as one JSON object (on stdout; stderr with -o -)
   -q, --quiet           no summary line (it goes to stderr)
 )";
-
-constexpr OptionSpec kScanOptions[] = {
-    {"pinhole", false}, {"lidar", false},       {"output", true, 'o'}, {"intrinsics", true},
-    {"size", true},     {"pose", true},         {"eye", true},         {"look-at", true},
-    {"up", true},       {"fov", true},          {"range", false},      {"normals", false},
-    {"channels", true}, {"vertical-fov", true}, {"elevations", true},  {"azimuth-steps", true},
-    {"returns", true},  {"min-range", true},    {"max-range", true},   {"format", true},
-};
 
 /// Comma-separated finite numbers.
 std::optional<std::vector<double>> parse_numbers(const std::string& text) {
@@ -221,6 +214,16 @@ std::optional<int> lidar_request(Context& ctx, proto::ScanRequest& request) {
     return common_options(ctx, &spec.pose, spec.min_range, spec.max_range);
 }
 
+}  // namespace
+
+std::optional<int> scan_request_from_args(Context& ctx, proto::ScanRequest& request) {
+    const bool pinhole = ctx.args.has("pinhole"), lidar = ctx.args.has("lidar");
+    if (pinhole == lidar) return ctx.usage_error("give exactly one of --pinhole and --lidar");
+    return pinhole ? pinhole_request(ctx, request) : lidar_request(ctx, request);
+}
+
+namespace {
+
 int run_scan(Context& ctx) {
     int code = kExitOk;
     if (!positional_count_ok(ctx, 1, 1, "ID (the mesh to scan)", code)) return code;
@@ -240,8 +243,7 @@ int run_scan(Context& ctx) {
     if (pinhole && !binary)
         if (auto failed = ctx.need_image_module()) return *failed;
     proto::ScanRequest request;
-    if (auto failed = pinhole ? pinhole_request(ctx, request) : lidar_request(ctx, request))
-        return *failed;
+    if (auto failed = scan_request_from_args(ctx, request)) return *failed;
     ctx.connect(ctx.client_options());
     auto id = ctx.resolve_mesh_id(ctx.args.positional[0]);
     if (!id) return id.error();

@@ -1,6 +1,6 @@
 #pragma once
-/// What the library's files other than http_client.cpp (distance.cpp) need of a Client's
-/// transport: one POST of a binary body with the retries of every call, and the errors it makes.
+/// What the library's files other than http_client.cpp (distance.cpp, scene.cpp) need of a
+/// Client's transport: one request with the retries of every call, and the errors it makes.
 /// Internal to kdrt_client; http_client.cpp defines it (the only file that includes httplib.h).
 
 #include <atomic>
@@ -8,6 +8,8 @@
 #include <span>
 #include <string>
 #include <string_view>
+#include <utility>
+#include <vector>
 
 #include "kdrt/client/client.h"
 
@@ -18,6 +20,19 @@ namespace kdrt::detail {
 struct PostAnswer {
     std::string body;
     std::string header;
+};
+
+/// One API request as ClientAccess::request sends it.
+struct ApiRequest {
+    std::string_view method = "GET";                                ///< GET, DELETE, POST or PATCH
+    std::string path = {};                                          ///< from api_path
+    std::vector<std::pair<std::string, std::string>> headers = {};  ///< besides the client's own
+    std::string_view content_type = {};                             ///< of `body` (POST, PATCH)
+    std::span<const std::byte> body = {};
+    std::string_view answer_header = {};  ///< the answer header PostAnswer::header gets
+    /// May the request be sent again after the connection failed once it was (maybe) sent, and
+    /// after a 502/504? False for a request that must not happen twice (one creating a scene).
+    bool idempotent = true;
 };
 
 struct ClientAccess {
@@ -32,6 +47,9 @@ struct ClientAccess {
                                                  std::string_view content_type,
                                                  std::span<const std::byte> body,
                                                  std::string_view answer_header);
+    /// Sends `request` on a pooled keep-alive connection with the retries of every call (those
+    /// after a maybe-sent request only when it is idempotent). A non-2xx answer is its Error.
+    [[nodiscard]] static Result<PostAnswer> request(Client& client, const ApiRequest& request);
     /// The most points per distance request this client has seen the server accept after a
     /// refusal for size (0: none seen yet); shared by the client's calls.
     [[nodiscard]] static std::atomic<size_t>& distance_chunk_limit(Client& client);
@@ -40,5 +58,11 @@ struct ClientAccess {
     [[nodiscard]] static Error bad_response(const Client& client, const std::string& path,
                                             const std::string& why);
 };
+
+/// After a 413 for a distance chunk of `count` points: the points to send at once from now on,
+/// smaller than `count`. The server's `limit` is the most points (code too_many_rays) or the most
+/// body bytes (a declared size over the KDRP size of max_distance_points); without a usable one,
+/// half (distance.cpp; Client::distance and scene_distance).
+[[nodiscard]] size_t smaller_point_chunk(const Error& refusal, size_t count);
 
 }  // namespace kdrt::detail

@@ -15,22 +15,6 @@ namespace {
 
 constexpr std::string_view kSurfaceHeader = "X-Kdrt-Surface";
 
-/// After a 413 for a chunk of `count` points: the points to send at once from now on, smaller
-/// than `count`. The server's `limit` is the most points (code too_many_rays) or the most body
-/// bytes (a declared size over the KDRP size of max_distance_points); without a usable one, half.
-size_t smaller_chunk(const Error& refusal, size_t count) {
-    size_t allowed = 0;
-    if (refusal.limit) {
-        if (refusal.code == "too_many_rays")
-            allowed = static_cast<size_t>(std::min<uint64_t>(*refusal.limit, SIZE_MAX));
-        else if (*refusal.limit >= proto::kdrp_body_size(1))
-            allowed = static_cast<size_t>(std::min<uint64_t>(
-                (*refusal.limit - proto::kBatchHeaderBytes) / proto::kPointRecordBytes, SIZE_MAX));
-    }
-    if (allowed == 0 || allowed >= count) allowed = count / 2;
-    return allowed;
-}
-
 }  // namespace
 
 Result<DistanceAnswer> Client::distance(std::string_view id, std::span<const Vec3> points,
@@ -64,7 +48,7 @@ Result<DistanceAnswer> Client::distance(std::string_view id, std::span<const Vec
             const Error& e = answer.error();
             if (e.kind == ErrorKind::kServer && e.status == 413 && count > 1) {
                 // Never more than the server takes: send this chunk again in smaller ones.
-                const size_t smaller = smaller_chunk(e, count);
+                const size_t smaller = detail::smaller_point_chunk(e, count);
                 size_t seen = learned.load(std::memory_order_relaxed);
                 while ((seen == 0 || smaller < seen) &&
                        !learned.compare_exchange_weak(seen, smaller, std::memory_order_relaxed)) {
@@ -98,4 +82,20 @@ Result<DistanceAnswer> Client::distance(std::string_view id, std::span<const Vec
     return out;
 }
 
+namespace detail {
+
+size_t smaller_point_chunk(const Error& refusal, size_t count) {
+    size_t allowed = 0;
+    if (refusal.limit) {
+        if (refusal.code == "too_many_rays")
+            allowed = static_cast<size_t>(std::min<uint64_t>(*refusal.limit, SIZE_MAX));
+        else if (*refusal.limit >= proto::kdrp_body_size(1))
+            allowed = static_cast<size_t>(std::min<uint64_t>(
+                (*refusal.limit - proto::kBatchHeaderBytes) / proto::kPointRecordBytes, SIZE_MAX));
+    }
+    if (allowed == 0 || allowed >= count) allowed = count / 2;
+    return allowed;
+}
+
+}  // namespace detail
 }  // namespace kdrt

@@ -73,6 +73,8 @@ Error error_from_response(int status, std::string_view content_type, std::string
             e.line = problem->line;
             e.byte_offset = problem->byte_offset;
             e.limit = problem->limit;
+            e.field = problem->field;
+            e.index = problem->index;
             e.retry_after = problem->retry_after;
             if (!problem->request_id.empty()) e.request_id = problem->request_id;
             return e;

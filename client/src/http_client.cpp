@@ -340,6 +340,9 @@ struct Client::Impl {
                 const std::string_view method = ex.method;
                 if (method == "GET") return cli.Get(ex.path, ex.headers);
                 if (method == "DELETE") return cli.Delete(ex.path, ex.headers);
+                if (method == "PATCH")
+                    return cli.Patch(ex.path, ex.headers, ex.body.data(), ex.body.size(),
+                                     ex.content_type);
                 if (ex.stream)
                     return cli.Post(ex.path, ex.headers, ex.stream_size, ex.stream,
                                     ex.content_type);
@@ -901,7 +904,13 @@ Result<StitchedFrame> Client::render_split(const RenderRequest& request, unsigne
             band.format = std::string(proto::kRawImageFormatName);
             band.compression.reset();  // PNG only; the caller encodes
             band.settings.region = bands[k];
-            Exchange ex = impl_->render_exchange(band, parts > 1 ? "." + std::to_string(k) : "");
+            // Built piecewise: GCC 12 reports a false -Wrestrict for "." + std::to_string(k).
+            std::string key;
+            if (parts > 1) {
+                key = ".";
+                key += std::to_string(k);
+            }
+            Exchange ex = impl_->render_exchange(band, key);
             const std::string body = proto::encode_render_request(band);
             ex.body = body;
             Impl::ImageHeaders headers;
@@ -1084,16 +1093,30 @@ Result<PostAnswer> ClientAccess::post(Client& client, const std::string& path,
                                       std::string_view content_type,
                                       std::span<const std::byte> body,
                                       std::string_view answer_header) {
+    return request(client, {.method = "POST",
+                            .path = path,
+                            .content_type = content_type,
+                            .body = body,
+                            .answer_header = answer_header});
+}
+
+Result<PostAnswer> ClientAccess::request(Client& client, const ApiRequest& request) {
+    static constexpr std::string_view kMethods[] = {"GET", "DELETE", "POST", "PATCH"};
     Exchange ex;
-    ex.method = "POST";
-    ex.path = path;
-    ex.body = std::string_view(reinterpret_cast<const char*>(body.data()), body.size());
-    ex.content_type = std::string(content_type);
+    for (const std::string_view m : kMethods)
+        if (m == request.method) ex.method = m.data();  // literals: NUL-terminated
+    ex.path = request.path;
+    for (const auto& [name, value] : request.headers) ex.headers.emplace(name, value);
+    ex.body =
+        std::string_view(reinterpret_cast<const char*>(request.body.data()), request.body.size());
+    ex.content_type = std::string(request.content_type);
+    ex.resend_after_transport_error = request.idempotent;
     auto res = client.impl_->send(ex);
     if (!res) return proto::Err{std::move(res).error()};
     PostAnswer answer;
     answer.body = std::move(res->body);
-    if (!answer_header.empty()) answer.header = res->get_header_value(std::string(answer_header));
+    if (!request.answer_header.empty())
+        answer.header = res->get_header_value(std::string(request.answer_header));
     return answer;
 }
 

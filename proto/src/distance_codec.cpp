@@ -269,10 +269,14 @@ Result<std::vector<Vec3>, std::string> parse_points_text(std::string_view text) 
     return points;
 }
 
-std::string distances_csv(std::span<const Vec3> queries, std::span<const ClosestPoint> answers) {
-    if (queries.size() != answers.size())
+std::string distances_csv(std::span<const Vec3> queries, std::span<const ClosestPoint> answers,
+                          std::span<const uint32_t> geometry_ids) {
+    const bool scene = !geometry_ids.empty();
+    if (queries.size() != answers.size() || (scene && geometry_ids.size() != answers.size()))
         throw std::invalid_argument("distances_csv: one answer per query point");
-    std::string out = "x,y,z,distance,signed_distance,side,prim,u,v,px,py,pz,feature\n";
+    std::string out = scene ? "x,y,z,distance,signed_distance,side,prim,u,v,px,py,pz,feature,"
+                              "geometry_id\n"
+                            : "x,y,z,distance,signed_distance,side,prim,u,v,px,py,pz,feature\n";
     for (size_t i = 0; i < answers.size(); ++i) {
         const ClosestPoint& c = answers[i];
         const Vec3& q = queries[i];
@@ -293,6 +297,10 @@ std::string distances_csv(std::span<const Vec3> queries, std::span<const Closest
             out += ",,,,,,";
         }
         out += feature_name(c.feature);
+        if (scene) {
+            out += ',';
+            if (c.found()) out += std::to_string(geometry_ids[i]);
+        }
         out += '\n';
     }
     return out;

@@ -121,7 +121,7 @@ Err<JsonError> schema_error(std::string detail) {
 }  // namespace
 
 Result<RenderRequest, JsonError> decode_render_request(std::string_view text,
-                                                       const RenderLimits& limits) {
+                                                       const RenderLimits& limits, bool scene) {
     auto parsed = detail::parse_json_strict<json>(text);
     if (!parsed) {
         const bool syntax = parsed.error().rfind("invalid JSON", 0) == 0;
@@ -134,12 +134,18 @@ Result<RenderRequest, JsonError> decode_render_request(std::string_view text,
     if (!doc.is_object())
         return schema_error("expected a JSON object, got " + std::string(doc.type_name()));
     RenderRequest req;
-    ObjectReader r(
-        doc, "",
-        {"mesh", "camera", "width", "height", "spp", "seed", "shading", "format", "compression",
-         "tile", "ao_samples", "ao_distance", "light", "bounces", "sky", "background"});
-    if (!r.find("mesh")) r.fail("missing member \"mesh\"");
-    r.text("mesh", req.mesh);
+    ObjectReader r = scene ? ObjectReader(doc, "",
+                                          {"camera", "width", "height", "spp", "seed", "shading",
+                                           "format", "compression", "tile", "ao_samples",
+                                           "ao_distance", "light", "bounces", "sky", "background"})
+                           : ObjectReader(doc, "",
+                                          {"mesh", "camera", "width", "height", "spp", "seed",
+                                           "shading", "format", "compression", "tile", "ao_samples",
+                                           "ao_distance", "light", "bounces", "sky", "background"});
+    if (!scene) {
+        if (!r.find("mesh")) r.fail("missing member \"mesh\"");
+        r.text("mesh", req.mesh);
+    }
     // A default never exceeds the server's limit (a 128-pixel limit renders 128 wide by default).
     req.settings.width = std::min(req.settings.width, limits.max_width);
     req.settings.height = std::min(req.settings.height, limits.max_height);
@@ -310,7 +316,12 @@ std::string encode_job_status(const JobStatus& status) {
     w.key("id").string(status.id);
     w.key("state").string(job_state_name(status.state));
     w.key("progress").number(status.progress);
-    w.key("mesh").string(status.mesh);
+    if (status.scene.empty()) {
+        w.key("mesh").string(status.mesh);
+    } else {
+        w.key("scene").string(status.scene);
+        w.key("revision").number(status.revision);
+    }
     w.key("format").string(status.format);
     w.key("created").number(status.created);
     w.key("cancel_requested").boolean(status.cancel_requested);
@@ -336,7 +347,12 @@ Result<JobStatus, std::string> decode_job_status(std::string_view text) {
             return Err{"unknown job state " + quote_value(doc.at("state").get<std::string>())};
         s.state = *state;
         s.progress = doc.at("progress").get<double>();
-        s.mesh = doc.at("mesh").get<std::string>();
+        if (doc.contains("scene")) {
+            s.scene = doc["scene"].get<std::string>();
+            s.revision = doc.at("revision").get<uint64_t>();
+        } else {
+            s.mesh = doc.at("mesh").get<std::string>();
+        }
         s.format = doc.at("format").get<std::string>();
         s.created = doc.at("created").get<double>();
         s.cancel_requested = doc.at("cancel_requested").get<bool>();

@@ -237,6 +237,16 @@ Result<SceneDocument, SceneRequestError> decode_scene_json(std::string_view text
     });
 }
 
+std::string encode_scene_request(std::span<const SceneInstanceSpec> instances) {
+    detail::JsonWriter w(32 + 200 * instances.size());
+    w.begin_object();
+    w.key("instances").begin_array();
+    for (const SceneInstanceSpec& inst : instances) write_instance(w, inst, std::nullopt);
+    w.end_array();
+    w.end_object();
+    return w.take();
+}
+
 std::string encode_scene_json(const SceneDocument& scene) {
     detail::JsonWriter w(128 + 200 * scene.instances.size());
     w.begin_object();
@@ -376,6 +386,51 @@ std::string encode_scene_revision(const SceneListItem& scene) {
     detail::JsonWriter w(96);
     write_list_item(w, scene);
     return w.take();
+}
+
+namespace {
+
+/// One {"id", "revision", "instances"} object; `where` prefixes the error ("scenes[2]: ").
+Result<SceneListItem, std::string> list_item(const json& item, const std::string& where) {
+    if (!item.is_object()) return Err{where + "not an object"};
+    SceneListItem out;
+    const json* id = member(item, "id");
+    if (id == nullptr || !id->is_string() || !is_scene_id(id->get<std::string>()))
+        return Err{where + "\"id\" is not a scene id (32 lower-case hex digits)"};
+    out.id = id->get<std::string>();
+    const json* revision = member(item, "revision");
+    if (revision == nullptr || !revision->is_number_unsigned() || revision->get<uint64_t>() == 0)
+        return Err{where + "\"revision\" is not an integer >= 1"};
+    out.revision = revision->get<uint64_t>();
+    const json* instances = member(item, "instances");
+    if (instances == nullptr || !instances->is_number_unsigned())
+        return Err{where + "\"instances\" is not an integer >= 0"};
+    out.instances = instances->get<uint64_t>();
+    return out;
+}
+
+}  // namespace
+
+Result<std::vector<SceneListItem>, std::string> decode_scene_list(std::string_view text) {
+    const json doc = json::parse(text, nullptr, /*allow_exceptions=*/false);
+    if (doc.is_discarded()) return Err{std::string("scene list is not valid JSON")};
+    const json* scenes = doc.is_object() ? member(doc, "scenes") : nullptr;
+    if (scenes == nullptr || !scenes->is_array())
+        return Err{std::string("scene list has no \"scenes\" array")};
+    std::vector<SceneListItem> out;
+    out.reserve(scenes->size());
+    for (size_t i = 0; i < scenes->size(); ++i) {
+        auto item = list_item((*scenes)[i], "scenes[" + std::to_string(i) + "]: ");
+        if (!item) return Err{std::move(item).error()};
+        out.push_back(std::move(*item));
+    }
+    return out;
+}
+
+Result<SceneListItem, std::string> decode_scene_revision(std::string_view text) {
+    const json doc = json::parse(text, nullptr, /*allow_exceptions=*/false);
+    if (doc.is_discarded()) return Err{std::string("scene revision is not valid JSON")};
+    return list_item(doc, "scene revision: ");
 }
 
 }  // namespace kdrt::proto

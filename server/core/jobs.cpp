@@ -81,6 +81,8 @@ proto::Result<proto::JobStatus, std::string> JobQueue::submit(RenderJob input) {
     auto job = std::make_shared<Job>();
     job->status.id = id_prefix_ + random_id();
     job->status.mesh = input.mesh;
+    job->status.scene = input.scene_id;
+    job->status.revision = input.revision;
     job->status.format = std::string(proto::image_format_name(input.format));
     job->status.created = unix_now();
     job->input = std::move(input);
@@ -220,8 +222,7 @@ void JobQueue::run(Job& job) {
     std::shared_ptr<const std::vector<std::byte>> image;
     std::optional<double> render_ms;
     try {
-        auto rendered = render_and_encode(compute_, *job.input.tree, job.input.settings,
-                                          job.input.format, job.input.encode, control);
+        auto rendered = render_and_encode(compute_, job.input, control);
         if (rendered && rendered->bytes.size() > max_result_bytes_) {
             state = proto::JobState::kFailed;
             error = "the image (" + std::to_string(rendered->bytes.size()) +
@@ -254,7 +255,8 @@ void JobQueue::run(Job& job) {
     job.status.render_ms = render_ms;
     job.image = std::move(image);
     job.status.result_bytes = job.image ? job.image->size() : 0;
-    job.input.tree.reset();  // the job no longer pins the tree
+    job.input.tree.reset();  // the job no longer pins the tree (or the scene's trees)
+    job.input.scene.reset();
     job.finished_at = std::chrono::steady_clock::now();
     evict_over_budget();
     (state == proto::JobState::kDone     ? done_

@@ -21,6 +21,7 @@
 
 #include "core/compute.h"
 #include "core/metrics.h"
+#include "core/rendering.h"
 #include "kdrt/kdtree.h"
 #include "kdrt/proto/image_io.h"
 #include "kdrt/proto/json_api.h"
@@ -28,15 +29,6 @@
 #include "kdrt/render.h"
 
 namespace kdrt::server {
-
-/// What a job renders.
-struct RenderJob {
-    std::string mesh;
-    std::shared_ptr<const KdTree> tree;  ///< held from submission: the job survives eviction
-    RenderSettings settings;             ///< already validated
-    proto::ImageFormat format = proto::ImageFormat::kPng;
-    proto::ImageEncodeOptions encode;  ///< PNG compression level
-};
 
 class JobQueue {
 public:

@@ -12,13 +12,15 @@ proto::ImageEncodeOptions eight_bit_options(const RenderSettings& settings,
     return options;
 }
 
-proto::Result<RenderedImage, std::string> render_and_encode(Compute& compute, const KdTree& tree,
-                                                            const RenderSettings& settings,
-                                                            proto::ImageFormat format,
-                                                            const proto::ImageEncodeOptions& encode,
+proto::Result<RenderedImage, std::string> render_and_encode(Compute& compute, const RenderJob& job,
                                                             const RenderControl& control) {
+    const RenderSettings& settings = job.settings;
+    const proto::ImageFormat format = job.format;
     RenderedImage out;
-    const Image image = compute.run([&] { return render(tree, settings, control, &out.stats); });
+    const Image image = compute.run([&] {
+        return job.scene ? render(*job.scene, settings, control, &out.stats)
+                         : render(*job.tree, settings, control, &out.stats);
+    });
     const auto start = std::chrono::steady_clock::now();
     if (format == proto::ImageFormat::kRaw) {
         const PixelRegion region =
@@ -30,7 +32,7 @@ proto::Result<RenderedImage, std::string> render_and_encode(Compute& compute, co
                 .count();
         return out;
     }
-    auto encoded = proto::encode_image(image, format, eight_bit_options(settings, encode));
+    auto encoded = proto::encode_image(image, format, eight_bit_options(settings, job.encode));
     if (!encoded) return proto::Err{"encoding the image failed: " + encoded.error()};
     out.encode_ms =
         std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();

@@ -100,6 +100,8 @@ public:
                         const httplib::ContentReader& reader);
     void scene_scan(const httplib::Request& req, httplib::Response& res,
                     const httplib::ContentReader& reader);
+    void scene_render(const httplib::Request& req, httplib::Response& res,
+                      const httplib::ContentReader& reader);
     void list_scenes(const httplib::Request& req, httplib::Response& res);
     void get_scene(const httplib::Request& req, httplib::Response& res);
     void delete_scene(const httplib::Request& req, httplib::Response& res);
@@ -148,13 +150,21 @@ private:
     std::optional<proto::ScanRequest> read_scan_request(const httplib::Request& req,
                                                         httplib::Response& res,
                                                         const httplib::ContentReader& reader);
-    /// The render request in the body; on failure the reply is set and nullopt returned.
+    /// The render request in the body (`scene`: a scene render's, without "mesh"); on failure
+    /// the reply is set and nullopt returned.
     std::optional<proto::RenderRequest> read_render_request(const httplib::Request& req,
                                                             httplib::Response& res,
-                                                            const httplib::ContentReader& reader);
-    /// The request with its mesh's tree and validated settings; on failure as above.
+                                                            const httplib::ContentReader& reader,
+                                                            bool scene);
+    /// The request as a job with validated settings, its raw answer size and cost checked;
+    /// attach(job) sets what it renders (a mesh's tree or a scene revision) after the checks
+    /// that depend on the request alone, or replies and returns false. On failure as above.
     std::optional<RenderJob> make_render_job(const httplib::Request& req, httplib::Response& res,
-                                             proto::RenderRequest request);
+                                             proto::RenderRequest request,
+                                             const std::function<bool(RenderJob&)>& attach);
+    /// Runs a render job: async with Prefer: respond-async (202 and a job), else now within
+    /// max_renders (503 beyond).
+    void run_render(const httplib::Request& req, httplib::Response& res, RenderJob job);
     void render_now(const httplib::Request& req, httplib::Response& res, const RenderJob& job);
     void submit_job(const httplib::Request& req, httplib::Response& res, RenderJob job);
 

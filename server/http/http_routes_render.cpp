@@ -1,7 +1,9 @@
-// POST /v1/render, and the async job routes /v1/jobs/{id}[/result].
+// POST /v1/render (and what POST /v1/scenes/{id}/render shares with it: the request, its limits,
+// sync or async), and the async job routes /v1/jobs/{id}[/result].
 
 #include <algorithm>
 #include <cctype>
+#include <functional>
 #include <optional>
 
 #include "core/log.h"
@@ -105,11 +107,25 @@ void name_png_level(httplib::Response& res, proto::ImageFormat format,
 
 void Routes::render(const httplib::Request& req, httplib::Response& res,
                     const httplib::ContentReader& reader) {
-    auto request = read_render_request(req, res, reader);
+    auto request = read_render_request(req, res, reader, false);
     if (!request) return;
-    auto job = make_render_job(req, res, std::move(*request));
+    const std::string mesh = request->mesh;
+    auto job = make_render_job(req, res, std::move(*request), [&](RenderJob& out) {
+        auto tree = svc_.cache.acquire(mesh);
+        if (!tree) {
+            reply_problem(req, res, mesh_lookup_problem(tree.error(), mesh));
+            return false;
+        }
+        out.mesh = mesh;
+        out.tree = std::move(*tree);
+        return true;
+    });
     if (!job) return;
-    if (prefers_async(req)) return submit_job(req, res, std::move(*job));
+    run_render(req, res, std::move(*job));
+}
+
+void Routes::run_render(const httplib::Request& req, httplib::Response& res, RenderJob job) {
+    if (prefers_async(req)) return submit_job(req, res, std::move(job));
     // At most max_renders run at once and max_queued wait; the rest are shed now.
     auto slot = svc_.renders.enter(svc_.shutting_down);
     if (!slot) {
@@ -122,11 +138,12 @@ void Routes::render(const httplib::Request& req, httplib::Response& res,
         p.limit = svc_.renders.running_limit();
         return reply_problem(req, res, std::move(p));
     }
-    render_now(req, res, *job);
+    render_now(req, res, job);
 }
 
 std::optional<proto::RenderRequest> Routes::read_render_request(
-    const httplib::Request& req, httplib::Response& res, const httplib::ContentReader& reader) {
+    const httplib::Request& req, httplib::Response& res, const httplib::ContentReader& reader,
+    bool scene) {
     if (proto::media_type_essence(req.get_header_value("Content-Type")) != proto::kJsonMediaType) {
         reply_problem(
             req, res,
@@ -150,7 +167,7 @@ std::optional<proto::RenderRequest> Routes::read_render_request(
     }
     const proto::RenderLimits limits{svc_.config.max_image_width, svc_.config.max_image_height,
                                      svc_.config.max_spp};
-    auto request = proto::decode_render_request(as_text(body->bytes()), limits);
+    auto request = proto::decode_render_request(as_text(body->bytes()), limits, scene);
     if (!request) {
         reply_problem(req, res, make_problem(ProblemKind::kBadRequest, request.error().detail));
         return std::nullopt;
@@ -160,18 +177,16 @@ std::optional<proto::RenderRequest> Routes::read_render_request(
 
 std::optional<RenderJob> Routes::make_render_job(const httplib::Request& req,
                                                  httplib::Response& res,
-                                                 proto::RenderRequest request) {
+                                                 proto::RenderRequest request,
+                                                 const std::function<bool(RenderJob&)>& attach) {
     const proto::ImageFormat format = *proto::image_format_from_name(request.format);
-    // Checked before the tree is looked up or loaded: it depends on the request alone.
+    // Checked before the tree or scene is looked up or loaded: it depends on the request alone.
     if (auto p = raw_answer_problem(request, format, svc_.config.max_raw_render_bytes)) {
         reply_problem(req, res, std::move(*p));
         return std::nullopt;
     }
-    auto tree = svc_.cache.acquire(request.mesh);
-    if (!tree) {
-        reply_problem(req, res, mesh_lookup_problem(tree.error(), request.mesh));
-        return std::nullopt;
-    }
+    RenderJob job;
+    if (!attach(job)) return std::nullopt;
     try {
         validate_render_settings(request.settings);
     } catch (const RenderError& e) {
@@ -194,7 +209,10 @@ std::optional<RenderJob> Routes::make_render_job(const httplib::Request& req,
     proto::ImageEncodeOptions encode;
     encode.png_compression =
         request.compression.value_or(static_cast<int>(svc_.config.png_compression));
-    return RenderJob{std::move(request.mesh), std::move(*tree), request.settings, format, encode};
+    job.settings = request.settings;
+    job.format = format;
+    job.encode = encode;
+    return job;
 }
 
 void Routes::render_now(const httplib::Request& req, httplib::Response& res, const RenderJob& job) {
@@ -208,8 +226,7 @@ void Routes::render_now(const httplib::Request& req, httplib::Response& res, con
     };
     proto::Result<RenderedImage, std::string> image = proto::Err{std::string()};
     try {
-        image = render_and_encode(svc_.compute, *job.tree, job.settings, job.format, job.encode,
-                                  control);
+        image = render_and_encode(svc_.compute, job, control);
     } catch (const RenderCancelled&) {
         log_event(LogLevel::kInfo, "render cancelled: the client closed the connection",
                   {{"id", request_context().request_id}});

@@ -1,7 +1,7 @@
 // Scenes: POST /v1/scenes, GET /v1/scenes, GET/DELETE /v1/scenes/{id}, PATCH (or POST)
 // /v1/scenes/{id}/poses, POST /v1/scenes/{id}/instances, and the queries under
-// /v1/scenes/{id}/: intersect, intersect_all, distance, scan. Each is decode (proto) -> call
-// (SceneCache, kdrt/scene.h) -> encode (proto, with the geometry-id plane).
+// /v1/scenes/{id}/: intersect, intersect_all, distance, scan, render. Each is decode (proto) ->
+// call (SceneCache, kdrt/scene.h) -> encode (proto, with the geometry-id plane).
 
 #include <charconv>
 #include <optional>
@@ -441,6 +441,32 @@ void Routes::scene_distance(const httplib::Request& req, httplib::Response& res,
     std::vector<std::byte> answer = proto::encode_distances(answers, query->signed_query);
     proto::append_geometry_ids(answer, geoms);
     reply_bytes(res, std::move(answer), proto::kDistanceMediaType);
+}
+
+void Routes::scene_render(const httplib::Request& req, httplib::Response& res,
+                          const httplib::ContentReader& reader) {
+    auto request = read_render_request(req, res, reader, true);
+    if (!request) return;
+    auto job = make_render_job(req, res, std::move(*request), [&](RenderJob& out) {
+        // The body is read already: no query_scene (it discards the body).
+        auto revision = pinned_revision(req);
+        if (!revision) {
+            reply_problem(req, res, std::move(revision).error());
+            return false;
+        }
+        auto entry = svc_.scenes.get(req.matches[1], *revision);
+        if (!entry) {
+            reply_problem(req, res, scene_problem(entry.error()));
+            return false;
+        }
+        set_revision_headers(res, (*entry)->doc);
+        out.scene = (*entry)->scene;
+        out.scene_id = (*entry)->doc.id;
+        out.revision = (*entry)->doc.revision;
+        return true;
+    });
+    if (!job) return;
+    run_render(req, res, std::move(*job));
 }
 
 void Routes::scene_scan(const httplib::Request& req, httplib::Response& res,

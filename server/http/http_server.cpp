@@ -368,6 +368,8 @@ struct HttpServer::Impl {
              &Routes::scene_distance);
         post(scene + "/scan", "/v1/scenes/{id}/scan", {.api = true, .heavy = true},
              &Routes::scene_scan);
+        post(scene + "/render", "/v1/scenes/{id}/render", {.api = true, .heavy = true},
+             &Routes::scene_render);
         const std::string job = std::string("/v1/jobs/") + kIdPattern;
         get(job, "/v1/jobs/{id}", {.api = true}, &Routes::get_job);
         del(job, "/v1/jobs/{id}", {.api = true}, &Routes::delete_job);

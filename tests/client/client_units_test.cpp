@@ -134,7 +134,8 @@ TEST(CliCommands, TheTableDrivesDispatchAndTheMainHelp) {
     for (const cli::Command* c : cli::commands()) {
         SCOPED_TRACE(std::string(c->name));
         EXPECT_EQ(cli::find_command(c->name), c);
-        ASSERT_NE(c->run, nullptr);
+        // A family (kdrt scene) runs its subcommands, each named "<family> <subcommand>".
+        ASSERT_NE(c->run == nullptr, c->subcommands.empty());
         EXPECT_EQ(c->synopsis.substr(0, c->name.size()), c->name);
         EXPECT_EQ(c->help.rfind("usage: kdrt " + std::string(c->name), 0), 0u);
         // One line of the main help per command: the synopsis, then the summary.
@@ -143,6 +144,16 @@ TEST(CliCommands, TheTableDrivesDispatchAndTheMainHelp) {
         EXPECT_NE(cli::main_help().find(std::string(c->summary) + "\n", line), std::string::npos);
         for (const cli::OptionSpec& o : c->options)
             EXPECT_NE(c->help.find("--" + std::string(o.name)), std::string_view::npos) << o.name;
+        for (const cli::Command* sub : c->subcommands) {
+            SCOPED_TRACE(std::string(sub->name));
+            ASSERT_NE(sub->run, nullptr);
+            EXPECT_EQ(sub->name.rfind(std::string(c->name) + " ", 0), 0u);
+            EXPECT_EQ(sub->help.rfind("usage: kdrt " + std::string(sub->name), 0), 0u);
+            EXPECT_NE(c->help.find(std::string(sub->synopsis)), std::string_view::npos);
+            for (const cli::OptionSpec& o : sub->options)
+                EXPECT_NE(sub->help.find("--" + std::string(o.name)), std::string_view::npos)
+                    << o.name;
+        }
     }
     EXPECT_EQ(cli::find_command("help"), nullptr);  // handled by dispatch, not a table entry
     EXPECT_EQ(cli::find_command("frob"), nullptr);

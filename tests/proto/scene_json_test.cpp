@@ -259,6 +259,94 @@ TEST(InstanceEdit, RemovesThenAppendsAndNamesBadEntries) {
     EXPECT_EQ(e.error().field, "add[0].mesh");
 }
 
+TEST(SceneJson, CreateRequestListAndRevisionReadBack) {
+    const std::vector<SceneInstanceSpec> instances = {
+        {kMeshA, Transform{{0.5f, 0, 0, 1e-7f, 0, 1, 0, -3, 0, 0, 2, 0.1f}}, "a"},
+        {kMeshB, Transform{}, ""}};
+    auto doc = decode_scene_json(encode_scene_request(instances));
+    ASSERT_TRUE(doc.ok()) << doc.error().detail;
+    EXPECT_EQ(doc->instances, instances);
+    EXPECT_TRUE(doc->id.empty());
+
+    const std::vector<SceneListItem> items = {{std::string(32, 'a'), 3, 7},
+                                              {std::string(32, 'b'), 1, 0}};
+    auto list = decode_scene_list(encode_scene_list(items));
+    ASSERT_TRUE(list.ok()) << list.error();
+    ASSERT_EQ(list->size(), 2u);
+    EXPECT_EQ((*list)[0].id, items[0].id);
+    EXPECT_EQ((*list)[0].revision, 3u);
+    EXPECT_EQ((*list)[1].instances, 0u);
+    EXPECT_TRUE(decode_scene_list("{\"scenes\":[]}")->empty());
+    auto revision = decode_scene_revision(encode_scene_revision(items[0]));
+    ASSERT_TRUE(revision.ok()) << revision.error();
+    EXPECT_EQ(revision->revision, 3u);
+    EXPECT_EQ(revision->instances, 7u);
+    // Bad answers say what and where.
+    EXPECT_EQ(decode_scene_list("[]").error(), "scene list has no \"scenes\" array");
+    EXPECT_EQ(
+        decode_scene_list("{\"scenes\":[{\"id\":\"x\",\"revision\":1,\"instances\":1}]}").error(),
+        "scenes[0]: \"id\" is not a scene id (32 lower-case hex digits)");
+    EXPECT_EQ(decode_scene_revision("{\"id\":\"" + std::string(32, 'a') +
+                                    "\",\"revision\":0,\"instances\":1}")
+                  .error(),
+              "scene revision: \"revision\" is not an integer >= 1");
+    EXPECT_FALSE(decode_scene_revision("{").ok());
+}
+
+TEST(SceneText, InstancesOneALine) {
+    const std::string text = "# a comment\n\n" + kMeshA + "\n" + kMeshB + " 1 2 3 named\r\n" +
+                             kMeshA + ",0,-1,0,4, 1,0,0,5, 0,0,1,6\n\t" + kMeshB + "\tother";
+    auto got = parse_scene_text(text);
+    ASSERT_TRUE(got.ok()) << got.error();
+    ASSERT_EQ(got->size(), 4u);
+    EXPECT_EQ((*got)[0].mesh, kMeshA);
+    EXPECT_EQ((*got)[0].transform, Transform{});
+    EXPECT_EQ((*got)[1].transform, (Transform{{1, 0, 0, 1, 0, 1, 0, 2, 0, 0, 1, 3}}));
+    EXPECT_EQ((*got)[1].name, "named");
+    EXPECT_EQ((*got)[2].transform, (Transform{{0, -1, 0, 4, 1, 0, 0, 5, 0, 0, 1, 6}}));
+    EXPECT_EQ((*got)[3].name, "other");
+    EXPECT_TRUE(parse_scene_text("# nothing\n")->empty());
+
+    auto error = [](const std::string& t, const SceneLimits& limits = {}) {
+        auto r = parse_scene_text(t, limits);
+        EXPECT_FALSE(r.ok()) << t;
+        return r.ok() ? std::string() : r.error();
+    };
+    EXPECT_EQ(error("\n" + kMeshA + " 1 2\n"),
+              "line 2: 2 transform numbers (expected 12, row-major 3 x 4; 3, a translation; or "
+              "none)");
+    EXPECT_EQ(error("nomesh 1 2 3\n"),
+              "line 1: mesh \"nomesh\" is not a mesh id (64 lower-case hex digits)");
+    EXPECT_EQ(error(kMeshA + " 1 nan 3"),
+              "line 1: transform entry 1 \"nan\" is not a finite float");
+    EXPECT_EQ(error(kMeshA + " 1 1e39 3"),
+              "line 1: transform entry 1 \"1e39\" is not a finite float");
+    EXPECT_EQ(error(kMeshA + " x\n" + kMeshB + " x"), "line 2: name \"x\" is given twice");
+    EXPECT_EQ(error(kMeshA + " a\"b"),
+              "line 1: name \"a\"b\" is not an instance name (1 to 128 characters from A-Z "
+              "a-z 0-9 . _ : / -)");
+    EXPECT_EQ(error(kMeshA + "\n" + kMeshA + "\n", SceneLimits{1}),
+              "line 2: more than 1 instances (max_instances)");
+}
+
+TEST(SceneText, PosesOneALine) {
+    auto got = parse_pose_text("3 1 2 3\ncar 1,0,0,0,0,1,0,0,0,0,1,9\n# end\n");
+    ASSERT_TRUE(got.ok()) << got.error();
+    ASSERT_EQ(got->size(), 2u);
+    EXPECT_EQ((*got)[0].geometry_id, 3u);
+    EXPECT_EQ((*got)[0].transform, (Transform{{1, 0, 0, 1, 0, 1, 0, 2, 0, 0, 1, 3}}));
+    EXPECT_EQ((*got)[1].name, "car");
+    EXPECT_FALSE((*got)[1].geometry_id);
+    EXPECT_EQ((*got)[1].transform.m[11], 9.0f);
+    EXPECT_EQ(parse_pose_text("").error(), "no poses (one pose a line: INSTANCE T)");
+    EXPECT_EQ(parse_pose_text("car\n").error(),
+              "line 1: no transform (expected 12 numbers, or 3: a translation)");
+    EXPECT_EQ(parse_pose_text("a\"b 1 2 3").error(),
+              "line 1: instance \"a\"b\" is neither a geometry id nor an instance name");
+    EXPECT_EQ(parse_pose_text("1 1 2 inf").error(),
+              "line 1: transform entry 2 \"inf\" is not a finite float");
+}
+
 TEST(SceneIds, SceneIdsAndInstanceNames) {
     EXPECT_TRUE(is_scene_id(std::string(32, 'f')));
     EXPECT_FALSE(is_scene_id(std::string(31, 'f')));

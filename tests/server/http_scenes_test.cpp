@@ -7,15 +7,20 @@
 
 #include <gtest/gtest.h>
 
+#include <chrono>
 #include <csignal>
 #include <cstring>
+#include <thread>
 
 #include "http_test_util.h"
 #include "kdrt/proto/distance.h"
+#include "kdrt/proto/json_api.h"
 #include "kdrt/proto/multi_hit.h"
+#include "kdrt/proto/raw_image.h"
 #include "kdrt/proto/ray_batch.h"
 #include "kdrt/proto/scan.h"
 #include "kdrt/proto/scene.h"
+#include "kdrt/render.h"
 #include "kdrt/scene.h"
 
 namespace kdrt::test {
@@ -211,6 +216,68 @@ TEST_F(HttpScenes, EveryQueryEqualsTheEngineWithGeometryIds) {
     EXPECT_EQ(std::memcmp(cloud->points.data(), local_cloud.cloud.points.data(),
                           cloud->points.size() * sizeof(LidarPoint)),
               0);
+}
+
+TEST_F(HttpScenes, RendersEqualTheEngineSyncAndAsyncWithinTheMeshLimits) {
+    const std::vector<std::pair<std::string, proto::Transform>> inst = {{a_id_, kIdentity},
+                                                                        {b_id_, kMirrored}};
+    const std::string id = create_id("{\"instances\":[" + instance_json(a_id_, kIdentity) + "," +
+                                     instance_json(b_id_, kMirrored) + "]}");
+    const Scene local = local_scene(inst);
+    const std::string body =
+        "{\"width\":48,\"height\":32,\"shading\":\"primid\",\"format\":\"raw\"}";
+    auto want_request = proto::decode_render_request(body, {}, true);
+    ASSERT_TRUE(want_request.ok());
+    const Image want = render(local, want_request->settings);
+    auto expect_render = [&](const std::string& bytes) {
+        auto raw = proto::decode_raw_image(string_to_bytes(bytes));
+        ASSERT_TRUE(raw.ok()) << raw.error();
+        ASSERT_EQ(raw->image.pixels.size(), want.pixels.size());
+        EXPECT_EQ(std::memcmp(raw->image.pixels.data(), want.pixels.data(),
+                              want.pixels.size() * sizeof(float)),
+                  0);
+    };
+    // Synchronous: the engine's pixels, bit for bit (primid tells the instances apart).
+    auto res = query(id, "render", body, "application/json");
+    ASSERT_TRUE(res);
+    ASSERT_EQ(res->status, 200) << res->body;
+    EXPECT_EQ(res->get_header_value("X-Kdrt-Scene-Revision"), "1");
+    expect_render(res->body);
+    // Asynchronous: a job naming the scene and revision, with the same image.
+    httplib::Headers prefer = {{"Prefer", "respond-async"}};
+    res = server_->client()->Post("/v1/scenes/" + id + "/render", prefer, body, "application/json");
+    ASSERT_TRUE(res);
+    ASSERT_EQ(res->status, 202) << res->body;
+    auto job = proto::decode_job_status(res->body);
+    ASSERT_TRUE(job.ok()) << res->body;
+    EXPECT_EQ(job->scene, id);
+    EXPECT_EQ(job->revision, 1u);
+    EXPECT_TRUE(job->mesh.empty());
+    for (int i = 0; i < 600 && job->state != proto::JobState::kDone; ++i) {
+        std::this_thread::sleep_for(std::chrono::milliseconds(20));
+        res = server_->client()->Get("/v1/jobs/" + job->id);
+        ASSERT_TRUE(res);
+        job = proto::decode_job_status(res->body);
+        ASSERT_TRUE(job.ok()) << res->body;
+    }
+    ASSERT_EQ(job->state, proto::JobState::kDone);
+    res = server_->client()->Get("/v1/jobs/" + job->id + "/result");
+    ASSERT_TRUE(res);
+    ASSERT_EQ(res->status, 200);
+    expect_render(res->body);
+    // The mesh render's checks, with its problems: a "mesh" member (the path names the scene), a
+    // bad setting, a cost over max_render_rays; an unknown scene.
+    auto p = expect_problem(query(id, "render", "{\"mesh\":\"" + a_id_ + "\"}", "application/json"),
+                            400);
+    EXPECT_NE(p.detail.find("unknown member \"mesh\""), std::string::npos) << p.detail;
+    p = expect_problem(query(id, "render", "{\"width\":0}", "application/json"), 400);
+    EXPECT_NE(p.detail.find("width"), std::string::npos) << p.detail;
+    p = expect_problem(
+        query(id, "render", "{\"width\":4096,\"height\":4096,\"spp\":1024,\"shading\":\"ao\"}",
+              "application/json"),
+        400);
+    EXPECT_NE(p.detail.find("exceeds max_render_rays"), std::string::npos) << p.detail;
+    expect_problem(query(std::string(32, 'f'), "render", body, "application/json"), 404);
 }
 
 TEST_F(HttpScenes, DistanceNeedsSimilarityTransformsAndAnswersAsTheEngine) {

@@ -38,6 +38,7 @@
 #include "kdrt/proto/multi_hit.h"
 #include "kdrt/proto/raw_image.h"
 #include "kdrt/proto/scan.h"
+#include "kdrt/proto/scene.h"
 #include "kdrt/types.h"
 
 namespace kdrt {
@@ -98,6 +99,45 @@ struct DistanceAnswer {
     std::string surface;
     /// surface == "closed": the mesh is closed and consistently oriented, so sides are decided.
     [[nodiscard]] bool closed() const noexcept { return surface == "closed"; }
+};
+
+/// A scene revision as the server keeps it: id, revision (from 1) and the instances (mesh id,
+/// transform, name), each instance's geometry id its index.
+using SceneDocument = proto::SceneDocument;
+/// One scene of Client::scenes, and the answer of a pose update: id, revision, instance count.
+using SceneRevision = proto::SceneListItem;
+
+/// Closest hits of a scene: the mesh records (prim, u, v of the instance's mesh; t of the world
+/// ray) and each ray's geometry id (kNoHit for a miss), from one revision (`revision`).
+struct SceneHits {
+    std::vector<Hit> hits;
+    std::vector<uint32_t> geometry_ids;
+    uint64_t revision = 0;
+};
+/// Every hit of a scene's rays: the mesh form (normals and points in world space) and the
+/// geometry id of each hit record (geometry_ids[k] belongs to all.hits[k]).
+struct SceneMultiHits {
+    proto::MultiHits all;
+    std::vector<uint32_t> geometry_ids;
+    uint64_t revision = 0;
+};
+/// Closest points of a scene (distance and point in world space; prim, u, v, feature of the
+/// instance's mesh) and each point's geometry id (kNoHit: nothing found).
+struct SceneDistanceAnswer {
+    std::vector<ClosestPoint> points;
+    std::vector<uint32_t> geometry_ids;
+    bool signed_query = false;
+    uint64_t revision = 0;
+};
+/// A scene scan: the server's answer as it came (KDRZ or KDRL with the geometry-id plane,
+/// proto/FORMATS.md "Scenes"), decoded: the depth image (pinhole) or the point cloud (lidar), and
+/// the geometry id of each pixel or point.
+struct SceneScan {
+    std::vector<std::byte> body;
+    std::optional<DepthImage> depth;
+    std::optional<PointCloud> cloud;
+    std::vector<uint32_t> geometry_ids;
+    uint64_t revision = 0;
 };
 
 /// Called by Client::wait after every poll with the job's latest status. Return false to stop
@@ -229,6 +269,69 @@ public:
     /// a kServer 400 naming it).
     [[nodiscard]] Result<DistanceAnswer> distance(std::string_view id, std::span<const Vec3> points,
                                                   const DistanceQuery& query = {});
+
+    // ---- Scenes (/v1/scenes...; client/src/scene.cpp) -----------------------------------------
+    //
+    // A scene places stored meshes by affine transforms (proto/FORMATS.md, "Scenes"). Every
+    // change makes a new revision; `if_revision` makes a change conditional (If-Match: a kServer
+    // 412 error when the scene has moved on). A query answers from the current revision, or from
+    // `revision` (one of the newest the server keeps); a query sent as several requests (more
+    // rays or points than options.chunk_rays) pins the revision the first request answered from,
+    // so the whole answer is of one revision. Refusals name the instance: Error::index and
+    // Error::field ("instances[3].transform").
+
+    /// Creates a scene of `instances` (geometry ids in this order). Not resent after a lost
+    /// connection once sent (it could create a second scene).
+    [[nodiscard]] Result<SceneDocument> create_scene(
+        std::span<const proto::SceneInstanceSpec> instances);
+    /// A scene's current revision, or `revision`.
+    [[nodiscard]] Result<SceneDocument> scene(std::string_view id,
+                                              std::optional<uint64_t> revision = std::nullopt);
+    /// Every scene (id, current revision, instance count), sorted by id.
+    [[nodiscard]] Result<std::vector<SceneRevision>> scenes();
+    /// Deletes a scene (every revision).
+    [[nodiscard]] Result<void> remove_scene(std::string_view id,
+                                            std::optional<uint64_t> if_revision = std::nullopt);
+    /// Moves instances (by geometry id or by name; later entries for one instance win): one new
+    /// revision. Sent as KDRX (52 bytes a pose) when every entry names a geometry id, else as
+    /// JSON. Entries are checked here first (a kInput error naming the entry for a NaN or
+    /// infinite transform entry, or for none or both of geometry id and name).
+    [[nodiscard]] Result<SceneRevision> set_poses(
+        std::string_view id, std::span<const proto::PoseEntry> poses,
+        std::optional<uint64_t> if_revision = std::nullopt);
+    /// Removes and adds instances (proto::InstanceEdit): one new revision. Not resent after a
+    /// lost connection once sent.
+    [[nodiscard]] Result<SceneDocument> edit_scene(
+        std::string_view id, const proto::InstanceEdit& edit,
+        std::optional<uint64_t> if_revision = std::nullopt);
+
+    /// Closest hit of every ray over the scene, chunked as intersect().
+    [[nodiscard]] Result<SceneHits> intersect_scene(
+        std::string_view id, std::span<const Ray> rays,
+        std::optional<uint64_t> revision = std::nullopt);
+    /// Occlusion of every ray (1 = something is hit within [tmin, tmax]).
+    [[nodiscard]] Result<std::vector<uint8_t>> occluded_scene(
+        std::string_view id, std::span<const Ray> rays,
+        std::optional<uint64_t> revision = std::nullopt);
+    /// Every hit along every ray over the scene (as intersect_all; query.count_only ignored).
+    [[nodiscard]] Result<SceneMultiHits> intersect_all_scene(
+        std::string_view id, std::span<const Ray> rays, const proto::MultiHitQuery& query,
+        std::optional<uint64_t> revision = std::nullopt);
+    /// The number of hits of every ray over the scene.
+    [[nodiscard]] Result<std::vector<uint32_t>> count_scene_intersections(
+        std::string_view id, std::span<const Ray> rays, bool merge_coincident,
+        std::optional<uint64_t> revision = std::nullopt);
+    /// Closest points of the scene (as distance(): points checked here first, chunks smaller
+    /// after a 413). Every instance needs a similarity transform (a kServer 400 naming
+    /// instances[i].transform otherwise).
+    [[nodiscard]] Result<SceneDistanceAnswer> scene_distance(
+        std::string_view id, std::span<const Vec3> points, const DistanceQuery& query = {},
+        std::optional<uint64_t> revision = std::nullopt);
+    /// A sensor scan of the scene (request.format must be binary: the server answers scenes in
+    /// KDRZ / KDRL with geometry ids only).
+    [[nodiscard]] Result<SceneScan> scan_scene(std::string_view id,
+                                               const proto::ScanRequest& request,
+                                               std::optional<uint64_t> revision = std::nullopt);
 
     // ---- Renders (POST /v1/render, /v1/jobs/{id}...) -----------------------------------------
 

@@ -42,6 +42,9 @@ struct Error {
     std::optional<uint64_t> line;  ///< mesh parse errors in text: 1-based line
     std::optional<uint64_t> byte_offset;  ///< mesh parse errors in binary data
     std::optional<uint64_t> limit;        ///< the server limit that was exceeded
+    /// The request member a problem names ("instances[3].transform", "If-Match"), or empty.
+    std::string field;
+    std::optional<uint32_t> index;        ///< the instance (or pose entry) index a problem names
     std::optional<uint32_t> retry_after;  ///< seconds (503)
     unsigned attempts = 1;                ///< requests sent for this call: 1 + retries
 
@@ -57,9 +60,9 @@ using Result = proto::Result<T, Error>;
 
 /// The Error of an HTTP answer with a non-2xx `status`. A problem+json body (by Content-Type, or
 /// any body that decodes as one) fills title, detail, type, code, line, byte_offset, limit,
-/// retry_after and request_id; any other body becomes the detail (its first 300 bytes, control
-/// characters as spaces) with the reason phrase of `status` as title. `request_id` (the
-/// X-Request-Id header) is used when the body has none. Thread-safe.
+/// field, index, retry_after and request_id; any other body becomes the detail (its first 300
+/// bytes, control characters as spaces) with the reason phrase of `status` as title.
+/// `request_id` (the X-Request-Id header) is used when the body has none. Thread-safe.
 [[nodiscard]] Error error_from_response(int status, std::string_view content_type,
                                         std::string_view body, std::string_view request_id = {});
 

@@ -97,8 +97,11 @@ struct DistanceQuery {
 
 /// Closest points as CSV with a header line: x,y,z (the query point), distance, signed_distance
 /// (empty unless the side is known), side, prim (empty when nothing was found), u, v, px, py, pz,
-/// feature. Floats are printed as the shortest decimal that reads back to the same float.
+/// feature. Floats are printed as the shortest decimal that reads back to the same float. With
+/// `geometry_ids` (a scene's answer: one per query point), a last column geometry_id (empty when
+/// nothing was found).
 [[nodiscard]] std::string distances_csv(std::span<const Vec3> queries,
-                                        std::span<const ClosestPoint> answers);
+                                        std::span<const ClosestPoint> answers,
+                                        std::span<const uint32_t> geometry_ids = {});
 
 }  // namespace kdrt::proto

@@ -156,8 +156,10 @@ struct RenderRequest {
     std::optional<int> compression;  ///< PNG zlib level 0 .. 9, when sent
 };
 
+/// With `scene` (POST /v1/scenes/{id}/render, whose path names the scene) the same body without
+/// "mesh": a "mesh" member is refused as unknown, and RenderRequest::mesh stays empty.
 [[nodiscard]] Result<RenderRequest, JsonError> decode_render_request(
-    std::string_view text, const RenderLimits& limits = {});
+    std::string_view text, const RenderLimits& limits = {}, bool scene = false);
 /// Writes every member decode_render_request reads (camera and tile only when set; ao_samples,
 /// ao_distance, light, bounces, sky and background only when not at their defaults).
 [[nodiscard]] std::string encode_render_request(const RenderRequest& request);
@@ -179,7 +181,9 @@ struct JobStatus {
     std::string id;
     JobState state = JobState::kQueued;
     double progress = 0;  ///< 0 .. 1
-    std::string mesh;
+    std::string mesh;     ///< a mesh render's mesh id (empty for a scene render)
+    std::string scene;    ///< a scene render's scene id and revision (empty / 0 for a mesh's)
+    uint64_t revision = 0;
     std::string format;
     double created = 0;  ///< Unix time in seconds
     bool cancel_requested = false;

@@ -102,6 +102,9 @@ struct SceneRequestError {
 /// "geometry_id" (its index) and "format": "kdrt-scene" (what encode_scene_json writes).
 [[nodiscard]] Result<SceneDocument, SceneRequestError> decode_scene_json(
     std::string_view text, const SceneLimits& limits = {}, bool stored = false);
+/// A create request for `instances` (POST /v1/scenes): {"instances": [{"mesh", "transform" (12
+/// numbers), "name" (when set)}]}, which decode_scene_json reads back equal.
+[[nodiscard]] std::string encode_scene_request(std::span<const SceneInstanceSpec> instances);
 /// The document as JSON: {"format": "kdrt-scene", "id", "revision", "instances": [{"geometry_id",
 /// "mesh", "transform" (12 numbers), "name" (when set)}]}; floats printed so they read back to
 /// the same float. decode_scene_json(text, limits, true) reads it back equal.
@@ -117,6 +120,13 @@ struct SceneListItem {
 [[nodiscard]] std::string encode_scene_list(std::span<const SceneListItem> scenes);
 /// {"id", "revision", "instances"}: the answer to a pose update (small, whatever the scene's size).
 [[nodiscard]] std::string encode_scene_revision(const SceneListItem& scene);
+/// Reads encode_scene_list's document back (a client's GET /v1/scenes); the error says what is
+/// wrong and where ("scenes[2]: \"revision\" is not an integer >= 1"). Unknown members are
+/// ignored, so a newer server may add some.
+[[nodiscard]] Result<std::vector<SceneListItem>, std::string> decode_scene_list(
+    std::string_view text);
+/// Reads encode_scene_revision's document back (the answer to a pose update).
+[[nodiscard]] Result<SceneListItem, std::string> decode_scene_revision(std::string_view text);
 
 /// One entry of a pose update: the instance by geometry id or by name (exactly one), and its pose.
 struct PoseEntry {
@@ -135,6 +145,23 @@ struct PoseEntry {
 [[nodiscard]] Result<std::vector<PoseEntry>, SceneRequestError> decode_pose_json(
     std::string_view text, const SceneLimits& limits = {});
 [[nodiscard]] std::string encode_pose_json(std::span<const PoseEntry> poses);
+
+/// The scene text file (`kdrt scene create FILE`): one instance a line,
+///
+///   MESH [T] [NAME]
+///
+/// MESH a mesh id (64 lower-case hex digits); T the transform as 12 numbers (row-major 3 x 4, as
+/// in the JSON) or 3 (a translation), none for the identity; NAME an instance name
+/// (is_instance_name, unique). Fields are separated by spaces, tabs or commas; blank lines and
+/// lines starting with '#' are skipped. The instances' order is their geometry ids'. Errors name
+/// the line and field ("line 3: transform entry 5 \"1e40\" is not a finite float"); more than
+/// limits.max_instances instances is refused as such.
+[[nodiscard]] Result<std::vector<SceneInstanceSpec>, std::string> parse_scene_text(
+    std::string_view text, const SceneLimits& limits = {});
+/// The pose text file (`kdrt scene poses ID FILE`): one pose a line, `INSTANCE T`, INSTANCE a
+/// geometry id (decimal digits) or an instance name, T 12 or 3 numbers as above. Same rules.
+[[nodiscard]] Result<std::vector<PoseEntry>, std::string> parse_pose_text(
+    std::string_view text, const SceneLimits& limits = {});
 
 /// KDRX, the binary pose batch (same route, Content-Type application/x-kdrt-poses): the 16-byte
 /// batch header (magic KDRX, version 1, flags 0, count, reserved 0), then `count` 52-byte
