@@ -262,7 +262,8 @@ void append_geometry_ids(std::vector<std::byte>& body, std::span<const uint32_t>
     detail::store_le16(body.data() + 6, static_cast<uint16_t>(flags | kGeometryIdFlag));
     const size_t at = body.size();
     body.resize(at + geometry_id_plane_bytes(geometry_ids.size()));
-    std::memcpy(body.data() + at, geometry_ids.data(), 4 * geometry_ids.size());
+    if (!geometry_ids.empty())  // an empty vector's data() may be null, which memcpy may not take
+        std::memcpy(body.data() + at, geometry_ids.data(), 4 * geometry_ids.size());
 }
 
 Result<SplitAnswer, DecodeError> split_geometry_ids(std::span<const std::byte> body,
@@ -281,7 +282,8 @@ Result<SplitAnswer, DecodeError> split_geometry_ids(std::span<const std::byte> b
     const uint16_t flags = detail::load_le16(out.mesh_body.data() + 6);
     detail::store_le16(out.mesh_body.data() + 6, static_cast<uint16_t>(flags & ~kGeometryIdFlag));
     out.geometry_ids.resize(shape->records);
-    std::memcpy(out.geometry_ids.data(), body.data() + mesh_bytes, plane);
+    if (plane != 0)  // no records: geometry_ids.data() may be null, which memcpy may not take
+        std::memcpy(out.geometry_ids.data(), body.data() + mesh_bytes, plane);
     return out;
 }
 
