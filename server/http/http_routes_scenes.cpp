@@ -57,7 +57,9 @@ std::optional<uint64_t> parse_revision(std::string_view text) {
 /// If-Match: absent or "*" -> no condition; "N", W/"N" or N -> revision N; else a problem.
 proto::Result<std::optional<uint64_t>, proto::Problem> if_match(const httplib::Request& req) {
     if (!req.has_header("If-Match")) return std::optional<uint64_t>{};
-    std::string_view v = req.get_header_value("If-Match");
+    // get_header_value returns a std::string: keep it alive for the view.
+    const std::string header = req.get_header_value("If-Match");
+    std::string_view v = header;
     while (!v.empty() && v.front() == ' ') v.remove_prefix(1);
     while (!v.empty() && v.back() == ' ') v.remove_suffix(1);
     if (v == "*") return std::optional<uint64_t>{};
@@ -66,7 +68,7 @@ proto::Result<std::optional<uint64_t>, proto::Problem> if_match(const httplib::R
     if (auto r = parse_revision(v)) return std::optional<uint64_t>{*r};
     return proto::Err{field_problem(
         ProblemKind::kBadRequest, "If-Match",
-        "If-Match " + proto::in_quotes(req.get_header_value("If-Match")) +
+        "If-Match " + proto::in_quotes(header) +
             " is not a scene revision (the ETag of GET /v1/scenes/{id}, e.g. \"3\")")};
 }
 
