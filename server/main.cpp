@@ -44,6 +44,8 @@ int run(int argc, char** argv) {
     // process with SIGXFSZ.
     std::signal(SIGXFSZ, SIG_IGN);
     kdrt::server::setup_logging(invocation->config.log_level, invocation->config.log_format);
+    for (const std::string& warning : invocation->warnings)
+        kdrt::server::log_event(kdrt::server::LogLevel::kWarn, warning);
     return kdrt::server::run_server(invocation->config);
 }
 

@@ -18,6 +18,7 @@
 #include <tbb/parallel_for.h>
 #include <tbb/partitioner.h>
 
+#include "distance_internal.h"
 #include "geometry.h"
 
 namespace kdrt {
@@ -117,12 +118,7 @@ ClosestPoint finish(const Best& best, const SurfaceIndex& index, const double p[
     return out;
 }
 
-/// A cell waiting in the best-first search: its node, its box and its squared distance from p.
-struct Cell {
-    double d2;
-    uint32_t node;
-    float lo[3], hi[3];
-};
+using Cell = detail::NearestSearch::Cell;
 
 /// Squared distance from p to the box [lo, hi] (0 inside it). Each axis's difference of two floats
 /// is rounded once in double, so the result is within a few ulps of the exact distance.
@@ -138,22 +134,12 @@ double cell_distance2(const float lo[3], const float hi[3], const double p[3]) n
 /// Min-heap order on the cells' distance.
 bool farther(const Cell& a, const Cell& b) noexcept { return a.d2 > b.d2; }
 
-/// The search of one point: the heap of cells to visit (kept across the points of a block so it
-/// is allocated once) and the work done.
-struct Search {
-    std::vector<Cell> heap;
-    uint64_t work = 0;  ///< cells visited + triangles tested
-};
+}  // namespace
 
-/// Points per task of closest_points: small, so a batch of costly points (far away, where every
-/// triangle's rounded distance ties) leaves the arena's workers free for other requests often.
-constexpr size_t kBlockPoints = 16;
+namespace detail {
 
-/// Work between two calls of DistanceControl::poll (about a millisecond of one thread).
-constexpr uint64_t kPollWork = uint64_t{1} << 16;
-
-ClosestPoint search_closest(const KdTree& tree, const SurfaceIndex& index, Vec3 p,
-                            const DistanceOptions& options, Search& search) {
+ClosestPoint NearestSearch::run(const KdTree& tree, const SurfaceIndex& index, Vec3 p,
+                                const DistanceOptions& options) {
     if (!valid_query(p, options) || tree.bounds.empty()) return {};
     const double q[3] = {p.x, p.y, p.z};
     const double max_d = options.max_distance;
@@ -186,7 +172,7 @@ ClosestPoint search_closest(const KdTree& tree, const SurfaceIndex& index, Vec3 
     // taken, and its descent follows the child on p's side (at the same distance) while the
     // other child joins the heap. The search ends when the nearest waiting cell is beyond the
     // bound, which shrinks with every better triangle.
-    std::vector<Cell>& heap = search.heap;
+    std::vector<Cell>& heap = heap_;
     heap.clear();
     Cell root{0.0, 0, {}, {}};
     for (int a = 0; a < 3; ++a) {
@@ -201,7 +187,7 @@ ClosestPoint search_closest(const KdTree& tree, const SurfaceIndex& index, Vec3 
         heap.pop_back();
         if (cell.d2 > bound2) break;  // every other waiting cell is at least as far
         KdNode node = nodes[cell.node];
-        ++search.work;
+        ++work;
         while (!node.is_leaf()) {
             const int axis = node.axis();
             const float split = node.split();
@@ -218,13 +204,13 @@ ClosestPoint search_closest(const KdTree& tree, const SurfaceIndex& index, Vec3 
             (high_side ? cell.lo : cell.hi)[axis] = split;
             cell.node = high_side ? node.first_child() + 1 : node.first_child();
             node = nodes[cell.node];
-            ++search.work;
+            ++work;
         }
         const uint32_t end = node.first_ref() + node.prim_count();
         for (uint32_t r = node.first_ref(); r < end; ++r) {
             const uint32_t slot = refs[r];
             if (box_distance2(tris[slot], q) > bound2) continue;
-            ++search.work;
+            ++work;
             const uint32_t before = best.prim;
             const double before_d2 = best.d2;
             consider(tris[slot], ids[slot], q, best);
@@ -234,7 +220,46 @@ ClosestPoint search_closest(const KdTree& tree, const SurfaceIndex& index, Vec3 
     return finish(best, index, q, options);
 }
 
-}  // namespace
+DistanceBatch::DistanceBatch(const DistanceControl& control) noexcept
+    : control_(control), max_work_(control.max_work == 0 ? UINT64_MAX : control.max_work) {}
+
+void DistanceBatch::stop(DistanceStatus status) noexcept {
+    int done = static_cast<int>(DistanceStatus::kDone);
+    status_.compare_exchange_strong(done, static_cast<int>(status));
+}
+
+bool DistanceBatch::stopped() noexcept {
+    if (status_.load(std::memory_order_relaxed) != static_cast<int>(DistanceStatus::kDone))
+        return true;
+    if (control_.cancel != nullptr && control_.cancel->load(std::memory_order_relaxed)) {
+        stop(DistanceStatus::kCancelled);
+        return true;
+    }
+    return false;
+}
+
+bool DistanceBatch::charge(uint64_t work) {
+    const uint64_t before = work_.fetch_add(work, std::memory_order_relaxed);
+    const uint64_t after = before + work;
+    if (after > max_work_) {
+        stop(DistanceStatus::kOverWork);
+        return false;
+    }
+    // The thread whose work crosses a multiple of kDistancePollWork polls.
+    if (control_.poll && before / kDistancePollWork != after / kDistancePollWork) {
+        if (std::unique_lock lock(poll_mutex_, std::try_to_lock); lock) control_.poll();
+    }
+    return true;
+}
+
+DistanceStats DistanceBatch::stats() const noexcept {
+    DistanceStats stats;
+    stats.work = work_.load();
+    stats.status = static_cast<DistanceStatus>(status_.load());
+    return stats;
+}
+
+}  // namespace detail
 
 TriangleClosest closest_on_triangle(const TriVerts& tri, const double p[3]) noexcept {
     double n[3];
@@ -311,53 +336,27 @@ TriangleClosest closest_on_triangle(const TriVerts& tri, const double p[3]) noex
 
 ClosestPoint closest_point(const KdTree& tree, const SurfaceIndex& index, Vec3 p,
                            const DistanceOptions& options) {
-    Search search;
-    return search_closest(tree, index, p, options, search);
+    detail::NearestSearch search;
+    return search.run(tree, index, p, options);
 }
 
 DistanceStats closest_points(const KdTree& tree, const SurfaceIndex& index,
                              std::span<const Vec3> points, std::span<ClosestPoint> out,
                              const DistanceOptions& options, const DistanceControl& control) {
-    std::atomic<uint64_t> work{0};
-    std::atomic<int> stop{static_cast<int>(DistanceStatus::kDone)};
-    std::mutex poll_mutex;
-    const uint64_t max_work = control.max_work == 0 ? UINT64_MAX : control.max_work;
-    auto stopped = [&] {
-        if (stop.load(std::memory_order_relaxed) != static_cast<int>(DistanceStatus::kDone))
-            return true;
-        if (control.cancel != nullptr && control.cancel->load(std::memory_order_relaxed)) {
-            int done = static_cast<int>(DistanceStatus::kDone);
-            stop.compare_exchange_strong(done, static_cast<int>(DistanceStatus::kCancelled));
-            return true;
-        }
-        return false;
-    };
+    detail::DistanceBatch batch(control);
     tbb::parallel_for(
-        tbb::blocked_range<size_t>(0, points.size(), kBlockPoints),
+        tbb::blocked_range<size_t>(0, points.size(), detail::kDistanceBlockPoints),
         [&](const tbb::blocked_range<size_t>& range) {
-            Search search;
+            detail::NearestSearch search;
             for (size_t i = range.begin(); i != range.end(); ++i) {
-                if (stopped()) return;
+                if (batch.stopped()) return;
                 search.work = 0;
-                out[i] = search_closest(tree, index, points[i], options, search);
-                const uint64_t before = work.fetch_add(search.work, std::memory_order_relaxed);
-                const uint64_t after = before + search.work;
-                if (after > max_work) {
-                    int done = static_cast<int>(DistanceStatus::kDone);
-                    stop.compare_exchange_strong(done, static_cast<int>(DistanceStatus::kOverWork));
-                    return;
-                }
-                // The thread whose point crosses a multiple of kPollWork polls.
-                if (control.poll && before / kPollWork != after / kPollWork) {
-                    if (std::unique_lock lock(poll_mutex, std::try_to_lock); lock) control.poll();
-                }
+                out[i] = search.run(tree, index, points[i], options);
+                if (!batch.charge(search.work)) return;
             }
         },
         tbb::simple_partitioner());
-    DistanceStats stats;
-    stats.work = work.load();
-    stats.status = static_cast<DistanceStatus>(stop.load());
-    return stats;
+    return batch.stats();
 }
 
 ClosestPoint brute_force_closest_point(std::span<const TriVerts> tris, const SurfaceIndex& index,

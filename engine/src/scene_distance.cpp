@@ -1,6 +1,7 @@
 // Scene distance queries: a near-first walk of the top level that skips every cell and instance
 // whose box is farther than the best answer so far, each instance answering in object space
-// through the mesh's closest_point (kdrt/distance.h).
+// through the mesh's nearest-triangle search (kdrt/distance.h), the work of both levels counted
+// against the batch's DistanceControl.
 
 #include <algorithm>
 #include <array>
@@ -8,7 +9,9 @@
 
 #include <tbb/blocked_range.h>
 #include <tbb/parallel_for.h>
+#include <tbb/partitioner.h>
 
+#include "distance_internal.h"
 #include "kdrt/distance.h"
 #include "kdrt/scene.h"
 #include "scene_internal.h"
@@ -35,11 +38,11 @@ double box_d2(const Aabb& box, const double p[3]) noexcept {
     return d2;
 }
 
-/// The answer of instance `geom` (the arithmetic of closest_point's contract). `tris` non-null:
-/// the brute-force oracle instead of the tree search.
+/// The answer of instance `geom` (the arithmetic of closest_point's contract): the tree search
+/// `search` (its work added to search->work), or with `tris` non-null the brute-force oracle.
 SceneClosestPoint instance_closest(const Scene& scene, uint32_t geom, Vec3 p,
-                                   const DistanceOptions& options,
-                                   const std::vector<TriVerts>* tris) noexcept {
+                                   const DistanceOptions& options, detail::NearestSearch* search,
+                                   const std::vector<TriVerts>* tris) {
     const SceneData& s = scene.data();
     const InstanceData& in = s.inst[geom];
     const SceneInstance& inst = s.instances[geom];
@@ -55,7 +58,7 @@ SceneClosestPoint instance_closest(const Scene& scene, uint32_t geom, Vec3 p,
     o.max_distance = static_cast<float>(static_cast<double>(options.max_distance) / scale);
     const SurfaceIndex& index = inst.surface ? *inst.surface : no_surface();
     ClosestPoint c = tris ? brute_force_closest_point(*tris, index, obj, o)
-                          : closest_point(*inst.tree, index, obj, o);
+                          : search->run(*inst.tree, index, obj, o);
     if (!c.found()) return {};
     const auto world = static_cast<float>(scale * static_cast<double>(c.distance));
     if (!(world <= options.max_distance)) return {};
@@ -72,12 +75,19 @@ void offer(SceneClosestPoint& best, const SceneClosestPoint& c) noexcept {
         best = c;
 }
 
-SceneClosestPoint search(const Scene& scene, Vec3 p, const DistanceOptions& options) noexcept {
+/// The closest point of the scene to `p`, into `best`. Its work (top-level cells visited, plus
+/// for each instance searched 1 and its mesh search's work) is charged to `batch`, when there is
+/// one, after each instance, and the batch is checked before each: false when it stopped
+/// (cancelled or over its work) before the answer was complete.
+bool search(const Scene& scene, Vec3 p, const DistanceOptions& options,
+            detail::NearestSearch& mesh_search, detail::DistanceBatch* batch,
+            SceneClosestPoint& best) {
     const SceneData& s = scene.data();
-    SceneClosestPoint best;
+    best = {};
     if (!std::isfinite(p.x) || !std::isfinite(p.y) || !std::isfinite(p.z) || s.refs.empty() ||
         !(options.max_distance >= 0.0f))
-        return best;
+        return true;
+    uint64_t work = 0;  // not charged yet
     const double pd[3] = {p.x, p.y, p.z};
     // A computed world distance is at least the box distance less the similarity tolerance
     // (relative, 1e-5 in L^T L: under 1e-4 in distance) and the rounding of the object point
@@ -94,11 +104,12 @@ SceneClosestPoint search(const Scene& scene, Vec3 p, const DistanceOptions& opti
     };
     std::array<Entry, detail::kTopMaxDepth + 2> stack;
     int size = 0;
-    if (too_far(box_d2(s.bounds, pd))) return best;
+    if (too_far(box_d2(s.bounds, pd))) return true;
     stack[size++] = {0, s.bounds};
     while (size > 0) {
         const Entry e = stack[--size];
         if (too_far(box_d2(e.cell, pd))) continue;
+        ++work;
         uint32_t index = e.node;
         Aabb cell = e.cell;
         detail::TopNode node = s.nodes[index];
@@ -115,16 +126,24 @@ SceneClosestPoint search(const Scene& scene, Vec3 p, const DistanceOptions& opti
             index = node.first_child() + (near_low ? 0u : 1u);
             cell = near_low ? low : high;
             node = s.nodes[index];
+            ++work;
         }
         const uint32_t end = node.first_ref() + node.count();
         for (uint32_t r = node.first_ref(); r < end; ++r) {
             const uint32_t geom = s.refs[r];
             if (too_far(box_d2(s.inst[geom].world, pd))) continue;
             if (best.geom == geom) continue;  // answered already (referenced by another leaf)
-            offer(best, instance_closest(scene, geom, p, options, nullptr));
+            // A far point may search every instance, each testing every triangle: the batch is
+            // checked per instance, not only per point.
+            if (batch != nullptr && batch->stopped()) return false;
+            mesh_search.work = 0;
+            offer(best, instance_closest(scene, geom, p, options, &mesh_search, nullptr));
+            work += 1 + mesh_search.work;
+            if (batch != nullptr && !batch->charge(work)) return false;
+            work = 0;
         }
     }
-    return best;
+    return batch == nullptr || work == 0 || batch->charge(work);
 }
 
 }  // namespace
@@ -146,17 +165,28 @@ void check_distance_query(const Scene& scene, bool sign) {
 
 SceneClosestPoint closest_point(const Scene& scene, Vec3 p, const DistanceOptions& options) {
     check_distance_query(scene, options.sign);
-    return search(scene, p, options);
+    detail::NearestSearch mesh_search;
+    SceneClosestPoint best;
+    (void)search(scene, p, options, mesh_search, nullptr, best);
+    return best;
 }
 
-void closest_points(const Scene& scene, std::span<const Vec3> points,
-                    std::span<SceneClosestPoint> out, const DistanceOptions& options) {
+DistanceStats closest_points(const Scene& scene, std::span<const Vec3> points,
+                             std::span<SceneClosestPoint> out, const DistanceOptions& options,
+                             const DistanceControl& control) {
     check_distance_query(scene, options.sign);
-    tbb::parallel_for(tbb::blocked_range<size_t>(0, points.size(), 64),
-                      [&](const tbb::blocked_range<size_t>& range) {
-                          for (size_t i = range.begin(); i != range.end(); ++i)
-                              out[i] = search(scene, points[i], options);
-                      });
+    detail::DistanceBatch batch(control);
+    tbb::parallel_for(
+        tbb::blocked_range<size_t>(0, points.size(), detail::kDistanceBlockPoints),
+        [&](const tbb::blocked_range<size_t>& range) {
+            detail::NearestSearch mesh_search;
+            for (size_t i = range.begin(); i != range.end(); ++i) {
+                if (batch.stopped()) return;
+                if (!search(scene, points[i], options, mesh_search, &batch, out[i])) return;
+            }
+        },
+        tbb::simple_partitioner());
+    return batch.stats();
 }
 
 SceneClosestPoint SceneOracle::closest_point(Vec3 p, const DistanceOptions& options) const {
@@ -165,7 +195,7 @@ SceneClosestPoint SceneOracle::closest_point(Vec3 p, const DistanceOptions& opti
     if (!std::isfinite(p.x) || !std::isfinite(p.y) || !std::isfinite(p.z)) return best;
     for (uint32_t g = 0; g < scene_.size(); ++g) {
         if (scene_.world_bounds(g).empty()) continue;
-        offer(best, instance_closest(scene_, g, p, options, tris_[g].get()));
+        offer(best, instance_closest(scene_, g, p, options, nullptr, tris_[g].get()));
     }
     return best;
 }

@@ -3,6 +3,8 @@
 #include <algorithm>
 #include <cctype>
 #include <charconv>
+#include <cstdio>
+#include <filesystem>
 #include <limits>
 #include <optional>
 
@@ -598,6 +600,8 @@ Result<Invocation, std::string> parse_invocation(const std::vector<std::string>&
                 return Err{"token_file " + in_quotes(inv.config.token_file) +
                            " holds more than one line, spaces or control characters"};
         inv.config.token = std::move(token);
+        if (auto w = secret_file_warning("token_file", inv.config.token_file))
+            inv.warnings.push_back(std::move(*w));
     }
     if (!inv.config.tokens_file.empty()) {
         auto bytes = proto::read_file_bytes(inv.config.tokens_file, kMaxTokensFileBytes);
@@ -611,6 +615,8 @@ Result<Invocation, std::string> parse_invocation(const std::vector<std::string>&
                 return Err{"tokens_file " + in_quotes(inv.config.tokens_file) +
                            " repeats the token of token/token_file"};
         inv.config.role_tokens = std::move(*tokens);
+        if (auto w = secret_file_warning("tokens_file", inv.config.tokens_file))
+            inv.warnings.push_back(std::move(*w));
     }
     return inv;
 }
@@ -658,6 +664,10 @@ Result<std::vector<ApiToken>, std::string> parse_tokens_text(std::string_view te
         for (const char c : entry.token)
             if (static_cast<unsigned char>(c) <= ' ' || c == 0x7f)
                 return Err{where() + "the token holds a space or a control character"};
+        if (entry.token.size() < kMinTokenChars)
+            return Err{where() + "the token has " + std::to_string(entry.token.size()) +
+                       " characters; a token needs at least " + std::to_string(kMinTokenChars) +
+                       " (a random one: head -c 24 /dev/urandom | base64)"};
         for (const ApiToken& other : tokens)
             if (other.token == entry.token)
                 return Err{where() + "the token of an earlier line again"};
@@ -665,6 +675,26 @@ Result<std::vector<ApiToken>, std::string> parse_tokens_text(std::string_view te
     }
     if (tokens.empty()) return Err{origin + " holds no token"};
     return tokens;
+}
+
+std::optional<std::string> secret_file_warning(std::string_view setting, const std::string& path) {
+    namespace fs = std::filesystem;
+    std::error_code ec;
+    const fs::perms perms = fs::status(path, ec).permissions();
+    if (ec) return std::nullopt;
+    constexpr fs::perms kRead = fs::perms::group_read | fs::perms::others_read;
+    constexpr fs::perms kWrite = fs::perms::group_write | fs::perms::others_write;
+    const bool read = (perms & kRead) != fs::perms::none;
+    const bool write = (perms & kWrite) != fs::perms::none;
+    if (!read && !write) return std::nullopt;
+    char mode[8];
+    std::snprintf(mode, sizeof mode, "%04o", static_cast<unsigned>(perms & fs::perms::mask));
+    return std::string(setting) + " " + in_quotes(path) + " can be " +
+           (read && write ? "read and written"
+            : read        ? "read"
+                          : "written") +
+           " by users other than its owner (mode " + mode +
+           "): it holds bearer tokens; chmod 600 it";
 }
 
 std::vector<ApiToken> accepted_tokens(const ServerConfig& config) {

@@ -6,7 +6,9 @@
 ///   memory_budget  <->  KDRT_MEMORY_BUDGET  <->  --memory-budget
 /// config/kdrt.json lists them all with their defaults; `kdrt-server --help` prints the table.
 
+#include <cstddef>
 #include <cstdint>
+#include <optional>
 #include <string>
 #include <string_view>
 #include <vector>
@@ -108,6 +110,9 @@ struct Invocation {
     Mode mode = Mode::kServe;
     ServerConfig config;
     std::vector<std::string> mesh_files;  ///< kMeshId: files to print the ids of
+    /// What the configuration allows but should not be so (a token file other users can read),
+    /// one sentence each, for the log once it is set up.
+    std::vector<std::string> warnings;
 };
 
 /// Builds the configuration from defaults, the config file, `env` (NAME=VALUE strings, e.g.
@@ -131,11 +136,20 @@ struct Invocation {
 /// The default value of a setting as config/kdrt.json spells it (JSON text), or empty if unknown.
 [[nodiscard]] std::string setting_default_json(std::string_view key);
 
+/// The fewest characters a token of tokens_file may have (a shorter one can be guessed).
+inline constexpr size_t kMinTokenChars = 16;
+
 /// The tokens of a tokens_file's text: one `ROLES TOKEN` line per token, ROLES `read`, `write` or
-/// `read,write`; blank lines and lines starting with '#' are skipped. Errors name `origin`, the
-/// line and what is wrong.
+/// `read,write`, TOKEN at least kMinTokenChars characters; blank lines and lines starting with
+/// '#' are skipped. Errors name `origin`, the line and what is wrong (never the token).
 [[nodiscard]] proto::Result<std::vector<ApiToken>, std::string> parse_tokens_text(
     std::string_view text, const std::string& origin);
+
+/// A warning when the file at `path` (the secret file of `setting`: token_file, tokens_file) may
+/// be read or written by users other than its owner (group or other permission bits), else
+/// nullopt (also when it cannot be inspected: reading it reports that).
+[[nodiscard]] std::optional<std::string> secret_file_warning(std::string_view setting,
+                                                             const std::string& path);
 
 /// Every token /v1 accepts: `token` (read and write) and `role_tokens`. Empty: no authentication.
 [[nodiscard]] std::vector<ApiToken> accepted_tokens(const ServerConfig& config);

@@ -103,7 +103,8 @@ std::optional<JobQueue::Output> JobQueue::output(const std::string& id) {
     purge_expired();
     const auto it = jobs_.find(id);
     if (it == jobs_.end()) return std::nullopt;
-    return Output{snapshot(*it->second), it->second->image, it->second->input.format};
+    const Job& job = *it->second;
+    return Output{snapshot(job), job.image, job.input.format, job.input.encode};
 }
 
 JobQueue::CancelOutcome JobQueue::cancel(const std::string& id, proto::JobStatus* status_out) {

@@ -60,6 +60,7 @@ public:
         proto::JobStatus status;
         std::shared_ptr<const std::vector<std::byte>> image;  ///< set when status.state == kDone
         proto::ImageFormat format = proto::ImageFormat::kPng;
+        proto::ImageEncodeOptions encode;  ///< the job's PNG level (named by a raw answer)
     };
     [[nodiscard]] std::optional<Output> output(const std::string& id);
 

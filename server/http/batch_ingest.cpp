@@ -1,6 +1,7 @@
 #include "http/batch_ingest.h"
 
 #include <algorithm>
+#include <utility>
 #include <vector>
 
 #include "http/request_body.h"
@@ -11,21 +12,28 @@ namespace {
 /// Header bytes, and the rest of a refused body being drained, are received in pieces of this.
 constexpr size_t kScratchBytes = size_t{64} << 10;
 
+/// Thrown by the decoder's storage callback when Reserve refuses the batch's memory: the decoder
+/// then stops in feed() (its contract lets storage throw), and take() turns it into kOverBudget.
+struct OverBudget {};
+
 }  // namespace
 
 BatchIngest::BatchIngest(Compute& compute, BufferPool& pool, const KdTree& tree, uint32_t max_rays,
-                         std::optional<uint64_t> declared_bytes, bool reject_non_finite)
+                         std::optional<uint64_t> declared_bytes, bool reject_non_finite,
+                         Reserve reserve)
     : compute_(compute),
       pool_(pool),
       tree_(tree),
       limit_(proto::kdrr_body_size(max_rays)),
       declared_(declared_bytes),
+      reserve_(std::move(reserve)),
       decoder_(
           {.max_rays = max_rays, .reject_non_finite = reject_non_finite},
           [this](uint32_t count, bool occlusion) { return storage(count, occlusion); },
           declared_bytes) {}
 
 std::span<Ray> BatchIngest::storage(uint32_t count, bool occlusion) {
+    if (reserve_ && !reserve_(proto::kdrr_body_size(count))) throw OverBudget{};
     const auto kind = occlusion ? proto::AnswerKind::kOcclusion : proto::AnswerKind::kHits;
     ray_buffer_ = PooledBuffer(pool_, size_t{count} * sizeof(Ray));
     answer_buffer_ = PooledBuffer(pool_, proto::answer_body_size(kind, count));
@@ -43,12 +51,19 @@ std::span<Ray> BatchIngest::storage(uint32_t count, bool occlusion) {
 }
 
 bool BatchIngest::take(std::span<const std::byte> piece, bool in_place) {
+    if (over_budget_) return false;
     received_ += piece.size();
     if (received_ > limit_) {
         too_large_ = true;
         return false;
     }
-    const bool ok = in_place ? decoder_.commit(piece.size()) : decoder_.feed(piece);
+    bool ok = false;
+    try {
+        ok = in_place ? decoder_.commit(piece.size()) : decoder_.feed(piece);
+    } catch (const OverBudget&) {
+        over_budget_ = true;
+        return false;
+    }
     if (!ok) {
         if (!refused_ && tracer_) tracer_->abandon();
         refused_ = true;
@@ -83,6 +98,7 @@ bool BatchIngest::receive_rest(const Receive& receive) {
 proto::Result<BatchAnswer, IngestFailure> BatchIngest::finish(bool read_ok) {
     using Kind = IngestFailure::Kind;
     if (too_large_) return proto::Err{IngestFailure{Kind::kTooLarge, std::nullopt, true}};
+    if (over_budget_) return proto::Err{IngestFailure{Kind::kOverBudget, std::nullopt, true}};
     if (refused_) return proto::Err{IngestFailure{Kind::kRefused, decoder_.error(), !read_ok}};
     if (!read_ok) return proto::Err{IngestFailure{Kind::kUnreadable, std::nullopt, true}};
     if (auto verdict = decoder_.finish(); !verdict)

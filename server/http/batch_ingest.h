@@ -35,6 +35,7 @@ struct IngestFailure {
         kTooLarge,    ///< more than BatchIngest::limit() bytes arrived
         kRefused,     ///< the decoder refused the batch (`error`)
         kUnreadable,  ///< the transport failed before the body was complete
+        kOverBudget,  ///< the Reserve hook refused the memory of the batch the header declares
     };
     Kind kind = Kind::kRefused;
     std::optional<proto::DecodeError> error;  ///< kRefused only
@@ -55,11 +56,18 @@ public:
     /// early.
     static constexpr size_t kReceivePieceBytes = size_t{1} << 20;
 
+    /// Asked, once the header is in, with the body size it declares (16 + 32 x count) before
+    /// the ray and answer buffers for it are taken: false refuses the batch (kOverBudget)
+    /// without taking them.
+    using Reserve = std::function<bool(uint64_t body_bytes)>;
+
     /// `declared_bytes`: the body's size when known in advance (Content-Length), else nullopt
-    /// (chunked). Rays with NaN/Inf fields are refused (DecodeLimits::reject_non_finite) unless
-    /// `reject_non_finite` is false: then the engine answers them as misses.
+    /// (chunked; `reserve`, when set, admits the memory the header asks for). Rays with NaN/Inf
+    /// fields are refused (DecodeLimits::reject_non_finite) unless `reject_non_finite` is false:
+    /// then the engine answers them as misses.
     BatchIngest(Compute& compute, BufferPool& pool, const KdTree& tree, uint32_t max_rays,
-                std::optional<uint64_t> declared_bytes, bool reject_non_finite = true);
+                std::optional<uint64_t> declared_bytes, bool reject_non_finite = true,
+                Reserve reserve = {});
     BatchIngest(const BatchIngest&) = delete;
     BatchIngest& operator=(const BatchIngest&) = delete;
     /// Waits for any blocks still tracing, then returns the buffers to the pool.
@@ -97,11 +105,12 @@ private:
     const KdTree& tree_;
     const uint64_t limit_;
     const std::optional<uint64_t> declared_;
+    const Reserve reserve_;
     PooledBuffer ray_buffer_, answer_buffer_;
     std::span<Ray> rays_;
     proto::RayStreamDecoder decoder_;
     uint64_t received_ = 0;
-    bool too_large_ = false, refused_ = false;
+    bool too_large_ = false, refused_ = false, over_budget_ = false;
     std::optional<StreamTrace> tracer_;  ///< declared last: stops before the buffers go back
 };
 

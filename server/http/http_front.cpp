@@ -330,10 +330,16 @@ bool asks_close(const httplib::Response& res) {
     return false;
 }
 
-/// Headers the front writes itself (framing and connection management).
+/// On every response, routed or refused by the front: each answer is data of the type it names
+/// (JSON, problem details, images, binary batches, the viewer's files), which a browser must not
+/// sniff into another (a script or a page).
+constexpr std::string_view kNoSniffLine = "X-Content-Type-Options: nosniff\r\n";
+
+/// Headers the front writes itself (framing, connection management, kNoSniffLine).
 bool front_owned(std::string_view name) {
     return iequals(name, "Content-Length") || iequals(name, "Transfer-Encoding") ||
-           iequals(name, "Connection") || iequals(name, "Keep-Alive");
+           iequals(name, "Connection") || iequals(name, "Keep-Alive") ||
+           iequals(name, "X-Content-Type-Options");
 }
 
 }  // namespace
@@ -468,7 +474,8 @@ struct HttpFront::Impl {
         std::string reply = "HTTP/1.1 " + std::to_string(status) + " " +
                             std::string(proto::http_reason_phrase(status)) +
                             "\r\nContent-Type: application/problem+json\r\nContent-Length: " +
-                            std::to_string(body.size()) + "\r\nConnection: close\r\n";
+                            std::to_string(body.size()) + "\r\nConnection: close\r\n" +
+                            std::string(kNoSniffLine);
         if (status == 503) reply += "Retry-After: 1\r\n";
         reply += "\r\n" + body;
         [[maybe_unused]] const ssize_t n =
@@ -860,6 +867,7 @@ struct HttpFront::Impl {
                            std::string(proto::http_reason_phrase(res.status)) + "\r\n";
         for (const auto& [name, value] : res.headers)
             if (!front_owned(name)) head += name + ": " + value + "\r\n";
+        head += kNoSniffLine;
         const bool no_body = res.status == 204 || res.status == 304 || res.status < 200;
         if (!no_body) head += "Content-Length: " + std::to_string(body_size) + "\r\n";
         if (!keep)

@@ -71,7 +71,9 @@ using ResponseSent = std::function<void(const httplib::Request& req, const httpl
 /// next request costs no thread. Only a request whose head (and small body) has arrived goes to
 /// one of `threads` workers, which calls AnswerRequest and writes the response; further body
 /// reads are bounded by the read timeout and the request's deadline. Between requests the
-/// connection goes back to the loop; pipelined requests are kept in its buffer.
+/// connection goes back to the loop; pipelined requests are kept in its buffer. Every response
+/// it writes, a route's or its own refusal, carries `X-Content-Type-Options: nosniff` (a route
+/// need not, and cannot, set it).
 class HttpFront {
 public:
     HttpFront(ConnectionLimits limits, EarlyReply early_reply, AnswerRequest answer,

@@ -1,6 +1,10 @@
 // POST /v1/meshes/{id}/intersect: KDRR -> KDRH/KDRO, or JSON -> JSON.
 
+#include <cstdint>
+#include <memory>
+#include <optional>
 #include <span>
+#include <utility>
 
 #include "http/batch_ingest.h"
 #include "http/http_front.h"
@@ -32,6 +36,7 @@ proto::Problem ingest_problem(const IngestFailure& failure, int http_status, uin
         case IngestFailure::Kind::kRefused:
             return ray_batch_problem(*failure.error);
         case IngestFailure::Kind::kUnreadable:
+        case IngestFailure::Kind::kOverBudget:  // the route replies the budget's problem
             break;
     }
     // The connection broke, the request's deadline passed, or the framing was invalid.
@@ -64,66 +69,67 @@ void Routes::intersect(const httplib::Request& req, httplib::Response& res,
                                                        proto::quote_value(invalid) +
                                                        " (expected refuse or miss)"));
     }
-    const std::string id = req.matches[1];
-    auto tree = svc_.cache.acquire(id);
-    if (!tree) {
-        return reply_problem(req, res, mesh_lookup_problem(tree.error(), id));
-    }
-    // The batch's memory (its rays and its answer) is taken from batch_memory_budget before its
-    // body is read, and held until the answer has been sent.
-    auto hold = take_batch_budget(req, res, binary);
-    if (!hold) return;
-    if (binary)
-        intersect_binary(req, res, reader, **tree, invalid != "miss");
-    else
-        intersect_json(req, res, reader, **tree);
-    keep_until_sent(std::make_shared<ByteBudget::Hold>(std::move(*hold)));
-}
-
-std::optional<ByteBudget::Hold> Routes::take_batch_budget(const httplib::Request& req,
-                                                          httplib::Response& res, bool binary) {
-    const std::optional<uint64_t> declared = declared_body_bytes(req);
-    uint64_t bytes = 0;
-    if (binary) {
-        // 32 bytes a ray in, at most 16 out (KDRH), and the 16-byte header.
-        const uint64_t body = declared.value_or(proto::kdrr_body_size(svc_.config.max_rays));
-        bytes = proto::kdrr_body_size(0) + (body / 32) * 48;
-    } else {
-        bytes = declared.value_or(svc_.config.max_json_bytes) +
-                uint64_t{svc_.config.max_json_rays} * 48;
-    }
-    return take_budget_bytes(req, res, bytes);
+    const std::shared_ptr<const KdTree> tree = acquire_tree(req, res);
+    if (!tree) return;
+    if (binary) return intersect_binary(req, res, reader, *tree, invalid != "miss");
+    intersect_json(req, res, reader, *tree);
 }
 
 void Routes::intersect_binary(const httplib::Request& req, httplib::Response& res,
                               const httplib::ContentReader& reader, const KdTree& tree,
                               bool reject_invalid) {
-    BatchIngest ingest(svc_.compute, svc_.batch_buffers, tree, svc_.config.max_rays,
-                       declared_body_bytes(req), reject_invalid);
-    if (ingest.declared_too_large()) {
-        return reply_problem(req, res, body_too_large_problem(ingest.limit(), kBatchLimitWhat));
-    }
-    const bool read_ok = read_body_direct(
-        req, reader, kDirectReadBytes,
-        [&](std::span<const std::byte> piece) { return ingest.feed(piece); },
-        [&](const SocketReceive& receive) { return ingest.receive_rest(receive); });
-    request_context().bytes_in += ingest.received();
-    auto answer = ingest.finish(read_ok);
-    if (!answer) {
-        reply_problem(req, res, ingest_problem(answer.error(), res.status, ingest.limit()));
-        if (answer.error().close_connection) res.set_header("Connection", "close");
-        return;
-    }
-    request_context().rays = answer->count;
-    svc_.metrics.add_rays(answer->count, answer->occlusion);
-    reply_buffer(res, std::move(answer->body), answer->size,
-                 answer->occlusion ? proto::kOcclusionMediaType : proto::kHitsMediaType);
+    // The batch's memory (32 bytes a ray in, at most 16 out, and the header) is held from
+    // before its body is read, or, chunked, from when its header says how many rays follow.
+    const BatchBody spec{.limit = proto::kdrr_body_size(svc_.config.max_rays),
+                         .what = kBatchLimitWhat,
+                         .record_bytes = proto::kRayRecordBytes,
+                         .memory_per_record = 48,
+                         .memory_fixed = proto::kBatchHeaderBytes,
+                         .advice = "; send fewer rays"};
+    read_batch(req, res, spec, [&](const BodyProgress& grow) {
+        std::optional<proto::Problem> refused;
+        BatchIngest::Reserve reserve;
+        if (grow) {
+            reserve = [&](uint64_t body_bytes) {
+                refused = grow(body_bytes);
+                return !refused;
+            };
+        }
+        BatchIngest ingest(svc_.compute, svc_.batch_buffers, tree, svc_.config.max_rays,
+                           declared_body_bytes(req), reject_invalid, std::move(reserve));
+        const bool read_ok = read_body_direct(
+            req, reader, kDirectReadBytes,
+            [&](std::span<const std::byte> piece) { return ingest.feed(piece); },
+            [&](const SocketReceive& receive) { return ingest.receive_rest(receive); });
+        request_context().bytes_in += ingest.received();
+        auto answer = ingest.finish(read_ok);
+        if (!answer) {
+            reply_problem(req, res,
+                          refused ? std::move(*refused)
+                                  : ingest_problem(answer.error(), res.status, ingest.limit()));
+            if (answer.error().close_connection) res.set_header("Connection", "close");
+            return false;
+        }
+        request_context().rays = answer->count;
+        svc_.metrics.add_rays(answer->count, answer->occlusion);
+        reply_buffer(res, std::move(answer->body), answer->size,
+                     answer->occlusion ? proto::kOcclusionMediaType : proto::kHitsMediaType);
+        return true;
+    });
 }
 
 void Routes::intersect_json(const httplib::Request& req, httplib::Response& res,
                             const httplib::ContentReader& reader, const KdTree& tree) {
-    auto body = read_body(req, res, reader, svc_.config.max_json_bytes, svc_.config.max_json_bytes,
-                          svc_.store.tmp_dir().string(), "a JSON request (max_json_bytes)");
+    // The body, and up to max_json_rays rays and their answers (32 + 16 bytes each).
+    auto body = read_batch(req, res, reader,
+                           {.limit = svc_.config.max_json_bytes,
+                            .what = "a JSON request (max_json_bytes)",
+                            .header_bytes = 0,
+                            .record_bytes = 1,
+                            .memory_per_record = 1,
+                            .memory_fixed = uint64_t{svc_.config.max_json_rays} * 48,
+                            .records = "bytes of JSON rays",
+                            .advice = "; send fewer rays"});
     if (!body) return;
     auto request = proto::decode_json_rays(as_text(body->bytes()), svc_.config.max_json_rays);
     body.reset();

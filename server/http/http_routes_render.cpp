@@ -93,6 +93,14 @@ proto::Problem unknown_job_problem(const std::string& id) {
             "images within job_result_bytes)");
 }
 
+/// A raw answer (sync or a job's result) names the zlib level this server encodes the render's
+/// PNG with, so a client that stitches raw regions encodes the frame as the server would.
+void name_png_level(httplib::Response& res, proto::ImageFormat format,
+                    const proto::ImageEncodeOptions& encode) {
+    if (format == proto::ImageFormat::kRaw)
+        res.set_header("X-Kdrt-Png-Compression", std::to_string(encode.png_compression));
+}
+
 }  // namespace
 
 void Routes::render(const httplib::Request& req, httplib::Response& res,
@@ -134,7 +142,7 @@ std::optional<proto::RenderRequest> Routes::read_render_request(
     if (auto shape = json_shape_error(as_text(body->bytes()), kRenderJsonShape)) {
         reply_problem(req, res,
                       make_problem(ProblemKind::kBadRequest,
-                                   "render request: " + *shape + " (a render request has " +
+                                   "render request: " + shape->detail + " (a render request has " +
                                        std::to_string(kRenderJsonShape.max_values) +
                                        " values at most, nested " +
                                        std::to_string(kRenderJsonShape.max_depth) + " deep)"));
@@ -215,9 +223,7 @@ void Routes::render_now(const httplib::Request& req, httplib::Response& res, con
     request_context().rays = image->stats.rays;
     res.set_header("X-Render-Ms", std::to_string(image->stats.seconds * 1e3));
     res.set_header("X-Encode-Ms", std::to_string(image->encode_ms));
-    // A client that stitches raw regions encodes the frame itself, at the server's PNG level.
-    if (job.format == proto::ImageFormat::kRaw)
-        res.set_header("X-Kdrt-Png-Compression", std::to_string(job.encode.png_compression));
+    name_png_level(res, job.format, job.encode);
     reply_bytes(res, std::move(image->bytes), proto::image_media_type(job.format));
 }
 
@@ -273,6 +279,7 @@ void Routes::job_result(const httplib::Request& req, httplib::Response& res) {
     }
     // Sent from a string, not streamed: GET routes are not held back by the shutdown sequence.
     res.status = 200;
+    name_png_level(res, out->format, out->encode);
     res.set_content(reinterpret_cast<const char*>(out->image->data()), out->image->size(),
                     std::string(proto::image_media_type(out->format)));
 }

@@ -35,6 +35,31 @@ proto::Problem field_problem(const std::string& field, const std::string& why) {
     return make_problem(ProblemKind::kBadRequest, proto::quote_value(field) + ": " + why);
 }
 
+/// A scan request past scan_json_shape: more lidar elevations than max_sensor_beams is 413
+/// naming lidar.elevation_deg (as the decoder names a shorter list over it), anything else 400
+/// naming where.
+proto::Problem scan_shape_problem(const JsonShapeError& shape, uint64_t max_sensor_beams) {
+    const JsonShapeLimits limits = scan_json_shape(max_sensor_beams);
+    if (shape.path == "lidar.elevation_deg") {
+        auto p = make_problem(
+            ProblemKind::kPayloadTooLarge,
+            "\"lidar.elevation_deg\" lists more channels than max_sensor_beams (" +
+                std::to_string(max_sensor_beams) + ") allows (the request passed its limit of " +
+                std::to_string(limits.max_values) + " values there)");
+        p.field = shape.path;
+        p.limit = max_sensor_beams;
+        return p;
+    }
+    auto p = make_problem(ProblemKind::kBadRequest,
+                          "scan request: " + shape.detail + " (a scan request has at most " +
+                              std::to_string(limits.max_values) + " values (" +
+                              std::to_string(kScanOtherValues) +
+                              " and one a lidar channel up to max_sensor_beams), nested " +
+                              std::to_string(limits.max_depth) + " deep)");
+    p.field = shape.path;
+    return p;
+}
+
 }  // namespace
 
 /// Completes `request` with the engine (a look-at camera as intrinsics and a pose, a vertical
@@ -121,25 +146,20 @@ std::optional<proto::ScanRequest> Routes::read_scan_request(const httplib::Reque
                           svc_.store.tmp_dir().string(), "a JSON request (max_json_bytes)");
     if (!body) return std::nullopt;
     const std::string_view text = as_text(body->bytes());
-    if (auto shape = json_shape_error(text, kScanJsonShape)) {
-        reply_problem(req, res,
-                      make_problem(ProblemKind::kBadRequest,
-                                   "scan request: " + *shape + " (a scan request has " +
-                                       std::to_string(kScanJsonShape.max_values) +
-                                       " values at most, nested " +
-                                       std::to_string(kScanJsonShape.max_depth) + " deep)"));
+    const ServerConfig& c = svc_.config;
+    if (auto shape = json_shape_error(text, scan_json_shape(c.max_sensor_beams))) {
+        reply_problem(req, res, scan_shape_problem(*shape, c.max_sensor_beams));
         return std::nullopt;
     }
-    const ServerConfig& c = svc_.config;
     auto request =
         proto::decode_scan_request(text, {c.max_image_width, c.max_image_height, c.max_sensor_beams,
                                           c.max_scan_points, c.max_hits_per_ray});
     if (request) return std::move(request).value();
     const proto::ScanRequestError& e = request.error();
-    reply_problem(
-        req, res,
-        make_problem(e.over_limit ? ProblemKind::kPayloadTooLarge : ProblemKind::kBadRequest,
-                     e.detail));
+    auto p = make_problem(e.over_limit ? ProblemKind::kPayloadTooLarge : ProblemKind::kBadRequest,
+                          e.detail);
+    p.field = e.field;
+    reply_problem(req, res, std::move(p));
     return std::nullopt;
 }
 

@@ -28,7 +28,6 @@ using proto::ProblemKind;
 namespace {
 
 constexpr const char* kRayBodyWhat = "a KDRR batch (16 + 32 x max_rays)";
-constexpr const char* kPointBodyWhat = "a KDRP batch (16 + 12 x max_distance_points)";
 /// batch_memory_budget per ray of a scene query: the ray, the engine's answer and its encoding
 /// with the geometry id (32 + 20 + 20), rounded up.
 constexpr uint64_t kSceneBytesPerRay = 96;
@@ -107,6 +106,17 @@ void split_hits(std::span<const SceneHit> in, std::vector<Hit>& hits,
     }
 }
 
+/// A scene distance queries cannot run on (kdrt::check_distance_query): 400 naming the instance
+/// and its field ("instances[4].transform").
+proto::Problem distance_scene_problem(const SceneError& e) {
+    proto::Problem p = make_problem(ProblemKind::kBadRequest, e.what());
+    if (e.instance_index()) {
+        p.index = e.instance_index();
+        p.field = "instances[" + std::to_string(*e.instance_index()) + "]." + e.field();
+    }
+    return p;
+}
+
 }  // namespace
 
 // ---- Documents ---------------------------------------------------------------------------------
@@ -123,7 +133,9 @@ void Routes::create_scene(const httplib::Request& req, httplib::Response& res,
     if (!body) return;
     const std::string_view text = as_text(body->bytes());
     if (auto shape = json_shape_error(text, scene_shape(svc_.config.max_instances)))
-        return reply_problem(req, res, make_problem(ProblemKind::kBadRequest, "scene: " + *shape));
+        return reply_problem(
+            req, res,
+            field_problem(ProblemKind::kBadRequest, shape->path, "scene: " + shape->detail));
     auto doc = proto::decode_scene_json(text, scene_limits(svc_.config));
     body.reset();
     if (!doc)
@@ -206,8 +218,9 @@ void Routes::set_poses(const httplib::Request& req, httplib::Response& res,
     } else {
         const std::string_view text = as_text(body->bytes());
         if (auto shape = json_shape_error(text, scene_shape(svc_.config.max_instances)))
-            return reply_problem(req, res,
-                                 make_problem(ProblemKind::kBadRequest, "poses: " + *shape));
+            return reply_problem(
+                req, res,
+                field_problem(ProblemKind::kBadRequest, shape->path, "poses: " + shape->detail));
         auto decoded = proto::decode_pose_json(text, scene_limits(svc_.config));
         if (!decoded)
             return reply_problem(req, res,
@@ -238,7 +251,9 @@ void Routes::edit_instances(const httplib::Request& req, httplib::Response& res,
     if (!body) return;
     const std::string_view text = as_text(body->bytes());
     if (auto shape = json_shape_error(text, scene_shape(svc_.config.max_instances)))
-        return reply_problem(req, res, make_problem(ProblemKind::kBadRequest, "edit: " + *shape));
+        return reply_problem(
+            req, res,
+            field_problem(ProblemKind::kBadRequest, shape->path, "edit: " + shape->detail));
     auto edit = proto::decode_instance_edit_json(text, scene_limits(svc_.config));
     body.reset();
     if (!edit)
@@ -389,38 +404,15 @@ void Routes::scene_distance(const httplib::Request& req, httplib::Response& res,
     try {
         check_distance_query(scene, false);
     } catch (const SceneError& e) {
-        proto::Problem p = make_problem(ProblemKind::kBadRequest, e.what());
-        if (e.instance_index()) {
-            p.index = e.instance_index();
-            p.field = "instances[" + std::to_string(*e.instance_index()) + "]." + e.field();
-        }
-        return reply_problem(req, res, std::move(p));
+        return reply_problem(req, res, distance_scene_problem(e));
     }
-    const uint32_t max_points = svc_.config.max_distance_points;
-    auto body = read_batch(req, res, reader,
-                           {.limit = proto::kdrp_body_size(max_points),
-                            .what = kPointBodyWhat,
-                            .record_bytes = proto::kPointRecordBytes,
-                            .memory_per_record = kSceneBytesPerPoint,
-                            .records = "points",
-                            .advice = "; send fewer points"});
-    if (!body) return;
-    auto points =
-        proto::decode_points(body->bytes(), {.max_rays = max_points, .reject_non_finite = true});
-    body.reset();
-    if (!points) {
-        const bool too_many = points.error().code == proto::DecodeErrorCode::kTooManyRays;
-        proto::Problem p =
-            make_problem(too_many ? ProblemKind::kPayloadTooLarge : ProblemKind::kBadRequest,
-                         "malformed KDRP batch: " + points.error().detail);
-        p.code = std::string(proto::decode_error_code_name(points.error().code));
-        return reply_problem(req, res, std::move(p));
-    }
-    request_context().rays = points->size();
+    const auto points = read_points(req, res, reader, kSceneBytesPerPoint);
+    if (!points) return;
     std::vector<SceneClosestPoint> found(points->size());
     const DistanceOptions options{query->max_distance, query->signed_query};
+    bool done = false;
     try {
-        svc_.compute.run([&] {
+        done = run_distance(req, res, points->size(), [&](const DistanceControl& control) {
             if (query->signed_query) {
                 // Each distinct mesh's surface index, kept with its tree by the mesh cache.
                 std::vector<SceneInstance> instances = scene.instances();
@@ -434,11 +426,12 @@ void Routes::scene_distance(const httplib::Request& req, httplib::Response& res,
                 }
                 scene = build_scene(std::move(instances), scene.options());
             }
-            closest_points(scene, *points, found, options);
+            return closest_points(scene, *points, found, options, control);
         });
     } catch (const SceneError& e) {
-        return reply_problem(req, res, make_problem(ProblemKind::kBadRequest, e.what()));
+        return reply_problem(req, res, distance_scene_problem(e));
     }
+    if (!done) return;
     std::vector<ClosestPoint> answers(found.size());
     std::vector<uint32_t> geoms(found.size());
     for (size_t i = 0; i < found.size(); ++i) {
@@ -452,31 +445,8 @@ void Routes::scene_distance(const httplib::Request& req, httplib::Response& res,
 
 void Routes::scene_scan(const httplib::Request& req, httplib::Response& res,
                         const httplib::ContentReader& reader) {
-    if (proto::media_type_essence(req.get_header_value("Content-Type")) != proto::kJsonMediaType) {
-        return reply_problem(
-            req, res,
-            make_problem(ProblemKind::kUnsupportedMediaType,
-                         "scan " + std::string(proto::api_errors::kUnsupportedJsonType)));
-    }
-    auto body = read_body(req, res, reader, svc_.config.max_json_bytes, svc_.config.max_json_bytes,
-                          svc_.store.tmp_dir().string(), "a JSON request (max_json_bytes)");
-    if (!body) return;
-    const std::string_view text = as_text(body->bytes());
-    if (auto shape = json_shape_error(text, kScanJsonShape))
-        return reply_problem(req, res,
-                             make_problem(ProblemKind::kBadRequest, "scan request: " + *shape));
-    const ServerConfig& c = svc_.config;
-    const proto::ScanLimits limits{c.max_image_width, c.max_image_height, c.max_sensor_beams,
-                                   c.max_scan_points, c.max_hits_per_ray};
-    auto request = proto::decode_scan_request(text, limits);
-    body.reset();
-    if (!request) {
-        const proto::ScanRequestError& e = request.error();
-        return reply_problem(
-            req, res,
-            field_problem(e.over_limit ? ProblemKind::kPayloadTooLarge : ProblemKind::kBadRequest,
-                          e.field, e.detail));
-    }
+    auto request = read_scan_request(req, res, reader);
+    if (!request) return;
     if (request->format != proto::ScanFormat::kBinary)
         return reply_problem(
             req, res,

@@ -1,12 +1,12 @@
 // GET / and /ui/<name>: the web viewer's embedded static files (web_assets.h).
 
+#include <string>
 #include <string_view>
 
 #include "http/http_routes.h"
 #include "http/http_util.h"
 #include "http/problems.h"
 #include "http/web_assets.h"
-#include "kdrt/proto/text.h"
 
 namespace kdrt::server {
 namespace {
@@ -34,6 +34,16 @@ bool etag_matches(std::string_view if_none_match, std::string_view etag) {
     return false;
 }
 
+/// A viewer path with no file: the files there are (the problem's instance is the path).
+proto::Problem no_web_file_problem() {
+    std::string names;
+    for (const WebAsset& asset : web_assets())
+        names += (names.empty() ? "" : ", ") + std::string(asset.name);
+    return make_problem(
+        proto::ProblemKind::kNotFound,
+        "the web viewer has no file at this path (its files: /, /ui/ + one of " + names + ")");
+}
+
 }  // namespace
 
 void Routes::web_file(const httplib::Request& req, httplib::Response& res) {
@@ -42,16 +52,13 @@ void Routes::web_file(const httplib::Request& req, httplib::Response& res) {
     const WebAsset* found = nullptr;
     for (const WebAsset& asset : web_assets())
         if (asset.name == wanted) found = &asset;
-    if (!found)
-        return reply_problem(req, res,
-                             make_problem(proto::ProblemKind::kNotFound,
-                                          "no web viewer file " + proto::quote_value(wanted)));
+    // The path is the problem's instance; the detail does not repeat it.
+    if (!found) return reply_problem(req, res, no_web_file_problem());
     // The viewer's file names are not versioned, so the browser revalidates every file on each
     // load (no-cache) and gets 304 while the ETag (a hash of the bytes) is unchanged.
     res.set_header("Cache-Control", "no-cache");
     res.set_header("ETag", std::string(found->etag));
     res.set_header("Content-Security-Policy", kContentSecurityPolicy);
-    res.set_header("X-Content-Type-Options", "nosniff");
     res.set_header("Referrer-Policy", "no-referrer");
     res.set_header("Cross-Origin-Opener-Policy", "same-origin");
     if (etag_matches(req.get_header_value("If-None-Match"), found->etag)) {

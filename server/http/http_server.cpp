@@ -398,20 +398,8 @@ struct HttpServer::Impl {
         return {allowed, method_allowed};
     }
 
-    /// The problem for an error status httplib set itself (other than a wrong method).
-    [[nodiscard]] proto::Problem http_layer_problem(const httplib::Request& req, int status) const {
-        if (status == 404)
-            return make_problem(ProblemKind::kNotFound, std::string(proto::api_errors::kNoRoute) +
-                                                            " " + req.method + " " + req.path);
-        if (status == 413) return body_too_large_problem(largest_body(), "any request");
-        if (status >= 500)
-            return make_problem(ProblemKind::kInternal, "the server failed to answer the request");
-        return make_problem(
-            ProblemKind::kBadRequest,
-            "malformed HTTP request (status " + std::to_string(status) + " from the HTTP layer)");
-    }
-
-    /// 404 for a path no route serves, 405 (with Allow) for a wrong method on one.
+    /// 404 for a path no route serves, 405 (with Allow) for a wrong method on one. The path is
+    /// the problem's instance; the detail does not repeat it.
     void route_not_found(const httplib::Request& req, httplib::Response& res) {
         request_context().route = "unmatched";
         const auto [allowed, method_allowed] = allowed_methods(req.path, req.method);
@@ -419,12 +407,12 @@ struct HttpServer::Impl {
             return reply_problem(
                 req, res,
                 make_problem(ProblemKind::kNotFound, std::string(proto::api_errors::kNoRoute) +
-                                                         " " + req.method + " " + req.path));
+                                                         " " + req.method + " at this path"));
         res.set_header("Allow", allowed);
         reply_problem(
             req, res,
             make_problem(ProblemKind::kMethodNotAllowed,
-                         req.path + " " + std::string(proto::api_errors::kMethodNotAllowed) + " " +
+                         "this path " + std::string(proto::api_errors::kMethodNotAllowed) + " " +
                              req.method + " (allowed: " + allowed + ")"));
     }
 

@@ -930,7 +930,9 @@ TEST(CliAuth, TokenFromFlagOrEnvironment) {
 TEST(CliAuth, AReadOnlyTokenIsRefusedUploadsAndDeletionsWithTheRoleNamed) {
     TempDir dir;
     const std::filesystem::path tokens = dir.path() / "tokens";
-    const std::string lines = "read viewer\nread,write admin\n";
+    // Tokens of at least 16 characters (kMinTokenChars).
+    const std::string viewer = "viewer-0123456789", admin = "admin-0123456789ab";
+    const std::string lines = "read " + viewer + "\nread,write " + admin + "\n";
     ASSERT_TRUE(proto::write_file_bytes(tokens, std::as_bytes(std::span(lines))));
     ServerProcess server(
         {.cache_dir = dir.path() / "cache", .args = {"--tokens-file", tokens.string()}});
@@ -939,23 +941,23 @@ TEST(CliAuth, AReadOnlyTokenIsRefusedUploadsAndDeletionsWithTheRoleNamed) {
     const std::string file = (dir.path() / "soup.ply").string();
     ASSERT_TRUE(proto::write_file_bytes(
         file, proto::write_mesh(random_soup(rng, 50), proto::MeshFormat::kPly)));
-    const CliRun refused = run_cli({"upload", file, "--server", url, "--token", "viewer"});
+    const CliRun refused = run_cli({"upload", file, "--server", url, "--token", viewer});
     EXPECT_EQ(refused.exit_code, 1);
     EXPECT_TRUE(contains(refused.err, "kdrt upload: " + file +
                                           ": 403 Forbidden: POST /v1/meshes needs a token with "
                                           "the role write; this token has the role read"))
         << refused.err;
-    const CliRun uploaded = run_cli({"upload", file, "--server", url, "--token", "admin"});
+    const CliRun uploaded = run_cli({"upload", file, "--server", url, "--token", admin});
     ASSERT_EQ(uploaded.exit_code, 0) << uploaded.err;
     const std::string id = uploaded.out.substr(0, 64);
-    EXPECT_EQ(run_cli({"meshes", "--server", url, "--token", "viewer"}).exit_code, 0);
-    const CliRun kept = run_cli({"rm", id, "--server", url, "--token", "viewer"});
+    EXPECT_EQ(run_cli({"meshes", "--server", url, "--token", viewer}).exit_code, 0);
+    const CliRun kept = run_cli({"rm", id, "--server", url, "--token", viewer});
     EXPECT_EQ(kept.exit_code, 1);
     EXPECT_TRUE(contains(kept.err,
                          "403 Forbidden: DELETE /v1/meshes/{id} needs a token with the "
                          "role write"))
         << kept.err;
-    EXPECT_EQ(run_cli({"rm", id, "--server", url, "--token", "admin"}).exit_code, 0);
+    EXPECT_EQ(run_cli({"rm", id, "--server", url, "--token", admin}).exit_code, 0);
 }
 
 // ---- bench-remote ------------------------------------------------------------------------------

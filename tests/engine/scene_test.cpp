@@ -3,6 +3,7 @@
 
 #include <gtest/gtest.h>
 
+#include <atomic>
 #include <cmath>
 #include <cstring>
 #include <memory>
@@ -659,6 +660,88 @@ TEST(SceneDistance, RefusesShearedInstancesAndMissingSurfaces) {
     std::vector<SceneClosestPoint> out(1);
     const Vec3 p{0, 0, 0};
     expect_scene_error([&] { closest_points(moved, std::span(&p, 1), out, {}); }, 4u, "transform");
+}
+
+TEST(SceneDistance, BatchWorkCountsTheMeshSearchesOfEachInstance) {
+    // One identity instance: each point costs the top level's root leaf (1), entering the
+    // instance (1) and exactly the mesh search's work (the object point is the world point).
+    Rng rng(test_seed() + 45);
+    const Mesh mesh = uv_sphere({0, 0, 0}, 1.0f, 12, 16);
+    auto tree = std::make_shared<const KdTree>(build_kdtree(mesh));
+    auto surface = std::make_shared<const SurfaceIndex>(build_surface_index(*tree));
+    const Scene scene = build_scene({{tree, Affine3x4{}, surface}});
+    std::vector<Vec3> points;
+    for (int i = 0; i < 300; ++i) points.push_back(rng.in_box({{-3, -3, -3}, {3, 3, 3}}));
+    std::vector<ClosestPoint> mesh_out(points.size());
+    std::vector<SceneClosestPoint> scene_out(points.size());
+    const DistanceStats mesh_stats = closest_points(*tree, *surface, points, mesh_out, {});
+    const DistanceStats scene_stats = closest_points(scene, points, scene_out, {});
+    EXPECT_EQ(scene_stats.status, DistanceStatus::kDone);
+    EXPECT_GT(mesh_stats.work, points.size());
+    EXPECT_EQ(scene_stats.work, mesh_stats.work + 2 * points.size());
+}
+
+TEST(SceneDistance, BatchStopsWhenCancelledOrOverItsWorkEvenWithinAPoint) {
+    const uint64_t seed = test_seed();
+    SCOPED_TRACE(testing::Message() << "seed=" << seed);
+    const TestScene s = similarity_scene(seed + 61, 12, false);
+    Rng rng(seed + 62);
+    Aabb box = s.scene.bounds();
+    box.lo = box.lo - Vec3{1, 1, 1};
+    box.hi = box.hi + Vec3{1, 1, 1};
+    std::vector<Vec3> points;
+    for (size_t i = 0; i < 2000; ++i) points.push_back(rng.in_box(box));
+    std::vector<SceneClosestPoint> want(points.size()), out(points.size());
+    const DistanceStats all = closest_points(s.scene, points, want, {});
+    EXPECT_EQ(all.status, DistanceStatus::kDone);
+    // The same limit as the work done is enough (and changes no answer); one less is not; a
+    // tenth stops the batch early.
+    DistanceControl control;
+    control.max_work = all.work;
+    const DistanceStats exact = closest_points(s.scene, points, out, {}, control);
+    EXPECT_EQ(exact.status, DistanceStatus::kDone);
+    EXPECT_EQ(exact.work, all.work);
+    for (size_t i = 0; i < points.size(); ++i) ASSERT_TRUE(same_closest(out[i], want[i])) << i;
+    control.max_work = all.work - 1;
+    EXPECT_EQ(closest_points(s.scene, points, out, {}, control).status, DistanceStatus::kOverWork);
+    control.max_work = all.work / 10;
+    const DistanceStats capped = closest_points(s.scene, points, out, {}, control);
+    EXPECT_EQ(capped.status, DistanceStatus::kOverWork);
+    EXPECT_LT(capped.work, all.work);
+
+    // One point far away searches every instance: the limit stops it between two instances,
+    // not after the whole point.
+    const Vec3 far = s.scene.bounds().hi + Vec3{1e6f, 2e6f, 3e6f};
+    SceneClosestPoint one;
+    const DistanceStats whole = closest_points(s.scene, std::span(&far, 1), std::span(&one, 1), {});
+    EXPECT_EQ(whole.status, DistanceStatus::kDone);
+    EXPECT_TRUE(same_closest(one, SceneOracle(s.scene).closest_point(far, {})));
+    control.max_work = whole.work / 4;
+    const DistanceStats within =
+        closest_points(s.scene, std::span(&far, 1), std::span(&one, 1), {}, control);
+    EXPECT_EQ(within.status, DistanceStatus::kOverWork);
+    EXPECT_LT(within.work, whole.work);
+
+    // Cancelled before it starts: nothing is searched. Cancelled by the poll hook: it stops.
+    std::atomic<bool> cancel{true};
+    control = {};
+    control.cancel = &cancel;
+    const DistanceStats none = closest_points(s.scene, points, out, {}, control);
+    EXPECT_EQ(none.status, DistanceStatus::kCancelled);
+    EXPECT_EQ(none.work, 0u);
+    cancel = false;
+    std::atomic<int> polls{0};
+    control.poll = [&] {
+        ++polls;
+        cancel = true;
+    };
+    std::vector<Vec3> many;
+    for (int k = 0; k < 20; ++k) many.insert(many.end(), points.begin(), points.end());
+    std::vector<SceneClosestPoint> many_out(many.size());
+    const DistanceStats polled = closest_points(s.scene, many, many_out, {}, control);
+    EXPECT_EQ(polled.status, DistanceStatus::kCancelled);
+    EXPECT_GE(polls.load(), 1);
+    EXPECT_LT(polled.work, 20 * all.work);
 }
 
 TEST(SceneScan, IdentitySceneScansAsTheMeshAndNamesInstances) {

@@ -221,6 +221,41 @@ TEST_F(BatchIngestTest, TruncatedAndOverLimitBodies) {
     EXPECT_TRUE(in.declared_too_large());
 }
 
+TEST_F(BatchIngestTest, AChunkedBodyAsksForItsMemoryWhenItsHeaderArrives) {
+    // Reserve is asked once, with the size the header declares, before the buffers are taken;
+    // a refusal stops the body there (kOverBudget) and takes no buffer.
+    const std::vector<std::byte> body =
+        proto::encode_rays(test::rays_towards_unit_cube(300, 4), false);
+    for (const bool admit : {true, false}) {
+        SCOPED_TRACE(admit ? "admitted" : "refused");
+        std::vector<uint64_t> asked;
+        const size_t idle = pool_.idle_bytes();
+        BatchIngest in(*compute_, pool_, *tree_, 1u << 20, std::nullopt, true,
+                       [&](uint64_t body_bytes) {
+                           asked.push_back(body_bytes);
+                           EXPECT_EQ(pool_.idle_bytes(), idle) << "no buffer taken yet";
+                           return admit;
+                       });
+        bool read_ok = true;
+        size_t at = 0;
+        for (; read_ok && at < body.size(); at += 7)
+            read_ok = in.feed(std::span(body).subspan(at, std::min<size_t>(7, body.size() - at)));
+        EXPECT_EQ(asked, std::vector<uint64_t>{body.size()});
+        auto answer = in.finish(read_ok);
+        if (admit) {
+            ASSERT_TRUE(answer);
+            const std::vector<std::byte> want = expected(body);
+            ASSERT_EQ(answer->size, want.size());
+            EXPECT_TRUE(std::equal(want.begin(), want.end(), answer->body.data()));
+        } else {
+            EXPECT_LE(at, 21u) << "reading stops at the header";
+            ASSERT_FALSE(answer);
+            EXPECT_EQ(answer.error().kind, Kind::kOverBudget);
+            EXPECT_TRUE(answer.error().close_connection);
+        }
+    }
+}
+
 TEST_F(BatchIngestTest, BuffersGoBackToThePoolOnEveryExit) {
     // Large enough that both buffers are pooled (>= 1 MiB each) and the trace streams.
     const std::vector<Ray> rays = test::rays_towards_unit_cube(BatchIngest::kStreamTraceRays, 6);

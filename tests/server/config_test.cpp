@@ -247,12 +247,14 @@ TEST(Config, TokenFromAFileOrTheEnvironmentNotOnlyTheCommandLine) {
 TEST(Config, TokensFileGivesEachTokenItsRoles) {
     const std::filesystem::path file =
         std::filesystem::temp_directory_path() / ("kdrt-tokens-" + std::to_string(::getpid()));
-    std::ofstream(file) << "# comment\nread r1\n\n  write\tw1 \r\nread,write rw1\nwrite,read wr1\n";
+    std::ofstream(file)
+        << "# comment\nread r1-0123456789abcdef\n\n  write\tw1-0123456789abcdef \r\n"
+           "read,write rw1-0123456789abcdef\nwrite,read wr1-0123456789abcdef\n";
     const ServerConfig c = parse_ok({"--tokens-file", file.string(), "--token", "full"}).config;
     ASSERT_EQ(c.role_tokens.size(), 4u);
-    EXPECT_EQ(c.role_tokens[0].token, "r1");
+    EXPECT_EQ(c.role_tokens[0].token, "r1-0123456789abcdef");
     EXPECT_EQ(c.role_tokens[0].roles, kRoleRead);
-    EXPECT_EQ(c.role_tokens[1].token, "w1");
+    EXPECT_EQ(c.role_tokens[1].token, "w1-0123456789abcdef");
     EXPECT_EQ(c.role_tokens[1].roles, kRoleWrite);
     EXPECT_EQ(c.role_tokens[2].roles, kRoleRead | kRoleWrite);
     EXPECT_EQ(c.role_tokens[3].roles, kRoleRead | kRoleWrite);
@@ -271,20 +273,62 @@ TEST(Config, TokensFileGivesEachTokenItsRoles) {
         return parse_error({"--tokens-file", file.string()});
     };
     const std::string origin = "tokens_file \"" + file.string() + "\"";
-    EXPECT_EQ(refused("read a\nadmin b\n"),
+    const std::string a = "a-0123456789abcdef", b = "b-0123456789abcdef";
+    EXPECT_EQ(refused("read " + a + "\nadmin " + b + "\n"),
               origin + " line 2: unknown role \"admin\" (read, write)");
     EXPECT_EQ(refused("read\n"),
               origin + " line 1: expected 'ROLES TOKEN' (ROLES: read, write or read,write)");
-    EXPECT_EQ(refused("read a b\n"),
+    EXPECT_EQ(refused("read " + a + " " + b + "\n"),
               origin + " line 1: the token holds a space or a control character");
-    EXPECT_EQ(refused("read a\nwrite a\n"), origin + " line 2: the token of an earlier line again");
+    EXPECT_EQ(refused("read " + a + "\nwrite " + a + "\n"),
+              origin + " line 2: the token of an earlier line again");
     EXPECT_EQ(refused("# nothing\n\n"), origin + " holds no token");
-    std::ofstream(file, std::ios::trunc) << "read same\n";
-    EXPECT_EQ(parse_error({"--tokens-file", file.string(), "--token", "same"}),
+    // Tokens shorter than 16 characters are refused, naming the file and line, not the token
+    // (issue 25 item 12).
+    EXPECT_EQ(refused("read " + a + "\n\nwrite x\n"),
+              origin +
+                  " line 3: the token has 1 characters; a token needs at least 16 (a random one: "
+                  "head -c 24 /dev/urandom | base64)");
+    EXPECT_EQ(refused("read 0123456789abcde\n"),
+              origin +
+                  " line 1: the token has 15 characters; a token needs at least 16 (a random one: "
+                  "head -c 24 /dev/urandom | base64)");
+    std::ofstream(file, std::ios::trunc) << "read same-0123456789abcdef\n";
+    EXPECT_EQ(parse_error({"--tokens-file", file.string(), "--token", "same-0123456789abcdef"}),
               origin + " repeats the token of token/token_file");
     std::filesystem::remove(file);
     EXPECT_EQ(parse_error({"--tokens-file", file.string()}).rfind("tokens_file: ", 0), 0u);
     EXPECT_NE(help_text().find("--tokens-file"), std::string::npos);
+}
+
+TEST(Config, SecretFilesOthersCanReadAreWarnedAbout) {
+    // A tokens file (or token file) with group or other permission bits is taken, with a
+    // warning for the log naming the file and its mode (issue 25 item 12).
+    namespace fs = std::filesystem;
+    const fs::path tokens =
+        fs::temp_directory_path() / ("kdrt-tokens-mode-" + std::to_string(::getpid()));
+    const fs::path token =
+        fs::temp_directory_path() / ("kdrt-token-mode-" + std::to_string(::getpid()));
+    std::ofstream(tokens) << "read r1-0123456789abcdef\n";
+    std::ofstream(token) << "t-0123456789abcdef\n";
+    const std::vector<std::string> args = {"--tokens-file", tokens.string(), "--token-file",
+                                           token.string()};
+    fs::permissions(tokens, fs::perms::owner_read | fs::perms::owner_write);
+    fs::permissions(token, fs::perms::owner_read);
+    EXPECT_TRUE(parse_ok(args).warnings.empty());
+    fs::permissions(tokens, fs::perms::owner_read | fs::perms::owner_write | fs::perms::group_read |
+                                fs::perms::others_read);
+    fs::permissions(token, fs::perms::owner_read | fs::perms::group_write);
+    const std::vector<std::string> warnings = parse_ok(args).warnings;
+    ASSERT_EQ(warnings.size(), 2u);
+    EXPECT_EQ(warnings[0], "token_file \"" + token.string() +
+                               "\" can be written by users other than its owner (mode 0420): it "
+                               "holds bearer tokens; chmod 600 it");
+    EXPECT_EQ(warnings[1], "tokens_file \"" + tokens.string() +
+                               "\" can be read by users other than its owner (mode 0644): it "
+                               "holds bearer tokens; chmod 600 it");
+    fs::remove(tokens);
+    fs::remove(token);
 }
 
 }  // namespace

@@ -1,6 +1,7 @@
 // Memory and work bounded by configuration, against a real kdrt-server: the ray-batch byte
 // budget, the finished-jobs byte budget, the render cost limit, render admission (503 +
-// Retry-After), cancelling a render whose client left, and the peak RSS under hostile bodies.
+// Retry-After), cancelling a render or a distance batch (mesh or scene) whose client left, the
+// distance work limit, and the peak RSS under hostile bodies.
 
 #include <gtest/gtest.h>
 #include <poll.h>
@@ -427,6 +428,21 @@ TEST(HttpAdmission, ALongDistanceBatchHoldsUpNoOtherRequest) {
     EXPECT_TRUE(eventually([&] { return server.metric("kdrt_http_threads_busy") == 1; }));
 }
 
+/// A scene of `count` instances of mesh `id`, each moved by (2k, 0, 0); its id.
+std::string scene_of(httplib::Client& cli, const std::string& id, int count) {
+    std::string body = "{\"instances\":[";
+    for (int k = 0; k < count; ++k) {
+        body += (k > 0 ? ",{\"mesh\":\"" : "{\"mesh\":\"") + id + "\",\"transform\":[1,0,0," +
+                std::to_string(2 * k) + ",0,1,0,0,0,0,1,0]}";
+    }
+    auto res = cli.Post("/v1/scenes", body + "]}", "application/json");
+    if (!res || res->status != 201) {
+        ADD_FAILURE() << (res ? res->body : "no response");
+        return {};
+    }
+    return res->get_header_value("Location").substr(std::string("/v1/scenes/").size());
+}
+
 TEST(HttpAdmission, DistanceWorkIsCappedBeforeAndDuringTheSearch) {
     TempDir dir;
     ServerProcess server(
@@ -434,22 +450,57 @@ TEST(HttpAdmission, DistanceWorkIsCappedBeforeAndDuringTheSearch) {
     ASSERT_TRUE(server.running());
     auto cli = server.client();
     const std::string id = upload_id(*cli, small_mesh(14, 20000));
-    const std::string path = "/v1/meshes/" + id + "/distance";
     const std::string type(proto::kPointMediaType);
-    // More points than the limit: refused before any search.
-    auto p = expect_problem(cli->Post(path, far_points(100001, 2.0f, 15), type), 400);
-    EXPECT_EQ(p.limit, 100000u);
-    EXPECT_NE(p.detail.find("100001 points exceed max_distance_work 100000"), std::string::npos)
-        << p.detail;
-    // Points 1e16 away test every triangle: the search passes the limit and stops.
-    p = expect_problem(cli->Post(path, far_points(1000, 1e16f, 16), type), 400);
-    EXPECT_EQ(p.limit, 100000u);
-    EXPECT_NE(p.detail.find("passed max_distance_work 100000 for 1000 points"), std::string::npos)
-        << p.detail;
-    // Points near the mesh stay well within it.
-    auto ok = cli->Post(path, far_points(100, 1.0f, 17), type);
-    ASSERT_TRUE(ok);
-    EXPECT_EQ(ok->status, 200) << ok->body;
+    // A mesh and a scene of it (whose search counts each instance's work) take the same limit,
+    // refused with the same problem.
+    for (const std::string& path :
+         {"/v1/meshes/" + id + "/distance", "/v1/scenes/" + scene_of(*cli, id, 3) + "/distance"}) {
+        SCOPED_TRACE(path);
+        // More points than the limit: refused before any search.
+        auto p = expect_problem(cli->Post(path, far_points(100001, 2.0f, 15), type), 400);
+        EXPECT_EQ(p.limit, 100000u);
+        EXPECT_NE(p.detail.find("100001 points exceed max_distance_work 100000"), std::string::npos)
+            << p.detail;
+        // Points 1e16 away test every triangle: the search passes the limit and stops.
+        p = expect_problem(cli->Post(path, far_points(1000, 1e16f, 16), type), 400);
+        EXPECT_EQ(p.limit, 100000u);
+        EXPECT_NE(p.detail.find("passed max_distance_work 100000 for 1000 points"),
+                  std::string::npos)
+            << p.detail;
+        // Points near the mesh stay well within it.
+        auto ok = cli->Post(path, far_points(100, 1.0f, 17), type);
+        ASSERT_TRUE(ok);
+        EXPECT_EQ(ok->status, 200) << ok->body;
+    }
+}
+
+TEST(HttpAdmission, ASceneDistanceBatchStopsWhenTheClientLeaves) {
+    // 100000 points 1e16 away from a scene of 4 instances of a 20000-triangle mesh: every point
+    // tests every triangle of every instance (minutes of work on two threads).
+    TempDir dir;
+    ServerProcess server({.cache_dir = dir.path() / "cache", .args = {"--threads", "2"}});
+    ASSERT_TRUE(server.running());
+    auto cli = server.client();
+    const std::string scene = scene_of(*cli, upload_id(*cli, small_mesh(10, 20000)), 4);
+    const std::string body = far_points(100000, 1e16f, 19);
+    const int fd = connect_loopback(server.port());
+    ASSERT_GE(fd, 0);
+    ASSERT_TRUE(send_all(
+        fd, "POST /v1/scenes/" + scene + "/distance HTTP/1.1\r\nHost: x\r\nContent-Type: " +
+                std::string(proto::kPointMediaType) +
+                "\r\nContent-Length: " + std::to_string(body.size()) + "\r\n\r\n" + body));
+    ASSERT_TRUE(eventually([&] { return server.metric("kdrt_http_threads_busy") == 2; }));
+    const double cpu0 = cpu_seconds(server.pid());
+    ASSERT_TRUE(eventually([&] { return cpu_seconds(server.pid()) > cpu0 + 1.0; }));
+    char byte = 0;
+    EXPECT_EQ(::recv(fd, &byte, 1, MSG_DONTWAIT), -1) << "the long batch was answered already";
+    // The client leaves: the batch stops.
+    ::close(fd);
+    EXPECT_TRUE(eventually([&] {
+        return server.log().find("distance cancelled: the client closed the connection") !=
+               std::string::npos;
+    }));
+    EXPECT_TRUE(eventually([&] { return server.metric("kdrt_http_threads_busy") == 1; }));
 }
 
 }  // namespace

@@ -9,6 +9,7 @@
 #include <unistd.h>
 
 #include <chrono>
+#include <cstdio>
 #include <regex>
 #include <string>
 #include <thread>
@@ -53,6 +54,28 @@ std::string chunked(const std::string& data, size_t piece) {
         out += size + part + "\r\n";
     }
     return out + "0\r\n\r\n";
+}
+
+/// The body of an HTTP reply.
+std::string body_of(const std::string& reply) { return reply.substr(reply.find("\r\n\r\n") + 4); }
+
+/// The answers to a POST (`head`: its request line and headers, no framing) of `body`, sent once
+/// with a Content-Length and once chunked; each must be 200.
+struct SizedAndChunked {
+    std::string sized, chunked;
+};
+SizedAndChunked post_sized_and_chunked(int port, const std::string& head, const std::string& body) {
+    SizedAndChunked out;
+    out.sized = raw_exchange(port,
+                             head + "Content-Length: " + std::to_string(body.size()) +
+                                 "\r\nConnection: close\r\n\r\n" + body,
+                             10s);
+    out.chunked = raw_exchange(
+        port, head + "Transfer-Encoding: chunked\r\nConnection: close\r\n\r\n" + chunked(body, 100),
+        10s);
+    EXPECT_EQ(out.sized.rfind("HTTP/1.1 200", 0), 0u) << out.sized.substr(0, 400);
+    EXPECT_EQ(out.chunked.rfind("HTTP/1.1 200", 0), 0u) << out.chunked.substr(0, 400);
+    return out;
 }
 
 class HttpFront : public ::testing::Test {
@@ -126,20 +149,8 @@ TEST_F(HttpFront, ChunkedIntersectAllIsAdmittedAsItArrives) {
     const std::string head = "POST /v1/meshes/" + id_ +
                              "/intersect_all?max_hits=1 HTTP/1.1\r\nHost: x\r\n"
                              "Content-Type: application/x-kdrt-rays\r\n";
-    const std::string with_length =
-        raw_exchange(server_->port(),
-                     head + "Content-Length: " + std::to_string(body.size()) +
-                         "\r\nConnection: close\r\n\r\n" + body,
-                     10s);
-    const std::string with_chunks = raw_exchange(
-        server_->port(),
-        head + "Transfer-Encoding: chunked\r\nConnection: close\r\n\r\n" + chunked(body, 100), 10s);
-    ASSERT_EQ(with_length.rfind("HTTP/1.1 200", 0), 0u) << with_length;
-    ASSERT_EQ(with_chunks.rfind("HTTP/1.1 200", 0), 0u) << with_chunks;
-    const auto body_of = [](const std::string& reply) {
-        return reply.substr(reply.find("\r\n\r\n") + 4);
-    };
-    EXPECT_EQ(body_of(with_chunks), body_of(with_length));
+    const SizedAndChunked answers = post_sized_and_chunked(server_->port(), head, body);
+    EXPECT_EQ(body_of(answers.chunked), body_of(answers.sized));
     // A chunked batch past the budget is still refused, once it has grown past it.
     const std::vector<Ray> many(100000, (*rays_)[0]);
     const std::string big = bytes_to_string(proto::encode_rays(many, false));
@@ -151,6 +162,56 @@ TEST_F(HttpFront, ChunkedIntersectAllIsAdmittedAsItArrives) {
             chunked(big, 65536),
         10s);
     EXPECT_EQ(refused.rfind("HTTP/1.1 413", 0), 0u) << refused.substr(0, 400);
+}
+
+TEST_F(HttpFront, ChunkedIntersectTakesTheSharedBatchPath) {
+    // /intersect reads its batch through Routes::read_batch, as intersect_all does (issue 24):
+    // chunked, its memory is taken once its header says how many rays follow, not for max_rays
+    // (16 + 48 x 2^24 bytes, far over this server's 4 MiB: 413 before), and its bytes are
+    // counted once.
+    const std::string head = "POST /v1/meshes/" + id_ +
+                             "/intersect HTTP/1.1\r\nHost: x\r\n"
+                             "Content-Type: application/x-kdrt-rays\r\n";
+    const std::string route = "route=/v1/meshes/{id}/intersect ";
+    const auto lines = [&](const std::string& log) {
+        size_t n = 0;
+        for (size_t at = log.find(route); at != std::string::npos; at = log.find(route, at + 1))
+            ++n;
+        return n;
+    };
+    const size_t logged_before = lines(server_->log());
+    std::string body;
+    for (const bool occlusion : {false, true}) {
+        SCOPED_TRACE(occlusion ? "occlusion" : "closest hit");
+        body = bytes_to_string(proto::encode_rays(*rays_, occlusion));
+        const SizedAndChunked answers = post_sized_and_chunked(server_->port(), head, body);
+        EXPECT_EQ(body_of(answers.chunked), body_of(answers.sized));
+        if (!occlusion) {
+            EXPECT_EQ(body_of(answers.chunked), engine_hits(*mesh_, *rays_));
+        }
+    }
+    // The access-log line is written after the answer is sent: wait for the last one.
+    std::string log = server_->log();
+    for (int i = 0; i < 200 && lines(log) < logged_before + 4; ++i) {
+        std::this_thread::sleep_for(10ms);
+        log = server_->log();
+    }
+    EXPECT_EQ(logged_bytes_in(log, "/v1/meshes/{id}/intersect"), body.size());
+
+    // A chunked batch whose header asks for more rays than the budget could ever hold is 413
+    // once the header is in, before the rest of its body.
+    const std::vector<Ray> many(100000, (*rays_)[0]);
+    const std::string start = bytes_to_string(proto::encode_rays(many, false)).substr(0, 4096);
+    const int fd = connect_loopback(server_->port());
+    ASSERT_GE(fd, 0);
+    char size[32];
+    std::snprintf(size, sizeof size, "%zx\r\n", start.size());
+    ASSERT_TRUE(send_all(fd, head + "Transfer-Encoding: chunked\r\n\r\n" + size + start + "\r\n"));
+    const std::string refused = receive_for(fd, 5s);
+    ::close(fd);
+    EXPECT_EQ(refused.rfind("HTTP/1.1 413", 0), 0u) << refused.substr(0, 400);
+    EXPECT_NE(refused.find("more than batch_memory_budget"), std::string::npos) << refused;
+    EXPECT_NE(refused.find("100000 rays"), std::string::npos) << refused;
 }
 
 TEST_F(HttpFront, RequestBytesAreCountedOnce) {
@@ -194,20 +255,8 @@ TEST_F(HttpFront, SceneBatchesTakeTheSharedPath) {
     const std::string head = "POST " + scene +
                              "/intersect_all?max_hits=1 HTTP/1.1\r\nHost: x\r\n"
                              "Content-Type: application/x-kdrt-rays\r\n";
-    const std::string with_length =
-        raw_exchange(server_->port(),
-                     head + "Content-Length: " + std::to_string(body.size()) +
-                         "\r\nConnection: close\r\n\r\n" + body,
-                     10s);
-    const std::string with_chunks = raw_exchange(
-        server_->port(),
-        head + "Transfer-Encoding: chunked\r\nConnection: close\r\n\r\n" + chunked(body, 100), 10s);
-    ASSERT_EQ(with_length.rfind("HTTP/1.1 200", 0), 0u) << with_length.substr(0, 400);
-    ASSERT_EQ(with_chunks.rfind("HTTP/1.1 200", 0), 0u) << with_chunks.substr(0, 400);
-    const auto body_of = [](const std::string& reply) {
-        return reply.substr(reply.find("\r\n\r\n") + 4);
-    };
-    EXPECT_EQ(body_of(with_chunks), body_of(with_length));
+    const SizedAndChunked answers = post_sized_and_chunked(server_->port(), head, body);
+    EXPECT_EQ(body_of(answers.chunked), body_of(answers.sized));
 
     ASSERT_EQ(cli->Post(scene + "/intersect", body, "application/x-kdrt-rays")->status, 200);
     const std::vector<Vec3> points = {{0, 0, 0}, {1, 2, 3}};
@@ -276,6 +325,52 @@ TEST_F(HttpFront, HeadIsAnsweredAsGetWithoutABody) {
     EXPECT_EQ(reply.rfind("HTTP/1.1 200", 0), 0u) << reply;
     EXPECT_NE(reply.find("Content-Length: 15\r\n"), std::string::npos) << reply;
     EXPECT_EQ(reply.substr(reply.find("\r\n\r\n") + 4), "");
+}
+
+TEST_F(HttpFront, EveryAnswerCarriesNoSniff) {
+    // X-Content-Type-Options: nosniff, once, on every answer: routed ones of each kind and the
+    // front's own refusals (issue 25 item 11).
+    auto page = server_->client()->Get("/");
+    ASSERT_TRUE(page);
+    const std::string etag = page->get_header_value("ETag");
+    const std::string rays = bytes_to_string(proto::encode_rays(*rays_, false));
+    // 5000 rays: a KDRH answer over 64 KiB, sent from the route's memory.
+    const std::string many =
+        bytes_to_string(proto::encode_rays(random_rays(mesh_bounds(*mesh_), 5000, 4), false));
+    const auto post = [&](const std::string& body) {
+        return "POST /v1/meshes/" + id_ +
+               "/intersect HTTP/1.1\r\nHost: x\r\nContent-Type: application/x-kdrt-rays\r\n"
+               "Connection: close\r\nContent-Length: " +
+               std::to_string(body.size()) + "\r\n\r\n" + body;
+    };
+    const struct {
+        std::string request;
+        const char* status;
+    } cases[] = {
+        {"GET /healthz HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n", "200"},
+        {"GET /v1/meshes HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n", "200"},
+        {"GET /metrics HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n", "200"},
+        {"HEAD /healthz HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n", "200"},
+        {"GET / HTTP/1.1\r\nHost: x\r\nIf-None-Match: " + etag + "\r\nConnection: close\r\n\r\n",
+         "304"},
+        {"GET /ui/viewer.js HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n", "200"},
+        {post(rays), "200"},
+        {post(many), "200"},
+        {post("KDRR"), "400"},
+        {"GET /v2/x HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n", "404"},
+        {"DELETE /healthz HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n", "405"},
+        {"GET /he%zzlthz HTTP/1.1\r\nHost: x\r\n\r\n", "400"},  // the front's refusal
+        {"GET /healthz?pad=" + std::string(40 << 10, 'a') + " HTTP/1.1\r\nHost: x\r\n\r\n", "431"},
+    };
+    for (const auto& c : cases) {
+        SCOPED_TRACE(c.request.substr(0, 40));
+        const std::string reply = raw_exchange(server_->port(), c.request, 10s);
+        EXPECT_EQ(reply.rfind(std::string("HTTP/1.1 ") + c.status, 0), 0u) << reply.substr(0, 300);
+        const std::string head = reply.substr(0, reply.find("\r\n\r\n") + 2);
+        const size_t at = head.find("\r\nX-Content-Type-Options: nosniff\r\n");
+        EXPECT_NE(at, std::string::npos) << head;
+        EXPECT_EQ(head.find("X-Content-Type-Options", at + 3), std::string::npos) << head;
+    }
 }
 
 TEST_F(HttpFront, Http10ClosesUnlessAskedToKeepAlive) {

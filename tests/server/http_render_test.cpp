@@ -302,6 +302,9 @@ TEST_F(HttpRender, RawAnswersAreTheEnginePixelsOfTheTileAndSayWhereItLies) {
         ASSERT_TRUE(result);
         if (result->status == 200) {
             EXPECT_EQ(result->get_header_value("Content-Type"), "application/x-kdrt-image");
+            // As the synchronous answer: the level a client encodes stitched raw tiles at.
+            EXPECT_EQ(result->get_header_value("X-Kdrt-Png-Compression"),
+                      std::to_string(kDefaultPngCompression));
             auto raw = proto::decode_raw_image(string_to_bytes(result->body));
             ASSERT_TRUE(raw) << raw.error();
             EXPECT_EQ(raw->region, (PixelRegion{0, 0, 8, 4}));

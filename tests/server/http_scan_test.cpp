@@ -147,6 +147,30 @@ proto::Problem expect_field(const httplib::Result& res, int status, const std::s
     return p;
 }
 
+TEST_F(HttpScan, ElevationsUpToMaxSensorBeamsAreTakenAndMoreAreRefusedNamingTheField) {
+    // lidar.elevation_deg may list max_sensor_beams (20000 here) channels: the documented limit
+    // applies, not the request's JSON value bound (16384 before), and a longer list is 413
+    // naming the field and max_sensor_beams however long it is (issue 25 item 13).
+    proto::ScanRequest request;
+    request.lidar = true;
+    LidarSpec& spec = request.lidar_spec;
+    spec.azimuth_steps = 1;
+    for (int i = 0; i < 20000; ++i) spec.elevation_deg.push_back(-60.0f + 0.005f * float(i));
+    const PointCloud want = scan_lidar(*tree_, spec);
+    // Compared as a bool: a failure would print 400 KiB of points.
+    EXPECT_TRUE(ok(proto::encode_scan_request(request), std::string(proto::kPointCloudMediaType)) ==
+                bytes_to_string(proto::encode_point_cloud(want)));
+    for (const int channels : {20001, 20300, 60000}) {
+        SCOPED_TRACE(channels);
+        std::string list = "0";
+        for (int i = 1; i < channels; ++i) list += ",0";
+        const proto::Problem p = expect_field(
+            post(R"({"lidar": {"azimuth_steps": 1, "elevation_deg": [)" + list + "]}}"), 413,
+            "lidar.elevation_deg", "max_sensor_beams (20000)");
+        EXPECT_EQ(p.field, "lidar.elevation_deg");
+    }
+}
+
 TEST_F(HttpScan, EachErrorNamesItsField) {
     const std::string k =
         R"("intrinsics": {"fx": 10, "fy": 10, "cx": 2, "cy": 2, "width": 4, "height": 4})";

@@ -98,6 +98,16 @@ TEST(HttpWeb, EveryViewerFileIsServedWithItsTypeAndHeaders) {
         ASSERT_TRUE(missing);
         EXPECT_EQ(missing->status, 404);
         EXPECT_EQ(missing->get_header_value("Content-Type"), "application/problem+json");
+        // The path comes back once, as the problem's instance: the detail does not echo it
+        // or its file name (issue 25 item 11).
+        auto p = proto::decode_problem(missing->body);
+        ASSERT_TRUE(p) << missing->body;
+        const std::string name = p->instance.substr(p->instance.rfind('/') + 1);
+        if (!name.empty()) {
+            EXPECT_EQ(p->detail.find(name), std::string::npos) << p->detail;
+        }
+        EXPECT_EQ(missing->body.find(p->instance), missing->body.rfind(p->instance))
+            << missing->body;
     }
     auto post = cli->Post("/", "x", "text/plain");
     ASSERT_TRUE(post);

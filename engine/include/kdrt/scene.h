@@ -311,9 +311,17 @@ void check_distance_query(const Scene& scene, bool sign);
 /// Throws SceneError (check_distance_query).
 [[nodiscard]] SceneClosestPoint closest_point(const Scene& scene, Vec3 p,
                                               const DistanceOptions& options);
-/// The same for a batch (out.size() == points.size()), in parallel over the current arena.
-void closest_points(const Scene& scene, std::span<const Vec3> points,
-                    std::span<SceneClosestPoint> out, const DistanceOptions& options);
+/// The same for a batch (out.size() == points.size()), in parallel over the current arena, in
+/// tasks of a few points; the same answers at any thread count. `control` limits and cancels it as
+/// the mesh batch (kdrt/distance.h), with the work counted per instance: top-level cells visited,
+/// plus for each instance searched 1 and its mesh search's work (cells visited and triangles
+/// tested). The cancel flag is checked and the work charged before each point and after each
+/// instance, so one far point that searches every instance is stopped within it. A stopped batch
+/// leaves some answers unwritten or incomplete (the status tells). Throws SceneError
+/// (check_distance_query), std::bad_alloc.
+DistanceStats closest_points(const Scene& scene, std::span<const Vec3> points,
+                             std::span<SceneClosestPoint> out, const DistanceOptions& options,
+                             const DistanceControl& control = {});
 
 // ------------------------------------------------------------------------------------------------
 // Scans and renders
