@@ -69,6 +69,13 @@ private:
 /// within rounding), its vertex bounds within the cell. False if even those do not overlap.
 bool clip_to_cell(const TriVerts& tri, const Aabb& cell, Aabb& out);
 
+/// clip_to_cell of `tri` in the two children of a split on `axis` (cells `left` and `right`,
+/// equal on every other axis), computed together: bit for bit what two clip_to_cell calls give,
+/// with the planes of the axes before `axis` clipped once. `*_ok` false: the triangle misses
+/// that child.
+void clip_to_children(const TriVerts& tri, const Aabb& left, const Aabb& right, int axis,
+                      bool& left_ok, Aabb& left_box, bool& right_ok, Aabb& right_box);
+
 /// True only if `tri` is clearly apart from `cell`: it misses the cell grown by a margin far
 /// larger than rounding errors (a triangle that merely touches the cell is never reported).
 bool misses_cell(const TriVerts& tri, const Aabb& cell);

@@ -576,13 +576,13 @@ private:
         for (uint32_t prim : straddling) {
             Aabb left_box, right_box;
             bool left_ok = false, right_ok = false;
-            clipped_bounds_in_children(tris_[prim], left.cell, right.cell, k, left_ok, left_box,
-                                       right_ok, right_box);
-            if (left_ok || vertex_bounds_in(tris_[prim], left.cell, left_box)) {
+            clip_to_children(tris_[prim], left.cell, right.cell, k, left_ok, left_box, right_ok,
+                             right_box);
+            if (left_ok) {
                 add_events(new_left, left_box, prim);
                 ++left_only;
             }
-            if (right_ok || vertex_bounds_in(tris_[prim], right.cell, right_box)) {
+            if (right_ok) {
                 add_events(new_right, right_box, prim);
                 ++right_only;
             }
@@ -726,6 +726,13 @@ void ExactSahBuilder::build(SubTree& out, const Aabb& cell, std::span<const Prim
 
 bool clip_to_cell(const TriVerts& tri, const Aabb& cell, Aabb& out) {
     return clipped_bounds(tri, cell, out) || vertex_bounds_in(tri, cell, out);
+}
+
+void clip_to_children(const TriVerts& tri, const Aabb& left, const Aabb& right, int axis,
+                      bool& left_ok, Aabb& left_box, bool& right_ok, Aabb& right_box) {
+    clipped_bounds_in_children(tri, left, right, axis, left_ok, left_box, right_ok, right_box);
+    left_ok = left_ok || vertex_bounds_in(tri, left, left_box);
+    right_ok = right_ok || vertex_bounds_in(tri, right, right_box);
 }
 
 bool misses_cell(const TriVerts& tri, const Aabb& cell) {

@@ -5,6 +5,7 @@
 #include <gtest/gtest.h>
 
 #include <cstdint>
+#include <cstring>
 #include <limits>
 #include <string>
 #include <vector>
@@ -259,6 +260,51 @@ TEST(KdBinned, TinyClusterInAHugeRange) {
     const KdTree tree = build_kdtree_with(mesh, {}, binned_below(64));
     EXPECT_GT(tree.stats.leaves, 500u) << "the cluster must be split up";
     expect_traces_like_brute_force(mesh, tree, test_seed() + 391);
+}
+
+// The exact phase clips a straddler to both children at once (clip_to_children). It must give,
+// bit for bit, what clipping to each child alone gives: random triangles (inside, straddling,
+// outside, flat in an axis plane, at 1e6 scale) against random cells and split planes.
+TEST(KdClip, BothChildrenAtOnceEqualEachChildAlone) {
+    const uint64_t seed = test_seed() + 400;
+    SCOPED_TRACE(testing::Message() << "seed=" << seed << " (replay with KDRT_TEST_SEED)");
+    Rng rng(seed);
+    size_t in_both = 0, in_one = 0, in_none = 0;
+    const size_t count = scaled(200'000);
+    for (size_t i = 0; i < count; ++i) {
+        const float scale = i % 3 == 0 ? 1e6f : 1.0f;
+        Aabb cell;
+        TriVerts tri;
+        for (int a = 0; a < 3; ++a) {
+            cell.lo[a] = rng.uniform(-1, 1) * scale;
+            cell.hi[a] = cell.lo[a] + rng.uniform(0.01f, 2) * scale;
+            tri.v0[a] = rng.uniform(-2, 2) * scale;
+            tri.v1[a] = rng.uniform(-2, 2) * scale;
+            tri.v2[a] = rng.uniform(-2, 2) * scale;
+        }
+        if (i % 5 == 0) tri.v1[i % 3] = tri.v2[i % 3] = tri.v0[i % 3];  // flat in an axis plane
+        const int axis = static_cast<int>((i / 3) % 3);
+        const float pos = cell.lo[axis] + rng.uniform() * (cell.hi[axis] - cell.lo[axis]);
+        Aabb left = cell, right = cell;
+        left.hi[axis] = pos;
+        right.lo[axis] = pos;
+        Aabb left_box, right_box, left_want, right_want;
+        bool left_ok = false, right_ok = false;
+        detail::clip_to_children(tri, left, right, axis, left_ok, left_box, right_ok, right_box);
+        ASSERT_EQ(left_ok, detail::clip_to_cell(tri, left, left_want)) << "case " << i;
+        ASSERT_EQ(right_ok, detail::clip_to_cell(tri, right, right_want)) << "case " << i;
+        if (left_ok) {
+            ASSERT_EQ(std::memcmp(&left_box, &left_want, sizeof(Aabb)), 0) << "case " << i;
+        }
+        if (right_ok) {
+            ASSERT_EQ(std::memcmp(&right_box, &right_want, sizeof(Aabb)), 0) << "case " << i;
+        }
+        (left_ok && right_ok ? in_both : left_ok || right_ok ? in_one : in_none) += 1;
+    }
+    // The cases must reach every outcome, the straddlers most of all.
+    EXPECT_GT(in_both, count / 20);
+    EXPECT_GT(in_one, count / 20);
+    EXPECT_GT(in_none, count / 100);
 }
 
 }  // namespace
