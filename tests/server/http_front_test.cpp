@@ -192,7 +192,7 @@ TEST_F(HttpFront, ChunkedIntersectTakesTheSharedBatchPath) {
     }
     // The access-log line is written after the answer is sent: wait for the last one.
     std::string log = server_->log();
-    for (int i = 0; i < 200 && lines(log) < logged_before + 4; ++i) {
+    for (int i = 0; i < 3000 && lines(log) < logged_before + 4; ++i) {
         std::this_thread::sleep_for(10ms);
         log = server_->log();
     }
@@ -232,7 +232,12 @@ TEST_F(HttpFront, RequestBytesAreCountedOnce) {
             "width": 8, "height": 6, "output": "range"}})";
     auto scanned = cli->Post("/v1/meshes/" + id_ + "/scan", scan, "application/json");
     ASSERT_TRUE(scanned);
-    const std::string log = server_->log();
+    // The access-log line is written after the answer is sent: wait for the scan's (the last).
+    std::string log = server_->log();
+    for (int i = 0; i < 3000 && logged_bytes_in(log, "/v1/meshes/{id}/scan") == 0; ++i) {
+        std::this_thread::sleep_for(10ms);
+        log = server_->log();
+    }
     EXPECT_EQ(logged_bytes_in(log, "/v1/meshes/{id}/intersect_all"), rays.size());
     EXPECT_EQ(logged_bytes_in(log, "/v1/meshes/{id}/distance"), kdrp.size());
     EXPECT_EQ(logged_bytes_in(log, "/v1/meshes/{id}/scan"), scan.size()) << scanned->body;
@@ -265,7 +270,7 @@ TEST_F(HttpFront, SceneBatchesTakeTheSharedPath) {
               200);
     // The access-log line is written after the answer is sent: wait for it.
     std::string log = server_->log();
-    for (int i = 0; i < 200 && log.find("route=/v1/scenes/{id}/distance ") == std::string::npos;
+    for (int i = 0; i < 3000 && log.find("route=/v1/scenes/{id}/distance ") == std::string::npos;
          ++i) {
         std::this_thread::sleep_for(10ms);
         log = server_->log();
