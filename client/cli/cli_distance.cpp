@@ -63,12 +63,10 @@ int run_distance(Context& ctx) {
         return ctx.usage_error("missing ID and POINTS (a mesh id and a points file)");
     if (ctx.args.positional.size() > 2)
         return ctx.usage_error("unexpected argument \"" + ctx.args.positional[2] + "\"");
-    const auto output = ctx.args.value("output");
-    if (!output) return ctx.usage_error("missing -o OUT (the .csv or .kdrd file to write)");
-    const auto kind = distance_output(ctx.format_path(*output));
-    if (!kind)
-        return ctx.usage_error("cannot tell the output format of \"" + *output +
-                               "\" from its extension (.csv or .kdrd)");
+    auto out = distance_output_option(ctx);
+    if (!out) return out.error();
+    const std::string& output = out->path;
+    const DistanceOutput kind = out->kind;
     auto query = distance_query_options(ctx);
     if (!query) return query.error();
     auto options = distance_client_options(ctx);
@@ -85,13 +83,13 @@ int run_distance(Context& ctx) {
     if (!answer) return ctx.fail(answer.error());
     const double seconds = seconds_since(start);
     const std::vector<std::byte> bytes =
-        *kind == DistanceOutput::kCsv ? [&] {
+        kind == DistanceOutput::kCsv ? [&] {
             const std::string csv = proto::distances_csv(*points, answer->points);
             const auto* p = reinterpret_cast<const std::byte*>(csv.data());
             return std::vector<std::byte>(p, p + csv.size());
         }()
                                   : proto::encode_distances(answer->points, query->signed_query);
-    if (auto failed = ctx.write_output(*output, bytes, "the answers")) return *failed;
+    if (auto failed = ctx.write_output(output, bytes, "the answers")) return *failed;
     const auto [found, inside, outside] = count_sides(answer->points);
     const double rate = seconds > 0 ? static_cast<double>(points->size()) / seconds : 0.0;
     const proto::JsonField fields[] = {{"command", std::string_view("distance")},
@@ -106,7 +104,7 @@ int run_distance(Context& ctx) {
                                        {"found", found},
                                        {"inside", inside},
                                        {"outside", outside},
-                                       {"out", std::string_view(*output)}};
+                                       {"out", std::string_view(output)}};
     std::ostringstream human;
     human << "queried " << points->size() << " points in " << fixed(seconds, 3) << " s, "
           << fixed(rate, 0) << " points/s: " << found << " found";
@@ -114,12 +112,23 @@ int run_distance(Context& ctx) {
         human << ", " << inside << " inside, " << outside << " outside";
         if (!answer->closed()) human << " (sides unknown: the mesh is " << answer->surface << ")";
     }
-    human << " -> " << *output;
-    ctx.report(*output, human.str(), proto::encode_flat_object(fields));
+    human << " -> " << output;
+    ctx.report(output, human.str(), proto::encode_flat_object(fields));
     return kExitOk;
 }
 
 }  // namespace
+
+proto::Result<DistanceOutputFile, int> distance_output_option(const Context& ctx) {
+    const auto output = ctx.args.value("output");
+    if (!output)
+        return proto::Err{ctx.usage_error("missing -o OUT (the .csv or .kdrd file to write)")};
+    const auto kind = distance_output(ctx.format_path(*output));
+    if (!kind)
+        return proto::Err{ctx.usage_error("cannot tell the output format of \"" + *output +
+                                          "\" from its extension (.csv or .kdrd)")};
+    return DistanceOutputFile{*output, *kind};
+}
 
 std::optional<DistanceOutput> distance_output(std::string_view path) {
     const size_t dot = path.rfind('.');

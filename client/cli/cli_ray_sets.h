@@ -70,6 +70,13 @@ struct RaySet {
 /// The output of a distance command, by the path's extension: .csv or .kdrd.
 enum class DistanceOutput { kCsv, kKdrd };
 [[nodiscard]] std::optional<DistanceOutput> distance_output(std::string_view path);
+/// -o OUT of a distance command with its format (distance_output); a usage error when -o is
+/// missing or its extension is neither.
+struct DistanceOutputFile {
+    std::string path;
+    DistanceOutput kind;
+};
+[[nodiscard]] proto::Result<DistanceOutputFile, int> distance_output_option(const Context& ctx);
 
 /// Closest points found, and of those the ones inside and outside.
 struct SideCounts {

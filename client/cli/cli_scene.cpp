@@ -545,12 +545,10 @@ int run_distance(Context& ctx) {
     int code = kExitOk;
     if (!positional_count_ok(ctx, 2, 2, "ID and POINTS (a scene id and a points file)", code))
         return code;
-    const auto output = ctx.args.value("output");
-    if (!output) return ctx.usage_error("missing -o OUT (the .csv or .kdrd file to write)");
-    const auto kind = distance_output(ctx.format_path(*output));
-    if (!kind)
-        return ctx.usage_error("cannot tell the output format of \"" + *output +
-                               "\" from its extension (.csv or .kdrd)");
+    auto out = distance_output_option(ctx);
+    if (!out) return out.error();
+    const std::string& output = out->path;
+    const DistanceOutput kind = out->kind;
     auto revision = revision_option(ctx, "revision");
     if (!revision) return revision.error();
     auto query = distance_query_options(ctx);
@@ -566,7 +564,7 @@ int run_distance(Context& ctx) {
     if (!answer) return ctx.fail(answer.error());
     const double seconds = seconds_since(start);
     std::vector<std::byte> bytes;
-    if (*kind == DistanceOutput::kCsv) {
+    if (kind == DistanceOutput::kCsv) {
         const std::string csv = proto::distances_csv(*points, answer->points, answer->geometry_ids);
         const auto* p = reinterpret_cast<const std::byte*>(csv.data());
         bytes.assign(p, p + csv.size());
@@ -574,15 +572,15 @@ int run_distance(Context& ctx) {
         bytes = proto::encode_distances(answer->points, query->signed_query);
         proto::append_geometry_ids(bytes, answer->geometry_ids);
     }
-    if (auto failed = ctx.write_output(*output, bytes, "the answers")) return *failed;
+    if (auto failed = ctx.write_output(output, bytes, "the answers")) return *failed;
     const auto [found, inside, outside] = count_sides(answer->points);
     const double rate = seconds > 0 ? static_cast<double>(points->size()) / seconds : 0.0;
     std::ostringstream human;
     human << "queried " << points->size() << " points in " << fixed(seconds, 3) << " s, "
           << fixed(rate, 0) << " points/s: " << found << " found";
     if (query->signed_query) human << ", " << inside << " inside, " << outside << " outside";
-    human << " (revision " << answer->revision << ") -> " << *output;
-    report_query(ctx, "scene distance", id, answer->revision, *output, human.str(),
+    human << " (revision " << answer->revision << ") -> " << output;
+    report_query(ctx, "scene distance", id, answer->revision, output, human.str(),
                  {{"points_file", std::string_view(points_path)},
                   {"points", uint64_t{points->size()}},
                   {"signed", query->signed_query},
