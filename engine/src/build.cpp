@@ -81,6 +81,7 @@ void finish_tree(KdTree& tree, SubTree&& sub, const std::vector<TriVerts>& by_id
     tree.wide_nodes = make_wide_nodes(tree.nodes);
     tree.leaf_refs.assign(sub.refs.begin(), sub.refs.end());
     order_triangles(tree, by_id);
+    mark_leaf_runs(tree.nodes, tree.leaf_refs);
     const double build_ms = tree.stats.build_ms;
     tree.stats = compute_stats(tree);
     tree.stats.build_ms = build_ms;

@@ -208,7 +208,7 @@ ClosestPoint NearestSearch::run(const KdTree& tree, const SurfaceIndex& index, V
         }
         const uint32_t end = node.first_ref() + node.prim_count();
         for (uint32_t r = node.first_ref(); r < end; ++r) {
-            const uint32_t slot = refs[r];
+            const uint32_t slot = refs[r] & ~KdTree::kLastRef;
             if (box_distance2(tris[slot], q) > bound2) continue;
             ++work;
             const uint32_t before = best.prim;

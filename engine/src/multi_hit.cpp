@@ -73,7 +73,7 @@ void collect(const KdTree& tree, const Ray& ray, std::vector<Hit>& out) {
         }
         const uint32_t end = node.first_ref() + node.prim_count();
         for (uint32_t r = node.first_ref(); r < end; ++r) {
-            const uint32_t slot = refs[r];
+            const uint32_t slot = refs[r] & ~KdTree::kLastRef;
             float t, u, v;
             if (!detail::intersect_triangle(p, tris[slot], ray.tmin, t, u, v)) continue;
             if (t <= ray.tmax) out.push_back(Hit{t, ids[slot], u, v});

@@ -81,9 +81,13 @@ TreeArray<WideNode> make_wide_nodes(std::span<const KdNode> nodes) {
     TreeArray<WideNode> out;
     if (nodes.empty() || nodes[0].is_leaf()) return out;
     constexpr uint32_t kMaxIndex = KdNode::kMaxField;
+    // A leaf's slot names its first reference (the kernel reads its run from there); an empty
+    // leaf's names its node (only the counting kernels visit it).
     const auto leaf_slot = [](const KdNode& n, uint32_t index) {
-        return WideNode::make_slot(n.prim_count() == 0 ? WideNode::kSlotEmpty : WideNode::kSlotLeaf,
-                                   index);
+        if (n.prim_count() == 0) return WideNode::make_slot(WideNode::kSlotEmpty, index);
+        if (n.first_ref() > kMaxIndex)
+            throw std::length_error("a leaf's first reference does not fit a wide node's slot");
+        return WideNode::make_slot(WideNode::kSlotLeaf, n.first_ref());
     };
     std::vector<std::pair<uint32_t, uint32_t>> pending{{0u, 0u}};  // (binary root, wide index)
     out.emplace_back();
@@ -142,6 +146,14 @@ TreeArray<WideNode> make_wide_nodes(std::span<const KdNode> nodes) {
         out[at] = w;
     }
     return out;
+}
+
+void mark_leaf_runs(std::span<const KdNode> nodes, std::span<uint32_t> refs) noexcept {
+    for (uint32_t& ref : refs) ref &= ~KdTree::kLastRef;
+    for (const KdNode& node : nodes) {
+        if (node.is_leaf() && node.prim_count() > 0)
+            refs[node.first_ref() + node.prim_count() - 1] |= KdTree::kLastRef;
+    }
 }
 
 }  // namespace kdrt

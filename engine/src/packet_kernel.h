@@ -442,7 +442,7 @@ inline VM<W> traverse_packet(const KdTree& tree, const Packet<W>& pk, PacketHits
             if constexpr (Count) count_visit<W>(active, counters.leaves, counters);
             const uint32_t end = node.first_ref() + node.prim_count();
             for (uint32_t r = node.first_ref(); r < end; ++r) {
-                const uint32_t slot = refs[r];
+                const uint32_t slot = refs[r] & ~KdTree::kLastRef;
                 if constexpr (Count) counters.tri_tests += live_lanes<W>(active);
                 VF<W> t, u, v;
                 VM<W> hit = intersect_triangle_packet<W>(pk, tris[slot], active, t, u, v);
@@ -531,7 +531,7 @@ inline void traverse_packet_all(const KdTree& tree, const Packet<W>& pk, Hit* ra
             const VM<W> active = tmin <= tmax;
             const uint32_t end = node.first_ref() + node.prim_count();
             for (uint32_t r = node.first_ref(); r < end; ++r) {
-                const uint32_t slot = refs[r];
+                const uint32_t slot = refs[r] & ~KdTree::kLastRef;
                 VF<W> t, u, v;
                 VM<W> hit = intersect_triangle_packet<W>(pk, tris[slot], active, t, u, v);
                 if (simd::none<W>(hit)) continue;

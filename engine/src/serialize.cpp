@@ -15,10 +15,12 @@
 //   end-8   8     u64 checksum of every byte before it
 #include "kdrt/serialize.h"
 
+#include <algorithm>
 #include <bit>
 #include <cmath>
 #include <cstring>
 #include <string>
+#include <utility>
 
 namespace kdrt {
 namespace {
@@ -102,6 +104,7 @@ void validate_structure(const KdTree& tree) {
     const size_t n = tree.nodes.size();
     if (n == 0) throw TreeFormatError("tree blob has no nodes");
     std::vector<uint8_t> depth(n, 0);
+    std::vector<std::pair<uint32_t, size_t>> runs;  // (first reference, node) of non-empty leaves
     for (size_t i = 0; i < n; ++i) {
         const KdNode node = tree.nodes[i];
         if (node.is_leaf()) {
@@ -111,6 +114,7 @@ void validate_structure(const KdTree& tree) {
                                       std::to_string(end) + " exceed the " +
                                       std::to_string(tree.leaf_refs.size()) + " stored references");
             }
+            if (node.prim_count() > 0) runs.emplace_back(node.first_ref(), i);
             continue;
         }
         const uint64_t child = node.first_child();
@@ -127,6 +131,18 @@ void validate_structure(const KdTree& tree) {
                                   " levels");
         depth[child] = std::max(depth[child], d);
         depth[child + 1] = std::max(depth[child + 1], d);
+    }
+    // A kernel reads a leaf's run up to its last reference (KdTree::kLastRef): runs must not
+    // overlap (every build writes them apart, one after another).
+    std::sort(runs.begin(), runs.end());
+    for (size_t k = 1; k < runs.size(); ++k) {
+        const uint64_t end =
+            uint64_t{runs[k - 1].first} + tree.nodes[runs[k - 1].second].prim_count();
+        if (end > runs[k].first) {
+            throw TreeFormatError("node " + std::to_string(runs[k].second) +
+                                  ": leaf references overlap those of node " +
+                                  std::to_string(runs[k - 1].second));
+        }
     }
     for (size_t i = 0; i < tree.leaf_refs.size(); ++i) {
         if (tree.leaf_refs[i] >= tree.tris.size()) {
@@ -176,7 +192,8 @@ std::vector<std::byte> serialize_tree(const KdTree& tree) {
         w.put(node.word0());
         w.put(node.word1());
     }
-    w.put_bytes(tree.leaf_refs.data(), tree.leaf_refs.size() * sizeof(uint32_t));
+    // The blob stores plain indices: the marks of the leaves' last references are derived.
+    for (const uint32_t ref : tree.leaf_refs) w.put(ref & ~KdTree::kLastRef);
     w.put_bytes(tree.tris.data(), tree.tris.size() * sizeof(TriVerts));
     w.put_bytes(tree.tri_ids.data(), tree.tri_ids.size() * sizeof(uint32_t));
     w.put(checksum(w.bytes().data(), w.bytes().size()));
@@ -272,6 +289,7 @@ KdTree deserialize_tree(std::span<const std::byte> blob) {
         tree.tri_slots[id] = static_cast<uint32_t>(slot);
     }
     validate_structure(tree);
+    mark_leaf_runs(tree.nodes, tree.leaf_refs);
     // The wide nodes are derived, not stored: a blob of this format from any build loads with
     // them, and the memory figures describe this process's arrays.
     tree.wide_nodes = make_wide_nodes(tree.nodes);

@@ -358,7 +358,6 @@ static inline bool traverse_wide(const KdTree& tree, const Ray& ray, Best& best,
         r8.inv[a] = wide::F8{} + p.inv_dir[a];
         r8.eps[a] = wide::F8{} + eps[a];
     }
-    const KdNode* nodes = tree.nodes.data();
     const WideNode* wides = tree.wide_nodes.data();
     const uint32_t* refs = tree.leaf_refs.data();
     const TriVerts* tris = tree.tris.data();
@@ -367,9 +366,12 @@ static inline bool traverse_wide(const KdTree& tree, const Ray& ray, Best& best,
     wide::Stack stack;  // NOLINT(cppcoreguidelines-pro-type-member-init): written before read
     int stack_size = 0;
     // The root: a wide node, or (a tree of one leaf) that leaf.
-    wide::Cell cell{tree.wide_nodes.empty() ? WideNode::make_slot(WideNode::kSlotLeaf, 0)
-                                            : WideNode::make_slot(WideNode::kSlotNode, 0),
-                    tmin, tmax, 0};
+    wide::Cell cell{WideNode::make_slot(WideNode::kSlotNode, 0), tmin, tmax, 0};
+    if (tree.wide_nodes.empty()) {
+        const KdNode root = tree.nodes[0];
+        if (root.prim_count() == 0) return false;
+        cell.slot = WideNode::make_slot(WideNode::kSlotLeaf, root.first_ref());
+    }
     bool found = false;
     for (;;) {
         counter.steps(cell.steps);
@@ -385,24 +387,35 @@ static inline bool traverse_wide(const KdTree& tree, const Ray& ray, Best& best,
                 cell = stack.at(stack_size, Counter::kCounts);
                 continue;
             }
-        } else {
-            const KdNode leaf = nodes[index];
-            counter.leaf(leaf.prim_count());
-            const uint32_t end = leaf.first_ref() + leaf.prim_count();
-            for (uint32_t ref = leaf.first_ref(); ref < end; ++ref) {
-                const uint32_t slot = refs[ref];
+        } else if (!Counter::kCounts || WideNode::slot_tag(cell.slot) == WideNode::kSlotLeaf) {
+            // The leaf's run of references, from its slot's first one to the one marked last
+            // (only the counting kernels visit empty leaves).
+            const uint32_t* ref = refs + index;
+            if constexpr (Counter::kCounts) {
+                uint32_t n = 1;  // counted before the tests, as the binary kernel counts a leaf
+                for (const uint32_t* r = ref; !(*r & KdTree::kLastRef); ++r) ++n;
+                counter.leaf(n);
+            }
+            for (;; ++ref) {
+                const uint32_t word = *ref;
+                const uint32_t slot = word & ~KdTree::kLastRef;
                 float t, u, v;
-                if (!intersect_triangle(p, tris[slot], ray.tmin, t, u, v)) continue;
-                if constexpr (AnyHit) {
-                    if (t <= ray.tmax) return true;
-                } else {
-                    const uint32_t prim = ids[slot];  // the tie rule and the answer use mesh ids
-                    if (t < best.t || (t == best.t && prim < best.prim)) {
-                        best = {t, prim, u, v};
-                        found = true;
+                if (intersect_triangle(p, tris[slot], ray.tmin, t, u, v)) {
+                    if constexpr (AnyHit) {
+                        if (t <= ray.tmax) return true;
+                    } else {
+                        const uint32_t prim =
+                            ids[slot];  // the tie rule and the answer use mesh ids
+                        if (t < best.t || (t == best.t && prim < best.prim)) {
+                            best = {t, prim, u, v};
+                            found = true;
+                        }
                     }
                 }
+                if (word & KdTree::kLastRef) break;
             }
+        } else {
+            counter.leaf(0);  // an empty leaf
         }
         // The next cell that starts no later than the closest hit (a hit exactly at a cell's
         // entry may still have a lower-id tie inside it). Cells come off the stack front to back,

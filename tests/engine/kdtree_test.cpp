@@ -58,7 +58,24 @@ bool triangle_overlaps_box(const TriVerts& t, const std::array<double, 3>& lo,
 // in range; depth within the cap; cells partition the root (checked by walking them).
 void check_tree_properties(const KdTree& tree, const Mesh& mesh) {
     ASSERT_FALSE(tree.nodes.empty());
-    for (uint32_t r : tree.leaf_refs) ASSERT_LT(r, mesh.triangle_count());
+    for (uint32_t r : tree.leaf_refs) ASSERT_LT(r & ~KdTree::kLastRef, mesh.triangle_count());
+    // Each non-empty leaf's run of references is marked last at its end and nowhere else, and no
+    // two runs overlap.
+    std::vector<uint8_t> covered(tree.leaf_refs.size(), 0);
+    size_t runs = 0, marks = 0;
+    for (const KdNode& n : tree.nodes) {
+        if (!n.is_leaf() || n.prim_count() == 0) continue;
+        ++runs;
+        ASSERT_LE(uint64_t{n.first_ref()} + n.prim_count(), tree.leaf_refs.size());
+        for (uint32_t k = 0; k < n.prim_count(); ++k) {
+            ASSERT_FALSE(covered[n.first_ref() + k]) << "runs overlap";
+            covered[n.first_ref() + k] = 1;
+            ASSERT_EQ((tree.leaf_refs[n.first_ref() + k] & KdTree::kLastRef) != 0,
+                      k + 1 == n.prim_count());
+        }
+    }
+    for (uint32_t r : tree.leaf_refs) marks += (r & KdTree::kLastRef) ? 1 : 0;
+    EXPECT_EQ(marks, runs);
     // tris is a permutation of the mesh's triangles (leaf order), tri_ids and tri_slots its maps.
     ASSERT_EQ(tree.tri_ids.size(), mesh.triangle_count());
     ASSERT_EQ(tree.tri_slots.size(), mesh.triangle_count());
@@ -72,7 +89,8 @@ void check_tree_properties(const KdTree& tree, const Mesh& mesh) {
         0);
     // Leaf order: each reference is to a triangle first seen in its own leaf or an earlier one.
     uint32_t seen = 0;
-    for (uint32_t r : tree.leaf_refs) {
+    for (uint32_t ref : tree.leaf_refs) {
+        const uint32_t r = ref & ~KdTree::kLastRef;
         ASSERT_LE(r, seen) << "triangles are numbered by first reference";
         if (r == seen) ++seen;
     }
@@ -105,7 +123,7 @@ void check_tree_properties(const KdTree& tree, const Mesh& mesh) {
         leaf_volume += double{e.x} * e.y * e.z;
         std::vector<uint8_t> in_leaf(mesh.triangle_count(), 0);
         for (uint32_t i = 0; i < n.prim_count(); ++i)
-            in_leaf[tree.tri_ids[tree.leaf_refs[n.first_ref() + i]]] = 1;
+            in_leaf[tree.tri_ids[tree.leaf_refs[n.first_ref() + i] & ~KdTree::kLastRef]] = 1;
         std::array<double, 3> lo, hi;
         for (int a = 0; a < 3; ++a) {
             const double shrink = 1e-6 * (double{tree.bounds.hi[a]} - tree.bounds.lo[a]);

@@ -1,6 +1,7 @@
 #include <gtest/gtest.h>
 
 #include <cstring>
+#include <vector>
 
 #include "kdrt/serialize.h"
 #include "oracle.h"
@@ -88,6 +89,31 @@ TEST(TreeBlob, StructurallyBrokenBlobWithValidChecksumIsRefused) {
     expect_refused(serialize_tree(ids), "out of range or repeated");
     ids.tri_ids[1] = static_cast<uint32_t>(ids.tri_ids.size());
     expect_refused(serialize_tree(ids), "out of range or repeated");
+    // A leaf whose run starts inside another's: a kernel reading the first run would stop at the
+    // second's last reference.
+    KdTree overlap = sample_tree();
+    std::vector<uint32_t> leaves;
+    for (uint32_t i = 0; i < overlap.nodes.size(); ++i)
+        if (overlap.nodes[i].is_leaf() && overlap.nodes[i].prim_count() > 1) leaves.push_back(i);
+    ASSERT_GE(leaves.size(), 2u);
+    const KdNode second = overlap.nodes[leaves[1]];
+    overlap.nodes[leaves[1]] =
+        KdNode::leaf(second.prim_count(), overlap.nodes[leaves[0]].first_ref() + 1);
+    expect_refused(serialize_tree(overlap), "overlap those of node");
+}
+
+TEST(TreeBlob, LeafRunMarksAreDerivedNotStored) {
+    // The blob holds plain reference indices; loading marks each leaf's last reference again,
+    // exactly as the build did.
+    const KdTree tree = sample_tree();
+    size_t marks = 0;
+    for (uint32_t r : tree.leaf_refs) marks += (r & KdTree::kLastRef) ? 1 : 0;
+    ASSERT_GT(marks, 0u);
+    KdTree unmarked = tree;
+    for (uint32_t& r : unmarked.leaf_refs) r &= ~KdTree::kLastRef;
+    const std::vector<std::byte> blob = serialize_tree(tree);
+    EXPECT_EQ(serialize_tree(unmarked), blob);
+    EXPECT_TRUE(deserialize_tree(blob).leaf_refs == tree.leaf_refs);
 }
 
 TEST(TreeBlob, EmptyTreeRoundTrips) {

@@ -9,6 +9,7 @@
 #include <cstdint>
 #include <cstring>
 #include <limits>
+#include <stdexcept>
 #include <string>
 #include <utility>
 #include <vector>
@@ -83,23 +84,32 @@ TEST(WideNodeLayout, ShallowLeavesArePaddedAndDeepSubtreesGetTheirOwnNode) {
     EXPECT_EQ(w.split[6], 3.0f);
     EXPECT_EQ(w.axis(6), 2);
     const uint32_t none = WideNode::kSlotNone;
-    const uint32_t expected[8] = {WideNode::make_slot(WideNode::kSlotLeaf, 1),
+    // A leaf's slot names its first reference, an empty leaf's its node.
+    const uint32_t expected[8] = {WideNode::make_slot(WideNode::kSlotLeaf, 0),
                                   none,
                                   none,
                                   none,
                                   WideNode::make_slot(WideNode::kSlotEmpty, 3),
                                   none,
-                                  WideNode::make_slot(WideNode::kSlotLeaf, 5),
+                                  WideNode::make_slot(WideNode::kSlotLeaf, 2),
                                   WideNode::make_slot(WideNode::kSlotNode, 1)};
     for (int s = 0; s < 8; ++s) EXPECT_EQ(w.slot[s], expected[s]) << "slot " << s;
     const WideNode& c = wide[1];
     EXPECT_EQ(c.split[0], 4.0f);
-    EXPECT_EQ(c.slot[0], WideNode::make_slot(WideNode::kSlotLeaf, 7));
-    EXPECT_EQ(c.slot[4], WideNode::make_slot(WideNode::kSlotLeaf, 8));
+    EXPECT_EQ(c.slot[0], WideNode::make_slot(WideNode::kSlotLeaf, 3));
+    EXPECT_EQ(c.slot[4], WideNode::make_slot(WideNode::kSlotLeaf, 4));
     EXPECT_EQ(c.axes & ~0x7F7Fu, 0u) << "unused axis bits stay 0";
 
     EXPECT_TRUE(make_wide_nodes(std::vector<KdNode>{KdNode::leaf(3, 0)}).empty())
         << "a tree of one leaf has no wide node";
+    // A leaf's first reference must fit a slot's 30 bits.
+    std::vector<KdNode> far_refs(3);
+    far_refs[0] = KdNode::inner(0, 1.0f, 1);
+    far_refs[1] = KdNode::leaf(1, KdNode::kMaxField);
+    far_refs[2] = KdNode::leaf(1, KdNode::kMaxField + 1);
+    EXPECT_THROW((void)make_wide_nodes(far_refs), std::length_error);
+    far_refs[2] = KdNode::leaf(0, KdNode::kMaxField + 1);  // empty: its slot names its node
+    EXPECT_NO_THROW((void)make_wide_nodes(far_refs));
 }
 
 /// The binary tree a tree's wide nodes stand for, depth first, low side first: (axis, split
@@ -118,9 +128,18 @@ void expand(const KdTree& tree, uint32_t wide_index,
             expand(tree, WideNode::slot_index(word), out);
         } else {
             ASSERT_NE(WideNode::slot_tag(word), WideNode::kSlotNone);
-            const KdNode leaf = tree.nodes[WideNode::slot_index(word)];
-            ASSERT_TRUE(leaf.is_leaf());
-            EXPECT_EQ(WideNode::slot_tag(word) == WideNode::kSlotEmpty, leaf.prim_count() == 0);
+            if (WideNode::slot_tag(word) == WideNode::kSlotEmpty) {
+                const KdNode leaf = tree.nodes[WideNode::slot_index(word)];
+                ASSERT_TRUE(leaf.is_leaf());
+                EXPECT_EQ(leaf.prim_count(), 0u);
+                out.emplace_back(leaf.word0(), leaf.word1());
+                return;
+            }
+            // A leaf's slot names its first reference; its run ends at the marked one.
+            const uint32_t first = WideNode::slot_index(word);
+            uint32_t count = 1;
+            while (!(tree.leaf_refs[first + count - 1] & KdTree::kLastRef)) ++count;
+            const KdNode leaf = KdNode::leaf(count, first);
             out.emplace_back(leaf.word0(), leaf.word1());
         }
     };

@@ -61,6 +61,7 @@ private:
     uint32_t word1_ = 0;
 };
 static_assert(sizeof(KdNode) == 8);
+static_assert(kMaxTriangles < (1u << 31), "a reference leaves bit 31 free (KdTree::kLastRef)");
 
 /// A wide node: a complete 3-level treelet of the binary tree (7 split planes, 8 child slots) in
 /// one 64-byte line, so a single ray makes three levels of decisions per dependent load
@@ -72,8 +73,11 @@ static_assert(sizeof(KdNode) == 8);
 ///                  y (neither: z); the other bits are 0.
 ///   bytes 32..63 : slot[0..7], u32: the child on sides (b0, b1, b2), slot index 4 b0 + 2 b1 + b2.
 ///                  bits 0..1: kSlotNone (padding, never visited), kSlotEmpty (an empty leaf),
-///                  kSlotLeaf, kSlotNode; bits 2..31: the leaf's index in KdTree::nodes
-///                  (kSlotEmpty, kSlotLeaf) or the child's index in KdTree::wide_nodes (kSlotNode).
+///                  kSlotLeaf, kSlotNode; bits 2..31: kSlotLeaf: the leaf's first reference in
+///                  KdTree::leaf_refs (its run ends at the reference marked kLastRef), so a ray
+///                  goes from the wide node straight to the leaf's references; kSlotNode: the
+///                  child's index in KdTree::wide_nodes; kSlotEmpty: the empty leaf's index in
+///                  KdTree::nodes.
 ///
 /// A binary leaf above the third level is padded down: its subtree's missing planes split at
 /// +inf on x, so every ray keeps its interval on the low side, where the leaf sits (slot with
@@ -171,7 +175,12 @@ struct KdTree {
     /// The same tree as 3-level treelets (the single-ray kernel's): wide_nodes[0] holds the top
     /// three levels; empty when the root is a leaf. Derived from `nodes` (make_wide_nodes).
     TreeArray<WideNode> wide_nodes;
-    TreeArray<uint32_t> leaf_refs;  ///< indices into tris, per leaf contiguous
+    /// Marks the last reference of each leaf's run in leaf_refs (bit 31: a tris index is below
+    /// kMaxTriangles), so a kernel that starts at a leaf's first reference needs no count.
+    static constexpr uint32_t kLastRef = 1u << 31;
+    /// The leaves' references: indices into tris (kLastRef masked off), each leaf one run
+    /// [first_ref, first_ref + prim_count), no two runs overlapping, the last of each marked.
+    TreeArray<uint32_t> leaf_refs;
     /// Every triangle of the mesh, in leaf order: the order of first reference in leaf_refs, then
     /// the triangles no leaf references (degenerate ones) by id. A leaf's triangles are mostly
     /// neighbours in memory, so a ray's leaf tests touch few cache lines.
@@ -201,7 +210,11 @@ struct KdTree {
 
 /// The wide nodes of a tree whose binary `nodes` are given (root at 0, children adjacent):
 /// KdTree::wide_nodes. Linear in the node count. Throws std::length_error when the tree has
-/// 2^30 wide nodes or more.
+/// 2^30 wide nodes or more, or a leaf's first reference is 2^30 or more.
 [[nodiscard]] TreeArray<WideNode> make_wide_nodes(std::span<const KdNode> nodes);
+
+/// Sets KdTree::kLastRef on the last reference of each non-empty leaf of `nodes` in `refs` (and
+/// clears it elsewhere). The leaves' runs must lie inside `refs` and not overlap.
+void mark_leaf_runs(std::span<const KdNode> nodes, std::span<uint32_t> refs) noexcept;
 
 }  // namespace kdrt
