@@ -676,6 +676,27 @@ struct RunTracer {
 template <int W, bool AnyHit, bool Count>
 void trace_rays(const KdTree& tree, const Ray* rays, size_t count, Hit* hits, uint8_t* occluded,
                 Policy policy, TraceCounters& counters) {
+    if (policy == Policy::kSingle) {
+        // Single rays need no octant runs: each is traced in input order, without the sort the
+        // packets' grouping needs (the single-ray kernel answers invalid rays as misses itself).
+        for (size_t i = 0; i < count; ++i) {
+            if (octant_or_invalid(rays[i]) < 0 || tree.bounds.empty()) {
+                answer_miss<AnyHit>(i, hits, occluded, counters);
+                continue;
+            }
+            if constexpr (AnyHit) {
+                occluded[i] = (Count ? wide_occluded_counted(tree, rays[i], counters)
+                                     : wide_occluded(tree, rays[i]))
+                                  ? 1
+                                  : 0;
+            } else {
+                hits[i] = Count ? wide_intersect_counted(tree, rays[i], counters)
+                                : wide_intersect(tree, rays[i]);
+            }
+            ++counters.single_rays;
+        }
+        return;
+    }
     schedule_rays<AnyHit>(tree, rays, count, hits, occluded, counters,
                           RunTracer<W, AnyHit, Count>{tree, hits, occluded, policy, counters});
 }

@@ -96,6 +96,11 @@ void check_all_kernels(const Mesh& mesh, uint64_t seed, size_t count) {
             if (mode == TraceMode::kPacket && isa != Isa::kScalar) {
                 EXPECT_GT(stats.packets, 0u) << what;
             }
+            if (mode == TraceMode::kSingle) {
+                // Single rays go in input order: no packet, no sort.
+                EXPECT_EQ(stats.packet_rays, 0u) << what;
+                EXPECT_EQ(stats.sorted_rays, 0u) << what;
+            }
             std::vector<uint8_t> occ(rays.size());
             occluded(tree, rays, occ, options);
             EXPECT_TRUE(occ == want_occ) << what << ": occlusion differs";
