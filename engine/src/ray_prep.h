@@ -91,15 +91,19 @@ static inline bool intersect_triangle(const PreparedRay& p, const TriVerts& tri,
         v = static_cast<float>(static_cast<double>(ax) * cy - static_cast<double>(ay) * cx);
         w = static_cast<float>(static_cast<double>(bx) * ay - static_cast<double>(by) * ax);
     }
-    if ((u < 0.0f || v < 0.0f || w < 0.0f) && (u > 0.0f || v > 0.0f || w > 0.0f)) return false;
+    // Decided without a branch until the end: whether a ray misses a triangle is as good as a
+    // coin toss for the branch predictor, while a leaf's tests mostly end in "no hit", which it
+    // predicts well. The division is made either way (its value only counts on a hit).
+    const bool outside =
+        ((u < 0.0f) | (v < 0.0f) | (w < 0.0f)) & ((u > 0.0f) | (v > 0.0f) | (w > 0.0f));
     const float det = u + v + w;
-    if (det == 0.0f) return false;
     const float az = p.sz * a_z;
     const float bz = p.sz * b_z;
     const float cz = p.sz * c_z;
     const float t_scaled = u * az + v * bz + w * cz;
     const float t = t_scaled / det;
-    if (!(t >= tmin)) return false;  // also rejects NaN
+    // t >= tmin also rejects NaN.
+    if (outside | (det == 0.0f) | !(t >= tmin)) return false;
     t_out = t;
     u_out = v / det;
     v_out = w / det;
