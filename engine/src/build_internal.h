@@ -34,6 +34,12 @@ struct SahCost {
     [[nodiscard]] static double tests(uint32_t n) noexcept { return static_cast<double>(n); }
     /// Cost of making a node of `n` triangles a leaf.
     [[nodiscard]] double leaf(uint32_t n) const noexcept { return c_isect * tests(n); }
+    /// True when no split of a node of `n` triangles can cost less than making it a leaf: every
+    /// split costs c_trav plus a non-negative term, and c_trav is already at least the leaf's
+    /// cost (with the defaults, n <= 3). The builder then needs no candidate planes at all.
+    [[nodiscard]] bool leaf_always_cheaper(uint32_t n) const noexcept {
+        return c_isect >= 0 && empty_scale >= 0 && leaf(n) <= c_trav;
+    }
     /// Cost of splitting a node into children reached with probabilities `pl`, `pr` holding
     /// `nl`, `nr` triangles. A split with an empty side earns the empty bonus.
     [[nodiscard]] double split(double pl, double pr, uint32_t nl, uint32_t nr) const noexcept {
