@@ -60,10 +60,12 @@ public:
     ExactSahBuilder(const ExactSahBuilder&) = delete;
     ExactSahBuilder& operator=(const ExactSahBuilder&) = delete;
 
-    /// Builds the subtree over `prims` into slot 0 of `out`, its root at depth `depth`. Each
-    /// box must be the triangle clipped to `cell` (clip_to_cell), and prims must be in
-    /// increasing triangle order (the event sort relies on it), each triangle at most once.
-    void build(SubTree& out, const Aabb& cell, std::span<const PrimBox> prims, uint32_t depth);
+    /// Builds the subtree over `prims` into `slot` of `out` (appending its nodes and references,
+    /// as splice would), its root at depth `depth`. Each box must be the triangle clipped to
+    /// `cell` (clip_to_cell), and prims must be in increasing triangle order (the event sort
+    /// relies on it), each triangle at most once. No other thread may use `out` meanwhile.
+    void build(SubTree& out, uint32_t slot, const Aabb& cell, std::span<const PrimBox> prims,
+               uint32_t depth);
 
 private:
     struct Impl;

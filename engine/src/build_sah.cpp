@@ -275,7 +275,7 @@ constexpr size_t kParallelAxes = 1u
 constexpr size_t kChunk = 1u << 14;      // events per chunk of a parallel sweep
 constexpr size_t kPooledEvents = 1u << 13;     // buffers up to this size are recycled per thread
 constexpr size_t kPoolSlots = 48;              // at most this many free buffers kept per thread
-constexpr size_t kRadixSortEvents = 1u << 14;  // a node's first sort: radix from this many events
+constexpr size_t kRadixSortEvents = 1u << 11;  // a node's first sort: radix from this many events
 
 /// Per-thread scratch memory. Used only between TBB wait points, or inside isolated parallel
 /// regions that touch nothing but the calling node's data, so nested tasks never see it half-used.
@@ -346,11 +346,13 @@ public:
         partition(in, split, left, right, scratch);
         scratch.give_back(std::move(in.buffer));  // free the parent's events before descending
         if (left.prim_count + right.prim_count >= kParallelSubtrees) {
-            SubTree left_tree, right_tree;
-            tbb::parallel_invoke([&] { build(left_tree, 0, std::move(left), scratch_.local()); },
-                                 [&] { build(right_tree, 0, std::move(right), scratch_.local()); });
+            // The left child is built straight into `out` (the right task does not touch it),
+            // the right one apart and spliced in after it: the same layout as building both
+            // apart, with one subtree copy less per level.
             const uint32_t first = add_child_pair(out, slot, split.axis, split.pos);
-            splice(out, first, left_tree);
+            SubTree right_tree;
+            tbb::parallel_invoke([&] { build(out, first, std::move(left), scratch_.local()); },
+                                 [&] { build(right_tree, 0, std::move(right), scratch_.local()); });
             splice(out, first + 1, right_tree);
         } else {
             const uint32_t first = add_child_pair(out, slot, split.axis, split.pos);
@@ -359,8 +361,8 @@ public:
         }
     }
 
-    void build_root(SubTree& out, NodeInput&& in) {
-        build(out, 0, std::move(in), scratch_.local());
+    void build_root(SubTree& out, uint32_t slot, NodeInput&& in) {
+        build(out, slot, std::move(in), scratch_.local());
     }
 
 private:
@@ -719,8 +721,8 @@ ExactSahBuilder::ExactSahBuilder(const std::vector<TriVerts>& tris, const BuildO
 
 ExactSahBuilder::~ExactSahBuilder() = default;
 
-void ExactSahBuilder::build(SubTree& out, const Aabb& cell, std::span<const PrimBox> prims,
-                            uint32_t depth) {
+void ExactSahBuilder::build(SubTree& out, uint32_t slot, const Aabb& cell,
+                            std::span<const PrimBox> prims, uint32_t depth) {
     // The node's events go straight into its buffer (at most two per triangle and axis, plus the
     // sentinel), in triangle order; each axis is then sorted.
     NodeInput in;
@@ -763,7 +765,7 @@ void ExactSahBuilder::build(SubTree& out, const Aabb& cell, std::span<const Prim
     } else {
         for (int a = 0; a < 3; ++a) sort_axis(a);
     }
-    impl_->builder.build_root(out, std::move(in));
+    impl_->builder.build_root(out, slot, std::move(in));
 }
 
 bool clip_to_cell(const TriVerts& tri, const Aabb& cell, Aabb& out) {

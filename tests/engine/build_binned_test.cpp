@@ -382,6 +382,53 @@ TEST(KdSweep, RootSplitIsTheBestCandidate) {
     EXPECT_GT(splits, cases / 2) << "most roots must split";
 }
 
+// The passes before the tree (triangle set-up, root cell, root references) run in fixed chunks of
+// triangles, in parallel for big meshes. With degenerate triangles scattered over the chunks (far
+// outside the others, so that counting one would move the root cell), the tree is the same at
+// any thread count, the root cell is the other triangles' bounds, and rays see no degenerate one.
+TEST(KdBuild, ChunkedSetUpLeavesDegenerateTrianglesOut) {
+    Rng rng(test_seed() + 420);
+    Mesh mesh = random_soup(rng, 70'000, 0.1f);
+    const size_t solid = mesh.triangle_count();
+    for (size_t i = 0; i < 700; ++i) {  // collinear (zero area) at 50..60
+        const float t = 50.0f + static_cast<float>(i) / 70.0f;
+        add_triangle(mesh, {t, t, t}, {t + 1, t + 1, t + 1}, {t + 2, t + 2, t + 2});
+    }
+    // Mix them in: swap each degenerate triangle with a random earlier one.
+    for (size_t i = solid; i < mesh.triangle_count(); ++i) {
+        const size_t j = rng.below(static_cast<uint32_t>(solid));
+        for (int k = 0; k < 3; ++k) std::swap(mesh.indices[3 * i + k], mesh.indices[3 * j + k]);
+    }
+    auto build_with = [&](int threads) {
+        tbb::task_arena arena(threads);
+        return arena.execute([&] { return build_kdtree(mesh); });
+    };
+    const KdTree one = build_with(1), two = build_with(2), four = build_with(4);
+    EXPECT_TRUE(same_tree(one, two));
+    EXPECT_TRUE(same_tree(one, four));
+    EXPECT_EQ(one.bounds, two.bounds);
+    EXPECT_EQ(one.bounds, four.bounds);
+    // Every solid triangle is in some leaf, no degenerate one is (make_tri_verts makes those a
+    // point).
+    const std::vector<TriVerts> by_id = make_tri_verts(mesh);
+    std::vector<uint8_t> referenced(by_id.size(), 0);
+    for (const uint32_t slot : one.leaf_refs) {
+        const uint32_t id = one.tri_ids[slot];
+        referenced[id] = 1;
+        const TriVerts& t = by_id[id];
+        ASSERT_FALSE(std::memcmp(t.v0, t.v1, sizeof t.v0) == 0 &&
+                     std::memcmp(t.v0, t.v2, sizeof t.v0) == 0)
+            << "degenerate triangle " << id << " is in a leaf";
+    }
+    EXPECT_EQ(std::count(referenced.begin(), referenced.end(), uint8_t{1}),
+              static_cast<std::ptrdiff_t>(solid));
+    for (int a = 0; a < 3; ++a) {
+        EXPECT_GT(one.bounds.lo[a], -0.5f);
+        EXPECT_LT(one.bounds.hi[a], 1.5f) << "a degenerate triangle moved the root cell";
+    }
+    expect_traces_like_brute_force(mesh, one, test_seed() + 421, 4000);
+}
+
 // The exact phase clips a straddler to both children at once (clip_to_children). It must give,
 // bit for bit, what clipping to each child alone gives: random triangles (inside, straddling,
 // outside, flat in an axis plane, at 1e6 scale) against random cells and split planes.
