@@ -2,42 +2,80 @@
 #include <chrono>
 #include <cmath>
 
+#include <tbb/parallel_for.h>
+
 #include "build_internal.h"
 #include "kdrt/trace.h"
 #include "node_layout.h"
 
 namespace kdrt {
 namespace detail {
+namespace {
+
+/// Triangles per chunk of the per-triangle passes before the tree build; meshes of more than one
+/// chunk run them in parallel (on 16 bunnies they were about 1% of the build's instructions, all
+/// on one thread).
+constexpr size_t kTriangleChunk = size_t{1} << 14;
+
+/// Calls body(chunk, begin, end) for the fixed chunks of [0, n), in parallel when there are
+/// several. The chunks do not depend on the thread count, so neither does anything combined
+/// from them in chunk order.
+template <typename Body>
+void for_triangle_chunks(size_t n, const Body& body) {
+    const size_t chunks = (n + kTriangleChunk - 1) / kTriangleChunk;
+    if (chunks <= 1) {
+        if (n > 0) body(size_t{0}, size_t{0}, n);
+        return;
+    }
+    tbb::parallel_for(size_t{0}, chunks, [&](size_t c) {
+        body(c, c * kTriangleChunk, std::min(n, (c + 1) * kTriangleChunk));
+    });
+}
+
+}  // namespace
 
 std::vector<uint8_t> prepare_triangles(const Mesh& mesh, std::vector<TriVerts>& tris) {
     const size_t n = mesh.triangle_count();
     tris.resize(n);
     std::vector<uint8_t> degenerate(n, 0);
-    for (size_t i = 0; i < n; ++i) {
-        const Vec3 v0 = mesh.corner(i, 0), v1 = mesh.corner(i, 1), v2 = mesh.corner(i, 2);
-        // Zero area, decided exactly: the products of floats are exact in double.
-        const double e1[3] = {double{v1.x} - v0.x, double{v1.y} - v0.y, double{v1.z} - v0.z};
-        const double e2[3] = {double{v2.x} - v0.x, double{v2.y} - v0.y, double{v2.z} - v0.z};
-        const double cx = e1[1] * e2[2] - e1[2] * e2[1];
-        const double cy = e1[2] * e2[0] - e1[0] * e2[2];
-        const double cz = e1[0] * e2[1] - e1[1] * e2[0];
-        const bool is_degenerate = cx == 0.0 && cy == 0.0 && cz == 0.0;
-        degenerate[i] = is_degenerate ? 1 : 0;
-        // A degenerate triangle becomes a point: every edge function is then exactly zero and the
-        // watertight test rejects it for any ray, in the tree and in the brute-force oracle alike.
-        const Vec3 c1 = is_degenerate ? v0 : v1, c2 = is_degenerate ? v0 : v2;
-        tris[i] = TriVerts{{v0.x, v0.y, v0.z}, {c1.x, c1.y, c1.z}, {c2.x, c2.y, c2.z}};
-    }
+    for_triangle_chunks(n, [&](size_t, size_t begin, size_t end) {
+        for (size_t i = begin; i < end; ++i) {
+            const Vec3 v0 = mesh.corner(i, 0), v1 = mesh.corner(i, 1), v2 = mesh.corner(i, 2);
+            // Zero area, decided exactly: the products of floats are exact in double.
+            const double e1[3] = {double{v1.x} - v0.x, double{v1.y} - v0.y, double{v1.z} - v0.z};
+            const double e2[3] = {double{v2.x} - v0.x, double{v2.y} - v0.y, double{v2.z} - v0.z};
+            const double cx = e1[1] * e2[2] - e1[2] * e2[1];
+            const double cy = e1[2] * e2[0] - e1[0] * e2[2];
+            const double cz = e1[0] * e2[1] - e1[1] * e2[0];
+            const bool is_degenerate = cx == 0.0 && cy == 0.0 && cz == 0.0;
+            degenerate[i] = is_degenerate ? 1 : 0;
+            // A degenerate triangle becomes a point: every edge function is then exactly zero and
+            // the watertight test rejects it for any ray, in the tree and in the brute-force
+            // oracle alike.
+            const Vec3 c1 = is_degenerate ? v0 : v1, c2 = is_degenerate ? v0 : v2;
+            tris[i] = TriVerts{{v0.x, v0.y, v0.z}, {c1.x, c1.y, c1.z}, {c2.x, c2.y, c2.z}};
+        }
+    });
     return degenerate;
 }
 
 Aabb root_cell(const std::vector<TriVerts>& tris, const std::vector<uint8_t>& degenerate) {
+    // Per-chunk bounds, combined in chunk order.
+    std::vector<Aabb> partial((tris.size() + kTriangleChunk - 1) / kTriangleChunk);
+    for_triangle_chunks(tris.size(), [&](size_t c, size_t begin, size_t end) {
+        Aabb& b = partial[c];
+        for (size_t i = begin; i < end; ++i) {
+            if (degenerate[i]) continue;
+            b.extend({tris[i].v0[0], tris[i].v0[1], tris[i].v0[2]});
+            b.extend({tris[i].v1[0], tris[i].v1[1], tris[i].v1[2]});
+            b.extend({tris[i].v2[0], tris[i].v2[1], tris[i].v2[2]});
+        }
+    });
     Aabb box;
-    for (size_t i = 0; i < tris.size(); ++i) {
-        if (degenerate[i]) continue;
-        box.extend({tris[i].v0[0], tris[i].v0[1], tris[i].v0[2]});
-        box.extend({tris[i].v1[0], tris[i].v1[1], tris[i].v1[2]});
-        box.extend({tris[i].v2[0], tris[i].v2[1], tris[i].v2[2]});
+    for (const Aabb& b : partial) {
+        if (b.empty()) continue;
+        box.extend(b.lo);
+        box.extend(b.hi);
     }
     if (box.empty()) return box;
     float scale = 0.0f;

@@ -158,12 +158,13 @@ public:
         partition(refs, split, left, right);
         refs = {};  // free the parent's references before descending
         if (left.size() + right.size() >= kParallelSubtrees) {
-            SubTree left_tree, right_tree;
-            tbb::parallel_invoke(
-                [&] { build(left_tree, 0, left_cell, std::move(left), depth + 1); },
-                [&] { build(right_tree, 0, right_cell, std::move(right), depth + 1); });
+            // The left child straight into `out`, the right one apart and spliced in after it:
+            // the same layout as building both apart, with one subtree copy less per level.
             const uint32_t first = add_child_pair(out, slot, split.axis, split.pos);
-            splice(out, first, left_tree);
+            SubTree right_tree;
+            tbb::parallel_invoke(
+                [&] { build(out, first, left_cell, std::move(left), depth + 1); },
+                [&] { build(right_tree, 0, right_cell, std::move(right), depth + 1); });
             splice(out, first + 1, right_tree);
         } else {
             const uint32_t first = add_child_pair(out, slot, split.axis, split.pos);
@@ -189,13 +190,7 @@ private:
             }
             prims.push_back(p);
         }
-        if (slot == 0 && out.nodes.size() == 1) {
-            exact_.build(out, cell, prims, depth);
-        } else {
-            SubTree sub;
-            exact_.build(sub, cell, prims, depth);
-            splice(out, slot, sub);
-        }
+        exact_.build(out, slot, cell, prims, depth);
     }
 
     /// The tight bounds of the references (each already within the cell).
@@ -393,12 +388,28 @@ private:
 void build_binned(const std::vector<TriVerts>& tris, const std::vector<uint8_t>& degenerate,
                   const Aabb& root, const BuildOptions& options, const BinnedParams& params,
                   SubTree& out) {
-    std::vector<Ref> refs;
-    refs.reserve(tris.size());
-    for (uint32_t prim = 0; prim < tris.size(); ++prim) {
-        Ref r{{}, prim};
-        if (!degenerate[prim] && vertex_bounds_in_cell(tris[prim], root, r.box)) refs.push_back(r);
+    // The root's references in triangle order, degenerate triangles left out: each chunk of
+    // triangles (in parallel for big meshes) writes its references from its own start, then the
+    // chunks are closed up in order (nothing moves unless a chunk dropped a triangle).
+    std::vector<Ref> refs(tris.size());
+    const size_t chunks = (tris.size() + kChunkRefs - 1) / kChunkRefs;
+    std::vector<size_t> kept(chunks, 0);
+    for_chunks(tris.size(), [&](size_t c, size_t begin, size_t end) {
+        Ref* out = refs.data() + begin;
+        for (size_t prim = begin; prim < end; ++prim) {
+            Ref r{{}, static_cast<uint32_t>(prim)};
+            if (!degenerate[prim] && vertex_bounds_in_cell(tris[prim], root, r.box)) *out++ = r;
+        }
+        kept[c] = static_cast<size_t>(out - (refs.data() + begin));
+    });
+    size_t size = 0;
+    for (size_t c = 0; c < chunks; ++c) {
+        const size_t begin = c * kChunkRefs;
+        if (size != begin)
+            std::copy(refs.begin() + begin, refs.begin() + begin + kept[c], refs.begin() + size);
+        size += kept[c];
     }
+    refs.resize(size);
     BinnedBuilder(tris, options, params).build(out, 0, root, std::move(refs), 0);
 }
 

@@ -34,6 +34,12 @@ struct SahCost {
     [[nodiscard]] static double tests(uint32_t n) noexcept { return static_cast<double>(n); }
     /// Cost of making a node of `n` triangles a leaf.
     [[nodiscard]] double leaf(uint32_t n) const noexcept { return c_isect * tests(n); }
+    /// True when no split of a node of `n` triangles can cost less than making it a leaf: every
+    /// split costs c_trav plus a non-negative term, and c_trav is already at least the leaf's
+    /// cost (with the defaults, n <= 3). The builder then needs no candidate planes at all.
+    [[nodiscard]] bool leaf_always_cheaper(uint32_t n) const noexcept {
+        return c_isect >= 0 && empty_scale >= 0 && leaf(n) <= c_trav;
+    }
     /// Cost of splitting a node into children reached with probabilities `pl`, `pr` holding
     /// `nl`, `nr` triangles. A split with an empty side earns the empty bonus.
     [[nodiscard]] double split(double pl, double pr, uint32_t nl, uint32_t nr) const noexcept {
@@ -54,10 +60,12 @@ public:
     ExactSahBuilder(const ExactSahBuilder&) = delete;
     ExactSahBuilder& operator=(const ExactSahBuilder&) = delete;
 
-    /// Builds the subtree over `prims` into slot 0 of `out`, its root at depth `depth`. Each
-    /// box must be the triangle clipped to `cell` (clip_to_cell), and prims must be in
-    /// increasing triangle order (the event sort relies on it), each triangle at most once.
-    void build(SubTree& out, const Aabb& cell, std::span<const PrimBox> prims, uint32_t depth);
+    /// Builds the subtree over `prims` into `slot` of `out` (appending its nodes and references,
+    /// as splice would), its root at depth `depth`. Each box must be the triangle clipped to
+    /// `cell` (clip_to_cell), and prims must be in increasing triangle order (the event sort
+    /// relies on it), each triangle at most once. No other thread may use `out` meanwhile.
+    void build(SubTree& out, uint32_t slot, const Aabb& cell, std::span<const PrimBox> prims,
+               uint32_t depth);
 
 private:
     struct Impl;

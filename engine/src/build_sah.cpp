@@ -73,19 +73,39 @@ constexpr uint32_t event_key(Event e) noexcept { return static_cast<uint32_t>(e 
 constexpr uint32_t event_type(Event e) noexcept { return static_cast<uint32_t>(e >> 30) & 3u; }
 constexpr uint32_t event_prim(Event e) noexcept { return static_cast<uint32_t>(e) & 0x3FFFFFFFu; }
 
-using EventLists = std::array<std::vector<Event>, 3>;
+/// The events of the straddlers clipped into one child, three lists (one per axis) written
+/// in place: no capacity check per event. finish() sorts each and closes it with kSentinel.
+struct NewEvents {
+    std::array<std::vector<Event>, 3> list;
+    std::array<size_t, 3> count{};
 
-/// Appends the events of a triangle whose clipped bounds in the cell are `box`.
-void add_events(EventLists& lists, const Aabb& box, uint32_t prim) {
-    for (int a = 0; a < 3; ++a) {
-        if (box.lo[a] == box.hi[a]) {
-            lists[a].push_back(make_event(box.lo[a], kPlanar, prim));
-        } else {
-            lists[a].push_back(make_event(box.lo[a], kStart, prim));
-            lists[a].push_back(make_event(box.hi[a], kEnd, prim));
+    /// Room for `prims` triangles' events (at most two per axis) and the sentinel.
+    void reset(size_t prims) {
+        for (auto& l : list)
+            if (l.size() < 2 * prims + 1) l.resize(2 * prims + 1);
+        count = {};
+    }
+    /// Appends the events of a triangle whose clipped bounds in the child are `box`.
+    void add(const Aabb& box, uint32_t prim) noexcept {
+        for (int a = 0; a < 3; ++a) {
+            Event* dst = list[a].data() + count[a];
+            if (box.lo[a] == box.hi[a]) {
+                dst[0] = make_event(box.lo[a], kPlanar, prim);
+                count[a] += 1;
+            } else {
+                dst[0] = make_event(box.lo[a], kStart, prim);
+                dst[1] = make_event(box.hi[a], kEnd, prim);
+                count[a] += 2;
+            }
         }
     }
-}
+    void finish() {
+        for (int a = 0; a < 3; ++a) {
+            std::sort(list[a].data(), list[a].data() + count[a]);
+            list[a][count[a]] = kSentinel;
+        }
+    }
+};
 
 using Point = std::array<double, 3>;
 
@@ -255,7 +275,7 @@ constexpr size_t kParallelAxes = 1u
 constexpr size_t kChunk = 1u << 14;      // events per chunk of a parallel sweep
 constexpr size_t kPooledEvents = 1u << 13;     // buffers up to this size are recycled per thread
 constexpr size_t kPoolSlots = 48;              // at most this many free buffers kept per thread
-constexpr size_t kRadixSortEvents = 1u << 14;  // a node's first sort: radix from this many events
+constexpr size_t kRadixSortEvents = 1u << 11;  // a node's first sort: radix from this many events
 
 /// Per-thread scratch memory. Used only between TBB wait points, or inside isolated parallel
 /// regions that touch nothing but the calling node's data, so nested tasks never see it half-used.
@@ -263,7 +283,7 @@ struct Scratch {
     std::vector<uint8_t> side;  // per triangle id, written and read within one partition
     std::vector<EventBuffer> pool;
     std::vector<uint32_t> straddling;
-    EventLists new_left, new_right;
+    NewEvents new_left, new_right;
     std::vector<uint32_t> prims;
 
     /// A buffer for at least `n` events, recycled when possible.
@@ -313,7 +333,9 @@ public:
     /// Builds the subtree of `in` into `slot` of `out`. `scratch` is the calling thread's; a task
     /// that may run on another thread looks up its own.
     void build(SubTree& out, uint32_t slot, NodeInput&& in, Scratch& scratch) {
-        const Split split = in.depth < max_depth_ && in.prim_count > 0 ? find_split(in) : Split{};
+        const Split split = in.depth < max_depth_ && !cost_.leaf_always_cheaper(in.prim_count)
+                                ? find_split(in)
+                                : Split{};
         if (!split.valid || !(split.cost < cost_.leaf(in.prim_count))) {
             make_leaf(out, slot, leaf_prims(in, scratch.prims));
             scratch.give_back(std::move(in.buffer));
@@ -324,11 +346,13 @@ public:
         partition(in, split, left, right, scratch);
         scratch.give_back(std::move(in.buffer));  // free the parent's events before descending
         if (left.prim_count + right.prim_count >= kParallelSubtrees) {
-            SubTree left_tree, right_tree;
-            tbb::parallel_invoke([&] { build(left_tree, 0, std::move(left), scratch_.local()); },
-                                 [&] { build(right_tree, 0, std::move(right), scratch_.local()); });
+            // The left child is built straight into `out` (the right task does not touch it),
+            // the right one apart and spliced in after it: the same layout as building both
+            // apart, with one subtree copy less per level.
             const uint32_t first = add_child_pair(out, slot, split.axis, split.pos);
-            splice(out, first, left_tree);
+            SubTree right_tree;
+            tbb::parallel_invoke([&] { build(out, first, std::move(left), scratch_.local()); },
+                                 [&] { build(right_tree, 0, std::move(right), scratch_.local()); });
             splice(out, first + 1, right_tree);
         } else {
             const uint32_t first = add_child_pair(out, slot, split.axis, split.pos);
@@ -337,8 +361,8 @@ public:
         }
     }
 
-    void build_root(SubTree& out, NodeInput&& in) {
-        build(out, 0, std::move(in), scratch_.local());
+    void build_root(SubTree& out, uint32_t slot, NodeInput&& in) {
+        build(out, slot, std::move(in), scratch_.local());
     }
 
 private:
@@ -352,8 +376,18 @@ private:
 
     /// The SAH of every candidate plane in ev[begin, end) (whole position groups), swept in one
     /// pass; n_left / n_right are the counts before `begin`. Ties keep the earlier candidate.
+    /// Positions strictly inside the cell with no planar event (nearly all of them) take one
+    /// candidate and no boundary rule; the rest go through the general case. The arithmetic of
+    /// each candidate's cost is the same either way, so the same split wins.
     [[gnu::noinline]] static Split sweep(const SweepSetup& s, const Event* ev, size_t begin,
                                          size_t end, uint32_t n_left, uint32_t n_right) {
+        // Locals, so that the loop keeps them in registers.
+        const double lo = s.lo, hi = s.hi, cap = s.cap, ring = s.ring, inv_area = s.inv_area;
+        const SahCost cost = s.cost;
+        const uint32_t n_total = s.n_total;
+        // pos > lo and pos < hi as integer compares: ordered_bits is monotonic (-0 and +0 share
+        // a key, as they compare equal).
+        const uint32_t key_lo = ordered_bits(s.lo), key_hi = ordered_bits(s.hi);
         double best_cost = INFINITY;
         uint32_t best_key = 0;
         bool best_planar_left = true;
@@ -362,17 +396,28 @@ private:
             const uint32_t key = event_key(ev[i]);
             // Count the events at this position by type: End, Planar, Start (type 3 never occurs).
             // ev[end] is at another position (the next one, or the sentinel after the list).
+            // The events below `limit` are at this position (real keys are below ~0u).
+            const Event limit = (Event{key} + 1) << 32;
             uint32_t count[4] = {0, 0, 0, 0};
             do {
                 ++count[event_type(ev[i])];
                 ++i;
-            } while (event_key(ev[i]) == key);
+            } while (ev[i] < limit);
             const uint32_t ending = count[kEnd], planar = count[kPlanar], starting = count[kStart];
             n_right -= planar + ending;
-            const float pos = from_ordered_bits(key);
-            if (pos >= s.lo && pos <= s.hi) {
-                const double pl = (s.cap + s.ring * (double{pos} - s.lo)) * s.inv_area;
-                const double pr = (s.cap + s.ring * (double{s.hi} - pos)) * s.inv_area;
+            const double pos = from_ordered_bits(key);
+            if (key > key_lo && key < key_hi && planar == 0) {
+                const double pl = (cap + ring * (pos - lo)) * inv_area;
+                const double pr = (cap + ring * (hi - pos)) * inv_area;
+                const double c = cost.split(pl, pr, n_left, n_right);
+                // Branch-free update: which candidates win is hard to predict.
+                const bool better = c < best_cost;
+                best_cost = better ? c : best_cost;
+                best_key = better ? key : best_key;
+                best_planar_left = better ? true : best_planar_left;
+            } else if (key >= key_lo && key <= key_hi) {
+                const double pl = (cap + ring * (pos - lo)) * inv_area;
+                const double pr = (cap + ring * (hi - pos)) * inv_area;
                 // Planar triangles go left or right, whichever is cheaper (Wald & Havran 2006);
                 // without any, both placements are the same split.
                 for (int planar_left = 1; planar_left >= (planar ? 0 : 1); --planar_left) {
@@ -380,12 +425,11 @@ private:
                     const uint32_t nr = n_right + (planar_left ? 0 : planar);
                     // A plane on the cell boundary leaves one child the whole cell: it must then
                     // hold fewer triangles, or the split makes no progress.
-                    if (pos == s.lo && nr >= s.n_total) continue;
-                    if (pos == s.hi && nl >= s.n_total) continue;
-                    const double cost = s.cost.split(pl, pr, nl, nr);
-                    // Branch-free update: which candidates win is hard to predict.
-                    const bool better = cost < best_cost;
-                    best_cost = better ? cost : best_cost;
+                    if (key == key_lo && nr >= n_total) continue;
+                    if (key == key_hi && nl >= n_total) continue;
+                    const double c = cost.split(pl, pr, nl, nr);
+                    const bool better = c < best_cost;
+                    best_cost = better ? c : best_cost;
                     best_key = better ? key : best_key;
                     best_planar_left = better ? planar_left == 1 : best_planar_left;
                 }
@@ -485,16 +529,19 @@ private:
         const uint32_t plane = ordered_bits(split.pos);
         const uint8_t planar_side = split.planar_left ? kLeftOnly : kRightOnly;
         uint32_t left_only = 0, right_only = 0;
+        // Events below `on_plane` are left of the plane, those below `right` on it. ev[n] is
+        // kSentinel, above both: the first two runs need no index check.
+        const Event on_plane = Event{plane} << 32, right = (Event{plane} + 1) << 32;
         size_t i = 0;
         // Left of the plane: ends and planars are left only; a start is "both" until its end is
         // seen left of or on the plane.
-        for (; i < n && event_key(ev[i]) < plane; ++i) {
+        for (; ev[i] < on_plane; ++i) {
             const bool start = event_type(ev[i]) == kStart;
             side[event_prim(ev[i])] = start ? kBoth : kLeftOnly;
             left_only += start ? 0 : 1;
         }
         // On the plane: ends are left, starts right, planars where the split put them.
-        for (; i < n && event_key(ev[i]) == plane; ++i) {
+        for (; ev[i] < right; ++i) {
             const uint32_t type = event_type(ev[i]);
             const uint8_t s = type == kEnd ? uint8_t{kLeftOnly}
                                            : (type == kStart ? uint8_t{kRightOnly} : planar_side);
@@ -570,31 +617,28 @@ private:
 
         // Straddling triangles are clipped to each child ("perfect splits"); their new events are
         // few (O(sqrt N) on typical meshes), sorted here and merged into the filtered lists.
-        EventLists& new_left = scratch.new_left;
-        EventLists& new_right = scratch.new_right;
-        for (int a = 0; a < 3; ++a) new_left[a].clear(), new_right[a].clear();
+        NewEvents& new_left = scratch.new_left;
+        NewEvents& new_right = scratch.new_right;
+        new_left.reset(straddling.size());
+        new_right.reset(straddling.size());
         for (uint32_t prim : straddling) {
             Aabb left_box, right_box;
             bool left_ok = false, right_ok = false;
             clip_to_children(tris_[prim], left.cell, right.cell, k, left_ok, left_box, right_ok,
                              right_box);
             if (left_ok) {
-                add_events(new_left, left_box, prim);
+                new_left.add(left_box, prim);
                 ++left_only;
             }
             if (right_ok) {
-                add_events(new_right, right_box, prim);
+                new_right.add(right_box, prim);
                 ++right_only;
             }
         }
         left.prim_count = left_only;
         right.prim_count = right_only;
-        for (int a = 0; a < 3; ++a) {
-            std::sort(new_left[a].begin(), new_left[a].end());
-            std::sort(new_right[a].begin(), new_right[a].end());
-            new_left[a].push_back(kSentinel);
-            new_right[a].push_back(kSentinel);
-        }
+        new_left.finish();
+        new_right.finish();
 
         // At most two events per triangle on each axis (prim_count includes the straddlers), plus
         // the one slot distribute() writes past the end.
@@ -607,8 +651,8 @@ private:
         auto split_axis = [&](int a) {
             Event* l0 = left.buffer.data.get() + left.offset[a];
             Event* r0 = right.buffer.data.get() + right.offset[a];
-            const Event* nl = new_left[a].data();
-            const Event* nr = new_right[a].data();
+            const Event* nl = new_left.list[a].data();
+            const Event* nr = new_right.list[a].data();
             auto [l, r] = distribute(in.events(a), in.count[a], side, nl, nr, l0, r0);
             while (*nl != kSentinel) *l++ = *nl++;
             while (*nr != kSentinel) *r++ = *nr++;
@@ -677,8 +721,8 @@ ExactSahBuilder::ExactSahBuilder(const std::vector<TriVerts>& tris, const BuildO
 
 ExactSahBuilder::~ExactSahBuilder() = default;
 
-void ExactSahBuilder::build(SubTree& out, const Aabb& cell, std::span<const PrimBox> prims,
-                            uint32_t depth) {
+void ExactSahBuilder::build(SubTree& out, uint32_t slot, const Aabb& cell,
+                            std::span<const PrimBox> prims, uint32_t depth) {
     // The node's events go straight into its buffer (at most two per triangle and axis, plus the
     // sentinel), in triangle order; each axis is then sorted.
     NodeInput in;
@@ -721,7 +765,7 @@ void ExactSahBuilder::build(SubTree& out, const Aabb& cell, std::span<const Prim
     } else {
         for (int a = 0; a < 3; ++a) sort_axis(a);
     }
-    impl_->builder.build_root(out, std::move(in));
+    impl_->builder.build_root(out, slot, std::move(in));
 }
 
 bool clip_to_cell(const TriVerts& tri, const Aabb& cell, Aabb& out) {

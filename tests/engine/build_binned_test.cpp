@@ -4,6 +4,8 @@
 
 #include <gtest/gtest.h>
 
+#include <algorithm>
+#include <cmath>
 #include <cstdint>
 #include <cstring>
 #include <limits>
@@ -13,6 +15,7 @@
 #include <tbb/task_arena.h>
 
 #include "build_internal.h"
+#include "geometry.h"
 #include "kdrt/proto/mesh_io.h"
 #include "oracle.h"
 #include "test_util.h"
@@ -260,6 +263,170 @@ TEST(KdBinned, TinyClusterInAHugeRange) {
     const KdTree tree = build_kdtree_with(mesh, {}, binned_below(64));
     EXPECT_GT(tree.stats.leaves, 500u) << "the cluster must be split up";
     expect_traces_like_brute_force(mesh, tree, test_seed() + 391);
+}
+
+// The exact sweep (build_sah.cpp) must pick, at the root, the plane a plain evaluation of every
+// candidate picks: each distinct bound of a triangle on each axis, with triangles lying in the
+// plane put left, then right; counts from the bounds directly (left: lower bound below the
+// plane, right: upper bound above it); ties to the first candidate (axis, position, planar left
+// first). Grid-snapped soups share many positions and hold triangles flat in an axis plane; the
+// big ones (over 32k events per axis) take the sweep's parallel chunks.
+struct RootSplit {
+    bool split = false;
+    int axis = 0;
+    float pos = 0;
+};
+
+RootSplit plain_root_split(const Mesh& mesh, const KdTree& tree, const BuildOptions& options) {
+    const detail::SahCost cost = detail::SahCost::from(options);
+    std::vector<Aabb> boxes;
+    for (const TriVerts& t : make_tri_verts(mesh)) {
+        Aabb box;
+        if (detail::vertex_bounds_in_cell(t, tree.bounds, box)) boxes.push_back(box);
+    }
+    // make_tri_verts collapses degenerate triangles to a point; the tree leaves them out.
+    std::erase_if(boxes, [&](const Aabb& b) { return b.lo == b.hi; });
+    const auto n = static_cast<uint32_t>(boxes.size());
+    const Aabb& cell = tree.bounds;
+    const double inv_area = 1.0 / detail::half_area(cell);
+    double best = INFINITY;
+    RootSplit result;
+    for (int a = 0; a < 3; ++a) {
+        if (!(cell.lo[a] < cell.hi[a])) continue;
+        std::vector<float> lows, highs, planar, positions;
+        for (const Aabb& b : boxes) {
+            lows.push_back(b.lo[a]);
+            highs.push_back(b.hi[a]);
+            if (b.lo[a] == b.hi[a]) planar.push_back(b.lo[a]);
+            positions.push_back(b.lo[a]);
+            positions.push_back(b.hi[a]);
+        }
+        for (auto* v : {&lows, &highs, &planar, &positions}) std::sort(v->begin(), v->end());
+        positions.erase(std::unique(positions.begin(), positions.end()), positions.end());
+        const int a1 = (a + 1) % 3, a2 = (a + 2) % 3;
+        const double e1 = double{cell.hi[a1]} - cell.lo[a1], e2 = double{cell.hi[a2]} - cell.lo[a2];
+        for (const float p : positions) {
+            const auto below =
+                static_cast<uint32_t>(std::lower_bound(lows.begin(), lows.end(), p) - lows.begin());
+            const auto above = static_cast<uint32_t>(
+                highs.end() - std::upper_bound(highs.begin(), highs.end(), p));
+            const auto in_plane =
+                static_cast<uint32_t>(std::upper_bound(planar.begin(), planar.end(), p) -
+                                      std::lower_bound(planar.begin(), planar.end(), p));
+            const double pl = (e1 * e2 + (e1 + e2) * (double{p} - cell.lo[a])) * inv_area;
+            const double pr = (e1 * e2 + (e1 + e2) * (double{cell.hi[a]} - p)) * inv_area;
+            for (const bool planar_left : {true, false}) {
+                if (!planar_left && in_plane == 0) continue;
+                const uint32_t nl = below + (planar_left ? in_plane : 0);
+                const uint32_t nr = above + (planar_left ? 0 : in_plane);
+                if (p == cell.lo[a] && nr >= n) continue;
+                if (p == cell.hi[a] && nl >= n) continue;
+                const double c = cost.split(pl, pr, nl, nr);
+                if (c < best) {
+                    best = c;
+                    result = {true, a, p};
+                }
+            }
+        }
+    }
+    if (!(best < cost.leaf(n))) result.split = false;
+    return result;
+}
+
+Mesh snapped_soup(Rng& rng, size_t count, float grid) {
+    Mesh m;
+    auto snap = [&](Vec3 v) {
+        return Vec3{std::round(v.x / grid) * grid, std::round(v.y / grid) * grid,
+                    std::round(v.z / grid) * grid};
+    };
+    for (size_t i = 0; i < count; ++i) {
+        const Vec3 c = rng.in_box({{0, 0, 0}, {1, 1, 1}});
+        Vec3 v[3];
+        for (Vec3& x : v) x = snap(c + rng.on_sphere() * rng.uniform(0.0f, 0.2f));
+        if (i % 4 == 0) {  // flat in an axis plane
+            const int a = static_cast<int>(i / 4 % 3);
+            float* coords[3] = {&v[0].x, &v[1].x, &v[2].x};
+            for (float* q : coords) q[a] = coords[0][a];
+        }
+        add_triangle(m, v[0], v[1], v[2]);
+    }
+    return m;
+}
+
+TEST(KdSweep, RootSplitIsTheBestCandidate) {
+    BuildOptions costly;  // other costs: other winners, more splits
+    costly.intersection_cost = 2.0f;
+    costly.empty_bonus = 0.5f;
+    size_t splits = 0, cases = 0;
+    for (const uint32_t n : {1u, 2u, 3u, 4u, 5u, 9u, 40u, 400u, 3000u, 17000u}) {
+        for (const int kind : {0, 1, 2}) {
+            SCOPED_TRACE(testing::Message() << n << " triangles, kind " << kind);
+            Rng rng(test_seed() + 410 + 3 * n + kind);
+            const Mesh mesh = kind == 0   ? random_soup(rng, n, 0.3f)
+                              : kind == 1 ? snapped_soup(rng, n, 1.0f / 8)
+                                          : snapped_soup(rng, n, 1.0f / 256);
+            for (const BuildOptions& options : {BuildOptions{}, costly}) {
+                const KdTree tree = build_kdtree_with(mesh, options, binned_below(kAllExact));
+                const RootSplit want = plain_root_split(mesh, tree, options);
+                const KdNode& root = tree.nodes[0];
+                ASSERT_EQ(!root.is_leaf(), want.split);
+                if (want.split) {
+                    EXPECT_EQ(root.axis(), want.axis);
+                    EXPECT_EQ(root.split(), want.pos);
+                    ++splits;
+                }
+                ++cases;
+            }
+        }
+    }
+    EXPECT_GT(splits, cases / 2) << "most roots must split";
+}
+
+// The passes before the tree (triangle set-up, root cell, root references) run in fixed chunks of
+// triangles, in parallel for big meshes. With degenerate triangles scattered over the chunks (far
+// outside the others, so that counting one would move the root cell), the tree is the same at
+// any thread count, the root cell is the other triangles' bounds, and rays see no degenerate one.
+TEST(KdBuild, ChunkedSetUpLeavesDegenerateTrianglesOut) {
+    Rng rng(test_seed() + 420);
+    Mesh mesh = random_soup(rng, 70'000, 0.1f);
+    const size_t solid = mesh.triangle_count();
+    for (size_t i = 0; i < 700; ++i) {  // collinear (zero area) at 50..60
+        const float t = 50.0f + static_cast<float>(i) / 70.0f;
+        add_triangle(mesh, {t, t, t}, {t + 1, t + 1, t + 1}, {t + 2, t + 2, t + 2});
+    }
+    // Mix them in: swap each degenerate triangle with a random earlier one.
+    for (size_t i = solid; i < mesh.triangle_count(); ++i) {
+        const size_t j = rng.below(static_cast<uint32_t>(solid));
+        for (int k = 0; k < 3; ++k) std::swap(mesh.indices[3 * i + k], mesh.indices[3 * j + k]);
+    }
+    auto build_with = [&](int threads) {
+        tbb::task_arena arena(threads);
+        return arena.execute([&] { return build_kdtree(mesh); });
+    };
+    const KdTree one = build_with(1), two = build_with(2), four = build_with(4);
+    EXPECT_TRUE(same_tree(one, two));
+    EXPECT_TRUE(same_tree(one, four));
+    EXPECT_EQ(one.bounds, two.bounds);
+    EXPECT_EQ(one.bounds, four.bounds);
+    // Every solid triangle is in some leaf, no degenerate one is (make_tri_verts makes those a
+    // point).
+    const std::vector<TriVerts> by_id = make_tri_verts(mesh);
+    std::vector<uint8_t> referenced(by_id.size(), 0);
+    for (const uint32_t slot : one.leaf_refs) {
+        const uint32_t id = one.tri_ids[slot];
+        referenced[id] = 1;
+        const TriVerts& t = by_id[id];
+        ASSERT_FALSE(std::memcmp(t.v0, t.v1, sizeof t.v0) == 0 &&
+                     std::memcmp(t.v0, t.v2, sizeof t.v0) == 0)
+            << "degenerate triangle " << id << " is in a leaf";
+    }
+    EXPECT_EQ(std::count(referenced.begin(), referenced.end(), uint8_t{1}),
+              static_cast<std::ptrdiff_t>(solid));
+    for (int a = 0; a < 3; ++a) {
+        EXPECT_GT(one.bounds.lo[a], -0.5f);
+        EXPECT_LT(one.bounds.hi[a], 1.5f) << "a degenerate triangle moved the root cell";
+    }
+    expect_traces_like_brute_force(mesh, one, test_seed() + 421, 4000);
 }
 
 // The exact phase clips a straddler to both children at once (clip_to_children). It must give,
