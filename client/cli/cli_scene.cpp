@@ -373,8 +373,8 @@ proto::Result<RayQuery, int> ray_query(Context& ctx, std::string_view output_wha
 }
 
 constexpr std::string_view kTraceHelp =
-    R"(usage: kdrt scene trace ID RAYS.kdrr -o FILE [--revision N] [--chunk-rays N] [--json]
-                        [--quiet]
+    R"(usage: kdrt scene trace ID RAYS.kdrr -o FILE [--revision N] [--chunk-rays N] [--split N]
+                        [--connections N] [--json] [--quiet]
 
 Traces every ray of a KDRR file against a scene and writes the answers to FILE: KDRH closest
 hits with a geometry-id plane (proto/FORMATS.md "Scenes": the instance each ray hit), or KDRO
@@ -384,11 +384,16 @@ hits and the revision that answered.
   -o, --output FILE   the answers (required; - for standard output)
   --revision N        that revision instead of the current one
   --chunk-rays N      rays per request (default 65536)
+  --split N           at least N requests, each with its own routing key (?route=ID.K), so a
+                      proxy in front of replicas spreads them (docs/scale-out.md); the first
+                      fixes the revision, the others pin it and go over --connections at once
+  --connections N     with --split: requests in flight at once (default 4)
   --json              the summary as one JSON object (on stdout; stderr with -o -)
   -q, --quiet         no summary line
 )";
 
-constexpr OptionSpec kTraceOptions[] = {{"output", true, 'o'}, {"chunk-rays", true}};
+constexpr OptionSpec kTraceOptions[] = {
+    {"output", true, 'o'}, {"chunk-rays", true}, {"split", true}, {"connections", true}};
 
 int run_trace(Context& ctx) {
     auto q = ray_query(ctx, "KDRH/KDRO");

@@ -6,11 +6,14 @@
 
 #include <algorithm>
 #include <atomic>
+#include <cctype>
 #include <charconv>
 #include <cmath>
 #include <limits>
+#include <mutex>
 #include <optional>
 #include <string>
+#include <thread>
 #include <utility>
 #include <vector>
 
@@ -41,6 +44,26 @@ std::string with_revision(std::string path, std::optional<uint64_t> revision) {
     if (!revision) return path;
     path += path.find('?') == std::string::npos ? '?' : '&';
     return path + "revision=" + std::to_string(*revision);
+}
+
+/// `path` with the routing key of chunk `k` of a query split `split` ways added:
+/// "route=<id>.<k mod split>", as the mesh calls send it (ClientOptions::split), for a proxy
+/// that hashes it (docs/scale-out.md). The server ignores it.
+std::string with_route(std::string path, std::string_view id, size_t k, size_t split) {
+    path += path.find('?') == std::string::npos ? '?' : '&';
+    path += "route=";
+    static constexpr char kHex[] = "0123456789ABCDEF";
+    for (const char c : id) {
+        const auto u = static_cast<unsigned char>(c);
+        if (std::isalnum(u) != 0 || c == '-' || c == '_' || c == '~') {
+            path += c;
+        } else {
+            path += '%';
+            path += kHex[u >> 4];
+            path += kHex[u & 0xF];
+        }
+    }
+    return path + "." + std::to_string(k % split);
 }
 
 /// The If-Match header of a conditional change.
@@ -86,13 +109,103 @@ struct ChunkedQuery {
     /// Non-null: a chunk refused as too large (413) is sent again in smaller ones, as distance()
     /// does, and the size is remembered here.
     std::atomic<size_t>* learned = nullptr;
+    /// > 1 (ClientOptions::split, closest hits and occlusion only, as for a mesh): at least this
+    /// many chunks, chunk k with the routing key "<route_id>.<k mod split>"; the chunks after
+    /// the first go over up to `connections` connections at once.
+    size_t split = 0;
+    std::string_view route_id = {};
+    size_t connections = 1;
 };
+
+/// Checks one chunk's answer to `target` (its revision is `pin` when set) and hands it to take().
+template <class Take>
+std::optional<Error> take_chunk(Client& client, const ChunkedQuery& q, const std::string& target,
+                                const detail::PostAnswer& answer, Take& take, size_t count) {
+    std::optional<std::string> failed;
+    if (q.plane) {
+        auto split = proto::split_geometry_ids(as_bytes(answer.body), {.max_rays = kNoLimit});
+        if (!split) return ClientAccess::bad_response(client, target, split.error().to_string());
+        failed = take(std::span<const std::byte>(split->mesh_body),
+                      std::span<const uint32_t>(split->geometry_ids), count);
+    } else {
+        failed = take(as_bytes(answer.body), std::span<const uint32_t>(), count);
+    }
+    if (failed) return ClientAccess::bad_response(client, target, *failed);
+    return std::nullopt;
+}
+
+/// query_chunks with q.split > 1. The first chunk answers from the current revision (or the one
+/// asked for); every other chunk pins that revision, so whichever replica a routing key hashes to
+/// answers from the same one (a replica reads a revision it never saw from the shared store).
+template <class Encode, class Take>
+Result<uint64_t> split_chunks(Client& client, const ChunkedQuery& q, Encode& encode, Take& take) {
+    const size_t split = q.split;
+    const size_t chunk = std::clamp<size_t>((q.total + split - 1) / split, 1, q.chunk);
+    const size_t chunks = q.total == 0 ? 1 : (q.total - 1) / chunk + 1;
+    std::vector<std::string> targets(chunks);
+    std::vector<detail::PostAnswer> answers(chunks);
+    const auto count_of = [&](size_t k) { return std::min(chunk, q.total - k * chunk); };
+    const auto send = [&](size_t k, std::optional<uint64_t> pin) -> std::optional<Error> {
+        const std::vector<std::byte> body = encode(k * chunk, count_of(k));
+        targets[k] = with_revision(with_route(q.path, q.route_id, k, split), pin);
+        auto answer = ClientAccess::request(client, {.method = "POST",
+                                                     .path = targets[k],
+                                                     .content_type = q.content_type,
+                                                     .body = body,
+                                                     .answer_header = kRevisionHeader});
+        if (!answer) return std::move(answer).error();
+        const auto answered = revision_of(*answer);
+        if (!answered || (pin && *answered != *pin))
+            return ClientAccess::bad_response(client, targets[k],
+                                              "the answer's X-Kdrt-Scene-Revision \"" +
+                                                  answer->header +
+                                                  "\" is not the revision asked for");
+        answers[k] = std::move(*answer);
+        return std::nullopt;
+    };
+    if (auto failed = send(0, q.revision)) return proto::Err{std::move(*failed)};
+    const uint64_t revision = *revision_of(answers[0]);
+
+    std::atomic<size_t> next{1};
+    std::atomic<bool> stop{false};
+    std::mutex error_mutex;
+    std::optional<Error> error;
+    size_t error_chunk = std::numeric_limits<size_t>::max();
+    const auto worker = [&] {
+        while (!stop.load(std::memory_order_relaxed)) {
+            const size_t k = next.fetch_add(1);
+            if (k >= chunks) return;
+            if (auto failed = send(k, revision)) {
+                std::lock_guard lock(error_mutex);
+                // The earliest failing chunk's error, as the mesh calls report it.
+                if (k < error_chunk) {
+                    error_chunk = k;
+                    error = std::move(*failed);
+                }
+                stop = true;
+                return;
+            }
+        }
+    };
+    const size_t threads = std::clamp<size_t>(q.connections, 1, std::max<size_t>(chunks - 1, 1));
+    {
+        std::vector<std::jthread> pool;
+        for (size_t t = 1; t < threads; ++t) pool.emplace_back(worker);
+        worker();
+    }  // the jthreads join here
+    if (error) return proto::Err{std::move(*error)};
+    for (size_t k = 0; k < chunks; ++k)
+        if (auto failed = take_chunk(client, q, targets[k], answers[k], take, count_of(k)))
+            return proto::Err{std::move(*failed)};
+    return revision;
+}
 
 /// Sends a query in chunks (encode(first, count) makes a body; take(mesh body, geometry ids,
 /// count) consumes its answer, returning what is wrong with it or nothing). Every chunk after the
 /// first pins the revision the first answered from. Returns that revision.
 template <class Encode, class Take>
 Result<uint64_t> query_chunks(Client& client, ChunkedQuery q, Encode encode, Take take) {
+    if (q.split > 1) return split_chunks(client, q, encode, take);
     const std::string& path = q.path;
     const size_t total = q.total, chunk = q.chunk;
     std::optional<uint64_t>& revision = q.revision;
@@ -132,28 +245,19 @@ Result<uint64_t> query_chunks(Client& client, ChunkedQuery q, Encode encode, Tak
                                                              answer->header +
                                                              "\" is not the revision asked for")};
         revision = answered;
-        std::optional<std::string> failed;
-        if (q.plane) {
-            auto split = proto::split_geometry_ids(as_bytes(answer->body), {.max_rays = kNoLimit});
-            if (!split)
-                return proto::Err{
-                    ClientAccess::bad_response(client, target, split.error().to_string())};
-            failed = take(std::span<const std::byte>(split->mesh_body),
-                          std::span<const uint32_t>(split->geometry_ids), count);
-        } else {
-            failed = take(as_bytes(answer->body), std::span<const uint32_t>(), count);
-        }
-        if (failed) return proto::Err{ClientAccess::bad_response(client, target, *failed)};
+        if (auto failed = take_chunk(client, q, target, *answer, take, count))
+            return proto::Err{std::move(*failed)};
         first += count;
     } while (first < total);
     return *revision;
 }
 
-/// query_chunks for a ray batch (KDRR, occlusion flag `occlusion`) sent to `path`.
+/// query_chunks for a ray batch (KDRR, occlusion flag `occlusion`) sent to `path`. With a
+/// `split_id` (closest hits and occlusion), split as ClientOptions::split says.
 template <class Take>
 Result<uint64_t> ray_chunks(Client& client, std::string path, std::span<const Ray> rays,
-                            bool occlusion, std::optional<uint64_t> revision, bool plane,
-                            Take take) {
+                            bool occlusion, std::optional<uint64_t> revision, bool plane, Take take,
+                            std::string_view split_id = {}) {
     return query_chunks(
         client,
         {.path = std::move(path),
@@ -161,7 +265,10 @@ Result<uint64_t> ray_chunks(Client& client, std::string path, std::span<const Ra
          .total = rays.size(),
          .chunk = client.options().chunk_rays,
          .revision = revision,
-         .plane = plane},
+         .plane = plane,
+         .split = split_id.empty() ? 0 : client.options().split,
+         .route_id = split_id,
+         .connections = client.options().connections},
         [&](size_t first, size_t count) {
             return proto::encode_rays(rays.subspan(first, count), occlusion);
         },
@@ -290,19 +397,20 @@ Result<SceneHits> Client::intersect_scene(std::string_view id, std::span<const R
     SceneHits out;
     out.hits.reserve(rays.size());
     out.geometry_ids.reserve(rays.size());
-    auto answered =
-        ray_chunks(*this, ClientAccess::api_path(*this, "/v1/scenes/{id}/intersect", id), rays,
-                   false, revision, true,
-                   [&](std::span<const std::byte> body, std::span<const uint32_t> geoms,
-                       size_t count) -> std::optional<std::string> {
-                       auto hits = proto::decode_hits(body, {.max_rays = kNoLimit});
-                       if (!hits) return hits.error().to_string();
-                       if (hits->size() != count || geoms.size() != count)
-                           return "the answer is for another batch";
-                       out.hits.insert(out.hits.end(), hits->begin(), hits->end());
-                       out.geometry_ids.insert(out.geometry_ids.end(), geoms.begin(), geoms.end());
-                       return std::nullopt;
-                   });
+    auto answered = ray_chunks(
+        *this, ClientAccess::api_path(*this, "/v1/scenes/{id}/intersect", id), rays, false,
+        revision, true,
+        [&](std::span<const std::byte> body, std::span<const uint32_t> geoms,
+            size_t count) -> std::optional<std::string> {
+            auto hits = proto::decode_hits(body, {.max_rays = kNoLimit});
+            if (!hits) return hits.error().to_string();
+            if (hits->size() != count || geoms.size() != count)
+                return "the answer is for another batch";
+            out.hits.insert(out.hits.end(), hits->begin(), hits->end());
+            out.geometry_ids.insert(out.geometry_ids.end(), geoms.begin(), geoms.end());
+            return std::nullopt;
+        },
+        id);
     if (!answered) return proto::Err{std::move(answered).error()};
     out.revision = *answered;
     return out;
@@ -315,9 +423,12 @@ Result<std::vector<uint8_t>> Client::occluded_scene(std::string_view id, std::sp
     out.reserve(rays.size());
     auto answered =
         ray_chunks(*this, ClientAccess::api_path(*this, "/v1/scenes/{id}/intersect", id), rays,
-                   true, revision, false, append_records(out, [](std::span<const std::byte> body) {
-                       return proto::decode_occlusion(body, {.max_rays = kNoLimit});
-                   }));
+                   true, revision, false,
+                   append_records(out,
+                                  [](std::span<const std::byte> body) {
+                                      return proto::decode_occlusion(body, {.max_rays = kNoLimit});
+                                  }),
+                   id);
     if (!answered) return proto::Err{std::move(answered).error()};
     return out;
 }

@@ -362,18 +362,21 @@ SceneCache::Result<SceneCache::EntryPtr> SceneCache::edit(const std::string& id,
 SceneCache::Result<bool> SceneCache::remove(const std::string& id,
                                             std::optional<uint64_t> if_match) {
     if (!proto::is_scene_id(id)) return false;
-    if (if_match) {
-        auto latest = store_.latest(id);
-        if (!latest) {
-            if (latest.error().code == SceneStoreError::Code::kMissing) return false;
-            return proto::Err{store_problem(latest.error(), id, std::nullopt)};
-        }
-        if (*latest != *if_match) return proto::Err{stale(metrics_, id, *if_match, *latest)};
-    }
-    auto removed = store_.remove(id);
+    // The store compares If-Match and deletes under the scene's lock: a revision committed
+    // meanwhile (here or by another replica) makes this stale, never silently deleted.
+    auto removed = store_.remove(id, if_match);
     if (!removed) return proto::Err{write_problem(removed.error())};
+    switch (removed->outcome) {
+        case SceneStore::Removal::Outcome::kStale:
+            return proto::Err{stale(metrics_, id, *if_match, removed->current)};
+        case SceneStore::Removal::Outcome::kMissing:
+            forget(id);
+            return false;
+        case SceneStore::Removal::Outcome::kRemoved:
+            break;
+    }
     forget(id);
-    return *removed;
+    return true;
 }
 
 std::vector<SceneCache::EntryPtr> SceneCache::list(std::vector<std::string>* damaged) {

@@ -1,5 +1,10 @@
 #include "store/scene_store.h"
 
+#include <fcntl.h>
+#include <sys/file.h>
+#include <sys/stat.h>
+#include <unistd.h>
+
 #include <algorithm>
 #include <cerrno>
 #include <cstdio>
@@ -46,6 +51,49 @@ SceneStoreError damaged(const fs::path& path, const std::string& why) {
 std::span<const std::byte> as_bytes(const std::string& text) {
     return {reinterpret_cast<const std::byte*>(text.data()), text.size()};
 }
+
+/// An exclusive flock on a scene's directory (released when destroyed). Every process sharing
+/// the store takes it before changing an existing scene, so a commit, an If-Match comparison
+/// and a deletion of one scene never interleave. The lock is taken on the directory that was
+/// at `dir` when it was opened; a deletion renames that directory away while holding the lock,
+/// so after locking, the directory is checked to still be the one at `dir`.
+class SceneDirLock {
+public:
+    explicit SceneDirLock(const fs::path& dir) {
+        fd_ = ::open(dir.c_str(), O_RDONLY | O_DIRECTORY | O_CLOEXEC);
+        if (fd_ < 0) {
+            error_ = errno;
+            return;
+        }
+        int rc = 0;
+        do {
+            rc = ::flock(fd_, LOCK_EX);
+        } while (rc != 0 && errno == EINTR);
+        // A file system without flock: the link stays the compare-and-set (scene_store.h).
+        if (rc != 0 && errno != ENOLCK && errno != EOPNOTSUPP && errno != EINVAL) {
+            error_ = errno;
+            return;
+        }
+        struct stat held {};
+        struct stat now {};
+        if (::fstat(fd_, &held) != 0 || ::stat(dir.c_str(), &now) != 0 ||
+            held.st_dev != now.st_dev || held.st_ino != now.st_ino)
+            error_ = ENOENT;  // deleted (renamed away) while this waited for the lock
+    }
+    ~SceneDirLock() {
+        if (fd_ >= 0) ::close(fd_);
+    }
+    SceneDirLock(const SceneDirLock&) = delete;
+    SceneDirLock& operator=(const SceneDirLock&) = delete;
+
+    /// 0 when held; ENOENT or ENOTDIR when the scene is not (or no longer) there.
+    [[nodiscard]] int error() const noexcept { return error_; }
+    [[nodiscard]] bool missing() const noexcept { return error_ == ENOENT || error_ == ENOTDIR; }
+
+private:
+    int fd_ = -1;
+    int error_ = 0;
+};
 
 }  // namespace
 
@@ -110,22 +158,21 @@ proto::Result<void, WriteError> SceneStore::create(const proto::SceneDocument& s
 
 proto::Result<bool, WriteError> SceneStore::commit(const proto::SceneDocument& scene) {
     const fs::path dir = scene_dir(scene.id);
-    std::error_code ec;
-    if (!fs::is_directory(dir, ec)) return false;  // deleted meanwhile
+    const SceneDirLock lock(dir);
+    if (lock.missing()) return false;  // deleted
+    if (lock.error() != 0)
+        return proto::Err{
+            os_error("cannot lock", dir, std::error_code(lock.error(), std::generic_category()))};
+    // Held: the directory stays at `dir` (a deletion waits for the lock) until this returns.
     const std::string text = proto::encode_scene_json(scene);
     auto created =
         write_file_once(revision_path(scene.id, scene.revision), tmp_dir_, as_bytes(text));
-    if (!created) {
-        if (!fs::is_directory(dir, ec)) return false;  // deleted while the file was written
-        return proto::Err{std::move(created).error()};
-    }
+    if (!created) return proto::Err{std::move(created).error()};
     if (!*created) return false;
     if (auto s = sync_directory(dir); !s) return proto::Err{std::move(s).error()};
-    // The scene may have been deleted between the check and the link: the link then went into
-    // the renamed directory (being removed) or failed; either way this revision is not visible.
-    if (!fs::exists(revision_path(scene.id, scene.revision), ec)) return false;
     if (scene.revision > revisions_kept_) {
         if (auto all = revisions(scene.id)) {
+            std::error_code ec;
             for (const uint64_t r : *all)
                 if (r + revisions_kept_ <= scene.revision)
                     fs::remove(revision_path(scene.id, r), ec);
@@ -206,19 +253,36 @@ proto::Result<std::vector<std::string>, std::string> SceneStore::ids() const {
     return out;
 }
 
-proto::Result<bool, WriteError> SceneStore::remove(const std::string& id) {
+proto::Result<SceneStore::Removal, WriteError> SceneStore::remove(
+    const std::string& id, std::optional<uint64_t> if_revision) {
+    using Outcome = Removal::Outcome;
     const fs::path dir = scene_dir(id);
+    const SceneDirLock lock(dir);
+    if (lock.missing()) return Removal{Outcome::kMissing};
+    if (lock.error() != 0)
+        return proto::Err{
+            os_error("cannot lock", dir, std::error_code(lock.error(), std::generic_category()))};
+    if (if_revision) {
+        // Held: no revision can be committed between this comparison and the rename.
+        auto latest = revisions(id);
+        if (!latest) {
+            if (latest.error().code == SceneStoreError::Code::kMissing)
+                return Removal{Outcome::kMissing};
+            return proto::Err{WriteError{latest.error().detail}};
+        }
+        if (latest->back() != *if_revision) return Removal{Outcome::kStale, latest->back()};
+    }
     const fs::path doomed = tmp_dir_ / ("deleted-scene-" + id);
     std::error_code ec;
     fs::remove_all(doomed, ec);
     fs::rename(dir, doomed, ec);
     if (ec) {
-        if (ec == std::errc::no_such_file_or_directory) return false;
+        if (ec == std::errc::no_such_file_or_directory) return Removal{Outcome::kMissing};
         return proto::Err{os_error("cannot delete", dir, ec)};
     }
     if (auto s = sync_directory(scenes_dir_); !s) return proto::Err{std::move(s).error()};
     fs::remove_all(doomed, ec);  // best effort: a leftover is swept with tmp/ at start-up
-    return true;
+    return Removal{Outcome::kRemoved};
 }
 
 uint64_t SceneStore::disk_bytes(const std::string& id) const {

@@ -14,6 +14,14 @@
 /// crash a revision is either wholly there or absent; no acknowledged revision is lost, and no
 /// reader ever sees a partly written one.
 ///
+/// Every change to an existing scene (a commit, a deletion) holds an exclusive flock on the
+/// scene's directory, taken by every process sharing the store: an If-Match deletion compares
+/// the current revision and renames the directory away with no commit in between (so a delete
+/// and a pose update that both name revision N cannot both succeed), and where the file system
+/// has no hard links (write_file_once's rename fallback) the existence check and the rename of a
+/// revision are not interleaved with another writer's. When the file system refuses flock
+/// (ENOLCK, EOPNOTSUPP), the link alone stays the compare-and-set of commits.
+///
 /// A scene is created whole: its directory and revision 1 are written under this process's tmp/
 /// and renamed into scenes/ (atomic), so scenes/ never holds an empty or half-made scene. It is
 /// deleted by renaming its directory into tmp/ (atomic: it disappears at once for every reader)
@@ -80,8 +88,21 @@ public:
     /// Every scene id in scenes/, sorted (a directory listing; reads no revision).
     [[nodiscard]] proto::Result<std::vector<std::string>, std::string> ids() const;
 
-    /// Deletes the scene with all its revisions. Returns false when there was no such scene.
-    [[nodiscard]] proto::Result<bool, WriteError> remove(const std::string& id);
+    /// What remove() did.
+    struct Removal {
+        enum class Outcome {
+            kRemoved,  ///< the scene and all its revisions are gone
+            kMissing,  ///< there was no such scene
+            kStale,    ///< `if_revision` was not the current revision: nothing was deleted
+        };
+        Outcome outcome = Outcome::kMissing;
+        uint64_t current = 0;  ///< kStale: the current revision
+    };
+    /// Deletes the scene with all its revisions; with `if_revision`, only when that is its
+    /// current revision at the moment of the deletion (no commit can come in between, in this
+    /// process or another sharing the store).
+    [[nodiscard]] proto::Result<Removal, WriteError> remove(
+        const std::string& id, std::optional<uint64_t> if_revision = std::nullopt);
 
     /// Bytes of the scene's revision files.
     [[nodiscard]] uint64_t disk_bytes(const std::string& id) const;

@@ -6,11 +6,13 @@
 
 #include <gtest/gtest.h>
 
+#include <chrono>
 #include <cmath>
 #include <cstring>
 #include <limits>
 #include <optional>
 #include <string>
+#include <thread>
 
 #include "client_test_util.h"
 #include "kdrt/distance.h"
@@ -192,6 +194,58 @@ TEST_F(ClientScene, RefusalsNameTheInstanceAndField) {
     ASSERT_FALSE(refused);
     EXPECT_EQ(refused.error().status, 422) << refused.error().to_string();
     EXPECT_EQ(refused.error().field, "poses[0].geometry_id");
+}
+
+TEST_F(ClientScene, ASplitQueryAnswersFromOneRevisionInParallelParts) {
+    // ClientOptions::split: parts with routing keys (the server ignores them), the first alone,
+    // the others pinned to its revision over three connections; the answer is the engine's.
+    ClientOptions options = fast_options();
+    options.split = 5;
+    options.connections = 3;
+    options.chunk_rays = 150;  // more chunks than parts: 1000 rays in 7
+    Client c = client(options);
+    auto created = c.create_scene(instances());
+    ASSERT_TRUE(created);
+    std::vector<proto::PoseEntry> poses(1);
+    poses[0].geometry_id = 1;
+    poses[0].transform = moved(0.7f, {0.9f, -0.2f, 0.1f});
+    ASSERT_TRUE(c.set_poses(created->id, poses));
+    auto current = c.scene(created->id);
+    ASSERT_TRUE(current);
+    ASSERT_EQ(current->revision, 2u);
+    const std::vector<Ray> batch = rays(1000, test_seed() + 15);
+    const auto route =
+        "kdrt_http_requests_total{route=\"/v1/scenes/{id}/intersect\","
+        "method=\"POST\",status=\"200\"}";
+    for (const auto& [pinned, doc] : {std::pair{std::optional<uint64_t>{}, *current},
+                                      std::pair{std::optional<uint64_t>{1}, *created}}) {
+        SCOPED_TRACE("revision " + std::to_string(doc.revision));
+        const Scene scene = local(doc);
+        const double before = server_->metric(route).value_or(0);
+        auto hits = c.intersect_scene(created->id, batch, pinned);
+        ASSERT_TRUE(hits) << hits.error().to_string();
+        EXPECT_EQ(hits->revision, doc.revision);
+        std::vector<SceneHit> want(batch.size());
+        intersect(scene, batch, want);
+        ASSERT_EQ(hits->hits.size(), batch.size());
+        size_t hit_count = 0;
+        for (size_t i = 0; i < batch.size(); ++i) {
+            ASSERT_EQ(std::memcmp(&hits->hits[i], &want[i], sizeof(Hit)), 0) << i;
+            ASSERT_EQ(hits->geometry_ids[i], want[i].geom) << i;
+            hit_count += want[i].is_hit();
+        }
+        EXPECT_GT(hit_count, batch.size() / 10);
+        auto occluded = c.occluded_scene(created->id, batch, pinned);
+        ASSERT_TRUE(occluded) << occluded.error().to_string();
+        std::vector<uint8_t> want_occluded(batch.size());
+        kdrt::occluded(scene, batch, want_occluded);
+        EXPECT_EQ(*occluded, want_occluded);
+        // 7 parts each (ceil(1000 / 150)); the server counts a request just after answering it.
+        double now = 0;
+        for (int i = 0; i < 100 && (now = server_->metric(route).value_or(0)) != before + 14; ++i)
+            std::this_thread::sleep_for(std::chrono::milliseconds(50));
+        EXPECT_EQ(now, before + 14);
+    }
 }
 
 TEST_F(ClientScene, QueriesEqualTheEngineInChunksOfOneRevision) {

@@ -97,7 +97,7 @@ TEST_F(SceneStoreTest, MissingScenesAndRevisions) {
     EXPECT_FALSE(fs::exists(s.scene_dir(id)));
     auto removed = s.remove(id);
     ASSERT_TRUE(removed.ok());
-    EXPECT_FALSE(*removed);
+    EXPECT_EQ(removed->outcome, SceneStore::Removal::Outcome::kMissing);
 }
 
 TEST_F(SceneStoreTest, KeepsTheNewestRevisionsOnly) {
@@ -119,11 +119,75 @@ TEST_F(SceneStoreTest, RemoveDeletesEveryRevisionAtOnce) {
     ASSERT_TRUE(*s.commit(scene(a, 2, 1)));
     auto removed = s.remove(a);
     ASSERT_TRUE(removed.ok());
-    EXPECT_TRUE(*removed);
+    EXPECT_EQ(removed->outcome, SceneStore::Removal::Outcome::kRemoved);
     EXPECT_EQ(s.latest(a).error().code, SceneStoreError::Code::kMissing);
     EXPECT_FALSE(*s.commit(scene(a, 3, 1))) << "a deleted scene takes no revision";
     EXPECT_EQ(*s.ids(), std::vector<std::string>{b});
     EXPECT_TRUE(fs::is_empty(dir_ / "tmp" / "p"));
+}
+
+TEST_F(SceneStoreTest, AConditionalRemoveDeletesOnlyTheCurrentRevision) {
+    using Outcome = SceneStore::Removal::Outcome;
+    SceneStore s = store();
+    const std::string id = SceneStore::new_id();
+    ASSERT_TRUE(s.create(scene(id, 1, 1)).ok());
+    ASSERT_TRUE(*s.commit(scene(id, 2, 1)));
+    auto stale = s.remove(id, 1);
+    ASSERT_TRUE(stale.ok());
+    EXPECT_EQ(stale->outcome, Outcome::kStale);
+    EXPECT_EQ(stale->current, 2u);
+    EXPECT_EQ(*s.latest(id), 2u) << "a stale conditional remove deletes nothing";
+    auto removed = s.remove(id, 2);
+    ASSERT_TRUE(removed.ok());
+    EXPECT_EQ(removed->outcome, Outcome::kRemoved);
+    EXPECT_EQ(s.latest(id).error().code, SceneStoreError::Code::kMissing);
+    auto again = s.remove(id, 2);
+    ASSERT_TRUE(again.ok());
+    EXPECT_EQ(again->outcome, Outcome::kMissing);
+}
+
+TEST_F(SceneStoreTest, AConditionalRemoveAndACommitOfTheSameBaseNeverBothWin) {
+    // Two stores on one directory, as two replicas sharing the store (each its own tmp/): one
+    // commits revision 2 while the other deletes on "If-Match: 1". Exactly one of them wins.
+    using Outcome = SceneStore::Removal::Outcome;
+    fs::create_directories(dir_ / "tmp" / "q");
+    SceneStore a = store();
+    SceneStore b(dir_, dir_ / "tmp" / "q", 4);
+    ASSERT_TRUE(b.open().ok());
+    int commits_won = 0, removes_won = 0;
+    for (int round = 0; round < 100; ++round) {
+        const std::string id = SceneStore::new_id();
+        ASSERT_TRUE(a.create(scene(id, 1, 2)).ok());
+        std::atomic<int> ready{0};
+        proto::Result<bool, WriteError> committed = false;
+        proto::Result<SceneStore::Removal, WriteError> removed = SceneStore::Removal{};
+        std::thread writer([&] {
+            ++ready;
+            while (ready < 2) {
+            }
+            committed = a.commit(scene(id, 2, 2));
+        });
+        ++ready;
+        while (ready < 2) {
+        }
+        removed = b.remove(id, 1);
+        writer.join();
+        ASSERT_TRUE(committed.ok()) << committed.error().message;
+        ASSERT_TRUE(removed.ok()) << removed.error().message;
+        if (*committed) {
+            ++commits_won;
+            EXPECT_EQ(removed->outcome, Outcome::kStale) << "round " << round;
+            EXPECT_EQ(removed->current, 2u);
+            EXPECT_EQ(*a.latest(id), 2u) << "an acknowledged revision was deleted";
+            ASSERT_EQ(b.remove(id)->outcome, Outcome::kRemoved);
+        } else {
+            ++removes_won;
+            EXPECT_EQ(removed->outcome, Outcome::kRemoved) << "round " << round;
+            EXPECT_EQ(a.latest(id).error().code, SceneStoreError::Code::kMissing);
+        }
+    }
+    std::printf("commit first %d, remove first %d of 100\n", commits_won, removes_won);
+    EXPECT_TRUE(fs::is_empty(dir_ / "scenes"));
 }
 
 TEST_F(SceneStoreTest, DamagedRevisionsAreReportedNotServed) {

@@ -172,6 +172,9 @@ struct ClientOptions {
     /// the routing key "?route=<id>.<k mod split>" so a proxy that hashes it (nginx with
     /// docker/nginx/, docs/scale-out.md) spreads one big batch over the replicas. The answers
     /// are put back in ray order: the result equals the unsplit one. 0 or 1: no split, no key.
+    /// intersect_scene/occluded_scene split the same way ("<scene id>.<k mod split>"): the first
+    /// chunk answers from the scene's current revision and the others pin it (?revision=), then
+    /// go up to `connections` at once, so every replica answers from the same revision.
     unsigned split = 0;
     /// wait(): time between two polls of the job.
     std::chrono::milliseconds poll_interval{100};
@@ -305,7 +308,9 @@ public:
         std::string_view id, const proto::InstanceEdit& edit,
         std::optional<uint64_t> if_revision = std::nullopt);
 
-    /// Closest hit of every ray over the scene, chunked as intersect().
+    /// Closest hit of every ray over the scene, chunked as intersect() (one chunk after another,
+    /// each pinning the first one's revision; with options.split > 1, the chunks after the first
+    /// in parallel, each with its routing key).
     [[nodiscard]] Result<SceneHits> intersect_scene(
         std::string_view id, std::span<const Ray> rays,
         std::optional<uint64_t> revision = std::nullopt);
