@@ -1,7 +1,10 @@
 // The instruction sets: what the CPU supports, which one the engine uses (KDRT_ISA), and the
 // packet kernels of each.
 
+#include <cpuid.h>
+
 #include <cstdlib>
+#include <cstring>
 #include <optional>
 #include <string>
 #include <string_view>
@@ -23,11 +26,40 @@ Isa widest_supported() noexcept {
     return Isa::kScalar;
 }
 
+/// AMD family 19h (Zen 4) runs each 512-bit operation as two 256-bit halves, so a 16-lane packet
+/// costs what two 8-lane ones do, with wider masks and emptier lanes on top: there the AVX2
+/// kernels are faster on every kind of ray (tests/bench/README.md has the measurements).
+bool splits_512_bit_vectors() noexcept {
+    unsigned a = 0, b = 0, c = 0, d = 0;
+    if (__get_cpuid(0, &a, &b, &c, &d) == 0) return false;
+    char vendor[12];
+    std::memcpy(vendor, &b, 4);
+    std::memcpy(vendor + 4, &d, 4);
+    std::memcpy(vendor + 8, &c, 4);
+    if (std::memcmp(vendor, "AuthenticAMD", 12) != 0) return false;
+    if (__get_cpuid(1, &a, &b, &c, &d) == 0) return false;
+    const unsigned base = (a >> 8) & 0xFu;
+    const unsigned family = base == 0xFu ? base + ((a >> 20) & 0xFFu) : base;
+    return family == 0x19u;
+}
+
+/// The default without KDRT_ISA: the widest set the CPU supports, but the 8-lane one where
+/// 512-bit vectors run as two halves.
+IsaChoice preferred_supported() {
+    const Isa widest = widest_supported();
+    if (widest == Isa::kAvx512 && splits_512_bit_vectors())
+        return IsaChoice{Isa::kAvx2,
+                         "AMD family 19h runs 512-bit vectors as two 256-bit halves: 8-lane "
+                         "packets are faster (KDRT_ISA=avx512 overrides)"};
+    return IsaChoice{widest, "widest supported"};
+}
+
 const IsaChoice& choice() noexcept {
     static const IsaChoice c = [] {
-        const Isa widest = widest_supported();
+        const IsaChoice preferred = preferred_supported();
+        const Isa widest = preferred.isa;
         const char* env = std::getenv("KDRT_ISA");
-        if (env == nullptr || *env == '\0') return IsaChoice{widest, "widest supported"};
+        if (env == nullptr || *env == '\0') return preferred;
         const std::optional<Isa> named = parse_isa(env);
         if (!named)
             return IsaChoice{widest, std::string("KDRT_ISA=") + env +

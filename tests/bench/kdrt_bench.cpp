@@ -166,7 +166,7 @@ With --stats it traces once more, untimed, with the counting kernels and adds th
 
 options:
   --mode single|packet|auto  traversal (default auto: packets where rays are coherent)
-  --isa scalar|sse4|avx2|avx512  packet instruction set (default: widest supported, or KDRT_ISA)
+  --isa scalar|sse4|avx2|avx512  packet instruction set (default: the engine's default_isa(), or KDRT_ISA)
   --threads N                worker threads (default: all cores)
   --reps K                   timed passes (default 5)
   --out FILE                 write the answers as KDRH (hits) or KDRO (occlusion) to FILE

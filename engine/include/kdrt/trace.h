@@ -43,8 +43,10 @@ enum class Isa : uint32_t {
 [[nodiscard]] int isa_width(Isa isa) noexcept;
 /// True when this CPU can run the kernels of `isa`.
 [[nodiscard]] bool isa_supported(Isa isa) noexcept;
-/// The instruction set batch queries use by default: the widest the CPU supports, or the one
-/// named by the environment variable KDRT_ISA (scalar|sse4|avx2|avx512) if the CPU supports it.
+/// The instruction set batch queries use by default: the widest the CPU supports (but AVX2 where
+/// 512-bit vectors run as two 256-bit halves, AMD family 19h, whose 8-lane packets are faster
+/// there), or the one named by the environment variable KDRT_ISA (scalar|sse4|avx2|avx512) if
+/// the CPU supports it.
 /// Decided once, at first use; thread-safe.
 [[nodiscard]] Isa default_isa() noexcept;
 /// Why default_isa() is what it is, e.g. "widest supported" or "KDRT_ISA=sse4", or a warning
