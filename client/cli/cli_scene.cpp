@@ -402,9 +402,9 @@ int run_trace(Context& ctx) {
     if (q->set.occlusion) {
         auto occluded = client.occluded_scene(id, q->set.rays, q->revision);
         if (!occluded) return ctx.fail(occluded.error());
-        hits = count_answers(*occluded);
-        answer = proto::encode_occlusion(*occluded);
-        revision = q->revision.value_or(0);
+        hits = count_answers(occluded->occluded);
+        answer = proto::encode_occlusion(occluded->occluded);
+        revision = occluded->revision;
     } else {
         auto found = client.intersect_scene(id, q->set.rays, q->revision);
         if (!found) return ctx.fail(found.error());
@@ -421,8 +421,7 @@ int run_trace(Context& ctx) {
     human << "traced " << rays << " rays (" << (q->set.occlusion ? "occlusion" : "closest hits")
           << ") in " << fixed(seconds, 3) << " s, " << fixed(mrays, 2) << " Mrays/s: " << hits
           << (q->set.occlusion ? " occluded" : " hits");
-    if (revision != 0) human << " (revision " << revision << ")";
-    human << " -> " << q->output;
+    human << " (revision " << revision << ") -> " << q->output;
     report_query(ctx, "scene trace", id, revision, q->output, human.str(),
                  {{"rays_file", std::string_view(ctx.args.positional[1])},
                   {"rays", uint64_t{rays}},
@@ -478,13 +477,14 @@ int run_hits(Context& ctx) {
     Client& client = ctx.connect(q->options);
     const auto start = Clock::now();
     std::vector<std::byte> answer;
-    uint64_t total = 0, kept = 0, revision = q->revision.value_or(0);
+    uint64_t total = 0, kept = 0, revision = 0;
     if (query.count_only) {
         auto counts =
             client.count_scene_intersections(id, q->set.rays, query.merge_coincident, q->revision);
         if (!counts) return ctx.fail(counts.error());
-        for (const uint32_t c : *counts) total += c;
-        answer = proto::encode_hit_counts(*counts);
+        for (const uint32_t c : counts->counts) total += c;
+        answer = proto::encode_hit_counts(counts->counts);
+        revision = counts->revision;
     } else {
         auto all = client.intersect_all_scene(id, q->set.rays, query, q->revision);
         if (!all) return ctx.fail(all.error());
@@ -502,8 +502,7 @@ int run_hits(Context& ctx) {
     human << "traced " << rays << " rays (every hit) in " << fixed(seconds, 3) << " s, "
           << fixed(mrays, 2) << " Mrays/s: " << total << " hits";
     if (!query.count_only) human << ", " << kept << " kept";
-    if (revision != 0) human << " (revision " << revision << ")";
-    human << " -> " << q->output;
+    human << " (revision " << revision << ") -> " << q->output;
     report_query(ctx, "scene hits", id, revision, q->output, human.str(),
                  {{"rays_file", std::string_view(ctx.args.positional[1])},
                   {"rays", uint64_t{rays}},

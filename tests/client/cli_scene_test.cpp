@@ -162,6 +162,30 @@ TEST_F(CliScene, QueryFilesAreTheServersAnswers) {
     EXPECT_EQ(as_string(read_bytes(path("hits.kdrh"))),
               one_request(id, "intersect", rays_body, kRays));
 
+    // Occlusion (KDRO) and counts (KDRC) carry no plane: the summary says which revision
+    // answered, here the current one (2, after a pose change), not 0.
+    write_text(path("pose.txt"), "crate 0 0 0.5\n");
+    ASSERT_EQ(kdrt({"scene", "poses", id, path("pose.txt"), "-q"}).exit_code, 0);
+    const std::string shadow_body = as_string(proto::encode_rays(rays, true));
+    write_text(path("shadow.kdrr"), shadow_body);
+    run = kdrt({"scene", "trace", id, path("shadow.kdrr"), "-o", path("occ.kdro"), "--chunk-rays",
+                "700", "--json"});
+    ASSERT_EQ(run.exit_code, 0) << run.err;
+    EXPECT_TRUE(contains(run.out, "\"revision\":2")) << run.out;
+    EXPECT_EQ(as_string(read_bytes(path("occ.kdro"))),
+              one_request(id, "intersect", shadow_body, kRays));
+    run = kdrt({"scene", "trace", id, path("shadow.kdrr"), "-o", path("occ.kdro")});
+    ASSERT_EQ(run.exit_code, 0) << run.err;
+    EXPECT_TRUE(contains(run.err, "(revision 2)")) << run.err;
+    run = kdrt({"scene", "hits", id, path("rays.kdrr"), "--all", "--count-only", "-o",
+                path("n.kdrc"), "--chunk-rays", "700", "--json"});
+    ASSERT_EQ(run.exit_code, 0) << run.err;
+    EXPECT_TRUE(contains(run.out, "\"revision\":2")) << run.out;
+    run = kdrt({"scene", "trace", id, path("shadow.kdrr"), "-o", path("occ1.kdro"), "--revision",
+                "1", "--json"});
+    ASSERT_EQ(run.exit_code, 0) << run.err;
+    EXPECT_TRUE(contains(run.out, "\"revision\":1")) << run.out;
+
     run = kdrt({"scene", "hits", id, path("rays.kdrr"), "--all", "-o", "-", "--chunk-rays", "1000",
                 "--max-hits", "4", "--normal", "--quiet"});
     ASSERT_EQ(run.exit_code, 0) << run.err;
