@@ -27,6 +27,16 @@ DepthImage sample(bool normals, DepthKind kind) {
     return image;
 }
 
+/// The header of an EXR in memory, read with OpenImageIO directly.
+bool spec_of(const std::vector<std::byte>& bytes, OIIO::ImageSpec& spec) {
+    OIIO::Filesystem::IOMemReader proxy(bytes.data(), bytes.size());
+    OIIO::ImageSpec config;
+    OIIO::Filesystem::IOProxy* p = &proxy;
+    config.attribute("oiio:ioproxy", OIIO::TypeDesc::PTR, &p);
+    auto in = OIIO::ImageInput::create("x.exr", false, &config, &proxy);
+    return in && in->open("x.exr", spec, config);
+}
+
 TEST(ScanExr, RoundTripsBitForBit) {
     for (const bool normals : {false, true}) {
         for (const DepthKind kind : {DepthKind::kDepth, DepthKind::kRange}) {
@@ -51,14 +61,8 @@ TEST(ScanExr, RoundTripsBitForBit) {
 TEST(ScanExr, ChannelsAsDocumented) {
     auto bytes = encode_depth_exr(sample(true, DepthKind::kDepth));
     ASSERT_TRUE(bytes) << bytes.error();
-    OIIO::Filesystem::IOMemReader proxy(bytes->data(), bytes->size());
-    OIIO::ImageSpec config;
-    OIIO::Filesystem::IOProxy* p = &proxy;
-    config.attribute("oiio:ioproxy", OIIO::TypeDesc::PTR, &p);
-    auto in = OIIO::ImageInput::create("x.exr", false, &config, &proxy);
-    ASSERT_TRUE(in);
     OIIO::ImageSpec spec;
-    ASSERT_TRUE(in->open("x.exr", spec, config)) << in->geterror();
+    ASSERT_TRUE(spec_of(*bytes, spec));
     ASSERT_EQ(spec.nchannels, 5);
     std::vector<std::string> names(spec.channelnames.begin(), spec.channelnames.end());
     std::sort(names.begin(), names.end());
@@ -84,14 +88,8 @@ TEST(ScanExr, GeometryIdChannelIsLastAndRoundTrips) {
     EXPECT_EQ(back->prim, image.prim);
     EXPECT_EQ(std::memcmp(back->depth.data(), image.depth.data(), 24), 0);
     // Read with OpenImageIO directly: a sixth channel "geometry_id", uint, last.
-    OIIO::Filesystem::IOMemReader proxy(bytes->data(), bytes->size());
-    OIIO::ImageSpec config;
-    OIIO::Filesystem::IOProxy* p = &proxy;
-    config.attribute("oiio:ioproxy", OIIO::TypeDesc::PTR, &p);
-    auto in = OIIO::ImageInput::create("x.exr", false, &config, &proxy);
-    ASSERT_TRUE(in);
     OIIO::ImageSpec spec;
-    ASSERT_TRUE(in->open("x.exr", spec, config)) << in->geterror();
+    ASSERT_TRUE(spec_of(*bytes, spec));
     ASSERT_EQ(spec.nchannels, 6);
     std::vector<std::string> names(spec.channelnames.begin(), spec.channelnames.end());
     EXPECT_NE(std::find(names.begin(), names.end(), "geometry_id"), names.end());
