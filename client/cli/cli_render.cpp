@@ -50,7 +50,7 @@ stops asking for bands (exit 130).
   --ortho HEIGHT      orthographic projection showing HEIGHT world units vertically
                       Camera options left out come from the default view of the mesh's bounds;
                       with none, the server frames the mesh itself.
-  --shading MODE      normals, eyelight (default), ao, diffuse, depth or primid
+  --shading MODE      normals, eyelight (default), ao, diffuse, depth, primid or geomid
   --spp N             samples per pixel (default 1)
   --seed N            seed of every random number (default 1)
   --ao-samples N      ao: occlusion rays per sample (default 16)
@@ -111,8 +111,9 @@ std::optional<int> render_settings(Context& ctx, const std::string& id, RenderRe
     if (auto shading = a.value("shading")) {
         auto mode = parse_shading(*shading);
         if (!mode)
-            return ctx.usage_error("--shading: \"" + *shading +
-                                   "\" is not normals, eyelight, ao, diffuse, depth or primid");
+            return ctx.usage_error(
+                "--shading: \"" + *shading +
+                "\" is not normals, eyelight, ao, diffuse, depth, primid or geomid");
         s.shading = *mode;
     }
     if (auto spp = a.value("spp")) {

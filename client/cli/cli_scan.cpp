@@ -222,6 +222,33 @@ std::optional<int> scan_request_from_args(Context& ctx, proto::ScanRequest& requ
     return pinhole ? pinhole_request(ctx, request) : lidar_request(ctx, request);
 }
 
+proto::Result<ScanFile, int> scan_file_format(Context& ctx, const std::string& output,
+                                              bool pinhole) {
+    const std::string format_path = ctx.format_path(output);
+    const bool binary = ends_with(format_path, pinhole ? ".kdrz" : ".kdrl");
+    if (!binary && !ends_with(format_path, pinhole ? ".exr" : ".ply"))
+        return proto::Err{ctx.usage_error(
+            (ctx.args.has("format")
+                 ? "--format: \"" + *ctx.args.value("format") + "\" is not "
+                 : "cannot tell the format of \"" + output + "\" from its extension (") +
+            (pinhole ? "a pinhole scan is .exr or .kdrz" : "a lidar scan is .ply or .kdrl") + ")")};
+    // An EXR is encoded here: its encoder must load before the scan starts.
+    if (pinhole && !binary)
+        if (auto failed = ctx.need_image_module()) return proto::Err{*failed};
+    return binary ? ScanFile::kBinary : ScanFile::kUser;
+}
+
+proto::Result<std::vector<std::byte>, int> encode_scan_file(
+    Context& ctx, const DepthImage* depth, const PointCloud* cloud,
+    std::span<const uint32_t> geometry_ids) {
+    if (cloud != nullptr) return proto::encode_point_cloud_ply(*cloud, geometry_ids);
+    auto exr = (*image_module())->encode_depth_exr(*depth, geometry_ids);
+    if (!exr)
+        return proto::Err{
+            ctx.fail(make_client_error(ErrorKind::kInput, "cannot encode the EXR", exr.error()))};
+    return std::move(*exr);
+}
+
 namespace {
 
 int run_scan(Context& ctx) {
@@ -231,17 +258,9 @@ int run_scan(Context& ctx) {
     if (pinhole == lidar) return ctx.usage_error("give exactly one of --pinhole and --lidar");
     const auto output = ctx.args.value("output");
     if (!output) return ctx.usage_error("missing -o FILE (the scan to write)");
-    const std::string format_path = ctx.format_path(*output);
-    const bool binary = ends_with(format_path, pinhole ? ".kdrz" : ".kdrl");
-    if (!binary && !ends_with(format_path, pinhole ? ".exr" : ".ply"))
-        return ctx.usage_error(
-            (ctx.args.has("format")
-                 ? "--format: \"" + *ctx.args.value("format") + "\" is not "
-                 : "cannot tell the format of \"" + *output + "\" from its extension (") +
-            (pinhole ? "a pinhole scan is .exr or .kdrz" : "a lidar scan is .ply or .kdrl") + ")");
-    // An EXR is encoded here: its encoder must load before the scan starts.
-    if (pinhole && !binary)
-        if (auto failed = ctx.need_image_module()) return *failed;
+    const auto file = scan_file_format(ctx, *output, pinhole);
+    if (!file) return file.error();
+    const bool binary = *file == ScanFile::kBinary;
     proto::ScanRequest request;
     if (auto failed = scan_request_from_args(ctx, request)) return *failed;
     ctx.connect(ctx.client_options());
@@ -264,10 +283,8 @@ int run_scan(Context& ctx) {
         if (binary) {
             bytes = proto::encode_depth_image(*image);
         } else {
-            auto exr = (*image_module())->encode_depth_exr(*image);
-            if (!exr)
-                return ctx.fail(
-                    make_client_error(ErrorKind::kInput, "cannot encode the EXR", exr.error()));
+            auto exr = encode_scan_file(ctx, &*image, nullptr);
+            if (!exr) return exr.error();
             bytes = std::move(*exr);
         }
     } else {
@@ -277,7 +294,13 @@ int run_scan(Context& ctx) {
         summary = std::to_string(cloud->points.size()) + " points from " +
                   std::to_string(cloud->channels) + " x " + std::to_string(cloud->azimuth_steps) +
                   " beams";
-        bytes = binary ? proto::encode_point_cloud(*cloud) : proto::encode_point_cloud_ply(*cloud);
+        if (binary) {
+            bytes = proto::encode_point_cloud(*cloud);
+        } else {
+            auto ply = encode_scan_file(ctx, nullptr, &*cloud);
+            if (!ply) return ply.error();
+            bytes = std::move(*ply);
+        }
     }
     const double seconds =
         std::chrono::duration<double>(std::chrono::steady_clock::now() - start).count();

@@ -39,7 +39,8 @@ instance (its geometry id: its index in the scene). Every change makes a new rev
   scene trace ID RAYS -o FILE       closest hits of a KDRR file (KDRH + geometry ids, or KDRO)
   scene hits ID RAYS --all -o FILE  every hit along each ray (KDRM + geometry ids, or KDRC)
   scene distance ID POINTS -o OUT   closest points (CSV with a geometry_id column, or KDRD + ids)
-  scene scan ID --pinhole|--lidar -o FILE   a sensor scan (KDRZ / KDRL + geometry ids)
+  scene scan ID --pinhole|--lidar -o FILE   a sensor scan (EXR / PLY, or KDRZ / KDRL; with the
+                                    geometry ids)
 
 `kdrt scene SUBCOMMAND --help` describes each. The queries answer from the current revision, or
 from --revision N (one of the newest revisions the server keeps); a query sent as several
@@ -406,9 +407,9 @@ int run_trace(Context& ctx) {
     if (q->set.occlusion) {
         auto occluded = client.occluded_scene(id, q->set.rays, q->revision);
         if (!occluded) return ctx.fail(occluded.error());
-        hits = count_answers(*occluded);
-        answer = proto::encode_occlusion(*occluded);
-        revision = q->revision.value_or(0);
+        hits = count_answers(occluded->occluded);
+        answer = proto::encode_occlusion(occluded->occluded);
+        revision = occluded->revision;
     } else {
         auto found = client.intersect_scene(id, q->set.rays, q->revision);
         if (!found) return ctx.fail(found.error());
@@ -425,8 +426,7 @@ int run_trace(Context& ctx) {
     human << "traced " << rays << " rays (" << (q->set.occlusion ? "occlusion" : "closest hits")
           << ") in " << fixed(seconds, 3) << " s, " << fixed(mrays, 2) << " Mrays/s: " << hits
           << (q->set.occlusion ? " occluded" : " hits");
-    if (revision != 0) human << " (revision " << revision << ")";
-    human << " -> " << q->output;
+    human << " (revision " << revision << ") -> " << q->output;
     report_query(ctx, "scene trace", id, revision, q->output, human.str(),
                  {{"rays_file", std::string_view(ctx.args.positional[1])},
                   {"rays", uint64_t{rays}},
@@ -482,13 +482,14 @@ int run_hits(Context& ctx) {
     Client& client = ctx.connect(q->options);
     const auto start = Clock::now();
     std::vector<std::byte> answer;
-    uint64_t total = 0, kept = 0, revision = q->revision.value_or(0);
+    uint64_t total = 0, kept = 0, revision = 0;
     if (query.count_only) {
         auto counts =
             client.count_scene_intersections(id, q->set.rays, query.merge_coincident, q->revision);
         if (!counts) return ctx.fail(counts.error());
-        for (const uint32_t c : *counts) total += c;
-        answer = proto::encode_hit_counts(*counts);
+        for (const uint32_t c : counts->counts) total += c;
+        answer = proto::encode_hit_counts(counts->counts);
+        revision = counts->revision;
     } else {
         auto all = client.intersect_all_scene(id, q->set.rays, query, q->revision);
         if (!all) return ctx.fail(all.error());
@@ -506,8 +507,7 @@ int run_hits(Context& ctx) {
     human << "traced " << rays << " rays (every hit) in " << fixed(seconds, 3) << " s, "
           << fixed(mrays, 2) << " Mrays/s: " << total << " hits";
     if (!query.count_only) human << ", " << kept << " kept";
-    if (revision != 0) human << " (revision " << revision << ")";
-    human << " -> " << q->output;
+    human << " (revision " << revision << ") -> " << q->output;
     report_query(ctx, "scene hits", id, revision, q->output, human.str(),
                  {{"rays_file", std::string_view(ctx.args.positional[1])},
                   {"rays", uint64_t{rays}},
@@ -602,12 +602,19 @@ constexpr std::string_view kScanHelp =
                        [--json] [--quiet]
 
 Scans a scene with a depth camera or a lidar whose rays the server makes; the sensor options are
-kdrt scan's (kdrt scan --help). FILE gets the server's answer with the geometry id of each pixel
-or point: KDRZ with a geometry-id plane for --pinhole (.kdrz), KDRL with one for --lidar
-(.kdrl); proto/FORMATS.md, "Scenes".
+kdrt scan's (kdrt scan --help). FILE's extension picks the format, as for kdrt scan, and every
+format carries the geometry id of each pixel or point (the instance it hit):
+  pinhole: .exr  OpenEXR as kdrt scan writes it (float Z or range, uint prim, N.X N.Y N.Z with
+                 --normals) plus a uint "geometry_id" channel (4294967295 for a miss);
+                 .kdrz  the server's answer: KDRZ with a geometry-id plane
+  lidar:   .ply  binary PLY point cloud (x y z range channel azimuth_index return_index prim)
+                 plus a "uint geometry_id" vertex property;
+                 .kdrl  the server's answer: KDRL with a geometry-id plane
+(proto/FORMATS.md, "Sensor scans" and "Scenes").
 
-  -o, --output FILE   the .kdrz or .kdrl file (required; - for standard output)
-  --format NAME       kdrz or kdrl: the format when FILE's extension does not say (-o -)
+  -o, --output FILE   the file to write (required; - for standard output)
+  --format NAME       exr, kdrz (pinhole), ply or kdrl (lidar): the format when FILE's
+                      extension does not say (-o -)
   --revision N        that revision instead of the current one
 
 SENSOR OPTIONS (kdrt scan --help describes them): --pinhole with --intrinsics, --size and --pose,
@@ -623,14 +630,12 @@ int run_scan(Context& ctx) {
     const auto output = ctx.args.value("output");
     if (!output) return ctx.usage_error("missing -o FILE (the scan to write)");
     const bool pinhole = ctx.args.has("pinhole");
-    // The server answers a scene scan in its binary form only (the plane needs it).
-    std::string extension = ctx.format_path(*output);
-    extension = extension.substr(std::min(extension.size(), extension.rfind('.') + 1));
-    for (char& c : extension) c = static_cast<char>(std::tolower(static_cast<unsigned char>(c)));
-    if (extension != (pinhole ? "kdrz" : "kdrl"))
-        return ctx.usage_error("a scene scan is written as " +
-                               std::string(pinhole ? ".kdrz" : ".kdrl") +
-                               " (with the geometry ids), not \"" + *output + "\"");
+    if (pinhole == ctx.args.has("lidar"))
+        return ctx.usage_error("give exactly one of --pinhole and --lidar");
+    // The server answers in the binary form (KDRZ / KDRL with the plane), written as it came;
+    // EXR and PLY are encoded here by kdrt scan's writer, with the geometry ids.
+    const auto file = scan_file_format(ctx, *output, pinhole);
+    if (!file) return file.error();
     auto revision = revision_option(ctx, "revision");
     if (!revision) return revision.error();
     proto::ScanRequest request;
@@ -639,8 +644,16 @@ int run_scan(Context& ctx) {
     const auto start = Clock::now();
     auto scan = ctx.connect(ctx.client_options()).scan_scene(id, request, *revision);
     if (!scan) return ctx.fail(scan.error());
+    std::vector<std::byte> user_file;
+    if (*file == ScanFile::kUser) {
+        auto encoded = encode_scan_file(ctx, scan->depth ? &*scan->depth : nullptr,
+                                        scan->cloud ? &*scan->cloud : nullptr, scan->geometry_ids);
+        if (!encoded) return encoded.error();
+        user_file = std::move(*encoded);
+    }
+    const std::vector<std::byte>& bytes = *file == ScanFile::kUser ? user_file : scan->body;
     const double seconds = seconds_since(start);
-    if (auto failed = ctx.write_output(*output, scan->body, "the scan")) return *failed;
+    if (auto failed = ctx.write_output(*output, bytes, "the scan")) return *failed;
     uint64_t hits = 0, points = 0;
     std::string summary;
     if (scan->depth) {
@@ -652,11 +665,11 @@ int run_scan(Context& ctx) {
         summary = std::to_string(points) + " points";
     }
     report_query(ctx, "scene scan", id, scan->revision, *output,
-                 "wrote " + *output + " (" + std::to_string(scan->body.size()) + " bytes, " +
-                     summary + ", revision " + std::to_string(scan->revision) + ", " +
-                     fixed(seconds, 3) + " s)",
+                 "wrote " + *output + " (" + std::to_string(bytes.size()) + " bytes, " + summary +
+                     ", revision " + std::to_string(scan->revision) + ", " + fixed(seconds, 3) +
+                     " s)",
                  {{"sensor", std::string_view(pinhole ? "pinhole" : "lidar")},
-                  {"bytes", uint64_t{scan->body.size()}},
+                  {"bytes", uint64_t{bytes.size()}},
                   {"hits", hits},
                   {"points", points},
                   {"seconds", seconds}});

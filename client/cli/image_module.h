@@ -16,6 +16,7 @@
 
 #include <cstddef>
 #include <cstdint>
+#include <span>
 #include <string>
 #include <vector>
 
@@ -35,7 +36,7 @@ inline constexpr const char* kImageModuleFile = "kdrt-image-module.so";
 inline constexpr const char* kImageModuleEntry = "kdrt_image_module_v1";
 
 /// Bumped whenever ImageModuleTable or a type it passes changes layout.
-inline constexpr uint32_t kImageModuleAbi = 1;
+inline constexpr uint32_t kImageModuleAbi = 2;
 
 using EncodedBytes = proto::Result<std::vector<std::byte>, std::string>;
 
@@ -48,8 +49,9 @@ struct ImageModuleTable {
     /// transfer of `shading` (proto::render_transfer) and PNG level `png_compression`.
     EncodedBytes (*encode_render)(const Image& image, std::string_view format, Shading shading,
                                   int png_compression);
-    /// proto::encode_depth_exr.
-    EncodedBytes (*encode_depth_exr)(const DepthImage& image);
+    /// proto::encode_depth_exr (with a "geometry_id" channel when geometry_ids is not empty).
+    EncodedBytes (*encode_depth_exr)(const DepthImage& image,
+                                     std::span<const uint32_t> geometry_ids);
 };
 
 /// The module's table, loaded on the first call (thread-safe; later calls return the same

@@ -18,8 +18,9 @@ kdrt::cli::EncodedBytes encode_render(const kdrt::Image& image, std::string_view
     return kdrt::proto::encode_image(image, *parsed, options);
 }
 
-kdrt::cli::EncodedBytes encode_depth_exr(const kdrt::DepthImage& image) {
-    return kdrt::proto::encode_depth_exr(image);
+kdrt::cli::EncodedBytes encode_depth_exr(const kdrt::DepthImage& image,
+                                         std::span<const uint32_t> geometry_ids) {
+    return kdrt::proto::encode_depth_exr(image, geometry_ids);
 }
 
 constexpr kdrt::cli::ImageModuleTable kTable{

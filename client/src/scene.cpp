@@ -416,10 +416,11 @@ Result<SceneHits> Client::intersect_scene(std::string_view id, std::span<const R
     return out;
 }
 
-Result<std::vector<uint8_t>> Client::occluded_scene(std::string_view id, std::span<const Ray> rays,
-                                                    std::optional<uint64_t> revision) {
+Result<SceneOcclusion> Client::occluded_scene(std::string_view id, std::span<const Ray> rays,
+                                              std::optional<uint64_t> revision) {
     if (auto error = too_many(rays.size(), "rays")) return proto::Err{std::move(*error)};
-    std::vector<uint8_t> out;
+    SceneOcclusion result;
+    std::vector<uint8_t>& out = result.occluded;
     out.reserve(rays.size());
     auto answered =
         ray_chunks(*this, ClientAccess::api_path(*this, "/v1/scenes/{id}/intersect", id), rays,
@@ -430,7 +431,8 @@ Result<std::vector<uint8_t>> Client::occluded_scene(std::string_view id, std::sp
                                   }),
                    id);
     if (!answered) return proto::Err{std::move(answered).error()};
-    return out;
+    result.revision = *answered;
+    return result;
 }
 
 Result<SceneMultiHits> Client::intersect_all_scene(std::string_view id, std::span<const Ray> rays,
@@ -469,16 +471,17 @@ Result<SceneMultiHits> Client::intersect_all_scene(std::string_view id, std::spa
     return out;
 }
 
-Result<std::vector<uint32_t>> Client::count_scene_intersections(std::string_view id,
-                                                                std::span<const Ray> rays,
-                                                                bool merge_coincident,
-                                                                std::optional<uint64_t> revision) {
+Result<SceneHitCounts> Client::count_scene_intersections(std::string_view id,
+                                                         std::span<const Ray> rays,
+                                                         bool merge_coincident,
+                                                         std::optional<uint64_t> revision) {
     if (auto error = too_many(rays.size(), "rays")) return proto::Err{std::move(*error)};
     proto::MultiHitQuery q;
     q.count_only = true;
     q.merge_coincident = merge_coincident;
     q.max_hits = 1;
-    std::vector<uint32_t> counts;
+    SceneHitCounts result;
+    std::vector<uint32_t>& counts = result.counts;
     counts.reserve(rays.size());
     auto answered = ray_chunks(
         *this,
@@ -488,7 +491,8 @@ Result<std::vector<uint32_t>> Client::count_scene_intersections(std::string_view
             return proto::decode_hit_counts(body, {.max_rays = kNoLimit});
         }));
     if (!answered) return proto::Err{std::move(answered).error()};
-    return counts;
+    result.revision = *answered;
+    return result;
 }
 
 Result<SceneDistanceAnswer> Client::scene_distance(std::string_view id,

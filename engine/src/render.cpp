@@ -178,6 +178,9 @@ uint64_t render_tile(const Frame& f, const Tracer& tracer, uint32_t tile_index, 
             case Shading::kPrimId:
                 shade_primary<Shading::kPrimId>(f, tile, s);
                 break;
+            case Shading::kGeomId:
+                shade_primary<Shading::kGeomId>(f, tile, s);
+                break;
         }
     }
 

@@ -49,6 +49,14 @@ inline std::array<float, 3> prim_colour(uint32_t prim, uint32_t geom) noexcept {
             static_cast<float>((h >> 16) & 0xFFu) / 255.0f};
 }
 
+/// A fixed colour per geometry id alone (a scene's instance; 0 for a mesh): three bytes of a hash
+/// of the id, another hash than prim_colour's, so every triangle of an instance has its colour.
+inline std::array<float, 3> geom_colour(uint32_t geom) noexcept {
+    const uint64_t h = mix64(0x6B64727447656F6Dull ^ uint64_t{geom});
+    return {static_cast<float>(h & 0xFFu) / 255.0f, static_cast<float>((h >> 8) & 0xFFu) / 255.0f,
+            static_cast<float>((h >> 16) & 0xFFu) / 255.0f};
+}
+
 inline void add(std::array<float, 4>& sum, float r, float g, float b, float coverage) noexcept {
     sum[0] += r;
     sum[1] += g;
@@ -60,8 +68,8 @@ inline void add_background(const Frame& f, std::array<float, 4>& sum) noexcept {
     add(sum, f.settings.background.x, f.settings.background.y, f.settings.background.z, 0.0f);
 }
 
-/// normals, eyelight, depth, primid: a colour straight from the camera hit. One loop per mode,
-/// so the per-pixel loop has no mode switch.
+/// normals, eyelight, depth, primid, geomid: a colour straight from the camera hit. One loop per
+/// mode, so the per-pixel loop has no mode switch.
 template <Shading kShading>
 void shade_primary(const Frame& f, const TilePixels& tile, TileScratch& s) noexcept {
     for (uint32_t i = 0; i < tile.pixel_count(); ++i) {
@@ -80,9 +88,12 @@ void shade_primary(const Frame& f, const TilePixels& tile, TileScratch& s) noexc
             add(s.sum[i], c, c, c, 1.0f);
         } else if constexpr (kShading == Shading::kDepth) {
             add(s.sum[i], hit.t, hit.t, hit.t, 1.0f);
-        } else {
-            static_assert(kShading == Shading::kPrimId);
+        } else if constexpr (kShading == Shading::kPrimId) {
             const auto c = prim_colour(hit.prim, f.scene ? s.geoms[i] : 0u);
+            add(s.sum[i], c[0], c[1], c[2], 1.0f);
+        } else {
+            static_assert(kShading == Shading::kGeomId);
+            const auto c = geom_colour(f.scene ? s.geoms[i] : 0u);
             add(s.sum[i], c[0], c[1], c[2], 1.0f);
         }
     }

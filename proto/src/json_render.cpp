@@ -160,7 +160,7 @@ Result<RenderRequest, JsonError> decode_render_request(std::string_view text,
         req.settings.shading = *parsed;
     else
         r.fail("unknown shading " + quote_value(shading) +
-               " (expected normals, eyelight, ao, diffuse, depth or primid)");
+               " (expected normals, eyelight, ao, diffuse, depth, primid or geomid)");
     r.integer("ao_samples", req.settings.ao_samples, 1, kMaxAoSamples);
     r.real("ao_distance", req.settings.ao_distance);
     if (r.find("ao_distance") && !(req.settings.ao_distance > 0.0f))

@@ -215,7 +215,9 @@ Result<PointCloud, DecodeError> decode_point_cloud(std::span<const std::byte> bo
     return cloud;
 }
 
-std::vector<std::byte> encode_point_cloud_ply(const PointCloud& cloud) {
+std::vector<std::byte> encode_point_cloud_ply(const PointCloud& cloud,
+                                              std::span<const uint32_t> geometry_ids) {
+    const bool geoms = !geometry_ids.empty();
     const std::string header =
         "ply\nformat binary_little_endian 1.0\ncomment kdrt lidar scan\ncomment channels " +
         std::to_string(cloud.channels) + "\ncomment azimuth_steps " +
@@ -223,12 +225,22 @@ std::vector<std::byte> encode_point_cloud_ply(const PointCloud& cloud) {
         "\nelement vertex " + std::to_string(cloud.points.size()) +
         "\nproperty float x\nproperty float y\nproperty float z\nproperty float range\n"
         "property uint channel\nproperty uint azimuth_index\nproperty uint return_index\n"
-        "property uint prim\nend_header\n";
-    std::vector<std::byte> out(header.size() + cloud.points.size() * kLidarPointBytes);
+        "property uint prim\n" +
+        (geoms ? "property uint geometry_id\n" : "") + "end_header\n";
+    const size_t stride = kLidarPointBytes + (geoms ? 4 : 0);
+    std::vector<std::byte> out(header.size() + cloud.points.size() * stride);
     std::memcpy(out.data(), header.data(), header.size());
-    if (!cloud.points.empty())
-        std::memcpy(out.data() + header.size(), cloud.points.data(),
-                    cloud.points.size() * kLidarPointBytes);
+    if (!geoms) {
+        if (!cloud.points.empty())
+            std::memcpy(out.data() + header.size(), cloud.points.data(),
+                        cloud.points.size() * kLidarPointBytes);
+        return out;
+    }
+    std::byte* p = out.data() + header.size();
+    for (size_t i = 0; i < cloud.points.size(); ++i, p += stride) {
+        std::memcpy(p, &cloud.points[i], kLidarPointBytes);
+        std::memcpy(p + kLidarPointBytes, &geometry_ids[i], 4);
+    }
     return out;
 }
 

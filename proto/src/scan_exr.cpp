@@ -31,14 +31,17 @@ std::string object_error(Object& object, std::string_view fallback) {
 
 }  // namespace
 
-Result<std::vector<std::byte>, std::string> encode_depth_exr(const DepthImage& image) {
+Result<std::vector<std::byte>, std::string> encode_depth_exr(
+    const DepthImage& image, std::span<const uint32_t> geometry_ids) {
     const size_t n = size_t{image.width} * image.height;
     const bool normals = !image.normals.empty();
+    const bool geoms = !geometry_ids.empty();
     if (image.width == 0 || image.height == 0 || image.depth.size() != n ||
-        image.prim.size() != n || (normals && image.normals.size() != n))
+        image.prim.size() != n || (normals && image.normals.size() != n) ||
+        (geoms && geometry_ids.size() != n))
         return Err{std::string("depth image planes do not match its width x height")};
     configure_oiio_once();
-    const int channels = normals ? 5 : 2;
+    const int channels = (normals ? 5 : 2) + (geoms ? 1 : 0);
     OIIO::ImageSpec spec(static_cast<int>(image.width), static_cast<int>(image.height), channels,
                          OIIO::TypeDesc::FLOAT);
     spec.channelnames = {image.kind == DepthKind::kRange ? "range" : "Z", "prim"};
@@ -48,6 +51,10 @@ Result<std::vector<std::byte>, std::string> encode_depth_exr(const DepthImage& i
             spec.channelnames.emplace_back(c);
             spec.channelformats.push_back(OIIO::TypeDesc::FLOAT);
         }
+    }
+    if (geoms) {
+        spec.channelnames.emplace_back("geometry_id");
+        spec.channelformats.push_back(OIIO::TypeDesc::UINT);
     }
     spec.z_channel = image.kind == DepthKind::kRange ? -1 : 0;
     spec.attribute("compression", "zip");
@@ -59,6 +66,7 @@ Result<std::vector<std::byte>, std::string> encode_depth_exr(const DepthImage& i
         std::memcpy(px, &image.depth[p], 4);
         px[1] = image.prim[p];
         if (normals) std::memcpy(px + 2, &image.normals[p], 12);
+        if (geoms) px[channels - 1] = geometry_ids[p];
     }
     std::vector<unsigned char> encoded;
     OIIO::Filesystem::IOVecOutput proxy(encoded);
@@ -78,7 +86,8 @@ Result<std::vector<std::byte>, std::string> encode_depth_exr(const DepthImage& i
 }
 
 Result<DepthImage, std::string> decode_depth_exr(std::span<const std::byte> bytes,
-                                                 uint64_t max_pixels) {
+                                                 uint64_t max_pixels,
+                                                 std::vector<uint32_t>* geometry_ids) {
     configure_oiio_once();
     OIIO::Filesystem::IOMemReader proxy(bytes.data(), bytes.size());
     OIIO::ImageSpec config;
@@ -136,6 +145,17 @@ Result<DepthImage, std::string> decode_depth_exr(std::span<const std::byte> byte
                 return Err{std::string("exr depth image normal channels must be float")};
             float* base = &image.normals[0].x + (c == nx ? 0 : c == ny ? 1 : 2);
             if (!read(c, OIIO::TypeDesc::FLOAT, base, sizeof(Vec3)))
+                return Err{"cannot decode exr depth image: " + object_error(*in, "read failed")};
+        }
+    }
+    if (geometry_ids != nullptr) {
+        geometry_ids->clear();
+        const int geom_c = find("geometry_id");
+        if (geom_c >= 0) {
+            if (format_of(geom_c) != OIIO::TypeDesc::UINT)
+                return Err{std::string("exr depth image channel \"geometry_id\" must be uint")};
+            geometry_ids->resize(n);
+            if (!read(geom_c, OIIO::TypeDesc::UINT, geometry_ids->data(), 4))
                 return Err{"cannot decode exr depth image: " + object_error(*in, "read failed")};
         }
     }

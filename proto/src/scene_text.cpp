@@ -41,7 +41,8 @@ bool is_number(std::string_view field) {
            (ec == std::errc() || ec == std::errc::result_out_of_range);
 }
 
-/// Calls take(line number, fields) for every line with content; stops at the first error.
+/// Calls take(line number, fields) for every line with at least one field; stops at the first
+/// error.
 template <class Take>
 std::optional<std::string> for_each_line(std::string_view text, Take take) {
     size_t line_number = 0;
@@ -53,7 +54,10 @@ std::optional<std::string> for_each_line(std::string_view text, Take take) {
         if (!line.empty() && line.back() == '\r') line.remove_suffix(1);
         const size_t start = line.find_first_not_of(" \t");
         if (start == std::string_view::npos || line[start] == '#') continue;
-        if (auto error = take(line_number, fields_of(line))) return error;
+        // A line of separators only (",", ", ,") has no field: blank, as take() needs one.
+        const std::vector<std::string_view> fields = fields_of(line);
+        if (fields.empty()) continue;
+        if (auto error = take(line_number, fields)) return error;
     }
     return std::nullopt;
 }

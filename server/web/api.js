@@ -85,10 +85,27 @@ export function uploadMesh(file, onProgress) {
   });
 }
 
-/// POST /v1/render: resolves to the image Blob.
+export async function listScenes() {
+  return (await (await call('GET', '/v1/scenes')).json()).scenes;
+}
+
+export async function scene(id) {
+  return (await call('GET', `/v1/scenes/${encodeURIComponent(id)}`)).json();
+}
+
+/// Where a viewer render request goes: POST /v1/render for a mesh; for a scene (the request
+/// names `scene` instead of `mesh`) POST /v1/scenes/{id}/render with the request without it.
+export function renderRoute(request) {
+  if (!request.scene) return { path: '/v1/render', body: request };
+  const { scene: id, ...body } = request;
+  return { path: `/v1/scenes/${encodeURIComponent(id)}/render`, body };
+}
+
+/// POST /v1/render (or a scene's render): resolves to the image Blob.
 export async function render(request, signal) {
-  const response = await call('POST', '/v1/render', {
-    body: JSON.stringify(request),
+  const route = renderRoute(request);
+  const response = await call('POST', route.path, {
+    body: JSON.stringify(route.body),
     headers: { 'Content-Type': 'application/json' },
     signal,
   });
@@ -97,8 +114,9 @@ export async function render(request, signal) {
 
 /// POST /v1/render with Prefer: respond-async: resolves to the job status.
 export async function submitJob(request) {
-  const response = await call('POST', '/v1/render', {
-    body: JSON.stringify(request),
+  const route = renderRoute(request);
+  const response = await call('POST', route.path, {
+    body: JSON.stringify(route.body),
     headers: { 'Content-Type': 'application/json', Prefer: 'respond-async' },
   });
   return response.json();

@@ -27,7 +27,8 @@ const REST_MS = 200;
 
 const state = {
   meshes: [],
-  mesh: null,          // the mesh summary being viewed
+  mesh: null,          // the mesh summary being viewed, or a scene: {id, scene: true, bounds, instances, revision}
+  scenes: [],
   view: new OrbitView(),
   inflight: null,      // AbortController of the render in flight
   generation: 0,       // bumps on every view or setting change
@@ -62,7 +63,7 @@ function renderRequest({ preview = false, format = 'png', size = null, spp = nul
   const [width, height] = size || frameSize(preview ? PREVIEW_DIVISOR : 1);
   const bg = LIGHT_MODES.has(shading) ? srgbToLinear(BACKGROUND_LEVEL) : BACKGROUND_LEVEL;
   const req = {
-    mesh: state.mesh.id,
+    [state.mesh.scene ? 'scene' : 'mesh']: state.mesh.id,
     camera: state.view.camera(),
     width,
     height,
@@ -114,7 +115,7 @@ $('token-form').addEventListener('submit', (e) => {
   e.preventDefault();
   api.setToken($('token').value.trim());
   $('token-state').textContent = api.token() ? 'Token kept for this tab only.' : 'No token.';
-  refreshMeshes();
+  refreshMeshes().then(refreshScenes);
 });
 
 // ---- Meshes --------------------------------------------------------------------------------
@@ -158,6 +159,10 @@ function renderMeshTable() {
 function showBounds() {
   const m = state.mesh;
   const f = (v) => v.map((x) => x.toPrecision(4)).join(', ');
+  if (m && m.scene) {
+    $('mesh-bounds').textContent = `scene ${m.id.slice(0, 12)}…: revision ${m.revision}, ${m.instances} instances, bounds [${f(m.bounds.min)}] – [${f(m.bounds.max)}]`;
+    return;
+  }
   $('mesh-bounds').textContent = m
     ? `${m.id.slice(0, 12)}…: ${m.triangles.toLocaleString('en')} triangles, bounds [${f(m.bounds.min)}] – [${f(m.bounds.max)}]`
     : '';
@@ -167,7 +172,7 @@ async function refreshMeshes() {
   try {
     state.meshes = await api.listMeshes();
     showError('upload-error', null);
-    if (state.mesh && !state.meshes.some((m) => m.id === state.mesh.id)) state.mesh = null;
+    if (state.mesh && !state.mesh.scene && !state.meshes.some((m) => m.id === state.mesh.id)) state.mesh = null;
     if (!state.mesh && state.meshes.length > 0) selectMesh(state.meshes[0]);
     renderMeshTable();
     showBounds();
@@ -183,6 +188,83 @@ function selectMesh(m) {
   showBounds();
   viewChanged();
 }
+
+// ---- Scenes: stored meshes placed by transforms, rendered through /v1/scenes/{id}/render -------
+
+function renderSceneTable() {
+  const body = $('scenes').querySelector('tbody');
+  body.replaceChildren();
+  for (const s of state.scenes) {
+    const row = document.createElement('tr');
+    row.dataset.id = s.id;
+    if (state.mesh && state.mesh.scene && state.mesh.id === s.id) row.className = 'selected';
+    const view = document.createElement('button');
+    view.type = 'button';
+    view.textContent = s.id.slice(0, 12);
+    view.title = s.id;
+    view.setAttribute('aria-label', `View scene ${s.id.slice(0, 12)}`);
+    view.addEventListener('click', () => openScene(s.id));
+    cell(row, '').append(view);
+    cell(row, String(s.instances));
+    cell(row, String(s.revision));
+    body.append(row);
+  }
+  $('scenes-empty').hidden = state.scenes.length > 0;
+}
+
+async function refreshScenes() {
+  try {
+    state.scenes = await api.listScenes();
+    renderSceneTable();
+  } catch (e) {
+    showError('scene-error', e);
+  }
+}
+
+/// The world box of a scene: each instance's mesh box (from the mesh list) through its
+/// transform (row-major 3 x 4), all eight corners.
+function sceneBounds(doc) {
+  const min = [Infinity, Infinity, Infinity], max = [-Infinity, -Infinity, -Infinity];
+  for (const inst of doc.instances) {
+    const mesh = state.meshes.find((m) => m.id === inst.mesh);
+    if (!mesh) continue;
+    const t = inst.transform.flat();
+    for (let k = 0; k < 8; ++k) {
+      const p = [0, 1, 2].map((a) => ((k >> a) & 1 ? mesh.bounds.max[a] : mesh.bounds.min[a]));
+      for (let r = 0; r < 3; ++r) {
+        const w = t[4 * r] * p[0] + t[4 * r + 1] * p[1] + t[4 * r + 2] * p[2] + t[4 * r + 3];
+        min[r] = Math.min(min[r], w);
+        max[r] = Math.max(max[r], w);
+      }
+    }
+  }
+  return { min, max };
+}
+
+async function openScene(id) {
+  try {
+    const doc = await api.scene(id);
+    if (doc.instances.some((inst) => !state.meshes.some((m) => m.id === inst.mesh))) state.meshes = await api.listMeshes();
+    const bounds = sceneBounds(doc);
+    if (!(bounds.min[0] <= bounds.max[0])) throw new api.ApiError(0, `scene ${id.slice(0, 12)}: none of its meshes is stored`);
+    state.mesh = { id: doc.id, scene: true, bounds, instances: doc.instances.length, revision: doc.revision };
+    showError('scene-error', null);
+    state.view.frame(bounds);
+    renderMeshTable();
+    renderSceneTable();
+    showBounds();
+    viewChanged();
+  } catch (e) {
+    showError('scene-error', e);
+  }
+}
+
+$('scene-form').addEventListener('submit', (e) => {
+  e.preventDefault();
+  const id = $('scene-id').value.trim();
+  if (id) openScene(id);
+});
+$('scenes-refresh').addEventListener('click', refreshScenes);
 
 async function removeMesh(m) {
   try {
@@ -434,7 +516,9 @@ function shellQuote(s) { return `'${s.replace(/'/g, "'\\''")}'`; }
 function commands(request) {
   const origin = location.origin;
   const auth = api.token() ? ' -H "Authorization: Bearer $KDRT_TOKEN"' : '';
-  const curl = `curl -sS --fail-with-body -X POST ${origin}/v1/render -H 'Content-Type: application/json'${auth} \\\n  -d ${shellQuote(JSON.stringify(request))} \\\n  -o frame.${request.format}`;
+  const route = api.renderRoute(request);
+  const curl = `curl -sS --fail-with-body -X POST ${origin}${route.path} -H 'Content-Type: application/json'${auth} \\\n  -d ${shellQuote(JSON.stringify(route.body))} \\\n  -o frame.${request.format}`;
+  if (request.scene) return { curl, kdrt: '# kdrt renders meshes only: use the curl line for a scene' };
   const c = request.camera;
   let kdrt = `kdrt --server ${origin}${api.token() ? ' --token "$KDRT_TOKEN"' : ''} render ${request.mesh} -o frame.${request.format} \\\n` +
     `  --size ${request.width}x${request.height} --eye ${c.eye.join(',')} --look-at ${c.look_at.join(',')} ` +
@@ -577,4 +661,4 @@ async function pollStatus() {
 
 pollStatus();
 setInterval(pollStatus, 2000);
-refreshMeshes();
+refreshMeshes().then(refreshScenes);

@@ -5,8 +5,11 @@
 
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <cstring>
+#include <filesystem>
 #include <limits>
+#include <sstream>
 
 #include "cli_runner.h"
 #include "client_test_util.h"
@@ -14,6 +17,7 @@
 #include "kdrt/proto/mesh_id.h"
 #include "kdrt/proto/ray_batch.h"
 #include "kdrt/proto/scan.h"
+#include "kdrt/proto/scan_image.h"
 #include "kdrt/proto/scene.h"
 #include "kdrt/scene.h"
 #include "scenes.h"
@@ -158,6 +162,30 @@ TEST_F(CliScene, QueryFilesAreTheServersAnswers) {
     EXPECT_EQ(as_string(read_bytes(path("hits.kdrh"))),
               one_request(id, "intersect", rays_body, kRays));
 
+    // Occlusion (KDRO) and counts (KDRC) carry no plane: the summary says which revision
+    // answered, here the current one (2, after a pose change), not 0.
+    write_text(path("pose.txt"), "crate 0 0 0.5\n");
+    ASSERT_EQ(kdrt({"scene", "poses", id, path("pose.txt"), "-q"}).exit_code, 0);
+    const std::string shadow_body = as_string(proto::encode_rays(rays, true));
+    write_text(path("shadow.kdrr"), shadow_body);
+    run = kdrt({"scene", "trace", id, path("shadow.kdrr"), "-o", path("occ.kdro"), "--chunk-rays",
+                "700", "--json"});
+    ASSERT_EQ(run.exit_code, 0) << run.err;
+    EXPECT_TRUE(contains(run.out, "\"revision\":2")) << run.out;
+    EXPECT_EQ(as_string(read_bytes(path("occ.kdro"))),
+              one_request(id, "intersect", shadow_body, kRays));
+    run = kdrt({"scene", "trace", id, path("shadow.kdrr"), "-o", path("occ.kdro")});
+    ASSERT_EQ(run.exit_code, 0) << run.err;
+    EXPECT_TRUE(contains(run.err, "(revision 2)")) << run.err;
+    run = kdrt({"scene", "hits", id, path("rays.kdrr"), "--all", "--count-only", "-o",
+                path("n.kdrc"), "--chunk-rays", "700", "--json"});
+    ASSERT_EQ(run.exit_code, 0) << run.err;
+    EXPECT_TRUE(contains(run.out, "\"revision\":2")) << run.out;
+    run = kdrt({"scene", "trace", id, path("shadow.kdrr"), "-o", path("occ1.kdro"), "--revision",
+                "1", "--json"});
+    ASSERT_EQ(run.exit_code, 0) << run.err;
+    EXPECT_TRUE(contains(run.out, "\"revision\":1")) << run.out;
+
     run = kdrt({"scene", "hits", id, path("rays.kdrr"), "--all", "-o", "-", "--chunk-rays", "1000",
                 "--max-hits", "4", "--normal", "--quiet"});
     ASSERT_EQ(run.exit_code, 0) << run.err;
@@ -196,6 +224,96 @@ TEST_F(CliScene, QueryFilesAreTheServersAnswers) {
               one_request(id, "scan", proto::encode_scan_request(request), "application/json"));
 }
 
+TEST_F(CliScene, ScanUserFilesCarryTheGeometryIdsOfTheBinaryAnswer) {
+    const std::string id = create_text_scene();
+    // A pinhole that sees the three instances: EXR and KDRZ of the same scan.
+    const std::vector<std::string> camera = {"--pinhole", "--eye",    "0.1,0.4,4", "--look-at",
+                                             "0.1,0.4,0", "--fov",    "50",        "--size",
+                                             "48x36",     "--normals"};
+    auto scan = [&](const std::vector<std::string>& sensor, const std::string& file) {
+        std::vector<std::string> args = {"scene", "scan", id, "-o", path(file), "--json"};
+        args.insert(args.end(), sensor.begin(), sensor.end());
+        return kdrt(args);
+    };
+    CliRun run = scan(camera, "s.exr");
+    ASSERT_EQ(run.exit_code, 0) << run.err;
+    EXPECT_TRUE(contains(run.out, "\"revision\":1")) << run.out;
+    run = scan(camera, "s.kdrz");
+    ASSERT_EQ(run.exit_code, 0) << run.err;
+    auto kdrz = proto::split_geometry_ids(read_bytes(path("s.kdrz")));
+    ASSERT_TRUE(kdrz) << kdrz.error().to_string();
+    auto want = proto::decode_depth_image(kdrz->mesh_body);
+    ASSERT_TRUE(want) << want.error().to_string();
+    std::vector<uint32_t> exr_geoms;
+    auto exr = proto::decode_depth_exr(read_bytes(path("s.exr")), 1ull << 28, &exr_geoms);
+    ASSERT_TRUE(exr) << exr.error();
+    EXPECT_EQ(exr_geoms, kdrz->geometry_ids);
+    EXPECT_EQ(exr->prim, want->prim);
+    ASSERT_EQ(exr->depth.size(), want->depth.size());
+    EXPECT_EQ(std::memcmp(exr->depth.data(), want->depth.data(), 4 * want->depth.size()), 0);
+    ASSERT_EQ(exr->normals.size(), want->normals.size());
+    EXPECT_EQ(std::memcmp(exr->normals.data(), want->normals.data(), 12 * want->normals.size()), 0);
+    // The scan is worth comparing: it hits at least two instances, and misses somewhere.
+    std::vector<uint32_t> seen = kdrz->geometry_ids;
+    std::sort(seen.begin(), seen.end());
+    seen.erase(std::unique(seen.begin(), seen.end()), seen.end());
+    EXPECT_GE(seen.size(), 3u) << "hit instances and kNoHit";
+    for (size_t p = 0; p < want->prim.size(); ++p)
+        EXPECT_EQ(want->prim[p] == kNoHit, kdrz->geometry_ids[p] == kNoHit) << p;
+
+    // A lidar: PLY and KDRL of the same scan.
+    const std::vector<std::string> lidar = {"--lidar",
+                                            "--elevations",
+                                            "-10,0,10",
+                                            "--azimuth-steps",
+                                            "90",
+                                            "--returns",
+                                            "2",
+                                            "--pose",
+                                            "1,0,0,0.5,0,1,0,-2,0,0,1,0.4,0,0,0,1"};
+    run = scan(lidar, "s.ply");
+    ASSERT_EQ(run.exit_code, 0) << run.err;
+    run = scan(lidar, "s.kdrl");
+    ASSERT_EQ(run.exit_code, 0) << run.err;
+    auto kdrl = proto::split_geometry_ids(read_bytes(path("s.kdrl")));
+    ASSERT_TRUE(kdrl) << kdrl.error().to_string();
+    auto cloud = proto::decode_point_cloud(kdrl->mesh_body);
+    ASSERT_TRUE(cloud) << cloud.error().to_string();
+    ASSERT_GT(cloud->points.size(), 0u);
+    const std::string ply = as_string(read_bytes(path("s.ply")));
+    const std::string end = "end_header\n";
+    const size_t body = ply.find(end);
+    ASSERT_NE(body, std::string::npos);
+    // Parse the header: the vertex count and the properties, in order.
+    std::istringstream header(ply.substr(0, body));
+    std::string line;
+    size_t vertices = 0;
+    std::vector<std::string> properties;
+    while (std::getline(header, line)) {
+        std::istringstream words(line);
+        std::string key, a, b;
+        words >> key >> a >> b;
+        if (key == "element" && a == "vertex") vertices = std::stoul(b);
+        if (key == "property") properties.push_back(a + " " + b);
+    }
+    EXPECT_EQ(vertices, cloud->points.size());
+    EXPECT_EQ(properties,
+              (std::vector<std::string>{"float x", "float y", "float z", "float range",
+                                        "uint channel", "uint azimuth_index", "uint return_index",
+                                        "uint prim", "uint geometry_id"}));
+    const size_t stride = 9 * 4;
+    ASSERT_EQ(ply.size(), body + end.size() + vertices * stride);
+    std::vector<uint32_t> ply_geoms;
+    for (size_t i = 0; i < vertices; ++i) {
+        const char* vertex = ply.data() + body + end.size() + i * stride;
+        EXPECT_EQ(std::memcmp(vertex, &cloud->points[i], 32), 0) << i;
+        uint32_t g = 0;
+        std::memcpy(&g, vertex + 32, 4);
+        ply_geoms.push_back(g);
+    }
+    EXPECT_EQ(ply_geoms, kdrl->geometry_ids);
+}
+
 TEST_F(CliScene, UsageErrorsAndRefusals) {
     CliRun run = kdrt({"scene"});
     EXPECT_EQ(run.exit_code, 2);
@@ -222,12 +340,13 @@ TEST_F(CliScene, UsageErrorsAndRefusals) {
     run = kdrt({"scene", "create", path("unknown.txt")});
     EXPECT_EQ(run.exit_code, 1);
     EXPECT_TRUE(contains(run.err, "instance 1")) << run.err;
-    // A scan output that cannot carry geometry ids.
+    // A scan output of no scan format.
     const std::string id = create_text_scene();
     run = kdrt({"scene", "scan", id, "--lidar", "--elevations", "0", "--azimuth-steps", "8", "-o",
-                path("s.ply")});
+                path("never.exr")});
     EXPECT_EQ(run.exit_code, 2);
-    EXPECT_TRUE(contains(run.err, "a scene scan is written as .kdrl")) << run.err;
+    EXPECT_TRUE(contains(run.err, "a lidar scan is .ply or .kdrl")) << run.err;
+    EXPECT_FALSE(std::filesystem::exists(path("never.exr")));
     // An unreachable server: exit 3.
     CliOptions options;
     options.env.push_back("KDRT_SERVER=http://127.0.0.1:1");

@@ -190,7 +190,7 @@ TEST_F(Cli, RenderOptionsAreCheckedBeforeAnyRequest) {
         {{"--fov", "180"}, "--fov: \"180\" is not a number of degrees in (0, 180)"},
         {{"--ortho", "-1"}, "--ortho: \"-1\" is not a positive number"},
         {{"--shading", "toon"},
-         "--shading: \"toon\" is not normals, eyelight, ao, diffuse, depth or primid"},
+         "--shading: \"toon\" is not normals, eyelight, ao, diffuse, depth, primid or geomid"},
         {{"--spp", "0"}, "--spp: \"0\" is not in 1 .. 65536"},
         {{"--seed", "-3"}, "--seed: \"-3\" is not a whole number"},
         {{"--tile", "1,2,3"}, "--tile: \"1,2,3\" is not x,y,w,h"},

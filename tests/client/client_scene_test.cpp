@@ -6,6 +6,7 @@
 
 #include <gtest/gtest.h>
 
+#include <atomic>
 #include <chrono>
 #include <cmath>
 #include <cstring>
@@ -239,7 +240,7 @@ TEST_F(ClientScene, ASplitQueryAnswersFromOneRevisionInParallelParts) {
         ASSERT_TRUE(occluded) << occluded.error().to_string();
         std::vector<uint8_t> want_occluded(batch.size());
         kdrt::occluded(scene, batch, want_occluded);
-        EXPECT_EQ(*occluded, want_occluded);
+        EXPECT_EQ(occluded->occluded, want_occluded);
         // 7 parts each (ceil(1000 / 150)); the server counts a request just after answering it.
         double now = 0;
         for (int i = 0; i < 100 && (now = server_->metric(route).value_or(0)) != before + 14; ++i)
@@ -275,7 +276,8 @@ TEST_F(ClientScene, QueriesEqualTheEngineInChunksOfOneRevision) {
     ASSERT_TRUE(occluded) << occluded.error().to_string();
     std::vector<uint8_t> want_occluded(batch.size());
     kdrt::occluded(scene, batch, want_occluded);
-    EXPECT_EQ(*occluded, want_occluded);
+    EXPECT_EQ(occluded->occluded, want_occluded);
+    EXPECT_EQ(occluded->revision, 1u);
 
     proto::MultiHitQuery query;
     query.max_hits = 8;
@@ -292,7 +294,8 @@ TEST_F(ClientScene, QueriesEqualTheEngineInChunksOfOneRevision) {
     }
     auto counts = c.count_scene_intersections(created->id, batch, false);
     ASSERT_TRUE(counts);
-    EXPECT_EQ(*counts, want_all.counts);
+    EXPECT_EQ(counts->counts, want_all.counts);
+    EXPECT_EQ(counts->revision, 1u);
 
     // More points than the server takes at once: the client shrinks its chunks.
     Rng rng(test_seed() + 6);
@@ -350,6 +353,62 @@ TEST_F(ClientScene, QueriesEqualTheEngineInChunksOfOneRevision) {
         changed += want_moved[i].t != want[i].t;
     }
     EXPECT_GT(changed, 0u);
+}
+
+// Occlusion and hit counts have no geometry-id plane; their chunked answers still come from one
+// revision (the first chunk's, pinned by ?revision=N on the others) while poses change between
+// the chunks, and say which one: each answer equals the engine's for the revision it reports.
+TEST_F(ClientScene, ChunkedOcclusionAndCountsHoldOneRevisionWhilePosesChange) {
+    ClientOptions options = fast_options();
+    options.chunk_rays = 100;  // ten requests a call
+    Client c = client(options);
+    auto created = c.create_scene(instances());
+    ASSERT_TRUE(created);
+    const std::vector<Ray> batch = rays(1000, test_seed() + 7);
+    // Revision r has the ball 0.3 (r - 1) further along x.
+    const auto at = [](uint64_t r) {
+        return moved(1.0f, {0.3f * static_cast<float>(r - 1), 0, 0});
+    };
+    const auto scene_at = [&](uint64_t r) {
+        SceneDocument doc = *created;
+        doc.instances[0].transform = at(r);
+        return local(doc);
+    };
+    constexpr uint64_t kLast = 7;  // fewer changes than scene_revisions_kept (8)
+    std::atomic<bool> done{false};
+    std::thread mover([&] {
+        Client m = client();
+        for (uint64_t r = 2; r <= kLast; ++r) {
+            const proto::PoseEntry pose = pose_of(0, "", at(r));
+            auto changed = m.set_poses(created->id, std::span(&pose, 1));
+            EXPECT_TRUE(changed && changed->revision == r) << r;
+            std::this_thread::sleep_for(std::chrono::milliseconds(25));
+        }
+        done = true;
+    });
+    for (int k = 0; k < 400 && (k < 4 || !done); ++k) {
+        auto occluded = c.occluded_scene(created->id, batch);
+        auto counts = c.count_scene_intersections(created->id, batch, false);
+        EXPECT_TRUE(occluded && counts);
+        if (!occluded || !counts) break;
+        std::vector<uint8_t> want(batch.size());
+        kdrt::occluded(scene_at(occluded->revision), batch, want);
+        EXPECT_EQ(occluded->occluded, want) << "revision " << occluded->revision;
+        EXPECT_EQ(counts->counts,
+                  intersect_all(scene_at(counts->revision), batch, {8, false}).counts)
+            << "revision " << counts->revision;
+    }
+    mover.join();
+    // The revisions differ in their answers (else the check above could not fail) ...
+    std::vector<uint8_t> first(batch.size()), last(batch.size());
+    kdrt::occluded(scene_at(1), batch, first);
+    kdrt::occluded(scene_at(kLast), batch, last);
+    EXPECT_NE(first, last);
+    // ... and the current one answers last.
+    auto final_answer = c.occluded_scene(created->id, batch);
+    ASSERT_TRUE(final_answer);
+    EXPECT_EQ(final_answer->revision, kLast);
+    EXPECT_EQ(final_answer->occluded, last);
 }
 
 }  // namespace

@@ -8,6 +8,7 @@
 #include <cstring>
 #include <memory>
 #include <numbers>
+#include <set>
 
 #include "kdrt/camera.h"
 #include "kdrt/distance.h"
@@ -811,7 +812,7 @@ TEST(SceneRender, IdentitySceneRendersAsTheMeshInEveryMode) {
     auto tree = std::make_shared<const KdTree>(build_kdtree(mesh));
     const Scene scene = build_scene({{tree, Affine3x4{}, nullptr}});
     for (Shading shading : {Shading::kNormals, Shading::kEyelight, Shading::kDepth,
-                            Shading::kPrimId, Shading::kAo, Shading::kDiffuse}) {
+                            Shading::kPrimId, Shading::kAo, Shading::kDiffuse, Shading::kGeomId}) {
         SCOPED_TRACE(std::string(shading_name(shading)));
         RenderSettings settings;
         settings.width = 48;
@@ -848,6 +849,66 @@ TEST(SceneRender, InstancesOfOneMeshGetTheirOwnPrimIdColours) {
     EXPECT_NE(pixel(20, 20), pixel(44, 20));
     EXPECT_NE(pixel(20, 12), pixel(44, 12));
     // Rendering is deterministic at any thread count and tile size.
+    RenderSettings small_tiles = settings;
+    small_tiles.tile_size = 8;
+    EXPECT_EQ(render(scene, small_tiles).pixels, image.pixels);
+}
+
+TEST(SceneRender, GeomIdColoursEachInstanceByItsIdAlone) {
+    const Mesh quad = unit_quad();
+    auto tree = std::make_shared<const KdTree>(build_kdtree(quad));
+    Affine3x4 right;
+    right.m[0][3] = 1.0f;
+    RenderSettings settings;
+    settings.width = 64;
+    settings.height = 32;
+    settings.alpha = true;
+    settings.camera = CameraSpec{{1, 0.5f, 2}, {1, 0.5f, 0}, {0, 1, 0}, 60.0f};
+    using Colour = std::array<float, 3>;
+    // The distinct colours of the covered pixels of each half (x < 32: the instance at x in
+    // [0, 1]; x >= 32: the one at [1, 2]).
+    const auto halves = [&](const Image& image) {
+        std::array<std::set<Colour>, 2> out;
+        for (uint32_t y = 0; y < 32; ++y) {
+            for (uint32_t x = 0; x < 64; ++x) {
+                const float* p = &image.pixels[(size_t{y} * 64 + x) * 4];
+                if (p[3] == 1.0f) out[x < 32 ? 0 : 1].insert({p[0], p[1], p[2]});
+            }
+        }
+        return out;
+    };
+    settings.shading = Shading::kPrimId;
+    const Scene scene = build_scene({{tree, Affine3x4{}, nullptr}, {tree, right, nullptr}});
+    const auto prim = halves(render(scene, settings));
+    // Each half shows both triangles of its instance (two primid colours), so the check below
+    // that geomid gives one colour a half can fail.
+    ASSERT_EQ(prim[0].size(), 2u);
+    ASSERT_EQ(prim[1].size(), 2u);
+
+    settings.shading = Shading::kGeomId;
+    const Image image = render(scene, settings);
+    const auto geom = halves(image);
+    ASSERT_EQ(geom[0].size(), 1u);
+    ASSERT_EQ(geom[1].size(), 1u);
+    EXPECT_NE(*geom[0].begin(), *geom[1].begin());
+    // A pure function of the id: the instances' order swapped swaps the colours; a third
+    // instance elsewhere does not change them; a mesh is geometry 0.
+    const Scene swapped = build_scene({{tree, right, nullptr}, {tree, Affine3x4{}, nullptr}});
+    const auto back = halves(render(swapped, settings));
+    EXPECT_EQ(back[0], geom[1]);
+    EXPECT_EQ(back[1], geom[0]);
+    Affine3x4 far;
+    far.m[2][3] = -50.0f;
+    const Scene three =
+        build_scene({{tree, Affine3x4{}, nullptr}, {tree, right, nullptr}, {tree, far, nullptr}});
+    const auto again = halves(render(three, settings));
+    EXPECT_EQ(again[0], geom[0]);
+    EXPECT_EQ(again[1], geom[1]);
+    const auto mesh = halves(render(*tree, settings));
+    EXPECT_EQ(mesh[0], geom[0]);
+    EXPECT_EQ(shading_name(Shading::kGeomId), "geomid");
+    EXPECT_EQ(parse_shading("geomid"), Shading::kGeomId);
+    // Deterministic at any tile size.
     RenderSettings small_tiles = settings;
     small_tiles.tile_size = 8;
     EXPECT_EQ(render(scene, small_tiles).pixels, image.pixels);

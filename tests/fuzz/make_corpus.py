@@ -166,6 +166,21 @@ HITS = struct.pack("<fIff", 5, 7, 0.25, 0.5) + struct.pack("<fIff", INF, 0xFFFFF
 write("scene", "kdrh_plane", b"\x05" + header(b"KDRH", 2, flags=0x100) + HITS + struct.pack("<II", 3, 0xFFFFFFFF))
 write("scene", "kdrz_plane_short", b"\x05" + b"KDRZ" + struct.pack("<HHII", 1, 0x100, 1000, 1000) + b"\x00" * 8)
 
+# ---- scene and pose text files (scene_text target; first byte: even the scene text, odd the pose
+# text) ----
+MESH_B = "0123456789abcdef" * 4
+write("scene_text", "scene", '\x00# geometry ids 0, 1, 2\n%s\n%s 0.5 0 0 1.2  0 0.5 0 0.1  0 0 0.5 0  crate\n'
+      '%s, -1, 0.5, 0, far\r\n\n  # indented comment\n%s\t1e-3\t-2.5E+2\t0x1p3\n' % (MESH_A, MESH_B, MESH_A, MESH_B))
+write("scene_text", "scene_bad_mesh", '\x00%s\nABC 1 2 3\n' % MESH_A)
+write("scene_text", "scene_bad_count", '\x00%s 1 2\n' % MESH_A)
+write("scene_text", "scene_bad_number", '\x00%s 1e40 0 0\n%s nan 0 0 n\n%s inf 1 2\n' % (MESH_A, MESH_A, MESH_A))
+write("scene_text", "scene_twice_named", '\x00%s a\n%s a\n' % (MESH_A, MESH_B))
+write("scene_text", "scene_too_many", '\x00' + ('%s\n' % MESH_A) * 17)
+write("scene_text", "poses", '\x01# poses\n0 1 0 0 0.5  0 1 0 0  0 0 1 0\ncrate -1 0.5 0\n4294967295, 0, 0, -0\n')
+write("scene_text", "poses_bad", '\x01crate\n')
+write("scene_text", "poses_big_id", '\x014294967296 0 0 0\n1.5 0 0 0\n-3 1 1 1\n')
+write("scene_text", "poses_empty", '\x01\n# nothing\n\r\n')
+
 # ---- problem+json (json target, first byte 3: mesh list and problem decoders) ----
 write("json", "problem", '3{"type":"urn:kdrt:problem:forbidden","title":"Forbidden","status":403,'
       '"detail":"DELETE /v1/meshes/{id} needs a token with the role write","code":"write",'

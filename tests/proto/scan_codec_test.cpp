@@ -194,5 +194,34 @@ TEST(ScanCodec, PlyIsTheRecordsAfterABinaryHeader) {
               0);
 }
 
+TEST(ScanCodec, PlyWithGeometryIdsAppendsOnePropertyPerVertex) {
+    const PointCloud cloud = sample_cloud();
+    const std::vector<uint32_t> geoms = {7, 0, 0xFFFFFFFEu, 3};
+    const std::vector<std::byte> ply = encode_point_cloud_ply(cloud, geoms);
+    const std::string text(reinterpret_cast<const char*>(ply.data()), ply.size());
+    const std::string end = "end_header\n";
+    const size_t body = text.find(end);
+    ASSERT_NE(body, std::string::npos);
+    const std::string header = text.substr(0, body + end.size());
+    EXPECT_NE(header.find("property uint prim\nproperty uint geometry_id\nend_header\n"),
+              std::string::npos)
+        << header;
+    const size_t stride = kLidarPointBytes + 4;
+    ASSERT_EQ(ply.size(), header.size() + 4 * stride);
+    const std::vector<std::byte> kdrl = encode_point_cloud(cloud);
+    for (size_t i = 0; i < 4; ++i) {
+        const std::byte* vertex = ply.data() + header.size() + i * stride;
+        EXPECT_EQ(std::memcmp(vertex, kdrl.data() + kPointCloudHeaderBytes + i * kLidarPointBytes,
+                              kLidarPointBytes),
+                  0)
+            << i;
+        uint32_t geom = 0;
+        std::memcpy(&geom, vertex + kLidarPointBytes, 4);
+        EXPECT_EQ(geom, geoms[i]) << i;
+    }
+    // Without ids, the header and records are the mesh scan's.
+    EXPECT_EQ(encode_point_cloud_ply(cloud, {}), encode_point_cloud_ply(cloud));
+}
+
 }  // namespace
 }  // namespace kdrt::proto

@@ -5,6 +5,7 @@
 #include <OpenImageIO/imageio.h>
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <cstring>
 #include <limits>
 
@@ -24,6 +25,16 @@ DepthImage sample(bool normals, DepthKind kind) {
     if (normals)
         image.normals = {{0, 0, 1}, {}, {1, 0, 0}, {0, -1, 0}, {0.6f, 0.8f, 0}, {0, 0, -1}};
     return image;
+}
+
+/// The header of an EXR in memory, read with OpenImageIO directly.
+bool spec_of(const std::vector<std::byte>& bytes, OIIO::ImageSpec& spec) {
+    OIIO::Filesystem::IOMemReader proxy(bytes.data(), bytes.size());
+    OIIO::ImageSpec config;
+    OIIO::Filesystem::IOProxy* p = &proxy;
+    config.attribute("oiio:ioproxy", OIIO::TypeDesc::PTR, &p);
+    auto in = OIIO::ImageInput::create("x.exr", false, &config, &proxy);
+    return in && in->open("x.exr", spec, config);
 }
 
 TEST(ScanExr, RoundTripsBitForBit) {
@@ -50,14 +61,8 @@ TEST(ScanExr, RoundTripsBitForBit) {
 TEST(ScanExr, ChannelsAsDocumented) {
     auto bytes = encode_depth_exr(sample(true, DepthKind::kDepth));
     ASSERT_TRUE(bytes) << bytes.error();
-    OIIO::Filesystem::IOMemReader proxy(bytes->data(), bytes->size());
-    OIIO::ImageSpec config;
-    OIIO::Filesystem::IOProxy* p = &proxy;
-    config.attribute("oiio:ioproxy", OIIO::TypeDesc::PTR, &p);
-    auto in = OIIO::ImageInput::create("x.exr", false, &config, &proxy);
-    ASSERT_TRUE(in);
     OIIO::ImageSpec spec;
-    ASSERT_TRUE(in->open("x.exr", spec, config)) << in->geterror();
+    ASSERT_TRUE(spec_of(*bytes, spec));
     ASSERT_EQ(spec.nchannels, 5);
     std::vector<std::string> names(spec.channelnames.begin(), spec.channelnames.end());
     std::sort(names.begin(), names.end());
@@ -69,6 +74,32 @@ TEST(ScanExr, ChannelsAsDocumented) {
         EXPECT_EQ(spec.channelformat(c), want) << spec.channelnames[static_cast<size_t>(c)];
     }
     EXPECT_EQ(spec.get_string_attribute("kdrt:depth_kind"), "depth");
+}
+
+TEST(ScanExr, GeometryIdChannelIsLastAndRoundTrips) {
+    const DepthImage image = sample(true, DepthKind::kRange);
+    const std::vector<uint32_t> geoms = {0, kNoHit, 5, 0xFFFFFFFEu, 1, 70000};
+    auto bytes = encode_depth_exr(image, geoms);
+    ASSERT_TRUE(bytes) << bytes.error();
+    std::vector<uint32_t> back_geoms = {42};
+    auto back = decode_depth_exr(*bytes, 1ull << 28, &back_geoms);
+    ASSERT_TRUE(back) << back.error();
+    EXPECT_EQ(back_geoms, geoms);
+    EXPECT_EQ(back->prim, image.prim);
+    EXPECT_EQ(std::memcmp(back->depth.data(), image.depth.data(), 24), 0);
+    // Read with OpenImageIO directly: a sixth channel "geometry_id", uint, last.
+    OIIO::ImageSpec spec;
+    ASSERT_TRUE(spec_of(*bytes, spec));
+    ASSERT_EQ(spec.nchannels, 6);
+    std::vector<std::string> names(spec.channelnames.begin(), spec.channelnames.end());
+    EXPECT_NE(std::find(names.begin(), names.end(), "geometry_id"), names.end());
+    // Without the plane the channel is absent, and the decoder leaves the vector empty.
+    auto plain = encode_depth_exr(image);
+    ASSERT_TRUE(plain);
+    ASSERT_TRUE(decode_depth_exr(*plain, 1ull << 28, &back_geoms));
+    EXPECT_TRUE(back_geoms.empty());
+    // A plane of another size is refused.
+    EXPECT_FALSE(encode_depth_exr(image, std::vector<uint32_t>(5, 0)));
 }
 
 TEST(ScanExr, RefusalsNameTheProblem) {

@@ -347,6 +347,22 @@ TEST(SceneText, PosesOneALine) {
               "line 1: transform entry 2 \"inf\" is not a finite float");
 }
 
+// Found by scene_text_fuzz (corpus/scene_text/crash-*_comma_line): a line of separators only has
+// no field, and the parsers read its first field (out of bounds). It is a blank line.
+TEST(SceneText, LinesOfSeparatorsOnlyAreBlank) {
+    auto scene = parse_scene_text(",\n" + kMeshA + " 1 2 3\n , ,\t,\r\n");
+    ASSERT_TRUE(scene.ok()) << scene.error();
+    ASSERT_EQ(scene->size(), 1u);
+    EXPECT_EQ((*scene)[0].transform.m[11], 3.0f);
+    EXPECT_TRUE(parse_scene_text(",").ok());
+    EXPECT_TRUE(parse_scene_text(",")->empty());
+    auto poses = parse_pose_text(",,\n2 1 2 3\n,");
+    ASSERT_TRUE(poses.ok()) << poses.error();
+    ASSERT_EQ(poses->size(), 1u);
+    EXPECT_EQ((*poses)[0].geometry_id, 2u);
+    EXPECT_EQ(parse_pose_text(", ,\n").error(), "no poses (one pose a line: INSTANCE T)");
+}
+
 TEST(SceneIds, SceneIdsAndInstanceNames) {
     EXPECT_TRUE(is_scene_id(std::string(32, 'f')));
     EXPECT_FALSE(is_scene_id(std::string(31, 'f')));

@@ -339,6 +339,78 @@ async function main() {
     assert.match(await page.textContent('#st-version'), /^\d+\.\d+/);
   });
 
+  await step(page, 'scene-geomid', async () => {
+    // Two bunnies side by side, made through the API; opened from the page's scene list.
+    const meshes = (await (await fetch(`${server.origin}/v1/meshes`)).json()).meshes;
+    const bunnyMesh = meshes.find((m) => m.triangles === 75408);
+    assert.ok(bunnyMesh, 'the bunny is stored');
+    const dx = 1.3 * (bunnyMesh.bounds.max[0] - bunnyMesh.bounds.min[0]);
+    const created = await fetch(`${server.origin}/v1/scenes`, {
+      method: 'POST',
+      headers: { 'Content-Type': 'application/json' },
+      body: JSON.stringify({ instances: [
+        { mesh: bunnyMesh.id, name: 'left' },
+        { mesh: bunnyMesh.id, transform: [1, 0, 0, dx, 0, 1, 0, 0, 0, 0, 1, 0], name: 'right' }] }),
+    });
+    assert.equal(created.status, 201, await created.clone().text());
+    const sceneId = (await created.json()).id;
+    let frames = await frameCount(page);
+    await page.click('#scenes-refresh');
+    await page.click(`button[aria-label="View scene ${sceneId.slice(0, 12)}"]`, { timeout: 10000 });
+    await fullFrameAfter(page, frames);
+    assert.match(await page.textContent('#mesh-bounds'), /2 instances/);
+    frames = await frameCount(page);
+    await page.selectOption('#shading', 'geomid');
+    await fullFrameAfter(page, frames);
+    assert.equal(await page.evaluate(() => document.getElementById('view-error').hidden), true);
+    // The frame is the server's: the page's PNG equals the scene route's answer for the request
+    // the page shows (its curl line), and the canvas holds that PNG's pixels.
+    const curl = await page.inputValue('#command');
+    assert.ok(curl.includes(`/v1/scenes/${sceneId}/render`), curl);
+    const body = /-d '([^']*)'/.exec(curl)[1];
+    assert.ok(!JSON.parse(body).mesh && JSON.parse(body).shading === 'geomid', body);
+    const served = Buffer.from(await (await fetch(`${server.origin}/v1/scenes/${sceneId}/render`, {
+      method: 'POST', headers: { 'Content-Type': 'application/json' }, body,
+    })).arrayBuffer());
+    assert.equal(served.subarray(1, 4).toString(), 'PNG');
+    const [download] = await Promise.all([page.waitForEvent('download'), page.click('#download-png')]);
+    const downloaded = fs.readFileSync(await download.path());
+    assert.ok(downloaded.equals(served), 'the page\'s frame is not the server\'s PNG');
+    const compared = await page.evaluate(async (b64) => {
+      const bytes = Uint8Array.from(atob(b64), (c) => c.charCodeAt(0));
+      const bitmap = await createImageBitmap(new Blob([bytes], { type: 'image/png' }));
+      const view = document.getElementById('view');
+      const off = new OffscreenCanvas(bitmap.width, bitmap.height);
+      off.getContext('2d').drawImage(bitmap, 0, 0);
+      const want = off.getContext('2d').getImageData(0, 0, bitmap.width, bitmap.height).data;
+      const got = view.getContext('2d').getImageData(0, 0, view.width, view.height).data;
+      let differ = 0;
+      for (let i = 0; i < want.length; ++i) differ += want[i] !== got[i];
+      // The most common colour of each half that is not the background (corner) colour.
+      const bg = `${got[0]},${got[1]},${got[2]}`;
+      const halves = [new Map(), new Map()];
+      for (let y = 0; y < view.height; ++y) {
+        for (let x = 0; x < view.width; ++x) {
+          const i = 4 * (y * view.width + x);
+          const c = `${got[i]},${got[i + 1]},${got[i + 2]}`;
+          if (c === bg) continue;
+          const h = halves[x < view.width / 2 ? 0 : 1];
+          h.set(c, (h.get(c) || 0) + 1);
+        }
+      }
+      const top = (h) => [...h.entries()].sort((a, b) => b[1] - a[1])[0] || ['', 0];
+      return { size: [bitmap.width, bitmap.height, view.width, view.height], differ, left: top(halves[0]), right: top(halves[1]), pixels: view.width * view.height };
+    }, served.toString('base64'));
+    log(`  geomid: left ${compared.left[0]} (${compared.left[1]} px), right ${compared.right[0]} (${compared.right[1]} px), ${compared.differ} bytes differ from the server's PNG`);
+    assert.deepEqual(compared.size.slice(0, 2), compared.size.slice(2), 'the PNG is the canvas size');
+    assert.equal(compared.differ, 0, 'canvas pixels differ from the server\'s PNG');
+    // Each instance fills a good part of its half in one flat colour, and the two differ.
+    assert.ok(compared.left[1] > 0.02 * compared.pixels && compared.right[1] > 0.02 * compared.pixels, JSON.stringify(compared));
+    assert.notEqual(compared.left[0], compared.right[0], 'both instances have one colour');
+    const removed = await fetch(`${server.origin}/v1/scenes/${sceneId}`, { method: 'DELETE' });
+    assert.ok(removed.ok, `DELETE scene: ${removed.status}`);
+  });
+
   await step(page, 'delete-mesh', async () => {
     await page.click('#meshes tbody tr button[aria-label^="Delete"]');
     await page.waitForSelector('#meshes-empty:not([hidden])', { timeout: 10000 });

@@ -579,11 +579,11 @@ class Client:
     def render(self, mesh, width=512, height=512, shading="eyelight", camera=None, spp=1, seed=1,
                format="png", output="uint8", compression=None, tile=None):
         """Renders synchronously. shading: "normals", "eyelight", "ao", "diffuse", "depth",
-        "primid"; camera: a dict {"eye", "look_at", "up", "fov", "projection", "ortho_height"}
+        "primid", "geomid"; camera: a dict {"eye", "look_at", "up", "fov", "projection", "ortho_height"}
         (None: a default view framing the mesh); tile (x, y, w, h): a part of the frame.
         output "uint8": an (H, W, C) uint8 array (C = 3, or 4 with alpha), "float": the same as
         float32 in [0, 1] (the PNG's levels / 255: sRGB-encoded for eyelight and diffuse, the
-        values themselves for ao, normals, depth and primid), "bytes": the encoded image (format
+        values themselves for ao, normals, depth, primid and geomid), "bytes": the encoded image (format
         "png", "jpeg"/"jpg" or "exr"; EXR holds the linear values)."""
         self._check_output(output, format)
         request = self._render_request(mesh, width, height, shading, camera, spp, seed, format,

@@ -75,9 +75,9 @@ void validate_render_settings(const RenderSettings& settings);
 /// RenderCancelled when cancelled, and lets std::bad_alloc and exceptions from the progress
 /// callback through. Thread-safe: `tree` is only read; concurrent renders are fine.
 ///
-/// Values: kNormals in [0, 1]; kEyelight in [0, 1]; kDepth = distance in world units; kPrimId in
-/// [0, 1]; kAo in [0, 1]; kDiffuse in [0, inf). Camera rays that miss give `background` and
-/// alpha 0. Secondary rays start on the hit triangle, pushed off the surface towards the side
+/// Values: kNormals in [0, 1]; kEyelight in [0, 1]; kDepth = distance in world units; kPrimId and
+/// kGeomId in [0, 1]; kAo in [0, 1]; kDiffuse in [0, inf). Camera rays that miss give `background`
+/// and alpha 0. Secondary rays start on the hit triangle, pushed off the surface towards the side
 /// the ray came from by 1e-5 of (scene diagonal + largest coordinate magnitude).
 [[nodiscard]] Image render(const KdTree& tree, const RenderSettings& settings,
                            const RenderControl& control = {}, RenderStats* stats = nullptr);

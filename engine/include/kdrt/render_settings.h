@@ -20,9 +20,10 @@ enum class Shading : uint32_t {
     kPrimId = 3,   ///< a fixed false colour per triangle id (a hash of the id, the same everywhere)
     kAo = 4,       ///< ambient occlusion: share of ao_samples cosine-weighted rays that escape
     kDiffuse = 5,  ///< Lambertian surfaces lit by `light` with hard shadows, plus `bounces`
+    kGeomId = 6,   ///< a fixed false colour per geometry id (a scene's instance; 0 for a mesh)
 };
 
-/// "normals", "eyelight", "depth", "primid", "ao", "diffuse" (exact, lower case) -> mode.
+/// "normals", "eyelight", "depth", "primid", "ao", "diffuse", "geomid" (exact, lower case) -> mode.
 [[nodiscard]] constexpr std::optional<Shading> parse_shading(std::string_view name) noexcept {
     if (name == "normals") return Shading::kNormals;
     if (name == "eyelight") return Shading::kEyelight;
@@ -30,6 +31,7 @@ enum class Shading : uint32_t {
     if (name == "primid") return Shading::kPrimId;
     if (name == "ao") return Shading::kAo;
     if (name == "diffuse") return Shading::kDiffuse;
+    if (name == "geomid") return Shading::kGeomId;
     return std::nullopt;
 }
 
@@ -48,6 +50,8 @@ enum class Shading : uint32_t {
             return "ao";
         case Shading::kDiffuse:
             return "diffuse";
+        case Shading::kGeomId:
+            return "geomid";
     }
     return "unknown";
 }

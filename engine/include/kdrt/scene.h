@@ -347,7 +347,8 @@ struct ScenePointCloud {
 
 /// render() (kdrt/render.h: the same settings, validation, determinism and errors) of a scene.
 /// The default camera frames scene.bounds(). Shading::kPrimId colours by (geom, prim), so
-/// instances of one mesh differ.
+/// instances of one mesh differ; Shading::kGeomId by the geometry id alone (one colour an
+/// instance).
 [[nodiscard]] Image render(const Scene& scene, const RenderSettings& settings,
                            const RenderControl& control = {}, RenderStats* stats = nullptr);
 

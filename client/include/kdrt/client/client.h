@@ -114,6 +114,17 @@ struct SceneHits {
     std::vector<uint32_t> geometry_ids;
     uint64_t revision = 0;
 };
+/// Occlusion of a scene's rays (1 = something is hit within [tmin, tmax]), from one revision
+/// (`revision`: KDRO has no geometry-id plane, so the revision is all it adds to the mesh form).
+struct SceneOcclusion {
+    std::vector<uint8_t> occluded;
+    uint64_t revision = 0;
+};
+/// The number of hits of each of a scene's rays, from one revision.
+struct SceneHitCounts {
+    std::vector<uint32_t> counts;
+    uint64_t revision = 0;
+};
 /// Every hit of a scene's rays: the mesh form (normals and points in world space) and the
 /// geometry id of each hit record (geometry_ids[k] belongs to all.hits[k]).
 struct SceneMultiHits {
@@ -314,16 +325,17 @@ public:
     [[nodiscard]] Result<SceneHits> intersect_scene(
         std::string_view id, std::span<const Ray> rays,
         std::optional<uint64_t> revision = std::nullopt);
-    /// Occlusion of every ray (1 = something is hit within [tmin, tmax]).
-    [[nodiscard]] Result<std::vector<uint8_t>> occluded_scene(
+    /// Occlusion of every ray (1 = something is hit within [tmin, tmax]), chunked as
+    /// intersect_scene, and the revision that answered.
+    [[nodiscard]] Result<SceneOcclusion> occluded_scene(
         std::string_view id, std::span<const Ray> rays,
         std::optional<uint64_t> revision = std::nullopt);
     /// Every hit along every ray over the scene (as intersect_all; query.count_only ignored).
     [[nodiscard]] Result<SceneMultiHits> intersect_all_scene(
         std::string_view id, std::span<const Ray> rays, const proto::MultiHitQuery& query,
         std::optional<uint64_t> revision = std::nullopt);
-    /// The number of hits of every ray over the scene.
-    [[nodiscard]] Result<std::vector<uint32_t>> count_scene_intersections(
+    /// The number of hits of every ray over the scene, and the revision that answered.
+    [[nodiscard]] Result<SceneHitCounts> count_scene_intersections(
         std::string_view id, std::span<const Ray> rays, bool merge_coincident,
         std::optional<uint64_t> revision = std::nullopt);
     /// Closest points of the scene (as distance(): points checked here first, chunks smaller

@@ -140,7 +140,7 @@ struct RenderLimits {
 ///               "projection": "perspective",           and ortho_height have defaults)
 ///               "ortho_height": 1},
 ///    "width": 512, "height": 512, "spp": 1, "seed": 1,
-///    "shading": "normals|eyelight|ao|diffuse|depth|primid",   default eyelight
+///    "shading": "normals|eyelight|ao|diffuse|depth|primid|geomid",   default eyelight
 ///    "format": "png|exr|jpg|raw",       default png; raw: KDRI, the linear float pixels
 ///                                       (kdrt/proto/raw_image.h), for stitching regions
 ///    "compression": 0..9,                     optional, png only: zlib level (ImageEncodeOptions::

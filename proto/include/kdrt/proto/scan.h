@@ -67,8 +67,12 @@ inline constexpr size_t kLidarPointBytes = 32;
 
 /// The cloud as a binary_little_endian PLY 1.0 file: one "vertex" element with properties
 /// float x y z range, uint channel azimuth_index return_index prim (the KDRL record, byte for
-/// byte), and comment lines naming the sensor's channels, azimuth_steps and returns.
-[[nodiscard]] std::vector<std::byte> encode_point_cloud_ply(const PointCloud& cloud);
+/// byte), and comment lines naming the sensor's channels, azimuth_steps and returns. A scene's
+/// cloud passes its geometry ids (one per point, the KDRL answer's plane): each vertex then has
+/// a last property "uint geometry_id" (FORMATS.md, "Sensor scans").
+/// Precondition: geometry_ids is empty or has cloud.points.size() entries.
+[[nodiscard]] std::vector<std::byte> encode_point_cloud_ply(
+    const PointCloud& cloud, std::span<const uint32_t> geometry_ids = {});
 
 // ---- The request (kdrt_proto_json) ------------------------------------------------------------
 
