@@ -412,8 +412,8 @@ TEST(KdBuild, ChunkedSetUpLeavesDegenerateTrianglesOut) {
     // point).
     const std::vector<TriVerts> by_id = make_tri_verts(mesh);
     std::vector<uint8_t> referenced(by_id.size(), 0);
-    for (const uint32_t slot : one.leaf_refs) {
-        const uint32_t id = one.tri_ids[slot];
+    for (const uint32_t ref : one.leaf_refs) {
+        const uint32_t id = one.tri_ids[ref & ~KdTree::kLastRef];
         referenced[id] = 1;
         const TriVerts& t = by_id[id];
         ASSERT_FALSE(std::memcmp(t.v0, t.v1, sizeof t.v0) == 0 &&
