@@ -243,6 +243,18 @@ TEST_F(HttpScenes, RendersEqualTheEngineSyncAndAsyncWithinTheMeshLimits) {
     ASSERT_EQ(res->status, 200) << res->body;
     EXPECT_EQ(res->get_header_value("X-Kdrt-Scene-Revision"), "1");
     expect_render(res->body);
+    // "geomid" (one colour an instance) is the engine's too.
+    const std::string geomid =
+        "{\"width\":48,\"height\":32,\"shading\":\"geomid\",\"format\":\"raw\"}";
+    auto geomid_request = proto::decode_render_request(geomid, {}, true);
+    ASSERT_TRUE(geomid_request.ok()) << geomid_request.error().detail;
+    EXPECT_EQ(geomid_request->settings.shading, Shading::kGeomId);
+    res = query(id, "render", geomid, "application/json");
+    ASSERT_TRUE(res);
+    ASSERT_EQ(res->status, 200) << res->body;
+    auto raw_geomid = proto::decode_raw_image(string_to_bytes(res->body));
+    ASSERT_TRUE(raw_geomid.ok()) << raw_geomid.error();
+    EXPECT_EQ(raw_geomid->image.pixels, render(local, geomid_request->settings).pixels);
     // Asynchronous: a job naming the scene and revision, with the same image.
     httplib::Headers prefer = {{"Prefer", "respond-async"}};
     res = server_->client()->Post("/v1/scenes/" + id + "/render", prefer, body, "application/json");
