@@ -607,6 +607,20 @@ void all_hits_rays(const KdTree& tree, const Ray* rays, size_t count, AllHitsSin
     }
 }
 
+/// One ray through the single-ray kernel compiled for this ISA; its answer into hits[at] (or
+/// occluded[at]).
+template <bool AnyHit, bool Count>
+[[gnu::always_inline]] inline void trace_single(const KdTree& tree, const Ray& ray, size_t at,
+                                                Hit* hits, uint8_t* occluded,
+                                                TraceCounters& counters) {
+    if constexpr (AnyHit) {
+        occluded[at] =
+            (Count ? wide_occluded_counted(tree, ray, counters) : wide_occluded(tree, ray)) ? 1 : 0;
+    } else {
+        hits[at] = Count ? wide_intersect_counted(tree, ray, counters) : wide_intersect(tree, ray);
+    }
+}
+
 /// Traces `count` rays of one octant, block[order[0..count)], W at a time: each group as a packet
 /// or as single rays (the policy).
 template <int W, bool AnyHit, bool Count>
@@ -620,19 +634,9 @@ template <int W, bool AnyHit, bool Count>
         const bool as_packet =
             policy == Policy::kPacket || (policy == Policy::kAuto && packet_pays(lanes, W));
         if (!as_packet) {
-            for (int l = 0; l < lanes; ++l) {
-                const size_t i = base + index[l];
-                // The single-ray kernel, compiled for this ISA.
-                if constexpr (AnyHit) {
-                    occluded[i] = (Count ? wide_occluded_counted(tree, block[index[l]], counters)
-                                         : wide_occluded(tree, block[index[l]]))
-                                      ? 1
-                                      : 0;
-                } else {
-                    hits[i] = Count ? wide_intersect_counted(tree, block[index[l]], counters)
-                                    : wide_intersect(tree, block[index[l]]);
-                }
-            }
+            for (int l = 0; l < lanes; ++l)
+                trace_single<AnyHit, Count>(tree, block[index[l]], base + index[l], hits, occluded,
+                                            counters);
             counters.single_rays += static_cast<uint64_t>(lanes);
             continue;
         }
@@ -684,15 +688,7 @@ void trace_rays(const KdTree& tree, const Ray* rays, size_t count, Hit* hits, ui
                 answer_miss<AnyHit>(i, hits, occluded, counters);
                 continue;
             }
-            if constexpr (AnyHit) {
-                occluded[i] = (Count ? wide_occluded_counted(tree, rays[i], counters)
-                                     : wide_occluded(tree, rays[i]))
-                                  ? 1
-                                  : 0;
-            } else {
-                hits[i] = Count ? wide_intersect_counted(tree, rays[i], counters)
-                                : wide_intersect(tree, rays[i]);
-            }
+            trace_single<AnyHit, Count>(tree, rays[i], i, hits, occluded, counters);
             ++counters.single_rays;
         }
         return;

@@ -12,6 +12,7 @@
 #include <cstring>
 #include <limits>
 #include <optional>
+#include <span>
 #include <string>
 #include <thread>
 
@@ -38,6 +39,22 @@ proto::PoseEntry pose_of(std::optional<uint32_t> geometry_id, std::string name,
 
 proto::Transform moved(float scale, Vec3 t) {
     return proto::Transform{{scale, 0, 0, t.x, 0, scale, 0, t.y, 0, 0, scale, t.z}};
+}
+
+/// The client's closest hits equal the engine's on `scene` (into `want`), hit records and geometry
+/// ids, bit for bit; and at least a tenth of the rays hit.
+void expect_engine_hits(const Scene& scene, std::span<const Ray> batch, const SceneHits& got,
+                        std::vector<SceneHit>& want) {
+    want.resize(batch.size());
+    intersect(scene, batch, want);
+    ASSERT_EQ(got.hits.size(), batch.size());
+    size_t hit_count = 0;
+    for (size_t i = 0; i < batch.size(); ++i) {
+        ASSERT_EQ(std::memcmp(&got.hits[i], &want[i], sizeof(Hit)), 0) << i;
+        ASSERT_EQ(got.geometry_ids[i], want[i].geom) << i;
+        hit_count += want[i].is_hit();
+    }
+    EXPECT_GT(hit_count, batch.size() / 10);
 }
 
 class ClientScene : public ::testing::Test {
@@ -226,16 +243,8 @@ TEST_F(ClientScene, ASplitQueryAnswersFromOneRevisionInParallelParts) {
         auto hits = c.intersect_scene(created->id, batch, pinned);
         ASSERT_TRUE(hits) << hits.error().to_string();
         EXPECT_EQ(hits->revision, doc.revision);
-        std::vector<SceneHit> want(batch.size());
-        intersect(scene, batch, want);
-        ASSERT_EQ(hits->hits.size(), batch.size());
-        size_t hit_count = 0;
-        for (size_t i = 0; i < batch.size(); ++i) {
-            ASSERT_EQ(std::memcmp(&hits->hits[i], &want[i], sizeof(Hit)), 0) << i;
-            ASSERT_EQ(hits->geometry_ids[i], want[i].geom) << i;
-            hit_count += want[i].is_hit();
-        }
-        EXPECT_GT(hit_count, batch.size() / 10);
+        std::vector<SceneHit> want;
+        expect_engine_hits(scene, batch, *hits, want);
         auto occluded = c.occluded_scene(created->id, batch, pinned);
         ASSERT_TRUE(occluded) << occluded.error().to_string();
         std::vector<uint8_t> want_occluded(batch.size());
@@ -261,16 +270,8 @@ TEST_F(ClientScene, QueriesEqualTheEngineInChunksOfOneRevision) {
     auto hits = c.intersect_scene(created->id, batch);
     ASSERT_TRUE(hits) << hits.error().to_string();
     EXPECT_EQ(hits->revision, 1u);
-    std::vector<SceneHit> want(batch.size());
-    intersect(scene, batch, want);
-    ASSERT_EQ(hits->hits.size(), batch.size());
-    size_t hit_count = 0;
-    for (size_t i = 0; i < batch.size(); ++i) {
-        ASSERT_EQ(std::memcmp(&hits->hits[i], &want[i], sizeof(Hit)), 0) << i;
-        ASSERT_EQ(hits->geometry_ids[i], want[i].geom) << i;
-        hit_count += want[i].is_hit();
-    }
-    EXPECT_GT(hit_count, batch.size() / 10);
+    std::vector<SceneHit> want;
+    expect_engine_hits(scene, batch, *hits, want);
 
     auto occluded = c.occluded_scene(created->id, batch);
     ASSERT_TRUE(occluded) << occluded.error().to_string();
