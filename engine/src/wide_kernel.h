@@ -135,6 +135,97 @@ static inline V pick(I8 m, V a, V b) {
     return m ? a : b;
 }
 
+using F4 = float __attribute__((vector_size(16)));
+using I4 = int32_t __attribute__((vector_size(16)));
+
+/// One bit per lane of a 4-lane mask.
+static inline uint32_t bits4(I4 m) {
+    return static_cast<uint32_t>(_mm_movemask_ps(reinterpret_cast<__m128>(m)));
+}
+
+/// A leaf's triangles four at a time: one pass of the watertight test for one ray against four
+/// triangles (a lane each), lane by lane the arithmetic of intersect_triangle (ray_prep.h), so each
+/// lane's answer is the scalar test's bit for bit: the same subtractions, products and divisions
+/// in the same order (no FMA: -ffp-contract=off), and the same double-precision retry of the edge
+/// functions for the lanes where one is exactly zero. The triangles are read from the leaf-ordered
+/// array as they are stored (no copy per leaf, so no bytes per triangle are added) and transposed
+/// in registers. A short leaf repeats a triangle in the spare lanes (the same answer twice).
+///
+/// Returns the lanes hit at t >= tmin (t not NaN), with t, the edge functions v and w, and det
+/// per lane (a hit's barycentrics are v / det and w / det, divided by the caller for the hit it
+/// keeps, as intersect_triangle divides them).
+struct Hits4 {
+    F4 t, v, w, det;
+};
+static inline uint32_t intersect4(const PreparedRay& p, const TriVerts* const tri[4], float tmin,
+                                  Hits4& out) {
+    // Rows: floats 0..3 (v0 and v1's x) and 4..7 (v1's y, z and v2's x, y) of each triangle, and
+    // float 8 (v2's z) on its own; the 16 bytes read stay inside the 36-byte triangle.
+    F4 r0[4], r1[4];
+    for (int i = 0; i < 4; ++i) {
+        __builtin_memcpy(&r0[i], &tri[i]->v0[0], sizeof(F4));
+        __builtin_memcpy(&r1[i], &tri[i]->v1[1], sizeof(F4));
+    }
+    // Columns: coord[vertex][axis], one lane per triangle.
+    F4 coord[3][3];
+    {
+        const F4 lo01 = __builtin_shufflevector(r0[0], r0[1], 0, 4, 1, 5);
+        const F4 lo23 = __builtin_shufflevector(r0[2], r0[3], 0, 4, 1, 5);
+        const F4 hi01 = __builtin_shufflevector(r0[0], r0[1], 2, 6, 3, 7);
+        const F4 hi23 = __builtin_shufflevector(r0[2], r0[3], 2, 6, 3, 7);
+        coord[0][0] = __builtin_shufflevector(lo01, lo23, 0, 1, 4, 5);
+        coord[0][1] = __builtin_shufflevector(lo01, lo23, 2, 3, 6, 7);
+        coord[0][2] = __builtin_shufflevector(hi01, hi23, 0, 1, 4, 5);
+        coord[1][0] = __builtin_shufflevector(hi01, hi23, 2, 3, 6, 7);
+    }
+    {
+        const F4 lo01 = __builtin_shufflevector(r1[0], r1[1], 0, 4, 1, 5);
+        const F4 lo23 = __builtin_shufflevector(r1[2], r1[3], 0, 4, 1, 5);
+        const F4 hi01 = __builtin_shufflevector(r1[0], r1[1], 2, 6, 3, 7);
+        const F4 hi23 = __builtin_shufflevector(r1[2], r1[3], 2, 6, 3, 7);
+        coord[1][1] = __builtin_shufflevector(lo01, lo23, 0, 1, 4, 5);
+        coord[1][2] = __builtin_shufflevector(lo01, lo23, 2, 3, 6, 7);
+        coord[2][0] = __builtin_shufflevector(hi01, hi23, 0, 1, 4, 5);
+        coord[2][1] = __builtin_shufflevector(hi01, hi23, 2, 3, 6, 7);
+    }
+    coord[2][2] = F4{tri[0]->v2[2], tri[1]->v2[2], tri[2]->v2[2], tri[3]->v2[2]};
+
+    const F4 ox = F4{} + p.org[p.kx], oy = F4{} + p.org[p.ky], oz = F4{} + p.org[p.kz];
+    const F4 a_x = coord[0][p.kx] - ox, a_y = coord[0][p.ky] - oy, a_z = coord[0][p.kz] - oz;
+    const F4 b_x = coord[1][p.kx] - ox, b_y = coord[1][p.ky] - oy, b_z = coord[1][p.kz] - oz;
+    const F4 c_x = coord[2][p.kx] - ox, c_y = coord[2][p.ky] - oy, c_z = coord[2][p.kz] - oz;
+    const F4 sx = F4{} + p.sx, sy = F4{} + p.sy, sz = F4{} + p.sz;
+    const F4 ax = a_x - sx * a_z, ay = a_y - sy * a_z;
+    const F4 bx = b_x - sx * b_z, by = b_y - sy * b_z;
+    const F4 cx = c_x - sx * c_z, cy = c_y - sy * c_z;
+    F4 u = cx * by - cy * bx;
+    F4 v = ax * cy - ay * cx;
+    F4 w = bx * ay - by * ax;
+    const I4 zero_edge = (u == 0.0f) | (v == 0.0f) | (w == 0.0f);
+    if (bits4(zero_edge) != 0) {
+        // intersect_triangle's double-precision retry, for the lanes that need it.
+        for (uint32_t m = bits4(zero_edge); m; m &= m - 1) {
+            const int l = __builtin_ctz(m);
+            u[l] = static_cast<float>(static_cast<double>(cx[l]) * by[l] -
+                                      static_cast<double>(cy[l]) * bx[l]);
+            v[l] = static_cast<float>(static_cast<double>(ax[l]) * cy[l] -
+                                      static_cast<double>(ay[l]) * cx[l]);
+            w[l] = static_cast<float>(static_cast<double>(bx[l]) * ay[l] -
+                                      static_cast<double>(by[l]) * ax[l]);
+        }
+    }
+    const I4 outside =
+        ((u < 0.0f) | (v < 0.0f) | (w < 0.0f)) & ((u > 0.0f) | (v > 0.0f) | (w > 0.0f));
+    const F4 det = u + v + w;
+    const F4 az = sz * a_z, bz = sz * b_z, cz = sz * c_z;
+    const F4 t_scaled = u * az + v * bz + w * cz;
+    const F4 t = t_scaled / det;
+    // t >= tmin also rejects NaN.
+    const I4 hit = ~outside & (det != 0.0f) & (t >= tmin);
+    out = {t, v, w, det};
+    return bits4(hit);
+}
+
 /// A ray's per-axis values as 8-lane broadcasts.
 struct Ray8 {
     F8 org[3], inv[3], eps[3];
@@ -396,23 +487,35 @@ static inline bool traverse_wide(const KdTree& tree, const Ray& ray, Best& best,
                 for (const uint32_t* r = ref; !(*r & KdTree::kLastRef); ++r) ++n;
                 counter.leaf(n);
             }
-            for (;; ++ref) {
-                const uint32_t word = *ref;
-                const uint32_t slot = word & ~KdTree::kLastRef;
-                float t, u, v;
-                if (intersect_triangle(p, tris[slot], ray.tmin, t, u, v)) {
-                    if constexpr (AnyHit) {
-                        if (t <= ray.tmax) return true;
-                    } else {
+            // Four references at a time, tested in one pass (wide::intersect4).
+            for (bool last = false; !last;) {
+                uint32_t slot[4];
+                int n = 0;
+                do {
+                    const uint32_t word = ref[n];
+                    slot[n++] = word & ~KdTree::kLastRef;
+                    last = (word & KdTree::kLastRef) != 0;
+                } while (!last && n < 4);
+                ref += n;
+                for (int i = n; i < 4; ++i) slot[i] = slot[0];
+                const TriVerts* const block[4] = {&tris[slot[0]], &tris[slot[1]], &tris[slot[2]],
+                                                  &tris[slot[3]]};
+                wide::Hits4 h;
+                uint32_t hits = wide::intersect4(p, block, ray.tmin, h);
+                if constexpr (AnyHit) {
+                    if (hits & wide::bits4(h.t <= ray.tmax)) return true;
+                } else {
+                    for (; hits; hits &= hits - 1) {
+                        const int l = __builtin_ctz(hits);
+                        const float t = h.t[l];
                         const uint32_t prim =
-                            ids[slot];  // the tie rule and the answer use mesh ids
+                            ids[slot[l]];  // the tie rule and the answer use mesh ids
                         if (t < best.t || (t == best.t && prim < best.prim)) {
-                            best = {t, prim, u, v};
+                            best = {t, prim, h.v[l] / h.det[l], h.w[l] / h.det[l]};
                             found = true;
                         }
                     }
                 }
-                if (word & KdTree::kLastRef) break;
             }
         } else {
             counter.leaf(0);  // an empty leaf
