@@ -100,13 +100,11 @@ TreeArray<WideNode> make_wide_nodes(std::span<const KdNode> nodes) {
         for (int s = 0; s < WideNode::kSlots; ++s) w.slot[s] = WideNode::kSlotNone;
         const auto set_plane = [&w](int j, const KdNode& n) {
             w.split[j] = n.split();
-            if (n.axis() == 0) w.axes |= 1u << j;
-            if (n.axis() == 1) w.axes |= 1u << (8 + j);
+            w.axes |= static_cast<uint32_t>(n.axis()) << (2 * j);
         };
         const auto pad_plane = [&w](int j) {
             // +inf on x: every ray keeps its whole interval on the low side (b = 0).
-            w.split[j] = std::numeric_limits<float>::infinity();
-            w.axes |= 1u << j;
+            w.split[j] = std::numeric_limits<float>::infinity();  // axis code 0: x
         };
         set_plane(0, nodes[root]);
         for (uint32_t b0 = 0; b0 < 2; ++b0) {

@@ -226,9 +226,11 @@ static inline uint32_t intersect4(const PreparedRay& p, const TriVerts* const tr
     return bits4(hit);
 }
 
-/// A ray's per-axis values as 8-lane broadcasts.
+/// A ray's per-axis values: as 8-lane broadcasts (org[a], ...), and the three axes in lanes 0..2
+/// of one vector each (xyz_org, ...) for a per-lane pick by permute.
 struct Ray8 {
     F8 org[3], inv[3], eps[3];
+    F8 xyz_org, xyz_inv, xyz_eps;
 };
 
 /// One cell to visit: a slot word of WideNode (tag and index) with the ray's interval there.
@@ -267,12 +269,26 @@ static inline int decode(const WideNode& w, const Ray8& r, float tmin, float tma
     __builtin_memcpy(&split, &w, sizeof split);
     const I8 lane = {0, 1, 2, 3, 4, 5, 6, 7};
     split = pick(lane < 7, split, F8{});  // lane 7 holds the axis bits
-    const U8 axes = U8{} + w.axes;
-    const I8 is_x = reinterpret_cast<I8>((axes & (U8{1, 2, 4, 8, 16, 32, 64, 0})) != 0);
-    const I8 is_y = reinterpret_cast<I8>((axes & (U8{1, 2, 4, 8, 16, 32, 64, 0} << 8)) != 0);
+    // Each lane's plane axis (lane 7's code is 0, x: its split is 0 and its answers unused).
+#if defined(KDRT_WIDE_AVX2)
+    const __m256i code =
+        _mm256_and_si256(_mm256_srlv_epi32(_mm256_set1_epi32(static_cast<int>(w.axes)),
+                                           _mm256_setr_epi32(0, 2, 4, 6, 8, 10, 12, 14)),
+                         _mm256_set1_epi32(3));
+    const auto by_axis = [code](F8 xyz) {
+        return reinterpret_cast<F8>(_mm256_permutevar8x32_ps(reinterpret_cast<__m256>(xyz), code));
+    };
+    const F8 org = by_axis(r.xyz_org), inv = by_axis(r.xyz_inv), eps = by_axis(r.xyz_eps);
+#else
+    const U8 axes =
+        (U8{} + w.axes) & U8{3u, 3u << 2, 3u << 4, 3u << 6, 3u << 8, 3u << 10, 3u << 12, 0};
+    const I8 is_x = reinterpret_cast<I8>(axes == 0u);
+    const I8 is_y = reinterpret_cast<I8>(
+        axes == U8{1u, 1u << 2, 1u << 4, 1u << 6, 1u << 8, 1u << 10, 1u << 12, 1u << 14});
     const F8 org = pick(is_x, r.org[0], pick(is_y, r.org[1], r.org[2]));
     const F8 inv = pick(is_x, r.inv[0], pick(is_y, r.inv[1], r.inv[2]));
     const F8 eps = pick(is_x, r.eps[0], pick(is_y, r.eps[1], r.eps[2]));
+#endif
     const F8 t = (split - org) * inv;
     const F8 near_max = t + eps, far_min = t - eps;
     const I8 near_high = reinterpret_cast<I8>(inv) < 0;  // the sign bit, -0 and -inf included
@@ -302,9 +318,15 @@ static inline int decode(const WideNode& w, const Ray8& r, float tmin, float tma
     I8 valid = lo <= hi;
     U8 slots;
     __builtin_memcpy(&slots, w.slot, sizeof slots);
-    const U8 tag = slots & 3u;
-    valid &=
-        reinterpret_cast<I8>(CountEmpty ? tag != WideNode::kSlotNone : tag >= WideNode::kSlotLeaf);
+    // From here on only each lane's sign bit of `valid` is read (movemask). A slot to visit is a
+    // leaf or a node, the tags with bit 1 set: one shift moves it to the sign bit. The counting
+    // kernels visit empty leaves too (any tag but kSlotNone).
+    static_assert(WideNode::kSlotLeaf == 2 && WideNode::kSlotNode == 3 &&
+                  WideNode::kSlotEmpty == 1 && WideNode::kSlotNone == 0);
+    if constexpr (CountEmpty)
+        valid &= reinterpret_cast<I8>((slots & 3u) != 0);
+    else
+        valid &= reinterpret_cast<I8>(slots << 30);
 #if defined(KDRT_WIDE_AVX2)
     if constexpr (!CountSteps) {
         // Branch-free: the valid slots, farthest first, moved to the front by one permute per
@@ -449,6 +471,9 @@ static inline bool traverse_wide(const KdTree& tree, const Ray& ray, Best& best,
         r8.inv[a] = wide::F8{} + p.inv_dir[a];
         r8.eps[a] = wide::F8{} + eps[a];
     }
+    r8.xyz_org = wide::F8{p.org[0], p.org[1], p.org[2], 0.0f, 0.0f, 0.0f, 0.0f, 0.0f};
+    r8.xyz_inv = wide::F8{p.inv_dir[0], p.inv_dir[1], p.inv_dir[2], 0.0f, 0.0f, 0.0f, 0.0f, 0.0f};
+    r8.xyz_eps = wide::F8{eps[0], eps[1], eps[2], 0.0f, 0.0f, 0.0f, 0.0f, 0.0f};
     const WideNode* wides = tree.wide_nodes.data();
     const uint32_t* refs = tree.leaf_refs.data();
     const TriVerts* tris = tree.tris.data();

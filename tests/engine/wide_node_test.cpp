@@ -38,7 +38,8 @@ TEST(WideNodeLayout, SlotWordsAndAxisBitsAreAsDocumented) {
     EXPECT_EQ(WideNode::slot_index(WideNode::make_slot(WideNode::kSlotNode, KdNode::kMaxField)),
               KdNode::kMaxField);
     WideNode w{};
-    w.axes = (1u << 0) | (1u << (8 + 1));  // plane 0 on x, plane 1 on y, the rest on z
+    w.axes = 0u | (1u << 2);  // plane 0 on x, plane 1 on y, the rest on z
+    for (int j = 2; j < WideNode::kPlanes; ++j) w.axes |= 2u << (2 * j);
     EXPECT_EQ(w.axis(0), 0);
     EXPECT_EQ(w.axis(1), 1);
     for (int j = 2; j < WideNode::kPlanes; ++j) EXPECT_EQ(w.axis(j), 2);
@@ -98,7 +99,9 @@ TEST(WideNodeLayout, ShallowLeavesArePaddedAndDeepSubtreesGetTheirOwnNode) {
     EXPECT_EQ(c.split[0], 4.0f);
     EXPECT_EQ(c.slot[0], WideNode::make_slot(WideNode::kSlotLeaf, 3));
     EXPECT_EQ(c.slot[4], WideNode::make_slot(WideNode::kSlotLeaf, 4));
-    EXPECT_EQ(c.axes & ~0x7F7Fu, 0u) << "unused axis bits stay 0";
+    EXPECT_EQ(c.axes >> 14, 0u) << "unused axis bits stay 0";
+    for (int j = 0; j < WideNode::kPlanes; ++j)
+        EXPECT_NE((c.axes >> (2 * j)) & 3u, 3u) << "plane " << j << ": no axis code 3";
 
     EXPECT_TRUE(make_wide_nodes(std::vector<KdNode>{KdNode::leaf(3, 0)}).empty())
         << "a tree of one leaf has no wide node";

@@ -69,8 +69,9 @@ static_assert(kMaxTriangles < (1u << 31), "a reference leaves bit 31 free (KdTre
 ///
 ///   bytes  0..27 : split[0..6], f32. Plane 0 is the treelet root; plane 1 + b0 its child on side
 ///                  b0 (0 = low, 1 = high); plane 3 + 2 b0 + b1 the grandchild on sides b0, b1.
-///   bytes 28..31 : axes, u32: bits 0..6 set where plane j splits x, bits 8..14 where it splits
-///                  y (neither: z); the other bits are 0.
+///   bytes 28..31 : axes, u32: bits 2j..2j+1 hold plane j's axis (0 x, 1 y, 2 z); bits 14..31
+///                  are 0. (A lane's code is one variable shift away, and picks the ray's
+///                  origin, reciprocal and tolerance on that axis with one permute each.)
 ///   bytes 32..63 : slot[0..7], u32: the child on sides (b0, b1, b2), slot index 4 b0 + 2 b1 + b2.
 ///                  bits 0..1: kSlotNone (padding, never visited), kSlotEmpty (an empty leaf),
 ///                  kSlotLeaf, kSlotNode; bits 2..31: kSlotLeaf: the leaf's first reference in
@@ -98,7 +99,7 @@ struct alignas(64) WideNode {
         return (index << 2) | tag;
     }
     [[nodiscard]] constexpr int axis(int plane) const noexcept {
-        return (axes >> plane) & 1u ? 0 : ((axes >> (8 + plane)) & 1u ? 1 : 2);
+        return static_cast<int>((axes >> (2 * plane)) & 3u);
     }
     [[nodiscard]] static constexpr uint32_t slot_tag(uint32_t s) noexcept { return s & 3u; }
     [[nodiscard]] static constexpr uint32_t slot_index(uint32_t s) noexcept { return s >> 2; }
