@@ -7,6 +7,7 @@
 #include <cmath>
 #include <cstdint>
 #include <optional>
+#include <span>
 #include <vector>
 
 #include "kdrt/scene.h"
@@ -235,6 +236,15 @@ inline Ray to_object(const InstanceData& d, const Ray& r) noexcept {
     }
     return Ray{oo[0], oo[1], oo[2], r.tmin, dd[0], dd[1], dd[2], r.tmax};
 }
+
+/// The nearest `max_hits` hits of each ray over every instance, as intersect_all's batch keeps
+/// them (the same hits, bits and order: each instance's intersect_all on its object ray, the
+/// minimum by the tie rule), but without the counts (SceneAllHits::counts is left empty), so
+/// each ray stops at the first top-level cell beyond its max_hits-th hit and each instance is
+/// traced only as far as that hit (plus the merge tolerance). What scan_lidar uses. Parallel
+/// over the current arena; throws std::bad_alloc.
+SceneAllHits nearest_hits(const Scene& scene, std::span<const Ray> rays, uint32_t max_hits,
+                          bool merge_coincident);
 
 /// The tie rule: (t, geom, prim) lexicographically.
 inline bool scene_hit_less(const SceneHit& a, const SceneHit& b) noexcept {

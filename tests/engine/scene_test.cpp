@@ -17,6 +17,7 @@
 #include "kdrt/scan.h"
 #include "kdrt/scene.h"
 #include "kdrt/trace.h"
+#include "scene_internal.h"
 #include "test_util.h"
 
 namespace kdrt::test {
@@ -517,6 +518,60 @@ TEST(SceneAllHits, MatchOracleSingleAndBatch) {
         }
         EXPECT_GT(multi, rays.size() / 20) << "overlapping instances give several hits per ray";
     }
+}
+
+/// The nearest k hits of every ray (what scan_lidar keeps) against the oracle's every-hit
+/// answer cut to k, merged and raw, on overlapping instances and on a field of many instances
+/// along the rays (where the walk stops early and instances are traced only partly).
+TEST(SceneAllHits, NearestHitsAreTheOraclesFirstK) {
+    const uint64_t seed = test_seed();
+    SCOPED_TRACE(testing::Message() << "seed=" << seed);
+    const TestScene s = mixed_scene(seed + 13, 24);
+    Rng rng(seed + 14);
+    std::vector<Ray> rays = scene_rays(rng, s.scene, s.meshes, s.mesh_of, scaled(1500));
+    // A row of 40 closed spheres hit end to end, and rays through it from one origin.
+    const Mesh sphere = uv_sphere({0, 0, 0}, 0.5f, 10, 14);
+    auto tree = std::make_shared<const KdTree>(build_kdtree(sphere));
+    std::vector<SceneInstance> row;
+    for (int i = 0; i < 40; ++i) {
+        Affine3x4 t = random_transform(rng, Kind::kRigid);
+        t.m[0][3] = static_cast<float>(i);
+        t.m[1][3] = t.m[2][3] = 0.0f;
+        row.push_back({tree, t, nullptr});
+    }
+    const Scene line = build_scene(std::move(row));
+    std::vector<Ray> line_rays;
+    for (size_t k = 0; k < scaled(400); ++k)
+        line_rays.push_back(make_ray({-3.0f, 0.01f, 0.02f}, Vec3{1.0f, rng.uniform(-0.02f, 0.02f),
+                                                                 rng.uniform(-0.02f, 0.02f)}));
+    size_t cut = 0;
+    for (const auto& [scene, list] :
+         {std::pair<const Scene*, const std::vector<Ray>*>{&s.scene, &rays},
+          std::pair<const Scene*, const std::vector<Ray>*>{&line, &line_rays}}) {
+        const SceneOracle oracle(*scene);
+        for (bool merge : {false, true}) {
+            std::vector<std::vector<SceneHit>> want(list->size());
+            for (size_t i = 0; i < list->size(); ++i)
+                want[i] = oracle.intersect_all((*list)[i], merge);
+            for (uint32_t k : {1u, 2u, 3u, 7u}) {
+                SCOPED_TRACE(testing::Message() << (merge ? "merged" : "raw") << " k=" << k);
+                const SceneAllHits got = detail::nearest_hits(*scene, *list, k, merge);
+                ASSERT_EQ(got.offsets.size(), list->size() + 1);
+                EXPECT_TRUE(got.counts.empty());
+                for (size_t i = 0; i < list->size(); ++i) {
+                    const size_t n = std::min<size_t>(k, want[i].size());
+                    cut += want[i].size() > k;
+                    const std::vector<SceneHit> first(
+                        want[i].begin(), want[i].begin() + static_cast<std::ptrdiff_t>(n));
+                    const std::vector<SceneHit> kept(
+                        got.hits.begin() + static_cast<std::ptrdiff_t>(got.offsets[i]),
+                        got.hits.begin() + static_cast<std::ptrdiff_t>(got.offsets[i + 1]));
+                    ASSERT_TRUE(same_lists(kept, first)) << "ray " << i;
+                }
+            }
+        }
+    }
+    EXPECT_GT(cut, rays.size()) << "many rays should have more hits than they keep";
 }
 
 TEST(SceneAttributes, NormalsFaceTheWorldWindingAndPointsLieOnTheHit) {
