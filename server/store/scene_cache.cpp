@@ -6,6 +6,8 @@
 #include <unordered_map>
 #include <unordered_set>
 
+#include <tbb/task_group.h>
+
 namespace kdrt::server {
 
 namespace {
@@ -283,28 +285,36 @@ SceneCache::Result<SceneCache::EntryPtr> SceneCache::update(
 SceneCache::Result<SceneCache::EntryPtr> SceneCache::set_poses(
     const std::string& id, std::optional<uint64_t> if_match,
     std::span<const proto::PoseEntry> poses) {
-    // Without If-Match a lost race is retried on the newer revision (the poses are absolute).
-    return update(id, if_match, "update", [&](const EntryPtr& b) -> Result<EntryPtr> {
+    // The compare-and-set loop of update(), with the engine's top-level build overlapping the
+    // durable write: the poses are checked first (Scene::check_transforms throws what the build
+    // would), so nothing is stored that the build refuses; then an arena worker builds the next
+    // scene while this thread encodes, writes and fsyncs the revision. Without If-Match a lost
+    // race is retried on the newer revision (the poses are absolute).
+    for (int attempt = 0; attempt < 16; ++attempt) {
+        auto base = current(id);
+        if (!base) return base;
+        const EntryPtr& b = *base;
+        if (if_match && *if_match != b->doc.revision)
+            return proto::Err{stale(metrics_, id, *if_match, b->doc.revision)};
         auto resolved = proto::resolve_poses(b->doc, poses);
         if (!resolved) {
             const auto& e = resolved.error();
             return proto::Err{problem(Code::kUnknownReference, e.detail, e.field, e.index)};
         }
         std::vector<InstancePose> engine_poses(resolved->size());
-        // The last pose entry of each instance: what the engine's error about it refers to.
-        std::unordered_map<uint32_t, uint32_t> entry_of;
-        for (size_t k = 0; k < resolved->size(); ++k) {
+        for (size_t k = 0; k < resolved->size(); ++k)
             engine_poses[k] = {(*resolved)[k].geometry_id, affine((*resolved)[k].transform)};
-            entry_of[(*resolved)[k].geometry_id] = static_cast<uint32_t>(k);
-        }
-        auto next = std::make_shared<SceneEntry>();
         try {
-            next->scene = compute_.run([&] { return b->scene.with_transforms(engine_poses); });
+            b->scene.check_transforms(engine_poses);
         } catch (const SceneError& e) {
+            // The last pose entry of the instance: what the engine's error about it refers to.
             std::optional<uint32_t> k;
             if (e.instance_index()) {
-                const auto it = entry_of.find(*e.instance_index());
-                if (it != entry_of.end()) k = it->second;
+                for (size_t j = resolved->size(); j-- > 0;)
+                    if ((*resolved)[j].geometry_id == *e.instance_index()) {
+                        k = static_cast<uint32_t>(j);
+                        break;
+                    }
             }
             SceneProblem p = scene_error_problem(e, "poses", k);
             p.detail = "geometry id " +
@@ -314,13 +324,45 @@ SceneCache::Result<SceneCache::EntryPtr> SceneCache::set_poses(
         } catch (const std::bad_alloc&) {
             return proto::Err{problem(Code::kInternal, "out of memory updating the scene")};
         }
+        auto next = std::make_shared<SceneEntry>();
         next->doc = b->doc;
         next->doc.revision = b->doc.revision + 1;
         for (const proto::ResolvedPose& p : *resolved)
             next->doc.instances[p.geometry_id].transform = p.transform;
-        next->bytes = entry_bytes(*next);
-        return EntryPtr(std::move(next));
-    });
+        bool built = false;
+        auto committed = compute_.run([&] {
+            tbb::task_group build;
+            build.run([&] {
+                try {
+                    next->scene = b->scene.with_transforms(engine_poses);
+                    built = true;
+                } catch (const std::exception&) {  // std::bad_alloc only (checked above)
+                }
+            });
+            auto stored = store_.commit(next->doc);
+            build.wait();
+            return stored;
+        });
+        if (!committed) return proto::Err{write_problem(committed.error())};
+        if (*committed) {
+            metrics_.scene_revisions.fetch_add(1);
+            if (!built)  // stored, so acknowledged; a later request builds it from the store
+                return proto::Err{problem(Code::kInternal, "out of memory building revision " +
+                                                               std::to_string(next->doc.revision) +
+                                                               " of scene " + id +
+                                                               " (the revision is stored)")};
+            next->bytes = entry_bytes(*next);
+            keep(next);
+            return EntryPtr(std::move(next));
+        }
+        if (if_match) {  // someone else committed base + 1 first
+            auto now = store_.latest(id);
+            if (!now) return proto::Err{store_problem(now.error(), id, std::nullopt)};
+            return proto::Err{stale(metrics_, id, *if_match, *now)};
+        }
+    }
+    return proto::Err{problem(Code::kInternal,
+                              "scene " + id + " changed 16 times while this update was applied")};
 }
 
 SceneCache::Result<SceneCache::EntryPtr> SceneCache::edit(const std::string& id,

@@ -449,6 +449,30 @@ TEST(Scene, RefusesBadInstancesNamingIndexAndField) {
     const InstancePose poses[] = {{1, Affine3x4{}}, {3, nan}};
     expect_scene_error([&] { (void)scene.with_transforms(poses); }, 3u, "transform[1][2]");
     expect_scene_error([&] { (void)scene.with_transform(9, Affine3x4{}); }, 9u, "geom");
+    // check_transforms refuses what with_transforms refuses, with the same error, and builds
+    // nothing; it accepts what with_transforms accepts.
+    for (const Affine3x4& bad : {nan, inf, singular, flat, tiny, huge}) {
+        const InstancePose moves[] = {{0, flattened}, {2, bad}};
+        std::string built, checked;
+        try {
+            (void)scene.with_transforms(moves);
+        } catch (const SceneError& e) {
+            built = std::string(e.what()) + " | " + e.field();
+        }
+        expect_scene_error([&] { scene.check_transforms(moves); }, 2u,
+                           built.substr(built.find(" | ") + 3));
+        try {
+            scene.check_transforms(moves);
+        } catch (const SceneError& e) {
+            checked = std::string(e.what()) + " | " + e.field();
+        }
+        EXPECT_EQ(checked, built);
+    }
+    const InstancePose unknown[] = {{7, Affine3x4{}}};
+    expect_scene_error([&] { scene.check_transforms(unknown); }, 7u, "geom");
+    const InstancePose fine[] = {{0, flattened}, {4, Affine3x4{}}};
+    EXPECT_NO_THROW(scene.check_transforms(fine));
+    EXPECT_NO_THROW((void)scene.with_transforms(fine));
 }
 
 TEST(Scene, PoseUpdatesAnswerAsAFreshBuild) {
