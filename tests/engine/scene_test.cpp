@@ -885,6 +885,43 @@ TEST(SceneScan, IdentitySceneScansAsTheMeshAndNamesInstances) {
     }
 }
 
+TEST(SceneScan, LidarReturnsAreTheOraclesNearestHitsOfEachBeam) {
+    // A lidar inside a field of overlapping instances: each beam's returns are the oracle's
+    // every-hit list (merged) cut to `returns`, in order, with the geometry id of each.
+    const uint64_t seed = test_seed();
+    SCOPED_TRACE(testing::Message() << "seed=" << seed);
+    const TestScene s = mixed_scene(seed + 61, 24);
+    const SceneOracle oracle(s.scene);
+    LidarSpec lidar;
+    lidar.elevation_deg = lidar_elevations(-40, 40, 12);
+    lidar.azimuth_steps = 60;
+    lidar.max_range = 5.0f;
+    for (uint32_t returns : {1u, 3u}) {
+        lidar.returns = returns;
+        const ScenePointCloud got = scan_lidar(s.scene, lidar);
+        size_t k = 0, cut = 0;
+        for (uint32_t a = 0; a < lidar.azimuth_steps; ++a) {
+            for (uint32_t c = 0; c < 12; ++c) {
+                const std::vector<SceneHit> want =
+                    oracle.intersect_all(lidar_ray(lidar, c, a), true);
+                cut += want.size() > returns;
+                for (size_t r = 0; r < std::min<size_t>(returns, want.size()); ++r, ++k) {
+                    ASSERT_LT(k, got.cloud.points.size());
+                    const LidarPoint& p = got.cloud.points[k];
+                    ASSERT_EQ(p.range, want[r].t) << "beam " << a << "/" << c << " return " << r;
+                    ASSERT_EQ(p.prim, want[r].prim);
+                    ASSERT_EQ(got.geom[k], want[r].geom);
+                    ASSERT_EQ(p.channel, c);
+                    ASSERT_EQ(p.azimuth_index, a);
+                    ASSERT_EQ(p.return_index, r);
+                }
+            }
+        }
+        EXPECT_EQ(k, got.cloud.points.size());
+        EXPECT_GT(cut, 10u) << "beams should pass more surfaces than they return";
+    }
+}
+
 TEST(SceneRender, IdentitySceneRendersAsTheMeshInEveryMode) {
     Rng rng(test_seed() + 61);
     const Mesh mesh = random_soup(rng, 400, 0.3f);
