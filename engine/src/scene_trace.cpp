@@ -434,7 +434,10 @@ float truncated_tmax(const KdTree& tree, const Ray& o, float t_kth, bool merge) 
 
 struct NearestScratch {
     std::vector<Hit> tmp;
-    std::vector<uint32_t> traced;  ///< the instances this ray traced (each exactly once)
+    /// The instances this ray traced (each exactly once): stamp[geom] == ray while traced, so
+    /// the test costs O(1) however many instances a beam with many returns passes.
+    std::vector<uint32_t> stamp;
+    uint32_t ray = 0;
 };
 
 /// The nearest `k` (>= 1) hits of `ray` into `out` (replaced), sorted by the tie rule. The
@@ -445,13 +448,16 @@ void nearest(const SceneData& s, const Ray& ray, uint32_t k, bool merge, std::ve
              NearestScratch& sc) {
     out.clear();
     if (!detail::ray_is_valid(ray)) return;
-    sc.traced.clear();
+    if (sc.stamp.size() != s.inst.size() || ++sc.ray == 0) {
+        sc.stamp.assign(s.inst.size(), 0);
+        sc.ray = 1;
+    }
     const detail::TopRay p = detail::make_top_ray(s, ray);
     detail::walk_top(
         s, ray, p, [&] { return out.size() < k ? ray.tmax : out.back().t; },
         [&](uint32_t geom, float) {
-            if (std::find(sc.traced.begin(), sc.traced.end(), geom) != sc.traced.end()) return true;
-            sc.traced.push_back(geom);
+            if (sc.stamp[geom] == sc.ray) return true;
+            sc.stamp[geom] = sc.ray;
             const KdTree& tree = *s.instances[geom].tree;
             Ray o = detail::to_object(s.inst[geom], ray);
             const bool full = out.size() == k;
