@@ -160,7 +160,9 @@ double half_area(const Aabb& b) noexcept {
 }
 
 struct TopBuilder {
-    const SceneData& scene;
+    /// The instances' world boxes, contiguous (InstanceData is large: reading the boxes from it
+    /// costs a cache line each).
+    const std::vector<Aabb>& boxes;
     const SceneBuildOptions& opt;
     std::vector<TopNode>& nodes;
     std::vector<uint32_t>& refs;
@@ -194,24 +196,32 @@ struct TopBuilder {
                                         static_cast<double>(ext.x) * ext.y};
         // Few references need few candidate planes: the per-node cost stays O(n), not O(bins).
         const int bins = std::min(kBins, 4 * static_cast<int>(geoms.size()));
+        // The bins of all three axes in one pass over the references.
+        std::array<std::array<uint32_t, kBins>, 3> starts{}, ends{};
+        double to_bin[3];
+        for (int axis = 0; axis < 3; ++axis) {
+            const double extent = static_cast<double>(cell.hi[axis]) - cell.lo[axis];
+            to_bin[axis] = extent > 0.0 ? bins / extent : 0.0;
+        }
+        for (uint32_t g : geoms) {
+            const Aabb& b = boxes[g];  // clamped into the cell's bins
+            for (int axis = 0; axis < 3; ++axis) {
+                const double lo = cell.lo[axis];
+                const auto bin = [&](float x) {
+                    return static_cast<size_t>(
+                        std::clamp(static_cast<int>((x - lo) * to_bin[axis]), 0, bins - 1));
+                };
+                ++starts[axis][bin(std::max(b.lo[axis], cell.lo[axis]))];
+                ++ends[axis][bin(std::min(b.hi[axis], cell.hi[axis]))];
+            }
+        }
         for (int axis = 0; axis < 3; ++axis) {
             const double lo = cell.lo[axis], hi = cell.hi[axis], extent = hi - lo;
             if (!(extent > 0.0)) continue;
-            const double to_bin = bins / extent;
-            std::array<uint32_t, kBins> starts{}, ends{};
-            for (uint32_t g : geoms) {
-                const Aabb& b = scene.inst[g].world;  // clamped into the cell's bins below
-                const auto bin = [&](float x) {
-                    return static_cast<size_t>(
-                        std::clamp(static_cast<int>((x - lo) * to_bin), 0, bins - 1));
-                };
-                ++starts[bin(std::max(b.lo[axis], cell.lo[axis]))];
-                ++ends[bin(std::min(b.hi[axis], cell.hi[axis]))];
-            }
             uint32_t left = 0, right = static_cast<uint32_t>(geoms.size());
             for (int k = 1; k < bins; ++k) {
-                left += starts[static_cast<size_t>(k - 1)];
-                right -= ends[static_cast<size_t>(k - 1)];
+                left += starts[axis][static_cast<size_t>(k - 1)];
+                right -= ends[axis][static_cast<size_t>(k - 1)];
                 const auto split = static_cast<float>(lo + extent * k / bins);
                 if (!(split > cell.lo[axis] && split < cell.hi[axis])) continue;
                 // Half the surface of each side: its length here times the sum of the cell's
@@ -231,7 +241,7 @@ struct TopBuilder {
         if (best_axis < 0 || !(best_cost < leaf_cost)) return make_leaf(index, geoms);
         std::vector<uint32_t> left, right;
         for (uint32_t g : geoms) {
-            const Aabb& b = scene.inst[g].world;
+            const Aabb& b = boxes[g];
             // A box touching the plane goes to both sides: the traversal's margin reaches both.
             if (b.lo[best_axis] <= best_split) left.push_back(g);
             if (b.hi[best_axis] >= best_split) right.push_back(g);
@@ -275,7 +285,9 @@ void build_top(SceneData& d, std::chrono::steady_clock::time_point start) {
     d.size_max = std::max(d.size_max, box_magnitude(d.bounds));
     d.nodes.assign(1, TopNode{});
     d.refs.clear();
-    TopBuilder builder{d, d.options, d.nodes, d.refs};
+    std::vector<Aabb> boxes(d.inst.size());
+    for (size_t g = 0; g < boxes.size(); ++g) boxes[g] = d.inst[g].world;
+    TopBuilder builder{boxes, d.options, d.nodes, d.refs};
     const double n = static_cast<double>(std::max<size_t>(geoms.size(), 1));
     builder.depth_cap = std::min(detail::kTopMaxDepth, static_cast<int>(8.0 + 1.3 * std::log2(n)));
     if (!geoms.empty()) builder.build(0, std::move(geoms), d.bounds, 0);
@@ -347,6 +359,17 @@ Scene build_scene(std::vector<SceneInstance> instances, const SceneBuildOptions&
     return Scene(std::move(d));
 }
 
+namespace {
+void check_pose_geom(const InstancePose& pose, size_t instances) {
+    if (pose.geom >= instances) {
+        throw SceneError(pose.geom, "geom",
+                         "pose geom " + std::to_string(pose.geom) +
+                             " names no scene instance (the scene has " +
+                             std::to_string(instances) + ")");
+    }
+}
+}  // namespace
+
 Scene Scene::with_transforms(std::span<const InstancePose> poses) const {
     const auto start = std::chrono::steady_clock::now();
     auto d = std::make_shared<SceneData>();
@@ -354,12 +377,7 @@ Scene Scene::with_transforms(std::span<const InstancePose> poses) const {
     d->instances = data_->instances;
     d->inst = data_->inst;
     for (const InstancePose& pose : poses) {
-        if (pose.geom >= d->instances.size()) {
-            throw SceneError(pose.geom, "geom",
-                             "pose geom " + std::to_string(pose.geom) +
-                                 " names no scene instance (the scene has " +
-                                 std::to_string(d->instances.size()) + ")");
-        }
+        check_pose_geom(pose, d->instances.size());
         SceneInstance moved = d->instances[pose.geom];
         moved.transform = pose.transform;
         d->inst[pose.geom] = prepare_instance(pose.geom, moved);
@@ -367,6 +385,15 @@ Scene Scene::with_transforms(std::span<const InstancePose> poses) const {
     }
     build_top(*d, start);
     return Scene(std::move(d));
+}
+
+void Scene::check_transforms(std::span<const InstancePose> poses) const {
+    for (const InstancePose& pose : poses) {
+        check_pose_geom(pose, data_->instances.size());
+        SceneInstance moved = data_->instances[pose.geom];
+        moved.transform = pose.transform;
+        (void)prepare_instance(pose.geom, moved);
+    }
 }
 
 Scene Scene::with_transform(uint32_t geom, const Affine3x4& transform) const {

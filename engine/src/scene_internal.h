@@ -7,6 +7,7 @@
 #include <cmath>
 #include <cstdint>
 #include <optional>
+#include <span>
 #include <vector>
 
 #include "kdrt/scene.h"
@@ -93,14 +94,14 @@ struct TopRay {
 };
 
 /// Same rule as the mesh kernels: finite origin and direction, non-zero direction, tmin <= tmax.
-inline bool ray_is_valid(const Ray& r) noexcept {
+[[gnu::always_inline]] inline bool ray_is_valid(const Ray& r) noexcept {
     const bool finite = std::isfinite(r.ox) && std::isfinite(r.oy) && std::isfinite(r.oz) &&
                         std::isfinite(r.dx) && std::isfinite(r.dy) && std::isfinite(r.dz);
     const bool nonzero = r.dx != 0.0f || r.dy != 0.0f || r.dz != 0.0f;
     return finite && nonzero && r.tmin <= r.tmax;
 }
 
-inline TopRay make_top_ray(const SceneData& s, const Ray& r) noexcept {
+[[gnu::always_inline]] inline TopRay make_top_ray(const SceneData& s, const Ray& r) noexcept {
     TopRay p;
     p.org[0] = r.ox, p.org[1] = r.oy, p.org[2] = r.oz;
     p.dir[0] = r.dx, p.dir[1] = r.dy, p.dir[2] = r.dz;
@@ -115,7 +116,8 @@ inline TopRay make_top_ray(const SceneData& s, const Ray& r) noexcept {
 }
 
 /// Clips [tmin, tmax] to `box` widened by the margin; false when the ray passes farther away.
-inline bool clip_widened(const TopRay& p, const Aabb& box, float& tmin, float& tmax) noexcept {
+[[gnu::always_inline]] inline bool clip_widened(const TopRay& p, const Aabb& box, float& tmin,
+                                                float& tmax) noexcept {
     for (int a = 0; a < 3; ++a) {
         const float lo = box.lo[a] - p.delta, hi = box.hi[a] + p.delta;
         if (p.dir[a] == 0.0f) {
@@ -222,7 +224,7 @@ struct Mailbox {
 };
 
 /// object_ray with the instance data at hand.
-inline Ray to_object(const InstanceData& d, const Ray& r) noexcept {
+[[gnu::always_inline]] inline Ray to_object(const InstanceData& d, const Ray& r) noexcept {
     const double o[3] = {static_cast<double>(r.ox) - d.trans[0],
                          static_cast<double>(r.oy) - d.trans[1],
                          static_cast<double>(r.oz) - d.trans[2]};
@@ -235,6 +237,15 @@ inline Ray to_object(const InstanceData& d, const Ray& r) noexcept {
     }
     return Ray{oo[0], oo[1], oo[2], r.tmin, dd[0], dd[1], dd[2], r.tmax};
 }
+
+/// The nearest `max_hits` hits of each ray over every instance, as intersect_all's batch keeps
+/// them (the same hits, bits and order: each instance's intersect_all on its object ray, the
+/// minimum by the tie rule), but without the counts (SceneAllHits::counts is left empty), so
+/// each ray stops at the first top-level cell beyond its max_hits-th hit and each instance is
+/// traced only as far as that hit (plus the merge tolerance). What scan_lidar uses. Parallel
+/// over the current arena; throws std::bad_alloc.
+SceneAllHits nearest_hits(const Scene& scene, std::span<const Ray> rays, uint32_t max_hits,
+                          bool merge_coincident);
 
 /// The tie rule: (t, geom, prim) lexicographically.
 inline bool scene_hit_less(const SceneHit& a, const SceneHit& b) noexcept {

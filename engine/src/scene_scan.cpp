@@ -6,6 +6,7 @@
 
 #include "kdrt/scene.h"
 #include "scan_internal.h"
+#include "scene_internal.h"
 
 namespace kdrt {
 
@@ -44,10 +45,9 @@ ScenePointCloud scan_lidar(const Scene& scene, const LidarSpec& spec) {
     validate(spec);
     const auto channels = static_cast<uint32_t>(spec.elevation_deg.size());
     const std::vector<Ray> rays = detail::lidar_rays(spec);
-    AllHitsOptions options;
-    options.max_hits = spec.returns;
-    options.merge_coincident = true;
-    const SceneAllHits all = intersect_all(scene, rays, options);
+    // The nearest `returns` hits of each beam, as intersect_all (merge_coincident) keeps them,
+    // without tracing the instances beyond them.
+    const SceneAllHits all = detail::nearest_hits(scene, rays, spec.returns, true);
     ScenePointCloud out;
     PointCloud& cloud = out.cloud;
     cloud.channels = channels;

@@ -6,6 +6,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <limits>
 #include <map>
 
 #include <tbb/blocked_range.h>
@@ -402,6 +403,129 @@ void count_intersections(const Scene& scene, std::span<const Ray> rays,
                               counts[i] = static_cast<uint32_t>(a.hits.size());
                           }
                       });
+}
+
+// ---------------------------------------------------------------------------------------------
+// The nearest hits (scan_lidar)
+
+namespace {
+
+/// How far past `t_kth` instance `geom`'s every-hit query must look so that the merged groups
+/// starting at or before t_kth are those of the untruncated query: a group spans at most the
+/// merge tolerance (AllHitsOptions::merge_coincident: 2^-18 of the largest coordinate of the
+/// object origin and the group's first triangle, over the largest direction component), which
+/// is bounded with the tree's root box; taken twice, plus a few ulps of t_kth for the float
+/// subtraction of the group test. Without merging nothing beyond t_kth matters.
+float truncated_tmax(const KdTree& tree, const Ray& o, float t_kth, bool merge) noexcept {
+    if (!merge) return t_kth;
+    const double dmax = std::max({std::fabs(o.dx), std::fabs(o.dy), std::fabs(o.dz)});
+    double mag = std::max({std::fabs(o.ox), std::fabs(o.oy), std::fabs(o.oz)});
+    for (int a = 0; a < 3; ++a)
+        mag = std::max({mag, std::fabs(static_cast<double>(tree.bounds.lo[a])),
+                        std::fabs(static_cast<double>(tree.bounds.hi[a]))});
+    const double reach = static_cast<double>(t_kth) +
+                         std::fabs(static_cast<double>(t_kth)) * 0x1p-20 +
+                         2.0 * mag * 0x1p-18 / dmax;
+    if (!(reach < std::numeric_limits<float>::max())) return std::numeric_limits<float>::max();
+    auto f = static_cast<float>(reach);
+    if (static_cast<double>(f) < reach) f = std::nextafter(f, std::numeric_limits<float>::max());
+    return f;
+}
+
+struct NearestScratch {
+    std::vector<Hit> tmp;
+    /// The instances this ray traced (each exactly once): stamp[geom] == ray while traced, so
+    /// the test costs O(1) however many instances a beam with many returns passes.
+    std::vector<uint32_t> stamp;
+    uint32_t ray = 0;
+};
+
+/// The nearest `k` (>= 1) hits of `ray` into `out` (replaced), sorted by the tie rule. The
+/// top-level walk goes front to back with the limit at the k-th hit so far: an instance whose
+/// widened box starts beyond it holds no hit that could be kept. Each instance is traced once,
+/// fully within the truncation above, so its hits are those of the oracle's every-hit query.
+void nearest(const SceneData& s, const Ray& ray, uint32_t k, bool merge, std::vector<SceneHit>& out,
+             NearestScratch& sc) {
+    out.clear();
+    if (!detail::ray_is_valid(ray)) return;
+    if (sc.stamp.size() != s.inst.size() || ++sc.ray == 0) {
+        sc.stamp.assign(s.inst.size(), 0);
+        sc.ray = 1;
+    }
+    const detail::TopRay p = detail::make_top_ray(s, ray);
+    detail::walk_top(
+        s, ray, p, [&] { return out.size() < k ? ray.tmax : out.back().t; },
+        [&](uint32_t geom, float) {
+            if (sc.stamp[geom] == sc.ray) return true;
+            sc.stamp[geom] = sc.ray;
+            const KdTree& tree = *s.instances[geom].tree;
+            Ray o = detail::to_object(s.inst[geom], ray);
+            const bool full = out.size() == k;
+            // The instance's closest hit first (the kernel with its early exit): none up to the
+            // k-th hit so far means no hit to keep (a merged hit is never before its group's
+            // first, the instance's closest). Otherwise its first k merged hits lie in groups
+            // starting no later than the k-th hit so far; for k = 1 no later than this closest
+            // hit, whose t is the first raw hit's of intersect_all, bit for bit (kdrt/query.h).
+            const float limit = full ? out.back().t : ray.tmax;
+            o.tmax = limit;
+            const Hit first = intersect(tree, o);
+            if (!first.is_hit()) return true;
+            if (k == 1) {
+                // Nothing of this instance lies before its closest hit: the every-hit query
+                // needs only the cells around it.
+                o.tmin = first.t;
+                o.tmax = std::min(ray.tmax, truncated_tmax(tree, o, first.t, merge));
+            } else {
+                o.tmax =
+                    full ? std::min(ray.tmax, truncated_tmax(tree, o, limit, merge)) : ray.tmax;
+            }
+            intersect_all(tree, o, merge, sc.tmp);
+            // tmp is sorted by (t, prim): once one hit is not kept, no later one is.
+            for (const Hit& h : sc.tmp) {
+                const SceneHit c{h.t, h.prim, h.u, h.v, geom};
+                if (out.size() == k && !detail::scene_hit_less(c, out.back())) break;
+                out.insert(std::upper_bound(out.begin(), out.end(), c, detail::scene_hit_less), c);
+                if (out.size() > k) out.pop_back();
+            }
+            return true;
+        });
+}
+
+}  // namespace
+
+SceneAllHits detail::nearest_hits(const Scene& scene, std::span<const Ray> rays, uint32_t max_hits,
+                                  bool merge_coincident) {
+    const SceneData& s = scene.data();
+    SceneAllHits result;
+    result.offsets.assign(rays.size() + 1, 0);
+    if (max_hits == 0) return result;
+    constexpr size_t kRaysPerTask = 256;
+    const size_t tasks = (rays.size() + kRaysPerTask - 1) / kRaysPerTask;
+    std::vector<std::vector<SceneHit>> per_task(tasks);  // each task's rays' hits, in ray order
+    struct Scratch {
+        NearestScratch nearest;
+        std::vector<SceneHit> hits;
+    };
+    tbb::enumerable_thread_specific<Scratch> scratch;
+    tbb::parallel_for(
+        tbb::blocked_range<size_t>(0, tasks, 1), [&](const tbb::blocked_range<size_t>& range) {
+            Scratch& sc = scratch.local();
+            for (size_t task = range.begin(); task != range.end(); ++task) {
+                const size_t lo = task * kRaysPerTask;
+                const size_t hi = std::min(rays.size(), lo + kRaysPerTask);
+                std::vector<SceneHit>& kept = per_task[task];
+                for (size_t i = lo; i < hi; ++i) {
+                    nearest(s, rays[i], max_hits, merge_coincident, sc.hits, sc.nearest);
+                    result.offsets[i + 1] = sc.hits.size();
+                    kept.insert(kept.end(), sc.hits.begin(), sc.hits.end());
+                }
+            }
+        });
+    for (size_t i = 0; i < rays.size(); ++i) result.offsets[i + 1] += result.offsets[i];
+    result.hits.reserve(result.offsets.back());
+    for (const auto& kept : per_task)
+        result.hits.insert(result.hits.end(), kept.begin(), kept.end());
+    return result;
 }
 
 // ---------------------------------------------------------------------------------------------

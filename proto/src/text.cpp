@@ -51,7 +51,17 @@ std::string non_finite_name(double value) {
 
 void append_json_string(std::string& out, std::string_view text) {
     out.push_back('"');
-    for (const char c : text) {
+    size_t i = 0;
+    while (i < text.size()) {
+        // A run of bytes copied as they are (ids, names: the whole string), in one append.
+        size_t j = i;
+        while (j < text.size() && static_cast<unsigned char>(text[j]) >= 0x20 && text[j] != '"' &&
+               text[j] != '\\')
+            ++j;
+        out.append(text.data() + i, j - i);
+        if (j == text.size()) break;
+        i = j + 1;
+        const char c = text[j];
         const auto u = static_cast<unsigned char>(c);
         switch (c) {
             case '"':

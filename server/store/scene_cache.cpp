@@ -6,6 +6,8 @@
 #include <unordered_map>
 #include <unordered_set>
 
+#include <tbb/task_group.h>
+
 namespace kdrt::server {
 
 namespace {
@@ -236,16 +238,6 @@ SceneCache::Result<SceneCache::EntryPtr> SceneCache::get(const std::string& id,
     return load(id, *revision);
 }
 
-SceneCache::Result<bool> SceneCache::commit(const EntryPtr& next) {
-    auto committed = store_.commit(next->doc);
-    if (!committed) return proto::Err{write_problem(committed.error())};
-    if (*committed) {
-        metrics_.scene_revisions.fetch_add(1);
-        keep(next);
-    }
-    return *committed;
-}
-
 namespace {
 SceneProblem stale(Metrics& metrics, const std::string& id, uint64_t if_match, uint64_t current) {
     metrics.scene_conflicts.fetch_add(1);
@@ -258,18 +250,47 @@ SceneProblem stale(Metrics& metrics, const std::string& id, uint64_t if_match, u
 
 SceneCache::Result<SceneCache::EntryPtr> SceneCache::update(
     const std::string& id, std::optional<uint64_t> if_match, const char* what,
-    const std::function<Result<EntryPtr>(const EntryPtr& base)>& next) {
+    const std::function<Result<Next>(const EntryPtr& base)>& next) {
     for (int attempt = 0; attempt < 16; ++attempt) {
         auto base = current(id);
         if (!base) return base;
         const EntryPtr& b = *base;
         if (if_match && *if_match != b->doc.revision)
             return proto::Err{stale(metrics_, id, *if_match, b->doc.revision)};
-        auto entry = next(b);
-        if (!entry) return entry;
-        auto committed = commit(*entry);
-        if (!committed) return proto::Err{std::move(committed).error()};
-        if (*committed) return entry;
+        auto n = next(b);
+        if (!n) return proto::Err{std::move(n).error()};
+        // The scene is built on an arena worker while this thread encodes, writes and fsyncs
+        // the revision (the link is the commit, as ever).
+        bool built = !n->build;
+        auto committed = compute_.run([&] {
+            tbb::task_group group;
+            if (n->build)
+                group.run([&] {
+                    try {
+                        n->scene = n->build();
+                        built = true;
+                    } catch (const std::bad_alloc&) {
+                    }
+                });
+            auto stored = store_.commit(n->doc);
+            group.wait();
+            return stored;
+        });
+        if (!committed) return proto::Err{write_problem(committed.error())};
+        if (*committed) {
+            metrics_.scene_revisions.fetch_add(1);
+            if (!built)  // stored, so it stands; a later request builds it from the store
+                return proto::Err{problem(Code::kInternal, "out of memory building revision " +
+                                                               std::to_string(n->doc.revision) +
+                                                               " of scene " + id +
+                                                               " (the revision is stored)")};
+            auto entry = std::make_shared<SceneEntry>();
+            entry->doc = std::move(n->doc);
+            entry->scene = std::move(n->scene);
+            entry->bytes = entry_bytes(*entry);
+            keep(entry);
+            return EntryPtr(std::move(entry));
+        }
         if (if_match) {  // someone else committed base + 1 first
             auto now = store_.latest(id);
             if (!now) return proto::Err{store_problem(now.error(), id, std::nullopt)};
@@ -284,27 +305,27 @@ SceneCache::Result<SceneCache::EntryPtr> SceneCache::set_poses(
     const std::string& id, std::optional<uint64_t> if_match,
     std::span<const proto::PoseEntry> poses) {
     // Without If-Match a lost race is retried on the newer revision (the poses are absolute).
-    return update(id, if_match, "update", [&](const EntryPtr& b) -> Result<EntryPtr> {
+    return update(id, if_match, "update", [&](const EntryPtr& b) -> Result<Next> {
         auto resolved = proto::resolve_poses(b->doc, poses);
         if (!resolved) {
             const auto& e = resolved.error();
             return proto::Err{problem(Code::kUnknownReference, e.detail, e.field, e.index)};
         }
-        std::vector<InstancePose> engine_poses(resolved->size());
-        // The last pose entry of each instance: what the engine's error about it refers to.
-        std::unordered_map<uint32_t, uint32_t> entry_of;
-        for (size_t k = 0; k < resolved->size(); ++k) {
-            engine_poses[k] = {(*resolved)[k].geometry_id, affine((*resolved)[k].transform)};
-            entry_of[(*resolved)[k].geometry_id] = static_cast<uint32_t>(k);
-        }
-        auto next = std::make_shared<SceneEntry>();
+        auto engine_poses = std::make_shared<std::vector<InstancePose>>(resolved->size());
+        for (size_t k = 0; k < resolved->size(); ++k)
+            (*engine_poses)[k] = {(*resolved)[k].geometry_id, affine((*resolved)[k].transform)};
+        // Checked first (what the build would refuse), so nothing is stored that it refuses;
+        // the build itself overlaps the write.
         try {
-            next->scene = compute_.run([&] { return b->scene.with_transforms(engine_poses); });
+            b->scene.check_transforms(*engine_poses);
         } catch (const SceneError& e) {
+            // The last pose entry of the instance: what the engine's error about it refers to.
             std::optional<uint32_t> k;
-            if (e.instance_index()) {
-                const auto it = entry_of.find(*e.instance_index());
-                if (it != entry_of.end()) k = it->second;
+            for (size_t j = resolved->size(); e.instance_index() && j-- > 0;) {
+                if ((*resolved)[j].geometry_id == *e.instance_index()) {
+                    k = static_cast<uint32_t>(j);
+                    break;
+                }
             }
             SceneProblem p = scene_error_problem(e, "poses", k);
             p.detail = "geometry id " +
@@ -314,19 +335,20 @@ SceneCache::Result<SceneCache::EntryPtr> SceneCache::set_poses(
         } catch (const std::bad_alloc&) {
             return proto::Err{problem(Code::kInternal, "out of memory updating the scene")};
         }
-        next->doc = b->doc;
-        next->doc.revision = b->doc.revision + 1;
+        Next n;
+        n.doc = b->doc;
+        n.doc.revision = b->doc.revision + 1;
         for (const proto::ResolvedPose& p : *resolved)
-            next->doc.instances[p.geometry_id].transform = p.transform;
-        next->bytes = entry_bytes(*next);
-        return EntryPtr(std::move(next));
+            n.doc.instances[p.geometry_id].transform = p.transform;
+        n.build = [scene = b->scene, engine_poses] { return scene.with_transforms(*engine_poses); };
+        return n;
     });
 }
 
 SceneCache::Result<SceneCache::EntryPtr> SceneCache::edit(const std::string& id,
                                                           std::optional<uint64_t> if_match,
                                                           const proto::InstanceEdit& edit) {
-    return update(id, if_match, "edit", [&](const EntryPtr& b) -> Result<EntryPtr> {
+    return update(id, if_match, "edit", [&](const EntryPtr& b) -> Result<Next> {
         proto::SceneLimits limits;
         limits.max_instances = options_.max_instances;
         auto doc = proto::apply_instance_edit(b->doc, edit, limits);
@@ -355,7 +377,7 @@ SceneCache::Result<SceneCache::EntryPtr> SceneCache::edit(const std::string& id,
             }
             return proto::Err{std::move(p)};
         }
-        return next;
+        return Next{(*next)->doc, (*next)->scene, {}};
     });
 }
 

@@ -129,15 +129,22 @@ private:
     Result<EntryPtr> load(const std::string& id, uint64_t revision);
     /// The current revision (the cached one when the store has nothing newer).
     Result<EntryPtr> current(const std::string& id);
-    /// Writes `next` (revision base + 1) and caches it; false when another writer was first.
-    Result<bool> commit(const EntryPtr& next);
+    /// The next revision as update() commits it: its document, and its engine scene either
+    /// built already or built by `build` (which must not fail but for std::bad_alloc) while the
+    /// document is written durably.
+    struct Next {
+        proto::SceneDocument doc;
+        Scene scene;
+        std::function<Scene()> build;
+    };
     /// The compare-and-set loop of set_poses and edit: `next` makes revision base + 1 from the
-    /// current revision `base`, which is committed; `if_match` refuses a stale base (kStale), and
-    /// without it a lost race is retried on the newer revision, up to 16 times (`what` names
-    /// the update in that error).
+    /// current revision `base`, which is committed (SceneStore::commit, with `build` run on an
+    /// arena worker meanwhile) and kept; `if_match` refuses a stale base (kStale), and without
+    /// it a lost race is retried on the newer revision, up to 16 times (`what` names the update
+    /// in that error).
     Result<EntryPtr> update(const std::string& id, std::optional<uint64_t> if_match,
                             const char* what,
-                            const std::function<Result<EntryPtr>(const EntryPtr& base)>& next);
+                            const std::function<Result<Next>(const EntryPtr& base)>& next);
     void keep(const EntryPtr& entry);  ///< into the LRU (evicting beyond the budget)
     void forget(const std::string& id);
     EntryPtr find(const std::string& id, uint64_t revision);

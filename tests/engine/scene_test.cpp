@@ -17,6 +17,7 @@
 #include "kdrt/scan.h"
 #include "kdrt/scene.h"
 #include "kdrt/trace.h"
+#include "scene_internal.h"
 #include "test_util.h"
 
 namespace kdrt::test {
@@ -448,6 +449,30 @@ TEST(Scene, RefusesBadInstancesNamingIndexAndField) {
     const InstancePose poses[] = {{1, Affine3x4{}}, {3, nan}};
     expect_scene_error([&] { (void)scene.with_transforms(poses); }, 3u, "transform[1][2]");
     expect_scene_error([&] { (void)scene.with_transform(9, Affine3x4{}); }, 9u, "geom");
+    // check_transforms refuses what with_transforms refuses, with the same error, and builds
+    // nothing; it accepts what with_transforms accepts.
+    for (const Affine3x4& bad : {nan, inf, singular, flat, tiny, huge}) {
+        const InstancePose moves[] = {{0, flattened}, {2, bad}};
+        std::string built, checked;
+        try {
+            (void)scene.with_transforms(moves);
+        } catch (const SceneError& e) {
+            built = std::string(e.what()) + " | " + e.field();
+        }
+        expect_scene_error([&] { scene.check_transforms(moves); }, 2u,
+                           built.substr(built.find(" | ") + 3));
+        try {
+            scene.check_transforms(moves);
+        } catch (const SceneError& e) {
+            checked = std::string(e.what()) + " | " + e.field();
+        }
+        EXPECT_EQ(checked, built);
+    }
+    const InstancePose unknown[] = {{7, Affine3x4{}}};
+    expect_scene_error([&] { scene.check_transforms(unknown); }, 7u, "geom");
+    const InstancePose fine[] = {{0, flattened}, {4, Affine3x4{}}};
+    EXPECT_NO_THROW(scene.check_transforms(fine));
+    EXPECT_NO_THROW((void)scene.with_transforms(fine));
 }
 
 TEST(Scene, PoseUpdatesAnswerAsAFreshBuild) {
@@ -517,6 +542,60 @@ TEST(SceneAllHits, MatchOracleSingleAndBatch) {
         }
         EXPECT_GT(multi, rays.size() / 20) << "overlapping instances give several hits per ray";
     }
+}
+
+/// The nearest k hits of every ray (what scan_lidar keeps) against the oracle's every-hit
+/// answer cut to k, merged and raw, on overlapping instances and on a field of many instances
+/// along the rays (where the walk stops early and instances are traced only partly).
+TEST(SceneAllHits, NearestHitsAreTheOraclesFirstK) {
+    const uint64_t seed = test_seed();
+    SCOPED_TRACE(testing::Message() << "seed=" << seed);
+    const TestScene s = mixed_scene(seed + 13, 24);
+    Rng rng(seed + 14);
+    std::vector<Ray> rays = scene_rays(rng, s.scene, s.meshes, s.mesh_of, scaled(1500));
+    // A row of 40 closed spheres hit end to end, and rays through it from one origin.
+    const Mesh sphere = uv_sphere({0, 0, 0}, 0.5f, 10, 14);
+    auto tree = std::make_shared<const KdTree>(build_kdtree(sphere));
+    std::vector<SceneInstance> row;
+    for (int i = 0; i < 40; ++i) {
+        Affine3x4 t = random_transform(rng, Kind::kRigid);
+        t.m[0][3] = static_cast<float>(i);
+        t.m[1][3] = t.m[2][3] = 0.0f;
+        row.push_back({tree, t, nullptr});
+    }
+    const Scene line = build_scene(std::move(row));
+    std::vector<Ray> line_rays;
+    for (size_t k = 0; k < scaled(400); ++k)
+        line_rays.push_back(make_ray({-3.0f, 0.01f, 0.02f}, Vec3{1.0f, rng.uniform(-0.02f, 0.02f),
+                                                                 rng.uniform(-0.02f, 0.02f)}));
+    size_t cut = 0;
+    for (const auto& [scene, list] :
+         {std::pair<const Scene*, const std::vector<Ray>*>{&s.scene, &rays},
+          std::pair<const Scene*, const std::vector<Ray>*>{&line, &line_rays}}) {
+        const SceneOracle oracle(*scene);
+        for (bool merge : {false, true}) {
+            std::vector<std::vector<SceneHit>> want(list->size());
+            for (size_t i = 0; i < list->size(); ++i)
+                want[i] = oracle.intersect_all((*list)[i], merge);
+            for (uint32_t k : {1u, 2u, 3u, 7u}) {
+                SCOPED_TRACE(testing::Message() << (merge ? "merged" : "raw") << " k=" << k);
+                const SceneAllHits got = detail::nearest_hits(*scene, *list, k, merge);
+                ASSERT_EQ(got.offsets.size(), list->size() + 1);
+                EXPECT_TRUE(got.counts.empty());
+                for (size_t i = 0; i < list->size(); ++i) {
+                    const size_t n = std::min<size_t>(k, want[i].size());
+                    cut += want[i].size() > k;
+                    const std::vector<SceneHit> first(
+                        want[i].begin(), want[i].begin() + static_cast<std::ptrdiff_t>(n));
+                    const std::vector<SceneHit> kept(
+                        got.hits.begin() + static_cast<std::ptrdiff_t>(got.offsets[i]),
+                        got.hits.begin() + static_cast<std::ptrdiff_t>(got.offsets[i + 1]));
+                    ASSERT_TRUE(same_lists(kept, first)) << "ray " << i;
+                }
+            }
+        }
+    }
+    EXPECT_GT(cut, rays.size()) << "many rays should have more hits than they keep";
 }
 
 TEST(SceneAttributes, NormalsFaceTheWorldWindingAndPointsLieOnTheHit) {
@@ -803,6 +882,43 @@ TEST(SceneScan, IdentitySceneScansAsTheMeshAndNamesInstances) {
             ASSERT_EQ(two_image.geom[p], h.geom) << p;
             ASSERT_EQ(two_image.image.prim[p], h.prim) << p;
         }
+    }
+}
+
+TEST(SceneScan, LidarReturnsAreTheOraclesNearestHitsOfEachBeam) {
+    // A lidar inside a field of overlapping instances: each beam's returns are the oracle's
+    // every-hit list (merged) cut to `returns`, in order, with the geometry id of each.
+    const uint64_t seed = test_seed();
+    SCOPED_TRACE(testing::Message() << "seed=" << seed);
+    const TestScene s = mixed_scene(seed + 61, 24);
+    const SceneOracle oracle(s.scene);
+    LidarSpec lidar;
+    lidar.elevation_deg = lidar_elevations(-40, 40, 12);
+    lidar.azimuth_steps = 60;
+    lidar.max_range = 5.0f;
+    for (uint32_t returns : {1u, 3u}) {
+        lidar.returns = returns;
+        const ScenePointCloud got = scan_lidar(s.scene, lidar);
+        size_t k = 0, cut = 0;
+        for (uint32_t a = 0; a < lidar.azimuth_steps; ++a) {
+            for (uint32_t c = 0; c < 12; ++c) {
+                const std::vector<SceneHit> want =
+                    oracle.intersect_all(lidar_ray(lidar, c, a), true);
+                cut += want.size() > returns;
+                for (size_t r = 0; r < std::min<size_t>(returns, want.size()); ++r, ++k) {
+                    ASSERT_LT(k, got.cloud.points.size());
+                    const LidarPoint& p = got.cloud.points[k];
+                    ASSERT_EQ(p.range, want[r].t) << "beam " << a << "/" << c << " return " << r;
+                    ASSERT_EQ(p.prim, want[r].prim);
+                    ASSERT_EQ(got.geom[k], want[r].geom);
+                    ASSERT_EQ(p.channel, c);
+                    ASSERT_EQ(p.azimuth_index, a);
+                    ASSERT_EQ(p.return_index, r);
+                }
+            }
+        }
+        EXPECT_EQ(k, got.cloud.points.size());
+        EXPECT_GT(cut, 10u) << "beams should pass more surfaces than they return";
     }
 }
 

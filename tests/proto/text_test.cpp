@@ -80,6 +80,42 @@ TEST(Text, JsonStringReadsBackThroughAJsonParser) {
     EXPECT_EQ(parsed.get<std::string>(), all);
 }
 
+TEST(Text, JsonStringEscapesEachByteOfLongMixedRunsAsItsRuleSays) {
+    // Runs of plain bytes between escaped ones (the encoder copies runs whole): every byte
+    // value at every position against the rule of text.h, byte by byte.
+    std::string text;
+    for (int rep = 0; rep < 3; ++rep)
+        for (int c = 0; c < 256; ++c) {
+            text.append(static_cast<size_t>(c % 7), 'a');
+            text.push_back(static_cast<char>(c));
+        }
+    std::string want = "\"";
+    for (const char c : text) {
+        const auto u = static_cast<unsigned char>(c);
+        if (c == '"' || c == '\\') {
+            want += '\\';
+            want += c;
+        } else if (c == '\n') {
+            want += "\\n";
+        } else if (c == '\r') {
+            want += "\\r";
+        } else if (c == '\t') {
+            want += "\\t";
+        } else if (u < 0x20) {
+            const char hex[] = "0123456789abcdef";
+            want += "\\u00";
+            want += hex[u >> 4];
+            want += hex[u & 15];
+        } else {
+            want += c;
+        }
+    }
+    want += '"';
+    EXPECT_EQ(json_string(text), want);
+    EXPECT_EQ(json_string("\"" + text + "\\"),
+              "\"\\\"" + want.substr(1, want.size() - 2) + "\\\\\"");
+}
+
 TEST(Text, AppendJsonStringAppends) {
     std::string out = "[";
     append_json_string(out, "k");

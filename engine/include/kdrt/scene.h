@@ -165,6 +165,10 @@ public:
     /// entry's geometry id, field "geom" for an unknown one) and rebuilds only the top level.
     [[nodiscard]] Scene with_transforms(std::span<const InstancePose> poses) const;
     [[nodiscard]] Scene with_transform(uint32_t geom, const Affine3x4& transform) const;
+    /// Throws exactly the SceneError with_transforms(poses) would throw, without building
+    /// anything (O(poses)): a caller can accept a pose update, then build the scene while it
+    /// stores the update. After it returns, with_transforms(poses) throws only std::bad_alloc.
+    void check_transforms(std::span<const InstancePose> poses) const;
 
     /// Internal (the queries' data).
     [[nodiscard]] const detail::SceneData& data() const noexcept { return *data_; }
