@@ -19,6 +19,7 @@
 #include "kdrt/query.h"
 #include "packet.h"
 #include "ray_prep.h"
+#include "wide_kernel.h"
 
 namespace kdrt {
 namespace {
@@ -71,12 +72,24 @@ void collect(const KdTree& tree, const Ray& ray, std::vector<Hit>& out) {
             node_index = need_near ? near_child : far_child;
             node = nodes[node_index];
         }
+        // Four references at a time in one pass (wide::intersect4, the closest-hit single-ray
+        // kernel's leaf test); the spare lanes of a short block repeat its first triangle and
+        // are not read.
         const uint32_t end = node.first_ref() + node.prim_count();
-        for (uint32_t r = node.first_ref(); r < end; ++r) {
-            const uint32_t slot = refs[r] & ~KdTree::kLastRef;
-            float t, u, v;
-            if (!detail::intersect_triangle(p, tris[slot], ray.tmin, t, u, v)) continue;
-            if (t <= ray.tmax) out.push_back(Hit{t, ids[slot], u, v});
+        for (uint32_t r = node.first_ref(); r < end; r += 4) {
+            const uint32_t n = std::min(end - r, 4u);
+            uint32_t slot[4];
+            for (uint32_t i = 0; i < 4; ++i)
+                slot[i] = refs[r + (i < n ? i : 0)] & ~KdTree::kLastRef;
+            const TriVerts* const block[4] = {&tris[slot[0]], &tris[slot[1]], &tris[slot[2]],
+                                              &tris[slot[3]]};
+            detail::wide::Hits4 h;
+            uint32_t hits = detail::wide::intersect4(p, block, ray.tmin, h) & ((1u << n) - 1u);
+            hits &= detail::wide::bits4(h.t <= ray.tmax);
+            for (; hits; hits &= hits - 1) {
+                const int l = __builtin_ctz(hits);
+                out.push_back(Hit{h.t[l], ids[slot[l]], h.v[l] / h.det[l], h.w[l] / h.det[l]});
+            }
         }
         if (stack_size == 0) return;
         const StackEntry& e = stack[--stack_size];

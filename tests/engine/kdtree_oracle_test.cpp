@@ -195,6 +195,20 @@ TEST(KdOracle, LeafBlocksMatchBruteForce) {
                     for (size_t i = 0; i < rays.size(); ++i)
                         wrong += (occ[i] != 0) != want[i].is_hit();
                     EXPECT_EQ(wrong, 0u) << "occlusion answers unlike brute force";
+                    AllHitsOptions all_options{kMaxHitsPerRay, false};
+                    all_options.mode = mode;
+                    all_options.isa = isa;
+                    const AllHits all = intersect_all(tree, rays, all_options);
+                    size_t all_differ = 0;
+                    for (size_t i = 0; i < rays.size(); ++i) {
+                        const std::vector<Hit> each =
+                            brute_force_intersect_all(tris, rays[i], false);
+                        const uint64_t k = all.offsets[i + 1] - all.offsets[i];
+                        all_differ += k != each.size() ||
+                                      (k > 0 && std::memcmp(&all.hits[all.offsets[i]], each.data(),
+                                                            k * sizeof(Hit)) != 0);
+                    }
+                    EXPECT_EQ(all_differ, 0u) << "every-hit lists unlike brute force";
                 }
             }
             // The public single-ray entry points (the default ISA's kernel).
@@ -205,6 +219,17 @@ TEST(KdOracle, LeafBlocksMatchBruteForce) {
                           occluded(tree, rays[i]) != want[i].is_hit();
             }
             EXPECT_EQ(differ, 0u) << "intersect(tree, ray) / occluded(tree, ray)";
+            // The single-ray every-hit query (its own traversal, the same leaf test).
+            size_t all_differ = 0;
+            std::vector<Hit> one;
+            for (size_t i = 0; i < rays.size(); ++i) {
+                (void)intersect_all(tree, rays[i], false, one);
+                const std::vector<Hit> each = brute_force_intersect_all(tris, rays[i], false);
+                all_differ += one.size() != each.size() ||
+                              (!one.empty() &&
+                               std::memcmp(one.data(), each.data(), one.size() * sizeof(Hit)) != 0);
+            }
+            EXPECT_EQ(all_differ, 0u) << "intersect_all(tree, ray)";
         }
     }
 }
