@@ -390,6 +390,59 @@ inline void count_visit(VM<W> active, uint64_t& per_ray, TraceCounters& counters
     ++counters.packet_visits;
 }
 
+/// The leaf of `n` references at `ref` for the lanes in `live`, lane by lane, four triangles a
+/// pass (wide::intersect4): closest hit into `best` with the packet's tie rule; any hit returns
+/// the lanes occluded. Each lane's prepared ray is the packet's set-up of that lane (the same
+/// values prepare_ray gives), so its answers are the packet test's.
+template <int W, bool AnyHit>
+inline VM<W> leaf_by_lanes(const Packet<W>& pk, uint32_t live, const uint32_t* ref, uint32_t n,
+                           const TriVerts* tris, const uint32_t* ids, PacketHits<W>& best) {
+    VM<W> occluded = simd::broadcast_i<W>(0);
+    for (; live; live &= live - 1) {
+        const int l = __builtin_ctz(live);
+        PreparedRay p;
+        for (int a = 0; a < 3; ++a) {
+            p.org[a] = pk.org[a][l];
+            p.inv_dir[a] = pk.inv[a][l];
+        }
+        p.kx = pk.kx[l];
+        p.ky = pk.ky[l];
+        p.kz = pk.kz[l];
+        p.sx = pk.sx[l];
+        p.sy = pk.sy[l];
+        p.sz = pk.sz[l];
+        const float ray_tmin = pk.ray_tmin[l], ray_tmax = pk.ray_tmax[l];
+        for (uint32_t r = 0; r < n; r += 4) {
+            const uint32_t k = n - r < 4 ? n - r : 4;
+            uint32_t slot[4];
+            for (uint32_t i = 0; i < 4; ++i) slot[i] = ref[r + (i < k ? i : 0)] & ~KdTree::kLastRef;
+            const TriVerts* const block[4] = {&tris[slot[0]], &tris[slot[1]], &tris[slot[2]],
+                                              &tris[slot[3]]};
+            wide::Hits4 h;
+            uint32_t hits = wide::intersect4(p, block, ray_tmin, h);
+            if constexpr (AnyHit) {
+                if (hits & wide::bits4(h.t <= ray_tmax)) {
+                    occluded[l] = -1;
+                    break;
+                }
+            } else {
+                for (; hits; hits &= hits - 1) {
+                    const int j = __builtin_ctz(hits);
+                    const float t = h.t[j];
+                    const uint32_t prim = ids[slot[j]];
+                    if (t < best.t[l] || (t == best.t[l] && prim < best.prim[l])) {
+                        best.t[l] = t;
+                        best.u[l] = h.v[j] / h.det[j];
+                        best.v[l] = h.w[j] / h.det[j];
+                        best.prim[l] = prim;
+                    }
+                }
+            }
+        }
+    }
+    return occluded;
+}
+
 /// Traverses the tree with one packet. Closest hit: `best` holds per-lane answers (initialised by
 /// the caller to t = ray tmax, prim = kNoHit). Any hit: returns the lanes occluded.
 template <int W, bool AnyHit, bool Count>
@@ -441,7 +494,20 @@ inline VM<W> traverse_packet(const KdTree& tree, const Packet<W>& pk, PacketHits
             VM<W> active = (tmin <= tmax) & ~done;
             if constexpr (Count) count_visit<W>(active, counters.leaves, counters);
             const uint32_t end = node.first_ref() + node.prim_count();
-            for (uint32_t r = node.first_ref(); r < end; ++r) {
+            // A leaf reached by few live lanes: each lane tests the leaf four triangles at a
+            // time (the single-ray kernel's leaf test) when that takes fewer passes than one
+            // packet test per triangle. Same per-lane arithmetic, same answers.
+            uint32_t r = node.first_ref();
+            if constexpr (!Count) {
+                const uint32_t live = simd::bits<W>(active);
+                const uint32_t n = node.prim_count();
+                if (pk.uniform_k < 0 &&
+                    static_cast<uint32_t>(__builtin_popcount(live)) * ((n + 3) / 4) < n) {
+                    done |= leaf_by_lanes<W, AnyHit>(pk, live, refs + r, n, tris, ids, best);
+                    r = end;
+                }
+            }
+            for (; r < end; ++r) {
                 const uint32_t slot = refs[r] & ~KdTree::kLastRef;
                 if constexpr (Count) counters.tri_tests += live_lanes<W>(active);
                 VF<W> t, u, v;
