@@ -102,6 +102,16 @@ void check_tree_properties(const KdTree& tree, const Mesh& mesh) {
     std::vector<Item> stack{{0, tree.bounds}};
     double leaf_volume = 0;
     size_t leaves = 0;
+    // Per triangle, its bounds (for a cheap rejection before the exact test), once.
+    std::vector<std::array<float, 6>> tri_box(mesh.triangle_count());
+    for (uint32_t prim = 0; prim < mesh.triangle_count(); ++prim) {
+        const TriVerts& t = tree.triangle(prim);
+        for (int a = 0; a < 3; ++a) {
+            tri_box[prim][a] = std::min({t.v0[a], t.v1[a], t.v2[a]});
+            tri_box[prim][3 + a] = std::max({t.v0[a], t.v1[a], t.v2[a]});
+        }
+    }
+    std::vector<uint8_t> in_leaf(mesh.triangle_count(), 0);
     while (!stack.empty()) {
         const Item it = stack.back();
         stack.pop_back();
@@ -121,9 +131,18 @@ void check_tree_properties(const KdTree& tree, const Mesh& mesh) {
         ++leaves;
         const Vec3 e = it.cell.extent();
         leaf_volume += double{e.x} * e.y * e.z;
-        std::vector<uint8_t> in_leaf(mesh.triangle_count(), 0);
         for (uint32_t i = 0; i < n.prim_count(); ++i)
             in_leaf[tree.tri_ids[tree.leaf_refs[n.first_ref() + i] & ~KdTree::kLastRef]] = 1;
+        struct Unmark {  // in_leaf is all zero again for the next leaf, however this one ends
+            std::vector<uint8_t>& in_leaf;
+            const KdTree& tree;
+            const KdNode& n;
+            ~Unmark() {
+                for (uint32_t i = 0; i < n.prim_count(); ++i)
+                    in_leaf[tree.tri_ids[tree.leaf_refs[n.first_ref() + i] & ~KdTree::kLastRef]] =
+                        0;
+            }
+        } unmark{in_leaf, tree, n};
         std::array<double, 3> lo, hi;
         for (int a = 0; a < 3; ++a) {
             const double shrink = 1e-6 * (double{tree.bounds.hi[a]} - tree.bounds.lo[a]);
@@ -133,11 +152,9 @@ void check_tree_properties(const KdTree& tree, const Mesh& mesh) {
         if (lo[0] >= hi[0] || lo[1] >= hi[1] || lo[2] >= hi[2]) continue;  // flat cell
         for (uint32_t prim = 0; prim < mesh.triangle_count(); ++prim) {
             if (in_leaf[prim]) continue;
-            const TriVerts& t = tree.triangle(prim);
+            const std::array<float, 6>& b = tri_box[prim];
             bool apart = false;  // cheap bounding-box rejection before the exact test
-            for (int a = 0; a < 3; ++a)
-                apart = apart || std::min({t.v0[a], t.v1[a], t.v2[a]}) > hi[a] ||
-                        std::max({t.v0[a], t.v1[a], t.v2[a]}) < lo[a];
+            for (int a = 0; a < 3; ++a) apart = apart || b[a] > hi[a] || b[3 + a] < lo[a];
             if (apart) continue;
             ASSERT_FALSE(triangle_overlaps_box(tree.triangle(prim), lo, hi))
                 << "triangle " << prim << " overlaps leaf " << it.node << " but is not in it";
