@@ -143,6 +143,18 @@ static inline uint32_t bits4(I4 m) {
     return static_cast<uint32_t>(_mm_movemask_ps(reinterpret_cast<__m128>(m)));
 }
 
+/// The 4x4 transpose: c0..c3 are the columns of the rows r[0..3].
+static inline void transpose4(const F4 r[4], F4& c0, F4& c1, F4& c2, F4& c3) {
+    const F4 lo01 = __builtin_shufflevector(r[0], r[1], 0, 4, 1, 5);
+    const F4 lo23 = __builtin_shufflevector(r[2], r[3], 0, 4, 1, 5);
+    const F4 hi01 = __builtin_shufflevector(r[0], r[1], 2, 6, 3, 7);
+    const F4 hi23 = __builtin_shufflevector(r[2], r[3], 2, 6, 3, 7);
+    c0 = __builtin_shufflevector(lo01, lo23, 0, 1, 4, 5);
+    c1 = __builtin_shufflevector(lo01, lo23, 2, 3, 6, 7);
+    c2 = __builtin_shufflevector(hi01, hi23, 0, 1, 4, 5);
+    c3 = __builtin_shufflevector(hi01, hi23, 2, 3, 6, 7);
+}
+
 /// A leaf's triangles four at a time: one pass of the watertight test for one ray against four
 /// triangles (a lane each), lane by lane the arithmetic of intersect_triangle (ray_prep.h), so each
 /// lane's answer is the scalar test's bit for bit: the same subtractions, products and divisions
@@ -168,26 +180,8 @@ static inline uint32_t intersect4(const PreparedRay& p, const TriVerts* const tr
     }
     // Columns: coord[vertex][axis], one lane per triangle.
     F4 coord[3][3];
-    {
-        const F4 lo01 = __builtin_shufflevector(r0[0], r0[1], 0, 4, 1, 5);
-        const F4 lo23 = __builtin_shufflevector(r0[2], r0[3], 0, 4, 1, 5);
-        const F4 hi01 = __builtin_shufflevector(r0[0], r0[1], 2, 6, 3, 7);
-        const F4 hi23 = __builtin_shufflevector(r0[2], r0[3], 2, 6, 3, 7);
-        coord[0][0] = __builtin_shufflevector(lo01, lo23, 0, 1, 4, 5);
-        coord[0][1] = __builtin_shufflevector(lo01, lo23, 2, 3, 6, 7);
-        coord[0][2] = __builtin_shufflevector(hi01, hi23, 0, 1, 4, 5);
-        coord[1][0] = __builtin_shufflevector(hi01, hi23, 2, 3, 6, 7);
-    }
-    {
-        const F4 lo01 = __builtin_shufflevector(r1[0], r1[1], 0, 4, 1, 5);
-        const F4 lo23 = __builtin_shufflevector(r1[2], r1[3], 0, 4, 1, 5);
-        const F4 hi01 = __builtin_shufflevector(r1[0], r1[1], 2, 6, 3, 7);
-        const F4 hi23 = __builtin_shufflevector(r1[2], r1[3], 2, 6, 3, 7);
-        coord[1][1] = __builtin_shufflevector(lo01, lo23, 0, 1, 4, 5);
-        coord[1][2] = __builtin_shufflevector(lo01, lo23, 2, 3, 6, 7);
-        coord[2][0] = __builtin_shufflevector(hi01, hi23, 0, 1, 4, 5);
-        coord[2][1] = __builtin_shufflevector(hi01, hi23, 2, 3, 6, 7);
-    }
+    transpose4(r0, coord[0][0], coord[0][1], coord[0][2], coord[1][0]);
+    transpose4(r1, coord[1][1], coord[1][2], coord[2][0], coord[2][1]);
     coord[2][2] = F4{tri[0]->v2[2], tri[1]->v2[2], tri[2]->v2[2], tri[3]->v2[2]};
 
     const F4 ox = F4{} + p.org[p.kx], oy = F4{} + p.org[p.ky], oz = F4{} + p.org[p.kz];

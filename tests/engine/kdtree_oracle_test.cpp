@@ -5,6 +5,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstring>
+#include <span>
 #include <string>
 
 #include <tbb/task_arena.h>
@@ -121,6 +122,35 @@ TEST(KdOracle, ExtremeCostSettingsStayExact) {
 namespace kdrt::test {
 namespace {
 
+/// Brute force's closest hit of each ray; `hits` counts the rays that hit.
+std::vector<Hit> brute_force_hits(std::span<const TriVerts> tris, std::span<const Ray> rays,
+                                  size_t& hits) {
+    std::vector<Hit> want(rays.size());
+    hits = 0;
+    for (size_t i = 0; i < rays.size(); ++i) {
+        want[i] = brute_force_intersect(tris, rays[i]);
+        hits += want[i].is_hit();
+    }
+    return want;
+}
+
+/// True when `got` (n hits) is not brute force's every-hit list of `ray`, bit for bit.
+bool differs_from_brute_force_all(std::span<const TriVerts> tris, const Ray& ray, const Hit* got,
+                                  size_t n) {
+    const std::vector<Hit> each = brute_force_intersect_all(tris, ray, false);
+    return n != each.size() || (n > 0 && std::memcmp(got, each.data(), n * sizeof(Hit)) != 0);
+}
+
+/// Rays whose every-hit list in `all` is not brute force's.
+size_t all_hits_differences(const AllHits& all, std::span<const TriVerts> tris,
+                            std::span<const Ray> rays) {
+    size_t differ = 0;
+    for (size_t i = 0; i < rays.size(); ++i)
+        differ += differs_from_brute_force_all(tris, rays[i], &all.hits[all.offsets[i]],
+                                               all.offsets[i + 1] - all.offsets[i]);
+    return differ;
+}
+
 // Leaves of 1 to 13 triangles (one leaf: max_depth 0; a few: max_depth 2) that share a vertex and
 // edges, with an exact duplicate (a tie at the same t, broken by the lower id) and a second,
 // parallel fan behind the first: the single-ray kernel tests a leaf four triangles a lane in one
@@ -162,12 +192,8 @@ TEST(KdOracle, LeafBlocksMatchBruteForce) {
             const Vec3 o = target + rng.on_sphere() * std::pow(10.0f, rng.uniform(0.0f, 3.0f));
             rays.push_back(make_ray(o, target - o));
         }
-        std::vector<Hit> want(rays.size());
         size_t hits = 0;
-        for (size_t i = 0; i < rays.size(); ++i) {
-            want[i] = brute_force_intersect(tris, rays[i]);
-            hits += want[i].is_hit();
-        }
+        const std::vector<Hit> want = brute_force_hits(tris, rays, hits);
         EXPECT_GT(hits, rays.size() / 4) << "the rays are aimed at the fan";
         for (int depth : {0, 2}) {
             BuildOptions options;
@@ -198,17 +224,10 @@ TEST(KdOracle, LeafBlocksMatchBruteForce) {
                     AllHitsOptions all_options{kMaxHitsPerRay, false};
                     all_options.mode = mode;
                     all_options.isa = isa;
-                    const AllHits all = intersect_all(tree, rays, all_options);
-                    size_t all_differ = 0;
-                    for (size_t i = 0; i < rays.size(); ++i) {
-                        const std::vector<Hit> each =
-                            brute_force_intersect_all(tris, rays[i], false);
-                        const uint64_t k = all.offsets[i + 1] - all.offsets[i];
-                        all_differ += k != each.size() ||
-                                      (k > 0 && std::memcmp(&all.hits[all.offsets[i]], each.data(),
-                                                            k * sizeof(Hit)) != 0);
-                    }
-                    EXPECT_EQ(all_differ, 0u) << "every-hit lists unlike brute force";
+                    EXPECT_EQ(
+                        all_hits_differences(intersect_all(tree, rays, all_options), tris, rays),
+                        0u)
+                        << "every-hit lists unlike brute force";
                 }
             }
             // The public single-ray entry points (the default ISA's kernel).
@@ -224,10 +243,7 @@ TEST(KdOracle, LeafBlocksMatchBruteForce) {
             std::vector<Hit> one;
             for (size_t i = 0; i < rays.size(); ++i) {
                 (void)intersect_all(tree, rays[i], false, one);
-                const std::vector<Hit> each = brute_force_intersect_all(tris, rays[i], false);
-                all_differ += one.size() != each.size() ||
-                              (!one.empty() &&
-                               std::memcmp(one.data(), each.data(), one.size() * sizeof(Hit)) != 0);
+                all_differ += differs_from_brute_force_all(tris, rays[i], one.data(), one.size());
             }
             EXPECT_EQ(all_differ, 0u) << "intersect_all(tree, ray)";
         }
@@ -286,12 +302,8 @@ TEST(KdOracle, FarRaysAtBoxCornersAndEdgesMatchBruteForce) {
             const Vec3 o = p + rng.on_sphere() * far;
             rays.push_back(make_ray(o, p - o));
         }
-        std::vector<Hit> want(rays.size());
         size_t hits = 0;
-        for (size_t i = 0; i < rays.size(); ++i) {
-            want[i] = brute_force_intersect(tris, rays[i]);
-            hits += want[i].is_hit();
-        }
+        const std::vector<Hit> want = brute_force_hits(tris, rays, hits);
         EXPECT_GT(hits, rays.size() / 4) << "the rays should often graze the mesh";
         std::vector<Hit> got(rays.size());
         std::vector<uint8_t> occ(rays.size());
@@ -307,16 +319,9 @@ TEST(KdOracle, FarRaysAtBoxCornersAndEdgesMatchBruteForce) {
                 AllHitsOptions all_options{kMaxHitsPerRay, false};
                 all_options.mode = mode;
                 all_options.isa = isa;
-                const AllHits all = intersect_all(tree, rays, all_options);
-                size_t differ = 0;
-                for (size_t i = 0; i < rays.size(); ++i) {
-                    const std::vector<Hit> each = brute_force_intersect_all(tris, rays[i], false);
-                    const uint64_t n = all.offsets[i + 1] - all.offsets[i];
-                    differ += n != each.size() ||
-                              (n > 0 && std::memcmp(&all.hits[all.offsets[i]], each.data(),
-                                                    n * sizeof(Hit)) != 0);
-                }
-                EXPECT_EQ(differ, 0u) << "every-hit answers that differ from brute force";
+                EXPECT_EQ(all_hits_differences(intersect_all(tree, rays, all_options), tris, rays),
+                          0u)
+                    << "every-hit answers that differ from brute force";
             }
         }
     }
