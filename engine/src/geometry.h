@@ -12,6 +12,11 @@
 
 namespace kdrt::detail {
 
+/// Coincident hits merge (AllHitsOptions::merge_coincident) within this fraction of the largest
+/// coordinate of the ray origin and the group's first triangle, over the largest direction
+/// component: multi_hit.cpp's merge, and the window scene_trace.cpp's nearest hits look through.
+inline constexpr float kMergeToleranceScale = 0x1p-18f;
+
 inline bool is_finite(Vec3 v) noexcept {
     return std::isfinite(v.x) && std::isfinite(v.y) && std::isfinite(v.z);
 }

@@ -134,7 +134,8 @@ size_t merge_groups(TriOf tri_of, const Ray& ray, Hit* hits, size_t n) {
     size_t out = 0;
     size_t i = 0;
     while (i < n) {
-        const float tol = max_abs(tri_of(hits[i].prim), org_max) * 0x1p-18f / dmax;
+        const float tol =
+            max_abs(tri_of(hits[i].prim), org_max) * detail::kMergeToleranceScale / dmax;
         size_t j = i + 1;
         while (j < n && hits[j].t - hits[i].t <= tol) {
             const TriVerts& tj = tri_of(hits[j].prim);

@@ -401,10 +401,7 @@ inline VM<W> leaf_by_lanes(const Packet<W>& pk, uint32_t live, const uint32_t* r
     for (; live; live &= live - 1) {
         const int l = __builtin_ctz(live);
         PreparedRay p;
-        for (int a = 0; a < 3; ++a) {
-            p.org[a] = pk.org[a][l];
-            p.inv_dir[a] = pk.inv[a][l];
-        }
+        for (int a = 0; a < 3; ++a) p.org[a] = pk.org[a][l];  // intersect4 reads no inv_dir
         p.kx = pk.kx[l];
         p.ky = pk.ky[l];
         p.kz = pk.kz[l];

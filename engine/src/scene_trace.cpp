@@ -13,6 +13,7 @@
 #include <tbb/enumerable_thread_specific.h>
 #include <tbb/parallel_for.h>
 
+#include "geometry.h"
 #include "kdrt/query.h"
 #include "kdrt/scene.h"
 #include "kdrt/trace.h"
@@ -425,7 +426,7 @@ float truncated_tmax(const KdTree& tree, const Ray& o, float t_kth, bool merge) 
                         std::fabs(static_cast<double>(tree.bounds.hi[a]))});
     const double reach = static_cast<double>(t_kth) +
                          std::fabs(static_cast<double>(t_kth)) * 0x1p-20 +
-                         2.0 * mag * 0x1p-18 / dmax;
+                         2.0 * mag * double{detail::kMergeToleranceScale} / dmax;
     if (!(reach < std::numeric_limits<float>::max())) return std::numeric_limits<float>::max();
     auto f = static_cast<float>(reach);
     if (static_cast<double>(f) < reach) f = std::nextafter(f, std::numeric_limits<float>::max());
