@@ -447,109 +447,165 @@ struct Count {
     }
 };
 
+/// One ray's walk through the wide nodes: its set-up, the cell it is in and the cells still to
+/// visit, and its closest hit so far. The single-ray kernel runs one walk to its end
+/// (traverse_wide); a batch of single rays advances two walks in turn (wide_step), so one ray's
+/// loads overlap the other's work.
+struct WideRay {
+    PreparedRay p;
+    wide::Ray8 r8;
+    float ray_tmin, ray_tmax;
+};
+/// The arrays a walk reads, loaded once (the stack's stores could otherwise alias the vectors'
+/// pointers, which would then be loaded again at every step).
+struct WideArrays {
+    const WideNode* wides;
+    const uint32_t* refs;
+    const TriVerts* tris;
+    const uint32_t* ids;
+    explicit WideArrays(const KdTree& tree) noexcept
+        : wides(tree.wide_nodes.data()),
+          refs(tree.leaf_refs.data()),
+          tris(tree.tris.data()),
+          ids(tree.tri_ids.data()) {}
+};
+
+struct WideWalk {
+    WideRay ray;
+    wide::Cell cell;
+    int stack_size;
+    bool found;  ///< closest hit: a hit is kept in `best`; any hit: the ray is occluded
+    Best best;
+};
+
+/// Sets `w` up for `ray` at the root, its closest hit so far (ray tmax, no hit). False when the ray
+/// is invalid or misses the tree's box: then there is no hit, and nothing to walk.
+[[gnu::always_inline]] static inline bool wide_start(const KdTree& tree, const Ray& ray, WideRay& r,
+                                                     wide::Cell& cell) noexcept {
+    if (!ray_is_valid(ray) || tree.bounds.empty()) return false;
+    r.p = prepare_ray(ray);
+    float eps[3];
+    traversal_eps(r.p, tree.bounds, eps);
+    float tmin = ray.tmin, tmax = ray.tmax;
+    if (!clip_to_box(r.p, tree.bounds, eps, tmin, tmax)) return false;
+    for (int a = 0; a < 3; ++a) {
+        r.r8.org[a] = wide::F8{} + r.p.org[a];
+        r.r8.inv[a] = wide::F8{} + r.p.inv_dir[a];
+        r.r8.eps[a] = wide::F8{} + eps[a];
+    }
+    r.r8.xyz_org = wide::F8{r.p.org[0], r.p.org[1], r.p.org[2], 0.0f, 0.0f, 0.0f, 0.0f, 0.0f};
+    r.r8.xyz_inv =
+        wide::F8{r.p.inv_dir[0], r.p.inv_dir[1], r.p.inv_dir[2], 0.0f, 0.0f, 0.0f, 0.0f, 0.0f};
+    r.r8.xyz_eps = wide::F8{eps[0], eps[1], eps[2], 0.0f, 0.0f, 0.0f, 0.0f, 0.0f};
+    r.ray_tmin = ray.tmin;
+    r.ray_tmax = ray.tmax;
+    // The root: a wide node, or (a tree of one leaf) that leaf.
+    cell = {WideNode::make_slot(WideNode::kSlotNode, 0), tmin, tmax, 0};
+    if (tree.wide_nodes.empty()) {
+        const KdNode root = tree.nodes[0];
+        if (root.prim_count() == 0) return false;
+        cell.slot = WideNode::make_slot(WideNode::kSlotLeaf, root.first_ref());
+    }
+    return true;
+}
+
+/// Visits the walk's current cell and moves to the next one. True when the walk has ended: no cell
+/// is left that starts no later than the closest hit, or (AnyHit) a hit ended the ray. With
+/// AnyHit, `found` then says whether the ray is occluded; otherwise whether `best` holds a hit.
+/// Counter: NoCount, or Count (the work counters of kdrt-bench trace --stats).
+template <bool AnyHit, class Counter>
+[[gnu::always_inline]] static inline bool wide_step(const WideArrays& tree, const WideRay& r,
+                                                    wide::Stack& stack, int& stack_size,
+                                                    wide::Cell& cell, Best& best, bool& found,
+                                                    Counter counter) noexcept {
+    counter.steps(cell.steps);
+    const uint32_t index = WideNode::slot_index(cell.slot);
+    if (WideNode::slot_tag(cell.slot) == WideNode::kSlotNode) {
+        counter.wide();
+        // Straight onto the stack, farthest first, so the nearest comes off first; the nearest is
+        // visited next, without a check (the binary kernel descends to it).
+        const int n = wide::decode<Counter::kCounts, Counter::kCounts>(
+            tree.wides[index], r.r8, cell.tmin, cell.tmax, stack, stack_size);
+        if (n > 0) {
+            stack_size += n - 1;
+            cell = stack.at(stack_size, Counter::kCounts);
+            return false;
+        }
+    } else if (!Counter::kCounts || WideNode::slot_tag(cell.slot) == WideNode::kSlotLeaf) {
+        // The leaf's run of references, from its slot's first one to the one marked last (only
+        // the counting kernels visit empty leaves).
+        const uint32_t* ref = tree.refs + index;
+        const TriVerts* tris = tree.tris;
+        if constexpr (Counter::kCounts) {
+            uint32_t n = 1;  // counted before the tests, as the binary kernel counts a leaf
+            for (const uint32_t* r = ref; !(*r & KdTree::kLastRef); ++r) ++n;
+            counter.leaf(n);
+        }
+        // Four references at a time, tested in one pass (wide::intersect4).
+        for (bool last = false; !last;) {
+            uint32_t slot[4];
+            int n = 0;
+            do {
+                const uint32_t word = ref[n];
+                slot[n++] = word & ~KdTree::kLastRef;
+                last = (word & KdTree::kLastRef) != 0;
+            } while (!last && n < 4);
+            ref += n;
+            for (int i = n; i < 4; ++i) slot[i] = slot[0];
+            const TriVerts* const block[4] = {&tris[slot[0]], &tris[slot[1]], &tris[slot[2]],
+                                              &tris[slot[3]]};
+            wide::Hits4 h;
+            uint32_t hits = wide::intersect4(r.p, block, r.ray_tmin, h);
+            if constexpr (AnyHit) {
+                if (hits & wide::bits4(h.t <= r.ray_tmax)) {
+                    found = true;
+                    return true;
+                }
+            } else {
+                for (; hits; hits &= hits - 1) {
+                    const int l = __builtin_ctz(hits);
+                    const float t = h.t[l];
+                    // The tie rule and the answer use mesh ids.
+                    const uint32_t prim = tree.ids[slot[l]];
+                    if (t < best.t || (t == best.t && prim < best.prim)) {
+                        best = {t, prim, h.v[l] / h.det[l], h.w[l] / h.det[l]};
+                        found = true;
+                    }
+                }
+            }
+        }
+    } else {
+        counter.leaf(0);  // an empty leaf
+    }
+    // The next cell that starts no later than the closest hit (a hit exactly at a cell's entry may
+    // still have a lower-id tie inside it). Cells come off the stack front to back, but their
+    // intervals are widened by eps, so a later cell (the far side of a plane higher up) may start
+    // before an earlier one (a deep near-side cell): the rest of the stack is skipped through,
+    // not cut off at the first cell beyond the hit.
+    do {
+        if (stack_size == 0) return true;
+        --stack_size;
+    } while (!AnyHit && stack.tmin[stack_size] > best.t);
+    cell = stack.at(stack_size, Counter::kCounts);
+    return false;
+}
+
 /// The single-ray kernel: with AnyHit it returns at the first hit in [ray tmin, ray tmax];
 /// otherwise it keeps the lexicographically smallest (t, prim) so ties do not depend on the
 /// traversal order. Counter: NoCount, or Count (the work counters of kdrt-bench trace --stats).
 template <bool AnyHit, class Counter>
 static inline bool traverse_wide(const KdTree& tree, const Ray& ray, Best& best,
                                  Counter counter) noexcept {
-    if (!ray_is_valid(ray) || tree.bounds.empty()) return false;
-    const PreparedRay p = prepare_ray(ray);
-    float eps[3];
-    traversal_eps(p, tree.bounds, eps);
-    float tmin = ray.tmin, tmax = ray.tmax;
-    if (!clip_to_box(p, tree.bounds, eps, tmin, tmax)) return false;
-    wide::Ray8 r8;
-    for (int a = 0; a < 3; ++a) {
-        r8.org[a] = wide::F8{} + p.org[a];
-        r8.inv[a] = wide::F8{} + p.inv_dir[a];
-        r8.eps[a] = wide::F8{} + eps[a];
-    }
-    r8.xyz_org = wide::F8{p.org[0], p.org[1], p.org[2], 0.0f, 0.0f, 0.0f, 0.0f, 0.0f};
-    r8.xyz_inv = wide::F8{p.inv_dir[0], p.inv_dir[1], p.inv_dir[2], 0.0f, 0.0f, 0.0f, 0.0f, 0.0f};
-    r8.xyz_eps = wide::F8{eps[0], eps[1], eps[2], 0.0f, 0.0f, 0.0f, 0.0f, 0.0f};
-    const WideNode* wides = tree.wide_nodes.data();
-    const uint32_t* refs = tree.leaf_refs.data();
-    const TriVerts* tris = tree.tris.data();
-    const uint32_t* ids = tree.tri_ids.data();
-
+    WideRay r;          // NOLINT(cppcoreguidelines-pro-type-member-init): wide_start sets it
+    wide::Cell cell;    // NOLINT(cppcoreguidelines-pro-type-member-init): wide_start sets it
     wide::Stack stack;  // NOLINT(cppcoreguidelines-pro-type-member-init): written before read
+    if (!wide_start(tree, ray, r, cell)) return false;
     int stack_size = 0;
-    // The root: a wide node, or (a tree of one leaf) that leaf.
-    wide::Cell cell{WideNode::make_slot(WideNode::kSlotNode, 0), tmin, tmax, 0};
-    if (tree.wide_nodes.empty()) {
-        const KdNode root = tree.nodes[0];
-        if (root.prim_count() == 0) return false;
-        cell.slot = WideNode::make_slot(WideNode::kSlotLeaf, root.first_ref());
-    }
     bool found = false;
-    for (;;) {
-        counter.steps(cell.steps);
-        const uint32_t index = WideNode::slot_index(cell.slot);
-        if (WideNode::slot_tag(cell.slot) == WideNode::kSlotNode) {
-            counter.wide();
-            // Straight onto the stack, farthest first, so the nearest comes off first; the
-            // nearest is visited now, without a check (the binary kernel descends to it).
-            const int n = wide::decode<Counter::kCounts, Counter::kCounts>(
-                wides[index], r8, cell.tmin, cell.tmax, stack, stack_size);
-            if (n > 0) {
-                stack_size += n - 1;
-                cell = stack.at(stack_size, Counter::kCounts);
-                continue;
-            }
-        } else if (!Counter::kCounts || WideNode::slot_tag(cell.slot) == WideNode::kSlotLeaf) {
-            // The leaf's run of references, from its slot's first one to the one marked last
-            // (only the counting kernels visit empty leaves).
-            const uint32_t* ref = refs + index;
-            if constexpr (Counter::kCounts) {
-                uint32_t n = 1;  // counted before the tests, as the binary kernel counts a leaf
-                for (const uint32_t* r = ref; !(*r & KdTree::kLastRef); ++r) ++n;
-                counter.leaf(n);
-            }
-            // Four references at a time, tested in one pass (wide::intersect4).
-            for (bool last = false; !last;) {
-                uint32_t slot[4];
-                int n = 0;
-                do {
-                    const uint32_t word = ref[n];
-                    slot[n++] = word & ~KdTree::kLastRef;
-                    last = (word & KdTree::kLastRef) != 0;
-                } while (!last && n < 4);
-                ref += n;
-                for (int i = n; i < 4; ++i) slot[i] = slot[0];
-                const TriVerts* const block[4] = {&tris[slot[0]], &tris[slot[1]], &tris[slot[2]],
-                                                  &tris[slot[3]]};
-                wide::Hits4 h;
-                uint32_t hits = wide::intersect4(p, block, ray.tmin, h);
-                if constexpr (AnyHit) {
-                    if (hits & wide::bits4(h.t <= ray.tmax)) return true;
-                } else {
-                    for (; hits; hits &= hits - 1) {
-                        const int l = __builtin_ctz(hits);
-                        const float t = h.t[l];
-                        const uint32_t prim =
-                            ids[slot[l]];  // the tie rule and the answer use mesh ids
-                        if (t < best.t || (t == best.t && prim < best.prim)) {
-                            best = {t, prim, h.v[l] / h.det[l], h.w[l] / h.det[l]};
-                            found = true;
-                        }
-                    }
-                }
-            }
-        } else {
-            counter.leaf(0);  // an empty leaf
-        }
-        // The next cell that starts no later than the closest hit (a hit exactly at a cell's
-        // entry may still have a lower-id tie inside it). Cells come off the stack front to back,
-        // but their intervals are widened by eps, so a later cell (the far side of a plane higher
-        // up) may start before an earlier one (a deep near-side cell): the rest of the stack is
-        // skipped through, not cut off at the first cell beyond the hit.
-        do {
-            if (stack_size == 0) return found;
-            --stack_size;
-        } while (!AnyHit && stack.tmin[stack_size] > best.t);
-        cell = stack.at(stack_size, Counter::kCounts);
+    const WideArrays arrays(tree);
+    while (!wide_step<AnyHit>(arrays, r, stack, stack_size, cell, best, found, counter)) {
     }
+    return found;
 }
 
 static inline Hit to_hit(bool found, const Best& best) noexcept {

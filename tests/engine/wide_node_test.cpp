@@ -245,6 +245,74 @@ TEST(WideKernel, MatchesBruteForceOnAdversarialRaysEveryIsa) {
     expect_single_rays_match_brute_force(*mesh, "bunny");
 }
 
+/// Single-ray batches walk several rays in turn (trace_in_turn): every answer must land at its own
+/// ray's index and be that ray's single-ray answer, whatever the batch size, wherever the invalid
+/// rays and the rays that miss the tree's box fall, and however long each walk is.
+void expect_batches_answer_in_place(const Mesh& mesh, const std::string& what) {
+    const KdTree tree = build_kdtree(mesh);
+    Rng rng(test_seed() ^ 0x7A12);
+    std::vector<Ray> pool = oracle_rays(rng, mesh, tree, 60);
+    const float nan = std::numeric_limits<float>::quiet_NaN();
+    Ray bad = pool[0];
+    bad.ox = nan;  // invalid: answered as a miss before any walk
+    pool.push_back(bad);
+    bad = pool[1];
+    bad.dx = bad.dy = bad.dz = 0.0f;  // invalid: no direction
+    pool.push_back(bad);
+    const Aabb& box = tree.bounds;
+    // Valid, but outside the box and pointing away from it: no walk either.
+    Ray away{};
+    away.ox = box.hi.x + 1.0f;
+    away.oy = box.hi.y + 1.0f;
+    away.oz = box.hi.z + 1.0f;
+    away.dx = 1.0f;
+    away.dy = 0.5f;
+    away.dz = 0.25f;
+    away.tmax = std::numeric_limits<float>::infinity();
+    pool.push_back(away);
+    for (Isa isa : isas_here()) {
+        for (size_t n = 0; n <= 13; ++n) {
+            SCOPED_TRACE(what + " / " + std::string(isa_name(isa)) + " / batch of " +
+                         std::to_string(n));
+            std::vector<Ray> batch(n);
+            for (Ray& r : batch) r = pool[rng.below(static_cast<uint32_t>(pool.size()))];
+            std::vector<Hit> got(n);
+            TraceStats stats;
+            intersect(tree, batch, got, {TraceMode::kSingle, isa}, &stats);
+            EXPECT_EQ(stats.single_rays + stats.invalid_rays, n);
+            EXPECT_EQ(stats.packet_rays, 0u);
+            std::vector<Hit> got_block(n);
+            intersect_block(tree, batch, got_block, {TraceMode::kSingle, isa});
+            std::vector<uint8_t> occ(n), occ_block(n);
+            occluded(tree, batch, occ, {TraceMode::kSingle, isa});
+            occluded_block(tree, batch, occ_block, {TraceMode::kSingle, isa});
+            for (size_t i = 0; i < n; ++i) {
+                const Hit want = intersect(tree, batch[i]);
+                EXPECT_EQ(std::memcmp(&got[i], &want, sizeof(Hit)), 0)
+                    << "ray " << i << ": got t=" << got[i].t << " prim=" << got[i].prim
+                    << ", want t=" << want.t << " prim=" << want.prim;
+                EXPECT_EQ(std::memcmp(&got_block[i], &want, sizeof(Hit)), 0) << "block, ray " << i;
+                const uint8_t want_occ = occluded(tree, batch[i]) ? 1 : 0;
+                EXPECT_EQ(occ[i], want_occ) << "ray " << i;
+                EXPECT_EQ(occ_block[i], want_occ) << "block, ray " << i;
+            }
+        }
+    }
+}
+
+TEST(WideKernel, SingleBatchesWalkedInTurnAnswerEveryRayInPlace) {
+    auto mesh = proto::load_mesh_file(std::string(KDRT_TEST_DATA_DIR) + "/bunny00.off");
+    ASSERT_TRUE(mesh.ok());
+    expect_batches_answer_in_place(*mesh, "bunny");
+    Mesh one;  // a tree of one leaf: no wide node at all
+    add_triangle(one, {0, 0, 0}, {1, 0, 0}, {0, 1, 0});
+    const KdTree one_tree = build_kdtree(one);
+    ASSERT_TRUE(one_tree.wide_nodes.empty());
+    expect_batches_answer_in_place(one, "one triangle");
+    Rng rng(test_seed() ^ 0x51);
+    expect_batches_answer_in_place(random_soup(rng, 500), "soup");
+}
+
 TEST(WideKernel, AxisAlignedGridRaysAlongAndAcrossEverySplitPlane) {
     // A grid of unit squares in z = 0, 1, 2: many split planes coincide with triangle edges and
     // with the rays below, which run along those planes, through grid vertices, and from inside.
