@@ -134,29 +134,52 @@ struct TopRay {
     return tmin <= tmax;
 }
 
-/// Front-to-back traversal of the top level along `ray` (valid), widened by the margin as the mesh
-/// kernel widens its cells. For each instance referenced by a leaf the ray's widened segment
-/// reaches, calls visit(geom, entry) with `entry` the widened box entry t (instances are offered
-/// once per leaf that holds them; the caller de-duplicates if it matters). limit() is the current
-/// upper bound of t (the best hit so far for closest hit): cells starting beyond it are skipped
-/// and the walk stops. visit returns false to stop at once (any hit).
-template <class Limit, class Visit>
-void walk_top(const SceneData& s, const Ray& ray, const TopRay& p, Limit&& limit, Visit&& visit) {
-    float tmin = ray.tmin, tmax = ray.tmax;
-    if (s.refs.empty() || !clip_widened(p, s.bounds, tmin, tmax)) return;
-    struct Entry {
-        uint32_t node;
-        float tmin, tmax;
-    };
-    std::array<Entry, kTopMaxDepth + 2> stack;
+/// A cell of the top level still to visit: its node and the widened [tmin, tmax] of the ray in it.
+struct TopCell {
+    uint32_t node;
+    float tmin, tmax;
+};
+
+/// Room a TopWalk's stack needs (the depth cap, and the root).
+inline constexpr int kTopStack = kTopMaxDepth + 2;
+
+/// A front-to-back walk of the top level along one ray that can stop at any leaf and resume later
+/// (a batch's rounds keep one per ray). The walk is widened by the margin as the mesh kernel
+/// widens its cells. The stack (kTopStack cells) is the caller's.
+struct TopWalk {
+    TopCell* stack = nullptr;
     int size = 0;
-    uint32_t index = 0;
-    for (;;) {
-        TopNode node = s.nodes[index];
-        while (!node.is_leaf()) {
-            const int axis = node.axis();
-            const uint32_t low = node.first_child(), high = low + 1;
-            const float split = node.split();
+
+    /// Starts the walk of `ray` (valid) at the root, clipped to [ray.tmin, ray.tmax].
+    [[gnu::always_inline]] void start(const SceneData& s, const Ray& ray, const TopRay& p,
+                                      TopCell* storage) noexcept {
+        stack = storage;
+        size = 0;
+        float tmin = ray.tmin, tmax = ray.tmax;
+        if (!s.refs.empty() && clip_widened(p, s.bounds, tmin, tmax))
+            stack[size++] = {0, tmin, tmax};
+    }
+
+    [[nodiscard]] bool done() const noexcept { return size == 0; }
+
+    /// The next leaf along the ray whose cell starts at or before `limit` (the current upper bound
+    /// of t), or nullptr when there is none: cells are met front to back, so once one starts
+    /// beyond the limit every later one does too, and the walk ends.
+    [[gnu::always_inline]] const TopNode* next_leaf(const SceneData& s, const TopRay& p,
+                                                    float limit) noexcept {
+        if (size == 0) return nullptr;
+        const TopCell cell = stack[--size];
+        if (cell.tmin > limit) {
+            size = 0;
+            return nullptr;
+        }
+        uint32_t index = cell.node;
+        float tmin = cell.tmin, tmax = cell.tmax;
+        const TopNode* node = &s.nodes[index];
+        while (!node->is_leaf()) {
+            const int axis = node->axis();
+            const uint32_t low = node->first_child(), high = low + 1;
+            const float split = node->split();
             uint32_t near, far;
             bool need_near, need_far;
             float near_max = tmax, far_min = tmin;
@@ -186,23 +209,30 @@ void walk_top(const SceneData& s, const Ray& ray, const TopRay& p, Limit&& limit
                 if (!need_near) tmin = far_min > tmin ? far_min : tmin;
                 if (!need_far) tmax = near_max < tmax ? near_max : tmax;
             }
-            node = s.nodes[index];
+            node = &s.nodes[index];
         }
-        const uint32_t end = node.first_ref() + node.count();
-        for (uint32_t r = node.first_ref(); r < end; ++r) {
+        return node;
+    }
+};
+
+/// Front-to-back traversal of the top level along `ray` (valid). For each instance referenced by
+/// a leaf the ray's widened segment reaches, calls visit(geom, entry) with `entry` the widened box
+/// entry t (instances are offered once per leaf that holds them; the caller de-duplicates if it
+/// matters). limit() is the current upper bound of t (the best hit so far for closest hit): cells
+/// starting beyond it are skipped and the walk stops. visit returns false to stop at once (any
+/// hit).
+template <class Limit, class Visit>
+void walk_top(const SceneData& s, const Ray& ray, const TopRay& p, Limit&& limit, Visit&& visit) {
+    std::array<TopCell, kTopStack> stack;
+    TopWalk walk;
+    walk.start(s, ray, p, stack.data());
+    while (const TopNode* leaf = walk.next_leaf(s, p, limit())) {
+        const uint32_t end = leaf->first_ref() + leaf->count();
+        for (uint32_t r = leaf->first_ref(); r < end; ++r) {
             const uint32_t geom = s.refs[r];
             float t0 = ray.tmin, t1 = limit();
             if (!clip_widened(p, s.inst[geom].world, t0, t1)) continue;
             if (!visit(geom, t0)) return;
-        }
-        for (;;) {
-            if (size == 0) return;
-            const Entry& e = stack[--size];
-            if (e.tmin > limit()) return;  // front to back: every later cell starts later still
-            index = e.node;
-            tmin = e.tmin;
-            tmax = e.tmax;
-            break;
         }
     }
 }

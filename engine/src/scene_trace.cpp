@@ -1,8 +1,9 @@
 // Scene ray queries: the top-level walk (scene_internal.h) hands each instance it reaches to the
 // mesh's public queries (kdrt/trace.h, kdrt/query.h) on the object-space ray. Batches trace blocks
-// of rays in rounds: every ray takes its next candidate instance in order of entry (skipping the
-// rest once they start beyond its closest hit), and the rays that reach one instance in a round go
-// to the mesh's batch entry together, so coherent rays become the mesh kernel's packets.
+// of rays in rounds: every ray resumes its own top-level walk to its next leaf with an instance it
+// reaches (and stops once the next cell starts beyond its closest hit), and the rays that reach one
+// instance in a round go to the mesh's batch entry together, so coherent rays become the mesh
+// kernel's packets. The lidar's nearest hits go in the same rounds.
 
 #include <algorithm>
 #include <cmath>
@@ -72,8 +73,11 @@ constexpr size_t kMinGroup = 8;
 constexpr size_t kBlock = 1024;
 
 struct BlockScratch {
-    std::vector<Candidate> cands;
-    std::vector<uint32_t> begin, end;  ///< per ray: its candidates
+    std::vector<detail::TopRay> top;     ///< per ray: its world ray for the top level
+    std::vector<detail::TopWalk> walk;   ///< per ray: where its top-level walk stands
+    std::vector<detail::TopCell> cells;  ///< per ray: kTopStack cells, its walk's stack
+    std::vector<detail::Mailbox> mailbox;
+    std::vector<uint32_t> live;  ///< the rays whose walk goes on
     std::vector<SceneHit> best;
     std::vector<uint8_t> done;
     std::vector<std::pair<uint32_t, uint32_t>> pairs;  ///< (geom, ray) of a round
@@ -94,10 +98,13 @@ struct Counts {
 /// (diffuse bounces, random rays) each ray walks alone and stops at its first cell past its
 /// closest hit, which costs less than collecting every instance along it.
 bool rounds_pay(std::span<const Ray> rays) noexcept {
-    bool one_origin = true;
+    // One origin first: it needs no square roots (camera rays, lidar beams).
+    if (std::all_of(rays.begin(), rays.end(), [&](const Ray& r) {
+            return r.ox == rays[0].ox && r.oy == rays[0].oy && r.oz == rays[0].oz;
+        }))
+        return true;
     float lo[3] = {2, 2, 2}, hi[3] = {-2, -2, -2};
     for (const Ray& r : rays) {
-        one_origin = one_origin && r.ox == rays[0].ox && r.oy == rays[0].oy && r.oz == rays[0].oz;
         const float len = std::sqrt(r.dx * r.dx + r.dy * r.dy + r.dz * r.dz);
         if (!(len > 0.0f) || !std::isfinite(len)) continue;
         const float d[3] = {r.dx / len, r.dy / len, r.dz / len};
@@ -106,7 +113,60 @@ bool rounds_pay(std::span<const Ray> rays) noexcept {
             hi[a] = std::max(hi[a], d[a]);
         }
     }
-    return one_origin || (hi[0] - lo[0] < 0.5f && hi[1] - lo[1] < 0.5f && hi[2] - lo[2] < 0.5f);
+    return hi[0] - lo[0] < 0.5f && hi[1] - lo[1] < 0.5f && hi[2] - lo[2] < 0.5f;
+}
+
+/// What a round does with an instance a ray reaches: nothing (already traced), take it, or stop
+/// the ray's walk.
+enum class Take { kSkip, kTaken, kStop };
+
+/// Takes `walk` to the next leaf where take(geom) takes an instance the ray's widened segment
+/// [ray.tmin, limit] reaches, offering every such instance of that leaf. kTaken then; kSkip when
+/// the walk ended (no cell starts at or before `limit`); kStop at once when take says so.
+template <class TakeFn>
+Take take_next_leaf(const SceneData& s, const Ray& ray, const detail::TopRay& p,
+                    detail::TopWalk& walk, float limit, TakeFn&& take) {
+    for (;;) {
+        const detail::TopNode* leaf = walk.next_leaf(s, p, limit);
+        if (!leaf) return Take::kSkip;
+        bool found = false;
+        const uint32_t end = leaf->first_ref() + leaf->count();
+        for (uint32_t r = leaf->first_ref(); r < end; ++r) {
+            const uint32_t geom = s.refs[r];
+            float t0 = ray.tmin, t1 = limit;
+            if (!detail::clip_widened(p, s.inst[geom].world, t0, t1)) continue;
+            const Take t = take(geom);
+            if (t == Take::kStop) return t;
+            found = found || t == Take::kTaken;
+        }
+        if (found) return Take::kTaken;
+    }
+}
+
+/// A round's (geom, ray) pairs, sorted, as fn(geom, first, end) per instance.
+template <class Fn>
+void for_each_instance(const std::vector<std::pair<uint32_t, uint32_t>>& pairs, Fn&& fn) {
+    for (size_t g0 = 0; g0 < pairs.size();) {
+        const uint32_t geom = pairs[g0].first;
+        size_t g1 = g0;
+        while (g1 < pairs.size() && pairs[g1].first == geom) ++g1;
+        fn(geom, g0, g1);
+        g0 = g1;
+    }
+}
+
+/// The object rays of pairs [g0, g1) (one instance's) into `out`, with tmax = tmax(ray index).
+template <class Tmax>
+void object_rays(const InstanceData& in, std::span<const Ray> rays,
+                 const std::vector<std::pair<uint32_t, uint32_t>>& pairs, size_t g0, size_t g1,
+                 Tmax&& tmax, std::vector<Ray>& out) {
+    out.resize(g1 - g0);
+    for (size_t k = g0; k < g1; ++k) {
+        const uint32_t i = pairs[k].second;
+        Ray o = detail::to_object(in, rays[i]);
+        o.tmax = tmax(i);
+        out[k - g0] = o;
+    }
 }
 
 SceneHit intersect_one(const SceneData& s, const Ray& ray, uint64_t* visits) noexcept;
@@ -128,48 +188,50 @@ void trace_block(const SceneData& s, std::span<const Ray> rays, std::span<SceneH
         }
         return;
     }
-    b.cands.clear();
-    b.begin.assign(n, 0);
-    b.end.assign(n, 0);
+    b.top.resize(n);
+    b.walk.resize(n);
+    b.cells.resize(n * detail::kTopStack);
+    b.mailbox.assign(n, detail::Mailbox{});
     b.best.resize(n);
     b.done.assign(n, 0);
+    b.live.clear();
     for (size_t i = 0; i < n; ++i) {
         b.best[i] = no_hit_yet(rays[i]);
-        b.begin[i] = static_cast<uint32_t>(b.cands.size());
-        if (detail::ray_is_valid(rays[i]))
-            candidates(s, rays[i], b.cands);
-        else
+        if (!detail::ray_is_valid(rays[i])) {
             ++counts.invalid;
-        b.end[i] = static_cast<uint32_t>(b.cands.size());
+            continue;
+        }
+        b.top[i] = detail::make_top_ray(s, rays[i]);
+        b.walk[i].start(s, rays[i], b.top[i], &b.cells[i * detail::kTopStack]);
+        if (!b.walk[i].done()) b.live.push_back(static_cast<uint32_t>(i));
     }
+    // Each round takes every live ray one leaf further along its walk: the next leaf whose cell
+    // starts at or before its closest hit so far with an instance the ray's widened segment
+    // reaches (and its mailbox has not seen). A ray whose next cell starts beyond its closest
+    // hit stops there, without walking the rest of the top level.
     for (;;) {
         b.pairs.clear();
-        for (size_t i = 0; i < n; ++i) {
-            if (b.begin[i] == b.end[i] || b.done[i]) continue;
-            const Candidate& c = b.cands[b.begin[i]++];
-            // Sorted by entry: once one starts beyond the closest hit, so do the rest.
-            if (!AnyHit && c.entry > b.best[i].t) {
-                b.begin[i] = b.end[i];
-                continue;
-            }
-            b.pairs.emplace_back(c.geom, static_cast<uint32_t>(i));
+        size_t kept = 0;
+        for (const uint32_t i : b.live) {
+            const Ray& ray = rays[i];
+            const detail::TopRay& p = b.top[i];
+            const float limit = AnyHit ? ray.tmax : b.best[i].t;
+            const bool found = take_next_leaf(s, ray, p, b.walk[i], limit, [&](uint32_t geom) {
+                                   if (b.mailbox[i].seen(geom)) return Take::kSkip;
+                                   b.pairs.emplace_back(geom, i);
+                                   return Take::kTaken;
+                               }) == Take::kTaken;
+            if (found) b.live[kept++] = i;
         }
+        b.live.resize(kept);
         if (b.pairs.empty()) break;
         std::sort(b.pairs.begin(), b.pairs.end());
-        for (size_t g0 = 0; g0 < b.pairs.size();) {
-            const uint32_t geom = b.pairs[g0].first;
-            size_t g1 = g0;
-            while (g1 < b.pairs.size() && b.pairs[g1].first == geom) ++g1;
+        for_each_instance(b.pairs, [&](uint32_t geom, size_t g0, size_t g1) {
             const size_t count = g1 - g0;
-            const InstanceData& in = s.inst[geom];
             const KdTree& tree = *s.instances[geom].tree;
-            b.rays.resize(count);
-            for (size_t k = 0; k < count; ++k) {
-                const uint32_t i = b.pairs[g0 + k].second;
-                Ray o = detail::to_object(in, rays[i]);
-                if constexpr (!AnyHit) o.tmax = b.best[i].t;
-                b.rays[k] = o;
-            }
+            object_rays(
+                s.inst[geom], rays, b.pairs, g0, g1,
+                [&](uint32_t i) { return AnyHit ? rays[i].tmax : b.best[i].t; }, b.rays);
             counts.visits += count;
             const bool batch = count >= kMinGroup;
             counts.batches += batch ? 1 : 0;
@@ -192,8 +254,8 @@ void trace_block(const SceneData& s, std::span<const Ray> rays, std::span<SceneH
                 for (size_t k = 0; k < count; ++k)
                     offer(b.best[b.pairs[g0 + k].second], b.hits[k], geom);
             }
-            g0 = g1;
-        }
+        });
+        if constexpr (AnyHit) std::erase_if(b.live, [&](uint32_t i) { return b.done[i] != 0; });
     }
     for (size_t i = 0; i < n; ++i) {
         if constexpr (AnyHit)
@@ -441,10 +503,40 @@ struct NearestScratch {
     uint32_t ray = 0;
 };
 
+/// Takes instance `geom`'s hits into `out` (the nearest `k` so far, sorted by the tie rule), given
+/// its closest hit `first` on the object ray `o` traced with tmax = `limit`: the ray's tmax when
+/// `out` held fewer than k hits, else the k-th hit's t (`full`).
+void take_instance(const KdTree& tree, Ray o, const Hit& first, float ray_tmax, float limit,
+                   bool full, uint32_t k, bool merge, uint32_t geom, std::vector<SceneHit>& out,
+                   std::vector<Hit>& tmp) {
+    // None up to the k-th hit so far means no hit to keep (a merged hit is never before its
+    // group's first, the instance's closest). Otherwise its first k merged hits lie in groups
+    // starting no later than the k-th hit so far; for k = 1 no later than this closest hit, whose
+    // t is the first raw hit's of intersect_all, bit for bit (kdrt/query.h).
+    if (!first.is_hit()) return;
+    if (k == 1) {
+        // Nothing of this instance lies before its closest hit: the every-hit query needs only
+        // the cells around it.
+        o.tmin = first.t;
+        o.tmax = std::min(ray_tmax, truncated_tmax(tree, o, first.t, merge));
+    } else {
+        o.tmax = full ? std::min(ray_tmax, truncated_tmax(tree, o, limit, merge)) : ray_tmax;
+    }
+    intersect_all(tree, o, merge, tmp);
+    // tmp is sorted by (t, prim): once one hit is not kept, no later one is.
+    for (const Hit& h : tmp) {
+        const SceneHit c{h.t, h.prim, h.u, h.v, geom};
+        if (out.size() == k && !detail::scene_hit_less(c, out.back())) break;
+        out.insert(std::upper_bound(out.begin(), out.end(), c, detail::scene_hit_less), c);
+        if (out.size() > k) out.pop_back();
+    }
+}
+
 /// The nearest `k` (>= 1) hits of `ray` into `out` (replaced), sorted by the tie rule. The
 /// top-level walk goes front to back with the limit at the k-th hit so far: an instance whose
 /// widened box starts beyond it holds no hit that could be kept. Each instance is traced once,
-/// fully within the truncation above, so its hits are those of the oracle's every-hit query.
+/// first by the closest-hit kernel up to that limit, then (take_instance) fully within the
+/// truncation above, so its hits are those of the oracle's every-hit query.
 void nearest(const SceneData& s, const Ray& ray, uint32_t k, bool merge, std::vector<SceneHit>& out,
              NearestScratch& sc) {
     out.clear();
@@ -462,34 +554,103 @@ void nearest(const SceneData& s, const Ray& ray, uint32_t k, bool merge, std::ve
             const KdTree& tree = *s.instances[geom].tree;
             Ray o = detail::to_object(s.inst[geom], ray);
             const bool full = out.size() == k;
-            // The instance's closest hit first (the kernel with its early exit): none up to the
-            // k-th hit so far means no hit to keep (a merged hit is never before its group's
-            // first, the instance's closest). Otherwise its first k merged hits lie in groups
-            // starting no later than the k-th hit so far; for k = 1 no later than this closest
-            // hit, whose t is the first raw hit's of intersect_all, bit for bit (kdrt/query.h).
             const float limit = full ? out.back().t : ray.tmax;
             o.tmax = limit;
-            const Hit first = intersect(tree, o);
-            if (!first.is_hit()) return true;
-            if (k == 1) {
-                // Nothing of this instance lies before its closest hit: the every-hit query
-                // needs only the cells around it.
-                o.tmin = first.t;
-                o.tmax = std::min(ray.tmax, truncated_tmax(tree, o, first.t, merge));
-            } else {
-                o.tmax =
-                    full ? std::min(ray.tmax, truncated_tmax(tree, o, limit, merge)) : ray.tmax;
-            }
-            intersect_all(tree, o, merge, sc.tmp);
-            // tmp is sorted by (t, prim): once one hit is not kept, no later one is.
-            for (const Hit& h : sc.tmp) {
-                const SceneHit c{h.t, h.prim, h.u, h.v, geom};
-                if (out.size() == k && !detail::scene_hit_less(c, out.back())) break;
-                out.insert(std::upper_bound(out.begin(), out.end(), c, detail::scene_hit_less), c);
-                if (out.size() > k) out.pop_back();
-            }
+            take_instance(tree, o, intersect(tree, o), ray.tmax, limit, full, k, merge, geom, out,
+                          sc.tmp);
             return true;
         });
+}
+
+/// Rounds for the nearest hits pay up to this many hits per ray (each ray keeps its list).
+constexpr uint32_t kRoundsMaxHits = 16;
+/// Instances a ray may trace in rounds; one that reaches more is traced again alone (nearest),
+/// since each instance must be traced once per ray and the rounds keep that list per ray.
+constexpr uint32_t kRoundsMaxTraced = 16;
+
+struct NearestRounds {
+    std::vector<detail::TopRay> top;
+    std::vector<detail::TopWalk> walk;
+    std::vector<detail::TopCell> cells;
+    std::vector<std::vector<SceneHit>> out;
+    std::vector<uint32_t> traced;  ///< per ray kRoundsMaxTraced geometry ids
+    std::vector<uint32_t> traced_count;
+    std::vector<uint32_t> live, alone;
+    std::vector<std::pair<uint32_t, uint32_t>> pairs;  ///< (geom, ray) of a round
+    std::vector<Ray> rays;
+    std::vector<Hit> hits;
+};
+
+/// nearest() of each ray of a block whose rays are coherent, in rounds as trace_block's: each
+/// round takes every live ray one leaf further along its top-level walk (up to its k-th hit so
+/// far), and the rays reaching one instance go to the mesh's closest-hit batch entry together;
+/// each closest hit then goes to take_instance, as nearest() takes it. `outs[i]` gets ray i's hits.
+void nearest_rounds(const SceneData& s, std::span<const Ray> rays, uint32_t k, bool merge,
+                    NearestRounds& b, NearestScratch& sc) {
+    const size_t n = rays.size();
+    b.top.resize(n);
+    b.walk.resize(n);
+    b.cells.resize(n * detail::kTopStack);
+    b.out.resize(n);
+    b.traced.resize(n * kRoundsMaxTraced);
+    b.traced_count.assign(n, 0);
+    b.live.clear();
+    b.alone.clear();
+    for (size_t i = 0; i < n; ++i) {
+        b.out[i].clear();
+        if (!detail::ray_is_valid(rays[i])) continue;
+        b.top[i] = detail::make_top_ray(s, rays[i]);
+        b.walk[i].start(s, rays[i], b.top[i], &b.cells[i * detail::kTopStack]);
+        if (!b.walk[i].done()) b.live.push_back(static_cast<uint32_t>(i));
+    }
+    const auto limit_of = [&](uint32_t i) {
+        return b.out[i].size() < k ? rays[i].tmax : b.out[i].back().t;
+    };
+    while (!b.live.empty()) {
+        b.pairs.clear();
+        size_t kept = 0;
+        for (const uint32_t i : b.live) {
+            const Ray& ray = rays[i];
+            const detail::TopRay& p = b.top[i];
+            const float limit = limit_of(i);
+            uint32_t* traced = &b.traced[size_t{i} * kRoundsMaxTraced];
+            uint32_t& count = b.traced_count[i];
+            const Take t = take_next_leaf(s, ray, p, b.walk[i], limit, [&](uint32_t geom) {
+                if (std::find(traced, traced + count, geom) != traced + count) return Take::kSkip;
+                if (count == kRoundsMaxTraced) return Take::kStop;
+                traced[count++] = geom;
+                b.pairs.emplace_back(geom, i);
+                return Take::kTaken;
+            });
+            const bool overflow = t == Take::kStop, found = t == Take::kTaken;
+            if (overflow)
+                b.alone.push_back(i);
+            else if (found)
+                b.live[kept++] = i;
+        }
+        b.live.resize(kept);
+        if (b.pairs.empty()) break;
+        std::sort(b.pairs.begin(), b.pairs.end());
+        for_each_instance(b.pairs, [&](uint32_t geom, size_t g0, size_t g1) {
+            const size_t count = g1 - g0;
+            const KdTree& tree = *s.instances[geom].tree;
+            object_rays(s.inst[geom], rays, b.pairs, g0, g1, limit_of, b.rays);
+            b.hits.resize(count);
+            if (count >= kMinGroup) {
+                intersect_block(tree, b.rays, b.hits, TraceOptions{});
+            } else {
+                for (size_t j = 0; j < count; ++j) b.hits[j] = intersect(tree, b.rays[j]);
+            }
+            for (size_t j = 0; j < count; ++j) {
+                const uint32_t i = b.pairs[g0 + j].second;
+                std::vector<SceneHit>& out = b.out[i];
+                take_instance(tree, b.rays[j], b.hits[j], rays[i].tmax, b.rays[j].tmax,
+                              out.size() == k, k, merge, geom, out, sc.tmp);
+            }
+        });
+    }
+    // Rays that reached more instances than the rounds keep: from the start, alone.
+    for (const uint32_t i : b.alone) nearest(s, rays[i], k, merge, b.out[i], sc);
 }
 
 }  // namespace
@@ -500,11 +661,12 @@ SceneAllHits detail::nearest_hits(const Scene& scene, std::span<const Ray> rays,
     SceneAllHits result;
     result.offsets.assign(rays.size() + 1, 0);
     if (max_hits == 0) return result;
-    constexpr size_t kRaysPerTask = 256;
+    constexpr size_t kRaysPerTask = kBlock;
     const size_t tasks = (rays.size() + kRaysPerTask - 1) / kRaysPerTask;
     std::vector<std::vector<SceneHit>> per_task(tasks);  // each task's rays' hits, in ray order
     struct Scratch {
         NearestScratch nearest;
+        NearestRounds rounds;
         std::vector<SceneHit> hits;
     };
     tbb::enumerable_thread_specific<Scratch> scratch;
@@ -515,6 +677,16 @@ SceneAllHits detail::nearest_hits(const Scene& scene, std::span<const Ray> rays,
                 const size_t lo = task * kRaysPerTask;
                 const size_t hi = std::min(rays.size(), lo + kRaysPerTask);
                 std::vector<SceneHit>& kept = per_task[task];
+                const std::span<const Ray> block = rays.subspan(lo, hi - lo);
+                if (max_hits <= kRoundsMaxHits && rounds_pay(block)) {
+                    nearest_rounds(s, block, max_hits, merge_coincident, sc.rounds, sc.nearest);
+                    for (size_t i = lo; i < hi; ++i) {
+                        const std::vector<SceneHit>& out = sc.rounds.out[i - lo];
+                        result.offsets[i + 1] = out.size();
+                        kept.insert(kept.end(), out.begin(), out.end());
+                    }
+                    continue;
+                }
                 for (size_t i = lo; i < hi; ++i) {
                     nearest(s, rays[i], max_hits, merge_coincident, sc.hits, sc.nearest);
                     result.offsets[i + 1] = sc.hits.size();

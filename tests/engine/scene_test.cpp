@@ -3,6 +3,7 @@
 
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <atomic>
 #include <cmath>
 #include <cstring>
@@ -321,6 +322,94 @@ TEST(Scene, InstancesSharingAnEdgeInWorldSpace) {
     EXPECT_EQ(h.t, 1.0f);
 }
 
+/// Where along `ray` it enters `box` (unwidened), or +inf when it misses it.
+float box_entry(const Ray& ray, const Aabb& box) {
+    float t0 = ray.tmin, t1 = ray.tmax;
+    const float o[3] = {ray.ox, ray.oy, ray.oz}, d[3] = {ray.dx, ray.dy, ray.dz};
+    for (int a = 0; a < 3; ++a) {
+        if (d[a] == 0.0f) {
+            if (o[a] < box.lo[a] || o[a] > box.hi[a]) return INFINITY;
+            continue;
+        }
+        float lo = (box.lo[a] - o[a]) / d[a], hi = (box.hi[a] - o[a]) / d[a];
+        if (lo > hi) std::swap(lo, hi);
+        t0 = std::max(t0, lo);
+        t1 = std::min(t1, hi);
+    }
+    return t0 <= t1 ? t0 : INFINITY;
+}
+
+/// Camera rays through layers where the instance a ray enters first is rarely the one it hits:
+/// long slanted quads whose boxes start before the facing quads inside them, exact copies of the
+/// facing quads under higher geometry ids (the same t: the lowest id wins), and neighbours sharing
+/// their right edge. A batch's rounds walk each ray's top level a leaf at a time; a ray stopping
+/// too early (after its first hit, or before a cell whose instances could still hold a nearer or
+/// tying hit) answers the farther instance or the higher id, which the oracle catches.
+TEST(Scene, RoundsNeverStopBeforeANearerOrTyingHitInALaterInstance) {
+    const Mesh quad = unit_quad();
+    auto tree = std::make_shared<const KdTree>(build_kdtree(quad));
+    std::vector<SceneInstance> list;
+    std::vector<uint32_t> faces;  // geometry ids of the facing quads that have a copy
+    std::vector<Vec3> edge_points;
+    for (int k = 0; k < 6; ++k) {
+        const float z = 3.0f * static_cast<float>(k);
+        Affine3x4 slab;  // (x, y, 0) -> (4x - 2, y - 1 + 0.3k, 8y + 3k): 8 deep along z
+        slab.m[0][0] = 4.0f;
+        slab.m[0][3] = -2.0f;
+        slab.m[1][3] = -1.0f + 0.3f * static_cast<float>(k);
+        slab.m[2][1] = 8.0f;
+        slab.m[2][3] = z;
+        list.push_back({tree, slab, nullptr});
+        Affine3x4 face;  // 1.2 wide, facing the camera, inside the slab's box
+        face.m[0][0] = face.m[1][1] = 1.2f;
+        face.m[0][3] = -1.4f + 0.5f * static_cast<float>(k % 3);
+        face.m[1][3] = -1.0f + 0.25f * static_cast<float>(k);
+        face.m[2][3] = z + 4.0f;
+        faces.push_back(static_cast<uint32_t>(list.size()));
+        list.push_back({tree, face, nullptr});
+        Affine3x4 neighbour = face;  // shares the face's right edge
+        neighbour.m[0][3] += 1.2f;
+        list.push_back({tree, neighbour, nullptr});
+        for (int j = 0; j <= 8; ++j)
+            edge_points.push_back(
+                {face.m[0][3] + 1.2f, face.m[1][3] + 0.15f * static_cast<float>(j), face.m[2][3]});
+    }
+    for (uint32_t g : faces) list.push_back({tree, list[g].transform, nullptr});  // the copies
+    TestScene s;
+    s.meshes.push_back(quad);
+    s.trees.push_back(tree);
+    s.mesh_of.assign(list.size(), 0);
+    s.scene = build_scene(std::move(list));
+    const Vec3 eye{0.1f, 0.2f, -10.0f};
+    const uint32_t res = scaled_res(96);
+    std::vector<Ray> rays;
+    for (uint32_t y = 0; y < res; ++y)
+        for (uint32_t x = 0; x < res; ++x) {
+            const Vec3 target{
+                -3.0f + 6.0f * (static_cast<float>(x) + 0.5f) / static_cast<float>(res),
+                -2.0f + 5.0f * (static_cast<float>(y) + 0.5f) / static_cast<float>(res), 0.0f};
+            rays.push_back(make_ray(eye, target - eye));
+        }
+    for (const Vec3& p : edge_points) rays.push_back(make_ray(eye, p - eye));
+    // The cases this test is for must occur.
+    const SceneOracle oracle(s.scene);
+    size_t later_nearer = 0, ties = 0, on_edges = 0;
+    for (size_t i = 0; i < rays.size(); ++i) {
+        const SceneHit h = oracle.intersect(rays[i]);
+        if (!h.is_hit()) continue;
+        float first = INFINITY;
+        for (uint32_t g = 0; g < s.scene.size(); ++g)
+            first = std::min(first, box_entry(rays[i], s.scene.data().inst[g].world));
+        later_nearer += box_entry(rays[i], s.scene.data().inst[h.geom].world) > first;
+        if (std::find(faces.begin(), faces.end(), h.geom) != faces.end()) ++ties;
+        on_edges += i >= static_cast<size_t>(res) * res;
+    }
+    EXPECT_GT(later_nearer, rays.size() / 20) << "rays hitting an instance entered after another";
+    EXPECT_GT(ties, rays.size() / 50) << "rays hitting a quad and its copy at the same t";
+    EXPECT_GT(on_edges, edge_points.size() / 2) << "rays at shared edges that hit";
+    expect_matches_oracle(s, rays);
+}
+
 TEST(Scene, FarRaysAtInstanceCornersMatchOracle) {
     // Rays from far away (1e3 .. 1e6 units) aimed at the corners and edges of rotated, scaled and
     // sheared boxes: the rounding of the object ray then moves the hit by far more than the mesh
@@ -568,16 +657,31 @@ TEST(SceneAllHits, NearestHitsAreTheOraclesFirstK) {
     for (size_t k = 0; k < scaled(400); ++k)
         line_rays.push_back(make_ray({-3.0f, 0.01f, 0.02f}, Vec3{1.0f, rng.uniform(-0.02f, 0.02f),
                                                                  rng.uniform(-0.02f, 0.02f)}));
+    // Beams along the row that pass through the boxes of some 20 spheres before they come close
+    // enough to the axis to hit one (the batch goes in rounds, and these rays reach more
+    // instances than a round keeps per ray: they are traced again alone).
+    for (size_t k = 0; k < 40; ++k) {
+        const Vec3 o{-3.0f, k % 2 ? 0.45f : -0.45f, k % 4 < 2 ? 0.45f : -0.45f};
+        const Vec3 target{104.0f, rng.uniform(-0.01f, 0.01f), rng.uniform(-0.01f, 0.01f)};
+        line_rays.push_back(make_ray(o, target - o));
+    }
+    // Camera rays through the mixed scene (one origin: rounds).
+    const Camera cam(default_camera(s.scene.bounds(), 1.0f), scaled_res(40), scaled_res(40));
+    std::vector<Ray> cam_rays;
+    for (uint32_t y = 0; y < scaled_res(40); ++y)
+        for (uint32_t x = 0; x < scaled_res(40); ++x)
+            cam_rays.push_back(cam.ray(x + 0.5f, y + 0.5f));
     size_t cut = 0;
     for (const auto& [scene, list] :
          {std::pair<const Scene*, const std::vector<Ray>*>{&s.scene, &rays},
+          std::pair<const Scene*, const std::vector<Ray>*>{&s.scene, &cam_rays},
           std::pair<const Scene*, const std::vector<Ray>*>{&line, &line_rays}}) {
         const SceneOracle oracle(*scene);
         for (bool merge : {false, true}) {
             std::vector<std::vector<SceneHit>> want(list->size());
             for (size_t i = 0; i < list->size(); ++i)
                 want[i] = oracle.intersect_all((*list)[i], merge);
-            for (uint32_t k : {1u, 2u, 3u, 7u}) {
+            for (uint32_t k : {1u, 2u, 3u, 7u, 16u, 17u}) {
                 SCOPED_TRACE(testing::Message() << (merge ? "merged" : "raw") << " k=" << k);
                 const SceneAllHits got = detail::nearest_hits(*scene, *list, k, merge);
                 ASSERT_EQ(got.offsets.size(), list->size() + 1);
