@@ -2,6 +2,7 @@
 // instance edit (kdrt/proto/scene.h).
 
 #include <cmath>
+#include <cstring>
 #include <nlohmann/json.hpp>
 #include <string>
 #include <unordered_set>
@@ -235,6 +236,23 @@ Result<SceneDocument, SceneRequestError> decode_scene_json(std::string_view text
         }
         return out;
     });
+}
+
+Result<SceneDocument, std::string> decode_stored_scene(std::span<const std::byte> bytes) {
+    if (bytes.size() >= 4 && std::memcmp(bytes.data(), kSceneFileMagic.data(), 4) == 0) {
+        auto doc = decode_scene_file(bytes);
+        if (!doc) return Err{"KDRS: " + doc.error()};
+        return doc;
+    }
+    // Stores written before KDRS hold the JSON document, read without the instance limit.
+    const std::string_view text(reinterpret_cast<const char*>(bytes.data()), bytes.size());
+    auto doc = decode_scene_json(text, SceneLimits{UINT32_MAX}, true);
+    if (!doc) {
+        std::string why = "JSON: ";
+        if (!doc.error().field.empty()) why += doc.error().field + ": ";
+        return Err{why + doc.error().detail};
+    }
+    return std::move(doc).value();
 }
 
 std::string encode_scene_request(std::span<const SceneInstanceSpec> instances) {

@@ -15,6 +15,7 @@
 #include <tbb/task_group.h>
 
 #include <cstdint>
+#include <functional>
 #include <memory>
 #include <span>
 
@@ -48,6 +49,10 @@ public:
     auto run(F&& f) {
         return arena_.execute([&] { return tbb::this_task_arena::isolate(f); });
     }
+
+    /// Runs `f` on an arena worker later, without waiting (work after an answer). The caller
+    /// keeps whatever `f` uses alive until it has run.
+    void enqueue(std::function<void()> f) { arena_.enqueue(std::move(f)); }
 
     static constexpr size_t kInlineRays = 256;
 

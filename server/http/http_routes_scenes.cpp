@@ -83,12 +83,12 @@ proto::Result<std::optional<uint64_t>, proto::Problem> pinned_revision(
                                         " is not a revision (an integer >= 1)")};
 }
 
-void set_revision_headers(httplib::Response& res, const proto::SceneDocument& doc) {
+void set_revision_headers(httplib::Response& res, uint64_t revision) {
     std::string etag(1, '"');
-    etag += std::to_string(doc.revision);
+    etag += std::to_string(revision);
     etag += '"';
     res.set_header("ETag", etag);
-    res.set_header("X-Kdrt-Scene-Revision", std::to_string(doc.revision));
+    res.set_header("X-Kdrt-Scene-Revision", std::to_string(revision));
 }
 
 proto::SceneLimits scene_limits(const ServerConfig& c) {
@@ -146,7 +146,7 @@ void Routes::create_scene(const httplib::Request& req, httplib::Response& res,
     auto entry = svc_.scenes.create(std::move(doc->instances));
     if (!entry) return reply_problem(req, res, scene_problem(entry.error()));
     const proto::SceneDocument& d = (*entry)->doc;
-    set_revision_headers(res, d);
+    set_revision_headers(res, d.revision);
     res.set_header("Location", "/v1/scenes/" + d.id);
     reply_json(res, 201, proto::encode_scene_json(d));
 }
@@ -156,7 +156,7 @@ void Routes::get_scene(const httplib::Request& req, httplib::Response& res) {
     if (!revision) return reply_problem(req, res, std::move(revision).error());
     auto entry = svc_.scenes.get(req.matches[1], *revision);
     if (!entry) return reply_problem(req, res, scene_problem(entry.error()));
-    set_revision_headers(res, (*entry)->doc);
+    set_revision_headers(res, (*entry)->doc.revision);
     reply_json(res, 200, proto::encode_scene_json((*entry)->doc));
 }
 
@@ -230,11 +230,10 @@ void Routes::set_poses(const httplib::Request& req, httplib::Response& res,
         poses = std::move(decoded).value();
     }
     body.reset();
-    auto entry = svc_.scenes.set_poses(req.matches[1], *condition, poses);
-    if (!entry) return reply_problem(req, res, scene_problem(entry.error()));
-    const proto::SceneDocument& d = (*entry)->doc;
-    set_revision_headers(res, d);
-    reply_json(res, 200, proto::encode_scene_revision({d.id, d.revision, d.instances.size()}));
+    auto updated = svc_.scenes.set_poses(req.matches[1], *condition, poses);
+    if (!updated) return reply_problem(req, res, scene_problem(updated.error()));
+    set_revision_headers(res, updated->revision);
+    reply_json(res, 200, proto::encode_scene_revision(*updated));
 }
 
 void Routes::edit_instances(const httplib::Request& req, httplib::Response& res,
@@ -263,7 +262,7 @@ void Routes::edit_instances(const httplib::Request& req, httplib::Response& res,
                              scene_request_problem(edit.error(), svc_.config.max_instances));
     auto entry = svc_.scenes.edit(req.matches[1], *condition, *edit);
     if (!entry) return reply_problem(req, res, scene_problem(entry.error()));
-    set_revision_headers(res, (*entry)->doc);
+    set_revision_headers(res, (*entry)->doc.revision);
     reply_json(res, 200, proto::encode_scene_json((*entry)->doc));
 }
 
@@ -282,7 +281,7 @@ SceneCache::EntryPtr Routes::query_scene(
         reply_problem(req, res, scene_problem(entry.error()));
         return nullptr;
     }
-    set_revision_headers(res, (*entry)->doc);
+    set_revision_headers(res, (*entry)->doc.revision);
     return std::move(entry).value();
 }
 
@@ -461,7 +460,7 @@ void Routes::scene_render(const httplib::Request& req, httplib::Response& res,
             reply_problem(req, res, scene_problem(entry.error()));
             return false;
         }
-        set_revision_headers(res, (*entry)->doc);
+        set_revision_headers(res, (*entry)->doc.revision);
         out.scene = (*entry)->scene;
         out.scene_id = (*entry)->doc.id;
         out.revision = (*entry)->doc.revision;
@@ -491,7 +490,7 @@ void Routes::scene_scan(const httplib::Request& req, httplib::Response& res,
     if (!revision) return reply_problem(req, res, std::move(revision).error());
     auto entry = svc_.scenes.get(req.matches[1], *revision);
     if (!entry) return reply_problem(req, res, scene_problem(entry.error()));
-    set_revision_headers(res, (*entry)->doc);
+    set_revision_headers(res, (*entry)->doc.revision);
     auto hold = svc_.batch_budget.try_take(bytes + 4 * rays);
     if (!hold) return reply_problem(req, res, scan_budget_problem(svc_.batch_budget, bytes));
     request_context().rays = rays;

@@ -2,11 +2,10 @@
 
 #include <algorithm>
 #include <cstring>
+#include <future>
 #include <new>
 #include <unordered_map>
 #include <unordered_set>
-
-#include <tbb/task_group.h>
 
 namespace kdrt::server {
 
@@ -139,17 +138,23 @@ SceneCache::Result<SceneCache::EntryPtr> SceneCache::build(proto::SceneDocument 
     }
 }
 
+namespace {
+SceneProblem too_many_scenes(size_t scenes, uint32_t max_scenes) {
+    SceneProblem p =
+        problem(Code::kTooLarge,
+                "the store holds " + std::to_string(scenes) + " scenes, max_scenes is " +
+                    std::to_string(max_scenes) + "; delete one first",
+                "");
+    p.limit = max_scenes;
+    return p;
+}
+}  // namespace
+
 SceneCache::Result<SceneCache::EntryPtr> SceneCache::create(
     std::vector<proto::SceneInstanceSpec> instances) {
-    if (auto ids = store_.ids(); ids && ids->size() >= options_.max_scenes) {
-        SceneProblem p =
-            problem(Code::kTooLarge,
-                    "the store holds " + std::to_string(ids->size()) + " scenes, max_scenes is " +
-                        std::to_string(options_.max_scenes) + "; delete one first",
-                    "");
-        p.limit = options_.max_scenes;
-        return proto::Err{std::move(p)};
-    }
+    // Counted before any work, and again under the store's create lock (SceneStore::create).
+    if (auto ids = store_.ids(); ids && ids->size() >= options_.max_scenes)
+        return proto::Err{too_many_scenes(ids->size(), options_.max_scenes)};
     proto::SceneDocument doc;
     doc.id = SceneStore::new_id();
     doc.revision = 1;
@@ -157,18 +162,63 @@ SceneCache::Result<SceneCache::EntryPtr> SceneCache::create(
     // Built before it is stored: nothing is acknowledged that cannot be queried.
     auto entry = build(std::move(doc), "instances", false);
     if (!entry) return entry;
-    if (auto w = store_.create((*entry)->doc); !w) return proto::Err{write_problem(w.error())};
+    auto created = store_.create((*entry)->doc, options_.max_scenes);
+    if (!created) return proto::Err{write_problem(created.error())};
+    if (!created->created) return proto::Err{too_many_scenes(created->scenes, options_.max_scenes)};
     metrics_.scene_revisions.fetch_add(1);
     keep(*entry);
     return entry;
 }
 
 SceneCache::EntryPtr SceneCache::find(const std::string& id, uint64_t revision) {
+    std::shared_future<EntryPtr> building;
+    {
+        std::lock_guard lock(mutex_);
+        const auto it = by_key_.find({id, revision});
+        if (it != by_key_.end()) {
+            lru_.splice(lru_.begin(), lru_, it->second);
+            return *it->second;
+        }
+        const auto b = building_.find({id, revision});
+        if (b == building_.end()) return nullptr;
+        building = b->second;
+    }
+    // Committed and answered, its scene still building on the arena: wait for it (nullptr when
+    // the build failed: the caller then builds it from the store).
+    EntryPtr entry = building.get();
+    if (entry) keep(entry);
     std::lock_guard lock(mutex_);
-    const auto it = by_key_.find({id, revision});
-    if (it == by_key_.end()) return nullptr;
-    lru_.splice(lru_.begin(), lru_, it->second);
-    return *it->second;
+    const auto b = building_.find({id, revision});
+    if (b != building_.end()) building_.erase(b);
+    return entry;
+}
+
+void SceneCache::prune_later(const std::string& id, uint64_t revision) {
+    if (revision <= store_.revisions_kept()) return;
+    if (compute_.threads() <= 1) {  // no arena worker to run it later
+        store_.prune(id, revision);
+        return;
+    }
+    in_flight_add();
+    compute_.enqueue([this, id, revision] {
+        store_.prune(id, revision);
+        in_flight_done();
+    });
+}
+
+void SceneCache::in_flight_add() {
+    std::lock_guard lock(in_flight_mutex_);
+    ++in_flight_;
+}
+
+void SceneCache::in_flight_done() {
+    std::lock_guard lock(in_flight_mutex_);
+    if (--in_flight_ == 0) in_flight_cv_.notify_all();
+}
+
+SceneCache::~SceneCache() {
+    std::unique_lock lock(in_flight_mutex_);
+    in_flight_cv_.wait(lock, [&] { return in_flight_ == 0; });
 }
 
 SceneCache::Result<SceneCache::EntryPtr> SceneCache::load(const std::string& id,
@@ -214,6 +264,15 @@ SceneCache::Result<SceneCache::EntryPtr> SceneCache::get(const std::string& id,
     if (!revision) return current(id);
     if (!proto::is_scene_id(id))
         return proto::Err{problem(Code::kUnknownScene, "no scene with id " + id)};
+    {
+        // Older than the kept revisions: refused even while its file waits for the prune that
+        // follows a commit (prune_later), so what is served does not depend on that timing.
+        std::lock_guard lock(mutex_);
+        const auto it = latest_.find(id);
+        if (it != latest_.end() && *revision + store_.revisions_kept() <= it->second)
+            return proto::Err{
+                store_problem(SceneStoreError{SceneStoreError::Code::kMissing, ""}, id, revision)};
+    }
     if (EntryPtr hit = find(id, *revision); hit && store_.has_revision(id, *revision)) {
         // A kept revision may name a mesh deleted since (deleting is refused only while the
         // current revision uses it): answer as a revision loaded now would.
@@ -259,37 +318,60 @@ SceneCache::Result<SceneCache::EntryPtr> SceneCache::update(
             return proto::Err{stale(metrics_, id, *if_match, b->doc.revision)};
         auto n = next(b);
         if (!n) return proto::Err{std::move(n).error()};
-        // The scene is built on an arena worker while this thread encodes, writes and fsyncs
-        // the revision (the link is the commit, as ever).
-        bool built = !n->build;
-        auto committed = compute_.run([&] {
-            tbb::task_group group;
-            if (n->build)
-                group.run([&] {
-                    try {
-                        n->scene = n->build();
-                        built = true;
-                    } catch (const std::bad_alloc&) {
-                    }
-                });
-            auto stored = store_.commit(n->doc);
-            group.wait();
-            return stored;
-        });
-        if (!committed) return proto::Err{write_problem(committed.error())};
-        if (*committed) {
-            metrics_.scene_revisions.fetch_add(1);
-            if (!built)  // stored, so it stands; a later request builds it from the store
-                return proto::Err{problem(Code::kInternal, "out of memory building revision " +
-                                                               std::to_string(n->doc.revision) +
-                                                               " of scene " + id +
-                                                               " (the revision is stored)")};
+        if (!n->build) {  // built already (an instance edit)
+            auto committed = store_.commit(n->doc);
+            if (!committed) return proto::Err{write_problem(committed.error())};
+            if (*committed) {
+                metrics_.scene_revisions.fetch_add(1);
+                auto entry = std::make_shared<SceneEntry>();
+                entry->doc = std::move(n->doc);
+                entry->scene = std::move(n->scene);
+                entry->bytes = entry_bytes(*entry);
+                keep(entry);
+                prune_later(id, entry->doc.revision);
+                return EntryPtr(std::move(entry));
+            }
+        } else {
+            // The scene is built on an arena worker while this thread encodes, writes and
+            // fsyncs the revision (the link is the commit, as ever), and the answer does not
+            // wait for the build: the revision is registered as building, and whoever asks for
+            // it next (a query, the next update) waits for it (find()).
             auto entry = std::make_shared<SceneEntry>();
             entry->doc = std::move(n->doc);
-            entry->scene = std::move(n->scene);
-            entry->bytes = entry_bytes(*entry);
-            keep(entry);
-            return EntryPtr(std::move(entry));
+            auto done = std::make_shared<std::promise<EntryPtr>>();
+            std::shared_future<EntryPtr> built = done->get_future().share();
+            auto task = [this, entry, done, build = std::move(n->build)]() mutable {
+                EntryPtr result;
+                try {
+                    entry->scene = build();
+                    entry->bytes = entry_bytes(*entry);
+                    result = entry;
+                } catch (...) {  // std::bad_alloc: a later request builds it from the store
+                }
+                done->set_value(std::move(result));
+                build = nullptr;  // nothing of the scene outlives this cache in the task
+                entry.reset();
+                done.reset();
+                in_flight_done();
+            };
+            // With one thread the arena has no worker to run an enqueued task: built after.
+            const bool overlap = compute_.threads() > 1;
+            in_flight_add();
+            if (overlap) compute_.enqueue(task);
+            auto committed = store_.commit(entry->doc);
+            if (!overlap) compute_.run(task);
+            if (!committed) return proto::Err{write_problem(committed.error())};
+            if (*committed) {
+                metrics_.scene_revisions.fetch_add(1);
+                {
+                    std::lock_guard lock(mutex_);
+                    building_[{id, entry->doc.revision}] = built;
+                    uint64_t& latest = latest_[id];
+                    latest = std::max(latest, entry->doc.revision);
+                }
+                prune_later(id, entry->doc.revision);
+                return EntryPtr(std::move(entry));  // its doc only: the scene may be building
+            }
         }
         if (if_match) {  // someone else committed base + 1 first
             auto now = store_.latest(id);
@@ -301,11 +383,11 @@ SceneCache::Result<SceneCache::EntryPtr> SceneCache::update(
         Code::kInternal, "scene " + id + " changed 16 times while this " + what + " was applied")};
 }
 
-SceneCache::Result<SceneCache::EntryPtr> SceneCache::set_poses(
+SceneCache::Result<proto::SceneListItem> SceneCache::set_poses(
     const std::string& id, std::optional<uint64_t> if_match,
     std::span<const proto::PoseEntry> poses) {
     // Without If-Match a lost race is retried on the newer revision (the poses are absolute).
-    return update(id, if_match, "update", [&](const EntryPtr& b) -> Result<Next> {
+    auto updated = update(id, if_match, "update", [&](const EntryPtr& b) -> Result<Next> {
         auto resolved = proto::resolve_poses(b->doc, poses);
         if (!resolved) {
             const auto& e = resolved.error();
@@ -343,6 +425,9 @@ SceneCache::Result<SceneCache::EntryPtr> SceneCache::set_poses(
         n.build = [scene = b->scene, engine_poses] { return scene.with_transforms(*engine_poses); };
         return n;
     });
+    if (!updated) return proto::Err{std::move(updated).error()};
+    const proto::SceneDocument& d = (*updated)->doc;
+    return proto::SceneListItem{d.id, d.revision, d.instances.size()};
 }
 
 SceneCache::Result<SceneCache::EntryPtr> SceneCache::edit(const std::string& id,
@@ -473,6 +558,8 @@ void SceneCache::keep(const EntryPtr& entry) {
 void SceneCache::forget(const std::string& id) {
     std::lock_guard lock(mutex_);
     latest_.erase(id);
+    for (auto it = building_.lower_bound({id, 0}); it != building_.end() && it->first.first == id;)
+        it = building_.erase(it);
     for (auto it = by_key_.lower_bound({id, 0}); it != by_key_.end() && it->first.first == id;) {
         bytes_ -= (*it->second)->bytes;
         lru_.erase(it->second);

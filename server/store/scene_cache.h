@@ -21,8 +21,10 @@
 ///
 /// Thread-safe.
 
+#include <condition_variable>
 #include <cstdint>
 #include <functional>
+#include <future>
 #include <list>
 #include <map>
 #include <memory>
@@ -80,6 +82,10 @@ class SceneCache {
 public:
     SceneCache(SceneStore& store, MeshCache& meshes, Compute& compute, Metrics& metrics,
                SceneCacheOptions options);
+    /// Waits for the builds and prunes still running on the arena (`compute` outlives this).
+    ~SceneCache();
+    SceneCache(const SceneCache&) = delete;
+    SceneCache& operator=(const SceneCache&) = delete;
 
     using EntryPtr = std::shared_ptr<const SceneEntry>;
     template <class T>
@@ -97,9 +103,12 @@ public:
     /// The next revision with the poses applied (in order; later entries for one instance
     /// win). `if_match`: refuse with kStale unless it is the current revision. Without it the
     /// update applies to whatever is current (retried when another writer commits first).
-    [[nodiscard]] Result<EntryPtr> set_poses(const std::string& id,
-                                             std::optional<uint64_t> if_match,
-                                             std::span<const proto::PoseEntry> poses);
+    /// Answers once the revision is durable: its scene (Scene::with_transforms, started before
+    /// the write) may still be building then, and the next request for the revision (a query,
+    /// the next update) waits for it. Returns the new revision's id, number and instances.
+    [[nodiscard]] Result<proto::SceneListItem> set_poses(const std::string& id,
+                                                         std::optional<uint64_t> if_match,
+                                                         std::span<const proto::PoseEntry> poses);
     /// The next revision with instances removed and added (proto::apply_instance_edit).
     [[nodiscard]] Result<EntryPtr> edit(const std::string& id, std::optional<uint64_t> if_match,
                                         const proto::InstanceEdit& edit);
@@ -146,6 +155,11 @@ private:
                             const char* what,
                             const std::function<Result<Next>(const EntryPtr& base)>& next);
     void keep(const EntryPtr& entry);  ///< into the LRU (evicting beyond the budget)
+    /// Deletes the revisions older than the kept ones after a commit of `revision`, on the
+    /// arena, after the answer (SceneStore::prune).
+    void prune_later(const std::string& id, uint64_t revision);
+    void in_flight_add();   ///< a task enqueued on the arena that uses this
+    void in_flight_done();  ///< ... finished
     void forget(const std::string& id);
     EntryPtr find(const std::string& id, uint64_t revision);
 
@@ -160,6 +174,11 @@ private:
     std::list<EntryPtr> lru_;  ///< most recent first
     std::map<Key, std::list<EntryPtr>::iterator> by_key_;
     std::map<std::string, uint64_t> latest_;  ///< the newest revision seen per scene
+    /// Committed revisions whose scene is still building (set_poses); find() waits for them.
+    std::map<Key, std::shared_future<EntryPtr>> building_;
+    std::mutex in_flight_mutex_;
+    std::condition_variable in_flight_cv_;
+    size_t in_flight_ = 0;
     uint64_t bytes_ = 0;
 };
 

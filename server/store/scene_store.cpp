@@ -7,6 +7,7 @@
 
 #include <algorithm>
 #include <cerrno>
+#include <cstdint>
 #include <cstdio>
 #include <random>
 #include <system_error>
@@ -19,6 +20,8 @@ namespace fs = std::filesystem;
 namespace {
 
 constexpr size_t kRevisionDigits = 20;
+/// scenes/.create-lock: flocked by create() around the count and the rename.
+constexpr const char* kCreateLockName = ".create-lock";
 
 WriteError os_error(const std::string& what, const fs::path& path, const std::error_code& ec) {
     const int err = ec.value();
@@ -48,10 +51,6 @@ SceneStoreError damaged(const fs::path& path, const std::string& why) {
     return SceneStoreError{SceneStoreError::Code::kCorrupt, std::move(detail)};
 }
 
-std::span<const std::byte> as_bytes(const std::string& text) {
-    return {reinterpret_cast<const std::byte*>(text.data()), text.size()};
-}
-
 /// An exclusive flock on a scene's directory (released when destroyed). Every process sharing
 /// the store takes it before changing an existing scene, so a commit, an If-Match comparison
 /// and a deletion of one scene never interleave. The lock is taken on the directory that was
@@ -59,8 +58,10 @@ std::span<const std::byte> as_bytes(const std::string& text) {
 /// so after locking, the directory is checked to still be the one at `dir`.
 class SceneDirLock {
 public:
-    explicit SceneDirLock(const fs::path& dir) {
-        fd_ = ::open(dir.c_str(), O_RDONLY | O_DIRECTORY | O_CLOEXEC);
+    /// `create_file`: `dir` is a lock file, created when missing (the create lock).
+    explicit SceneDirLock(const fs::path& dir, bool create_file = false) {
+        fd_ = create_file ? ::open(dir.c_str(), O_RDONLY | O_CREAT | O_CLOEXEC, 0644)
+                          : ::open(dir.c_str(), O_RDONLY | O_DIRECTORY | O_CLOEXEC);
         if (fd_ < 0) {
             error_ = errno;
             return;
@@ -127,7 +128,8 @@ fs::path SceneStore::revision_path(const std::string& id, uint64_t revision) con
     return scene_dir(id) / name;
 }
 
-proto::Result<void, WriteError> SceneStore::create(const proto::SceneDocument& scene) {
+proto::Result<SceneStore::Creation, WriteError> SceneStore::create(
+    const proto::SceneDocument& scene, size_t max_scenes) {
     // Build the whole scene directory in tmp/, then rename it into scenes/ (atomic).
     const fs::path staging = tmp_dir_ / ("scene-" + scene.id);
     std::error_code ec;
@@ -138,22 +140,43 @@ proto::Result<void, WriteError> SceneStore::create(const proto::SceneDocument& s
         std::error_code ignored;
         fs::remove_all(staging, ignored);
     };
-    const std::string text = proto::encode_scene_json(scene);
+    const std::vector<std::byte> bytes = proto::encode_scene_file(scene);
     const fs::path file = staging / revision_path(scene.id, scene.revision).filename();
-    if (auto w = write_file_durably(file, tmp_dir_, as_bytes(text)); !w) {
+    if (auto w = write_file_durably(file, tmp_dir_, bytes); !w) {
         cleanup();
-        return w;
+        return proto::Err{std::move(w).error()};
     }
     if (auto s = sync_directory(staging); !s) {
         cleanup();
-        return s;
+        return proto::Err{std::move(s).error()};
+    }
+    // The count and the rename under the store's create lock, which every process sharing the
+    // store takes: concurrent creates (threads or replicas) never pass max_scenes.
+    const fs::path lock_path = scenes_dir_ / kCreateLockName;
+    const SceneDirLock lock(lock_path, true);
+    if (lock.error() != 0) {
+        cleanup();
+        return proto::Err{os_error("cannot lock", lock_path,
+                                   std::error_code(lock.error(), std::generic_category()))};
+    }
+    if (max_scenes != SIZE_MAX) {
+        auto all = ids();
+        if (!all) {
+            cleanup();
+            return proto::Err{WriteError{all.error()}};
+        }
+        if (all->size() >= max_scenes) {
+            cleanup();
+            return Creation{false, all->size()};
+        }
     }
     fs::rename(staging, scene_dir(scene.id), ec);
     if (ec) {
         cleanup();
         return proto::Err{os_error("cannot rename into", scene_dir(scene.id), ec)};
     }
-    return sync_directory(scenes_dir_);
+    if (auto s = sync_directory(scenes_dir_); !s) return proto::Err{std::move(s).error()};
+    return Creation{true, 0};
 }
 
 proto::Result<bool, WriteError> SceneStore::commit(const proto::SceneDocument& scene) {
@@ -164,21 +187,23 @@ proto::Result<bool, WriteError> SceneStore::commit(const proto::SceneDocument& s
         return proto::Err{
             os_error("cannot lock", dir, std::error_code(lock.error(), std::generic_category()))};
     // Held: the directory stays at `dir` (a deletion waits for the lock) until this returns.
-    const std::string text = proto::encode_scene_json(scene);
-    auto created =
-        write_file_once(revision_path(scene.id, scene.revision), tmp_dir_, as_bytes(text));
+    const std::vector<std::byte> bytes = proto::encode_scene_file(scene);
+    auto created = write_file_once(revision_path(scene.id, scene.revision), tmp_dir_, bytes);
     if (!created) return proto::Err{std::move(created).error()};
     if (!*created) return false;
     if (auto s = sync_directory(dir); !s) return proto::Err{std::move(s).error()};
-    if (scene.revision > revisions_kept_) {
-        if (auto all = revisions(scene.id)) {
-            std::error_code ec;
-            for (const uint64_t r : *all)
-                if (r + revisions_kept_ <= scene.revision)
-                    fs::remove(revision_path(scene.id, r), ec);
-        }
-    }
     return true;
+}
+
+void SceneStore::prune(const std::string& id, uint64_t newest) const {
+    if (newest <= revisions_kept_) return;
+    // No lock: the files removed are never written again, and a deletion of the scene meanwhile
+    // only makes these removals miss.
+    if (auto all = revisions(id)) {
+        std::error_code ec;
+        for (const uint64_t r : *all)
+            if (r + revisions_kept_ <= newest) fs::remove(revision_path(id, r), ec);
+    }
 }
 
 proto::Result<std::vector<uint64_t>, SceneStoreError> SceneStore::revisions(
@@ -224,16 +249,10 @@ proto::Result<proto::SceneDocument, SceneStoreError> SceneStore::read(const std:
                             missing ? "no revision " + std::to_string(revision) + " of scene " + id
                                     : bytes.error()}};
     }
-    const std::string_view text(reinterpret_cast<const char*>(bytes->data()), bytes->size());
-    // Stored revisions are read without the instance limit: a lower max_instances after a
-    // restart must not make an acknowledged scene unreadable.
-    auto doc = proto::decode_scene_json(text, proto::SceneLimits{UINT32_MAX}, true);
-    if (!doc) {
-        std::string why = doc.error().field;
-        if (!why.empty()) why += ": ";
-        why += doc.error().detail;
-        return proto::Err{damaged(path, why)};
-    }
+    // KDRS, or the JSON of a store written before KDRS; read without the instance limit: a
+    // lower max_instances after a restart must not make an acknowledged scene unreadable.
+    auto doc = proto::decode_stored_scene(*bytes);
+    if (!doc) return proto::Err{damaged(path, doc.error())};
     if (doc->id != id || doc->revision != revision)
         return proto::Err{damaged(
             path, "it holds revision " + std::to_string(doc->revision) + " of scene " + doc->id)};

@@ -2,8 +2,13 @@
 /// Durable storage of scenes under the cache directory:
 ///
 ///   scenes/<id>/<revision>.json   one file per revision (20 decimal digits, zero-padded, so the
-///                                 names sort as the numbers), the scene JSON of
-///                                 proto::encode_scene_json; immutable once written
+///                                 names sort as the numbers), KDRS (proto::encode_scene_file);
+///                                 immutable once written. Stores written before KDRS hold the
+///                                 scene JSON of proto::encode_scene_json under the same name
+///                                 and are read as such (proto::decode_stored_scene). The name
+///                                 stays ".json" so that every kdrt-server version sharing a
+///                                 store takes the same name for revision N (the link is the
+///                                 compare-and-set).
 ///
 /// The current revision is the highest-numbered file: there is no pointer file to update.
 /// A revision enters the directory only by write_file_once (an atomic link of a complete,
@@ -25,12 +30,13 @@
 /// A scene is created whole: its directory and revision 1 are written under this process's tmp/
 /// and renamed into scenes/ (atomic), so scenes/ never holds an empty or half-made scene. It is
 /// deleted by renaming its directory into tmp/ (atomic: it disappears at once for every reader)
-/// and then removing the files. After a commit, revisions older than the newest
-/// `revisions_kept` are deleted (pinned queries may use the kept ones).
+/// and then removing the files. After a commit, prune() deletes the revisions older than the newest
+/// `revisions_kept` (pinned queries may use the kept ones); the server calls it after the answer.
 ///
 /// Thread-safe; any number of processes may share one store (each passes its own tmp_dir, the
 /// MeshStore's locked tmp/<process>/).
 
+#include <cstddef>
 #include <cstdint>
 #include <filesystem>
 #include <optional>
@@ -66,15 +72,28 @@ public:
     /// A new scene id: 32 lower-case hex digits from 128 random bits.
     [[nodiscard]] static std::string new_id();
 
-    /// Stores `scene` as revision 1 of a new scene (scene.id must be a fresh id, revision 1).
-    /// Durable when it returns success.
-    [[nodiscard]] proto::Result<void, WriteError> create(const proto::SceneDocument& scene);
+    /// What create() did.
+    struct Creation {
+        bool created = false;  ///< false: the store held max_scenes scenes already
+        size_t scenes = 0;     ///< when refused: how many it held
+    };
+    /// Stores `scene` as revision 1 of a new scene (scene.id must be a fresh id, revision 1),
+    /// unless the store holds `max_scenes` scenes already. The count and the rename into scenes/
+    /// happen under an exclusive flock of scenes/.create-lock that every process sharing the
+    /// store takes, so concurrent creates (threads, or replicas on one store) never pass
+    /// max_scenes. (Where the file system refuses flock the count is taken unlocked, and two
+    /// creates at the same moment may each pass it by one.) Durable when it returns created.
+    [[nodiscard]] proto::Result<Creation, WriteError> create(const proto::SceneDocument& scene,
+                                                             size_t max_scenes = SIZE_MAX);
 
     /// Stores `scene` as revision scene.revision (>= 2) of an existing scene. Returns false,
     /// writing nothing, when that revision exists already (another writer committed it first:
-    /// the caller's base revision is stale) or the scene was deleted. Durable on true. Then
-    /// deletes the revisions older than the newest revisions_kept.
+    /// the caller's base revision is stale) or the scene was deleted. Durable on true. Deletes
+    /// no old revision: prune() does, after the answer.
     [[nodiscard]] proto::Result<bool, WriteError> commit(const proto::SceneDocument& scene);
+    /// Deletes the revisions of `id` older than the newest revisions_kept, `newest` being the
+    /// newest (best effort: a file that cannot be removed stays until the next prune).
+    void prune(const std::string& id, uint64_t newest) const;
 
     /// The newest revision of scene `id` (a directory listing); kMissing when there is no such
     /// scene.

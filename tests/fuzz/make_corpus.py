@@ -155,6 +155,36 @@ write("scene", "create", '\x00{"instances": [{"mesh": "%s", "transform": [1,0,0,
 write("scene", "create_bad_transform", '\x00{"instances": [{"mesh": "%s", "transform": [1,0,0]}]}' % MESH_A)
 write("scene", "stored", '\x01{"format":"kdrt-scene","id":"%s","revision":3,"instances":[{"geometry_id":0,'
       '"mesh":"%s","transform":[1,0,0,0,0,1,0,0,0,0,1,2],"name":"a"}]}' % ("0" * 32, MESH_A))
+
+
+def kdrs_checksum(data):
+    """The KDRS (and tree blob) checksum, proto/FORMATS.md "Tree blob"."""
+    mask = (1 << 64) - 1
+    h = 0x9E3779B97F4A7C15 ^ len(data)
+    padded = data + b"\0" * (8 - len(data) % 8)  # the zero-padded tail, even when empty
+    for (w,) in struct.iter_unpack("<Q", padded):
+        h ^= (w * 0xC2B2AE3D27D4EB4F) & mask
+        h = (((h << 31) | (h >> 33)) & mask) * 0x9E3779B97F4A7C15 & mask
+    h ^= h >> 33
+    h = h * 0xFF51AFD7ED558CCD & mask
+    return h ^ (h >> 33)
+
+
+def kdrs(scene_id, revision, instances):
+    """A KDRS revision file of (mesh id, 12 floats, name) instances."""
+    meshes = list(dict.fromkeys(m for m, _, _ in instances))
+    names = b"".join(n.encode() for _, _, n in instances)
+    body = (b"KDRS" + struct.pack("<HHQ", 1, 0, revision) + scene_id.encode() +
+            struct.pack("<IIII", len(instances), len(meshes), len(names), 0) +
+            b"".join(m.encode() for m in meshes) +
+            b"".join(struct.pack("<I", meshes.index(m)) for m, _, _ in instances) +
+            b"".join(struct.pack("<12f", *t) for _, t, _ in instances) +
+            bytes(len(n) for _, _, n in instances) + names)
+    return body + struct.pack("<Q", kdrs_checksum(body))
+
+
+write("scene", "stored_kdrs", b"\x01" + kdrs("0" * 32, 3, [(MESH_A, [1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 2], "a"),
+                                                           ("b" * 64, [0, -1, 0, 4, 1, 0, 0, 0, 0, 0, 1, 0], "")]))
 write("scene", "poses", '\x02{"poses": [{"geometry_id": 3, "transform": [1,0,0,0.5,0,1,0,0,0,0,1,0]}, '
       '{"name": "car", "transform": [[1,0,0,0],[0,1,0,0],[0,0,1,0]]}]}')
 write("scene", "edit", '\x03{"remove": [0, "a"], "add": [{"mesh": "%s", "name": "bus"}]}' % MESH_A)

@@ -1,7 +1,8 @@
 // The scene documents and binaries (kdrt/proto/scene.h). The first byte picks the decoder:
-// 0 a create request, 1 a stored revision, 2 a pose update (JSON), 3 an instance edit, 4 a KDRX
-// pose batch, 5 a scene answer's geometry-id plane. What decodes re-encodes to something that
-// decodes to the same value; refusals carry a detail; limits hold.
+// 0 a create request, 1 a stored revision (as JSON, and as a revision file: KDRS or JSON),
+// 2 a pose update (JSON), 3 an instance edit, 4 a KDRX pose batch, 5 a scene answer's
+// geometry-id plane. What decodes re-encodes to something that decodes to the same value;
+// refusals carry a detail; limits hold.
 
 #include <string_view>
 
@@ -18,6 +19,15 @@ extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
         case 0:
         case 1: {
             const bool stored = data[0] % 6 == 1;
+            if (stored) {  // a stored revision file: KDRS, or the JSON of older stores
+                const auto file = proto::decode_stored_scene(bytes);
+                if (file) {
+                    const auto again = proto::decode_scene_file(proto::encode_scene_file(*file));
+                    fuzz::require(again.ok() && *again == *file);
+                } else {
+                    fuzz::require(!file.error().empty());
+                }
+            }
             const auto scene = proto::decode_scene_json(text, limits, stored);
             if (!scene) {
                 fuzz::require(!scene.error().detail.empty());

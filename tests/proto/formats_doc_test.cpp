@@ -1,6 +1,6 @@
 // proto/FORMATS.md: every hex dump in the document is exactly what the codecs produce for the
 // content it describes, in document order (KDRR, KDRH, KDRO, KDRM, KDRC, KDRP, KDRD, KDRI, KDRZ,
-// KDRL, KDRX, a scene's KDRH, raw mesh, binary STL, tree blob), and the tree blob's checksum
+// KDRL, KDRX, a scene's KDRH, KDRS, raw mesh, binary STL, tree blob), and the tree blob's checksum
 // follows the documented algorithm.
 
 #include <gtest/gtest.h>
@@ -143,6 +143,11 @@ TEST(FormatsDoc, HexExamplesAreWhatTheCodecsWrite) {
     std::vector<proto::PoseEntry> poses(1);
     poses[0].geometry_id = 2;
     poses[0].transform.m = {0, -1, 0, 1, 1, 0, 0, 2, 0, 0, 1, 3};
+    proto::SceneDocument stored_scene;
+    stored_scene.id = "0123456789abcdef0123456789abcdef";
+    stored_scene.revision = 3;
+    stored_scene.instances = {{"9f86d081884c7d659a2feaa0c55ad015a3bf4f1b2b0b822cd15d6c15b0f00a08",
+                               proto::Transform{{0, -1, 0, 1, 1, 0, 0, 2, 0, 0, 1, 3}}, "car"}};
     std::vector<std::byte> scene_hits = proto::encode_hits(hits);
     proto::append_geometry_ids(scene_hits, std::vector<uint32_t>{3, kNoHit});
     KdTree tree = build_kdtree(triangle);
@@ -160,6 +165,7 @@ TEST(FormatsDoc, HexExamplesAreWhatTheCodecsWrite) {
         {"KDRL", proto::encode_point_cloud(cloud)},
         {"KDRX", proto::encode_pose_batch(poses)},
         {"KDRH with geometry ids", scene_hits},
+        {"KDRS", proto::encode_scene_file(stored_scene)},
         {"raw mesh", proto::write_mesh(triangle, proto::MeshFormat::kRaw)},
         {"binary STL", proto::write_mesh(triangle, proto::MeshFormat::kStl)},
         {"tree blob", serialize_tree(tree)},

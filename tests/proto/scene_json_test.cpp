@@ -4,6 +4,7 @@
 #include <gtest/gtest.h>
 
 #include <cmath>
+#include <cstring>
 #include <string>
 
 #include "kdrt/proto/scene.h"
@@ -372,6 +373,104 @@ TEST(SceneIds, SceneIdsAndInstanceNames) {
     EXPECT_FALSE(is_instance_name(""));
     EXPECT_FALSE(is_instance_name(std::string(129, 'a')));
     EXPECT_FALSE(is_instance_name("a\"b"));
+}
+
+}  // namespace
+}  // namespace kdrt::proto
+
+// ---- KDRS, the stored revision file -------------------------------------------------------------
+
+namespace kdrt::proto {
+namespace {
+
+SceneDocument stored_scene() {
+    SceneDocument doc;
+    doc.id = "0123456789abcdef0123456789abcdef";
+    doc.revision = 42;
+    doc.instances = {{kMeshB, Transform{{0, -1, 0, 1.5f, 1, 0, 0, -2, 0, 0, 1, 1e-30f}}, "car-1"},
+                     {kMeshA, Transform{}, ""},
+                     {kMeshB, Transform{{2, 0, 0, 0, 0, -2, 0, 0, 0, 0, 2, 0}}, "b"}};
+    return doc;
+}
+
+TEST(SceneFile, RoundTripsEveryFieldAndListsEachMeshOnce) {
+    const SceneDocument doc = stored_scene();
+    const auto bytes = encode_scene_file(doc);
+    // Header, two distinct mesh ids, 53 bytes an instance, the names, the checksum.
+    ASSERT_EQ(bytes.size(), 64u + 2 * 64 + 3 * 53 + 5 + 1 + 8);
+    auto back = decode_scene_file(bytes);
+    ASSERT_TRUE(back.ok()) << back.error();
+    EXPECT_EQ(*back, doc);
+    auto stored = decode_stored_scene(bytes);
+    ASSERT_TRUE(stored.ok()) << stored.error();
+    EXPECT_EQ(*stored, doc);
+    SceneDocument empty;
+    empty.id = doc.id;
+    empty.revision = 1;
+    auto none = decode_scene_file(encode_scene_file(empty));
+    ASSERT_TRUE(none.ok()) << none.error();
+    EXPECT_EQ(*none, empty);
+}
+
+TEST(SceneFile, StoresWrittenBeforeKdrsStillRead) {
+    // What the server wrote before KDRS: the stored JSON document, under the same file name.
+    const SceneDocument doc = stored_scene();
+    const std::string json = encode_scene_json(doc);
+    auto back = decode_stored_scene(
+        std::span(reinterpret_cast<const std::byte*>(json.data()), json.size()));
+    ASSERT_TRUE(back.ok()) << back.error();
+    EXPECT_EQ(*back, doc);
+    const std::string cut = json.substr(0, json.size() / 2);
+    auto bad =
+        decode_stored_scene(std::span(reinterpret_cast<const std::byte*>(cut.data()), cut.size()));
+    ASSERT_FALSE(bad.ok());
+    EXPECT_EQ(bad.error().rfind("JSON: ", 0), 0u) << bad.error();
+}
+
+TEST(SceneFile, RefusesDamageNamingTheOffset) {
+    const auto good = encode_scene_file(stored_scene());
+    const auto error_of = [](std::vector<std::byte> bytes) {
+        auto r = decode_stored_scene(bytes);
+        EXPECT_FALSE(r.ok());
+        return r.ok() ? std::string() : r.error();
+    };
+    // Every single flipped bit is caught (the checksum, or a field check before it).
+    for (size_t i = 0; i < good.size(); i += 7) {
+        auto bytes = good;
+        bytes[i] ^= std::byte{0x10};
+        EXPECT_FALSE(decode_scene_file(bytes).ok()) << "byte " << i;
+    }
+    auto v2 = good;
+    v2[4] = std::byte{2};
+    EXPECT_EQ(error_of(v2), "KDRS: offset 4: version 2, this build reads version 1");
+    auto cut = good;
+    cut.pop_back();
+    EXPECT_NE(error_of(cut).find("but the file has " + std::to_string(good.size() - 1)),
+              std::string::npos);
+    auto flipped = good;
+    flipped[64 + 2 * 64 + 12 + 4] ^= std::byte{1};  // instance 0's transform[0][1]
+    EXPECT_EQ(error_of(flipped), "KDRS: offset " + std::to_string(good.size() - 8) +
+                                     ": checksum mismatch (the file is damaged)");
+    // Valid checksums over bad content: each field is checked by itself.
+    const auto resealed = [](std::vector<std::byte> bytes) {
+        const uint64_t sum =
+            scene_file_checksum(std::span<const std::byte>(bytes).first(bytes.size() - 8));
+        std::memcpy(bytes.data() + bytes.size() - 8, &sum, 8);
+        return bytes;
+    };
+    auto index = good;
+    index[64 + 2 * 64 + 4] = std::byte{2};  // instance 1 names mesh 2 of 2
+    EXPECT_EQ(error_of(resealed(index)), "KDRS: offset " + std::to_string(64 + 2 * 64 + 4) +
+                                             ": instance 1: mesh index 2 of 2");
+    auto inf = good;
+    const float infinity = INFINITY;
+    std::memcpy(inf.data() + 64 + 2 * 64 + 12 + 48 + 4 * 7, &infinity, 4);
+    EXPECT_NE(error_of(resealed(inf)).find("instance 1: transform[1][3] is not finite"),
+              std::string::npos);
+    auto name = good;
+    name[64 + 2 * 64 + 12 + 3 * 48 + 3 + 5] = std::byte{0x21};  // instance 2: "b" -> "!"
+    EXPECT_NE(error_of(resealed(name)).find("instance 2: the name is not a valid instance name"),
+              std::string::npos);
 }
 
 }  // namespace

@@ -9,7 +9,9 @@ primitive_ids). The server side is /v1/scenes (proto/FORMATS.md, "Scenes").
     scene.set_transforms([car], [T3])     # one pose update, one new revision
 
 Instances are sent when the scene is first queried (or commit() is called): a scene of many
-instances is one request. Every later add or pose change is one request (a new revision).
+instances is one request. Every later add or pose change is one request (a new revision). A
+query over the client's chunk_rays is split as the C++ client splits it: the first chunk alone,
+then the others in parallel, pinned to the revision the first answered from.
 """
 
 import json
@@ -24,6 +26,7 @@ SCENE_HIT_FLAG = 0x0100  # flag bit 8: a geometry-id plane ends the answer
 POSE_MAGIC = b"KDRX"
 POSE_MEDIA_TYPE = "application/x-kdrt-poses"
 NO_GEOMETRY = 0xFFFFFFFF
+REVISION_HEADER = "X-Kdrt-Scene-Revision"
 
 
 def _transform(value, name="transform") -> np.ndarray:
@@ -172,30 +175,75 @@ class Scene:
     # ---- Queries --------------------------------------------------------------------------
 
     def _post(self, route, parts, media_type, revision=None):
+        """One query request; returns (its answer body, the revision it answered from)."""
         self.commit()
         path = self._t.api(f"/v1/scenes/{self.id}/{route}")
         if revision is not None:
             path += ("&" if "?" in path else "?") + f"revision={int(revision)}"
-        return self._t.request("POST", path, parts, media_type, None, lambda r: r.read())
+        _, headers, body = self._t.request("POST", path, parts, media_type)
+        answered = headers.get(REVISION_HEADER, "")
+        if not answered.isdigit() or (revision is not None and int(answered) != int(revision)):
+            raise Error(kind="protocol", title="bad response",
+                        detail=f"POST {path}: the answer's {REVISION_HEADER} {answered!r} is not "
+                        f"the revision asked for ({revision})")
+        return body, int(answered)
 
-    def _rays(self, rays, occlusion, route="intersect", revision=None):
+    def _chunks(self, route, n, encode, media_type, decode, revision=None):
+        """A query of `n` records in chunks of the client's chunk_rays, as the C++ client sends
+        it: chunk 0 alone (answered from the current revision, or `revision`), then the others
+        at once on up to `connections` connections, each pinned to the revision chunk 0
+        answered from, so that every chunk sees the same poses. encode(first, count) gives a
+        request body's parts, decode(body, count) an answer's value; returns the values in
+        order."""
+        chunk = self._c.chunk_rays
+        chunks = max(1, -(-n // chunk))
+
+        def send(k, pin):
+            first = k * chunk
+            count = min(chunk, n - first)
+            body, answered = self._post(route, encode(first, count), media_type, pin)
+            return decode(body, count), answered
+
+        first, pinned = send(0, revision)
+        rest = []
+        if chunks > 1:
+            if self._c.connections == 1:
+                rest = [send(k, pinned) for k in range(1, chunks)]
+            else:
+                pool = self._c._workers()
+                futures = [pool.submit(send, k, pinned) for k in range(1, chunks)]
+                rest = [f.result() for f in futures]  # the earliest failing chunk's error
+        return [first] + [value for value, _ in rest]
+
+    def _rays(self, rays, occlusion, decode, route="intersect", revision=None):
+        """The rays' leading shape, their count and the decoded answers of their chunks."""
         arr = _wire.as_rays(rays)
         flat = arr.reshape(-1, arr.shape[-1])
-        records = _wire.kdrr_records(flat)
-        header = _wire.batch_header(_wire.RAY_MAGIC, _wire.FLAG_OCCLUSION if occlusion else 0,
-                                    flat.shape[0])
-        body = self._post(route, [header, _wire.byte_view(records)], _wire.RAYS_MEDIA_TYPE,
-                          revision)
-        return arr.shape[:-1], flat.shape[0], body
+        flags = _wire.FLAG_OCCLUSION if occlusion else 0
+
+        def encode(first, count):
+            records = _wire.kdrr_records(flat[first:first + count])
+            return [_wire.batch_header(_wire.RAY_MAGIC, flags, count), _wire.byte_view(records)]
+
+        parts = self._chunks(route, flat.shape[0], encode, _wire.RAYS_MEDIA_TYPE, decode,
+                             revision)
+        return arr.shape[:-1], flat.shape[0], parts
 
     def cast_rays(self, rays, revision=None) -> dict:
         """Closest hit of every ray (rays as for Client.cast_rays). Returns arrays shaped like
         the rays' leading dimensions: t_hit, geometry_ids (uint32, NO_GEOMETRY on a miss),
-        primitive_ids (the triangle of that instance's mesh), primitive_uvs."""
-        lead, n, body = self._rays(rays, False, revision=revision)
-        mesh, geometry_ids = split_geometry_ids(body, n)
-        _wire.check_answer_header(mesh[:_wire.HEADER_BYTES], _wire.HIT_MAGIC, n)
-        records = np.frombuffer(mesh, dtype="<f4", offset=_wire.HEADER_BYTES).reshape(n, 4)
+        primitive_ids (the triangle of that instance's mesh), primitive_uvs. A batch over the
+        client's chunk_rays goes in chunks, all answered from one revision."""
+
+        def decode(body, count):
+            mesh, geometry_ids = split_geometry_ids(body, count)
+            _wire.check_answer_header(mesh[:_wire.HEADER_BYTES], _wire.HIT_MAGIC, count)
+            records = np.frombuffer(mesh, dtype="<f4", offset=_wire.HEADER_BYTES)
+            return records.reshape(count, 4), geometry_ids
+
+        lead, n, parts = self._rays(rays, False, decode, revision=revision)
+        records = np.concatenate([r for r, _ in parts]) if len(parts) > 1 else parts[0][0]
+        geometry_ids = np.concatenate([g for _, g in parts]) if len(parts) > 1 else parts[0][1]
         return {
             "t_hit": records[:, 0].reshape(lead),
             "geometry_ids": geometry_ids.reshape(lead),
@@ -204,10 +252,14 @@ class Scene:
         }
 
     def test_occlusions(self, rays, revision=None) -> np.ndarray:
-        lead, n, body = self._rays(rays, True, revision=revision)
-        _wire.check_answer_header(body[:_wire.HEADER_BYTES], _wire.OCCLUSION_MAGIC, n)
-        out = np.frombuffer(body, dtype=np.uint8, offset=_wire.HEADER_BYTES).copy()
-        _wire.check_occlusion_records(out)
+        def decode(body, count):
+            _wire.check_answer_header(body[:_wire.HEADER_BYTES], _wire.OCCLUSION_MAGIC, count)
+            out = np.frombuffer(body, dtype=np.uint8, offset=_wire.HEADER_BYTES).copy()
+            _wire.check_occlusion_records(out)
+            return out
+
+        lead, n, parts = self._rays(rays, True, decode, revision=revision)
+        out = np.concatenate(parts) if len(parts) > 1 else parts[0]
         return out.view(np.bool_).reshape(lead)
 
     def list_intersections(self, rays, max_hits=16, merge_coincident=False,
@@ -217,13 +269,19 @@ class Scene:
         geometry id, then triangle."""
         route = (f"intersect_all?max_hits={int(max_hits)}"
                  f"&merge_coincident={'true' if merge_coincident else 'false'}")
-        lead, n, body = self._rays(rays, False, route=route, revision=revision)
-        (hits,) = struct.unpack_from("<Q", body, 16)
-        mesh, geometry_ids = split_geometry_ids(body, hits)
-        d = _wire.decode_multi_hits(mesh, n)
-        rec = d["records"]
-        splits = d["offsets"].astype(np.uint64)
-        ray_ids = np.repeat(np.arange(n, dtype=np.uint32), np.diff(splits).astype(np.int64))
+
+        def decode(body, count):
+            (hits,) = struct.unpack_from("<Q", body, 16)
+            mesh, geometry_ids = split_geometry_ids(body, hits)
+            return _wire.decode_multi_hits(mesh, count), geometry_ids
+
+        lead, n, parts = self._rays(rays, False, decode, route=route, revision=revision)
+        rec = np.concatenate([d["records"] for d, _ in parts])
+        geometry_ids = np.concatenate([g for _, g in parts])
+        counts = np.concatenate([d["counts"] for d, _ in parts])
+        sizes = np.concatenate([np.diff(d["offsets"].astype(np.uint64)) for d, _ in parts])
+        splits = np.concatenate([[0], np.cumsum(sizes)]).astype(np.uint64)
+        ray_ids = np.repeat(np.arange(n, dtype=np.uint32), sizes.astype(np.int64))
         return {
             "ray_splits": splits,
             "ray_ids": ray_ids,
@@ -231,7 +289,7 @@ class Scene:
             "geometry_ids": geometry_ids,
             "primitive_ids": rec["prim"],
             "primitive_uvs": np.stack([rec["u"], rec["v"]], axis=-1),
-            "counts": d["counts"],
+            "counts": counts,
         }
 
     def compute_closest_points(self, query_points, max_distance=np.inf, revision=None) -> dict:
@@ -239,16 +297,22 @@ class Scene:
         primitive_ids, primitive_uvs (every instance needs a similarity transform)."""
         pts = _wire.as_points(query_points)
         flat = pts.reshape(-1, 3)
-        n = flat.shape[0]
-        records = _wire.kdrp_records(flat)
-        header = _wire.batch_header(b"KDRP", 0, n)
         route = "distance"
         if np.isfinite(max_distance):
             route += f"?max_distance={float(max_distance)!r}"
-        body = self._post(route, [header, _wire.byte_view(records)], "application/x-kdrt-points",
-                          revision)
-        mesh, geometry_ids = split_geometry_ids(body, n)
-        rec = _wire.decode_distances(mesh, n, False)
+
+        def encode(first, count):
+            records = _wire.kdrp_records(flat[first:first + count])
+            return [_wire.batch_header(b"KDRP", 0, count), _wire.byte_view(records)]
+
+        def decode(body, count):
+            mesh, geometry_ids = split_geometry_ids(body, count)
+            return _wire.decode_distances(mesh, count, False), geometry_ids
+
+        parts = self._chunks(route, flat.shape[0], encode, "application/x-kdrt-points", decode,
+                             revision)
+        rec = np.concatenate([r for r, _ in parts])
+        geometry_ids = np.concatenate([g for _, g in parts])
         lead = pts.shape[:-1]
         return {
             "points": rec["point"].reshape(lead + (3,)),
@@ -277,8 +341,8 @@ class Scene:
             lidar["max_range"] = float(max_range)
         if pose is not None:
             lidar["pose"] = np.asarray(pose, dtype=np.float64).reshape(4, 4).tolist()
-        body = self._post("scan", [json.dumps({"lidar": lidar}).encode()], "application/json",
-                          revision)
+        body, _ = self._post("scan", [json.dumps({"lidar": lidar}).encode()], "application/json",
+                             revision)
         (n,) = struct.unpack_from("<I", body, 8)
         mesh, geometry_ids = split_geometry_ids(body, n)
         rec = np.frombuffer(mesh, dtype=[("p", "<f4", (3,)), ("range", "<f4"), ("channel", "<u4"),

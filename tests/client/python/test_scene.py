@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 import kdrt
+from conftest import Server
 
 
 def _box():
@@ -98,3 +99,50 @@ def test_refusals_name_the_instance_and_field(server):
     with pytest.raises(kdrt.Error) as e:
         bad.commit()
     assert e.value.status == 400 and "singular" in e.value.detail
+
+
+def test_queries_past_the_servers_limit_go_in_chunks_of_one_revision():
+    # The server takes 100 rays (and points) a request; 1000 go in chunks of 100 like the C++
+    # client sends them: chunk 0 alone, then the rest on 3 connections, all pinned to the
+    # revision chunk 0 answered from.
+    server = Server("--max-rays", "100", "--max-distance-points", "100")
+    try:
+        with kdrt.Client(server.url, chunk_rays=100, connections=3) as client, \
+                kdrt.Client(server.url) as whole:
+            v, t = _box()
+            mesh = client.upload(v, t)
+            scene = kdrt.Scene(client)
+            scene.add_triangles(mesh)
+            g1 = scene.add_triangles(mesh, transform=[[1, 0, 0, 3], [0, 1, 0, 0], [0, 0, 1, 0]])
+            scene.commit()
+            rays = np.concatenate([_rays_at(0, 500, seed=5), _rays_at(3, 500, seed=6)])
+            # One request of 1000 rays is over the limit.
+            with pytest.raises(kdrt.Error) as e:
+                kdrt.Scene(whole, scene_id=scene.id).cast_rays(rays)
+            assert e.value.status == 413
+            hits = scene.cast_rays(rays)
+            want = client.cast_rays(mesh, rays[:500])  # instance 0 is the mesh as it is
+            assert hits["geometry_ids"].tolist() == [0] * 500 + [1] * 500
+            assert np.array_equal(hits["t_hit"][:500], want["t_hit"])
+            assert np.array_equal(hits["primitive_ids"][:500], want["primitive_ids"])
+            assert (hits["t_hit"] == 4.0).all()
+            assert np.array_equal(scene.test_occlusions(rays), np.ones(1000, bool))
+            all_hits = scene.list_intersections(rays, max_hits=4)
+            assert np.array_equal(np.diff(all_hits["ray_splits"].astype(np.int64)),
+                                  np.full(1000, 2))
+            assert np.array_equal(all_hits["ray_ids"], np.repeat(np.arange(1000), 2))
+            assert np.array_equal(all_hits["geometry_ids"], np.repeat([0, 1], 1000))
+            points = np.concatenate([rays[:, :3] - [0, 0, 3.5]]).astype(np.float32)
+            d = scene.compute_closest_points(points)
+            assert d["geometry_ids"].tolist() == [0] * 500 + [1] * 500
+            assert np.allclose(d["distance"], 0.5)
+            # Pinned: instance 1 moved away, the old revision still answers every chunk.
+            first = scene.revision
+            scene.set_transform(g1, [[1, 0, 0, 3], [0, 1, 0, 0], [0, 0, 1, 50]])
+            moved = scene.cast_rays(rays)
+            assert (moved["geometry_ids"][500:] == kdrt.NO_GEOMETRY).all()
+            pinned = scene.cast_rays(rays, revision=first)
+            assert np.array_equal(pinned["geometry_ids"], hits["geometry_ids"])
+            assert np.array_equal(pinned["t_hit"], hits["t_hit"])
+    finally:
+        server.stop()

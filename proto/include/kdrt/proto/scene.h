@@ -110,6 +110,26 @@ struct SceneRequestError {
 /// the same float. decode_scene_json(text, limits, true) reads it back equal.
 [[nodiscard]] std::string encode_scene_json(const SceneDocument& scene);
 
+/// KDRS, a stored scene revision (the server's revision files; FORMATS.md "Stored scene
+/// revisions"): a 64-byte header (magic, version, flags 0, revision, scene id, instance, mesh and
+/// name byte counts), each distinct mesh id once, then per instance planes of u32 mesh indices,
+/// 12 f32 transforms and u8 name lengths, the names, and a u64 checksum of every byte before it.
+inline constexpr std::string_view kSceneFileMagic = "KDRS";
+inline constexpr uint16_t kSceneFileVersion = 1;
+/// `scene` as KDRS (id and revision set; names valid, as every stored document's are).
+[[nodiscard]] std::vector<std::byte> encode_scene_file(const SceneDocument& scene);
+/// Reads KDRS back: the exact size, the checksum, every mesh id, mesh index, transform entry
+/// (finite) and name (valid, unique); no instance limit (a stored revision stays readable under
+/// a lower max_instances). The error names the byte offset and what is wrong there.
+[[nodiscard]] Result<SceneDocument, std::string> decode_scene_file(
+    std::span<const std::byte> bytes);
+/// The checksum at the end of a KDRS file (the tree blob's, FORMATS.md "Tree blob").
+[[nodiscard]] uint64_t scene_file_checksum(std::span<const std::byte> bytes) noexcept;
+/// A stored revision file in either form: KDRS, or the JSON of encode_scene_json that stores
+/// written before KDRS hold (told apart by the first byte). The error says which form and what.
+[[nodiscard]] Result<SceneDocument, std::string> decode_stored_scene(
+    std::span<const std::byte> bytes);
+
 /// One scene of GET /v1/scenes.
 struct SceneListItem {
     std::string id;
