@@ -320,7 +320,10 @@ TEST(Distance, FarPointsCostWhatPointsJustOutsideDo) {
         const uint64_t work = closest_points(tree, index, points, out, {}).work;
         EXPECT_LT(work, 2 * close_work) << "one size away: " << close_work;
         EXPECT_LT(work, points.size() * mesh.triangle_count() / 20);
-        check_against_brute_force(tree, index, points, far * size);
+        // Brute force over the bunny is the test's cost (48 s of the ASan pass): every point in
+        // Release, the first test_scale() of them where the oracle loops are scaled.
+        check_against_brute_force(
+            tree, index, std::span<const Vec3>(points).first(scaled(points.size())), far * size);
     }
 }
 
