@@ -209,9 +209,7 @@ inline bool sort_by_origin_and_direction(const Ray* block, int valid, const floa
 /// into runs of kCoherentRun rays, each only split by octant, keeping the input order and a small
 /// working set. Every valid ray is in exactly one run; the invalid ones (and every ray of a tree
 /// with an empty root) are answered as misses here. The kernels make every lane's single-ray
-/// decisions, so the grouping changes the speed, never an answer. A tracer with a member
-/// `single_block(block, base, n)` that returns true has traced an incoherent block itself (as
-/// single rays, answering its invalid rays too); the block is then not sorted.
+/// decisions, so the grouping changes the speed, never an answer.
 template <bool AnyHit, class TraceRun>
 [[gnu::always_inline]] inline void schedule_rays(const KdTree& tree, const Ray* rays, size_t count,
                                                  Hit* hits, uint8_t* occluded,
@@ -228,10 +226,6 @@ template <bool AnyHit, class TraceRun>
         const Ray* block = rays + base;
         float lo[3], hi[3];
         if (block_is_incoherent(block, n, lo, hi)) {
-            // A tracer that walks incoherent blocks as single rays takes the block unsorted.
-            if constexpr (requires { trace_run.single_block(block, base, n); }) {
-                if (trace_run.single_block(block, base, n)) continue;
-            }
             const int valid =
                 collect_valid<AnyHit>(tree, block, base, n, hits, occluded, counters, key, index);
             counters.sorted_rays += static_cast<uint64_t>(valid);

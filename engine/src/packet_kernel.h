@@ -724,6 +724,22 @@ template <int W, bool AnyHit, bool Count>
 
 /// The kernel's answer to schedule_rays: traces one octant run W rays at a time (trace_run).
 /// A struct rather than a lambda: a lambda would not inherit the ISA target.
+template <int W, bool AnyHit, bool Count>
+struct RunTracer {
+    const KdTree& tree;
+    Hit* hits;
+    uint8_t* occluded;
+    Policy policy;
+    TraceCounters& counters;
+
+    [[gnu::always_inline]] void operator()(const Ray* block, size_t base, const uint16_t* order,
+                                           int count) const {
+        trace_run<W, AnyHit, Count>(tree, block, base, order, count, hits, occluded, policy,
+                                    counters);
+    }
+};
+
+/// Traces `count` rays in the order schedule_rays picks; answers in input order.
 /// How many single rays a batch walks in turn (trace_in_turn). A ray's walk is one chain of
 /// dependent loads (wide node, then the next, then a leaf's references and triangles); walks of
 /// different rays are independent, so the core overlaps their loads. Measured on the bunny's
@@ -788,48 +804,6 @@ void trace_in_turn(const KdTree& tree, const Ray* rays, size_t count, Hit* hits,
     }
 }
 
-template <int W, bool AnyHit, bool Count>
-struct RunTracer {
-    const KdTree& tree;
-    Hit* hits;
-    uint8_t* occluded;
-    Policy policy;
-    TraceCounters& counters;
-
-    [[gnu::always_inline]] void operator()(const Ray* block, size_t base, const uint16_t* order,
-                                           int count) const {
-        trace_run<W, AnyHit, Count>(tree, block, base, order, count, hits, occluded, policy,
-                                    counters);
-    }
-    /// `auto` walks incoherent blocks of closest-hit rays as single rays, several in turn
-    /// (trace_in_turn): their packets run mostly empty (a fifth to a third of the lanes live on
-    /// random and diffuse bounce rays), and the walks in turn match or beat them without the
-    /// block's sort. Incoherent occlusion rays (ambient occlusion's) stay in packets, which were
-    /// faster for them (tests/bench/README.md). The counting kernels walk one ray at a time.
-    bool single_block(const Ray* block, size_t base, int n) const {
-        if (AnyHit || policy != Policy::kAuto) return false;
-        Hit* block_hits = AnyHit ? nullptr : hits + base;
-        uint8_t* block_occluded = AnyHit ? occluded + base : nullptr;
-        if constexpr (Count) {
-            for (int i = 0; i < n; ++i) {
-                if (octant_or_invalid(block[i]) < 0) {
-                    answer_miss<AnyHit>(static_cast<size_t>(i), block_hits, block_occluded,
-                                        counters);
-                    continue;
-                }
-                trace_single<AnyHit, Count>(tree, block[i], static_cast<size_t>(i), block_hits,
-                                            block_occluded, counters);
-                ++counters.single_rays;
-            }
-        } else {
-            trace_in_turn<AnyHit, kWalksInTurn>(tree, block, static_cast<size_t>(n), block_hits,
-                                                block_occluded, counters);
-        }
-        return true;
-    }
-};
-
-/// Traces `count` rays in the order schedule_rays picks; answers in input order.
 template <int W, bool AnyHit, bool Count>
 void trace_rays(const KdTree& tree, const Ray* rays, size_t count, Hit* hits, uint8_t* occluded,
                 Policy policy, TraceCounters& counters) {
