@@ -348,12 +348,7 @@ inline VM<W> intersect_triangle_packet(const Packet<W>& pk, const TriVerts& tri,
         simd::store<W>(fcy, cy);
         for (uint32_t m = simd::bits<W>(zero_edge); m; m &= m - 1) {
             const int l = __builtin_ctz(m);
-            fu[l] = static_cast<float>(static_cast<double>(fcx[l]) * fby[l] -
-                                       static_cast<double>(fcy[l]) * fbx[l]);
-            fv[l] = static_cast<float>(static_cast<double>(fax[l]) * fcy[l] -
-                                       static_cast<double>(fay[l]) * fcx[l]);
-            fw[l] = static_cast<float>(static_cast<double>(fbx[l]) * fay[l] -
-                                       static_cast<double>(fby[l]) * fax[l]);
+            exact_edges(fax[l], fay[l], fbx[l], fby[l], fcx[l], fcy[l], fu[l], fv[l], fw[l]);
         }
         u = simd::load<W>(fu);
         v = simd::load<W>(fv);

@@ -34,6 +34,17 @@ struct PreparedRay {
     float sx, sy, sz;
 };
 
+/// The three edge functions of a triangle in the ray's frame, redone in double, where the
+/// products of floats are exact: the retry every triangle test (scalar, four triangles, packet
+/// lanes) makes when one of them came out exactly zero.
+[[gnu::always_inline]] static inline void exact_edges(float ax, float ay, float bx, float by,
+                                                      float cx, float cy, float& u, float& v,
+                                                      float& w) noexcept {
+    u = static_cast<float>(static_cast<double>(cx) * by - static_cast<double>(cy) * bx);
+    v = static_cast<float>(static_cast<double>(ax) * cy - static_cast<double>(ay) * cx);
+    w = static_cast<float>(static_cast<double>(bx) * ay - static_cast<double>(by) * ax);
+}
+
 static inline PreparedRay prepare_ray(const Ray& r) noexcept {
     PreparedRay p;
     const float dir[3] = {r.dx, r.dy, r.dz};
@@ -86,11 +97,7 @@ static inline bool intersect_triangle(const PreparedRay& p, const TriVerts& tri,
     float w = bx * ay - by * ax;
     // An edge function of exactly zero may be a rounding accident: redo all three in double, where
     // the products of floats are exact, so a ray on a shared edge is decided consistently.
-    if (u == 0.0f || v == 0.0f || w == 0.0f) {
-        u = static_cast<float>(static_cast<double>(cx) * by - static_cast<double>(cy) * bx);
-        v = static_cast<float>(static_cast<double>(ax) * cy - static_cast<double>(ay) * cx);
-        w = static_cast<float>(static_cast<double>(bx) * ay - static_cast<double>(by) * ax);
-    }
+    if (u == 0.0f || v == 0.0f || w == 0.0f) exact_edges(ax, ay, bx, by, cx, cy, u, v, w);
     // Decided without a branch until the end: whether a ray misses a triangle is as good as a
     // coin toss for the branch predictor, while a leaf's tests mostly end in "no hit", which it
     // predicts well. The division is made either way (its value only counts on a hit).

@@ -143,9 +143,11 @@ Take take_next_leaf(const SceneData& s, const Ray& ray, const detail::TopRay& p,
     }
 }
 
-/// A round's (geom, ray) pairs, sorted, as fn(geom, first, end) per instance.
+/// A round's (geom, ray) pairs, sorted by instance (then ray), as fn(geom, first, end) per
+/// instance.
 template <class Fn>
-void for_each_instance(const std::vector<std::pair<uint32_t, uint32_t>>& pairs, Fn&& fn) {
+void for_each_instance(std::vector<std::pair<uint32_t, uint32_t>>& pairs, Fn&& fn) {
+    std::sort(pairs.begin(), pairs.end());
     for (size_t g0 = 0; g0 < pairs.size();) {
         const uint32_t geom = pairs[g0].first;
         size_t g1 = g0;
@@ -225,7 +227,6 @@ void trace_block(const SceneData& s, std::span<const Ray> rays, std::span<SceneH
         }
         b.live.resize(kept);
         if (b.pairs.empty()) break;
-        std::sort(b.pairs.begin(), b.pairs.end());
         for_each_instance(b.pairs, [&](uint32_t geom, size_t g0, size_t g1) {
             const size_t count = g1 - g0;
             const KdTree& tree = *s.instances[geom].tree;
@@ -630,7 +631,6 @@ void nearest_rounds(const SceneData& s, std::span<const Ray> rays, uint32_t k, b
         }
         b.live.resize(kept);
         if (b.pairs.empty()) break;
-        std::sort(b.pairs.begin(), b.pairs.end());
         for_each_instance(b.pairs, [&](uint32_t geom, size_t g0, size_t g1) {
             const size_t count = g1 - g0;
             const KdTree& tree = *s.instances[geom].tree;

@@ -200,12 +200,11 @@ static inline uint32_t intersect4(const PreparedRay& p, const TriVerts* const tr
         // intersect_triangle's double-precision retry, for the lanes that need it.
         for (uint32_t m = bits4(zero_edge); m; m &= m - 1) {
             const int l = __builtin_ctz(m);
-            u[l] = static_cast<float>(static_cast<double>(cx[l]) * by[l] -
-                                      static_cast<double>(cy[l]) * bx[l]);
-            v[l] = static_cast<float>(static_cast<double>(ax[l]) * cy[l] -
-                                      static_cast<double>(ay[l]) * cx[l]);
-            w[l] = static_cast<float>(static_cast<double>(bx[l]) * ay[l] -
-                                      static_cast<double>(by[l]) * ax[l]);
+            float eu, ev, ew;
+            exact_edges(ax[l], ay[l], bx[l], by[l], cx[l], cy[l], eu, ev, ew);
+            u[l] = eu;
+            v[l] = ev;
+            w[l] = ew;
         }
     }
     const I4 outside =
