@@ -202,10 +202,39 @@ inline bool sort_by_origin_and_direction(const Ray* block, int valid, const floa
     return in_tmp;
 }
 
+/// An incoherent block (block_is_incoherent; lo, hi its origins' sample bounds), sorted whole by
+/// octant, origin and direction, and traced as one run per octant. The invalid rays are answered
+/// as misses here.
+template <bool AnyHit, class TraceRun>
+[[gnu::always_inline]] inline void trace_sorted_block(const KdTree& tree, const Ray* block,
+                                                      size_t base, int n, const float lo[3],
+                                                      const float hi[3], Hit* hits,
+                                                      uint8_t* occluded, TraceCounters& counters,
+                                                      const TraceRun& trace_run) {
+    uint32_t key[kBlockRays], key_tmp[kBlockRays];
+    uint16_t index[kBlockRays], index_tmp[kBlockRays];
+    const int valid =
+        collect_valid<AnyHit>(tree, block, base, n, hits, occluded, counters, key, index);
+    counters.sorted_rays += static_cast<uint64_t>(valid);
+    const bool in_tmp =
+        sort_by_origin_and_direction(block, valid, lo, hi, key, index, key_tmp, index_tmp);
+    const uint32_t* sorted_key = in_tmp ? key_tmp : key;
+    const uint16_t* sorted = in_tmp ? index_tmp : index;
+    for (int first = 0; first < valid;) {  // one run per octant (the keys' top bits)
+        const uint32_t oct = sorted_key[first] >> kOctantShift;
+        int end = first + 1;
+        while (end < valid && (sorted_key[end] >> kOctantShift) == oct) ++end;
+        trace_run(block, base, sorted + first, end - first);
+        first = end;
+    }
+}
+
 /// Schedules `count` rays, block by block (kBlockRays), as runs of one octant each:
 /// `trace_run(block, base, order, run_count)` traces the rays block[order[0..run_count)], whose
 /// answers belong at hits / occluded [base + order[i]] (run_count may be 0). An incoherent block
-/// (block_is_incoherent) is sorted whole by octant, origin and direction; a coherent one is cut
+/// (block_is_incoherent) is sorted whole by octant, origin and direction (trace_sorted_block), or
+/// handed whole to `trace_run.incoherent_block(block, base, n, lo, hi)` when the kernel has one
+/// (which then answers every ray of the block, the invalid ones included); a coherent one is cut
 /// into runs of kCoherentRun rays, each only split by octant, keeping the input order and a small
 /// working set. Every valid ray is in exactly one run; the invalid ones (and every ray of a tree
 /// with an empty root) are answered as misses here. The kernels make every lane's single-ray
@@ -215,8 +244,6 @@ template <bool AnyHit, class TraceRun>
                                                  Hit* hits, uint8_t* occluded,
                                                  TraceCounters& counters,
                                                  const TraceRun& trace_run) {
-    uint32_t key[kBlockRays], key_tmp[kBlockRays];
-    uint16_t index[kBlockRays], index_tmp[kBlockRays];
     if (tree.bounds.empty()) {  // nothing to hit: every ray is answered as a miss
         for (size_t i = 0; i < count; ++i) answer_miss<AnyHit>(i, hits, occluded, counters);
         return;
@@ -226,20 +253,12 @@ template <bool AnyHit, class TraceRun>
         const Ray* block = rays + base;
         float lo[3], hi[3];
         if (block_is_incoherent(block, n, lo, hi)) {
-            const int valid =
-                collect_valid<AnyHit>(tree, block, base, n, hits, occluded, counters, key, index);
-            counters.sorted_rays += static_cast<uint64_t>(valid);
-            const bool in_tmp =
-                sort_by_origin_and_direction(block, valid, lo, hi, key, index, key_tmp, index_tmp);
-            const uint32_t* sorted_key = in_tmp ? key_tmp : key;
-            const uint16_t* sorted = in_tmp ? index_tmp : index;
-            for (int first = 0; first < valid;) {  // one run per octant (the keys' top bits)
-                const uint32_t oct = sorted_key[first] >> kOctantShift;
-                int end = first + 1;
-                while (end < valid && (sorted_key[end] >> kOctantShift) == oct) ++end;
-                trace_run(block, base, sorted + first, end - first);
-                first = end;
-            }
+            // A kernel may choose how to trace it (the auto policy); else sorted runs.
+            if constexpr (requires { trace_run.incoherent_block(block, base, n, lo, hi); })
+                trace_run.incoherent_block(block, base, n, lo, hi);
+            else
+                trace_sorted_block<AnyHit>(tree, block, base, n, lo, hi, hits, occluded, counters,
+                                           trace_run);
             continue;
         }
         for (int first = 0; first < n; first += kCoherentRun) {

@@ -12,7 +12,17 @@
 namespace kdrt::detail {
 
 /// How a block decides between packets and single rays (TraceMode, as the kernels see it).
-enum class Policy : uint32_t { kAuto = 0, kSingle = 1, kPacket = 2 };
+/// The last three are auto with its way for incoherent blocks fixed (RunTracer::incoherent_block):
+/// sorted packets, single rays in input order, or every block measured (half each way). Tests
+/// reach every way with them; policy_for never gives them.
+enum class Policy : uint32_t {
+    kAuto = 0,
+    kSingle = 1,
+    kPacket = 2,
+    kIncoherentAsPacket = 3,
+    kIncoherentAsSingle = 4,
+    kIncoherentMeasured = 5
+};
 
 /// What a kernel did, summed over a batch (per-thread, added up afterwards).
 struct TraceCounters {

@@ -302,8 +302,10 @@ inline void setup_packet(const KdTree& tree, const Ray* rays, const uint16_t* in
 /// The watertight test of one triangle against the lanes in `active`; returns the lanes hit with
 /// tmin <= t (per lane t, u, v written). Same arithmetic as intersect_triangle, lane by lane.
 template <int W>
-inline VM<W> intersect_triangle_packet(const Packet<W>& pk, const TriVerts& tri, VM<W> active,
-                                       VF<W>& t_out, VF<W>& u_out, VF<W>& v_out) {
+[[gnu::always_inline]] inline VM<W> intersect_triangle_packet(const Packet<W>& pk,
+                                                              const TriVerts& tri, VM<W> active,
+                                                              VF<W>& t_out, VF<W>& u_out,
+                                                              VF<W>& v_out) {
     // The vertices relative to the origin in each lane's (kx, ky, kz) frame: tri.v[k] - org[k].
     VF<W> a_x, a_y, a_z, b_x, b_y, b_z, c_x, c_y, c_z;
     if (pk.uniform_k >= 0) {  // coherent packets: every lane has the same frame, no per-lane picks
@@ -679,6 +681,29 @@ template <bool AnyHit, bool Count>
     }
 }
 
+/// Traces block[index[0..lanes)] as one packet; answers at hits / occluded [base + index[l]].
+template <int W, bool AnyHit, bool Count>
+[[gnu::always_inline]] inline void trace_packet(const KdTree& tree, const Ray* block, size_t base,
+                                                const uint16_t* index, int lanes, Hit* hits,
+                                                uint8_t* occluded, TraceCounters& counters) {
+    Packet<W> pk;
+    setup_packet<W>(tree, block, index, lanes, pk);
+    PacketHits<W> best;
+    best.t = pk.ray_tmax;
+    best.u = simd::broadcast<W>(0.0f);
+    best.v = simd::broadcast<W>(0.0f);
+    best.prim = simd::broadcast_u<W>(kNoHit);
+    const VM<W> occ = traverse_packet<W, AnyHit, Count>(tree, pk, best, counters);
+    ++counters.packets;
+    counters.packet_rays += static_cast<uint64_t>(lanes);
+    if constexpr (AnyHit) {
+        const uint32_t mask = simd::bits<W>(occ);
+        for (int l = 0; l < lanes; ++l) occluded[base + index[l]] = (mask >> l) & 1u;
+    } else {
+        store_hits<W>(best, index, lanes, base, hits);
+    }
+}
+
 /// Traces `count` rays of one octant, block[order[0..count)], W at a time: each group as a packet
 /// or as single rays (the policy).
 template <int W, bool AnyHit, bool Count>
@@ -689,8 +714,7 @@ template <int W, bool AnyHit, bool Count>
     for (int p = 0; p < count; p += W) {
         const int lanes = count - p < W ? count - p : W;
         const uint16_t* index = &order[p];
-        const bool as_packet =
-            policy == Policy::kPacket || (policy == Policy::kAuto && packet_pays(lanes, W));
+        const bool as_packet = policy == Policy::kPacket || packet_pays(lanes, W);
         if (!as_packet) {
             for (int l = 0; l < lanes; ++l)
                 trace_single<AnyHit, Count>(tree, block[index[l]], base + index[l], hits, occluded,
@@ -698,41 +722,9 @@ template <int W, bool AnyHit, bool Count>
             counters.single_rays += static_cast<uint64_t>(lanes);
             continue;
         }
-        Packet<W> pk;
-        setup_packet<W>(tree, block, index, lanes, pk);
-        PacketHits<W> best;
-        best.t = pk.ray_tmax;
-        best.u = simd::broadcast<W>(0.0f);
-        best.v = simd::broadcast<W>(0.0f);
-        best.prim = simd::broadcast_u<W>(kNoHit);
-        const VM<W> occ = traverse_packet<W, AnyHit, Count>(tree, pk, best, counters);
-        ++counters.packets;
-        counters.packet_rays += static_cast<uint64_t>(lanes);
-        if constexpr (AnyHit) {
-            const uint32_t mask = simd::bits<W>(occ);
-            for (int l = 0; l < lanes; ++l) occluded[base + index[l]] = (mask >> l) & 1u;
-        } else {
-            store_hits<W>(best, index, lanes, base, hits);
-        }
+        trace_packet<W, AnyHit, Count>(tree, block, base, index, lanes, hits, occluded, counters);
     }
 }
-
-/// The kernel's answer to schedule_rays: traces one octant run W rays at a time (trace_run).
-/// A struct rather than a lambda: a lambda would not inherit the ISA target.
-template <int W, bool AnyHit, bool Count>
-struct RunTracer {
-    const KdTree& tree;
-    Hit* hits;
-    uint8_t* occluded;
-    Policy policy;
-    TraceCounters& counters;
-
-    [[gnu::always_inline]] void operator()(const Ray* block, size_t base, const uint16_t* order,
-                                           int count) const {
-        trace_run<W, AnyHit, Count>(tree, block, base, order, count, hits, occluded, policy,
-                                    counters);
-    }
-};
 
 /// Traces `count` rays in the order schedule_rays picks; answers in input order.
 /// How many single rays a batch walks in turn (trace_in_turn). A ray's walk is one chain of
@@ -745,9 +737,12 @@ inline constexpr int kWalksInTurn = 4;
 /// A batch of single rays, K at a time: the walks advance in turn, one cell each, so that one
 /// ray's dependent loads overlap the others' work. Each walk is the single-ray kernel's
 /// (wide_step), so every answer is its answer. A walk that ends takes the batch's next ray.
-template <bool AnyHit, int K>
-void trace_in_turn(const KdTree& tree, const Ray* rays, size_t count, Hit* hits, uint8_t* occluded,
-                   TraceCounters& counters) {
+///
+/// The batch's j-th ray is rays[order(j)], its answer hits / occluded [out_base + order(j)].
+template <bool AnyHit, int K, class Order>
+[[gnu::always_inline]] inline void trace_in_turn(const KdTree& tree, const Ray* rays, size_t count,
+                                                 const Order& order, size_t out_base, Hit* hits,
+                                                 uint8_t* occluded, TraceCounters& counters) {
     const WideArrays arrays(tree);
     WideWalk walk[K];      // NOLINT(cppcoreguidelines-pro-type-member-init): set by start
     wide::Stack stack[K];  // NOLINT(cppcoreguidelines-pro-type-member-init): written first
@@ -762,8 +757,9 @@ void trace_in_turn(const KdTree& tree, const Ray* rays, size_t count, Hit* hits,
     // Starts walk k on the next ray that needs one; false when the batch is done.
     const auto start = [&](int k) {
         while (next < count) {
-            const size_t i = next++;
-            const Ray& ray = rays[i];
+            const size_t j = order(next++);
+            const size_t i = out_base + j;
+            const Ray& ray = rays[j];
             if (octant_or_invalid(ray) < 0 || tree.bounds.empty()) {
                 answer_miss<AnyHit>(i, hits, occluded, counters);
                 continue;
@@ -799,13 +795,166 @@ void trace_in_turn(const KdTree& tree, const Ray* rays, size_t count, Hit* hits,
     }
 }
 
+/// The time stamp counter, read after the work before it and before the work after it.
+[[gnu::always_inline]] inline uint64_t cycles() {
+    asm volatile("" ::: "memory");
+    _mm_lfence();
+    const uint64_t t = __rdtsc();
+    _mm_lfence();
+    asm volatile("" ::: "memory");
+    return t;
+}
+
+/// What the auto policy has measured of the two ways to trace an incoherent block, on this
+/// thread, for one tree and query kind (RunTracer::incoherent_block).
+struct IncoherentCosts {
+    const KdTree* tree = nullptr;   ///< with its nodes' address: a tree built where one was
+    const KdNode* nodes = nullptr;  ///< destroyed is most likely told apart
+    /// The last three measurements (0: none) of single rays' time per ray over sorted packets',
+    /// newest first; their median decides, so one that the operating system interrupted does not.
+    float ratio[3] = {0.0f, 0.0f, 0.0f};
+    uint32_t until_measure = 0;  ///< blocks to go the faster way before the next measured one
+    bool singles_first = false;  ///< the next measured block's first half goes as single rays
+
+    /// The median of the measurements so far (0: none).
+    [[nodiscard]] float median() const {
+        const float a = ratio[0], b = ratio[1], c = ratio[2];
+        if (c == 0.0f) return b == 0.0f ? a : 0.5f * (a + b);
+        return a < b ? (b < c ? b : (a < c ? c : a)) : (a < c ? a : (b < c ? c : b));
+    }
+};
+
+/// After a measured block, where the slower way took r times as long as the faster (the
+/// median of the last three), the next kMeasureBase * r^2 blocks go the faster way; then one is
+/// measured again (the rays may change kind part of the way through a batch, or from batch to
+/// batch). Half a measured block goes the slower way, so measuring costs at most
+/// (r - 1) / (2 kMeasureBase r^2) of the time: 1/128 at r = 2, less either side. Until three
+/// measurements are in, every kMeasureFirstGap-th block is measured.
+inline constexpr float kMeasureBase = 16.0f;
+inline constexpr float kMeasureMaxGap = 1024.0f;
+inline constexpr uint32_t kMeasureFirstGap = 4;
+/// A block of fewer rays is not measured (its halves would time too little work).
+inline constexpr int kMeasureMinRays = 512;
+
+/// This thread's measurements for `tree` (closest hit or any hit): a small table by the tree's
+/// address, so that a scene's rounds, which go from one instance's tree to the next, keep each
+/// tree's measurements; a tree that takes another's slot starts afresh.
+inline constexpr int kCostSlotBits = 4;
+
+template <bool AnyHit>
+IncoherentCosts& incoherent_costs(const KdTree& tree) {
+    static thread_local IncoherentCosts slots[1 << kCostSlotBits];
+    const uint64_t key = reinterpret_cast<uintptr_t>(&tree) * 0x9E3779B97F4A7C15ull;
+    IncoherentCosts& costs = slots[key >> (64 - kCostSlotBits)];
+    if (costs.tree != &tree || costs.nodes != tree.nodes.data())
+        costs = IncoherentCosts{&tree, tree.nodes.data(), {0.0f, 0.0f, 0.0f}, 0, false};
+    return costs;
+}
+
+/// The kernel's answer to schedule_rays: traces one octant run W rays at a time (trace_run), and
+/// under the auto policy chooses how to trace an incoherent block (incoherent_block).
+/// A struct rather than a lambda: a lambda would not inherit the ISA target.
+template <int W, bool AnyHit, bool Count>
+struct RunTracer {
+    const KdTree& tree;
+    Hit* hits;
+    uint8_t* occluded;
+    Policy policy;
+    TraceCounters& counters;
+
+    [[gnu::always_inline]] void operator()(const Ray* block, size_t base, const uint16_t* order,
+                                           int count) const {
+        trace_run<W, AnyHit, Count>(tree, block, base, order, count, hits, occluded, policy,
+                                    counters);
+    }
+
+    /// The block's rays walked in turn as single rays, in input order (no sort).
+    void singles(const Ray* block, size_t base, int n) const {
+        trace_in_turn<AnyHit, kWalksInTurn>(
+            tree, block, static_cast<size_t>(n), [](size_t j) { return j; }, base, hits, occluded,
+            counters);
+    }
+
+    /// An incoherent block (block_is_incoherent; lo, hi its origins' sample bounds). Packets of
+    /// sorted rays or single rays walked in turn: which is faster depends on the scene, the rays
+    /// and the machine. Packets win when neighbouring rays stay together (short rays that hit a
+    /// nearby wall, as inside a room); single rays win when the packets empty out (long rays
+    /// through a finely cut model), and they need no sort. So the auto policy measures: on each
+    /// thread, per tree and query kind, the time per ray of each way on the two halves of a
+    /// measured block (IncoherentCosts); the blocks between measured ones go the faster way
+    /// (kMeasureBase says how many). The choice only decides speed: both ways give every ray the
+    /// single-ray kernel's answer. The counting kernels keep to packets (their counts stay
+    /// reproducible); the test policies kIncoherentAsPacket and kIncoherentAsSingle fix the way,
+    /// kIncoherentMeasured measures every block.
+    void incoherent_block(const Ray* block, size_t base, int n, const float lo[3],
+                          const float hi[3]) const {
+        const auto packets = [&](const Ray* rays, size_t at, int m) {
+            trace_sorted_block<AnyHit>(tree, rays, at, m, lo, hi, hits, occluded, counters, *this);
+        };
+        if (Count || policy == Policy::kPacket || policy == Policy::kIncoherentAsPacket) {
+            packets(block, base, n);
+            return;
+        }
+        if (policy == Policy::kIncoherentAsSingle) {
+            singles(block, base, n);
+            return;
+        }
+        IncoherentCosts& costs = incoherent_costs<AnyHit>(tree);
+        const bool measure = policy == Policy::kIncoherentMeasured
+                                 ? n >= 2
+                                 : n >= kMeasureMinRays && costs.until_measure == 0;
+        if (!measure) {
+            if (costs.until_measure > 0) --costs.until_measure;
+            const float ratio = costs.median();
+            if (ratio != 0.0f && ratio < 1.0f)
+                singles(block, base, n);
+            else
+                packets(block, base, n);
+            return;
+        }
+        // A measured block: one half each way, the halves' roles swapping from one measured
+        // block to the next (the first half is traced first).
+        const int half = n / 2;
+        const bool singles_first = costs.singles_first;
+        costs.singles_first = !singles_first;
+        const uint64_t t0 = cycles();
+        if (singles_first)
+            singles(block, base, half);
+        else
+            packets(block, base, half);
+        const uint64_t t1 = cycles();
+        if (singles_first)
+            packets(block + half, base + static_cast<size_t>(half), n - half);
+        else
+            singles(block + half, base + static_cast<size_t>(half), n - half);
+        const uint64_t t2 = cycles();
+        if (t1 <= t0 || t2 <= t1) return;  // a clock that stood still or went back
+        const float first = static_cast<float>(t1 - t0) / static_cast<float>(half);
+        const float second = static_cast<float>(t2 - t1) / static_cast<float>(n - half);
+        const float ratio = singles_first ? first / second : second / first;
+        costs.ratio[2] = costs.ratio[1];
+        costs.ratio[1] = costs.ratio[0];
+        costs.ratio[0] = ratio;
+        if (costs.ratio[2] == 0.0f) {
+            costs.until_measure = kMeasureFirstGap;
+        } else {
+            const float median = costs.median();
+            const float r = median < 1.0f ? 1.0f / median : median;
+            const float gap = kMeasureBase * r * r;
+            costs.until_measure =
+                static_cast<uint32_t>(gap < kMeasureMaxGap ? gap : kMeasureMaxGap);
+        }
+    }
+};
+
 template <int W, bool AnyHit, bool Count>
 void trace_rays(const KdTree& tree, const Ray* rays, size_t count, Hit* hits, uint8_t* occluded,
                 Policy policy, TraceCounters& counters) {
     if (policy == Policy::kSingle) {
         if constexpr (!Count) {
             // The counting kernels below count the same walks one ray at a time.
-            trace_in_turn<AnyHit, kWalksInTurn>(tree, rays, count, hits, occluded, counters);
+            trace_in_turn<AnyHit, kWalksInTurn>(
+                tree, rays, count, [](size_t j) { return j; }, 0, hits, occluded, counters);
             return;
         }
         // Single rays need no octant runs: each is traced in input order, without the sort the

@@ -169,8 +169,9 @@ static inline void transpose4(const F4 r[4], F4& c0, F4& c1, F4& c2, F4& c3) {
 struct Hits4 {
     F4 t, v, w, det;
 };
-static inline uint32_t intersect4(const PreparedRay& p, const TriVerts* const tri[4], float tmin,
-                                  Hits4& out) {
+[[gnu::always_inline]] static inline uint32_t intersect4(const PreparedRay& p,
+                                                         const TriVerts* const tri[4], float tmin,
+                                                         Hits4& out) {
     // Rows: floats 0..3 (v0 and v1's x) and 4..7 (v1's y, z and v2's x, y) of each triangle, and
     // float 8 (v2's z) on its own; the 16 bytes read stay inside the 36-byte triangle.
     F4 r0[4], r1[4];
