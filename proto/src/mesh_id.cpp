@@ -94,11 +94,4 @@ std::string sha256_hex(std::span<const std::byte> data) {
     return sha.hex_digest();
 }
 
-bool is_mesh_id(std::string_view text) noexcept {
-    if (text.size() != kMeshIdLength) return false;
-    for (const char c : text)
-        if (!((c >= '0' && c <= '9') || (c >= 'a' && c <= 'f'))) return false;
-    return true;
-}
-
 }  // namespace kdrt::proto

@@ -31,7 +31,13 @@ inline constexpr size_t kCanonicalTriangleBytes = 36;
 /// SHA-256 of `data`, lower-case hex.
 [[nodiscard]] std::string sha256_hex(std::span<const std::byte> data);
 
-/// True when `text` has the form of a mesh id: exactly 64 characters 0-9 a-f.
-[[nodiscard]] bool is_mesh_id(std::string_view text) noexcept;
+/// True when `text` has the form of a mesh id: exactly 64 characters 0-9 a-f. Inline: kdrt::proto
+/// (the scene files) checks ids too, and links neither kdrt::proto_json nor OpenSSL.
+[[nodiscard]] constexpr bool is_mesh_id(std::string_view text) noexcept {
+    if (text.size() != kMeshIdLength) return false;
+    for (const char c : text)
+        if (!((c >= '0' && c <= '9') || (c >= 'a' && c <= 'f'))) return false;
+    return true;
+}
 
 }  // namespace kdrt::proto
