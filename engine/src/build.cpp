@@ -3,6 +3,7 @@
 #include <cmath>
 
 #include <tbb/parallel_for.h>
+#include <tbb/parallel_invoke.h>
 
 #include "build_internal.h"
 #include "kdrt/trace.h"
@@ -110,15 +111,25 @@ void order_triangles(KdTree& tree, const std::vector<TriVerts>& by_id) {
         tree.tri_ids.push_back(id);
     }
     TreeArray<TriVerts> ordered(n);
-    for (uint32_t slot = 0; slot < n; ++slot) ordered[slot] = by_id[tree.tri_ids[slot]];
+    for_triangle_chunks(n, [&](size_t, size_t begin, size_t end) {
+        for (size_t slot = begin; slot < end; ++slot) ordered[slot] = by_id[tree.tri_ids[slot]];
+    });
     tree.tris = std::move(ordered);
 }
 
 void finish_tree(KdTree& tree, SubTree&& sub, const std::vector<TriVerts>& by_id) {
-    tree.nodes = cluster_nodes(sub.nodes);
-    tree.wide_nodes = make_wide_nodes(tree.nodes);
-    tree.leaf_refs.assign(sub.refs.begin(), sub.refs.end());
-    order_triangles(tree, by_id);
+    // The node arrays and the triangles' leaf order touch different members and do not depend on
+    // each other, so they are made side by side (on 16 bunnies each was about 0.8% of the
+    // build's instructions, on one thread after the parallel build).
+    tbb::parallel_invoke(
+        [&] {
+            tree.nodes = cluster_nodes(sub.nodes);
+            tree.wide_nodes = make_wide_nodes(tree.nodes);
+        },
+        [&] {
+            tree.leaf_refs.assign(sub.refs.begin(), sub.refs.end());
+            order_triangles(tree, by_id);
+        });
     mark_leaf_runs(tree.nodes, tree.leaf_refs);
     const double build_ms = tree.stats.build_ms;
     tree.stats = compute_stats(tree);

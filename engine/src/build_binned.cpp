@@ -29,6 +29,8 @@
 #include <cmath>
 #include <cstdint>
 #include <span>
+#include <type_traits>
+#include <utility>
 #include <vector>
 
 #include <tbb/parallel_for.h>
@@ -43,11 +45,55 @@ namespace {
 
 /// A reference: a triangle id (bits 0..30) and its bounds within the node's cell. Bit 31 is set
 /// when a binned split has cut the bounds (the triangle needs clipping before the exact phase).
+/// Plain floats (no default member initialisers), so that the reference arrays below can be
+/// allocated without writing them first.
 struct Ref {
-    Aabb box;
+    std::array<float, 3> lo, hi;
     uint32_t prim_and_flag;
+
+    [[nodiscard]] Aabb box() const noexcept {
+        return {{lo[0], lo[1], lo[2]}, {hi[0], hi[1], hi[2]}};
+    }
 };
+static_assert(std::is_trivially_default_constructible_v<Ref>);
 constexpr uint32_t kCut = 0x80000000u;
+
+/// Leaves new elements uninitialised: every reference array is written in full right after it is
+/// sized, so value-initialising it first was one more pass over memory per binned level.
+template <typename T>
+struct UninitAllocator : std::allocator<T> {
+    template <typename U>
+    struct rebind {
+        using other = UninitAllocator<U>;
+    };
+    UninitAllocator() noexcept = default;
+    template <typename U>
+    explicit UninitAllocator(const UninitAllocator<U>& /*other*/) noexcept {}
+    template <typename U>
+    void construct(U* p) noexcept {
+        ::new (static_cast<void*>(p)) U;
+    }
+    template <typename U, typename... Args>
+    void construct(U* p, Args&&... args) {
+        ::new (static_cast<void*>(p)) U(std::forward<Args>(args)...);
+    }
+};
+using Refs = std::vector<Ref, UninitAllocator<Ref>>;
+
+/// Grows `b` to hold the reference's bounds.
+inline void extend(Aabb& b, const Ref& r) noexcept {
+    for (int a = 0; a < 3; ++a) {
+        b.lo[a] = std::min(b.lo[a], r.lo[a]);
+        b.hi[a] = std::max(b.hi[a], r.hi[a]);
+    }
+}
+/// Grows `b` to hold `other`.
+inline void extend(Aabb& b, const Aabb& other) noexcept {
+    for (int a = 0; a < 3; ++a) {
+        b.lo[a] = std::min(b.lo[a], other.lo[a]);
+        b.hi[a] = std::max(b.hi[a], other.hi[a]);
+    }
+}
 
 constexpr uint32_t kMaxBins = 256;
 constexpr size_t kChunkRefs = size_t{1} << 13;     // references per parallel chunk
@@ -136,13 +182,14 @@ public:
           max_depth_(static_cast<uint32_t>(std::clamp(options.max_depth, 0, kMaxDepth))),
           exact_(tris, options) {}
 
-    void build(SubTree& out, uint32_t slot, const Aabb& cell, std::vector<Ref>&& refs,
+    /// Builds the node of `refs` (tight bounds `geom`) in `cell` into `slot` of `out`.
+    void build(SubTree& out, uint32_t slot, const Aabb& cell, Refs&& refs, const Aabb& geom,
                uint32_t depth) {
         if (refs.size() < params_.exact_below || depth >= max_depth_) {
             to_exact(out, slot, cell, refs, depth);
             return;
         }
-        const BinnedSplit split = find_split(cell, refs);
+        const BinnedSplit split = find_split(cell, refs, geom);
         const double leaf_cost = cost_.leaf(static_cast<uint32_t>(refs.size()));
         // A node whose best binned split cuts off (nearly) empty space goes to the exact sweep
         // too: its geometry is concentrated in a few bins, and their coarse boundaries miss the
@@ -154,8 +201,9 @@ public:
         Aabb left_cell = cell, right_cell = cell;
         left_cell.hi[split.axis] = split.pos;
         right_cell.lo[split.axis] = split.pos;
-        std::vector<Ref> left, right;
-        partition(refs, split, left, right);
+        Refs left, right;
+        Aabb left_geom, right_geom;
+        partition(refs, split, left, right, left_geom, right_geom);
         refs = {};  // free the parent's references before descending
         if (left.size() + right.size() >= kParallelSubtrees) {
             // The left child straight into `out`, the right one apart and spliced in after it:
@@ -163,61 +211,33 @@ public:
             const uint32_t first = add_child_pair(out, slot, split.axis, split.pos);
             SubTree right_tree;
             tbb::parallel_invoke(
-                [&] { build(out, first, left_cell, std::move(left), depth + 1); },
-                [&] { build(right_tree, 0, right_cell, std::move(right), depth + 1); });
+                [&] { build(out, first, left_cell, std::move(left), left_geom, depth + 1); },
+                [&] { build(right_tree, 0, right_cell, std::move(right), right_geom, depth + 1); });
             splice(out, first + 1, right_tree);
         } else {
             const uint32_t first = add_child_pair(out, slot, split.axis, split.pos);
-            build(out, first, left_cell, std::move(left), depth + 1);
-            build(out, first + 1, right_cell, std::move(right), depth + 1);
+            build(out, first, left_cell, std::move(left), left_geom, depth + 1);
+            build(out, first + 1, right_cell, std::move(right), right_geom, depth + 1);
         }
     }
 
 private:
     /// Clips the references cut by binned splits to `cell` and builds the node exactly.
-    void to_exact(SubTree& out, uint32_t slot, const Aabb& cell, const std::vector<Ref>& refs,
-                  uint32_t depth) {
+    void to_exact(SubTree& out, uint32_t slot, const Aabb& cell, const Refs& refs, uint32_t depth) {
         std::vector<PrimBox> prims;
         prims.reserve(refs.size());
         for (const Ref& r : refs) {
-            PrimBox p{r.box, r.prim_and_flag & ~kCut};
+            PrimBox p{r.box(), r.prim_and_flag & ~kCut};
             // An uncut reference's bounds are its vertex bounds, which the clipped bounds equal
             // for a triangle inside the cell. A cut one was sent to both sides by its bounds
             // alone: the triangle itself may miss this cell, and is then dropped here.
             if (r.prim_and_flag & kCut) {
                 const TriVerts& tri = tris_[p.prim];
-                if (misses_cell(tri, cell) || !clip_to_cell(tri, cell, p.box)) continue;
+                if (!clip_unless_missing(tri, cell, p.box)) continue;
             }
             prims.push_back(p);
         }
         exact_.build(out, slot, cell, prims, depth);
-    }
-
-    /// The tight bounds of the references (each already within the cell).
-    static Aabb geometry_bounds(const std::vector<Ref>& refs) {
-        auto bounds_of = [&](size_t begin, size_t end) {
-            Aabb b;
-            for (size_t i = begin; i < end; ++i) {
-                for (int a = 0; a < 3; ++a) {
-                    b.lo[a] = std::min(b.lo[a], refs[i].box.lo[a]);
-                    b.hi[a] = std::max(b.hi[a], refs[i].box.hi[a]);
-                }
-            }
-            return b;
-        };
-        if (refs.size() <= kChunkRefs) return bounds_of(0, refs.size());
-        const size_t chunks = (refs.size() + kChunkRefs - 1) / kChunkRefs;
-        std::vector<Aabb> partial(chunks);
-        for_chunks(refs.size(),
-                   [&](size_t c, size_t begin, size_t end) { partial[c] = bounds_of(begin, end); });
-        Aabb bounds;
-        for (const Aabb& b : partial) {
-            for (int a = 0; a < 3; ++a) {
-                bounds.lo[a] = std::min(bounds.lo[a], b.lo[a]);
-                bounds.hi[a] = std::max(bounds.hi[a], b.hi[a]);
-            }
-        }
-        return bounds;
     }
 
     /// The number of bins per axis for a node of `n` references: BinnedParams::bins, fewer for
@@ -227,11 +247,10 @@ private:
         return std::clamp(wanted, std::min(kMinBins, bins_), bins_);
     }
 
-    BinnedSplit find_split(const Aabb& cell, const std::vector<Ref>& refs) const {
+    BinnedSplit find_split(const Aabb& cell, const Refs& refs, const Aabb& geom) const {
         const double area = half_area(cell);
         if (!(area > 0)) return {};
         const double inv_area = 1.0 / area;
-        const Aabb geom = geometry_bounds(refs);
         const uint32_t bins = bin_count(refs.size());
         Bins total;
         return best_binned_split(cell, inv_area, refs, geom, bins, total);
@@ -240,7 +259,7 @@ private:
     /// Bins the references, each axis over [range.lo, range.hi] of that axis (references
     /// outside fall into the end bins), and returns the best candidate plane. `total` is scratch
     /// space.
-    BinnedSplit best_binned_split(const Aabb& cell, double inv_area, const std::vector<Ref>& refs,
+    BinnedSplit best_binned_split(const Aabb& cell, double inv_area, const Refs& refs,
                                   const Aabb& range, uint32_t bins, Bins& total) const {
         std::array<BinMap, 3> maps;
         for (int a = 0; a < 3; ++a) {
@@ -253,7 +272,7 @@ private:
             into.reset(bins);
             for (size_t i = begin; i < end; ++i) {
                 for (int a = 0; a < 3; ++a) {
-                    const float lo = refs[i].box.lo[a], hi = refs[i].box.hi[a];
+                    const float lo = refs[i].lo[a], hi = refs[i].hi[a];
                     const uint32_t bl = maps[a](lo), bh = maps[a](hi);
                     ++into.starts[a][bl];
                     ++into.ends[a][bh];
@@ -324,31 +343,37 @@ private:
 
     /// Splits the references at the plane, keeping their order on each side. A reference that
     /// crosses the plane goes to both sides, its bounds cut at the plane and marked for clipping.
-    static void partition(const std::vector<Ref>& refs, const BinnedSplit& split,
-                          std::vector<Ref>& left, std::vector<Ref>& right) {
+    /// `left_geom` / `right_geom`: the tight bounds of each side's references (their
+    /// lowest lower and highest upper bounds), gathered while they are written.
+    static void partition(const Refs& refs, const BinnedSplit& split, Refs& left, Refs& right,
+                          Aabb& left_geom, Aabb& right_geom) {
         const int k = split.axis;
         const float p = split.pos;
         const bool planar_left = split.planar_left;
         // 1: left only, 2: right only, 3: both.
         auto side = [&](const Ref& r) -> uint32_t {
-            const float lo = r.box.lo[k], hi = r.box.hi[k];
+            const float lo = r.lo[k], hi = r.hi[k];
             if (hi < p || (hi == p && (lo < p || planar_left))) return 1;
             if (lo >= p) return 2;
             return 3;
         };
-        auto place = [&](const Ref& r, uint32_t s, Ref*& l, Ref*& rr) {
+        auto place = [&](const Ref& r, uint32_t s, Ref*& l, Ref*& rr, Aabb& lb, Aabb& rb) {
             if (s == 3) {
                 Ref cut = r;
                 cut.prim_and_flag |= kCut;
-                cut.box.hi[k] = p;
+                cut.hi[k] = p;
                 *l++ = cut;
-                cut.box.hi[k] = r.box.hi[k];
-                cut.box.lo[k] = p;
+                extend(lb, cut);
+                cut.hi[k] = r.hi[k];
+                cut.lo[k] = p;
                 *rr++ = cut;
+                extend(rb, cut);
             } else if (s == 1) {
                 *l++ = r;
+                extend(lb, r);
             } else {
                 *rr++ = r;
+                extend(rb, r);
             }
         };
         const size_t chunks = (refs.size() + kChunkRefs - 1) / kChunkRefs;
@@ -368,11 +393,20 @@ private:
         }
         left.resize(counts[chunks][0]);
         right.resize(counts[chunks][1]);
+        // Bounds per chunk, combined in chunk order (min and max: the same at any thread count).
+        std::vector<std::array<Aabb, 2>> bounds(chunks);
         for_chunks(refs.size(), [&](size_t c, size_t begin, size_t end) {
             Ref* l = left.data() + counts[c][0];
             Ref* r = right.data() + counts[c][1];
-            for (size_t i = begin; i < end; ++i) place(refs[i], side(refs[i]), l, r);
+            Aabb lb, rb;
+            for (size_t i = begin; i < end; ++i) place(refs[i], side(refs[i]), l, r, lb, rb);
+            bounds[c] = {lb, rb};
         });
+        left_geom = right_geom = Aabb{};
+        for (const auto& b : bounds) {
+            extend(left_geom, b[0]);
+            extend(right_geom, b[1]);
+        }
     }
 
     const std::vector<TriVerts>& tris_;
@@ -391,17 +425,24 @@ void build_binned(const std::vector<TriVerts>& tris, const std::vector<uint8_t>&
     // The root's references in triangle order, degenerate triangles left out: each chunk of
     // triangles (in parallel for big meshes) writes its references from its own start, then the
     // chunks are closed up in order (nothing moves unless a chunk dropped a triangle).
-    std::vector<Ref> refs(tris.size());
+    Refs refs(tris.size());
     const size_t chunks = (tris.size() + kChunkRefs - 1) / kChunkRefs;
     std::vector<size_t> kept(chunks, 0);
+    std::vector<Aabb> bounds(chunks);
     for_chunks(tris.size(), [&](size_t c, size_t begin, size_t end) {
         Ref* out = refs.data() + begin;
         for (size_t prim = begin; prim < end; ++prim) {
-            Ref r{{}, static_cast<uint32_t>(prim)};
-            if (!degenerate[prim] && vertex_bounds_in_cell(tris[prim], root, r.box)) *out++ = r;
+            Aabb box;
+            if (degenerate[prim] || !vertex_bounds_in_cell(tris[prim], root, box)) continue;
+            *out++ = Ref{{box.lo.x, box.lo.y, box.lo.z},
+                         {box.hi.x, box.hi.y, box.hi.z},
+                         static_cast<uint32_t>(prim)};
+            extend(bounds[c], box);
         }
         kept[c] = static_cast<size_t>(out - (refs.data() + begin));
     });
+    Aabb geom;
+    for (const Aabb& b : bounds) extend(geom, b);
     size_t size = 0;
     for (size_t c = 0; c < chunks; ++c) {
         const size_t begin = c * kChunkRefs;
@@ -410,7 +451,7 @@ void build_binned(const std::vector<TriVerts>& tris, const std::vector<uint8_t>&
         size += kept[c];
     }
     refs.resize(size);
-    BinnedBuilder(tris, options, params).build(out, 0, root, std::move(refs), 0);
+    BinnedBuilder(tris, options, params).build(out, 0, root, std::move(refs), geom, 0);
 }
 
 }  // namespace kdrt::detail

@@ -88,6 +88,12 @@ void clip_to_children(const TriVerts& tri, const Aabb& left, const Aabb& right, 
 /// larger than rounding errors (a triangle that merely touches the cell is never reported).
 bool misses_cell(const TriVerts& tri, const Aabb& cell);
 
+/// What `!misses_cell(tri, cell) && clip_to_cell(tri, cell, out)` gives, with one clip where
+/// the triangle's clipped polygon is not empty (it then reaches the cell, so it cannot miss the
+/// cell grown by misses_cell's margin): the binned phase's cut references at the hand-over to
+/// the exact sweep, which clipped each of them twice.
+bool clip_unless_missing(const TriVerts& tri, const Aabb& cell, Aabb& out);
+
 /// Bounds of the triangle's vertices intersected with `cell`; false if they do not overlap.
 bool vertex_bounds_in_cell(const TriVerts& tri, const Aabb& cell, Aabb& out);
 

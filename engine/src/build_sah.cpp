@@ -689,10 +689,11 @@ void radix_sort_events(Event* ev, size_t n) {
     for (size_t i = 0; i < n; ++i)
         for (int p = 0; p < 3; ++p)
             ++histogram[p][(ev[i] >> kShift[p]) & ((uint64_t{1} << kBits[p]) - 1)];
-    std::vector<Event> temp(n);
+    // Uninitialised: every pass writes all n events before the next reads them.
+    const auto temp = std::make_unique_for_overwrite<Event[]>(n);
     // Passes: ev -> temp -> ev -> temp, then back.
     Event* src = ev;
-    Event* dst = temp.data();
+    Event* dst = temp.get();
     for (int p = 0; p < 3; ++p) {
         uint32_t sum = 0;
         for (uint32_t& h : histogram[p]) {
@@ -792,6 +793,11 @@ bool misses_cell(const TriVerts& tri, const Aabb& cell) {
     }
     Aabb unused;
     return !clipped_bounds(tri, grown, unused);
+}
+
+bool clip_unless_missing(const TriVerts& tri, const Aabb& cell, Aabb& out) {
+    if (clipped_bounds(tri, cell, out)) return true;
+    return !misses_cell(tri, cell) && vertex_bounds_in(tri, cell, out);
 }
 
 bool vertex_bounds_in_cell(const TriVerts& tri, const Aabb& cell, Aabb& out) {

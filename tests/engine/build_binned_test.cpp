@@ -429,6 +429,24 @@ TEST(KdBuild, ChunkedSetUpLeavesDegenerateTrianglesOut) {
     expect_traces_like_brute_force(mesh, one, test_seed() + 421, 4000);
 }
 
+struct ClipCase {
+    Aabb cell;
+    TriVerts tri;
+};
+
+/// A random cell and a random triangle around it (inside, straddling or outside), at `scale`.
+ClipCase random_clip_case(Rng& rng, float scale) {
+    ClipCase c;
+    for (int a = 0; a < 3; ++a) {
+        c.cell.lo[a] = rng.uniform(-1, 1) * scale;
+        c.cell.hi[a] = c.cell.lo[a] + rng.uniform(0.01f, 2) * scale;
+        c.tri.v0[a] = rng.uniform(-2, 2) * scale;
+        c.tri.v1[a] = rng.uniform(-2, 2) * scale;
+        c.tri.v2[a] = rng.uniform(-2, 2) * scale;
+    }
+    return c;
+}
+
 // The exact phase clips a straddler to both children at once (clip_to_children). It must give,
 // bit for bit, what clipping to each child alone gives: random triangles (inside, straddling,
 // outside, flat in an axis plane, at 1e6 scale) against random cells and split planes.
@@ -440,15 +458,7 @@ TEST(KdClip, BothChildrenAtOnceEqualEachChildAlone) {
     const size_t count = scaled(200'000);
     for (size_t i = 0; i < count; ++i) {
         const float scale = i % 3 == 0 ? 1e6f : 1.0f;
-        Aabb cell;
-        TriVerts tri;
-        for (int a = 0; a < 3; ++a) {
-            cell.lo[a] = rng.uniform(-1, 1) * scale;
-            cell.hi[a] = cell.lo[a] + rng.uniform(0.01f, 2) * scale;
-            tri.v0[a] = rng.uniform(-2, 2) * scale;
-            tri.v1[a] = rng.uniform(-2, 2) * scale;
-            tri.v2[a] = rng.uniform(-2, 2) * scale;
-        }
+        auto [cell, tri] = random_clip_case(rng, scale);
         if (i % 5 == 0) tri.v1[i % 3] = tri.v2[i % 3] = tri.v0[i % 3];  // flat in an axis plane
         const int axis = static_cast<int>((i / 3) % 3);
         const float pos = cell.lo[axis] + rng.uniform() * (cell.hi[axis] - cell.lo[axis]);
@@ -472,6 +482,73 @@ TEST(KdClip, BothChildrenAtOnceEqualEachChildAlone) {
     EXPECT_GT(in_both, count / 20);
     EXPECT_GT(in_one, count / 20);
     EXPECT_GT(in_none, count / 100);
+}
+
+// The binned phase hands its cut references to the exact sweep with clip_unless_missing: one
+// clip where the old hand-over clipped twice (misses_cell, then clip_to_cell). Bit for bit the
+// same answer and bounds, on random triangles and on triangles that only touch the cell: a
+// vertex on a face, or just outside it (1 to 64 ulps and 2^-22 to 2^-18 of the cell away,
+// inside and outside misses_cell's margin), at two scales.
+TEST(KdClip, ClipUnlessMissingEqualsMissesCellThenClip) {
+    const uint64_t seed = test_seed() + 480;
+    SCOPED_TRACE(testing::Message() << "seed=" << seed << " (replay with KDRT_TEST_SEED)");
+    Rng rng(seed);
+    size_t kept = 0, dropped = 0, touching_kept = 0, touching_dropped = 0;
+    const size_t count = scaled(200'000);
+    for (size_t i = 0; i < count; ++i) {
+        const float scale = i % 3 == 0 ? 1e6f : 1.0f;
+        auto [cell, tri] = random_clip_case(rng, scale);
+        const bool touching = i % 2 == 1;
+        if (touching) {
+            // The whole triangle beyond one face of the cell, its nearest vertex on the face or
+            // a little beyond it.
+            const int a = static_cast<int>((i / 2) % 3);
+            const bool high = (i / 6) % 2 == 1;
+            const float face = high ? cell.hi[a] : cell.lo[a];
+            const float extent = cell.hi[a] - cell.lo[a];
+            float gap = 0;
+            switch ((i / 12) % 4) {
+                case 0:
+                    gap = 0;
+                    break;
+                case 1:
+                    gap = std::ldexp(std::fabs(face) + extent, -24) * float(1 + rng.below(64));
+                    break;
+                case 2:
+                    gap = std::ldexp(extent, -22);
+                    break;
+                default:
+                    gap = std::ldexp(extent, -18);
+                    break;
+            }
+            const float sign = high ? 1.0f : -1.0f;
+            for (int b = 0; b < 3; ++b) tri.v0[b] = rng.uniform(cell.lo[b], cell.hi[b]);
+            tri.v0[a] = face + sign * gap;
+            tri.v1[a] = tri.v0[a] + sign * rng.uniform(0, 1) * scale;
+            tri.v2[a] = tri.v0[a] + sign * rng.uniform(0, 1) * scale;
+            if (i % 5 == 0) tri.v1[a] = tri.v2[a] = tri.v0[a];  // flat in the face's plane
+        } else if (i % 5 == 0) {
+            tri.v1[i % 3] = tri.v2[i % 3] = tri.v0[i % 3];  // flat in an axis plane
+        }
+        Aabb want, got;
+        const bool want_ok =
+            !detail::misses_cell(tri, cell) && detail::clip_to_cell(tri, cell, want);
+        const bool got_ok = detail::clip_unless_missing(tri, cell, got);
+        ASSERT_EQ(got_ok, want_ok) << "case " << i;
+        if (want_ok) {
+            ASSERT_EQ(std::memcmp(&got, &want, sizeof(Aabb)), 0) << "case " << i;
+        }
+        if (touching) {
+            (want_ok ? touching_kept : touching_dropped) += 1;
+        } else {
+            (want_ok ? kept : dropped) += 1;
+        }
+    }
+    // Every outcome is reached, for the touching triangles too.
+    EXPECT_GT(kept, count / 20);
+    EXPECT_GT(dropped, count / 20);
+    EXPECT_GT(touching_kept, count / 100);
+    EXPECT_GT(touching_dropped, count / 100);
 }
 
 }  // namespace
