@@ -671,17 +671,14 @@ struct NearestScratch {
     uint32_t ray = 0;
 };
 
-/// Takes instance `geom`'s hits into `out` (the nearest `k` so far, sorted by the tie rule), given
-/// its closest hit `first` on the object ray `o` traced with tmax = `limit`: the ray's tmax when
-/// `out` held fewer than k hits, else the k-th hit's t (`full`).
-void take_instance(const KdTree& tree, Ray o, const Hit& first, float ray_tmax, float limit,
-                   bool full, uint32_t k, bool merge, uint32_t geom, std::vector<SceneHit>& out,
-                   std::vector<Hit>& tmp) {
-    // None up to the k-th hit so far means no hit to keep (a merged hit is never before its
-    // group's first, the instance's closest). Otherwise its first k merged hits lie in groups
-    // starting no later than the k-th hit so far; for k = 1 no later than this closest hit, whose
-    // t is the first raw hit's of intersect_all, bit for bit (kdrt/query.h).
-    if (!first.is_hit()) return;
+/// The window of the object ray `o` whose every-hit answer holds an instance's hits that may be
+/// among the nearest k, given its closest hit `first` (a hit) on `o` traced with tmax = `limit`:
+/// the ray's tmax when the ray's list held fewer than k hits, else the k-th hit's t (`full`).
+Ray hits_window(const KdTree& tree, Ray o, const Hit& first, float ray_tmax, float limit, bool full,
+                uint32_t k, bool merge) noexcept {
+    // Its first k merged hits lie in groups starting no later than the k-th hit so far; for
+    // k = 1 no later than this closest hit, whose t is the first raw hit's of intersect_all, bit
+    // for bit (kdrt/query.h).
     if (k == 1) {
         // Nothing of this instance lies before its closest hit: the every-hit query needs only
         // the cells around it.
@@ -690,14 +687,31 @@ void take_instance(const KdTree& tree, Ray o, const Hit& first, float ray_tmax, 
     } else {
         o.tmax = full ? std::min(ray_tmax, truncated_tmax(tree, o, limit, merge)) : ray_tmax;
     }
-    intersect_all(tree, o, merge, tmp);
-    // tmp is sorted by (t, prim): once one hit is not kept, no later one is.
-    for (const Hit& h : tmp) {
+    return o;
+}
+
+/// Keeps the instance's merged hits `hits` (sorted by (t, prim)) that are among the nearest k
+/// in `out`.
+void keep_hits(std::span<const Hit> hits, uint32_t k, uint32_t geom, std::vector<SceneHit>& out) {
+    // Once one hit is not kept, no later one is.
+    for (const Hit& h : hits) {
         const SceneHit c{h.t, h.prim, h.u, h.v, geom};
         if (out.size() == k && !detail::scene_hit_less(c, out.back())) break;
         out.insert(std::upper_bound(out.begin(), out.end(), c, detail::scene_hit_less), c);
         if (out.size() > k) out.pop_back();
     }
+}
+
+/// Takes instance `geom`'s hits into `out` (the nearest `k` so far, sorted by the tie rule), given
+/// its closest hit `first` on the object ray `o` traced with tmax = `limit` (hits_window).
+void take_instance(const KdTree& tree, const Ray& o, const Hit& first, float ray_tmax, float limit,
+                   bool full, uint32_t k, bool merge, uint32_t geom, std::vector<SceneHit>& out,
+                   std::vector<Hit>& tmp) {
+    // None up to the k-th hit so far means no hit to keep (a merged hit is never before its
+    // group's first, the instance's closest).
+    if (!first.is_hit()) return;
+    intersect_all(tree, hits_window(tree, o, first, ray_tmax, limit, full, k, merge), merge, tmp);
+    keep_hits(tmp, k, geom, out);
 }
 
 /// The nearest `k` (>= 1) hits of `ray` into `out` (replaced), sorted by the tie rule. The
@@ -746,6 +760,8 @@ struct NearestRounds {
     InstanceGroups groups;
     std::vector<Ray> rays;
     std::vector<Hit> hits;
+    std::vector<Ray> windows;  ///< every-hit windows of an instance's rays that hit it
+    std::vector<uint32_t> window_of;
 };
 
 /// nearest() of each ray of a block whose rays are coherent, in rounds as trace_block's: each
@@ -790,12 +806,35 @@ void nearest_rounds(const SceneData& s, std::span<const Ray> rays, uint32_t k, b
                 } else {
                     for (size_t j = 0; j < count; ++j) b.hits[j] = intersect(tree, b.rays[j]);
                 }
-                for (size_t j = 0; j < count; ++j) {
-                    const uint32_t i = b.pairs[g0 + j].second;
-                    std::vector<SceneHit>& out = b.out[i];
-                    take_instance(tree, b.rays[j], b.hits[j], rays[i].tmax, b.rays[j].tmax,
-                                  out.size() == k, k, merge, geom, out, sc.tmp);
+                if (count < kMinGroup) {
+                    for (size_t j = 0; j < count; ++j) {
+                        const uint32_t i = b.pairs[g0 + j].second;
+                        std::vector<SceneHit>& out = b.out[i];
+                        take_instance(tree, b.rays[j], b.hits[j], rays[i].tmax, b.rays[j].tmax,
+                                      out.size() == k, k, merge, geom, out, sc.tmp);
+                    }
+                    return;
                 }
+                // The rays that hit it, their windows (take_instance's) in one every-hit batch,
+                // which keeps the first k merged hits of each (more are never kept).
+                b.windows.clear();
+                b.window_of.clear();
+                for (size_t j = 0; j < count; ++j) {
+                    if (!b.hits[j].is_hit()) continue;
+                    const uint32_t i = b.pairs[g0 + j].second;
+                    b.windows.push_back(hits_window(tree, b.rays[j], b.hits[j], rays[i].tmax,
+                                                    b.rays[j].tmax, b.out[i].size() == k, k,
+                                                    merge));
+                    b.window_of.push_back(i);
+                }
+                AllHitsOptions options;
+                options.merge_coincident = merge;
+                options.max_hits = k;
+                const AllHits all = intersect_all(tree, b.windows, options);
+                for (size_t w = 0; w < b.windows.size(); ++w)
+                    keep_hits(std::span<const Hit>(all.hits).subspan(
+                                  all.offsets[w], all.offsets[w + 1] - all.offsets[w]),
+                              k, geom, b.out[b.window_of[w]]);
             });
     }
     // Rays that reached more instances than the rounds keep: from the start, alone.
