@@ -15,6 +15,7 @@
 #include <tbb/blocked_range.h>
 #include <tbb/enumerable_thread_specific.h>
 #include <tbb/parallel_for.h>
+#include <tbb/task_arena.h>
 
 #include "geometry.h"
 #include "kdrt/query.h"
@@ -830,7 +831,11 @@ void nearest_rounds(const SceneData& s, std::span<const Ray> rays, uint32_t k, b
                 AllHitsOptions options;
                 options.merge_coincident = merge;
                 options.max_hits = k;
-                const AllHits all = intersect_all(tree, b.windows, options);
+                // Isolated: while the batch waits, this thread must not take another block of
+                // this scan (it would reuse this thread's scratch, `b`, mid-round).
+                AllHits all;
+                tbb::this_task_arena::isolate(
+                    [&] { all = intersect_all(tree, b.windows, options); });
                 for (size_t w = 0; w < b.windows.size(); ++w)
                     keep_hits(std::span<const Hit>(all.hits).subspan(
                                   all.offsets[w], all.offsets[w + 1] - all.offsets[w]),
