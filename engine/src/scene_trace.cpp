@@ -6,19 +6,23 @@
 // kernel's packets. The lidar's nearest hits go in the same rounds.
 
 #include <algorithm>
+#include <bit>
 #include <cmath>
 #include <limits>
 #include <map>
+#include <utility>
 
 #include <tbb/blocked_range.h>
 #include <tbb/enumerable_thread_specific.h>
 #include <tbb/parallel_for.h>
+#include <tbb/task_arena.h>
 
 #include "geometry.h"
 #include "kdrt/query.h"
 #include "kdrt/scene.h"
 #include "kdrt/trace.h"
 #include "scene_internal.h"
+#include "scene_packet.h"
 
 namespace kdrt {
 namespace {
@@ -71,24 +75,6 @@ void candidates(const SceneData& s, const Ray& ray, std::vector<Candidate>& out)
 constexpr size_t kMinGroup = 8;
 /// Rays per block of a parallel batch.
 constexpr size_t kBlock = 1024;
-
-struct BlockScratch {
-    std::vector<detail::TopRay> top;     ///< per ray: its world ray for the top level
-    std::vector<detail::TopWalk> walk;   ///< per ray: where its top-level walk stands
-    std::vector<detail::TopCell> cells;  ///< per ray: kTopStack cells, its walk's stack
-    std::vector<detail::Mailbox> mailbox;
-    std::vector<uint32_t> live;  ///< the rays whose walk goes on
-    std::vector<SceneHit> best;
-    std::vector<uint8_t> done;
-    std::vector<std::pair<uint32_t, uint32_t>> pairs;  ///< (geom, ray) of a round
-    std::vector<Ray> rays;
-    std::vector<Hit> hits;
-    std::vector<uint8_t> occ;
-};
-
-struct Counts {
-    uint64_t invalid = 0, visits = 0, batches = 0;
-};
 
 /// One block of the batch, on the calling thread. AnyHit: occlusion into `occ_out`; else closest
 /// hits into `hits_out`.
@@ -143,19 +129,197 @@ Take take_next_leaf(const SceneData& s, const Ray& ray, const detail::TopRay& p,
     }
 }
 
-/// A round's (geom, ray) pairs, sorted by instance (then ray), as fn(geom, first, end) per
-/// instance.
+/// Scratch of for_each_instance.
+struct InstanceGroups {
+    std::vector<uint32_t> slot;   ///< per instance: its group in this round, or kNoHit
+    std::vector<uint32_t> geoms;  ///< the round's instances, in the order of their first pair
+    std::vector<size_t> end;      ///< per group: where its pairs start, then where they end
+    std::vector<std::pair<uint32_t, uint32_t>> grouped;
+};
+
+/// A round's (geom, ray) pairs grouped by instance (a counting sort: instances in the order of
+/// their first pair, each one's rays in the order of their pairs), as fn(geom, first, end) per
+/// instance. The order does not change an answer: each instance is traced with the ray's bound
+/// at the time, and the best hit over instances is a minimum.
 template <class Fn>
-void for_each_instance(std::vector<std::pair<uint32_t, uint32_t>>& pairs, Fn&& fn) {
-    std::sort(pairs.begin(), pairs.end());
-    for (size_t g0 = 0; g0 < pairs.size();) {
-        const uint32_t geom = pairs[g0].first;
-        size_t g1 = g0;
-        while (g1 < pairs.size() && pairs[g1].first == geom) ++g1;
-        fn(geom, g0, g1);
-        g0 = g1;
+void for_each_instance(std::vector<std::pair<uint32_t, uint32_t>>& pairs, InstanceGroups& g,
+                       size_t instances, Fn&& fn) {
+    if (g.slot.size() != instances) g.slot.assign(instances, kNoHit);
+    g.geoms.clear();
+    g.end.clear();
+    for (const auto& pair : pairs) {
+        uint32_t& k = g.slot[pair.first];
+        if (k == kNoHit) {
+            k = static_cast<uint32_t>(g.geoms.size());
+            g.geoms.push_back(pair.first);
+            g.end.push_back(0);
+        }
+        ++g.end[k];
+    }
+    size_t sum = 0;
+    for (size_t& e : g.end) sum += std::exchange(e, sum);
+    g.grouped.resize(pairs.size());
+    for (const auto& pair : pairs) g.grouped[g.end[g.slot[pair.first]]++] = pair;
+    pairs.swap(g.grouped);
+    size_t g0 = 0;
+    for (size_t k = 0; k < g.geoms.size(); ++k) {
+        g.slot[g.geoms[k]] = kNoHit;
+        fn(g.geoms[k], g0, g.end[k]);
+        g0 = g.end[k];
     }
 }
+
+/// The top-level walks of a block's rays, taken one leaf further each round. Rays whose direction
+/// components have the same signs (none zero) walk in packets of up to kPacketLanes
+/// (detail::TopPacket: one node visit for every lane), taken in ray order within each of the
+/// eight sign classes; the others, a class's last ray when it is alone, and a packet's last live
+/// lane walk alone (detail::TopWalk, a packet's lane handed over with its cells). Either way a ray
+/// reaches the leaves its own TopWalk would reach, in the same order.
+struct TopRounds {
+    std::vector<detail::TopRay> top;     ///< per ray: its world ray for the top level
+    std::vector<detail::TopWalk> walk;   ///< per ray: where its walk stands when alone
+    std::vector<detail::TopCell> cells;  ///< per ray: kTopStack cells, that walk's stack
+    std::vector<detail::TopPacket> packets;
+    std::vector<detail::TopPacketCell> packet_cells;  ///< per packet: kTopStack cells
+    std::vector<uint32_t> alone;                      ///< rays walking alone whose walk goes on
+    std::vector<uint32_t> grouped;                    ///< live packets
+    std::vector<uint32_t> order;                      ///< scratch: rays by sign class
+    std::vector<uint8_t> sign_class;
+
+    /// Starts the walks of the rays of `rays` for which valid(i) holds.
+    template <class Valid>
+    void start(const SceneData& s, std::span<const Ray> rays, Valid&& valid) {
+        const size_t n = rays.size();
+        top.resize(n);
+        walk.resize(n);
+        cells.resize(n * detail::kTopStack);
+        alone.clear();
+        grouped.clear();
+        const size_t max_packets = n / detail::kPacketLanes + 8;
+        packets.resize(max_packets);
+        packet_cells.resize(max_packets * detail::kTopStack);
+        // Sign class per ray: 0-7 the signs of a direction without a zero component, 8 alone,
+        // 9 not walked (an invalid ray).
+        size_t count[10] = {};
+        order.resize(n);
+        sign_class.resize(n);
+        for (size_t i = 0; i < n; ++i) {
+            walk[i].stack = &cells[i * detail::kTopStack];
+            walk[i].size = 0;
+            uint8_t c = 9;
+            if (valid(i)) {
+                const detail::TopRay& p = top[i] = detail::make_top_ray(s, rays[i]);
+                c = p.dir[0] == 0.0f || p.dir[1] == 0.0f || p.dir[2] == 0.0f
+                        ? 8
+                        : (p.dir[0] > 0.0f ? 1 : 0) | (p.dir[1] > 0.0f ? 2 : 0) |
+                              (p.dir[2] > 0.0f ? 4 : 0);
+            }
+            sign_class[i] = c;
+            ++count[c];
+        }
+        size_t first[10] = {};
+        for (int c = 0; c < 9; ++c) first[c + 1] = first[c] + count[c];
+        size_t fill[9];
+        std::copy(first, first + 9, fill);
+        for (size_t i = 0; i < n; ++i)
+            if (sign_class[i] < 9) order[fill[sign_class[i]]++] = static_cast<uint32_t>(i);
+        for (int c = 0; c < 9; ++c) {
+            for (size_t k = first[c]; k < first[c + 1];) {
+                const size_t len =
+                    c == 8 ? 1 : std::min<size_t>(detail::kPacketLanes, first[c + 1] - k);
+                if (len == 1) {
+                    const uint32_t i = order[k];
+                    walk[i].start(s, rays[i], top[i], walk[i].stack);
+                    if (!walk[i].done()) alone.push_back(i);
+                } else {
+                    const auto p = static_cast<uint32_t>(grouped.size());
+                    packets[p].start(s, rays, top, &order[k], static_cast<int>(len),
+                                     &packet_cells[p * detail::kTopStack]);
+                    if (keep_or_hand_over(p)) grouped.push_back(p);
+                }
+                k += len;
+            }
+        }
+    }
+
+    [[nodiscard]] bool done() const noexcept { return alone.empty() && grouped.empty(); }
+
+    /// One round: every live walk goes to its next leaf where take(i, geom) takes an instance ray
+    /// i's widened segment [ray.tmin, limit(i)] reaches (a packet: to the next leaf where one of
+    /// its lanes does), offering each such instance of that leaf. take returns Take: kTaken keeps
+    /// the ray for the next round, kStop ends its walk at once and calls stopped(i). A walk that
+    /// finds nothing more ends; rays for which gone(i) holds are dropped first.
+    template <class Gone, class Limit, class TakeFn, class Stopped>
+    void round(const SceneData& s, std::span<const Ray> rays, Gone&& gone, Limit&& limit,
+               TakeFn&& take, Stopped&& stopped) {
+        size_t kept = 0;
+        for (const uint32_t i : alone) {
+            if (gone(i)) continue;
+            const Take t = take_next_leaf(s, rays[i], top[i], walk[i], limit(i),
+                                          [&](uint32_t geom) { return take(i, geom); });
+            if (t == Take::kStop)
+                stopped(i);
+            else if (t == Take::kTaken)
+                alone[kept++] = i;
+        }
+        alone.resize(kept);
+        size_t kept_packets = 0;
+        for (size_t k = 0, live = grouped.size(); k < live; ++k) {
+            const uint32_t p = grouped[k];
+            detail::TopPacket& packet = packets[p];
+            detail::Lanes lim = detail::Lanes::fill(0.0f);
+            uint32_t drop = 0;
+            for (uint32_t m = packet.lanes & ~packet.ended; m; m &= m - 1) {
+                const int l = std::countr_zero(m);
+                const uint32_t i = packet.ray[l];
+                if (gone(i))
+                    drop |= 1u << l;
+                else
+                    lim.set(l, limit(i));
+            }
+            packet.end(drop);
+            uint32_t found = 0, at = 0;
+            while (!found) {
+                const detail::TopNode* leaf = packet.next_leaf(s, lim, at);
+                if (!leaf) break;
+                const uint32_t end = leaf->first_ref() + leaf->count();
+                for (uint32_t r = leaf->first_ref(); r < end && at; ++r) {
+                    const uint32_t geom = s.refs[r];
+                    for (uint32_t m = packet.reach(s.inst[geom].world, lim, at); m; m &= m - 1) {
+                        const int l = std::countr_zero(m);
+                        const Take t = take(packet.ray[l], geom);
+                        if (t == Take::kStop) {
+                            stopped(packet.ray[l]);
+                            packet.end(1u << l);
+                            at &= ~(1u << l);
+                        } else if (t == Take::kTaken) {
+                            found |= 1u << l;
+                        }
+                    }
+                }
+            }
+            if (keep_or_hand_over(p)) grouped[kept_packets++] = p;
+        }
+        grouped.resize(kept_packets);
+    }
+
+private:
+    /// Keeps packet `p` (true) when two lanes or more walk on; otherwise its one live lane, if
+    /// any, goes on alone.
+    bool keep_or_hand_over(uint32_t p) {
+        detail::TopPacket& packet = packets[p];
+        const uint32_t live = packet.live();
+        if (std::popcount(live) > 1) return true;
+        if (live) {
+            const int l = std::countr_zero(live);
+            const uint32_t i = packet.ray[l];
+            packet.hand_over(l, walk[i]);
+            packet.end(live);
+            alone.push_back(i);
+        }
+        return false;
+    }
+};
 
 /// The object rays of pairs [g0, g1) (one instance's) into `out`, with tmax = tmax(ray index).
 template <class Tmax>
@@ -170,6 +334,22 @@ void object_rays(const InstanceData& in, std::span<const Ray> rays,
         out[k - g0] = o;
     }
 }
+
+struct BlockScratch {
+    TopRounds walks;
+    std::vector<detail::Mailbox> mailbox;
+    std::vector<SceneHit> best;
+    std::vector<uint8_t> done;
+    std::vector<std::pair<uint32_t, uint32_t>> pairs;  ///< (geom, ray) of a round
+    InstanceGroups groups;
+    std::vector<Ray> rays;
+    std::vector<Hit> hits;
+    std::vector<uint8_t> occ;
+};
+
+struct Counts {
+    uint64_t invalid = 0, visits = 0, batches = 0;
+};
 
 SceneHit intersect_one(const SceneData& s, const Ray& ray, uint64_t* visits) noexcept;
 bool occluded_one(const SceneData& s, const Ray& ray, uint64_t* visits) noexcept;
@@ -190,73 +370,61 @@ void trace_block(const SceneData& s, std::span<const Ray> rays, std::span<SceneH
         }
         return;
     }
-    b.top.resize(n);
-    b.walk.resize(n);
-    b.cells.resize(n * detail::kTopStack);
     b.mailbox.assign(n, detail::Mailbox{});
     b.best.resize(n);
     b.done.assign(n, 0);
-    b.live.clear();
     for (size_t i = 0; i < n; ++i) {
         b.best[i] = no_hit_yet(rays[i]);
-        if (!detail::ray_is_valid(rays[i])) {
-            ++counts.invalid;
-            continue;
-        }
-        b.top[i] = detail::make_top_ray(s, rays[i]);
-        b.walk[i].start(s, rays[i], b.top[i], &b.cells[i * detail::kTopStack]);
-        if (!b.walk[i].done()) b.live.push_back(static_cast<uint32_t>(i));
+        counts.invalid += detail::ray_is_valid(rays[i]) ? 0 : 1;
     }
-    // Each round takes every live ray one leaf further along its walk: the next leaf whose cell
-    // starts at or before its closest hit so far with an instance the ray's widened segment
-    // reaches (and its mailbox has not seen). A ray whose next cell starts beyond its closest
-    // hit stops there, without walking the rest of the top level.
-    for (;;) {
+    b.walks.start(s, rays, [&](size_t i) { return detail::ray_is_valid(rays[i]); });
+    // Each round takes every live walk one leaf further: the next leaf whose cell starts at or
+    // before its ray's closest hit so far with an instance the ray's widened segment reaches
+    // (and its mailbox has not seen). A ray whose next cell starts beyond its closest hit stops
+    // there, without walking the rest of the top level; an occluded ray is dropped.
+    while (!b.walks.done()) {
         b.pairs.clear();
-        size_t kept = 0;
-        for (const uint32_t i : b.live) {
-            const Ray& ray = rays[i];
-            const detail::TopRay& p = b.top[i];
-            const float limit = AnyHit ? ray.tmax : b.best[i].t;
-            const bool found = take_next_leaf(s, ray, p, b.walk[i], limit, [&](uint32_t geom) {
-                                   if (b.mailbox[i].seen(geom)) return Take::kSkip;
-                                   b.pairs.emplace_back(geom, i);
-                                   return Take::kTaken;
-                               }) == Take::kTaken;
-            if (found) b.live[kept++] = i;
-        }
-        b.live.resize(kept);
+        b.walks.round(
+            s, rays, [&](uint32_t i) { return AnyHit && b.done[i] != 0; },
+            [&](uint32_t i) { return AnyHit ? rays[i].tmax : b.best[i].t; },
+            [&](uint32_t i, uint32_t geom) {
+                if (b.mailbox[i].seen(geom)) return Take::kSkip;
+                b.pairs.emplace_back(geom, i);
+                return Take::kTaken;
+            },
+            [](uint32_t) {});
         if (b.pairs.empty()) break;
-        for_each_instance(b.pairs, [&](uint32_t geom, size_t g0, size_t g1) {
-            const size_t count = g1 - g0;
-            const KdTree& tree = *s.instances[geom].tree;
-            object_rays(
-                s.inst[geom], rays, b.pairs, g0, g1,
-                [&](uint32_t i) { return AnyHit ? rays[i].tmax : b.best[i].t; }, b.rays);
-            counts.visits += count;
-            const bool batch = count >= kMinGroup;
-            counts.batches += batch ? 1 : 0;
-            if constexpr (AnyHit) {
-                b.occ.resize(count);
-                if (batch) {
-                    occluded_block(tree, b.rays, b.occ, options);
+        for_each_instance(
+            b.pairs, b.groups, s.inst.size(), [&](uint32_t geom, size_t g0, size_t g1) {
+                const size_t count = g1 - g0;
+                const KdTree& tree = *s.instances[geom].tree;
+                object_rays(
+                    s.inst[geom], rays, b.pairs, g0, g1,
+                    [&](uint32_t i) { return AnyHit ? rays[i].tmax : b.best[i].t; }, b.rays);
+                counts.visits += count;
+                const bool batch = count >= kMinGroup;
+                counts.batches += batch ? 1 : 0;
+                if constexpr (AnyHit) {
+                    b.occ.resize(count);
+                    if (batch) {
+                        occluded_block(tree, b.rays, b.occ, options);
+                    } else {
+                        for (size_t k = 0; k < count; ++k)
+                            b.occ[k] = occluded(tree, b.rays[k]) ? 1 : 0;
+                    }
+                    for (size_t k = 0; k < count; ++k)
+                        if (b.occ[k]) b.done[b.pairs[g0 + k].second] = 1;
                 } else {
-                    for (size_t k = 0; k < count; ++k) b.occ[k] = occluded(tree, b.rays[k]) ? 1 : 0;
+                    b.hits.resize(count);
+                    if (batch) {
+                        intersect_block(tree, b.rays, b.hits, options);
+                    } else {
+                        for (size_t k = 0; k < count; ++k) b.hits[k] = intersect(tree, b.rays[k]);
+                    }
+                    for (size_t k = 0; k < count; ++k)
+                        offer(b.best[b.pairs[g0 + k].second], b.hits[k], geom);
                 }
-                for (size_t k = 0; k < count; ++k)
-                    if (b.occ[k]) b.done[b.pairs[g0 + k].second] = 1;
-            } else {
-                b.hits.resize(count);
-                if (batch) {
-                    intersect_block(tree, b.rays, b.hits, options);
-                } else {
-                    for (size_t k = 0; k < count; ++k) b.hits[k] = intersect(tree, b.rays[k]);
-                }
-                for (size_t k = 0; k < count; ++k)
-                    offer(b.best[b.pairs[g0 + k].second], b.hits[k], geom);
-            }
-        });
-        if constexpr (AnyHit) std::erase_if(b.live, [&](uint32_t i) { return b.done[i] != 0; });
+            });
     }
     for (size_t i = 0; i < n; ++i) {
         if constexpr (AnyHit)
@@ -504,17 +672,14 @@ struct NearestScratch {
     uint32_t ray = 0;
 };
 
-/// Takes instance `geom`'s hits into `out` (the nearest `k` so far, sorted by the tie rule), given
-/// its closest hit `first` on the object ray `o` traced with tmax = `limit`: the ray's tmax when
-/// `out` held fewer than k hits, else the k-th hit's t (`full`).
-void take_instance(const KdTree& tree, Ray o, const Hit& first, float ray_tmax, float limit,
-                   bool full, uint32_t k, bool merge, uint32_t geom, std::vector<SceneHit>& out,
-                   std::vector<Hit>& tmp) {
-    // None up to the k-th hit so far means no hit to keep (a merged hit is never before its
-    // group's first, the instance's closest). Otherwise its first k merged hits lie in groups
-    // starting no later than the k-th hit so far; for k = 1 no later than this closest hit, whose
-    // t is the first raw hit's of intersect_all, bit for bit (kdrt/query.h).
-    if (!first.is_hit()) return;
+/// The window of the object ray `o` whose every-hit answer holds an instance's hits that may be
+/// among the nearest k, given its closest hit `first` (a hit) on `o` traced with tmax = `limit`:
+/// the ray's tmax when the ray's list held fewer than k hits, else the k-th hit's t (`full`).
+Ray hits_window(const KdTree& tree, Ray o, const Hit& first, float ray_tmax, float limit, bool full,
+                uint32_t k, bool merge) noexcept {
+    // Its first k merged hits lie in groups starting no later than the k-th hit so far; for
+    // k = 1 no later than this closest hit, whose t is the first raw hit's of intersect_all, bit
+    // for bit (kdrt/query.h).
     if (k == 1) {
         // Nothing of this instance lies before its closest hit: the every-hit query needs only
         // the cells around it.
@@ -523,14 +688,31 @@ void take_instance(const KdTree& tree, Ray o, const Hit& first, float ray_tmax, 
     } else {
         o.tmax = full ? std::min(ray_tmax, truncated_tmax(tree, o, limit, merge)) : ray_tmax;
     }
-    intersect_all(tree, o, merge, tmp);
-    // tmp is sorted by (t, prim): once one hit is not kept, no later one is.
-    for (const Hit& h : tmp) {
+    return o;
+}
+
+/// Keeps the instance's merged hits `hits` (sorted by (t, prim)) that are among the nearest k
+/// in `out`.
+void keep_hits(std::span<const Hit> hits, uint32_t k, uint32_t geom, std::vector<SceneHit>& out) {
+    // Once one hit is not kept, no later one is.
+    for (const Hit& h : hits) {
         const SceneHit c{h.t, h.prim, h.u, h.v, geom};
         if (out.size() == k && !detail::scene_hit_less(c, out.back())) break;
         out.insert(std::upper_bound(out.begin(), out.end(), c, detail::scene_hit_less), c);
         if (out.size() > k) out.pop_back();
     }
+}
+
+/// Takes instance `geom`'s hits into `out` (the nearest `k` so far, sorted by the tie rule), given
+/// its closest hit `first` on the object ray `o` traced with tmax = `limit` (hits_window).
+void take_instance(const KdTree& tree, const Ray& o, const Hit& first, float ray_tmax, float limit,
+                   bool full, uint32_t k, bool merge, uint32_t geom, std::vector<SceneHit>& out,
+                   std::vector<Hit>& tmp) {
+    // None up to the k-th hit so far means no hit to keep (a merged hit is never before its
+    // group's first, the instance's closest).
+    if (!first.is_hit()) return;
+    intersect_all(tree, hits_window(tree, o, first, ray_tmax, limit, full, k, merge), merge, tmp);
+    keep_hits(tmp, k, geom, out);
 }
 
 /// The nearest `k` (>= 1) hits of `ray` into `out` (replaced), sorted by the tie rule. The
@@ -570,16 +752,17 @@ constexpr uint32_t kRoundsMaxHits = 16;
 constexpr uint32_t kRoundsMaxTraced = 16;
 
 struct NearestRounds {
-    std::vector<detail::TopRay> top;
-    std::vector<detail::TopWalk> walk;
-    std::vector<detail::TopCell> cells;
+    TopRounds walks;
     std::vector<std::vector<SceneHit>> out;
     std::vector<uint32_t> traced;  ///< per ray kRoundsMaxTraced geometry ids
     std::vector<uint32_t> traced_count;
-    std::vector<uint32_t> live, alone;
+    std::vector<uint32_t> alone;  ///< rays that reached more instances than the rounds keep
     std::vector<std::pair<uint32_t, uint32_t>> pairs;  ///< (geom, ray) of a round
+    InstanceGroups groups;
     std::vector<Ray> rays;
     std::vector<Hit> hits;
+    std::vector<Ray> windows;  ///< every-hit windows of an instance's rays that hit it
+    std::vector<uint32_t> window_of;
 };
 
 /// nearest() of each ray of a block whose rays are coherent, in rounds as trace_block's: each
@@ -589,65 +772,75 @@ struct NearestRounds {
 void nearest_rounds(const SceneData& s, std::span<const Ray> rays, uint32_t k, bool merge,
                     NearestRounds& b, NearestScratch& sc) {
     const size_t n = rays.size();
-    b.top.resize(n);
-    b.walk.resize(n);
-    b.cells.resize(n * detail::kTopStack);
     b.out.resize(n);
     b.traced.resize(n * kRoundsMaxTraced);
     b.traced_count.assign(n, 0);
-    b.live.clear();
     b.alone.clear();
-    for (size_t i = 0; i < n; ++i) {
-        b.out[i].clear();
-        if (!detail::ray_is_valid(rays[i])) continue;
-        b.top[i] = detail::make_top_ray(s, rays[i]);
-        b.walk[i].start(s, rays[i], b.top[i], &b.cells[i * detail::kTopStack]);
-        if (!b.walk[i].done()) b.live.push_back(static_cast<uint32_t>(i));
-    }
+    for (size_t i = 0; i < n; ++i) b.out[i].clear();
+    b.walks.start(s, rays, [&](size_t i) { return detail::ray_is_valid(rays[i]); });
     const auto limit_of = [&](uint32_t i) {
         return b.out[i].size() < k ? rays[i].tmax : b.out[i].back().t;
     };
-    while (!b.live.empty()) {
+    while (!b.walks.done()) {
         b.pairs.clear();
-        size_t kept = 0;
-        for (const uint32_t i : b.live) {
-            const Ray& ray = rays[i];
-            const detail::TopRay& p = b.top[i];
-            const float limit = limit_of(i);
-            uint32_t* traced = &b.traced[size_t{i} * kRoundsMaxTraced];
-            uint32_t& count = b.traced_count[i];
-            const Take t = take_next_leaf(s, ray, p, b.walk[i], limit, [&](uint32_t geom) {
+        b.walks.round(
+            s, rays, [](uint32_t) { return false; }, limit_of,
+            [&](uint32_t i, uint32_t geom) {
+                uint32_t* traced = &b.traced[size_t{i} * kRoundsMaxTraced];
+                uint32_t& count = b.traced_count[i];
                 if (std::find(traced, traced + count, geom) != traced + count) return Take::kSkip;
                 if (count == kRoundsMaxTraced) return Take::kStop;
                 traced[count++] = geom;
                 b.pairs.emplace_back(geom, i);
                 return Take::kTaken;
-            });
-            const bool overflow = t == Take::kStop, found = t == Take::kTaken;
-            if (overflow)
-                b.alone.push_back(i);
-            else if (found)
-                b.live[kept++] = i;
-        }
-        b.live.resize(kept);
+            },
+            [&](uint32_t i) { b.alone.push_back(i); });
         if (b.pairs.empty()) break;
-        for_each_instance(b.pairs, [&](uint32_t geom, size_t g0, size_t g1) {
-            const size_t count = g1 - g0;
-            const KdTree& tree = *s.instances[geom].tree;
-            object_rays(s.inst[geom], rays, b.pairs, g0, g1, limit_of, b.rays);
-            b.hits.resize(count);
-            if (count >= kMinGroup) {
-                intersect_block(tree, b.rays, b.hits, TraceOptions{});
-            } else {
-                for (size_t j = 0; j < count; ++j) b.hits[j] = intersect(tree, b.rays[j]);
-            }
-            for (size_t j = 0; j < count; ++j) {
-                const uint32_t i = b.pairs[g0 + j].second;
-                std::vector<SceneHit>& out = b.out[i];
-                take_instance(tree, b.rays[j], b.hits[j], rays[i].tmax, b.rays[j].tmax,
-                              out.size() == k, k, merge, geom, out, sc.tmp);
-            }
-        });
+        for_each_instance(
+            b.pairs, b.groups, s.inst.size(), [&](uint32_t geom, size_t g0, size_t g1) {
+                const size_t count = g1 - g0;
+                const KdTree& tree = *s.instances[geom].tree;
+                object_rays(s.inst[geom], rays, b.pairs, g0, g1, limit_of, b.rays);
+                b.hits.resize(count);
+                if (count >= kMinGroup) {
+                    intersect_block(tree, b.rays, b.hits, TraceOptions{});
+                } else {
+                    for (size_t j = 0; j < count; ++j) b.hits[j] = intersect(tree, b.rays[j]);
+                }
+                if (count < kMinGroup) {
+                    for (size_t j = 0; j < count; ++j) {
+                        const uint32_t i = b.pairs[g0 + j].second;
+                        std::vector<SceneHit>& out = b.out[i];
+                        take_instance(tree, b.rays[j], b.hits[j], rays[i].tmax, b.rays[j].tmax,
+                                      out.size() == k, k, merge, geom, out, sc.tmp);
+                    }
+                    return;
+                }
+                // The rays that hit it, their windows (take_instance's) in one every-hit batch,
+                // which keeps the first k merged hits of each (more are never kept).
+                b.windows.clear();
+                b.window_of.clear();
+                for (size_t j = 0; j < count; ++j) {
+                    if (!b.hits[j].is_hit()) continue;
+                    const uint32_t i = b.pairs[g0 + j].second;
+                    b.windows.push_back(hits_window(tree, b.rays[j], b.hits[j], rays[i].tmax,
+                                                    b.rays[j].tmax, b.out[i].size() == k, k,
+                                                    merge));
+                    b.window_of.push_back(i);
+                }
+                AllHitsOptions options;
+                options.merge_coincident = merge;
+                options.max_hits = k;
+                // Isolated: while the batch waits, this thread must not take another block of
+                // this scan (it would reuse this thread's scratch, `b`, mid-round).
+                AllHits all;
+                tbb::this_task_arena::isolate(
+                    [&] { all = intersect_all(tree, b.windows, options); });
+                for (size_t w = 0; w < b.windows.size(); ++w)
+                    keep_hits(std::span<const Hit>(all.hits).subspan(
+                                  all.offsets[w], all.offsets[w + 1] - all.offsets[w]),
+                              k, geom, b.out[b.window_of[w]]);
+            });
     }
     // Rays that reached more instances than the rounds keep: from the start, alone.
     for (const uint32_t i : b.alone) nearest(s, rays[i], k, merge, b.out[i], sc);

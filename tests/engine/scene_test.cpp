@@ -633,6 +633,106 @@ TEST(SceneAllHits, MatchOracleSingleAndBatch) {
     }
 }
 
+/// A batch's rounds walk the top level by packets of rays whose direction signs agree (and hand a
+/// packet's last live lane to a walk of its own); every other ray walks alone. Blocks of rays from
+/// one origin (so every mode and the lidar's nearest hits go in rounds) made to hold what a packet
+/// walk could lose: every sign class with rays that diverge (so lanes of one packet meet the
+/// instances in different orders), lanes whose ray misses the root box, rays with a zero
+/// direction component, invalid rays, classes of one ray, of two with one of them missing the
+/// root (a packet of one live lane from the start) and of nine (a full packet and one alone), and
+/// a packet whose lanes all stop at a wall but one, which goes on through a hole (its last lane
+/// handed over mid-walk). Every answer against the oracle, in every mode and ISA.
+TEST(Scene, PacketTopWalkKeepsEveryLaneAndInstance) {
+    const uint64_t seed = test_seed();
+    SCOPED_TRACE(testing::Message() << "seed=" << seed);
+    const TestScene s = mixed_scene(seed + 21, 40);
+    Rng rng(seed + 22);
+    const Aabb box = s.scene.bounds();
+    const Vec3 centre = (box.lo + box.hi) * 0.5f, outside = box.hi + box.extent() * 0.5f;
+    std::vector<Ray> rays;
+    for (const Vec3& o : {centre, outside}) {
+        // A block of 1024: random directions, towards the box or away from it (from outside,
+        // away misses the root box), now and then a zero component or an invalid ray.
+        for (int i = 0; i < 1024; ++i) {
+            Vec3 d = rng.below(2) ? rng.in_box(box) - o : rng.on_sphere();
+            if (i % 17 == 0) d[static_cast<int>(rng.below(3))] = 0.0f;
+            Ray r = make_ray(o, d);
+            if (i % 101 == 0) r.tmin = 2.0f, r.tmax = 1.0f;
+            rays.push_back(r);
+        }
+    }
+    // Blocks are cut at 1024 rays; these two are padded with invalid rays (not walked). First:
+    // from `outside` (every component of box - outside is negative), nine rays into the box (the
+    // class ---: a full packet and one alone), one with +x only, and two with +y (both miss the
+    // box). Second: two rays of the class ---, one of them ending before the box (one live lane).
+    const auto pad = [&] {
+        Ray invalid = make_ray(outside, {1, 1, 1});
+        invalid.dx = NAN;
+        while (rays.size() % 1024 != 0) rays.push_back(invalid);
+    };
+    for (int i = 0; i < 9; ++i) rays.push_back(make_ray(outside, rng.in_box(box) - outside));
+    rays.push_back(make_ray(outside, Vec3{1.0f, -1.0f, -1.0f}));
+    rays.push_back(make_ray(outside, Vec3{-1.0f, 1.0f, -1.0f}));
+    rays.push_back(make_ray(outside, Vec3{-1.0f, 2.0f, -0.5f}));
+    pad();
+    rays.push_back(make_ray(outside, centre - outside));
+    rays.push_back(make_ray(outside, centre - outside, 0.0f, 1e-3f));
+    pad();
+    expect_matches_oracle(s, rays, 20);
+    const SceneOracle oracle(s.scene);
+    std::vector<std::vector<SceneHit>> all(rays.size());
+    for (size_t i = 0; i < rays.size(); ++i) all[i] = oracle.intersect_all(rays[i], true);
+    for (uint32_t k : {1u, 3u}) {
+        const SceneAllHits got = detail::nearest_hits(s.scene, rays, k, true);
+        for (size_t i = 0; i < rays.size(); ++i) {
+            std::vector<SceneHit> want = all[i];
+            want.resize(std::min<size_t>(k, want.size()));
+            const std::vector<SceneHit> kept(
+                got.hits.begin() + static_cast<std::ptrdiff_t>(got.offsets[i]),
+                got.hits.begin() + static_cast<std::ptrdiff_t>(got.offsets[i + 1]));
+            ASSERT_TRUE(same_lists(kept, want)) << "k=" << k << " ray " << i;
+        }
+    }
+
+    // The wall: quads at z = 5 around a hole at x, y in [0, 0.4], quads beyond it along the ray
+    // through the hole and beside it, the last at z = 60. Eight rays of one class from the
+    // origin, seven at the wall and one through the hole.
+    const Mesh quad = unit_quad();
+    auto tree = std::make_shared<const KdTree>(build_kdtree(quad));
+    std::vector<SceneInstance> list;
+    const auto place = [&](float x, float y, float z, float sx, float sy) {
+        Affine3x4 t;
+        t.m[0][0] = sx, t.m[1][1] = sy;
+        t.m[0][3] = x, t.m[1][3] = y, t.m[2][3] = z;
+        list.push_back({tree, t, nullptr});
+    };
+    place(-10.0f, -10.0f, 5.0f, 10.0f, 20.0f);  // left of the hole
+    place(0.4f, -10.0f, 5.0f, 10.0f, 20.0f);    // right
+    place(0.0f, -10.0f, 5.0f, 0.4f, 10.0f);     // below
+    place(0.0f, 0.4f, 5.0f, 0.4f, 10.0f);       // above
+    for (int k = 1; k <= 10; ++k) {
+        const float z = 5.0f + 5.5f * static_cast<float>(k);
+        place(0.3f * z / 60.0f + 0.05f, 0.2f * z / 60.0f, z, 0.3f, 0.3f);  // beside the ray
+        if (k == 10) place(-1.0f, -1.0f, z, 2.0f, 2.0f);                   // across it
+    }
+    TestScene wall;
+    wall.meshes.push_back(quad);
+    wall.trees.push_back(tree);
+    wall.mesh_of.assign(list.size(), 0);
+    wall.scene = build_scene(std::move(list));
+    std::vector<Ray> wall_rays;
+    for (int lane = 0; lane < 8; ++lane) {
+        // The wall at t = 1; the ray through the hole reaches z = 60 at t = 12.
+        const Vec3 d = lane == 5 ? Vec3{0.3f / 12.0f, 0.2f / 12.0f, 5.0f}
+                                 : Vec3{1.0f + static_cast<float>(lane), 0.5f, 5.0f};
+        wall_rays.push_back(make_ray({0, 0, 0}, d));
+    }
+    const SceneOracle wall_oracle(wall.scene);
+    EXPECT_GT(wall_oracle.intersect(wall_rays[5]).t, 11.0f) << "through the hole to z = 60";
+    for (int lane : {0, 7}) EXPECT_LT(wall_oracle.intersect(wall_rays[lane]).t, 1.1f);
+    expect_matches_oracle(wall, wall_rays, 2);
+}
+
 /// The nearest k hits of every ray (what scan_lidar keeps) against the oracle's every-hit
 /// answer cut to k, merged and raw, on overlapping instances and on a field of many instances
 /// along the rays (where the walk stops early and instances are traced only partly).
