@@ -4,6 +4,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstring>
+#include <stdexcept>
 #include <string>
 #include <unordered_map>
 #include <unordered_set>
@@ -258,12 +259,22 @@ Result<PlaneShape, DecodeError> plane_shape(std::span<const std::byte> body,
 }  // namespace
 
 void append_geometry_ids(std::vector<std::byte>& body, std::span<const uint32_t> geometry_ids) {
-    const uint16_t flags = detail::load_le16(body.data() + 6);
-    detail::store_le16(body.data() + 6, static_cast<uint16_t>(flags | kGeometryIdFlag));
     const size_t at = body.size();
     body.resize(at + geometry_id_plane_bytes(geometry_ids.size()));
+    write_geometry_ids(body, at, geometry_ids);
+}
+
+size_t write_geometry_ids(std::span<std::byte> out, size_t mesh_bytes,
+                          std::span<const uint32_t> geometry_ids) {
+    const size_t size = mesh_bytes + geometry_id_plane_bytes(geometry_ids.size());
+    if (mesh_bytes < 8 || out.size() < size)
+        throw std::length_error(
+            "write_geometry_ids: no mesh answer header or no room for the plane");
+    const uint16_t flags = detail::load_le16(out.data() + 6);
+    detail::store_le16(out.data() + 6, static_cast<uint16_t>(flags | kGeometryIdFlag));
     if (!geometry_ids.empty())  // an empty vector's data() may be null, which memcpy may not take
-        std::memcpy(body.data() + at, geometry_ids.data(), 4 * geometry_ids.size());
+        std::memcpy(out.data() + mesh_bytes, geometry_ids.data(), 4 * geometry_ids.size());
+    return size;
 }
 
 Result<SplitAnswer, DecodeError> split_geometry_ids(std::span<const std::byte> body,
