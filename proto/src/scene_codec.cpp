@@ -109,21 +109,23 @@ Result<std::vector<ResolvedPose>, SceneRequestError> resolve_poses(
     out.reserve(poses.size());
     for (size_t i = 0; i < poses.size(); ++i) {
         const PoseEntry& pose = poses[i];
-        const std::string at = "poses[" + std::to_string(i) + "]";
+        // Spelled out only for an error (a batch may hold every instance's pose).
+        const auto at = [i] { return "poses[" + std::to_string(i) + "]"; };
         const auto index = static_cast<uint32_t>(i);
         if (pose.geometry_id) {
             if (*pose.geometry_id >= scene.instances.size())
                 return Err{reference_error(
-                    at + ".geometry_id", index,
-                    in_quotes(at + ".geometry_id") + " is " + std::to_string(*pose.geometry_id) +
+                    at() + ".geometry_id", index,
+                    in_quotes(at() + ".geometry_id") + " is " + std::to_string(*pose.geometry_id) +
                         ", but the scene has " + std::to_string(scene.instances.size()) +
                         " instances (geometry ids 0 .. n-1)")};
             out.push_back({*pose.geometry_id, pose.transform});
         } else {
             const auto it = by_name.find(pose.name);
             if (it == by_name.end())
-                return Err{reference_error(at + ".name", index,
-                                           in_quotes(at + ".name") + " is " + in_quotes(pose.name) +
+                return Err{reference_error(at() + ".name", index,
+                                           in_quotes(at() + ".name") + " is " +
+                                               in_quotes(pose.name) +
                                                ", which names no instance of the scene")};
             out.push_back({it->second, pose.transform});
         }

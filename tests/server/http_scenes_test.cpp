@@ -393,6 +393,11 @@ TEST_F(HttpScenes, PoseUpdatesMakeRevisionsAndStaleOnesAreRefused) {
     p = expect_problem(res, 400);
     EXPECT_EQ(p.field, "poses[1].transform");
     EXPECT_EQ(p.index, 1u);
+    // Checked while the revision was written under tmp/: refused, nothing stored or left there.
+    EXPECT_EQ(cli->Get("/v1/scenes/" + id)->get_header_value("ETag"), "\"3\"");
+    for (const auto& e :
+         std::filesystem::recursive_directory_iterator(dir_->path() / "cache" / "tmp"))
+        EXPECT_FALSE(e.is_regular_file() && e.path().extension() == ".tmp") << e.path();
     // Revisions older than the kept 3 are gone; a revision never written does not exist.
     for (int k = 0; k < 3; ++k)
         ASSERT_EQ(cli->Post("/v1/scenes/" + id + "/poses",
