@@ -126,9 +126,16 @@ Result<DepthImage, DecodeError> decode_depth_image(std::span<const std::byte> bo
 }
 
 std::vector<std::byte> encode_point_cloud(const PointCloud& cloud) {
+    std::vector<std::byte> out(kdrl_body_size(cloud.points.size()));
+    write_point_cloud(out, cloud);
+    return out;
+}
+
+size_t write_point_cloud(std::span<std::byte> out, const PointCloud& cloud) {
     if (cloud.points.size() > std::numeric_limits<uint32_t>::max())
         throw std::length_error("KDRL point cloud exceeds the u32 count field");
-    std::vector<std::byte> out(kdrl_body_size(cloud.points.size()));
+    const size_t size = kdrl_body_size(cloud.points.size());
+    if (out.size() < size) throw std::length_error("write_point_cloud: the buffer is too small");
     std::byte* p = out.data();
     std::memcpy(p, kPointCloudMagic.data(), 4);
     detail::store_le16(p + 4, kBatchVersion);
@@ -143,7 +150,7 @@ std::vector<std::byte> encode_point_cloud(const PointCloud& cloud) {
     if (!cloud.points.empty())
         std::memcpy(p + kPointCloudHeaderBytes, cloud.points.data(),
                     cloud.points.size() * kLidarPointBytes);
-    return out;
+    return size;
 }
 
 Result<PointCloud, DecodeError> decode_point_cloud(std::span<const std::byte> body,

@@ -4,6 +4,7 @@
 #include <algorithm>
 #include <cmath>
 #include <cstring>
+#include <stdexcept>
 #include <string>
 #include <unordered_map>
 #include <unordered_set>
@@ -108,21 +109,23 @@ Result<std::vector<ResolvedPose>, SceneRequestError> resolve_poses(
     out.reserve(poses.size());
     for (size_t i = 0; i < poses.size(); ++i) {
         const PoseEntry& pose = poses[i];
-        const std::string at = "poses[" + std::to_string(i) + "]";
+        // Spelled out only for an error (a batch may hold every instance's pose).
+        const auto at = [i] { return "poses[" + std::to_string(i) + "]"; };
         const auto index = static_cast<uint32_t>(i);
         if (pose.geometry_id) {
             if (*pose.geometry_id >= scene.instances.size())
                 return Err{reference_error(
-                    at + ".geometry_id", index,
-                    in_quotes(at + ".geometry_id") + " is " + std::to_string(*pose.geometry_id) +
+                    at() + ".geometry_id", index,
+                    in_quotes(at() + ".geometry_id") + " is " + std::to_string(*pose.geometry_id) +
                         ", but the scene has " + std::to_string(scene.instances.size()) +
                         " instances (geometry ids 0 .. n-1)")};
             out.push_back({*pose.geometry_id, pose.transform});
         } else {
             const auto it = by_name.find(pose.name);
             if (it == by_name.end())
-                return Err{reference_error(at + ".name", index,
-                                           in_quotes(at + ".name") + " is " + in_quotes(pose.name) +
+                return Err{reference_error(at() + ".name", index,
+                                           in_quotes(at() + ".name") + " is " +
+                                               in_quotes(pose.name) +
                                                ", which names no instance of the scene")};
             out.push_back({it->second, pose.transform});
         }
@@ -258,12 +261,22 @@ Result<PlaneShape, DecodeError> plane_shape(std::span<const std::byte> body,
 }  // namespace
 
 void append_geometry_ids(std::vector<std::byte>& body, std::span<const uint32_t> geometry_ids) {
-    const uint16_t flags = detail::load_le16(body.data() + 6);
-    detail::store_le16(body.data() + 6, static_cast<uint16_t>(flags | kGeometryIdFlag));
     const size_t at = body.size();
     body.resize(at + geometry_id_plane_bytes(geometry_ids.size()));
+    write_geometry_ids(body, at, geometry_ids);
+}
+
+size_t write_geometry_ids(std::span<std::byte> out, size_t mesh_bytes,
+                          std::span<const uint32_t> geometry_ids) {
+    const size_t size = mesh_bytes + geometry_id_plane_bytes(geometry_ids.size());
+    if (mesh_bytes < 8 || out.size() < size)
+        throw std::length_error(
+            "write_geometry_ids: no mesh answer header or no room for the plane");
+    const uint16_t flags = detail::load_le16(out.data() + 6);
+    detail::store_le16(out.data() + 6, static_cast<uint16_t>(flags | kGeometryIdFlag));
     if (!geometry_ids.empty())  // an empty vector's data() may be null, which memcpy may not take
-        std::memcpy(body.data() + at, geometry_ids.data(), 4 * geometry_ids.size());
+        std::memcpy(out.data() + mesh_bytes, geometry_ids.data(), 4 * geometry_ids.size());
+    return size;
 }
 
 Result<SplitAnswer, DecodeError> split_geometry_ids(std::span<const std::byte> body,

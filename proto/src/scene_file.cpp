@@ -51,11 +51,16 @@ std::vector<std::byte> encode_scene_file(const SceneDocument& scene) {
     uint64_t name_bytes = 0;
     for (size_t i = 0; i < n; ++i) {
         const SceneInstanceSpec& inst = scene.instances[i];
+        name_bytes += inst.name.size();
+        // Runs of one mesh (the common case: many placements of one model) skip the hash.
+        if (i > 0 && inst.mesh == scene.instances[i - 1].mesh) {
+            mesh_index[i] = mesh_index[i - 1];
+            continue;
+        }
         const auto [it, added] =
             index_of.try_emplace(inst.mesh, static_cast<uint32_t>(meshes.size()));
         if (added) meshes.push_back(inst.mesh);
         mesh_index[i] = it->second;
-        name_bytes += inst.name.size();
     }
     const size_t size = kHeaderBytes + kMeshIdBytes * meshes.size() + kInstanceBytes * n +
                         name_bytes + kChecksumBytes;

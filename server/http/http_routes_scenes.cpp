@@ -499,9 +499,14 @@ void Routes::scene_scan(const httplib::Request& req, httplib::Response& res,
     if (request->lidar) {
         const ScenePointCloud cloud =
             svc_.compute.run([&] { return scan_lidar(scene, request->lidar_spec); });
-        std::vector<std::byte> answer = proto::encode_point_cloud(cloud.cloud);
-        proto::append_geometry_ids(answer, cloud.geom);
-        reply_bytes(res, std::move(answer), proto::kPointCloudMediaType);
+        // Written once into a pooled buffer the answer is sent from: no zeroed allocation, no
+        // page faults after warm-up and no copy for the plane (a 64 x 2048 scan is ~3 MB).
+        const size_t size = proto::kdrl_body_size(cloud.cloud.points.size()) +
+                            proto::geometry_id_plane_bytes(cloud.geom.size());
+        PooledBuffer answer(svc_.batch_buffers, size);
+        const std::span<std::byte> out(answer.data(), size);
+        proto::write_geometry_ids(out, proto::write_point_cloud(out, cloud.cloud), cloud.geom);
+        reply_buffer(res, std::move(answer), size, proto::kPointCloudMediaType);
     } else {
         const SceneDepthImage image =
             svc_.compute.run([&] { return scan_pinhole(scene, request->pinhole); });

@@ -20,10 +20,12 @@ WriteError os_error(const std::string& what, const std::filesystem::path& path, 
 
 namespace {
 
-/// Writes and fsyncs `bytes` to a fresh temp file in `tmp_dir`; returns its path.
+/// Writes and flushes `bytes` to a fresh temp file in `tmp_dir`; returns its path. `data_only`:
+/// fdatasync (the data and the size), else fsync.
 proto::Result<std::filesystem::path, WriteError> write_temp(const std::filesystem::path& path,
                                                             const std::filesystem::path& tmp_dir,
-                                                            std::span<const std::byte> bytes) {
+                                                            std::span<const std::byte> bytes,
+                                                            bool data_only = false) {
     static std::atomic<uint64_t> counter{0};
     const std::filesystem::path tmp =
         tmp_dir / (path.filename().string() + "." + std::to_string(::getpid()) + "." +
@@ -46,7 +48,8 @@ proto::Result<std::filesystem::path, WriteError> write_temp(const std::filesyste
         }
         done += static_cast<size_t>(n);
     }
-    if (::fsync(fd) != 0) return fail("cannot fsync");
+    if ((data_only ? ::fdatasync(fd) : ::fsync(fd)) != 0)
+        return fail(data_only ? "cannot fdatasync" : "cannot fsync");
     if (::close(fd) != 0) {
         const int err = errno;
         ::unlink(tmp.c_str());
@@ -75,36 +78,58 @@ proto::Result<bool, WriteError> write_file_once(const std::filesystem::path& pat
                                                 std::span<const std::byte> bytes) {
     std::error_code ec;
     if (std::filesystem::exists(path, ec)) return false;  // already there: nothing to write
-    auto tmp = write_temp(path, tmp_dir, bytes);
+    auto staged = stage_file(path, tmp_dir, bytes);
+    if (!staged) return proto::Err{std::move(staged).error()};
+    return publish_once(std::move(staged).value(), path);
+}
+
+StagedFile& StagedFile::operator=(StagedFile&& other) noexcept {
+    if (this != &other) {
+        if (!tmp_.empty()) ::unlink(tmp_.c_str());
+        tmp_ = std::exchange(other.tmp_, {});
+    }
+    return *this;
+}
+
+StagedFile::~StagedFile() {
+    if (!tmp_.empty()) ::unlink(tmp_.c_str());
+}
+
+proto::Result<StagedFile, WriteError> stage_file(const std::filesystem::path& path,
+                                                 const std::filesystem::path& tmp_dir,
+                                                 std::span<const std::byte> bytes) {
+    auto tmp = write_temp(path, tmp_dir, bytes, true);
     if (!tmp) return proto::Err{std::move(tmp).error()};
-    if (::link(tmp->c_str(), path.c_str()) == 0) {
-        ::unlink(tmp->c_str());
-        return true;
-    }
+    return StagedFile(std::move(tmp).value());
+}
+
+proto::Result<bool, WriteError> publish_once(StagedFile staged, const std::filesystem::path& path) {
+    const std::filesystem::path& tmp = staged.tmp_path();  // unlinked when `staged` goes
+    if (::link(tmp.c_str(), path.c_str()) == 0) return true;
     const int err = errno;
-    if (err == EEXIST) {
-        ::unlink(tmp->c_str());
-        return false;
-    }
-    if (err != EPERM && err != EOPNOTSUPP && err != ENOSYS) {
-        ::unlink(tmp->c_str());
+    if (err == EEXIST) return false;
+    if (err != EPERM && err != EOPNOTSUPP && err != ENOSYS)
         return proto::Err{os_error("cannot link into", path, err)};
-    }
-    if (::rename(tmp->c_str(), path.c_str()) != 0) {  // no hard links on this file system
-        const int rename_err = errno;
-        ::unlink(tmp->c_str());
-        return proto::Err{os_error("cannot rename into", path, rename_err)};
-    }
+    // No hard links on this file system: an existence check, then the rename (a narrow race in
+    // which an equal file may be replaced by an equal one; a scene's flock closes it there).
+    std::error_code ec;
+    if (std::filesystem::exists(path, ec)) return false;
+    if (::rename(tmp.c_str(), path.c_str()) != 0)
+        return proto::Err{os_error("cannot rename into", path, errno)};
+    staged.release();  // renamed: the temp name is gone
     return true;
 }
 
 proto::Result<void, WriteError> sync_directory(const std::filesystem::path& dir) {
     const int fd = ::open(dir.c_str(), O_RDONLY | O_DIRECTORY | O_CLOEXEC);
     if (fd < 0) return proto::Err{os_error("cannot open directory", dir, errno)};
-    const int rc = ::fsync(fd);
-    const int err = errno;
+    auto synced = sync_directory(fd, dir);
     ::close(fd);
-    if (rc != 0) return proto::Err{os_error("cannot fsync directory", dir, err)};
+    return synced;
+}
+
+proto::Result<void, WriteError> sync_directory(int fd, const std::filesystem::path& dir) {
+    if (::fsync(fd) != 0) return proto::Err{os_error("cannot fsync directory", dir, errno)};
     return {};
 }
 

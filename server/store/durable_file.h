@@ -5,6 +5,7 @@
 #include <filesystem>
 #include <span>
 #include <string>
+#include <utility>
 
 #include "kdrt/proto/result.h"
 
@@ -35,8 +36,44 @@ struct WriteError {
                                                               const std::filesystem::path& tmp_dir,
                                                               std::span<const std::byte> bytes);
 
+/// write_file_once in two steps, so that a caller can do other work between them: stage_file
+/// writes `bytes` to a new temp file in `tmp_dir` and flushes it (fdatasync: the data and the
+/// size, which is all a reader needs of a file that is never changed again); publish_once then
+/// links it to its name unless that exists. Until then nothing is visible outside tmp_dir. The
+/// temp file is removed when the StagedFile is destroyed. Move-only.
+class StagedFile {
+public:
+    StagedFile() = default;
+    explicit StagedFile(std::filesystem::path tmp) : tmp_(std::move(tmp)) {}
+    StagedFile(StagedFile&& other) noexcept : tmp_(std::exchange(other.tmp_, {})) {}
+    StagedFile& operator=(StagedFile&& other) noexcept;
+    StagedFile(const StagedFile&) = delete;
+    StagedFile& operator=(const StagedFile&) = delete;
+    ~StagedFile();
+
+    [[nodiscard]] const std::filesystem::path& tmp_path() const noexcept { return tmp_; }
+    /// Forgets the temp name (it was renamed away): nothing is removed.
+    void release() noexcept { tmp_.clear(); }
+
+private:
+    std::filesystem::path tmp_;
+};
+
+/// Writes and flushes `bytes` to a temp file in `tmp_dir` named after `path`.
+[[nodiscard]] proto::Result<StagedFile, WriteError> stage_file(const std::filesystem::path& path,
+                                                               const std::filesystem::path& tmp_dir,
+                                                               std::span<const std::byte> bytes);
+/// Links the staged file to `path` as write_file_once does (true: created; false: `path` was
+/// there already) and removes the temp name. The content is durable once the directory holding
+/// `path` is synced.
+[[nodiscard]] proto::Result<bool, WriteError> publish_once(StagedFile staged,
+                                                           const std::filesystem::path& path);
+
 /// fsync of a directory, making renames and unlinks in it durable.
 [[nodiscard]] proto::Result<void, WriteError> sync_directory(const std::filesystem::path& dir);
+/// The same through an open descriptor of it (`dir` names it in an error).
+[[nodiscard]] proto::Result<void, WriteError> sync_directory(int fd,
+                                                             const std::filesystem::path& dir);
 
 /// A whole file mapped read-only (empty files give an empty span). Move-only.
 class MappedFile {

@@ -1,6 +1,7 @@
 #include "store/scene_cache.h"
 
 #include <algorithm>
+#include <atomic>
 #include <cstring>
 #include <future>
 #include <new>
@@ -354,12 +355,49 @@ SceneCache::Result<SceneCache::EntryPtr> SceneCache::update(
                 done.reset();
                 in_flight_done();
             };
-            // With one thread the arena has no worker to run an enqueued task: built after.
+            // The check (what the build would refuse) runs on an arena worker as well, while
+            // this thread writes and flushes the revision under tmp/; the link waits for it.
+            // Whichever comes first runs it: when the workers are busy (a long query holds the
+            // arena), this thread checks after the write instead of waiting for one.
+            struct Check {
+                std::atomic<bool> claimed{false};
+                std::function<std::optional<SceneProblem>()> run;
+                std::promise<std::optional<SceneProblem>> done;
+                std::optional<SceneProblem> operator()() {
+                    try {
+                        return run ? run() : std::nullopt;
+                    } catch (const std::bad_alloc&) {
+                        return problem(Code::kInternal, "out of memory updating the scene");
+                    }
+                }
+            };
+            auto check = std::make_shared<Check>();
+            check->run = std::move(n->check);
+            std::future<std::optional<SceneProblem>> checked = check->done.get_future();
+            // With one thread the arena has no worker to run an enqueued task: checked before
+            // the write, built after the commit.
             const bool overlap = compute_.threads() > 1;
-            in_flight_add();
-            if (overlap) compute_.enqueue(task);
-            auto committed = store_.commit(entry->doc);
-            if (!overlap) compute_.run(task);
+            if (overlap) {
+                in_flight_add();
+                compute_.enqueue([this, check]() mutable {
+                    if (!check->claimed.exchange(true)) check->done.set_value((*check)());
+                    check.reset();
+                    in_flight_done();
+                });
+                in_flight_add();
+                compute_.enqueue(task);
+            }
+            std::optional<SceneProblem> refused;
+            if (!overlap && (refused = (*check)())) return proto::Err{std::move(*refused)};
+            auto staged = store_.stage(entry->doc);
+            if (overlap) refused = check->claimed.exchange(true) ? checked.get() : (*check)();
+            if (refused) return proto::Err{std::move(*refused)};
+            if (!staged) return proto::Err{write_problem(staged.error())};
+            auto committed = store_.commit(std::move(staged).value());
+            if (!overlap) {
+                in_flight_add();
+                compute_.run(task);
+            }
             if (!committed) return proto::Err{write_problem(committed.error())};
             if (*committed) {
                 metrics_.scene_revisions.fetch_add(1);
@@ -393,35 +431,39 @@ SceneCache::Result<proto::SceneListItem> SceneCache::set_poses(
             const auto& e = resolved.error();
             return proto::Err{problem(Code::kUnknownReference, e.detail, e.field, e.index)};
         }
-        auto engine_poses = std::make_shared<std::vector<InstancePose>>(resolved->size());
-        for (size_t k = 0; k < resolved->size(); ++k)
-            (*engine_poses)[k] = {(*resolved)[k].geometry_id, affine((*resolved)[k].transform)};
-        // Checked first (what the build would refuse), so nothing is stored that it refuses;
-        // the build itself overlaps the write.
-        try {
-            b->scene.check_transforms(*engine_poses);
-        } catch (const SceneError& e) {
-            // The last pose entry of the instance: what the engine's error about it refers to.
-            std::optional<uint32_t> k;
-            for (size_t j = resolved->size(); e.instance_index() && j-- > 0;) {
-                if ((*resolved)[j].geometry_id == *e.instance_index()) {
-                    k = static_cast<uint32_t>(j);
-                    break;
-                }
-            }
-            SceneProblem p = scene_error_problem(e, "poses", k);
-            p.detail = "geometry id " +
-                       (e.instance_index() ? std::to_string(*e.instance_index()) : "?") + ": " +
-                       e.what();
-            return proto::Err{std::move(p)};
-        } catch (const std::bad_alloc&) {
-            return proto::Err{problem(Code::kInternal, "out of memory updating the scene")};
-        }
+        auto poses_in =
+            std::make_shared<const std::vector<proto::ResolvedPose>>(std::move(resolved).value());
+        auto engine_poses = std::make_shared<std::vector<InstancePose>>(poses_in->size());
+        for (size_t k = 0; k < poses_in->size(); ++k)
+            (*engine_poses)[k] = {(*poses_in)[k].geometry_id, affine((*poses_in)[k].transform)};
         Next n;
         n.doc = b->doc;
         n.doc.revision = b->doc.revision + 1;
-        for (const proto::ResolvedPose& p : *resolved)
+        for (const proto::ResolvedPose& p : *poses_in)
             n.doc.instances[p.geometry_id].transform = p.transform;
+        // What the build would refuse, checked before the commit (so nothing is stored that it
+        // refuses) on an arena worker while the revision is written; the build overlaps the
+        // write too.
+        n.check = [scene = b->scene, engine_poses, poses_in]() -> std::optional<SceneProblem> {
+            try {
+                scene.check_transforms(*engine_poses);
+            } catch (const SceneError& e) {
+                // The last pose entry of the instance: what the engine's error refers to.
+                std::optional<uint32_t> k;
+                for (size_t j = poses_in->size(); e.instance_index() && j-- > 0;) {
+                    if ((*poses_in)[j].geometry_id == *e.instance_index()) {
+                        k = static_cast<uint32_t>(j);
+                        break;
+                    }
+                }
+                SceneProblem p = scene_error_problem(e, "poses", k);
+                p.detail = "geometry id " +
+                           (e.instance_index() ? std::to_string(*e.instance_index()) : "?") + ": " +
+                           e.what();
+                return p;
+            }
+            return std::nullopt;
+        };
         n.build = [scene = b->scene, engine_poses] { return scene.with_transforms(*engine_poses); };
         return n;
     });
@@ -462,7 +504,7 @@ SceneCache::Result<SceneCache::EntryPtr> SceneCache::edit(const std::string& id,
             }
             return proto::Err{std::move(p)};
         }
-        return Next{(*next)->doc, (*next)->scene, {}};
+        return Next{(*next)->doc, (*next)->scene, {}, {}};
     });
 }
 

@@ -140,11 +140,14 @@ private:
     Result<EntryPtr> current(const std::string& id);
     /// The next revision as update() commits it: its document, and its engine scene either
     /// built already or built by `build` (which must not fail but for std::bad_alloc) while the
-    /// document is written durably.
+    /// document is written durably. `check` (with `build`), when set, says whether the revision
+    /// may be committed (what the build would refuse); it runs on an arena worker while the
+    /// document is written, and the commit waits for it.
     struct Next {
         proto::SceneDocument doc;
         Scene scene;
         std::function<Scene()> build;
+        std::function<std::optional<SceneProblem>()> check;
     };
     /// The compare-and-set loop of set_poses and edit: `next` makes revision base + 1 from the
     /// current revision `base`, which is committed (SceneStore::commit, with `build` run on an

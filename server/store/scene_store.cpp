@@ -87,6 +87,8 @@ public:
     SceneDirLock(const SceneDirLock&) = delete;
     SceneDirLock& operator=(const SceneDirLock&) = delete;
 
+    /// The open directory (valid when error() is 0).
+    [[nodiscard]] int fd() const noexcept { return fd_; }
     /// 0 when held; ENOENT or ENOTDIR when the scene is not (or no longer) there.
     [[nodiscard]] int error() const noexcept { return error_; }
     [[nodiscard]] bool missing() const noexcept { return error_ == ENOENT || error_ == ENOTDIR; }
@@ -180,18 +182,33 @@ proto::Result<SceneStore::Creation, WriteError> SceneStore::create(
 }
 
 proto::Result<bool, WriteError> SceneStore::commit(const proto::SceneDocument& scene) {
-    const fs::path dir = scene_dir(scene.id);
+    // Stale or deleted already: nothing to write.
+    if (has_revision(scene.id, scene.revision) || !fs::exists(scene_dir(scene.id))) return false;
+    auto staged = stage(scene);
+    if (!staged) return proto::Err{std::move(staged).error()};
+    return commit(std::move(staged).value());
+}
+
+proto::Result<SceneStore::StagedRevision, WriteError> SceneStore::stage(
+    const proto::SceneDocument& scene) const {
+    const std::vector<std::byte> bytes = proto::encode_scene_file(scene);
+    auto file = stage_file(revision_path(scene.id, scene.revision), tmp_dir_, bytes);
+    if (!file) return proto::Err{std::move(file).error()};
+    return StagedRevision{scene.id, scene.revision, std::move(file).value()};
+}
+
+proto::Result<bool, WriteError> SceneStore::commit(StagedRevision staged) {
+    const fs::path dir = scene_dir(staged.id);
     const SceneDirLock lock(dir);
     if (lock.missing()) return false;  // deleted
     if (lock.error() != 0)
         return proto::Err{
             os_error("cannot lock", dir, std::error_code(lock.error(), std::generic_category()))};
     // Held: the directory stays at `dir` (a deletion waits for the lock) until this returns.
-    const std::vector<std::byte> bytes = proto::encode_scene_file(scene);
-    auto created = write_file_once(revision_path(scene.id, scene.revision), tmp_dir_, bytes);
+    auto created = publish_once(std::move(staged.file), revision_path(staged.id, staged.revision));
     if (!created) return proto::Err{std::move(created).error()};
     if (!*created) return false;
-    if (auto s = sync_directory(dir); !s) return proto::Err{std::move(s).error()};
+    if (auto s = sync_directory(lock.fd(), dir); !s) return proto::Err{std::move(s).error()};
     return true;
 }
 

@@ -91,6 +91,19 @@ public:
     /// the caller's base revision is stale) or the scene was deleted. Durable on true. Deletes
     /// no old revision: prune() does, after the answer.
     [[nodiscard]] proto::Result<bool, WriteError> commit(const proto::SceneDocument& scene);
+
+    /// commit() in two steps, so that a caller can overlap other work with the write: stage()
+    /// encodes `scene` and writes it durably under tmp_dir (nothing visible; removed when the
+    /// StagedRevision goes unused); commit(staged) links it in under the scene's lock and syncs
+    /// the directory, with commit()'s answers.
+    struct StagedRevision {
+        std::string id;
+        uint64_t revision = 0;
+        StagedFile file;
+    };
+    [[nodiscard]] proto::Result<StagedRevision, WriteError> stage(
+        const proto::SceneDocument& scene) const;
+    [[nodiscard]] proto::Result<bool, WriteError> commit(StagedRevision staged);
     /// Deletes the revisions of `id` older than the newest revisions_kept, `newest` being the
     /// newest (best effort: a file that cannot be removed stays until the next prune).
     void prune(const std::string& id, uint64_t newest) const;

@@ -5,6 +5,7 @@
 #include <cmath>
 #include <cstring>
 #include <limits>
+#include <stdexcept>
 
 #include "kdrt/proto/distance.h"
 #include "kdrt/proto/multi_hit.h"
@@ -102,6 +103,30 @@ TEST(GeometryIds, EveryAnswerFormatCarriesAPlane) {
     cloud.returns = 2;
     cloud.points = {LidarPoint{2, 0, 0, 2, 1, 0, 0, 7}, LidarPoint{0, 3, 0, 3, 1, 1, 0, 2}};
     round_trip(encode_point_cloud(cloud), {5, 6});
+}
+
+TEST(GeometryIds, AScanWrittenInPlaceIsTheEncodedAnswerByteForByte) {
+    PointCloud cloud;
+    cloud.channels = 2;
+    cloud.azimuth_steps = 4;
+    cloud.returns = 2;
+    cloud.points = {LidarPoint{2, 0, 0, 2, 1, 0, 0, 7}, LidarPoint{0, 3, 0, 3, 1, 1, 0, 2},
+                    LidarPoint{-1, 0.5f, 2, 2.3f, 0, 3, 0, 11}};
+    const std::vector<uint32_t> ids = {5, 6, kNoGeometry};
+    std::vector<std::byte> want = encode_point_cloud(cloud);
+    append_geometry_ids(want, ids);
+    // Into a larger buffer full of other bytes (a pooled one is not cleared).
+    std::vector<std::byte> out(want.size() + 5, std::byte{0xAB});
+    const size_t mesh = write_point_cloud(out, cloud);
+    EXPECT_EQ(mesh, kdrl_body_size(cloud.points.size()));
+    EXPECT_EQ(write_geometry_ids(out, mesh, ids), want.size());
+    out.resize(want.size());
+    EXPECT_EQ(out, want);
+    // No room: refused, never written past the end.
+    std::vector<std::byte> small(want.size() - 1);
+    EXPECT_THROW(static_cast<void>(write_geometry_ids(small, mesh, ids)), std::length_error);
+    small.resize(mesh - 1);
+    EXPECT_THROW(static_cast<void>(write_point_cloud(small, cloud)), std::length_error);
 }
 
 TEST(GeometryIds, RefusesOtherMagicsAndShortBodies) {

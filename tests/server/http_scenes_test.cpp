@@ -393,6 +393,11 @@ TEST_F(HttpScenes, PoseUpdatesMakeRevisionsAndStaleOnesAreRefused) {
     p = expect_problem(res, 400);
     EXPECT_EQ(p.field, "poses[1].transform");
     EXPECT_EQ(p.index, 1u);
+    // Checked while the revision was written under tmp/: refused, nothing stored or left there.
+    EXPECT_EQ(cli->Get("/v1/scenes/" + id)->get_header_value("ETag"), "\"3\"");
+    for (const auto& e :
+         std::filesystem::recursive_directory_iterator(dir_->path() / "cache" / "tmp"))
+        EXPECT_FALSE(e.is_regular_file() && e.path().extension() == ".tmp") << e.path();
     // Revisions older than the kept 3 are gone; a revision never written does not exist.
     for (int k = 0; k < 3; ++k)
         ASSERT_EQ(cli->Post("/v1/scenes/" + id + "/poses",
@@ -491,6 +496,57 @@ TEST_F(HttpScenes, InstanceEditsAndMeshesInUse) {
     EXPECT_EQ(res->status, 204);
     expect_problem(cli->Get("/v1/scenes/" + id), 404);
     expect_problem(cli->Delete("/v1/scenes/" + id), 404);
+}
+
+TEST_F(HttpScenes, WithOneEngineThreadPosesAreCheckedBeforeTheWriteAndBuiltAfterTheCommit) {
+    // The arena has no worker for enqueued tasks: the check and the build run on the calling
+    // thread (SceneCache::update), a refused update writes nothing.
+    TempDir dir;
+    ServerProcess one({.cache_dir = dir.path() / "cache", .args = {"--threads", "1"}});
+    const auto cli = one.client();
+    const std::string mesh = upload_id(*cli, *a_);
+    auto res = cli->Post("/v1/scenes",
+                         "{\"instances\":[" + instance_json(mesh, kIdentity) + "," +
+                             instance_json(mesh, kMoved) + "]}",
+                         "application/json");
+    ASSERT_TRUE(res);
+    ASSERT_EQ(res->status, 201) << res->body;
+    const std::string id = proto::decode_scene_json(res->body, {}, true)->id;
+    res = cli->Patch(
+        "/v1/scenes/" + id + "/poses",
+        "{\"poses\":[{\"geometry_id\":1,\"transform\":" + transform_json(kMirrored) + "}]}",
+        "application/json");
+    ASSERT_TRUE(res);
+    ASSERT_EQ(res->status, 200) << res->body;
+    EXPECT_EQ(res->get_header_value("ETag"), "\"2\"");
+    res = cli->Patch("/v1/scenes/" + id + "/poses",
+                     "{\"poses\":[{\"geometry_id\":0,\"transform\":[1,0,0,0,0,0,0,0,0,0,1,0]}]}",
+                     "application/json");
+    EXPECT_EQ(expect_problem(res, 400).field, "poses[0].transform");
+    EXPECT_EQ(cli->Get("/v1/scenes/" + id)->get_header_value("ETag"), "\"2\"");
+    for (const auto& e :
+         std::filesystem::recursive_directory_iterator(dir.path() / "cache" / "tmp"))
+        EXPECT_FALSE(e.is_regular_file() && e.path().extension() == ".tmp") << e.path();
+    // Revision 2 answers as its poses (the engine's scene of the same instances).
+    const Scene local = local_scene({{a_id_, kIdentity}, {a_id_, kMirrored}});
+    const std::vector<Ray> batch = rays(400, test_seed() + 17);
+    res = cli->Post("/v1/scenes/" + id + "/intersect",
+                    bytes_to_string(proto::encode_rays(batch, false)), "application/x-kdrt-rays");
+    ASSERT_TRUE(res);
+    ASSERT_EQ(res->status, 200) << res->body;
+    auto split = proto::split_geometry_ids(string_to_bytes(res->body));
+    ASSERT_TRUE(split.ok()) << split.error().detail;
+    auto hits = proto::decode_hits(split->mesh_body);
+    ASSERT_TRUE(hits.ok());
+    std::vector<SceneHit> expected(batch.size());
+    intersect(local, batch, expected);
+    size_t hit = 0;
+    for (size_t i = 0; i < batch.size(); ++i) {
+        ASSERT_EQ((*hits)[i].t, expected[i].t) << i;
+        ASSERT_EQ(split->geometry_ids[i], expected[i].geom) << i;
+        hit += expected[i].is_hit() ? 1 : 0;
+    }
+    EXPECT_GT(hit, 0u);
 }
 
 TEST_F(HttpScenes, AcknowledgedRevisionsSurviveKillMinus9) {

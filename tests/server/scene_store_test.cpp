@@ -86,6 +86,53 @@ TEST_F(SceneStoreTest, CreateReadCommitAndList) {
     EXPECT_EQ(*other.read(id, 2), *s.read(id, 2));
 }
 
+/// Files under the store's tmp/p (a staged revision's temp file lives there).
+size_t temp_files(const fs::path& dir) {
+    size_t n = 0;
+    for (const auto& e : fs::directory_iterator(dir / "tmp" / "p")) n += e.is_regular_file();
+    return n;
+}
+
+TEST_F(SceneStoreTest, AStagedRevisionIsInvisibleUntilCommittedAndGoneWhenDropped) {
+    SceneStore s = store();
+    const std::string id = SceneStore::new_id();
+    ASSERT_TRUE(s.create(scene(id, 1, 3)).ok());
+    {
+        auto staged = s.stage(scene(id, 2, 3));
+        ASSERT_TRUE(staged.ok()) << staged.error().message;
+        EXPECT_EQ(temp_files(dir_), 1u);
+        EXPECT_FALSE(s.has_revision(id, 2));
+        EXPECT_EQ(*s.latest(id), 1u);
+    }  // dropped (a refused update): nothing left
+    EXPECT_EQ(temp_files(dir_), 0u);
+    EXPECT_FALSE(s.has_revision(id, 2));
+
+    auto staged = s.stage(scene(id, 2, 3));
+    ASSERT_TRUE(staged.ok());
+    auto committed = s.commit(std::move(staged).value());
+    ASSERT_TRUE(committed.ok());
+    EXPECT_TRUE(*committed);
+    EXPECT_EQ(temp_files(dir_), 0u);
+    EXPECT_EQ(*s.read(id, 2), scene(id, 2, 3));
+    // A staged revision that another writer committed first is stale, its file removed.
+    staged = s.stage(scene(id, 2, 1));
+    ASSERT_TRUE(staged.ok());
+    committed = s.commit(std::move(staged).value());
+    ASSERT_TRUE(committed.ok());
+    EXPECT_FALSE(*committed);
+    EXPECT_EQ(temp_files(dir_), 0u);
+    EXPECT_EQ(s.read(id, 2)->instances.size(), 3u);
+    // ... and so is one of a scene deleted meanwhile.
+    staged = s.stage(scene(id, 3, 3));
+    ASSERT_TRUE(staged.ok());
+    ASSERT_TRUE(s.remove(id).ok());
+    committed = s.commit(std::move(staged).value());
+    ASSERT_TRUE(committed.ok());
+    EXPECT_FALSE(*committed);
+    EXPECT_FALSE(fs::exists(s.scene_dir(id)));
+    EXPECT_EQ(temp_files(dir_), 0u);
+}
+
 TEST_F(SceneStoreTest, MissingScenesAndRevisions) {
     SceneStore s = store();
     const std::string id = SceneStore::new_id();

@@ -67,6 +67,36 @@ def split_geometry_ids(body: bytes, records: int):
     return bytes(mesh), geometry_ids
 
 
+_SCENE_POINT_DTYPE = np.dtype([("p", "<f4", (3,)), ("range", "<f4"), ("channel", "<u4"),
+                               ("azimuth_index", "<u4"), ("return_index", "<u4"),
+                               ("prim", "<u4")])
+
+
+def decode_scene_point_cloud(body) -> dict:
+    """A scene's KDRL answer (flag bit 8, then the geometry-id plane) as Scene.scan_lidar's
+    dict. The arrays are views of `body` (no copy: a 64 x 2048 scan is some 3 MB); the header
+    and the exact size are checked."""
+    if len(body) < 32:
+        raise Error(kind="protocol", title="bad response",
+                    detail=f"scene KDRL answer has {len(body)} bytes, fewer than its 32-byte "
+                    f"header")
+    magic, version, flags, n = struct.unpack_from("<4sHHI", body, 0)
+    if magic != b"KDRL" or version != 1 or flags != SCENE_HIT_FLAG:
+        raise Error(kind="protocol", title="bad response",
+                    detail=f"scene KDRL answer: magic {magic!r} version {version} flags "
+                    f"{flags:#x} (expected b'KDRL', 1, {SCENE_HIT_FLAG:#x}: the geometry-id "
+                    f"plane)")
+    if len(body) != 32 + 36 * n:
+        raise Error(kind="protocol", title="bad response",
+                    detail=f"scene KDRL answer: {n} points make {32 + 36 * n} bytes (32-byte "
+                    f"records and the geometry-id plane), but the answer has {len(body)}")
+    rec = np.frombuffer(body, dtype=_SCENE_POINT_DTYPE, count=n, offset=32)
+    geometry_ids = np.frombuffer(body, dtype="<u4", count=n, offset=32 + 32 * n)
+    return {"points": rec["p"], "range": rec["range"], "channel": rec["channel"],
+            "azimuth_index": rec["azimuth_index"], "return_index": rec["return_index"],
+            "primitive_ids": rec["prim"], "geometry_ids": geometry_ids}
+
+
 class Scene:
     """A scene on the server of `client` (a kdrt.Client). Thread-compatible (not thread-safe)."""
 
@@ -343,11 +373,4 @@ class Scene:
             lidar["pose"] = np.asarray(pose, dtype=np.float64).reshape(4, 4).tolist()
         body, _ = self._post("scan", [json.dumps({"lidar": lidar}).encode()], "application/json",
                              revision)
-        (n,) = struct.unpack_from("<I", body, 8)
-        mesh, geometry_ids = split_geometry_ids(body, n)
-        rec = np.frombuffer(mesh, dtype=[("p", "<f4", (3,)), ("range", "<f4"), ("channel", "<u4"),
-                                         ("azimuth_index", "<u4"), ("return_index", "<u4"),
-                                         ("prim", "<u4")], count=n, offset=32)
-        return {"points": rec["p"], "range": rec["range"], "channel": rec["channel"],
-                "azimuth_index": rec["azimuth_index"], "return_index": rec["return_index"],
-                "primitive_ids": rec["prim"], "geometry_ids": geometry_ids}
+        return decode_scene_point_cloud(body)

@@ -2,6 +2,8 @@
 identity scene answering exactly as its mesh, batch pose updates as revisions, and refusals
 naming the instance and field."""
 
+import json
+
 import numpy as np
 import pytest
 
@@ -46,6 +48,34 @@ def test_identity_scene_answers_as_the_mesh(server):
     assert (got["geometry_ids"][hit] == 0).all()
     assert (got["geometry_ids"][~hit] == kdrt.NO_GEOMETRY).all()
     assert np.array_equal(scene.test_occlusions(rays), client.test_occlusions(mesh, rays))
+
+
+def test_identity_scene_scans_as_the_mesh_and_checks_the_answer(server):
+    client = kdrt.Client(server.url)
+    v, t = _box()
+    mesh = client.upload(v, t)
+    scene = kdrt.Scene(client)
+    scene.add_triangles(mesh)
+    lidar = dict(azimuth_steps=64, vertical_fov=(-40, 40), channels=16, returns=2,
+                 pose=[[1, 0, 0, 0.5], [0, 1, 0, 0.5], [0, 0, 1, 0.5], [0, 0, 0, 1]])
+    got = scene.scan_lidar(**lidar)
+    want = client.scan_lidar(mesh, **lidar)
+    assert want.shape[0] > 0
+    assert np.array_equal(got["points"], np.stack([want["x"], want["y"], want["z"]], axis=-1))
+    for key, field in (("range", "range"), ("channel", "channel"),
+                       ("azimuth_index", "azimuth_index"), ("return_index", "return_index"),
+                       ("primitive_ids", "prim")):
+        assert np.array_equal(got[key], want[field]), key
+    assert (got["geometry_ids"] == 0).all() and got["geometry_ids"].shape == (want.shape[0],)
+    # The answer's header and size are checked: a cut or mesh-form body is a protocol error.
+    path = client._t.api(f"/v1/scenes/{scene.id}/scan")
+    body = json.dumps({"lidar": {k: v for k, v in lidar.items() if k != "pose"}}).encode()
+    _, _, answer = client._t.request("POST", path, [body], "application/json")
+    assert kdrt.scene.decode_scene_point_cloud(answer)["geometry_ids"].size > 0
+    for bad in (answer[:-4], answer[:20], answer[:6] + b"\0\0" + answer[8:]):
+        with pytest.raises(kdrt.Error) as e:
+            kdrt.scene.decode_scene_point_cloud(bad)
+        assert e.value.kind == "protocol"
 
 
 def test_geometry_ids_poses_and_revisions(server):

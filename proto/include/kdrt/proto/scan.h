@@ -57,6 +57,9 @@ inline constexpr size_t kLidarPointBytes = 32;
 
 /// Encodes a KDRL body. Precondition: points.size() < 2^32.
 [[nodiscard]] std::vector<std::byte> encode_point_cloud(const PointCloud& cloud);
+/// Writes the same body into `out` (at least kdrl_body_size(points) bytes, e.g. a pooled
+/// buffer the answer is sent from) and returns its size. Precondition: points.size() < 2^32.
+size_t write_point_cloud(std::span<std::byte> out, const PointCloud& cloud);
 /// Decodes a KDRL body: magic, version 1, flags 0, reserved 0, channels, azimuth_steps and returns
 /// >= 1, count <= max_points (kTooManyRays), the exact size, then per point (kBadRecord naming
 /// it): finite x y z, finite range >= 0, channel < channels, azimuth_index < azimuth_steps,

@@ -231,6 +231,11 @@ struct InstanceEdit {
 /// Appends the plane to `body` (a mesh answer of one of those formats) and sets the flag.
 /// Precondition: geometry_ids.size() is the body's record count.
 void append_geometry_ids(std::vector<std::byte>& body, std::span<const uint32_t> geometry_ids);
+/// The same in place: `out` holds a mesh answer of `mesh_bytes` bytes with room for the plane
+/// after it (e.g. a pooled buffer the answer is sent from); sets the flag, writes the plane and
+/// returns the scene answer's size. Precondition as append_geometry_ids'.
+size_t write_geometry_ids(std::span<std::byte> out, size_t mesh_bytes,
+                          std::span<const uint32_t> geometry_ids);
 /// Bytes of the plane for `records` records.
 [[nodiscard]] constexpr uint64_t geometry_id_plane_bytes(uint64_t records) noexcept {
     return 4 * records;
