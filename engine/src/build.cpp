@@ -130,9 +130,11 @@ void finish_tree(KdTree& tree, SubTree&& sub, const std::vector<TriVerts>& by_id
             tree.leaf_refs.assign(sub.refs.begin(), sub.refs.end());
             order_triangles(tree, by_id);
         });
-    mark_leaf_runs(tree.nodes, tree.leaf_refs);
+    // compute_stats reads the nodes and the arrays' sizes, mark_leaf_runs writes the references'
+    // last-reference bits: they run side by side too.
     const double build_ms = tree.stats.build_ms;
-    tree.stats = compute_stats(tree);
+    tbb::parallel_invoke([&] { mark_leaf_runs(tree.nodes, tree.leaf_refs); },
+                         [&] { tree.stats = compute_stats(tree); });
     tree.stats.build_ms = build_ms;
 }
 

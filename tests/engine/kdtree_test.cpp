@@ -2,6 +2,7 @@
 
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <array>
 #include <cmath>
 #include <cstring>
@@ -189,6 +190,76 @@ TEST(KdBuild, SameBytesAtAnyThreadCount) {
     EXPECT_TRUE(one.leaf_refs == two.leaf_refs);
     EXPECT_TRUE(one.nodes == four.nodes);
     EXPECT_TRUE(one.leaf_refs == four.leaf_refs);
+}
+
+// The figures compute_stats reports, from a plain recursive walk (the oracle); sah_cost sums the
+// same terms, in another grouping.
+struct StatsOracle {
+    uint64_t nodes = 0, leaves = 0, empty_leaves = 0, nonempty = 0, refs_in_nonempty = 0;
+    uint64_t depth_sum = 0;
+    uint32_t max_depth = 0;
+    double cost = 0;
+
+    static double half_area(const Aabb& b) {
+        const double x = double{b.hi.x} - b.lo.x, y = double{b.hi.y} - b.lo.y,
+                     z = double{b.hi.z} - b.lo.z;
+        return x * y + y * z + z * x;
+    }
+
+    void visit(const KdTree& tree, uint32_t index, uint32_t depth, Aabb cell, double root_area) {
+        const KdNode node = tree.nodes[index];
+        const double p = half_area(cell) / root_area;
+        ++nodes;
+        if (node.is_leaf()) {
+            ++leaves;
+            depth_sum += depth;
+            max_depth = std::max(max_depth, depth);
+            if (node.prim_count() == 0) {
+                ++empty_leaves;
+            } else {
+                ++nonempty;
+                refs_in_nonempty += node.prim_count();
+            }
+            cost += p * tree.options.intersection_cost * node.prim_count();
+            return;
+        }
+        cost += p * tree.options.traversal_cost;
+        Aabb left = cell, right = cell;
+        left.hi[node.axis()] = node.split();
+        right.lo[node.axis()] = node.split();
+        visit(tree, node.first_child(), depth + 1, left, root_area);
+        visit(tree, node.first_child() + 1, depth + 1, right, root_area);
+    }
+};
+
+TEST(KdBuild, StatsMatchTheOracleAndAreTheSameAtAnyThreadCount) {
+    Rng rng(test_seed() + 102);
+    const Mesh mesh = random_soup(rng, 80000);
+    const KdTree tree = build_kdtree(mesh);
+    ASSERT_GT(tree.nodes.size(), size_t{1} << 16) << "big enough for the parallel walk";
+    StatsOracle o;
+    o.visit(tree, 0, 0, tree.bounds, StatsOracle::half_area(tree.bounds));
+    const TreeStats& s = tree.stats;
+    EXPECT_EQ(s.nodes, o.nodes);
+    EXPECT_EQ(s.leaves, o.leaves);
+    EXPECT_EQ(s.empty_leaves, o.empty_leaves);
+    EXPECT_EQ(s.max_depth, o.max_depth);
+    EXPECT_EQ(s.mean_leaf_depth, static_cast<double>(o.depth_sum) / static_cast<double>(o.leaves));
+    EXPECT_EQ(s.mean_tris_per_leaf,
+              static_cast<double>(o.refs_in_nonempty) / static_cast<double>(o.nonempty));
+    EXPECT_NEAR(s.sah_cost, o.cost, 1e-12 * o.cost) << "the same terms, grouped otherwise";
+    for (const int threads : {1, 2, 4}) {
+        tbb::task_arena arena(threads);
+        const TreeStats t = arena.execute([&] { return compute_stats(tree); });
+        EXPECT_EQ(t.nodes, s.nodes) << threads << " threads";
+        EXPECT_EQ(t.leaves, s.leaves) << threads << " threads";
+        EXPECT_EQ(t.empty_leaves, s.empty_leaves) << threads << " threads";
+        EXPECT_EQ(t.max_depth, s.max_depth) << threads << " threads";
+        EXPECT_EQ(t.mean_leaf_depth, s.mean_leaf_depth) << threads << " threads";
+        EXPECT_EQ(t.mean_tris_per_leaf, s.mean_tris_per_leaf) << threads << " threads";
+        EXPECT_EQ(t.sah_cost, s.sah_cost) << threads << " threads: every bit";
+        EXPECT_EQ(t.bytes, s.bytes) << threads << " threads";
+    }
 }
 
 TEST(KdBuild, SahTreeHasTheExpectedShape) {
