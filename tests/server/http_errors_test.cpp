@@ -310,6 +310,7 @@ TEST(HttpEcho, HugeRequestValuesAreQuotedByAShortPrefix) {
         SCOPED_TRACE(c.path + " " + c.body.substr(0, 90));
         auto res = cli->Post(c.path, c.body, "application/json");
         auto p = expect_problem(res, 400);
+        if (!res) continue;  // expect_problem has failed the test
         EXPECT_NE(p.detail.find(quoted), std::string::npos) << p.detail.substr(0, 300);
         EXPECT_LT(res->body.size(), 2048u);
     }
