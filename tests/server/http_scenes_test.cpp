@@ -7,6 +7,7 @@
 
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <chrono>
 #include <csignal>
 #include <cstring>
@@ -53,6 +54,41 @@ Affine3x4 affine(const proto::Transform& t) {
     Affine3x4 a;
     std::memcpy(a.m, t.m.data(), sizeof a.m);
     return a;
+}
+
+/// Checks a scene's closest-hit answer `res` (hit records, then the geometry-id plane) against
+/// the engine's scene `local` for `batch`, ray by ray and bit for bit (t, prim, u, v and geometry
+/// id), naming the first ray that differs. Returns the engine's answers (empty when the answer
+/// is not a 200 that decodes, the test having failed).
+std::vector<SceneHit> expect_engine_hits(const httplib::Result& res, const Scene& local,
+                                         const std::vector<Ray>& batch) {
+    if (!res || res->status != 200) {
+        ADD_FAILURE() << (res ? res->body : "no response");
+        return {};
+    }
+    auto split = proto::split_geometry_ids(string_to_bytes(res->body));
+    if (!split.ok()) {
+        ADD_FAILURE() << split.error().detail;
+        return {};
+    }
+    auto hits = proto::decode_hits(split->mesh_body);
+    if (!hits.ok() || hits->size() != batch.size() || split->geometry_ids.size() != batch.size()) {
+        ADD_FAILURE() << "the answer does not hold " << batch.size() << " hits";
+        return {};
+    }
+    std::vector<SceneHit> expected(batch.size());
+    intersect(local, batch, expected);
+    for (size_t i = 0; i < batch.size(); ++i) {
+        const SceneHit got{(*hits)[i].t, (*hits)[i].prim, (*hits)[i].u, (*hits)[i].v,
+                           split->geometry_ids[i]};
+        if (got != expected[i]) {
+            ADD_FAILURE() << "ray " << i << ": t " << got.t << " prim " << got.prim << " geometry "
+                          << got.geom << ", the engine's t " << expected[i].t << " prim "
+                          << expected[i].prim << " geometry " << expected[i].geom;
+            return {};
+        }
+    }
+    return expected;
 }
 
 class HttpScenes : public ::testing::Test {
@@ -143,23 +179,15 @@ TEST_F(HttpScenes, EveryQueryEqualsTheEngineWithGeometryIds) {
     auto res = query(id, "intersect", bytes_to_string(proto::encode_rays(batch, false)),
                      "application/x-kdrt-rays");
     ASSERT_TRUE(res);
-    ASSERT_EQ(res->status, 200) << res->body;
     EXPECT_EQ(res->get_header_value("X-Kdrt-Scene-Revision"), "1");
-    auto split = proto::split_geometry_ids(string_to_bytes(res->body));
-    ASSERT_TRUE(split.ok()) << split.error().detail;
-    auto hits = proto::decode_hits(split->mesh_body);
-    ASSERT_TRUE(hits.ok());
-    std::vector<SceneHit> expected(batch.size());
-    intersect(local, batch, expected);
+    const std::vector<SceneHit> expected = expect_engine_hits(res, local, batch);
+    ASSERT_EQ(expected.size(), batch.size());
     size_t hit_count = 0;
     std::vector<size_t> per_geom(3, 0);
-    for (size_t i = 0; i < batch.size(); ++i) {
-        const SceneHit got{(*hits)[i].t, (*hits)[i].prim, (*hits)[i].u, (*hits)[i].v,
-                           split->geometry_ids[i]};
-        ASSERT_EQ(got, expected[i]) << "ray " << i;
-        if (got.is_hit()) {
+    for (const SceneHit& h : expected) {
+        if (h.is_hit()) {
             ++hit_count;
-            ++per_geom[got.geom];
+            ++per_geom[h.geom];
         }
     }
     EXPECT_GT(hit_count, batch.size() / 10);
@@ -180,7 +208,7 @@ TEST_F(HttpScenes, EveryQueryEqualsTheEngineWithGeometryIds) {
                 "application/x-kdrt-rays");
     ASSERT_TRUE(res);
     ASSERT_EQ(res->status, 200) << res->body;
-    split = proto::split_geometry_ids(string_to_bytes(res->body));
+    auto split = proto::split_geometry_ids(string_to_bytes(res->body));
     ASSERT_TRUE(split.ok()) << split.error().detail;
     auto multi = proto::decode_multi_hits(split->mesh_body);
     ASSERT_TRUE(multi.ok()) << multi.error().detail;
@@ -367,17 +395,8 @@ TEST_F(HttpScenes, PoseUpdatesMakeRevisionsAndStaleOnesAreRefused) {
         const Scene local = local_scene({{a_id_, pose0}, {b_id_, pose1}});
         res = query(id, "intersect?revision=" + std::to_string(revision), body,
                     "application/x-kdrt-rays");
-        ASSERT_TRUE(res);
-        ASSERT_EQ(res->status, 200) << res->body;
-        auto split = proto::split_geometry_ids(string_to_bytes(res->body));
-        ASSERT_TRUE(split.ok());
-        auto hits = proto::decode_hits(split->mesh_body);
-        std::vector<SceneHit> expected(batch.size());
-        intersect(local, batch, expected);
-        for (size_t i = 0; i < batch.size(); ++i) {
-            ASSERT_EQ((*hits)[i].t, expected[i].t) << "revision " << revision << " ray " << i;
-            ASSERT_EQ(split->geometry_ids[i], expected[i].geom);
-        }
+        SCOPED_TRACE("revision " + std::to_string(revision));
+        ASSERT_EQ(expect_engine_hits(res, local, batch).size(), batch.size());
     }
     // Bad poses name the entry and field.
     res = cli->Patch(
@@ -532,21 +551,11 @@ TEST_F(HttpScenes, WithOneEngineThreadPosesAreCheckedBeforeTheWriteAndBuiltAfter
     const std::vector<Ray> batch = rays(400, test_seed() + 17);
     res = cli->Post("/v1/scenes/" + id + "/intersect",
                     bytes_to_string(proto::encode_rays(batch, false)), "application/x-kdrt-rays");
-    ASSERT_TRUE(res);
-    ASSERT_EQ(res->status, 200) << res->body;
-    auto split = proto::split_geometry_ids(string_to_bytes(res->body));
-    ASSERT_TRUE(split.ok()) << split.error().detail;
-    auto hits = proto::decode_hits(split->mesh_body);
-    ASSERT_TRUE(hits.ok());
-    std::vector<SceneHit> expected(batch.size());
-    intersect(local, batch, expected);
-    size_t hit = 0;
-    for (size_t i = 0; i < batch.size(); ++i) {
-        ASSERT_EQ((*hits)[i].t, expected[i].t) << i;
-        ASSERT_EQ(split->geometry_ids[i], expected[i].geom) << i;
-        hit += expected[i].is_hit() ? 1 : 0;
-    }
-    EXPECT_GT(hit, 0u);
+    const std::vector<SceneHit> expected = expect_engine_hits(res, local, batch);
+    ASSERT_EQ(expected.size(), batch.size());
+    EXPECT_GT(std::count_if(expected.begin(), expected.end(),
+                            [](const SceneHit& h) { return h.is_hit(); }),
+              0);
 }
 
 TEST_F(HttpScenes, AcknowledgedRevisionsSurviveKillMinus9) {
