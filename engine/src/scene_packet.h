@@ -2,7 +2,8 @@
 // Internal: the top level of a scene walked by packets of rays (scene_trace.cpp's rounds). A
 // packet is up to kPacketLanes rays whose direction components have the same signs (none zero);
 // each node visit tests the split plane for every lane at once (SSE, the x86-64 baseline, two
-// 4-lane halves) and keeps one stack of cells with a lane mask each. Per lane it is TopWalk's
+// 4-lane halves; with AVX2 one 8-lane register, scene_packet_avx2.cpp, top_packet_ops) and keeps
+// one stack of cells with a lane mask each. Per lane it is TopWalk's
 // arithmetic and order exactly: the same plane and box tests on the same floats, the same cells
 // front to back, and a lane's walk ends at the first cell that starts beyond its limit, so a lane
 // reaches the leaves (and the instances) its own TopWalk would reach.
@@ -11,6 +12,8 @@
 
 #include <bit>
 #include <cstdint>
+
+#include "kdrt/trace.h"
 
 #include "scene_internal.h"
 
@@ -21,8 +24,8 @@ inline constexpr int kPacketLanes = 8;
 using F4 = float __attribute__((vector_size(16)));
 using I4 = int32_t __attribute__((vector_size(16)));
 
-/// kPacketLanes floats, one per lane, as two SSE halves.
-struct alignas(16) Lanes {
+/// kPacketLanes floats, one per lane, as two SSE halves (one AVX2 register: aligned for it).
+struct alignas(32) Lanes {
     F4 h[2];
     [[nodiscard]] float get(int lane) const noexcept { return h[lane >> 2][lane & 3]; }
     void set(int lane, float x) noexcept { h[lane >> 2][lane & 3] = x; }
@@ -198,5 +201,35 @@ struct TopPacket {
         return out & mask;
     }
 };
+
+/// The hot steps of a packet's walk for one instruction set: TopPacket::next_leaf and reach, or
+/// the same arithmetic lane by lane in wider registers (the same cells, leaves and lanes).
+struct TopPacketOps {
+    const TopNode* (*next_leaf)(TopPacket& packet, const SceneData& s, const Lanes& limit,
+                                uint32_t& at) noexcept;
+    uint32_t (*reach)(const TopPacket& packet, const Aabb& box, const Lanes& limit,
+                      uint32_t mask) noexcept;
+};
+
+/// AVX2 (scene_packet_avx2.cpp); only for a CPU that has it.
+const TopPacketOps& top_packet_ops_avx2() noexcept;
+
+/// The SSE steps (TopPacket's own).
+inline const TopPacketOps& top_packet_ops_sse() noexcept {
+    static constexpr TopPacketOps kOps{
+        [](TopPacket& packet, const SceneData& s, const Lanes& limit, uint32_t& at) noexcept {
+            return packet.next_leaf(s, limit, at);
+        },
+        [](const TopPacket& packet, const Aabb& box, const Lanes& limit, uint32_t mask) noexcept {
+            return packet.reach(box, limit, mask);
+        }};
+    return kOps;
+}
+
+/// The walk's steps for `isa` (a supported one): AVX2 registers for kAvx2 and kAvx512, SSE
+/// halves for kSse4 and kScalar.
+inline const TopPacketOps& top_packet_ops(Isa isa) noexcept {
+    return isa == Isa::kAvx2 || isa == Isa::kAvx512 ? top_packet_ops_avx2() : top_packet_ops_sse();
+}
 
 }  // namespace kdrt::detail
