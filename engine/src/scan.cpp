@@ -4,6 +4,7 @@
 
 #include "kdrt/scan.h"
 
+#include <array>
 #include <cmath>
 #include <numbers>
 #include <string>
@@ -182,12 +183,30 @@ std::vector<double> lidar_elevations(double lower_deg, double upper_deg, uint32_
     return out;
 }
 
-Ray lidar_ray(const LidarSpec& spec, uint32_t channel, uint32_t azimuth_index) noexcept {
+namespace {
+
+/// Cosine and sine of channel `channel`'s elevation and of azimuth step `azimuth_index`.
+std::array<double, 2> elevation_trig(const LidarSpec& spec, uint32_t channel) noexcept {
     const double e = spec.elevation_deg[channel] * kDegToRad;
+    return {std::cos(e), std::sin(e)};
+}
+
+std::array<double, 2> azimuth_trig(const LidarSpec& spec, uint32_t azimuth_index) noexcept {
     const double a = 2.0 * std::numbers::pi * static_cast<double>(azimuth_index) /
                      static_cast<double>(spec.azimuth_steps);
-    const double v[3] = {std::cos(e) * std::cos(a), std::cos(e) * std::sin(a), std::sin(e)};
+    return {std::cos(a), std::sin(a)};
+}
+
+Ray lidar_ray(const LidarSpec& spec, const std::array<double, 2>& e,
+              const std::array<double, 2>& a) noexcept {
+    const double v[3] = {e[0] * a[0], e[0] * a[1], e[1]};
     return pose_ray(spec.pose, v, spec.min_range, spec.max_range, nullptr);
+}
+
+}  // namespace
+
+Ray lidar_ray(const LidarSpec& spec, uint32_t channel, uint32_t azimuth_index) noexcept {
+    return lidar_ray(spec, elevation_trig(spec, channel), azimuth_trig(spec, azimuth_index));
 }
 
 namespace detail {
@@ -212,12 +231,18 @@ void pinhole_rays(const PinholeSpec& spec, std::vector<Ray>& rays, std::vector<d
 std::vector<Ray> lidar_rays(const LidarSpec& spec) {
     const auto channels = static_cast<uint32_t>(spec.elevation_deg.size());
     std::vector<Ray> rays(static_cast<size_t>(channels) * spec.azimuth_steps);
+    // Each channel's elevation cosine and sine once (not once per beam): the same values
+    // lidar_ray computes, so the same rays.
+    std::vector<std::array<double, 2>> elevation(channels);
+    for (uint32_t c = 0; c < channels; ++c) elevation[c] = elevation_trig(spec, c);
     tbb::parallel_for(tbb::blocked_range<uint32_t>(0, spec.azimuth_steps, 16),
                       [&](const tbb::blocked_range<uint32_t>& steps) {
-                          for (uint32_t a = steps.begin(); a != steps.end(); ++a)
+                          for (uint32_t a = steps.begin(); a != steps.end(); ++a) {
+                              const std::array<double, 2> azimuth = azimuth_trig(spec, a);
                               for (uint32_t c = 0; c < channels; ++c)
                                   rays[static_cast<size_t>(a) * channels + c] =
-                                      lidar_ray(spec, c, a);
+                                      lidar_ray(spec, elevation[c], azimuth);
+                          }
                       });
     return rays;
 }

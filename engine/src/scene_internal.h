@@ -11,6 +11,7 @@
 #include <vector>
 
 #include "kdrt/scene.h"
+#include "kdrt/trace.h"
 
 namespace kdrt::detail {
 
@@ -272,10 +273,12 @@ struct Mailbox {
 /// them (the same hits, bits and order: each instance's intersect_all on its object ray, the
 /// minimum by the tie rule), but without the counts (SceneAllHits::counts is left empty), so
 /// each ray stops at the first top-level cell beyond its max_hits-th hit and each instance is
-/// traced only as far as that hit (plus the merge tolerance). What scan_lidar uses. Parallel
-/// over the current arena; throws std::bad_alloc.
+/// traced only as far as that hit (plus the merge tolerance). What scan_lidar uses. `isa`
+/// (default and unsupported: default_isa()) picks the packet walk's registers and the mesh
+/// kernels'; every ISA gives the same answers. Parallel over the current arena; throws
+/// std::bad_alloc.
 SceneAllHits nearest_hits(const Scene& scene, std::span<const Ray> rays, uint32_t max_hits,
-                          bool merge_coincident);
+                          bool merge_coincident, std::optional<Isa> isa = std::nullopt);
 
 /// The tie rule: (t, geom, prim) lexicographically.
 inline bool scene_hit_less(const SceneHit& a, const SceneHit& b) noexcept {

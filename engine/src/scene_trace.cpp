@@ -185,10 +185,13 @@ struct TopRounds {
     std::vector<uint32_t> grouped;                    ///< live packets
     std::vector<uint32_t> order;                      ///< scratch: rays by sign class
     std::vector<uint8_t> sign_class;
+    const detail::TopPacketOps* ops = nullptr;  ///< the packets' steps for the batch's ISA
 
-    /// Starts the walks of the rays of `rays` for which valid(i) holds.
+    /// Starts the walks of the rays of `rays` for which valid(i) holds; packets walk with the
+    /// registers of `isa` (supported).
     template <class Valid>
-    void start(const SceneData& s, std::span<const Ray> rays, Valid&& valid) {
+    void start(const SceneData& s, std::span<const Ray> rays, Isa isa, Valid&& valid) {
+        ops = &detail::top_packet_ops(isa);
         const size_t n = rays.size();
         top.resize(n);
         walk.resize(n);
@@ -280,12 +283,13 @@ struct TopRounds {
             packet.end(drop);
             uint32_t found = 0, at = 0;
             while (!found) {
-                const detail::TopNode* leaf = packet.next_leaf(s, lim, at);
+                const detail::TopNode* leaf = ops->next_leaf(packet, s, lim, at);
                 if (!leaf) break;
                 const uint32_t end = leaf->first_ref() + leaf->count();
                 for (uint32_t r = leaf->first_ref(); r < end && at; ++r) {
                     const uint32_t geom = s.refs[r];
-                    for (uint32_t m = packet.reach(s.inst[geom].world, lim, at); m; m &= m - 1) {
+                    for (uint32_t m = ops->reach(packet, s.inst[geom].world, lim, at); m;
+                         m &= m - 1) {
                         const int l = std::countr_zero(m);
                         const Take t = take(packet.ray[l], geom);
                         if (t == Take::kStop) {
@@ -351,6 +355,10 @@ struct Counts {
     uint64_t invalid = 0, visits = 0, batches = 0;
 };
 
+Isa resolved_isa(const TraceOptions& options) noexcept {
+    return options.isa && isa_supported(*options.isa) ? *options.isa : default_isa();
+}
+
 SceneHit intersect_one(const SceneData& s, const Ray& ray, uint64_t* visits) noexcept;
 bool occluded_one(const SceneData& s, const Ray& ray, uint64_t* visits) noexcept;
 
@@ -377,7 +385,8 @@ void trace_block(const SceneData& s, std::span<const Ray> rays, std::span<SceneH
         b.best[i] = no_hit_yet(rays[i]);
         counts.invalid += detail::ray_is_valid(rays[i]) ? 0 : 1;
     }
-    b.walks.start(s, rays, [&](size_t i) { return detail::ray_is_valid(rays[i]); });
+    b.walks.start(s, rays, resolved_isa(options),
+                  [&](size_t i) { return detail::ray_is_valid(rays[i]); });
     // Each round takes every live walk one leaf further: the next leaf whose cell starts at or
     // before its ray's closest hit so far with an instance the ray's widened segment reaches
     // (and its mailbox has not seen). A ray whose next cell starts beyond its closest hit stops
@@ -432,10 +441,6 @@ void trace_block(const SceneData& s, std::span<const Ray> rays, std::span<SceneH
         else
             hits_out[i] = finish(b.best[i]);
     }
-}
-
-Isa resolved_isa(const TraceOptions& options) noexcept {
-    return options.isa && isa_supported(*options.isa) ? *options.isa : default_isa();
 }
 
 template <bool AnyHit>
@@ -769,7 +774,7 @@ struct NearestRounds {
 /// round takes every live ray one leaf further along its top-level walk (up to its k-th hit so
 /// far), and the rays reaching one instance go to the mesh's closest-hit batch entry together;
 /// each closest hit then goes to take_instance, as nearest() takes it. `outs[i]` gets ray i's hits.
-void nearest_rounds(const SceneData& s, std::span<const Ray> rays, uint32_t k, bool merge,
+void nearest_rounds(const SceneData& s, std::span<const Ray> rays, uint32_t k, bool merge, Isa isa,
                     NearestRounds& b, NearestScratch& sc) {
     const size_t n = rays.size();
     b.out.resize(n);
@@ -777,7 +782,7 @@ void nearest_rounds(const SceneData& s, std::span<const Ray> rays, uint32_t k, b
     b.traced_count.assign(n, 0);
     b.alone.clear();
     for (size_t i = 0; i < n; ++i) b.out[i].clear();
-    b.walks.start(s, rays, [&](size_t i) { return detail::ray_is_valid(rays[i]); });
+    b.walks.start(s, rays, isa, [&](size_t i) { return detail::ray_is_valid(rays[i]); });
     const auto limit_of = [&](uint32_t i) {
         return b.out[i].size() < k ? rays[i].tmax : b.out[i].back().t;
     };
@@ -803,7 +808,7 @@ void nearest_rounds(const SceneData& s, std::span<const Ray> rays, uint32_t k, b
                 object_rays(s.inst[geom], rays, b.pairs, g0, g1, limit_of, b.rays);
                 b.hits.resize(count);
                 if (count >= kMinGroup) {
-                    intersect_block(tree, b.rays, b.hits, TraceOptions{});
+                    intersect_block(tree, b.rays, b.hits, TraceOptions{TraceMode::kAuto, isa});
                 } else {
                     for (size_t j = 0; j < count; ++j) b.hits[j] = intersect(tree, b.rays[j]);
                 }
@@ -831,6 +836,7 @@ void nearest_rounds(const SceneData& s, std::span<const Ray> rays, uint32_t k, b
                 AllHitsOptions options;
                 options.merge_coincident = merge;
                 options.max_hits = k;
+                options.isa = isa;
                 // Isolated: while the batch waits, this thread must not take another block of
                 // this scan (it would reuse this thread's scratch, `b`, mid-round).
                 AllHits all;
@@ -849,8 +855,9 @@ void nearest_rounds(const SceneData& s, std::span<const Ray> rays, uint32_t k, b
 }  // namespace
 
 SceneAllHits detail::nearest_hits(const Scene& scene, std::span<const Ray> rays, uint32_t max_hits,
-                                  bool merge_coincident) {
+                                  bool merge_coincident, std::optional<Isa> isa_choice) {
     const SceneData& s = scene.data();
+    const Isa isa = isa_choice && isa_supported(*isa_choice) ? *isa_choice : default_isa();
     SceneAllHits result;
     result.offsets.assign(rays.size() + 1, 0);
     if (max_hits == 0) return result;
@@ -862,17 +869,20 @@ SceneAllHits detail::nearest_hits(const Scene& scene, std::span<const Ray> rays,
         NearestRounds rounds;
         std::vector<SceneHit> hits;
     };
-    tbb::enumerable_thread_specific<Scratch> scratch;
     tbb::parallel_for(
         tbb::blocked_range<size_t>(0, tasks, 1), [&](const tbb::blocked_range<size_t>& range) {
-            Scratch& sc = scratch.local();
+            // Kept per thread between scans (a scan every frame would otherwise allocate and
+            // fault in its walks' stacks anew). A thread holds it for one block at a time: the
+            // only wait inside a block is the isolated every-hit batch, which runs no other block.
+            thread_local Scratch sc;
             for (size_t task = range.begin(); task != range.end(); ++task) {
                 const size_t lo = task * kRaysPerTask;
                 const size_t hi = std::min(rays.size(), lo + kRaysPerTask);
                 std::vector<SceneHit>& kept = per_task[task];
                 const std::span<const Ray> block = rays.subspan(lo, hi - lo);
                 if (max_hits <= kRoundsMaxHits && rounds_pay(block)) {
-                    nearest_rounds(s, block, max_hits, merge_coincident, sc.rounds, sc.nearest);
+                    nearest_rounds(s, block, max_hits, merge_coincident, isa, sc.rounds,
+                                   sc.nearest);
                     for (size_t i = lo; i < hi; ++i) {
                         const std::vector<SceneHit>& out = sc.rounds.out[i - lo];
                         result.offsets[i + 1] = out.size();

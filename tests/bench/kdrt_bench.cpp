@@ -1077,11 +1077,81 @@ int run_scene_instances(const Args& args) {
     return 0;
 }
 
+/// scene_latency.py's layout at frame `frame`: instance k on a ring grid around the origin
+/// (spacing 3), turned about z by 0.01 frame + 0.37 k, scale 1.5; in double, rounded to float as
+/// the server decodes the Python client's poses.
+std::vector<Affine3x4> ring_poses(uint32_t n, int frame) {
+    const auto side = static_cast<uint32_t>(std::ceil(std::sqrt(static_cast<double>(n))));
+    std::vector<Affine3x4> out(n);
+    for (uint32_t k = 0; k < n; ++k) {
+        const double x = (static_cast<double>(k % side) - side / 2.0) * 3.0;
+        const double y = (static_cast<double>(k / side) - side / 2.0) * 3.0;
+        const double a = 0.01 * frame + 0.37 * k;
+        const double c = std::cos(a) * 1.5, s = std::sin(a) * 1.5;
+        Affine3x4& t = out[k];
+        t.m[0][0] = static_cast<float>(c), t.m[0][1] = static_cast<float>(-s);
+        t.m[0][3] = static_cast<float>(x);
+        t.m[1][0] = static_cast<float>(s), t.m[1][1] = static_cast<float>(c);
+        t.m[1][3] = static_cast<float>(y);
+        t.m[2][2] = 1.5f;
+    }
+    return out;
+}
+
+/// `scene lidar`: scene_latency.py's scan in process (the engine's scan_lidar only).
+int run_scene_lidar(const Args& args) {
+    const std::string from = args.require("from");
+    const auto copies = static_cast<uint32_t>(args.get_uint("copies", 1000, 1, kMaxSceneInstances));
+    const auto azimuth = static_cast<uint32_t>(args.get_uint("azimuth", 2048, 1, 1u << 16));
+    const auto channels = static_cast<uint32_t>(args.get_uint("channels", 64, 1, 1024));
+    const auto returns = static_cast<uint32_t>(args.get_uint("returns", 1, 1, kMaxHitsPerRay));
+    const int reps = static_cast<int>(args.get_uint("reps", 7, 1, 1000));
+    const int frame = static_cast<int>(args.get_uint("frame", 1, 0, 1000000));
+    const Mesh mesh = load_mesh(from).mesh;
+    Json line;
+    line["command"] = "scene";
+    line["kind"] = "lidar";
+    line["from"] = from;
+    line["instances"] = copies;
+    line["beams"] = uint64_t{channels} * azimuth;
+    line["returns_per_beam"] = returns;
+    line["threads"] = thread_count(args);
+    with_threads(thread_count(args), [&] {
+        auto tree = std::make_shared<const KdTree>(build_kdtree(mesh));
+        std::vector<SceneInstance> list;
+        for (const Affine3x4& t : ring_poses(copies, frame)) list.push_back({tree, t, nullptr});
+        const Scene scene = build_scene(std::move(list));
+        LidarSpec spec;
+        spec.elevation_deg = lidar_elevations(-25.0, 15.0, channels);
+        spec.azimuth_steps = azimuth;
+        spec.max_range = 120.0f;
+        spec.returns = returns;
+        spec.pose.m = {1, 0, 0, 0.7, 0, 1, 0, 0.3, 0, 0, 1, 0.2, 0, 0, 0, 1};
+        ScenePointCloud cloud = scan_lidar(scene, spec);
+        line["scan_ms"] =
+            rounded(1e3 * median_seconds(reps, [&] { cloud = scan_lidar(scene, spec); }), 3);
+        // FNV-1a over the points and geometry ids: equal answers print equal hashes.
+        uint64_t hash = 1469598103934665603ull;
+        const auto mix = [&](const void* data, size_t bytes) {
+            const auto* p = static_cast<const unsigned char*>(data);
+            for (size_t i = 0; i < bytes; ++i) hash = (hash ^ p[i]) * 1099511628211ull;
+        };
+        mix(cloud.cloud.points.data(), cloud.cloud.points.size() * sizeof(LidarPoint));
+        mix(cloud.geom.data(), cloud.geom.size() * sizeof(uint32_t));
+        line["points"] = cloud.cloud.points.size();
+        line["answer_fnv1a"] = hash;
+    });
+    print_json(line);
+    return 0;
+}
+
 constexpr std::string_view kSceneUsage =
     R"(usage: kdrt-bench scene stadium --out FILE [--size S]
        kdrt-bench scene grid --from MESH --copies N --out FILE
        kdrt-bench scene instances --from MESH|sphere --copies N [--res R] [--reps K]
                                   [--threads T] [--compare embree]
+       kdrt-bench scene lidar --from MESH [--copies N] [--azimuth A] [--channels C]
+                              [--returns R] [--frame F] [--reps K] [--threads T]
 
 Writes a generated scene; the format follows the extension of FILE (.ply is binary PLY).
   stadium  a closed box of side S (default 1000) around a finely tessellated unit sphere
@@ -1097,6 +1167,11 @@ Prints one JSON line: kind, triangles, vertices, out, bytes.
            5). Prints one JSON line: build times, bytes_per_instance, pose_update_ms (every
            instance moved, the top level rebuilt), and per ray kind the Mrays/s of each tracer,
            ratio_vs_merged, ratio_vs_embree and the answers that differ.
+  lidar    scene_latency.py's scan in process: N instances of MESH (default 1,000) on its ring
+           grid at frame F (default 1), a lidar of C channels (default 64, -25..15 degrees) x A
+           azimuth steps (default 2048), R returns, from (0.7, 0.3, 0.2) to range 120; K scans
+           (median, default 7). Prints scan_ms, points and answer_fnv1a (a hash of the points and
+           geometry ids: equal answers, equal hashes).
 )";
 
 int run_scene(const Args& args) {
@@ -1104,6 +1179,7 @@ int run_scene(const Args& args) {
     args.expect_positional(kNames);
     const std::string& kind = args.positional()[0];
     if (kind == "instances") return run_scene_instances(args);
+    if (kind == "lidar") return run_scene_lidar(args);
     const std::string out_path = args.require("out");
     const auto format = proto::mesh_format_from_path(out_path);
     if (!format)
@@ -1270,8 +1346,9 @@ constexpr std::array<std::string_view, 8> kTraceOptions = {"mode", "isa",     "t
 constexpr std::array<std::string_view, 1> kTraceFlags = {"stats"};
 constexpr std::array<std::string_view, 7> kRaysOptions = {"kind", "res",     "seed",   "out",
                                                           "eye",  "look-at", "threads"};
-constexpr std::array<std::string_view, 8> kSceneOptions = {"out", "size", "from",    "copies",
-                                                           "res", "reps", "threads", "compare"};
+constexpr std::array<std::string_view, 12> kSceneOptions = {
+    "out",     "size",    "from",    "copies",   "res",     "reps",
+    "threads", "compare", "azimuth", "channels", "returns", "frame"};
 constexpr std::array<std::string_view, 13> kRenderOptions = {
     "shading",    "res",     "spp",     "tile",    "threads", "reps",   "seed",
     "ao-samples", "bounces", "builder", "c-isect", "out",     "compare"};

@@ -1,0 +1,173 @@
+// Internal: the hot steps of a packet's top-level walk (scene_packet.h's TopPacketOps), written
+// once and compiled once per instruction set: each including file puts it inside that set's
+// `#pragma GCC target` region, in an anonymous namespace (simd.h says why). A packet's eight
+// lanes are one AVX2 register (F8, where the including file defines KDRT_SCENE_STEPS_AVX2) or two
+// SSE halves (Halves). Per lane
+// it is TopWalk's arithmetic and order exactly: the same plane and box tests on the same floats (no
+// FMA: -ffp-contract=off and no fma target), the same cells front to back, and a lane's walk ends
+// at the first cell that starts beyond its limit, so a lane reaches the leaves (and the instances)
+// its own TopWalk would reach.
+
+#pragma once
+
+#include <immintrin.h>
+
+#include <cstdint>
+#include <cstring>
+
+#include "scene_internal.h"
+#include "scene_packet.h"
+
+// The helpers take and return 32-byte vectors; at the baseline (no AVX) GCC warns that such a
+// function's ABI differs between targets. They have internal linkage, so no call crosses targets
+// (as wide_kernel.h; the setting stays on for the rest of the including translation unit).
+#pragma GCC diagnostic ignored "-Wpsabi"
+
+namespace kdrt::detail {
+namespace {
+
+/// A packet's eight lanes as two SSE halves (the baseline).
+struct Halves {
+    F4 h[2];
+};
+
+inline Halves load(const Lanes& l, Halves) noexcept { return Halves{{l.h[0], l.h[1]}}; }
+inline void store(Lanes& l, const Halves& v) noexcept { l.h[0] = v.h[0], l.h[1] = v.h[1]; }
+inline Halves splat(float x, Halves) noexcept { return Halves{{F4{} + x, F4{} + x}}; }
+inline Halves operator+(const Halves& a, const Halves& b) noexcept {
+    return Halves{{a.h[0] + b.h[0], a.h[1] + b.h[1]}};
+}
+inline Halves operator-(const Halves& a, const Halves& b) noexcept {
+    return Halves{{a.h[0] - b.h[0], a.h[1] - b.h[1]}};
+}
+inline Halves operator*(const Halves& a, const Halves& b) noexcept {
+    return Halves{{a.h[0] * b.h[0], a.h[1] * b.h[1]}};
+}
+/// a > b ? a : b and a < b ? a : b, lane by lane.
+inline Halves take_gt(const Halves& a, const Halves& b) noexcept {
+    return Halves{{a.h[0] > b.h[0] ? a.h[0] : b.h[0], a.h[1] > b.h[1] ? a.h[1] : b.h[1]}};
+}
+inline Halves take_lt(const Halves& a, const Halves& b) noexcept {
+    return Halves{{a.h[0] < b.h[0] ? a.h[0] : b.h[0], a.h[1] < b.h[1] ? a.h[1] : b.h[1]}};
+}
+inline uint32_t bits(I4 lo, I4 hi) noexcept {
+    return static_cast<uint32_t>(_mm_movemask_ps(reinterpret_cast<__m128>(lo))) |
+           static_cast<uint32_t>(_mm_movemask_ps(reinterpret_cast<__m128>(hi))) << 4;
+}
+/// Bit i set when a > b, !(a < b), !(a > b), a <= b in lane i.
+inline uint32_t gt_bits(const Halves& a, const Halves& b) noexcept {
+    return bits(a.h[0] > b.h[0], a.h[1] > b.h[1]);
+}
+inline uint32_t not_lt_bits(const Halves& a, const Halves& b) noexcept {
+    return bits(~(a.h[0] < b.h[0]), ~(a.h[1] < b.h[1]));
+}
+inline uint32_t not_gt_bits(const Halves& a, const Halves& b) noexcept {
+    return bits(~(a.h[0] > b.h[0]), ~(a.h[1] > b.h[1]));
+}
+inline uint32_t le_bits(const Halves& a, const Halves& b) noexcept {
+    return bits(a.h[0] <= b.h[0], a.h[1] <= b.h[1]);
+}
+
+#if KDRT_SCENE_STEPS_AVX2
+/// A packet's eight lanes in one AVX2 register.
+using F8 = float __attribute__((vector_size(32)));
+using I8 = int32_t __attribute__((vector_size(32)));
+static_assert(sizeof(Lanes) == sizeof(F8) && alignof(Lanes) >= alignof(F8));
+
+inline F8 load(const Lanes& l, F8) noexcept {
+    F8 v;
+    std::memcpy(&v, &l, sizeof v);
+    return v;
+}
+inline void store(Lanes& l, F8 v) noexcept { std::memcpy(&l, &v, sizeof v); }
+inline F8 splat(float x, F8) noexcept { return F8{} + x; }
+inline F8 take_gt(F8 a, F8 b) noexcept { return a > b ? a : b; }
+inline F8 take_lt(F8 a, F8 b) noexcept { return a < b ? a : b; }
+inline uint32_t bits(I8 m) noexcept {
+    return static_cast<uint32_t>(_mm256_movemask_ps(reinterpret_cast<__m256>(m)));
+}
+inline uint32_t gt_bits(F8 a, F8 b) noexcept { return bits(a > b); }
+inline uint32_t not_lt_bits(F8 a, F8 b) noexcept { return bits(~(a < b)); }
+inline uint32_t not_gt_bits(F8 a, F8 b) noexcept { return bits(~(a > b)); }
+inline uint32_t le_bits(F8 a, F8 b) noexcept { return bits(a <= b); }
+#endif
+
+/// TopPacketOps::next_leaf.
+template <class V>
+const TopNode* next_leaf_steps(TopPacket& pk, const SceneData& s, const Lanes& limit_lanes,
+                               uint32_t& at) noexcept {
+    const V limit = load(limit_lanes, V{});
+    while (pk.size > 0) {
+        const TopPacketCell& cell = pk.stack[--pk.size];
+        uint32_t mask = cell.mask & pk.lanes & ~pk.ended;
+        if (!mask) continue;
+        V tmin = load(cell.tmin, V{}), tmax = load(cell.tmax, V{});
+        const uint32_t late = gt_bits(tmin, limit);
+        pk.ended |= late & mask;
+        mask &= ~late;
+        if (!mask) continue;
+        uint32_t index = cell.node;
+        const TopNode* node = &s.nodes[index];
+        while (!node->is_leaf()) {
+            const int axis = node->axis();
+            const uint32_t low = node->first_child(), high = low + 1;
+            const uint32_t near = pk.forward[axis] ? low : high;
+            const uint32_t far = pk.forward[axis] ? high : low;
+            const V t_split =
+                (splat(node->split(), V{}) - load(pk.org[axis], V{})) * load(pk.inv[axis], V{});
+            const V eps = load(pk.eps[axis], V{});
+            const V near_max = t_split + eps, far_min = t_split - eps;
+            const uint32_t need_near = not_lt_bits(near_max, tmin) & mask;
+            const uint32_t need_far = not_gt_bits(far_min, tmax) & mask;
+            if (!(need_near | need_far)) break;  // never: a lane needs one side at least
+            if (need_far) {
+                // The far cell: [max(far_min, tmin), tmax], as TopWalk pushes it or goes on.
+                const V far_tmin = take_gt(far_min, tmin);
+                if (!need_near) {
+                    tmin = far_tmin;
+                    index = far;
+                    mask = need_far;
+                    node = &s.nodes[index];
+                    continue;
+                }
+                TopPacketCell& pushed = pk.stack[pk.size++];
+                store(pushed.tmin, far_tmin);
+                store(pushed.tmax, tmax);
+                pushed.node = far;
+                pushed.mask = need_far;
+            }
+            // The near cell: [tmin, min(near_max, tmax)]. (A lane needs one side at least:
+            // need_near fails only past the split, where need_far holds.)
+            tmax = take_lt(near_max, tmax);
+            index = near;
+            mask = need_near;
+            node = &s.nodes[index];
+        }
+        if (!node->is_leaf()) continue;
+        at = mask;
+        return node;
+    }
+    return nullptr;
+}
+
+/// TopPacketOps::reach.
+template <class V>
+uint32_t reach_steps(const TopPacket& pk, const Aabb& box, const Lanes& limit,
+                     uint32_t mask) noexcept {
+    V t0 = load(pk.ray_tmin, V{}), t1 = load(limit, V{});
+    const V delta = load(pk.delta, V{});
+    for (int a = 0; a < 3; ++a) {
+        const V lo = splat(box.lo[a], V{}) - delta, hi = splat(box.hi[a], V{}) + delta;
+        const V org = load(pk.org[a], V{}), inv = load(pk.inv[a], V{});
+        const V a0 = (lo - org) * inv;
+        const V a1 = (hi - org) * inv;
+        // n0 = a0 > a1 ? a1 : a0 and n1 = a0 > a1 ? a0 : a1 (clip_widened's swap).
+        const V n0 = take_lt(a1, a0), n1 = take_gt(a0, a1);
+        t0 = take_gt(n0, t0);
+        t1 = take_lt(n1, t1);
+    }
+    return le_bits(t0, t1) & mask;
+}
+
+}  // namespace
+}  // namespace kdrt::detail
