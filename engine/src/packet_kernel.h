@@ -769,7 +769,7 @@ template <bool AnyHit, int K, class Order>
             w.best = {ray.tmax, kNoHit, 0.0f, 0.0f};
             w.found = false;
             w.stack_size = 0;
-            if (!wide_start(tree, ray, w.ray, w.cell)) {
+            if (!wide_start<true>(tree, arrays, ray, w.ray, w.cell)) {
                 answer(i, w);
                 continue;
             }

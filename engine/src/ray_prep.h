@@ -45,6 +45,30 @@ struct PreparedRay {
     w = static_cast<float>(static_cast<double>(bx) * ay - static_cast<double>(by) * ax);
 }
 
+/// The shear constants of `p` (kx, ky, kz, sx, sy, sz) for the direction `dir`; p.inv_dir must
+/// hold its reciprocal already.
+static inline void prepare_shear(const float dir[3], PreparedRay& p) noexcept {
+    // kz: the dimension where the direction is largest in magnitude; first such on ties.
+    const float ax = __builtin_fabsf(dir[0]), ay = __builtin_fabsf(dir[1]),
+                az = __builtin_fabsf(dir[2]);
+    // Without branches (which way a ray points is a coin toss for the branch predictor): y wins
+    // over x only when larger, z over both only when larger than the winner.
+    const int y_wins = ay > ax ? 1 : 0;
+    const int z_wins = az > (ay > ax ? ay : ax) ? 1 : 0;
+    const int kz = (z_wins << 1) | (y_wins & (z_wins ^ 1));
+    // kx, ky: the next axes after kz, cyclically ((kz + 1) % 3, (kz + 2) % 3, two bits each),
+    // swapped where dir[kz] < 0 to keep the winding, so the signs of U, V, W mean the same side.
+    const int next1 = (0x09 >> (2 * kz)) & 3, next2 = (0x12 >> (2 * kz)) & 3;
+    const int swap = (next1 ^ next2) & -(dir[kz] < 0.0f ? 1 : 0);
+    const int kx = next1 ^ swap, ky = next2 ^ swap;
+    p.kx = kx;
+    p.ky = ky;
+    p.kz = kz;
+    p.sx = dir[kx] / dir[kz];
+    p.sy = dir[ky] / dir[kz];
+    p.sz = p.inv_dir[kz];  // 1 / dir[kz], computed once
+}
+
 static inline PreparedRay prepare_ray(const Ray& r) noexcept {
     PreparedRay p;
     const float dir[3] = {r.dx, r.dy, r.dz};
@@ -52,25 +76,7 @@ static inline PreparedRay prepare_ray(const Ray& r) noexcept {
     p.org[1] = r.oy;
     p.org[2] = r.oz;
     for (int a = 0; a < 3; ++a) p.inv_dir[a] = 1.0f / dir[a];  // +-inf for a zero component
-    // kz: the dimension where the direction is largest in magnitude; first such on ties.
-    const float ax = __builtin_fabsf(dir[0]), ay = __builtin_fabsf(dir[1]),
-                az = __builtin_fabsf(dir[2]);
-    int kz = 0;
-    if (ay > ax) kz = 1;
-    if (az > (kz == 0 ? ax : ay)) kz = 2;
-    int kx = kz == 2 ? 0 : kz + 1;
-    int ky = kx == 2 ? 0 : kx + 1;
-    if (dir[kz] < 0.0f) {  // keep the winding, so the signs of U, V, W mean the same side
-        const int tmp = kx;
-        kx = ky;
-        ky = tmp;
-    }
-    p.kx = kx;
-    p.ky = ky;
-    p.kz = kz;
-    p.sx = dir[kx] / dir[kz];
-    p.sy = dir[ky] / dir[kz];
-    p.sz = 1.0f / dir[kz];
+    prepare_shear(dir, p);
     return p;
 }
 
@@ -158,10 +164,11 @@ static inline float bounds_magnitude(const Aabb& bounds) noexcept {
 
 /// Spatial margin by which traversal widens its cells: 16 ulps of the largest coordinate magnitude
 /// of the scene and the ray origin, comfortably above the rounding of the triangle test.
-static inline float interval_margin(const PreparedRay& p, const Aabb& bounds) noexcept {
+/// `bounds_mag`: bounds_magnitude of the scene's bounds (a batch computes it once).
+static inline float interval_margin(const PreparedRay& p, float bounds_mag) noexcept {
     // Plain comparisons, not fmaxf (a libm call): the inputs are never NaN here, and the packet
     // kernels take the same maximum lane by lane.
-    float m = bounds_magnitude(bounds);
+    float m = bounds_mag;
     // NOLINTNEXTLINE(modernize-loop-convert): kernel code, kept as reviewed (no rewrites here)
     for (int a = 0; a < 3; ++a) {
         const float o = __builtin_fabsf(p.org[a]);
@@ -176,10 +183,13 @@ static inline float interval_margin(const PreparedRay& p, const Aabb& bounds) no
 /// is widened by the spatial margin of interval_margin, converted to t along the split axis
 /// (margin / |d_axis|). Axis-parallel directions (infinite reciprocal) need none: their triangle
 /// tests are exact in that axis.
-static inline void traversal_eps(const PreparedRay& p, const Aabb& bounds, float eps[3]) noexcept {
-    const float delta = interval_margin(p, bounds);
+static inline void traversal_eps(const PreparedRay& p, float bounds_mag, float eps[3]) noexcept {
+    const float delta = interval_margin(p, bounds_mag);
     for (int a = 0; a < 3; ++a)
         eps[a] = __builtin_isinf(p.inv_dir[a]) ? 0.0f : delta * __builtin_fabsf(p.inv_dir[a]);
+}
+static inline void traversal_eps(const PreparedRay& p, const Aabb& bounds, float eps[3]) noexcept {
+    traversal_eps(p, bounds_magnitude(bounds), eps);
 }
 
 }  // namespace kdrt::detail

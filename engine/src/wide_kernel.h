@@ -223,7 +223,9 @@ struct Hits4 {
 /// A ray's per-axis values: as 8-lane broadcasts (org[a], ...), and the three axes in lanes 0..2
 /// of one vector each (xyz_org, ...) for a per-lane pick by permute.
 struct Ray8 {
-    F8 org[3], inv[3], eps[3];
+#if !defined(KDRT_WIDE_AVX2)
+    F8 org[3], inv[3], eps[3];  // the 8-lane permute picks from xyz_* instead
+#endif
     F8 xyz_org, xyz_inv, xyz_eps;
 };
 
@@ -285,8 +287,15 @@ static inline int decode(const WideNode& w, const Ray8& r, float tmin, float tma
 #endif
     const F8 t = (split - org) * inv;
     const F8 near_max = t + eps, far_min = t - eps;
+#if defined(KDRT_WIDE_AVX2)
+    // The near side is the high side where the reciprocal's sign bit is set (-0 and -inf
+    // included): one movemask of the sign bits, and the sign bits themselves as the blend masks.
+    const uint32_t nh =
+        static_cast<uint32_t>(_mm256_movemask_ps(reinterpret_cast<__m256>(inv))) & 0x7Fu;
+#else
     const I8 near_high = reinterpret_cast<I8>(inv) < 0;  // the sign bit, -0 and -inf included
     const uint32_t nh = bits8(near_high) & 0x7Fu;
+#endif
 
     // Each level: lane s takes its ancestor plane's crossing and whether it lies on that plane's
     // far side (its side bit differs from the plane's near side). The far side's tmin is raised to
@@ -295,6 +304,24 @@ static inline int decode(const WideNode& w, const Ray8& r, float tmin, float tma
     // t + eps < tmin) there; a NaN crossing changes nothing. A slot is visited when its interval
     // is not empty, which holds exactly when each level needed its side.
     F8 lo = F8{} + tmin, hi = F8{} + tmax;
+#if defined(KDRT_WIDE_AVX2)
+    // Per level four operations on the intervals: max(fm, lo) is fm > lo ? fm : lo (lo where fm
+    // is NaN), min(nm, hi) is nm < hi ? nm : hi, and a blend by the far side's sign bit (the
+    // reciprocal's sign bit, flipped on the lanes below the plane's high side) keeps one of them.
+    const I8 inv_bits = reinterpret_cast<I8>(inv);
+#define KDRT_WIDE_LEVEL(i0, i1, i2, i3, i4, i5, i6, i7, side)                                      \
+    {                                                                                              \
+        const F8 nm = __builtin_shufflevector(near_max, near_max, i0, i1, i2, i3, i4, i5, i6, i7); \
+        const F8 fm = __builtin_shufflevector(far_min, far_min, i0, i1, i2, i3, i4, i5, i6, i7);   \
+        const __m256 far = reinterpret_cast<__m256>(                                               \
+            __builtin_shufflevector(inv_bits, inv_bits, i0, i1, i2, i3, i4, i5, i6, i7) ^ (side)); \
+        const __m256 l = reinterpret_cast<__m256>(lo), h = reinterpret_cast<__m256>(hi);           \
+        lo = reinterpret_cast<F8>(                                                                 \
+            _mm256_blendv_ps(l, _mm256_max_ps(reinterpret_cast<__m256>(fm), l), far));             \
+        hi = reinterpret_cast<F8>(                                                                 \
+            _mm256_blendv_ps(_mm256_min_ps(reinterpret_cast<__m256>(nm), h), h, far));             \
+    }
+#else
 #define KDRT_WIDE_LEVEL(i0, i1, i2, i3, i4, i5, i6, i7, side)                                      \
     {                                                                                              \
         const F8 nm = __builtin_shufflevector(near_max, near_max, i0, i1, i2, i3, i4, i5, i6, i7); \
@@ -305,6 +332,7 @@ static inline int decode(const WideNode& w, const Ray8& r, float tmin, float tma
         lo = pick(far & (fm > lo), fm, lo);                                                        \
         hi = pick(~far & (nm < hi), nm, hi);                                                       \
     }
+#endif
     KDRT_WIDE_LEVEL(0, 0, 0, 0, 0, 0, 0, 0, (I8{0, 0, 0, 0, -1, -1, -1, -1}))
     KDRT_WIDE_LEVEL(1, 1, 1, 1, 2, 2, 2, 2, (I8{0, 0, -1, -1, 0, 0, -1, -1}))
     KDRT_WIDE_LEVEL(3, 3, 4, 4, 5, 5, 6, 6, (I8{0, -1, 0, -1, 0, -1, 0, -1}))
@@ -463,11 +491,18 @@ struct WideArrays {
     const uint32_t* refs;
     const TriVerts* tris;
     const uint32_t* ids;
+    const uint32_t* refs_end;    ///< one past the last reference
+    float bounds_mag;            ///< bounds_magnitude(tree.bounds), for traversal_eps
+    float box_lo[4], box_hi[4];  ///< tree.bounds, lane 3 unused
     explicit WideArrays(const KdTree& tree) noexcept
         : wides(tree.wide_nodes.data()),
           refs(tree.leaf_refs.data()),
           tris(tree.tris.data()),
-          ids(tree.tri_ids.data()) {}
+          ids(tree.tri_ids.data()),
+          refs_end(tree.leaf_refs.data() + tree.leaf_refs.size()),
+          bounds_mag(bounds_magnitude(tree.bounds)),
+          box_lo{tree.bounds.lo[0], tree.bounds.lo[1], tree.bounds.lo[2], 0.0f},
+          box_hi{tree.bounds.hi[0], tree.bounds.hi[1], tree.bounds.hi[2], 0.0f} {}
 };
 
 struct WideWalk {
@@ -479,24 +514,68 @@ struct WideWalk {
 };
 
 /// Sets `w` up for `ray` at the root, its closest hit so far (ray tmax, no hit). False when the ray
-/// is invalid or misses the tree's box: then there is no hit, and nothing to walk.
-[[gnu::always_inline]] static inline bool wide_start(const KdTree& tree, const Ray& ray, WideRay& r,
+/// is invalid or misses the tree's box: then there is no hit, and nothing to walk. Checked: the
+/// caller has already answered invalid rays and empty trees (octant_or_invalid) as misses.
+template <bool Checked = false>
+[[gnu::always_inline]] static inline bool wide_start(const KdTree& tree, const WideArrays& arrays,
+                                                     const Ray& ray, WideRay& r,
                                                      wide::Cell& cell) noexcept {
-    if (!ray_is_valid(ray) || tree.bounds.empty()) return false;
-    r.p = prepare_ray(ray);
-    float eps[3];
-    traversal_eps(r.p, tree.bounds, eps);
+    if constexpr (!Checked) {
+        if (!ray_is_valid(ray) || tree.bounds.empty()) return false;
+    }
+    // prepare_ray, traversal_eps and clip_to_box with the three axes in the lanes of one SSE
+    // vector (x86-64's baseline): lane by lane the same operations, so the same values; the
+    // interval's maximum and minimum over the axes taken in clip_to_box's order (the sign of a
+    // zero too). Lane 3 (the ray's tmin and tmax) is computed and never used.
+    using wide::F4;
+    F4 o, d, lo, hi;
+    __builtin_memcpy(&o, &ray.ox, sizeof o);  // ox oy oz tmin
+    __builtin_memcpy(&d, &ray.dx, sizeof d);  // dx dy dz tmax
+    __builtin_memcpy(&lo, arrays.box_lo, sizeof lo);
+    __builtin_memcpy(&hi, arrays.box_hi, sizeof hi);
+    const F4 inv = 1.0f / d;  // +-inf for a zero component
+    PreparedRay& p = r.p;
+    __builtin_memcpy(p.org, &o, sizeof p.org);
+    __builtin_memcpy(p.inv_dir, &inv, sizeof p.inv_dir);
+    const float dir[3] = {d[0], d[1], d[2]};
+    prepare_shear(dir, p);
+    const F4 abs_o = reinterpret_cast<F4>(_mm_andnot_ps(_mm_set1_ps(-0.0f), o));
+    const F4 abs_inv = reinterpret_cast<F4>(_mm_andnot_ps(_mm_set1_ps(-0.0f), inv));
+    // interval_margin: the bounds' magnitude, then each origin coordinate's.
+    float m = arrays.bounds_mag;
+    m = abs_o[0] > m ? abs_o[0] : m;
+    m = abs_o[1] > m ? abs_o[1] : m;
+    m = abs_o[2] > m ? abs_o[2] : m;
+    const float delta = m * 0x1p-20f;
+    const wide::I4 is_inf = abs_inv == std::numeric_limits<float>::infinity();
+    const F4 eps =
+        reinterpret_cast<F4>(_mm_andnot_ps(reinterpret_cast<__m128>(is_inf), delta * abs_inv));
+    // clip_to_box: an axis with an infinite reciprocal constrains nothing, or the ray misses.
+    if (wide::bits4(is_inf & ((o < lo) | (o > hi))) & 7u) return false;
+    const F4 t0 = (lo - o) * inv, t1 = (hi - o) * inv;
+    constexpr float kInf = std::numeric_limits<float>::infinity();
+    // Such an axis's lanes become -inf and +inf, which leave tmin and tmax as they are.
+    const F4 near =
+        is_inf ? F4{} - kInf : reinterpret_cast<F4>(_mm_min_ps(t1, t0)) - eps;  // t0 > t1 ? t1 : t0
+    const F4 far =
+        is_inf ? F4{} + kInf : reinterpret_cast<F4>(_mm_max_ps(t0, t1)) + eps;  // t0 > t1 ? t0 : t1
     float tmin = ray.tmin, tmax = ray.tmax;
-    if (!clip_to_box(r.p, tree.bounds, eps, tmin, tmax)) return false;
     for (int a = 0; a < 3; ++a) {
-        r.r8.org[a] = wide::F8{} + r.p.org[a];
-        r.r8.inv[a] = wide::F8{} + r.p.inv_dir[a];
+        tmin = near[a] > tmin ? near[a] : tmin;
+        tmax = far[a] < tmax ? far[a] : tmax;
+    }
+    if (!(tmin <= tmax)) return false;
+#if !defined(KDRT_WIDE_AVX2)
+    for (int a = 0; a < 3; ++a) {
+        r.r8.org[a] = wide::F8{} + o[a];
+        r.r8.inv[a] = wide::F8{} + inv[a];
         r.r8.eps[a] = wide::F8{} + eps[a];
     }
-    r.r8.xyz_org = wide::F8{r.p.org[0], r.p.org[1], r.p.org[2], 0.0f, 0.0f, 0.0f, 0.0f, 0.0f};
-    r.r8.xyz_inv =
-        wide::F8{r.p.inv_dir[0], r.p.inv_dir[1], r.p.inv_dir[2], 0.0f, 0.0f, 0.0f, 0.0f, 0.0f};
-    r.r8.xyz_eps = wide::F8{eps[0], eps[1], eps[2], 0.0f, 0.0f, 0.0f, 0.0f, 0.0f};
+#endif
+    const F4 zero{};
+    r.r8.xyz_org = __builtin_shufflevector(o, zero, 0, 1, 2, 4, 4, 4, 4, 4);
+    r.r8.xyz_inv = __builtin_shufflevector(inv, zero, 0, 1, 2, 4, 4, 4, 4, 4);
+    r.r8.xyz_eps = __builtin_shufflevector(eps, zero, 0, 1, 2, 4, 4, 4, 4, 4);
     r.ray_tmin = ray.tmin;
     r.ray_tmax = ray.tmax;
     // The root: a wide node, or (a tree of one leaf) that leaf.
@@ -526,10 +605,18 @@ template <bool AnyHit, class Counter>
         // visited next, without a check (the binary kernel descends to it).
         const int n = wide::decode<Counter::kCounts, Counter::kCounts>(
             tree.wides[index], r.r8, cell.tmin, cell.tmax, stack, stack_size);
-        if (n > 0) {
-            stack_size += n - 1;
-            cell = stack.at(stack_size, Counter::kCounts);
-            return false;
+        if constexpr (Counter::kCounts) {
+            if (n > 0) {
+                stack_size += n - 1;
+                cell = stack.at(stack_size, Counter::kCounts);
+                return false;
+            }
+        } else {
+            // Without a branch on n (whether a ray's interval meets any child is a coin toss
+            // for the branch predictor): the nearest child comes off the stack as the others
+            // will, skipped when it starts beyond the closest hit. The counting kernels above
+            // descend to it unchecked, as the binary kernel does, so they count its steps.
+            stack_size += n;
         }
     } else if (!Counter::kCounts || WideNode::slot_tag(cell.slot) == WideNode::kSlotLeaf) {
         // The leaf's run of references, from its slot's first one to the one marked last (only
@@ -545,13 +632,29 @@ template <bool AnyHit, class Counter>
         for (bool last = false; !last;) {
             uint32_t slot[4];
             int n = 0;
-            do {
-                const uint32_t word = ref[n];
-                slot[n++] = word & ~KdTree::kLastRef;
-                last = (word & KdTree::kLastRef) != 0;
-            } while (!last && n < 4);
+            if (tree.refs_end - ref >= 4) {
+                // Four words in one load: the run ends at the first marked one (or goes on).
+                using U4 = uint32_t __attribute__((vector_size(16)));
+                U4 words;
+                __builtin_memcpy(&words, ref, sizeof words);
+                static_assert(KdTree::kLastRef == 0x80000000u);
+                const uint32_t marked = wide::bits4(reinterpret_cast<wide::I4>(words));
+                n = __builtin_ctz(marked | 8u) + 1;
+                last = marked != 0;
+                const U4 refs = words & ~KdTree::kLastRef;
+                const wide::I4 in_run = wide::I4{0, 1, 2, 3} < n;
+                // A short run repeats its first triangle in the spare lanes.
+                const U4 block = in_run ? refs : U4{} + refs[0];
+                __builtin_memcpy(slot, &block, sizeof slot);
+            } else {
+                do {
+                    const uint32_t word = ref[n];
+                    slot[n++] = word & ~KdTree::kLastRef;
+                    last = (word & KdTree::kLastRef) != 0;
+                } while (!last && n < 4);
+                for (int i = n; i < 4; ++i) slot[i] = slot[0];
+            }
             ref += n;
-            for (int i = n; i < 4; ++i) slot[i] = slot[0];
             const TriVerts* const block[4] = {&tris[slot[0]], &tris[slot[1]], &tris[slot[2]],
                                               &tris[slot[3]]};
             wide::Hits4 h;
@@ -599,10 +702,10 @@ static inline bool traverse_wide(const KdTree& tree, const Ray& ray, Best& best,
     WideRay r;          // NOLINT(cppcoreguidelines-pro-type-member-init): wide_start sets it
     wide::Cell cell;    // NOLINT(cppcoreguidelines-pro-type-member-init): wide_start sets it
     wide::Stack stack;  // NOLINT(cppcoreguidelines-pro-type-member-init): written before read
-    if (!wide_start(tree, ray, r, cell)) return false;
+    const WideArrays arrays(tree);
+    if (!wide_start(tree, arrays, ray, r, cell)) return false;
     int stack_size = 0;
     bool found = false;
-    const WideArrays arrays(tree);
     while (!wide_step<AnyHit>(arrays, r, stack, stack_size, cell, best, found, counter)) {
     }
     return found;

@@ -313,6 +313,82 @@ TEST(WideKernel, SingleBatchesWalkedInTurnAnswerEveryRayInPlace) {
     expect_batches_answer_in_place(random_soup(rng, 500), "soup");
 }
 
+/// The single-ray walk's set-up (the ray's reciprocal, shear, tolerance and box clip, three axes
+/// in one vector) and its leaf runs (read four references at a time, except within four of the
+/// array's end) against brute force on every ISA: rays with zero and negative-zero direction
+/// components whose origins lie inside, outside and on the box's slabs, rays along each axis in
+/// either direction (every kz and winding), and rays at the triangles whose references end the
+/// reference array.
+TEST(WideKernel, SetUpAndLastLeafRunsMatchBruteForceEveryIsa) {
+    Rng rng(test_seed() ^ 0x5E7);
+    const Mesh soup = random_soup(rng, 1500);
+    const KdTree tree = build_kdtree(soup);
+    const std::vector<TriVerts> tris = triangles_by_id(tree);
+    ASSERT_GE(tree.leaf_refs.size(), 4u);
+    const Aabb& box = tree.bounds;
+    std::vector<Ray> rays;
+    const auto centroid = [](const TriVerts& t) {
+        return Vec3{(t.v0[0] + t.v1[0] + t.v2[0]) / 3.0f, (t.v0[1] + t.v1[1] + t.v2[1]) / 3.0f,
+                    (t.v0[2] + t.v1[2] + t.v2[2]) / 3.0f};
+    };
+    // At the triangles of the last references (tree.tris is in leaf order), from all around.
+    for (size_t back = 1; back <= 6 && back <= tree.leaf_refs.size(); ++back) {
+        const uint32_t ref = tree.leaf_refs[tree.leaf_refs.size() - back] & ~KdTree::kLastRef;
+        const Vec3 c = centroid(tree.tris[ref]);
+        for (int i = 0; i < 40; ++i) {
+            const Vec3 o = c + rng.on_sphere() * 2.0f;
+            rays.push_back(make_ray(o, c - o));
+        }
+    }
+    // Zero components (+0 and -0): the slab holds the origin (inside, on its faces) or not.
+    const float offsets[] = {-0.5f, 0.0f, 0.3f, 1.0f, 1.5f};  // of the box's extent
+    for (int zeros = 1; zeros < 8; ++zeros) {
+        if (zeros == 7) continue;  // no direction at all: invalid
+        for (int trial = 0; trial < 60; ++trial) {
+            Vec3 o = rng.in_box(box);
+            Vec3 d = rng.on_sphere();
+            for (int a = 0; a < 3; ++a) {
+                if (!(zeros & (1 << a))) continue;
+                d[a] = rng.below(2) ? 0.0f : -0.0f;
+                const float at = offsets[rng.below(5)];
+                o[a] = box.lo[a] + at * (box.hi[a] - box.lo[a]);
+            }
+            rays.push_back(make_ray(o, d));
+            rays.push_back(make_ray(o, d, 0.1f, 0.6f));
+        }
+    }
+    // Along each axis, both ways, and nearly so: each kz, each winding, ties of |d|.
+    for (int a = 0; a < 3; ++a) {
+        for (float sign : {1.0f, -1.0f}) {
+            for (int trial = 0; trial < 30; ++trial) {
+                Vec3 d{rng.uniform(-0.7f, 0.7f), rng.uniform(-0.7f, 0.7f),
+                       rng.uniform(-0.7f, 0.7f)};
+                d[a] = sign;
+                if (trial % 3 == 0) d[(a + 1) % 3] = -sign;  // a tie of the largest magnitude
+                const Vec3 o = rng.in_box(box) - d * 2.0f;
+                rays.push_back(make_ray(o, d));
+            }
+        }
+    }
+    const std::vector<Hit> want = brute_force_all(tris, rays);
+    std::vector<uint8_t> want_occ(rays.size());
+    for (size_t i = 0; i < rays.size(); ++i)
+        want_occ[i] = brute_force_occluded(tris, rays[i]) ? 1 : 0;
+    std::vector<Hit> first;
+    for (Isa isa : isas_here()) {
+        SCOPED_TRACE(std::string(isa_name(isa)));
+        std::vector<Hit> got(rays.size());
+        intersect(tree, rays, got, {TraceMode::kSingle, isa});
+        expect_same_hits(got, want, rays, tris);
+        // Every ISA's walk the same, bit for bit.
+        if (first.empty()) first = got;
+        EXPECT_EQ(std::memcmp(first.data(), got.data(), got.size() * sizeof(Hit)), 0);
+        std::vector<uint8_t> occ(rays.size());
+        occluded(tree, rays, occ, {TraceMode::kSingle, isa});
+        EXPECT_TRUE(occ == want_occ);
+    }
+}
+
 TEST(WideKernel, AxisAlignedGridRaysAlongAndAcrossEverySplitPlane) {
     // A grid of unit squares in z = 0, 1, 2: many split planes coincide with triangle edges and
     // with the rays below, which run along those planes, through grid vertices, and from inside.
