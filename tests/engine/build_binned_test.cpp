@@ -5,6 +5,7 @@
 #include <gtest/gtest.h>
 
 #include <algorithm>
+#include <array>
 #include <cmath>
 #include <cstdint>
 #include <cstring>
@@ -504,6 +505,63 @@ TEST(KdBuild, UninitializedTreeArrayHasItsSize) {
     // Other constructions still value-initialise.
     TreeArray<uint32_t> zeros(1000);
     EXPECT_EQ(std::count(zeros.begin(), zeros.end(), 0u), 1000);
+}
+
+// The binned levels map a reference's six bounds to bins two at a time (BoundsBinMap). Each
+// answer must be the scalar BinMap's: random ranges and bin counts, a flat axis (one bin), and
+// coordinates at and next to the range's ends and the bin boundaries, inside and outside.
+TEST(KdBinned, SixBoundsAtOnceBinAsOneAtATime) {
+    Rng rng(test_seed() + 440);
+    for (int round = 0; round < 2000; ++round) {
+        SCOPED_TRACE(round);
+        std::array<detail::BinMap, 3> maps;
+        std::array<std::pair<float, float>, 3> ranges;
+        for (int a = 0; a < 3; ++a) {
+            const float scale = std::ldexp(1.0f, static_cast<int>(rng.below(40)) - 20);
+            const float lo = rng.uniform(-1, 1) * scale;
+            const float hi = round % 7 == a ? lo : lo + rng.uniform(0, 2) * scale;
+            const auto bins = 4 + rng.below(253);
+            const double extent = double{hi} - lo;
+            maps[a] = extent > 0 ? detail::BinMap{lo, bins / extent, bins} : detail::BinMap{};
+            ranges[a] = {lo, hi};
+        }
+        const detail::BoundsBinMap six(maps);
+        auto coordinate = [&](int a) {
+            const auto [lo, hi] = ranges[a];
+            const double extent = double{hi} - lo;
+            switch (rng.below(6)) {
+                case 0:
+                    return lo;
+                case 1:
+                    return hi;
+                case 2: {  // a bin boundary, or a neighbour of it
+                    const uint32_t b = rng.below(maps[a].count + 1);
+                    const auto x = static_cast<float>(lo + extent * b / maps[a].count);
+                    const int step = static_cast<int>(rng.below(3)) - 1;
+                    return step == 0 ? x : std::nextafter(x, step * INFINITY);
+                }
+                case 3:
+                    return lo - rng.uniform(0, 1) * static_cast<float>(extent);  // below
+                case 4:
+                    return hi + rng.uniform(0, 1) * static_cast<float>(extent);  // above
+                default:
+                    return lo + rng.uniform() * static_cast<float>(extent);
+            }
+        };
+        std::array<float, 3> lo{}, hi{};
+        for (int a = 0; a < 3; ++a) {
+            lo[a] = coordinate(a);
+            hi[a] = coordinate(a);
+        }
+        std::array<uint32_t, 6> bins{};
+        six(lo, hi, bins);
+        for (int a = 0; a < 3; ++a) {
+            EXPECT_EQ(bins[detail::BoundsBinMap::kLo[a]], maps[a](lo[a]))
+                << "axis " << a << " lo " << lo[a];
+            EXPECT_EQ(bins[detail::BoundsBinMap::kHi[a]], maps[a](hi[a]))
+                << "axis " << a << " hi " << hi[a];
+        }
+    }
 }
 
 struct ClipCase {
