@@ -146,17 +146,6 @@ struct Bins {
     }
 };
 
-/// Maps a coordinate to its bin on one axis: [lo, hi] in `count` equal bins.
-struct BinMap {
-    double lo = 0, scale = 0;
-    uint32_t count = 1;
-    [[nodiscard]] uint32_t operator()(float x) const noexcept {
-        const double f = (double{x} - lo) * scale;
-        const auto b = f > 0 ? static_cast<uint32_t>(f) : 0u;
-        return b < count ? b : count - 1;
-    }
-};
-
 /// Calls body(begin, end) for the chunks of [0, n), in parallel when n is big.
 template <typename Body>
 void for_chunks(size_t n, const Body& body) {
@@ -268,12 +257,15 @@ private:
         }
 
         // One pass over the references bins all three axes.
+        const BoundsBinMap map6(maps);
         auto bin_range = [&](Bins& into, size_t begin, size_t end) {
             into.reset(bins);
+            std::array<uint32_t, 6> b{};
             for (size_t i = begin; i < end; ++i) {
+                map6(refs[i].lo, refs[i].hi, b);
                 for (int a = 0; a < 3; ++a) {
                     const float lo = refs[i].lo[a], hi = refs[i].hi[a];
-                    const uint32_t bl = maps[a](lo), bh = maps[a](hi);
+                    const uint32_t bl = b[BoundsBinMap::kLo[a]], bh = b[BoundsBinMap::kHi[a]];
                     ++into.starts[a][bl];
                     ++into.ends[a][bh];
                     into.min_start[a][bl] = std::min(into.min_start[a][bl], lo);

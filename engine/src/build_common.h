@@ -2,6 +2,7 @@
 // Internal: pieces shared by the SAH and middle-split builders.
 
 #include <cstdint>
+#include <span>
 #include <vector>
 
 #include "kdrt/kdtree.h"
@@ -57,6 +58,13 @@ std::vector<uint8_t> prepare_triangles(const Mesh& mesh, std::vector<TriVerts>& 
 /// Root cell: the bounds of the non-degenerate triangles, padded by a small relative margin so
 /// that ray clipping is robust and flat meshes get a cell with volume.
 Aabb root_cell(const std::vector<TriVerts>& tris, const std::vector<uint8_t>& degenerate);
+
+/// Fills tree.leaf_refs with `refs` (mesh triangle ids, leaf after leaf) rewritten as indices into
+/// tree.tris, and tree.tris, tri_ids and tri_slots with every triangle of `by_id` in leaf order:
+/// numbered by first reference, then the unreferenced ones by id. The numbering is one serial
+/// pass; the triangles are gathered in parallel chunks into an array that is not zero-filled.
+void order_triangles(KdTree& tree, std::span<const uint32_t> refs,
+                     const std::vector<TriVerts>& by_id);
 
 /// Moves a finished SubTree into `tree` (its nodes in cache lines, the triangles `by_id` in leaf
 /// order) and fills the statistics (build_ms excluded).

@@ -5,6 +5,7 @@
 #include <gtest/gtest.h>
 
 #include <algorithm>
+#include <array>
 #include <cmath>
 #include <cstdint>
 #include <cstring>
@@ -427,6 +428,140 @@ TEST(KdBuild, ChunkedSetUpLeavesDegenerateTrianglesOut) {
         EXPECT_LT(one.bounds.hi[a], 1.5f) << "a degenerate triangle moved the root cell";
     }
     expect_traces_like_brute_force(mesh, one, test_seed() + 421, 4000);
+}
+
+// The triangles' leaf order (order_triangles) is made by parallel passes over fixed chunks. It
+// must be, at any thread count, what one pass in reference order gives: triangles numbered by
+// first reference, then the unreferenced ones by id; the references rewritten to those numbers.
+// References are drawn so that a triangle's references often fall in different chunks (and
+// threads), in either order, and many triangles are never referenced.
+TEST(KdBuild, TriangleLeafOrderIsTheSerialOneAtAnyThreadCount) {
+    Rng rng(test_seed() + 430);
+    for (const uint32_t n : {0u, 1u, 1000u, 70'000u}) {
+        SCOPED_TRACE(n);
+        std::vector<TriVerts> by_id(n);
+        for (TriVerts& t : by_id) {
+            for (int a = 0; a < 3; ++a) {
+                t.v0[a] = rng.uniform(-1, 1);
+                t.v1[a] = rng.uniform(-1, 1);
+                t.v2[a] = rng.uniform(-1, 1);
+            }
+        }
+        std::vector<uint32_t> refs;
+        if (n > 0) {
+            for (size_t i = 0; i < 2 * size_t{n}; ++i) {
+                // Mostly neighbours of the last reference (as leaves are), sometimes anywhere;
+                // ids of the top fifth never.
+                const uint32_t limit = n - n / 5;
+                const uint32_t id = refs.empty() || rng.below(4) == 0
+                                        ? rng.below(limit)
+                                        : (refs.back() + rng.below(7)) % limit;
+                refs.push_back(id);
+            }
+        }
+        // The oracle: one pass in reference order.
+        std::vector<uint32_t> slots(n, ~0u), ids, rewritten;
+        for (const uint32_t id : refs) {
+            if (slots[id] == ~0u) {
+                slots[id] = static_cast<uint32_t>(ids.size());
+                ids.push_back(id);
+            }
+            rewritten.push_back(slots[id]);
+        }
+        for (uint32_t id = 0; id < n; ++id) {
+            if (slots[id] != ~0u) continue;
+            slots[id] = static_cast<uint32_t>(ids.size());
+            ids.push_back(id);
+        }
+        for (const int threads : {1, 2, 4}) {
+            SCOPED_TRACE(threads);
+            KdTree tree;
+            tbb::task_arena arena(threads);
+            arena.execute([&] { detail::order_triangles(tree, refs, by_id); });
+            ASSERT_EQ(tree.tri_ids.size(), n);
+            EXPECT_TRUE(std::equal(tree.tri_ids.begin(), tree.tri_ids.end(), ids.begin()));
+            EXPECT_EQ(tree.tri_slots, slots);
+            ASSERT_EQ(tree.leaf_refs.size(), refs.size());
+            EXPECT_TRUE(
+                std::equal(tree.leaf_refs.begin(), tree.leaf_refs.end(), rewritten.begin()));
+            ASSERT_EQ(tree.tris.size(), n);
+            for (uint32_t slot = 0; slot < n; ++slot) {
+                ASSERT_EQ(std::memcmp(&tree.tris[slot], &by_id[ids[slot]], sizeof(TriVerts)), 0)
+                    << slot;
+            }
+        }
+    }
+}
+
+// uninitialized_tree_array sizes a tree array without writing it; what is written is read back.
+TEST(KdBuild, UninitializedTreeArrayHasItsSize) {
+    for (const size_t n : {size_t{0}, size_t{1}, size_t{100'000}}) {
+        TreeArray<uint32_t> a = uninitialized_tree_array<uint32_t>(n);
+        ASSERT_EQ(a.size(), n);
+        ASSERT_EQ(a.capacity(), n);
+        for (size_t i = 0; i < n; ++i) a[i] = static_cast<uint32_t>(i * 7);
+        for (size_t i = 0; i < n; ++i) ASSERT_EQ(a[i], i * 7);
+    }
+    // Other constructions still value-initialise.
+    TreeArray<uint32_t> zeros(1000);
+    EXPECT_EQ(std::count(zeros.begin(), zeros.end(), 0u), 1000);
+}
+
+// The binned levels map a reference's six bounds to bins two at a time (BoundsBinMap). Each
+// answer must be the scalar BinMap's: random ranges and bin counts, a flat axis (one bin), and
+// coordinates at and next to the range's ends and the bin boundaries, inside and outside.
+TEST(KdBinned, SixBoundsAtOnceBinAsOneAtATime) {
+    Rng rng(test_seed() + 440);
+    for (int round = 0; round < 2000; ++round) {
+        SCOPED_TRACE(round);
+        std::array<detail::BinMap, 3> maps;
+        std::array<std::pair<float, float>, 3> ranges;
+        for (int a = 0; a < 3; ++a) {
+            const float scale = std::ldexp(1.0f, static_cast<int>(rng.below(40)) - 20);
+            const float lo = rng.uniform(-1, 1) * scale;
+            const float hi = round % 7 == a ? lo : lo + rng.uniform(0, 2) * scale;
+            const auto bins = 4 + rng.below(253);
+            const double extent = double{hi} - lo;
+            maps[a] = extent > 0 ? detail::BinMap{lo, bins / extent, bins} : detail::BinMap{};
+            ranges[a] = {lo, hi};
+        }
+        const detail::BoundsBinMap six(maps);
+        auto coordinate = [&](int a) {
+            const auto [lo, hi] = ranges[a];
+            const double extent = double{hi} - lo;
+            switch (rng.below(6)) {
+                case 0:
+                    return lo;
+                case 1:
+                    return hi;
+                case 2: {  // a bin boundary, or a neighbour of it
+                    const uint32_t b = rng.below(maps[a].count + 1);
+                    const auto x = static_cast<float>(lo + extent * b / maps[a].count);
+                    const int step = static_cast<int>(rng.below(3)) - 1;
+                    return step == 0 ? x : std::nextafter(x, step * INFINITY);
+                }
+                case 3:
+                    return lo - rng.uniform(0, 1) * static_cast<float>(extent);  // below
+                case 4:
+                    return hi + rng.uniform(0, 1) * static_cast<float>(extent);  // above
+                default:
+                    return lo + rng.uniform() * static_cast<float>(extent);
+            }
+        };
+        std::array<float, 3> lo{}, hi{};
+        for (int a = 0; a < 3; ++a) {
+            lo[a] = coordinate(a);
+            hi[a] = coordinate(a);
+        }
+        std::array<uint32_t, 6> bins{};
+        six(lo, hi, bins);
+        for (int a = 0; a < 3; ++a) {
+            EXPECT_EQ(bins[detail::BoundsBinMap::kLo[a]], maps[a](lo[a]))
+                << "axis " << a << " lo " << lo[a];
+            EXPECT_EQ(bins[detail::BoundsBinMap::kHi[a]], maps[a](hi[a]))
+                << "axis " << a << " hi " << hi[a];
+        }
+    }
 }
 
 struct ClipCase {
