@@ -17,7 +17,7 @@ namespace {
 
 namespace fs = std::filesystem;
 
-void flip_byte(const fs::path& path, size_t offset) {
+void flip_tree_byte(const fs::path& path, size_t offset) {
     std::fstream f(path, std::ios::in | std::ios::out | std::ios::binary);
     ASSERT_TRUE(f) << path;
     f.seekg(static_cast<std::streamoff>(offset));
@@ -68,7 +68,7 @@ TEST(HttpCache, CorruptTreeFileIsRebuiltNotServed) {
     }
     const fs::path tree_file = dir.path() / "cache" / "meshes" / (id + ".tree");
     ASSERT_TRUE(fs::exists(tree_file));
-    flip_byte(tree_file, fs::file_size(tree_file) / 2);
+    flip_tree_byte(tree_file, fs::file_size(tree_file) / 2);
 
     ServerProcess server({.cache_dir = dir.path() / "cache"});
     auto cli = server.client();
