@@ -18,6 +18,12 @@ def _box():
     return v, t
 
 
+def _box_and_empty_scene(server):
+    """A client of `server`, the box uploaded there (its mesh id) and an empty scene."""
+    client = kdrt.Client(server.url)
+    return client, client.upload(*_box()), kdrt.Scene(client)
+
+
 def _rays_at(x, n=64, seed=1):
     """Rays along -z through the unit square shifted by x."""
     rng = np.random.default_rng(seed)
@@ -31,10 +37,7 @@ def _rays_at(x, n=64, seed=1):
 
 
 def test_identity_scene_answers_as_the_mesh(server):
-    client = kdrt.Client(server.url)
-    v, t = _box()
-    mesh = client.upload(v, t)
-    scene = kdrt.Scene(client)
+    client, mesh, scene = _box_and_empty_scene(server)
     assert scene.add_triangles(mesh) == 0
     rays = _rays_at(0, 200, seed=3)
     rays[::7, 3:] = [0.3, 0.2, -1]
@@ -51,10 +54,7 @@ def test_identity_scene_answers_as_the_mesh(server):
 
 
 def test_identity_scene_scans_as_the_mesh_and_checks_the_answer(server):
-    client = kdrt.Client(server.url)
-    v, t = _box()
-    mesh = client.upload(v, t)
-    scene = kdrt.Scene(client)
+    client, mesh, scene = _box_and_empty_scene(server)
     scene.add_triangles(mesh)
     lidar = dict(azimuth_steps=64, vertical_fov=(-40, 40), channels=16, returns=2,
                  pose=[[1, 0, 0, 0.5], [0, 1, 0, 0.5], [0, 0, 1, 0.5], [0, 0, 0, 1]])
@@ -114,10 +114,7 @@ def test_geometry_ids_poses_and_revisions(server):
 
 
 def test_refusals_name_the_instance_and_field(server):
-    client = kdrt.Client(server.url)
-    v, t = _box()
-    mesh = client.upload(v, t)
-    scene = kdrt.Scene(client)
+    client, mesh, scene = _box_and_empty_scene(server)
     scene.add_triangles(mesh)
     scene.add_triangles("0" * 64)
     with pytest.raises(kdrt.Error) as e:
