@@ -24,6 +24,11 @@ struct CliOptions {
     std::string binary = {};            ///< the program to run; empty: KDRT_CLI_BINARY
 };
 
+/// Whether `text` (a captured stdout or stderr) contains `part`.
+inline bool contains(const std::string& text, const std::string& part) {
+    return text.find(part) != std::string::npos;
+}
+
 /// Runs `kdrt args...` and waits for it.
 CliRun run_cli(const std::vector<std::string>& args, const CliOptions& options = {});
 

@@ -17,10 +17,6 @@
 namespace kdrt::test {
 namespace {
 
-bool contains(const std::string& text, const std::string& part) {
-    return text.find(part) != std::string::npos;
-}
-
 class CliScan : public ::testing::Test {
 protected:
     static void SetUpTestSuite() {

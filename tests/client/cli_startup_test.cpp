@@ -36,10 +36,6 @@ std::vector<std::string> ldd(const std::string& binary) {
     return lines;
 }
 
-bool contains(const std::string& text, const std::string& part) {
-    return text.find(part) != std::string::npos;
-}
-
 TEST(CliStartup, LoadsFewSharedLibrariesAndNoImageLibrary) {
     const std::vector<std::string> libs = ldd(KDRT_CLI_BINARY);
     ASSERT_FALSE(libs.empty()) << "ldd printed nothing for " << KDRT_CLI_BINARY;

@@ -33,10 +33,6 @@ std::vector<std::string> lines_of(const std::string& text) {
     return lines;
 }
 
-bool contains(const std::string& text, const std::string& part) {
-    return text.find(part) != std::string::npos;
-}
-
 class Cli : public ::testing::Test {
 protected:
     static void SetUpTestSuite() {

@@ -17,7 +17,7 @@ namespace kdrt::test {
 namespace {
 
 /// The server's max_distance_points in this suite: smaller than the batches sent.
-constexpr uint32_t kServerMaxPoints = 700;
+constexpr uint32_t kDistanceServerMaxPoints = 700;
 
 class ClientDistance : public ::testing::Test {
 protected:
@@ -25,7 +25,7 @@ protected:
         dir_ = new TempDir();
         server_ = new ServerProcess(
             {.cache_dir = dir_->path() / "cache",
-             .args = {"--max-distance-points", std::to_string(kServerMaxPoints)}});
+             .args = {"--max-distance-points", std::to_string(kDistanceServerMaxPoints)}});
         sphere_ = new Mesh(uv_sphere({0.5f, 0.5f, 0.5f}, 0.4f, 16, 32));
         sphere_tree_ = new KdTree(build_kdtree(*sphere_));
         Rng rng(test_seed() + 13);

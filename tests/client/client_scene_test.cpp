@@ -26,7 +26,7 @@ namespace kdrt::test {
 namespace {
 
 /// The server's max_distance_points in this suite: smaller than the point batches sent.
-constexpr uint32_t kServerMaxPoints = 300;
+constexpr uint32_t kSceneServerMaxPoints = 300;
 
 proto::PoseEntry pose_of(std::optional<uint32_t> geometry_id, std::string name,
                          const proto::Transform& transform) {
@@ -63,7 +63,7 @@ protected:
         dir_ = new TempDir();
         server_ = new ServerProcess(
             {.cache_dir = dir_->path() / "cache",
-             .args = {"--max-distance-points", std::to_string(kServerMaxPoints)}});
+             .args = {"--max-distance-points", std::to_string(kSceneServerMaxPoints)}});
         sphere_ = new Mesh(uv_sphere({0.5f, 0.5f, 0.5f}, 0.4f, 12, 20));
         Rng rng(test_seed() + 23);
         soup_ = new Mesh(random_soup(rng, 300, 0.2f));

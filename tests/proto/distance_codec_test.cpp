@@ -13,7 +13,7 @@
 namespace kdrt::proto {
 namespace {
 
-uint32_t bits(float f) { return std::bit_cast<uint32_t>(f); }
+uint32_t float_bits(float f) { return std::bit_cast<uint32_t>(f); }
 
 std::vector<ClosestPoint> sample_answers() {
     std::vector<ClosestPoint> out(3);
@@ -31,7 +31,7 @@ TEST(DistanceCodec, PointsRoundTrip) {
     ASSERT_TRUE(back) << back.error().to_string();
     ASSERT_EQ(back->size(), 2u);
     for (size_t i = 0; i < 2; ++i)
-        for (int a = 0; a < 3; ++a) EXPECT_EQ(bits((*back)[i][a]), bits(points[i][a]));
+        for (int a = 0; a < 3; ++a) EXPECT_EQ(float_bits((*back)[i][a]), float_bits(points[i][a]));
     EXPECT_TRUE(decode_points(encode_points({}))) << "an empty batch is valid";
 }
 
@@ -77,11 +77,11 @@ TEST(DistanceCodec, DistancesRoundTripBitForBit) {
         ASSERT_EQ(back->points.size(), answers.size());
         for (size_t i = 0; i < answers.size(); ++i) {
             const ClosestPoint &a = answers[i], &b = back->points[i];
-            EXPECT_EQ(bits(a.distance), bits(b.distance));
+            EXPECT_EQ(float_bits(a.distance), float_bits(b.distance));
             EXPECT_EQ(a.prim, b.prim);
-            EXPECT_EQ(bits(a.u), bits(b.u));
-            EXPECT_EQ(bits(a.v), bits(b.v));
-            for (int k = 0; k < 3; ++k) EXPECT_EQ(bits(a.point[k]), bits(b.point[k]));
+            EXPECT_EQ(float_bits(a.u), float_bits(b.u));
+            EXPECT_EQ(float_bits(a.v), float_bits(b.v));
+            for (int k = 0; k < 3; ++k) EXPECT_EQ(float_bits(a.point[k]), float_bits(b.point[k]));
             EXPECT_EQ(a.feature, b.feature);
             EXPECT_EQ(a.side, b.side);
         }

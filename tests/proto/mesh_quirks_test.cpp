@@ -13,12 +13,8 @@
 namespace kdrt::proto {
 namespace {
 
-Mesh one_triangle() {
-    Mesh m;
-    m.positions = {0, 0, 0, 1, 0, 0, 0, 1, 0};
-    m.indices = {0, 1, 2};
-    return m;
-}
+/// The triangle every quirk file holds: (0,0,0), (1,0,0), (0,1,0).
+Mesh quirk_triangle() { return test::make_mesh({0, 0, 0, 1, 0, 0, 0, 1, 0}, {0, 1, 2}); }
 
 Mesh load_quirk(const std::string& name, std::vector<std::string>* warnings = nullptr) {
     const auto path = test::test_data("quirks/" + name);
@@ -35,7 +31,7 @@ Mesh load_quirk(const std::string& name, std::vector<std::string>* warnings = nu
 }
 
 TEST(MeshQuirks, EveryExporterQuirkLoadsTheSameTriangle) {
-    const std::string want = mesh_id(one_triangle());
+    const std::string want = mesh_id(quirk_triangle());
     for (const char* name : {"ascii_crlf.stl", "binary_solid_header.stl",
                              "crlf_objinfo_faceprops.ply", "blender247.ply"}) {
         SCOPED_TRACE(name);
@@ -51,7 +47,7 @@ TEST(MeshQuirks, EveryExporterQuirkLoadsTheSameTriangle) {
     const Mesh obj = load_quirk("blender_crlf.obj");
     ASSERT_EQ(obj.triangle_count(), 4u);
     for (size_t t = 0; t < 4; ++t)
-        for (int c = 0; c < 3; ++c) EXPECT_EQ(obj.corner(t, c), one_triangle().corner(0, c));
+        for (int c = 0; c < 3; ++c) EXPECT_EQ(obj.corner(t, c), quirk_triangle().corner(0, c));
 }
 
 TEST(MeshQuirks, BlenderCreatedByLineIsSkippedWithAWarning) {

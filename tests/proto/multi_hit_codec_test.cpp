@@ -15,7 +15,7 @@
 namespace kdrt::proto {
 namespace {
 
-struct Sample {
+struct HitSample {
     std::vector<uint64_t> offsets{0, 2, 2, 3};
     std::vector<uint32_t> counts{5, 0, 1};
     std::vector<Hit> hits{Hit{1.5f, 7, 0.25f, 0.125f}, Hit{2.75f, 3, 0.5f, 0.0f},
@@ -39,7 +39,7 @@ std::vector<HitLayout> all_layouts() {
 uint32_t bits(float f) { return std::bit_cast<uint32_t>(f); }
 
 TEST(MultiHitCodec, RoundTripsEveryLayoutBitIdentical) {
-    const Sample s;
+    const HitSample s;
     for (const HitLayout layout : all_layouts()) {
         SCOPED_TRACE(testing::Message() << hit_fields_name(layout.fields) << " n=" << layout.normal
                                         << " p=" << layout.point);
@@ -67,7 +67,7 @@ TEST(MultiHitCodec, RoundTripsEveryLayoutBitIdentical) {
 }
 
 TEST(MultiHitCodec, FullRecordsAreKdrhRecords) {
-    const Sample s;
+    const HitSample s;
     const auto body = encode_multi_hits(s.view({}));
     const size_t records = kdrm_body_size(3, 0, {});
     ASSERT_EQ(body.size(), records + 3 * 16);
@@ -88,7 +88,7 @@ DecodeErrorCode code_of(const std::vector<std::byte>& body, const DecodeLimits& 
 }
 
 TEST(MultiHitCodec, RefusesBadBodies) {
-    const Sample s;
+    const HitSample s;
     const auto good = encode_multi_hits(s.view({HitFields::kTPrim, true, false}));
     auto body = good;
     body.resize(31);
@@ -146,7 +146,7 @@ TEST(MultiHitCodec, EmptyAnswer) {
 }
 
 TEST(MultiHitCodec, HitPointsAsPly) {
-    const Sample s;
+    const HitSample s;
     auto decoded = decode_multi_hits(encode_multi_hits(s.view({HitFields::kTPrim, true, true})));
     ASSERT_TRUE(decoded);
     const std::vector<std::byte> ply = encode_hit_points_ply(*decoded);

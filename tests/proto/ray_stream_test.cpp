@@ -42,7 +42,7 @@ Outcome stream_decode(const std::vector<std::byte>& body, Cut cut, bool declare,
             return std::span<Ray>(storage);
         },
         declare ? std::optional<uint64_t>(body.size()) : std::nullopt);
-    test::Rng rng(seed);
+    kdrt::test::Rng rng(seed);
     size_t at = 0;
     while (at < body.size()) {
         size_t n = body.size() - at;
@@ -109,14 +109,14 @@ void expect_like_decode_rays(const std::vector<std::byte>& body, const std::stri
 
 TEST(RayStreamDecoder, AgreesWithDecodeRaysOnValidBatches) {
     for (const size_t count : {size_t{0}, size_t{1}, size_t{3}, size_t{1000}}) {
-        const std::vector<Ray> rays = test::rays_towards_unit_cube(count, count + 1);
+        const std::vector<Ray> rays = kdrt::test::rays_towards_unit_cube(count, count + 1);
         expect_like_decode_rays(encode_rays(rays, false), std::to_string(count) + " rays");
         expect_like_decode_rays(encode_rays(rays, true), std::to_string(count) + " occlusion rays");
     }
 }
 
 TEST(RayStreamDecoder, AgreesWithDecodeRaysOnEveryRefusal) {
-    const std::vector<Ray> rays = test::rays_towards_unit_cube(50, 3);
+    const std::vector<Ray> rays = kdrt::test::rays_towards_unit_cube(50, 3);
     const std::vector<std::byte> good = encode_rays(rays, false);
     auto with = [&](size_t offset, std::initializer_list<uint8_t> bytes) {
         std::vector<std::byte> b = good;
@@ -163,7 +163,8 @@ TEST(RayStreamDecoder, AgreesWithDecodeRaysOnEveryRefusal) {
 }
 
 TEST(RayStreamDecoder, ADeclaredSizeRefusesEarly) {
-    const std::vector<std::byte> body = encode_rays(test::rays_towards_unit_cube(100, 5), false);
+    const std::vector<std::byte> body =
+        encode_rays(kdrt::test::rays_towards_unit_cube(100, 5), false);
     RayStreamDecoder decoder(
         {},
         [](uint32_t, bool) -> std::span<Ray> {
@@ -180,14 +181,15 @@ TEST(RayStreamDecoder, ADeclaredSizeRefusesEarly) {
 }
 
 TEST(RayStreamDecoder, StorageOfTheWrongSizeIsAProgrammingError) {
-    const std::vector<std::byte> body = encode_rays(test::rays_towards_unit_cube(4, 5), false);
+    const std::vector<std::byte> body =
+        encode_rays(kdrt::test::rays_towards_unit_cube(4, 5), false);
     std::vector<Ray> storage(3);
     RayStreamDecoder decoder({}, [&](uint32_t, bool) { return std::span<Ray>(storage); });
     EXPECT_THROW((void)decoder.feed(body), std::logic_error);
 }
 
 TEST(RayBatchAnswers, WrittenInPlaceTheyEqualTheEncoders) {
-    test::Rng rng(11);
+    kdrt::test::Rng rng(11);
     for (const uint32_t count : {0u, 1u, 5u, 1000u}) {
         std::vector<Hit> hits(count);
         std::vector<uint8_t> occluded(count);
