@@ -494,7 +494,7 @@ TEST(KdBuild, TriangleLeafOrderIsTheSerialOneAtAnyThreadCount) {
             SCOPED_TRACE(threads);
             KdTree tree;
             TreeArray<TriVerts> buffer(n);
-            std::memset(static_cast<void*>(buffer.data()), 0xA5, n * sizeof(TriVerts));
+            if (n > 0) std::memset(static_cast<void*>(buffer.data()), 0xA5, n * sizeof(TriVerts));
             const TriVerts* const memory = buffer.data();
             tbb::task_arena arena(threads);
             arena.execute(
