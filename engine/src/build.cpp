@@ -2,6 +2,9 @@
 #include <chrono>
 #include <cmath>
 #include <span>
+#include <stdexcept>
+#include <string>
+#include <utility>
 
 #include <tbb/parallel_for.h>
 #include <tbb/parallel_invoke.h>
@@ -36,9 +39,10 @@ void for_triangle_chunks(size_t n, const Body& body) {
 
 }  // namespace
 
-std::vector<uint8_t> prepare_triangles(const Mesh& mesh, std::vector<TriVerts>& tris) {
+std::vector<uint8_t> prepare_triangles(const Mesh& mesh, TreeArray<TriVerts>& tris) {
     const size_t n = mesh.triangle_count();
-    tris.resize(n);
+    // Not zero-filled: every element is written below, by the chunk that first touches it.
+    tris = uninitialized_tree_array<TriVerts>(n);
     std::vector<uint8_t> degenerate(n, 0);
     for_triangle_chunks(n, [&](size_t, size_t begin, size_t end) {
         for (size_t i = begin; i < end; ++i) {
@@ -51,17 +55,13 @@ std::vector<uint8_t> prepare_triangles(const Mesh& mesh, std::vector<TriVerts>& 
             const double cz = e1[0] * e2[1] - e1[1] * e2[0];
             const bool is_degenerate = cx == 0.0 && cy == 0.0 && cz == 0.0;
             degenerate[i] = is_degenerate ? 1 : 0;
-            // A degenerate triangle becomes a point: every edge function is then exactly zero and
-            // the watertight test rejects it for any ray, in the tree and in the brute-force
-            // oracle alike.
-            const Vec3 c1 = is_degenerate ? v0 : v1, c2 = is_degenerate ? v0 : v2;
-            tris[i] = TriVerts{{v0.x, v0.y, v0.z}, {c1.x, c1.y, c1.z}, {c2.x, c2.y, c2.z}};
+            tris[i] = mesh_triangle(mesh, i, is_degenerate);
         }
     });
     return degenerate;
 }
 
-Aabb root_cell(const std::vector<TriVerts>& tris, const std::vector<uint8_t>& degenerate) {
+Aabb root_cell(std::span<const TriVerts> tris, const std::vector<uint8_t>& degenerate) {
     // Per-chunk bounds, combined in chunk order.
     std::vector<Aabb> partial((tris.size() + kTriangleChunk - 1) / kTriangleChunk);
     for_triangle_chunks(tris.size(), [&](size_t c, size_t begin, size_t end) {
@@ -92,14 +92,17 @@ Aabb root_cell(const std::vector<TriVerts>& tris, const std::vector<uint8_t>& de
     return box;
 }
 
-void order_triangles(KdTree& tree, std::span<const uint32_t> refs,
-                     const std::vector<TriVerts>& by_id) {
+void order_triangles(KdTree& tree, std::span<const uint32_t> refs, const Mesh& mesh,
+                     std::span<const uint8_t> degenerate, TreeArray<TriVerts>&& buffer) {
     // Numbering the triangles is one pass in reference order on one thread: the passes it takes
     // to number them in parallel chunks (a parallel least-position pass, a count, the slots, the
     // references) each read the big id arrays at random, and together cost more than the one
     // serial pass (tests/bench/README.md). The references and ids are written once, into arrays
     // that are not zero-filled first.
-    const auto n = static_cast<uint32_t>(by_id.size());
+    const auto n = static_cast<uint32_t>(mesh.triangle_count());
+    if (buffer.size() != n || degenerate.size() != n)
+        throw std::invalid_argument("order_triangles: the buffer and the degenerate flags need " +
+                                    std::to_string(n) + " triangles, the mesh's count");
     const size_t m = refs.size();
     constexpr uint32_t kUnplaced = ~0u;
     tree.tri_slots.assign(n, kUnplaced);
@@ -120,15 +123,20 @@ void order_triangles(KdTree& tree, std::span<const uint32_t> refs,
         tree.tri_slots[id] = next;
         tree.tri_ids[next++] = id;
     }
-    // The triangles in leaf order, in parallel chunks: the array is not zero-filled first (on 64
-    // bunnies, 174 MB on one thread before the gather), so each thread's chunks are written once.
-    tree.tris = uninitialized_tree_array<TriVerts>(n);
+    // The triangles in leaf order, in parallel chunks, made again from the mesh into `buffer`
+    // (the build's triangles by id, no longer read): on 64 bunnies a fresh 174 MB array took
+    // 0.4-0.7 s to fault in on this machine's virtual memory, the gather itself 20-70 ms.
+    tree.tris = std::move(buffer);
     for_triangle_chunks(n, [&](size_t, size_t begin, size_t end) {
-        for (size_t slot = begin; slot < end; ++slot) tree.tris[slot] = by_id[tree.tri_ids[slot]];
+        for (size_t slot = begin; slot < end; ++slot) {
+            const uint32_t id = tree.tri_ids[slot];
+            tree.tris[slot] = mesh_triangle(mesh, id, degenerate[id] != 0);
+        }
     });
 }
 
-void finish_tree(KdTree& tree, SubTree&& sub, const std::vector<TriVerts>& by_id) {
+void finish_tree(KdTree& tree, SubTree&& sub, const Mesh& mesh, std::span<const uint8_t> degenerate,
+                 TreeArray<TriVerts>&& buffer) {
     // The node arrays and the triangles' leaf order touch different members and do not depend on
     // each other, so they are made side by side (on 16 bunnies each was about 0.8% of the
     // build's instructions, on one thread after the parallel build).
@@ -137,7 +145,7 @@ void finish_tree(KdTree& tree, SubTree&& sub, const std::vector<TriVerts>& by_id
             tree.nodes = cluster_nodes(sub.nodes);
             tree.wide_nodes = make_wide_nodes(tree.nodes);
         },
-        [&] { order_triangles(tree, sub.refs, by_id); });
+        [&] { order_triangles(tree, sub.refs, mesh, degenerate, std::move(buffer)); });
     // compute_stats reads the nodes and the arrays' sizes, mark_leaf_runs writes the references'
     // last-reference bits: they run side by side too.
     const double build_ms = tree.stats.build_ms;
@@ -156,9 +164,9 @@ std::vector<TriVerts> triangles_by_id(const KdTree& tree) {
 }
 
 std::vector<TriVerts> make_tri_verts(const Mesh& mesh) {
-    std::vector<TriVerts> tris;
-    detail::prepare_triangles(mesh, tris);
-    return tris;
+    TreeArray<TriVerts> by_id;
+    detail::prepare_triangles(mesh, by_id);
+    return {by_id.begin(), by_id.end()};
 }
 
 KdTree detail::build_kdtree_with(const Mesh& mesh, const BuildOptions& options,
@@ -167,7 +175,7 @@ KdTree detail::build_kdtree_with(const Mesh& mesh, const BuildOptions& options,
     validate_mesh(mesh);
     KdTree tree;
     tree.options = options;
-    std::vector<TriVerts> by_id;
+    TreeArray<TriVerts> by_id;
     const std::vector<uint8_t> degenerate = detail::prepare_triangles(mesh, by_id);
     tree.bounds = detail::root_cell(by_id, degenerate);
     detail::SubTree sub;
@@ -180,7 +188,8 @@ KdTree detail::build_kdtree_with(const Mesh& mesh, const BuildOptions& options,
     }
     tree.stats.build_ms =
         std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();
-    detail::finish_tree(tree, std::move(sub), by_id);
+    // The triangles by id are not read after the build: their array becomes tree.tris.
+    detail::finish_tree(tree, std::move(sub), mesh, degenerate, std::move(by_id));
     return tree;
 }
 

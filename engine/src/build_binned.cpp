@@ -162,7 +162,7 @@ void for_chunks(size_t n, const Body& body) {
 
 class BinnedBuilder {
 public:
-    BinnedBuilder(const std::vector<TriVerts>& tris, const BuildOptions& options,
+    BinnedBuilder(std::span<const TriVerts> tris, const BuildOptions& options,
                   const BinnedParams& params)
         : tris_(tris),
           params_(params),
@@ -401,7 +401,7 @@ private:
         }
     }
 
-    const std::vector<TriVerts>& tris_;
+    std::span<const TriVerts> tris_;
     BinnedParams params_;
     SahCost cost_;
     uint32_t bins_;
@@ -411,7 +411,7 @@ private:
 
 }  // namespace
 
-void build_binned(const std::vector<TriVerts>& tris, const std::vector<uint8_t>& degenerate,
+void build_binned(std::span<const TriVerts> tris, const std::vector<uint8_t>& degenerate,
                   const Aabb& root, const BuildOptions& options, const BinnedParams& params,
                   SubTree& out) {
     // The root's references in triangle order, degenerate triangles left out: each chunk of

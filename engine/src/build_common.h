@@ -51,23 +51,38 @@ inline void splice(SubTree& tree, uint32_t slot, const SubTree& child) {
     tree.max_depth = tree.max_depth > child.max_depth ? tree.max_depth : child.max_depth;
 }
 
-/// Fills tree.tris from the mesh, collapsing degenerate (zero-area) triangles to a point so that
-/// no ray/triangle test can ever report them. Returns, per triangle, whether it is degenerate.
-std::vector<uint8_t> prepare_triangles(const Mesh& mesh, std::vector<TriVerts>& tris);
+/// The triangle with mesh id `i` as the builders and the tree store it: its three corners, or, for
+/// a degenerate (zero-area) one, its first corner three times, so that no ray/triangle test can
+/// ever report it (every edge function is then exactly zero, so the watertight test rejects it for
+/// any ray, in the tree and in the brute-force oracle alike).
+inline TriVerts mesh_triangle(const Mesh& mesh, size_t i, bool degenerate) noexcept {
+    const Vec3 v0 = mesh.corner(i, 0);
+    const Vec3 v1 = degenerate ? v0 : mesh.corner(i, 1), v2 = degenerate ? v0 : mesh.corner(i, 2);
+    return TriVerts{{v0.x, v0.y, v0.z}, {v1.x, v1.y, v1.z}, {v2.x, v2.y, v2.z}};
+}
+
+/// Fills `tris` with mesh_triangle of every triangle of the mesh, by id (sized without a
+/// zero-fill, each element first touched by the parallel chunk that writes it). Returns, per
+/// triangle, whether it is degenerate.
+std::vector<uint8_t> prepare_triangles(const Mesh& mesh, TreeArray<TriVerts>& tris);
 
 /// Root cell: the bounds of the non-degenerate triangles, padded by a small relative margin so
 /// that ray clipping is robust and flat meshes get a cell with volume.
-Aabb root_cell(const std::vector<TriVerts>& tris, const std::vector<uint8_t>& degenerate);
+Aabb root_cell(std::span<const TriVerts> tris, const std::vector<uint8_t>& degenerate);
 
 /// Fills tree.leaf_refs with `refs` (mesh triangle ids, leaf after leaf) rewritten as indices into
-/// tree.tris, and tree.tris, tri_ids and tri_slots with every triangle of `by_id` in leaf order:
+/// tree.tris, and tree.tris, tri_ids and tri_slots with every triangle of `mesh` in leaf order:
 /// numbered by first reference, then the unreferenced ones by id. The numbering is one serial
-/// pass; the triangles are gathered in parallel chunks into an array that is not zero-filled.
-void order_triangles(KdTree& tree, std::span<const uint32_t> refs,
-                     const std::vector<TriVerts>& by_id);
+/// pass; the triangles (mesh_triangle, `degenerate` per id) are written in parallel chunks into
+/// `buffer`, which becomes tree.tris: any array of the mesh's triangle count (its contents are
+/// overwritten, never read). The build passes the triangles by id it no longer needs, so tree.tris
+/// takes memory that is already mapped instead of a fresh array to fault in.
+void order_triangles(KdTree& tree, std::span<const uint32_t> refs, const Mesh& mesh,
+                     std::span<const uint8_t> degenerate, TreeArray<TriVerts>&& buffer);
 
-/// Moves a finished SubTree into `tree` (its nodes in cache lines, the triangles `by_id` in leaf
-/// order) and fills the statistics (build_ms excluded).
-void finish_tree(KdTree& tree, SubTree&& sub, const std::vector<TriVerts>& by_id);
+/// Moves a finished SubTree into `tree` (its nodes in cache lines, the triangles in leaf order:
+/// order_triangles, into `buffer`) and fills the statistics (build_ms excluded).
+void finish_tree(KdTree& tree, SubTree&& sub, const Mesh& mesh, std::span<const uint8_t> degenerate,
+                 TreeArray<TriVerts>&& buffer);
 
 }  // namespace kdrt::detail

@@ -58,7 +58,7 @@ struct SahCost {
 /// concurrently from oneTBB tasks of the same arena.
 class ExactSahBuilder {
 public:
-    ExactSahBuilder(const std::vector<TriVerts>& tris, const BuildOptions& options);
+    ExactSahBuilder(std::span<const TriVerts> tris, const BuildOptions& options);
     ~ExactSahBuilder();
     ExactSahBuilder(const ExactSahBuilder&) = delete;
     ExactSahBuilder& operator=(const ExactSahBuilder&) = delete;
@@ -169,7 +169,7 @@ private:
 /// SAH build with min-max binned splits (Shevtsov et al. 2007, all three axes in one pass,
 /// parallel over references) on nodes of at least params.exact_below references, and the exact
 /// sweep below. Deterministic: byte-identical output at any thread count.
-void build_binned(const std::vector<TriVerts>& tris, const std::vector<uint8_t>& degenerate,
+void build_binned(std::span<const TriVerts> tris, const std::vector<uint8_t>& degenerate,
                   const Aabb& root, const BuildOptions& options, const BinnedParams& params,
                   SubTree& out);
 
@@ -179,7 +179,7 @@ void build_binned(const std::vector<TriVerts>& tris, const std::vector<uint8_t>&
                                        const BinnedParams& params);
 
 /// The "hack" tree: middle of the largest extent, fixed leaf size and depth. Baseline only.
-void build_middle(const std::vector<TriVerts>& tris, const std::vector<uint8_t>& degenerate,
+void build_middle(std::span<const TriVerts> tris, const std::vector<uint8_t>& degenerate,
                   const Aabb& root, const BuildOptions& options, SubTree& out);
 
 }  // namespace kdrt::detail

@@ -12,7 +12,7 @@ namespace kdrt::detail {
 namespace {
 
 struct MiddleBuilder {
-    const std::vector<TriVerts>& tris;
+    std::span<const TriVerts> tris;
     std::vector<Aabb> boxes;  // per triangle vertex bounds
     uint32_t leaf_size;
     uint32_t max_depth;
@@ -55,7 +55,7 @@ struct MiddleBuilder {
 
 }  // namespace
 
-void build_middle(const std::vector<TriVerts>& tris, const std::vector<uint8_t>& degenerate,
+void build_middle(std::span<const TriVerts> tris, const std::vector<uint8_t>& degenerate,
                   const Aabb& root, const BuildOptions& options, SubTree& out) {
     MiddleBuilder builder{
         tris, std::vector<Aabb>(tris.size()), std::max(options.middle_leaf_size, 1u),

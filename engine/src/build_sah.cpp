@@ -320,7 +320,7 @@ struct SweepSetup {
 
 class SahBuilder {
 public:
-    SahBuilder(const std::vector<TriVerts>& tris, const BuildOptions& options)
+    SahBuilder(std::span<const TriVerts> tris, const BuildOptions& options)
         : tris_(tris),
           cost_(SahCost::from(options)),
           max_depth_(static_cast<uint32_t>(std::clamp(options.max_depth, 0, kMaxDepth))),
@@ -671,7 +671,7 @@ private:
         }
     }
 
-    const std::vector<TriVerts>& tris_;
+    std::span<const TriVerts> tris_;
     SahCost cost_;
     uint32_t max_depth_;
     tbb::enumerable_thread_specific<Scratch> scratch_;
@@ -717,7 +717,7 @@ struct ExactSahBuilder::Impl {
     SahBuilder builder;
 };
 
-ExactSahBuilder::ExactSahBuilder(const std::vector<TriVerts>& tris, const BuildOptions& options)
+ExactSahBuilder::ExactSahBuilder(std::span<const TriVerts> tris, const BuildOptions& options)
     : impl_(std::make_unique<Impl>(Impl{SahBuilder(tris, options)})) {}
 
 ExactSahBuilder::~ExactSahBuilder() = default;

@@ -77,10 +77,45 @@ namespace kdrt {
 
 // Wide nodes (issue 23): each binary inner node that starts a treelet is collapsed with the two
 // levels below it. Treelets are numbered depth first, so a subtree's wide nodes are close together.
+namespace {
+
+/// The number of wide nodes make_wide_nodes makes of `nodes`: the treelet roots, i.e. the root
+/// and every inner node three levels below a treelet root. One pass over the inner nodes, so the
+/// array is allocated once at its final size (grown by emplace_back, each doubling was a fresh
+/// 2 MiB-aligned allocation to fault in and copy: on 64 bunnies most of make_wide_nodes' wall
+/// time).
+size_t count_wide_nodes(std::span<const KdNode> nodes) {
+    size_t count = 1;
+    std::vector<uint32_t> roots{0u};
+    while (!roots.empty()) {
+        const uint32_t root = roots.back();
+        roots.pop_back();
+        for (uint32_t c1 = nodes[root].first_child(); c1 < nodes[root].first_child() + 2; ++c1) {
+            if (nodes[c1].is_leaf()) continue;
+            for (uint32_t c2 = nodes[c1].first_child(); c2 < nodes[c1].first_child() + 2; ++c2) {
+                if (nodes[c2].is_leaf()) continue;
+                for (uint32_t c3 = nodes[c2].first_child(); c3 < nodes[c2].first_child() + 2;
+                     ++c3) {
+                    if (nodes[c3].is_leaf()) continue;
+                    ++count;
+                    roots.push_back(c3);
+                }
+            }
+        }
+    }
+    return count;
+}
+
+}  // namespace
+
 TreeArray<WideNode> make_wide_nodes(std::span<const KdNode> nodes) {
-    TreeArray<WideNode> out;
-    if (nodes.empty() || nodes[0].is_leaf()) return out;
+    if (nodes.empty() || nodes[0].is_leaf()) return {};
     constexpr uint32_t kMaxIndex = KdNode::kMaxField;
+    const size_t count = count_wide_nodes(nodes);
+    // A wide node's index must fit a slot (the root's is never named by one).
+    if (count - 1 > kMaxIndex) throw std::length_error("too many wide nodes");
+    // Every element is written below (out[at] = w, once for each index handed out).
+    TreeArray<WideNode> out = uninitialized_tree_array<WideNode>(count);
     // A leaf's slot names its first reference (the kernel reads its run from there); an empty
     // leaf's names its node (only the counting kernels visit it).
     const auto leaf_slot = [](const KdNode& n, uint32_t index) {
@@ -90,7 +125,7 @@ TreeArray<WideNode> make_wide_nodes(std::span<const KdNode> nodes) {
         return WideNode::make_slot(WideNode::kSlotLeaf, n.first_ref());
     };
     std::vector<std::pair<uint32_t, uint32_t>> pending{{0u, 0u}};  // (binary root, wide index)
-    out.emplace_back();
+    uint32_t next = 1;  // the next wide index to hand out, in the same order as emplace_back did
     while (!pending.empty()) {
         const auto [root, at] = pending.back();
         pending.pop_back();
@@ -133,9 +168,7 @@ TreeArray<WideNode> make_wide_nodes(std::span<const KdNode> nodes) {
                         w.slot[s] = leaf_slot(nodes[c3], c3);
                         continue;
                     }
-                    if (out.size() > kMaxIndex) throw std::length_error("too many wide nodes");
-                    const auto child = static_cast<uint32_t>(out.size());
-                    out.emplace_back();
+                    const uint32_t child = next++;
                     w.slot[s] = WideNode::make_slot(WideNode::kSlotNode, child);
                     pending.emplace_back(c3, child);
                 }

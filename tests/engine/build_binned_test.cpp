@@ -10,6 +10,7 @@
 #include <cstdint>
 #include <cstring>
 #include <limits>
+#include <stdexcept>
 #include <string>
 #include <vector>
 
@@ -434,17 +435,33 @@ TEST(KdBuild, ChunkedSetUpLeavesDegenerateTrianglesOut) {
 // must be, at any thread count, what one pass in reference order gives: triangles numbered by
 // first reference, then the unreferenced ones by id; the references rewritten to those numbers.
 // References are drawn so that a triangle's references often fall in different chunks (and
-// threads), in either order, and many triangles are never referenced.
+// threads), in either order, and many triangles are never referenced. The triangles are made
+// from the mesh into the buffer given (the build's triangles by id, whose memory tree.tris then
+// reuses): every one of its old values is overwritten, a degenerate triangle is its first corner
+// three times.
 TEST(KdBuild, TriangleLeafOrderIsTheSerialOneAtAnyThreadCount) {
     Rng rng(test_seed() + 430);
     for (const uint32_t n : {0u, 1u, 1000u, 70'000u}) {
         SCOPED_TRACE(n);
+        Mesh mesh;
+        std::vector<uint8_t> degenerate(n, 0);
         std::vector<TriVerts> by_id(n);
-        for (TriVerts& t : by_id) {
+        for (uint32_t id = 0; id < n; ++id) {
+            // Vertices shared with the previous triangle now and then, as in a real mesh.
+            for (int c = 0; c < 3; ++c) {
+                if (id > 0 && c < 2 && rng.below(3) == 0) {
+                    mesh.indices.push_back(mesh.indices[3 * (id - 1) + c + 1]);
+                    continue;
+                }
+                mesh.indices.push_back(static_cast<uint32_t>(mesh.vertex_count()));
+                for (int a = 0; a < 3; ++a) mesh.positions.push_back(rng.uniform(-1, 1));
+            }
+            degenerate[id] = rng.below(9) == 0 ? 1 : 0;  // flags are the caller's: any will do
+            TriVerts& t = by_id[id];
             for (int a = 0; a < 3; ++a) {
-                t.v0[a] = rng.uniform(-1, 1);
-                t.v1[a] = rng.uniform(-1, 1);
-                t.v2[a] = rng.uniform(-1, 1);
+                t.v0[a] = mesh.corner(id, 0)[a];
+                t.v1[a] = degenerate[id] ? t.v0[a] : mesh.corner(id, 1)[a];
+                t.v2[a] = degenerate[id] ? t.v0[a] : mesh.corner(id, 2)[a];
             }
         }
         std::vector<uint32_t> refs;
@@ -476,8 +493,13 @@ TEST(KdBuild, TriangleLeafOrderIsTheSerialOneAtAnyThreadCount) {
         for (const int threads : {1, 2, 4}) {
             SCOPED_TRACE(threads);
             KdTree tree;
+            TreeArray<TriVerts> buffer(n);
+            if (n > 0) std::memset(static_cast<void*>(buffer.data()), 0xA5, n * sizeof(TriVerts));
+            const TriVerts* const memory = buffer.data();
             tbb::task_arena arena(threads);
-            arena.execute([&] { detail::order_triangles(tree, refs, by_id); });
+            arena.execute(
+                [&] { detail::order_triangles(tree, refs, mesh, degenerate, std::move(buffer)); });
+            EXPECT_EQ(tree.tris.data(), memory) << "tree.tris is the buffer given";
             ASSERT_EQ(tree.tri_ids.size(), n);
             EXPECT_TRUE(std::equal(tree.tri_ids.begin(), tree.tri_ids.end(), ids.begin()));
             EXPECT_EQ(tree.tri_slots, slots);
@@ -491,6 +513,27 @@ TEST(KdBuild, TriangleLeafOrderIsTheSerialOneAtAnyThreadCount) {
             }
         }
     }
+}
+
+// order_triangles writes the mesh's triangles into the buffer it is given: a buffer or degenerate
+// flags of another size than the mesh's triangle count are refused with a message naming them.
+TEST(KdBuild, TriangleLeafOrderRefusesABufferOfAnotherSize) {
+    const Mesh mesh = box_mesh(0.0f, 1.0f);
+    const size_t n = mesh.triangle_count();
+    const std::vector<uint32_t> refs{0, 1};
+    const std::vector<uint8_t> flags(n, 0), short_flags(n - 1, 0);
+    for (const size_t size : {n - 1, n + 1}) {
+        KdTree tree;
+        try {
+            detail::order_triangles(tree, refs, mesh, flags, TreeArray<TriVerts>(size));
+            ADD_FAILURE() << "a buffer of " << size << " triangles for " << n << " was taken";
+        } catch (const std::invalid_argument& e) {
+            EXPECT_NE(std::string(e.what()).find("buffer"), std::string::npos) << e.what();
+        }
+    }
+    KdTree tree;
+    EXPECT_THROW(detail::order_triangles(tree, refs, mesh, short_flags, TreeArray<TriVerts>(n)),
+                 std::invalid_argument);
 }
 
 // uninitialized_tree_array sizes a tree array without writing it; what is written is read back.

@@ -206,6 +206,30 @@ TEST(WideNodeLayout, BunnyAndSoupTreesExpandBackToTheBinaryTree) {
     }
 }
 
+// make_wide_nodes counts the treelets first and allocates its array once at that size: grown
+// element by element, every doubling was a fresh (2 MiB-aligned, huge-page) allocation to fault in
+// and copy, and the array kept up to half its capacity as slack.
+TEST(WideNodeLayout, WideNodesAreAllocatedOnceAtTheirFinalSize) {
+    auto mesh = proto::load_mesh_file(std::string(KDRT_TEST_DATA_DIR) + "/bunny00.off");
+    ASSERT_TRUE(mesh.ok());
+    const KdTree bunny = build_kdtree(*mesh);
+    const size_t n = bunny.wide_nodes.size();
+    // Growth by doubling ends at a power of two: the bunny's count is none, so slack would show.
+    ASSERT_NE(n & (n - 1), 0u) << n << " wide nodes";
+    EXPECT_EQ(bunny.wide_nodes.capacity(), n);
+    const TreeArray<WideNode> again = make_wide_nodes(bunny.nodes);
+    ASSERT_EQ(again.size(), n);
+    EXPECT_EQ(again.capacity(), n);
+    EXPECT_EQ(std::memcmp(again.data(), bunny.wide_nodes.data(), n * sizeof(WideNode)), 0)
+        << "the same nodes, in the same order";
+    Rng rng(test_seed() ^ 0x31de);
+    for (size_t tris : {1, 5, 300, 3000}) {
+        const KdTree soup = build_kdtree(random_soup(rng, tris));
+        EXPECT_EQ(soup.wide_nodes.capacity(), soup.wide_nodes.size()) << tris << " triangles";
+        expect_wide_nodes_are_the_tree(soup, "soup of " + std::to_string(tris));
+    }
+}
+
 std::vector<Isa> isas_here() {
     std::vector<Isa> out;
     for (Isa isa : {Isa::kScalar, Isa::kSse4, Isa::kAvx2, Isa::kAvx512})
