@@ -389,6 +389,57 @@ TEST(WideKernel, SetUpAndLastLeafRunsMatchBruteForceEveryIsa) {
     }
 }
 
+/// The AVX2 leaf test picks each triangle's nine floats in the ray's frame once per ray
+/// (wide::TriPick in wide_kernel.h): its permutes differ for each of the six frames (kz the
+/// direction's largest axis, kx and ky swapped by its sign), and the triangle's last float (v2's
+/// z) lands in a different lane of the picked row in each, or in the separate c_z column. Rays
+/// at every triangle's centroid, along each frame's axis, both ways, against brute force: a frame
+/// whose pick dropped or moved a coordinate loses hits (or finds wrong ones).
+TEST(WideKernel, LeafBlocksInEveryRayFrameMatchBruteForce) {
+    Rng rng(test_seed() ^ 0xF4A3);
+    const Mesh soup = random_soup(rng, 400, 0.3f);
+    const KdTree tree = build_kdtree(soup);
+    const std::vector<TriVerts> tris = triangles_by_id(tree);
+    for (int axis = 0; axis < 3; ++axis) {
+        for (float sign : {1.0f, -1.0f}) {
+            std::vector<Ray> rays;
+            for (const TriVerts& t : tris) {
+                const Vec3 c{(t.v0[0] + t.v1[0] + t.v2[0]) / 3.0f,
+                             (t.v0[1] + t.v1[1] + t.v2[1]) / 3.0f,
+                             (t.v0[2] + t.v1[2] + t.v2[2]) / 3.0f};
+                Vec3 d{rng.uniform(-0.6f, 0.6f), rng.uniform(-0.6f, 0.6f),
+                       rng.uniform(-0.6f, 0.6f)};
+                d[axis] = sign;
+                rays.push_back(make_ray(c - d * 3.0f, d));
+                rays.push_back(make_ray(c - d * 3.0f, d, 0.0f, 2.5f));  // stops short: occlusion
+            }
+            const std::vector<Hit> want = brute_force_all(tris, rays);
+            std::vector<uint8_t> want_occ(rays.size());
+            size_t hits = 0, blocked = 0, missed = 0;
+            for (size_t i = 0; i < rays.size(); ++i) {
+                want_occ[i] = brute_force_occluded(tris, rays[i]) ? 1 : 0;
+                hits += want[i].prim != kNoHit ? 1 : 0;
+                blocked += want_occ[i];
+                missed += want_occ[i] ? 0 : 1;
+            }
+            // Nearly every ray at a centroid hits; the short ones are occluded only sometimes.
+            ASSERT_GT(hits, rays.size() * 2 / 5);
+            ASSERT_GT(blocked, 0u);
+            ASSERT_GT(missed, 0u);
+            for (Isa isa : isas_here()) {
+                SCOPED_TRACE("axis " + std::to_string(axis) + (sign > 0 ? " +" : " -") + " / " +
+                             std::string(isa_name(isa)));
+                std::vector<Hit> got(rays.size());
+                intersect(tree, rays, got, {TraceMode::kSingle, isa});
+                expect_same_hits(got, want, rays, tris);
+                std::vector<uint8_t> occ(rays.size());
+                occluded(tree, rays, occ, {TraceMode::kSingle, isa});
+                EXPECT_TRUE(occ == want_occ);
+            }
+        }
+    }
+}
+
 TEST(WideKernel, AxisAlignedGridRaysAlongAndAcrossEverySplitPlane) {
     // A grid of unit squares in z = 0, 1, 2: many split planes coincide with triangle edges and
     // with the rays below, which run along those planes, through grid vertices, and from inside.
