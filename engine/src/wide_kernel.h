@@ -169,20 +169,30 @@ static inline void transpose4(const F4 r[4], F4& c0, F4& c1, F4& c2, F4& c3) {
 struct Hits4 {
     F4 t, v, w, det;
 };
-/// A block's vertices relative to the ray's origin, in the ray's frame: a_x is v0[kx] - org[kx]
-/// per lane (triangle), and so on, as intersect_triangle subtracts them.
-struct Rel4 {
-    F4 a_x, a_y, a_z, b_x, b_y, b_z, c_x, c_y, c_z;
-};
+[[gnu::always_inline]] static inline uint32_t intersect4(const PreparedRay& p,
+                                                         const TriVerts* const tri[4], float tmin,
+                                                         Hits4& out) {
+    // Rows: floats 0..3 (v0 and v1's x) and 4..7 (v1's y, z and v2's x, y) of each triangle, and
+    // float 8 (v2's z) on its own; the 16 bytes read stay inside the 36-byte triangle.
+    F4 r0[4], r1[4];
+    for (int i = 0; i < 4; ++i) {
+        __builtin_memcpy(&r0[i], &tri[i]->v0[0], sizeof(F4));
+        __builtin_memcpy(&r1[i], &tri[i]->v1[1], sizeof(F4));
+    }
+    // Columns: coord[vertex][axis], one lane per triangle.
+    F4 coord[3][3];
+    transpose4(r0, coord[0][0], coord[0][1], coord[0][2], coord[1][0]);
+    transpose4(r1, coord[1][1], coord[1][2], coord[2][0], coord[2][1]);
+    coord[2][2] = F4{tri[0]->v2[2], tri[1]->v2[2], tri[2]->v2[2], tri[3]->v2[2]};
 
-/// The watertight test of one ray against four triangles given relative to its origin: the
-/// arithmetic of intersect_triangle after its subtractions, lane by lane.
-[[gnu::always_inline]] static inline uint32_t test4(const PreparedRay& p, const Rel4& q, float tmin,
-                                                    Hits4& out) {
+    const F4 ox = F4{} + p.org[p.kx], oy = F4{} + p.org[p.ky], oz = F4{} + p.org[p.kz];
+    const F4 a_x = coord[0][p.kx] - ox, a_y = coord[0][p.ky] - oy, a_z = coord[0][p.kz] - oz;
+    const F4 b_x = coord[1][p.kx] - ox, b_y = coord[1][p.ky] - oy, b_z = coord[1][p.kz] - oz;
+    const F4 c_x = coord[2][p.kx] - ox, c_y = coord[2][p.ky] - oy, c_z = coord[2][p.kz] - oz;
     const F4 sx = F4{} + p.sx, sy = F4{} + p.sy, sz = F4{} + p.sz;
-    const F4 ax = q.a_x - sx * q.a_z, ay = q.a_y - sy * q.a_z;
-    const F4 bx = q.b_x - sx * q.b_z, by = q.b_y - sy * q.b_z;
-    const F4 cx = q.c_x - sx * q.c_z, cy = q.c_y - sy * q.c_z;
+    const F4 ax = a_x - sx * a_z, ay = a_y - sy * a_z;
+    const F4 bx = b_x - sx * b_z, by = b_y - sy * b_z;
+    const F4 cx = c_x - sx * c_z, cy = c_y - sy * c_z;
     F4 u = cx * by - cy * bx;
     F4 v = ax * cy - ay * cx;
     F4 w = bx * ay - by * ax;
@@ -201,7 +211,7 @@ struct Rel4 {
     const I4 outside =
         ((u < 0.0f) | (v < 0.0f) | (w < 0.0f)) & ((u > 0.0f) | (v > 0.0f) | (w > 0.0f));
     const F4 det = u + v + w;
-    const F4 az = sz * q.a_z, bz = sz * q.b_z, cz = sz * q.c_z;
+    const F4 az = sz * a_z, bz = sz * b_z, cz = sz * c_z;
     const F4 t_scaled = u * az + v * bz + w * cz;
     const F4 t = t_scaled / det;
     // t >= tmin also rejects NaN.
@@ -210,111 +220,6 @@ struct Rel4 {
     return bits4(hit);
 }
 
-/// The four triangles as stored, picked in the ray's frame block by block (the SSE4 walk, the
-/// packets' leaf_by_lanes, multi_hit.cpp; the AVX2 walk uses the TriPick overload below).
-[[gnu::always_inline]] static inline uint32_t intersect4(const PreparedRay& p,
-                                                         const TriVerts* const tri[4], float tmin,
-                                                         Hits4& out) {
-    // Rows: floats 0..3 (v0 and v1's x) and 4..7 (v1's y, z and v2's x, y) of each triangle, and
-    // float 8 (v2's z) on its own; the 16 bytes read stay inside the 36-byte triangle.
-    F4 r0[4], r1[4];
-    for (int i = 0; i < 4; ++i) {
-        __builtin_memcpy(&r0[i], &tri[i]->v0[0], sizeof(F4));
-        __builtin_memcpy(&r1[i], &tri[i]->v1[1], sizeof(F4));
-    }
-    // Columns: coord[vertex][axis], one lane per triangle.
-    F4 coord[3][3];
-    transpose4(r0, coord[0][0], coord[0][1], coord[0][2], coord[1][0]);
-    transpose4(r1, coord[1][1], coord[1][2], coord[2][0], coord[2][1]);
-    coord[2][2] = F4{tri[0]->v2[2], tri[1]->v2[2], tri[2]->v2[2], tri[3]->v2[2]};
-
-    const F4 ox = F4{} + p.org[p.kx], oy = F4{} + p.org[p.ky], oz = F4{} + p.org[p.kz];
-    const Rel4 q = {coord[0][p.kx] - ox, coord[0][p.ky] - oy, coord[0][p.kz] - oz,
-                    coord[1][p.kx] - ox, coord[1][p.ky] - oy, coord[1][p.kz] - oz,
-                    coord[2][p.kx] - ox, coord[2][p.ky] - oy, coord[2][p.kz] - oz};
-    return test4(p, q, tmin, out);
-}
-
-#if defined(KDRT_WIDE_AVX2)
-/// A ray's pick of a triangle's nine floats in its frame, made once per ray so that a leaf block
-/// needs no per-block choice of columns (intersect4 above picks coord[vertex][k] by the ray's
-/// k's at every block, through memory). Lane j of a row holds vertex j / 3 (0, 1, 2) on axis
-/// (kx, ky, kz)[j % 3], so lanes 0..7 are a_x a_y a_z b_x b_y b_z c_x c_y, float f(j) = 3 (j / 3)
-/// + k of the 36-byte triangle; c_z (float 6 + kz) is read on its own. A row is one permute of
-/// floats 0..7 or (for f = 8, v2's z) of floats 1..8, so both loads stay inside the triangle.
-struct TriPick {
-    __m256i from_lo;  ///< f(j) (lanes with f = 8 take from_hi's)
-    __m256i from_hi;  ///< f(j) - 1
-    __m256 use_hi;    ///< sign bit set where f(j) = 8
-    __m256 org;       ///< the origin on lane j's axis: org[k(j)]
-    int cz;           ///< float index of v2[kz]
-};
-
-/// The pick tables by kx * 3 + ky (kz is the third axis): f(j) one byte a lane.
-struct PickBytes {
-    uint64_t f[9];
-    uint64_t axis[9];  ///< k(j), one byte a lane
-    constexpr PickBytes() : f{}, axis{} {
-        for (uint32_t kx = 0; kx < 3; ++kx)
-            for (uint32_t ky = 0; ky < 3; ++ky) {
-                const uint32_t k[3] = {kx, ky, 3 - kx - ky};
-                for (uint32_t j = 0; j < 8; ++j) {
-                    f[kx * 3 + ky] |= static_cast<uint64_t>(3 * (j / 3) + k[j % 3]) << (8 * j);
-                    axis[kx * 3 + ky] |= static_cast<uint64_t>(k[j % 3]) << (8 * j);
-                }
-            }
-    }
-};
-inline constexpr PickBytes kPickBytes{};
-
-static inline TriPick make_tri_pick(const PreparedRay& p, __m256 xyz_org) {
-    const int key = p.kx * 3 + p.ky;
-    const __m256i f =
-        _mm256_cvtepu8_epi32(_mm_cvtsi64_si128(static_cast<long long>(kPickBytes.f[key])));
-    const __m256i axis =
-        _mm256_cvtepu8_epi32(_mm_cvtsi64_si128(static_cast<long long>(kPickBytes.axis[key])));
-    return {f, _mm256_sub_epi32(f, _mm256_set1_epi32(1)),
-            _mm256_castsi256_ps(_mm256_cmpeq_epi32(f, _mm256_set1_epi32(8))),
-            _mm256_permutevar8x32_ps(xyz_org, axis), 6 + p.kz};
-}
-
-/// intersect4 with the ray's pick (TriPick): each triangle's row in the ray's frame by one permute
-/// of each of two loads and a blend, minus the origin in one 8-lane subtraction, then one 4x8
-/// transpose. The same subtractions of the same floats, so the same answers bit for bit.
-[[gnu::always_inline]] static inline uint32_t intersect4(const PreparedRay& p, const TriPick& pk,
-                                                         const TriVerts* const tri[4], float tmin,
-                                                         Hits4& out) {
-    __m256 row[4];
-    float cz_v[4];
-    for (int i = 0; i < 4; ++i) {
-        const char* bytes = reinterpret_cast<const char*>(tri[i]);
-        __m256 lo, hi;
-        __builtin_memcpy(&lo, bytes, sizeof lo);      // floats 0..7
-        __builtin_memcpy(&hi, bytes + 4, sizeof hi);  // floats 1..8
-        row[i] =
-            _mm256_sub_ps(_mm256_blendv_ps(_mm256_permutevar8x32_ps(lo, pk.from_lo),
-                                           _mm256_permutevar8x32_ps(hi, pk.from_hi), pk.use_hi),
-                          pk.org);
-        __builtin_memcpy(&cz_v[i], bytes + 4 * pk.cz, sizeof(float));
-    }
-    // Per 128-bit half: t0 = (a_x, a_y | b_y, b_z) of triangles 0, 1 interleaved, and so on.
-    const __m256 t0 = _mm256_unpacklo_ps(row[0], row[1]), t1 = _mm256_unpackhi_ps(row[0], row[1]);
-    const __m256 t2 = _mm256_unpacklo_ps(row[2], row[3]), t3 = _mm256_unpackhi_ps(row[2], row[3]);
-    const F8 c0 = reinterpret_cast<F8>(_mm256_shuffle_ps(t0, t2, 0x44));  // a_x | b_y
-    const F8 c1 = reinterpret_cast<F8>(_mm256_shuffle_ps(t0, t2, 0xEE));  // a_y | b_z
-    const F8 c2 = reinterpret_cast<F8>(_mm256_shuffle_ps(t1, t3, 0x44));  // a_z | c_x
-    const F8 c3 = reinterpret_cast<F8>(_mm256_shuffle_ps(t1, t3, 0xEE));  // b_x | c_y
-    const F4 oz = F4{} + p.org[p.kz];
-    const Rel4 q = {
-        __builtin_shufflevector(c0, c0, 0, 1, 2, 3), __builtin_shufflevector(c1, c1, 0, 1, 2, 3),
-        __builtin_shufflevector(c2, c2, 0, 1, 2, 3), __builtin_shufflevector(c3, c3, 0, 1, 2, 3),
-        __builtin_shufflevector(c0, c0, 4, 5, 6, 7), __builtin_shufflevector(c1, c1, 4, 5, 6, 7),
-        __builtin_shufflevector(c2, c2, 4, 5, 6, 7), __builtin_shufflevector(c3, c3, 4, 5, 6, 7),
-        F4{cz_v[0], cz_v[1], cz_v[2], cz_v[3]} - oz};
-    return test4(p, q, tmin, out);
-}
-#endif
-
 /// A ray's per-axis values: as 8-lane broadcasts (org[a], ...), and the three axes in lanes 0..2
 /// of one vector each (xyz_org, ...) for a per-lane pick by permute.
 struct Ray8 {
@@ -322,9 +227,6 @@ struct Ray8 {
     F8 org[3], inv[3], eps[3];  // the 8-lane permute picks from xyz_* instead
 #endif
     F8 xyz_org, xyz_inv, xyz_eps;
-#if defined(KDRT_WIDE_AVX2)
-    TriPick pick;  // the leaf tests' pick of each triangle's floats in the ray's frame
-#endif
 };
 
 /// One cell to visit: a slot word of WideNode (tag and index) with the ray's interval there.
@@ -674,9 +576,6 @@ template <bool Checked = false>
     r.r8.xyz_org = __builtin_shufflevector(o, zero, 0, 1, 2, 4, 4, 4, 4, 4);
     r.r8.xyz_inv = __builtin_shufflevector(inv, zero, 0, 1, 2, 4, 4, 4, 4, 4);
     r.r8.xyz_eps = __builtin_shufflevector(eps, zero, 0, 1, 2, 4, 4, 4, 4, 4);
-#if defined(KDRT_WIDE_AVX2)
-    r.r8.pick = wide::make_tri_pick(p, reinterpret_cast<__m256>(r.r8.xyz_org));
-#endif
     r.ray_tmin = ray.tmin;
     r.ray_tmax = ray.tmax;
     // The root: a wide node, or (a tree of one leaf) that leaf.
@@ -759,11 +658,7 @@ template <bool AnyHit, class Counter>
             const TriVerts* const block[4] = {&tris[slot[0]], &tris[slot[1]], &tris[slot[2]],
                                               &tris[slot[3]]};
             wide::Hits4 h;
-#if defined(KDRT_WIDE_AVX2)
-            uint32_t hits = wide::intersect4(r.p, r.r8.pick, block, r.ray_tmin, h);
-#else
             uint32_t hits = wide::intersect4(r.p, block, r.ray_tmin, h);
-#endif
             if constexpr (AnyHit) {
                 if (hits & wide::bits4(h.t <= r.ray_tmax)) {
                     found = true;

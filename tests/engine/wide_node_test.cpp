@@ -389,12 +389,13 @@ TEST(WideKernel, SetUpAndLastLeafRunsMatchBruteForceEveryIsa) {
     }
 }
 
-/// The AVX2 leaf test picks each triangle's nine floats in the ray's frame once per ray
-/// (wide::TriPick in wide_kernel.h): its permutes differ for each of the six frames (kz the
-/// direction's largest axis, kx and ky swapped by its sign), and the triangle's last float (v2's
-/// z) lands in a different lane of the picked row in each, or in the separate c_z column. Rays
-/// at every triangle's centroid, along each frame's axis, both ways, against brute force: a frame
-/// whose pick dropped or moved a coordinate loses hits (or finds wrong ones).
+/// The four-triangle leaf test (wide::intersect4) picks each triangle's nine floats in the ray's
+/// frame: kz the direction's largest axis, kx and ky swapped by its sign, six frames in all, so
+/// the triangle's last float (v2's z) is its c_x, c_y or c_z, by frame. Rays at every triangle's
+/// centroid, along each frame's axis, both ways, closest hit and occlusion, against brute force:
+/// a frame whose pick dropped or moved a coordinate loses hits (or finds wrong ones). (A per-ray
+/// pick by permutes, measured and not kept in tests/bench/README.md, failed this test on the
+/// frames with kx or ky = z when its blend for v2's z was broken.)
 TEST(WideKernel, LeafBlocksInEveryRayFrameMatchBruteForce) {
     Rng rng(test_seed() ^ 0xF4A3);
     const Mesh soup = random_soup(rng, 400, 0.3f);
