@@ -9,6 +9,7 @@
 #include <cstdint>
 #include <cstring>
 #include <limits>
+#include <span>
 #include <stdexcept>
 #include <string>
 #include <utility>
@@ -213,6 +214,22 @@ std::vector<Isa> isas_here() {
     return out;
 }
 
+/// Every ISA's single-ray kernel on `rays`: closest hits against the brute-force `want` (ties as
+/// the oracle helpers accept them), occlusion against `want_occ`.
+void expect_single_rays_answer(const KdTree& tree, std::span<const TriVerts> tris,
+                               std::span<const Ray> rays, std::span<const Hit> want,
+                               const std::vector<uint8_t>& want_occ, const std::string& what) {
+    for (Isa isa : isas_here()) {
+        SCOPED_TRACE(what + " / " + std::string(isa_name(isa)));
+        std::vector<Hit> got(rays.size());
+        intersect(tree, rays, got, {TraceMode::kSingle, isa});
+        expect_same_hits(got, want, rays, tris);
+        std::vector<uint8_t> occ(rays.size());
+        occluded(tree, rays, occ, {TraceMode::kSingle, isa});
+        EXPECT_TRUE(occ == want_occ);
+    }
+}
+
 /// Single rays of every ISA's wide kernel against brute force: closest hits (ties as the oracle
 /// helpers accept them) and occlusion, on oracle_rays' adversarial mix (axis-parallel rays, rays
 /// in split planes, through vertices and edge midpoints, from inside, tmin/tmax windows).
@@ -225,15 +242,7 @@ void expect_single_rays_match_brute_force(const Mesh& mesh, const std::string& w
     std::vector<uint8_t> want_occ(rays.size());
     for (size_t i = 0; i < rays.size(); ++i)
         want_occ[i] = brute_force_occluded(tris, rays[i]) ? 1 : 0;
-    for (Isa isa : isas_here()) {
-        SCOPED_TRACE(what + " / " + std::string(isa_name(isa)));
-        std::vector<Hit> got(rays.size());
-        intersect(tree, rays, got, {TraceMode::kSingle, isa});
-        expect_same_hits(got, want, rays, tris);
-        std::vector<uint8_t> occ(rays.size());
-        occluded(tree, rays, occ, {TraceMode::kSingle, isa});
-        EXPECT_TRUE(occ == want_occ);
-    }
+    expect_single_rays_answer(tree, tris, rays, want, want_occ, what);
 }
 
 TEST(WideKernel, MatchesBruteForceOnAdversarialRaysEveryIsa) {
@@ -427,16 +436,8 @@ TEST(WideKernel, LeafBlocksInEveryRayFrameMatchBruteForce) {
             ASSERT_GT(hits, rays.size() * 2 / 5);
             ASSERT_GT(blocked, 0u);
             ASSERT_GT(missed, 0u);
-            for (Isa isa : isas_here()) {
-                SCOPED_TRACE("axis " + std::to_string(axis) + (sign > 0 ? " +" : " -") + " / " +
-                             std::string(isa_name(isa)));
-                std::vector<Hit> got(rays.size());
-                intersect(tree, rays, got, {TraceMode::kSingle, isa});
-                expect_same_hits(got, want, rays, tris);
-                std::vector<uint8_t> occ(rays.size());
-                occluded(tree, rays, occ, {TraceMode::kSingle, isa});
-                EXPECT_TRUE(occ == want_occ);
-            }
+            expect_single_rays_answer(tree, tris, rays, want, want_occ,
+                                      "axis " + std::to_string(axis) + (sign > 0 ? " +" : " -"));
         }
     }
 }
