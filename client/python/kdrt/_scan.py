@@ -294,7 +294,8 @@ class LidarScan(Mapping):
 def decode_lidar_ranges(body, lidar: dict, geometry_ids: bool = False) -> LidarScan:
     """A KDRB body (with geometry_ids: a scene's, flag bit 8 and the geometry-id plane) as a
     LidarScan; `lidar` is the request's "lidar" object (for the points). The header and the
-    exact size are checked here, the beams when the derived fields are made."""
+    exact size are checked here, that every beam is one of the sensor's when the derived fields
+    are made; the records' order is the server's (the C++ decoder checks it)."""
     if len(body) < 32:
         raise _bad(f"KDRB answer has {len(body)} bytes, fewer than its 32-byte header")
     magic, version, flags, count, channels, steps, returns, reserved = struct.unpack_from(
