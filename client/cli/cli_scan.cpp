@@ -3,6 +3,7 @@
 
 #include <chrono>
 #include <cmath>
+#include <limits>
 #include <optional>
 #include <string>
 #include <vector>
@@ -32,7 +33,7 @@ scans") and writes FILE, whose extension picks the format:
   pinhole: .exr  OpenEXR with float Z (depth) or range, uint prim and, with --normals,
                  N.X N.Y N.Z channels; .kdrz  the KDRZ depth image
   lidar:   .ply  binary PLY point cloud (x y z range channel azimuth_index return_index prim);
-                 .kdrl  the KDRL point cloud
+                 .kdrl  the KDRL point cloud; .kdrb  the compact KDRB record (range, beam, prim)
 Misses: depth +inf, prim 4294967295; a lidar beam without a hit has no point.
 
   --pinhole             a pinhole depth camera (OpenCV frame: +x right, +y down, +z forward;
@@ -40,7 +41,7 @@ Misses: depth +inf, prim 4294967295; a lidar beam without a hit has no point.
   --lidar               a spinning lidar (frame: +x forward = azimuth 0, +y left, +z up;
                         azimuth counter-clockwise seen from above)
   -o, --output FILE     the file to write (required; - for standard output)
-  --format NAME         exr, kdrz (pinhole), ply or kdrl (lidar): the format when FILE's
+  --format NAME         exr, kdrz (pinhole), ply, kdrl or kdrb (lidar): the format when FILE's
                         extension does not say
   --intrinsics FX,FY,CX,CY  focal lengths and principal point in pixels (with --size, --pose)
   --size WxH            image size in pixels (default 640x480 with --eye)
@@ -225,13 +226,15 @@ std::optional<int> scan_request_from_args(Context& ctx, proto::ScanRequest& requ
 proto::Result<ScanFile, int> scan_file_format(Context& ctx, const std::string& output,
                                               bool pinhole) {
     const std::string format_path = ctx.format_path(output);
+    if (!pinhole && ends_with(format_path, ".kdrb")) return ScanFile::kRanges;
     const bool binary = ends_with(format_path, pinhole ? ".kdrz" : ".kdrl");
     if (!binary && !ends_with(format_path, pinhole ? ".exr" : ".ply"))
         return proto::Err{ctx.usage_error(
             (ctx.args.has("format")
                  ? "--format: \"" + *ctx.args.value("format") + "\" is not "
                  : "cannot tell the format of \"" + output + "\" from its extension (") +
-            (pinhole ? "a pinhole scan is .exr or .kdrz" : "a lidar scan is .ply or .kdrl") + ")")};
+            (pinhole ? "a pinhole scan is .exr or .kdrz" : "a lidar scan is .ply, .kdrl or .kdrb") +
+            ")")};
     // An EXR is encoded here: its encoder must load before the scan starts.
     if (pinhole && !binary)
         if (auto failed = ctx.need_image_module()) return proto::Err{*failed};
@@ -287,6 +290,20 @@ int run_scan(Context& ctx) {
             if (!exr) return exr.error();
             bytes = std::move(*exr);
         }
+    } else if (*file == ScanFile::kRanges) {
+        // The compact answer as it came, checked by its decoder.
+        request.format = proto::ScanFormat::kRanges;
+        auto answer = ctx.client->scan(*id, request);
+        if (!answer) return ctx.fail(answer.error());
+        auto ranges = proto::decode_lidar_ranges(*answer, std::numeric_limits<uint32_t>::max());
+        if (!ranges)
+            return ctx.fail(
+                make_client_error(ErrorKind::kProtocol, "bad response",
+                                  "the KDRB scan answer: " + ranges.error().to_string()));
+        points = ranges->points.size();
+        summary = std::to_string(points) + " points from " + std::to_string(ranges->channels) +
+                  " x " + std::to_string(ranges->azimuth_steps) + " beams";
+        bytes = std::move(*answer);
     } else {
         auto cloud = ctx.client->scan_lidar(*id, request);
         if (!cloud) return ctx.fail(cloud.error());

@@ -30,7 +30,9 @@ inline constexpr OptionSpec kScanOptions[] = {
 
 /// What a scan's -o FILE is, from its extension or --format: the binary answer (KDRZ for a
 /// pinhole, KDRL for a lidar) or the user file (EXR, PLY).
-enum class ScanFile { kBinary, kUser };
+/// The server's binary answer (KDRZ / KDRL) written as it came, a user file (EXR / PLY) encoded
+/// here, or a lidar's compact KDRB answer (.kdrb) written as it came.
+enum class ScanFile { kBinary, kUser, kRanges };
 
 /// The format of `output` for a pinhole or a lidar scan; a usage error (printed) otherwise, as its
 /// exit code. For an EXR it loads the image module first (before any request is sent), so a

@@ -609,11 +609,12 @@ format carries the geometry id of each pixel or point (the instance it hit):
                  .kdrz  the server's answer: KDRZ with a geometry-id plane
   lidar:   .ply  binary PLY point cloud (x y z range channel azimuth_index return_index prim)
                  plus a "uint geometry_id" vertex property;
-                 .kdrl  the server's answer: KDRL with a geometry-id plane
+                 .kdrl  the server's answer: KDRL with a geometry-id plane;
+                 .kdrb  the server's compact answer: KDRB (range, beam, prim) with the plane
 (proto/FORMATS.md, "Sensor scans" and "Scenes").
 
   -o, --output FILE   the file to write (required; - for standard output)
-  --format NAME       exr, kdrz (pinhole), ply or kdrl (lidar): the format when FILE's
+  --format NAME       exr, kdrz (pinhole), ply, kdrl or kdrb (lidar): the format when FILE's
                       extension does not say (-o -)
   --revision N        that revision instead of the current one
 
@@ -640,6 +641,7 @@ int run_scan(Context& ctx) {
     if (!revision) return revision.error();
     proto::ScanRequest request;
     if (auto failed = scan_request_from_args(ctx, request)) return *failed;
+    if (*file == ScanFile::kRanges) request.format = proto::ScanFormat::kRanges;
     const std::string& id = ctx.args.positional[0];
     const auto start = Clock::now();
     auto scan = ctx.connect(ctx.client_options()).scan_scene(id, request, *revision);
@@ -661,7 +663,7 @@ int run_scan(Context& ctx) {
         summary = std::to_string(scan->depth->width) + "x" + std::to_string(scan->depth->height) +
                   ", " + std::to_string(hits) + " pixels hit";
     } else {
-        points = scan->cloud->points.size();
+        points = scan->ranges ? scan->ranges->points.size() : scan->cloud->points.size();
         summary = std::to_string(points) + " points";
     }
     report_query(ctx, "scene scan", id, scan->revision, *output,

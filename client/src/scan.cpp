@@ -1,4 +1,5 @@
-// Client::scan_pinhole / scan_lidar: the scan answer decoded with proto (kdrt/proto/scan.h).
+// Client::scan_pinhole / scan_lidar / scan_lidar_ranges: the scan answer decoded with proto
+// (kdrt/proto/scan.h).
 
 #include <limits>
 
@@ -33,6 +34,21 @@ Result<PointCloud> Client::scan_lidar(std::string_view id, proto::ScanRequest re
         return proto::Err{make_client_error(ErrorKind::kProtocol, "bad response",
                                             "the KDRL scan answer: " + cloud.error().to_string())};
     return std::move(*cloud);
+}
+
+Result<proto::LidarRanges> Client::scan_lidar_ranges(std::string_view id,
+                                                     proto::ScanRequest request) {
+    if (!request.lidar)
+        return proto::Err{make_client_error(ErrorKind::kInput, "not a lidar scan",
+                                            "scan_lidar_ranges was given a pinhole request")};
+    request.format = proto::ScanFormat::kRanges;
+    auto bytes = scan(id, request);
+    if (!bytes) return proto::Err{std::move(bytes).error()};
+    auto ranges = proto::decode_lidar_ranges(*bytes, std::numeric_limits<uint32_t>::max());
+    if (!ranges)
+        return proto::Err{make_client_error(ErrorKind::kProtocol, "bad response",
+                                            "the KDRB scan answer: " + ranges.error().to_string())};
+    return std::move(*ranges);
 }
 
 }  // namespace kdrt

@@ -538,11 +538,12 @@ Result<SceneDistanceAnswer> Client::scene_distance(std::string_view id,
 
 Result<SceneScan> Client::scan_scene(std::string_view id, const proto::ScanRequest& request,
                                      std::optional<uint64_t> revision) {
-    if (request.format != proto::ScanFormat::kBinary)
+    const bool ranges = request.lidar && request.format == proto::ScanFormat::kRanges;
+    if (request.format != proto::ScanFormat::kBinary && !ranges)
         return proto::Err{make_client_error(
             ErrorKind::kInput, "bad scan format",
-            "a scene scan answers \"format\": \"binary\" only (KDRZ or KDRL with geometry ids), "
-            "not " +
+            "a scene scan answers \"format\": \"binary\" (KDRZ or KDRL) or, for a lidar, "
+            "\"ranges\" (KDRB), with geometry ids; not " +
                 std::string(proto::scan_format_name(request.format)))};
     const std::string body = proto::encode_scan_request(request);
     const std::string path =
@@ -563,7 +564,12 @@ Result<SceneScan> Client::scan_scene(std::string_view id, const proto::ScanReque
     auto split = proto::split_geometry_ids(out.body, {.max_rays = kNoLimit});
     if (!split)
         return proto::Err{ClientAccess::bad_response(*this, path, split.error().to_string())};
-    if (request.lidar) {
+    if (ranges) {
+        auto decoded = proto::decode_lidar_ranges(split->mesh_body, kNoLimit);
+        if (!decoded)
+            return proto::Err{ClientAccess::bad_response(*this, path, decoded.error().to_string())};
+        out.ranges = std::move(*decoded);
+    } else if (request.lidar) {
         auto cloud = proto::decode_point_cloud(split->mesh_body, kNoLimit);
         if (!cloud)
             return proto::Err{ClientAccess::bad_response(*this, path, cloud.error().to_string())};

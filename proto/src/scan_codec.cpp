@@ -1,5 +1,7 @@
-// KDRZ (depth image) and KDRL (lidar point cloud) codecs, and point clouds as PLY.
+// KDRZ (depth image), KDRL (lidar point cloud) and KDRB (lidar ranges) codecs, and point
+// clouds as PLY.
 
+#include <bit>
 #include <cmath>
 #include <cstring>
 #include <limits>
@@ -40,6 +42,70 @@ std::optional<DecodeError> check_magic(std::span<const std::byte> body, std::str
         return DecodeError{DecodeErrorCode::kBadVersion,
                            "version " + std::to_string(version) + ", expected 1"};
     return std::nullopt;
+}
+
+/// KDRB's beam index is a u32: channels x azimuth_steps at most 2^32.
+constexpr uint64_t kMaxBeams = uint64_t{1} << 32;
+
+/// KDRL's and KDRB's 32-byte header (with `magic`) for `cloud`'s points, at `out`'s start, after
+/// checking the u32 count and the room for `size` bytes. `what` names the writer in errors.
+std::byte* store_cloud_header(std::span<std::byte> out, size_t size, std::string_view magic,
+                              const PointCloud& cloud, const char* what) {
+    if (cloud.points.size() > std::numeric_limits<uint32_t>::max())
+        throw std::length_error(std::string(magic) + " point cloud exceeds the u32 count field");
+    if (out.size() < size) throw std::length_error(std::string(what) + ": the buffer is too small");
+    std::byte* p = out.data();
+    std::memcpy(p, magic.data(), 4);
+    detail::store_le16(p + 4, kBatchVersion);
+    detail::store_le16(p + 6, 0);
+    detail::store_le32(p + 8, static_cast<uint32_t>(cloud.points.size()));
+    detail::store_le32(p + 12, cloud.channels);
+    detail::store_le32(p + 16, cloud.azimuth_steps);
+    detail::store_le32(p + 20, cloud.returns);
+    detail::store_le32(p + 24, 0);
+    detail::store_le32(p + 28, 0);
+    return p + kPointCloudHeaderBytes;
+}
+
+/// The header checks KDRL and KDRB share, in order: size, magic, version, flags 0, reserved 0,
+/// channels, azimuth_steps and returns >= 1 (KDRB: channels x azimuth_steps <= 2^32, its u32
+/// beam index), the count against max_points, the exact size for `record_bytes` a point. Sets
+/// `sensor`'s counts and returns the point count.
+Result<uint32_t, DecodeError> load_cloud_header(std::span<const std::byte> body,
+                                                std::string_view magic, uint32_t max_points,
+                                                size_t record_bytes, PointCloud& sensor) {
+    if (auto e = check_magic(body, magic, kPointCloudHeaderBytes)) return Err{*e};
+    const uint16_t flags = detail::load_le16(body.data() + 6);
+    if (flags != 0)
+        return fail(
+            DecodeErrorCode::kBadFlags,
+            "flags 0x" + hex(flags, 4) + " (no flag is defined for " + std::string(magic) + ")");
+    const uint32_t count = detail::load_le32(body.data() + 8);
+    sensor.channels = detail::load_le32(body.data() + 12);
+    sensor.azimuth_steps = detail::load_le32(body.data() + 16);
+    sensor.returns = detail::load_le32(body.data() + 20);
+    if (detail::load_le32(body.data() + 24) != 0 || detail::load_le32(body.data() + 28) != 0)
+        return fail(DecodeErrorCode::kBadReserved, "reserved bytes 24..31 must be 0");
+    const bool beam_index = record_bytes == kLidarRangeBytes;
+    if (sensor.channels == 0 || sensor.azimuth_steps == 0 || sensor.returns == 0 ||
+        (beam_index && uint64_t{sensor.channels} * sensor.azimuth_steps > kMaxBeams))
+        return fail(DecodeErrorCode::kBadRecord,
+                    "channels " + std::to_string(sensor.channels) + ", azimuth_steps " +
+                        std::to_string(sensor.azimuth_steps) + ", returns " +
+                        std::to_string(sensor.returns) +
+                        (beam_index ? " (each must be at least 1, and channels x azimuth_steps "
+                                      "at most 2^32)"
+                                    : " (each must be at least 1)"));
+    if (count > max_points)
+        return fail(DecodeErrorCode::kTooManyRays, "header says " + std::to_string(count) +
+                                                       " points, more than the limit of " +
+                                                       std::to_string(max_points));
+    const uint64_t want = kPointCloudHeaderBytes + uint64_t{record_bytes} * count;
+    if (body.size() != want)
+        return fail(DecodeErrorCode::kLengthMismatch,
+                    "header says " + std::to_string(count) + " points (" + std::to_string(want) +
+                        " bytes) but body has " + std::to_string(body.size()) + " bytes");
+    return count;
 }
 
 bool is_zero(Vec3 v) { return v.x == 0.0f && v.y == 0.0f && v.z == 0.0f; }
@@ -132,55 +198,20 @@ std::vector<std::byte> encode_point_cloud(const PointCloud& cloud) {
 }
 
 size_t write_point_cloud(std::span<std::byte> out, const PointCloud& cloud) {
-    if (cloud.points.size() > std::numeric_limits<uint32_t>::max())
-        throw std::length_error("KDRL point cloud exceeds the u32 count field");
     const size_t size = kdrl_body_size(cloud.points.size());
-    if (out.size() < size) throw std::length_error("write_point_cloud: the buffer is too small");
-    std::byte* p = out.data();
-    std::memcpy(p, kPointCloudMagic.data(), 4);
-    detail::store_le16(p + 4, kBatchVersion);
-    detail::store_le16(p + 6, 0);
-    detail::store_le32(p + 8, static_cast<uint32_t>(cloud.points.size()));
-    detail::store_le32(p + 12, cloud.channels);
-    detail::store_le32(p + 16, cloud.azimuth_steps);
-    detail::store_le32(p + 20, cloud.returns);
-    detail::store_le32(p + 24, 0);
-    detail::store_le32(p + 28, 0);
+    std::byte* p = store_cloud_header(out, size, kPointCloudMagic, cloud, "write_point_cloud");
     static_assert(sizeof(LidarPoint) == kLidarPointBytes);
     if (!cloud.points.empty())
-        std::memcpy(p + kPointCloudHeaderBytes, cloud.points.data(),
-                    cloud.points.size() * kLidarPointBytes);
+        std::memcpy(p, cloud.points.data(), cloud.points.size() * kLidarPointBytes);
     return size;
 }
 
 Result<PointCloud, DecodeError> decode_point_cloud(std::span<const std::byte> body,
                                                    uint32_t max_points) {
-    if (auto e = check_magic(body, kPointCloudMagic, kPointCloudHeaderBytes)) return Err{*e};
-    const uint16_t flags = detail::load_le16(body.data() + 6);
-    if (flags != 0)
-        return fail(DecodeErrorCode::kBadFlags,
-                    "flags 0x" + hex(flags, 4) + " (no flag is defined for KDRL)");
-    const uint32_t count = detail::load_le32(body.data() + 8);
     PointCloud cloud;
-    cloud.channels = detail::load_le32(body.data() + 12);
-    cloud.azimuth_steps = detail::load_le32(body.data() + 16);
-    cloud.returns = detail::load_le32(body.data() + 20);
-    if (detail::load_le32(body.data() + 24) != 0 || detail::load_le32(body.data() + 28) != 0)
-        return fail(DecodeErrorCode::kBadReserved, "reserved bytes 24..31 must be 0");
-    if (cloud.channels == 0 || cloud.azimuth_steps == 0 || cloud.returns == 0)
-        return fail(DecodeErrorCode::kBadRecord,
-                    "channels " + std::to_string(cloud.channels) + ", azimuth_steps " +
-                        std::to_string(cloud.azimuth_steps) + ", returns " +
-                        std::to_string(cloud.returns) + " (each must be at least 1)");
-    if (count > max_points)
-        return fail(DecodeErrorCode::kTooManyRays, "header says " + std::to_string(count) +
-                                                       " points, more than the limit of " +
-                                                       std::to_string(max_points));
-    const uint64_t want = kdrl_body_size(count);
-    if (body.size() != want)
-        return fail(DecodeErrorCode::kLengthMismatch,
-                    "header says " + std::to_string(count) + " points (" + std::to_string(want) +
-                        " bytes) but body has " + std::to_string(body.size()) + " bytes");
+    auto header = load_cloud_header(body, kPointCloudMagic, max_points, kLidarPointBytes, cloud);
+    if (!header) return Err{std::move(header).error()};
+    const uint32_t count = *header;
     cloud.points.resize(count);
     if (count > 0)
         std::memcpy(cloud.points.data(), body.data() + kPointCloudHeaderBytes,
@@ -222,6 +253,69 @@ Result<PointCloud, DecodeError> decode_point_cloud(std::span<const std::byte> bo
     return cloud;
 }
 
+std::vector<std::byte> encode_lidar_ranges(const PointCloud& cloud) {
+    std::vector<std::byte> out(kdrb_body_size(cloud.points.size()));
+    write_lidar_ranges(out, cloud);
+    return out;
+}
+
+size_t write_lidar_ranges(std::span<std::byte> out, const PointCloud& cloud) {
+    if (uint64_t{cloud.channels} * cloud.azimuth_steps > kMaxBeams)
+        throw std::length_error("KDRB: channels x azimuth_steps exceed the u32 beam index");
+    const size_t size = kdrb_body_size(cloud.points.size());
+    std::byte* p = store_cloud_header(out, size, kLidarRangesMagic, cloud, "write_lidar_ranges");
+    for (const LidarPoint& q : cloud.points) {
+        const auto beam =
+            static_cast<uint32_t>(uint64_t{q.azimuth_index} * cloud.channels + q.channel);
+        detail::store_le32(p, std::bit_cast<uint32_t>(q.range));
+        detail::store_le32(p + 4, beam);
+        detail::store_le32(p + 8, q.prim);
+        p += kLidarRangeBytes;
+    }
+    return size;
+}
+
+Result<LidarRanges, DecodeError> decode_lidar_ranges(std::span<const std::byte> body,
+                                                     uint32_t max_points) {
+    PointCloud sensor;
+    auto header = load_cloud_header(body, kLidarRangesMagic, max_points, kLidarRangeBytes, sensor);
+    if (!header) return Err{std::move(header).error()};
+    const uint32_t count = *header;
+    const uint64_t beams = uint64_t{sensor.channels} * sensor.azimuth_steps;
+    LidarRanges out;
+    out.channels = sensor.channels;
+    out.azimuth_steps = sensor.azimuth_steps;
+    out.returns = sensor.returns;
+    out.points.resize(count);
+    const std::byte* p = body.data() + kPointCloudHeaderBytes;
+    uint32_t run = 0;  // records of the current beam so far
+    for (uint32_t i = 0; i < count; ++i, p += kLidarRangeBytes) {
+        LidarRange& q = out.points[i];
+        q.range = std::bit_cast<float>(detail::load_le32(p));
+        q.beam = detail::load_le32(p + 4);
+        q.prim = detail::load_le32(p + 8);
+        std::string why;
+        if (!std::isfinite(q.range) || !(q.range >= 0.0f))
+            why = "range must be finite and >= 0";
+        else if (q.beam >= beams)
+            why = "beam " + std::to_string(q.beam) + " >= channels x azimuth_steps " +
+                  std::to_string(beams);
+        else if (q.prim == kNoHit)
+            why = "prim 0xffffffff (a miss) is not a return";
+        else if (i > 0 && q.beam < out.points[i - 1].beam)
+            why = "beam " + std::to_string(q.beam) + " comes after a later beam";
+        else {
+            run = i > 0 && q.beam == out.points[i - 1].beam ? run + 1 : 1;
+            if (run > out.returns)
+                why = "beam " + std::to_string(q.beam) + " has more than returns " +
+                      std::to_string(out.returns) + " records";
+        }
+        if (!why.empty())
+            return fail(DecodeErrorCode::kBadRecord, "point " + std::to_string(i) + ": " + why);
+    }
+    return out;
+}
+
 std::vector<std::byte> encode_point_cloud_ply(const PointCloud& cloud,
                                               std::span<const uint32_t> geometry_ids) {
     const bool geoms = !geometry_ids.empty();
@@ -259,6 +353,8 @@ std::string_view scan_format_name(ScanFormat format) noexcept {
             return "exr";
         case ScanFormat::kPly:
             return "ply";
+        case ScanFormat::kRanges:
+            return "ranges";
     }
     return "binary";
 }

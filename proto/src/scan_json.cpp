@@ -304,9 +304,11 @@ Result<ScanRequest, ScanRequestError> decode_scan_request(std::string_view text,
             req.format = ScanFormat::kExr;
         else if (format == "ply" && req.lidar)
             req.format = ScanFormat::kPly;
+        else if (format == "ranges" && req.lidar)
+            req.format = ScanFormat::kRanges;
         else
             fail("format", "unknown format " + quote_value(format) + " for a " +
-                               (req.lidar ? "lidar scan (expected binary or ply)"
+                               (req.lidar ? "lidar scan (expected binary, ply or ranges)"
                                           : "pinhole scan (expected binary or exr)"));
         return req;
     } catch (const Failure& f) {

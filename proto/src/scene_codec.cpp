@@ -225,9 +225,9 @@ Result<PlaneShape, DecodeError> plane_shape(std::span<const std::byte> body,
     const std::string_view magic(reinterpret_cast<const char*>(body.data()), 4);
     PlaneShape shape;
     shape.header_bytes = kBatchHeaderBytes;
-    if (magic == "KDRH" || magic == "KDRD" || magic == "KDRL") {
+    if (magic == "KDRH" || magic == "KDRD" || magic == "KDRL" || magic == "KDRB") {
         shape.records = detail::load_le32(body.data() + 8);
-        if (magic == "KDRL") shape.header_bytes = 32;
+        if (magic == "KDRL" || magic == "KDRB") shape.header_bytes = 32;
     } else if (magic == "KDRZ") {
         shape.records =
             uint64_t{detail::load_le32(body.data() + 8)} * detail::load_le32(body.data() + 12);
@@ -241,8 +241,9 @@ Result<PlaneShape, DecodeError> plane_shape(std::span<const std::byte> body,
     } else {
         std::string shown;
         for (const char c : magic) shown += (c >= 0x20 && c < 0x7F) ? c : '?';
-        return Err{error(DecodeErrorCode::kBadMagic,
-                         "bad magic \"" + shown + "\", expected KDRH, KDRM, KDRD, KDRZ or KDRL")};
+        return Err{
+            error(DecodeErrorCode::kBadMagic,
+                  "bad magic \"" + shown + "\", expected KDRH, KDRM, KDRD, KDRZ, KDRL or KDRB")};
     }
     if (body.size() < shape.header_bytes)
         return Err{error(DecodeErrorCode::kTooShort,

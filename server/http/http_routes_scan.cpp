@@ -1,5 +1,6 @@
 // POST /v1/meshes/{id}/scan: a JSON sensor description -> a KDRZ depth image (or EXR) for a
-// pinhole camera, a KDRL point cloud (or PLY) for a lidar (kdrt/scan.h).
+// pinhole camera, a KDRL point cloud (or PLY, or the compact KDRB ranges) for a lidar
+// (kdrt/scan.h).
 
 #include <optional>
 #include <string>
@@ -122,6 +123,9 @@ void Routes::scan(const httplib::Request& req, httplib::Response& res,
             svc_.compute.run([&] { return scan_lidar(*tree, request->lidar_spec); });
         if (request->format == proto::ScanFormat::kPly)
             return reply_bytes(res, proto::encode_point_cloud_ply(cloud), proto::kPlyMediaType);
+        if (request->format == proto::ScanFormat::kRanges)
+            return reply_bytes(res, proto::encode_lidar_ranges(cloud),
+                               proto::kLidarRangesMediaType);
         return reply_bytes(res, proto::encode_point_cloud(cloud), proto::kPointCloudMediaType);
     }
     const DepthImage image =

@@ -474,12 +474,13 @@ void Routes::scene_scan(const httplib::Request& req, httplib::Response& res,
                         const httplib::ContentReader& reader) {
     auto request = read_scan_request(req, res, reader);
     if (!request) return;
-    if (request->format != proto::ScanFormat::kBinary)
+    const bool ranges = request->format == proto::ScanFormat::kRanges;
+    if (request->format != proto::ScanFormat::kBinary && !ranges)
         return reply_problem(
             req, res,
             field_problem(ProblemKind::kBadRequest, "format",
-                          "a scene scan answers \"format\": \"binary\" only (KDRZ or KDRL with "
-                          "the geometry-id plane); " +
+                          "a scene scan answers \"format\": \"binary\" (KDRZ or KDRL) or, for a "
+                          "lidar, \"ranges\" (KDRB), each with the geometry-id plane; " +
                               std::string(proto::scan_format_name(request->format)) +
                               " cannot carry geometry ids"));
     uint64_t rays = 0, bytes = 0;
@@ -501,12 +502,18 @@ void Routes::scene_scan(const httplib::Request& req, httplib::Response& res,
             svc_.compute.run([&] { return scan_lidar(scene, request->lidar_spec); });
         // Written once into a pooled buffer the answer is sent from: no zeroed allocation, no
         // page faults after warm-up and no copy for the plane (a 64 x 2048 scan is ~3 MB).
-        const size_t size = proto::kdrl_body_size(cloud.cloud.points.size()) +
-                            proto::geometry_id_plane_bytes(cloud.geom.size());
+        // KDRB ("ranges", the compact record) or KDRL, as the request asked.
+        const size_t points = cloud.cloud.points.size();
+        const size_t size =
+            (ranges ? proto::kdrb_body_size(points) : proto::kdrl_body_size(points)) +
+            proto::geometry_id_plane_bytes(cloud.geom.size());
         PooledBuffer answer(svc_.batch_buffers, size);
         const std::span<std::byte> out(answer.data(), size);
-        proto::write_geometry_ids(out, proto::write_point_cloud(out, cloud.cloud), cloud.geom);
-        reply_buffer(res, std::move(answer), size, proto::kPointCloudMediaType);
+        const size_t body = ranges ? proto::write_lidar_ranges(out, cloud.cloud)
+                                   : proto::write_point_cloud(out, cloud.cloud);
+        proto::write_geometry_ids(out, body, cloud.geom);
+        reply_buffer(res, std::move(answer), size,
+                     ranges ? proto::kLidarRangesMediaType : proto::kPointCloudMediaType);
     } else {
         const SceneDepthImage image =
             svc_.compute.run([&] { return scan_pinhole(scene, request->pinhole); });

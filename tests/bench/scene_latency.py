@@ -5,14 +5,16 @@ FRAMES frames in a row on one keep-alive connection.
 
     tests/bench/scene_latency.py BUILD_DIR [--frames 25] [--instances 1000] [--threads 2]
                                            [--mesh FILE] [--cache-dir DIR]
+                                           [--record ranges|points]
 
 Starts BUILD_DIR/server/kdrt-server (a release build) on an ephemeral port, uploads the mesh
 (default tests/data/bunny00.off, scaled into each instance's cell by its transform), creates the
 scene (instances on a grid around the sensor, each turned by its own angle), warms up with one
 frame, then per frame: one KDRX pose batch moving every instance (a new revision, stored durably
-before the answer), then the lidar scan of the new revision (KDRL with geometry ids). Prints the
-median and p90 of the frame, the pose update and the scan, the returns per scan and how many
-distinct geometry ids they hit. The cache directory decides what an fsync costs (default: a temp
+before the answer), then the lidar scan of the new revision (with geometry ids: the compact KDRB
+record, or KDRL with --record points). Prints the median and p90 of the frame, the pose update and
+the scan, the returns per scan and how many distinct geometry ids they hit. With KDRB the points
+are made by the client on first access, after the frame: that is timed on its own line. The cache directory decides what an fsync costs (default: a temp
 directory). No timing is asserted.
 """
 
@@ -80,6 +82,8 @@ def main():
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--mesh", default=os.path.join(HERE, "..", "data", "bunny00.off"))
     ap.add_argument("--cache-dir")
+    ap.add_argument("--record", choices=("ranges", "points"), default="ranges",
+                    help="the scan's answer: KDRB (ranges, the default) or KDRL (points)")
     args = ap.parse_args()
     with tempfile.TemporaryDirectory() as work:
         cache = args.cache_dir or os.path.join(work, "cache")
@@ -97,10 +101,10 @@ def main():
             ids = np.arange(args.instances)
             lidar = dict(azimuth_steps=2048, vertical_fov=(-25, 15), channels=64,
                          pose=[[1, 0, 0, 0.7], [0, 1, 0, 0.3], [0, 0, 1, 0.2], [0, 0, 0, 1]],
-                         max_range=120.0)
+                         max_range=120.0, record=args.record)
             scene.set_transforms(ids, poses(args.instances, 1))  # warm-up frame
-            scene.scan_lidar(**lidar)
-            frame_s, pose_s, scan_s = [], [], []
+            scene.scan_lidar(**lidar)["points"]
+            frame_s, pose_s, scan_s, points_s = [], [], [], []
             returns, geoms = 0, 0
             for f in range(args.frames):
                 p = poses(args.instances, f + 2)
@@ -112,13 +116,17 @@ def main():
                 pose_s.append(t1 - t0)
                 scan_s.append(t2 - t1)
                 frame_s.append(t2 - t0)
-                returns = cloud["points"].shape[0]
+                returns = cloud["range"].shape[0]
                 geoms = len(np.unique(cloud["geometry_ids"]))
+                t3 = time.perf_counter()
+                assert cloud["points"].shape == (returns, 3)
+                points_s.append(time.perf_counter() - t3)
             print(f"scene of {args.instances} instances of {mesh.triangles} triangles, "
                   f"created in {create_s * 1e3:.1f} ms; {args.frames} frames, server threads "
-                  f"{args.threads}, cache {cache}")
+                  f"{args.threads}, cache {cache}, record {args.record}")
             for name, values in (("frame", frame_s), ("pose update", pose_s),
-                                 ("lidar 64x2048", scan_s)):
+                                 ("lidar 64x2048", scan_s),
+                                 ("points (after)", points_s)):
                 print(f"  {name:14s} median {statistics.median(values) * 1e3:7.2f} ms   "
                       f"p90 {pct(values, 90) * 1e3:7.2f} ms")
             print(f"  returns per scan {returns}, distinct geometry ids hit {geoms}, "

@@ -133,7 +133,8 @@ TEST_F(CliScan, LidarFilesHoldTheEnginesScan) {
         "--pose",          "1,0,0,0.1,0,1,0,0.2,0,0,1,-0.1,0,0,0,1"};
     for (const auto& [file, bytes] :
          {std::pair{std::string("cloud.ply"), proto::encode_point_cloud_ply(want)},
-          std::pair{std::string("cloud.kdrl"), proto::encode_point_cloud(want)}}) {
+          std::pair{std::string("cloud.kdrl"), proto::encode_point_cloud(want)},
+          std::pair{std::string("cloud.kdrb"), proto::encode_lidar_ranges(want)}}) {
         std::vector<std::string> args = {"scan", id_, "--lidar", "-o", path(file)};
         args.insert(args.end(), sensor.begin(), sensor.end());
         const CliRun run = kdrt(args);
@@ -188,7 +189,7 @@ TEST_F(CliScan, UsageErrorsExitTwoBeforeAnyRequest) {
         {{"scan", id_, "--pinhole", "--lidar", "-o", out}, "give exactly one of"},
         {{"scan", id_, "--pinhole"}, "missing -o FILE"},
         {{"scan", id_, "--pinhole", "-o", path("x.png")}, "a pinhole scan is .exr or .kdrz"},
-        {{"scan", id_, "--lidar", "-o", path("x.exr")}, "a lidar scan is .ply or .kdrl"},
+        {{"scan", id_, "--lidar", "-o", path("x.exr")}, "a lidar scan is .ply, .kdrl or .kdrb"},
         {{"scan", id_, "--pinhole", "-o", out}, "a pinhole needs --intrinsics"},
         {{"scan", id_, "--pinhole", "-o", out, "--intrinsics", "1,2,3"},
          "--intrinsics: \"1,2,3\" is not four numbers"},

@@ -218,6 +218,15 @@ TEST_F(CliScene, QueryFilesAreTheServersAnswers) {
     for (int k = 0; k < 16; ++k) request.lidar_spec.pose.m[k] = pose[k];
     EXPECT_EQ(as_string(read_bytes(path("s.kdrl"))),
               one_request(id, "scan", proto::encode_scan_request(request), "application/json"));
+    // .kdrb asks for the compact record, written as it came.
+    run = kdrt({"scene", "scan", id, "--lidar", "--elevations", "-10,0,10", "--azimuth-steps", "60",
+                "--pose", "1,0,0,0.5,0,1,0,-2,0,0,1,0.4,0,0,0,1", "-o", path("s.kdrb")});
+    ASSERT_EQ(run.exit_code, 0) << run.err;
+    request.format = proto::ScanFormat::kRanges;
+    const std::string kdrb = as_string(read_bytes(path("s.kdrb")));
+    EXPECT_EQ(kdrb.substr(0, 4), "KDRB");
+    EXPECT_EQ(kdrb,
+              one_request(id, "scan", proto::encode_scan_request(request), "application/json"));
 }
 
 TEST_F(CliScene, ScanUserFilesCarryTheGeometryIdsOfTheBinaryAnswer) {
@@ -341,7 +350,7 @@ TEST_F(CliScene, UsageErrorsAndRefusals) {
     run = kdrt({"scene", "scan", id, "--lidar", "--elevations", "0", "--azimuth-steps", "8", "-o",
                 path("never.exr")});
     EXPECT_EQ(run.exit_code, 2);
-    EXPECT_TRUE(contains(run.err, "a lidar scan is .ply or .kdrl")) << run.err;
+    EXPECT_TRUE(contains(run.err, "a lidar scan is .ply, .kdrl or .kdrb")) << run.err;
     EXPECT_FALSE(std::filesystem::exists(path("never.exr")));
     // An unreachable server: exit 3.
     CliOptions options;

@@ -332,6 +332,24 @@ TEST_F(ClientScene, QueriesEqualTheEngineInChunksOfOneRevision) {
                               sizeof want_cloud.cloud.points[k]),
                   0)
             << k;
+    // The same scan as the compact KDRB record: each return's range, beam and prim, and the same
+    // geometry ids.
+    request.format = proto::ScanFormat::kRanges;
+    auto compact = c.scan_scene(created->id, request);
+    ASSERT_TRUE(compact) << compact.error().to_string();
+    ASSERT_TRUE(compact->ranges);
+    EXPECT_FALSE(compact->cloud);
+    EXPECT_EQ(compact->geometry_ids, want_cloud.geom);
+    ASSERT_EQ(compact->ranges->points.size(), want_cloud.cloud.points.size());
+    EXPECT_EQ(compact->ranges->channels, 5u);
+    for (size_t k = 0; k < want_cloud.cloud.points.size(); ++k) {
+        const LidarPoint& q = want_cloud.cloud.points[k];
+        const proto::LidarRange& r = compact->ranges->points[k];
+        ASSERT_EQ(std::memcmp(&r.range, &q.range, 4), 0) << k;
+        ASSERT_EQ(r.beam, q.azimuth_index * 5 + q.channel) << k;
+        ASSERT_EQ(r.prim, q.prim) << k;
+    }
+    request.format = proto::ScanFormat::kBinary;
 
     // Moved: the current revision answers for the new poses, and revision 1 still for the old.
     const proto::PoseEntry pose = pose_of(0, "", moved(1.0f, {0.3f, 0.2f, 0}));

@@ -76,7 +76,7 @@ write("raw_image", "short_body", kdri(3, 2, 1, 0, 0, 2, 1, [0] * 5))
 write("raw_image", "long_body", kdri(3, 1, 1, 0, 0, 1, 1, [0] * 4))
 write("raw_image", "truncated_header", b"KDRI\x01\x00\x03\x00")
 
-# ---- KDRZ / KDRL (sensor scans) ----
+# ---- KDRZ / KDRL / KDRB (sensor scans) ----
 def kdrz(flags, width, height, planes, version=1):
     return b"KDRZ" + struct.pack("<HHII", version, flags, width, height) + planes
 
@@ -106,6 +106,25 @@ write("scans", "cloud_miss", kdrl([(2, 0, 0, 2, 1, 0, 0, 0xFFFFFFFF)]))
 write("scans", "cloud_huge", kdrl([], count=0xFFFFFFFF))
 write("scans", "cloud_reserved", kdrl(cloud, reserved=1))
 write("scans", "cloud_zero_returns", kdrl(cloud, returns=0))
+
+
+def kdrb(records, channels=2, steps=4, returns=2, count=None, flags=0, reserved=0):
+    n = len(records) if count is None else count
+    return (b"KDRB" + struct.pack("<HHIIIIQ", 1, flags, n, channels, steps, returns, reserved) +
+            b"".join(struct.pack("<f2I", *r) for r in records))
+
+
+ranges = [(2, 1, 7), (3, 3, 2), (4, 3, 3)]
+write("scans", "valid_ranges", kdrb(ranges))
+write("scans", "valid_empty_ranges", kdrb([]))
+write("scans", "ranges_out_of_order", kdrb(ranges[::-1]))
+write("scans", "ranges_too_many_returns", kdrb(ranges, returns=1))
+write("scans", "ranges_bad_beam", kdrb([(2, 8, 7)]))
+write("scans", "ranges_nan", kdrb([(NAN, 1, 7)]))
+write("scans", "ranges_miss", kdrb([(2, 1, 0xFFFFFFFF)]))
+write("scans", "ranges_huge", kdrb([], count=0xFFFFFFFF))
+write("scans", "ranges_beams_over_u32", kdrb([], channels=0x10001, steps=0x10000))
+write("scans", "ranges_scene_flag", kdrb(ranges, flags=0x100))
 
 # ---- KDRM / KDRC ----
 def kdrm(flags, record, rays, offsets, counts, records, max_hits=2, reserved=0):

@@ -1,7 +1,7 @@
 // proto/FORMATS.md: every hex dump in the document is exactly what the codecs produce for the
 // content it describes, in document order (KDRR, KDRH, KDRO, KDRM, KDRC, KDRP, KDRD, KDRI, KDRZ,
-// KDRL, KDRX, a scene's KDRH, KDRS, raw mesh, binary STL, tree blob), and the tree blob's checksum
-// follows the documented algorithm.
+// KDRL, KDRB, KDRX, a scene's KDRH, KDRS, raw mesh, binary STL, tree blob), and the tree blob's
+// checksum follows the documented algorithm.
 
 #include <gtest/gtest.h>
 
@@ -163,6 +163,7 @@ TEST(FormatsDoc, HexExamplesAreWhatTheCodecsWrite) {
         {"KDRI", proto::encode_raw_image(tile, 1, 0, 3, 2)},
         {"KDRZ", proto::encode_depth_image(depth)},
         {"KDRL", proto::encode_point_cloud(cloud)},
+        {"KDRB", proto::encode_lidar_ranges(cloud)},
         {"KDRX", proto::encode_pose_batch(poses)},
         {"KDRH with geometry ids", scene_hits},
         {"KDRS", proto::encode_scene_file(stored_scene)},

@@ -1,8 +1,10 @@
-// KDRZ / KDRL codecs and the PLY writer: round trips bit for bit, and each decoder refusal (header
-// fields, sizes, per-pixel and per-point rules) naming what is wrong.
+// KDRZ / KDRL / KDRB codecs and the PLY writer: round trips bit for bit, and each decoder refusal
+// (header fields, sizes, per-pixel and per-point rules) naming what is wrong.
 
 #include <gtest/gtest.h>
 
+#include <algorithm>
+#include <bit>
 #include <cmath>
 #include <cstring>
 #include <limits>
@@ -36,19 +38,14 @@ PointCloud sample_cloud() {
     return cloud;
 }
 
-void expect_refused(const Result<DepthImage, DecodeError>& r, DecodeErrorCode code,
+/// A decoder's refusal with `code` and `words` in its detail.
+template <typename T>
+void expect_refused(const Result<T, DecodeError>& r, DecodeErrorCode code,
                     const std::string& words) {
     ASSERT_FALSE(r) << "accepted";
     EXPECT_EQ(r.error().code, code) << r.error().to_string();
     EXPECT_NE(r.error().detail.find(words), std::string::npos) << r.error().detail;
 }
-void expect_refused(const Result<PointCloud, DecodeError>& r, DecodeErrorCode code,
-                    const std::string& words) {
-    ASSERT_FALSE(r) << "accepted";
-    EXPECT_EQ(r.error().code, code) << r.error().to_string();
-    EXPECT_NE(r.error().detail.find(words), std::string::npos) << r.error().detail;
-}
-
 TEST(ScanCodec, DepthImageRoundTrips) {
     for (const bool normals : {false, true}) {
         const DepthImage image = sample_image(normals);
@@ -170,6 +167,88 @@ TEST(ScanCodec, PointCloudDecoderRefusals) {
     bad_point([](PointCloud& c) { std::swap(c.points[0], c.points[2]); }, "comes after");
     bad_point([](PointCloud& c) { c.points[1].return_index = 0; }, "point 1: return_index 0 out");
     bad_point([](PointCloud& c) { c.points[2].return_index = 1; }, "point 2: return_index 1 out");
+}
+
+TEST(ScanCodec, LidarRangesCarryEachReturnsRangeBeamAndPrim) {
+    const PointCloud cloud = sample_cloud();
+    const std::vector<std::byte> body = encode_lidar_ranges(cloud);
+    EXPECT_EQ(body.size(), kdrb_body_size(4));
+    EXPECT_EQ(body.size(), 32u + 12u * 4u);
+    std::vector<std::byte> written(body.size() + 5);
+    EXPECT_EQ(write_lidar_ranges(written, cloud), body.size());
+    EXPECT_TRUE(std::equal(body.begin(), body.end(), written.begin()));
+    auto back = decode_lidar_ranges(body);
+    ASSERT_TRUE(back) << back.error().to_string();
+    EXPECT_EQ(back->channels, 3u);
+    EXPECT_EQ(back->azimuth_steps, 5u);
+    EXPECT_EQ(back->returns, 2u);
+    ASSERT_EQ(back->points.size(), cloud.points.size());
+    // Every KDRL field is the KDRB record's or implied by it: channel and azimuth_index by the
+    // beam, return_index by the place among the beam's records.
+    uint32_t place = 0;
+    for (size_t i = 0; i < cloud.points.size(); ++i) {
+        SCOPED_TRACE(i);
+        const LidarPoint& q = cloud.points[i];
+        const LidarRange& r = back->points[i];
+        EXPECT_EQ(std::memcmp(&r.range, &q.range, 4), 0);
+        EXPECT_EQ(r.prim, q.prim);
+        EXPECT_EQ(r.beam % back->channels, q.channel);
+        EXPECT_EQ(r.beam / back->channels, q.azimuth_index);
+        place = i > 0 && r.beam == back->points[i - 1].beam ? place + 1 : 0;
+        EXPECT_EQ(place, q.return_index);
+    }
+    PointCloud empty = cloud;
+    empty.points.clear();
+    auto none = decode_lidar_ranges(encode_lidar_ranges(empty));
+    ASSERT_TRUE(none) << "no returns is valid";
+    EXPECT_TRUE(none->points.empty());
+    // Old decoders refuse the new magic rather than misread it.
+    EXPECT_FALSE(decode_point_cloud(body));
+}
+
+TEST(ScanCodec, LidarRangesDecoderRefusals) {
+    const std::vector<std::byte> good = encode_lidar_ranges(sample_cloud());
+    auto edit = [&](size_t at, std::initializer_list<uint8_t> bytes) {
+        std::vector<std::byte> b = good;
+        for (const uint8_t v : bytes) b[at++] = static_cast<std::byte>(v);
+        return b;
+    };
+    auto record = [&](size_t i, size_t field, uint32_t value) {
+        std::vector<std::byte> b = good;
+        std::memcpy(b.data() + 32 + 12 * i + 4 * field, &value, 4);
+        return b;
+    };
+    expect_refused(decode_lidar_ranges(std::span(good).first(31)), DecodeErrorCode::kTooShort,
+                   "32-byte KDRB");
+    expect_refused(decode_lidar_ranges(encode_point_cloud(sample_cloud())),
+                   DecodeErrorCode::kBadMagic, "\"KDRL\", expected \"KDRB\"");
+    expect_refused(decode_lidar_ranges(edit(4, {2})), DecodeErrorCode::kBadVersion, "version 2");
+    expect_refused(decode_lidar_ranges(edit(7, {1})), DecodeErrorCode::kBadFlags, "0x0100");
+    expect_refused(decode_lidar_ranges(edit(8, {5})), DecodeErrorCode::kLengthMismatch, "5 points");
+    expect_refused(decode_lidar_ranges(edit(12, {0})), DecodeErrorCode::kBadRecord, "channels 0");
+    expect_refused(decode_lidar_ranges(edit(16, {0})), DecodeErrorCode::kBadRecord,
+                   "azimuth_steps 0");
+    expect_refused(decode_lidar_ranges(edit(20, {0})), DecodeErrorCode::kBadRecord, "returns 0");
+    expect_refused(decode_lidar_ranges(edit(12, {1, 0, 1, 0, 0, 0, 1, 0})),
+                   DecodeErrorCode::kBadRecord, "at most 2^32");
+    expect_refused(decode_lidar_ranges(edit(24, {1})), DecodeErrorCode::kBadReserved, "reserved");
+    expect_refused(decode_lidar_ranges(good, 3), DecodeErrorCode::kTooManyRays, "4 points");
+    const auto bits = [](float f) { return std::bit_cast<uint32_t>(f); };
+    expect_refused(decode_lidar_ranges(record(1, 0, bits(NAN))), DecodeErrorCode::kBadRecord,
+                   "point 1: range must be finite");
+    expect_refused(decode_lidar_ranges(record(2, 0, bits(-1.0f))), DecodeErrorCode::kBadRecord,
+                   "point 2: range");
+    expect_refused(decode_lidar_ranges(record(0, 0, bits(kInf))), DecodeErrorCode::kBadRecord,
+                   "point 0: range");
+    expect_refused(decode_lidar_ranges(record(3, 1, 15)), DecodeErrorCode::kBadRecord,
+                   "point 3: beam 15 >= channels x azimuth_steps 15");
+    expect_refused(decode_lidar_ranges(record(2, 2, kNoHit)), DecodeErrorCode::kBadRecord,
+                   "point 2: prim 0xffffffff");
+    // Beams out of order; a beam with more records than returns.
+    expect_refused(decode_lidar_ranges(record(1, 1, 5)), DecodeErrorCode::kBadRecord,
+                   "point 2: beam 2 comes after a later beam");
+    expect_refused(decode_lidar_ranges(record(2, 1, 0)), DecodeErrorCode::kBadRecord,
+                   "point 2: beam 0 has more than returns 2 records");
 }
 
 TEST(ScanCodec, PlyIsTheRecordsAfterABinaryHeader) {

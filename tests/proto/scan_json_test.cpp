@@ -96,6 +96,15 @@ TEST(ScanJson, LidarMembers) {
     auto eb = decode_scan_request(encode_scan_request(*e));
     ASSERT_TRUE(eb) << eb.error().detail;
     EXPECT_EQ(eb->lidar_spec.elevation_deg, e->lidar_spec.elevation_deg);
+
+    // "ranges" asks for the compact KDRB record (a lidar only), and round trips.
+    auto ranges = decode_scan_request(
+        R"({"lidar": {"elevation_deg": [0], "azimuth_steps": 8}, "format": "ranges"})");
+    ASSERT_TRUE(ranges) << ranges.error().detail;
+    EXPECT_EQ(ranges->format, ScanFormat::kRanges);
+    auto rb = decode_scan_request(encode_scan_request(*ranges));
+    ASSERT_TRUE(rb) << rb.error().detail;
+    EXPECT_EQ(rb->format, ScanFormat::kRanges);
 }
 
 void expect_error(const std::string& body, const std::string& field, const std::string& words,
@@ -164,6 +173,8 @@ TEST(ScanJson, EachRefusalNamesItsField) {
                  "pinhole.max_range", "range of a float");
     expect_error(R"({"pinhole": {)" + k + "," + pose + R"(}, "format": "ply"})", "format",
                  "expected binary or exr");
+    expect_error(R"({"pinhole": {)" + k + "," + pose + R"(}, "format": "ranges"})", "format",
+                 "unknown format \"ranges\" for a pinhole scan");
     expect_error(R"({"pinhole": {"camera": {"eye": [0,0,1], "look_at": [0,0,0]}, )" + k + "}}",
                  "pinhole.intrinsics", "not both");
     expect_error(R"({"pinhole": {"camera": {"eye": [0,0,1]}, "width": 2, "height": 2}})",
@@ -210,7 +221,7 @@ TEST(ScanJson, EachRefusalNamesItsField) {
         "lidar.pose", "4 rows");
     expect_error(
         R"({"lidar": {"vertical_fov": [-1, 1], "channels": 4, "azimuth_steps": 8}, "format": "exr"})",
-        "format", "expected binary or ply");
+        "format", "expected binary, ply or ranges");
     expect_error(
         R"({"lidar": {"vertical_fov": [-1, 1], "channels": 4, "azimuth_steps": 8, "azimuth_steps": 9}})",
         "", "duplicate member");

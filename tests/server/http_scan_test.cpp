@@ -128,6 +128,10 @@ TEST_F(HttpScan, LidarAnswerIsTheEngines) {
     request.format = proto::ScanFormat::kPly;
     EXPECT_EQ(ok(proto::encode_scan_request(request), std::string(proto::kPlyMediaType)),
               bytes_to_string(proto::encode_point_cloud_ply(want)));
+    // "ranges" asks for the compact KDRB record of the same returns; without it, KDRL (above).
+    request.format = proto::ScanFormat::kRanges;
+    EXPECT_EQ(ok(proto::encode_scan_request(request), std::string(proto::kLidarRangesMediaType)),
+              bytes_to_string(proto::encode_lidar_ranges(want)));
     // Elevations given one by one.
     const std::string listed =
         R"({"lidar": {"elevation_deg": [-10, 0, 12.5], "azimuth_steps": 64, "returns": 2}})";

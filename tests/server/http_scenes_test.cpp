@@ -244,6 +244,41 @@ TEST_F(HttpScenes, EveryQueryEqualsTheEngineWithGeometryIds) {
     EXPECT_EQ(std::memcmp(cloud->points.data(), local_cloud.cloud.points.data(),
                           cloud->points.size() * sizeof(LidarPoint)),
               0);
+    EXPECT_EQ(res->get_header_value("Content-Type"), proto::kPointCloudMediaType)
+        << "a request without \"format\" (an old client's) still gets KDRL";
+
+    // The same scan as "format": "ranges": the compact KDRB record of the same returns, with the
+    // same geometry-id plane.
+    res = query(id, "scan",
+                "{\"lidar\": {\"vertical_fov\": [-30, 30], \"channels\": 16, \"azimuth_steps\": "
+                "64, \"returns\": 2, \"pose\": [[1,0,0,0.5],[0,1,0,0.5],[0,0,1,0.5],[0,0,0,1]]}, "
+                "\"format\": \"ranges\"}",
+                "application/json");
+    ASSERT_TRUE(res);
+    ASSERT_EQ(res->status, 200) << res->body;
+    EXPECT_EQ(res->get_header_value("Content-Type"), proto::kLidarRangesMediaType);
+    std::vector<std::byte> want_ranges = proto::encode_lidar_ranges(local_cloud.cloud);
+    proto::append_geometry_ids(want_ranges, local_cloud.geom);
+    EXPECT_EQ(res->body, bytes_to_string(want_ranges));
+    split = proto::split_geometry_ids(string_to_bytes(res->body));
+    ASSERT_TRUE(split.ok()) << split.error().detail;
+    EXPECT_EQ(split->geometry_ids, local_cloud.geom);
+    EXPECT_TRUE(proto::decode_lidar_ranges(split->mesh_body).ok());
+
+    // A pinhole cannot have it; a format without geometry ids is refused naming "format".
+    res = query(id, "scan",
+                "{\"pinhole\": {\"camera\": {\"eye\": [0, 0, 3], \"look_at\": [0, 0, 0]}, "
+                "\"width\": 4, \"height\": 4}, \"format\": \"ranges\"}",
+                "application/json");
+    ASSERT_TRUE(res);
+    EXPECT_EQ(res->status, 400);
+    EXPECT_NE(res->body.find("unknown format"), std::string::npos) << res->body;
+    res = query(id, "scan",
+                "{\"lidar\": {\"elevation_deg\": [0], \"azimuth_steps\": 8}, \"format\": \"ply\"}",
+                "application/json");
+    ASSERT_TRUE(res);
+    EXPECT_EQ(res->status, 400);
+    EXPECT_NE(res->body.find("\\\"ranges\\\" (KDRB)"), std::string::npos) << res->body;
 }
 
 TEST_F(HttpScenes, RendersEqualTheEngineSyncAndAsyncWithinTheMeshLimits) {

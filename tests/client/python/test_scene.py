@@ -58,7 +58,7 @@ def test_identity_scene_scans_as_the_mesh_and_checks_the_answer(server):
     scene.add_triangles(mesh)
     lidar = dict(azimuth_steps=64, vertical_fov=(-40, 40), channels=16, returns=2,
                  pose=[[1, 0, 0, 0.5], [0, 1, 0, 0.5], [0, 0, 1, 0.5], [0, 0, 0, 1]])
-    got = scene.scan_lidar(**lidar)
+    got = scene.scan_lidar(**lidar, record="points")
     want = client.scan_lidar(mesh, **lidar)
     assert want.shape[0] > 0
     assert np.array_equal(got["points"], np.stack([want["x"], want["y"], want["z"]], axis=-1))
@@ -76,6 +76,56 @@ def test_identity_scene_scans_as_the_mesh_and_checks_the_answer(server):
         with pytest.raises(kdrt.Error) as e:
             kdrt.scene.decode_scene_point_cloud(bad)
         assert e.value.kind == "protocol"
+
+
+def test_compact_scan_carries_what_kdrl_does(server):
+    """record="ranges" (KDRB): the same ranges, prims and geometry ids bit for bit, the channel,
+    azimuth and return indices implied by the beams, and points on the beams' rays that agree
+    with KDRL's to rounding; an old client's request (no "format") still gets KDRL."""
+    client, mesh, scene = _box_and_empty_scene(server)
+    scene.add_triangles(mesh)
+    scene.add_triangles(mesh, transform=[[0, -1, 0, 3], [1, 0, 0, 0.5], [0, 0, 1, 0]])
+    for returns, pose in ((2, [[1, 0, 0, 0.5], [0, 1, 0, 0.5], [0, 0, 1, 0.5], [0, 0, 0, 1]]),
+                          (1, [[0, -1, 0, 1.5], [1, 0, 0, 0.25], [0, 0, 1, 0.4], [0, 0, 0, 1]])):
+        lidar = dict(azimuth_steps=96, vertical_fov=(-35, 30), channels=12, returns=returns,
+                     pose=pose, max_range=50.0)
+        full = scene.scan_lidar(**lidar, record="points")
+        compact = scene.scan_lidar(**lidar)
+        assert isinstance(compact, kdrt._scan.LidarScan)
+        n = full["range"].shape[0]
+        assert n > 400
+        assert set(compact) == set(full) | {"beam"}
+        for key in ("range", "primitive_ids", "geometry_ids", "channel", "azimuth_index",
+                    "return_index"):
+            assert np.array_equal(compact[key], full[key]), key
+        assert set(np.unique(compact["geometry_ids"])) == {0, 1}
+        assert compact["points"].dtype == np.float32 and compact["points"].shape == (n, 3)
+        scale = np.maximum(1.0, np.abs(full["points"]))
+        assert np.all(np.abs(compact["points"] - full["points"]) <= 1e-5 * scale)
+    # The elevations given one by one, a single channel.
+    one = scene.scan_lidar(azimuth_steps=32, elevation_deg=[0.0], pose=lidar["pose"])
+    full = scene.scan_lidar(azimuth_steps=32, elevation_deg=[0.0], pose=lidar["pose"],
+                            record="points")
+    assert np.array_equal(one["range"], full["range"]) and one["range"].size > 0
+    assert np.allclose(one["points"], full["points"], rtol=1e-5, atol=1e-5)
+    # Negotiated: the raw answers to the same request without and with "format": "ranges".
+    path = client._t.api(f"/v1/scenes/{scene.id}/scan")
+    request = {"lidar": {"azimuth_steps": 16, "elevation_deg": [0.0]}}
+    _, _, old = client._t.request("POST", path, [json.dumps(request).encode()],
+                                  "application/json")
+    assert old[:4] == b"KDRL"
+    request["format"] = "ranges"
+    _, _, new = client._t.request("POST", path, [json.dumps(request).encode()],
+                                  "application/json")
+    assert new[:4] == b"KDRB"
+    assert len(new) < len(old) / 2
+    for bad in (new[:-4], new[:20], new[:6] + b"\0\0" + new[8:], old):
+        with pytest.raises(kdrt.Error) as e:
+            kdrt._scan.decode_lidar_ranges(bad, request["lidar"], geometry_ids=True)
+        assert e.value.kind == "protocol"
+    with pytest.raises(kdrt.Error) as e:
+        scene.scan_lidar(azimuth_steps=8, elevation_deg=[0.0], record="xyz")
+    assert e.value.kind == "input" and "record" in e.value.detail
 
 
 def test_geometry_ids_poses_and_revisions(server):

@@ -140,13 +140,15 @@ struct SceneDistanceAnswer {
     bool signed_query = false;
     uint64_t revision = 0;
 };
-/// A scene scan: the server's answer as it came (KDRZ or KDRL with the geometry-id plane,
-/// proto/FORMATS.md "Scenes"), decoded: the depth image (pinhole) or the point cloud (lidar), and
-/// the geometry id of each pixel or point.
+/// A scene scan: the server's answer as it came (KDRZ, KDRL or KDRB with the geometry-id plane,
+/// proto/FORMATS.md "Scenes"), decoded: the depth image (pinhole), the point cloud (lidar, KDRL)
+/// or its compact form (lidar, KDRB: asked for with "format" ranges), and the geometry id of each
+/// pixel or point.
 struct SceneScan {
     std::vector<std::byte> body;
     std::optional<DepthImage> depth;
     std::optional<PointCloud> cloud;
+    std::optional<proto::LidarRanges> ranges;
     std::vector<uint32_t> geometry_ids;
     uint64_t revision = 0;
 };
@@ -267,6 +269,10 @@ public:
     [[nodiscard]] Result<DepthImage> scan_pinhole(std::string_view id, proto::ScanRequest request);
     /// A lidar scan, asked for as KDRL (request.format is ignored) and decoded.
     [[nodiscard]] Result<PointCloud> scan_lidar(std::string_view id, proto::ScanRequest request);
+    /// A lidar scan, asked for as KDRB (the compact record: range, beam, prim; request.format is
+    /// ignored) and decoded. Points are the beams' rays at the ranges (proto/FORMATS.md, "KDRB").
+    [[nodiscard]] Result<proto::LidarRanges> scan_lidar_ranges(std::string_view id,
+                                                               proto::ScanRequest request);
 
     // ---- Distance queries (POST /v1/meshes/{id}/distance, KDRP -> KDRD) -----------------------
 
@@ -344,8 +350,8 @@ public:
     [[nodiscard]] Result<SceneDistanceAnswer> scene_distance(
         std::string_view id, std::span<const Vec3> points, const DistanceQuery& query = {},
         std::optional<uint64_t> revision = std::nullopt);
-    /// A sensor scan of the scene (request.format must be binary: the server answers scenes in
-    /// KDRZ / KDRL with geometry ids only).
+    /// A sensor scan of the scene (request.format must be binary, or ranges for a lidar: the
+    /// server answers scenes in KDRZ / KDRL / KDRB with geometry ids only).
     [[nodiscard]] Result<SceneScan> scan_scene(std::string_view id,
                                                const proto::ScanRequest& request,
                                                std::optional<uint64_t> revision = std::nullopt);

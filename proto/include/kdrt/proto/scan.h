@@ -25,6 +25,8 @@ inline constexpr std::string_view kPointCloudMagic = "KDRL";
 inline constexpr std::string_view kDepthImageMediaType = "application/x-kdrt-depth";
 inline constexpr std::string_view kPointCloudMediaType = "application/x-kdrt-points-cloud";
 inline constexpr std::string_view kPlyMediaType = "application/x-ply";
+inline constexpr std::string_view kLidarRangesMagic = "KDRB";
+inline constexpr std::string_view kLidarRangesMediaType = "application/x-kdrt-lidar-ranges";
 inline constexpr std::string_view kScanRequestMediaType = "application/json";
 
 /// KDRZ: 16-byte header (magic, u16 version 1, u16 flags, u32 width, u32 height), then planes of
@@ -38,11 +40,20 @@ inline constexpr uint16_t kDepthFlagNormals = 0x0002;  ///< a normal plane follo
 inline constexpr size_t kPointCloudHeaderBytes = 32;
 inline constexpr size_t kLidarPointBytes = 32;
 
+/// KDRB: KDRL's 32-byte header (magic KDRB), then 12-byte records: f32 range, u32 beam
+/// (azimuth_index x channels + channel), u32 prim. The return index is the record's place among
+/// the records of its beam; the point is the beam's ray at the range (FORMATS.md, "KDRB").
+inline constexpr size_t kLidarRangeBytes = 12;
+
 [[nodiscard]] constexpr uint64_t kdrz_body_size(uint64_t pixels, bool normals) noexcept {
     return kDepthImageHeaderBytes + pixels * (normals ? 20 : 8);
 }
 [[nodiscard]] constexpr uint64_t kdrl_body_size(uint64_t points) noexcept {
     return kPointCloudHeaderBytes + kLidarPointBytes * points;
+}
+
+[[nodiscard]] constexpr uint64_t kdrb_body_size(uint64_t points) noexcept {
+    return kPointCloudHeaderBytes + kLidarRangeBytes * points;
 }
 
 /// Encodes a KDRZ body. Precondition: depth and prim hold width * height entries, normals that
@@ -68,6 +79,36 @@ size_t write_point_cloud(std::span<std::byte> out, const PointCloud& cloud);
 [[nodiscard]] Result<PointCloud, DecodeError> decode_point_cloud(std::span<const std::byte> body,
                                                                  uint32_t max_points = 1u << 26);
 
+/// One KDRB record: a return's range, its beam (azimuth_index x channels + channel) and the
+/// triangle hit.
+struct LidarRange {
+    float range = 0;
+    uint32_t beam = 0;
+    uint32_t prim = 0;
+};
+static_assert(sizeof(LidarRange) == kLidarRangeBytes);
+
+/// A lidar scan's returns as KDRB carries them, in the PointCloud's order (beams azimuth-major;
+/// within a beam nearest first, so the return index is the place in the beam's run).
+struct LidarRanges {
+    uint32_t channels = 0, azimuth_steps = 0, returns = 0;
+    std::vector<LidarRange> points;
+};
+
+/// Encodes a KDRB body: the compact form of `cloud` (its x y z, channel, azimuth_index and
+/// return_index are implied by the beam, the order and the sensor the client asked for).
+/// Throws std::length_error when points.size() >= 2^32 or channels x azimuth_steps > 2^32.
+[[nodiscard]] std::vector<std::byte> encode_lidar_ranges(const PointCloud& cloud);
+/// Writes the same body into `out` (at least kdrb_body_size(points) bytes) and returns its size.
+size_t write_lidar_ranges(std::span<std::byte> out, const PointCloud& cloud);
+/// Decodes a KDRB body: magic, version 1, flags 0, reserved 0, channels, azimuth_steps and
+/// returns >= 1 with channels x azimuth_steps <= 2^32, count <= max_points (kTooManyRays), the
+/// exact size, then per record (kBadRecord naming it): finite range >= 0, beam < channels x
+/// azimuth_steps, prim != 0xFFFFFFFF, beams in non-decreasing order and at most `returns`
+/// records a beam.
+[[nodiscard]] Result<LidarRanges, DecodeError> decode_lidar_ranges(std::span<const std::byte> body,
+                                                                   uint32_t max_points = 1u << 26);
+
 /// The cloud as a binary_little_endian PLY 1.0 file: one "vertex" element with properties
 /// float x y z range, uint channel azimuth_index return_index prim (the KDRL record, byte for
 /// byte), and comment lines naming the sensor's channels, azimuth_steps and returns. A scene's
@@ -79,9 +120,9 @@ size_t write_point_cloud(std::span<std::byte> out, const PointCloud& cloud);
 
 // ---- The request (kdrt_proto_json) ------------------------------------------------------------
 
-/// Answer formats.
-enum class ScanFormat { kBinary, kExr, kPly };
-/// "binary", "exr", "ply".
+/// Answer formats: KDRZ / KDRL, EXR (pinhole), PLY and KDRB (lidar).
+enum class ScanFormat { kBinary, kExr, kPly, kRanges };
+/// "binary", "exr", "ply", "ranges".
 [[nodiscard]] std::string_view scan_format_name(ScanFormat format) noexcept;
 
 /// POST /v1/meshes/{id}/scan. Exactly one of "pinhole" and "lidar":
@@ -104,7 +145,8 @@ enum class ScanFormat { kBinary, kExr, kPly };
 /// "range"; "normals" default false; "min_range" default 0; "max_range" default unlimited; format
 /// "binary" (KDRZ, default) or "exr". lidar: "elevation_deg" (one per channel) or "vertical_fov"
 /// [lower, upper] with "channels"; "azimuth_steps"; "returns" default 1; "min_range",
-/// "max_range" as above; "pose" default the identity; format "binary" (KDRL, default) or "ply".
+/// "max_range" as above; "pose" default the identity; format "binary" (KDRL, default), "ply" or
+/// "ranges" (KDRB, the compact record).
 struct ScanRequest {
     bool lidar = false;
     PinholeSpec pinhole;

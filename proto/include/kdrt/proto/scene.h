@@ -1,8 +1,8 @@
 #pragma once
 /// Scenes on the wire: the JSON of a scene (POST /v1/scenes, GET /v1/scenes/{id}, the stored
 /// revision files), of a batch pose update and of an instance edit; KDRX, the binary pose batch;
-/// and the geometry-id plane that turns every mesh answer format (KDRH, KDRM, KDRD, KDRZ, KDRL)
-/// into its scene form. Layouts and worked hex examples: proto/FORMATS.md, "Scenes".
+/// and the geometry-id plane that turns every mesh answer format (KDRH, KDRM, KDRD, KDRZ, KDRL,
+/// KDRB) into its scene form. Layouts and worked hex examples: proto/FORMATS.md, "Scenes".
 ///
 /// proto keeps its own value types here (Transform, SceneDocument) instead of including
 /// kdrt/scene.h, which declares engine functions: a client that installs proto sees value types
@@ -224,10 +224,10 @@ struct InstanceEdit {
 
 // ---- Geometry ids in answers ------------------------------------------------------------------
 
-/// The scene form of a mesh answer body (KDRH, KDRM, KDRD, KDRZ or KDRL): flag bit 8
+/// The scene form of a mesh answer body (KDRH, KDRM, KDRD, KDRZ, KDRL or KDRB): flag bit 8
 /// (kGeometryIdFlag) set in the header's flags, and after the mesh body a plane of u32 geometry
-/// ids, one per record (KDRH, KDRD: count; KDRM: hit records H; KDRZ: pixels W x H; KDRL:
-/// points N), kNoGeometry for a miss. Every other byte is the mesh form's.
+/// ids, one per record (KDRH, KDRD: count; KDRM: hit records H; KDRZ: pixels W x H; KDRL,
+/// KDRB: points N), kNoGeometry for a miss. Every other byte is the mesh form's.
 /// Appends the plane to `body` (a mesh answer of one of those formats) and sets the flag.
 /// Precondition: geometry_ids.size() is the body's record count.
 void append_geometry_ids(std::vector<std::byte>& body, std::span<const uint32_t> geometry_ids);
@@ -247,7 +247,7 @@ struct SplitAnswer {
     std::vector<std::byte> mesh_body;
     std::vector<uint32_t> geometry_ids;
 };
-/// Splits a scene answer: the magic (one of the five), the header's size, flag bit 8 set, the
+/// Splits a scene answer: the magic (one of the six), the header's size, flag bit 8 set, the
 /// record count (<= limits.max_rays; KDRZ: W x H) and a body at least as long as the plane. The
 /// mesh body's own checks (its exact size among them) are its decoder's.
 [[nodiscard]] Result<SplitAnswer, DecodeError> split_geometry_ids(std::span<const std::byte> body,
