@@ -11,8 +11,8 @@ Starts BUILD_DIR/server/kdrt-server (a release build) on an ephemeral port, uplo
 (default tests/data/bunny00.off, scaled into each instance's cell by its transform), creates the
 scene (instances on a grid around the sensor, each turned by its own angle), warms up with one
 frame, then per frame: one KDRX pose batch moving every instance (a new revision, stored durably
-before the answer), then the lidar scan of the new revision (with geometry ids: the compact KDRB
-record, or KDRL with --record points). Prints the median and p90 of the frame, the pose update and
+before the answer), then the lidar scan of the new revision (with geometry ids: KDRL, the Python
+client's default, or the compact KDRB record with --record ranges). Prints the median and p90 of the frame, the pose update and
 the scan, the returns per scan and how many distinct geometry ids they hit. With KDRB the points
 are made by the client on first access, after the frame: that is timed on its own line. The cache directory decides what an fsync costs (default: a temp
 directory). No timing is asserted.
@@ -82,8 +82,8 @@ def main():
     ap.add_argument("--threads", type=int, default=2)
     ap.add_argument("--mesh", default=os.path.join(HERE, "..", "data", "bunny00.off"))
     ap.add_argument("--cache-dir")
-    ap.add_argument("--record", choices=("ranges", "points"), default="ranges",
-                    help="the scan's answer: KDRB (ranges, the default) or KDRL (points)")
+    ap.add_argument("--record", choices=("ranges", "points"), default="points",
+                    help="the scan's answer: KDRL (points, the default) or KDRB (ranges)")
     args = ap.parse_args()
     with tempfile.TemporaryDirectory() as work:
         cache = args.cache_dir or os.path.join(work, "cache")

@@ -90,7 +90,7 @@ def test_compact_scan_carries_what_kdrl_does(server):
         lidar = dict(azimuth_steps=96, vertical_fov=(-35, 30), channels=12, returns=returns,
                      pose=pose, max_range=50.0)
         full = scene.scan_lidar(**lidar, record="points")
-        compact = scene.scan_lidar(**lidar)
+        compact = scene.scan_lidar(**lidar, record="ranges")
         assert isinstance(compact, kdrt._scan.LidarScan)
         n = full["range"].shape[0]
         assert n > 400
@@ -103,9 +103,13 @@ def test_compact_scan_carries_what_kdrl_does(server):
         scale = np.maximum(1.0, np.abs(full["points"]))
         assert np.all(np.abs(compact["points"] - full["points"]) <= 1e-5 * scale)
     # The elevations given one by one, a single channel.
-    one = scene.scan_lidar(azimuth_steps=32, elevation_deg=[0.0], pose=lidar["pose"])
-    full = scene.scan_lidar(azimuth_steps=32, elevation_deg=[0.0], pose=lidar["pose"],
-                            record="points")
+    one = scene.scan_lidar(azimuth_steps=32, elevation_deg=[0.0], pose=lidar["pose"],
+                           record="ranges")
+    full = scene.scan_lidar(azimuth_steps=32, elevation_deg=[0.0], pose=lidar["pose"])
+    # The default is KDRL: the server's on-triangle points, bit for bit.
+    assert not isinstance(full, kdrt._scan.LidarScan)
+    assert np.array_equal(full["points"], scene.scan_lidar(
+        azimuth_steps=32, elevation_deg=[0.0], pose=lidar["pose"], record="points")["points"])
     assert np.array_equal(one["range"], full["range"]) and one["range"].size > 0
     assert np.allclose(one["points"], full["points"], rtol=1e-5, atol=1e-5)
     # Negotiated: the raw answers to the same request without and with "format": "ranges".
