@@ -125,6 +125,26 @@ def test_lidar_points_are_the_cpp_clients(client, server, bunny, cli, camera, tm
     assert client.scan_bytes(bunny, request) == ply.read_bytes()
 
 
+def test_compact_lidar_scan_carries_what_kdrl_does(client, bunny, camera):
+    """record="ranges" (KDRB) on a mesh: the same ranges, prims, channels, azimuth and return
+    indices as KDRL bit for bit, and points on the beams' rays that agree to rounding."""
+    pose = np.eye(4)
+    pose[:3, 3] = camera["centre"] + [1.6 * camera["radius"], 0, 0.2 * camera["radius"]]
+    lidar = dict(azimuth_steps=256, vertical_fov=(-30, 20), channels=16, returns=2, pose=pose)
+    full = client.scan_lidar(bunny, **lidar)
+    compact = client.scan_lidar(bunny, **lidar, record="ranges")
+    assert isinstance(compact, kdrt._scan.LidarScan)
+    assert len(full) > 50 and compact["range"].shape == (len(full),)
+    for key, field in (("range", "range"), ("primitive_ids", "prim"), ("channel", "channel"),
+                       ("azimuth_index", "azimuth_index"), ("return_index", "return_index")):
+        assert np.array_equal(compact[key], full[field]), key
+    xyz = np.stack([full["x"], full["y"], full["z"]], 1)
+    assert np.all(np.abs(compact["points"] - xyz) <= 1e-5 * np.maximum(1.0, np.abs(xyz)))
+    with pytest.raises(kdrt.Error) as e:
+        client.scan_lidar(bunny, **lidar, record="xyz")
+    assert e.value.kind == "input" and "record" in e.value.detail
+
+
 def test_errors_name_the_field(client, bunny, camera):
     bad = np.array(camera["pose"])
     bad[:3, :3] *= 2
