@@ -68,12 +68,13 @@ std::byte* store_cloud_header(std::span<std::byte> out, size_t size, std::string
 }
 
 /// The header checks KDRL and KDRB share, in order: size, magic, version, flags 0, reserved 0,
-/// channels, azimuth_steps and returns >= 1 (KDRB: channels x azimuth_steps <= 2^32, its u32
-/// beam index), the count against max_points, the exact size for `record_bytes` a point. Sets
-/// `sensor`'s counts and returns the point count.
+/// channels, azimuth_steps and returns >= 1 (with `beam_index`, KDRB's: channels x
+/// azimuth_steps <= 2^32, its u32 beam index), the count against max_points, the exact size for
+/// `record_bytes` a point. Sets `sensor`'s counts and returns the point count.
 Result<uint32_t, DecodeError> load_cloud_header(std::span<const std::byte> body,
                                                 std::string_view magic, uint32_t max_points,
-                                                size_t record_bytes, PointCloud& sensor) {
+                                                size_t record_bytes, bool beam_index,
+                                                PointCloud& sensor) {
     if (auto e = check_magic(body, magic, kPointCloudHeaderBytes)) return Err{*e};
     const uint16_t flags = detail::load_le16(body.data() + 6);
     if (flags != 0)
@@ -86,7 +87,6 @@ Result<uint32_t, DecodeError> load_cloud_header(std::span<const std::byte> body,
     sensor.returns = detail::load_le32(body.data() + 20);
     if (detail::load_le32(body.data() + 24) != 0 || detail::load_le32(body.data() + 28) != 0)
         return fail(DecodeErrorCode::kBadReserved, "reserved bytes 24..31 must be 0");
-    const bool beam_index = record_bytes == kLidarRangeBytes;
     if (sensor.channels == 0 || sensor.azimuth_steps == 0 || sensor.returns == 0 ||
         (beam_index && uint64_t{sensor.channels} * sensor.azimuth_steps > kMaxBeams))
         return fail(DecodeErrorCode::kBadRecord,
@@ -209,7 +209,8 @@ size_t write_point_cloud(std::span<std::byte> out, const PointCloud& cloud) {
 Result<PointCloud, DecodeError> decode_point_cloud(std::span<const std::byte> body,
                                                    uint32_t max_points) {
     PointCloud cloud;
-    auto header = load_cloud_header(body, kPointCloudMagic, max_points, kLidarPointBytes, cloud);
+    auto header = load_cloud_header(body, kPointCloudMagic, max_points, kLidarPointBytes,
+                                    /*beam_index=*/false, cloud);
     if (!header) return Err{std::move(header).error()};
     const uint32_t count = *header;
     cloud.points.resize(count);
@@ -278,7 +279,8 @@ size_t write_lidar_ranges(std::span<std::byte> out, const PointCloud& cloud) {
 Result<LidarRanges, DecodeError> decode_lidar_ranges(std::span<const std::byte> body,
                                                      uint32_t max_points) {
     PointCloud sensor;
-    auto header = load_cloud_header(body, kLidarRangesMagic, max_points, kLidarRangeBytes, sensor);
+    auto header = load_cloud_header(body, kLidarRangesMagic, max_points, kLidarRangeBytes,
+                                    /*beam_index=*/true, sensor);
     if (!header) return Err{std::move(header).error()};
     const uint32_t count = *header;
     const uint64_t beams = uint64_t{sensor.channels} * sensor.azimuth_steps;

@@ -77,6 +77,15 @@ def pinhole_request(intrinsics, pose, camera, width, height, output, normals, mi
     return p
 
 
+def lidar_format(record: str) -> str:
+    """The scan request's "format" for a lidar answer of `record`: "points" asks for KDRL
+    ("binary"), "ranges" for the compact KDRB ("ranges"); anything else is an input error."""
+    formats = {"points": "binary", "ranges": "ranges"}
+    if record not in formats:
+        raise input_error("bad record", f'record must be "ranges" or "points", not {record!r}')
+    return formats[record]
+
+
 def lidar_request(azimuth_steps, elevation_deg, vertical_fov, channels, returns, pose, min_range,
                   max_range) -> dict:
     """The "lidar" object of a scan request."""

@@ -696,15 +696,13 @@ class Client:
         against 32): a dict-like scan (range, beam, prim as primitive_ids, channel,
         azimuth_index, return_index, and points made on first access on the beams' rays, equal
         to KDRL's to rounding, not bit for bit)."""
-        if record not in ("ranges", "points"):
-            raise _wire.input_error("bad record",
-                                    f'record must be "ranges" or "points", not {record!r}')
+        answer_format = _scan.lidar_format(record)
         lidar = _scan.lidar_request(azimuth_steps, elevation_deg, vertical_fov, channels,
                                     returns, pose, min_range, max_range)
-        if record == "ranges":
-            return _scan.decode_lidar_ranges(
-                self._scan(mesh, {"lidar": lidar, "format": "ranges"}), lidar)
-        return _scan.decode_point_cloud(self._scan(mesh, {"lidar": lidar, "format": "binary"}))
+        body = self._scan(mesh, {"lidar": lidar, "format": answer_format})
+        if answer_format == "ranges":
+            return _scan.decode_lidar_ranges(body, lidar)
+        return _scan.decode_point_cloud(body)
 
     def scan_bytes(self, mesh, request: dict) -> bytes:
         """The server's answer to a scan request dict as it is sent (request["format"]:

@@ -366,9 +366,7 @@ class Scene:
         bytes matter): a _scan.LidarScan whose range, primitive_ids and geometry_ids are views
         of the answer and whose points are made on first access from the beams' rays (equal to
         KDRL's to rounding, not bit for bit)."""
-        if record not in ("ranges", "points"):
-            raise Error(kind="input", title="bad record",
-                        detail=f'record must be "ranges" or "points", not {record!r}')
+        answer_format = _scan.lidar_format(record)
         lidar = {"azimuth_steps": int(azimuth_steps), "returns": int(returns),
                  "min_range": float(min_range)}
         if elevation_deg is not None:
@@ -380,11 +378,9 @@ class Scene:
             lidar["max_range"] = float(max_range)
         if pose is not None:
             lidar["pose"] = np.asarray(pose, dtype=np.float64).reshape(4, 4).tolist()
-        request = {"lidar": lidar}
-        if record == "ranges":
-            request["format"] = "ranges"
+        request = {"lidar": lidar, "format": answer_format}
         body, _ = self._post("scan", [json.dumps(request).encode()], "application/json",
                              revision)
-        if record == "ranges":
+        if answer_format == "ranges":
             return _scan.decode_lidar_ranges(body, lidar, geometry_ids=True)
         return decode_scene_point_cloud(body)
