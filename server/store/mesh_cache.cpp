@@ -54,10 +54,9 @@ std::string summary_disagreement(const KdTree& tree, const proto::MeshSummary& s
     return {};
 }
 
-namespace {}  // namespace
-
 uint64_t tree_memory_bytes(const KdTree& tree) noexcept {
     return sizeof(KdTree) + tree.nodes.capacity() * sizeof(KdNode) +
+           tree.wide_nodes.capacity() * sizeof(WideNode) +
            tree.leaf_refs.capacity() * sizeof(uint32_t) + tree.tris.capacity() * sizeof(TriVerts) +
            (tree.tri_ids.capacity() + tree.tri_slots.capacity()) * sizeof(uint32_t);
 }

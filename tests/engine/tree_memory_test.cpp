@@ -1,0 +1,106 @@
+// The memory of a tree's arrays (engine/src/tree_memory.cpp): a big array is a 2 MiB-aligned
+// mapping of its own, advised MADV_HUGEPAGE, never a piece of the heap that earlier work may have
+// backed with small pages already; a small one is 64-byte aligned.
+
+#include <gtest/gtest.h>
+
+#include <cstdint>
+#include <cstdlib>
+#include <cstring>
+#include <fstream>
+#include <sstream>
+#include <string>
+
+#include "kdrt/kdtree.h"
+
+namespace kdrt::test {
+namespace {
+
+constexpr uintptr_t kHugePage = uintptr_t{2} << 20;
+
+/// The /proc/self/smaps entry of the mapping holding `addr`: its range, its path (empty for an
+/// anonymous mapping, "[heap]" for the brk heap) and its VmFlags line.
+struct Mapping {
+    uintptr_t start = 0, end = 0;
+    std::string path, flags;
+    bool found = false;
+};
+
+Mapping mapping_of(const void* addr) {
+    const auto a = reinterpret_cast<uintptr_t>(addr);
+    std::ifstream smaps("/proc/self/smaps");
+    Mapping m;
+    std::string line;
+    bool in = false;
+    while (std::getline(smaps, line)) {
+        // A mapping's header line starts with "start-end " in hex; field lines with "Name:".
+        const size_t dash = line.find('-');
+        const size_t space = line.find(' ');
+        const bool header = dash != std::string::npos && space != std::string::npos &&
+                            dash < space && line.find(':') > space;
+        if (header) {
+            if (in) break;
+            const uintptr_t start = std::stoull(line.substr(0, dash), nullptr, 16);
+            const uintptr_t end = std::stoull(line.substr(dash + 1, space - dash - 1), nullptr, 16);
+            if (a >= start && a < end) {
+                in = true;
+                m.found = true;
+                m.start = start;
+                m.end = end;
+                std::istringstream fields(line);
+                std::string skip;
+                for (int i = 0; i < 5; ++i) fields >> skip;  // range, perms, offset, dev, inode
+                std::getline(fields >> std::ws, m.path);
+            }
+        } else if (in && line.rfind("VmFlags:", 0) == 0) {
+            m.flags = line;
+        }
+    }
+    return m;
+}
+
+TEST(TreeMemory, BigArraysAreHugePageMappingsEvenWhereTheHeapWasUsedBefore) {
+    // Use the heap for something big first: glibc's free of a mapped block raises its mapping
+    // threshold, so a later operator new of this size comes from the (already touched) heap.
+    for (int i = 0; i < 2; ++i) {
+        void* warm = std::malloc(size_t{24} << 20);
+        ASSERT_NE(warm, nullptr);
+        std::memset(warm, 1, size_t{24} << 20);
+        std::free(warm);
+    }
+    const size_t n = (size_t{9} << 20) / sizeof(float) + 3;  // 9 MiB and a bit: not whole pages
+    TreeArray<float> big(n);
+    for (size_t i = 0; i < n; i += 1000) big[i] = static_cast<float>(i);
+    big[n - 1] = 7.0f;
+    const auto p = reinterpret_cast<uintptr_t>(big.data());
+    EXPECT_EQ(p % kHugePage, 0u);
+    const Mapping m = mapping_of(big.data());
+    ASSERT_TRUE(m.found);
+    EXPECT_EQ(m.path, "") << "a big tree array must be an anonymous mapping of its own";
+    EXPECT_LE(m.start, p);
+    EXPECT_GE(m.end, p + n * sizeof(float));
+    EXPECT_NE(m.flags.find(" hg"), std::string::npos) << m.flags;
+    for (size_t i = 0; i + 1 < n; i += 1000) EXPECT_EQ(big[i], static_cast<float>(i));
+    EXPECT_EQ(big[n - 1], 7.0f);
+
+    // Grown and shrunk through the allocator: each array frees exactly what it mapped (a wrong
+    // length would unmap a neighbour or leave a hole, and the reads below would fault).
+    TreeArray<float> other(n / 2, 2.0f);
+    big.resize(3 * n, 5.0f);
+    big.shrink_to_fit();
+    EXPECT_EQ(big[n - 1], 7.0f);
+    EXPECT_EQ(big[3 * n - 1], 5.0f);
+    EXPECT_EQ(other[n / 2 - 1], 2.0f);
+    EXPECT_EQ(reinterpret_cast<uintptr_t>(big.data()) % kHugePage, 0u);
+}
+
+TEST(TreeMemory, SmallArraysAreLineAligned) {
+    for (size_t n : {size_t{1}, size_t{17}, size_t{1000}, (size_t{2} << 20) / sizeof(float) - 1}) {
+        TreeArray<float> a(n, 1.0f);
+        EXPECT_EQ(reinterpret_cast<uintptr_t>(a.data()) % 64, 0u) << n;
+        EXPECT_EQ(a[n - 1], 1.0f);
+    }
+}
+
+}  // namespace
+}  // namespace kdrt::test
