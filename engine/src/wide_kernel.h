@@ -477,8 +477,8 @@ struct Count {
 
 /// One ray's walk through the wide nodes: its set-up, the cell it is in and the cells still to
 /// visit, and its closest hit so far. The single-ray kernel runs one walk to its end
-/// (traverse_wide); a batch of single rays advances two walks in turn (wide_step), so one ray's
-/// loads overlap the other's work.
+/// (traverse_wide); a batch of single rays advances several walks in turn (wide_step,
+/// trace_in_turn), so one ray's loads overlap the others' work.
 struct WideRay {
     PreparedRay p;
     wide::Ray8 r8;
@@ -691,6 +691,18 @@ template <bool AnyHit, class Counter>
     } while (!AnyHit && stack.tmin[stack_size] > best.t);
     cell = stack.at(stack_size, Counter::kCounts);
     return false;
+}
+
+/// Starts the load of the line a cell's visit reads first (its wide node, or its leaf's first
+/// references) without waiting for it. A batch walking rays in turn calls it for the cell a walk
+/// moves to, so the line is on its way while the other walks take their steps.
+[[gnu::always_inline]] static inline void prefetch_cell(const WideArrays& tree,
+                                                        uint32_t slot) noexcept {
+    const uint32_t index = WideNode::slot_index(slot);
+    const void* line = WideNode::slot_tag(slot) == WideNode::kSlotNode
+                           ? static_cast<const void*>(tree.wides + index)
+                           : static_cast<const void*>(tree.refs + index);
+    __builtin_prefetch(line);
 }
 
 /// The single-ray kernel: with AnyHit it returns at the first hit in [ray tmin, ray tmax];

@@ -303,8 +303,13 @@ void expect_batches_answer_in_place(const Mesh& mesh, const std::string& what) {
     away.dz = 0.25f;
     away.tmax = std::numeric_limits<float>::infinity();
     pool.push_back(away);
+    // Every size up to 13, then around one, two and three times the walks in turn (16): a batch
+    // longer than the walks has walks that end and take the next ray while others go on.
+    std::vector<size_t> sizes;
+    for (size_t n = 0; n <= 13; ++n) sizes.push_back(n);
+    for (size_t n : {15u, 16u, 17u, 31u, 32u, 33u, 47u, 49u, 70u}) sizes.push_back(n);
     for (Isa isa : isas_here()) {
-        for (size_t n = 0; n <= 13; ++n) {
+        for (size_t n : sizes) {
             SCOPED_TRACE(what + " / " + std::string(isa_name(isa)) + " / batch of " +
                          std::to_string(n));
             std::vector<Ray> batch(n);
