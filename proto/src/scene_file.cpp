@@ -43,7 +43,12 @@ uint64_t scene_file_checksum(std::span<const std::byte> bytes) noexcept {
     return h;
 }
 
-std::vector<std::byte> encode_scene_file(const SceneDocument& scene) {
+namespace {
+
+/// KDRS of `scene` under revision `revision`, every byte but the checksum written; returns the
+/// offset of the transform plane (instance i's 12 floats at that + 48 i).
+size_t encode_without_checksum(const SceneDocument& scene, uint64_t revision,
+                               std::vector<std::byte>& out) {
     const size_t n = scene.instances.size();
     std::vector<std::string_view> meshes;
     std::vector<uint32_t> mesh_index(n);
@@ -64,12 +69,12 @@ std::vector<std::byte> encode_scene_file(const SceneDocument& scene) {
     }
     const size_t size = kHeaderBytes + kMeshIdBytes * meshes.size() + kInstanceBytes * n +
                         name_bytes + kChecksumBytes;
-    std::vector<std::byte> out(size);
+    out.resize(size);
     std::byte* p = out.data();
     std::memcpy(p, kSceneFileMagic.data(), 4);
     detail::store_le16(p + 4, kSceneFileVersion);
     detail::store_le16(p + 6, 0);
-    store_le64(p + 8, scene.revision);
+    store_le64(p + 8, revision);
     std::memcpy(p + 16, scene.id.data(), std::min(scene.id.size(), kSceneIdLength));
     detail::store_le32(p + 48, static_cast<uint32_t>(n));
     detail::store_le32(p + 52, static_cast<uint32_t>(meshes.size()));
@@ -81,6 +86,7 @@ std::vector<std::byte> encode_scene_file(const SceneDocument& scene) {
         p += kMeshIdBytes;
     }
     for (size_t i = 0; i < n; ++i, p += 4) detail::store_le32(p, mesh_index[i]);
+    const size_t transforms_at = static_cast<size_t>(p - out.data());
     for (const SceneInstanceSpec& inst : scene.instances)
         for (const float v : inst.transform.m) {
             detail::store_le_f32(p, v);
@@ -92,8 +98,37 @@ std::vector<std::byte> encode_scene_file(const SceneDocument& scene) {
         std::memcpy(p, inst.name.data(), inst.name.size());
         p += inst.name.size();
     }
-    store_le64(p,
-               scene_file_checksum(std::span<const std::byte>(out).first(size - kChecksumBytes)));
+    return transforms_at;
+}
+
+void seal(std::vector<std::byte>& out) {
+    const size_t body = out.size() - kChecksumBytes;
+    store_le64(out.data() + body, scene_file_checksum(std::span<const std::byte>(out).first(body)));
+}
+
+}  // namespace
+
+std::vector<std::byte> encode_scene_file(const SceneDocument& scene) {
+    std::vector<std::byte> out;
+    encode_without_checksum(scene, scene.revision, out);
+    seal(out);
+    return out;
+}
+
+std::vector<std::byte> encode_scene_file(const SceneDocument& base, uint64_t revision,
+                                         std::span<const ResolvedPose> poses) {
+    std::vector<std::byte> out;
+    const size_t transforms_at = encode_without_checksum(base, revision, out);
+    // In order, so a later entry for one instance overwrites an earlier one (as applied to a
+    // document).
+    for (const ResolvedPose& pose : poses) {
+        std::byte* p = out.data() + transforms_at + 48 * size_t{pose.geometry_id};
+        for (const float v : pose.transform.m) {
+            detail::store_le_f32(p, v);
+            p += 4;
+        }
+    }
+    seal(out);
     return out;
 }
 

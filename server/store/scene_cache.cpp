@@ -308,12 +308,12 @@ SceneProblem stale(Metrics& metrics, const std::string& id, uint64_t if_match, u
 }
 }  // namespace
 
-SceneCache::Result<SceneCache::EntryPtr> SceneCache::update(
+SceneCache::Result<SceneCache::Committed> SceneCache::update(
     const std::string& id, std::optional<uint64_t> if_match, const char* what,
     const std::function<Result<Next>(const EntryPtr& base)>& next) {
     for (int attempt = 0; attempt < 16; ++attempt) {
         auto base = current(id);
-        if (!base) return base;
+        if (!base) return proto::Err{std::move(base).error()};
         const EntryPtr& b = *base;
         if (if_match && *if_match != b->doc.revision)
             return proto::Err{stale(metrics_, id, *if_match, b->doc.revision)};
@@ -330,21 +330,24 @@ SceneCache::Result<SceneCache::EntryPtr> SceneCache::update(
                 entry->bytes = entry_bytes(*entry);
                 keep(entry);
                 prune_later(id, entry->doc.revision);
-                return EntryPtr(std::move(entry));
+                const proto::SceneListItem summary{id, entry->doc.revision,
+                                                   entry->doc.instances.size()};
+                return Committed{summary, EntryPtr(std::move(entry))};
             }
         } else {
-            // The scene is built on an arena worker while this thread encodes, writes and
-            // fsyncs the revision (the link is the commit, as ever), and the answer does not
-            // wait for the build: the revision is registered as building, and whoever asks for
-            // it next (a query, the next update) waits for it (find()).
+            // The revision's document and scene are made on an arena worker while this thread
+            // writes and fsyncs the file encoded from the base (the link is the commit, as
+            // ever), and the answer does not wait for them: the revision is registered as
+            // building, and whoever asks for it next (a query, the next update) waits for it
+            // (find()). Until then nothing but the task touches the entry.
+            const proto::SceneListItem summary = n->summary;
             auto entry = std::make_shared<SceneEntry>();
-            entry->doc = std::move(n->doc);
             auto done = std::make_shared<std::promise<EntryPtr>>();
             std::shared_future<EntryPtr> built = done->get_future().share();
             auto task = [this, entry, done, build = std::move(n->build)]() mutable {
                 EntryPtr result;
                 try {
-                    entry->scene = build();
+                    build(*entry);
                     entry->bytes = entry_bytes(*entry);
                     result = entry;
                 } catch (...) {  // std::bad_alloc: a later request builds it from the store
@@ -389,7 +392,7 @@ SceneCache::Result<SceneCache::EntryPtr> SceneCache::update(
             }
             std::optional<SceneProblem> refused;
             if (!overlap && (refused = (*check)())) return proto::Err{std::move(*refused)};
-            auto staged = store_.stage(entry->doc);
+            auto staged = store_.stage(id, summary.revision, n->file);
             if (overlap) refused = check->claimed.exchange(true) ? checked.get() : (*check)();
             if (refused) return proto::Err{std::move(*refused)};
             if (!staged) return proto::Err{write_problem(staged.error())};
@@ -403,12 +406,12 @@ SceneCache::Result<SceneCache::EntryPtr> SceneCache::update(
                 metrics_.scene_revisions.fetch_add(1);
                 {
                     std::lock_guard lock(mutex_);
-                    building_[{id, entry->doc.revision}] = built;
+                    building_[{id, summary.revision}] = built;
                     uint64_t& latest = latest_[id];
-                    latest = std::max(latest, entry->doc.revision);
+                    latest = std::max(latest, summary.revision);
                 }
-                prune_later(id, entry->doc.revision);
-                return EntryPtr(std::move(entry));  // its doc only: the scene may be building
+                prune_later(id, summary.revision);
+                return Committed{summary, nullptr};  // the entry may be building
             }
         }
         if (if_match) {  // someone else committed base + 1 first
@@ -437,10 +440,10 @@ SceneCache::Result<proto::SceneListItem> SceneCache::set_poses(
         for (size_t k = 0; k < poses_in->size(); ++k)
             (*engine_poses)[k] = {(*poses_in)[k].geometry_id, affine((*poses_in)[k].transform)};
         Next n;
-        n.doc = b->doc;
-        n.doc.revision = b->doc.revision + 1;
-        for (const proto::ResolvedPose& p : *poses_in)
-            n.doc.instances[p.geometry_id].transform = p.transform;
+        n.summary = {id, b->doc.revision + 1, b->doc.instances.size()};
+        // The revision's file straight from the base and the poses; its document (a copy of the
+        // base's, ~0.35 ms for 1,000 instances) is made by the build, off the request's path.
+        n.file = proto::encode_scene_file(b->doc, n.summary.revision, *poses_in);
         // What the build would refuse, checked before the commit (so nothing is stored that it
         // refuses) on an arena worker while the revision is written; the build overlaps the
         // write too.
@@ -464,18 +467,23 @@ SceneCache::Result<proto::SceneListItem> SceneCache::set_poses(
             }
             return std::nullopt;
         };
-        n.build = [scene = b->scene, engine_poses] { return scene.with_transforms(*engine_poses); };
+        n.build = [b, engine_poses, poses_in](SceneEntry& entry) {
+            entry.doc = b->doc;
+            entry.doc.revision = b->doc.revision + 1;
+            for (const proto::ResolvedPose& p : *poses_in)
+                entry.doc.instances[p.geometry_id].transform = p.transform;
+            entry.scene = b->scene.with_transforms(*engine_poses);
+        };
         return n;
     });
     if (!updated) return proto::Err{std::move(updated).error()};
-    const proto::SceneDocument& d = (*updated)->doc;
-    return proto::SceneListItem{d.id, d.revision, d.instances.size()};
+    return std::move(updated).value().summary;
 }
 
 SceneCache::Result<SceneCache::EntryPtr> SceneCache::edit(const std::string& id,
                                                           std::optional<uint64_t> if_match,
                                                           const proto::InstanceEdit& edit) {
-    return update(id, if_match, "edit", [&](const EntryPtr& b) -> Result<Next> {
+    auto edited = update(id, if_match, "edit", [&](const EntryPtr& b) -> Result<Next> {
         proto::SceneLimits limits;
         limits.max_instances = options_.max_instances;
         auto doc = proto::apply_instance_edit(b->doc, edit, limits);
@@ -504,8 +512,13 @@ SceneCache::Result<SceneCache::EntryPtr> SceneCache::edit(const std::string& id,
             }
             return proto::Err{std::move(p)};
         }
-        return Next{(*next)->doc, (*next)->scene, {}, {}};
+        Next n;
+        n.doc = (*next)->doc;
+        n.scene = (*next)->scene;
+        return n;
     });
+    if (!edited) return proto::Err{std::move(edited).error()};
+    return std::move(edited).value().entry;
 }
 
 SceneCache::Result<bool> SceneCache::remove(const std::string& id,

@@ -138,25 +138,36 @@ private:
     Result<EntryPtr> load(const std::string& id, uint64_t revision);
     /// The current revision (the cached one when the store has nothing newer).
     Result<EntryPtr> current(const std::string& id);
-    /// The next revision as update() commits it: its document, and its engine scene either
-    /// built already or built by `build` (which must not fail but for std::bad_alloc) while the
-    /// document is written durably. `check` (with `build`), when set, says whether the revision
-    /// may be committed (what the build would refuse); it runs on an arena worker while the
-    /// document is written, and the commit waits for it.
+    /// The next revision as update() commits it, in one of two forms:
+    /// - built already (an instance edit): `doc` and `scene`, `build` empty;
+    /// - a pose update: `summary` (its id, number and instance count) and `file` (its KDRS,
+    ///   encoded from the base revision and the poses), written durably while `build` makes its
+    ///   document and engine scene on an arena worker (it must not fail but for std::bad_alloc),
+    ///   off the request's path. `check`, when set, says whether the revision may be committed
+    ///   (what the build would refuse); it runs on an arena worker while the file is written, and
+    ///   the commit waits for it.
     struct Next {
         proto::SceneDocument doc;
         Scene scene;
-        std::function<Scene()> build;
+        proto::SceneListItem summary;
+        std::vector<std::byte> file;
+        std::function<void(SceneEntry&)> build;
         std::function<std::optional<SceneProblem>()> check;
+    };
+    /// What update() committed: `summary` always; `entry` when built already (an instance
+    /// edit), null while the revision's scene builds (a pose update; find() waits for it).
+    struct Committed {
+        proto::SceneListItem summary;
+        EntryPtr entry;
     };
     /// The compare-and-set loop of set_poses and edit: `next` makes revision base + 1 from the
     /// current revision `base`, which is committed (SceneStore::commit, with `build` run on an
     /// arena worker meanwhile) and kept; `if_match` refuses a stale base (kStale), and without
     /// it a lost race is retried on the newer revision, up to 16 times (`what` names the update
     /// in that error).
-    Result<EntryPtr> update(const std::string& id, std::optional<uint64_t> if_match,
-                            const char* what,
-                            const std::function<Result<Next>(const EntryPtr& base)>& next);
+    Result<Committed> update(const std::string& id, std::optional<uint64_t> if_match,
+                             const char* what,
+                             const std::function<Result<Next>(const EntryPtr& base)>& next);
     void keep(const EntryPtr& entry);  ///< into the LRU (evicting beyond the budget)
     /// Deletes the revisions older than the kept ones after a commit of `revision`, on the
     /// arena, after the answer (SceneStore::prune).

@@ -191,10 +191,14 @@ proto::Result<bool, WriteError> SceneStore::commit(const proto::SceneDocument& s
 
 proto::Result<SceneStore::StagedRevision, WriteError> SceneStore::stage(
     const proto::SceneDocument& scene) const {
-    const std::vector<std::byte> bytes = proto::encode_scene_file(scene);
-    auto file = stage_file(revision_path(scene.id, scene.revision), tmp_dir_, bytes);
+    return stage(scene.id, scene.revision, proto::encode_scene_file(scene));
+}
+
+proto::Result<SceneStore::StagedRevision, WriteError> SceneStore::stage(
+    const std::string& id, uint64_t revision, std::span<const std::byte> bytes) const {
+    auto file = stage_file(revision_path(id, revision), tmp_dir_, bytes);
     if (!file) return proto::Err{std::move(file).error()};
-    return StagedRevision{scene.id, scene.revision, std::move(file).value()};
+    return StagedRevision{id, revision, std::move(file).value()};
 }
 
 proto::Result<bool, WriteError> SceneStore::commit(StagedRevision staged) {

@@ -40,6 +40,7 @@
 #include <cstdint>
 #include <filesystem>
 #include <optional>
+#include <span>
 #include <string>
 #include <vector>
 
@@ -103,6 +104,11 @@ public:
     };
     [[nodiscard]] proto::Result<StagedRevision, WriteError> stage(
         const proto::SceneDocument& scene) const;
+    /// stage() of revision `revision` of `id` that the caller encoded as KDRS
+    /// (proto::encode_scene_file, e.g. from the base revision and the changed poses, so that no
+    /// document is made for it): `bytes` are written as they are, and read back by read().
+    [[nodiscard]] proto::Result<StagedRevision, WriteError> stage(
+        const std::string& id, uint64_t revision, std::span<const std::byte> bytes) const;
     [[nodiscard]] proto::Result<bool, WriteError> commit(StagedRevision staged);
     /// Deletes the revisions of `id` older than the newest revisions_kept, `newest` being the
     /// newest (best effort: a file that cannot be removed stays until the next prune).

@@ -412,6 +412,45 @@ TEST(SceneFile, RoundTripsEveryFieldAndListsEachMeshOnce) {
     EXPECT_EQ(*none, empty);
 }
 
+TEST(SceneFile, APoseUpdateEncodedFromItsBaseIsTheUpdatedDocumentsBytes) {
+    const SceneDocument base = stored_scene();
+    // Instance 2 posed twice (the later entry wins), instance 1 once, instance 0 left alone.
+    const std::vector<ResolvedPose> poses = {
+        {2, Transform{{1, 2, 3, 4, 5, 6, 7, 8, 9, 10, 11, 12}}},
+        {1, Transform{{0, 0, -1, 7, 0, 1, 0, -3.25f, 1, 0, 0, 1e-20f}}},
+        {2, Transform{{-0.5f, 0, 0, 1, 0, 0.5f, 0, 2, 0, 0, 3, -1}}}};
+    SceneDocument updated = base;
+    updated.revision = base.revision + 1;
+    for (const ResolvedPose& p : poses) updated.instances[p.geometry_id].transform = p.transform;
+    ASSERT_NE(encode_scene_file(updated), encode_scene_file(base));
+    const auto bytes = encode_scene_file(base, base.revision + 1, poses);
+    EXPECT_EQ(bytes, encode_scene_file(updated));
+    auto back = decode_scene_file(bytes);
+    ASSERT_TRUE(back.ok()) << back.error();
+    EXPECT_EQ(*back, updated);
+    // No pose: the base under the new revision.
+    SceneDocument renumbered = base;
+    renumbered.revision = 9;
+    EXPECT_EQ(encode_scene_file(base, 9, {}), encode_scene_file(renumbered));
+    // Many instances of three meshes, every pose changed.
+    SceneDocument many;
+    many.id = base.id;
+    many.revision = 4;
+    std::vector<ResolvedPose> all;
+    for (uint32_t i = 0; i < 300; ++i) {
+        many.instances.push_back({i % 7 < 5 ? kMeshA : (i % 2 ? kMeshB : std::string(64, 'c')),
+                                  Transform{}, i % 3 == 0 ? "i" + std::to_string(i) : ""});
+        Transform t;
+        for (size_t k = 0; k < 12; ++k)
+            t.m[k] = 0.25f * static_cast<float>(i) - static_cast<float>(k);
+        all.push_back({299 - i, t});
+    }
+    SceneDocument moved = many;
+    moved.revision = 5;
+    for (const ResolvedPose& p : all) moved.instances[p.geometry_id].transform = p.transform;
+    EXPECT_EQ(encode_scene_file(many, 5, all), encode_scene_file(moved));
+}
+
 TEST(SceneFile, StoresWrittenBeforeKdrsStillRead) {
     // What the server wrote before KDRS: the stored JSON document, under the same file name.
     const SceneDocument doc = stored_scene();

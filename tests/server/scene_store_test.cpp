@@ -10,6 +10,7 @@
 #include <unistd.h>
 
 #include <atomic>
+#include <cstring>
 #include <filesystem>
 #include <fstream>
 #include <thread>
@@ -130,6 +131,45 @@ TEST_F(SceneStoreTest, AStagedRevisionIsInvisibleUntilCommittedAndGoneWhenDroppe
     ASSERT_TRUE(committed.ok());
     EXPECT_FALSE(*committed);
     EXPECT_FALSE(fs::exists(s.scene_dir(id)));
+    EXPECT_EQ(temp_files(dir_), 0u);
+}
+
+TEST_F(SceneStoreTest, ARevisionEncodedByTheCallerIsStagedAsItsBytes) {
+    SceneStore s = store();
+    const std::string id = SceneStore::new_id();
+    const proto::SceneDocument base = scene(id, 1, 4);
+    ASSERT_TRUE(s.create(base).ok());
+    // A pose update's file, encoded from the base and the poses (no document made for it).
+    proto::Transform moved;
+    moved.m = {0, -1, 0, 3, 1, 0, 0, -2, 0, 0, 2, 0.5f};
+    const std::vector<proto::ResolvedPose> poses = {{3, moved}, {0, moved}};
+    const std::vector<std::byte> bytes = proto::encode_scene_file(base, 2, poses);
+    auto staged = s.stage(id, 2, bytes);
+    ASSERT_TRUE(staged.ok()) << staged.error().message;
+    EXPECT_FALSE(s.has_revision(id, 2));
+    auto committed = s.commit(std::move(staged).value());
+    ASSERT_TRUE(committed.ok());
+    EXPECT_TRUE(*committed);
+    EXPECT_EQ(temp_files(dir_), 0u);
+    std::ifstream in(s.revision_path(id, 2), std::ios::binary);
+    const std::string on_disk((std::istreambuf_iterator<char>(in)),
+                              std::istreambuf_iterator<char>());
+    ASSERT_EQ(on_disk.size(), bytes.size());
+    EXPECT_EQ(std::memcmp(on_disk.data(), bytes.data(), bytes.size()), 0);
+    proto::SceneDocument expected = base;
+    expected.revision = 2;
+    expected.instances[0].transform = moved;
+    expected.instances[3].transform = moved;
+    auto back = s.read(id, 2);
+    ASSERT_TRUE(back.ok()) << back.error().detail;
+    EXPECT_EQ(*back, expected);
+    // The same compare-and-set as a staged document: a second revision 2 is stale.
+    staged = s.stage(id, 2, proto::encode_scene_file(base, 2, {}));
+    ASSERT_TRUE(staged.ok());
+    committed = s.commit(std::move(staged).value());
+    ASSERT_TRUE(committed.ok());
+    EXPECT_FALSE(*committed);
+    EXPECT_EQ(*s.read(id, 2), expected);
     EXPECT_EQ(temp_files(dir_), 0u);
 }
 

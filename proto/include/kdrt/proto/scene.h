@@ -201,6 +201,12 @@ struct ResolvedPose {
 /// "poses[i].geometry_id" or "poses[i].name" otherwise), keeping the order.
 [[nodiscard]] Result<std::vector<ResolvedPose>, SceneRequestError> resolve_poses(
     const SceneDocument& scene, std::span<const PoseEntry> poses);
+/// KDRS of `base` as revision `revision` with `poses` applied in order (a later entry for one
+/// instance wins): exactly encode_scene_file of that updated document, without making it (a pose
+/// update stores its revision before, and without, copying the scene's document). Precondition:
+/// every geometry_id < base.instances.size() (resolve_poses' answer).
+[[nodiscard]] std::vector<std::byte> encode_scene_file(const SceneDocument& base, uint64_t revision,
+                                                       std::span<const ResolvedPose> poses);
 
 /// POST /v1/scenes/{id}/instances:
 ///
