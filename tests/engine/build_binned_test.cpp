@@ -83,23 +83,34 @@ TEST(KdBinned, NodesBelowTheThresholdAreBuiltExactly) {
 
 TEST(KdBinned, SameBytesAtAnyThreadCount) {
     Rng rng(test_seed() + 310);
-    // Big enough that the root bins and partitions in parallel chunks (kParallelRefs); the
-    // stadium's nearly empty cuts take the exact sweep's split.
-    const Mesh soup = random_soup(rng, 60000);
-    const Mesh stadium = teapot_in_stadium(1000.0f, 120, 240);
-    for (const Mesh* mesh : {&soup, &stadium}) {
-        for (uint32_t exact_below : {64u, 6144u}) {
-            SCOPED_TRACE(testing::Message()
-                         << mesh->triangle_count() << " triangles, exact below " << exact_below);
-            auto build_with = [&](int threads) {
-                tbb::task_arena arena(threads);
-                return arena.execute(
-                    [&] { return build_kdtree_with(*mesh, {}, binned_below(exact_below)); });
-            };
-            const KdTree one = build_with(1), two = build_with(2), four = build_with(4);
-            EXPECT_TRUE(same_tree(one, two));
-            EXPECT_TRUE(same_tree(one, four));
-        }
+    // Each mesh is just big enough for the parallel paths it is here for (the test took ~130 s
+    // under ASan with a 60,000-triangle soup and a 57,600-triangle stadium, each at both
+    // thresholds). The soup's root bins and partitions in parallel chunks (more than
+    // kParallelRefs = 2^15 references); at 6144 its nodes below the threshold sort their events
+    // and build their children in parallel (4096 triangles or more). The stadium's nearly empty
+    // cuts hand its root to the exact sweep at any threshold
+    // (NearlyEmptyCutsAreLeftToTheExactSweep), so one threshold covers it: its root then sweeps and
+    // partitions each axis in parallel chunks (more than kParallelAxes = 2^15 events per axis: its
+    // 32,052 triangles give about 64,000).
+    const Mesh soup = random_soup(rng, 40000);
+    const Mesh stadium = teapot_in_stadium(1000.0f, 90, 180);
+    ASSERT_GT(soup.triangle_count(), size_t{1} << 15);
+    ASSERT_GT(2 * stadium.triangle_count(), size_t{1} << 15);  // two events per triangle and axis
+    struct Case {
+        const Mesh* mesh;
+        uint32_t exact_below;
+    };
+    for (const Case& c : {Case{&soup, 64u}, Case{&soup, 6144u}, Case{&stadium, 64u}}) {
+        SCOPED_TRACE(testing::Message()
+                     << c.mesh->triangle_count() << " triangles, exact below " << c.exact_below);
+        auto build_with = [&](int threads) {
+            tbb::task_arena arena(threads);
+            return arena.execute(
+                [&] { return build_kdtree_with(*c.mesh, {}, binned_below(c.exact_below)); });
+        };
+        const KdTree one = build_with(1), two = build_with(2), four = build_with(4);
+        EXPECT_TRUE(same_tree(one, two));
+        EXPECT_TRUE(same_tree(one, four));
     }
 }
 
@@ -368,7 +379,12 @@ TEST(KdSweep, RootSplitIsTheBestCandidate) {
                               : kind == 1 ? snapped_soup(rng, n, 1.0f / 8)
                                           : snapped_soup(rng, n, 1.0f / 256);
             for (const BuildOptions& options : {BuildOptions{}, costly}) {
-                const KdTree tree = build_kdtree_with(mesh, options, binned_below(kAllExact));
+                // Only the root's split is compared, so the children are made leaves (max_depth
+                // 1 enters no cost: the root is chosen as in a full build, which took most of
+                // this test's ~55 s under ASan).
+                BuildOptions root_only = options;
+                root_only.max_depth = 1;
+                const KdTree tree = build_kdtree_with(mesh, root_only, binned_below(kAllExact));
                 const RootSplit want = plain_root_split(mesh, tree, options);
                 const KdNode& root = tree.nodes[0];
                 ASSERT_EQ(!root.is_leaf(), want.split);
