@@ -740,8 +740,11 @@ inline constexpr int kWalksInTurn = 16;
 /// A batch of single rays, K at a time: the walks advance in turn, one cell each, so that one
 /// ray's dependent loads overlap the others' work. After a step, the line of the cell the walk
 /// moved to is prefetched: it loads while the other K - 1 walks step, instead of when this walk's
-/// turn comes again. Each walk is the single-ray kernel's (wide_step), so every answer is its
-/// answer. A walk that ends takes the batch's next ray.
+/// turn comes again. A walk that moved to a leaf spends its next turn prefetching the leaf's
+/// first triangles (its references arrived meanwhile) and tests them the turn after, so the
+/// triangle loads, which depend on the references, are also overlapped with the other walks.
+/// Each walk is the single-ray kernel's (wide_step), so every answer is its answer. A walk that
+/// ends takes the batch's next ray.
 ///
 /// The batch's j-th ray is rays[order(j)], its answer hits / occluded [out_base + order(j)].
 template <bool AnyHit, int K, class Order>
@@ -784,12 +787,18 @@ template <bool AnyHit, int K, class Order>
         return false;
     };
     bool live[K];
+    bool leaf_next[K] = {};
     int n_live = 0;
     for (int k = 0; k < K; ++k) n_live += (live[k] = start(k)) ? 1 : 0;
     while (n_live > 0) {
         for (int k = 0; k < K; ++k) {
             if (!live[k]) continue;
             WideWalk& w = walk[k];
+            if (leaf_next[k]) {
+                prefetch_leaf_triangles(arrays, w.cell.slot);
+                leaf_next[k] = false;
+                continue;
+            }
             if (wide_step<AnyHit>(arrays, w.ray, stack[k], w.stack_size, w.cell, w.best, w.found,
                                   NoCount{})) {
                 answer(at[k], w);
@@ -797,6 +806,7 @@ template <bool AnyHit, int K, class Order>
                 if (!live[k]) --n_live;
             } else {
                 prefetch_cell(arrays, w.cell.slot);
+                leaf_next[k] = WideNode::slot_tag(w.cell.slot) == WideNode::kSlotLeaf;
             }
         }
     }

@@ -705,6 +705,21 @@ template <bool AnyHit, class Counter>
     __builtin_prefetch(line);
 }
 
+/// Starts the loads of the lines of a leaf cell's first four triangles (its references must be
+/// at hand: prefetch_cell asked for them a turn earlier).
+[[gnu::always_inline]] static inline void prefetch_leaf_triangles(const WideArrays& tree,
+                                                                  uint32_t slot) noexcept {
+    const uint32_t* ref = tree.refs + WideNode::slot_index(slot);
+    if (tree.refs_end - ref < 4) return;  // the array's last few: no prefetch
+    // The next four references whether the run ends before them or not (a shorter run's
+    // neighbours are its leaf's neighbours in leaf order, often on the same lines).
+    for (int i = 0; i < 4; ++i) {
+        const char* t = reinterpret_cast<const char*>(tree.tris + (ref[i] & ~KdTree::kLastRef));
+        __builtin_prefetch(t);
+        __builtin_prefetch(t + sizeof(TriVerts) - 1);
+    }
+}
+
 /// The single-ray kernel: with AnyHit it returns at the first hit in [ray tmin, ray tmax];
 /// otherwise it keeps the lexicographically smallest (t, prim) so ties do not depend on the
 /// traversal order. Counter: NoCount, or Count (the work counters of kdrt-bench trace --stats).
