@@ -707,6 +707,17 @@ Ray hits_window(double root_mag, Ray o, const Hit& first, float ray_tmax, float 
 /// Keeps the instance's merged hits `hits` (sorted by (t, prim)) that are among the nearest k
 /// in `out`.
 void keep_hits(std::span<const Hit> hits, uint32_t k, uint32_t geom, std::vector<SceneHit>& out) {
+    if (k == 1) {
+        // The loop below for one kept hit (a lidar's single return): only the instance's first
+        // hit can be kept, since every later one comes after it in (t, prim) order.
+        if (hits.empty()) return;
+        const SceneHit c{hits[0].t, hits[0].prim, hits[0].u, hits[0].v, geom};
+        if (out.empty())
+            out.push_back(c);
+        else if (detail::scene_hit_less(c, out[0]))
+            out[0] = c;
+        return;
+    }
     // Once one hit is not kept, no later one is.
     for (const Hit& h : hits) {
         const SceneHit c{h.t, h.prim, h.u, h.v, geom};
