@@ -120,7 +120,8 @@ InstanceData prepare_instance(uint32_t index, const SceneInstance& inst) {
     if (similar) d.scale = std::sqrt(s2);
 
     const Aabb& ob = inst.tree->bounds;
-    d.lin_bounds = lin_norm * box_magnitude(ob);
+    d.root_mag = box_magnitude(ob);
+    d.lin_bounds = lin_norm * d.root_mag;
     if (!ob.empty()) {
         double lo[3], hi[3];
         for (int a = 0; a < 3; ++a) {

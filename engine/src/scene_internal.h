@@ -31,6 +31,8 @@ struct InstanceData {
     double kappa = 1.0;
     double trans_mag = 0.0;
     double lin_bounds = 0.0;
+    /// The largest |coordinate| of the mesh tree's root box (object space), in double.
+    double root_mag = 0.0;
 };
 
 /// A top-level node: the KdNode encoding (kdrt/kdtree.h) kept in a type of its own, so the mesh
@@ -254,8 +256,30 @@ struct Mailbox {
     }
 };
 
-/// object_ray with the instance data at hand.
+/// object_ray with the instance data at hand: per object axis i,
+///   origin[i] = float(inv[i][0] * o[0] + inv[i][1] * o[1] + inv[i][2] * o[2]), o = org - trans,
+///   dir[i]    = float(inv[i][0] * d[0] + inv[i][1] * d[1] + inv[i][2] * d[2]),
+/// in double, summed left to right (to_object_reference, which the tests hold it to bit for bit).
+/// The origin's and the direction's sums of one row go together in one two-lane vector (SSE2, the
+/// x86-64 baseline): each lane is that scalar arithmetic (IEEE products and sums, no contraction:
+/// -ffp-contract=off), half the instructions.
 [[gnu::always_inline]] inline Ray to_object(const InstanceData& d, const Ray& r) noexcept {
+    using D2 = double __attribute__((vector_size(16)));
+    using F2 = float __attribute__((vector_size(8)));
+    // Lane 0 the origin, lane 1 the direction, per world axis.
+    const D2 x = {static_cast<double>(r.ox) - d.trans[0], static_cast<double>(r.dx)};
+    const D2 y = {static_cast<double>(r.oy) - d.trans[1], static_cast<double>(r.dy)};
+    const D2 z = {static_cast<double>(r.oz) - d.trans[2], static_cast<double>(r.dz)};
+    F2 row[3];
+    for (int i = 0; i < 3; ++i) {
+        const double* m = &d.inv[3 * i];
+        row[i] = __builtin_convertvector(m[0] * x + m[1] * y + m[2] * z, F2);
+    }
+    return Ray{row[0][0], row[1][0], row[2][0], r.tmin, row[0][1], row[1][1], row[2][1], r.tmax};
+}
+
+/// to_object in plain scalar arithmetic (what to_object must equal, bit for bit).
+inline Ray to_object_reference(const InstanceData& d, const Ray& r) noexcept {
     const double o[3] = {static_cast<double>(r.ox) - d.trans[0],
                          static_cast<double>(r.oy) - d.trans[1],
                          static_cast<double>(r.oz) - d.trans[2]};

@@ -653,19 +653,27 @@ namespace {
 /// object origin and the group's first triangle, over the largest direction component), which
 /// is bounded with the tree's root box; taken twice, plus a few ulps of t_kth for the float
 /// subtraction of the group test. Without merging nothing beyond t_kth matters.
-float truncated_tmax(const KdTree& tree, const Ray& o, float t_kth, bool merge) noexcept {
+/// `root_mag` is the tree's InstanceData::root_mag (its root box's largest |coordinate|).
+float truncated_tmax(double root_mag, const Ray& o, float t_kth, bool merge) noexcept {
     if (!merge) return t_kth;
     const double dmax = std::max({std::fabs(o.dx), std::fabs(o.dy), std::fabs(o.dz)});
-    double mag = std::max({std::fabs(o.ox), std::fabs(o.oy), std::fabs(o.oz)});
-    for (int a = 0; a < 3; ++a)
-        mag = std::max({mag, std::fabs(static_cast<double>(tree.bounds.lo[a])),
-                        std::fabs(static_cast<double>(tree.bounds.hi[a]))});
+    // The largest of the origin's and the root box's magnitudes (a maximum: in any order).
+    const double mag =
+        std::max({static_cast<double>(std::fabs(o.ox)), static_cast<double>(std::fabs(o.oy)),
+                  static_cast<double>(std::fabs(o.oz)), root_mag});
     const double reach = static_cast<double>(t_kth) +
                          std::fabs(static_cast<double>(t_kth)) * 0x1p-20 +
                          2.0 * mag * double{detail::kMergeToleranceScale} / dmax;
     if (!(reach < std::numeric_limits<float>::max())) return std::numeric_limits<float>::max();
     auto f = static_cast<float>(reach);
-    if (static_cast<double>(f) < reach) f = std::nextafter(f, std::numeric_limits<float>::max());
+    if (static_cast<double>(f) < reach) {
+        // The next float up: for a positive finite f (below FLT_MAX here) its bits plus one,
+        // which is what std::nextafter(f, FLT_MAX) gives, without the library call.
+        if (f > 0.0f)
+            f = std::bit_cast<float>(std::bit_cast<uint32_t>(f) + 1u);
+        else
+            f = std::nextafter(f, std::numeric_limits<float>::max());
+    }
     return f;
 }
 
@@ -680,7 +688,7 @@ struct NearestScratch {
 /// The window of the object ray `o` whose every-hit answer holds an instance's hits that may be
 /// among the nearest k, given its closest hit `first` (a hit) on `o` traced with tmax = `limit`:
 /// the ray's tmax when the ray's list held fewer than k hits, else the k-th hit's t (`full`).
-Ray hits_window(const KdTree& tree, Ray o, const Hit& first, float ray_tmax, float limit, bool full,
+Ray hits_window(double root_mag, Ray o, const Hit& first, float ray_tmax, float limit, bool full,
                 uint32_t k, bool merge) noexcept {
     // Its first k merged hits lie in groups starting no later than the k-th hit so far; for
     // k = 1 no later than this closest hit, whose t is the first raw hit's of intersect_all, bit
@@ -689,9 +697,9 @@ Ray hits_window(const KdTree& tree, Ray o, const Hit& first, float ray_tmax, flo
         // Nothing of this instance lies before its closest hit: the every-hit query needs only
         // the cells around it.
         o.tmin = first.t;
-        o.tmax = std::min(ray_tmax, truncated_tmax(tree, o, first.t, merge));
+        o.tmax = std::min(ray_tmax, truncated_tmax(root_mag, o, first.t, merge));
     } else {
-        o.tmax = full ? std::min(ray_tmax, truncated_tmax(tree, o, limit, merge)) : ray_tmax;
+        o.tmax = full ? std::min(ray_tmax, truncated_tmax(root_mag, o, limit, merge)) : ray_tmax;
     }
     return o;
 }
@@ -699,6 +707,17 @@ Ray hits_window(const KdTree& tree, Ray o, const Hit& first, float ray_tmax, flo
 /// Keeps the instance's merged hits `hits` (sorted by (t, prim)) that are among the nearest k
 /// in `out`.
 void keep_hits(std::span<const Hit> hits, uint32_t k, uint32_t geom, std::vector<SceneHit>& out) {
+    if (k == 1) {
+        // The loop below for one kept hit (a lidar's single return): only the instance's first
+        // hit can be kept, since every later one comes after it in (t, prim) order.
+        if (hits.empty()) return;
+        const SceneHit c{hits[0].t, hits[0].prim, hits[0].u, hits[0].v, geom};
+        if (out.empty())
+            out.push_back(c);
+        else if (detail::scene_hit_less(c, out[0]))
+            out[0] = c;
+        return;
+    }
     // Once one hit is not kept, no later one is.
     for (const Hit& h : hits) {
         const SceneHit c{h.t, h.prim, h.u, h.v, geom};
@@ -710,13 +729,14 @@ void keep_hits(std::span<const Hit> hits, uint32_t k, uint32_t geom, std::vector
 
 /// Takes instance `geom`'s hits into `out` (the nearest `k` so far, sorted by the tie rule), given
 /// its closest hit `first` on the object ray `o` traced with tmax = `limit` (hits_window).
-void take_instance(const KdTree& tree, const Ray& o, const Hit& first, float ray_tmax, float limit,
-                   bool full, uint32_t k, bool merge, uint32_t geom, std::vector<SceneHit>& out,
-                   std::vector<Hit>& tmp) {
+void take_instance(const KdTree& tree, double root_mag, const Ray& o, const Hit& first,
+                   float ray_tmax, float limit, bool full, uint32_t k, bool merge, uint32_t geom,
+                   std::vector<SceneHit>& out, std::vector<Hit>& tmp) {
     // None up to the k-th hit so far means no hit to keep (a merged hit is never before its
     // group's first, the instance's closest).
     if (!first.is_hit()) return;
-    intersect_all(tree, hits_window(tree, o, first, ray_tmax, limit, full, k, merge), merge, tmp);
+    intersect_all(tree, hits_window(root_mag, o, first, ray_tmax, limit, full, k, merge), merge,
+                  tmp);
     keep_hits(tmp, k, geom, out);
 }
 
@@ -744,8 +764,8 @@ void nearest(const SceneData& s, const Ray& ray, uint32_t k, bool merge, std::ve
             const bool full = out.size() == k;
             const float limit = full ? out.back().t : ray.tmax;
             o.tmax = limit;
-            take_instance(tree, o, intersect(tree, o), ray.tmax, limit, full, k, merge, geom, out,
-                          sc.tmp);
+            take_instance(tree, s.inst[geom].root_mag, o, intersect(tree, o), ray.tmax, limit, full,
+                          k, merge, geom, out, sc.tmp);
             return true;
         });
 }
@@ -759,6 +779,7 @@ constexpr uint32_t kRoundsMaxTraced = 16;
 struct NearestRounds {
     TopRounds walks;
     std::vector<std::vector<SceneHit>> out;
+    std::vector<float> limit;      ///< per ray: its k-th hit's t so far, or its tmax
     std::vector<uint32_t> traced;  ///< per ray kRoundsMaxTraced geometry ids
     std::vector<uint32_t> traced_count;
     std::vector<uint32_t> alone;  ///< rays that reached more instances than the rounds keep
@@ -781,10 +802,18 @@ void nearest_rounds(const SceneData& s, std::span<const Ray> rays, uint32_t k, b
     b.traced.resize(n * kRoundsMaxTraced);
     b.traced_count.assign(n, 0);
     b.alone.clear();
-    for (size_t i = 0; i < n; ++i) b.out[i].clear();
+    b.limit.resize(n);
+    for (size_t i = 0; i < n; ++i) {
+        b.out[i].clear();
+        b.limit[i] = rays[i].tmax;
+    }
     b.walks.start(s, rays, isa, [&](size_t i) { return detail::ray_is_valid(rays[i]); });
-    const auto limit_of = [&](uint32_t i) {
-        return b.out[i].size() < k ? rays[i].tmax : b.out[i].back().t;
+    // Ray i's current bound of t: its k-th hit so far, or its tmax (b.limit, kept up to date
+    // whenever b.out[i] changes).
+    const auto limit_of = [&](uint32_t i) { return b.limit[i]; };
+    const auto update_limit = [&](uint32_t i) {
+        const std::vector<SceneHit>& out = b.out[i];
+        b.limit[i] = out.size() < k ? rays[i].tmax : out.back().t;
     };
     while (!b.walks.done()) {
         b.pairs.clear();
@@ -805,6 +834,7 @@ void nearest_rounds(const SceneData& s, std::span<const Ray> rays, uint32_t k, b
             b.pairs, b.groups, s.inst.size(), [&](uint32_t geom, size_t g0, size_t g1) {
                 const size_t count = g1 - g0;
                 const KdTree& tree = *s.instances[geom].tree;
+                const double root_mag = s.inst[geom].root_mag;
                 object_rays(s.inst[geom], rays, b.pairs, g0, g1, limit_of, b.rays);
                 b.hits.resize(count);
                 if (count >= kMinGroup) {
@@ -816,8 +846,9 @@ void nearest_rounds(const SceneData& s, std::span<const Ray> rays, uint32_t k, b
                     for (size_t j = 0; j < count; ++j) {
                         const uint32_t i = b.pairs[g0 + j].second;
                         std::vector<SceneHit>& out = b.out[i];
-                        take_instance(tree, b.rays[j], b.hits[j], rays[i].tmax, b.rays[j].tmax,
-                                      out.size() == k, k, merge, geom, out, sc.tmp);
+                        take_instance(tree, root_mag, b.rays[j], b.hits[j], rays[i].tmax,
+                                      b.rays[j].tmax, out.size() == k, k, merge, geom, out, sc.tmp);
+                        update_limit(i);
                     }
                     return;
                 }
@@ -828,7 +859,7 @@ void nearest_rounds(const SceneData& s, std::span<const Ray> rays, uint32_t k, b
                 for (size_t j = 0; j < count; ++j) {
                     if (!b.hits[j].is_hit()) continue;
                     const uint32_t i = b.pairs[g0 + j].second;
-                    b.windows.push_back(hits_window(tree, b.rays[j], b.hits[j], rays[i].tmax,
+                    b.windows.push_back(hits_window(root_mag, b.rays[j], b.hits[j], rays[i].tmax,
                                                     b.rays[j].tmax, b.out[i].size() == k, k,
                                                     merge));
                     b.window_of.push_back(i);
@@ -842,10 +873,12 @@ void nearest_rounds(const SceneData& s, std::span<const Ray> rays, uint32_t k, b
                 AllHits all;
                 tbb::this_task_arena::isolate(
                     [&] { all = intersect_all(tree, b.windows, options); });
-                for (size_t w = 0; w < b.windows.size(); ++w)
+                for (size_t w = 0; w < b.windows.size(); ++w) {
                     keep_hits(std::span<const Hit>(all.hits).subspan(
                                   all.offsets[w], all.offsets[w + 1] - all.offsets[w]),
                               k, geom, b.out[b.window_of[w]]);
+                    update_limit(b.window_of[w]);
+                }
             });
     }
     // Rays that reached more instances than the rounds keep: from the start, alone.

@@ -9,6 +9,7 @@
 #include <cstring>
 #include <memory>
 #include <numbers>
+#include <random>
 #include <set>
 
 #include "kdrt/camera.h"
@@ -196,6 +197,38 @@ void expect_matches_oracle(const TestScene& s, const std::vector<Ray>& rays,
             }
         }
     }
+}
+
+TEST(Scene, ObjectRaysAreTheScalarTransformBitForBit) {
+    // to_object (two-lane vectors) against to_object_reference (scalar), on inverses of every
+    // magnitude and sign and rays far from and near the translation, every output bit.
+    std::mt19937 rng(26);
+    std::uniform_real_distribution<double> unit(-1.0, 1.0);
+    std::uniform_int_distribution<int> exponent(-30, 30);
+    const auto wide = [&] { return std::ldexp(unit(rng), exponent(rng)); };
+    size_t differ = 0, checked = 0;
+    for (int t = 0; t < 2000; ++t) {
+        detail::InstanceData d;
+        for (double& v : d.inv)
+            v = t % 3 == 0 ? static_cast<double>(static_cast<float>(wide())) : wide();
+        if (t % 7 == 0) d.inv[1] = d.inv[5] = 0.0;  // zero entries
+        for (double& v : d.trans) v = static_cast<float>(t % 2 ? wide() : 100.0 * unit(rng));
+        for (int r = 0; r < 50; ++r) {
+            Ray ray{static_cast<float>(d.trans[0] + wide()),
+                    static_cast<float>(d.trans[1] + wide()),
+                    static_cast<float>(wide()),
+                    static_cast<float>(unit(rng)),
+                    static_cast<float>(unit(rng)),
+                    static_cast<float>(wide()),
+                    r % 5 == 0 ? 0.0f : static_cast<float>(unit(rng)),
+                    1e30f};
+            const Ray a = detail::to_object(d, ray), b = detail::to_object_reference(d, ray);
+            differ += std::memcmp(&a, &b, sizeof a) != 0;
+            ++checked;
+        }
+    }
+    EXPECT_EQ(checked, 100000u);
+    EXPECT_EQ(differ, 0u);
 }
 
 TEST(Scene, MatchesOracleOnMixedTransforms) {
