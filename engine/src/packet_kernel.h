@@ -962,26 +962,52 @@ struct RunTracer {
                 packets(block, base, n);
             return;
         }
-        // A measured block: one half each way, the halves' roles swapping from one measured
-        // block to the next (the first half is traced first).
-        const int half = n / 2;
         const bool singles_first = costs.singles_first;
         costs.singles_first = !singles_first;
-        const uint64_t t0 = cycles();
-        if (singles_first)
-            singles(block, base, half);
-        else
-            packets(block, base, half);
-        const uint64_t t1 = cycles();
-        if (singles_first)
-            packets(block + half, base + static_cast<size_t>(half), n - half);
-        else
-            singles(block + half, base + static_cast<size_t>(half), n - half);
-        const uint64_t t2 = cycles();
-        if (t1 <= t0 || t2 <= t1) return;  // a clock that stood still or went back
-        const float first = static_cast<float>(t1 - t0) / static_cast<float>(half);
-        const float second = static_cast<float>(t2 - t1) / static_cast<float>(n - half);
-        const float ratio = singles_first ? first / second : second / first;
+        float ratio = 0.0f;
+        if (Coherent && n >= 2 * kCoherentRun) {
+            // A coherent block's rays are in image order: its two halves are different parts
+            // of the image and may cost differently whichever way they go. So its runs of
+            // kCoherentRun rays go each way in turn, the two ways' rays spread over the block.
+            uint64_t t[2] = {0, 0};  // [0] packets, [1] single rays
+            int m[2] = {0, 0};
+            for (int first = 0, k = 0; first < n; first += kCoherentRun, ++k) {
+                const int len = n - first < kCoherentRun ? n - first : kCoherentRun;
+                const int way = ((k & 1) == 0) == singles_first ? 1 : 0;
+                const Ray* run = block + first;
+                const size_t at = base + static_cast<size_t>(first);
+                const uint64_t t0 = cycles();
+                if (way == 1)
+                    singles(run, at, len);
+                else
+                    packets(run, at, len);
+                const uint64_t t1 = cycles();
+                t[way] += t1 > t0 ? t1 - t0 : 0;
+                m[way] += len;
+            }
+            if (t[0] == 0 || t[1] == 0) return;  // a clock that stood still or went back
+            ratio = (static_cast<float>(t[1]) / static_cast<float>(m[1])) /
+                    (static_cast<float>(t[0]) / static_cast<float>(m[0]));
+        } else {
+            // A measured block: one half each way, the halves' roles swapping from one measured
+            // block to the next (the first half is traced first).
+            const int half = n / 2;
+            const uint64_t t0 = cycles();
+            if (singles_first)
+                singles(block, base, half);
+            else
+                packets(block, base, half);
+            const uint64_t t1 = cycles();
+            if (singles_first)
+                packets(block + half, base + static_cast<size_t>(half), n - half);
+            else
+                singles(block + half, base + static_cast<size_t>(half), n - half);
+            const uint64_t t2 = cycles();
+            if (t1 <= t0 || t2 <= t1) return;  // a clock that stood still or went back
+            const float first = static_cast<float>(t1 - t0) / static_cast<float>(half);
+            const float second = static_cast<float>(t2 - t1) / static_cast<float>(n - half);
+            ratio = singles_first ? first / second : second / first;
+        }
         costs.ratio[2] = costs.ratio[1];
         costs.ratio[1] = costs.ratio[0];
         costs.ratio[0] = ratio;
