@@ -229,16 +229,46 @@ template <bool AnyHit, class TraceRun>
     }
 }
 
+/// A coherent block (not block_is_incoherent), cut into runs of kCoherentRun rays, each only
+/// split by octant, keeping the input order and a small working set; the invalid rays are
+/// answered as misses here.
+template <bool AnyHit, class TraceRun>
+[[gnu::always_inline]] inline void trace_coherent_block(const Ray* block, size_t base, int n,
+                                                        Hit* hits, uint8_t* occluded,
+                                                        TraceCounters& counters,
+                                                        const TraceRun& trace_run) {
+    for (int first = 0; first < n; first += kCoherentRun) {
+        const int m = n - first < kCoherentRun ? n - first : kCoherentRun;
+        const Ray* run = block + first;
+        const size_t run_base = base + static_cast<size_t>(first);
+        // Bucket the valid rays by octant (input order inside each), then trace the buckets.
+        uint16_t bucket[8][kCoherentRun];
+        int bucket_size[8] = {0, 0, 0, 0, 0, 0, 0, 0};
+        for (int i = 0; i < m; ++i) {
+            const int o = octant_or_invalid(run[i]);
+            if (o < 0) {
+                answer_miss<AnyHit>(run_base + static_cast<size_t>(i), hits, occluded, counters);
+                continue;
+            }
+            bucket[o][bucket_size[o]++] = static_cast<uint16_t>(i);
+        }
+        for (int o = 0; o < 8; ++o) {
+            trace_run(run, run_base, bucket[o], bucket_size[o]);
+        }
+    }
+}
+
 /// Schedules `count` rays, block by block (kBlockRays), as runs of one octant each:
 /// `trace_run(block, base, order, run_count)` traces the rays block[order[0..run_count)], whose
 /// answers belong at hits / occluded [base + order[i]] (run_count may be 0). An incoherent block
 /// (block_is_incoherent) is sorted whole by octant, origin and direction (trace_sorted_block), or
 /// handed whole to `trace_run.incoherent_block(block, base, n, lo, hi)` when the kernel has one
-/// (which then answers every ray of the block, the invalid ones included); a coherent one is cut
-/// into runs of kCoherentRun rays, each only split by octant, keeping the input order and a small
-/// working set. Every valid ray is in exactly one run; the invalid ones (and every ray of a tree
-/// with an empty root) are answered as misses here. The kernels make every lane's single-ray
-/// decisions, so the grouping changes the speed, never an answer.
+/// (which then answers every ray of the block, the invalid ones included); a coherent one goes in
+/// runs of packets (trace_coherent_block), or whole to `trace_run.coherent_block(block, base, n)`
+/// when the kernel has one (which then answers every ray of the block). Every valid ray is in
+/// exactly one run; the invalid ones (and every ray of a tree with an empty root) are answered as
+/// misses here. The kernels make every lane's single-ray decisions, so the grouping changes the
+/// speed, never an answer.
 template <bool AnyHit, class TraceRun>
 [[gnu::always_inline]] inline void schedule_rays(const KdTree& tree, const Ray* rays, size_t count,
                                                  Hit* hits, uint8_t* occluded,
@@ -261,26 +291,11 @@ template <bool AnyHit, class TraceRun>
                                            trace_run);
             continue;
         }
-        for (int first = 0; first < n; first += kCoherentRun) {
-            const int m = n - first < kCoherentRun ? n - first : kCoherentRun;
-            const Ray* run = block + first;
-            const size_t run_base = base + static_cast<size_t>(first);
-            // Bucket the valid rays by octant (input order inside each), then trace the buckets.
-            uint16_t bucket[8][kCoherentRun];
-            int bucket_size[8] = {0, 0, 0, 0, 0, 0, 0, 0};
-            for (int i = 0; i < m; ++i) {
-                const int o = octant_or_invalid(run[i]);
-                if (o < 0) {
-                    answer_miss<AnyHit>(run_base + static_cast<size_t>(i), hits, occluded,
-                                        counters);
-                    continue;
-                }
-                bucket[o][bucket_size[o]++] = static_cast<uint16_t>(i);
-            }
-            for (int o = 0; o < 8; ++o) {
-                trace_run(run, run_base, bucket[o], bucket_size[o]);
-            }
-        }
+        // A kernel may choose how to trace it (the auto policy); else runs of packets.
+        if constexpr (requires { trace_run.coherent_block(block, base, n); })
+            trace_run.coherent_block(block, base, n);
+        else
+            trace_coherent_block<AnyHit>(block, base, n, hits, occluded, counters, trace_run);
     }
 }
 

@@ -13,7 +13,8 @@ namespace kdrt::detail {
 
 /// How a block decides between packets and single rays (TraceMode, as the kernels see it).
 /// The last three are auto with its way for incoherent blocks fixed (RunTracer::incoherent_block):
-/// sorted packets, single rays in input order, or every block measured (half each way). Tests
+/// sorted packets, single rays in input order, or every block measured (half each way; under
+/// kIncoherentMeasured also every coherent any-hit block, RunTracer::coherent_block). Tests
 /// reach every way with them; policy_for never gives them.
 enum class Policy : uint32_t {
     kAuto = 0,

@@ -267,6 +267,67 @@ TEST(PacketEquivalence, IncoherentBlocksAnswerInPlaceWhicheverWayTheyGo) {
     }
 }
 
+/// The auto policy's ways for a coherent block (RunTracer::coherent_block): shadow rays towards
+/// one light, any hit, under the measured policy (half of every block as runs of packets, half as
+/// single rays walked in turn) and the auto policy, against the oracle, on batches of several
+/// blocks, one block and a small one, with invalid rays among them. Closest-hit coherent blocks
+/// keep to packets: their counters equal those of the packets-only policy.
+TEST(PacketEquivalence, CoherentBlocksAnswerInPlaceWhicheverWayTheyGo) {
+    using detail::Policy;
+    auto mesh = proto::load_mesh_file(std::string(KDRT_TEST_DATA_DIR) + "/bunny00.off");
+    ASSERT_TRUE(mesh.ok());
+    const KdTree tree = build_kdtree(*mesh);
+    std::vector<Ray> rays = generate_rays(tree, {RayKind::kShadow, 200, 3});
+    ASSERT_GT(rays.size(), 2 * detail::kBlockRays);
+    for (size_t i = 5; i < rays.size(); i += 97) rays[i].dx = NAN;
+    const std::vector<Hit> want = reference_hits(tree, rays);
+    std::vector<uint8_t> want_occ(rays.size());
+    size_t n_occ = 0;
+    for (size_t i = 0; i < rays.size(); ++i) {
+        want_occ[i] = occluded(tree, rays[i]) ? 1 : 0;
+        n_occ += want_occ[i];
+    }
+    ASSERT_GT(n_occ, 0u);               // both answers occur
+    ASSERT_LT(n_occ, rays.size() / 2);  // (invalid rays are misses)
+    for (Isa isa : supported_isas()) {
+        const detail::PacketKernels* kernels = detail::packet_kernels_for(isa);
+        if (kernels == nullptr) continue;  // the scalar ISA has no packet kernels
+        for (size_t n : {rays.size(), size_t{701}, size_t{130}}) {
+            // The packets-only way, for the closest-hit counters below.
+            std::vector<Hit> packet_hits(n);
+            detail::TraceCounters c_packet;
+            kernels->intersect(tree, rays.data(), n, packet_hits.data(),
+                               Policy::kIncoherentAsPacket, c_packet);
+            expect_identical_bytes(packet_hits, std::span(want).first(n), "packets");
+            for (Policy policy : {Policy::kIncoherentMeasured, Policy::kAuto}) {
+                const std::string what = std::string(isa_name(isa)) + ", policy " +
+                                         std::to_string(static_cast<int>(policy)) + ", " +
+                                         std::to_string(n) + " rays";
+                std::vector<uint8_t> occ(n, 2);
+                detail::TraceCounters c_occ;
+                kernels->occluded(tree, rays.data(), n, occ.data(), policy, c_occ);
+                EXPECT_TRUE(std::equal(occ.begin(), occ.end(), want_occ.begin())) << what;
+                const uint64_t valid = n - c_occ.invalid_rays;
+                EXPECT_EQ(c_occ.sorted_rays, 0u) << what << ": a coherent block is not sorted";
+                EXPECT_EQ(c_occ.packet_rays + c_occ.single_rays, valid) << what;
+                if (policy == Policy::kIncoherentMeasured) {
+                    // About half of each block as single rays (runs of kCoherentRun rays each
+                    // way in turn, or two halves), the rest in packets.
+                    EXPECT_GT(c_occ.packet_rays, 0u) << what;
+                    EXPECT_GE(c_occ.single_rays + c_occ.invalid_rays, n / 3) << what;
+                }
+                std::vector<Hit> hits(n);
+                detail::TraceCounters c;
+                kernels->intersect(tree, rays.data(), n, hits.data(), policy, c);
+                expect_identical_bytes(hits, std::span(want).first(n), what);
+                EXPECT_EQ(c.packets, c_packet.packets) << what << ": closest hit keeps to packets";
+                EXPECT_EQ(c.single_rays, c_packet.single_rays) << what;
+                EXPECT_EQ(c.packet_rays, c_packet.packet_rays) << what;
+            }
+        }
+    }
+}
+
 TEST(PacketEquivalence, OneAndTwoThreadsGiveIdenticalBytes) {
     auto mesh = proto::load_mesh_file(std::string(KDRT_TEST_DATA_DIR) + "/bunny00.off");
     ASSERT_TRUE(mesh.ok());
