@@ -869,13 +869,14 @@ IncoherentCosts& incoherent_costs(const KdTree& tree) {
     return costs;
 }
 
-/// The kernel's answer to schedule_rays: traces one octant run W rays at a time (trace_run), and
-/// under the auto policy chooses how to trace an incoherent block (incoherent_block).
-/// A struct rather than a lambda: a lambda would not inherit the ISA target.
 /// Whether the auto policy measures coherent blocks (RunTracer::coherent_block), by query kind.
 template <bool AnyHit>
 inline constexpr bool kMeasureCoherent = AnyHit;
 
+/// The kernel's answer to schedule_rays: traces one octant run W rays at a time (trace_run), and
+/// under the auto policy chooses how to trace an incoherent block (incoherent_block) and a coherent
+/// any-hit one (coherent_block). A struct rather than a lambda: a lambda would not inherit the ISA
+/// target.
 template <int W, bool AnyHit, bool Count>
 struct RunTracer {
     const KdTree& tree;
