@@ -20,6 +20,10 @@
 //  - The partition classifies all triangles in one pass over the split axis (the list is sorted,
 //    so it is three runs: left of, on and right of the plane), then copies each axis into the
 //    children in one branch-free pass that also merges in the straddlers' new events.
+//  - The sweep counts a position's events in a register and queues its candidates, whose costs
+//    are evaluated two per SSE2 operation (CandidateQueue: SahCost::split's arithmetic per lane).
+//  - A triangle's side in a partition is one byte per child, the step of that child's output, so
+//    the copy of each event adds the two bytes as they are.
 //  - Clipping uses the exact double arithmetic of the straightforward version (only the library
 //    call of nextafter is replaced by bit arithmetic, checked equal for every finite float).
 //  - Big nodes (the top of the tree, where only one or two nodes exist) sweep their axes in
@@ -69,6 +73,9 @@ constexpr float from_ordered_bits(uint32_t o) noexcept {
 constexpr Event make_event(float pos, EventType type, uint32_t prim) noexcept {
     return (uint64_t{ordered_bits(pos)} << 32) | (uint64_t{type} << 30) | prim;
 }
+/// What an event of each type adds to the sweep's per-position counts: ends and planars in the
+/// low 32 bits, starts and planars in the high 32 (a position holds under 2^30 events).
+constexpr std::array<uint64_t, 4> kSweepCounts = {1, 1 | (uint64_t{1} << 32), uint64_t{1} << 32, 0};
 constexpr uint32_t event_key(Event e) noexcept { return static_cast<uint32_t>(e >> 32); }
 constexpr uint32_t event_type(Event e) noexcept { return static_cast<uint32_t>(e >> 30) & 3u; }
 constexpr uint32_t event_prim(Event e) noexcept { return static_cast<uint32_t>(e) & 0x3FFFFFFFu; }
@@ -267,7 +274,14 @@ struct NodeInput {
     }
 };
 
-enum Side : uint8_t { kBoth = 0, kLeftOnly = 1, kRightOnly = 2 };
+/// Where a triangle's events go in a partition: per child, how far that child's output moves
+/// after the event is written there (1: the event is kept, 0: it is overwritten), so that
+/// distribute() adds each byte as it is, without decoding a side. A straddler's old events go to
+/// neither child (its clipped ones are merged in instead).
+struct Side {
+    uint8_t left, right;
+};
+constexpr Side kBoth{0, 0}, kLeftOnly{1, 0}, kRightOnly{0, 1};
 
 constexpr uint32_t kParallelSubtrees = 4096;  // nodes at least this big build children concurrently
 constexpr size_t kParallelAxes = 1u
@@ -280,7 +294,7 @@ constexpr size_t kRadixSortEvents = 1u << 11;  // a node's first sort: radix fro
 /// Per-thread scratch memory. Used only between TBB wait points, or inside isolated parallel
 /// regions that touch nothing but the calling node's data, so nested tasks never see it half-used.
 struct Scratch {
-    std::vector<uint8_t> side;  // per triangle id, written and read within one partition
+    std::vector<Side> side;  // per triangle id, written and read within one partition
     std::vector<EventBuffer> pool;
     std::vector<uint32_t> straddling;
     NewEvents new_left, new_right;
@@ -316,6 +330,100 @@ struct SweepSetup {
     double cap, ring, inv_area;
     SahCost cost;
     uint32_t n_total;
+};
+
+/// The candidates of a sweep, queued in list order and evaluated two per SSE2 operation: the
+/// double arithmetic of SahCost::split in the same order per lane, so the same cost bit for bit.
+/// Of equal costs the earlier candidate wins, as in a sequential comparison.
+class CandidateQueue {
+public:
+    static constexpr uint32_t kSize = 64;  // even
+
+    explicit CandidateQueue(const SweepSetup& s) noexcept
+        : lo_(_mm_set1_pd(s.lo)),
+          hi_(_mm_set1_pd(s.hi)),
+          cap_(_mm_set1_pd(s.cap)),
+          ring_(_mm_set1_pd(s.ring)),
+          inv_area_(_mm_set1_pd(s.inv_area)),
+          c_isect_(_mm_set1_pd(s.cost.c_isect)),
+          c_trav_(_mm_set1_pd(s.cost.c_trav)),
+          empty_scale_(_mm_set1_pd(s.cost.empty_scale)) {}
+
+    /// Queues the candidate at ordered key `key` with `n_left` / `n_right` triangles (each below
+    /// 2^31), its planar triangles on the left if `planar_left`. Returns true when the queue is
+    /// full (flush before the next push).
+    bool push(uint32_t key, uint32_t n_left, uint32_t n_right, bool planar_left) noexcept {
+        key_[size_] = key;
+        n_left_[size_] = n_left;
+        n_right_[size_] = n_right;
+        planar_left_[size_] = planar_left;
+        return ++size_ == kSize;
+    }
+
+    /// Evaluates the queued candidates and empties the queue. If the cheapest (the earliest of
+    /// equal costs) costs less than `best_cost`, it becomes the best.
+    void flush(double& best_cost, uint32_t& best_key, bool& best_planar_left) noexcept {
+        if (size_ == 0) return;
+        if (size_ % 2 != 0) {  // the pair's second lane repeats the last candidate: it cannot win
+            key_[size_] = key_[size_ - 1];
+            n_left_[size_] = n_left_[size_ - 1];
+            n_right_[size_] = n_right_[size_ - 1];
+        }
+        const __m128i zero = _mm_setzero_si128();
+        const __m128i ones = _mm_set1_epi32(-1);
+        __m128d best = _mm_set1_pd(INFINITY);
+        __m128i index = _mm_set_epi64x(1, 0);
+        __m128i best_index = zero;
+        for (uint32_t i = 0; i < size_; i += 2) {
+            const __m128i key = load2(key_ + i);
+            // from_ordered_bits: o ^ 0x80000000 where o's top bit is set, else ~o.
+            const __m128i flip = _mm_srli_epi32(_mm_srai_epi32(key, 31), 1);
+            const __m128i bits = _mm_xor_si128(_mm_xor_si128(key, flip), ones);
+            const __m128d pos = _mm_cvtps_pd(_mm_castsi128_ps(bits));
+            const __m128d pl =
+                _mm_mul_pd(_mm_add_pd(cap_, _mm_mul_pd(ring_, _mm_sub_pd(pos, lo_))), inv_area_);
+            const __m128d pr =
+                _mm_mul_pd(_mm_add_pd(cap_, _mm_mul_pd(ring_, _mm_sub_pd(hi_, pos))), inv_area_);
+            const __m128i nl = load2(n_left_ + i), nr = load2(n_right_ + i);
+            __m128d c = _mm_mul_pd(c_isect_, _mm_add_pd(_mm_mul_pd(pl, _mm_cvtepi32_pd(nl)),
+                                                        _mm_mul_pd(pr, _mm_cvtepi32_pd(nr))));
+            __m128i empty = _mm_or_si128(_mm_cmpeq_epi32(nl, zero), _mm_cmpeq_epi32(nr, zero));
+            empty = _mm_unpacklo_epi32(empty, empty);  // one 64-bit mask per lane
+            const __m128d scaled = _mm_mul_pd(c, empty_scale_);
+            c = _mm_or_pd(_mm_and_pd(_mm_castsi128_pd(empty), scaled),
+                          _mm_andnot_pd(_mm_castsi128_pd(empty), c));
+            c = _mm_add_pd(c, c_trav_);
+            const __m128i better = _mm_castpd_si128(_mm_cmplt_pd(c, best));
+            best = _mm_min_pd(c, best);  // c < best ? c : best
+            best_index =
+                _mm_or_si128(_mm_and_si128(better, index), _mm_andnot_si128(better, best_index));
+            index = _mm_add_epi64(index, _mm_set1_epi64x(2));
+        }
+        size_ = 0;
+        alignas(16) double cost[2];
+        alignas(16) uint64_t at[2];
+        _mm_store_pd(cost, best);
+        _mm_store_si128(reinterpret_cast<__m128i*>(at), best_index);
+        const int lane = cost[1] < cost[0] || (cost[1] == cost[0] && at[1] < at[0]) ? 1 : 0;
+        if (cost[lane] < best_cost) {
+            best_cost = cost[lane];
+            best_key = key_[at[lane]];
+            best_planar_left = planar_left_[at[lane]];
+        }
+    }
+
+private:
+    static __m128i load2(const uint32_t* p) noexcept {
+        return _mm_loadl_epi64(reinterpret_cast<const __m128i*>(p));
+    }
+
+    __m128d lo_, hi_, cap_, ring_, inv_area_, c_isect_, c_trav_, empty_scale_;
+    uint32_t size_ = 0;
+    // One slot more than kSize: an odd queue's pair is completed in place.
+    alignas(16) uint32_t key_[kSize + 2];
+    alignas(16) uint32_t n_left_[kSize + 2];
+    alignas(16) uint32_t n_right_[kSize + 2];
+    std::array<bool, kSize> planar_left_;
 };
 
 class SahBuilder {
@@ -377,13 +485,11 @@ private:
     /// The SAH of every candidate plane in ev[begin, end) (whole position groups), swept in one
     /// pass; n_left / n_right are the counts before `begin`. Ties keep the earlier candidate.
     /// Positions strictly inside the cell with no planar event (nearly all of them) take one
-    /// candidate and no boundary rule; the rest go through the general case. The arithmetic of
-    /// each candidate's cost is the same either way, so the same split wins.
+    /// candidate and no boundary rule; the rest go through the general case. Either way the
+    /// candidates are queued in list order and costed two at a time (CandidateQueue), with the
+    /// arithmetic of SahCost::split, so the same split wins.
     [[gnu::noinline]] static Split sweep(const SweepSetup& s, const Event* ev, size_t begin,
                                          size_t end, uint32_t n_left, uint32_t n_right) {
-        // Locals, so that the loop keeps them in registers.
-        const double lo = s.lo, hi = s.hi, cap = s.cap, ring = s.ring, inv_area = s.inv_area;
-        const SahCost cost = s.cost;
         const uint32_t n_total = s.n_total;
         // pos > lo and pos < hi as integer compares: ordered_bits is monotonic (-0 and +0 share
         // a key, as they compare equal).
@@ -391,33 +497,30 @@ private:
         double best_cost = INFINITY;
         uint32_t best_key = 0;
         bool best_planar_left = true;
+        CandidateQueue queue(s);
         size_t i = begin;
         while (i < end) {
             const uint32_t key = event_key(ev[i]);
-            // Count the events at this position by type: End, Planar, Start (type 3 never occurs).
-            // ev[end] is at another position (the next one, or the sentinel after the list).
-            // The events below `limit` are at this position (real keys are below ~0u).
+            // Count the events at this position: ends and planars (low half of `counts`), starts
+            // and planars (high half; type 3 never occurs), in a register rather than an array in
+            // memory, whose increments of one slot wait for each other. ev[end] is at another
+            // position (the next one, or the sentinel after the list). The events below `limit`
+            // are at this position (real keys are below ~0u).
             const Event limit = (Event{key} + 1) << 32;
-            uint32_t count[4] = {0, 0, 0, 0};
+            const size_t first = i;
+            uint64_t counts = 0;
             do {
-                ++count[event_type(ev[i])];
+                counts += kSweepCounts[event_type(ev[i])];
                 ++i;
             } while (ev[i] < limit);
-            const uint32_t ending = count[kEnd], planar = count[kPlanar], starting = count[kStart];
-            n_right -= planar + ending;
-            const double pos = from_ordered_bits(key);
+            const auto leaving = static_cast<uint32_t>(counts);         // ends and planars
+            const auto entering = static_cast<uint32_t>(counts >> 32);  // starts and planars
+            const uint32_t planar = leaving + entering - static_cast<uint32_t>(i - first);
+            n_right -= leaving;
             if (key > key_lo && key < key_hi && planar == 0) {
-                const double pl = (cap + ring * (pos - lo)) * inv_area;
-                const double pr = (cap + ring * (hi - pos)) * inv_area;
-                const double c = cost.split(pl, pr, n_left, n_right);
-                // Branch-free update: which candidates win is hard to predict.
-                const bool better = c < best_cost;
-                best_cost = better ? c : best_cost;
-                best_key = better ? key : best_key;
-                best_planar_left = better ? true : best_planar_left;
+                if (queue.push(key, n_left, n_right, true))
+                    queue.flush(best_cost, best_key, best_planar_left);
             } else if (key >= key_lo && key <= key_hi) {
-                const double pl = (cap + ring * (pos - lo)) * inv_area;
-                const double pr = (cap + ring * (hi - pos)) * inv_area;
                 // Planar triangles go left or right, whichever is cheaper (Wald & Havran 2006);
                 // without any, both placements are the same split.
                 for (int planar_left = 1; planar_left >= (planar ? 0 : 1); --planar_left) {
@@ -427,15 +530,13 @@ private:
                     // hold fewer triangles, or the split makes no progress.
                     if (key == key_lo && nr >= n_total) continue;
                     if (key == key_hi && nl >= n_total) continue;
-                    const double c = cost.split(pl, pr, nl, nr);
-                    const bool better = c < best_cost;
-                    best_cost = better ? c : best_cost;
-                    best_key = better ? key : best_key;
-                    best_planar_left = better ? planar_left == 1 : best_planar_left;
+                    if (queue.push(key, nl, nr, planar_left == 1))
+                        queue.flush(best_cost, best_key, best_planar_left);
                 }
             }
-            n_left += starting + planar;
+            n_left += entering;
         }
+        queue.flush(best_cost, best_key, best_planar_left);
         Split best;
         if (best_cost < INFINITY)
             best = {true, s.axis, from_ordered_bits(best_key), best_planar_left, best_cost};
@@ -521,13 +622,13 @@ private:
     /// list is sorted, so it is three runs: positions left of the plane, on it, and right of it.
     /// Returns the number of triangles only on the left / only on the right.
     [[gnu::noinline]] static std::array<uint32_t, 2> classify(const NodeInput& in,
-                                                              const Split& split, uint8_t* side,
+                                                              const Split& split, Side* side,
                                                               std::vector<uint32_t>& straddling,
                                                               const TriVerts* tris) {
         const Event* ev = in.events(split.axis);
         const size_t n = in.count[split.axis];
         const uint32_t plane = ordered_bits(split.pos);
-        const uint8_t planar_side = split.planar_left ? kLeftOnly : kRightOnly;
+        const Side planar_side = split.planar_left ? kLeftOnly : kRightOnly;
         uint32_t left_only = 0, right_only = 0;
         // Events below `on_plane` are left of the plane, those below `right` on it. ev[n] is
         // kSentinel, above both: the first two runs need no index check.
@@ -543,21 +644,20 @@ private:
         // On the plane: ends are left, starts right, planars where the split put them.
         for (; ev[i] < right; ++i) {
             const uint32_t type = event_type(ev[i]);
-            const uint8_t s = type == kEnd ? uint8_t{kLeftOnly}
-                                           : (type == kStart ? uint8_t{kRightOnly} : planar_side);
+            const Side s = type == kEnd ? kLeftOnly : (type == kStart ? kRightOnly : planar_side);
             side[event_prim(ev[i])] = s;
-            left_only += s == kLeftOnly ? 1 : 0;
-            right_only += s == kRightOnly ? 1 : 0;
+            left_only += s.left;
+            right_only += s.right;
         }
         // Right of the plane: starts and planars are right only; an end whose start was left of
         // the plane marks a straddling triangle.
         for (; i < n; ++i) {
             const uint32_t prim = event_prim(ev[i]);
             const bool end = event_type(ev[i]) == kEnd;
-            const uint8_t old = side[prim];
-            side[prim] = end ? old : uint8_t{kRightOnly};
+            const Side old = side[prim];
+            side[prim] = end ? old : kRightOnly;
             right_only += end ? 0 : 1;
-            if (end && old == kBoth) {  // rare: predictable
+            if (end && (old.left | old.right) == 0) {  // kBoth, rare: predictable
                 straddling.push_back(prim);
                 // Its triangle is clipped soon: start loading it (36 bytes, up to two lines).
                 __builtin_prefetch(&tris[prim]);
@@ -568,13 +668,13 @@ private:
         return {left_only, right_only};
     }
 
-    /// Copies the events of ev[0, n) on `side` 1 (left) / 2 (right) to l / r, merging in the
+    /// Copies the events of ev[0, n) to l / r as `side` says, merging in the
     /// sorted, sentinel-terminated new events nl / nr. Returns the end pointers of l and r.
     /// Branch-free except for the (rare) merge steps; writes one slot past the end of each output.
     /// (sweep, classify and distribute are kept out of line: the hot loops get the registers to
     /// themselves, and profiles show them apart.)
     [[gnu::noinline]] static std::pair<Event*, Event*> distribute(const Event* ev, size_t n,
-                                                                  const uint8_t* side,
+                                                                  const Side* side,
                                                                   const Event*& nl,
                                                                   const Event*& nr, Event* l,
                                                                   Event* r) {
@@ -585,14 +685,15 @@ private:
             while (*nl < *ev) *l++ = *nl++;
             while (*nr < *ev) *r++ = *nr++;
             const Event next_new = std::min(*nl, *nr);
+            Event e = *ev;
             do {
-                const Event e = *ev++;
-                const uint8_t s = side[event_prim(e)];
+                const Side& s = side[event_prim(e)];
                 *l = e;
                 *r = e;
-                l += s & 1u;
-                r += s >> 1;
-            } while (*ev < next_new);
+                l += s.left;
+                r += s.right;
+                e = *++ev;
+            } while (e < next_new);
         }
         return {l, r};
     }
@@ -610,7 +711,7 @@ private:
 
         // The scratch memory is per thread; it is used only inside this call, whose parallel part
         // is isolated so no other node's work can run on this thread in between.
-        uint8_t* side = scratch.side.data();
+        Side* side = scratch.side.data();
         std::vector<uint32_t>& straddling = scratch.straddling;
         straddling.clear();
         auto [left_only, right_only] = classify(in, split, side, straddling, tris_.data());
