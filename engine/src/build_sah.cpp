@@ -149,12 +149,17 @@ int clip_polygon(const Point* src, int n, int a, double bound, Point* dst) {
 }
 
 /// A polygon being clipped: up to 16 points (a triangle clipped by 6 planes has at most 9), in
-/// one of two buffers.
+/// one of two buffers, and the bounds of its points, kept as it is clipped: a plane cuts
+/// nothing off where the bounds are inside it (the common case, then skipped without a look at
+/// the points), and the bounds of what remains need no pass of their own. The bounds are the
+/// running std::min / std::max over the points in order, as a pass over them would give (the
+/// same value, the sign of a zero included).
 struct Polygon {
     std::array<Point, 16> a, b;
     Point* src = a.data();
     Point* dst = b.data();
     int n = 0;
+    Point lo, hi;  // bounds of src[0, n)
 
     explicit Polygon(const TriVerts& tri) noexcept : n(3) {
         for (int k = 0; k < 3; ++k) {
@@ -162,8 +167,9 @@ struct Polygon {
             a[1][k] = tri.v1[k];
             a[2][k] = tri.v2[k];
         }
+        update_bounds();
     }
-    Polygon(const Polygon& other) noexcept : n(other.n) {
+    Polygon(const Polygon& other) noexcept : n(other.n), lo(other.lo), hi(other.hi) {
         std::copy(other.src, other.src + other.n, a.data());
     }
     Polygon& operator=(const Polygon&) = delete;
@@ -173,19 +179,17 @@ struct Polygon {
     void clip(const Aabb& cell, int first_axis, int end_axis) noexcept {
         for (int axis = first_axis; axis < end_axis && n > 0; ++axis) {
             // Planes that cut nothing off the current polygon (the common case) are skipped.
-            const double lo = cell.lo[axis], hi = cell.hi[axis];
-            bool all_inside = true;
-            for (int i = 0; i < n && all_inside; ++i) all_inside = src[i][axis] >= lo;
-            if (!all_inside) {
-                n = clip_polygon<true>(src, n, axis, lo, dst);
+            const double cell_lo = cell.lo[axis], cell_hi = cell.hi[axis];
+            if (!(lo[axis] >= cell_lo)) {
+                n = clip_polygon<true>(src, n, axis, cell_lo, dst);
                 std::swap(src, dst);
                 if (n == 0) break;
+                update_bounds();
             }
-            all_inside = true;
-            for (int i = 0; i < n && all_inside; ++i) all_inside = src[i][axis] <= hi;
-            if (!all_inside) {
-                n = clip_polygon<false>(src, n, axis, hi, dst);
+            if (!(hi[axis] <= cell_hi)) {
+                n = clip_polygon<false>(src, n, axis, cell_hi, dst);
                 std::swap(src, dst);
+                if (n > 0) update_bounds();
             }
         }
     }
@@ -195,19 +199,34 @@ struct Polygon {
     bool bounds(const Aabb& cell, Aabb& out) const noexcept {
         if (n == 0) return false;
         for (int axis = 0; axis < 3; ++axis) {
-            double lo = src[0][axis], hi = src[0][axis];
-            for (int i = 1; i < n; ++i) {
-                lo = std::min(lo, src[i][axis]);
-                hi = std::max(hi, src[i][axis]);
-            }
-            float flo = static_cast<float>(lo), fhi = static_cast<float>(hi);
-            if (static_cast<double>(flo) > lo) flo = next_down(flo);
-            if (static_cast<double>(fhi) < hi) fhi = next_up(fhi);
+            float flo = static_cast<float>(lo[axis]), fhi = static_cast<float>(hi[axis]);
+            if (static_cast<double>(flo) > lo[axis]) flo = next_down(flo);
+            if (static_cast<double>(fhi) < hi[axis]) fhi = next_up(fhi);
             out.lo[axis] = std::max(flo, cell.lo[axis]);
             out.hi[axis] = std::min(fhi, cell.hi[axis]);
             if (out.lo[axis] > out.hi[axis]) return false;
         }
         return true;
+    }
+
+private:
+    /// lo / hi of src[0, n), n > 0: x and y two per SSE2 operation (min_pd(x, m) is
+    /// x < m ? x : m, std::min(m, x); max_pd(x, m) is x > m ? x : m, std::max(m, x)).
+    void update_bounds() noexcept {
+        __m128d lo_xy = _mm_loadu_pd(src[0].data()), hi_xy = lo_xy;
+        __m128d lo_z = _mm_load_sd(&src[0][2]), hi_z = lo_z;
+        for (int i = 1; i < n; ++i) {
+            const __m128d xy = _mm_loadu_pd(src[i].data());
+            const __m128d z = _mm_load_sd(&src[i][2]);
+            lo_xy = _mm_min_pd(xy, lo_xy);
+            hi_xy = _mm_max_pd(xy, hi_xy);
+            lo_z = _mm_min_sd(z, lo_z);
+            hi_z = _mm_max_sd(z, hi_z);
+        }
+        _mm_storeu_pd(lo.data(), lo_xy);
+        _mm_storeu_pd(hi.data(), hi_xy);
+        _mm_store_sd(&lo[2], lo_z);
+        _mm_store_sd(&hi[2], hi_z);
     }
 };
 
@@ -678,22 +697,30 @@ private:
                                                                   const Event*& nl,
                                                                   const Event*& nr, Event* l,
                                                                   Event* r) {
-        // Runs of events below the next new event need no merge step: one compare per event.
-        // ev[n] is kSentinel, which no run passes.
+        // Runs of events below the next new event need no merge step: one compare per event,
+        // or per four events where the fourth is still below it (the list is sorted). ev[n] is
+        // kSentinel, which no run passes.
         const Event* const end = ev + n;
+        const Event* const end4 = n >= 3 ? end - 3 : ev;  // ev < end4: ev[3] is in the list
+        auto copy = [&](Event e) {
+            const Side& s = side[event_prim(e)];
+            *l = e;
+            *r = e;
+            l += s.left;
+            r += s.right;
+        };
         while (ev < end) {
             while (*nl < *ev) *l++ = *nl++;
             while (*nr < *ev) *r++ = *nr++;
             const Event next_new = std::min(*nl, *nr);
-            Event e = *ev;
-            do {
-                const Side& s = side[event_prim(e)];
-                *l = e;
-                *r = e;
-                l += s.left;
-                r += s.right;
-                e = *++ev;
-            } while (e < next_new);
+            copy(*ev++);  // at least one (it may equal a new event: its straddler's, dropped)
+            for (; ev < end4 && ev[3] < next_new; ev += 4) {
+                copy(ev[0]);
+                copy(ev[1]);
+                copy(ev[2]);
+                copy(ev[3]);
+            }
+            for (; *ev < next_new; ++ev) copy(*ev);
         }
         return {l, r};
     }
