@@ -20,8 +20,7 @@
 //  - The partition classifies all triangles in one pass over the split axis (the list is sorted,
 //    so it is three runs: left of, on and right of the plane), then copies each axis into the
 //    children in one branch-free pass that also merges in the straddlers' new events.
-//  - The sweep counts a position's events in a register and queues its candidates, whose costs
-//    are evaluated two per SSE2 operation (CandidateQueue: SahCost::split's arithmetic per lane).
+//  - The sweep counts a position's events in a register (kSweepCounts).
 //  - A triangle's side in a partition is one byte per child, the step of that child's output, so
 //    the copy of each event adds the two bytes as they are.
 //  - Clipping uses the exact double arithmetic of the straightforward version (only the library
@@ -351,100 +350,6 @@ struct SweepSetup {
     uint32_t n_total;
 };
 
-/// The candidates of a sweep, queued in list order and evaluated two per SSE2 operation: the
-/// double arithmetic of SahCost::split in the same order per lane, so the same cost bit for bit.
-/// Of equal costs the earlier candidate wins, as in a sequential comparison.
-class CandidateQueue {
-public:
-    static constexpr uint32_t kSize = 64;  // even
-
-    explicit CandidateQueue(const SweepSetup& s) noexcept
-        : lo_(_mm_set1_pd(s.lo)),
-          hi_(_mm_set1_pd(s.hi)),
-          cap_(_mm_set1_pd(s.cap)),
-          ring_(_mm_set1_pd(s.ring)),
-          inv_area_(_mm_set1_pd(s.inv_area)),
-          c_isect_(_mm_set1_pd(s.cost.c_isect)),
-          c_trav_(_mm_set1_pd(s.cost.c_trav)),
-          empty_scale_(_mm_set1_pd(s.cost.empty_scale)) {}
-
-    /// Queues the candidate at ordered key `key` with `n_left` / `n_right` triangles (each below
-    /// 2^31), its planar triangles on the left if `planar_left`. Returns true when the queue is
-    /// full (flush before the next push).
-    bool push(uint32_t key, uint32_t n_left, uint32_t n_right, bool planar_left) noexcept {
-        key_[size_] = key;
-        n_left_[size_] = n_left;
-        n_right_[size_] = n_right;
-        planar_left_[size_] = planar_left;
-        return ++size_ == kSize;
-    }
-
-    /// Evaluates the queued candidates and empties the queue. If the cheapest (the earliest of
-    /// equal costs) costs less than `best_cost`, it becomes the best.
-    void flush(double& best_cost, uint32_t& best_key, bool& best_planar_left) noexcept {
-        if (size_ == 0) return;
-        if (size_ % 2 != 0) {  // the pair's second lane repeats the last candidate: it cannot win
-            key_[size_] = key_[size_ - 1];
-            n_left_[size_] = n_left_[size_ - 1];
-            n_right_[size_] = n_right_[size_ - 1];
-        }
-        const __m128i zero = _mm_setzero_si128();
-        const __m128i ones = _mm_set1_epi32(-1);
-        __m128d best = _mm_set1_pd(INFINITY);
-        __m128i index = _mm_set_epi64x(1, 0);
-        __m128i best_index = zero;
-        for (uint32_t i = 0; i < size_; i += 2) {
-            const __m128i key = load2(key_ + i);
-            // from_ordered_bits: o ^ 0x80000000 where o's top bit is set, else ~o.
-            const __m128i flip = _mm_srli_epi32(_mm_srai_epi32(key, 31), 1);
-            const __m128i bits = _mm_xor_si128(_mm_xor_si128(key, flip), ones);
-            const __m128d pos = _mm_cvtps_pd(_mm_castsi128_ps(bits));
-            const __m128d pl =
-                _mm_mul_pd(_mm_add_pd(cap_, _mm_mul_pd(ring_, _mm_sub_pd(pos, lo_))), inv_area_);
-            const __m128d pr =
-                _mm_mul_pd(_mm_add_pd(cap_, _mm_mul_pd(ring_, _mm_sub_pd(hi_, pos))), inv_area_);
-            const __m128i nl = load2(n_left_ + i), nr = load2(n_right_ + i);
-            __m128d c = _mm_mul_pd(c_isect_, _mm_add_pd(_mm_mul_pd(pl, _mm_cvtepi32_pd(nl)),
-                                                        _mm_mul_pd(pr, _mm_cvtepi32_pd(nr))));
-            __m128i empty = _mm_or_si128(_mm_cmpeq_epi32(nl, zero), _mm_cmpeq_epi32(nr, zero));
-            empty = _mm_unpacklo_epi32(empty, empty);  // one 64-bit mask per lane
-            const __m128d scaled = _mm_mul_pd(c, empty_scale_);
-            c = _mm_or_pd(_mm_and_pd(_mm_castsi128_pd(empty), scaled),
-                          _mm_andnot_pd(_mm_castsi128_pd(empty), c));
-            c = _mm_add_pd(c, c_trav_);
-            const __m128i better = _mm_castpd_si128(_mm_cmplt_pd(c, best));
-            best = _mm_min_pd(c, best);  // c < best ? c : best
-            best_index =
-                _mm_or_si128(_mm_and_si128(better, index), _mm_andnot_si128(better, best_index));
-            index = _mm_add_epi64(index, _mm_set1_epi64x(2));
-        }
-        size_ = 0;
-        alignas(16) double cost[2];
-        alignas(16) uint64_t at[2];
-        _mm_store_pd(cost, best);
-        _mm_store_si128(reinterpret_cast<__m128i*>(at), best_index);
-        const int lane = cost[1] < cost[0] || (cost[1] == cost[0] && at[1] < at[0]) ? 1 : 0;
-        if (cost[lane] < best_cost) {
-            best_cost = cost[lane];
-            best_key = key_[at[lane]];
-            best_planar_left = planar_left_[at[lane]];
-        }
-    }
-
-private:
-    static __m128i load2(const uint32_t* p) noexcept {
-        return _mm_loadl_epi64(reinterpret_cast<const __m128i*>(p));
-    }
-
-    __m128d lo_, hi_, cap_, ring_, inv_area_, c_isect_, c_trav_, empty_scale_;
-    uint32_t size_ = 0;
-    // One slot more than kSize: an odd queue's pair is completed in place.
-    alignas(16) uint32_t key_[kSize + 2];
-    alignas(16) uint32_t n_left_[kSize + 2];
-    alignas(16) uint32_t n_right_[kSize + 2];
-    std::array<bool, kSize> planar_left_;
-};
-
 class SahBuilder {
 public:
     SahBuilder(std::span<const TriVerts> tris, const BuildOptions& options)
@@ -504,11 +409,13 @@ private:
     /// The SAH of every candidate plane in ev[begin, end) (whole position groups), swept in one
     /// pass; n_left / n_right are the counts before `begin`. Ties keep the earlier candidate.
     /// Positions strictly inside the cell with no planar event (nearly all of them) take one
-    /// candidate and no boundary rule; the rest go through the general case. Either way the
-    /// candidates are queued in list order and costed two at a time (CandidateQueue), with the
-    /// arithmetic of SahCost::split, so the same split wins.
+    /// candidate and no boundary rule; the rest go through the general case. The arithmetic of
+    /// each candidate's cost is the same either way, so the same split wins.
     [[gnu::noinline]] static Split sweep(const SweepSetup& s, const Event* ev, size_t begin,
                                          size_t end, uint32_t n_left, uint32_t n_right) {
+        // Locals, so that the loop keeps them in registers.
+        const double lo = s.lo, hi = s.hi, cap = s.cap, ring = s.ring, inv_area = s.inv_area;
+        const SahCost cost = s.cost;
         const uint32_t n_total = s.n_total;
         // pos > lo and pos < hi as integer compares: ordered_bits is monotonic (-0 and +0 share
         // a key, as they compare equal).
@@ -516,7 +423,6 @@ private:
         double best_cost = INFINITY;
         uint32_t best_key = 0;
         bool best_planar_left = true;
-        CandidateQueue queue(s);
         size_t i = begin;
         while (i < end) {
             const uint32_t key = event_key(ev[i]);
@@ -536,10 +442,19 @@ private:
             const auto entering = static_cast<uint32_t>(counts >> 32);  // starts and planars
             const uint32_t planar = leaving + entering - static_cast<uint32_t>(i - first);
             n_right -= leaving;
+            const double pos = from_ordered_bits(key);
             if (key > key_lo && key < key_hi && planar == 0) {
-                if (queue.push(key, n_left, n_right, true))
-                    queue.flush(best_cost, best_key, best_planar_left);
+                const double pl = (cap + ring * (pos - lo)) * inv_area;
+                const double pr = (cap + ring * (hi - pos)) * inv_area;
+                const double c = cost.split(pl, pr, n_left, n_right);
+                // Branch-free update: which candidates win is hard to predict.
+                const bool better = c < best_cost;
+                best_cost = better ? c : best_cost;
+                best_key = better ? key : best_key;
+                best_planar_left = better ? true : best_planar_left;
             } else if (key >= key_lo && key <= key_hi) {
+                const double pl = (cap + ring * (pos - lo)) * inv_area;
+                const double pr = (cap + ring * (hi - pos)) * inv_area;
                 // Planar triangles go left or right, whichever is cheaper (Wald & Havran 2006);
                 // without any, both placements are the same split.
                 for (int planar_left = 1; planar_left >= (planar ? 0 : 1); --planar_left) {
@@ -549,13 +464,15 @@ private:
                     // hold fewer triangles, or the split makes no progress.
                     if (key == key_lo && nr >= n_total) continue;
                     if (key == key_hi && nl >= n_total) continue;
-                    if (queue.push(key, nl, nr, planar_left == 1))
-                        queue.flush(best_cost, best_key, best_planar_left);
+                    const double c = cost.split(pl, pr, nl, nr);
+                    const bool better = c < best_cost;
+                    best_cost = better ? c : best_cost;
+                    best_key = better ? key : best_key;
+                    best_planar_left = better ? planar_left == 1 : best_planar_left;
                 }
             }
             n_left += entering;
         }
-        queue.flush(best_cost, best_key, best_planar_left);
         Split best;
         if (best_cost < INFINITY)
             best = {true, s.axis, from_ordered_bits(best_key), best_planar_left, best_cost};
@@ -697,30 +614,22 @@ private:
                                                                   const Event*& nl,
                                                                   const Event*& nr, Event* l,
                                                                   Event* r) {
-        // Runs of events below the next new event need no merge step: one compare per event,
-        // or per four events where the fourth is still below it (the list is sorted). ev[n] is
-        // kSentinel, which no run passes.
+        // Runs of events below the next new event need no merge step: one compare per event.
+        // ev[n] is kSentinel, which no run passes.
         const Event* const end = ev + n;
-        const Event* const end4 = n >= 3 ? end - 3 : ev;  // ev < end4: ev[3] is in the list
-        auto copy = [&](Event e) {
-            const Side& s = side[event_prim(e)];
-            *l = e;
-            *r = e;
-            l += s.left;
-            r += s.right;
-        };
         while (ev < end) {
             while (*nl < *ev) *l++ = *nl++;
             while (*nr < *ev) *r++ = *nr++;
             const Event next_new = std::min(*nl, *nr);
-            copy(*ev++);  // at least one (it may equal a new event: its straddler's, dropped)
-            for (; ev < end4 && ev[3] < next_new; ev += 4) {
-                copy(ev[0]);
-                copy(ev[1]);
-                copy(ev[2]);
-                copy(ev[3]);
-            }
-            for (; *ev < next_new; ++ev) copy(*ev);
+            Event e = *ev;
+            do {
+                const Side& s = side[event_prim(e)];
+                *l = e;
+                *r = e;
+                l += s.left;
+                r += s.right;
+                e = *++ev;
+            } while (e < next_new);
         }
         return {l, r};
     }
