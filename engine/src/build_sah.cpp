@@ -20,6 +20,9 @@
 //  - The partition classifies all triangles in one pass over the split axis (the list is sorted,
 //    so it is three runs: left of, on and right of the plane), then copies each axis into the
 //    children in one branch-free pass that also merges in the straddlers' new events.
+//  - The sweep counts a position's events in a register (kSweepCounts).
+//  - A triangle's side in a partition is one byte per child, the step of that child's output, so
+//    the copy of each event adds the two bytes as they are.
 //  - Clipping uses the exact double arithmetic of the straightforward version (only the library
 //    call of nextafter is replaced by bit arithmetic, checked equal for every finite float).
 //  - Big nodes (the top of the tree, where only one or two nodes exist) sweep their axes in
@@ -69,6 +72,9 @@ constexpr float from_ordered_bits(uint32_t o) noexcept {
 constexpr Event make_event(float pos, EventType type, uint32_t prim) noexcept {
     return (uint64_t{ordered_bits(pos)} << 32) | (uint64_t{type} << 30) | prim;
 }
+/// What an event of each type adds to the sweep's per-position counts: ends and planars in the
+/// low 32 bits, starts and planars in the high 32 (a position holds under 2^30 events).
+constexpr std::array<uint64_t, 4> kSweepCounts = {1, 1 | (uint64_t{1} << 32), uint64_t{1} << 32, 0};
 constexpr uint32_t event_key(Event e) noexcept { return static_cast<uint32_t>(e >> 32); }
 constexpr uint32_t event_type(Event e) noexcept { return static_cast<uint32_t>(e >> 30) & 3u; }
 constexpr uint32_t event_prim(Event e) noexcept { return static_cast<uint32_t>(e) & 0x3FFFFFFFu; }
@@ -142,12 +148,17 @@ int clip_polygon(const Point* src, int n, int a, double bound, Point* dst) {
 }
 
 /// A polygon being clipped: up to 16 points (a triangle clipped by 6 planes has at most 9), in
-/// one of two buffers.
+/// one of two buffers, and the bounds of its points, kept as it is clipped: a plane cuts
+/// nothing off where the bounds are inside it (the common case, then skipped without a look at
+/// the points), and the bounds of what remains need no pass of their own. The bounds are the
+/// running std::min / std::max over the points in order, as a pass over them would give (the
+/// same value, the sign of a zero included).
 struct Polygon {
     std::array<Point, 16> a, b;
     Point* src = a.data();
     Point* dst = b.data();
     int n = 0;
+    Point lo, hi;  // bounds of src[0, n)
 
     explicit Polygon(const TriVerts& tri) noexcept : n(3) {
         for (int k = 0; k < 3; ++k) {
@@ -155,8 +166,9 @@ struct Polygon {
             a[1][k] = tri.v1[k];
             a[2][k] = tri.v2[k];
         }
+        update_bounds();
     }
-    Polygon(const Polygon& other) noexcept : n(other.n) {
+    Polygon(const Polygon& other) noexcept : n(other.n), lo(other.lo), hi(other.hi) {
         std::copy(other.src, other.src + other.n, a.data());
     }
     Polygon& operator=(const Polygon&) = delete;
@@ -166,19 +178,17 @@ struct Polygon {
     void clip(const Aabb& cell, int first_axis, int end_axis) noexcept {
         for (int axis = first_axis; axis < end_axis && n > 0; ++axis) {
             // Planes that cut nothing off the current polygon (the common case) are skipped.
-            const double lo = cell.lo[axis], hi = cell.hi[axis];
-            bool all_inside = true;
-            for (int i = 0; i < n && all_inside; ++i) all_inside = src[i][axis] >= lo;
-            if (!all_inside) {
-                n = clip_polygon<true>(src, n, axis, lo, dst);
+            const double cell_lo = cell.lo[axis], cell_hi = cell.hi[axis];
+            if (!(lo[axis] >= cell_lo)) {
+                n = clip_polygon<true>(src, n, axis, cell_lo, dst);
                 std::swap(src, dst);
                 if (n == 0) break;
+                update_bounds();
             }
-            all_inside = true;
-            for (int i = 0; i < n && all_inside; ++i) all_inside = src[i][axis] <= hi;
-            if (!all_inside) {
-                n = clip_polygon<false>(src, n, axis, hi, dst);
+            if (!(hi[axis] <= cell_hi)) {
+                n = clip_polygon<false>(src, n, axis, cell_hi, dst);
                 std::swap(src, dst);
+                if (n > 0) update_bounds();
             }
         }
     }
@@ -188,19 +198,34 @@ struct Polygon {
     bool bounds(const Aabb& cell, Aabb& out) const noexcept {
         if (n == 0) return false;
         for (int axis = 0; axis < 3; ++axis) {
-            double lo = src[0][axis], hi = src[0][axis];
-            for (int i = 1; i < n; ++i) {
-                lo = std::min(lo, src[i][axis]);
-                hi = std::max(hi, src[i][axis]);
-            }
-            float flo = static_cast<float>(lo), fhi = static_cast<float>(hi);
-            if (static_cast<double>(flo) > lo) flo = next_down(flo);
-            if (static_cast<double>(fhi) < hi) fhi = next_up(fhi);
+            float flo = static_cast<float>(lo[axis]), fhi = static_cast<float>(hi[axis]);
+            if (static_cast<double>(flo) > lo[axis]) flo = next_down(flo);
+            if (static_cast<double>(fhi) < hi[axis]) fhi = next_up(fhi);
             out.lo[axis] = std::max(flo, cell.lo[axis]);
             out.hi[axis] = std::min(fhi, cell.hi[axis]);
             if (out.lo[axis] > out.hi[axis]) return false;
         }
         return true;
+    }
+
+private:
+    /// lo / hi of src[0, n), n > 0: x and y two per SSE2 operation (min_pd(x, m) is
+    /// x < m ? x : m, std::min(m, x); max_pd(x, m) is x > m ? x : m, std::max(m, x)).
+    void update_bounds() noexcept {
+        __m128d lo_xy = _mm_loadu_pd(src[0].data()), hi_xy = lo_xy;
+        __m128d lo_z = _mm_load_sd(&src[0][2]), hi_z = lo_z;
+        for (int i = 1; i < n; ++i) {
+            const __m128d xy = _mm_loadu_pd(src[i].data());
+            const __m128d z = _mm_load_sd(&src[i][2]);
+            lo_xy = _mm_min_pd(xy, lo_xy);
+            hi_xy = _mm_max_pd(xy, hi_xy);
+            lo_z = _mm_min_sd(z, lo_z);
+            hi_z = _mm_max_sd(z, hi_z);
+        }
+        _mm_storeu_pd(lo.data(), lo_xy);
+        _mm_storeu_pd(hi.data(), hi_xy);
+        _mm_store_sd(&lo[2], lo_z);
+        _mm_store_sd(&hi[2], hi_z);
     }
 };
 
@@ -267,7 +292,14 @@ struct NodeInput {
     }
 };
 
-enum Side : uint8_t { kBoth = 0, kLeftOnly = 1, kRightOnly = 2 };
+/// Where a triangle's events go in a partition: per child, how far that child's output moves
+/// after the event is written there (1: the event is kept, 0: it is overwritten), so that
+/// distribute() adds each byte as it is, without decoding a side. A straddler's old events go to
+/// neither child (its clipped ones are merged in instead).
+struct Side {
+    uint8_t left, right;
+};
+constexpr Side kBoth{0, 0}, kLeftOnly{1, 0}, kRightOnly{0, 1};
 
 constexpr uint32_t kParallelSubtrees = 4096;  // nodes at least this big build children concurrently
 constexpr size_t kParallelAxes = 1u
@@ -280,7 +312,7 @@ constexpr size_t kRadixSortEvents = 1u << 11;  // a node's first sort: radix fro
 /// Per-thread scratch memory. Used only between TBB wait points, or inside isolated parallel
 /// regions that touch nothing but the calling node's data, so nested tasks never see it half-used.
 struct Scratch {
-    std::vector<uint8_t> side;  // per triangle id, written and read within one partition
+    std::vector<Side> side;  // per triangle id, written and read within one partition
     std::vector<EventBuffer> pool;
     std::vector<uint32_t> straddling;
     NewEvents new_left, new_right;
@@ -394,17 +426,22 @@ private:
         size_t i = begin;
         while (i < end) {
             const uint32_t key = event_key(ev[i]);
-            // Count the events at this position by type: End, Planar, Start (type 3 never occurs).
-            // ev[end] is at another position (the next one, or the sentinel after the list).
-            // The events below `limit` are at this position (real keys are below ~0u).
+            // Count the events at this position: ends and planars (low half of `counts`), starts
+            // and planars (high half; type 3 never occurs), in a register rather than an array in
+            // memory, whose increments of one slot wait for each other. ev[end] is at another
+            // position (the next one, or the sentinel after the list). The events below `limit`
+            // are at this position (real keys are below ~0u).
             const Event limit = (Event{key} + 1) << 32;
-            uint32_t count[4] = {0, 0, 0, 0};
+            const size_t first = i;
+            uint64_t counts = 0;
             do {
-                ++count[event_type(ev[i])];
+                counts += kSweepCounts[event_type(ev[i])];
                 ++i;
             } while (ev[i] < limit);
-            const uint32_t ending = count[kEnd], planar = count[kPlanar], starting = count[kStart];
-            n_right -= planar + ending;
+            const auto leaving = static_cast<uint32_t>(counts);         // ends and planars
+            const auto entering = static_cast<uint32_t>(counts >> 32);  // starts and planars
+            const uint32_t planar = leaving + entering - static_cast<uint32_t>(i - first);
+            n_right -= leaving;
             const double pos = from_ordered_bits(key);
             if (key > key_lo && key < key_hi && planar == 0) {
                 const double pl = (cap + ring * (pos - lo)) * inv_area;
@@ -434,7 +471,7 @@ private:
                     best_planar_left = better ? planar_left == 1 : best_planar_left;
                 }
             }
-            n_left += starting + planar;
+            n_left += entering;
         }
         Split best;
         if (best_cost < INFINITY)
@@ -521,13 +558,13 @@ private:
     /// list is sorted, so it is three runs: positions left of the plane, on it, and right of it.
     /// Returns the number of triangles only on the left / only on the right.
     [[gnu::noinline]] static std::array<uint32_t, 2> classify(const NodeInput& in,
-                                                              const Split& split, uint8_t* side,
+                                                              const Split& split, Side* side,
                                                               std::vector<uint32_t>& straddling,
                                                               const TriVerts* tris) {
         const Event* ev = in.events(split.axis);
         const size_t n = in.count[split.axis];
         const uint32_t plane = ordered_bits(split.pos);
-        const uint8_t planar_side = split.planar_left ? kLeftOnly : kRightOnly;
+        const Side planar_side = split.planar_left ? kLeftOnly : kRightOnly;
         uint32_t left_only = 0, right_only = 0;
         // Events below `on_plane` are left of the plane, those below `right` on it. ev[n] is
         // kSentinel, above both: the first two runs need no index check.
@@ -543,21 +580,20 @@ private:
         // On the plane: ends are left, starts right, planars where the split put them.
         for (; ev[i] < right; ++i) {
             const uint32_t type = event_type(ev[i]);
-            const uint8_t s = type == kEnd ? uint8_t{kLeftOnly}
-                                           : (type == kStart ? uint8_t{kRightOnly} : planar_side);
+            const Side s = type == kEnd ? kLeftOnly : (type == kStart ? kRightOnly : planar_side);
             side[event_prim(ev[i])] = s;
-            left_only += s == kLeftOnly ? 1 : 0;
-            right_only += s == kRightOnly ? 1 : 0;
+            left_only += s.left;
+            right_only += s.right;
         }
         // Right of the plane: starts and planars are right only; an end whose start was left of
         // the plane marks a straddling triangle.
         for (; i < n; ++i) {
             const uint32_t prim = event_prim(ev[i]);
             const bool end = event_type(ev[i]) == kEnd;
-            const uint8_t old = side[prim];
-            side[prim] = end ? old : uint8_t{kRightOnly};
+            const Side old = side[prim];
+            side[prim] = end ? old : kRightOnly;
             right_only += end ? 0 : 1;
-            if (end && old == kBoth) {  // rare: predictable
+            if (end && (old.left | old.right) == 0) {  // kBoth, rare: predictable
                 straddling.push_back(prim);
                 // Its triangle is clipped soon: start loading it (36 bytes, up to two lines).
                 __builtin_prefetch(&tris[prim]);
@@ -568,13 +604,13 @@ private:
         return {left_only, right_only};
     }
 
-    /// Copies the events of ev[0, n) on `side` 1 (left) / 2 (right) to l / r, merging in the
+    /// Copies the events of ev[0, n) to l / r as `side` says, merging in the
     /// sorted, sentinel-terminated new events nl / nr. Returns the end pointers of l and r.
     /// Branch-free except for the (rare) merge steps; writes one slot past the end of each output.
     /// (sweep, classify and distribute are kept out of line: the hot loops get the registers to
     /// themselves, and profiles show them apart.)
     [[gnu::noinline]] static std::pair<Event*, Event*> distribute(const Event* ev, size_t n,
-                                                                  const uint8_t* side,
+                                                                  const Side* side,
                                                                   const Event*& nl,
                                                                   const Event*& nr, Event* l,
                                                                   Event* r) {
@@ -585,14 +621,15 @@ private:
             while (*nl < *ev) *l++ = *nl++;
             while (*nr < *ev) *r++ = *nr++;
             const Event next_new = std::min(*nl, *nr);
+            Event e = *ev;
             do {
-                const Event e = *ev++;
-                const uint8_t s = side[event_prim(e)];
+                const Side& s = side[event_prim(e)];
                 *l = e;
                 *r = e;
-                l += s & 1u;
-                r += s >> 1;
-            } while (*ev < next_new);
+                l += s.left;
+                r += s.right;
+                e = *++ev;
+            } while (e < next_new);
         }
         return {l, r};
     }
@@ -610,7 +647,7 @@ private:
 
         // The scratch memory is per thread; it is used only inside this call, whose parallel part
         // is isolated so no other node's work can run on this thread in between.
-        uint8_t* side = scratch.side.data();
+        Side* side = scratch.side.data();
         std::vector<uint32_t>& straddling = scratch.straddling;
         straddling.clear();
         auto [left_only, right_only] = classify(in, split, side, straddling, tris_.data());

@@ -41,6 +41,7 @@
 #include "kdrt/raygen.h"
 #include "kdrt/render.h"
 #include "kdrt/scene.h"
+#include "kdrt/serialize.h"
 #include "kdrt/trace.h"
 #include "scenes.h"
 #include "test_util.h"
@@ -73,6 +74,7 @@ Run 'kdrt-bench <command> --help' for the options of a command.
 
 constexpr std::string_view kBuildUsage =
     R"(usage: kdrt-bench build MESH [--builder sah|middle] [--c-isect X] [--threads N] [--reps K]
+                        [--out FILE]
 
 Builds the kD-tree of MESH K times (default 1) and prints one JSON line:
   mesh, triangles, builder, c_isect, threads, reps, parse_ms, build_ms (median of the K builds),
@@ -85,6 +87,9 @@ options:
   --c-isect X           SAH cost of a triangle test relative to a traversal step (default 0.3)
   --threads N           worker threads (default: all cores)
   --reps K              number of builds to time (default 1)
+  --out FILE            write the last tree as a blob (kdrt::serialize_tree) with its build_ms
+                        set to 0, so that equal trees give equal files (a build change that must
+                        not change the tree is checked with cmp against the old binary's file)
 )";
 
 constexpr std::string_view kAllHitsUsage =
@@ -408,6 +413,10 @@ int run_build(const Args& args) {
     line["sah_cost"] = rounded(s.sah_cost, 3);
     line["bytes"] = s.bytes;
     line["bytes_per_triangle"] = rounded(s.bytes_per_triangle, 2);
+    if (const auto out_path = args.get("out")) {
+        tree.stats.build_ms = 0;  // the only field that differs between builds of one tree
+        write_output(*out_path, serialize_tree(tree));
+    }
     print_json(line);
     return 0;
 }
@@ -1340,7 +1349,8 @@ struct Command {
     std::span<const std::string_view> flags = {};
 };
 
-constexpr std::array<std::string_view, 4> kBuildOptions = {"builder", "c-isect", "threads", "reps"};
+constexpr std::array<std::string_view, 5> kBuildOptions = {"builder", "c-isect", "threads", "reps",
+                                                           "out"};
 constexpr std::array<std::string_view, 8> kTraceOptions = {"mode", "isa",     "threads", "reps",
                                                            "out",  "builder", "c-isect", "compare"};
 constexpr std::array<std::string_view, 1> kTraceFlags = {"stats"};
