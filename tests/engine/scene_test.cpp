@@ -1247,7 +1247,9 @@ TEST(SceneScan, NearestHitsMatchTheOracleOnEveryIsaWithNoBeamOrLaneLeftOut) {
             if (want[i].size() > returns) want[i].resize(returns);
             beams_hit += !want[i].empty();
         }
-        EXPECT_GT(beams_hit, rays.size() / 4) << "the beams should hit the scene often";
+        // A fifth of the beams or more (253 of 1,261 at KDRT_TEST_SEED=16, the fewest of 1-40).
+        EXPECT_GT(beams_hit, rays.size() / 6) << "the beams should hit the scene often";
+        RecordProperty("beams_hit", static_cast<int>(beams_hit));
         for (Isa isa : supported_isas()) {
             SCOPED_TRACE(std::string(isa_name(isa)) + " returns " + std::to_string(returns));
             const SceneAllHits got = detail::nearest_hits(s.scene, rays, returns, true, isa);
