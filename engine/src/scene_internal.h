@@ -166,16 +166,17 @@ struct TopWalk {
     [[nodiscard]] bool done() const noexcept { return size == 0; }
 
     /// The next leaf along the ray whose cell starts at or before `limit` (the current upper bound
-    /// of t), or nullptr when there is none: cells are met front to back, so once one starts
-    /// beyond the limit every later one does too, and the walk ends.
+    /// of t, which never grows), or nullptr when there is none. A cell starting beyond the limit
+    /// is dropped, but the walk goes on: the widened cells are not strictly front to back (a far
+    /// cell pushed inside a near subtree may start up to 2 eps later than one pushed before it,
+    /// which lies below it on the stack), so a later cell may still start at or before the limit.
     [[gnu::always_inline]] const TopNode* next_leaf(const SceneData& s, const TopRay& p,
                                                     float limit) noexcept {
-        if (size == 0) return nullptr;
-        const TopCell cell = stack[--size];
-        if (cell.tmin > limit) {
-            size = 0;
-            return nullptr;
-        }
+        TopCell cell;
+        do {
+            if (size == 0) return nullptr;
+            cell = stack[--size];
+        } while (cell.tmin > limit);
         uint32_t index = cell.node;
         float tmin = cell.tmin, tmax = cell.tmax;
         const TopNode* node = &s.nodes[index];

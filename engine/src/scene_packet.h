@@ -4,9 +4,9 @@
 // each node visit tests the split plane for every lane at once (SSE, the x86-64 baseline, two
 // 4-lane halves; with AVX2 one 8-lane register: top_packet_ops, scene_packet_steps.h) and keeps
 // one stack of cells with a lane mask each. Per lane it is TopWalk's
-// arithmetic and order exactly: the same plane and box tests on the same floats, the same cells
-// front to back, and a lane's walk ends at the first cell that starts beyond its limit, so a lane
-// reaches the leaves (and the instances) its own TopWalk would reach.
+// arithmetic and order exactly: the same plane and box tests on the same floats, the same cells in
+// the same order, and a lane leaves each cell that starts beyond its limit (as TopWalk drops it),
+// so a lane reaches the leaves (and the instances) its own TopWalk would reach.
 
 #include <bit>
 #include <cstdint>
@@ -109,8 +109,8 @@ struct TopPacket {
 /// The hot steps of a packet's walk (scene_packet_steps.h), compiled for one instruction set.
 struct TopPacketOps {
     /// The next leaf any lane reaches with its cell starting at or before its `limit`, and the
-    /// lanes there (`at`), or nullptr when no lane's walk goes on. A lane whose cell starts beyond
-    /// its limit ends (as TopWalk::next_leaf ends a walk).
+    /// lanes there (`at`), or nullptr when no lane's walk goes on. A lane leaves a cell that starts
+    /// beyond its limit, and walks on in the cells below it (as TopWalk::next_leaf drops the cell).
     const TopNode* (*next_leaf)(TopPacket& packet, const SceneData& s, const Lanes& limit,
                                 uint32_t& at) noexcept;
     /// The lanes of `mask` whose widened segment [ray.tmin, limit] reaches `box` (clip_widened's

@@ -4,9 +4,9 @@
 // lanes are one AVX2 register (F8, where the including file defines KDRT_SCENE_STEPS_AVX2) or two
 // SSE halves (Halves). Per lane
 // it is TopWalk's arithmetic and order exactly: the same plane and box tests on the same floats (no
-// FMA: -ffp-contract=off and no fma target), the same cells front to back, and a lane's walk ends
-// at the first cell that starts beyond its limit, so a lane reaches the leaves (and the instances)
-// its own TopWalk would reach.
+// FMA: -ffp-contract=off and no fma target), the same cells in the same order, and a lane leaves
+// each cell that starts beyond its limit, so a lane reaches the leaves (and the instances) its own
+// TopWalk would reach.
 
 #pragma once
 
@@ -102,9 +102,9 @@ const TopNode* next_leaf_steps(TopPacket& pk, const SceneData& s, const Lanes& l
         uint32_t mask = cell.mask & pk.lanes & ~pk.ended;
         if (!mask) continue;
         V tmin = load(cell.tmin, V{}), tmax = load(cell.tmax, V{});
-        const uint32_t late = gt_bits(tmin, limit);
-        pk.ended |= late & mask;
-        mask &= ~late;
+        // Lanes whose cell starts beyond their limit leave this cell only (TopWalk::next_leaf drops
+        // such a cell and goes on: a cell below it on the stack may start earlier).
+        mask &= ~gt_bits(tmin, limit);
         if (!mask) continue;
         uint32_t index = cell.node;
         const TopNode* node = &s.nodes[index];

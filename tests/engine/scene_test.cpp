@@ -75,6 +75,18 @@ Affine3x4 random_transform(Rng& rng, Kind kind) {
     return affine(l, rng.in_box({{-2, -2, -2}, {2, 2, 2}}));
 }
 
+/// Object point `p` of instance `g` in world space (the transform in double, rounded to float
+/// once).
+Vec3 world_point(const Scene& scene, uint32_t g, Vec3 p) {
+    const double q[3] = {p.x, p.y, p.z};
+    const Affine3x4& t = scene.instance(g).transform;
+    Vec3 w;
+    for (int i = 0; i < 3; ++i)
+        w[i] =
+            static_cast<float>(t.m[i][0] * q[0] + t.m[i][1] * q[1] + t.m[i][2] * q[2] + t.m[i][3]);
+    return w;
+}
+
 /// World rays for a scene: from outside its box towards points inside, from inside in any
 /// direction, axis-parallel ones, windows [tmin, tmax], and rays aimed at world-space vertices and
 /// edge midpoints of random instances (the shared-edge and shared-vertex cases).
@@ -114,13 +126,7 @@ std::vector<Ray> scene_rays(Rng& rng, const Scene& scene, const std::vector<Mesh
                 const auto tri = rng.below(static_cast<uint32_t>(mesh.triangle_count()));
                 const Vec3 a = mesh.corner(tri, 0), b = mesh.corner(tri, 1);
                 const Vec3 p = rng.below(2) ? a : (a + b) * 0.5f;
-                const double q[3] = {p.x, p.y, p.z};
-                const Affine3x4& t = scene.instance(g).transform;
-                Vec3 w;
-                for (int i = 0; i < 3; ++i)
-                    w[i] = static_cast<float>(t.m[i][0] * q[0] + t.m[i][1] * q[1] +
-                                              t.m[i][2] * q[2] + t.m[i][3]);
-                r = make_ray(o, w - o);
+                r = make_ray(o, world_point(scene, g, p) - o);
                 break;
             }
         }
@@ -444,15 +450,10 @@ TEST(Scene, RoundsNeverStopBeforeANearerOrTyingHitInALaterInstance) {
     expect_matches_oracle(s, rays);
 }
 
-TEST(Scene, FarRaysAtInstanceCornersMatchOracle) {
-    // Rays from far away (1e3 .. 1e6 units) aimed at the corners and edges of rotated, scaled and
-    // sheared boxes: the rounding of the object ray then moves the hit by far more than the mesh
-    // tree's padding of its root box, and only the top level's margin keeps such an instance
-    // reachable.
-    const uint64_t seed = test_seed();
-    SCOPED_TRACE(testing::Message() << "seed=" << seed);
+/// Twelve unit boxes (12 triangles each) under random transforms of every kind, and `count` rays
+/// from far away (1e3 .. 1e6 units) aimed at their corners and edges in world space.
+void far_boxes(uint64_t seed, size_t count, TestScene& s, std::vector<Ray>& rays) {
     Rng rng(seed);
-    TestScene s;
     Mesh box;
     const Vec3 c[8] = {{0, 0, 0}, {1, 0, 0}, {1, 1, 0}, {0, 1, 0},
                        {0, 0, 1}, {1, 0, 1}, {1, 1, 1}, {0, 1, 1}};
@@ -469,25 +470,75 @@ TEST(Scene, FarRaysAtInstanceCornersMatchOracle) {
         list.push_back({s.trees[0], random_transform(rng, static_cast<Kind>(i % 4)), nullptr});
     }
     s.scene = build_scene(std::move(list));
-    std::vector<Ray> rays;
-    for (size_t i = 0; i < scaled(4000); ++i) {
+    for (size_t i = 0; i < count; ++i) {
         const uint32_t g = rng.below(s.scene.size());
-        const Affine3x4& t = s.scene.instance(g).transform;
         // A corner, or a point on an edge, of the box, in world space.
         Vec3 p = c[rng.below(8)];
         if (rng.below(2)) p[static_cast<int>(rng.below(3))] = rng.uniform(0, 1);
-        Vec3 w;
-        for (int k = 0; k < 3; ++k)
-            w[k] = static_cast<float>(double{t.m[k][0]} * p.x + double{t.m[k][1]} * p.y +
-                                      double{t.m[k][2]} * p.z + t.m[k][3]);
+        const Vec3 w = world_point(s.scene, g, p);
         const float far = std::pow(10.0f, rng.uniform(3.0f, 6.0f));
         const Vec3 o = w + rng.on_sphere() * far;
         rays.push_back(make_ray(o, w - o));
     }
+}
+
+TEST(Scene, FarRaysAtInstanceCornersMatchOracle) {
+    // Rays from far away (1e3 .. 1e6 units) aimed at the corners and edges of rotated, scaled and
+    // sheared boxes: the rounding of the object ray then moves the hit by far more than the mesh
+    // tree's padding of its root box, and only the top level's margin keeps such an instance
+    // reachable.
+    const uint64_t seed = test_seed();
+    SCOPED_TRACE(testing::Message() << "seed=" << seed);
+    TestScene s;
+    std::vector<Ray> rays;
+    far_boxes(seed, scaled(4000), s, rays);
     // Once the mesh kernel itself missed some of these rays (its root-box clip had no margin,
     // and its single-ray kernel stopped at the first cell starting beyond a hit); the reference
     // is the brute-force oracle, on every ISA and mode.
     expect_matches_oracle(s, rays, 2);
+}
+
+TEST(Scene, TopLevelWalksGoOnPastACellStartingBeyondTheHit) {
+    // The top level's widened cells are not strictly front to back: a far cell pushed inside a
+    // near subtree may start up to twice the margin after the far cell pushed before it. Far rays
+    // (a margin of ~1e-4 in t) at box corners, where a hit in one instance lies within that of
+    // another's: the walk once ended at the first cell starting beyond the hit so far, and so
+    // missed a nearer instance in a cell below it on the stack (seeds 1 and 7 of
+    // FarRaysAtInstanceCornersMatchOracle, and some of these scenes at any seed). Closest hit
+    // alone and in batches, from many origins (each ray walks alone) and from one (rounds: the
+    // packet walk), and the lidar's nearest hit, against the oracle.
+    const uint64_t seed = test_seed();
+    SCOPED_TRACE(testing::Message() << "seed=" << seed);
+    for (uint64_t k = 0; k < 24; ++k) {
+        SCOPED_TRACE(testing::Message() << "scene seed=" << seed + k);
+        TestScene s;
+        std::vector<Ray> rays;
+        far_boxes(seed + k, 1500, s, rays);
+        // The same corners seen from one far origin: rounds, and the packet walk.
+        const Vec3 origin{rays[k].ox, rays[k].oy, rays[k].oz};
+        for (size_t i = 0; i < 1500; ++i) {
+            const Vec3 target{rays[i].ox + rays[i].dx, rays[i].oy + rays[i].dy,
+                              rays[i].oz + rays[i].dz};  // its corner, to rounding
+            rays.push_back(make_ray(origin, target - origin));
+        }
+        const SceneOracle oracle(s.scene);
+        std::vector<SceneHit> batch(rays.size());
+        intersect(s.scene, rays, batch, TraceOptions{});
+        const SceneAllHits nearest = detail::nearest_hits(s.scene, rays, 1, false);
+        for (size_t i = 0; i < rays.size(); ++i) {
+            const SceneHit want = oracle.intersect(rays[i]);
+            const SceneHit got = intersect(s.scene, rays[i]);
+            ASSERT_TRUE(same_bits(got, want))
+                << "ray " << i << ": got " << describe(got) << ", want " << describe(want);
+            ASSERT_TRUE(same_bits(batch[i], want))
+                << "batch ray " << i << ": got " << describe(batch[i]) << ", want "
+                << describe(want);
+            ASSERT_EQ(nearest.offsets[i + 1] - nearest.offsets[i], want.is_hit() ? 1u : 0u);
+            if (want.is_hit()) {
+                ASSERT_TRUE(same_bits(nearest.hits[nearest.offsets[i]], want)) << "nearest " << i;
+            }
+        }
+    }
 }
 
 TEST(Scene, EmptyScenesMiss) {
@@ -1133,7 +1184,11 @@ TEST(SceneScan, LidarReturnsAreTheOraclesNearestHitsOfEachBeam) {
     LidarSpec lidar;
     lidar.elevation_deg = lidar_elevations(-40, 40, 12);
     lidar.azimuth_steps = 60;
-    lidar.max_range = 5.0f;
+    lidar.max_range = 8.0f;  // across the whole field from its centre
+    const Aabb b = s.scene.bounds();
+    lidar.pose.m[3] = 0.5 * (b.lo[0] + b.hi[0]);
+    lidar.pose.m[7] = 0.5 * (b.lo[1] + b.hi[1]);
+    lidar.pose.m[11] = 0.5 * (b.lo[2] + b.hi[2]);
     for (uint32_t returns : {1u, 3u}) {
         lidar.returns = returns;
         const ScenePointCloud got = scan_lidar(s.scene, lidar);
@@ -1156,7 +1211,10 @@ TEST(SceneScan, LidarReturnsAreTheOraclesNearestHitsOfEachBeam) {
             }
         }
         EXPECT_EQ(k, got.cloud.points.size());
-        EXPECT_GT(cut, 10u) << "beams should pass more surfaces than they return";
+        // From the field's centre 117-377 of the 720 beams pass more than one surface, and 3-153
+        // more than three (seeds 1-12; from the origin, 2-10 for some seeds).
+        EXPECT_GT(cut, returns == 1 ? 50u : 0u)
+            << "beams should pass more surfaces than they return";
     }
 }
 
@@ -1189,7 +1247,9 @@ TEST(SceneScan, NearestHitsMatchTheOracleOnEveryIsaWithNoBeamOrLaneLeftOut) {
             if (want[i].size() > returns) want[i].resize(returns);
             beams_hit += !want[i].empty();
         }
-        EXPECT_GT(beams_hit, rays.size() / 4) << "the beams should hit the scene often";
+        // A fifth of the beams or more (253 of 1,261 at KDRT_TEST_SEED=16, the fewest of 1-40).
+        EXPECT_GT(beams_hit, rays.size() / 6) << "the beams should hit the scene often";
+        RecordProperty("beams_hit", static_cast<int>(beams_hit));
         for (Isa isa : supported_isas()) {
             SCOPED_TRACE(std::string(isa_name(isa)) + " returns " + std::to_string(returns));
             const SceneAllHits got = detail::nearest_hits(s.scene, rays, returns, true, isa);
@@ -1204,6 +1264,110 @@ TEST(SceneScan, NearestHitsMatchTheOracleOnEveryIsaWithNoBeamOrLaneLeftOut) {
             }
         }
     }
+}
+
+TEST(SceneScan, SingleReturnsAreTheFirstMergedHitWhereThatIsNotTheClosestHit) {
+    // A single-return scan (nearest_hits with k = 1, merged, what scan_lidar keeps) answers each
+    // beam's first merged hit. Where a beam passes within the merge tolerance of an edge or a
+    // vertex, the triangles there form one merged group whose reported member is the lowest prim
+    // facing each way, not the one with the least t: the answer then differs from the closest
+    // hit, which is why the scan runs an every-hit window on the instance of its closest hit
+    // (session 18 measured the alternatives: tests/bench/README.md). Beams aimed at world-space
+    // vertices and edge midpoints of closed spheres (rigid and mirrored), of boxes sharing a face
+    // in world space, of quads sharing an edge, and of a mirrored quad lying on another (coincident
+    // surfaces of two instances), from one origin (the rounds) and from many (each beam alone),
+    // plus beams grazing the boxes' edges: every answer is the oracle's first merged hit, bit for
+    // bit, on every ISA, and some of those answers are not the closest hit.
+    const uint64_t seed = test_seed();
+    SCOPED_TRACE(testing::Message() << "seed=" << seed);
+    Rng rng(seed + 71);
+    TestScene s;
+    s.meshes = {uv_sphere({0, 0, 0}, 0.5f, 10, 14), box_mesh(0.0f, 1.0f), unit_quad()};
+    for (const Mesh& m : s.meshes)
+        s.trees.push_back(std::make_shared<const KdTree>(build_kdtree(m)));
+    std::vector<SceneInstance> list;
+    const auto add = [&](uint32_t mesh, const Affine3x4& t) {
+        s.mesh_of.push_back(mesh);
+        list.push_back({s.trees[mesh], t, nullptr});
+    };
+    for (int i = 0; i < 8; ++i) {
+        Affine3x4 t = random_transform(rng, i % 2 ? Kind::kMirrored : Kind::kRigid);
+        t.m[0][3] = static_cast<float>(i % 4) * 1.2f - 2.0f;
+        t.m[1][3] = static_cast<float>(i / 4) * 1.2f + 1.5f;
+        t.m[2][3] = 0.0f;
+        add(0, t);
+    }
+    Affine3x4 box_a, box_b, quad_a, quad_b, quad_mirrored;
+    box_a.m[1][3] = -1.5f;
+    box_b.m[0][3] = 1.0f;  // shares the face x = 1 with box_a
+    box_b.m[1][3] = -1.5f;
+    quad_a.m[1][3] = -3.0f;
+    quad_b.m[0][3] = 1.0f;  // shares the edge x = 1 with quad_a
+    quad_b.m[1][3] = -3.0f;
+    quad_mirrored.m[0][0] = -1.0f;  // lies on quad_a: coincident surfaces
+    quad_mirrored.m[0][3] = 1.0f;
+    quad_mirrored.m[1][3] = -3.0f;
+    add(1, box_a);
+    add(1, box_b);
+    add(2, quad_a);
+    add(2, quad_b);
+    add(2, quad_mirrored);
+    s.scene = build_scene(std::move(list));
+    const auto aimed = [&](uint32_t g) {
+        const Mesh& mesh = s.meshes[s.mesh_of[g]];
+        const auto tri = rng.below(static_cast<uint32_t>(mesh.triangle_count()));
+        const int c = static_cast<int>(rng.below(3));
+        const Vec3 a = mesh.corner(tri, c), b = mesh.corner(tri, (c + 1) % 3);
+        return world_point(s.scene, g, rng.below(2) ? a : (a + b) * 0.5f);
+    };
+    const Vec3 sensor{0.3f, -0.2f, 3.0f};
+    std::vector<Ray> one_origin, many_origins;
+    for (size_t k = 0; k < 2500; ++k) {  // not scaled: few beams find such a group
+        const auto g = static_cast<uint32_t>(rng.below(s.scene.size()));
+        one_origin.push_back(make_ray(sensor, aimed(g) - sensor));
+        const Vec3 o = sensor + rng.on_sphere() * rng.uniform(0.5f, 2.0f);
+        many_origins.push_back(make_ray(o, aimed(g) - o));
+    }
+    // Grazing: along the boxes' top faces (z = 1) and through their shared edges, slightly
+    // above, on and below the face plane.
+    for (size_t k = 0; k < 300; ++k) {
+        const float y = rng.uniform(-1.6f, -0.4f);
+        const float z = 1.0f + static_cast<float>(static_cast<int>(k % 3) - 1) * 1e-7f;
+        many_origins.push_back(make_ray({-1.0f, y, z}, {1.0f, rng.uniform(-1e-4f, 1e-4f), 0.0f}));
+        const Vec3 edge{rng.below(3) == 0 ? 1.0f : 0.0f, -1.5f, rng.uniform(0.0f, 1.0f)};
+        many_origins.push_back(make_ray(sensor, edge - sensor));
+    }
+    const SceneOracle oracle(s.scene);
+    size_t not_closest = 0, hit = 0;
+    for (const auto* list_of : {&one_origin, &many_origins}) {
+        const std::vector<Ray>& rays = *list_of;
+        std::vector<std::vector<SceneHit>> want(rays.size());
+        for (size_t i = 0; i < rays.size(); ++i) {
+            want[i] = oracle.intersect_all(rays[i], true);
+            if (want[i].size() > 1) want[i].resize(1);
+            if (want[i].empty()) continue;
+            ++hit;
+            not_closest += !same_bits(want[i][0], oracle.intersect(rays[i]));
+        }
+        for (Isa isa : supported_isas()) {
+            SCOPED_TRACE(std::string(isa_name(isa)) +
+                         (list_of == &one_origin ? " one origin" : " many origins"));
+            const SceneAllHits got = detail::nearest_hits(s.scene, rays, 1, true, isa);
+            ASSERT_EQ(got.offsets.size(), rays.size() + 1);
+            for (size_t i = 0; i < rays.size(); ++i) {
+                const std::vector<SceneHit> kept(
+                    got.hits.begin() + static_cast<std::ptrdiff_t>(got.offsets[i]),
+                    got.hits.begin() + static_cast<std::ptrdiff_t>(got.offsets[i + 1]));
+                ASSERT_TRUE(same_lists(kept, want[i]))
+                    << "beam " << i << ": got "
+                    << (kept.empty() ? std::string("none") : describe(kept[0])) << ", want "
+                    << (want[i].empty() ? std::string("none") : describe(want[i][0]));
+            }
+        }
+    }
+    EXPECT_GT(hit, one_origin.size()) << "the beams should hit the scene often";
+    EXPECT_GT(not_closest, 0u) << "some first merged hits should not be the closest hit";
+    RecordProperty("not_closest", static_cast<int>(not_closest));
 }
 
 TEST(SceneScan, LidarBeamsAreTheSingleBeamRays) {
