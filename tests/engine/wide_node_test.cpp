@@ -471,6 +471,66 @@ TEST(WideKernel, LeafBlocksInEveryRayFrameMatchBruteForce) {
     }
 }
 
+/// On AVX2 and AVX-512 the single-ray walk tests a leaf eight references at a time
+/// (wide::intersect8: an 8x8 transpose, the spare lanes repeating the run's first triangle). Big
+/// triangles through one small region make leaves that no plane can split, with 9 to 24
+/// references: full blocks, short last blocks, and every lane position. Rays at points spread
+/// over each triangle, in all six ray frames, closest hit and occlusion, against brute force.
+TEST(WideKernel, LeafBlocksOfEightMatchBruteForceInEveryLane) {
+    Rng rng(test_seed() ^ 0x8B10);
+    for (int count : {9, 13, 16, 24}) {
+        Mesh m;
+        for (int i = 0; i < count; ++i) {
+            const Vec3 c{rng.uniform(-0.02f, 0.02f), rng.uniform(-0.02f, 0.02f),
+                         rng.uniform(-0.02f, 0.02f)};
+            add_triangle(m, c + rng.on_sphere(), c + rng.on_sphere(), c + rng.on_sphere());
+        }
+        const KdTree tree = build_kdtree(m);
+        uint32_t biggest_leaf = 0;
+        for (const KdNode& n : tree.nodes)
+            if (n.is_leaf() && n.prim_count() > biggest_leaf) biggest_leaf = n.prim_count();
+        ASSERT_GT(biggest_leaf, 8u) << count << " triangles";
+        const std::vector<TriVerts> tris = triangles_by_id(tree);
+        for (int axis = 0; axis < 3; ++axis) {
+            for (float sign : {1.0f, -1.0f}) {
+                std::vector<Ray> rays;
+                for (const TriVerts& t : tris) {
+                    for (int k = 0; k < 8; ++k) {
+                        float a = rng.uniform(0.0f, 1.0f), b = rng.uniform(0.0f, 1.0f);
+                        if (a + b > 1.0f) {
+                            a = 1.0f - a;
+                            b = 1.0f - b;
+                        }
+                        Vec3 p;
+                        for (int j = 0; j < 3; ++j)
+                            p[j] = t.v0[j] + a * (t.v1[j] - t.v0[j]) + b * (t.v2[j] - t.v0[j]);
+                        Vec3 d{rng.uniform(-0.6f, 0.6f), rng.uniform(-0.6f, 0.6f),
+                               rng.uniform(-0.6f, 0.6f)};
+                        d[axis] = sign;
+                        rays.push_back(make_ray(p - d * 3.0f, d));
+                        rays.push_back(make_ray(p - d * 3.0f, d, 0.0f, 2.9f));
+                    }
+                }
+                const std::vector<Hit> want = brute_force_all(tris, rays);
+                std::vector<uint8_t> want_occ(rays.size());
+                size_t hits = 0, blocked = 0;
+                for (size_t i = 0; i < rays.size(); ++i) {
+                    want_occ[i] = brute_force_occluded(tris, rays[i]) ? 1 : 0;
+                    hits += want[i].prim != kNoHit ? 1 : 0;
+                    blocked += want_occ[i];
+                }
+                // Every ray aims at a triangle; the short ones stop before most of them.
+                ASSERT_GT(hits, rays.size() * 2 / 5);
+                ASSERT_GT(blocked, 0u);
+                ASSERT_LT(blocked, rays.size());
+                expect_single_rays_answer(tree, tris, rays, want, want_occ,
+                                          std::to_string(count) + " triangles, axis " +
+                                              std::to_string(axis) + (sign > 0 ? " +" : " -"));
+            }
+        }
+    }
+}
+
 TEST(WideKernel, AxisAlignedGridRaysAlongAndAcrossEverySplitPlane) {
     // A grid of unit squares in z = 0, 1, 2: many split planes coincide with triangle edges and
     // with the rays below, which run along those planes, through grid vertices, and from inside.
