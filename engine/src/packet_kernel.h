@@ -301,15 +301,16 @@ inline void setup_packet(const KdTree& tree, const Ray* rays, const uint16_t* in
 
 /// The watertight test of one triangle against the lanes in `active`; returns the lanes hit with
 /// tmin <= t (per lane t, u, v written). Same arithmetic as intersect_triangle, lane by lane.
-template <int W>
-[[gnu::always_inline]] inline VM<W> intersect_triangle_packet(const Packet<W>& pk,
-                                                              const TriVerts& tri, VM<W> active,
-                                                              VF<W>& t_out, VF<W>& u_out,
-                                                              VF<W>& v_out) {
+/// Uniform: every lane has the frame (kx, ky, kz) (pk.uniform_k >= 0; the caller passes it, read
+/// once per packet), so each coordinate is one broadcast; else one permute per coordinate.
+template <int W, bool Uniform>
+[[gnu::always_inline]] inline VM<W> intersect_triangle_in_frame(const Packet<W>& pk, int kx, int ky,
+                                                                int kz, const TriVerts& tri,
+                                                                VM<W> active, VF<W>& t_out,
+                                                                VF<W>& u_out, VF<W>& v_out) {
     // The vertices relative to the origin in each lane's (kx, ky, kz) frame: tri.v[k] - org[k].
     VF<W> a_x, a_y, a_z, b_x, b_y, b_z, c_x, c_y, c_z;
-    if (pk.uniform_k >= 0) {  // coherent packets: every lane has the same frame, no per-lane picks
-        const int kz = pk.uniform_k, kx = pk.kx[0], ky = pk.ky[0];
+    if constexpr (Uniform) {
         a_x = tri.v0[kx] - pk.org_k[0], a_y = tri.v0[ky] - pk.org_k[1],
         a_z = tri.v0[kz] - pk.org_k[2];
         b_x = tri.v1[kx] - pk.org_k[0], b_y = tri.v1[ky] - pk.org_k[1],
@@ -335,8 +336,9 @@ template <int W>
     VF<W> u = cx * by - cy * bx;
     VF<W> v = ax * cy - ay * cx;
     VF<W> w = bx * ay - by * ax;
-    const VM<W> zero_edge = active & ((u == 0.0f) | (v == 0.0f) | (w == 0.0f));
-    if (simd::any<W>(zero_edge)) {
+    // Lanes outside `active` may take the retry too: their answers are masked off below.
+    const VM<W> zero_edge = (u == 0.0f) | (v == 0.0f) | (w == 0.0f);
+    if (simd::any<W>(zero_edge)) [[unlikely]] {
         // The scalar kernel's double-precision retry, for the lanes that need it.
         alignas(64) float fu[W], fv[W], fw[W], fax[W], fay[W], fbx[W], fby[W], fcx[W], fcy[W];
         simd::store<W>(fu, u);
@@ -356,10 +358,16 @@ template <int W>
         v = simd::load<W>(fv);
         w = simd::load<W>(fw);
     }
-    const VM<W> outside =
-        ((u < 0.0f) | (v < 0.0f) | (w < 0.0f)) & ((u > 0.0f) | (v > 0.0f) | (w > 0.0f));
+    // The scalar test's "not outside (an edge function below 0 and one above) and det != 0", in
+    // fewer operations: with lo and hi the least and greatest of u, v, w, a lane passes when
+    // exactly one of lo < 0 and hi > 0 holds. Both: outside. Neither: u = v = w = 0 (det = 0).
+    // Only lo < 0: all <= 0, not all 0, so det < 0 (a sum of non-positive floats is 0 only when
+    // each is); likewise only hi > 0. A NaN among them makes det and t NaN, and the t >= tmin
+    // test below rejects the lane whatever min and max make of the NaN, as the scalar test does.
     const VF<W> det = u + v + w;
-    VM<W> hit = active & ~outside & (det != 0.0f);
+    const VF<W> lo = simd::min<W>(simd::min<W>(u, v), w);
+    const VF<W> hi = simd::max<W>(simd::max<W>(u, v), w);
+    VM<W> hit = active & ((lo < 0.0f) ^ (hi > 0.0f));
     if (simd::none<W>(hit)) return hit;
     const VF<W> az = pk.sz * a_z, bz = pk.sz * b_z, cz = pk.sz * c_z;
     const VF<W> t_scaled = u * az + v * bz + w * cz;
@@ -369,6 +377,17 @@ template <int W>
     u_out = v / det;
     v_out = w / det;
     return hit;
+}
+
+/// intersect_triangle_in_frame with the packet's frame read per call (for callers outside the
+/// packet walk's leaf loop).
+template <int W>
+inline VM<W> intersect_triangle_packet(const Packet<W>& pk, const TriVerts& tri, VM<W> active,
+                                       VF<W>& t_out, VF<W>& u_out, VF<W>& v_out) {
+    if (pk.uniform_k >= 0)
+        return intersect_triangle_in_frame<W, true>(pk, pk.kx[0], pk.ky[0], pk.uniform_k, tri,
+                                                    active, t_out, u_out, v_out);
+    return intersect_triangle_in_frame<W, false>(pk, 0, 0, 0, tri, active, t_out, u_out, v_out);
 }
 
 /// Live lanes of a mask.
@@ -437,6 +456,39 @@ inline VM<W> leaf_by_lanes(const Packet<W>& pk, uint32_t live, const uint32_t* r
     return occluded;
 }
 
+/// Tests the leaf's references refs[r, end) against the packet's lanes in `active`, one packet
+/// test per triangle in the frame of intersect_triangle_in_frame<W, Uniform>: closest hit into
+/// `best` with the packet's tie rule; any hit adds the lanes occluded to `done` and stops when
+/// every active lane is.
+template <int W, bool AnyHit, bool Count, bool Uniform>
+[[gnu::always_inline]] inline void leaf_packet(const Packet<W>& pk, int kx, int ky, int kz,
+                                               const uint32_t* refs, uint32_t r, uint32_t end,
+                                               const TriVerts* tris, const uint32_t* ids,
+                                               VM<W> active, VM<W>& done, PacketHits<W>& best,
+                                               TraceCounters& counters) {
+    for (; r < end; ++r) {
+        const uint32_t slot = refs[r] & ~KdTree::kLastRef;
+        if constexpr (Count) counters.tri_tests += live_lanes<W>(active);
+        VF<W> t, u, v;
+        VM<W> hit =
+            intersect_triangle_in_frame<W, Uniform>(pk, kx, ky, kz, tris[slot], active, t, u, v);
+        if (simd::none<W>(hit)) continue;
+        if constexpr (AnyHit) {
+            hit &= t <= pk.ray_tmax;
+            done |= hit;
+            active &= ~hit;
+            if (simd::none<W>(active)) break;
+        } else {
+            const VU<W> prim_v = simd::broadcast_u<W>(ids[slot]);  // mesh ids
+            hit &= (t < best.t) | ((t == best.t) & (prim_v < best.prim));
+            best.t = simd::select<W>(hit, t, best.t);
+            best.u = simd::select<W>(hit, u, best.u);
+            best.v = simd::select<W>(hit, v, best.v);
+            best.prim = simd::select<W>(hit, prim_v, best.prim);
+        }
+    }
+}
+
 /// Traverses the tree with one packet. Closest hit: `best` holds per-lane answers (initialised by
 /// the caller to t = ray tmax, prim = kNoHit). Any hit: returns the lanes occluded.
 template <int W, bool AnyHit, bool Count>
@@ -452,6 +504,7 @@ inline VM<W> traverse_packet(const KdTree& tree, const Packet<W>& pk, PacketHits
     VF<W> tmin = pk.tmin, tmax = pk.tmax;
     uint32_t node_index = 0;
     if (simd::none<W>(tmin <= tmax)) return done;
+    const int uniform_kz = pk.uniform_k, uniform_kx = pk.kx[0], uniform_ky = pk.ky[0];
     for (;;) {
         KdNode node = nodes[node_index];
         while (!node.is_leaf()) {
@@ -501,26 +554,13 @@ inline VM<W> traverse_packet(const KdTree& tree, const Packet<W>& pk, PacketHits
                     r = end;
                 }
             }
-            for (; r < end; ++r) {
-                const uint32_t slot = refs[r] & ~KdTree::kLastRef;
-                if constexpr (Count) counters.tri_tests += live_lanes<W>(active);
-                VF<W> t, u, v;
-                VM<W> hit = intersect_triangle_packet<W>(pk, tris[slot], active, t, u, v);
-                if (simd::none<W>(hit)) continue;
-                if constexpr (AnyHit) {
-                    hit &= t <= pk.ray_tmax;
-                    done |= hit;
-                    active &= ~hit;
-                    if (simd::none<W>(active)) break;
-                } else {
-                    const VU<W> prim_v = simd::broadcast_u<W>(ids[slot]);  // mesh ids
-                    hit &= (t < best.t) | ((t == best.t) & (prim_v < best.prim));
-                    best.t = simd::select<W>(hit, t, best.t);
-                    best.u = simd::select<W>(hit, u, best.u);
-                    best.v = simd::select<W>(hit, v, best.v);
-                    best.prim = simd::select<W>(hit, prim_v, best.prim);
-                }
-            }
+            // The frame test is chosen once per leaf, not per triangle.
+            if (uniform_kz >= 0)
+                leaf_packet<W, AnyHit, Count, true>(pk, uniform_kx, uniform_ky, uniform_kz, refs, r,
+                                                    end, tris, ids, active, done, best, counters);
+            else
+                leaf_packet<W, AnyHit, Count, false>(pk, 0, 0, 0, refs, r, end, tris, ids, active,
+                                                     done, best, counters);
         }
         // Pop the next cell in which some lane is still live: its interval is not empty, it has
         // not been occluded, and it starts no later than the lane's closest hit.
