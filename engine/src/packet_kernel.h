@@ -426,9 +426,14 @@ inline VM<W> leaf_by_lanes(const Packet<W>& pk, uint32_t live, const uint32_t* r
         p.sz = pk.sz[l];
         const float ray_tmin = pk.ray_tmin[l], ray_tmax = pk.ray_tmax[l];
         for (uint32_t r = 0; r < n; r += 4) {
-            const uint32_t k = n - r < 4 ? n - r : 4;
             uint32_t slot[4];
-            for (uint32_t i = 0; i < 4; ++i) slot[i] = ref[r + (i < k ? i : 0)] & ~KdTree::kLastRef;
+            if (n - r >= 4) {
+                for (uint32_t i = 0; i < 4; ++i) slot[i] = ref[r + i] & ~KdTree::kLastRef;
+            } else {  // a short block repeats its first triangle in the spare lanes
+                const uint32_t k = n - r;
+                for (uint32_t i = 0; i < 4; ++i)
+                    slot[i] = ref[r + (i < k ? i : 0)] & ~KdTree::kLastRef;
+            }
             const TriVerts* const block[4] = {&tris[slot[0]], &tris[slot[1]], &tris[slot[2]],
                                               &tris[slot[3]]};
             wide::Hits4 h;
