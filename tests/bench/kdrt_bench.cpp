@@ -1,16 +1,15 @@
 // kdrt-bench: builds kD-trees, generates ray sets and times batch tracing; one JSON line per run.
 // Usage: kdrt-bench --help. Exit status: 0 success, 1 runtime failure, 2 usage error.
 
-#include <tbb/blocked_range.h>
+#include <sched.h>
 #include <tbb/global_control.h>
 #include <tbb/info.h>
 #include <tbb/parallel_for.h>
-#include <tbb/partitioner.h>
 #include <tbb/task_arena.h>
+#include <tbb/task_scheduler_observer.h>
 
 #include <algorithm>
 #include <array>
-#include <atomic>
 #include <bit>
 #include <charconv>
 #include <chrono>
@@ -28,7 +27,6 @@
 #include <span>
 #include <string>
 #include <string_view>
-#include <thread>
 #include <vector>
 
 #include "bench_args.h"
@@ -277,49 +275,56 @@ unsigned thread_count(const Args& args) {
 
 /// Runs `body` with at most `threads` oneTBB workers: its own arena of that size, and a global
 /// cap so nothing it calls can run wider.
-/// Has every thread of the current arena run one task of its own, and returns how many did (at
-/// most `threads`). Run under `chrt -f 50` (tests/bench/run.sh), a oneTBB worker that is created
-/// lazily by the first parallel loop can be left queued on the calling thread's core: both run at
-/// the same SCHED_FIFO priority, so it cannot preempt the caller, and the idle core never pulls it.
-/// The caller, which then finds every task still its own, never blocks while the loops last, and
-/// a whole timed pass loop runs on one thread (cpu_util 1.0; tests/bench/README.md, session 18).
-/// Here each thread waits by sleeping, not spinning, until all have arrived, so such a worker gets
-/// the core, and its later wake-ups place it on a free one. Gives up after two seconds.
-unsigned start_workers(unsigned threads) {
-    std::vector<std::atomic<bool>> seen(threads);
-    std::atomic<unsigned> arrived{0};
-    const auto give_up = Clock::now() + std::chrono::seconds(2);
-    tbb::parallel_for(
-        tbb::blocked_range<unsigned>(0, threads, 1),
-        [&](const tbb::blocked_range<unsigned>&) {
-            const int index = tbb::this_task_arena::current_thread_index();
-            if (index >= 0 && static_cast<unsigned>(index) < threads &&
-                !seen[static_cast<unsigned>(index)].exchange(true)) {
-                arrived.fetch_add(1);
-            }
-            while (arrived.load() < threads && Clock::now() < give_up) {
-                std::this_thread::sleep_for(std::chrono::microseconds(100));
-            }
-        },
-        tbb::simple_partitioner());
-    return arrived.load();
-}
+/// Under a real-time policy (`chrt -f 50`, as tests/bench/run.sh runs), pins the i-th thread of
+/// the arena to the i-th allowed core while it is in the arena. Linux never preempts a SCHED_FIFO
+/// thread for another of the same priority, and a core that goes from other work to idle does not
+/// pull a queued real-time thread. So a oneTBB worker woken while the other core is briefly busy
+/// (back to back runs leave the kernel's reserve for ordinary threads due) is queued behind the
+/// calling thread, which never blocks while it finds every task still its own: a whole timed pass
+/// loop then runs on one thread (cpu_util 1.0; tests/bench/README.md, session 18). A pinned worker
+/// is always woken on its own core. The calling thread gets its old mask back in the destructor.
+class RealtimePinning final : public tbb::task_scheduler_observer {
+public:
+    RealtimePinning(tbb::task_arena& arena, unsigned threads)
+        : tbb::task_scheduler_observer(arena) {
+        const int policy = sched_getscheduler(0);
+        if (policy != SCHED_FIFO && policy != SCHED_RR) return;
+        if (sched_getaffinity(0, sizeof(caller_mask_), &caller_mask_) != 0) return;
+        for (int cpu = 0; cpu < CPU_SETSIZE; ++cpu)
+            if (CPU_ISSET(cpu, &caller_mask_)) cpus_.push_back(cpu);
+        if (cpus_.size() < threads) return;  // more threads than cores: leave placement alone
+        observe(true);
+    }
+    ~RealtimePinning() override {
+        if (!is_observing()) return;
+        observe(false);
+        sched_setaffinity(0, sizeof(caller_mask_), &caller_mask_);
+    }
+    RealtimePinning(const RealtimePinning&) = delete;
+    RealtimePinning& operator=(const RealtimePinning&) = delete;
 
-/// Runs `body` with at most `threads` threads, after start_workers; returns how many started.
+    void on_scheduler_entry(bool /*is_worker*/) override {
+        const int index = tbb::this_task_arena::current_thread_index();
+        if (index < 0 || static_cast<size_t>(index) >= cpus_.size()) return;
+        cpu_set_t one;
+        CPU_ZERO(&one);
+        CPU_SET(cpus_[static_cast<size_t>(index)], &one);
+        sched_setaffinity(0, sizeof(one), &one);
+    }
+
+private:
+    cpu_set_t caller_mask_{};
+    std::vector<int> cpus_;
+};
+
+/// Runs `body` in an arena of at most `threads` threads (pinned under a real-time policy).
 template <typename Body>
-unsigned with_threads(unsigned threads, Body&& body) {
+void with_threads(unsigned threads, Body&& body) {
     const tbb::global_control cap(tbb::global_control::max_allowed_parallelism, threads);
     tbb::task_arena arena(static_cast<int>(threads));
-    unsigned started = 0;
-    arena.execute([&] {
-        started = start_workers(threads);
-        if (started < threads) {
-            std::cerr << "kdrt-bench: warning: only " << started << " of " << threads
-                      << " threads started before timing\n";
-        }
-        body();
-    });
-    return started;
+    arena.initialize();
+    RealtimePinning pinning(arena, threads);
+    arena.execute(body);
 }
 
 BuildOptions parse_build_options(const Args& args) {
@@ -519,14 +524,14 @@ int run_trace(const Args& args) {
     std::vector<uint8_t> occluded;
     std::optional<EmbreeReport> embree;
     TraceStats stats, work;
-    const unsigned threads_started = with_threads(threads, [&] {
+    with_threads(threads, [&] {
         tree = build_tree(loaded.mesh, build_options, build_ms);
         if (batch.occlusion) {
             occluded.resize(rays.size());
         } else {
             hits.resize(rays.size());
         }
-        // Pass 0 warms caches (with_threads has started the workers); it is not timed.
+        // Pass 0 warms caches and starts the workers; it is not timed.
         for (int pass = 0; pass <= reps; ++pass) {
             const double cpu_start = process_cpu_seconds();
             const auto start = Clock::now();
@@ -582,7 +587,6 @@ int run_trace(const Args& args) {
     line["single_rays"] = stats.single_rays;
     line["sorted_rays"] = stats.sorted_rays;
     line["threads"] = threads;
-    line["threads_started"] = threads_started;
     line["builder"] = builder_name(build_options.builder);
     line["c_isect"] = build_options.intersection_cost;
     line["reps"] = reps;
