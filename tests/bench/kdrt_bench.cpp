@@ -273,16 +273,15 @@ unsigned thread_count(const Args& args) {
     return static_cast<unsigned>(args.get_uint("threads", cores, 1, 4096));
 }
 
-/// Runs `body` with at most `threads` oneTBB workers: its own arena of that size, and a global
-/// cap so nothing it calls can run wider.
 /// Under a real-time policy (`chrt -f 50`, as tests/bench/run.sh runs), pins the i-th thread of
 /// the arena to the i-th allowed core while it is in the arena. Linux never preempts a SCHED_FIFO
-/// thread for another of the same priority, and a core that goes from other work to idle does not
-/// pull a queued real-time thread. So a oneTBB worker woken while the other core is briefly busy
-/// (back to back runs leave the kernel's reserve for ordinary threads due) is queued behind the
-/// calling thread, which never blocks while it finds every task still its own: a whole timed pass
-/// loop then runs on one thread (cpu_util 1.0; tests/bench/README.md, session 18). A pinned worker
-/// is always woken on its own core. The calling thread gets its old mask back in the destructor.
+/// thread for another of the same priority, and here a core that went from other work to idle did
+/// not pull a queued real-time thread. So a oneTBB worker woken while the other core is briefly
+/// busy (back to back runs leave the kernel's reserve for ordinary threads due) is queued behind
+/// the calling thread, which never blocks while it finds every task still its own: a whole timed
+/// pass loop then runs on one thread (cpu_util 1.0; tests/bench/README.md, session 18). A pinned
+/// worker is always woken on its own core. The calling thread gets its old mask back in the
+/// destructor.
 class RealtimePinning final : public tbb::task_scheduler_observer {
 public:
     RealtimePinning(tbb::task_arena& arena, unsigned threads)
@@ -317,7 +316,8 @@ private:
     std::vector<int> cpus_;
 };
 
-/// Runs `body` in an arena of at most `threads` threads (pinned under a real-time policy).
+/// Runs `body` with at most `threads` oneTBB workers: its own arena of that size, and a global
+/// cap so nothing it calls can run wider; under a real-time policy its threads are pinned.
 template <typename Body>
 void with_threads(unsigned threads, Body&& body) {
     const tbb::global_control cap(tbb::global_control::max_allowed_parallelism, threads);
