@@ -1,10 +1,12 @@
 // kdrt-bench: builds kD-trees, generates ray sets and times batch tracing; one JSON line per run.
 // Usage: kdrt-bench --help. Exit status: 0 success, 1 runtime failure, 2 usage error.
 
+#include <sched.h>
 #include <tbb/global_control.h>
 #include <tbb/info.h>
 #include <tbb/parallel_for.h>
 #include <tbb/task_arena.h>
+#include <tbb/task_scheduler_observer.h>
 
 #include <algorithm>
 #include <array>
@@ -271,12 +273,57 @@ unsigned thread_count(const Args& args) {
     return static_cast<unsigned>(args.get_uint("threads", cores, 1, 4096));
 }
 
+/// Under a real-time policy (`chrt -f 50`, as tests/bench/run.sh runs), pins the i-th thread of
+/// the arena to the i-th allowed core while it is in the arena. Linux never preempts a SCHED_FIFO
+/// thread for another of the same priority, and here a core that went from other work to idle did
+/// not pull a queued real-time thread. So a oneTBB worker woken while the other core is briefly
+/// busy (back to back runs leave the kernel's reserve for ordinary threads due) is queued behind
+/// the calling thread, which never blocks while it finds every task still its own: a whole timed
+/// pass loop then runs on one thread (cpu_util 1.0; tests/bench/README.md, session 18). A pinned
+/// worker is always woken on its own core. The calling thread gets its old mask back in the
+/// destructor.
+class RealtimePinning final : public tbb::task_scheduler_observer {
+public:
+    RealtimePinning(tbb::task_arena& arena, unsigned threads)
+        : tbb::task_scheduler_observer(arena) {
+        const int policy = sched_getscheduler(0);
+        if (policy != SCHED_FIFO && policy != SCHED_RR) return;
+        if (sched_getaffinity(0, sizeof(caller_mask_), &caller_mask_) != 0) return;
+        for (int cpu = 0; cpu < CPU_SETSIZE; ++cpu)
+            if (CPU_ISSET(cpu, &caller_mask_)) cpus_.push_back(cpu);
+        if (cpus_.size() < threads) return;  // more threads than cores: leave placement alone
+        observe(true);
+    }
+    ~RealtimePinning() override {
+        if (!is_observing()) return;
+        observe(false);
+        sched_setaffinity(0, sizeof(caller_mask_), &caller_mask_);
+    }
+    RealtimePinning(const RealtimePinning&) = delete;
+    RealtimePinning& operator=(const RealtimePinning&) = delete;
+
+    void on_scheduler_entry(bool /*is_worker*/) override {
+        const int index = tbb::this_task_arena::current_thread_index();
+        if (index < 0 || static_cast<size_t>(index) >= cpus_.size()) return;
+        cpu_set_t one;
+        CPU_ZERO(&one);
+        CPU_SET(cpus_[static_cast<size_t>(index)], &one);
+        sched_setaffinity(0, sizeof(one), &one);
+    }
+
+private:
+    cpu_set_t caller_mask_{};
+    std::vector<int> cpus_;
+};
+
 /// Runs `body` with at most `threads` oneTBB workers: its own arena of that size, and a global
-/// cap so nothing it calls can run wider.
+/// cap so nothing it calls can run wider; under a real-time policy its threads are pinned.
 template <typename Body>
 void with_threads(unsigned threads, Body&& body) {
     const tbb::global_control cap(tbb::global_control::max_allowed_parallelism, threads);
     tbb::task_arena arena(static_cast<int>(threads));
+    arena.initialize();
+    RealtimePinning pinning(arena, threads);
     arena.execute(body);
 }
 
