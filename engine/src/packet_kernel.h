@@ -15,6 +15,9 @@
 #include "simd.h"
 #include "wide_kernel.h"
 
+#include <array>
+#include <bit>
+
 namespace kdrt::detail {
 namespace {
 
@@ -514,7 +517,9 @@ inline VM<W> traverse_packet(const KdTree& tree, const Packet<W>& pk, PacketHits
         KdNode node = nodes[node_index];
         while (!node.is_leaf()) {
             // The split broadcast straight from the node's second word (KdNode: word1 is the
-            // split), the axis unsigned (no sign extension for the indexing).
+            // split, at byte 4, as the static_assert proves), the axis unsigned (no sign
+            // extension for the indexing).
+            static_assert(std::bit_cast<std::array<uint32_t, 2>>(KdNode::from_words(1, 2))[1] == 2);
             const auto axis = static_cast<uint32_t>(node.axis());
             float split;
             __builtin_memcpy(&split, reinterpret_cast<const char*>(&nodes[node_index]) + 4,
