@@ -58,7 +58,10 @@ struct SahCost {
 /// concurrently from oneTBB tasks of the same arena.
 class ExactSahBuilder {
 public:
-    ExactSahBuilder(std::span<const TriVerts> tris, const BuildOptions& options);
+    /// `empty_cuts_in_place`: a cut of empty space hands the node's event lists to its other
+    /// child as they are (the same tree as copying them; false only for the tests that show it).
+    ExactSahBuilder(std::span<const TriVerts> tris, const BuildOptions& options,
+                    bool empty_cuts_in_place = true);
     ~ExactSahBuilder();
     ExactSahBuilder(const ExactSahBuilder&) = delete;
     ExactSahBuilder& operator=(const ExactSahBuilder&) = delete;
@@ -106,6 +109,10 @@ struct BinnedParams {
     /// whole build is exact; 0: binned as long as the bins find a split that beats a leaf).
     uint32_t exact_below = 4096;
     uint32_t bins = 64;  ///< per axis, clamped to [4, 256]; small nodes use fewer
+    /// The exact sweep hands a node's event lists to the non-empty child of a cut of empty space
+    /// as they are, instead of classifying and copying them (ExactSahBuilder). The tree is the
+    /// same either way; tests turn it off to compare.
+    bool empty_cuts_in_place = true;
 };
 
 /// Maps a coordinate to its bin on one axis: [lo, lo + count / scale] in `count` equal bins,

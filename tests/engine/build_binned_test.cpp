@@ -400,6 +400,44 @@ TEST(KdSweep, RootSplitIsTheBestCandidate) {
     EXPECT_GT(splits, cases / 2) << "most roots must split";
 }
 
+// A cut of empty space hands the node's event lists to its non-empty child as they are
+// (BinnedParams::empty_cuts_in_place): the tree must be the one that classifying and copying them
+// gives, byte for byte, with empty children on either side, planar triangles on the cut planes
+// (grid-snapped soups), and the bigger nodes that build their children concurrently.
+TEST(KdSweep, EmptyCutsHandTheirEventsDownAsTheyAre) {
+    BuildOptions costly;  // a bigger empty bonus: more empty cuts
+    costly.intersection_cost = 2.0f;
+    costly.empty_bonus = 0.5f;
+    Rng rng(test_seed() + 440);
+    const std::vector<Mesh> meshes = {teapot_in_stadium(), random_soup(rng, 3000, 0.3f),
+                                      snapped_soup(rng, 3000, 1.0f / 8),
+                                      snapped_soup(rng, 9000, 1.0f / 256)};
+    size_t empty_left = 0, empty_right = 0;
+    for (size_t m = 0; m < meshes.size(); ++m) {
+        for (const BuildOptions& options : {BuildOptions{}, costly}) {
+            SCOPED_TRACE(testing::Message()
+                         << "mesh " << m << ", c_isect " << options.intersection_cost);
+            BinnedParams copied = binned_below(kAllExact);
+            copied.empty_cuts_in_place = false;
+            const KdTree want = build_kdtree_with(meshes[m], options, copied);
+            const KdTree got = build_kdtree_with(meshes[m], options, binned_below(kAllExact));
+            EXPECT_TRUE(same_tree(got, want));
+            EXPECT_EQ(got.stats.max_depth, want.stats.max_depth);
+            for (const KdNode& n : got.nodes) {
+                if (n.is_leaf()) continue;
+                const KdNode& l = got.nodes[n.first_child()];
+                const KdNode& r = got.nodes[n.first_child() + 1];
+                empty_left +=
+                    l.is_leaf() && l.prim_count() == 0 && !(r.is_leaf() && r.prim_count() == 0);
+                empty_right +=
+                    r.is_leaf() && r.prim_count() == 0 && !(l.is_leaf() && l.prim_count() == 0);
+            }
+        }
+    }
+    EXPECT_GT(empty_left, 100u);
+    EXPECT_GT(empty_right, 100u);
+}
+
 // The passes before the tree (triangle set-up, root cell, root references) run in fixed chunks of
 // triangles, in parallel for big meshes. With degenerate triangles scattered over the chunks (far
 // outside the others, so that counting one would move the root cell), the tree is the same at
