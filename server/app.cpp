@@ -52,6 +52,7 @@ bool start_up(Service& svc) {
         log_event(LogLevel::kWarn, "scene store repaired or converted a scene",
                   {{"scene", scene}, {"what", what}});
     });
+    svc.scene_store.set_flush_commits(svc.config.scene_sync == "commit");
     if (auto opened = svc.scene_store.open(); !opened) {
         log_event(LogLevel::kCritical, "cannot open the scene store", {{"error", opened.error()}});
         return false;

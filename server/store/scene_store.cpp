@@ -348,9 +348,11 @@ proto::Result<std::vector<uint64_t>, SceneStoreError> SceneStore::revisions(
 namespace {
 
 /// The records of the log open as `fd` (`st` its fstat): headers walked from the start while
-/// each is whole, fits in the file and numbers one more than the one before; then the last
-/// record's checksum, which a record torn by a crash in its append fails (it is dropped: it was
-/// never acknowledged, and every record before it was flushed before its append began).
+/// each is whole, fits in the file and numbers one more than the one before; then the
+/// checksums from the last record back, dropping each that fails until one matches. A record
+/// torn by a crash in its append fails (and, without a flush a commit, so may the few before it
+/// after a power loss): those were never flushed. A record before a matching one that fails is
+/// damage, reported when it is read.
 template <class Index>
 proto::Result<Index, SceneStoreError> walk_log(int fd, const struct stat& st,
                                                const fs::path& path) {
@@ -373,14 +375,14 @@ proto::Result<Index, SceneStoreError> walk_log(int fd, const struct stat& st,
         out.records.push_back({header->revision, at, header->size});
         at += header->size;
     }
-    if (!out.records.empty()) {
+    std::vector<std::byte> bytes;
+    while (!out.records.empty()) {
         const auto& last = out.records.back();
-        std::vector<std::byte> bytes(last.size);
-        if (!read_at(fd, bytes.data(), bytes.size(), last.offset)) {
-            if (errno != 0) return proto::Err{io_error("cannot read", path, errno)};
-            return proto::Err{io_error("cannot read", path, EIO)};
-        }
-        if (!proto::scene_file_checksum_matches(bytes)) out.records.pop_back();
+        bytes.resize(last.size);
+        if (!read_at(fd, bytes.data(), bytes.size(), last.offset))
+            return proto::Err{io_error("cannot read", path, errno != 0 ? errno : EIO)};
+        if (proto::scene_file_checksum_matches(bytes)) break;
+        out.records.pop_back();
     }
     out.end = out.records.empty() ? 0 : out.records.back().offset + out.records.back().size;
     return out;
@@ -661,8 +663,8 @@ proto::Result<bool, WriteError> SceneStore::commit_to_log(StagedRevision& staged
         notice(id, "cut a torn record of " + std::to_string(in.size - in.end) +
                        " bytes off the end of " + kLogName + " (never acknowledged)");
     }
-    // The commit: one record appended and one flush (the data and the size).
-    if (!write_at(fd.fd, staged.bytes, in.end) || ::fdatasync(fd.fd) != 0) {
+    // The commit: one record appended and one flush (the data and the size), or none.
+    if (!write_at(fd.fd, staged.bytes, in.end) || (flush_commits_ && ::fdatasync(fd.fd) != 0)) {
         const int err = errno;
         // Best effort: what was written is cut off again (else the next commit does it).
         if (::ftruncate(fd.fd, static_cast<off_t>(in.end)) == 0) (void)::fdatasync(fd.fd);

@@ -7,7 +7,8 @@
 ///                                 revision log").
 ///
 /// The current revision is the last whole record. A commit appends one record at the log's end
-/// and flushes it with a single fdatasync before the caller acknowledges it, holding an
+/// and flushes it with a single fdatasync before the caller acknowledges it (unless
+/// set_flush_commits(false): then no flush, and a power loss may drop the newest), holding an
 /// exclusive flock on the scene's directory that every process sharing the store takes: under
 /// it the commit compares its revision with the log's last (the compare-and-set of optimistic
 /// concurrency: of two writers, threads or replicas, that both read revision N and write N + 1,
@@ -94,6 +95,14 @@ public:
     [[nodiscard]] bool uses_log() const noexcept { return uses_log_; }
     /// Forces the per-revision files (tests; as a file system without flock would).
     void use_revision_files() noexcept { uses_log_ = false; }
+
+    /// Whether a commit to a log flushes its record (fdatasync) before it returns (the default,
+    /// config scene_sync "commit"): an acknowledged revision survives a power loss. Without
+    /// (scene_sync "none") it is in the page cache when acknowledged: it survives the server
+    /// being killed or crashing, and a power loss may drop the newest revisions (the log stays
+    /// valid: its torn end is ignored and cut off). Creation, compaction and deletion flush
+    /// either way. Set before use.
+    void set_flush_commits(bool flush) noexcept { flush_commits_ = flush; }
 
     /// Called (from the thread that did it) when the store repairs or converts a scene: a torn
     /// record cut off the end of a log, revision files moved into a log. `scene` is the id,
@@ -249,6 +258,7 @@ private:
     std::filesystem::path scenes_dir_, tmp_dir_;
     uint32_t revisions_kept_;
     bool uses_log_ = true;
+    bool flush_commits_ = true;
     Notice notice_;
     /// The cached LogIndex of each log this process has read (behind a pointer: the store moves).
     struct Indexes {

@@ -5,7 +5,7 @@ FRAMES frames in a row on one keep-alive connection.
 
     tests/bench/scene_latency.py BUILD_DIR [--frames 25] [--instances 1000] [--threads 2]
                                            [--mesh FILE] [--cache-dir DIR]
-                                           [--record ranges|points]
+                                           [--record ranges|points] [--scene-sync commit|none]
 
 Starts BUILD_DIR/server/kdrt-server (a release build) on an ephemeral port, uploads the mesh
 (default tests/data/bunny00.off, scaled into each instance's cell by its transform), creates the
@@ -15,7 +15,8 @@ before the answer), then the lidar scan of the new revision (with geometry ids: 
 client's default, or the compact KDRB record with --record ranges). Prints the median and p90 of the frame, the pose update and
 the scan, the returns per scan and how many distinct geometry ids they hit. With KDRB the points
 are made by the client on first access, after the frame: that is timed on its own line. The cache directory decides what an fsync costs (default: a temp
-directory). No timing is asserted.
+directory); --scene-sync none starts the server without the flush of each revision (config
+scene_sync). No timing is asserted.
 """
 
 import argparse
@@ -35,11 +36,12 @@ sys.path.insert(0, os.path.join(HERE, "..", "..", "client", "python"))
 import kdrt  # noqa: E402
 
 
-def start_server(build, threads, cache_dir, workdir):
+def start_server(build, threads, cache_dir, workdir, extra=()):
     port_file = os.path.join(workdir, "port")
     server = subprocess.Popen(
         [os.path.join(build, "server", "kdrt-server"), "--listen", "127.0.0.1:0", "--port-file",
-         port_file, "--cache-dir", cache_dir, "--threads", str(threads), "--log-level", "warn"],
+         port_file, "--cache-dir", cache_dir, "--threads", str(threads), "--log-level", "warn",
+         *extra],
         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     for _ in range(600):
         try:
@@ -84,10 +86,13 @@ def main():
     ap.add_argument("--cache-dir")
     ap.add_argument("--record", choices=("ranges", "points"), default="points",
                     help="the scan's answer: KDRL (points, the default) or KDRB (ranges)")
+    ap.add_argument("--scene-sync", choices=("commit", "none"),
+                    help="the server's scene_sync (default: the server's default, commit)")
     args = ap.parse_args()
     with tempfile.TemporaryDirectory() as work:
         cache = args.cache_dir or os.path.join(work, "cache")
-        server, port = start_server(args.build, args.threads, cache, work)
+        extra = ("--scene-sync", args.scene_sync) if args.scene_sync else ()
+        server, port = start_server(args.build, args.threads, cache, work, extra)
         try:
             client = kdrt.Client(f"http://127.0.0.1:{port}", connections=1)
             mesh = client.upload(args.mesh)
@@ -123,7 +128,8 @@ def main():
                 points_s.append(time.perf_counter() - t3)
             print(f"scene of {args.instances} instances of {mesh.triangles} triangles, "
                   f"created in {create_s * 1e3:.1f} ms; {args.frames} frames, server threads "
-                  f"{args.threads}, cache {cache}, record {args.record}")
+                  f"{args.threads}, cache {cache}, record {args.record}"
+                  + (f", scene_sync {args.scene_sync}" if args.scene_sync else ""))
             for name, values in (("frame", frame_s), ("pose update", pose_s),
                                  ("lidar 64x2048", scan_s),
                                  ("points (after)", points_s)):
