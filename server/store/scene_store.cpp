@@ -590,6 +590,12 @@ proto::Result<bool, WriteError> SceneStore::commit_to_log(StagedRevision& staged
     const auto os = [&](const std::string& what, const fs::path& where, int err) {
         return proto::Err{os_error(what, where, std::error_code(err, std::generic_category()))};
     };
+    // The record must read back as this revision (a walk trusts its header): refused before
+    // anything is written.
+    if (const auto header = proto::read_scene_file_header(staged.bytes);
+        !header || header->revision != staged.revision || header->size != staged.bytes.size())
+        return proto::Err{WriteError{"revision " + std::to_string(staged.revision) + " of scene " +
+                                     id + ": the staged bytes are not its KDRS"}};
     const SceneDirLock lock(dir);
     if (lock.missing()) return false;  // deleted
     if (lock.error() != 0) return os("cannot lock", dir, lock.error());

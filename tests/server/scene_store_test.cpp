@@ -193,6 +193,18 @@ TEST_P(SceneStoreTest, ARevisionEncodedByTheCallerIsStagedAsItsBytes) {
     EXPECT_FALSE(*committed);
     EXPECT_EQ(*s.read(id, 2), expected);
     EXPECT_EQ(temp_files(dir_), 0u);
+    if (log_form()) {
+        // Bytes that are not revision 3's KDRS never enter the log.
+        auto wrong = proto::encode_scene_file(base, 4, poses);
+        auto refused = s.commit(*s.stage(id, 3, wrong));
+        ASSERT_FALSE(refused.ok());
+        EXPECT_NE(refused.error().message.find("not its KDRS"), std::string::npos);
+        wrong = proto::encode_scene_file(base, 3, poses);
+        wrong.pop_back();
+        EXPECT_FALSE(s.commit(*s.stage(id, 3, wrong)).ok());
+        EXPECT_EQ(*s.latest(id), 2u);
+        ASSERT_TRUE(*s.commit(*s.stage(id, 3, proto::encode_scene_file(base, 3, poses))));
+    }
 }
 
 TEST_P(SceneStoreTest, MissingScenesAndRevisions) {
