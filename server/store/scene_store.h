@@ -13,9 +13,10 @@
 /// it the commit compares its revision with the log's last (the compare-and-set of optimistic
 /// concurrency: of two writers, threads or replicas, that both read revision N and write N + 1,
 /// exactly one succeeds and the other learns it is stale). A record is read only when it is
-/// whole: its header gives its size and the last record's checksum is checked, so after a crash
-/// or a power loss in the middle of an append the torn record is ignored by readers and cut off
-/// by the next commit (reported through the notice callback). No acknowledged revision is lost,
+/// whole: its header gives its size, and the checksums are checked from the last record back
+/// until one matches, so after a crash or a power loss in the middle of an append the torn
+/// record (without flushes, the torn records) is ignored by readers and cut off by the next
+/// commit (reported through the notice callback). No acknowledged revision is lost,
 /// and no reader sees a partly written one. A process that reloads its view of a log changed by
 /// another one (a walk of the records' headers) takes the directory's flock shared, so it never
 /// sees a record before it is durable.
