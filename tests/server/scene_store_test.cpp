@@ -610,6 +610,8 @@ TEST_P(SceneLogTest, ATornRecordAtTheEndOfALogIsIgnoredAndCutOffByTheNextCommit)
         const auto bytes = proto::encode_scene_file(scene(id, r, 4));
         return std::string(reinterpret_cast<const char*>(bytes.data()), bytes.size());
     };
+    // The scene id held in a record's bytes (offset 16, 32 characters).
+    const auto id_of_record = [](const std::string& w) { return w.substr(16, 32); };
     struct Tear {
         const char* what;
         std::function<std::string(const std::string& whole)> make;
@@ -630,6 +632,14 @@ TEST_P(SceneLogTest, ATornRecordAtTheEndOfALogIsIgnoredAndCutOffByTheNextCommit)
              return w;
          }},
         {"zeros", [](const std::string& w) { return std::string(w.size(), '\0'); }},
+        // Without a flush a commit (scene_sync none), a power loss may tear the last two.
+        {"two whole records, each one byte wrong",
+         [&](std::string w) {
+             std::string next = record(id_of_record(w), 4);
+             w[w.size() / 2] ^= 0x20;
+             next[next.size() / 3] ^= 0x01;
+             return w + next;
+         }},
     };
     for (const Tear& tear : tears) {
         SCOPED_TRACE(tear.what);
