@@ -48,12 +48,26 @@ bool start_up(Service& svc) {
     log_event(LogLevel::kInfo, "mesh index loaded",
               {{"meshes", static_cast<uint64_t>(svc.cache.mesh_count())},
                {"disk_bytes", svc.cache.disk_bytes()}});
+    svc.scene_store.set_notice([](const std::string& scene, const std::string& what) {
+        log_event(LogLevel::kWarn, "scene store repaired or converted a scene",
+                  {{"scene", scene}, {"what", what}});
+    });
+    svc.scene_store.set_flush_commits(svc.config.scene_sync == "commit");
     if (auto opened = svc.scene_store.open(); !opened) {
         log_event(LogLevel::kCritical, "cannot open the scene store", {{"error", opened.error()}});
         return false;
     }
     log_event(LogLevel::kInfo, "scene store opened",
-              {{"scenes", static_cast<uint64_t>(svc.scenes.scene_count())}});
+              {{"scenes", static_cast<uint64_t>(svc.scenes.scene_count())},
+               {"form", std::string_view(svc.scene_store.uses_log()
+                                             ? "revision logs"
+                                             : "revision files (the file system refuses flock)")}});
+    if (const size_t files = svc.scene_store.revision_file_scenes();
+        files > 0 && svc.scene_store.uses_log())
+        log_event(LogLevel::kWarn,
+                  "scenes stored as revision files by an earlier kdrt-server: read as they are, "
+                  "each moved into a revision log on its next change",
+                  {{"scenes", static_cast<uint64_t>(files)}});
     for (const std::string& file : svc.config.preload) {
         if (svc.shutting_down) return true;
         proto::MeshLimits limits;

@@ -313,7 +313,8 @@ private:
     bool keep_or_hand_over(uint32_t p) {
         detail::TopPacket& packet = packets[p];
         const uint32_t live = packet.live();
-        if (std::popcount(live) > 1) return true;
+        // Two lanes or more (not std::popcount: without -mpopcnt it is a libgcc call).
+        if ((live & (live - 1)) != 0) return true;
         if (live) {
             const int l = std::countr_zero(live);
             const uint32_t i = packet.ray[l];

@@ -132,6 +132,39 @@ std::vector<std::byte> encode_scene_file(const SceneDocument& base, uint64_t rev
     return out;
 }
 
+Result<SceneFileHeader, std::string> read_scene_file_header(std::span<const std::byte> header) {
+    static_assert(kSceneFileHeaderBytes == kHeaderBytes);
+    const auto at = [](uint64_t offset, const std::string& what) {
+        return Err{"offset " + std::to_string(offset) + ": " + what};
+    };
+    if (header.size() < kHeaderBytes)
+        return Err{std::to_string(header.size()) + " bytes is shorter than a KDRS header (" +
+                   std::to_string(kHeaderBytes) + ")"};
+    const std::byte* b = header.data();
+    if (std::memcmp(b, kSceneFileMagic.data(), 4) != 0) return at(0, "the magic is not \"KDRS\"");
+    if (const uint16_t v = detail::load_le16(b + 4); v != kSceneFileVersion)
+        return at(4, "version " + std::to_string(v) + ", this build reads version " +
+                         std::to_string(kSceneFileVersion));
+    if (detail::load_le16(b + 6) != 0) return at(6, "flags must be 0");
+    if (detail::load_le32(b + 60) != 0) return at(60, "reserved must be 0");
+    SceneFileHeader out;
+    out.revision = load_le64(b + 8);
+    if (out.revision == 0) return at(8, "revision must be >= 1");
+    const uint64_t n = detail::load_le32(b + 48);
+    const uint64_t meshes = detail::load_le32(b + 52);
+    if (meshes > n || (n > 0 && meshes == 0))
+        return at(52, std::to_string(meshes) + " meshes for " + std::to_string(n) + " instances");
+    out.size = kHeaderBytes + kMeshIdBytes * meshes + kInstanceBytes * n +
+               detail::load_le32(b + 56) + kChecksumBytes;
+    return out;
+}
+
+bool scene_file_checksum_matches(std::span<const std::byte> bytes) noexcept {
+    if (bytes.size() < kHeaderBytes + kChecksumBytes) return false;
+    const size_t body = bytes.size() - kChecksumBytes;
+    return load_le64(bytes.data() + body) == scene_file_checksum(bytes.first(body));
+}
+
 Result<SceneDocument, std::string> decode_scene_file(std::span<const std::byte> bytes) {
     const auto at = [](uint64_t offset, const std::string& what) {
         return Err{"offset " + std::to_string(offset) + ": " + what};

@@ -215,6 +215,12 @@ const std::vector<Setting>& settings() {
          .u32 = &ServerConfig::scene_revisions_kept,
          .min = 1,
          .max = 1024},
+        {.key = "scene_sync",
+         .help = "commit: a scene revision is flushed to disk before it is acknowledged (it "
+                 "survives a power loss); none: written but not flushed (it survives the server "
+                 "being killed; a power loss may drop the newest revisions, the store stays valid)",
+         .text = &ServerConfig::scene_sync,
+         .choices = {"commit", "none"}},
         {.key = "scene_memory_budget",
          .help = "bytes of built scenes (top levels and instance data, not their meshes' trees) "
                  "kept in memory; least recently used are dropped and rebuilt when needed",

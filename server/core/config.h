@@ -75,6 +75,9 @@ struct ServerConfig {
     uint32_t max_instances = 65536;     ///< instances of one scene (and poses of one update)
     uint32_t max_scenes = 10000;        ///< scenes in the store
     uint32_t scene_revisions_kept = 8;  ///< newest revisions of a scene kept (pinned queries)
+    /// "commit": a scene revision is flushed to disk (fdatasync) before it is acknowledged;
+    /// "none": written, not flushed (survives a killed server, not a power loss).
+    std::string scene_sync = "commit";
     uint64_t scene_memory_budget = 256ull << 20;  ///< built scenes kept in memory (LRU beyond)
     uint64_t max_json_bytes = 32ull << 20;        ///< JSON request body
     unsigned max_inflight = 64;                   ///< uploads/traces/renders in flight before 503

@@ -195,7 +195,8 @@ SceneCache::EntryPtr SceneCache::find(const std::string& id, uint64_t revision) 
 }
 
 void SceneCache::prune_later(const std::string& id, uint64_t revision) {
-    if (revision <= store_.revisions_kept()) return;
+    // A log drops old revisions in its commits; revision files are deleted here.
+    if (store_.uses_log() || revision <= store_.revisions_kept()) return;
     if (compute_.threads() <= 1) {  // no arena worker to run it later
         store_.prune(id, revision);
         return;
@@ -245,7 +246,7 @@ SceneCache::Result<SceneCache::EntryPtr> SceneCache::current(const std::string& 
         std::lock_guard lock(mutex_);
         if (const auto it = latest_.find(id); it != latest_.end()) known = it->second;
     }
-    if (known > 0 && store_.has_revision(id, known) && !store_.has_revision(id, known + 1))
+    if (known > 0 && store_.is_current(id, known))
         if (EntryPtr hit = find(id, known)) return hit;
     auto latest = store_.latest(id);
     if (!latest) {
@@ -336,8 +337,8 @@ SceneCache::Result<SceneCache::Committed> SceneCache::update(
             }
         } else {
             // The revision's document and scene are made on an arena worker while this thread
-            // writes and fsyncs the file encoded from the base (the link is the commit, as
-            // ever), and the answer does not wait for them: the revision is registered as
+            // commits the record encoded from the base (SceneStore::commit), and the answer does
+            // not wait for them: the revision is registered as
             // building, and whoever asks for it next (a query, the next update) waits for it
             // (find()). Until then nothing but the task touches the entry.
             const proto::SceneListItem summary = n->summary;
@@ -359,7 +360,8 @@ SceneCache::Result<SceneCache::Committed> SceneCache::update(
                 in_flight_done();
             };
             // The check (what the build would refuse) runs on an arena worker as well, while
-            // this thread writes and flushes the revision under tmp/; the link waits for it.
+            // this thread stages the revision (with revision files: writes and flushes it under
+            // tmp/); the commit waits for it.
             // Whichever comes first runs it: when the workers are busy (a long query holds the
             // arena), this thread checks after the write instead of waiting for one.
             struct Check {
@@ -392,7 +394,7 @@ SceneCache::Result<SceneCache::Committed> SceneCache::update(
             }
             std::optional<SceneProblem> refused;
             if (!overlap && (refused = (*check)())) return proto::Err{std::move(*refused)};
-            auto staged = store_.stage(id, summary.revision, n->file);
+            auto staged = store_.stage(id, summary.revision, std::move(n->file));
             if (overlap) refused = check->claimed.exchange(true) ? checked.get() : (*check)();
             if (refused) return proto::Err{std::move(*refused)};
             if (!staged) return proto::Err{write_problem(staged.error())};

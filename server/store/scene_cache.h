@@ -13,7 +13,7 @@
 ///   coming through the MeshCache (loaded from the shared store when this replica never saw
 ///   them).
 /// - Another replica's newer revision or deletion is noticed on the next request for the scene
-///   (one or two stats of the store).
+///   (one stat of the store).
 ///
 /// Deleting a mesh that the current revision of a scene uses is refused (mesh_users names the
 /// scenes; the route answers 409). Older kept revisions are not checked: querying one whose

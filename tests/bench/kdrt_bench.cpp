@@ -1186,6 +1186,13 @@ int run_scene_lidar(const Args& args) {
         ScenePointCloud cloud = scan_lidar(scene, spec);
         line["scan_ms"] =
             rounded(1e3 * median_seconds(reps, [&] { cloud = scan_lidar(scene, spec); }), 3);
+        // The pose update's engine part: every instance moved to frame F + 1, the top level
+        // rebuilt (Scene::with_transforms, as the server's pose update runs it).
+        std::vector<InstancePose> poses;
+        for (const Affine3x4& t : ring_poses(copies, frame + 1))
+            poses.push_back({static_cast<uint32_t>(poses.size()), t});
+        line["pose_ms"] = rounded(
+            1e3 * median_seconds(reps, [&] { (void)scene.with_transforms(poses).size(); }), 3);
         // FNV-1a over the points and geometry ids: equal answers print equal hashes.
         uint64_t hash = 1469598103934665603ull;
         const auto mix = [&](const void* data, size_t bytes) {
@@ -1226,8 +1233,9 @@ Prints one JSON line: kind, triangles, vertices, out, bytes.
   lidar    scene_latency.py's scan in process: N instances of MESH (default 1,000) on its ring
            grid at frame F (default 1), a lidar of C channels (default 64, -25..15 degrees) x A
            azimuth steps (default 2048), R returns, from (0.7, 0.3, 0.2) to range 120; K scans
-           (median, default 7). Prints scan_ms, points and answer_fnv1a (a hash of the points and
-           geometry ids: equal answers, equal hashes).
+           (median, default 7). Prints scan_ms, pose_ms (Scene::with_transforms moving every
+           instance to frame F + 1: the top level rebuilt), points and answer_fnv1a (a hash of the
+           points and geometry ids: equal answers, equal hashes).
 )";
 
 int run_scene(const Args& args) {

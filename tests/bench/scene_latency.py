@@ -5,7 +5,7 @@ FRAMES frames in a row on one keep-alive connection.
 
     tests/bench/scene_latency.py BUILD_DIR [--frames 25] [--instances 1000] [--threads 2]
                                            [--mesh FILE] [--cache-dir DIR]
-                                           [--record ranges|points]
+                                           [--record ranges|points] [--scene-sync commit|none]
 
 Starts BUILD_DIR/server/kdrt-server (a release build) on an ephemeral port, uploads the mesh
 (default tests/data/bunny00.off, scaled into each instance's cell by its transform), creates the
@@ -13,9 +13,11 @@ scene (instances on a grid around the sensor, each turned by its own angle), war
 frame, then per frame: one KDRX pose batch moving every instance (a new revision, stored durably
 before the answer), then the lidar scan of the new revision (with geometry ids: KDRL, the Python
 client's default, or the compact KDRB record with --record ranges). Prints the median and p90 of the frame, the pose update and
-the scan, the returns per scan and how many distinct geometry ids they hit. With KDRB the points
+the scan, the returns per scan, how many distinct geometry ids they hit, and the server's CPU
+use over the frames (cpu_util: CPU seconds per second, about 2 with 2 threads busy). With KDRB the points
 are made by the client on first access, after the frame: that is timed on its own line. The cache directory decides what an fsync costs (default: a temp
-directory). No timing is asserted.
+directory); --scene-sync none starts the server without the flush of each revision (config
+scene_sync). No timing is asserted.
 """
 
 import argparse
@@ -35,11 +37,12 @@ sys.path.insert(0, os.path.join(HERE, "..", "..", "client", "python"))
 import kdrt  # noqa: E402
 
 
-def start_server(build, threads, cache_dir, workdir):
+def start_server(build, threads, cache_dir, workdir, extra=()):
     port_file = os.path.join(workdir, "port")
     server = subprocess.Popen(
         [os.path.join(build, "server", "kdrt-server"), "--listen", "127.0.0.1:0", "--port-file",
-         port_file, "--cache-dir", cache_dir, "--threads", str(threads), "--log-level", "warn"],
+         port_file, "--cache-dir", cache_dir, "--threads", str(threads), "--log-level", "warn",
+         *extra],
         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     for _ in range(600):
         try:
@@ -69,6 +72,13 @@ def poses(n, frame):
     return t
 
 
+def cpu_seconds(pid):
+    """User plus system CPU seconds of process `pid` so far (all its threads)."""
+    with open(f"/proc/{pid}/stat") as f:
+        fields = f.read().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
 def pct(values, p):
     s = sorted(values)
     return s[min(len(s) - 1, int(round(p / 100 * (len(s) - 1))))]
@@ -84,10 +94,13 @@ def main():
     ap.add_argument("--cache-dir")
     ap.add_argument("--record", choices=("ranges", "points"), default="points",
                     help="the scan's answer: KDRL (points, the default) or KDRB (ranges)")
+    ap.add_argument("--scene-sync", choices=("commit", "none"),
+                    help="the server's scene_sync (default: the server's default, commit)")
     args = ap.parse_args()
     with tempfile.TemporaryDirectory() as work:
         cache = args.cache_dir or os.path.join(work, "cache")
-        server, port = start_server(args.build, args.threads, cache, work)
+        extra = ("--scene-sync", args.scene_sync) if args.scene_sync else ()
+        server, port = start_server(args.build, args.threads, cache, work, extra)
         try:
             client = kdrt.Client(f"http://127.0.0.1:{port}", connections=1)
             mesh = client.upload(args.mesh)
@@ -106,6 +119,7 @@ def main():
             scene.scan_lidar(**lidar)["points"]
             frame_s, pose_s, scan_s, points_s = [], [], [], []
             returns, geoms = 0, 0
+            cpu0, wall0 = cpu_seconds(server.pid), time.perf_counter()
             for f in range(args.frames):
                 p = poses(args.instances, f + 2)
                 t0 = time.perf_counter()
@@ -121,16 +135,20 @@ def main():
                 t3 = time.perf_counter()
                 assert cloud["points"].shape == (returns, 3)
                 points_s.append(time.perf_counter() - t3)
+            # The server's CPU use over the frames: about the server threads' count when its
+            # workers run (under chrt a starved worker shows as less; tests/bench/README.md).
+            cpu_util = (cpu_seconds(server.pid) - cpu0) / (time.perf_counter() - wall0)
             print(f"scene of {args.instances} instances of {mesh.triangles} triangles, "
                   f"created in {create_s * 1e3:.1f} ms; {args.frames} frames, server threads "
-                  f"{args.threads}, cache {cache}, record {args.record}")
+                  f"{args.threads}, cache {cache}, record {args.record}"
+                  + (f", scene_sync {args.scene_sync}" if args.scene_sync else ""))
             for name, values in (("frame", frame_s), ("pose update", pose_s),
                                  ("lidar 64x2048", scan_s),
                                  ("points (after)", points_s)):
                 print(f"  {name:14s} median {statistics.median(values) * 1e3:7.2f} ms   "
                       f"p90 {pct(values, 90) * 1e3:7.2f} ms")
             print(f"  returns per scan {returns}, distinct geometry ids hit {geoms}, "
-                  f"last revision {scene.revision}")
+                  f"last revision {scene.revision}, server cpu_util {cpu_util:.2f}")
         finally:
             server.terminate()
             server.wait(timeout=30)

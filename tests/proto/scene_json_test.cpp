@@ -451,6 +451,48 @@ TEST(SceneFile, APoseUpdateEncodedFromItsBaseIsTheUpdatedDocumentsBytes) {
     EXPECT_EQ(encode_scene_file(many, 5, all), encode_scene_file(moved));
 }
 
+TEST(SceneFile, TheHeaderAloneGivesTheRevisionAndTheSizeOfEachRecordOfALog) {
+    // Records back to back, as the server's revision log holds them: each header says where the
+    // next record starts.
+    SceneDocument a = stored_scene(), b = stored_scene(), c = stored_scene();
+    b.revision = 43;
+    b.instances.pop_back();
+    c.revision = 44;
+    c.instances.clear();
+    std::vector<std::byte> log;
+    for (const SceneDocument* d : {&a, &b, &c}) {
+        const auto bytes = encode_scene_file(*d);
+        log.insert(log.end(), bytes.begin(), bytes.end());
+    }
+    size_t at = 0;
+    for (const SceneDocument* d : {&a, &b, &c}) {
+        auto header = read_scene_file_header(std::span<const std::byte>(log).subspan(at));
+        ASSERT_TRUE(header.ok()) << header.error();
+        EXPECT_EQ(header->revision, d->revision);
+        EXPECT_EQ(header->size, encode_scene_file(*d).size());
+        const auto record = std::span<const std::byte>(log).subspan(at, header->size);
+        EXPECT_TRUE(scene_file_checksum_matches(record));
+        EXPECT_EQ(*decode_scene_file(record), *d);
+        at += header->size;
+    }
+    EXPECT_EQ(at, log.size());
+    // A cut record, a flipped byte, a short or wrong header.
+    const auto whole = encode_scene_file(a);
+    EXPECT_FALSE(scene_file_checksum_matches(std::span(whole).first(whole.size() - 1)));
+    auto flipped = whole;
+    flipped[100] ^= std::byte{4};
+    EXPECT_FALSE(scene_file_checksum_matches(flipped));
+    EXPECT_FALSE(read_scene_file_header(std::span(whole).first(63)).ok());
+    auto zeros = std::vector<std::byte>(64);
+    EXPECT_EQ(read_scene_file_header(zeros).error(), "offset 0: the magic is not \"KDRS\"");
+    auto unrevised = whole;
+    std::memset(unrevised.data() + 8, 0, 8);
+    EXPECT_EQ(read_scene_file_header(unrevised).error(), "offset 8: revision must be >= 1");
+    auto meshes = whole;
+    meshes[52] = std::byte{9};  // 9 meshes for 3 instances
+    EXPECT_EQ(read_scene_file_header(meshes).error(), "offset 52: 9 meshes for 3 instances");
+}
+
 TEST(SceneFile, StoresWrittenBeforeKdrsStillRead) {
     // What the server wrote before KDRS: the stored JSON document, under the same file name.
     const SceneDocument doc = stored_scene();

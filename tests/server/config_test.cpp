@@ -55,6 +55,8 @@ TEST(Config, FlagsInBothFormsAndPreloadLists) {
     EXPECT_EQ(inv.config.log_format, "json");
     EXPECT_EQ(inv.config.web_viewer, "on");
     EXPECT_EQ(parse_ok({"--web-viewer", "off"}).config.web_viewer, "off");
+    EXPECT_EQ(inv.config.scene_sync, "commit");
+    EXPECT_EQ(parse_ok({"--scene-sync", "none"}).config.scene_sync, "none");
 }
 
 TEST(Config, FileThenEnvironmentThenFlags) {

@@ -11,6 +11,7 @@
 #include <chrono>
 #include <csignal>
 #include <cstring>
+#include <fstream>
 #include <thread>
 
 #include "http_test_util.h"
@@ -622,6 +623,79 @@ TEST_F(HttpScenes, AcknowledgedRevisionsSurviveKillMinus9) {
     EXPECT_NE(res->body.find(id), std::string::npos);
     EXPECT_NE(server_->client()->Get("/metrics")->body.find("kdrt_scenes{state=\"stored\"}"),
               std::string::npos);
+}
+
+// A store written by an earlier kdrt-server (one file per revision: JSON before KDRS, then KDRS)
+// is served as it is, and the scene's next pose update moves it into a revision log, logged; a
+// restart reads the log.
+TEST_F(HttpScenes, RevisionFilesOfAnEarlierServerAreServedThenMovedIntoALog) {
+    const std::string id = "0123456789abcdef0123456789abcdef";
+    const auto scene_dir = dir_->path() / "cache" / "scenes" / id;
+    std::filesystem::create_directories(scene_dir);
+    const auto doc_of = [&](uint64_t revision) {
+        proto::SceneDocument doc;
+        doc.id = id;
+        doc.revision = revision;
+        proto::Transform t = kIdentity;
+        t.m[3] = 0.25f * static_cast<float>(revision);
+        doc.instances = {{a_id_, t, "a"}, {b_id_, kMirrored, ""}};
+        return doc;
+    };
+    for (uint64_t r = 1; r <= 4; ++r) {
+        char name[32];
+        std::snprintf(name, sizeof name, "%020llu.json", static_cast<unsigned long long>(r));
+        std::ofstream f(scene_dir / name, std::ios::binary);
+        if (r <= 2) {
+            f << proto::encode_scene_json(doc_of(r));
+        } else {
+            const auto bytes = proto::encode_scene_file(doc_of(r));
+            f.write(reinterpret_cast<const char*>(bytes.data()),
+                    static_cast<std::streamsize>(bytes.size()));
+        }
+    }
+    server_->stop(SIGTERM, std::chrono::seconds(10));
+    delete server_;
+    start();
+    EXPECT_NE(server_->log().find("scenes stored as revision files"), std::string::npos)
+        << server_->log();
+    auto cli = server_->client();
+    const auto get_doc = [&](const std::string& path) -> std::optional<proto::SceneDocument> {
+        auto res = cli->Get(path);
+        if (!res || res->status != 200) return std::nullopt;
+        auto doc = proto::decode_scene_json(res->body, {}, true);
+        if (!doc) return std::nullopt;
+        return std::move(doc).value();
+    };
+    EXPECT_EQ(get_doc("/v1/scenes/" + id), doc_of(4));
+    EXPECT_EQ(get_doc("/v1/scenes/" + id + "?revision=2"), doc_of(2)) << "JSON, kept (3)";
+    auto res =
+        cli->Patch("/v1/scenes/" + id + "/poses", {{"If-Match", "\"4\""}},
+                   "{\"poses\":[{\"geometry_id\":0,\"transform\":[1,0,0,1.25,0,1,0,0,0,0,1,0]}]}",
+                   "application/json");
+    ASSERT_TRUE(res);
+    ASSERT_EQ(res->status, 200) << res->body;
+    EXPECT_EQ(res->get_header_value("ETag"), "\"5\"");
+    EXPECT_NE(server_->log().find("moved 2 of its 4 revision files into revisions.kdrs"),
+              std::string::npos)
+        << server_->log();
+    std::vector<std::string> files;
+    for (const auto& e : std::filesystem::directory_iterator(scene_dir))
+        files.push_back(e.path().filename().string());
+    EXPECT_EQ(files, std::vector<std::string>{"revisions.kdrs"});
+    // After a kill, a fresh server reads the log: revision 5, and the kept 3 and 4.
+    server_->stop(SIGKILL, std::chrono::seconds(10));
+    delete server_;
+    start();
+    cli = server_->client();
+    proto::SceneDocument five = doc_of(4);
+    five.revision = 5;
+    five.instances[0].transform.m[3] = 1.25f;
+    EXPECT_EQ(get_doc("/v1/scenes/" + id), five);
+    EXPECT_EQ(get_doc("/v1/scenes/" + id + "?revision=3"), doc_of(3));
+    res = cli->Get("/v1/scenes/" + id + "?revision=2");
+    ASSERT_TRUE(res);
+    EXPECT_EQ(res->status, 404) << "older than the kept revisions";
+    ASSERT_EQ(cli->Delete("/v1/scenes/" + id)->status, 204);
 }
 
 }  // namespace

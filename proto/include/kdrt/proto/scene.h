@@ -125,6 +125,21 @@ inline constexpr uint16_t kSceneFileVersion = 1;
     std::span<const std::byte> bytes);
 /// The checksum at the end of a KDRS file (the tree blob's, FORMATS.md "Tree blob").
 [[nodiscard]] uint64_t scene_file_checksum(std::span<const std::byte> bytes) noexcept;
+/// What the first kSceneFileHeaderBytes of a KDRS say, read without the rest: its revision and
+/// its whole size in bytes (64 + 64 M + 53 N + B + 8). Lets a reader walk a file of KDRS
+/// records back to back (the server's scene revision log, FORMATS.md "Scene revision log").
+struct SceneFileHeader {
+    uint64_t revision = 0;
+    uint64_t size = 0;
+};
+inline constexpr size_t kSceneFileHeaderBytes = 64;
+/// The header of the KDRS starting at `header` (at least kSceneFileHeaderBytes): the magic,
+/// version 1, flags and reserved 0, revision >= 1, distinct meshes <= instances. Checks no
+/// mesh id, name or checksum (decode_scene_file does). The error names the offset.
+[[nodiscard]] Result<SceneFileHeader, std::string> read_scene_file_header(
+    std::span<const std::byte> header);
+/// True when `bytes` (a whole KDRS, as sized by its header) ends with the checksum of the rest.
+[[nodiscard]] bool scene_file_checksum_matches(std::span<const std::byte> bytes) noexcept;
 /// A stored revision file in either form: KDRS, or the JSON of encode_scene_json that stores
 /// written before KDRS hold (told apart by the first byte). The error says which form and what.
 [[nodiscard]] Result<SceneDocument, std::string> decode_stored_scene(
