@@ -18,7 +18,8 @@
 // Everything is in an anonymous namespace and `static inline` (see ray_prep.h): each translation
 // unit keeps its own copy for its own target. A unit compiled for AVX2 or later defines
 // KDRT_WIDE_AVX2 before including this (a target pragma does not set __AVX2__), for the 8-lane
-// permutes and movemask.
+// permutes and movemask; one compiled for AVX-512 (F, VL, DQ) defines KDRT_WIDE_AVX512 as well,
+// for the decode's compaction by vpcompress.
 
 #include <immintrin.h>
 
@@ -400,7 +401,28 @@ static inline int decode(const WideNode& w, const Ray8& r, float tmin, float tma
         valid &= reinterpret_cast<I8>((slots & 3u) != 0);
     else
         valid &= reinterpret_cast<I8>(slots << 30);
-#if defined(KDRT_WIDE_AVX2)
+#if defined(KDRT_WIDE_AVX512)
+    if constexpr (!CountSteps) {
+        // As below, but the valid slots are moved to the front by vpcompress under the mask,
+        // not by a permute from the compaction table: the table's load, which waits for the mask,
+        // is off the path from a node's load to its nearest child's.
+        const __m256i far_first = _mm256_cvtepu8_epi32(
+            _mm_cvtsi64_si128(static_cast<long long>(kFarFirstBytes.order[nh])));
+        const __mmask8 mask = _mm256_movepi32_mask(
+            _mm256_permutevar8x32_epi32(reinterpret_cast<__m256i>(valid), far_first));
+        _mm256_storeu_si256(
+            reinterpret_cast<__m256i*>(&st.slot[top]),
+            _mm256_maskz_compress_epi32(
+                mask, _mm256_permutevar8x32_epi32(reinterpret_cast<__m256i>(slots), far_first)));
+        _mm256_storeu_ps(&st.tmin[top], _mm256_maskz_compress_ps(
+                                            mask, _mm256_permutevar8x32_ps(
+                                                      reinterpret_cast<__m256>(lo), far_first)));
+        _mm256_storeu_ps(&st.tmax[top], _mm256_maskz_compress_ps(
+                                            mask, _mm256_permutevar8x32_ps(
+                                                      reinterpret_cast<__m256>(hi), far_first)));
+        return __builtin_popcount(static_cast<uint32_t>(mask));
+    }
+#elif defined(KDRT_WIDE_AVX2)
     if constexpr (!CountSteps) {
         // Branch-free: the valid slots, farthest first, moved to the front by one permute per
         // field (the order table's permute composed with the mask's compaction) and pushed with
