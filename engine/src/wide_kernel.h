@@ -19,7 +19,7 @@
 // unit keeps its own copy for its own target. A unit compiled for AVX2 or later defines
 // KDRT_WIDE_AVX2 before including this (a target pragma does not set __AVX2__), for the 8-lane
 // permutes and movemask; one compiled for AVX-512 (F, VL, DQ) defines KDRT_WIDE_AVX512 as well,
-// for the decode's compaction by vpcompress.
+// for the decode's masked levels and compaction by vpcompress.
 
 #include <immintrin.h>
 
@@ -356,6 +356,47 @@ static inline int decode(const WideNode& w, const Ray8& r, float tmin, float tma
     // t + eps < tmin) there; a NaN crossing changes nothing. A slot is visited when its interval
     // is not empty, which holds exactly when each level needed its side.
     F8 lo = F8{} + tmin, hi = F8{} + tmax;
+#if defined(KDRT_WIDE_AVX512)
+    if constexpr (!CountEmpty && !CountSteps) {
+        // With AVX-512 the path from a node's load to its nearest child's, which one ray at a
+        // time waits on, is shorter: each level's cut is one max and one min under the far
+        // sides' mask (the same operations as the blends below, so the same values), the
+        // intervals go to the far-first order before the test (so the test's mask is already
+        // in stack order), and the valid cells are compacted onto the stack by vpcompress, not
+        // by a permute from a table whose load waits for the mask.
+        const I8 inv_bits = reinterpret_cast<I8>(inv);
+        __m256 l = reinterpret_cast<__m256>(lo), h = reinterpret_cast<__m256>(hi);
+#define KDRT_WIDE_LEVEL(i0, i1, i2, i3, i4, i5, i6, i7, side)                                      \
+    {                                                                                              \
+        const F8 nm = __builtin_shufflevector(near_max, near_max, i0, i1, i2, i3, i4, i5, i6, i7); \
+        const F8 fm = __builtin_shufflevector(far_min, far_min, i0, i1, i2, i3, i4, i5, i6, i7);   \
+        const __mmask8 far = _mm256_movepi32_mask(reinterpret_cast<__m256i>(                       \
+            __builtin_shufflevector(inv_bits, inv_bits, i0, i1, i2, i3, i4, i5, i6, i7) ^          \
+            (side)));                                                                              \
+        l = _mm256_mask_max_ps(l, far, reinterpret_cast<__m256>(fm), l);                           \
+        h = _mm256_mask_min_ps(h, static_cast<__mmask8>(~far), reinterpret_cast<__m256>(nm), h);   \
+    }
+        KDRT_WIDE_LEVEL(0, 0, 0, 0, 0, 0, 0, 0, (I8{0, 0, 0, 0, -1, -1, -1, -1}))
+        KDRT_WIDE_LEVEL(1, 1, 1, 1, 2, 2, 2, 2, (I8{0, 0, -1, -1, 0, 0, -1, -1}))
+        KDRT_WIDE_LEVEL(3, 3, 4, 4, 5, 5, 6, 6, (I8{0, -1, 0, -1, 0, -1, 0, -1}))
+#undef KDRT_WIDE_LEVEL
+        __m256i slots;
+        __builtin_memcpy(&slots, w.slot, sizeof slots);
+        const __m256i far_first = _mm256_cvtepu8_epi32(
+            _mm_cvtsi64_si128(static_cast<long long>(kFarFirstBytes.order[nh])));
+        const __m256 lo_ff = _mm256_permutevar8x32_ps(l, far_first);
+        const __m256 hi_ff = _mm256_permutevar8x32_ps(h, far_first);
+        const __m256i slots_ff = _mm256_permutevar8x32_epi32(slots, far_first);
+        // lo <= hi (false for a NaN), and a tag with bit 1 set (a leaf or a node), as below.
+        const __mmask8 mask = _mm256_cmp_ps_mask(lo_ff, hi_ff, _CMP_LE_OQ) &
+                              _mm256_test_epi32_mask(slots_ff, _mm256_set1_epi32(2));
+        _mm256_storeu_si256(reinterpret_cast<__m256i*>(&st.slot[top]),
+                            _mm256_maskz_compress_epi32(mask, slots_ff));
+        _mm256_storeu_ps(&st.tmin[top], _mm256_maskz_compress_ps(mask, lo_ff));
+        _mm256_storeu_ps(&st.tmax[top], _mm256_maskz_compress_ps(mask, hi_ff));
+        return __builtin_popcount(static_cast<uint32_t>(mask));
+    }
+#endif
 #if defined(KDRT_WIDE_AVX2)
     // Per level four operations on the intervals: max(fm, lo) is fm > lo ? fm : lo (lo where fm
     // is NaN), min(nm, hi) is nm < hi ? nm : hi, and a blend by the far side's sign bit (the
@@ -401,28 +442,7 @@ static inline int decode(const WideNode& w, const Ray8& r, float tmin, float tma
         valid &= reinterpret_cast<I8>((slots & 3u) != 0);
     else
         valid &= reinterpret_cast<I8>(slots << 30);
-#if defined(KDRT_WIDE_AVX512)
-    if constexpr (!CountSteps) {
-        // As below, but the valid slots are moved to the front by vpcompress under the mask,
-        // not by a permute from the compaction table: the table's load, which waits for the mask,
-        // is off the path from a node's load to its nearest child's.
-        const __m256i far_first = _mm256_cvtepu8_epi32(
-            _mm_cvtsi64_si128(static_cast<long long>(kFarFirstBytes.order[nh])));
-        const __mmask8 mask = _mm256_movepi32_mask(
-            _mm256_permutevar8x32_epi32(reinterpret_cast<__m256i>(valid), far_first));
-        _mm256_storeu_si256(
-            reinterpret_cast<__m256i*>(&st.slot[top]),
-            _mm256_maskz_compress_epi32(
-                mask, _mm256_permutevar8x32_epi32(reinterpret_cast<__m256i>(slots), far_first)));
-        _mm256_storeu_ps(&st.tmin[top], _mm256_maskz_compress_ps(
-                                            mask, _mm256_permutevar8x32_ps(
-                                                      reinterpret_cast<__m256>(lo), far_first)));
-        _mm256_storeu_ps(&st.tmax[top], _mm256_maskz_compress_ps(
-                                            mask, _mm256_permutevar8x32_ps(
-                                                      reinterpret_cast<__m256>(hi), far_first)));
-        return __builtin_popcount(static_cast<uint32_t>(mask));
-    }
-#elif defined(KDRT_WIDE_AVX2)
+#if defined(KDRT_WIDE_AVX2)
     if constexpr (!CountSteps) {
         // Branch-free: the valid slots, farthest first, moved to the front by one permute per
         // field (the order table's permute composed with the mask's compaction) and pushed with
