@@ -273,12 +273,12 @@ template <class F, class I>
 }
 
 /// A ray's per-axis values: as 8-lane broadcasts (org[a], ...), and the three axes in lanes 0..2
-/// of one vector each (xyz_org, ...) for a per-lane pick by permute.
+/// (and again 4..6) of one vector each (xyz_org, ...) for a per-lane pick by permute.
 struct Ray8 {
 #if !defined(KDRT_WIDE_AVX2)
     F8 org[3], inv[3], eps[3];  // the 8-lane permute picks from xyz_* instead
 #endif
-    F8 xyz_org, xyz_inv, xyz_eps;
+    F8 xyz_org, xyz_inv, xyz_eps;  ///< lanes 0..2 and again 4..6; lanes 3 and 7 zero
 };
 
 /// One cell to visit: a slot word of WideNode (tag and index) with the ray's interval there.
@@ -319,10 +319,11 @@ static inline int decode(const WideNode& w, const Ray8& r, float tmin, float tma
     split = pick(lane < 7, split, F8{});  // lane 7 holds the axis bits
     // Each lane's plane axis (lane 7's code is 0, x: its split is 0 and its answers unused).
 #if defined(KDRT_WIDE_AVX2)
-    const __m256i code =
-        _mm256_and_si256(_mm256_srlv_epi32(_mm256_set1_epi32(static_cast<int>(w.axes)),
-                                           _mm256_setr_epi32(0, 2, 4, 6, 8, 10, 12, 14)),
-                         _mm256_set1_epi32(3));
+    // The permute reads an index's low three bits: above a lane's code (bits 0..1) bit 2 is
+    // the next plane's, and the ray's vectors hold their three axes twice (lanes 0..2 and
+    // 4..6), so no mask is needed, and none delays the picks.
+    const __m256i code = _mm256_srlv_epi32(_mm256_set1_epi32(static_cast<int>(w.axes)),
+                                           _mm256_setr_epi32(0, 2, 4, 6, 8, 10, 12, 14));
     const auto by_axis = [code](F8 xyz) {
         return reinterpret_cast<F8>(_mm256_permutevar8x32_ps(reinterpret_cast<__m256>(xyz), code));
     };
@@ -666,9 +667,9 @@ template <bool Checked = false>
     }
 #endif
     const F4 zero{};
-    r.r8.xyz_org = __builtin_shufflevector(o, zero, 0, 1, 2, 4, 4, 4, 4, 4);
-    r.r8.xyz_inv = __builtin_shufflevector(inv, zero, 0, 1, 2, 4, 4, 4, 4, 4);
-    r.r8.xyz_eps = __builtin_shufflevector(eps, zero, 0, 1, 2, 4, 4, 4, 4, 4);
+    r.r8.xyz_org = __builtin_shufflevector(o, zero, 0, 1, 2, 4, 0, 1, 2, 4);
+    r.r8.xyz_inv = __builtin_shufflevector(inv, zero, 0, 1, 2, 4, 0, 1, 2, 4);
+    r.r8.xyz_eps = __builtin_shufflevector(eps, zero, 0, 1, 2, 4, 0, 1, 2, 4);
     r.ray_tmin = ray.tmin;
     r.ray_tmax = ray.tmax;
     // The root: a wide node, or (a tree of one leaf) that leaf.
