@@ -445,23 +445,27 @@ static inline int decode(const WideNode& w, const Ray8& r, float tmin, float tma
         valid &= reinterpret_cast<I8>(slots << 30);
 #if defined(KDRT_WIDE_AVX2)
     if constexpr (!CountSteps) {
-        // Branch-free: the valid slots, farthest first, moved to the front by one permute per
-        // field (the order table's permute composed with the mask's compaction) and pushed with
-        // one whole-vector store per field.
+        // Branch-free: the intervals and slots go to far-first order first, so the test's
+        // movemask is in stack order; the valid ones are moved to the front by one permute per
+        // field (the mask's compaction) and pushed with one whole-vector store per field.
         const __m256i far_first = _mm256_cvtepu8_epi32(
             _mm_cvtsi64_si128(static_cast<long long>(kFarFirstBytes.order[nh])));
-        const auto mask = static_cast<uint32_t>(_mm256_movemask_ps(_mm256_castsi256_ps(
-            _mm256_permutevar8x32_epi32(reinterpret_cast<__m256i>(valid), far_first))));
+        const F8 lo_ff =
+            reinterpret_cast<F8>(_mm256_permutevar8x32_ps(reinterpret_cast<__m256>(lo), far_first));
+        const F8 hi_ff =
+            reinterpret_cast<F8>(_mm256_permutevar8x32_ps(reinterpret_cast<__m256>(hi), far_first));
+        const U8 slots_ff = reinterpret_cast<U8>(
+            _mm256_permutevar8x32_epi32(reinterpret_cast<__m256i>(slots), far_first));
+        const auto mask = bits8((lo_ff <= hi_ff) & reinterpret_cast<I8>(slots_ff << 30));
         const __m256i compact = _mm256_cvtepu8_epi32(
             _mm_cvtsi64_si128(static_cast<long long>(kCompactBytes.index[mask])));
-        const __m256i pick_lanes = _mm256_permutevar8x32_epi32(far_first, compact);
         _mm256_storeu_si256(
             reinterpret_cast<__m256i*>(&st.slot[top]),
-            _mm256_permutevar8x32_epi32(reinterpret_cast<__m256i>(slots), pick_lanes));
+            _mm256_permutevar8x32_epi32(reinterpret_cast<__m256i>(slots_ff), compact));
         _mm256_storeu_ps(&st.tmin[top],
-                         _mm256_permutevar8x32_ps(reinterpret_cast<__m256>(lo), pick_lanes));
+                         _mm256_permutevar8x32_ps(reinterpret_cast<__m256>(lo_ff), compact));
         _mm256_storeu_ps(&st.tmax[top],
-                         _mm256_permutevar8x32_ps(reinterpret_cast<__m256>(hi), pick_lanes));
+                         _mm256_permutevar8x32_ps(reinterpret_cast<__m256>(hi_ff), compact));
         return __builtin_popcount(mask);
     }
 #else
