@@ -11,7 +11,8 @@
 
 #pragma GCC push_options
 #pragma GCC target("avx512f,avx512dq,avx512vl,avx512bw,popcnt")
-#define KDRT_WIDE_AVX2 1  // wide_kernel.h: 8-lane permutes
+#define KDRT_WIDE_AVX2 1    // wide_kernel.h: 8-lane permutes
+#define KDRT_WIDE_AVX512 1  // wide_kernel.h: masked levels, vpcompress
 #include "packet_kernel.h"
 #pragma GCC pop_options
 

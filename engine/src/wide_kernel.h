@@ -18,7 +18,8 @@
 // Everything is in an anonymous namespace and `static inline` (see ray_prep.h): each translation
 // unit keeps its own copy for its own target. A unit compiled for AVX2 or later defines
 // KDRT_WIDE_AVX2 before including this (a target pragma does not set __AVX2__), for the 8-lane
-// permutes and movemask.
+// permutes and movemask; one compiled for AVX-512 (F, VL, DQ) defines KDRT_WIDE_AVX512 as well,
+// for the decode's masked levels and compaction by vpcompress.
 
 #include <immintrin.h>
 
@@ -272,12 +273,12 @@ template <class F, class I>
 }
 
 /// A ray's per-axis values: as 8-lane broadcasts (org[a], ...), and the three axes in lanes 0..2
-/// of one vector each (xyz_org, ...) for a per-lane pick by permute.
+/// (and again 4..6) of one vector each (xyz_org, ...) for a per-lane pick by permute.
 struct Ray8 {
 #if !defined(KDRT_WIDE_AVX2)
     F8 org[3], inv[3], eps[3];  // the 8-lane permute picks from xyz_* instead
 #endif
-    F8 xyz_org, xyz_inv, xyz_eps;
+    F8 xyz_org, xyz_inv, xyz_eps;  ///< lanes 0..2 and again 4..6; lanes 3 and 7 zero
 };
 
 /// One cell to visit: a slot word of WideNode (tag and index) with the ray's interval there.
@@ -318,10 +319,11 @@ static inline int decode(const WideNode& w, const Ray8& r, float tmin, float tma
     split = pick(lane < 7, split, F8{});  // lane 7 holds the axis bits
     // Each lane's plane axis (lane 7's code is 0, x: its split is 0 and its answers unused).
 #if defined(KDRT_WIDE_AVX2)
-    const __m256i code =
-        _mm256_and_si256(_mm256_srlv_epi32(_mm256_set1_epi32(static_cast<int>(w.axes)),
-                                           _mm256_setr_epi32(0, 2, 4, 6, 8, 10, 12, 14)),
-                         _mm256_set1_epi32(3));
+    // The permute reads an index's low three bits: above a lane's code (bits 0..1) bit 2 is
+    // the next plane's, and the ray's vectors hold their three axes twice (lanes 0..2 and
+    // 4..6), so no mask is needed, and none delays the picks.
+    const __m256i code = _mm256_srlv_epi32(_mm256_set1_epi32(static_cast<int>(w.axes)),
+                                           _mm256_setr_epi32(0, 2, 4, 6, 8, 10, 12, 14));
     const auto by_axis = [code](F8 xyz) {
         return reinterpret_cast<F8>(_mm256_permutevar8x32_ps(reinterpret_cast<__m256>(xyz), code));
     };
@@ -355,6 +357,47 @@ static inline int decode(const WideNode& w, const Ray8& r, float tmin, float tma
     // t + eps < tmin) there; a NaN crossing changes nothing. A slot is visited when its interval
     // is not empty, which holds exactly when each level needed its side.
     F8 lo = F8{} + tmin, hi = F8{} + tmax;
+#if defined(KDRT_WIDE_AVX512)
+    if constexpr (!CountEmpty && !CountSteps) {
+        // With AVX-512 the path from a node's load to its nearest child's, which one ray at a
+        // time waits on, is shorter: each level's cut is one max and one min under the far
+        // sides' mask (the same operations as the blends below, so the same values), the
+        // intervals go to the far-first order before the test (so the test's mask is already
+        // in stack order), and the valid cells are compacted onto the stack by vpcompress, not
+        // by a permute from a table whose load waits for the mask.
+        const I8 inv_bits = reinterpret_cast<I8>(inv);
+        __m256 l = reinterpret_cast<__m256>(lo), h = reinterpret_cast<__m256>(hi);
+#define KDRT_WIDE_LEVEL(i0, i1, i2, i3, i4, i5, i6, i7, side)                                      \
+    {                                                                                              \
+        const F8 nm = __builtin_shufflevector(near_max, near_max, i0, i1, i2, i3, i4, i5, i6, i7); \
+        const F8 fm = __builtin_shufflevector(far_min, far_min, i0, i1, i2, i3, i4, i5, i6, i7);   \
+        const __mmask8 far = _mm256_movepi32_mask(reinterpret_cast<__m256i>(                       \
+            __builtin_shufflevector(inv_bits, inv_bits, i0, i1, i2, i3, i4, i5, i6, i7) ^          \
+            (side)));                                                                              \
+        l = _mm256_mask_max_ps(l, far, reinterpret_cast<__m256>(fm), l);                           \
+        h = _mm256_mask_min_ps(h, static_cast<__mmask8>(~far), reinterpret_cast<__m256>(nm), h);   \
+    }
+        KDRT_WIDE_LEVEL(0, 0, 0, 0, 0, 0, 0, 0, (I8{0, 0, 0, 0, -1, -1, -1, -1}))
+        KDRT_WIDE_LEVEL(1, 1, 1, 1, 2, 2, 2, 2, (I8{0, 0, -1, -1, 0, 0, -1, -1}))
+        KDRT_WIDE_LEVEL(3, 3, 4, 4, 5, 5, 6, 6, (I8{0, -1, 0, -1, 0, -1, 0, -1}))
+#undef KDRT_WIDE_LEVEL
+        __m256i slots;
+        __builtin_memcpy(&slots, w.slot, sizeof slots);
+        const __m256i far_first = _mm256_cvtepu8_epi32(
+            _mm_cvtsi64_si128(static_cast<long long>(kFarFirstBytes.order[nh])));
+        const __m256 lo_ff = _mm256_permutevar8x32_ps(l, far_first);
+        const __m256 hi_ff = _mm256_permutevar8x32_ps(h, far_first);
+        const __m256i slots_ff = _mm256_permutevar8x32_epi32(slots, far_first);
+        // lo <= hi (false for a NaN), and a tag with bit 1 set (a leaf or a node), as below.
+        const __mmask8 mask = _mm256_cmp_ps_mask(lo_ff, hi_ff, _CMP_LE_OQ) &
+                              _mm256_test_epi32_mask(slots_ff, _mm256_set1_epi32(2));
+        _mm256_storeu_si256(reinterpret_cast<__m256i*>(&st.slot[top]),
+                            _mm256_maskz_compress_epi32(mask, slots_ff));
+        _mm256_storeu_ps(&st.tmin[top], _mm256_maskz_compress_ps(mask, lo_ff));
+        _mm256_storeu_ps(&st.tmax[top], _mm256_maskz_compress_ps(mask, hi_ff));
+        return __builtin_popcount(static_cast<uint32_t>(mask));
+    }
+#endif
 #if defined(KDRT_WIDE_AVX2)
     // Per level four operations on the intervals: max(fm, lo) is fm > lo ? fm : lo (lo where fm
     // is NaN), min(nm, hi) is nm < hi ? nm : hi, and a blend by the far side's sign bit (the
@@ -402,23 +445,27 @@ static inline int decode(const WideNode& w, const Ray8& r, float tmin, float tma
         valid &= reinterpret_cast<I8>(slots << 30);
 #if defined(KDRT_WIDE_AVX2)
     if constexpr (!CountSteps) {
-        // Branch-free: the valid slots, farthest first, moved to the front by one permute per
-        // field (the order table's permute composed with the mask's compaction) and pushed with
-        // one whole-vector store per field.
+        // Branch-free: the intervals and slots go to far-first order first, so the test's
+        // movemask is in stack order; the valid ones are moved to the front by one permute per
+        // field (the mask's compaction) and pushed with one whole-vector store per field.
         const __m256i far_first = _mm256_cvtepu8_epi32(
             _mm_cvtsi64_si128(static_cast<long long>(kFarFirstBytes.order[nh])));
-        const auto mask = static_cast<uint32_t>(_mm256_movemask_ps(_mm256_castsi256_ps(
-            _mm256_permutevar8x32_epi32(reinterpret_cast<__m256i>(valid), far_first))));
+        const F8 lo_ff =
+            reinterpret_cast<F8>(_mm256_permutevar8x32_ps(reinterpret_cast<__m256>(lo), far_first));
+        const F8 hi_ff =
+            reinterpret_cast<F8>(_mm256_permutevar8x32_ps(reinterpret_cast<__m256>(hi), far_first));
+        const U8 slots_ff = reinterpret_cast<U8>(
+            _mm256_permutevar8x32_epi32(reinterpret_cast<__m256i>(slots), far_first));
+        const auto mask = bits8((lo_ff <= hi_ff) & reinterpret_cast<I8>(slots_ff << 30));
         const __m256i compact = _mm256_cvtepu8_epi32(
             _mm_cvtsi64_si128(static_cast<long long>(kCompactBytes.index[mask])));
-        const __m256i pick_lanes = _mm256_permutevar8x32_epi32(far_first, compact);
         _mm256_storeu_si256(
             reinterpret_cast<__m256i*>(&st.slot[top]),
-            _mm256_permutevar8x32_epi32(reinterpret_cast<__m256i>(slots), pick_lanes));
+            _mm256_permutevar8x32_epi32(reinterpret_cast<__m256i>(slots_ff), compact));
         _mm256_storeu_ps(&st.tmin[top],
-                         _mm256_permutevar8x32_ps(reinterpret_cast<__m256>(lo), pick_lanes));
+                         _mm256_permutevar8x32_ps(reinterpret_cast<__m256>(lo_ff), compact));
         _mm256_storeu_ps(&st.tmax[top],
-                         _mm256_permutevar8x32_ps(reinterpret_cast<__m256>(hi), pick_lanes));
+                         _mm256_permutevar8x32_ps(reinterpret_cast<__m256>(hi_ff), compact));
         return __builtin_popcount(mask);
     }
 #else
@@ -624,9 +671,9 @@ template <bool Checked = false>
     }
 #endif
     const F4 zero{};
-    r.r8.xyz_org = __builtin_shufflevector(o, zero, 0, 1, 2, 4, 4, 4, 4, 4);
-    r.r8.xyz_inv = __builtin_shufflevector(inv, zero, 0, 1, 2, 4, 4, 4, 4, 4);
-    r.r8.xyz_eps = __builtin_shufflevector(eps, zero, 0, 1, 2, 4, 4, 4, 4, 4);
+    r.r8.xyz_org = __builtin_shufflevector(o, zero, 0, 1, 2, 4, 0, 1, 2, 4);
+    r.r8.xyz_inv = __builtin_shufflevector(inv, zero, 0, 1, 2, 4, 0, 1, 2, 4);
+    r.r8.xyz_eps = __builtin_shufflevector(eps, zero, 0, 1, 2, 4, 0, 1, 2, 4);
     r.ray_tmin = ray.tmin;
     r.ray_tmax = ray.tmax;
     // The root: a wide node, or (a tree of one leaf) that leaf.

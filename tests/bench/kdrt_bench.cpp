@@ -140,7 +140,7 @@ options:
 )";
 
 constexpr std::string_view kTraceUsage =
-    R"(usage: kdrt-bench trace MESH RAYS.kdrr [--mode single|packet|auto] [--isa ISA] [--threads N]
+    R"(usage: kdrt-bench trace MESH RAYS.kdrr [--mode single|packet|auto|one] [--isa ISA] [--threads N]
                         [--reps K] [--out FILE] [--builder sah|middle] [--c-isect X]
                         [--compare embree] [--stats]
 
@@ -165,7 +165,9 @@ for occlusion), incoherent and coherent, and adds
   right), kdrt_matches_oracle (of the other differences, rays where kdrt's answer is the
   brute-force oracle's), the same three counts for the robust scene's best mode
   (embree_robust_differences, embree_robust_ties, embree_robust_kdrt_matches_oracle) and
-  embree_modes (Mrays/s of every mode; the robust scene's prefixed robust_).
+  embree_modes (Mrays/s of every mode; the robust scene's prefixed robust_), and
+  embree_1_mrays_per_s, embree_1_mode and ratio_1: Embree's fastest one-ray-at-a-time mode
+  (rtcIntersect1 or rtcOccluded1, either flag), the yardstick of --mode one.
 With --stats it traces once more, untimed, with the counting kernels and adds the work per ray:
   steps_per_ray (inner nodes visited), leaves_per_ray, tri_tests_per_ray (a packet's visit or
   test counts once per live lane), packet_visits (node visits by packets) and lane_utilisation
@@ -173,6 +175,9 @@ With --stats it traces once more, untimed, with the counting kernels and adds th
 
 options:
   --mode single|packet|auto  traversal (default auto: packets where rays are coherent)
+  --mode one                 one ray at a time (kdrt::intersect_single / occluded_single, on the
+                             default ISA's kernel: KDRT_ISA sets it), the counterpart of
+                             rtcIntersect1 / rtcOccluded1; --stats counts --mode single's walks
   --isa scalar|sse4|avx2|avx512  packet instruction set (default: the engine's default_isa(), or KDRT_ISA)
   --threads N                worker threads (default: all cores)
   --reps K                   timed passes (default 5)
@@ -485,9 +490,13 @@ int run_trace(const Args& args) {
     const std::string& mesh_path = args.positional()[0];
     const std::string& rays_path = args.positional()[1];
     const std::string mode_text = args.get("mode").value_or("auto");
-    const auto mode = parse_trace_mode(mode_text);
+    // "one": kdrt::intersect_single / occluded_single, one ray at a time (as rtcIntersect1).
+    const bool one_at_a_time = mode_text == "one";
+    const auto mode =
+        one_at_a_time ? std::optional(TraceMode::kSingle) : parse_trace_mode(mode_text);
     if (!mode)
-        throw UsageError("option '--mode': '" + mode_text + "' is not one of single, packet, auto");
+        throw UsageError("option '--mode': '" + mode_text +
+                         "' is not one of single, packet, auto, one");
     TraceOptions trace_options{*mode, default_isa()};
     if (const auto isa_text = args.get("isa")) {
         const auto isa = parse_isa(*isa_text);
@@ -496,6 +505,9 @@ int run_trace(const Args& args) {
                              "' is not one of scalar, sse4, avx2, avx512");
         if (!isa_supported(*isa))
             throw BenchError("--isa " + *isa_text + " is not supported by this CPU");
+        if (one_at_a_time && *isa != default_isa())
+            throw UsageError("option '--isa': --mode one runs the default ISA's kernel (" +
+                             std::string(isa_name(default_isa())) + "; KDRT_ISA sets it)");
         trace_options.isa = *isa;
     }
     const BuildOptions build_options = parse_build_options(args);
@@ -535,7 +547,13 @@ int run_trace(const Args& args) {
         for (int pass = 0; pass <= reps; ++pass) {
             const double cpu_start = process_cpu_seconds();
             const auto start = Clock::now();
-            if (batch.occlusion) {
+            if (one_at_a_time) {
+                if (batch.occlusion) {
+                    kdrt::occluded_single(tree, rays, occluded);
+                } else {
+                    kdrt::intersect_single(tree, rays, hits);
+                }
+            } else if (batch.occlusion) {
                 kdrt::occluded(tree, rays, occluded, trace_options, &stats);
             } else {
                 kdrt::intersect(tree, rays, hits, trace_options, &stats);
@@ -580,7 +598,7 @@ int run_trace(const Args& args) {
     line["rays_file"] = std::filesystem::path(rays_path).filename().string();
     line["rays"] = rays.size();
     line["occlusion"] = batch.occlusion;
-    line["mode"] = trace_mode_name(*mode);
+    line["mode"] = one_at_a_time ? std::string_view("one") : trace_mode_name(*mode);
     line["isa"] = isa_name(*trace_options.isa);
     line["packets"] = stats.packets;
     line["packet_rays"] = stats.packet_rays;
@@ -628,6 +646,21 @@ int run_trace(const Args& args) {
     line["cpu_util"] = rounded(wall_total > 0 ? cpu_seconds / wall_total : 0.0, 2);
     if (embree) {
         put_embree_speeds(line, *embree, mrays_per_s);
+        // One ray at a time against one ray at a time: Embree's fastest rtcIntersect1 /
+        // rtcOccluded1 (either scene flag, incoherent or coherent).
+        const std::string one_name = batch.occlusion ? "occluded1" : "intersect1";
+        const EmbreeModeTiming* one = nullptr;
+        for (const EmbreeSceneReport* scene : {&embree->standard, &embree->robust})
+            for (const EmbreeModeTiming& m : scene->modes)
+                if ((m.name.ends_with(one_name) || m.name.ends_with(one_name + "_coherent")) &&
+                    (one == nullptr || m.mrays_per_s > one->mrays_per_s))
+                    one = &m;
+        if (one != nullptr) {
+            line["embree_1_mrays_per_s"] = rounded(one->mrays_per_s, 3);
+            line["embree_1_mode"] = one->name;
+            line["ratio_1"] =
+                one->mrays_per_s > 0 ? rounded(mrays_per_s / one->mrays_per_s, 4) : 0.0;
+        }
         line["embree_bytes_per_triangle"] = rounded(embree->standard.bytes_per_triangle, 2);
         put_embree_answers(line, *embree);
     }
