@@ -994,13 +994,16 @@ struct RunTracer {
     /// for any hit (2 threads, 64 bunnies' shadow set, unsorted: single rays 4.36 Mrays/s,
     /// packets 3.38), while on smaller trees packets win (16 bunnies: 4.4 against 6.8). So for
     /// any hit the auto policy measures the two ways as for an incoherent block, in cost slots
-    /// of their own (a measured block's runs of kCoherentRun rays are sorted run by run).
+    /// of their own (a measured block's packets go in input order: a conservative measure of the
+    /// sorted packets, which then trace the blocks between measured ones).
     /// Closest-hit blocks (primary rays) keep to packets, as do the counting kernels and the fixed
     /// test policies; kIncoherentMeasured measures every coherent any-hit block too. Both ways give
     /// every ray the single-ray kernel's answer.
     void coherent_block(const Ray* block, size_t base, int n) const {
         const auto packets = [&](const Ray* rays, size_t at, int m) {
-            if constexpr (AnyHit)
+            // Only more than a run is sorted: a measured block's runs of kCoherentRun rays
+            // (about a row of an image's shadow rays) would pay for a sort that makes no patches.
+            if (AnyHit && m > kCoherentRun)
                 trace_origin_sorted_block<AnyHit>(tree, rays, at, m, hits, occluded, counters,
                                                   *this);
             else
