@@ -404,13 +404,13 @@ public:
         scratch.give_back(std::move(in.buffer));  // free the parent's events before descending
         if (left.prim_count + right.prim_count >= kParallelSubtrees) {
             // The left child is built straight into `out` (the right task does not touch it),
-            // the right one apart and spliced in after it: the same layout as building both
-            // apart, with one subtree copy less per level.
+            // the right one apart and spliced in after it (deferred: copied once, when the
+            // whole tree is done): the same layout as building both apart.
             const uint32_t first = add_child_pair(out, slot, split.axis, split.pos);
             SubTree right_tree;
             tbb::parallel_invoke([&] { build(out, first, std::move(left), scratch_.local()); },
                                  [&] { build(right_tree, 0, std::move(right), scratch_.local()); });
-            splice(out, first + 1, right_tree);
+            defer_splice(out, first + 1, std::move(right_tree));
         } else {
             const uint32_t first = add_child_pair(out, slot, split.axis, split.pos);
             build(out, first, std::move(left), scratch);
