@@ -684,6 +684,44 @@ TEST(KdBuild, DeferredSplicesGiveWhatSplicesGive) {
     EXPECT_GT(total_deferrals, 1000);
 }
 
+// The exact sweep sorts the straddlers' new events with detail::sort_events (a quicksort with a
+// branch-free partition); it must give std::sort's order: every length up to 300 and some long
+// ones, random, sorted, reversed, organ-pipe and few distinct keys (the depth limit's case).
+TEST(KdSweep, EventSortIsStdSort) {
+    Rng rng(test_seed() + 600);
+    std::vector<size_t> lengths;
+    for (size_t n = 0; n <= 300; ++n) lengths.push_back(n);
+    for (const size_t n : {size_t{1000}, size_t{4097}, size_t{20000}}) lengths.push_back(n);
+    for (const size_t n : lengths) {
+        for (int pattern = 0; pattern < 5; ++pattern) {
+            std::vector<uint64_t> keys(n);
+            for (size_t i = 0; i < n; ++i) {
+                switch (pattern) {
+                    case 0:
+                        keys[i] = rng.next();
+                        break;
+                    case 1:
+                        keys[i] = i * 3;
+                        break;
+                    case 2:
+                        keys[i] = (n - i) << 32;
+                        break;
+                    case 3:
+                        keys[i] = std::min(i, n - i);
+                        break;
+                    default:
+                        keys[i] = rng.below(3);
+                        break;
+                }
+            }
+            std::vector<uint64_t> expected = keys;
+            std::sort(expected.begin(), expected.end());
+            detail::sort_events(keys.data(), keys.data() + keys.size());
+            ASSERT_EQ(keys, expected) << "n=" << n << " pattern=" << pattern;
+        }
+    }
+}
+
 // The binned levels map a reference's six bounds to bins two at a time (BoundsBinMap). Each
 // answer must be the scalar BinMap's: random ranges and bin counts, a flat axis (one bin), and
 // coordinates at and next to the range's ends and the bin boundaries, inside and outside.
