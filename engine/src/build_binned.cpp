@@ -195,14 +195,15 @@ public:
         partition(refs, split, left, right, left_geom, right_geom);
         refs = {};  // free the parent's references before descending
         if (left.size() + right.size() >= kParallelSubtrees) {
-            // The left child straight into `out`, the right one apart and spliced in after it:
-            // the same layout as building both apart, with one subtree copy less per level.
+            // The left child straight into `out`, the right one apart and spliced in after it
+            // (deferred: copied once, when the whole tree is done): the same layout as building
+            // both apart.
             const uint32_t first = add_child_pair(out, slot, split.axis, split.pos);
             SubTree right_tree;
             tbb::parallel_invoke(
                 [&] { build(out, first, left_cell, std::move(left), left_geom, depth + 1); },
                 [&] { build(right_tree, 0, right_cell, std::move(right), right_geom, depth + 1); });
-            splice(out, first + 1, right_tree);
+            defer_splice(out, first + 1, std::move(right_tree));
         } else {
             const uint32_t first = add_child_pair(out, slot, split.axis, split.pos);
             build(out, first, left_cell, std::move(left), left_geom, depth + 1);

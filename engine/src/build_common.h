@@ -1,7 +1,9 @@
 #pragma once
 // Internal: pieces shared by the SAH and middle-split builders.
 
+#include <cstddef>
 #include <cstdint>
+#include <memory>
 #include <span>
 #include <vector>
 
@@ -12,14 +14,49 @@ namespace kdrt::detail {
 /// A tree under construction, in the final layout: nodes[0] is this subtree's root, the two
 /// children of every inner node are adjacent, pairs laid out depth-first. Child and ref indices
 /// are local to the subtree until it is spliced into its parent.
+///
+/// A subtree built on another thread can be handed over by defer_splice instead of splice: it is
+/// kept whole in `deferred` and stands for the nodes and references splice would have appended
+/// at that point, copied into place once by flatten_deferred (finish_tree: in parallel, one copy
+/// per node). splice copied a subtree once per level above it, the top levels' copies on one
+/// thread after both halves were built. Writing to a tree with deferred subtrees (add_child_pair,
+/// make_leaf, splice) flattens them first, so the result is always what splice gives.
 struct SubTree {
+    /// A subtree spliced in after `nodes` / `refs` (and the deferred ones before it): its root
+    /// goes to `slot`, the rest of its `node_count` nodes and its `ref_count` references follow.
+    struct Deferred {
+        uint32_t slot = 0;
+        size_t node_count = 0;
+        size_t ref_count = 0;
+        std::unique_ptr<SubTree> tree;
+    };
     std::vector<KdNode> nodes{KdNode{}};
     std::vector<uint32_t> refs;
     uint32_t max_depth = 0;
+    std::vector<Deferred> deferred;
+
+    /// Nodes and references with the deferred subtrees spliced in.
+    [[nodiscard]] size_t node_count() const noexcept {
+        size_t n = nodes.size();
+        for (const Deferred& d : deferred) n += d.node_count - 1;
+        return n;
+    }
+    [[nodiscard]] size_t ref_count() const noexcept {
+        size_t n = refs.size();
+        for (const Deferred& d : deferred) n += d.ref_count;
+        return n;
+    }
 };
+
+/// Copies the deferred subtrees of `tree` into its own arrays, with splice's indices, and drops
+/// them: afterwards `nodes` and `refs` are what splicing each at its defer_splice would have made.
+/// `parallel`: the subtrees are copied by oneTBB tasks (only where no per-thread scratch is in use
+/// by the caller: a builder's own writes flatten serially).
+void flatten_deferred(SubTree& tree, bool parallel);
 
 /// Reserves the two adjacent child slots of inner node `slot` and returns the first one.
 inline uint32_t add_child_pair(SubTree& tree, uint32_t slot, int axis, float split) {
+    if (!tree.deferred.empty()) flatten_deferred(tree, false);
     const auto first = static_cast<uint32_t>(tree.nodes.size());
     tree.nodes.emplace_back();
     tree.nodes.emplace_back();
@@ -29,6 +66,7 @@ inline uint32_t add_child_pair(SubTree& tree, uint32_t slot, int axis, float spl
 
 /// Writes a leaf for `prims` into `slot`.
 inline void make_leaf(SubTree& tree, uint32_t slot, const std::vector<uint32_t>& prims) {
+    if (!tree.deferred.empty()) flatten_deferred(tree, false);
     tree.nodes[slot] =
         KdNode::leaf(static_cast<uint32_t>(prims.size()), static_cast<uint32_t>(tree.refs.size()));
     tree.refs.insert(tree.refs.end(), prims.begin(), prims.end());
@@ -36,20 +74,11 @@ inline void make_leaf(SubTree& tree, uint32_t slot, const std::vector<uint32_t>&
 
 /// Copies `child` (built separately, e.g. on another thread) into `tree` as the subtree rooted at
 /// `slot`, rebasing its child and ref indices.
-inline void splice(SubTree& tree, uint32_t slot, const SubTree& child) {
-    const auto node_base = static_cast<uint32_t>(tree.nodes.size());
-    const auto ref_base = static_cast<uint32_t>(tree.refs.size());
-    auto rebase = [&](KdNode n) {
-        // Local child index i >= 1 lands at node_base + i - 1 (the child's root goes to `slot`).
-        return n.is_leaf() ? KdNode::leaf(n.prim_count(), n.first_ref() + ref_base)
-                           : KdNode::inner(n.axis(), n.split(), n.first_child() + node_base - 1);
-    };
-    tree.nodes[slot] = rebase(child.nodes[0]);
-    tree.nodes.reserve(tree.nodes.size() + child.nodes.size() - 1);
-    for (size_t i = 1; i < child.nodes.size(); ++i) tree.nodes.push_back(rebase(child.nodes[i]));
-    tree.refs.insert(tree.refs.end(), child.refs.begin(), child.refs.end());
-    tree.max_depth = tree.max_depth > child.max_depth ? tree.max_depth : child.max_depth;
-}
+void splice(SubTree& tree, uint32_t slot, SubTree& child);
+
+/// What splice(tree, slot, child) gives once `tree` is flattened (flatten_deferred), without
+/// copying `child` now: it is moved into tree.deferred.
+void defer_splice(SubTree& tree, uint32_t slot, SubTree&& child);
 
 /// The triangle with mesh id `i` as the builders and the tree store it: its three corners, or, for
 /// a degenerate (zero-area) one, its first corner three times, so that no ray/triangle test can

@@ -103,6 +103,11 @@ bool clip_unless_missing(const TriVerts& tri, const Aabb& cell, Aabb& out);
 /// Bounds of the triangle's vertices intersected with `cell`; false if they do not overlap.
 bool vertex_bounds_in_cell(const TriVerts& tri, const Aabb& cell, Aabb& out);
 
+/// Sorts the 64-bit integers [first, last) ascending, as std::sort does (the exact sweep's
+/// events, the straddlers' new ones above all), with a partition step free of data-dependent
+/// branches. No quadratic case (std::sort past a depth limit).
+void sort_events(uint64_t* first, uint64_t* last) noexcept;
+
 /// Where the binned top levels hand over to the exact sweep.
 struct BinnedParams {
     /// Nodes with fewer references than this are built by the exact sweep (UINT32_MAX: the

@@ -52,6 +52,56 @@
 #include "geometry.h"
 
 namespace kdrt::detail {
+
+// The straddlers' new events (NewEvents::finish) are sorted by a quicksort whose partition step
+// has no data-dependent branch (Lomuto's scheme with the swap always done and the boundary advanced
+// by the compare), so the unpredictable compares of the straddlers' new events cost no mispredicted
+// branches; small ranges by insertion, and std::sort past a depth limit (no quadratic case). Events
+// are unique (position, type, triangle), so any correct sort gives the same order as std::sort.
+void sort_events(uint64_t* first, uint64_t* last) noexcept {
+    using Event = uint64_t;
+    constexpr ptrdiff_t kInsertion = 24;
+    int depth_left = 2 * std::bit_width(static_cast<size_t>(last - first));
+    while (last - first > kInsertion) {
+        if (depth_left-- == 0) {
+            std::sort(first, last);
+            return;
+        }
+        // Median of three as the pivot, moved to the front.
+        Event* mid = first + (last - first) / 2;
+        if (*mid < *first) std::swap(*mid, *first);
+        if (last[-1] < *mid) {
+            std::swap(last[-1], *mid);
+            if (*mid < *first) std::swap(*mid, *first);
+        }
+        std::swap(*first, *mid);
+        const Event pivot = *first;
+        Event* boundary = first + 1;  // [first + 1, boundary) holds the events below the pivot
+        for (Event* j = first + 1; j < last; ++j) {
+            const Event x = *j;
+            *j = *boundary;
+            *boundary = x;
+            boundary += x < pivot ? 1 : 0;
+        }
+        std::swap(*first, boundary[-1]);
+        // The pivot is at boundary - 1: recurse into the smaller side, loop on the larger.
+        if (boundary - 1 - first < last - boundary) {
+            sort_events(first, boundary - 1);
+            first = boundary;
+        } else {
+            sort_events(boundary, last);
+            last = boundary - 1;
+        }
+    }
+    if (last - first < 2) return;
+    for (Event* i = first + 1; i < last; ++i) {
+        const Event x = *i;
+        Event* j = i;
+        for (; j > first && x < j[-1]; --j) *j = j[-1];
+        *j = x;
+    }
+}
+
 namespace {
 
 // An event packed into 64 bits so that sorting the integers sorts by (position, type, prim):
@@ -110,7 +160,7 @@ struct NewEvents {
     }
     void finish() {
         for (int a = 0; a < 3; ++a) {
-            std::sort(list[a].data(), list[a].data() + count[a]);
+            sort_events(list[a].data(), list[a].data() + count[a]);
             list[a][count[a]] = kSentinel;
         }
     }
@@ -404,13 +454,13 @@ public:
         scratch.give_back(std::move(in.buffer));  // free the parent's events before descending
         if (left.prim_count + right.prim_count >= kParallelSubtrees) {
             // The left child is built straight into `out` (the right task does not touch it),
-            // the right one apart and spliced in after it: the same layout as building both
-            // apart, with one subtree copy less per level.
+            // the right one apart and spliced in after it (deferred: copied once, when the
+            // whole tree is done): the same layout as building both apart.
             const uint32_t first = add_child_pair(out, slot, split.axis, split.pos);
             SubTree right_tree;
             tbb::parallel_invoke([&] { build(out, first, std::move(left), scratch_.local()); },
                                  [&] { build(right_tree, 0, std::move(right), scratch_.local()); });
-            splice(out, first + 1, right_tree);
+            defer_splice(out, first + 1, std::move(right_tree));
         } else {
             const uint32_t first = add_child_pair(out, slot, split.axis, split.pos);
             build(out, first, std::move(left), scratch);

@@ -604,6 +604,124 @@ TEST(KdBuild, UninitializedTreeArrayHasItsSize) {
     EXPECT_EQ(std::count(zeros.begin(), zeros.end(), 0u), 1000);
 }
 
+// Grows a random subtree into `slot` of `tree` in the builders' patterns: both children in
+// `tree`; the left child in `tree` and the right one apart, then spliced in (the parallel
+// branches); both apart (the middle builder). `deferred`: the subtrees built apart go in by
+// defer_splice instead of splice. The random draws do not depend on it, so both modes grow the
+// same tree. Counts the deferrals made.
+void grow_subtree(detail::SubTree& tree, uint32_t slot, int depth, Rng& rng, bool deferred,
+                  int& deferrals) {
+    auto hand_over = [&](uint32_t at, detail::SubTree& child) {
+        if (deferred) {
+            detail::defer_splice(tree, at, std::move(child));
+            ++deferrals;
+        } else {
+            detail::splice(tree, at, child);
+        }
+    };
+    const uint32_t kind = depth == 0 ? 0 : rng.below(5);
+    if (kind <= 1) {  // a leaf, empty ones included (their first reference is in the bytes too)
+        std::vector<uint32_t> prims(rng.below(4));
+        for (uint32_t& p : prims) p = rng.below(1000);
+        detail::make_leaf(tree, slot, prims);
+        tree.max_depth = std::max(tree.max_depth, rng.below(64));
+        return;
+    }
+    const uint32_t first =
+        detail::add_child_pair(tree, slot, static_cast<int>(rng.below(3)), rng.uniform());
+    if (kind == 2) {  // after a deferral inside the left child, the right one is written here
+        grow_subtree(tree, first, depth - 1, rng, deferred, deferrals);
+        grow_subtree(tree, first + 1, depth - 1, rng, deferred, deferrals);
+    } else if (kind == 3) {
+        grow_subtree(tree, first, depth - 1, rng, deferred, deferrals);
+        detail::SubTree right;
+        grow_subtree(right, 0, depth - 1, rng, deferred, deferrals);
+        hand_over(first + 1, right);
+    } else {
+        detail::SubTree left, right;
+        grow_subtree(left, 0, depth - 1, rng, deferred, deferrals);
+        grow_subtree(right, 0, depth - 1, rng, deferred, deferrals);
+        hand_over(first, left);
+        hand_over(first + 1, right);
+    }
+}
+
+// The parallel builds hand their right subtrees over by defer_splice and copy them into place
+// once at the end (flatten_deferred); a write to a tree with deferred subtrees flattens them
+// first. Random trees grown both ways must be the same nodes, references and depth, flattened
+// serially and in parallel.
+TEST(KdBuild, DeferredSplicesGiveWhatSplicesGive) {
+    int total_deferrals = 0, still_deferred = 0;
+    for (uint64_t round = 0; round < 60; ++round) {
+        const uint64_t seed = test_seed() + 500 + round;
+        SCOPED_TRACE(testing::Message() << "seed=" << seed);
+        const int depth = 2 + static_cast<int>(round % 10);
+        detail::SubTree spliced;
+        int unused = 0;
+        Rng rng_spliced(seed);
+        grow_subtree(spliced, 0, depth, rng_spliced, false, unused);
+        ASSERT_TRUE(spliced.deferred.empty());
+        for (const bool parallel : {false, true}) {
+            detail::SubTree tree;
+            Rng rng(seed);
+            grow_subtree(tree, 0, depth, rng, true, total_deferrals);
+            still_deferred += tree.deferred.empty() ? 0 : 1;
+            EXPECT_EQ(tree.node_count(), spliced.nodes.size());
+            EXPECT_EQ(tree.ref_count(), spliced.refs.size());
+            detail::flatten_deferred(tree, parallel);
+            EXPECT_TRUE(tree.deferred.empty());
+            ASSERT_EQ(tree.nodes.size(), spliced.nodes.size());
+            for (size_t i = 0; i < tree.nodes.size(); ++i) {
+                ASSERT_EQ(tree.nodes[i].word0(), spliced.nodes[i].word0()) << "node " << i;
+                ASSERT_EQ(tree.nodes[i].word1(), spliced.nodes[i].word1()) << "node " << i;
+            }
+            EXPECT_EQ(tree.refs, spliced.refs);
+            EXPECT_EQ(tree.max_depth, spliced.max_depth);
+        }
+    }
+    // The test reaches both paths: subtrees still deferred at the end, and many deferrals.
+    EXPECT_GT(still_deferred, 20);
+    EXPECT_GT(total_deferrals, 1000);
+}
+
+// The exact sweep sorts the straddlers' new events with detail::sort_events (a quicksort with a
+// branch-free partition); it must give std::sort's order: every length up to 300 and some long
+// ones, random, sorted, reversed, organ-pipe and few distinct keys (the depth limit's case).
+TEST(KdSweep, EventSortIsStdSort) {
+    Rng rng(test_seed() + 600);
+    std::vector<size_t> lengths;
+    for (size_t n = 0; n <= 300; ++n) lengths.push_back(n);
+    for (const size_t n : {size_t{1000}, size_t{4097}, size_t{20000}}) lengths.push_back(n);
+    for (const size_t n : lengths) {
+        for (int pattern = 0; pattern < 5; ++pattern) {
+            std::vector<uint64_t> keys(n);
+            for (size_t i = 0; i < n; ++i) {
+                switch (pattern) {
+                    case 0:
+                        keys[i] = rng.next();
+                        break;
+                    case 1:
+                        keys[i] = i * 3;
+                        break;
+                    case 2:
+                        keys[i] = (n - i) << 32;
+                        break;
+                    case 3:
+                        keys[i] = std::min(i, n - i);
+                        break;
+                    default:
+                        keys[i] = rng.below(3);
+                        break;
+                }
+            }
+            std::vector<uint64_t> expected = keys;
+            std::sort(expected.begin(), expected.end());
+            detail::sort_events(keys.data(), keys.data() + keys.size());
+            ASSERT_EQ(keys, expected) << "n=" << n << " pattern=" << pattern;
+        }
+    }
+}
+
 // The binned levels map a reference's six bounds to bins two at a time (BoundsBinMap). Each
 // answer must be the scalar BinMap's: random ranges and bin counts, a flat axis (one bin), and
 // coordinates at and next to the range's ends and the bin boundaries, inside and outside.
