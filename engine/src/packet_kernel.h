@@ -985,29 +985,17 @@ struct RunTracer {
     }
 
     /// A coherent block (not block_is_incoherent: one origin or one direction, e.g. shadow rays
-    /// towards one light) goes in runs of packets: closest hit in input order
-    /// (trace_coherent_block), any hit sorted by where the rays start across their common way
-    /// (trace_origin_sorted_block: shadow rays in image order would make packets of one row's
-    /// strip; sorted, a packet is a small patch, whose rays stay together longer: shadow packets
-    /// on 16 and 64 bunnies +13% and +16% per CPU second, on the bunny -2%, tests/bench/README.md).
-    /// Its packets stay full, but on a big tree they may still lose to single rays walked in turn
-    /// for any hit (2 threads, 64 bunnies' shadow set, unsorted: single rays 4.36 Mrays/s,
-    /// packets 3.38), while on smaller trees packets win (16 bunnies: 4.4 against 6.8). So for
-    /// any hit the auto policy measures the two ways as for an incoherent block, in cost slots
-    /// of their own (a measured block's packets go in input order: a conservative measure of the
-    /// sorted packets, which then trace the blocks between measured ones).
-    /// Closest-hit blocks (primary rays) keep to packets, as do the counting kernels and the fixed
-    /// test policies; kIncoherentMeasured measures every coherent any-hit block too. Both ways give
+    /// towards one light) goes in runs of packets in input order (trace_coherent_block). Its
+    /// packets stay full, but on a big tree they still lose to single rays walked in turn for
+    /// any hit (2 threads, 64 bunnies' shadow set: single rays 4.36 Mrays/s, packets 3.38), while
+    /// on smaller trees packets win (16 bunnies: 4.4 against 6.8). So for any hit the auto policy
+    /// measures the two ways as for an incoherent block, in cost slots of their own. Closest-hit
+    /// blocks (primary rays) keep to packets, as do the counting kernels and the fixed test
+    /// policies; kIncoherentMeasured measures every coherent any-hit block too. Both ways give
     /// every ray the single-ray kernel's answer.
     void coherent_block(const Ray* block, size_t base, int n) const {
         const auto packets = [&](const Ray* rays, size_t at, int m) {
-            // Only more than a run is sorted: a measured block's runs of kCoherentRun rays
-            // (about a row of an image's shadow rays) would pay for a sort that makes no patches.
-            if (AnyHit && m > kCoherentRun)
-                trace_origin_sorted_block<AnyHit>(tree, rays, at, m, hits, occluded, counters,
-                                                  *this);
-            else
-                trace_coherent_block<AnyHit>(rays, at, m, hits, occluded, counters, *this);
+            trace_coherent_block<AnyHit>(rays, at, m, hits, occluded, counters, *this);
         };
         if (Count || !kMeasureCoherent<AnyHit> ||
             (policy != Policy::kAuto && policy != Policy::kIncoherentMeasured)) {
