@@ -5,6 +5,7 @@
 #include <bit>
 #include <cmath>
 #include <cstring>
+#include <optional>
 #include <string>
 #include <unordered_map>
 #include <unordered_set>
@@ -132,6 +133,23 @@ std::vector<std::byte> encode_scene_file(const SceneDocument& base, uint64_t rev
     return out;
 }
 
+namespace {
+
+/// The checks of a KDRS header's fixed fields (magic, version, flags, reserved), shared by the
+/// header read and the whole file's decode: the error naming the field's offset, or nothing.
+std::optional<std::string> fixed_field_error(const std::byte* b) {
+    if (std::memcmp(b, kSceneFileMagic.data(), 4) != 0)
+        return "offset 0: the magic is not \"KDRS\"";
+    if (const uint16_t v = detail::load_le16(b + 4); v != kSceneFileVersion)
+        return "offset 4: version " + std::to_string(v) + ", this build reads version " +
+               std::to_string(kSceneFileVersion);
+    if (detail::load_le16(b + 6) != 0) return "offset 6: flags must be 0";
+    if (detail::load_le32(b + 60) != 0) return "offset 60: reserved must be 0";
+    return std::nullopt;
+}
+
+}  // namespace
+
 Result<SceneFileHeader, std::string> read_scene_file_header(std::span<const std::byte> header) {
     static_assert(kSceneFileHeaderBytes == kHeaderBytes);
     const auto at = [](uint64_t offset, const std::string& what) {
@@ -141,12 +159,7 @@ Result<SceneFileHeader, std::string> read_scene_file_header(std::span<const std:
         return Err{std::to_string(header.size()) + " bytes is shorter than a KDRS header (" +
                    std::to_string(kHeaderBytes) + ")"};
     const std::byte* b = header.data();
-    if (std::memcmp(b, kSceneFileMagic.data(), 4) != 0) return at(0, "the magic is not \"KDRS\"");
-    if (const uint16_t v = detail::load_le16(b + 4); v != kSceneFileVersion)
-        return at(4, "version " + std::to_string(v) + ", this build reads version " +
-                         std::to_string(kSceneFileVersion));
-    if (detail::load_le16(b + 6) != 0) return at(6, "flags must be 0");
-    if (detail::load_le32(b + 60) != 0) return at(60, "reserved must be 0");
+    if (auto error = fixed_field_error(b)) return Err{*std::move(error)};
     SceneFileHeader out;
     out.revision = load_le64(b + 8);
     if (out.revision == 0) return at(8, "revision must be >= 1");
@@ -174,12 +187,7 @@ Result<SceneDocument, std::string> decode_scene_file(std::span<const std::byte> 
                    " bytes is shorter than a KDRS header and checksum (" +
                    std::to_string(kHeaderBytes + kChecksumBytes) + ")"};
     const std::byte* b = bytes.data();
-    if (std::memcmp(b, kSceneFileMagic.data(), 4) != 0) return at(0, "the magic is not \"KDRS\"");
-    if (const uint16_t v = detail::load_le16(b + 4); v != kSceneFileVersion)
-        return at(4, "version " + std::to_string(v) + ", this build reads version " +
-                         std::to_string(kSceneFileVersion));
-    if (detail::load_le16(b + 6) != 0) return at(6, "flags must be 0");
-    if (detail::load_le32(b + 60) != 0) return at(60, "reserved must be 0");
+    if (auto error = fixed_field_error(b)) return Err{*std::move(error)};
     const uint64_t n = detail::load_le32(b + 48);
     const uint64_t meshes = detail::load_le32(b + 52);
     const uint64_t name_bytes = detail::load_le32(b + 56);
