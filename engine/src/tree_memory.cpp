@@ -19,6 +19,7 @@
 
 #include <tbb/blocked_range.h>
 #include <tbb/parallel_for.h>
+#include <tbb/task_arena.h>
 
 #include "kdrt/kdtree.h"
 
@@ -47,11 +48,15 @@ void prefault(void* p, size_t len) {
         for (size_t i = 0; i < pages; ++i) bytes[i * kHugePage] = 0;
         return;
     }
-    tbb::parallel_for(tbb::blocked_range<size_t>(0, pages, 1),
-                      [&](const tbb::blocked_range<size_t>& range) {
-                          for (size_t i = range.begin(); i < range.end(); ++i)
-                              bytes[i * kHugePage] = 0;
-                      });
+    // Isolated: while it waits, this thread runs only these tasks, never another task of the
+    // arena that might want a lock the allocating caller holds.
+    tbb::this_task_arena::isolate([&] {
+        tbb::parallel_for(tbb::blocked_range<size_t>(0, pages, 1),
+                          [&](const tbb::blocked_range<size_t>& range) {
+                              for (size_t i = range.begin(); i < range.end(); ++i)
+                                  bytes[i * kHugePage] = 0;
+                          });
+    });
 }
 
 void* map_huge(size_t bytes) {
