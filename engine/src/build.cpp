@@ -2,6 +2,7 @@
 #include <array>
 #include <chrono>
 #include <cmath>
+#include <cstddef>
 #include <memory>
 #include <span>
 #include <stdexcept>
@@ -179,13 +180,14 @@ Aabb root_cell(std::span<const TriVerts> tris, const std::vector<uint8_t>& degen
     return box;
 }
 
-void order_triangles(KdTree& tree, std::span<const uint32_t> refs, const Mesh& mesh,
+void order_triangles(KdTree& tree, TreeArray<uint32_t>&& refs, const Mesh& mesh,
                      std::span<const uint8_t> degenerate, TreeArray<TriVerts>&& buffer) {
     // Numbering the triangles is one pass in reference order on one thread: the passes it takes
     // to number them in parallel chunks (a parallel least-position pass, a count, the slots, the
     // references) each read the big id arrays at random, and together cost more than the one
-    // serial pass (tests/bench/README.md). The references and ids are written once, into arrays
-    // that are not zero-filled first.
+    // serial pass (tests/bench/README.md). The ids are written once, into an array that is not
+    // zero-filled first; the references are rewritten in place, so their array (the flattened
+    // build's) becomes tree.leaf_refs instead of a second fresh one of the same size.
     const auto n = static_cast<uint32_t>(mesh.triangle_count());
     if (buffer.size() != n || degenerate.size() != n)
         throw std::invalid_argument("order_triangles: the buffer and the degenerate flags need " +
@@ -194,16 +196,16 @@ void order_triangles(KdTree& tree, std::span<const uint32_t> refs, const Mesh& m
     constexpr uint32_t kUnplaced = ~0u;
     tree.tri_slots.assign(n, kUnplaced);
     tree.tri_ids = uninitialized_tree_array<uint32_t>(n);
-    tree.leaf_refs = uninitialized_tree_array<uint32_t>(m);
+    tree.leaf_refs = std::move(refs);
     uint32_t next = 0;
     for (size_t i = 0; i < m; ++i) {
-        const uint32_t id = refs[i];
-        uint32_t& slot = tree.tri_slots[id];
+        uint32_t& ref = tree.leaf_refs[i];
+        uint32_t& slot = tree.tri_slots[ref];
         if (slot == kUnplaced) {
             slot = next;
-            tree.tri_ids[next++] = id;
+            tree.tri_ids[next++] = ref;
         }
-        tree.leaf_refs[i] = slot;
+        ref = slot;
     }
     for (uint32_t id = 0; id < n; ++id) {
         if (tree.tri_slots[id] != kUnplaced) continue;
@@ -224,17 +226,28 @@ void order_triangles(KdTree& tree, std::span<const uint32_t> refs, const Mesh& m
 
 void finish_tree(KdTree& tree, SubTree&& sub, const Mesh& mesh, std::span<const uint8_t> degenerate,
                  TreeArray<TriVerts>&& buffer) {
-    // The subtrees the parallel build handed over whole, copied into place side by side.
-    flatten_deferred(sub, true);
+    // The tree's nodes and references, with the subtrees the parallel build handed over whole
+    // copied into place side by side, written once into arrays of their final size that are not
+    // written first: the nodes into scratch memory (cluster_nodes reads them once), the references
+    // into the tree array that order_triangles rewrites in place as tree.leaf_refs.
+    // (flatten_deferred grew the root's own vectors instead: value-initialised, then overwritten,
+    // and the references copied once more into a fresh leaf_refs.)
+    const size_t node_count = sub.node_count();
+    const auto raw = std::make_unique_for_overwrite<std::byte[]>(node_count * sizeof(KdNode));
+    // KdNode is trivially copyable (an implicit-lifetime type): its objects begin in this storage.
+    auto* const nodes = reinterpret_cast<KdNode*>(raw.get());
+    TreeArray<uint32_t> refs = uninitialized_tree_array<uint32_t>(sub.ref_count());
+    flatten_into(sub, nodes, refs.data(), 0, 1, 0, true);
+    sub = SubTree{};  // the build's pieces are not read again
     // The node arrays and the triangles' leaf order touch different members and do not depend on
     // each other, so they are made side by side (on 16 bunnies each was about 0.8% of the
     // build's instructions, on one thread after the parallel build).
     tbb::parallel_invoke(
         [&] {
-            tree.nodes = cluster_nodes(sub.nodes);
+            tree.nodes = cluster_nodes({nodes, node_count});
             tree.wide_nodes = make_wide_nodes(tree.nodes);
         },
-        [&] { order_triangles(tree, sub.refs, mesh, degenerate, std::move(buffer)); });
+        [&] { order_triangles(tree, std::move(refs), mesh, degenerate, std::move(buffer)); });
     // compute_stats reads the nodes and the arrays' sizes, mark_leaf_runs writes the references'
     // last-reference bits: they run side by side too.
     const double build_ms = tree.stats.build_ms;

@@ -28,6 +28,7 @@
 #include <array>
 #include <cmath>
 #include <cstdint>
+#include <mutex>
 #include <span>
 #include <type_traits>
 #include <utility>
@@ -160,6 +161,63 @@ void for_chunks(size_t n, const Body& body) {
     });
 }
 
+/// The reference arrays of the binned levels, kept for reuse once their node is partitioned or
+/// handed to the exact sweep. Each big array was a fresh mapping (glibc maps allocations of tens
+/// of megabytes on their own and unmaps them when freed), so every binned level faulted in its
+/// children's arrays page by page: on 64 bunnies about half of the build's 4 KiB page faults. A
+/// node's children now take the smallest kept array that holds them (only what they write is
+/// touched), and the arrays go back to the system when the builder ends. Thread-safe: the two
+/// halves of a parallel node take and give at the same time.
+class RefsPool {
+public:
+    /// An array of `n` references (not written: Refs leaves new elements uninitialised).
+    Refs take(size_t n) {
+        Refs refs;
+        if (n >= kMinPooled) {
+            const std::lock_guard<std::mutex> lock(mutex_);
+            size_t best = kept_.size();
+            for (size_t i = 0; i < kept_.size(); ++i) {
+                if (kept_[i].capacity() >= n &&
+                    (best == kept_.size() || kept_[i].capacity() < kept_[best].capacity()))
+                    best = i;
+            }
+            if (best < kept_.size()) {
+                refs = std::move(kept_[best]);
+                kept_[best] = std::move(kept_.back());
+                kept_.pop_back();
+            }
+        }
+        refs.resize(n);
+        return refs;
+    }
+    /// Keeps `refs`' memory for a later take (small arrays are left to the heap).
+    void give(Refs&& refs) {
+        Refs gone = std::move(refs);
+        if (gone.capacity() < kMinPooled) return;
+        gone.clear();
+        const std::lock_guard<std::mutex> lock(mutex_);
+        if (kept_.size() < kMaxKept) {
+            kept_.push_back(std::move(gone));
+            return;
+        }
+        // Full: the smallest of the kept arrays and this one is dropped (outside the lock would
+        // be nicer, but this happens a few times per build at most).
+        size_t smallest = 0;
+        for (size_t i = 1; i < kept_.size(); ++i)
+            if (kept_[i].capacity() < kept_[smallest].capacity()) smallest = i;
+        if (kept_[smallest].capacity() < gone.capacity()) std::swap(kept_[smallest], gone);
+    }
+
+private:
+    /// Arrays this big (1 MiB of references) are kept; smaller ones come from the heap's free
+    /// lists anyway.
+    static constexpr size_t kMinPooled = (size_t{1} << 20) / sizeof(Ref);
+    /// At most this many arrays are kept: a binned level's nodes on two threads need a handful.
+    static constexpr size_t kMaxKept = 8;
+    std::mutex mutex_;
+    std::vector<Refs> kept_;
+};
+
 class BinnedBuilder {
 public:
     BinnedBuilder(std::span<const TriVerts> tris, const BuildOptions& options,
@@ -175,7 +233,7 @@ public:
     void build(SubTree& out, uint32_t slot, const Aabb& cell, Refs&& refs, const Aabb& geom,
                uint32_t depth) {
         if (refs.size() < params_.exact_below || depth >= max_depth_) {
-            to_exact(out, slot, cell, refs, depth);
+            to_exact(out, slot, cell, std::move(refs), depth);
             return;
         }
         const BinnedSplit split = find_split(cell, refs, geom);
@@ -184,7 +242,7 @@ public:
         // too: its geometry is concentrated in a few bins, and their coarse boundaries miss the
         // split through it that the exact sweep finds (the stadium: see kNearlyEmpty).
         if (!split.valid || !(split.cost < leaf_cost) || split.cuts_empty) {
-            to_exact(out, slot, cell, refs, depth);
+            to_exact(out, slot, cell, std::move(refs), depth);
             return;
         }
         Aabb left_cell = cell, right_cell = cell;
@@ -193,7 +251,7 @@ public:
         Refs left, right;
         Aabb left_geom, right_geom;
         partition(refs, split, left, right, left_geom, right_geom);
-        refs = {};  // free the parent's references before descending
+        pool_.give(std::move(refs));  // the parent's references, for the children's children
         if (left.size() + right.size() >= kParallelSubtrees) {
             // The left child straight into `out`, the right one apart and spliced in after it
             // (deferred: copied once, when the whole tree is done): the same layout as building
@@ -213,7 +271,7 @@ public:
 
 private:
     /// Clips the references cut by binned splits to `cell` and builds the node exactly.
-    void to_exact(SubTree& out, uint32_t slot, const Aabb& cell, const Refs& refs, uint32_t depth) {
+    void to_exact(SubTree& out, uint32_t slot, const Aabb& cell, Refs&& refs, uint32_t depth) {
         std::vector<PrimBox> prims;
         prims.reserve(refs.size());
         for (const Ref& r : refs) {
@@ -227,6 +285,7 @@ private:
             }
             prims.push_back(p);
         }
+        pool_.give(std::move(refs));
         exact_.build(out, slot, cell, prims, depth);
     }
 
@@ -338,8 +397,8 @@ private:
     /// crosses the plane goes to both sides, its bounds cut at the plane and marked for clipping.
     /// `left_geom` / `right_geom`: the tight bounds of each side's references (their
     /// lowest lower and highest upper bounds), gathered while they are written.
-    static void partition(const Refs& refs, const BinnedSplit& split, Refs& left, Refs& right,
-                          Aabb& left_geom, Aabb& right_geom) {
+    void partition(const Refs& refs, const BinnedSplit& split, Refs& left, Refs& right,
+                   Aabb& left_geom, Aabb& right_geom) {
         const int k = split.axis;
         const float p = split.pos;
         const bool planar_left = split.planar_left;
@@ -384,8 +443,8 @@ private:
             counts[c][0] += counts[c - 1][0];
             counts[c][1] += counts[c - 1][1];
         }
-        left.resize(counts[chunks][0]);
-        right.resize(counts[chunks][1]);
+        left = pool_.take(counts[chunks][0]);
+        right = pool_.take(counts[chunks][1]);
         // Bounds per chunk, combined in chunk order (min and max: the same at any thread count).
         std::vector<std::array<Aabb, 2>> bounds(chunks);
         for_chunks(refs.size(), [&](size_t c, size_t begin, size_t end) {
@@ -408,6 +467,7 @@ private:
     uint32_t bins_;
     uint32_t max_depth_;
     ExactSahBuilder exact_;
+    RefsPool pool_;
 };
 
 }  // namespace

@@ -99,14 +99,14 @@ std::vector<uint8_t> prepare_triangles(const Mesh& mesh, TreeArray<TriVerts>& tr
 /// that ray clipping is robust and flat meshes get a cell with volume.
 Aabb root_cell(std::span<const TriVerts> tris, const std::vector<uint8_t>& degenerate);
 
-/// Fills tree.leaf_refs with `refs` (mesh triangle ids, leaf after leaf) rewritten as indices into
-/// tree.tris, and tree.tris, tri_ids and tri_slots with every triangle of `mesh` in leaf order:
-/// numbered by first reference, then the unreferenced ones by id. The numbering is one serial
-/// pass; the triangles (mesh_triangle, `degenerate` per id) are written in parallel chunks into
-/// `buffer`, which becomes tree.tris: any array of the mesh's triangle count (its contents are
-/// overwritten, never read). The build passes the triangles by id it no longer needs, so tree.tris
-/// takes memory that is already mapped instead of a fresh array to fault in.
-void order_triangles(KdTree& tree, std::span<const uint32_t> refs, const Mesh& mesh,
+/// Makes `refs` (mesh triangle ids, leaf after leaf) tree.leaf_refs, each rewritten in place as an
+/// index into tree.tris, and fills tree.tris, tri_ids and tri_slots with every triangle of `mesh`
+/// in leaf order: numbered by first reference, then the unreferenced ones by id. The numbering is
+/// one serial pass; the triangles (mesh_triangle, `degenerate` per id) are written in parallel
+/// chunks into `buffer`, which becomes tree.tris: any array of the mesh's triangle count (its
+/// contents are overwritten, never read). The build passes the triangles by id it no longer needs,
+/// so tree.tris takes memory that is already mapped instead of a fresh array to fault in.
+void order_triangles(KdTree& tree, TreeArray<uint32_t>&& refs, const Mesh& mesh,
                      std::span<const uint8_t> degenerate, TreeArray<TriVerts>&& buffer);
 
 /// Moves a finished SubTree into `tree` (its nodes in cache lines, the triangles in leaf order:

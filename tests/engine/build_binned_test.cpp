@@ -487,7 +487,8 @@ TEST(KdBuild, ChunkedSetUpLeavesDegenerateTrianglesOut) {
 
 // The triangles' leaf order (order_triangles) is made by parallel passes over fixed chunks. It
 // must be, at any thread count, what one pass in reference order gives: triangles numbered by
-// first reference, then the unreferenced ones by id; the references rewritten to those numbers.
+// first reference, then the unreferenced ones by id; the references rewritten to those numbers,
+// in the array given (it becomes tree.leaf_refs).
 // References are drawn so that a triangle's references often fall in different chunks (and
 // threads), in either order, and many triangles are never referenced. The triangles are made
 // from the mesh into the buffer given (the build's triangles by id, whose memory tree.tris then
@@ -550,10 +551,16 @@ TEST(KdBuild, TriangleLeafOrderIsTheSerialOneAtAnyThreadCount) {
             TreeArray<TriVerts> buffer(n);
             if (n > 0) std::memset(static_cast<void*>(buffer.data()), 0xA5, n * sizeof(TriVerts));
             const TriVerts* const memory = buffer.data();
+            TreeArray<uint32_t> given_refs(refs.begin(), refs.end());
+            const uint32_t* const refs_memory = given_refs.data();
             tbb::task_arena arena(threads);
-            arena.execute(
-                [&] { detail::order_triangles(tree, refs, mesh, degenerate, std::move(buffer)); });
+            arena.execute([&] {
+                detail::order_triangles(tree, std::move(given_refs), mesh, degenerate,
+                                        std::move(buffer));
+            });
             EXPECT_EQ(tree.tris.data(), memory) << "tree.tris is the buffer given";
+            EXPECT_EQ(tree.leaf_refs.data(), refs_memory)
+                << "tree.leaf_refs is the references' array, rewritten in place";
             ASSERT_EQ(tree.tri_ids.size(), n);
             EXPECT_TRUE(std::equal(tree.tri_ids.begin(), tree.tri_ids.end(), ids.begin()));
             EXPECT_EQ(tree.tri_slots, slots);
@@ -574,19 +581,21 @@ TEST(KdBuild, TriangleLeafOrderIsTheSerialOneAtAnyThreadCount) {
 TEST(KdBuild, TriangleLeafOrderRefusesABufferOfAnotherSize) {
     const Mesh mesh = box_mesh(0.0f, 1.0f);
     const size_t n = mesh.triangle_count();
-    const std::vector<uint32_t> refs{0, 1};
+    const TreeArray<uint32_t> refs{0, 1};
     const std::vector<uint8_t> flags(n, 0), short_flags(n - 1, 0);
     for (const size_t size : {n - 1, n + 1}) {
         KdTree tree;
         try {
-            detail::order_triangles(tree, refs, mesh, flags, TreeArray<TriVerts>(size));
+            detail::order_triangles(tree, TreeArray<uint32_t>(refs), mesh, flags,
+                                    TreeArray<TriVerts>(size));
             ADD_FAILURE() << "a buffer of " << size << " triangles for " << n << " was taken";
         } catch (const std::invalid_argument& e) {
             EXPECT_NE(std::string(e.what()).find("buffer"), std::string::npos) << e.what();
         }
     }
     KdTree tree;
-    EXPECT_THROW(detail::order_triangles(tree, refs, mesh, short_flags, TreeArray<TriVerts>(n)),
+    EXPECT_THROW(detail::order_triangles(tree, TreeArray<uint32_t>(refs), mesh, short_flags,
+                                         TreeArray<TriVerts>(n)),
                  std::invalid_argument);
 }
 
