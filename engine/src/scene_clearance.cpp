@@ -8,12 +8,13 @@
 // tol of the exact one; a neighbour N's raw hit at t1 in [t0, t0 + tol] then meets the ray within
 // 3 tol of t0*, at a point within sqrt(3) 3 tol dmax = 5.2 2^-18 M of P* (and within a few float
 // ulps of M of N: the watertight test's edge functions). The computed point P = o + t0 d lies
-// within sqrt(3) 2^-18 M of P*. So such an N comes within 7 2^-18 M of P, and hit_is_alone asks
-// for more than 8 2^-18 M = 2^-15 M.
+// within sqrt(3) 2^-18 M of P*. So such an N comes within 7 2^-18 M of P; the planes' rounding to
+// float (below 2^-21 M at such points) and eta below add less than 0.2 2^-18 M, and hit_is_alone
+// asks for more than 8 2^-18 M = 2^-15 M.
 //
 // The bound on the distance: every N sharing a vertex (by position, as merge_groups compares)
 // with T is shown to lie in a closed half-space whose boundary is perpendicular to T's plane:
-//  - one of T's three edge planes, T outside it: then dist(P, N) >= the distance of P to that
+//  - one of T's three edge planes, N outside it: then dist(P, N) >= the distance of P to that
 //    edge, >= the distance to T's nearest edge;
 //  - or a plane through one of N's edges, T's vertices on the other side at distances f_j >= 0:
 //    the distance of P is the barycentric sum of the f_j, and barycentric coordinate j is at
@@ -193,8 +194,9 @@ HitClearance compute_hit_clearance(const KdTree& tree) {
                 // the factor 8 in hit_is_alone. A g that small is worth nothing anyway.
                 if (!(g >= 0x1p-20)) g = 0.0;
                 for (int j = 0; j < 3; ++j) {
-                    for (int a = 0; a < 3; ++a) rec.plane[j][a] = g * edge[j].n[a];
-                    rec.plane[j][3] = g * edge[j].c;
+                    for (int a = 0; a < 3; ++a)
+                        rec.plane[j][a] = static_cast<float>(g * edge[j].n[a]);
+                    rec.plane[j][3] = static_cast<float>(g * edge[j].c);
                 }
             }
         });

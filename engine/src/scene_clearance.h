@@ -14,6 +14,7 @@
 // group: its window would answer the closest hit itself.
 
 #include <cmath>
+#include <limits>
 #include <memory>
 #include <vector>
 
@@ -23,12 +24,14 @@
 namespace kdrt::detail {
 
 /// One triangle's edge planes: g * (n . p - c) for each edge, n the unit normal of the plane
-/// through the edge perpendicular to the triangle, pointing inwards; and the largest |coordinate|
-/// of the triangle (part of the merge tolerance's magnitude).
+/// through the edge perpendicular to the triangle, pointing inwards (computed in double, stored
+/// rounded to float: off by less than 2^-21 M at the points it is asked about); and the largest
+/// |coordinate| of the triangle (part of the merge tolerance's magnitude). 52 bytes.
 struct ClearanceRecord {
-    double plane[3][4];
+    float plane[3][4];
     float mag;
 };
+static_assert(sizeof(ClearanceRecord) == 52);
 
 struct HitClearance {
     std::vector<ClearanceRecord> tris;  ///< by mesh triangle id
@@ -49,10 +52,10 @@ HitClearance compute_hit_clearance(const KdTree& tree);
     const ClearanceRecord& r = c.tris[first.prim];
     const double t = first.t;
     const double p[3] = {o.ox + t * o.dx, o.oy + t * o.dy, o.oz + t * o.dz};
-    double s = r.plane[0][0] * p[0] + r.plane[0][1] * p[1] + r.plane[0][2] * p[2] - r.plane[0][3];
-    for (int i = 1; i < 3; ++i) {
-        const double si =
-            r.plane[i][0] * p[0] + r.plane[i][1] * p[1] + r.plane[i][2] * p[2] - r.plane[i][3];
+    double s = std::numeric_limits<double>::infinity();
+    for (int i = 0; i < 3; ++i) {
+        const float* q = r.plane[i];
+        const double si = double{q[0]} * p[0] + double{q[1]} * p[1] + double{q[2]} * p[2] - q[3];
         s = si < s ? si : s;
     }
     float m = r.mag;
