@@ -109,15 +109,22 @@ HitClearance compute_hit_clearance(const KdTree& tree) {
             corners[3 * i + j] = {key(v[j]), static_cast<uint32_t>(i), static_cast<uint32_t>(j)};
     }
     tbb::parallel_sort(corners.begin(), corners.end());
-    // run[3 i + j]: the first corner at triangle i's vertex j's position.
-    std::vector<uint32_t> run_of(3 * n);
+    // run_of[3 i + j]: the first corner at triangle i's vertex j's position; run_end[first]: the
+    // end of that position's run of corners.
+    std::vector<uint32_t> run_of(3 * n), run_end(corners.size());
     {
         size_t first = 0;
         for (size_t c = 0; c < corners.size(); ++c) {
-            if (corners[c].key != corners[first].key) first = c;
+            if (corners[c].key != corners[first].key) {
+                run_end[first] = static_cast<uint32_t>(c);
+                first = c;
+            }
             run_of[3 * size_t{corners[c].tri} + corners[c].j] = static_cast<uint32_t>(first);
         }
+        if (!corners.empty()) run_end[first] = static_cast<uint32_t>(corners.size());
     }
+    std::vector<float> mags(n);
+    for (size_t i = 0; i < n; ++i) mags[i] = max_abs(tris[i]);
     HitClearance out;
     out.tris.resize(n);
     tbb::parallel_for(
@@ -127,7 +134,7 @@ HitClearance compute_hit_clearance(const KdTree& tree) {
                 ClearanceRecord& rec = out.tris[i];
                 rec = ClearanceRecord{};
                 const TriVerts& t = tris[i];
-                rec.mag = max_abs(t);
+                rec.mag = mags[i];
                 const V3 v[3] = {vert(t, 0), vert(t, 1), vert(t, 2)};
                 const V3 normal = cross(sub(v[1], v[0]), sub(v[2], v[0]));
                 if (!(norm(normal) > 0.0)) continue;  // degenerate: never hit
@@ -151,8 +158,7 @@ HitClearance compute_hit_clearance(const KdTree& tree) {
                 neighbours.clear();
                 for (int j = 0; j < 3; ++j) {
                     const size_t first = run_of[3 * i + j];
-                    for (size_t c = first;
-                         c < corners.size() && corners[c].key == corners[first].key; ++c)
+                    for (size_t c = first; c < run_end[first]; ++c)
                         if (corners[c].tri != i) neighbours.push_back(corners[c].tri);
                 }
                 std::sort(neighbours.begin(), neighbours.end());
@@ -164,7 +170,7 @@ HitClearance compute_hit_clearance(const KdTree& tree) {
                     const TriVerts& nt = tris[other];
                     const V3 w[3] = {vert(nt, 0), vert(nt, 1), vert(nt, 2)};
                     const double eta =
-                        0x1p-36 * static_cast<double>(std::max(rec.mag, max_abs(nt)));
+                        0x1p-36 * static_cast<double>(std::max(rec.mag, mags[other]));
                     // One of T's edge planes with N outside it.
                     bool separated = false;
                     for (int e = 0; e < 3 && !separated; ++e)
