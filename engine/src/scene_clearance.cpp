@@ -96,6 +96,10 @@ struct Corner {
     }
 };
 
+/// Corners at one vertex position beyond which its triangles are not looked at (a closed
+/// manifold mesh has about six).
+constexpr size_t kMaxCornersAtAVertex = 64;
+
 }  // namespace
 
 HitClearance compute_hit_clearance(const KdTree& tree) {
@@ -154,7 +158,15 @@ HitClearance compute_hit_clearance(const KdTree& tree) {
                     ok = h[j] > 0.0 && std::isfinite(h[j]);
                 }
                 if (!ok) continue;
-                // The vertex neighbours, each once (one sharing an edge is in two runs).
+                // The vertex neighbours, each once (one sharing an edge is in two runs). A vertex
+                // shared by more than kMaxCornersAtAVertex corners (a fan, a pole) is not looked
+                // at: its triangles always get their window, and the work stays linear in the mesh.
+                bool crowded = false;
+                for (int j = 0; j < 3; ++j) {
+                    const size_t first = run_of[3 * i + j];
+                    crowded = crowded || run_end[first] - first > kMaxCornersAtAVertex;
+                }
+                if (crowded) continue;
                 neighbours.clear();
                 for (int j = 0; j < 3; ++j) {
                     const size_t first = run_of[3 * i + j];

@@ -3,6 +3,7 @@
 
 #include <gtest/gtest.h>
 
+#include <cmath>
 #include <cstring>
 #include <memory>
 #include <string>
@@ -164,6 +165,41 @@ TEST(SceneClearance, TheFoldsClosestHitIsNotItsFirstMergedHit) {
     const Counts c = check(mesh, rays);
     EXPECT_EQ(c.not_closest, rays.size());
     EXPECT_EQ(c.alone, 0u);
+}
+
+TEST(SceneClearance, CrowdedVerticesAreNotLookedAt) {
+    // A fan of 300 thin triangles around one vertex (a disc): the neighbours at the centre are
+    // not looked at (the work stays linear), so those triangles always get their window; the
+    // answers stay the oracle's. A fan of 40 is looked at and its hits clear of the edges skip.
+    for (const uint32_t count : {300u, 40u}) {
+        Mesh fan;
+        const float step = 2.0f * 3.14159265f / static_cast<float>(count);
+        // The rim's points, the last triangle closing on the first point (no overlap, no gap).
+        const auto rim = [&](uint32_t k) {
+            const float a = step * static_cast<float>(k % count);
+            return Vec3{std::cos(a), std::sin(a), 0.0f};
+        };
+        for (uint32_t k = 0; k < count; ++k) add_triangle(fan, {0, 0, 0}, rim(k), rim(k + 1));
+        const KdTree tree = build_kdtree(fan);
+        const detail::HitClearance clear = detail::compute_hit_clearance(tree);
+        size_t zero = 0;
+        for (const detail::ClearanceRecord& r : clear.tris)
+            zero += r.plane[0][0] == 0.0f && r.plane[0][1] == 0.0f && r.plane[0][3] == 0.0f;
+        Rng rng(test_seed() + count);
+        std::vector<Ray> rays;
+        for (size_t k = 0; k < 300; ++k) {
+            const float r = rng.uniform(0.3f, 0.9f), a = rng.uniform(0.0f, 6.28f);
+            rays.push_back(make_ray({r * std::cos(a), r * std::sin(a), 2.0f}, {0.0f, 0.0f, -1.0f}));
+        }
+        const Counts c = check(fan, rays);
+        if (count == 300) {
+            EXPECT_EQ(zero, clear.tris.size());
+            EXPECT_EQ(c.alone, 0u);
+        } else {
+            EXPECT_EQ(zero, 0u);
+            EXPECT_GT(c.alone, 0u);
+        }
+    }
 }
 
 TEST(SceneClearance, TheCacheKeepsOnePerTree) {
