@@ -30,6 +30,7 @@
 #include <bit>
 #include <cmath>
 #include <mutex>
+#include <unordered_map>
 
 #include <tbb/blocked_range.h>
 #include <tbb/parallel_for.h>
@@ -224,21 +225,29 @@ HitClearance compute_hit_clearance(const KdTree& tree) {
 std::shared_ptr<const HitClearance> hit_clearance(const std::shared_ptr<const KdTree>& tree) {
     struct Entry {
         std::weak_ptr<const KdTree> tree;
-        const KdTree* address;
         std::shared_ptr<const HitClearance> data;
     };
     static std::mutex mutex;
-    static std::vector<Entry> cache;
+    static std::unordered_map<const KdTree*, Entry> cache;  // by the tree's address
+    static size_t prune_at = 64;
     std::lock_guard lock(mutex);
-    std::erase_if(cache, [](const Entry& e) { return e.tree.expired(); });
-    for (const Entry& e : cache)
-        if (e.address == tree.get() && !e.tree.owner_before(tree) && !tree.owner_before(e.tree))
+    if (const auto it = cache.find(tree.get()); it != cache.end()) {
+        // The same tree, not one gone whose address `tree` took over.
+        const Entry& e = it->second;
+        if (!e.tree.expired() && !e.tree.owner_before(tree) && !tree.owner_before(e.tree))
             return e.data;
+    }
+    // Entries of trees gone are dropped whenever the cache has doubled since the last time (linear
+    // work in all).
+    if (cache.size() >= prune_at) {
+        std::erase_if(cache, [](const auto& e) { return e.second.tree.expired(); });
+        prune_at = 2 * std::max<size_t>(64, cache.size());
+    }
     // Isolated: this thread holds the lock, so it must not take another task that may ask for it.
     std::shared_ptr<const HitClearance> data;
     tbb::this_task_arena::isolate(
         [&] { data = std::make_shared<const HitClearance>(compute_hit_clearance(*tree)); });
-    cache.push_back({tree, tree.get(), data});
+    cache[tree.get()] = {tree, data};
     return data;
 }
 

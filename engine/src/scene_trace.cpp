@@ -10,6 +10,7 @@
 #include <cmath>
 #include <limits>
 #include <map>
+#include <unordered_map>
 #include <utility>
 
 #include <tbb/blocked_range.h>
@@ -892,9 +893,9 @@ void nearest_rounds(const SceneData& s, std::span<const Ray> rays, uint32_t k, b
                 options.merge_coincident = merge;
                 options.max_hits = k;
                 options.isa = isa;
+                if (b.windows.empty()) return;  // every hit was alone in its group
                 // Isolated: while the batch waits, this thread must not take another block of
                 // this scan (it would reuse this thread's scratch, `b`, mid-round).
-                if (b.windows.empty()) return;
                 AllHits all;
                 tbb::this_task_arena::isolate(
                     [&] { all = intersect_all(tree, b.windows, options); });
@@ -925,18 +926,15 @@ SceneAllHits detail::nearest_hits(const Scene& scene, std::span<const Ray> rays,
     std::vector<const detail::HitClearance*> clear;
     if (max_hits == 1 && merge_coincident && !rays.empty()) {
         clear.resize(s.instances.size(), nullptr);
-        std::vector<std::pair<const KdTree*, const detail::HitClearance*>> seen;
+        std::unordered_map<const KdTree*, const detail::HitClearance*> seen;
         for (size_t g = 0; g < s.instances.size(); ++g) {
             const auto& tree = s.instances[g].tree;
-            const auto it = std::find_if(seen.begin(), seen.end(),
-                                         [&](const auto& e) { return e.first == tree.get(); });
-            if (it != seen.end()) {
-                clear[g] = it->second;
-                continue;
+            const auto [it, added] = seen.try_emplace(tree.get(), nullptr);
+            if (added) {
+                kept_clearance.push_back(detail::hit_clearance(tree));
+                it->second = kept_clearance.back().get();
             }
-            kept_clearance.push_back(detail::hit_clearance(tree));
-            clear[g] = kept_clearance.back().get();
-            seen.emplace_back(tree.get(), clear[g]);
+            clear[g] = it->second;
         }
     }
     constexpr size_t kRaysPerTask = kBlock;

@@ -209,6 +209,12 @@ TEST(SceneClearance, TheCacheKeepsOnePerTree) {
     EXPECT_EQ(a->tris.size(), tree->tri_slots.size());
     auto other = std::make_shared<const KdTree>(build_kdtree(uv_sphere({0, 0, 0}, 1.0f, 6, 8)));
     EXPECT_NE(detail::hit_clearance(other).get(), a.get());
+    // A tree gone, and another one (perhaps at its address): its own clearance, never the old.
+    const size_t first_size = a->tris.size();
+    tree.reset();
+    auto next = std::make_shared<const KdTree>(build_kdtree(uv_sphere({0, 0, 0}, 1.0f, 5, 7)));
+    ASSERT_NE(next->tri_slots.size(), first_size);
+    EXPECT_EQ(detail::hit_clearance(next)->tris.size(), next->tri_slots.size());
 }
 
 }  // namespace
