@@ -10,6 +10,7 @@
 #include <cmath>
 #include <limits>
 #include <map>
+#include <unordered_map>
 #include <utility>
 
 #include <tbb/blocked_range.h>
@@ -21,6 +22,7 @@
 #include "kdrt/query.h"
 #include "kdrt/scene.h"
 #include "kdrt/trace.h"
+#include "scene_clearance.h"
 #include "scene_internal.h"
 #include "scene_packet.h"
 
@@ -728,14 +730,26 @@ void keep_hits(std::span<const Hit> hits, uint32_t k, uint32_t geom, std::vector
     }
 }
 
+/// True when `first` (a hit), the closest hit of the object ray `o`, is what its every-hit window
+/// would answer for a single merged return (`clear`: the instance's tree's HitClearance, given only
+/// for k = 1 with merging; scene_clearance.h), so the window can be skipped.
+bool lone_return(const detail::HitClearance* clear, const Ray& o, const Hit& first) noexcept {
+    return clear && detail::hit_is_alone(*clear, o, first);
+}
+
 /// Takes instance `geom`'s hits into `out` (the nearest `k` so far, sorted by the tie rule), given
 /// its closest hit `first` on the object ray `o` traced with tmax = `limit` (hits_window).
 void take_instance(const KdTree& tree, double root_mag, const Ray& o, const Hit& first,
                    float ray_tmax, float limit, bool full, uint32_t k, bool merge, uint32_t geom,
-                   std::vector<SceneHit>& out, std::vector<Hit>& tmp) {
+                   const detail::HitClearance* clear, std::vector<SceneHit>& out,
+                   std::vector<Hit>& tmp) {
     // None up to the k-th hit so far means no hit to keep (a merged hit is never before its
     // group's first, the instance's closest).
     if (!first.is_hit()) return;
+    if (lone_return(clear, o, first)) {
+        keep_hits(std::span<const Hit>(&first, 1), k, geom, out);
+        return;
+    }
     intersect_all(tree, hits_window(root_mag, o, first, ray_tmax, limit, full, k, merge), merge,
                   tmp);
     keep_hits(tmp, k, geom, out);
@@ -746,7 +760,8 @@ void take_instance(const KdTree& tree, double root_mag, const Ray& o, const Hit&
 /// widened box starts beyond it holds no hit that could be kept. Each instance is traced once,
 /// first by the closest-hit kernel up to that limit, then (take_instance) fully within the
 /// truncation above, so its hits are those of the oracle's every-hit query.
-void nearest(const SceneData& s, const Ray& ray, uint32_t k, bool merge, std::vector<SceneHit>& out,
+void nearest(const SceneData& s, const Ray& ray, uint32_t k, bool merge,
+             std::span<const detail::HitClearance* const> clear, std::vector<SceneHit>& out,
              NearestScratch& sc) {
     out.clear();
     if (!detail::ray_is_valid(ray)) return;
@@ -766,7 +781,7 @@ void nearest(const SceneData& s, const Ray& ray, uint32_t k, bool merge, std::ve
             const float limit = full ? out.back().t : ray.tmax;
             o.tmax = limit;
             take_instance(tree, s.inst[geom].root_mag, o, intersect(tree, o), ray.tmax, limit, full,
-                          k, merge, geom, out, sc.tmp);
+                          k, merge, geom, clear.empty() ? nullptr : clear[geom], out, sc.tmp);
             return true;
         });
 }
@@ -796,8 +811,10 @@ struct NearestRounds {
 /// round takes every live ray one leaf further along its top-level walk (up to its k-th hit so
 /// far), and the rays reaching one instance go to the mesh's closest-hit batch entry together;
 /// each closest hit then goes to take_instance, as nearest() takes it. `outs[i]` gets ray i's hits.
+/// `clear`: per instance its tree's HitClearance, or empty (lone_return).
 void nearest_rounds(const SceneData& s, std::span<const Ray> rays, uint32_t k, bool merge, Isa isa,
-                    NearestRounds& b, NearestScratch& sc) {
+                    std::span<const detail::HitClearance* const> clear, NearestRounds& b,
+                    NearestScratch& sc) {
     const size_t n = rays.size();
     b.out.resize(n);
     b.traced.resize(n * kRoundsMaxTraced);
@@ -836,6 +853,7 @@ void nearest_rounds(const SceneData& s, std::span<const Ray> rays, uint32_t k, b
                 const size_t count = g1 - g0;
                 const KdTree& tree = *s.instances[geom].tree;
                 const double root_mag = s.inst[geom].root_mag;
+                const detail::HitClearance* cl = clear.empty() ? nullptr : clear[geom];
                 object_rays(s.inst[geom], rays, b.pairs, g0, g1, limit_of, b.rays);
                 b.hits.resize(count);
                 if (count >= kMinGroup) {
@@ -848,7 +866,8 @@ void nearest_rounds(const SceneData& s, std::span<const Ray> rays, uint32_t k, b
                         const uint32_t i = b.pairs[g0 + j].second;
                         std::vector<SceneHit>& out = b.out[i];
                         take_instance(tree, root_mag, b.rays[j], b.hits[j], rays[i].tmax,
-                                      b.rays[j].tmax, out.size() == k, k, merge, geom, out, sc.tmp);
+                                      b.rays[j].tmax, out.size() == k, k, merge, geom, cl, out,
+                                      sc.tmp);
                         update_limit(i);
                     }
                     return;
@@ -860,6 +879,11 @@ void nearest_rounds(const SceneData& s, std::span<const Ray> rays, uint32_t k, b
                 for (size_t j = 0; j < count; ++j) {
                     if (!b.hits[j].is_hit()) continue;
                     const uint32_t i = b.pairs[g0 + j].second;
+                    if (lone_return(cl, b.rays[j], b.hits[j])) {
+                        keep_hits(std::span<const Hit>(&b.hits[j], 1), k, geom, b.out[i]);
+                        update_limit(i);
+                        continue;
+                    }
                     b.windows.push_back(hits_window(root_mag, b.rays[j], b.hits[j], rays[i].tmax,
                                                     b.rays[j].tmax, b.out[i].size() == k, k,
                                                     merge));
@@ -869,6 +893,7 @@ void nearest_rounds(const SceneData& s, std::span<const Ray> rays, uint32_t k, b
                 options.merge_coincident = merge;
                 options.max_hits = k;
                 options.isa = isa;
+                if (b.windows.empty()) return;  // every hit was alone in its group
                 // Isolated: while the batch waits, this thread must not take another block of
                 // this scan (it would reuse this thread's scratch, `b`, mid-round).
                 AllHits all;
@@ -883,7 +908,7 @@ void nearest_rounds(const SceneData& s, std::span<const Ray> rays, uint32_t k, b
             });
     }
     // Rays that reached more instances than the rounds keep: from the start, alone.
-    for (const uint32_t i : b.alone) nearest(s, rays[i], k, merge, b.out[i], sc);
+    for (const uint32_t i : b.alone) nearest(s, rays[i], k, merge, clear, b.out[i], sc);
 }
 
 }  // namespace
@@ -895,6 +920,23 @@ SceneAllHits detail::nearest_hits(const Scene& scene, std::span<const Ray> rays,
     SceneAllHits result;
     result.offsets.assign(rays.size() + 1, 0);
     if (max_hits == 0) return result;
+    // A single merged return skips the every-hit window where the closest hit is provably alone
+    // in its group (scene_clearance.h): each distinct tree's clearance, computed once per tree.
+    std::vector<std::shared_ptr<const detail::HitClearance>> kept_clearance;
+    std::vector<const detail::HitClearance*> clear;
+    if (max_hits == 1 && merge_coincident && !rays.empty()) {
+        clear.resize(s.instances.size(), nullptr);
+        std::unordered_map<const KdTree*, const detail::HitClearance*> seen;
+        for (size_t g = 0; g < s.instances.size(); ++g) {
+            const auto& tree = s.instances[g].tree;
+            const auto [it, added] = seen.try_emplace(tree.get(), nullptr);
+            if (added) {
+                kept_clearance.push_back(detail::hit_clearance(tree));
+                it->second = kept_clearance.back().get();
+            }
+            clear[g] = it->second;
+        }
+    }
     constexpr size_t kRaysPerTask = kBlock;
     const size_t tasks = (rays.size() + kRaysPerTask - 1) / kRaysPerTask;
     std::vector<std::vector<SceneHit>> per_task(tasks);  // each task's rays' hits, in ray order
@@ -915,7 +957,7 @@ SceneAllHits detail::nearest_hits(const Scene& scene, std::span<const Ray> rays,
                 std::vector<SceneHit>& kept = per_task[task];
                 const std::span<const Ray> block = rays.subspan(lo, hi - lo);
                 if (max_hits <= kRoundsMaxHits && rounds_pay(block)) {
-                    nearest_rounds(s, block, max_hits, merge_coincident, isa, sc.rounds,
+                    nearest_rounds(s, block, max_hits, merge_coincident, isa, clear, sc.rounds,
                                    sc.nearest);
                     for (size_t i = lo; i < hi; ++i) {
                         const std::vector<SceneHit>& out = sc.rounds.out[i - lo];
@@ -925,7 +967,7 @@ SceneAllHits detail::nearest_hits(const Scene& scene, std::span<const Ray> rays,
                     continue;
                 }
                 for (size_t i = lo; i < hi; ++i) {
-                    nearest(s, rays[i], max_hits, merge_coincident, sc.hits, sc.nearest);
+                    nearest(s, rays[i], max_hits, merge_coincident, clear, sc.hits, sc.nearest);
                     result.offsets[i + 1] = sc.hits.size();
                     kept.insert(kept.end(), sc.hits.begin(), sc.hits.end());
                 }
