@@ -794,7 +794,11 @@ template <int W, bool AnyHit, bool Count>
 /// prefetched as it moves (prefetch_cell), more walks pay on big trees, whose lines come from the
 /// last-level cache or memory: on 16 and 64 bunnies' random rays 8 and 16 walks gave +35-40%
 /// over 4 without the prefetch (16 a little ahead of 8, within the noise), the bunny unchanged.
-inline constexpr int kWalksInTurn = 16;
+/// Re-tuned after session 19's faster AVX-512 decode (`--mode single`, 2 threads, alternated,
+/// tests/bench/README.md, session 20): 12 walks against 16, bunny diffuse 5.94 -> 6.50 Mrays/s,
+/// random 8.66 -> 8.94; 16 bunnies diffuse 4.31 -> 4.68, random 5.12 -> 5.35; 64 bunnies
+/// diffuse 3.65 -> 3.81, random unchanged; 8 walks within 1% of 12 on the bunny.
+inline constexpr int kWalksInTurn = 12;
 
 /// A batch of single rays, K at a time: the walks advance in turn, one cell each, so that one
 /// ray's dependent loads overlap the others' work. After a step, the line of the cell the walk
