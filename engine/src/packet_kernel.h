@@ -919,9 +919,10 @@ inline constexpr uint32_t kMeasureFirstGap = 4;
 /// A block of fewer rays is not measured (its halves would time too little work).
 inline constexpr int kMeasureMinRays = 512;
 /// Coherent any-hit packets measured at this many time stamp counter ticks per ray or more go
-/// sorted by their origins (RunTracer::coherent_block). Measured at 2.3 GHz, 2 threads, shadow
-/// sets: the stadium's packets take about 55 ticks a ray, the bunny's 240 (where the sort lost
-/// 2%), 16 bunnies' 590 (where it won 21%) and 64 bunnies' 960.
+/// sorted by their origins (RunTracer::coherent_block). Shadow sets, 2 threads, a 2.3 GHz
+/// counter: 16 bunnies' measured blocks took 480-800 ticks a ray (the sort won 18% there); from
+/// their Mrays/s, the stadium's packets take about 55 (the sort halved its speed), the bunny's
+/// 240 (the sort lost 2%) and 64 bunnies' 960.
 inline constexpr float kSortMinCycles = 400.0f;
 
 /// This thread's measurements for `tree` (closest hit or any hit; incoherent or coherent blocks,
