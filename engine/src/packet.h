@@ -12,17 +12,20 @@
 namespace kdrt::detail {
 
 /// How a block decides between packets and single rays (TraceMode, as the kernels see it).
-/// The last three are auto with its way for incoherent blocks fixed (RunTracer::incoherent_block):
-/// sorted packets, single rays in input order, or every block measured (half each way; under
-/// kIncoherentMeasured also every coherent any-hit block, RunTracer::coherent_block). Tests
-/// reach every way with them; policy_for never gives them.
+/// kIncoherentAsPacket, kIncoherentAsSingle and kIncoherentMeasured are auto with its way for
+/// incoherent blocks fixed (RunTracer::incoherent_block): sorted packets, single rays in input
+/// order, or every block measured (half each way; under kIncoherentMeasured also every coherent
+/// any-hit block, RunTracer::coherent_block). kCoherentSorted is auto with every coherent any-hit
+/// block in packets sorted by origin (trace_origin_sorted_block). Tests reach every way with
+/// them; policy_for never gives them.
 enum class Policy : uint32_t {
     kAuto = 0,
     kSingle = 1,
     kPacket = 2,
     kIncoherentAsPacket = 3,
     kIncoherentAsSingle = 4,
-    kIncoherentMeasured = 5
+    kIncoherentMeasured = 5,
+    kCoherentSorted = 6
 };
 
 /// What a kernel did, summed over a batch (per-thread, added up afterwards).

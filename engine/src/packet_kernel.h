@@ -893,15 +893,22 @@ struct IncoherentCosts {
     /// The last three measurements (0: none) of single rays' time per ray over sorted packets',
     /// newest first; their median decides, so one that the operating system interrupted does not.
     float ratio[3] = {0.0f, 0.0f, 0.0f};
+    /// The same measurements' time per ray of the packets (time stamp counter ticks), newest
+    /// first.
+    float packet_ticks[3] = {0.0f, 0.0f, 0.0f};
     uint32_t until_measure = 0;  ///< blocks to go the faster way before the next measured one
     bool singles_first = false;  ///< the next measured block's first half goes as single rays
 
-    /// The median of the measurements so far (0: none).
-    [[nodiscard]] float median() const {
-        const float a = ratio[0], b = ratio[1], c = ratio[2];
+    /// The median of three measurements, newest first (0: none; of two, their mean).
+    [[nodiscard]] static float median_of(const float (&m)[3]) {
+        const float a = m[0], b = m[1], c = m[2];
         if (c == 0.0f) return b == 0.0f ? a : 0.5f * (a + b);
         return a < b ? (b < c ? b : (a < c ? c : a)) : (a < c ? a : (b < c ? c : b));
     }
+    /// The median of the ratios measured so far (0: none).
+    [[nodiscard]] float median() const { return median_of(ratio); }
+    /// The median of the packets' time per ray measured so far (0: none).
+    [[nodiscard]] float packet_cost() const { return median_of(packet_ticks); }
 };
 
 /// After a measured block, where the slower way took r times as long as the faster (the
@@ -915,6 +922,12 @@ inline constexpr float kMeasureMaxGap = 1024.0f;
 inline constexpr uint32_t kMeasureFirstGap = 4;
 /// A block of fewer rays is not measured (its halves would time too little work).
 inline constexpr int kMeasureMinRays = 512;
+/// Coherent any-hit packets measured at this many time stamp counter ticks per ray or more go
+/// sorted by their origins (RunTracer::coherent_block). Shadow sets, 2 threads, a 2.3 GHz
+/// counter: 16 bunnies' measured blocks took 480-800 ticks a ray (the sort won 18% there); from
+/// their Mrays/s, the stadium's packets take about 55 (the sort halved its speed), the bunny's
+/// 240 (the sort lost 2%) and 64 bunnies' 960.
+inline constexpr float kSortMinCycles = 400.0f;
 
 /// This thread's measurements for `tree` (closest hit or any hit; incoherent or coherent blocks,
 /// whose costs differ and must not mix): a small table by the tree's address, so that a scene's
@@ -928,7 +941,7 @@ IncoherentCosts& incoherent_costs(const KdTree& tree) {
     const uint64_t key = reinterpret_cast<uintptr_t>(&tree) * 0x9E3779B97F4A7C15ull;
     IncoherentCosts& costs = slots[key >> (64 - kCostSlotBits)];
     if (costs.tree != &tree || costs.nodes != tree.nodes.data())
-        costs = IncoherentCosts{&tree, tree.nodes.data(), {0.0f, 0.0f, 0.0f}, 0, false};
+        costs = IncoherentCosts{.tree = &tree, .nodes = tree.nodes.data()};
     return costs;
 }
 
@@ -989,30 +1002,53 @@ struct RunTracer {
     }
 
     /// A coherent block (not block_is_incoherent: one origin or one direction, e.g. shadow rays
-    /// towards one light) goes in runs of packets in input order (trace_coherent_block). Its
-    /// packets stay full, but on a big tree they still lose to single rays walked in turn for
-    /// any hit (2 threads, 64 bunnies' shadow set: single rays 4.36 Mrays/s, packets 3.38), while
-    /// on smaller trees packets win (16 bunnies: 4.4 against 6.8). So for any hit the auto policy
-    /// measures the two ways as for an incoherent block, in cost slots of their own. Closest-hit
-    /// blocks (primary rays) keep to packets, as do the counting kernels and the fixed test
-    /// policies; kIncoherentMeasured measures every coherent any-hit block too. Both ways give
-    /// every ray the single-ray kernel's answer.
+    /// towards one light) goes in runs of packets. Its packets stay full, but on a big tree they
+    /// may still lose to single rays walked in turn for any hit (2 threads, 64 bunnies' shadow
+    /// set: single rays 5.7 Mrays/s, packets 4.8), while on smaller trees packets win (16
+    /// bunnies: 7.8 against 6.1). So for any hit the auto policy measures the two ways as for an
+    /// incoherent block, in cost slots of their own; a measured block's packets go in input
+    /// order, in runs of kCoherentRun rays (trace_coherent_block). Between measured blocks, any
+    /// hit's packets go sorted by where the rays start across their common way
+    /// (trace_origin_sorted_block: in image order a packet is a strip of one row; sorted, a small
+    /// patch, whose rays stay together longer: 16 bunnies' shadow set 7.7 -> 9.4 Mrays/s) when
+    /// the measured packets cost kSortMinCycles or more per ray, and in input order when they
+    /// cost less: the sort costs about 150 instructions and two L1 misses per ray, which cheap
+    /// packets do not win back (the stadium's shadow set: 86 -> 44 Mrays/s sorted, its packets'
+    /// node visits unchanged; tests/bench/README.md). Closest-hit blocks (primary rays) keep to
+    /// packets in input order, as do the counting kernels and the fixed test policies;
+    /// kIncoherentMeasured measures every coherent any-hit block too, and kCoherentSorted sorts
+    /// every one. Every way gives every ray the single-ray kernel's answer.
     void coherent_block(const Ray* block, size_t base, int n) const {
         const auto packets = [&](const Ray* rays, size_t at, int m) {
             trace_coherent_block<AnyHit>(rays, at, m, hits, occluded, counters, *this);
         };
+        const auto sorted = [&](const Ray* rays, size_t at, int m) {
+            trace_origin_sorted_block<AnyHit>(tree, rays, at, m, hits, occluded, counters, *this);
+        };
+        if (AnyHit && !Count && policy == Policy::kCoherentSorted) {
+            sorted(block, base, n);
+            return;
+        }
         if (Count || !kMeasureCoherent<AnyHit> ||
             (policy != Policy::kAuto && policy != Policy::kIncoherentMeasured)) {
             packets(block, base, n);
             return;
         }
-        measured<true>(block, base, n, packets);
+        // Sorted packets are measured against single rays as they trace: a measured block's
+        // halves, one each way (runs of kCoherentRun rays, about a row of an image's shadow
+        // rays, would make no patches).
+        if (AnyHit && incoherent_costs<AnyHit, true>(tree).packet_cost() >= kSortMinCycles)
+            measured<true>(block, base, n, sorted, true);
+        else
+            measured<true>(block, base, n, packets, false);
     }
 
     /// The measured choice between `packets` and single rays for one block (IncoherentCosts of
-    /// the block's kind): the faster way so far, or, for a measured block, half each way.
+    /// the block's kind): the faster way so far, or, for a measured block, half each way: its
+    /// two halves (`halves`), or its runs of kCoherentRun rays each way in turn.
     template <bool Coherent, class Packets>
-    void measured(const Ray* block, size_t base, int n, const Packets& packets) const {
+    void measured(const Ray* block, size_t base, int n, const Packets& packets,
+                  bool halves = !Coherent) const {
         IncoherentCosts& costs = incoherent_costs<AnyHit, Coherent>(tree);
         const bool measure = policy == Policy::kIncoherentMeasured
                                  ? n >= 2
@@ -1028,8 +1064,8 @@ struct RunTracer {
         }
         const bool singles_first = costs.singles_first;
         costs.singles_first = !singles_first;
-        float ratio = 0.0f;
-        if (Coherent && n >= 2 * kCoherentRun) {
+        float ratio = 0.0f, packet_ticks = 0.0f;
+        if (!halves && n >= 2 * kCoherentRun) {
             // A coherent block's rays are in image order: its two halves are different parts
             // of the image and may cost differently whichever way they go. So its runs of
             // kCoherentRun rays go each way in turn, the two ways' rays spread over the block.
@@ -1050,8 +1086,8 @@ struct RunTracer {
                 m[way] += len;
             }
             if (t[0] == 0 || t[1] == 0) return;  // a clock that stood still or went back
-            ratio = (static_cast<float>(t[1]) / static_cast<float>(m[1])) /
-                    (static_cast<float>(t[0]) / static_cast<float>(m[0]));
+            packet_ticks = static_cast<float>(t[0]) / static_cast<float>(m[0]);
+            ratio = (static_cast<float>(t[1]) / static_cast<float>(m[1])) / packet_ticks;
         } else {
             // A measured block: one half each way, the halves' roles swapping from one measured
             // block to the next (the first half is traced first).
@@ -1071,10 +1107,14 @@ struct RunTracer {
             const float first = static_cast<float>(t1 - t0) / static_cast<float>(half);
             const float second = static_cast<float>(t2 - t1) / static_cast<float>(n - half);
             ratio = singles_first ? first / second : second / first;
+            packet_ticks = singles_first ? second : first;
         }
         costs.ratio[2] = costs.ratio[1];
         costs.ratio[1] = costs.ratio[0];
         costs.ratio[0] = ratio;
+        costs.packet_ticks[2] = costs.packet_ticks[1];
+        costs.packet_ticks[1] = costs.packet_ticks[0];
+        costs.packet_ticks[0] = packet_ticks;
         if (costs.ratio[2] == 0.0f) {
             costs.until_measure = kMeasureFirstGap;
         } else {

@@ -31,6 +31,7 @@ using detail::quantize;
 using detail::schedule_rays;
 using detail::sort_by_origin_and_direction;
 using detail::spread3;
+using detail::trace_origin_sorted_block;
 using detail::TraceCounters;
 
 constexpr float kInf = std::numeric_limits<float>::infinity();
@@ -390,6 +391,75 @@ TEST(BatchSchedule, IncoherentBlocksAreSortedWholeCoherentOnesRunInInputOrder) {
               octants_of_block0.end())
         << "one run per octant";
     EXPECT_EQ(octants_of_block0.size(), 8u) << "random directions cover every octant";
+}
+
+/// Mean over aligned groups of 16 consecutive rays of `order` (grid indices i + 64 j) of the
+/// group's extent in i plus its extent in j: 15 for rows of the grid, 6 for 4x4 patches.
+double mean_group_span(const std::vector<uint32_t>& order) {
+    double sum = 0;
+    size_t groups = 0;
+    for (size_t g = 0; g + 16 <= order.size(); g += 16) {
+        uint32_t i_lo = 64, i_hi = 0, j_lo = 64, j_hi = 0;
+        for (size_t k = g; k < g + 16; ++k) {
+            const uint32_t i = order[k] % 64, j = order[k] / 64;
+            i_lo = std::min(i_lo, i), i_hi = std::max(i_hi, i);
+            j_lo = std::min(j_lo, j), j_hi = std::max(j_hi, j);
+        }
+        sum += (i_hi - i_lo) + (j_hi - j_lo);
+        ++groups;
+    }
+    return groups > 0 ? sum / static_cast<double>(groups) : 0.0;
+}
+
+TEST(BatchSchedule, CoherentAnyHitBlocksAreSortedIntoPatchesAcrossTheirWay) {
+    // Shadow rays of a 64 x 60 image of a tilted plane towards one far light (z dominant), in
+    // image order: the origins' x and y are the plane across the rays' way. Then 256 rays of
+    // another octant and invalid ones, answered in place all the same; one of them starts at
+    // (1, 1), so the origins span exactly 1 in x and y: the grid's steps are whole sort levels
+    // and its 4 x 4 patches whole Morton cells.
+    const uint64_t seed = test_seed();
+    SCOPED_TRACE(testing::Message() << "seed=" << seed);
+    Rng rng(seed);
+    std::vector<Ray> rays;
+    for (uint32_t j = 0; j < 60; ++j)
+        for (uint32_t i = 0; i < 64; ++i) {
+            const float x = static_cast<float>(i) / 64.0f, y = static_cast<float>(j) / 64.0f;
+            rays.push_back(ray({x, y, 0.3f * x + rng.uniform() * 1e-3f}, {0.1f, 0.2f, 1.0f}));
+        }
+    for (uint32_t k = 0; k < 256; ++k) {
+        const Vec3 o{rng.uniform(), rng.uniform(0.25f, 1.0f), 0.0f};  // within both blocks
+        rays.push_back(k % 2 == 0 ? ray(o, {-0.1f, 0.2f, 1.0f}) : invalid_rays()[k % 6]);
+    }
+    rays[64 * 60] = ray({1.0f, 1.0f, 0.3f}, {-0.1f, 0.2f, 1.0f});
+    ASSERT_EQ(rays.size(), kBlockRays);
+    for (const size_t base : {size_t{0}, size_t{64 * 16}}) {  // a whole block; its last part
+        SCOPED_TRACE(testing::Message() << "base=" << base);
+        const int n = static_cast<int>(rays.size() - base);
+        Scheduled s;
+        s.occluded.assign(rays.size(), 7);
+        s.hits.assign(rays.size(), Hit{});
+        s.times_traced.assign(rays.size(), 0);
+        const RecordingRun run{rays, s.hits, s.occluded, s.times_traced, s.runs};
+        trace_origin_sorted_block<true>(tree_with_bounds(), rays.data() + base, base, n, nullptr,
+                                        s.occluded.data(), s.counters, run);
+        uint64_t invalid = 0;
+        for (size_t i = base; i < rays.size(); ++i) {
+            const bool valid = detail::ray_is_valid(rays[i]);
+            invalid += valid ? 0 : 1;
+            ASSERT_EQ(s.times_traced[i], valid ? 1 : 0) << "ray " << i;
+            EXPECT_EQ(s.occluded[i], valid ? 1 : 0) << "ray " << i;
+        }
+        for (size_t i = 0; i < base; ++i) ASSERT_EQ(s.occluded[i], 7) << "outside the block";
+        EXPECT_EQ(s.counters.invalid_rays, invalid);
+        ASSERT_EQ(s.runs.size(), 2u) << "one run per octant";
+        ASSERT_EQ(s.runs[0].size(), 64 * 60 - base) << "octant 0 first: the image's rays";
+        EXPECT_EQ(octant(rays[s.runs[1].front()]), 1u);
+        // The image's packets of 16 are its 4 x 4 patches, not strips of a row.
+        std::vector<uint32_t> input_order = s.runs[0];
+        std::sort(input_order.begin(), input_order.end());
+        EXPECT_EQ(mean_group_span(input_order), 15.0);
+        EXPECT_EQ(mean_group_span(s.runs[0]), 6.0);
+    }
 }
 
 TEST(BatchSchedule, AnEmptyTreeAnswersEveryRayAsAMiss) {
