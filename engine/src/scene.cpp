@@ -48,8 +48,17 @@ double box_magnitude(const Aabb& b) noexcept {
 
 /// Validates instance `index`'s transform and computes everything the queries need of it.
 /// `field` prefixes the entry names ("transform").
+/// The instance's clearance, if any, is one of its tree's triangle count (tree not null).
+void check_clearance(uint32_t index, const SceneInstance& inst) {
+    if (inst.clearance && inst.clearance->size() != inst.tree->tri_slots.size())
+        fail(index, "clearance",
+             "has a hit clearance of " + std::to_string(inst.clearance->size()) +
+                 " triangles for a tree of " + std::to_string(inst.tree->tri_slots.size()));
+}
+
 InstanceData prepare_instance(uint32_t index, const SceneInstance& inst) {
     if (!inst.tree) fail(index, "tree", "has no mesh tree");
+    check_clearance(index, inst);
     const Affine3x4& m = inst.transform;
     for (int r = 0; r < 3; ++r) {
         for (int c = 0; c < 4; ++c) {
@@ -387,6 +396,22 @@ Scene Scene::with_transforms(std::span<const InstancePose> poses) const {
         d->instances[pose.geom] = std::move(moved);
     }
     build_top(*d, start);
+    return Scene(std::move(d));
+}
+
+Scene Scene::with_clearances(
+    std::span<const std::shared_ptr<const HitClearance>> per_instance) const {
+    if (per_instance.size() != data_->instances.size()) {
+        throw std::invalid_argument("with_clearances: " + std::to_string(per_instance.size()) +
+                                    " clearances for " + std::to_string(data_->instances.size()) +
+                                    " instances");
+    }
+    auto d = std::make_shared<SceneData>(*data_);
+    for (uint32_t g = 0; g < per_instance.size(); ++g) {
+        SceneInstance& in = d->instances[g];
+        in.clearance = per_instance[g];
+        check_clearance(g, in);
+    }
     return Scene(std::move(d));
 }
 
