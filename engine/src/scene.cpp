@@ -46,8 +46,6 @@ double box_magnitude(const Aabb& b) noexcept {
     return m;
 }
 
-/// Validates instance `index`'s transform and computes everything the queries need of it.
-/// `field` prefixes the entry names ("transform").
 /// The instance's clearance, if any, is one of its tree's triangle count (tree not null).
 void check_clearance(uint32_t index, const SceneInstance& inst) {
     if (inst.clearance && inst.clearance->size() != inst.tree->tri_slots.size())
@@ -56,10 +54,12 @@ void check_clearance(uint32_t index, const SceneInstance& inst) {
                  " triangles for a tree of " + std::to_string(inst.tree->tri_slots.size()));
 }
 
-InstanceData prepare_instance(uint32_t index, const SceneInstance& inst) {
+/// Validates instance `index` placed by `m` (its transform, or a new one: no copy of the
+/// instance's shared data) and computes everything the queries need of it.
+/// `field` prefixes the entry names ("transform").
+InstanceData prepare_instance(uint32_t index, const SceneInstance& inst, const Affine3x4& m) {
     if (!inst.tree) fail(index, "tree", "has no mesh tree");
     check_clearance(index, inst);
-    const Affine3x4& m = inst.transform;
     for (int r = 0; r < 3; ++r) {
         for (int c = 0; c < 4; ++c) {
             if (!std::isfinite(m.m[r][c])) {
@@ -365,7 +365,7 @@ Scene build_scene(std::vector<SceneInstance> instances, const SceneBuildOptions&
     d->options = options;
     d->inst.reserve(instances.size());
     for (uint32_t i = 0; i < instances.size(); ++i)
-        d->inst.push_back(prepare_instance(i, instances[i]));
+        d->inst.push_back(prepare_instance(i, instances[i], instances[i].transform));
     d->instances = std::move(instances);
     build_top(*d, start);
     return Scene(std::move(d));
@@ -390,10 +390,10 @@ Scene Scene::with_transforms(std::span<const InstancePose> poses) const {
     d->inst = data_->inst;
     for (const InstancePose& pose : poses) {
         check_pose_geom(pose, d->instances.size());
-        SceneInstance moved = d->instances[pose.geom];
+        // In place (d is this call's own): no copy of the instance's shared pointers.
+        SceneInstance& moved = d->instances[pose.geom];
+        d->inst[pose.geom] = prepare_instance(pose.geom, moved, pose.transform);
         moved.transform = pose.transform;
-        d->inst[pose.geom] = prepare_instance(pose.geom, moved);
-        d->instances[pose.geom] = std::move(moved);
     }
     build_top(*d, start);
     return Scene(std::move(d));
@@ -418,9 +418,7 @@ Scene Scene::with_clearances(
 void Scene::check_transforms(std::span<const InstancePose> poses) const {
     for (const InstancePose& pose : poses) {
         check_pose_geom(pose, data_->instances.size());
-        SceneInstance moved = data_->instances[pose.geom];
-        moved.transform = pose.transform;
-        (void)prepare_instance(pose.geom, moved);
+        (void)prepare_instance(pose.geom, data_->instances[pose.geom], pose.transform);
     }
 }
 
