@@ -33,14 +33,15 @@ Service::Service(ServerConfig cfg)
             out.back().samples.push_back({std::move(labels), value});
         };
         const char* bytes_help =
-            "Bytes of the mesh cache, in memory (resident trees and the surface indexes of "
-            "distance queries) and on disk (meshes, trees, summaries).";
+            "Bytes of the mesh cache, in memory (resident trees, the surface indexes of "
+            "distance queries and the hit clearances of scene scans) and on disk (meshes, trees, "
+            "summaries).";
         gauge("kdrt_cache_bytes", bytes_help, {{"where", "memory"}},
               static_cast<double>(cache.memory_bytes()));
         gauge("kdrt_cache_bytes", bytes_help, {{"where", "disk"}},
               static_cast<double>(cache.disk_bytes()));
         gauge("kdrt_cache_budget_bytes",
-              "Configured memory budget for trees and their surface indexes.", {},
+              "Configured memory budget for trees and their surface indexes and clearances.", {},
               static_cast<double>(config.memory_budget));
         gauge("kdrt_cache_meshes", "Stored meshes, and how many have their tree in memory.",
               {{"state", "stored"}}, static_cast<double>(cache.mesh_count()));

@@ -46,11 +46,20 @@ double box_magnitude(const Aabb& b) noexcept {
     return m;
 }
 
-/// Validates instance `index`'s transform and computes everything the queries need of it.
+/// The instance's clearance, if any, is one of its tree's triangle count (tree not null).
+void check_clearance(uint32_t index, const SceneInstance& inst) {
+    if (inst.clearance && inst.clearance->size() != inst.tree->tri_slots.size())
+        fail(index, "clearance",
+             "has a hit clearance of " + std::to_string(inst.clearance->size()) +
+                 " triangles for a tree of " + std::to_string(inst.tree->tri_slots.size()));
+}
+
+/// Validates instance `index` placed by `m` (its transform, or a new one: no copy of the
+/// instance's shared data) and computes everything the queries need of it.
 /// `field` prefixes the entry names ("transform").
-InstanceData prepare_instance(uint32_t index, const SceneInstance& inst) {
+InstanceData prepare_instance(uint32_t index, const SceneInstance& inst, const Affine3x4& m) {
     if (!inst.tree) fail(index, "tree", "has no mesh tree");
-    const Affine3x4& m = inst.transform;
+    check_clearance(index, inst);
     for (int r = 0; r < 3; ++r) {
         for (int c = 0; c < 4; ++c) {
             if (!std::isfinite(m.m[r][c])) {
@@ -356,7 +365,7 @@ Scene build_scene(std::vector<SceneInstance> instances, const SceneBuildOptions&
     d->options = options;
     d->inst.reserve(instances.size());
     for (uint32_t i = 0; i < instances.size(); ++i)
-        d->inst.push_back(prepare_instance(i, instances[i]));
+        d->inst.push_back(prepare_instance(i, instances[i], instances[i].transform));
     d->instances = std::move(instances);
     build_top(*d, start);
     return Scene(std::move(d));
@@ -381,21 +390,35 @@ Scene Scene::with_transforms(std::span<const InstancePose> poses) const {
     d->inst = data_->inst;
     for (const InstancePose& pose : poses) {
         check_pose_geom(pose, d->instances.size());
-        SceneInstance moved = d->instances[pose.geom];
+        // In place (d is this call's own): no copy of the instance's shared pointers.
+        SceneInstance& moved = d->instances[pose.geom];
+        d->inst[pose.geom] = prepare_instance(pose.geom, moved, pose.transform);
         moved.transform = pose.transform;
-        d->inst[pose.geom] = prepare_instance(pose.geom, moved);
-        d->instances[pose.geom] = std::move(moved);
     }
     build_top(*d, start);
+    return Scene(std::move(d));
+}
+
+Scene Scene::with_clearances(
+    std::span<const std::shared_ptr<const HitClearance>> per_instance) const {
+    if (per_instance.size() != data_->instances.size()) {
+        throw std::invalid_argument("with_clearances: " + std::to_string(per_instance.size()) +
+                                    " clearances for " + std::to_string(data_->instances.size()) +
+                                    " instances");
+    }
+    auto d = std::make_shared<SceneData>(*data_);
+    for (uint32_t g = 0; g < per_instance.size(); ++g) {
+        SceneInstance& in = d->instances[g];
+        in.clearance = per_instance[g];
+        check_clearance(g, in);
+    }
     return Scene(std::move(d));
 }
 
 void Scene::check_transforms(std::span<const InstancePose> poses) const {
     for (const InstancePose& pose : poses) {
         check_pose_geom(pose, data_->instances.size());
-        SceneInstance moved = data_->instances[pose.geom];
-        moved.transform = pose.transform;
-        (void)prepare_instance(pose.geom, moved);
+        (void)prepare_instance(pose.geom, data_->instances[pose.geom], pose.transform);
     }
 }
 

@@ -29,8 +29,6 @@
 #include <array>
 #include <bit>
 #include <cmath>
-#include <mutex>
-#include <unordered_map>
 
 #include <tbb/blocked_range.h>
 #include <tbb/parallel_for.h>
@@ -101,9 +99,8 @@ struct Corner {
 /// manifold mesh has about six).
 constexpr size_t kMaxCornersAtAVertex = 64;
 
-}  // namespace
-
-HitClearance compute_hit_clearance(const KdTree& tree) {
+/// The records of build_hit_clearance, by mesh triangle id.
+std::vector<ClearanceRecord> clearance_records(const KdTree& tree) {
     const std::vector<TriVerts> tris = triangles_by_id(tree);
     const size_t n = tris.size();
     // Every corner by position, so a triangle's vertex neighbours are the runs of its corners.
@@ -130,13 +127,12 @@ HitClearance compute_hit_clearance(const KdTree& tree) {
     }
     std::vector<float> mags(n);
     for (size_t i = 0; i < n; ++i) mags[i] = max_abs(tris[i]);
-    HitClearance out;
-    out.tris.resize(n);
+    std::vector<ClearanceRecord> out(n);
     tbb::parallel_for(
         tbb::blocked_range<size_t>(0, n, 256), [&](const tbb::blocked_range<size_t>& r) {
             std::vector<uint32_t> neighbours;
             for (size_t i = r.begin(); i != r.end(); ++i) {
-                ClearanceRecord& rec = out.tris[i];
+                ClearanceRecord& rec = out[i];
                 rec = ClearanceRecord{};
                 const TriVerts& t = tris[i];
                 rec.mag = mags[i];
@@ -222,33 +218,15 @@ HitClearance compute_hit_clearance(const KdTree& tree) {
     return out;
 }
 
-std::shared_ptr<const HitClearance> hit_clearance(const std::shared_ptr<const KdTree>& tree) {
-    struct Entry {
-        std::weak_ptr<const KdTree> tree;
-        std::shared_ptr<const HitClearance> data;
-    };
-    static std::mutex mutex;
-    static std::unordered_map<const KdTree*, Entry> cache;  // by the tree's address
-    static size_t prune_at = 64;
-    std::lock_guard lock(mutex);
-    if (const auto it = cache.find(tree.get()); it != cache.end()) {
-        // The same tree, not one gone whose address `tree` took over.
-        const Entry& e = it->second;
-        if (!e.tree.expired() && !e.tree.owner_before(tree) && !tree.owner_before(e.tree))
-            return e.data;
-    }
-    // Entries of trees gone are dropped whenever the cache has doubled since the last time (linear
-    // work in all).
-    if (cache.size() >= prune_at) {
-        std::erase_if(cache, [](const auto& e) { return e.second.tree.expired(); });
-        prune_at = 2 * std::max<size_t>(64, cache.size());
-    }
-    // Isolated: this thread holds the lock, so it must not take another task that may ask for it.
-    std::shared_ptr<const HitClearance> data;
-    tbb::this_task_arena::isolate(
-        [&] { data = std::make_shared<const HitClearance>(compute_hit_clearance(*tree)); });
-    cache[tree.get()] = {tree, data};
-    return data;
+}  // namespace
+}  // namespace kdrt::detail
+
+namespace kdrt {
+
+HitClearance build_hit_clearance(const KdTree& tree) {
+    HitClearance out;
+    out.tris_ = detail::clearance_records(tree);
+    return out;
 }
 
-}  // namespace kdrt::detail
+}  // namespace kdrt

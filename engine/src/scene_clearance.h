@@ -1,5 +1,6 @@
 #pragma once
-// Internal: which single-return hits need no every-hit window (scene_trace.cpp's nearest hits).
+// Internal: the test of a hit against a HitClearance (kdrt/hit_clearance.h; scene_trace.cpp's
+// nearest hits).
 //
 // A merged every-hit query (AllHitsOptions::merge_coincident) reports, as its first hit, the
 // lowest prim of the closest hit's coincident group facing each way. The group is the closest hit
@@ -15,41 +16,19 @@
 
 #include <cmath>
 #include <limits>
-#include <memory>
-#include <vector>
 
+#include "kdrt/hit_clearance.h"
 #include "kdrt/kdtree.h"
 #include "kdrt/trace.h"
 
 namespace kdrt::detail {
-
-/// One triangle's edge planes: g * (n . p - c) for each edge, n the unit normal of the plane
-/// through the edge perpendicular to the triangle, pointing inwards (computed in double, stored
-/// rounded to float: off by less than 2^-21 M at the points it is asked about); and the largest
-/// |coordinate| of the triangle (part of the merge tolerance's magnitude). 52 bytes.
-struct ClearanceRecord {
-    float plane[3][4];
-    float mag;
-};
-static_assert(sizeof(ClearanceRecord) == 52);
-
-struct HitClearance {
-    std::vector<ClearanceRecord> tris;  ///< by mesh triangle id
-};
-
-/// The clearance of `tree`'s triangles, computed once per tree and kept while the tree lives
-/// (a process-wide cache keyed by the tree; thread-safe).
-std::shared_ptr<const HitClearance> hit_clearance(const std::shared_ptr<const KdTree>& tree);
-
-/// Computes it (what the cache holds; in parallel over the current arena).
-HitClearance compute_hit_clearance(const KdTree& tree);
 
 /// True when the merged every-hit query of the object ray `o` from `first.t` (its closest hit,
 /// a hit) answers `first` itself as its first hit: no triangle sharing a vertex with first's can
 /// hit within the merge tolerance.
 [[gnu::always_inline]] inline bool hit_is_alone(const HitClearance& c, const Ray& o,
                                                 const Hit& first) noexcept {
-    const ClearanceRecord& r = c.tris[first.prim];
+    const ClearanceRecord& r = c.records()[first.prim];
     const double t = first.t;
     const double p[3] = {o.ox + t * o.dx, o.oy + t * o.dy, o.oz + t * o.dz};
     double s = std::numeric_limits<double>::infinity();

@@ -10,7 +10,6 @@
 #include <cmath>
 #include <limits>
 #include <map>
-#include <unordered_map>
 #include <utility>
 
 #include <tbb/blocked_range.h>
@@ -733,7 +732,7 @@ void keep_hits(std::span<const Hit> hits, uint32_t k, uint32_t geom, std::vector
 /// True when `first` (a hit), the closest hit of the object ray `o`, is what its every-hit window
 /// would answer for a single merged return (`clear`: the instance's tree's HitClearance, given only
 /// for k = 1 with merging; scene_clearance.h), so the window can be skipped.
-bool lone_return(const detail::HitClearance* clear, const Ray& o, const Hit& first) noexcept {
+bool lone_return(const HitClearance* clear, const Ray& o, const Hit& first) noexcept {
     return clear && detail::hit_is_alone(*clear, o, first);
 }
 
@@ -741,8 +740,7 @@ bool lone_return(const detail::HitClearance* clear, const Ray& o, const Hit& fir
 /// its closest hit `first` on the object ray `o` traced with tmax = `limit` (hits_window).
 void take_instance(const KdTree& tree, double root_mag, const Ray& o, const Hit& first,
                    float ray_tmax, float limit, bool full, uint32_t k, bool merge, uint32_t geom,
-                   const detail::HitClearance* clear, std::vector<SceneHit>& out,
-                   std::vector<Hit>& tmp) {
+                   const HitClearance* clear, std::vector<SceneHit>& out, std::vector<Hit>& tmp) {
     // None up to the k-th hit so far means no hit to keep (a merged hit is never before its
     // group's first, the instance's closest).
     if (!first.is_hit()) return;
@@ -761,7 +759,7 @@ void take_instance(const KdTree& tree, double root_mag, const Ray& o, const Hit&
 /// first by the closest-hit kernel up to that limit, then (take_instance) fully within the
 /// truncation above, so its hits are those of the oracle's every-hit query.
 void nearest(const SceneData& s, const Ray& ray, uint32_t k, bool merge,
-             std::span<const detail::HitClearance* const> clear, std::vector<SceneHit>& out,
+             std::span<const HitClearance* const> clear, std::vector<SceneHit>& out,
              NearestScratch& sc) {
     out.clear();
     if (!detail::ray_is_valid(ray)) return;
@@ -813,7 +811,7 @@ struct NearestRounds {
 /// each closest hit then goes to take_instance, as nearest() takes it. `outs[i]` gets ray i's hits.
 /// `clear`: per instance its tree's HitClearance, or empty (lone_return).
 void nearest_rounds(const SceneData& s, std::span<const Ray> rays, uint32_t k, bool merge, Isa isa,
-                    std::span<const detail::HitClearance* const> clear, NearestRounds& b,
+                    std::span<const HitClearance* const> clear, NearestRounds& b,
                     NearestScratch& sc) {
     const size_t n = rays.size();
     b.out.resize(n);
@@ -853,7 +851,7 @@ void nearest_rounds(const SceneData& s, std::span<const Ray> rays, uint32_t k, b
                 const size_t count = g1 - g0;
                 const KdTree& tree = *s.instances[geom].tree;
                 const double root_mag = s.inst[geom].root_mag;
-                const detail::HitClearance* cl = clear.empty() ? nullptr : clear[geom];
+                const HitClearance* cl = clear.empty() ? nullptr : clear[geom];
                 object_rays(s.inst[geom], rays, b.pairs, g0, g1, limit_of, b.rays);
                 b.hits.resize(count);
                 if (count >= kMinGroup) {
@@ -921,21 +919,11 @@ SceneAllHits detail::nearest_hits(const Scene& scene, std::span<const Ray> rays,
     result.offsets.assign(rays.size() + 1, 0);
     if (max_hits == 0) return result;
     // A single merged return skips the every-hit window where the closest hit is provably alone
-    // in its group (scene_clearance.h): each distinct tree's clearance, computed once per tree.
-    std::vector<std::shared_ptr<const detail::HitClearance>> kept_clearance;
-    std::vector<const detail::HitClearance*> clear;
+    // in its group, for the instances that carry their tree's clearance (kdrt/hit_clearance.h).
+    std::vector<const HitClearance*> clear;
     if (max_hits == 1 && merge_coincident && !rays.empty()) {
         clear.resize(s.instances.size(), nullptr);
-        std::unordered_map<const KdTree*, const detail::HitClearance*> seen;
-        for (size_t g = 0; g < s.instances.size(); ++g) {
-            const auto& tree = s.instances[g].tree;
-            const auto [it, added] = seen.try_emplace(tree.get(), nullptr);
-            if (added) {
-                kept_clearance.push_back(detail::hit_clearance(tree));
-                it->second = kept_clearance.back().get();
-            }
-            clear[g] = it->second;
-        }
+        for (size_t g = 0; g < s.instances.size(); ++g) clear[g] = s.instances[g].clearance.get();
     }
     constexpr size_t kRaysPerTask = kBlock;
     const size_t tasks = (rays.size() + kRaysPerTask - 1) / kRaysPerTask;

@@ -144,9 +144,8 @@ const std::vector<Setting>& settings() {
          .help = "name of this replica behind a proxy: prefixes job ids, X-Kdrt-Replica header",
          .text = &ServerConfig::replica},
         {.key = "memory_budget",
-         .help = "bytes of kD-trees (and their distance surface indexes) kept in memory; least "
-                 "recently "
-                 "used are evicted",
+         .help = "bytes of kD-trees (and their distance surface indexes and scan clearances) "
+                 "kept in memory; least recently used are evicted",
          .u64 = &ServerConfig::memory_budget,
          .bytes = true},
         {.key = "preload",

@@ -622,15 +622,17 @@ void MeshCache::evict_over_budget() {
 }
 
 void MeshCache::release_memory(Entry& entry) {
-    memory_bytes_ -= entry.tree_bytes + entry.surface_bytes;
+    memory_bytes_ -= entry.tree_bytes + entry.surface.bytes + entry.clearance.bytes;
     entry.tree_bytes = 0;
-    entry.surface_bytes = 0;
     entry.tree.reset();
-    entry.surface.reset();
+    entry.surface = {};
+    entry.clearance = {};
 }
 
-std::shared_ptr<const SurfaceIndex> MeshCache::surface_index(
-    const std::string& id, const std::shared_ptr<const KdTree>& tree) {
+std::shared_ptr<const void> MeshCache::derived(const std::string& id,
+                                               const std::shared_ptr<const KdTree>& tree,
+                                               Derived Entry::*slot,
+                                               const std::function<Made()>& make) {
     const auto resident = [&]() -> Entry* {  // mutex_ held
         const auto it = entries_.find(id);
         if (it == entries_.end() || !it->second->in_lru || it->second->tree != tree) return nullptr;
@@ -638,22 +640,42 @@ std::shared_ptr<const SurfaceIndex> MeshCache::surface_index(
     };
     {
         std::lock_guard lock(mutex_);
-        if (Entry* entry = resident(); entry && entry->surface) {
+        if (Entry* entry = resident(); entry && (entry->*slot).data) {
             lru_.splice(lru_.begin(), lru_, entry->lru_position);
-            return entry->surface;
+            return (entry->*slot).data;
         }
     }
-    auto built = std::make_shared<const SurfaceIndex>(build_surface_index(*tree));
+    Made made = make();
     std::lock_guard lock(mutex_);
     Entry* entry = resident();
-    if (!entry) return built;  // evicted or deleted meanwhile: this request's alone
+    if (!entry) return made.data;  // evicted or deleted meanwhile: this request's alone
     lru_.splice(lru_.begin(), lru_, entry->lru_position);
-    if (entry->surface) return entry->surface;  // another first use won
-    entry->surface = std::move(built);
-    entry->surface_bytes = surface_memory_bytes(*entry->surface);
-    memory_bytes_ += entry->surface_bytes;
+    Derived& kept = entry->*slot;
+    if (kept.data) return kept.data;  // another first use won
+    kept = {std::move(made.data), made.bytes};
+    memory_bytes_ += kept.bytes;
     evict_over_budget();
-    return entry->surface;
+    return kept.data;
+}
+
+std::shared_ptr<const SurfaceIndex> MeshCache::surface_index(
+    const std::string& id, const std::shared_ptr<const KdTree>& tree) {
+    return std::static_pointer_cast<const SurfaceIndex>(derived(id, tree, &Entry::surface, [&] {
+        auto index = std::make_shared<const SurfaceIndex>(build_surface_index(*tree));
+        const uint64_t bytes = surface_memory_bytes(*index);
+        return Made{std::move(index), bytes};
+    }));
+}
+
+std::shared_ptr<const HitClearance> MeshCache::hit_clearance(
+    const std::string& id, const std::shared_ptr<const KdTree>& tree) {
+    return std::static_pointer_cast<const HitClearance>(derived(id, tree, &Entry::clearance, [&] {
+        // On the compute arena (its parallel parts use the calling thread's arena).
+        auto clearance = std::make_shared<const HitClearance>(
+            compute_.run([&] { return build_hit_clearance(*tree); }));
+        const uint64_t bytes = clearance->bytes();
+        return Made{std::move(clearance), bytes};
+    }));
 }
 
 void MeshCache::drop(Entry& entry) {

@@ -20,9 +20,11 @@
 /// - Nothing is acknowledged before it is durable; a full disk is kNoSpace (507).
 /// - Eviction drops the cache's reference only: traces in flight keep their tree alive. The
 ///   most recently used tree stays resident even if it alone exceeds the budget.
-/// - The budget counts each resident tree's arrays and, once a distance query has asked for it,
-///   its SurfaceIndex (kdrt/distance.h: pseudonormals, about 84 bytes a triangle), which is
-///   kept with the tree and evicted with it, so memory_budget bounds both.
+/// - The budget counts each resident tree's arrays and the data derived from the tree that is
+///   kept with it once asked for: its SurfaceIndex (kdrt/distance.h: pseudonormals, about 84
+///   bytes a triangle; a distance query asks) and its HitClearance (kdrt/hit_clearance.h: 52
+///   bytes a triangle; a scene scan asks). Both are evicted and deleted with the tree, so
+///   memory_budget bounds all three.
 /// - Shared stores (mesh_store.h): other replicas add and delete meshes in the same store. A
 ///   mesh this cache does not know is looked up in the store (its summary file) when asked for,
 ///   registered, and its tree loaded (or rebuilt) by one caller while the others wait (adopt());
@@ -32,6 +34,7 @@
 /// All member functions are thread-safe.
 
 #include <cstdint>
+#include <functional>
 #include <future>
 #include <list>
 #include <memory>
@@ -44,6 +47,7 @@
 #include "core/compute.h"
 #include "core/metrics.h"
 #include "kdrt/distance.h"
+#include "kdrt/hit_clearance.h"
 #include "kdrt/kdtree.h"
 #include "kdrt/mesh.h"
 #include "kdrt/proto/json_api.h"
@@ -95,6 +99,10 @@ public:
     /// meanwhile), the index is built for the caller only and not kept. Throws std::bad_alloc.
     [[nodiscard]] std::shared_ptr<const SurfaceIndex> surface_index(
         const std::string& id, const std::shared_ptr<const KdTree>& tree);
+    /// The HitClearance of `tree` (what a scene's single-return scans skip windows with), kept
+    /// and counted exactly as surface_index() keeps and counts the SurfaceIndex.
+    [[nodiscard]] std::shared_ptr<const HitClearance> hit_clearance(
+        const std::string& id, const std::shared_ptr<const KdTree>& tree);
 
     /// The mesh's summary, looking in the store when this cache does not know it.
     [[nodiscard]] std::optional<proto::MeshSummary> find(const std::string& id);
@@ -114,13 +122,24 @@ private:
     using TreeResult = proto::Result<std::shared_ptr<const KdTree>, CacheError>;
     using Flight = std::shared_future<TreeResult>;
 
+    /// Data derived from a resident tree, kept with it and counted in the budget.
+    struct Derived {
+        std::shared_ptr<const void> data;
+        uint64_t bytes = 0;
+    };
+    /// What derived() builds: the data and the bytes it holds.
+    struct Made {
+        std::shared_ptr<const void> data;
+        uint64_t bytes = 0;
+    };
+
     struct Entry {
         std::string id;
         std::optional<proto::MeshSummary> summary;  ///< set once acknowledged (stored)
         std::shared_ptr<const KdTree> tree;         ///< set while resident
         uint64_t tree_bytes = 0;
-        std::shared_ptr<const SurfaceIndex> surface;  ///< while resident, once asked for
-        uint64_t surface_bytes = 0;
+        Derived surface;    ///< its SurfaceIndex, while resident, once asked for
+        Derived clearance;  ///< its HitClearance, likewise
         uint64_t disk_bytes = 0;
         std::list<Entry*>::iterator lru_position;
         bool in_lru = false;
@@ -145,6 +164,12 @@ private:
     std::shared_ptr<Entry> committed(const std::string& id);
     void note_problem(const char* file, const std::string& reason, const std::string& detail);
     proto::MeshSummary with_runtime(const Entry& entry) const;
+    /// surface_index() and hit_clearance(): the data in `slot` of the resident entry of `id`
+    /// whose tree is `tree`, made by `make` (outside the lock) on its first use and kept, counted
+    /// and evicted with the tree; for the caller alone when `tree` is no longer resident.
+    std::shared_ptr<const void> derived(const std::string& id,
+                                        const std::shared_ptr<const KdTree>& tree,
+                                        Derived Entry::*slot, const std::function<Made()>& make);
     void make_resident(Entry& entry, std::shared_ptr<const KdTree> tree);  // mutex_ held
     void evict_over_budget();                                              // mutex_ held
     void release_memory(Entry& entry);  // mutex_ held: forget the tree and the index

@@ -127,8 +127,20 @@ SceneCache::Result<SceneCache::EntryPtr> SceneCache::build(proto::SceneDocument 
         SceneBuildOptions build_options;
         build_options.max_instances = options_.max_instances;
         auto entry = std::make_shared<SceneEntry>();
-        entry->scene =
+        const Scene plain =
             compute_.run([&] { return build_scene(std::move(instances), build_options); });
+        // Accepted: each distinct mesh's HitClearance (kept with its tree by the mesh cache and
+        // counted in its budget), so the revision's single-return scans, and the revisions its
+        // pose updates make from it, skip the windows it rules out. The top level is kept.
+        std::unordered_map<std::string, std::shared_ptr<const HitClearance>> clearances;
+        std::vector<std::shared_ptr<const HitClearance>> per_instance(doc.instances.size());
+        for (size_t i = 0; i < doc.instances.size(); ++i) {
+            const std::string& mesh = doc.instances[i].mesh;
+            auto& clearance = clearances[mesh];
+            if (!clearance) clearance = meshes_.hit_clearance(mesh, trees.at(mesh));
+            per_instance[i] = clearance;
+        }
+        entry->scene = plain.with_clearances(per_instance);
         entry->doc = std::move(doc);
         entry->bytes = entry_bytes(*entry);
         return EntryPtr(std::move(entry));

@@ -7,6 +7,9 @@
 /// - A pose update builds the next revision from the current one with Scene::with_transforms
 ///   (only the top level is rebuilt), writes it to the store (the store's compare-and-set
 ///   commit decides a race, in one process or across replicas) and answers once it is durable.
+/// - Every instance of a built revision carries its mesh's HitClearance (MeshCache::
+///   hit_clearance: kept with the tree, counted in the mesh cache's budget), given once the
+///   scene is accepted; pose updates share it, so a scan never rebuilds anything for it.
 /// - Built scenes are kept by (id, revision) in LRU order within `memory_budget` bytes
 ///   (kdrt::SceneStats::bytes plus the document); a scene asked for again after eviction, or
 ///   written by another replica, is read from the store and built again, its meshes' trees

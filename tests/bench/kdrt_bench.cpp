@@ -1052,7 +1052,7 @@ int run_scene_instances(const Args& args) {
         line["mesh_build_ms"] = rounded(ms_since(start), 3);
         const std::vector<Affine3x4> poses = grid_transforms(bounds, copies, 0.0f);
         std::vector<SceneInstance> list;
-        for (const Affine3x4& t : poses) list.push_back({tree, t, nullptr});
+        for (const Affine3x4& t : poses) list.push_back({tree, t, nullptr, nullptr});
         const Scene scene = build_scene(std::move(list));
         line["scene_build_ms"] = rounded(scene.stats().build_ms, 3);
         line["top_nodes"] = scene.stats().nodes;
@@ -1207,8 +1207,18 @@ int run_scene_lidar(const Args& args) {
     line["threads"] = thread_count(args);
     with_threads(thread_count(args), [&] {
         auto tree = std::make_shared<const KdTree>(build_kdtree(mesh));
+        // The tree's HitClearance, shared by every instance (as the server's scene cache gives
+        // it): single returns skip the windows it rules out. --no-clearance leaves it out.
+        std::shared_ptr<const HitClearance> clearance;
+        if (!args.flag("no-clearance")) {
+            const auto start = Clock::now();
+            clearance = std::make_shared<const HitClearance>(build_hit_clearance(*tree));
+            line["clearance_ms"] = rounded(ms_since(start), 3);
+            line["clearance_bytes"] = clearance->bytes();
+        }
         std::vector<SceneInstance> list;
-        for (const Affine3x4& t : ring_poses(copies, frame)) list.push_back({tree, t, nullptr});
+        for (const Affine3x4& t : ring_poses(copies, frame))
+            list.push_back({tree, t, nullptr, clearance});
         const Scene scene = build_scene(std::move(list));
         LidarSpec spec;
         spec.elevation_deg = lidar_elevations(-25.0, 15.0, channels);
@@ -1248,6 +1258,7 @@ constexpr std::string_view kSceneUsage =
                                   [--threads T] [--compare embree]
        kdrt-bench scene lidar --from MESH [--copies N] [--azimuth A] [--channels C]
                               [--returns R] [--frame F] [--reps K] [--threads T]
+                              [--no-clearance]
 
 Writes a generated scene; the format follows the extension of FILE (.ply is binary PLY).
   stadium  a closed box of side S (default 1000) around a finely tessellated unit sphere
@@ -1266,9 +1277,11 @@ Prints one JSON line: kind, triangles, vertices, out, bytes.
   lidar    scene_latency.py's scan in process: N instances of MESH (default 1,000) on its ring
            grid at frame F (default 1), a lidar of C channels (default 64, -25..15 degrees) x A
            azimuth steps (default 2048), R returns, from (0.7, 0.3, 0.2) to range 120; K scans
-           (median, default 7). Prints scan_ms, pose_ms (Scene::with_transforms moving every
-           instance to frame F + 1: the top level rebuilt), points and answer_fnv1a (a hash of the
-           points and geometry ids: equal answers, equal hashes).
+           (median, default 7), every instance carrying the mesh tree's HitClearance (built once:
+           clearance_ms, clearance_bytes; --no-clearance: none, every single return gets its
+           every-hit window, the same answers). Prints scan_ms, pose_ms (Scene::with_transforms
+           moving every instance to frame F + 1: the top level rebuilt), points and answer_fnv1a
+           (a hash of the points and geometry ids: equal answers, equal hashes).
 )";
 
 int run_scene(const Args& args) {
@@ -1447,6 +1460,7 @@ constexpr std::array<std::string_view, 7> kRaysOptions = {"kind", "res",     "se
 constexpr std::array<std::string_view, 12> kSceneOptions = {
     "out",     "size",    "from",    "copies",   "res",     "reps",
     "threads", "compare", "azimuth", "channels", "returns", "frame"};
+constexpr std::array<std::string_view, 1> kSceneFlags = {"no-clearance"};
 constexpr std::array<std::string_view, 13> kRenderOptions = {
     "shading",    "res",     "spp",     "tile",    "threads", "reps",   "seed",
     "ao-samples", "bounces", "builder", "c-isect", "out",     "compare"};
@@ -1459,7 +1473,7 @@ constexpr std::array<Command, 7> kCommands = {{
     {"trace", kTraceUsage, kTraceOptions, &run_trace, kTraceFlags},
     {"all-hits", kAllHitsUsage, kAllHitsOptions, &run_all_hits, kAllHitsFlags},
     {"rays", kRaysUsage, kRaysOptions, &run_rays},
-    {"scene", kSceneUsage, kSceneOptions, &run_scene},
+    {"scene", kSceneUsage, kSceneOptions, &run_scene, kSceneFlags},
     {"render", kRenderUsage, kRenderOptions, &run_render},
     {"distance", kDistanceUsage, kDistanceOptions, &run_distance},
 }};

@@ -1,5 +1,6 @@
-// HitClearance (engine/src/scene_clearance.h): a single merged return skips its every-hit window
-// only where the closest hit is provably the first merged hit. Held to the every-hit oracle.
+// HitClearance (kdrt/hit_clearance.h, engine/src/scene_clearance.h): a single merged return skips
+// its every-hit window only where the closest hit is provably the first merged hit. Held to the
+// every-hit oracle.
 
 #include <gtest/gtest.h>
 
@@ -8,8 +9,11 @@
 #include <memory>
 #include <string>
 
+#include "kdrt/hit_clearance.h"
 #include "kdrt/proto/mesh_io.h"
 #include "kdrt/query.h"
+#include "kdrt/scan.h"
+#include "kdrt/scene.h"
 #include "kdrt/trace.h"
 #include "scene_clearance.h"
 #include "scenes.h"
@@ -44,9 +48,9 @@ struct Counts {
 /// hits were not the first merged hit.
 Counts check(const Mesh& mesh, const std::vector<Ray>& rays) {
     const KdTree tree = build_kdtree(mesh);
-    const detail::HitClearance clear = detail::compute_hit_clearance(tree);
+    const HitClearance clear = build_hit_clearance(tree);
     const std::vector<TriVerts> tris = triangles_by_id(tree);
-    EXPECT_EQ(clear.tris.size(), tris.size());
+    EXPECT_EQ(clear.size(), tris.size());
     Counts c;
     for (size_t i = 0; i < rays.size(); ++i) {
         const Hit first = intersect(tree, rays[i]);
@@ -129,8 +133,8 @@ TEST(SceneClearance, FoldsAndCopiesAlwaysGetTheirWindow) {
     add_triangle(copies, {0, 0, 0}, {1, 0, 0}, {0, 1, 0});
     for (const Mesh& mesh : {folded_pair(1e-5f), copies}) {
         const KdTree tree = build_kdtree(mesh);
-        const detail::HitClearance clear = detail::compute_hit_clearance(tree);
-        for (const detail::ClearanceRecord& r : clear.tris)
+        const HitClearance clear = build_hit_clearance(tree);
+        for (const detail::ClearanceRecord& r : clear.records())
             for (const auto& plane : r.plane)
                 for (const double x : plane) EXPECT_EQ(x, 0.0);
         std::vector<Ray> rays;
@@ -181,9 +185,9 @@ TEST(SceneClearance, CrowdedVerticesAreNotLookedAt) {
         };
         for (uint32_t k = 0; k < count; ++k) add_triangle(fan, {0, 0, 0}, rim(k), rim(k + 1));
         const KdTree tree = build_kdtree(fan);
-        const detail::HitClearance clear = detail::compute_hit_clearance(tree);
+        const HitClearance clear = build_hit_clearance(tree);
         size_t zero = 0;
-        for (const detail::ClearanceRecord& r : clear.tris)
+        for (const detail::ClearanceRecord& r : clear.records())
             zero += r.plane[0][0] == 0.0f && r.plane[0][1] == 0.0f && r.plane[0][3] == 0.0f;
         Rng rng(test_seed() + count);
         std::vector<Ray> rays;
@@ -193,7 +197,7 @@ TEST(SceneClearance, CrowdedVerticesAreNotLookedAt) {
         }
         const Counts c = check(fan, rays);
         if (count == 300) {
-            EXPECT_EQ(zero, clear.tris.size());
+            EXPECT_EQ(zero, clear.size());
             EXPECT_EQ(c.alone, 0u);
         } else {
             EXPECT_EQ(zero, 0u);
@@ -202,19 +206,65 @@ TEST(SceneClearance, CrowdedVerticesAreNotLookedAt) {
     }
 }
 
-TEST(SceneClearance, TheCacheKeepsOnePerTree) {
+TEST(SceneClearance, InstancesWithAndWithoutItAnswerTheSame) {
+    // The engine keeps no clearance of its own: an instance carries it or not. A lidar among
+    // overlapping bunnies (one tree, rigid and mirrored poses) answers the same points and
+    // geometry ids, bit for bit, with every instance carrying the tree's clearance, with none,
+    // and with every other one; a pose update keeps each instance's clearance.
+    const Mesh bunny = load_data_mesh("bunny00.off");
+    auto tree = std::make_shared<const KdTree>(build_kdtree(bunny));
+    const auto clear = std::make_shared<const HitClearance>(build_hit_clearance(*tree));
+    EXPECT_EQ(clear->size(), tree->tri_slots.size());
+    EXPECT_EQ(clear->bytes(), sizeof(HitClearance) + 52 * clear->records().size());
+    std::vector<SceneInstance> bare, carried, mixed;
+    for (int i = 0; i < 12; ++i) {
+        Affine3x4 t;
+        const float a = 0.5236f * static_cast<float>(i);
+        t.m[0][0] = t.m[1][1] = std::cos(a);
+        t.m[0][1] = -std::sin(a);
+        t.m[1][0] = std::sin(a);
+        if (i % 3 == 0) t.m[2][2] = -1.0f;  // mirrored
+        t.m[0][3] = 0.6f * std::cos(a);
+        t.m[1][3] = 0.6f * std::sin(a);
+        bare.push_back({tree, t, nullptr, nullptr});
+        carried.push_back({tree, t, nullptr, clear});
+        mixed.push_back({tree, t, nullptr, i % 2 ? clear : nullptr});
+    }
+    const Scene without = build_scene(bare), with = build_scene(carried), half = build_scene(mixed);
+    LidarSpec lidar;
+    lidar.elevation_deg = lidar_elevations(-30, 30, 32);
+    lidar.azimuth_steps = 256;
+    lidar.pose.m[11] = 0.05;
+    const ScenePointCloud want = scan_lidar(without, lidar);
+    EXPECT_GT(want.cloud.points.size(), 1000u);
+    for (const Scene* scene : {&with, &half}) {
+        const ScenePointCloud got = scan_lidar(*scene, lidar);
+        ASSERT_EQ(got.cloud.points.size(), want.cloud.points.size());
+        EXPECT_EQ(std::memcmp(got.cloud.points.data(), want.cloud.points.data(),
+                              want.cloud.points.size() * sizeof(LidarPoint)),
+                  0);
+        EXPECT_EQ(got.geom, want.geom);
+    }
+    Affine3x4 moved;
+    moved.m[2][3] = 0.01f;
+    const Scene next = with.with_transform(3, moved);
+    for (uint32_t g = 0; g < next.size(); ++g) EXPECT_EQ(next.instance(g).clearance, clear);
+    EXPECT_EQ(half.instance(0).clearance, nullptr);
+}
+
+TEST(SceneClearance, OneOfAnotherTreeIsRefused) {
     auto tree = std::make_shared<const KdTree>(build_kdtree(uv_sphere({0, 0, 0}, 1.0f, 6, 8)));
-    const auto a = detail::hit_clearance(tree);
-    EXPECT_EQ(detail::hit_clearance(tree).get(), a.get());
-    EXPECT_EQ(a->tris.size(), tree->tri_slots.size());
-    auto other = std::make_shared<const KdTree>(build_kdtree(uv_sphere({0, 0, 0}, 1.0f, 6, 8)));
-    EXPECT_NE(detail::hit_clearance(other).get(), a.get());
-    // A tree gone, and another one (perhaps at its address): its own clearance, never the old.
-    const size_t first_size = a->tris.size();
-    tree.reset();
-    auto next = std::make_shared<const KdTree>(build_kdtree(uv_sphere({0, 0, 0}, 1.0f, 5, 7)));
-    ASSERT_NE(next->tri_slots.size(), first_size);
-    EXPECT_EQ(detail::hit_clearance(next)->tris.size(), next->tri_slots.size());
+    auto other = std::make_shared<const KdTree>(build_kdtree(uv_sphere({0, 0, 0}, 1.0f, 5, 7)));
+    ASSERT_NE(other->tri_slots.size(), tree->tri_slots.size());
+    const auto wrong = std::make_shared<const HitClearance>(build_hit_clearance(*other));
+    try {
+        (void)build_scene(
+            {{tree, Affine3x4{}, nullptr, nullptr}, {tree, Affine3x4{}, nullptr, wrong}});
+        ADD_FAILURE() << "a clearance of another triangle count was accepted";
+    } catch (const SceneError& e) {
+        EXPECT_EQ(e.instance_index(), 1u);
+        EXPECT_EQ(e.field(), "clearance");
+    }
 }
 
 }  // namespace

@@ -4,9 +4,11 @@
 #include <gtest/gtest.h>
 
 #include <algorithm>
+#include <array>
 #include <atomic>
 #include <cmath>
 #include <cstring>
+#include <map>
 #include <memory>
 #include <numbers>
 #include <random>
@@ -151,6 +153,19 @@ struct TestScene {
     Scene scene;
 };
 
+/// `scene` with every instance carrying its tree's HitClearance (one per tree, shared): its
+/// single-return scans skip the windows the clearance rules out, and must answer the same.
+Scene with_clearances(const Scene& scene) {
+    std::vector<SceneInstance> list = scene.instances();
+    std::map<const KdTree*, std::shared_ptr<const HitClearance>> made;
+    for (SceneInstance& in : list) {
+        auto& c = made[in.tree.get()];
+        if (!c) c = std::make_shared<const HitClearance>(build_hit_clearance(*in.tree));
+        in.clearance = c;
+    }
+    return build_scene(std::move(list), scene.options());
+}
+
 TestScene mixed_scene(uint64_t seed, uint32_t instances) {
     Rng rng(seed);
     TestScene s;
@@ -164,7 +179,7 @@ TestScene mixed_scene(uint64_t seed, uint32_t instances) {
         const uint32_t mesh = i % 3;
         const Kind kind = static_cast<Kind>(rng.below(4));
         s.mesh_of.push_back(mesh);
-        list.push_back({s.trees[mesh], random_transform(rng, kind), nullptr});
+        list.push_back({s.trees[mesh], random_transform(rng, kind), nullptr, nullptr});
     }
     s.scene = build_scene(std::move(list));
     return s;
@@ -270,7 +285,7 @@ TEST(Scene, OneIdentityInstanceAnswersAsTheMesh) {
     Rng rng(seed);
     const Mesh mesh = random_soup(rng, 500);
     auto tree = std::make_shared<const KdTree>(build_kdtree(mesh));
-    const Scene scene = build_scene({{tree, Affine3x4{}, nullptr}});
+    const Scene scene = build_scene({{tree, Affine3x4{}, nullptr, nullptr}});
     const std::vector<Ray> rays = oracle_rays(rng, mesh, *tree, scaled(4000));
     std::vector<Hit> mesh_hits(rays.size());
     std::vector<SceneHit> scene_hits(rays.size());
@@ -314,7 +329,8 @@ TEST(Scene, ThousandInstancesOfOneMesh) {
     for (uint32_t i = 0; i < 1000; ++i) {
         s.mesh_of.push_back(0);
         list.push_back({s.trees[0],
-                        affine(random_rotation(rng), rng.in_box({{0, 0, 0}, {1, 1, 1}})), nullptr});
+                        affine(random_rotation(rng), rng.in_box({{0, 0, 0}, {1, 1, 1}})), nullptr,
+                        nullptr});
     }
     s.scene = build_scene(std::move(list));
     EXPECT_EQ(s.scene.size(), 1000u);
@@ -339,8 +355,9 @@ TEST(Scene, InstancesSharingAnEdgeInWorldSpace) {
     s.meshes.push_back(quad);
     s.trees.push_back(tree);
     s.mesh_of = {0, 0, 0};
-    s.scene = build_scene(
-        {{tree, Affine3x4{}, nullptr}, {tree, moved, nullptr}, {tree, mirrored, nullptr}});
+    s.scene = build_scene({{tree, Affine3x4{}, nullptr, nullptr},
+                           {tree, moved, nullptr, nullptr},
+                           {tree, mirrored, nullptr, nullptr}});
     const uint64_t seed = test_seed();
     SCOPED_TRACE(testing::Message() << "seed=" << seed);
     Rng rng(seed);
@@ -399,22 +416,23 @@ TEST(Scene, RoundsNeverStopBeforeANearerOrTyingHitInALaterInstance) {
         slab.m[1][3] = -1.0f + 0.3f * static_cast<float>(k);
         slab.m[2][1] = 8.0f;
         slab.m[2][3] = z;
-        list.push_back({tree, slab, nullptr});
+        list.push_back({tree, slab, nullptr, nullptr});
         Affine3x4 face;  // 1.2 wide, facing the camera, inside the slab's box
         face.m[0][0] = face.m[1][1] = 1.2f;
         face.m[0][3] = -1.4f + 0.5f * static_cast<float>(k % 3);
         face.m[1][3] = -1.0f + 0.25f * static_cast<float>(k);
         face.m[2][3] = z + 4.0f;
         faces.push_back(static_cast<uint32_t>(list.size()));
-        list.push_back({tree, face, nullptr});
+        list.push_back({tree, face, nullptr, nullptr});
         Affine3x4 neighbour = face;  // shares the face's right edge
         neighbour.m[0][3] += 1.2f;
-        list.push_back({tree, neighbour, nullptr});
+        list.push_back({tree, neighbour, nullptr, nullptr});
         for (int j = 0; j <= 8; ++j)
             edge_points.push_back(
                 {face.m[0][3] + 1.2f, face.m[1][3] + 0.15f * static_cast<float>(j), face.m[2][3]});
     }
-    for (uint32_t g : faces) list.push_back({tree, list[g].transform, nullptr});  // the copies
+    for (uint32_t g : faces)
+        list.push_back({tree, list[g].transform, nullptr, nullptr});  // the copies
     TestScene s;
     s.meshes.push_back(quad);
     s.trees.push_back(tree);
@@ -467,7 +485,8 @@ void far_boxes(uint64_t seed, size_t count, TestScene& s, std::vector<Ray>& rays
     std::vector<SceneInstance> list;
     for (uint32_t i = 0; i < 12; ++i) {
         s.mesh_of.push_back(0);
-        list.push_back({s.trees[0], random_transform(rng, static_cast<Kind>(i % 4)), nullptr});
+        list.push_back(
+            {s.trees[0], random_transform(rng, static_cast<Kind>(i % 4)), nullptr, nullptr});
     }
     s.scene = build_scene(std::move(list));
     for (size_t i = 0; i < count; ++i) {
@@ -550,7 +569,7 @@ TEST(Scene, EmptyScenesMiss) {
     EXPECT_FALSE(intersect(none, make_ray({0, 0, 0}, {1, 0, 0})).is_hit());
     // An instance of a mesh without triangles has an empty world box and is never hit.
     auto tree = std::make_shared<const KdTree>(build_kdtree(Mesh{}));
-    const Scene hollow = build_scene({{tree, Affine3x4{}, nullptr}});
+    const Scene hollow = build_scene({{tree, Affine3x4{}, nullptr, nullptr}});
     EXPECT_TRUE(hollow.world_bounds(0).empty());
     EXPECT_FALSE(intersect(hollow, make_ray({0, 0, 0}, {1, 0, 0})).is_hit());
     std::vector<SceneHit> hits(3);
@@ -581,7 +600,7 @@ TEST(Scene, RefusesBadInstancesNamingIndexAndField) {
     Rng rng(1);
     auto tree = std::make_shared<const KdTree>(build_kdtree(random_soup(rng, 10)));
     const auto with = [&](uint32_t bad, Affine3x4 t) {
-        std::vector<SceneInstance> list(5, SceneInstance{tree, Affine3x4{}, nullptr});
+        std::vector<SceneInstance> list(5, SceneInstance{tree, Affine3x4{}, nullptr, nullptr});
         list[bad].transform = t;
         return list;
     };
@@ -611,7 +630,7 @@ TEST(Scene, RefusesBadInstancesNamingIndexAndField) {
     Affine3x4 flattened;  // a flat but well-conditioned scale is fine (ray transforms are exact)
     flattened.m[2][2] = 1e-12f;
     EXPECT_NO_THROW((void)build_scene(with(2, flattened)));
-    std::vector<SceneInstance> null_tree(3, SceneInstance{tree, Affine3x4{}, nullptr});
+    std::vector<SceneInstance> null_tree(3, SceneInstance{tree, Affine3x4{}, nullptr, nullptr});
     null_tree[2].tree = nullptr;
     expect_scene_error([&] { (void)build_scene(null_tree); }, 2u, "tree");
     SceneBuildOptions small;
@@ -789,7 +808,7 @@ TEST(Scene, PacketTopWalkKeepsEveryLaneAndInstance) {
         Affine3x4 t;
         t.m[0][0] = sx, t.m[1][1] = sy;
         t.m[0][3] = x, t.m[1][3] = y, t.m[2][3] = z;
-        list.push_back({tree, t, nullptr});
+        list.push_back({tree, t, nullptr, nullptr});
     };
     place(-10.0f, -10.0f, 5.0f, 10.0f, 20.0f);  // left of the hole
     place(0.4f, -10.0f, 5.0f, 10.0f, 20.0f);    // right
@@ -835,7 +854,7 @@ TEST(SceneAllHits, NearestHitsAreTheOraclesFirstK) {
         Affine3x4 t = random_transform(rng, Kind::kRigid);
         t.m[0][3] = static_cast<float>(i);
         t.m[1][3] = t.m[2][3] = 0.0f;
-        row.push_back({tree, t, nullptr});
+        row.push_back({tree, t, nullptr, nullptr});
     }
     const Scene line = build_scene(std::move(row));
     std::vector<Ray> line_rays;
@@ -857,10 +876,14 @@ TEST(SceneAllHits, NearestHitsAreTheOraclesFirstK) {
         for (uint32_t x = 0; x < scaled_res(40); ++x)
             cam_rays.push_back(cam.ray(x + 0.5f, y + 0.5f));
     size_t cut = 0;
+    const Scene s_cleared = with_clearances(s.scene), line_cleared = with_clearances(line);
     for (const auto& [scene, list] :
          {std::pair<const Scene*, const std::vector<Ray>*>{&s.scene, &rays},
           std::pair<const Scene*, const std::vector<Ray>*>{&s.scene, &cam_rays},
-          std::pair<const Scene*, const std::vector<Ray>*>{&line, &line_rays}}) {
+          std::pair<const Scene*, const std::vector<Ray>*>{&line, &line_rays},
+          std::pair<const Scene*, const std::vector<Ray>*>{&s_cleared, &rays},
+          std::pair<const Scene*, const std::vector<Ray>*>{&s_cleared, &cam_rays},
+          std::pair<const Scene*, const std::vector<Ray>*>{&line_cleared, &line_rays}}) {
         const SceneOracle oracle(*scene);
         for (bool merge : {false, true}) {
             std::vector<std::vector<SceneHit>> want(list->size());
@@ -944,7 +967,7 @@ TestScene similarity_scene(uint64_t seed, uint32_t instances, bool surfaces) {
         const uint32_t mesh = i % 4 == 3 ? 1 : 0;
         s.mesh_of.push_back(mesh);
         list.push_back({s.trees[mesh], affine(l, rng.in_box({{-2, -2, -2}, {2, 2, 2}})),
-                        surfaces ? (mesh == 0 ? sphere_surface : soup_surface) : nullptr});
+                        surfaces ? (mesh == 0 ? sphere_surface : soup_surface) : nullptr, nullptr});
     }
     s.scene = build_scene(std::move(list));
     return s;
@@ -1000,7 +1023,7 @@ TEST(SceneDistance, IdentityInstanceAnswersAsTheMesh) {
     const Mesh mesh = uv_sphere({0, 0, 0}, 1.0f, 12, 16);
     auto tree = std::make_shared<const KdTree>(build_kdtree(mesh));
     auto surface = std::make_shared<const SurfaceIndex>(build_surface_index(*tree));
-    const Scene scene = build_scene({{tree, Affine3x4{}, surface}});
+    const Scene scene = build_scene({{tree, Affine3x4{}, surface, nullptr}});
     for (int i = 0; i < 500; ++i) {
         const Vec3 p = rng.in_box({{-2, -2, -2}, {2, 2, 2}});
         for (const DistanceOptions options :
@@ -1038,7 +1061,7 @@ TEST(SceneDistance, BatchWorkCountsTheMeshSearchesOfEachInstance) {
     const Mesh mesh = uv_sphere({0, 0, 0}, 1.0f, 12, 16);
     auto tree = std::make_shared<const KdTree>(build_kdtree(mesh));
     auto surface = std::make_shared<const SurfaceIndex>(build_surface_index(*tree));
-    const Scene scene = build_scene({{tree, Affine3x4{}, surface}});
+    const Scene scene = build_scene({{tree, Affine3x4{}, surface, nullptr}});
     std::vector<Vec3> points;
     for (int i = 0; i < 300; ++i) points.push_back(rng.in_box({{-3, -3, -3}, {3, 3, 3}}));
     std::vector<ClosestPoint> mesh_out(points.size());
@@ -1127,7 +1150,7 @@ TEST(SceneScan, IdentitySceneScansAsTheMeshAndNamesInstances) {
     lidar.azimuth_steps = 90;
     lidar.returns = 2;
     lidar.pose.m[3] = 3.0;
-    const Scene scene = build_scene({{tree, Affine3x4{}, nullptr}});
+    const Scene scene = build_scene({{tree, Affine3x4{}, nullptr, nullptr}});
     const DepthImage want = scan_pinhole(*tree, pin);
     const SceneDepthImage got = scan_pinhole(scene, pin);
     EXPECT_EQ(got.image.depth, want.depth);
@@ -1149,7 +1172,8 @@ TEST(SceneScan, IdentitySceneScansAsTheMeshAndNamesInstances) {
     // surface the point lies on, and every pixel's depth is the oracle's.
     Affine3x4 moved;
     moved.m[0][3] = 3.0f;
-    const Scene two = build_scene({{tree, Affine3x4{}, nullptr}, {tree, moved, nullptr}});
+    const Scene two =
+        build_scene({{tree, Affine3x4{}, nullptr, nullptr}, {tree, moved, nullptr, nullptr}});
     lidar.pose.m[3] = 1.5;
     const ScenePointCloud both = scan_lidar(two, lidar);
     std::array<size_t, 2> per{};
@@ -1189,9 +1213,12 @@ TEST(SceneScan, LidarReturnsAreTheOraclesNearestHitsOfEachBeam) {
     lidar.pose.m[3] = 0.5 * (b.lo[0] + b.hi[0]);
     lidar.pose.m[7] = 0.5 * (b.lo[1] + b.hi[1]);
     lidar.pose.m[11] = 0.5 * (b.lo[2] + b.hi[2]);
-    for (uint32_t returns : {1u, 3u}) {
+    const Scene cleared = with_clearances(s.scene);
+    for (const auto& [scene, returns] :
+         {std::pair{&s.scene, 1u}, std::pair{&s.scene, 3u}, std::pair{&cleared, 1u}}) {
+        SCOPED_TRACE(scene == &cleared ? "with clearances" : "without");
         lidar.returns = returns;
-        const ScenePointCloud got = scan_lidar(s.scene, lidar);
+        const ScenePointCloud got = scan_lidar(*scene, lidar);
         size_t k = 0, cut = 0;
         for (uint32_t a = 0; a < lidar.azimuth_steps; ++a) {
             for (uint32_t c = 0; c < 12; ++c) {
@@ -1239,6 +1266,11 @@ TEST(SceneScan, NearestHitsMatchTheOracleOnEveryIsaWithNoBeamOrLaneLeftOut) {
     for (uint32_t a = 0; a < lidar.azimuth_steps; ++a)
         for (uint32_t c = 0; c < 13; ++c) rays.push_back(lidar_ray(lidar, c, a));
     ASSERT_GT(rays.size(), 1024u);
+    const Scene cleared = with_clearances(s.scene);
+    std::vector<std::pair<Isa, const Scene*>> isas_and_scenes;
+    const std::array<const Scene*, 2> both{&s.scene, &cleared};
+    for (Isa isa : supported_isas())
+        for (const Scene* scene : both) isas_and_scenes.emplace_back(isa, scene);
     for (uint32_t returns : {1u, 2u}) {
         std::vector<std::vector<SceneHit>> want(rays.size());
         size_t beams_hit = 0;
@@ -1250,9 +1282,10 @@ TEST(SceneScan, NearestHitsMatchTheOracleOnEveryIsaWithNoBeamOrLaneLeftOut) {
         // A fifth of the beams or more (253 of 1,261 at KDRT_TEST_SEED=16, the fewest of 1-40).
         EXPECT_GT(beams_hit, rays.size() / 6) << "the beams should hit the scene often";
         RecordProperty("beams_hit", static_cast<int>(beams_hit));
-        for (Isa isa : supported_isas()) {
-            SCOPED_TRACE(std::string(isa_name(isa)) + " returns " + std::to_string(returns));
-            const SceneAllHits got = detail::nearest_hits(s.scene, rays, returns, true, isa);
+        for (const auto& [isa, scene] : isas_and_scenes) {
+            SCOPED_TRACE(std::string(isa_name(isa)) + " returns " + std::to_string(returns) +
+                         (scene == &cleared ? " with clearances" : ""));
+            const SceneAllHits got = detail::nearest_hits(*scene, rays, returns, true, isa);
             ASSERT_EQ(got.offsets.size(), rays.size() + 1);
             for (size_t i = 0; i < rays.size(); ++i) {
                 ASSERT_EQ(got.offsets[i + 1] - got.offsets[i], want[i].size()) << "beam " << i;
@@ -1288,7 +1321,7 @@ TEST(SceneScan, SingleReturnsAreTheFirstMergedHitWhereThatIsNotTheClosestHit) {
     std::vector<SceneInstance> list;
     const auto add = [&](uint32_t mesh, const Affine3x4& t) {
         s.mesh_of.push_back(mesh);
-        list.push_back({s.trees[mesh], t, nullptr});
+        list.push_back({s.trees[mesh], t, nullptr, nullptr});
     };
     for (int i = 0; i < 8; ++i) {
         Affine3x4 t = random_transform(rng, i % 2 ? Kind::kMirrored : Kind::kRigid);
@@ -1338,6 +1371,11 @@ TEST(SceneScan, SingleReturnsAreTheFirstMergedHitWhereThatIsNotTheClosestHit) {
         many_origins.push_back(make_ray(sensor, edge - sensor));
     }
     const SceneOracle oracle(s.scene);
+    const Scene cleared = with_clearances(s.scene);
+    std::vector<std::pair<Isa, const Scene*>> isas_and_scenes;
+    const std::array<const Scene*, 2> both{&s.scene, &cleared};
+    for (Isa isa : supported_isas())
+        for (const Scene* scene : both) isas_and_scenes.emplace_back(isa, scene);
     size_t not_closest = 0, hit = 0;
     for (const auto* list_of : {&one_origin, &many_origins}) {
         const std::vector<Ray>& rays = *list_of;
@@ -1349,10 +1387,11 @@ TEST(SceneScan, SingleReturnsAreTheFirstMergedHitWhereThatIsNotTheClosestHit) {
             ++hit;
             not_closest += !same_bits(want[i][0], oracle.intersect(rays[i]));
         }
-        for (Isa isa : supported_isas()) {
+        for (const auto& [isa, scene] : isas_and_scenes) {
             SCOPED_TRACE(std::string(isa_name(isa)) +
-                         (list_of == &one_origin ? " one origin" : " many origins"));
-            const SceneAllHits got = detail::nearest_hits(s.scene, rays, 1, true, isa);
+                         (list_of == &one_origin ? " one origin" : " many origins") +
+                         (scene == &cleared ? " with clearances" : ""));
+            const SceneAllHits got = detail::nearest_hits(*scene, rays, 1, true, isa);
             ASSERT_EQ(got.offsets.size(), rays.size() + 1);
             for (size_t i = 0; i < rays.size(); ++i) {
                 const std::vector<SceneHit> kept(
@@ -1393,7 +1432,7 @@ TEST(SceneRender, IdentitySceneRendersAsTheMeshInEveryMode) {
     Rng rng(test_seed() + 61);
     const Mesh mesh = random_soup(rng, 400, 0.3f);
     auto tree = std::make_shared<const KdTree>(build_kdtree(mesh));
-    const Scene scene = build_scene({{tree, Affine3x4{}, nullptr}});
+    const Scene scene = build_scene({{tree, Affine3x4{}, nullptr, nullptr}});
     for (Shading shading : {Shading::kNormals, Shading::kEyelight, Shading::kDepth,
                             Shading::kPrimId, Shading::kAo, Shading::kDiffuse, Shading::kGeomId}) {
         SCOPED_TRACE(std::string(shading_name(shading)));
@@ -1417,7 +1456,8 @@ TEST(SceneRender, InstancesOfOneMeshGetTheirOwnPrimIdColours) {
     auto tree = std::make_shared<const KdTree>(build_kdtree(quad));
     Affine3x4 right;
     right.m[0][3] = 1.0f;
-    const Scene scene = build_scene({{tree, Affine3x4{}, nullptr}, {tree, right, nullptr}});
+    const Scene scene =
+        build_scene({{tree, Affine3x4{}, nullptr, nullptr}, {tree, right, nullptr, nullptr}});
     RenderSettings settings;
     settings.width = 64;
     settings.height = 32;
@@ -1461,7 +1501,8 @@ TEST(SceneRender, GeomIdColoursEachInstanceByItsIdAlone) {
         return out;
     };
     settings.shading = Shading::kPrimId;
-    const Scene scene = build_scene({{tree, Affine3x4{}, nullptr}, {tree, right, nullptr}});
+    const Scene scene =
+        build_scene({{tree, Affine3x4{}, nullptr, nullptr}, {tree, right, nullptr, nullptr}});
     const auto prim = halves(render(scene, settings));
     // Each half shows both triangles of its instance (two primid colours), so the check below
     // that geomid gives one colour a half can fail.
@@ -1476,14 +1517,16 @@ TEST(SceneRender, GeomIdColoursEachInstanceByItsIdAlone) {
     EXPECT_NE(*geom[0].begin(), *geom[1].begin());
     // A pure function of the id: the instances' order swapped swaps the colours; a third
     // instance elsewhere does not change them; a mesh is geometry 0.
-    const Scene swapped = build_scene({{tree, right, nullptr}, {tree, Affine3x4{}, nullptr}});
+    const Scene swapped =
+        build_scene({{tree, right, nullptr, nullptr}, {tree, Affine3x4{}, nullptr, nullptr}});
     const auto back = halves(render(swapped, settings));
     EXPECT_EQ(back[0], geom[1]);
     EXPECT_EQ(back[1], geom[0]);
     Affine3x4 far;
     far.m[2][3] = -50.0f;
-    const Scene three =
-        build_scene({{tree, Affine3x4{}, nullptr}, {tree, right, nullptr}, {tree, far, nullptr}});
+    const Scene three = build_scene({{tree, Affine3x4{}, nullptr, nullptr},
+                                     {tree, right, nullptr, nullptr},
+                                     {tree, far, nullptr, nullptr}});
     const auto again = halves(render(three, settings));
     EXPECT_EQ(again[0], geom[0]);
     EXPECT_EQ(again[1], geom[1]);

@@ -6,11 +6,14 @@
 #include <gtest/gtest.h>
 #include <unistd.h>
 
+#include <cstring>
 #include <filesystem>
 #include <fstream>
+#include <functional>
 #include <thread>
 
 #include "kdrt/distance.h"
+#include "kdrt/hit_clearance.h"
 #include "kdrt/proto/mesh_id.h"
 #include "kdrt/trace.h"
 #include "test_util.h"
@@ -127,52 +130,132 @@ TEST_F(MeshCacheTest, BudgetEvictsLeastRecentlyUsed) {
     (void)ic;
 }
 
-TEST_F(MeshCacheTest, SurfaceIndexCountsTowardsTheBudgetAndIsEvictedWithItsTree) {
-    MeshStore store(dir_);
-    const Mesh a = mesh(6), b = mesh(7), c = mesh(8);
+/// Data the cache derives from a tree and keeps with it (a SurfaceIndex, a HitClearance): how to
+/// ask for it, build it apart, count its bytes and compare two.
+struct DerivedKind {
+    std::function<std::shared_ptr<const void>(MeshCache&, const std::string&,
+                                              const std::shared_ptr<const KdTree>&)>
+        get;
+    std::function<std::shared_ptr<const void>(const KdTree&)> build;
+    std::function<uint64_t(const void*)> bytes;
+    std::function<bool(const void*, const void*)> same;
+};
+
+const DerivedKind kSurfaceIndex{
+    [](MeshCache& c, const std::string& id, const std::shared_ptr<const KdTree>& t) {
+        return std::shared_ptr<const void>(c.surface_index(id, t));
+    },
+    [](const KdTree& t) {
+        return std::shared_ptr<const void>(
+            std::make_shared<const SurfaceIndex>(build_surface_index(t)));
+    },
+    [](const void* x) { return surface_memory_bytes(*static_cast<const SurfaceIndex*>(x)); },
+    [](const void* x, const void* y) {
+        return static_cast<const SurfaceIndex*>(x)->pseudonormals ==
+               static_cast<const SurfaceIndex*>(y)->pseudonormals;
+    }};
+
+const DerivedKind kHitClearance{
+    [](MeshCache& c, const std::string& id, const std::shared_ptr<const KdTree>& t) {
+        return std::shared_ptr<const void>(c.hit_clearance(id, t));
+    },
+    [](const KdTree& t) {
+        return std::shared_ptr<const void>(
+            std::make_shared<const HitClearance>(build_hit_clearance(t)));
+    },
+    [](const void* x) { return static_cast<const HitClearance*>(x)->bytes(); },
+    [](const void* x, const void* y) {
+        const auto& a = *static_cast<const HitClearance*>(x);
+        const auto& b = *static_cast<const HitClearance*>(y);
+        return a.size() == b.size() && std::memcmp(a.records().data(), b.records().data(),
+                                                   a.size() * sizeof(detail::ClearanceRecord)) == 0;
+    }};
+
+/// The derived data of `kind` counts towards the budget and is evicted, reloaded and deleted
+/// with its tree; a request holding an evicted tree gets one that is neither kept nor counted.
+void expect_kept_with_the_tree(const DerivedKind& kind, const fs::path& dir, Compute& compute,
+                               Metrics& metrics) {
+    MeshStore store(dir);
+    test::Rng ra(6), rb(7), rc(8);
+    const Mesh a = test::random_soup(ra, 300), b = test::random_soup(rb, 300),
+               c = test::random_soup(rc, 300);
     const KdTree reference = build_kdtree(a);
     const uint64_t one_tree = tree_memory_bytes(reference);
-    const uint64_t one_index = surface_memory_bytes(build_surface_index(reference));
-    ASSERT_GT(one_index, 300u * 84u);  // 7 x 3 floats a triangle
-    // Room for two trees, not for two trees and an index.
-    MeshCache cache(store, compute_, metrics_, 2 * one_tree + one_index / 2);
+    const auto want = kind.build(reference);
+    const uint64_t one_data = kind.bytes(want.get());
+    ASSERT_GT(one_data, 300u * 50u);  // 84 bytes a triangle (an index), 52 (a clearance)
+    // Room for two trees, not for two trees and the data.
+    MeshCache cache(store, compute, metrics, 2 * one_tree + one_data / 2);
     ASSERT_TRUE(cache.open());
     const std::string ia = cache.add(a)->summary.id, ib = cache.add(b)->summary.id;
     ASSERT_EQ(cache.resident_count(), 2u);
     const uint64_t trees_only = cache.memory_bytes();
     auto tree_a = cache.acquire(ia);
     ASSERT_TRUE(tree_a);
-    const auto index = cache.surface_index(ia, *tree_a);
-    ASSERT_TRUE(index);
-    EXPECT_EQ(index->pseudonormals, build_surface_index(reference).pseudonormals);
-    // a's index is counted: the budget is exceeded, so b (least recently used) is evicted.
+    const auto data = kind.get(cache, ia, *tree_a);
+    ASSERT_TRUE(data);
+    EXPECT_TRUE(kind.same(data.get(), want.get()));
+    // a's data is counted: the budget is exceeded, so b (least recently used) is evicted.
     EXPECT_EQ(cache.resident_count(), 1u);
-    EXPECT_EQ(metrics_.cache_evictions.load(), 1u);
+    EXPECT_EQ(metrics.cache_evictions.load(), 1u);
     EXPECT_FALSE(cache.find(ib)->in_memory.value());
-    EXPECT_EQ(cache.memory_bytes(), trees_only - tree_memory_bytes(build_kdtree(b)) + one_index);
-    // Asked again, the same index, not a new one.
-    EXPECT_EQ(cache.surface_index(ia, *tree_a), index);
-    // Evicting a's tree (b and c reloaded and added) drops its index and its bytes.
+    EXPECT_EQ(cache.memory_bytes(), trees_only - tree_memory_bytes(build_kdtree(b)) + one_data);
+    // Asked again, the same data, not new.
+    EXPECT_EQ(kind.get(cache, ia, *tree_a), data);
+    // Evicting a's tree (b and c reloaded and added) drops its data and its bytes.
     ASSERT_TRUE(cache.acquire(ib));
     const std::string ic = cache.add(c)->summary.id;
     EXPECT_FALSE(cache.find(ia)->in_memory.value());
     EXPECT_EQ(cache.memory_bytes(),
               tree_memory_bytes(build_kdtree(b)) + tree_memory_bytes(build_kdtree(c)));
-    // The evicted tree still held by a request gets an index that is not kept.
-    const auto transient = cache.surface_index(ia, *tree_a);
-    EXPECT_NE(transient, index);
-    EXPECT_EQ(transient->pseudonormals, index->pseudonormals);
+    // The evicted tree still held by a request gets data that is not kept.
+    const auto transient = kind.get(cache, ia, *tree_a);
+    EXPECT_NE(transient, data);
+    EXPECT_TRUE(kind.same(transient.get(), data.get()));
     EXPECT_EQ(cache.memory_bytes(),
               tree_memory_bytes(build_kdtree(b)) + tree_memory_bytes(build_kdtree(c)));
-    // Reloaded, a gets its index again (a new one), counted again; removing a returns its bytes.
+    // Reloaded, a gets its data again (new), counted again; removing a returns its bytes.
     auto reloaded = cache.acquire(ia);
     ASSERT_TRUE(reloaded);
-    const auto again = cache.surface_index(ia, *reloaded);
-    EXPECT_NE(again, index);
-    const uint64_t with_index = cache.memory_bytes();
+    const auto again = kind.get(cache, ia, *reloaded);
+    EXPECT_NE(again, data);
+    const uint64_t with_data = cache.memory_bytes();
     EXPECT_TRUE(cache.remove(ia));
-    EXPECT_EQ(cache.memory_bytes(), with_index - one_tree - one_index);
+    EXPECT_EQ(cache.memory_bytes(), with_data - one_tree - one_data);
     (void)ic;
+}
+
+TEST_F(MeshCacheTest, SurfaceIndexCountsTowardsTheBudgetAndIsEvictedWithItsTree) {
+    expect_kept_with_the_tree(kSurfaceIndex, dir_, compute_, metrics_);
+}
+
+TEST_F(MeshCacheTest, HitClearanceCountsTowardsTheBudgetAndIsEvictedWithItsTree) {
+    // What a scene's single-return scans use, kept and counted as the SurfaceIndex is.
+    expect_kept_with_the_tree(kHitClearance, dir_, compute_, metrics_);
+}
+
+TEST_F(MeshCacheTest, SurfaceIndexAndHitClearanceAreCountedTogetherAndGoWithTheirTree) {
+    MeshStore store(dir_);
+    const Mesh a = mesh(9);
+    const KdTree reference = build_kdtree(a);
+    const uint64_t one_tree = tree_memory_bytes(reference);
+    const uint64_t one_index = surface_memory_bytes(build_surface_index(reference));
+    const uint64_t one_clearance = build_hit_clearance(reference).bytes();
+    MeshCache cache(store, compute_, metrics_, 1ull << 30);
+    ASSERT_TRUE(cache.open());
+    const std::string ia = cache.add(a)->summary.id;
+    auto tree = cache.acquire(ia);
+    ASSERT_TRUE(tree);
+    EXPECT_EQ(cache.memory_bytes(), one_tree);
+    ASSERT_TRUE(cache.hit_clearance(ia, *tree));
+    EXPECT_EQ(cache.memory_bytes(), one_tree + one_clearance);
+    ASSERT_TRUE(cache.surface_index(ia, *tree));
+    EXPECT_EQ(cache.memory_bytes(), one_tree + one_clearance + one_index);
+    // Each kept in its own place: asking for one again neither rebuilds nor recounts the other.
+    EXPECT_EQ(cache.hit_clearance(ia, *tree), cache.hit_clearance(ia, *tree));
+    EXPECT_EQ(cache.memory_bytes(), one_tree + one_clearance + one_index);
+    EXPECT_TRUE(cache.remove(ia));
+    EXPECT_EQ(cache.memory_bytes(), 0u);
 }
 
 TEST_F(MeshCacheTest, ReopenFindsEveryMeshAndRebuildsCorruptTrees) {

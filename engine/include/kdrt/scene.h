@@ -42,6 +42,7 @@
 
 #include "kdrt/distance.h"
 #include "kdrt/distance_types.h"
+#include "kdrt/hit_clearance.h"
 #include "kdrt/image.h"
 #include "kdrt/kdtree.h"
 #include "kdrt/query.h"
@@ -75,6 +76,11 @@ struct SceneInstance {
     /// build_surface_index(*tree), needed only for signed distance (DistanceOptions::sign);
     /// instances of one mesh should share it. Null: signed distance queries refuse this scene.
     std::shared_ptr<const SurfaceIndex> surface;
+    /// build_hit_clearance(*tree), optional; instances of one mesh should share it. With it a
+    /// single merged return (single-return scans) skips the every-hit window where the closest
+    /// hit is provably alone; without it every such hit gets its window. The same answers either
+    /// way. One of another triangle count than the tree is refused ("clearance").
+    std::shared_ptr<const HitClearance> clearance;
 };
 
 /// A new transform for one instance (Scene::with_transforms).
@@ -97,7 +103,8 @@ struct SceneBuildOptions {
 /// A scene that cannot be built: what() says why, e.g. "scene instance 3 transform[1][2] is NaN"
 /// or "scene instance 7 transform is singular (det 0)". instance_index() names the instance
 /// (for "too many instances": the first over the limit); field() names the field as the request
-/// JSON spells it: "tree", "transform", "transform[r][c]", "geom", "instances", "surface".
+/// JSON spells it: "tree", "transform", "transform[r][c]", "geom", "instances", "surface",
+/// "clearance".
 class SceneError : public std::invalid_argument {
 public:
     SceneError(std::optional<uint32_t> instance_index, std::string field, const std::string& what)
@@ -165,6 +172,13 @@ public:
     /// entry's geometry id, field "geom" for an unknown one) and rebuilds only the top level.
     [[nodiscard]] Scene with_transforms(std::span<const InstancePose> poses) const;
     [[nodiscard]] Scene with_transform(uint32_t geom, const Affine3x4& transform) const;
+    /// A scene with the same instances, transforms, options and top level (shared or copied,
+    /// never rebuilt: O(instances)), instance g carrying `per_instance[g]` as its
+    /// SceneInstance::clearance (null: none). `per_instance` has size() entries, else
+    /// std::invalid_argument; a clearance of another triangle count than its instance's tree is
+    /// refused as build_scene refuses it (SceneError, field "clearance").
+    [[nodiscard]] Scene with_clearances(
+        std::span<const std::shared_ptr<const HitClearance>> per_instance) const;
     /// Throws exactly the SceneError with_transforms(poses) would throw, without building
     /// anything (O(poses)): a caller can accept a pose update, then build the scene while it
     /// stores the update. After it returns, with_transforms(poses) throws only std::bad_alloc.
