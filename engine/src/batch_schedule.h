@@ -103,6 +103,37 @@ inline void radix_pass(const uint32_t* key_in, const uint16_t* index_in, uint32_
     }
 }
 
+/// Sorts the first `n` keys (the low `key_bits` bits, stably) with their indices by radix passes
+/// between the two buffers; true when the sorted keys and indices end in key_tmp / index_tmp.
+inline bool radix_sort(uint32_t* key, uint16_t* index, uint32_t* key_tmp, uint16_t* index_tmp,
+                       int n, int key_bits) {
+    bool in_tmp = false;
+    for (int shift = 0; shift < key_bits; shift += kRadixBits) {
+        if (in_tmp)
+            radix_pass(key_tmp, index_tmp, key, index, n, shift, kRadixBits);
+        else
+            radix_pass(key, index, key_tmp, index_tmp, n, shift, kRadixBits);
+        in_tmp = !in_tmp;
+    }
+    return in_tmp;
+}
+
+/// Traces sorted rays (block[sorted[0..n)], sorted_key their keys, the octant in the bits from
+/// `octant_shift` up) as one run per octant.
+template <class TraceRun>
+[[gnu::always_inline]] inline void trace_octant_runs(const Ray* block, size_t base,
+                                                     const uint32_t* sorted_key,
+                                                     const uint16_t* sorted, int n,
+                                                     int octant_shift, const TraceRun& trace_run) {
+    for (int first = 0; first < n;) {
+        const uint32_t oct = sorted_key[first] >> octant_shift;
+        int end = first + 1;
+        while (end < n && (sorted_key[end] >> octant_shift) == oct) ++end;
+        trace_run(block, base, sorted + first, end - first);
+        first = end;
+    }
+}
+
 /// Whether a block is worth sorting, from a sample of its valid rays (a heuristic: it only
 /// picks the order, never an answer): the origins differ and the unit directions spread by
 /// kSortSpread or more in some axis. Pinhole cameras (one origin), shadow rays towards a light
@@ -191,15 +222,7 @@ inline bool sort_by_origin_and_direction(const Ray* block, int valid, const floa
         }
         key[j] |= (morton3(qo[0], qo[1], qo[2]) << kOriginShift) | morton3(qd[0], qd[1], qd[2]);
     }
-    bool in_tmp = false;
-    for (int shift = 0; shift < kKeyBits; shift += kRadixBits) {
-        if (in_tmp)
-            radix_pass(key_tmp, index_tmp, key, index, valid, shift, kRadixBits);
-        else
-            radix_pass(key, index, key_tmp, index_tmp, valid, shift, kRadixBits);
-        in_tmp = !in_tmp;
-    }
-    return in_tmp;
+    return radix_sort(key, index, key_tmp, index_tmp, valid, kKeyBits);
 }
 
 /// An incoherent block (block_is_incoherent; lo, hi its origins' sample bounds), sorted whole by
@@ -218,15 +241,8 @@ template <bool AnyHit, class TraceRun>
     counters.sorted_rays += static_cast<uint64_t>(valid);
     const bool in_tmp =
         sort_by_origin_and_direction(block, valid, lo, hi, key, index, key_tmp, index_tmp);
-    const uint32_t* sorted_key = in_tmp ? key_tmp : key;
-    const uint16_t* sorted = in_tmp ? index_tmp : index;
-    for (int first = 0; first < valid;) {  // one run per octant (the keys' top bits)
-        const uint32_t oct = sorted_key[first] >> kOctantShift;
-        int end = first + 1;
-        while (end < valid && (sorted_key[end] >> kOctantShift) == oct) ++end;
-        trace_run(block, base, sorted + first, end - first);
-        first = end;
-    }
+    trace_octant_runs(block, base, in_tmp ? key_tmp : key, in_tmp ? index_tmp : index, valid,
+                      kOctantShift, trace_run);
 }
 
 /// A coherent block (not block_is_incoherent), cut into runs of kCoherentRun rays, each only
@@ -326,23 +342,9 @@ template <bool AnyHit, class TraceRun>
             const uint32_t qv = quantize((o[axis_v] - lo[1]) * scale, 1u << kPlaneAxisBits);
             key[j] = (key[j] >> kOctantShift << kPlaneBits) | spread2(qu) | (spread2(qv) << 1);
         }
-        bool in_tmp = false;
-        for (int shift = 0; shift < kPlaneBits + 3; shift += kRadixBits) {
-            if (in_tmp)
-                radix_pass(key_tmp, index_tmp, key, index, valid, shift, kRadixBits);
-            else
-                radix_pass(key, index, key_tmp, index_tmp, valid, shift, kRadixBits);
-            in_tmp = !in_tmp;
-        }
-        const uint32_t* sorted_key = in_tmp ? key_tmp : key;
-        const uint16_t* sorted = in_tmp ? index_tmp : index;
-        for (int begin = 0; begin < valid;) {  // one run per octant (the keys' top bits)
-            const uint32_t oct = sorted_key[begin] >> kPlaneBits;
-            int end = begin + 1;
-            while (end < valid && (sorted_key[end] >> kPlaneBits) == oct) ++end;
-            trace_run(run, run_base, sorted + begin, end - begin);
-            begin = end;
-        }
+        const bool in_tmp = radix_sort(key, index, key_tmp, index_tmp, valid, kPlaneBits + 3);
+        trace_octant_runs(run, run_base, in_tmp ? key_tmp : key, in_tmp ? index_tmp : index, valid,
+                          kPlaneBits, trace_run);
     }
 }
 

@@ -17,10 +17,11 @@ namespace kdrt::detail {
 ///
 /// A subtree built on another thread can be handed over by defer_splice instead of splice: it is
 /// kept whole in `deferred` and stands for the nodes and references splice would have appended
-/// at that point, copied into place once by flatten_deferred (finish_tree: in parallel, one copy
-/// per node). splice copied a subtree once per level above it, the top levels' copies on one
-/// thread after both halves were built. Writing to a tree with deferred subtrees (add_child_pair,
-/// make_leaf, splice) flattens them first, so the result is always what splice gives.
+/// at that point, copied into place once (finish_tree writes the whole tree into arrays of its
+/// final size in parallel, one copy per node; flatten_deferred does it in place). splice copied a
+/// subtree once per level above it, the top levels' copies on one thread after both halves were
+/// built. Writing to a tree with deferred subtrees (add_child_pair, make_leaf, splice) flattens
+/// them first, so the result is always what splice gives.
 struct SubTree {
     /// A subtree spliced in after `nodes` / `refs` (and the deferred ones before it): its root
     /// goes to `slot`, the rest of its `node_count` nodes and its `ref_count` references follow.

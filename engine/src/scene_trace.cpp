@@ -887,11 +887,11 @@ void nearest_rounds(const SceneData& s, std::span<const Ray> rays, uint32_t k, b
                                                     merge));
                     b.window_of.push_back(i);
                 }
+                if (b.windows.empty()) return;  // every hit was alone in its group
                 AllHitsOptions options;
                 options.merge_coincident = merge;
                 options.max_hits = k;
                 options.isa = isa;
-                if (b.windows.empty()) return;  // every hit was alone in its group
                 // Isolated: while the batch waits, this thread must not take another block of
                 // this scan (it would reuse this thread's scratch, `b`, mid-round).
                 AllHits all;
