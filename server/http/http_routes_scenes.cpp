@@ -496,7 +496,12 @@ void Routes::scene_scan(const httplib::Request& req, httplib::Response& res,
     if (!hold) return reply_problem(req, res, scan_budget_problem(svc_.batch_budget, bytes));
     request_context().rays = rays;
     svc_.metrics.add_rays(rays, false);
-    const Scene& scene = (*entry)->scene;
+    // A single-return lidar scan skips the every-hit windows its meshes' HitClearance rules
+    // out: attached to the revision at its first such scan (built once per mesh tree).
+    const SceneCache::EntryPtr scanned = request->lidar && request->lidar_spec.returns == 1
+                                             ? svc_.scenes.scan_ready(*entry)
+                                             : *entry;
+    const Scene& scene = scanned->scene;
     if (request->lidar) {
         const ScenePointCloud cloud =
             svc_.compute.run([&] { return scan_lidar(scene, request->lidar_spec); });

@@ -127,20 +127,10 @@ SceneCache::Result<SceneCache::EntryPtr> SceneCache::build(proto::SceneDocument 
         SceneBuildOptions build_options;
         build_options.max_instances = options_.max_instances;
         auto entry = std::make_shared<SceneEntry>();
-        const Scene plain =
+        // Without the meshes' HitClearance: a revision gets it at its first single-return scan
+        // (scan_ready).
+        entry->scene =
             compute_.run([&] { return build_scene(std::move(instances), build_options); });
-        // Accepted: each distinct mesh's HitClearance (kept with its tree by the mesh cache and
-        // counted in its budget), so the revision's single-return scans, and the revisions its
-        // pose updates make from it, skip the windows it rules out. The top level is kept.
-        std::unordered_map<std::string, std::shared_ptr<const HitClearance>> clearances;
-        std::vector<std::shared_ptr<const HitClearance>> per_instance(doc.instances.size());
-        for (size_t i = 0; i < doc.instances.size(); ++i) {
-            const std::string& mesh = doc.instances[i].mesh;
-            auto& clearance = clearances[mesh];
-            if (!clearance) clearance = meshes_.hit_clearance(mesh, trees.at(mesh));
-            per_instance[i] = clearance;
-        }
-        entry->scene = plain.with_clearances(per_instance);
         entry->doc = std::move(doc);
         entry->bytes = entry_bytes(*entry);
         return EntryPtr(std::move(entry));
@@ -148,6 +138,50 @@ SceneCache::Result<SceneCache::EntryPtr> SceneCache::build(proto::SceneDocument 
         return proto::Err{scene_error_problem(e, array_name, e.instance_index())};
     } catch (const std::bad_alloc&) {
         return proto::Err{problem(Code::kInternal, "out of memory building the scene")};
+    }
+}
+
+SceneCache::EntryPtr SceneCache::scan_ready(const EntryPtr& entry) {
+    const Scene& scene = entry->scene;
+    const uint32_t n = scene.size();
+    bool missing = false;
+    for (uint32_t g = 0; g < n && !missing; ++g) missing = !scene.instance(g).clearance;
+    if (!missing) return entry;
+    // Per distinct tree (the instances of one mesh share it): the mesh cache's clearance of it,
+    // built at its first use there.
+    std::unordered_map<const KdTree*, std::shared_ptr<const HitClearance>> clearances;
+    std::vector<std::shared_ptr<const HitClearance>> per_instance(n);
+    try {
+        for (uint32_t g = 0; g < n; ++g) {
+            const SceneInstance& inst = scene.instance(g);
+            if (inst.clearance) {
+                per_instance[g] = inst.clearance;
+                continue;
+            }
+            const auto [it, added] = clearances.try_emplace(inst.tree.get());
+            // A mesh deleted since: no clearance (every window, the same answers).
+            if (added && meshes_.find(entry->doc.instances[g].mesh))
+                it->second = meshes_.hit_clearance(entry->doc.instances[g].mesh, inst.tree);
+            per_instance[g] = it->second;
+        }
+        auto ready = std::make_shared<SceneEntry>();
+        ready->doc = entry->doc;
+        ready->scene = scene.with_clearances(per_instance);
+        ready->bytes = entry_bytes(*ready);
+        // Kept in place of `entry` (unless it was evicted or replaced meanwhile), so the next
+        // scan and the next pose update's base find it.
+        std::lock_guard lock(mutex_);
+        const auto it = by_key_.find({entry->doc.id, entry->doc.revision});
+        if (it != by_key_.end() && *it->second == entry) {
+            bytes_ += ready->bytes;
+            bytes_ -= entry->bytes;
+            *it->second = ready;
+        }
+        return ready;
+    } catch (const std::bad_alloc&) {
+        return entry;  // scanned without it: the same answers
+    } catch (const SceneError&) {
+        return entry;  // (a clearance of another tree; cannot happen: built from the same one)
     }
 }
 

@@ -7,9 +7,11 @@
 /// - A pose update builds the next revision from the current one with Scene::with_transforms
 ///   (only the top level is rebuilt), writes it to the store (the store's compare-and-set
 ///   commit decides a race, in one process or across replicas) and answers once it is durable.
-/// - Every instance of a built revision carries its mesh's HitClearance (MeshCache::
-///   hit_clearance: kept with the tree, counted in the mesh cache's budget), given once the
-///   scene is accepted; pose updates share it, so a scan never rebuilds anything for it.
+/// - A revision's instances get their meshes' HitClearance at its first single-return scan
+///   (scan_ready: MeshCache::hit_clearance builds it once per mesh tree, keeps it with the tree
+///   and counts it in the mesh cache's budget), not when the scene is made: a scene that is never
+///   scanned pays nothing for it. The revision is kept in that form, and the revisions its pose
+///   updates make carry it too, so a scan after a pose update builds nothing for it.
 /// - Built scenes are kept by (id, revision) in LRU order within `memory_budget` bytes
 ///   (kdrt::SceneStats::bytes plus the document); a scene asked for again after eviction, or
 ///   written by another replica, is read from the store and built again, its meshes' trees
@@ -102,6 +104,15 @@ public:
     /// Revision `revision` of scene `id`, or its current revision.
     [[nodiscard]] Result<EntryPtr> get(const std::string& id,
                                        std::optional<uint64_t> revision = std::nullopt);
+
+    /// `entry` (a revision get() gave) with every instance carrying its mesh's HitClearance, for
+    /// a single-return scan (the same answers, fewer every-hit windows). The first call for a
+    /// mesh tree builds it (MeshCache::hit_clearance: kept with the tree and counted in its
+    /// budget; concurrent first calls may both build it, one is kept); the revision is kept in
+    /// this form in place of `entry` (Scene::with_clearances: the top level is kept), so later
+    /// calls and the revisions later pose updates make from it find it attached. A mesh deleted
+    /// meanwhile leaves its instances without one. Returns `entry` itself when it has them.
+    [[nodiscard]] EntryPtr scan_ready(const EntryPtr& entry);
 
     /// The next revision with the poses applied (in order; later entries for one instance
     /// win). `if_match`: refuse with kStale unless it is the current revision. Without it the

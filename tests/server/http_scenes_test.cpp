@@ -266,6 +266,23 @@ TEST_F(HttpScenes, EveryQueryEqualsTheEngineWithGeometryIds) {
     EXPECT_EQ(split->geometry_ids, local_cloud.geom);
     EXPECT_TRUE(proto::decode_lidar_ranges(split->mesh_body).ok());
 
+    // Single returns: the first such scan gives the revision its meshes' HitClearance
+    // (SceneCache::scan_ready); it and the next answer as the engine without them.
+    spec.returns = 1;
+    const ScenePointCloud single = scan_lidar(local, spec);
+    std::vector<std::byte> want_single = proto::encode_point_cloud(single.cloud);
+    proto::append_geometry_ids(want_single, single.geom);
+    for (const char* which : {"first", "second"}) {
+        res = query(id, "scan",
+                    "{\"lidar\": {\"vertical_fov\": [-30, 30], \"channels\": 16, "
+                    "\"azimuth_steps\": 64, \"returns\": 1, \"pose\": "
+                    "[[1,0,0,0.5],[0,1,0,0.5],[0,0,1,0.5],[0,0,0,1]]}}",
+                    "application/json");
+        ASSERT_TRUE(res);
+        ASSERT_EQ(res->status, 200) << res->body;
+        EXPECT_EQ(res->body, bytes_to_string(want_single)) << "the " << which << " scan";
+    }
+
     // A pinhole cannot have it; a format without geometry ids is refused naming "format".
     res = query(id, "scan",
                 "{\"pinhole\": {\"camera\": {\"eye\": [0, 0, 3], \"look_at\": [0, 0, 0]}, "
