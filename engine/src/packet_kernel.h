@@ -1092,10 +1092,10 @@ struct RunTracer {
     /// measurement to the next; the ratio of their times per ray (unsorted over sorted) goes to
     /// `by_sort` (CostSlot::kCoherentSort). Whole blocks, not halves: the sort pays through the
     /// patches it makes across a block's rows, and a half block (fewer rows) makes worse ones
-    /// (16 bunnies' shadow set: halves measured unsorted / sorted 0.95-1.07, whole blocks in
-    /// fact 1.15-1.20; tests/bench/README.md). A coherent block's rays are in image order, so
-    /// two neighbouring blocks are neighbouring rows of about the same cost; the two blocks must
-    /// be neighbours in the batch.
+    /// (16 bunnies' shadow set: halves measured unsorted / sorted at about 1.02, every block
+    /// forced one way or the other 1.13-1.23; tests/bench/README.md). A coherent block's rays
+    /// are in image order, so two neighbouring blocks are neighbouring rows of about the same
+    /// cost; the two blocks must be neighbours in the batch.
     void sort_measured(const Ray* block, size_t base, int n, IncoherentCosts& by_sort) const {
         // A pending first block that is not this one's neighbour (the thread took a block from
         // elsewhere in the batch, or another batch) is dropped: blocks far apart in an image
