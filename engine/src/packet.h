@@ -16,8 +16,9 @@ namespace kdrt::detail {
 /// incoherent blocks fixed (RunTracer::incoherent_block): sorted packets, single rays in input
 /// order, or every block measured (half each way; under kIncoherentMeasured also every coherent
 /// any-hit block, RunTracer::coherent_block). kCoherentSorted is auto with every coherent any-hit
-/// block in packets sorted by origin (trace_origin_sorted_block). Tests reach every way with
-/// them; policy_for never gives them.
+/// block in packets sorted by origin (trace_origin_sorted_block); kCoherentSortMeasured is auto
+/// with every coherent any-hit block measured half sorted, half in input order
+/// (RunTracer::sort_measured). Tests reach every way with them; policy_for never gives them.
 enum class Policy : uint32_t {
     kAuto = 0,
     kSingle = 1,
@@ -25,7 +26,8 @@ enum class Policy : uint32_t {
     kIncoherentAsPacket = 3,
     kIncoherentAsSingle = 4,
     kIncoherentMeasured = 5,
-    kCoherentSorted = 6
+    kCoherentSorted = 6,
+    kCoherentSortMeasured = 7
 };
 
 /// What a kernel did, summed over a batch (per-thread, added up afterwards).

@@ -885,19 +885,22 @@ template <bool AnyHit, int K, class Order>
     return t;
 }
 
-/// What the auto policy has measured of the two ways to trace a block, on this thread, for one
-/// tree, query kind and block kind (RunTracer::incoherent_block, RunTracer::coherent_block).
+/// What the auto policy has measured of two ways to trace a block, on this thread, for one
+/// tree, query kind and choice (CostSlot: packets or single rays for incoherent or coherent
+/// blocks, sorted or unsorted packets for coherent any-hit ones).
 struct IncoherentCosts {
     const KdTree* tree = nullptr;   ///< with its nodes' address: a tree built where one was
     const KdNode* nodes = nullptr;  ///< destroyed is most likely told apart
-    /// The last three measurements (0: none) of single rays' time per ray over sorted packets',
-    /// newest first; their median decides, so one that the operating system interrupted does not.
+    /// The last three measurements (0: none) of the second way's time per ray over the first's
+    /// (single rays over packets; unsorted packets over sorted ones), newest first; their median
+    /// decides, so one that the operating system interrupted does not.
     float ratio[3] = {0.0f, 0.0f, 0.0f};
-    /// The same measurements' time per ray of the packets (time stamp counter ticks), newest
-    /// first.
-    float packet_ticks[3] = {0.0f, 0.0f, 0.0f};
     uint32_t until_measure = 0;  ///< blocks to go the faster way before the next measured one
-    bool singles_first = false;  ///< the next measured block's first half goes as single rays
+    bool second_first = false;   ///< the next measured block's first half goes the second way
+    /// A measurement over two blocks (RunTracer::sort_measured): the first block's time per ray,
+    /// 0 when none is pending, and where the block after it starts (the second must be that one).
+    float first_ticks = 0.0f;
+    const Ray* next_block = nullptr;
 
     /// The median of three measurements, newest first (0: none; of two, their mean).
     [[nodiscard]] static float median_of(const float (&m)[3]) {
@@ -907,8 +910,10 @@ struct IncoherentCosts {
     }
     /// The median of the ratios measured so far (0: none).
     [[nodiscard]] float median() const { return median_of(ratio); }
-    /// The median of the packets' time per ray measured so far (0: none).
-    [[nodiscard]] float packet_cost() const { return median_of(packet_ticks); }
+
+    /// Adds a measurement (the second way's time per ray over the first's) and sets the gap to
+    /// the next one (kMeasureBase, times `gap_scale`).
+    void record(float r, float gap_scale = 1.0f);
 };
 
 /// After a measured block, where the slower way took r times as long as the faster (the
@@ -922,20 +927,36 @@ inline constexpr float kMeasureMaxGap = 1024.0f;
 inline constexpr uint32_t kMeasureFirstGap = 4;
 /// A block of fewer rays is not measured (its halves would time too little work).
 inline constexpr int kMeasureMinRays = 512;
-/// Coherent any-hit packets measured at this many time stamp counter ticks per ray or more go
-/// sorted by their origins (RunTracer::coherent_block). Shadow sets, 2 threads, a 2.3 GHz
-/// counter: 16 bunnies' measured blocks took 480-800 ticks a ray (the sort won 18% there); from
-/// their Mrays/s, the stadium's packets take about 55 (the sort halved its speed), the bunny's
-/// 240 (the sort lost 2%) and 64 bunnies' 960.
-inline constexpr float kSortMinCycles = 400.0f;
 
-/// This thread's measurements for `tree` (closest hit or any hit; incoherent or coherent blocks,
-/// whose costs differ and must not mix): a small table by the tree's address, so that a scene's
-/// rounds, which go from one instance's tree to the next, keep each tree's measurements; a tree
-/// that takes another's slot starts afresh.
+inline void IncoherentCosts::record(float r, float gap_scale) {
+    ratio[2] = ratio[1];
+    ratio[1] = ratio[0];
+    ratio[0] = r;
+    if (ratio[2] == 0.0f) {
+        until_measure = kMeasureFirstGap;
+    } else {
+        const float m = median();
+        const float slower = m < 1.0f ? 1.0f / m : m;
+        const float gap = gap_scale * kMeasureBase * slower * slower;
+        until_measure = static_cast<uint32_t>(gap < kMeasureMaxGap ? gap : kMeasureMaxGap);
+    }
+}
+
+/// The choices the auto policy measures, each in cost slots of its own (incoherent_costs): packets
+/// against single rays for incoherent blocks and for coherent ones (whose costs differ and must
+/// not mix), and, for coherent any-hit blocks, sorted packets against unsorted ones.
+enum class CostSlot { kIncoherent, kCoherent, kCoherentSort };
+
+/// A measurement of the sort (RunTracer::sort_measured) takes two whole blocks, one each way, so
+/// it costs a whole block the slower way rather than half of one: its gaps are twice as long.
+inline constexpr float kSortGapScale = 2.0f;
+
+/// This thread's measurements for `tree` (closest hit or any hit; one CostSlot): a small table by
+/// the tree's address, so that a scene's rounds, which go from one instance's tree to the next,
+/// keep each tree's measurements; a tree that takes another's slot starts afresh.
 inline constexpr int kCostSlotBits = 4;
 
-template <bool AnyHit, bool Coherent>
+template <bool AnyHit, CostSlot Slot>
 IncoherentCosts& incoherent_costs(const KdTree& tree) {
     static thread_local IncoherentCosts slots[1 << kCostSlotBits];
     const uint64_t key = reinterpret_cast<uintptr_t>(&tree) * 0x9E3779B97F4A7C15ull;
@@ -998,7 +1019,7 @@ struct RunTracer {
             singles(block, base, n);
             return;
         }
-        measured<false>(block, base, n, packets);
+        measured<CostSlot::kIncoherent>(block, base, n, packets);
     }
 
     /// A coherent block (not block_is_incoherent: one origin or one direction, e.g. shadow rays
@@ -1006,18 +1027,19 @@ struct RunTracer {
     /// may still lose to single rays walked in turn for any hit (2 threads, 64 bunnies' shadow
     /// set: single rays 5.7 Mrays/s, packets 4.8), while on smaller trees packets win (16
     /// bunnies: 7.8 against 6.1). So for any hit the auto policy measures the two ways as for an
-    /// incoherent block, in cost slots of their own; a measured block's packets go in input
-    /// order, in runs of kCoherentRun rays (trace_coherent_block). Between measured blocks, any
-    /// hit's packets go sorted by where the rays start across their common way
-    /// (trace_origin_sorted_block: in image order a packet is a strip of one row; sorted, a small
-    /// patch, whose rays stay together longer: 16 bunnies' shadow set 7.7 -> 9.4 Mrays/s) when
-    /// the measured packets cost kSortMinCycles or more per ray, and in input order when they
-    /// cost less: the sort costs about 150 instructions and two L1 misses per ray, which cheap
-    /// packets do not win back (the stadium's shadow set: 86 -> 44 Mrays/s sorted, its packets'
-    /// node visits unchanged; tests/bench/README.md). Closest-hit blocks (primary rays) keep to
+    /// incoherent block, in cost slots of their own (CostSlot::kCoherent). Any hit's packets go
+    /// either in input order, in runs of kCoherentRun rays (trace_coherent_block), or sorted by
+    /// where the rays start across their common way (trace_origin_sorted_block: in image order a
+    /// packet is a strip of one row; sorted, a small patch, whose rays stay together longer: 16
+    /// bunnies' shadow set 7.7 -> 9.4 Mrays/s). The sort costs about 150 instructions and two L1
+    /// misses per ray, which cheap packets do not win back (the stadium's shadow set: 86 -> 44
+    /// Mrays/s sorted, its packets' node visits unchanged; tests/bench/README.md). So that choice
+    /// is measured too (sort_measured, CostSlot::kCoherentSort), on blocks that go as packets
+    /// when no measurement against single rays is due. Closest-hit blocks (primary rays) keep to
     /// packets in input order, as do the counting kernels and the fixed test policies;
-    /// kIncoherentMeasured measures every coherent any-hit block too, and kCoherentSorted sorts
-    /// every one. Every way gives every ray the single-ray kernel's answer.
+    /// kIncoherentMeasured measures every coherent any-hit block against single rays (its packets
+    /// as the sort slot says), kCoherentSortMeasured every one sorted against unsorted, and
+    /// kCoherentSorted sorts every one. Every way gives every ray the single-ray kernel's answer.
     void coherent_block(const Ray* block, size_t base, int n) const {
         const auto packets = [&](const Ray* rays, size_t at, int m) {
             trace_coherent_block<AnyHit>(rays, at, m, hits, occluded, counters, *this);
@@ -1029,27 +1051,114 @@ struct RunTracer {
             sorted(block, base, n);
             return;
         }
+        if (AnyHit && !Count && policy == Policy::kCoherentSortMeasured) {
+            sort_measured(block, base, n, incoherent_costs<AnyHit, CostSlot::kCoherentSort>(tree));
+            return;
+        }
         if (Count || !kMeasureCoherent<AnyHit> ||
             (policy != Policy::kAuto && policy != Policy::kIncoherentMeasured)) {
             packets(block, base, n);
             return;
         }
-        // Sorted packets are measured against single rays as they trace: a measured block's
-        // halves, one each way (runs of kCoherentRun rays, about a row of an image's shadow
-        // rays, would make no patches).
-        if (AnyHit && incoherent_costs<AnyHit, true>(tree).packet_cost() >= kSortMinCycles)
-            measured<true>(block, base, n, sorted, true);
+        IncoherentCosts& by_sort = incoherent_costs<AnyHit, CostSlot::kCoherentSort>(tree);
+        if (policy == Policy::kAuto && n >= kMeasureMinRays &&
+            (by_sort.until_measure == 0 || by_sort.first_ticks != 0.0f)) {
+            // The sort is measured on blocks that go as packets anyway: no measurement against
+            // single rays is due and packets are the faster way so far (or the measurement's
+            // first block went already).
+            IncoherentCosts& costs = incoherent_costs<AnyHit, CostSlot::kCoherent>(tree);
+            const float ratio = costs.median();
+            if (by_sort.first_ticks != 0.0f ||
+                (costs.until_measure > 0 && !(ratio != 0.0f && ratio < 1.0f))) {
+                if (costs.until_measure > 0) --costs.until_measure;
+                sort_measured(block, base, n, by_sort);
+                return;
+            }
+        } else if (by_sort.until_measure > 0) {
+            --by_sort.until_measure;
+        }
+        // Packets are measured against single rays as they trace: sorted ones on a measured
+        // block's halves, one each way (runs of kCoherentRun rays, about a row of an image's
+        // shadow rays, would make no patches).
+        if (by_sort.median() > 1.0f)
+            measured<CostSlot::kCoherent>(block, base, n, sorted, true);
         else
-            measured<true>(block, base, n, packets, false);
+            measured<CostSlot::kCoherent>(block, base, n, packets, false);
+    }
+
+    /// A coherent any-hit block measured one of the two ways its packets may go: sorted by
+    /// origin (trace_origin_sorted_block) or in input order (trace_coherent_block). A
+    /// measurement takes two blocks in a row, one each way, the order swapping from one
+    /// measurement to the next; the ratio of their times per ray (unsorted over sorted) goes to
+    /// `by_sort` (CostSlot::kCoherentSort). Whole blocks, not halves: the sort pays through the
+    /// patches it makes across a block's rows, and a half block (fewer rows) makes worse ones
+    /// (16 bunnies' shadow set: halves measured unsorted / sorted at about 1.02, every block
+    /// forced one way or the other 1.13-1.23; tests/bench/README.md). A coherent block's rays
+    /// are in image order, so two neighbouring blocks are neighbouring rows of about the same
+    /// cost; the two blocks must be neighbours in the batch.
+    void sort_measured(const Ray* block, size_t base, int n, IncoherentCosts& by_sort) const {
+        // A pending first block that is not this one's neighbour (the thread took a block from
+        // elsewhere in the batch, or another batch) is dropped: blocks far apart in an image
+        // cost up to 13 times as much as each other (16 bunnies' shadow set, 2 threads).
+        if (by_sort.next_block != block) by_sort.first_ticks = 0.0f;
+        by_sort.next_block = block + n;
+        const bool first_of_two = by_sort.first_ticks == 0.0f;
+        // second_first: this measurement's first block goes unsorted.
+        const bool unsorted = first_of_two == by_sort.second_first;
+        const uint64_t t0 = cycles();
+        if (unsorted)
+            trace_coherent_block<AnyHit>(block, base, n, hits, occluded, counters, *this);
+        else
+            trace_origin_sorted_block<AnyHit>(tree, block, base, n, hits, occluded, counters,
+                                              *this);
+        const uint64_t t1 = cycles();
+        if (t1 <= t0) {  // a clock that stood still or went back: start again
+            by_sort.first_ticks = 0.0f;
+            return;
+        }
+        const float ticks = static_cast<float>(t1 - t0) / static_cast<float>(n);
+        if (first_of_two) {
+            by_sort.first_ticks = ticks;
+            return;
+        }
+        const float ratio = unsorted ? ticks / by_sort.first_ticks : by_sort.first_ticks / ticks;
+        by_sort.first_ticks = 0.0f;
+        by_sort.second_first = !by_sort.second_first;
+        by_sort.record(ratio, kSortGapScale);
+    }
+
+    /// Traces block[0, n) half one way, half the other (`second_first`: the first half goes the
+    /// second way); true, with the second way's time per ray over the first's in `ratio`, unless
+    /// the clock stood still or went back.
+    template <class First, class Second>
+    bool time_halves(const Ray* block, size_t base, int n, bool second_first, const First& first,
+                     const Second& second, float& ratio) const {
+        const int half = n / 2;
+        const uint64_t t0 = cycles();
+        if (second_first)
+            second(block, base, half);
+        else
+            first(block, base, half);
+        const uint64_t t1 = cycles();
+        if (second_first)
+            first(block + half, base + static_cast<size_t>(half), n - half);
+        else
+            second(block + half, base + static_cast<size_t>(half), n - half);
+        const uint64_t t2 = cycles();
+        if (t1 <= t0 || t2 <= t1) return false;
+        const float a = static_cast<float>(t1 - t0) / static_cast<float>(half);
+        const float b = static_cast<float>(t2 - t1) / static_cast<float>(n - half);
+        ratio = second_first ? a / b : b / a;
+        return true;
     }
 
     /// The measured choice between `packets` and single rays for one block (IncoherentCosts of
     /// the block's kind): the faster way so far, or, for a measured block, half each way: its
     /// two halves (`halves`), or its runs of kCoherentRun rays each way in turn.
-    template <bool Coherent, class Packets>
+    template <CostSlot Slot, class Packets>
     void measured(const Ray* block, size_t base, int n, const Packets& packets,
-                  bool halves = !Coherent) const {
-        IncoherentCosts& costs = incoherent_costs<AnyHit, Coherent>(tree);
+                  bool halves = Slot == CostSlot::kIncoherent) const {
+        IncoherentCosts& costs = incoherent_costs<AnyHit, Slot>(tree);
         const bool measure = policy == Policy::kIncoherentMeasured
                                  ? n >= 2
                                  : n >= kMeasureMinRays && costs.until_measure == 0;
@@ -1062,9 +1171,10 @@ struct RunTracer {
                 packets(block, base, n);
             return;
         }
-        const bool singles_first = costs.singles_first;
-        costs.singles_first = !singles_first;
-        float ratio = 0.0f, packet_ticks = 0.0f;
+        const bool singles_first = costs.second_first;
+        costs.second_first = !singles_first;
+        const auto single_rays = [&](const Ray* rays, size_t at, int m) { singles(rays, at, m); };
+        float ratio = 0.0f;
         if (!halves && n >= 2 * kCoherentRun) {
             // A coherent block's rays are in image order: its two halves are different parts
             // of the image and may cost differently whichever way they go. So its runs of
@@ -1086,44 +1196,14 @@ struct RunTracer {
                 m[way] += len;
             }
             if (t[0] == 0 || t[1] == 0) return;  // a clock that stood still or went back
-            packet_ticks = static_cast<float>(t[0]) / static_cast<float>(m[0]);
-            ratio = (static_cast<float>(t[1]) / static_cast<float>(m[1])) / packet_ticks;
+            ratio = (static_cast<float>(t[1]) / static_cast<float>(m[1])) /
+                    (static_cast<float>(t[0]) / static_cast<float>(m[0]));
         } else {
             // A measured block: one half each way, the halves' roles swapping from one measured
             // block to the next (the first half is traced first).
-            const int half = n / 2;
-            const uint64_t t0 = cycles();
-            if (singles_first)
-                singles(block, base, half);
-            else
-                packets(block, base, half);
-            const uint64_t t1 = cycles();
-            if (singles_first)
-                packets(block + half, base + static_cast<size_t>(half), n - half);
-            else
-                singles(block + half, base + static_cast<size_t>(half), n - half);
-            const uint64_t t2 = cycles();
-            if (t1 <= t0 || t2 <= t1) return;  // a clock that stood still or went back
-            const float first = static_cast<float>(t1 - t0) / static_cast<float>(half);
-            const float second = static_cast<float>(t2 - t1) / static_cast<float>(n - half);
-            ratio = singles_first ? first / second : second / first;
-            packet_ticks = singles_first ? second : first;
+            if (!time_halves(block, base, n, singles_first, packets, single_rays, ratio)) return;
         }
-        costs.ratio[2] = costs.ratio[1];
-        costs.ratio[1] = costs.ratio[0];
-        costs.ratio[0] = ratio;
-        costs.packet_ticks[2] = costs.packet_ticks[1];
-        costs.packet_ticks[1] = costs.packet_ticks[0];
-        costs.packet_ticks[0] = packet_ticks;
-        if (costs.ratio[2] == 0.0f) {
-            costs.until_measure = kMeasureFirstGap;
-        } else {
-            const float median = costs.median();
-            const float r = median < 1.0f ? 1.0f / median : median;
-            const float gap = kMeasureBase * r * r;
-            costs.until_measure =
-                static_cast<uint32_t>(gap < kMeasureMaxGap ? gap : kMeasureMaxGap);
-        }
+        costs.record(ratio);
     }
 };
 

@@ -269,10 +269,12 @@ TEST(PacketEquivalence, IncoherentBlocksAnswerInPlaceWhicheverWayTheyGo) {
 
 /// The auto policy's ways for a coherent block (RunTracer::coherent_block): shadow rays towards
 /// one light, any hit, under the measured policy (half of every block as runs of packets, half as
-/// single rays walked in turn), the auto policy and every block in packets sorted by origin
-/// (kCoherentSorted, the way auto takes where packets cost much), against the oracle, on batches
-/// of several blocks, one block and a small one, with invalid rays among them. Closest-hit
-/// coherent blocks keep to packets: their counters equal those of the packets-only policy.
+/// single rays walked in turn), the auto policy, every block in packets sorted by origin
+/// (kCoherentSorted, the way auto takes where the sort pays) and every block measured half
+/// sorted, half in input order (kCoherentSortMeasured, how auto measures whether the sort pays),
+/// against the oracle, on batches of several blocks, one block and a small one, with invalid
+/// rays among them. Closest-hit coherent blocks keep to packets: their counters equal those of
+/// the packets-only policy.
 TEST(PacketEquivalence, CoherentBlocksAnswerInPlaceWhicheverWayTheyGo) {
     using detail::Policy;
     auto mesh = proto::load_mesh_file(std::string(KDRT_TEST_DATA_DIR) + "/bunny00.off");
@@ -300,8 +302,8 @@ TEST(PacketEquivalence, CoherentBlocksAnswerInPlaceWhicheverWayTheyGo) {
             kernels->intersect(tree, rays.data(), n, packet_hits.data(),
                                Policy::kIncoherentAsPacket, c_packet);
             expect_identical_bytes(packet_hits, std::span(want).first(n), "packets");
-            for (Policy policy :
-                 {Policy::kIncoherentMeasured, Policy::kAuto, Policy::kCoherentSorted}) {
+            for (Policy policy : {Policy::kIncoherentMeasured, Policy::kAuto,
+                                  Policy::kCoherentSorted, Policy::kCoherentSortMeasured}) {
                 const std::string what = std::string(isa_name(isa)) + ", policy " +
                                          std::to_string(static_cast<int>(policy)) + ", " +
                                          std::to_string(n) + " rays";
@@ -318,8 +320,9 @@ TEST(PacketEquivalence, CoherentBlocksAnswerInPlaceWhicheverWayTheyGo) {
                     EXPECT_GT(c_occ.packet_rays, 0u) << what;
                     EXPECT_GE(c_occ.single_rays + c_occ.invalid_rays, n / 3) << what;
                 }
-                if (policy == Policy::kCoherentSorted) {
-                    // Sorted packets only (an octant's tail of a few rays goes as single rays).
+                if (policy == Policy::kCoherentSorted || policy == Policy::kCoherentSortMeasured) {
+                    // Packets only, sorted or in input order (an octant's tail of a few rays goes
+                    // as single rays).
                     EXPECT_GT(c_occ.packet_rays, (valid * 9) / 10) << what;
                 }
                 std::vector<Hit> hits(n);
