@@ -152,6 +152,7 @@ TEST(HttpFrontWorkers, RequestsAtOnceStillGetAThreadEach) {
         });
     for (std::thread& t : clients) t.join();
     for (int c = 0; c < kAtOnce; ++c) EXPECT_EQ(got[c], "together") << "client " << c;
+    std::lock_guard lock(mutex);
     EXPECT_EQ(answered_by.size(), static_cast<size_t>(kAtOnce));
 }
 
