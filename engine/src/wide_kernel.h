@@ -356,48 +356,75 @@ static inline int decode(const WideNode& w, const Ray8& r, float tmin, float tma
     // interval alone (only one side needed) the cut is a no-op, since t - eps > tmax (or
     // t + eps < tmin) there; a NaN crossing changes nothing. A slot is visited when its interval
     // is not empty, which holds exactly when each level needed its side.
-    F8 lo = F8{} + tmin, hi = F8{} + tmax;
-#if defined(KDRT_WIDE_AVX512)
+#if defined(KDRT_WIDE_AVX2)
     if constexpr (!CountEmpty && !CountSteps) {
-        // With AVX-512 the path from a node's load to its nearest child's, which one ray at a
-        // time waits on, is shorter: each level's cut is one max and one min under the far
-        // sides' mask (the same operations as the blends below, so the same values), the
-        // intervals go to the far-first order before the test (so the test's mask is already
-        // in stack order), and the valid cells are compacted onto the stack by vpcompress, not
-        // by a permute from a table whose load waits for the mask.
-        const I8 inv_bits = reinterpret_cast<I8>(inv);
-        __m256 l = reinterpret_cast<__m256>(lo), h = reinterpret_cast<__m256>(hi);
-#define KDRT_WIDE_LEVEL(i0, i1, i2, i3, i4, i5, i6, i7, side)                                      \
-    {                                                                                              \
-        const F8 nm = __builtin_shufflevector(near_max, near_max, i0, i1, i2, i3, i4, i5, i6, i7); \
-        const F8 fm = __builtin_shufflevector(far_min, far_min, i0, i1, i2, i3, i4, i5, i6, i7);   \
-        const __mmask8 far = _mm256_movepi32_mask(reinterpret_cast<__m256i>(                       \
-            __builtin_shufflevector(inv_bits, inv_bits, i0, i1, i2, i3, i4, i5, i6, i7) ^          \
-            (side)));                                                                              \
-        l = _mm256_mask_max_ps(l, far, reinterpret_cast<__m256>(fm), l);                           \
-        h = _mm256_mask_min_ps(h, static_cast<__mmask8>(~far), reinterpret_cast<__m256>(nm), h);   \
-    }
-        KDRT_WIDE_LEVEL(0, 0, 0, 0, 0, 0, 0, 0, (I8{0, 0, 0, 0, -1, -1, -1, -1}))
-        KDRT_WIDE_LEVEL(1, 1, 1, 1, 2, 2, 2, 2, (I8{0, 0, -1, -1, 0, 0, -1, -1}))
-        KDRT_WIDE_LEVEL(3, 3, 4, 4, 5, 5, 6, 6, (I8{0, -1, 0, -1, 0, -1, 0, -1}))
-#undef KDRT_WIDE_LEVEL
-        __m256i slots;
-        __builtin_memcpy(&slots, w.slot, sizeof slots);
+        // The walk's decode, computed in the ray's far-first order from the start: lane j holds
+        // the slot at front-to-back position q = 7 - j = 4 c0 + 2 c1 + c2 (kFarFirstBytes). There,
+        // a lane lies on the far side of its plane at level d exactly when c_d is 1, whatever
+        // the ray's near sides: a constant blend per level. Only which plane a lane
+        // takes at levels 1 and 2 depends on them (1 + (slot >> 2) and 3 + (slot >> 1)), and that
+        // is known as soon as the near sides are, beside the crossings' arithmetic. So the
+        // intervals need no permute into stack order after the levels: the path from a node's
+        // load to its nearest child's is one permute shorter, and the far sides' masks cost
+        // nothing. The same operations on the same values lane by lane as below, so the same
+        // answers.
         const __m256i far_first = _mm256_cvtepu8_epi32(
             _mm_cvtsi64_si128(static_cast<long long>(kFarFirstBytes.order[nh])));
-        const __m256 lo_ff = _mm256_permutevar8x32_ps(l, far_first);
-        const __m256 hi_ff = _mm256_permutevar8x32_ps(h, far_first);
+        const __m256i plane1 =
+            _mm256_add_epi32(_mm256_srli_epi32(far_first, 2), _mm256_set1_epi32(1));
+        const __m256i plane2 =
+            _mm256_add_epi32(_mm256_srli_epi32(far_first, 1), _mm256_set1_epi32(3));
+        const __m256 nm_v = reinterpret_cast<__m256>(near_max);
+        const __m256 fm_v = reinterpret_cast<__m256>(far_min);
+        __m256 l = _mm256_set1_ps(tmin), h = _mm256_set1_ps(tmax);
+        // Far lanes: level 0 {0..3}, level 1 {0, 1, 4, 5}, level 2 {0, 2, 4, 6}.
+#if defined(KDRT_WIDE_AVX512)
+#define KDRT_WIDE_FF_LEVEL(nm, fm, far)                                    \
+    {                                                                      \
+        l = _mm256_mask_max_ps(l, (far), (fm), l);                         \
+        h = _mm256_mask_min_ps(h, static_cast<__mmask8>(~(far)), (nm), h); \
+    }
+#else
+#define KDRT_WIDE_FF_LEVEL(nm, fm, far)                        \
+    {                                                          \
+        l = _mm256_blend_ps(l, _mm256_max_ps((fm), l), (far)); \
+        h = _mm256_blend_ps(_mm256_min_ps((nm), h), h, (far)); \
+    }
+#endif
+        KDRT_WIDE_FF_LEVEL(_mm256_permutevar8x32_ps(nm_v, _mm256_setzero_si256()),
+                           _mm256_permutevar8x32_ps(fm_v, _mm256_setzero_si256()), 0x0F)
+        KDRT_WIDE_FF_LEVEL(_mm256_permutevar8x32_ps(nm_v, plane1),
+                           _mm256_permutevar8x32_ps(fm_v, plane1), 0x33)
+        KDRT_WIDE_FF_LEVEL(_mm256_permutevar8x32_ps(nm_v, plane2),
+                           _mm256_permutevar8x32_ps(fm_v, plane2), 0x55)
+#undef KDRT_WIDE_FF_LEVEL
+        __m256i slots;
+        __builtin_memcpy(&slots, w.slot, sizeof slots);
         const __m256i slots_ff = _mm256_permutevar8x32_epi32(slots, far_first);
-        // lo <= hi (false for a NaN), and a tag with bit 1 set (a leaf or a node), as below.
-        const __mmask8 mask = _mm256_cmp_ps_mask(lo_ff, hi_ff, _CMP_LE_OQ) &
+#if defined(KDRT_WIDE_AVX512)
+        // lo <= hi (false for a NaN), and a tag with bit 1 set (a leaf or a node); the valid
+        // cells compacted onto the stack by vpcompress.
+        const __mmask8 mask = _mm256_cmp_ps_mask(l, h, _CMP_LE_OQ) &
                               _mm256_test_epi32_mask(slots_ff, _mm256_set1_epi32(2));
         _mm256_storeu_si256(reinterpret_cast<__m256i*>(&st.slot[top]),
                             _mm256_maskz_compress_epi32(mask, slots_ff));
-        _mm256_storeu_ps(&st.tmin[top], _mm256_maskz_compress_ps(mask, lo_ff));
-        _mm256_storeu_ps(&st.tmax[top], _mm256_maskz_compress_ps(mask, hi_ff));
+        _mm256_storeu_ps(&st.tmin[top], _mm256_maskz_compress_ps(mask, l));
+        _mm256_storeu_ps(&st.tmax[top], _mm256_maskz_compress_ps(mask, h));
         return __builtin_popcount(static_cast<uint32_t>(mask));
+#else
+        const auto mask = bits8((reinterpret_cast<F8>(l) <= reinterpret_cast<F8>(h)) &
+                                reinterpret_cast<I8>(reinterpret_cast<U8>(slots_ff) << 30));
+        const __m256i compact = _mm256_cvtepu8_epi32(
+            _mm_cvtsi64_si128(static_cast<long long>(kCompactBytes.index[mask])));
+        _mm256_storeu_si256(reinterpret_cast<__m256i*>(&st.slot[top]),
+                            _mm256_permutevar8x32_epi32(slots_ff, compact));
+        _mm256_storeu_ps(&st.tmin[top], _mm256_permutevar8x32_ps(l, compact));
+        _mm256_storeu_ps(&st.tmax[top], _mm256_permutevar8x32_ps(h, compact));
+        return __builtin_popcount(mask);
+#endif
     }
 #endif
+    F8 lo = F8{} + tmin, hi = F8{} + tmax;
 #if defined(KDRT_WIDE_AVX2)
     // Per level four operations on the intervals: max(fm, lo) is fm > lo ? fm : lo (lo where fm
     // is NaN), min(nm, hi) is nm < hi ? nm : hi, and a blend by the far side's sign bit (the
@@ -443,32 +470,7 @@ static inline int decode(const WideNode& w, const Ray8& r, float tmin, float tma
         valid &= reinterpret_cast<I8>((slots & 3u) != 0);
     else
         valid &= reinterpret_cast<I8>(slots << 30);
-#if defined(KDRT_WIDE_AVX2)
-    if constexpr (!CountSteps) {
-        // Branch-free: the intervals and slots go to far-first order first, so the test's
-        // movemask is in stack order; the valid ones are moved to the front by one permute per
-        // field (the mask's compaction) and pushed with one whole-vector store per field.
-        const __m256i far_first = _mm256_cvtepu8_epi32(
-            _mm_cvtsi64_si128(static_cast<long long>(kFarFirstBytes.order[nh])));
-        const F8 lo_ff =
-            reinterpret_cast<F8>(_mm256_permutevar8x32_ps(reinterpret_cast<__m256>(lo), far_first));
-        const F8 hi_ff =
-            reinterpret_cast<F8>(_mm256_permutevar8x32_ps(reinterpret_cast<__m256>(hi), far_first));
-        const U8 slots_ff = reinterpret_cast<U8>(
-            _mm256_permutevar8x32_epi32(reinterpret_cast<__m256i>(slots), far_first));
-        const auto mask = bits8((lo_ff <= hi_ff) & reinterpret_cast<I8>(slots_ff << 30));
-        const __m256i compact = _mm256_cvtepu8_epi32(
-            _mm_cvtsi64_si128(static_cast<long long>(kCompactBytes.index[mask])));
-        _mm256_storeu_si256(
-            reinterpret_cast<__m256i*>(&st.slot[top]),
-            _mm256_permutevar8x32_epi32(reinterpret_cast<__m256i>(slots_ff), compact));
-        _mm256_storeu_ps(&st.tmin[top],
-                         _mm256_permutevar8x32_ps(reinterpret_cast<__m256>(lo_ff), compact));
-        _mm256_storeu_ps(&st.tmax[top],
-                         _mm256_permutevar8x32_ps(reinterpret_cast<__m256>(hi_ff), compact));
-        return __builtin_popcount(mask);
-    }
-#else
+#if !defined(KDRT_WIDE_AVX2)
     if constexpr (!CountSteps) {
         // Branch-free: every slot written, farthest first, the top advanced past the valid ones.
         alignas(32) float lo_a[8], hi_a[8];
