@@ -81,6 +81,21 @@ protected:
     fs::path dir_;
     Metrics metrics_;
     Compute compute_{2};
+
+    /// A server's stores and caches over `dir_`: trees within `mesh_budget` bytes. Call open().
+    struct Caches {
+        Caches(SceneCacheTest& t, uint64_t mesh_budget, SceneCacheOptions options = {})
+            : mesh_store(t.dir_),
+              meshes(mesh_store, t.compute_, t.metrics_, mesh_budget),
+              scene_store(t.dir_, t.dir_ / "tmp", 4),
+              scenes(scene_store, meshes, t.compute_, t.metrics_, options) {}
+        [[nodiscard]] bool open() { return meshes.open() && scene_store.open().ok(); }
+
+        MeshStore mesh_store;
+        MeshCache meshes;
+        SceneStore scene_store;
+        SceneCache scenes;
+    };
 };
 
 const Mesh& scene_sphere() {
@@ -97,12 +112,10 @@ const Mesh& scene_soup() {
 }
 
 TEST_F(SceneCacheTest, ClearanceIsBuiltAtTheFirstSingleReturnScanAndInheritedByPoseUpdates) {
-    MeshStore mesh_store(dir_);
-    MeshCache meshes(mesh_store, compute_, metrics_, 1ull << 30);
-    ASSERT_TRUE(meshes.open());
-    SceneStore scene_store(dir_, dir_ / "tmp", 4);
-    ASSERT_TRUE(scene_store.open().ok());
-    SceneCache scenes(scene_store, meshes, compute_, metrics_, SceneCacheOptions{});
+    Caches caches(*this, 1ull << 30);
+    ASSERT_TRUE(caches.open());
+    MeshCache& meshes = caches.meshes;
+    SceneCache& scenes = caches.scenes;
     const std::string a = meshes.add(scene_sphere())->summary.id,
                       b = meshes.add(scene_soup())->summary.id;
     const uint64_t trees = meshes.memory_bytes();
@@ -158,12 +171,10 @@ TEST_F(SceneCacheTest, ClearanceIsBuiltAtTheFirstSingleReturnScanAndInheritedByP
 }
 
 TEST_F(SceneCacheTest, ConcurrentFirstScansKeepOneClearancePerMesh) {
-    MeshStore mesh_store(dir_);
-    MeshCache meshes(mesh_store, compute_, metrics_, 1ull << 30);
-    ASSERT_TRUE(meshes.open());
-    SceneStore scene_store(dir_, dir_ / "tmp", 4);
-    ASSERT_TRUE(scene_store.open().ok());
-    SceneCache scenes(scene_store, meshes, compute_, metrics_, SceneCacheOptions{});
+    Caches caches(*this, 1ull << 30);
+    ASSERT_TRUE(caches.open());
+    MeshCache& meshes = caches.meshes;
+    SceneCache& scenes = caches.scenes;
     const std::string a = meshes.add(scene_sphere())->summary.id;
     const uint64_t trees = meshes.memory_bytes();
     std::vector<proto::SceneInstanceSpec> instances;
@@ -195,7 +206,6 @@ TEST_F(SceneCacheTest, ConcurrentFirstScansKeepOneClearancePerMesh) {
 }
 
 TEST_F(SceneCacheTest, AnEvictedTreesClearanceGoesWithItAndIsBuiltAgainForAReloadedRevision) {
-    MeshStore mesh_store(dir_);
     const uint64_t one_tree = tree_memory_bytes(build_kdtree(scene_sphere()));
     const uint64_t one_clearance = build_hit_clearance(build_kdtree(scene_sphere())).bytes();
     test::Rng rb(11), rc(12);
@@ -206,14 +216,13 @@ TEST_F(SceneCacheTest, AnEvictedTreesClearanceGoesWithItAndIsBuiltAgainForAReloa
     const uint64_t budget = one_tree + one_clearance + 1000;
     ASSERT_LE(tree_b + tree_c, budget);
     ASSERT_GT(one_clearance + tree_c, budget - one_tree);
-    MeshCache meshes(mesh_store, compute_, metrics_, budget);
-    ASSERT_TRUE(meshes.open());
-    SceneStore scene_store(dir_, dir_ / "tmp", 4);
-    ASSERT_TRUE(scene_store.open().ok());
     // A scene budget of one revision: the newest is kept, older ones are read again.
     SceneCacheOptions options;
     options.memory_budget = 1;
-    SceneCache scenes(scene_store, meshes, compute_, metrics_, options);
+    Caches caches(*this, budget, options);
+    ASSERT_TRUE(caches.open());
+    MeshCache& meshes = caches.meshes;
+    SceneCache& scenes = caches.scenes;
     const std::string a = meshes.add(scene_sphere())->summary.id;
     std::vector<proto::SceneInstanceSpec> instances;
     for (uint32_t k = 0; k < 6; ++k) instances.push_back(placed(a, k, 0));
