@@ -486,6 +486,7 @@ struct HttpFront::Impl {
             w->cv.notify_one();
         }
         idle.clear();
+        gauges->idle = 0;
     }
 
     /// Sends a complete early reply without blocking (best effort: a full socket buffer drops
@@ -736,6 +737,7 @@ struct HttpFront::Impl {
             if (!idle.empty()) {  // the most recently idle worker (else the next one to finish)
                 Idle* w = idle.back();
                 idle.pop_back();
+                gauges->idle = idle.size();
                 w->listed = false;
                 w->cv.notify_one();
             }
@@ -796,12 +798,14 @@ struct HttpFront::Impl {
                     if (!self.listed) {
                         self.listed = true;
                         idle.push_back(&self);
+                        gauges->idle = idle.size();
                     }
                     self.cv.wait(lock, [&] { return !self.listed; });
                 }
                 if (self.listed) {  // listed by finish() and not woken: off the list
                     idle.erase(std::find(idle.begin(), idle.end(), &self));
                     self.listed = false;
+                    gauges->idle = idle.size();
                 }
                 if (work.empty()) return;
                 c = work.front();
@@ -827,6 +831,7 @@ struct HttpFront::Impl {
                 if (!self.listed) {
                     self.listed = true;
                     idle.push_back(&self);
+                    gauges->idle = idle.size();
                 }
             } else {
                 keep = false;

@@ -40,6 +40,7 @@ struct ConnectionLimits {
 struct ConnectionGauges {
     std::atomic<size_t> open{0};     ///< client connections open (idle, arriving or answered)
     std::atomic<size_t> busy{0};     ///< worker threads answering a request
+    std::atomic<size_t> idle{0};     ///< worker threads free for the next request (started)
     std::atomic<size_t> waiting{0};  ///< complete requests waiting for a worker thread
 };
 

@@ -70,6 +70,8 @@ void add_connection_families(std::vector<proto::MetricFamily>& families,
           gauges.open.load());
     gauge("kdrt_http_threads", "Threads answering HTTP requests (http_threads).", threads);
     gauge("kdrt_http_threads_busy", "HTTP threads answering a request now.", gauges.busy.load());
+    gauge("kdrt_http_threads_idle", "HTTP threads started and free for the next request.",
+          gauges.idle.load());
     gauge("kdrt_http_requests_waiting", "Requests fully received and waiting for an HTTP thread.",
           gauges.waiting.load());
 }

@@ -47,6 +47,15 @@ public:
         thread_.join();
     }
     [[nodiscard]] int port() const { return port_; }
+    /// True once `n` workers are started and free, false if that takes over 10 s.
+    bool wait_idle(size_t n) const {
+        const auto gauges = front_.gauges();
+        for (int i = 0; i < 10000; ++i) {
+            if (gauges->idle.load() == n) return true;
+            std::this_thread::sleep_for(1ms);
+        }
+        return false;
+    }
 
 private:
     HttpFront front_;
@@ -110,10 +119,11 @@ TEST(HttpFrontWorkers, RequestsInTurnStayOnTheThreadThatAnsweredTheLastOne) {
             res.body = "ok";
         });
     WorkerClient client(front.port());
-    // The first request may race the workers' start (one of them woken for it, another taking
-    // it); once they have settled, the thread that answered a request is the next one's.
+    // A worker that starts late lists itself last and takes the next request, so the test
+    // begins once all eight are started and free (the gauge behind kdrt_http_threads_idle);
+    // from then on the thread that answered a request is the next one's.
     ASSERT_EQ(client.get("/a"), "ok");
-    std::this_thread::sleep_for(100ms);
+    ASSERT_TRUE(front.wait_idle(8)) << "the 8 workers did not all start";
     {
         std::lock_guard lock(mutex);
         answered_by.clear();

@@ -222,7 +222,8 @@ TEST(HttpOps, MetricsCountOpenConnectionsAndBusyThreads) {
         for (int i = 0; i < 100; ++i) {
             text = scrape();
             if (find_metric(text, "kdrt_http_connections") == connections &&
-                find_metric(text, "kdrt_http_threads_busy") == busy)
+                find_metric(text, "kdrt_http_threads_busy") == busy &&
+                find_metric(text, "kdrt_http_threads_idle") == 4 - busy)
                 break;
             std::this_thread::sleep_for(std::chrono::milliseconds(100));
         }
@@ -240,6 +241,7 @@ TEST(HttpOps, MetricsCountOpenConnectionsAndBusyThreads) {
     EXPECT_EQ(find_metric(text, "kdrt_http_connections"), 5.0) << text;
     EXPECT_EQ(find_metric(text, "kdrt_http_threads_busy"), 2.0) << text;
     EXPECT_EQ(find_metric(text, "kdrt_http_threads"), 4.0) << text;
+    EXPECT_EQ(find_metric(text, "kdrt_http_threads_idle"), 2.0) << text;
     EXPECT_EQ(find_metric(text, "kdrt_http_requests_waiting"), 0.0) << text;
 
     for (const int fd : idle) ::close(fd);
@@ -247,6 +249,7 @@ TEST(HttpOps, MetricsCountOpenConnectionsAndBusyThreads) {
     text = settle(1, 1);
     EXPECT_EQ(find_metric(text, "kdrt_http_connections"), 1.0) << text;
     EXPECT_EQ(find_metric(text, "kdrt_http_threads_busy"), 1.0) << text;
+    EXPECT_EQ(find_metric(text, "kdrt_http_threads_idle"), 3.0) << text;
 }
 
 TEST(HttpOps, ASecondServerOnATakenPortRefusesToStart) {
