@@ -12,6 +12,9 @@
 
 #include "kdrt/scene.h"
 #include "kdrt/trace.h"
+// ray_is_valid: the mesh kernels' rule (finite origin and direction, non-zero direction,
+// tmin <= tmax), which scene rays follow too.
+#include "ray_prep.h"
 
 namespace kdrt::detail {
 
@@ -95,14 +98,6 @@ struct TopRay {
     float delta;   ///< spatial margin
     float eps[3];  ///< delta in t along each axis (0 for a zero direction component)
 };
-
-/// Same rule as the mesh kernels: finite origin and direction, non-zero direction, tmin <= tmax.
-[[gnu::always_inline]] inline bool ray_is_valid(const Ray& r) noexcept {
-    const bool finite = std::isfinite(r.ox) && std::isfinite(r.oy) && std::isfinite(r.oz) &&
-                        std::isfinite(r.dx) && std::isfinite(r.dy) && std::isfinite(r.dz);
-    const bool nonzero = r.dx != 0.0f || r.dy != 0.0f || r.dz != 0.0f;
-    return finite && nonzero && r.tmin <= r.tmax;
-}
 
 [[gnu::always_inline]] inline TopRay make_top_ray(const SceneData& s, const Ray& r) noexcept {
     TopRay p;

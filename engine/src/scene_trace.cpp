@@ -22,6 +22,7 @@
 #include "kdrt/scene.h"
 #include "kdrt/trace.h"
 #include "scene_clearance.h"
+#include "scene_in_turn_ops.h"
 #include "scene_internal.h"
 #include "scene_packet.h"
 
@@ -371,13 +372,14 @@ void trace_block(const SceneData& s, std::span<const Ray> rays, std::span<SceneH
     const size_t n = rays.size();
     if (options.mode == TraceMode::kSingle ||
         (options.mode == TraceMode::kAuto && !rounds_pay(rays))) {
-        for (size_t i = 0; i < n; ++i) {
-            counts.invalid += detail::ray_is_valid(rays[i]) ? 0 : 1;
-            if constexpr (AnyHit)
-                occ_out[i] = occluded_one(s, rays[i], &counts.visits) ? 1 : 0;
-            else
-                hits_out[i] = intersect_one(s, rays[i], &counts.visits);
-        }
+        // Several rays' walks in turn, across the top level and the instances (scene_in_turn.h):
+        // each ray's answer is intersect_one's / occluded_one's.
+        for (size_t i = 0; i < n; ++i) counts.invalid += detail::ray_is_valid(rays[i]) ? 0 : 1;
+        const detail::SceneInTurnOps& ops = detail::scene_in_turn_ops(resolved_isa(options));
+        if constexpr (AnyHit)
+            ops.occluded(s, rays.data(), n, occ_out.data(), counts.visits);
+        else
+            ops.intersect(s, rays.data(), n, hits_out.data(), counts.visits);
         return;
     }
     b.mailbox.assign(n, detail::Mailbox{});

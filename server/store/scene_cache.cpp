@@ -146,7 +146,9 @@ SceneCache::EntryPtr SceneCache::scan_ready(const EntryPtr& entry) {
     const uint32_t n = scene.size();
     bool missing = false;
     for (uint32_t g = 0; g < n && !missing; ++g) missing = !scene.instance(g).clearance;
-    if (!missing) return entry;
+    // Tried already: what is missing belongs to meshes deleted since (their every-hit windows
+    // give the same answers), so a scan of such a revision does not rebuild it each time.
+    if (!missing || entry->scan_ready) return entry;
     // Per distinct tree (the instances of one mesh share it): the mesh cache's clearance of it,
     // built at its first use there.
     std::unordered_map<const KdTree*, std::shared_ptr<const HitClearance>> clearances;
@@ -168,6 +170,7 @@ SceneCache::EntryPtr SceneCache::scan_ready(const EntryPtr& entry) {
         ready->doc = entry->doc;
         ready->scene = scene.with_clearances(per_instance);
         ready->bytes = entry_bytes(*ready);
+        ready->scan_ready = true;
         // Kept in place of `entry` (unless it was evicted or replaced meanwhile), so the next
         // scan and the next pose update's base find it.
         std::lock_guard lock(mutex_);

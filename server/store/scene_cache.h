@@ -75,6 +75,9 @@ struct SceneEntry {
     proto::SceneDocument doc;
     Scene scene;
     uint64_t bytes = 0;  ///< what it counts in the budget
+    /// Made by scan_ready: every clearance that could be attached is (an instance whose mesh was
+    /// deleted since has none), so scan_ready returns it as it is, without trying again.
+    bool scan_ready = false;
 };
 
 struct SceneCacheOptions {
@@ -111,7 +114,9 @@ public:
     /// budget; concurrent first calls may both build it, one is kept); the revision is kept in
     /// this form in place of `entry` (Scene::with_clearances: the top level is kept), so later
     /// calls and the revisions later pose updates make from it find it attached. A mesh deleted
-    /// meanwhile leaves its instances without one. Returns `entry` itself when it has them.
+    /// meanwhile leaves its instances without one, and the revision remembers that it tried
+    /// (SceneEntry::scan_ready): its later scans do not try again. Returns `entry` itself when it
+    /// has them or has tried.
     [[nodiscard]] EntryPtr scan_ready(const EntryPtr& entry);
 
     /// The next revision with the poses applied (in order; later entries for one instance

@@ -22,6 +22,7 @@
 #include "kdrt/scene.h"
 #include "kdrt/trace.h"
 #include "scan_internal.h"
+#include "scene_in_turn_ops.h"
 #include "scene_internal.h"
 #include "test_util.h"
 
@@ -558,6 +559,133 @@ TEST(Scene, TopLevelWalksGoOnPastACellStartingBeyondTheHit) {
             }
         }
     }
+}
+
+/// Rays that graze instances' world boxes: parallel to an axis in a face's plane, along a box
+/// edge, and through a corner, each from outside the box; some moved by an ulp either way.
+std::vector<Ray> grazing_rays(Rng& rng, const Scene& scene, size_t count) {
+    std::vector<Ray> rays;
+    while (rays.size() < count) {
+        const uint32_t g = rng.below(scene.size());
+        const Aabb w = scene.world_bounds(g);
+        if (w.empty()) continue;
+        const int a = static_cast<int>(rng.below(3));  // the ray's axis
+        const int b = (a + 1) % 3, c = (a + 2) % 3;
+        Vec3 o = rng.in_box(w), d{0, 0, 0};
+        o[a] = rng.below(2) ? w.lo[a] - 1.0f : w.hi[a] + 1.0f;
+        d[a] = o[a] < w.lo[a] ? 1.0f : -1.0f;
+        o[b] = rng.below(2) ? w.lo[b] : w.hi[b];                    // in a face's plane
+        if (rng.below(2)) o[c] = rng.below(2) ? w.lo[c] : w.hi[c];  // along an edge
+        if (rng.below(3) == 0) o[b] = std::nextafter(o[b], rng.below(2) ? INFINITY : -INFINITY);
+        if (rng.below(2)) {
+            // Through the corner nearest the origin's side, from a point off every axis.
+            Vec3 corner;
+            for (int k = 0; k < 3; ++k) corner[k] = rng.below(2) ? w.lo[k] : w.hi[k];
+            const Vec3 from = corner + rng.on_sphere() * rng.uniform(0.5f, 4.0f);
+            rays.push_back(make_ray(from, corner - from));
+        } else {
+            rays.push_back(make_ray(o, d));
+        }
+    }
+    return rays;
+}
+
+TEST(SceneInTurn, EveryWalkAnswersAsTheOracleWithAnyNumberOfRaysInFlight) {
+    // A batch's single rays walked several at a time (scene_in_turn.h), called directly for every
+    // ISA (the baseline's too): overlapping instances of every kind of transform; rays hitting,
+    // missing and grazing instance boxes; windows cut just before, at and just after the closest
+    // hit; invalid rays among them; and every batch size from 1 ray to past twice the walks in
+    // flight, so walks start, end and take the next ray at every point of the turn. (A scene has
+    // no nested transforms: an instance is a mesh.) Each answer is the oracle's bit for bit.
+    const uint64_t seed = test_seed();
+    SCOPED_TRACE(testing::Message() << "seed=" << seed);
+    const TestScene s = mixed_scene(seed + 26, 24);
+    const SceneOracle oracle(s.scene);
+    Rng rng(seed + 27);
+    std::vector<Ray> rays = scene_rays(rng, s.scene, s.meshes, s.mesh_of, scaled(1500));
+    const std::vector<Ray> grazing = grazing_rays(rng, s.scene, scaled(1500));
+    rays.insert(rays.end(), grazing.begin(), grazing.end());
+    // Windows at the closest hit: tmax at it (a hit at tmax counts), an ulp before it (the hit is
+    // cut off), tmin at it and an ulp after it.
+    const size_t base = rays.size();
+    size_t cut = 0;
+    for (size_t i = 0; i < base && cut < scaled(600); ++i) {
+        const SceneHit h = oracle.intersect(rays[i]);
+        if (!h.is_hit() || !(h.t > rays[i].tmin)) continue;
+        ++cut;
+        Ray r = rays[i];
+        r.tmax = h.t;
+        rays.push_back(r);
+        r.tmax = std::nextafter(h.t, 0.0f);
+        rays.push_back(r);
+        r = rays[i];
+        r.tmin = h.t;
+        rays.push_back(r);
+        r.tmin = std::nextafter(h.t, INFINITY);
+        rays.push_back(r);
+    }
+    ASSERT_GT(cut, 0u);
+    const float nan = std::nanf("");
+    rays.push_back(make_ray({nan, 0, 0}, {1, 0, 0}));
+    rays.push_back(make_ray({0, 0, 0}, {0, 0, 0}));
+    Ray backwards = make_ray({0, 0, 0}, {1, 0, 0});
+    backwards.tmin = 2.0f, backwards.tmax = 1.0f;
+    rays.push_back(backwards);
+    std::shuffle(rays.begin() + static_cast<std::ptrdiff_t>(base), rays.end(),
+                 std::mt19937(static_cast<uint32_t>(seed)));
+    std::vector<SceneHit> want(rays.size());
+    std::vector<uint8_t> want_occ(rays.size());
+    size_t hits = 0, grazing_hits = 0, missed = 0;
+    for (size_t i = 0; i < rays.size(); ++i) {
+        want[i] = oracle.intersect(rays[i]);
+        want_occ[i] = oracle.occluded(rays[i]) ? 1 : 0;
+        hits += want[i].is_hit();
+        missed += !want[i].is_hit();
+        if (i >= base - grazing.size() && i < base) grazing_hits += want[i].is_hit();
+    }
+    EXPECT_GT(hits, rays.size() / 10);
+    EXPECT_GT(missed, rays.size() / 20);
+    EXPECT_GT(grazing_hits, 0u);
+    std::vector<Isa> isas = supported_isas();
+    if (std::find(isas.begin(), isas.end(), Isa::kScalar) == isas.end())
+        isas.push_back(Isa::kScalar);
+    const detail::SceneData& data = s.scene.data();
+    for (Isa isa : isas) {
+        SCOPED_TRACE(std::string(isa_name(isa)));
+        const detail::SceneInTurnOps& ops = detail::scene_in_turn_ops(isa);
+        // The whole set, then every batch size from 1 to 2K + 3 at many offsets.
+        std::vector<SceneHit> got(rays.size(), SceneHit{1, 2, 3, 4, 5});
+        std::vector<uint8_t> occ(rays.size(), 7);
+        uint64_t visits = 0, occ_visits = 0;
+        ops.intersect(data, rays.data(), rays.size(), got.data(), visits);
+        ops.occluded(data, rays.data(), rays.size(), occ.data(), occ_visits);
+        EXPECT_GT(visits, 0u);
+        EXPECT_GT(occ_visits, 0u);
+        EXPECT_LE(occ_visits, visits) << "an occluded ray stops at its first hit";
+        for (size_t i = 0; i < rays.size(); ++i) {
+            ASSERT_TRUE(same_bits(got[i], want[i]))
+                << "ray " << i << ": got " << describe(got[i]) << ", want " << describe(want[i]);
+            ASSERT_EQ(occ[i], want_occ[i]) << "ray " << i;
+        }
+        constexpr size_t kMaxBatch = 2 * detail::kSceneWalksInTurn + 3;
+        for (size_t n = 1; n <= kMaxBatch; ++n) {
+            for (size_t at = 0; at + n <= rays.size(); at += 97 + n) {
+                std::vector<SceneHit> part(n, SceneHit{1, 2, 3, 4, 5});
+                std::vector<uint8_t> part_occ(n, 7);
+                uint64_t v = 0;
+                ops.intersect(data, rays.data() + at, n, part.data(), v);
+                ops.occluded(data, rays.data() + at, n, part_occ.data(), v);
+                for (size_t i = 0; i < n; ++i) {
+                    ASSERT_TRUE(same_bits(part[i], want[at + i]))
+                        << n << " rays at " << at << ", ray " << i << ": got " << describe(part[i])
+                        << ", want " << describe(want[at + i]);
+                    ASSERT_EQ(part_occ[i], want_occ[at + i]) << n << " rays at " << at;
+                }
+            }
+        }
+    }
+    // And through the batch entry, which walks its single rays this way.
+    expect_matches_oracle(s, rays);
 }
 
 TEST(Scene, EmptyScenesMiss) {

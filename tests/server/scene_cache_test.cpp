@@ -170,6 +170,53 @@ TEST_F(SceneCacheTest, ClearanceIsBuiltAtTheFirstSingleReturnScanAndInheritedByP
     expect_same_scan(scan_lidar((*next)->scene, spec), scan_lidar(build_scene(bare), spec));
 }
 
+TEST_F(SceneCacheTest, ARevisionWhoseMeshWasDeletedTriesItsClearancesOnce) {
+    // A revision taken before one of its meshes was deleted (a scan that got it just before the
+    // delete; the current revision no longer uses the mesh, so the delete was allowed): its first
+    // single-return scan attaches the clearances it can, and the revision remembers that, so its
+    // later scans neither build nor replace anything; the answers stay the plain revision's.
+    Caches caches(*this, 1ull << 30);
+    ASSERT_TRUE(caches.open());
+    MeshCache& meshes = caches.meshes;
+    SceneCache& scenes = caches.scenes;
+    const std::string a = meshes.add(scene_sphere())->summary.id,
+                      b = meshes.add(scene_soup())->summary.id;
+    std::vector<proto::SceneInstanceSpec> instances;
+    for (uint32_t k = 0; k < 6; ++k) instances.push_back(placed(k % 2 == 1 ? b : a, k, 0));
+    auto created = scenes.create(instances);
+    ASSERT_TRUE(created);
+    const SceneCache::EntryPtr plain = *created;
+    const std::string id = plain->doc.id;
+    proto::InstanceEdit edit;
+    for (uint32_t k = 1; k < 6; k += 2) edit.remove.emplace_back(k);
+    auto edited = scenes.edit(id, 1, edit);
+    ASSERT_TRUE(edited);
+    EXPECT_EQ((*edited)->doc.revision, 2u);
+    EXPECT_TRUE(scenes.mesh_users(b).empty());
+    ASSERT_TRUE(meshes.remove(b));
+    ASSERT_FALSE(meshes.find(b));
+
+    const SceneCache::EntryPtr ready = scenes.scan_ready(plain);
+    ASSERT_NE(ready, plain);
+    EXPECT_TRUE(ready->scan_ready);
+    for (uint32_t g = 0; g < ready->scene.size(); ++g)
+        EXPECT_EQ(static_cast<bool>(ready->scene.instance(g).clearance), g % 2 == 0)
+            << "instance " << g;
+    // Tried once: the same revision back, nothing built, the bytes as they were.
+    const uint64_t bytes = meshes.memory_bytes(), kept = scenes.memory_bytes();
+    for (int scan = 0; scan < 3; ++scan) EXPECT_EQ(scenes.scan_ready(ready), ready);
+    EXPECT_EQ(meshes.memory_bytes(), bytes);
+    EXPECT_EQ(scenes.memory_bytes(), kept);
+    // Asked for again by revision: refused as before (its mesh is gone).
+    auto again = scenes.get(id, 1);
+    ASSERT_FALSE(again);
+    EXPECT_EQ(again.error().code, SceneProblem::Code::kMeshGone);
+    // Its scans answer as the plain revision's.
+    const ScenePointCloud want = scan_lidar(plain->scene, lidar());
+    EXPECT_GT(want.cloud.points.size(), 500u);
+    expect_same_scan(scan_lidar(ready->scene, lidar()), want);
+}
+
 TEST_F(SceneCacheTest, ConcurrentFirstScansKeepOneClearancePerMesh) {
     Caches caches(*this, 1ull << 30);
     ASSERT_TRUE(caches.open());
