@@ -18,11 +18,6 @@
 // - Counts at a boundary are min-max bin estimates (a reference's lower bound counts it on the
 //   left, its upper bound on the right); the partition itself compares exactly, so the tree is
 //   correct whatever the estimate. The cost formula is the exact sweep's (empty bonus included).
-// - The estimates count a reference that ends exactly at a tight plane as a straddler, so they
-//   overestimate a split through geometry whose triangles share planes (rings of vertices, grids)
-//   and hardly a cut of (nearly) empty space beside it. A node whose best estimate is such a cut
-//   therefore counts its best few candidates exactly and chooses again (recount), and stays in
-//   the binned phase whatever it chooses.
 // - A node whose best binned split does not beat making it a leaf goes to the exact sweep, which
 //   makes the final decision with perfect splits.
 // Determinism: bins and bounds are integer sums and min/max over fixed-size chunks, combined in
@@ -107,9 +102,8 @@ constexpr size_t kParallelRefs = size_t{1} << 15;  // nodes this big bin and par
 constexpr size_t kParallelSubtrees = 4096;         // ... and build their children concurrently
 /// A binned split with at most 1/kNearlyEmpty of the node's references on one side is a cut of
 /// (nearly) empty space. On the stadium (a small dense sphere inside a big box of 12 triangles)
-/// the estimates made the root take such a cut around the sphere where the exact sweep splits the
-/// sphere through a ring of vertices, and shadow rays from the walls then tested 9.0 instead of
-/// 6.7 triangles each; with the choice recounted the root splits the sphere too.
+/// the binned root took such a cut around the sphere where the exact sweep splits the sphere, and
+/// shadow rays from the walls then tested 9.0 instead of 6.7 triangles each.
 constexpr uint32_t kNearlyEmpty = 64;
 /// Small nodes get fewer bins: one per kRefsPerBin references, at least kMinBins.
 constexpr uint32_t kRefsPerBin = 8;
@@ -122,21 +116,6 @@ struct BinnedSplit {
     bool planar_left = false;  ///< where a reference lying in the plane goes
     bool cuts_empty = false;   ///< one side holds (almost) no reference: see kNearlyEmpty
     double cost = INFINITY;
-};
-
-/// Per axis, this many of a node's binned candidates (those of lowest estimated cost) are kept
-/// for an exact count (see BinnedBuilder::recount).
-constexpr uint32_t kMaxRecount = 4;
-
-/// A candidate plane of a binned node: where references in it go, the children's probabilities
-/// and their reference counts (min-max estimates, or exact once recounted).
-struct Candidate {
-    float pos = 0;
-    bool planar_left = false;
-    double pl = 0, pr = 0;
-    uint32_t nl = 0, nr = 0;
-    double cost = INFINITY;  ///< with the estimated counts: the order candidates are kept in
-    uint32_t order = 0;      ///< the node's candidates in the order they were considered
 };
 
 /// Per-axis bins of a range of references: how many start / end in each bin, and the lowest
@@ -259,7 +238,10 @@ public:
         }
         const BinnedSplit split = find_split(cell, refs, geom);
         const double leaf_cost = cost_.leaf(static_cast<uint32_t>(refs.size()));
-        if (!split.valid || !(split.cost < leaf_cost)) {
+        // A node whose best binned split cuts off (nearly) empty space goes to the exact sweep
+        // too: its geometry is concentrated in a few bins, and their coarse boundaries miss the
+        // split through it that the exact sweep finds (the stadium: see kNearlyEmpty).
+        if (!split.valid || !(split.cost < leaf_cost) || split.cuts_empty) {
             to_exact(out, slot, cell, std::move(refs), depth);
             return;
         }
@@ -364,11 +346,7 @@ private:
         }
 
         const auto n = static_cast<uint32_t>(refs.size());
-        // Per axis, the candidates of lowest estimated cost (see consider), each kind in order of
-        // cost, ties in the order considered.
-        std::array<std::array<Candidate, kMaxRecount>, 3> cands;
-        std::array<uint32_t, 3> cand_count{}, cut_count{};
-        uint32_t order = 0;
+        BinnedSplit best;
         for (int a = 0; a < 3; ++a) {
             const float lo = cell.lo[a], hi = cell.hi[a];
             if (!(lo < hi)) continue;  // flat along this axis: nothing to split
@@ -376,46 +354,14 @@ private:
             const double e1 = double{cell.hi[a1]} - cell.lo[a1];
             const double e2 = double{cell.hi[a2]} - cell.lo[a2];
             const double cap = e1 * e2, ring = e1 + e2;
-            // Per axis, the best cut of (nearly) empty space in slot 0 and the best
-            // kMaxRecount - 1 splits through the geometry after it: the cuts' estimates are
-            // (nearly) exact, the splits' are what a recount can correct.
-            auto& list = cands[a];
-            uint32_t& count = cand_count[a];
-            uint32_t& cuts = cut_count[a];
             // Candidates strictly inside the cell; ties keep the earlier (lower axis, lower pos).
             auto consider = [&](float pos, uint32_t nl, uint32_t nr, bool planar_left) {
                 if (!(pos > lo && pos < hi)) return;
                 const double pl = (cap + ring * (double{pos} - lo)) * inv_area;
                 const double pr = (cap + ring * (double{hi} - pos)) * inv_area;
                 const double cost = cost_.split(pl, pr, nl, nr);
-                const Candidate c{pos, planar_left, pl, pr, nl, nr, cost, order++};
-                if (std::min(nl, nr) <= n / kNearlyEmpty) {
-                    if (cuts == 0 || cost < list[0].cost) {
-                        if (cuts == 0) {
-                            // Room at the front: a full list's last split falls off (it was
-                            // shifted past the end of the list, into the next axis' candidates).
-                            count = std::min(count + 1, kMaxRecount);
-                            for (uint32_t j = count - 1; j > 0; --j) list[j] = list[j - 1];
-                            cuts = 1;
-                        }
-                        list[0] = c;
-                    }
-                    return;
-                }
-                // A plane met again (a tight plane shared by several boundaries) keeps its
-                // lowest estimate.
-                for (uint32_t j = cuts; j < count; ++j) {
-                    if (list[j].pos != pos || list[j].planar_left != planar_left) continue;
-                    if (!(cost < list[j].cost)) return;
-                    for (--count; j < count; ++j) list[j] = list[j + 1];
-                    break;
-                }
-                uint32_t at = count;
-                while (at > cuts && cost < list[at - 1].cost) --at;
-                if (at >= kMaxRecount) return;
-                count = std::min(count + 1, kMaxRecount);
-                for (uint32_t j = count - 1; j > at; --j) list[j] = list[j - 1];
-                list[at] = c;
+                if (cost < best.cost)
+                    best = {true, a, pos, planar_left, std::min(nl, nr) <= n / kNearlyEmpty, cost};
             };
             // At each bin boundary b (b = 0 and b = bins: the ends of the range), three planes
             // share the same estimated counts: the boundary itself, the highest end of the
@@ -444,99 +390,7 @@ private:
                 consider(lowest_start_above[b], nl, nr, false);
             }
         }
-        // The cheapest candidate, ties to the one considered first (as considering them in turn
-        // and keeping strictly cheaper ones gives).
-        auto choose = [&] {
-            BinnedSplit best;
-            uint32_t best_order = 0;
-            for (int a = 0; a < 3; ++a) {
-                for (uint32_t j = 0; j < cand_count[a]; ++j) {
-                    const Candidate& c = cands[a][j];
-                    const double cost = cost_.split(c.pl, c.pr, c.nl, c.nr);
-                    if (cost < best.cost || (cost == best.cost && c.order < best_order)) {
-                        best = {
-                            true, a, c.pos, c.planar_left, std::min(c.nl, c.nr) <= n / kNearlyEmpty,
-                            cost};
-                        best_order = c.order;
-                    }
-                }
-            }
-            return best;
-        };
-        // The estimates are exact enough for an ordinary node, whose best candidates are all
-        // splits through its geometry (overestimated alike). But where the best estimate is a
-        // cut of (nearly) empty space, its counts are (nearly) exact while the splits through the
-        // geometry it beat may be overestimated (see recount): the choice is then made again
-        // from exact counts.
-        BinnedSplit best = choose();
-        if (best.cuts_empty && params_.recount_nearly_empty) {
-            recount(refs, cands, cand_count);
-            best = choose();
-        }
         return best;
-    }
-
-    /// Replaces the min-max estimates of each candidate's counts by the counts partition()
-    /// gives for it (one more pass over the references, every candidate at once). The bins count
-    /// a reference that ends exactly at a tight plane as a straddler: where many triangles share a
-    /// plane (a ring of vertices, a grid) the estimate of a split between them is off by all of
-    /// them, and a cut of empty space beside the geometry then looks cheaper than the split
-    /// through it that the exact sweep finds.
-    void recount(const Refs& refs, std::array<std::array<Candidate, kMaxRecount>, 3>& cands,
-                 const std::array<uint32_t, 3>& count) const {
-        using F4 = float __attribute__((vector_size(16)));
-        using I4 = int32_t __attribute__((vector_size(16)));
-        static_assert(kMaxRecount == 4);
-        // Unused lanes: a plane at NaN sends every reference to both sides, counted and ignored.
-        std::array<F4, 3> plane;
-        std::array<I4, 3> planar_left;
-        for (int a = 0; a < 3; ++a) {
-            for (uint32_t j = 0; j < kMaxRecount; ++j) {
-                const bool used = j < count[a];
-                plane[a][j] = used ? cands[a][j].pos : NAN;
-                planar_left[a][j] = used && cands[a][j].planar_left ? -1 : 0;
-            }
-        }
-        // Per chunk and axis: references only on the left / only on the right (negated).
-        struct Counts {
-            std::array<I4, 3> left_only{}, right_only{};
-        };
-        auto count_range = [&](Counts& c, size_t begin, size_t end) {
-            for (size_t i = begin; i < end; ++i) {
-                const Ref& r = refs[i];
-                for (int a = 0; a < 3; ++a) {
-                    const F4 lo = F4{} + r.lo[a], hi = F4{} + r.hi[a];
-                    const F4 p = plane[a];
-                    // partition()'s side(): left only, right only, or both.
-                    const I4 left = (hi < p) | ((hi == p) & ((lo < p) | planar_left[a]));
-                    const I4 right = ~left & (lo >= p);
-                    c.left_only[a] += left;
-                    c.right_only[a] += right;
-                }
-            }
-        };
-        Counts sum;
-        if (refs.size() <= kChunkRefs) {
-            count_range(sum, 0, refs.size());
-        } else {
-            std::vector<Counts> partial((refs.size() + kChunkRefs - 1) / kChunkRefs);
-            for_chunks(refs.size(), [&](size_t c, size_t begin, size_t end) {
-                count_range(partial[c], begin, end);
-            });
-            for (const Counts& c : partial) {
-                for (int a = 0; a < 3; ++a) {
-                    sum.left_only[a] += c.left_only[a];
-                    sum.right_only[a] += c.right_only[a];
-                }
-            }
-        }
-        const auto n = static_cast<uint32_t>(refs.size());
-        for (int a = 0; a < 3; ++a) {
-            for (uint32_t j = 0; j < count[a]; ++j) {
-                cands[a][j].nl = n - static_cast<uint32_t>(-sum.right_only[a][j]);
-                cands[a][j].nr = n - static_cast<uint32_t>(-sum.left_only[a][j]);
-            }
-        }
     }
 
     /// Splits the references at the plane, keeping their order on each side. A reference that

@@ -118,10 +118,6 @@ struct BinnedParams {
     /// as they are, instead of classifying and copying them (ExactSahBuilder). The tree is the
     /// same either way; tests turn it off to compare.
     bool empty_cuts_in_place = true;
-    /// A node whose best binned split by the bins' estimates is a cut of (nearly) empty space
-    /// counts its best candidates exactly and chooses again (false only for the tests that show
-    /// what the estimates alone choose).
-    bool recount_nearly_empty = true;
 };
 
 /// Maps a coordinate to its bin on one axis: [lo, lo + count / scale] in `count` equal bins,
