@@ -44,6 +44,7 @@ struct TraceCounters {
     uint64_t steps = 0;          ///< inner nodes visited, summed over rays
     uint64_t leaves = 0;         ///< leaves visited, summed over rays
     uint64_t tri_tests = 0;      ///< ray-triangle tests
+    uint64_t tri_skips = 0;      ///< of those, lanes of packet tests skipped as repeats
     uint64_t packet_visits = 0;  ///< nodes (inner and leaf) visited by packets
     uint64_t packet_lanes = 0;   ///< live lanes summed over those visits
     uint64_t wide_visits = 0;    ///< wide nodes visited by the single-ray kernel
