@@ -41,17 +41,18 @@ struct TraceCounters {
     // The work done, counted only by the counting kernels (TraceOptions::count_work). A packet's
     // node visit or triangle test counts once per live lane, so the per-ray figures compare
     // across modes.
-    uint64_t steps = 0;      ///< inner nodes visited, summed over rays
-    uint64_t leaves = 0;     ///< leaves visited, summed over rays
-    uint64_t tri_tests = 0;  ///< ray-triangle tests
-    uint64_t tri_skips = 0;  ///< of those, lanes of packet tests skipped as repeats
+    uint64_t steps = 0;          ///< inner nodes visited, summed over rays
+    uint64_t leaves = 0;         ///< leaves visited, summed over rays
+    uint64_t tri_tests = 0;      ///< ray-triangle tests
+    uint64_t packet_visits = 0;  ///< nodes (inner and leaf) visited by packets
+    uint64_t packet_lanes = 0;   ///< live lanes summed over those visits
+    uint64_t wide_visits = 0;    ///< wide nodes visited by the single-ray kernel
+    /// Of tri_tests, lanes of closest-hit packet tests skipped as repeats (the packet mailbox).
+    uint64_t tri_skips = 0;
     // The packet mailbox's own measure, kept by every kernel (not reported): packet tests looked
     // up in it, and of those skipped, in the closest-hit packets that used it.
     uint64_t mail_looked = 0;
     uint64_t mail_skipped = 0;
-    uint64_t packet_visits = 0;  ///< nodes (inner and leaf) visited by packets
-    uint64_t packet_lanes = 0;   ///< live lanes summed over those visits
-    uint64_t wide_visits = 0;    ///< wide nodes visited by the single-ray kernel
 };
 
 /// The scalar kernel (trace.cpp) with its work counted: the same answers as intersect/occluded.
