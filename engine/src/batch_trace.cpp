@@ -76,6 +76,7 @@ void trace_batch(const KdTree& tree, std::span<const Ray> rays, Hit* hits, uint8
             stats->traversal_steps += c.steps;
             stats->leaves_visited += c.leaves;
             stats->triangle_tests += c.tri_tests;
+            stats->triangle_repeats_skipped += c.tri_skips;
             stats->packet_visits += c.packet_visits;
             stats->packet_lanes += c.packet_lanes;
             stats->wide_visits += c.wide_visits;

@@ -47,6 +47,12 @@ struct TraceCounters {
     uint64_t packet_visits = 0;  ///< nodes (inner and leaf) visited by packets
     uint64_t packet_lanes = 0;   ///< live lanes summed over those visits
     uint64_t wide_visits = 0;    ///< wide nodes visited by the single-ray kernel
+    /// Of tri_tests, lanes of closest-hit packet tests skipped as repeats (the packet mailbox).
+    uint64_t tri_skips = 0;
+    // The packet mailbox's own measure, kept by every kernel (not reported): packet tests looked
+    // up in it, and of those skipped, in the closest-hit packets that used it.
+    uint64_t mail_looked = 0;
+    uint64_t mail_skipped = 0;
 };
 
 /// The scalar kernel (trace.cpp) with its work counted: the same answers as intersect/occluded.

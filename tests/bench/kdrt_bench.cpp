@@ -170,7 +170,8 @@ for occlusion), incoherent and coherent, and adds
   (rtcIntersect1 or rtcOccluded1, either flag), the yardstick of --mode one.
 With --stats it traces once more, untimed, with the counting kernels and adds the work per ray:
   steps_per_ray (inner nodes visited), leaves_per_ray, tri_tests_per_ray (a packet's visit or
-  test counts once per live lane), packet_visits (node visits by packets) and lane_utilisation
+  test counts once per live lane), tri_skips_per_ray (of those, packet tests of a triangle that
+  every active lane had tested already, skipped), packet_visits (node visits by packets) and lane_utilisation
   (live lanes per packet node visit, divided by the packet width).
 
 options:
@@ -622,6 +623,7 @@ int run_trace(const Args& args) {
         line["steps_per_ray"] = per_ray(work.traversal_steps);
         line["leaves_per_ray"] = per_ray(work.leaves_visited);
         line["tri_tests_per_ray"] = per_ray(work.triangle_tests);
+        line["tri_skips_per_ray"] = per_ray(work.triangle_repeats_skipped);
         line["packet_visits"] = work.packet_visits;
         // Wide-node visits per single-traced ray (the dependent node loads of the single-ray
         // kernel), and the share of rays traced as single rays.

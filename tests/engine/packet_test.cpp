@@ -13,6 +13,7 @@
 #include "kdrt/proto/ray_batch.h"
 #include "kdrt/raygen.h"
 #include "kdrt/trace.h"
+#include "oracle.h"
 #include "packet.h"
 #include "test_util.h"
 
@@ -214,6 +215,67 @@ TEST(PacketEquivalence, SharedOriginRaysThroughVerticesAndEdges) {
         std::vector<uint8_t> occ(rays.size());
         occluded(tree, rays, occ, {TraceMode::kPacket, isa});
         EXPECT_TRUE(occ == want_occ) << what << ": occlusion differs";
+    }
+}
+
+TEST(PacketEquivalence, RepeatedTrianglesInManyLeavesAndTies) {
+    // Closest-hit packets skip a triangle that all their active lanes have tested in an earlier
+    // leaf (the packet mailbox). Long slivers crossing a dense cloud of small triangles are listed
+    // in many leaves, so a packet meets them again and again. Every sliver comes three times: an
+    // exact copy (equal t, the lower id must win) and one with its vertices rotated (equal plane,
+    // other u, v). Rays: camera packets, the oracle's mixed bag, and packets from one origin aimed
+    // at the slivers' vertices and edge midpoints.
+    Rng rng(test_seed() + 540);
+    Mesh mesh = random_soup(rng, 3000, 0.05f);
+    std::vector<std::array<Vec3, 3>> slivers;
+    for (int i = 0; i < 24; ++i) {
+        const float y = rng.uniform(), z = rng.uniform(), dy = 0.01f * rng.uniform();
+        const Vec3 a{-0.1f, y, z}, b{1.1f, y + dy, z + 0.3f * dy}, c{1.1f, y - 0.02f, z + 0.01f};
+        slivers.push_back({a, b, c});
+        add_triangle(mesh, a, b, c);
+        add_triangle(mesh, a, b, c);
+        add_triangle(mesh, b, c, a);
+    }
+    const KdTree tree = build_kdtree(mesh);
+    const std::vector<TriVerts> by_id = triangles_by_id(tree);
+    std::vector<Ray> rays = mixed_rays(mesh, tree, test_seed() + 541, scaled(20'000));
+    const Vec3 origin{0.5f, -0.7f, 1.9f};
+    for (const auto& s : slivers)
+        for (int k = 0; k < 3; ++k) {
+            const Vec3 p = s[k], q = s[(k + 1) % 3];
+            const Vec3 m{(p.x + q.x) / 2, (p.y + q.y) / 2, (p.z + q.z) / 2};
+            for (const Vec3& target : {p, m})
+                for (int l = 0; l < 16; ++l) {  // one packet a target, fanned along the sliver
+                    const float x = target.x + (l - 8) * 0.03125f * (q.x - p.x);
+                    const Vec3 t{x, target.y, target.z};
+                    rays.push_back(
+                        make_ray(origin, {t.x - origin.x, t.y - origin.y, t.z - origin.z}));
+                }
+        }
+    const std::vector<Hit> want = reference_hits(tree, rays);
+    expect_same_hits(want, brute_force_all(by_id, rays), rays, by_id);
+    size_t tied = 0;  // rays whose hit is a sliver with a copy at the same t
+    for (const Hit& h : want) tied += h.is_hit() && h.prim >= 3000 && (h.prim - 3000) % 3 == 0;
+    EXPECT_GT(tied, 100u);
+    for (Isa isa : supported_isas()) {
+        for (TraceMode mode : {TraceMode::kPacket, TraceMode::kAuto}) {
+            const std::string what =
+                std::string(isa_name(isa)) + "/" + std::string(trace_mode_name(mode));
+            std::vector<Hit> hits(rays.size());
+            intersect(tree, rays, hits, {mode, isa});
+            expect_identical_bytes(hits, want, what);
+            // The counting kernel skips the same tests and still counts the scalar kernel's.
+            TraceOptions counted{mode, isa};
+            counted.count_work = true;
+            TraceStats stats;
+            intersect(tree, rays, hits, counted, &stats);
+            expect_identical_bytes(hits, want, what + " counted");
+            if (mode == TraceMode::kPacket && isa != Isa::kScalar) {
+                // Every batch starts with the mailbox on (its warm-up), so it skips here.
+                EXPECT_GT(stats.triangle_repeats_skipped, 0u) << what;
+            }
+            EXPECT_LE(stats.triangle_repeats_skipped, stats.triangle_tests) << what;
+        }
     }
 }
 

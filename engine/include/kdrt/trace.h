@@ -89,6 +89,9 @@ struct TraceStats {
     /// Wide nodes (3-level treelets, KdTree::wide_nodes) visited by the single-ray kernel; each
     /// stands for up to 7 of traversal_steps, at one dependent load.
     uint64_t wide_visits = 0;
+    /// Of triangle_tests, the lanes of closest-hit packet tests skipped because every active
+    /// lane had tested that triangle already in an earlier leaf (the packet's mailbox).
+    uint64_t triangle_repeats_skipped = 0;
     int width = 1;  ///< lanes per packet (isa_width): utilisation is
                     ///< packet_lanes / (packet_visits * width)
 };
