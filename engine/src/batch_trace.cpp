@@ -116,8 +116,24 @@ void occluded(const KdTree& tree, std::span<const Ray> rays, std::span<uint8_t> 
 
 void intersect_block(const KdTree& tree, std::span<const Ray> rays, std::span<Hit> hits,
                      const TraceOptions& options) noexcept {
+    // A caller's blocks may be small and many (a scene's rounds give each instance's rays), so
+    // the closest-hit packet mailbox's measure (mailbox_pays in packet_kernel.h) carries over
+    // between a thread's calls instead of starting afresh, in its warm-up, at each. It is halved
+    // past kMailCarried look-ups, so that it follows the meshes the thread traces now.
+    constexpr uint64_t kMailCarried = uint64_t{1} << 16;
+    thread_local detail::TraceCounters carried;
     detail::TraceCounters counters;
+    counters.packets = carried.packets;
+    counters.mail_looked = carried.mail_looked;
+    counters.mail_skipped = carried.mail_skipped;
     trace_block<false>(tree, rays, hits.data(), nullptr, options, counters);
+    carried.packets = counters.packets;
+    carried.mail_looked = counters.mail_looked;
+    carried.mail_skipped = counters.mail_skipped;
+    if (carried.mail_looked > kMailCarried) {
+        carried.mail_looked /= 2;
+        carried.mail_skipped /= 2;
+    }
 }
 
 void occluded_block(const KdTree& tree, std::span<const Ray> rays, std::span<uint8_t> occluded_out,
