@@ -249,10 +249,14 @@ std::vector<Ray> lidar_rays(const LidarSpec& spec) {
 }
 
 std::vector<uint32_t> lidar_tile_order(uint32_t channels, uint32_t azimuth_steps) {
-    std::vector<uint32_t> order;
-    order.reserve(static_cast<size_t>(channels) * azimuth_steps);
-    for (uint32_t ba = 0; ba < azimuth_steps; ba += kBlockAzimuth) {
+    std::vector<uint32_t> order(static_cast<size_t>(channels) * azimuth_steps);
+    // A column of blocks (kBlockAzimuth steps, every channel) holds the same beams in both
+    // orders: in parallel by column.
+    const uint32_t columns = (azimuth_steps + kBlockAzimuth - 1) / kBlockAzimuth;
+    tbb::parallel_for(uint32_t{0}, columns, [&](uint32_t column) {
+        const uint32_t ba = column * kBlockAzimuth;
         const uint32_t ba_end = std::min(azimuth_steps, ba + kBlockAzimuth);
+        uint32_t* out = order.data() + static_cast<size_t>(ba) * channels;
         for (uint32_t bc = 0; bc < channels; bc += kBlockChannels) {
             const uint32_t bc_end = std::min(channels, bc + kBlockChannels);
             for (uint32_t ta = ba; ta < ba_end; ta += kTileAzimuth) {
@@ -260,11 +264,11 @@ std::vector<uint32_t> lidar_tile_order(uint32_t channels, uint32_t azimuth_steps
                 for (uint32_t tc = bc; tc < bc_end; tc += kTileChannels) {
                     const uint32_t tc_end = std::min(bc_end, tc + kTileChannels);
                     for (uint32_t a = ta; a < ta_end; ++a)
-                        for (uint32_t c = tc; c < tc_end; ++c) order.push_back(a * channels + c);
+                        for (uint32_t c = tc; c < tc_end; ++c) *out++ = a * channels + c;
                 }
             }
         }
-    }
+    });
     return order;
 }
 

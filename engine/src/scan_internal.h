@@ -30,6 +30,8 @@ inline float pinhole_depth(float t, const std::vector<double>& cosines, size_t p
 /// kTileChannels channels (a closest-hit packet's eight beams at one elevation, side by side),
 /// in blocks of kBlockAzimuth steps by kBlockChannels channels, each block's tiles azimuth-major.
 /// order[k] is the azimuth-major index (lidar_rays) of the k-th beam traced; every beam once.
+/// The beams of a column of blocks (azimuth steps [a, a + kBlockAzimuth), every channel) are the
+/// same in both orders, at the same places. Parallel over the arena.
 inline constexpr uint32_t kTileAzimuth = 8, kTileChannels = 1;
 inline constexpr uint32_t kBlockAzimuth = 64, kBlockChannels = 16;
 [[nodiscard]] std::vector<uint32_t> lidar_tile_order(uint32_t channels, uint32_t azimuth_steps);

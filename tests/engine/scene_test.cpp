@@ -1572,6 +1572,10 @@ TEST(SceneScan, LidarTileOrderTakesEveryBeamOnceInTilesOfOneElevation) {
             ASSERT_LT(b, order.size());
             ASSERT_EQ(seen[b]++, 0) << "beam " << b << " twice";
         }
+        // A column of blocks holds the same beams in both orders (scan_lidar relies on it).
+        const size_t column = size_t{detail::kBlockAzimuth} * channels;
+        for (size_t k = 0; k < order.size(); ++k)
+            ASSERT_EQ(order[k] / column, k / column) << "beam " << order[k] << " at " << k;
         if (steps % detail::kBlockAzimuth == 0 && channels % detail::kBlockChannels == 0) {
             for (size_t k = 0; k < order.size(); k += detail::kTileAzimuth)
                 for (uint32_t j = 1; j < detail::kTileAzimuth; ++j)
