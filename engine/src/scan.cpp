@@ -4,6 +4,7 @@
 
 #include "kdrt/scan.h"
 
+#include <algorithm>
 #include <array>
 #include <cmath>
 #include <numbers>
@@ -243,6 +244,45 @@ std::vector<Ray> lidar_rays(const LidarSpec& spec) {
                                   rays[static_cast<size_t>(a) * channels + c] =
                                       lidar_ray(spec, elevation[c], azimuth);
                           }
+                      });
+    return rays;
+}
+
+std::vector<uint32_t> lidar_tile_order(uint32_t channels, uint32_t azimuth_steps) {
+    std::vector<uint32_t> order(static_cast<size_t>(channels) * azimuth_steps);
+    // A column of blocks (kBlockAzimuth steps, every channel) holds the same beams in both
+    // orders: in parallel by column.
+    const uint32_t columns = (azimuth_steps + kBlockAzimuth - 1) / kBlockAzimuth;
+    tbb::parallel_for(uint32_t{0}, columns, [&](uint32_t column) {
+        const uint32_t ba = column * kBlockAzimuth;
+        const uint32_t ba_end = std::min(azimuth_steps, ba + kBlockAzimuth);
+        uint32_t* out = order.data() + static_cast<size_t>(ba) * channels;
+        for (uint32_t bc = 0; bc < channels; bc += kBlockChannels) {
+            const uint32_t bc_end = std::min(channels, bc + kBlockChannels);
+            for (uint32_t ta = ba; ta < ba_end; ta += kTileAzimuth) {
+                const uint32_t ta_end = std::min(ba_end, ta + kTileAzimuth);
+                for (uint32_t tc = bc; tc < bc_end; tc += kTileChannels) {
+                    const uint32_t tc_end = std::min(bc_end, tc + kTileChannels);
+                    for (uint32_t a = ta; a < ta_end; ++a)
+                        for (uint32_t c = tc; c < tc_end; ++c) *out++ = a * channels + c;
+                }
+            }
+        }
+    });
+    return order;
+}
+
+std::vector<Ray> lidar_rays(const LidarSpec& spec, std::span<const uint32_t> order) {
+    const auto channels = static_cast<uint32_t>(spec.elevation_deg.size());
+    std::vector<std::array<double, 2>> elevation(channels), azimuth(spec.azimuth_steps);
+    for (uint32_t c = 0; c < channels; ++c) elevation[c] = elevation_trig(spec, c);
+    for (uint32_t a = 0; a < spec.azimuth_steps; ++a) azimuth[a] = azimuth_trig(spec, a);
+    std::vector<Ray> rays(order.size());
+    tbb::parallel_for(tbb::blocked_range<size_t>(0, order.size(), 4096),
+                      [&](const tbb::blocked_range<size_t>& r) {
+                          for (size_t k = r.begin(); k != r.end(); ++k)
+                              rays[k] = lidar_ray(spec, elevation[order[k] % channels],
+                                                  azimuth[order[k] / channels]);
                       });
     return rays;
 }

@@ -26,6 +26,20 @@ inline float pinhole_depth(float t, const std::vector<double>& cosines, size_t p
 /// The beams of a lidar scan (`spec` validated), azimuth-major. Parallel over the arena.
 [[nodiscard]] std::vector<Ray> lidar_rays(const LidarSpec& spec);
 
+/// The order in which a scene's lidar beams are traced: tiles of kTileAzimuth azimuth steps by
+/// kTileChannels channels (a closest-hit packet's eight beams at one elevation, side by side),
+/// in blocks of kBlockAzimuth steps by kBlockChannels channels, each block's tiles azimuth-major.
+/// order[k] is the azimuth-major index (lidar_rays) of the k-th beam traced; every beam once.
+/// The beams of a column of blocks (azimuth steps [a, a + kBlockAzimuth), every channel) are the
+/// same in both orders, at the same places. Parallel over the arena.
+inline constexpr uint32_t kTileAzimuth = 8, kTileChannels = 1;
+inline constexpr uint32_t kBlockAzimuth = 64, kBlockChannels = 16;
+[[nodiscard]] std::vector<uint32_t> lidar_tile_order(uint32_t channels, uint32_t azimuth_steps);
+
+/// The beams of a lidar scan (`spec` validated) in the order `order` (azimuth-major indices):
+/// ray k is lidar_rays(spec)[order[k]], bit for bit. Parallel over the arena.
+[[nodiscard]] std::vector<Ray> lidar_rays(const LidarSpec& spec, std::span<const uint32_t> order);
+
 /// The cloud of a lidar scan from its every-hit answer in CSR form (`offsets`, one entry per beam
 /// and one more; `hits`, each with t and prim), the point of a hit from point_of(hit): the
 /// returns of beam b are its hits in order, channel b % channels, azimuth step b / channels.

@@ -1556,6 +1556,94 @@ TEST(SceneScan, LidarBeamsAreTheSingleBeamRays) {
     }
 }
 
+TEST(SceneScan, LidarTileOrderTakesEveryBeamOnceInTilesOfOneElevation) {
+    // scan_lidar traces a scene's beams in tiles (detail::lidar_tile_order): every beam exactly
+    // once, for counts that leave partial tiles and blocks, and where a tile fits, its beams are
+    // consecutive azimuth steps of one channel. detail::lidar_rays(spec, order) gives those
+    // beams, bit for bit.
+    for (const auto& [channels, steps] :
+         {std::pair{1u, 1u}, std::pair{1u, 9u}, std::pair{13u, 97u}, std::pair{16u, 64u},
+          std::pair{17u, 130u}, std::pair{64u, 2048u}, std::pair{3u, 1000u}}) {
+        SCOPED_TRACE(std::to_string(channels) + " x " + std::to_string(steps));
+        const std::vector<uint32_t> order = detail::lidar_tile_order(channels, steps);
+        ASSERT_EQ(order.size(), size_t{channels} * steps);
+        std::vector<uint8_t> seen(order.size(), 0);
+        for (const uint32_t b : order) {
+            ASSERT_LT(b, order.size());
+            ASSERT_EQ(seen[b]++, 0) << "beam " << b << " twice";
+        }
+        // A column of blocks holds the same beams in both orders (scan_lidar relies on it).
+        const size_t column = size_t{detail::kBlockAzimuth} * channels;
+        for (size_t k = 0; k < order.size(); ++k)
+            ASSERT_EQ(order[k] / column, k / column) << "beam " << order[k] << " at " << k;
+        if (steps % detail::kBlockAzimuth == 0 && channels % detail::kBlockChannels == 0) {
+            for (size_t k = 0; k < order.size(); k += detail::kTileAzimuth)
+                for (uint32_t j = 1; j < detail::kTileAzimuth; ++j)
+                    ASSERT_EQ(order[k + j], order[k] + j * channels) << "tile at " << k;
+        }
+    }
+    LidarSpec lidar;
+    lidar.elevation_deg = lidar_elevations(-25, 15, 7);
+    lidar.azimuth_steps = 133;
+    lidar.min_range = 0.25f;
+    lidar.max_range = 40.0f;
+    lidar.pose.m = {0.8, -0.6, 0, 1.5, 0.6, 0.8, 0, -2, 0, 0, 1, 0.3, 0, 0, 0, 1};
+    const std::vector<uint32_t> order = detail::lidar_tile_order(7, 133);
+    const std::vector<Ray> rays = detail::lidar_rays(lidar, order);
+    ASSERT_EQ(rays.size(), order.size());
+    for (size_t k = 0; k < rays.size(); ++k) {
+        const Ray want = lidar_ray(lidar, order[k] % 7, order[k] / 7);
+        ASSERT_EQ(std::memcmp(&rays[k], &want, sizeof want), 0) << "ray " << k;
+    }
+}
+
+TEST(SceneScan, TiledLidarScanIsTheBeamOrderScanPointForPoint) {
+    // scan_lidar traces the beams in tile order and writes the cloud back in beam order: every
+    // point (x, y, z, range, channel, azimuth step, return, prim) and geometry id equals the
+    // oracle's, made in beam order, over several blocks with partial tiles and blocks.
+    const uint64_t seed = test_seed();
+    SCOPED_TRACE(testing::Message() << "seed=" << seed);
+    const TestScene s = mixed_scene(seed + 71, 24);
+    const SceneOracle oracle(s.scene);
+    LidarSpec lidar;
+    lidar.elevation_deg = lidar_elevations(-35, 30, 19);
+    lidar.azimuth_steps = 150;
+    lidar.max_range = 6.0f;
+    const Aabb b = s.scene.bounds();
+    lidar.pose.m[3] = 0.5 * (b.lo[0] + b.hi[0]);
+    lidar.pose.m[7] = 0.5 * (b.lo[1] + b.hi[1]);
+    lidar.pose.m[11] = 0.5 * (b.lo[2] + b.hi[2]);
+    const Scene cleared = with_clearances(s.scene);
+    for (const auto& [scene, returns] :
+         {std::pair{&s.scene, 1u}, std::pair{&s.scene, 2u}, std::pair{&cleared, 1u}}) {
+        SCOPED_TRACE((scene == &cleared ? "with clearances, returns " : "returns ") +
+                     std::to_string(returns));
+        lidar.returns = returns;
+        const ScenePointCloud got = scan_lidar(*scene, lidar);
+        EXPECT_EQ(got.cloud.channels, 19u);
+        EXPECT_EQ(got.cloud.azimuth_steps, 150u);
+        EXPECT_EQ(got.cloud.returns, returns);
+        ASSERT_EQ(got.geom.size(), got.cloud.points.size());
+        size_t k = 0;
+        for (uint32_t a = 0; a < lidar.azimuth_steps; ++a) {
+            for (uint32_t c = 0; c < 19; ++c) {
+                const std::vector<SceneHit> want =
+                    oracle.intersect_all(lidar_ray(lidar, c, a), true);
+                for (uint32_t r = 0; r < std::min<size_t>(returns, want.size()); ++r, ++k) {
+                    ASSERT_LT(k, got.cloud.points.size());
+                    const Vec3 p = hit_point(s.scene, want[r]);
+                    const LidarPoint w{p.x, p.y, p.z, want[r].t, c, a, r, want[r].prim};
+                    ASSERT_EQ(std::memcmp(&got.cloud.points[k], &w, sizeof w), 0)
+                        << "beam " << a << "/" << c << " return " << r;
+                    ASSERT_EQ(got.geom[k], want[r].geom);
+                }
+            }
+        }
+        EXPECT_EQ(k, got.cloud.points.size());
+        EXPECT_GT(k, 19u * 150u / 6) << "the beams should hit the scene often";
+    }
+}
+
 TEST(SceneRender, IdentitySceneRendersAsTheMeshInEveryMode) {
     Rng rng(test_seed() + 61);
     const Mesh mesh = random_soup(rng, 400, 0.3f);
