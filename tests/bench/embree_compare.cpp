@@ -149,9 +149,12 @@ uint8_t read_occluded(const EmbreeRay& ray, int lane) noexcept {
 
 /// Traces rays [begin, end) with the given API shape; `W` = 1 (rtc*1), 0 (rtc*1M stream, Embree 3
 /// only) or a packet width. Answers go to hits[i] or occluded[i].
+/// `order` (packet widths only; empty: input order): the pass's k-th ray is rays[order[k]], its
+/// answer goes to hits / occluded [order[k]].
 template <int W, bool Occlusion>
 void trace_block(RTCScene scene, QueryArgs& args, std::span<const Ray> rays, size_t begin,
-                 size_t end, std::span<Hit> hits, std::span<uint8_t> occluded) {
+                 size_t end, std::span<Hit> hits, std::span<uint8_t> occluded,
+                 std::span<const uint32_t> order) {
     if constexpr (W == 1) {
         for (size_t i = begin; i < end; ++i) {
             if constexpr (Occlusion) {
@@ -195,9 +198,11 @@ void trace_block(RTCScene scene, QueryArgs& args, std::span<const Ray> rays, siz
             alignas(64) int valid[W];
             RayHitW rh;
             const size_t lanes = std::min<size_t>(W, end - first);
+            size_t at[W];
             for (int lane = 0; lane < W; ++lane) {
                 const bool used = static_cast<size_t>(lane) < lanes;
-                const Ray r = used ? rays[first + lane] : Ray{0, 0, 0, kInf, 0, 0, 1, -kInf};
+                at[lane] = !used ? 0 : order.empty() ? first + lane : order[first + lane];
+                const Ray r = used ? rays[at[lane]] : Ray{0, 0, 0, kInf, 0, 0, 1, -kInf};
                 valid[lane] = used && ray_is_valid(r) ? -1 : 0;
                 set_lane(rh.ray, lane, r);
                 clear_hit(rh.hit, lane);
@@ -210,7 +215,7 @@ void trace_block(RTCScene scene, QueryArgs& args, std::span<const Ray> rays, siz
                 if constexpr (W == 16)
                     query_packet(rtcOccluded16, valid, scene, &rh.ray, args.occluded_args());
                 for (size_t lane = 0; lane < lanes; ++lane) {
-                    occluded[first + lane] =
+                    occluded[at[lane]] =
                         valid[lane] ? read_occluded(rh.ray, static_cast<int>(lane)) : 0;
                 }
             } else {
@@ -221,7 +226,7 @@ void trace_block(RTCScene scene, QueryArgs& args, std::span<const Ray> rays, siz
                 if constexpr (W == 16)
                     query_packet(rtcIntersect16, valid, scene, &rh, args.intersect_args());
                 for (size_t lane = 0; lane < lanes; ++lane) {
-                    hits[first + lane] = valid[lane] ? read_hit(rh, static_cast<int>(lane)) : Hit{};
+                    hits[at[lane]] = valid[lane] ? read_hit(rh, static_cast<int>(lane)) : Hit{};
                 }
             }
         }
@@ -231,7 +236,7 @@ void trace_block(RTCScene scene, QueryArgs& args, std::span<const Ray> rays, siz
 /// One full pass over the batch in parallel over the current arena; returns seconds.
 template <int W, bool Occlusion>
 double trace_pass(RTCScene scene, bool coherent, std::span<const Ray> rays, std::span<Hit> hits,
-                  std::span<uint8_t> occluded) {
+                  std::span<uint8_t> occluded, std::span<const uint32_t> order) {
     const size_t blocks = (rays.size() + kBlockRays - 1) / kBlockRays;
     const auto start = Clock::now();
     tbb::parallel_for(tbb::blocked_range<size_t>(0, blocks),
@@ -241,7 +246,7 @@ double trace_pass(RTCScene scene, bool coherent, std::span<const Ray> rays, std:
                               const size_t begin = block * kBlockRays;
                               trace_block<W, Occlusion>(scene, args, rays, begin,
                                                         std::min(begin + kBlockRays, rays.size()),
-                                                        hits, occluded);
+                                                        hits, occluded, order);
                           }
                       });
     return std::chrono::duration<double>(Clock::now() - start).count();
@@ -301,9 +306,10 @@ double median(std::vector<double> values) {
 }
 
 struct ModeSpec {
-    const char* suffix;  ///< "1", "1M", "4", "8", "16"
+    const char* suffix;  ///< "1", "1M", "4", "8", "16", "8_patch", "16_patch"
     int width;           ///< template W
     RTCDeviceProperty support;
+    bool patch = false;  ///< packets of square image patches (image_patch_order), not of rows
 };
 
 constexpr ModeSpec kModes[] = {
@@ -314,8 +320,36 @@ constexpr ModeSpec kModes[] = {
     {"4", 4, RTC_DEVICE_PROPERTY_NATIVE_RAY4_SUPPORTED},
     {"8", 8, RTC_DEVICE_PROPERTY_NATIVE_RAY8_SUPPORTED},
     {"16", 16, RTC_DEVICE_PROPERTY_NATIVE_RAY16_SUPPORTED},
+    {"8_patch", 8, RTC_DEVICE_PROPERTY_NATIVE_RAY8_SUPPORTED, true},
+    {"16_patch", 16, RTC_DEVICE_PROPERTY_NATIVE_RAY16_SUPPORTED, true},
 };
-static_assert(kHasRayStreams == (std::size(kModes) == 5));
+static_assert(kHasRayStreams == (std::size(kModes) == 7));
+
+/// The order in which packets of `width` rays are square patches of an image of res x res rays
+/// in row order (kdrt-bench rays writes its sets so): bands of `rows` rows (4 for 16 lanes, 2 for
+/// 8), each cut into patches of width / rows columns, a patch's rays row by row. This is how an
+/// application tracing a camera's pixels forms its packets, and kdrt's packets of a camera's rays
+/// are such patches too (batch_schedule.h, trace_patch_block), so Embree gets the same chance.
+/// Empty when the ray count is not a square (the rays are then not known to be an image).
+std::vector<uint32_t> image_patch_order(size_t count, int width) {
+    const auto res = static_cast<size_t>(std::llround(std::sqrt(static_cast<double>(count))));
+    if (res < 2 || res * res != count) return {};
+    const size_t rows = width >= 16 ? 4 : 2;
+    const size_t cols = static_cast<size_t>(width) / rows;
+    std::vector<uint32_t> order;
+    order.reserve(count);
+    for (size_t y0 = 0; y0 < res; y0 += rows) {
+        const size_t y1 = std::min(y0 + rows, res);
+        for (size_t x0 = 0; x0 < res; x0 += cols) {
+            const size_t x1 = std::min(x0 + cols, res);
+            for (size_t y = y0; y < y1; ++y) {
+                for (size_t x = x0; x < x1; ++x)
+                    order.push_back(static_cast<uint32_t>(y * res + x));
+            }
+        }
+    }
+    return order;
+}
 
 /// What every scene's comparison shares: the device, the rays, kdrt's answers, the oracle's
 /// triangles.
@@ -392,12 +426,16 @@ EmbreeSceneReport measure_scene(const Comparison& c, RTCSceneFlags flags,
     const std::string prefix = batch.occlusion ? "occluded" : "intersect";
     for (const ModeSpec& spec : kModes) {
         if (rtcGetDeviceProperty(c.device, spec.support) == 0) continue;
+        const std::vector<uint32_t> order =
+            spec.patch ? image_patch_order(rays.size(), spec.width) : std::vector<uint32_t>{};
+        if (spec.patch && order.empty()) continue;
         for (bool coherent : {false, true}) {
             auto pass = [&] {
                 const auto run = [&]<int W>() {
-                    return batch.occlusion
-                               ? trace_pass<W, true>(scene.get(), coherent, rays, hits, occluded)
-                               : trace_pass<W, false>(scene.get(), coherent, rays, hits, occluded);
+                    return batch.occlusion ? trace_pass<W, true>(scene.get(), coherent, rays, hits,
+                                                                 occluded, order)
+                                           : trace_pass<W, false>(scene.get(), coherent, rays, hits,
+                                                                  occluded, order);
                 };
                 switch (spec.width) {
                     case 0:
