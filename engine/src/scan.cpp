@@ -10,6 +10,7 @@
 #include <numbers>
 #include <string>
 
+#include <emmintrin.h>
 #include <tbb/blocked_range.h>
 #include <tbb/parallel_for.h>
 
@@ -278,12 +279,36 @@ std::vector<Ray> lidar_rays(const LidarSpec& spec, std::span<const uint32_t> ord
     for (uint32_t c = 0; c < channels; ++c) elevation[c] = elevation_trig(spec, c);
     for (uint32_t a = 0; a < spec.azimuth_steps; ++a) azimuth[a] = azimuth_trig(spec, a);
     std::vector<Ray> rays(order.size());
-    tbb::parallel_for(tbb::blocked_range<size_t>(0, order.size(), 4096),
-                      [&](const tbb::blocked_range<size_t>& r) {
-                          for (size_t k = r.begin(); k != r.end(); ++k)
-                              rays[k] = lidar_ray(spec, elevation[order[k] % channels],
-                                                  azimuth[order[k] / channels]);
-                      });
+    // Two beams at a time in SSE2 doubles: pose_ray's operations in its order (no contraction:
+    // -ffp-contract=off), each correctly rounded, so the same bits as lidar_ray; the square root
+    // and the three divisions a beam are most of a ray's cost.
+    const double* m = spec.pose.m.data();
+    tbb::parallel_for(tbb::blocked_range<size_t>(0, order.size(), 4096), [&](const tbb::
+                                                                                 blocked_range<
+                                                                                     size_t>& r) {
+        size_t k = r.begin();
+        for (; k + 2 <= r.end(); k += 2) {
+            const std::array<double, 2>& e0 = elevation[order[k] % channels];
+            const std::array<double, 2>& e1 = elevation[order[k + 1] % channels];
+            const std::array<double, 2>& a0 = azimuth[order[k] / channels];
+            const std::array<double, 2>& a1 = azimuth[order[k + 1] / channels];
+            const __m128d ce = _mm_set_pd(e1[0], e0[0]), se = _mm_set_pd(e1[1], e0[1]);
+            const __m128d v[3] = {ce * _mm_set_pd(a1[0], a0[0]), ce * _mm_set_pd(a1[1], a0[1]), se};
+            const __m128d len = _mm_sqrt_pd(v[0] * v[0] + v[1] * v[1] + v[2] * v[2]);
+            __m128d d[3];
+            for (int i = 0; i < 3; ++i)
+                d[i] = (_mm_set1_pd(m[4 * i]) * v[0] + _mm_set1_pd(m[4 * i + 1]) * v[1] +
+                        _mm_set1_pd(m[4 * i + 2]) * v[2]) /
+                       len;
+            for (int j = 0; j < 2; ++j)
+                rays[k + j] = Ray{static_cast<float>(m[3]),    static_cast<float>(m[7]),
+                                  static_cast<float>(m[11]),   spec.min_range,
+                                  static_cast<float>(d[0][j]), static_cast<float>(d[1][j]),
+                                  static_cast<float>(d[2][j]), spec.max_range};
+        }
+        for (; k != r.end(); ++k)
+            rays[k] = lidar_ray(spec, elevation[order[k] % channels], azimuth[order[k] / channels]);
+    });
     return rays;
 }
 
