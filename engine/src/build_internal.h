@@ -60,8 +60,10 @@ class ExactSahBuilder {
 public:
     /// `empty_cuts_in_place`: a cut of empty space hands the node's event lists to its other
     /// child as they are (the same tree as copying them; false only for the tests that show it).
+    /// `prune_sweep`: the sweep skips blocks of candidates that provably cost too much (the same
+    /// tree; false only for the tests that show it).
     ExactSahBuilder(std::span<const TriVerts> tris, const BuildOptions& options,
-                    bool empty_cuts_in_place = true);
+                    bool empty_cuts_in_place = true, bool prune_sweep = true);
     ~ExactSahBuilder();
     ExactSahBuilder(const ExactSahBuilder&) = delete;
     ExactSahBuilder& operator=(const ExactSahBuilder&) = delete;
@@ -89,6 +91,14 @@ bool clip_to_cell(const TriVerts& tri, const Aabb& cell, Aabb& out);
 /// that child.
 void clip_to_children(const TriVerts& tri, const Aabb& left, const Aabb& right, int axis,
                       bool& left_ok, Aabb& left_box, bool& right_ok, Aabb& right_box);
+
+/// clip_to_children's two paths, apart, for the tests that compare them. The fast one handles
+/// a triangle across the split plane that no other plane cuts; false (nothing written) for any
+/// other. The general one clips a polygon plane by plane.
+bool clip_straddler_to_children(const TriVerts& tri, const Aabb& left, const Aabb& right, int axis,
+                                bool& left_ok, Aabb& left_box, bool& right_ok, Aabb& right_box);
+void clip_to_children_by_polygon(const TriVerts& tri, const Aabb& left, const Aabb& right, int axis,
+                                 bool& left_ok, Aabb& left_box, bool& right_ok, Aabb& right_box);
 
 /// True only if `tri` is clearly apart from `cell`: it misses the cell grown by a margin far
 /// larger than rounding errors (a triangle that merely touches the cell is never reported).
@@ -118,6 +128,9 @@ struct BinnedParams {
     /// as they are, instead of classifying and copying them (ExactSahBuilder). The tree is the
     /// same either way; tests turn it off to compare.
     bool empty_cuts_in_place = true;
+    /// The exact sweep skips blocks of candidates whose lower bound shows they cannot be chosen
+    /// (ExactSahBuilder). The tree is the same either way; tests turn it off to compare.
+    bool prune_sweep = true;
 };
 
 /// Maps a coordinate to its bin on one axis: [lo, lo + count / scale] in `count` equal bins,

@@ -200,6 +200,39 @@ int clip_polygon(const Point* src, int n, int a, double bound, Point* dst) {
     return m;
 }
 
+/// lo / hi of pts[0, n), n > 0: x and y two per SSE2 operation (min_pd(x, m) is
+/// x < m ? x : m, std::min(m, x); max_pd(x, m) is x > m ? x : m, std::max(m, x)).
+inline void point_bounds(const Point* pts, int n, Point& lo, Point& hi) noexcept {
+    __m128d lo_xy = _mm_loadu_pd(pts[0].data()), hi_xy = lo_xy;
+    __m128d lo_z = _mm_load_sd(&pts[0][2]), hi_z = lo_z;
+    for (int i = 1; i < n; ++i) {
+        const __m128d xy = _mm_loadu_pd(pts[i].data());
+        const __m128d z = _mm_load_sd(&pts[i][2]);
+        lo_xy = _mm_min_pd(xy, lo_xy);
+        hi_xy = _mm_max_pd(xy, hi_xy);
+        lo_z = _mm_min_sd(z, lo_z);
+        hi_z = _mm_max_sd(z, hi_z);
+    }
+    _mm_storeu_pd(lo.data(), lo_xy);
+    _mm_storeu_pd(hi.data(), hi_xy);
+    _mm_store_sd(&lo[2], lo_z);
+    _mm_store_sd(&hi[2], hi_z);
+}
+
+/// The bounds lo / hi rounded outwards to float and clamped to `cell`; false if they do not
+/// overlap it.
+inline bool float_bounds(const Point& lo, const Point& hi, const Aabb& cell, Aabb& out) noexcept {
+    for (int axis = 0; axis < 3; ++axis) {
+        float flo = static_cast<float>(lo[axis]), fhi = static_cast<float>(hi[axis]);
+        if (static_cast<double>(flo) > lo[axis]) flo = next_down(flo);
+        if (static_cast<double>(fhi) < hi[axis]) fhi = next_up(fhi);
+        out.lo[axis] = std::max(flo, cell.lo[axis]);
+        out.hi[axis] = std::min(fhi, cell.hi[axis]);
+        if (out.lo[axis] > out.hi[axis]) return false;
+    }
+    return true;
+}
+
 /// A polygon being clipped: up to 16 points (a triangle clipped by 6 planes has at most 9), in
 /// one of two buffers, and the bounds of its points, kept as it is clipped: a plane cuts
 /// nothing off where the bounds are inside it (the common case, then skipped without a look at
@@ -249,37 +282,11 @@ struct Polygon {
     /// The bounds of what remains, rounded outwards to float and clamped to `cell`; false if
     /// nothing does.
     bool bounds(const Aabb& cell, Aabb& out) const noexcept {
-        if (n == 0) return false;
-        for (int axis = 0; axis < 3; ++axis) {
-            float flo = static_cast<float>(lo[axis]), fhi = static_cast<float>(hi[axis]);
-            if (static_cast<double>(flo) > lo[axis]) flo = next_down(flo);
-            if (static_cast<double>(fhi) < hi[axis]) fhi = next_up(fhi);
-            out.lo[axis] = std::max(flo, cell.lo[axis]);
-            out.hi[axis] = std::min(fhi, cell.hi[axis]);
-            if (out.lo[axis] > out.hi[axis]) return false;
-        }
-        return true;
+        return n > 0 && float_bounds(lo, hi, cell, out);
     }
 
 private:
-    /// lo / hi of src[0, n), n > 0: x and y two per SSE2 operation (min_pd(x, m) is
-    /// x < m ? x : m, std::min(m, x); max_pd(x, m) is x > m ? x : m, std::max(m, x)).
-    void update_bounds() noexcept {
-        __m128d lo_xy = _mm_loadu_pd(src[0].data()), hi_xy = lo_xy;
-        __m128d lo_z = _mm_load_sd(&src[0][2]), hi_z = lo_z;
-        for (int i = 1; i < n; ++i) {
-            const __m128d xy = _mm_loadu_pd(src[i].data());
-            const __m128d z = _mm_load_sd(&src[i][2]);
-            lo_xy = _mm_min_pd(xy, lo_xy);
-            hi_xy = _mm_max_pd(xy, hi_xy);
-            lo_z = _mm_min_sd(z, lo_z);
-            hi_z = _mm_max_sd(z, hi_z);
-        }
-        _mm_storeu_pd(lo.data(), lo_xy);
-        _mm_storeu_pd(hi.data(), hi_xy);
-        _mm_store_sd(&lo[2], lo_z);
-        _mm_store_sd(&hi[2], hi_z);
-    }
+    void update_bounds() noexcept { point_bounds(src, n, lo, hi); }
 };
 
 /// Bounds of triangle `tri` clipped to the closed box `cell` (Sutherland-Hodgman in double),
@@ -288,6 +295,102 @@ bool clipped_bounds(const TriVerts& tri, const Aabb& cell, Aabb& out) {
     Polygon poly(tri);
     poly.clip(cell, 0, 3);
     return poly.bounds(cell, out);
+}
+
+/// clipped_bounds_in_children in the common case: a triangle with vertices on both sides of the
+/// split plane that no other plane of the children cuts. Polygon::clip then clips each child's
+/// polygon, the triangle itself, at the split plane only. Here each child keeps the vertices
+/// clip_polygon keeps and the points it makes on the edges whose ends it finds on either side,
+/// computed with clip_polygon's arithmetic from the same point to the next (an edge crossing
+/// for both children gives both the same point, computed once). A child's bounds are the min /
+/// max of its points: the order of the points changes at most the sign of a zero bound, which
+/// no event keeps (make_event maps -0 to +0). They are rounded as float_bounds rounds them. The
+/// other planes' checks are Polygon::clip's, on the same bounds: the axes before the split axis
+/// on the triangle's own bounds (shared, before the split plane), the split axis' far planes and
+/// the axes after it on each child's clipped bounds. False (nothing written) if a check fails or
+/// a coordinate on the split axis is not a number: the caller then takes the general path.
+bool straddler_in_children(const TriVerts& tri, const Aabb& left, const Aabb& right, int k,
+                           bool& left_ok, Aabb& left_box, bool& right_ok, Aabb& right_box) {
+    const double p = left.hi[k];  // == right.lo[k]
+    const std::array<const float*, 3> v = {tri.v0, tri.v1, tri.v2};
+    // Which vertices each child's clip keeps (clip_polygon<false> at p for the left child,
+    // clip_polygon<true> for the right one).
+    bool in_left[3], in_right[3];
+    for (int i = 0; i < 3; ++i) {
+        const double x = v[i][k];
+        if (x != x) return false;
+        in_left[i] = x <= p;
+        in_right[i] = x >= p;
+    }
+    // Vertices strictly on both sides: both clips cut, and neither leaves nothing.
+    if ((in_right[0] && in_right[1] && in_right[2]) || (in_left[0] && in_left[1] && in_left[2]))
+        return false;
+    // The axes before k: the triangle's own bounds inside the cell (the children agree there).
+    for (int b = 0; b < k; ++b) {
+        const float lo = std::min({tri.v0[b], tri.v1[b], tri.v2[b]});
+        const float hi = std::max({tri.v0[b], tri.v1[b], tri.v2[b]});
+        if (!(lo >= left.lo[b]) || !(hi <= left.hi[b])) return false;
+    }
+    // Running min / max over each child's points, x and y two per SSE2 operation.
+    const __m128d inf = _mm_set1_pd(std::numeric_limits<double>::infinity());
+    const __m128d neg_inf = _mm_set1_pd(-std::numeric_limits<double>::infinity());
+    __m128d llo_xy = inf, llo_z = inf, lhi_xy = neg_inf, lhi_z = neg_inf;
+    __m128d rlo_xy = inf, rlo_z = inf, rhi_xy = neg_inf, rhi_z = neg_inf;
+    __m128d xy[3], z[3];
+    for (int i = 0; i < 3; ++i) {
+        xy[i] = _mm_set_pd(v[i][1], v[i][0]);
+        z[i] = _mm_set_sd(v[i][2]);
+    }
+    const __m128d pv = _mm_set1_pd(p);
+    for (int i = 0; i < 3; ++i) {
+        const int i1 = i == 2 ? 0 : i + 1;
+        if (in_left[i]) {
+            llo_xy = _mm_min_pd(llo_xy, xy[i]), lhi_xy = _mm_max_pd(lhi_xy, xy[i]);
+            llo_z = _mm_min_sd(llo_z, z[i]), lhi_z = _mm_max_sd(lhi_z, z[i]);
+        }
+        if (in_right[i]) {
+            rlo_xy = _mm_min_pd(rlo_xy, xy[i]), rhi_xy = _mm_max_pd(rhi_xy, xy[i]);
+            rlo_z = _mm_min_sd(rlo_z, z[i]), rhi_z = _mm_max_sd(rhi_z, z[i]);
+        }
+        const bool cross_left = in_left[i] != in_left[i1];
+        const bool cross_right = in_right[i] != in_right[i1];
+        if (cross_left || cross_right) {
+            // clip_polygon's point: s = (bound - cur[a]) / (next[a] - cur[a]),
+            // q[b] = cur[b] + s * (next[b] - cur[b]), q[a] = bound.
+            const double cur_k = v[i][k], next_k = v[i1][k];
+            const __m128d sv = _mm_set1_pd((p - cur_k) / (next_k - cur_k));
+            __m128d q_xy = _mm_add_pd(xy[i], _mm_mul_pd(sv, _mm_sub_pd(xy[i1], xy[i])));
+            __m128d q_z = _mm_add_sd(z[i], _mm_mul_sd(sv, _mm_sub_sd(z[i1], z[i])));
+            if (k == 2) {
+                q_z = pv;
+            } else {
+                q_xy = k == 0 ? _mm_move_sd(q_xy, pv) : _mm_unpacklo_pd(q_xy, pv);
+            }
+            if (cross_left) {
+                llo_xy = _mm_min_pd(llo_xy, q_xy), lhi_xy = _mm_max_pd(lhi_xy, q_xy);
+                llo_z = _mm_min_sd(llo_z, q_z), lhi_z = _mm_max_sd(lhi_z, q_z);
+            }
+            if (cross_right) {
+                rlo_xy = _mm_min_pd(rlo_xy, q_xy), rhi_xy = _mm_max_pd(rhi_xy, q_xy);
+                rlo_z = _mm_min_sd(rlo_z, q_z), rhi_z = _mm_max_sd(rhi_z, q_z);
+            }
+        }
+    }
+    Point llo, lhi, rlo, rhi;
+    _mm_storeu_pd(llo.data(), llo_xy), _mm_store_sd(&llo[2], llo_z);
+    _mm_storeu_pd(lhi.data(), lhi_xy), _mm_store_sd(&lhi[2], lhi_z);
+    _mm_storeu_pd(rlo.data(), rlo_xy), _mm_store_sd(&rlo[2], rlo_z);
+    _mm_storeu_pd(rhi.data(), rhi_xy), _mm_store_sd(&rhi[2], rhi_z);
+    // The split axis' far planes: the left cell's low one is checked before the clip (on the
+    // triangle's bounds, whose low end the left polygon keeps), the right cell's high one after.
+    if (!(llo[k] >= left.lo[k]) || !(rhi[k] <= right.hi[k])) return false;
+    for (int b = k + 1; b < 3; ++b) {
+        if (!(llo[b] >= left.lo[b]) || !(lhi[b] <= left.hi[b])) return false;
+        if (!(rlo[b] >= right.lo[b]) || !(rhi[b] <= right.hi[b])) return false;
+    }
+    left_ok = float_bounds(llo, lhi, left, left_box);
+    right_ok = float_bounds(rlo, rhi, right, right_box);
+    return true;
 }
 
 /// clipped_bounds of `tri` in both children of a split on `axis`, computed together: the
@@ -361,6 +464,16 @@ constexpr size_t kChunk = 1u << 14;      // events per chunk of a parallel sweep
 constexpr size_t kPooledEvents = 1u << 13;     // buffers up to this size are recycled per thread
 constexpr size_t kPoolSlots = 48;              // at most this many free buffers kept per thread
 constexpr size_t kRadixSortEvents = 1u << 11;  // a node's first sort: radix from this many events
+constexpr size_t kMinBlock = 32, kMaxBlock = 64;  // events per block of sweep_pruned
+constexpr size_t kPruneFrom = 256;  // events per axis from which the sweep prunes blocks
+
+/// A run of whole positions of one axis' sorted events, ev[begin, end), with the sweep's counts
+/// before it and a lower bound on the cost of every candidate in it (sweep_pruned).
+struct SweepBlock {
+    uint32_t begin, end;
+    uint32_t n_left, n_right;
+    double bound;
+};
 
 /// Per-thread scratch memory. Used only between TBB wait points, or inside isolated parallel
 /// regions that touch nothing but the calling node's data, so nested tasks never see it half-used.
@@ -370,6 +483,7 @@ struct Scratch {
     std::vector<uint32_t> straddling;
     NewEvents new_left, new_right;
     std::vector<uint32_t> prims;
+    std::vector<SweepBlock> blocks;  // find_split's blocks of one axis
 
     /// A buffer for at least `n` events, recycled when possible.
     EventBuffer take(size_t n) {
@@ -406,10 +520,11 @@ struct SweepSetup {
 class SahBuilder {
 public:
     SahBuilder(std::span<const TriVerts> tris, const BuildOptions& options,
-               bool empty_cuts_in_place)
+               bool empty_cuts_in_place, bool prune_sweep)
         : tris_(tris),
           cost_(SahCost::from(options)),
           empty_cuts_in_place_(empty_cuts_in_place),
+          prune_(prune_sweep),
           max_depth_(static_cast<uint32_t>(std::clamp(options.max_depth, 0, kMaxDepth))),
           scratch_([n = tris.size()] {
               Scratch s;
@@ -421,7 +536,7 @@ public:
     /// that may run on another thread looks up its own.
     void build(SubTree& out, uint32_t slot, NodeInput&& in, Scratch& scratch) {
         const Split split = in.depth < max_depth_ && !cost_.leaf_always_cheaper(in.prim_count)
-                                ? find_split(in)
+                                ? find_split(in, scratch)
                                 : Split{};
         if (!split.valid || !(split.cost < cost_.leaf(in.prim_count))) {
             make_leaf(out, slot, leaf_prims(in, scratch.prims));
@@ -593,7 +708,94 @@ private:
         return result;
     }
 
-    Split find_split(const NodeInput& in) const {
+    /// sweep() over ev[0, n) of a node of n_total triangles, with the candidates that cannot be
+    /// chosen skipped in blocks. `bound`: only a candidate costing less matters (the node's
+    /// leaf cost, or a lower axis' best, which wins ties). The list is cut into blocks of whole
+    /// positions; each block gets a lower bound on its candidates' costs, computed with the
+    /// sweep's own arithmetic from its smallest left and right probabilities and counts. Every
+    /// operation of SahCost::split on non-negative operands is monotone under IEEE rounding (and
+    /// -ffp-contract=off keeps each one rounded on its own), so the bound is at most the cost the
+    /// sweep computes for any of the block's candidates. The block of the lowest bound is swept
+    /// first; the rest in order, skipped when their bound is at least `bound` or above the best
+    /// cost so far (a block whose bound equals it may hold an earlier tie, so it is swept). The
+    /// best candidate (lowest cost, earliest on ties) among those costing less than `bound` is
+    /// the one sweep() finds; a candidate costing `bound` or more is never chosen by build().
+    static Split sweep_pruned(const SweepSetup& s, const Event* ev, size_t n, double bound,
+                              std::vector<SweepBlock>& blocks) {
+        const uint32_t key_lo = ordered_bits(s.lo), key_hi = ordered_bits(s.hi);
+        const double lo = s.lo, hi = s.hi;
+        const double empty_scale = std::min(s.cost.empty_scale, 1.0);
+        // Blocks of n / 8 events (kMinBlock to kMaxBlock), extended to the end of their last
+        // position.
+        const size_t block = std::clamp<size_t>(n / 8, kMinBlock, kMaxBlock);
+        blocks.clear();
+        uint32_t n_left = 0, n_right = s.n_total;
+        size_t best_block = 0;
+        double best_bound = INFINITY;
+        for (size_t i = 0; i < n;) {
+            size_t j = std::min(i + block, n);
+            // ev[n] is kSentinel, whose key is no real event's.
+            while (event_key(ev[j]) == event_key(ev[j - 1])) ++j;
+            // Types are 0 (end), 1 (planar), 2 (start): bit 31 of an event marks a start, bit 30
+            // a planar (summed in place, shifted once).
+            uint64_t start_bits = 0, planar_bits = 0;
+            for (size_t k = i; k < j; ++k) {
+                start_bits += ev[k] & (uint64_t{1} << 31);
+                planar_bits += ev[k] & (uint64_t{1} << 30);
+            }
+            const auto starts = static_cast<uint32_t>(start_bits >> 31);
+            const auto planars = static_cast<uint32_t>(planar_bits >> 30);
+            const uint32_t entering = starts + planars;
+            const auto leaving = static_cast<uint32_t>(j - i) - starts;  // ends and planars
+            const uint32_t first = std::max(event_key(ev[i]), key_lo);
+            const uint32_t last = std::min(event_key(ev[j - 1]), key_hi);
+            double lower = INFINITY;  // no candidate in the block
+            if (first <= last) {
+                // The smallest probabilities: left at the first candidate, right at the last;
+                // the smallest counts: left before the block, right after all its events.
+                const double pl =
+                    (s.cap + s.ring * (double{from_ordered_bits(first)} - lo)) * s.inv_area;
+                const double pr =
+                    (s.cap + s.ring * (hi - double{from_ordered_bits(last)})) * s.inv_area;
+                double c = s.cost.c_isect *
+                           (pl * SahCost::tests(n_left) + pr * SahCost::tests(n_right - leaving));
+                if (empty_scale < 1.0) c *= empty_scale;
+                lower = c + s.cost.c_trav;
+                if (!(lower == lower)) lower = -INFINITY;  // NaN: sweep it
+            }
+            blocks.push_back(
+                {static_cast<uint32_t>(i), static_cast<uint32_t>(j), n_left, n_right, lower});
+            if (lower < best_bound) best_bound = lower, best_block = blocks.size() - 1;
+            n_left += entering;
+            n_right -= leaving;
+            i = j;
+        }
+        Split best;
+        if (!(best_bound < bound)) return best;
+        {
+            const SweepBlock& b = blocks[best_block];
+            best = sweep(s, ev, b.begin, b.end, b.n_left, b.n_right);
+        }
+        for (size_t k = 0; k < blocks.size(); ++k) {
+            const SweepBlock& b = blocks[k];
+            if (k == best_block || !(b.bound < bound) || b.bound > best.cost) continue;
+            const Split r = sweep(s, ev, b.begin, b.end, b.n_left, b.n_right);
+            if (r.cost < best.cost || (r.cost == best.cost && k < best_block)) {
+                best = r;
+                best_block = k;
+            }
+        }
+        return best;
+    }
+
+    /// Whether sweep_pruned's bounds hold: SahCost::split monotone in the probabilities and
+    /// counts (non-negative, finite factors).
+    bool prunable() const noexcept {
+        return cost_.c_isect >= 0 && cost_.empty_scale >= 0 && std::isfinite(cost_.c_isect) &&
+               std::isfinite(cost_.empty_scale) && std::isfinite(cost_.c_trav);
+    }
+
+    Split find_split(const NodeInput& in, Scratch& scratch) const {
         std::array<Split, 3> per_axis;
         const double area = half_area(in.cell);
         if (!(area > 0)) return {};  // no area: nothing to split
@@ -610,6 +812,21 @@ private:
                 tbb::parallel_invoke([&] { sweep_axis(0); }, [&] { sweep_axis(1); },
                                      [&] { sweep_axis(2); });
             });
+        } else if (prune_ && prunable() && std::isfinite(inv_area)) {
+            // A candidate is chosen only if it costs less than the leaf and than every lower
+            // axis' best (which wins ties).
+            double bound = cost_.leaf(in.prim_count);
+            for (int a = 0; a < 3; ++a) {
+                if (!(in.cell.lo[a] < in.cell.hi[a])) continue;
+                const SweepSetup s = sweep_setup(in, a, inv_area);
+                // The bounds need non-negative, finite probabilities' factors (a valid cell).
+                const bool prune = in.count[a] >= kPruneFrom && s.cap >= 0 && s.ring >= 0 &&
+                                   std::isfinite(s.cap) && std::isfinite(s.ring);
+                per_axis[a] =
+                    prune ? sweep_pruned(s, in.events(a), in.count[a], bound, scratch.blocks)
+                          : sweep(s, in.events(a), 0, in.count[a], 0, in.prim_count);
+                bound = std::min(bound, per_axis[a].cost);
+            }
         } else {
             for (int a = 0; a < 3; ++a) sweep_axis(a);
         }
@@ -802,6 +1019,7 @@ private:
     std::span<const TriVerts> tris_;
     SahCost cost_;
     bool empty_cuts_in_place_;
+    bool prune_;
     uint32_t max_depth_;
     tbb::enumerable_thread_specific<Scratch> scratch_;
 };
@@ -847,8 +1065,9 @@ struct ExactSahBuilder::Impl {
 };
 
 ExactSahBuilder::ExactSahBuilder(std::span<const TriVerts> tris, const BuildOptions& options,
-                                 bool empty_cuts_in_place)
-    : impl_(std::make_unique<Impl>(Impl{SahBuilder(tris, options, empty_cuts_in_place)})) {}
+                                 bool empty_cuts_in_place, bool prune_sweep)
+    : impl_(std::make_unique<Impl>(
+          Impl{SahBuilder(tris, options, empty_cuts_in_place, prune_sweep)})) {}
 
 ExactSahBuilder::~ExactSahBuilder() = default;
 
@@ -905,6 +1124,19 @@ bool clip_to_cell(const TriVerts& tri, const Aabb& cell, Aabb& out) {
 
 void clip_to_children(const TriVerts& tri, const Aabb& left, const Aabb& right, int axis,
                       bool& left_ok, Aabb& left_box, bool& right_ok, Aabb& right_box) {
+    if (!straddler_in_children(tri, left, right, axis, left_ok, left_box, right_ok, right_box))
+        clipped_bounds_in_children(tri, left, right, axis, left_ok, left_box, right_ok, right_box);
+    left_ok = left_ok || vertex_bounds_in(tri, left, left_box);
+    right_ok = right_ok || vertex_bounds_in(tri, right, right_box);
+}
+
+bool clip_straddler_to_children(const TriVerts& tri, const Aabb& left, const Aabb& right, int axis,
+                                bool& left_ok, Aabb& left_box, bool& right_ok, Aabb& right_box) {
+    return straddler_in_children(tri, left, right, axis, left_ok, left_box, right_ok, right_box);
+}
+
+void clip_to_children_by_polygon(const TriVerts& tri, const Aabb& left, const Aabb& right, int axis,
+                                 bool& left_ok, Aabb& left_box, bool& right_ok, Aabb& right_box) {
     clipped_bounds_in_children(tri, left, right, axis, left_ok, left_box, right_ok, right_box);
     left_ok = left_ok || vertex_bounds_in(tri, left, left_box);
     right_ok = right_ok || vertex_bounds_in(tri, right, right_box);
