@@ -33,7 +33,8 @@ struct SahCost {
         return {double{options.traversal_cost}, double{options.intersection_cost},
                 1.0 - double{options.empty_bonus}};
     }
-    /// What intersecting a leaf of `n` triangles costs, in triangle tests.
+    /// What intersecting a leaf of `n` triangles costs, in triangle tests. Must not decrease
+    /// with `n` (the exact sweep's pruning bounds rely on it).
     [[nodiscard]] static double tests(uint32_t n) noexcept { return static_cast<double>(n); }
     /// Cost of making a node of `n` triangles a leaf.
     [[nodiscard]] double leaf(uint32_t n) const noexcept { return c_isect * tests(n); }
@@ -91,14 +92,6 @@ bool clip_to_cell(const TriVerts& tri, const Aabb& cell, Aabb& out);
 /// that child.
 void clip_to_children(const TriVerts& tri, const Aabb& left, const Aabb& right, int axis,
                       bool& left_ok, Aabb& left_box, bool& right_ok, Aabb& right_box);
-
-/// clip_to_children's two paths, apart, for the tests that compare them. The fast one handles
-/// a triangle across the split plane that no other plane cuts; false (nothing written) for any
-/// other. The general one clips a polygon plane by plane.
-bool clip_straddler_to_children(const TriVerts& tri, const Aabb& left, const Aabb& right, int axis,
-                                bool& left_ok, Aabb& left_box, bool& right_ok, Aabb& right_box);
-void clip_to_children_by_polygon(const TriVerts& tri, const Aabb& left, const Aabb& right, int axis,
-                                 bool& left_ok, Aabb& left_box, bool& right_ok, Aabb& right_box);
 
 /// True only if `tri` is clearly apart from `cell`: it misses the cell grown by a margin far
 /// larger than rounding errors (a triangle that merely touches the cell is never reported).

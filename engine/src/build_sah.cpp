@@ -21,6 +21,9 @@
 //    so it is three runs: left of, on and right of the plane), then copies each axis into the
 //    children in one branch-free pass that also merges in the straddlers' new events.
 //  - The sweep counts a position's events in a register (kSweepCounts).
+//  - On lists of kPruneFrom events and more, the sweep skips blocks of positions whose lower bound
+//    on the SAH shows that no candidate in them can be chosen (sweep_pruned: costing at least
+//    the leaf, a lower axis' best, or more than the best found so far).
 //  - A cut of empty space hands the node's event lists to its non-empty child as they are: that
 //    child holds every triangle, none of them cut, so a partition would copy every event
 //    unchanged (the stadium: 16% of all events are in such children).
@@ -200,39 +203,6 @@ int clip_polygon(const Point* src, int n, int a, double bound, Point* dst) {
     return m;
 }
 
-/// lo / hi of pts[0, n), n > 0: x and y two per SSE2 operation (min_pd(x, m) is
-/// x < m ? x : m, std::min(m, x); max_pd(x, m) is x > m ? x : m, std::max(m, x)).
-inline void point_bounds(const Point* pts, int n, Point& lo, Point& hi) noexcept {
-    __m128d lo_xy = _mm_loadu_pd(pts[0].data()), hi_xy = lo_xy;
-    __m128d lo_z = _mm_load_sd(&pts[0][2]), hi_z = lo_z;
-    for (int i = 1; i < n; ++i) {
-        const __m128d xy = _mm_loadu_pd(pts[i].data());
-        const __m128d z = _mm_load_sd(&pts[i][2]);
-        lo_xy = _mm_min_pd(xy, lo_xy);
-        hi_xy = _mm_max_pd(xy, hi_xy);
-        lo_z = _mm_min_sd(z, lo_z);
-        hi_z = _mm_max_sd(z, hi_z);
-    }
-    _mm_storeu_pd(lo.data(), lo_xy);
-    _mm_storeu_pd(hi.data(), hi_xy);
-    _mm_store_sd(&lo[2], lo_z);
-    _mm_store_sd(&hi[2], hi_z);
-}
-
-/// The bounds lo / hi rounded outwards to float and clamped to `cell`; false if they do not
-/// overlap it.
-inline bool float_bounds(const Point& lo, const Point& hi, const Aabb& cell, Aabb& out) noexcept {
-    for (int axis = 0; axis < 3; ++axis) {
-        float flo = static_cast<float>(lo[axis]), fhi = static_cast<float>(hi[axis]);
-        if (static_cast<double>(flo) > lo[axis]) flo = next_down(flo);
-        if (static_cast<double>(fhi) < hi[axis]) fhi = next_up(fhi);
-        out.lo[axis] = std::max(flo, cell.lo[axis]);
-        out.hi[axis] = std::min(fhi, cell.hi[axis]);
-        if (out.lo[axis] > out.hi[axis]) return false;
-    }
-    return true;
-}
-
 /// A polygon being clipped: up to 16 points (a triangle clipped by 6 planes has at most 9), in
 /// one of two buffers, and the bounds of its points, kept as it is clipped: a plane cuts
 /// nothing off where the bounds are inside it (the common case, then skipped without a look at
@@ -282,11 +252,37 @@ struct Polygon {
     /// The bounds of what remains, rounded outwards to float and clamped to `cell`; false if
     /// nothing does.
     bool bounds(const Aabb& cell, Aabb& out) const noexcept {
-        return n > 0 && float_bounds(lo, hi, cell, out);
+        if (n == 0) return false;
+        for (int axis = 0; axis < 3; ++axis) {
+            float flo = static_cast<float>(lo[axis]), fhi = static_cast<float>(hi[axis]);
+            if (static_cast<double>(flo) > lo[axis]) flo = next_down(flo);
+            if (static_cast<double>(fhi) < hi[axis]) fhi = next_up(fhi);
+            out.lo[axis] = std::max(flo, cell.lo[axis]);
+            out.hi[axis] = std::min(fhi, cell.hi[axis]);
+            if (out.lo[axis] > out.hi[axis]) return false;
+        }
+        return true;
     }
 
 private:
-    void update_bounds() noexcept { point_bounds(src, n, lo, hi); }
+    /// lo / hi of src[0, n), n > 0: x and y two per SSE2 operation (min_pd(x, m) is
+    /// x < m ? x : m, std::min(m, x); max_pd(x, m) is x > m ? x : m, std::max(m, x)).
+    void update_bounds() noexcept {
+        __m128d lo_xy = _mm_loadu_pd(src[0].data()), hi_xy = lo_xy;
+        __m128d lo_z = _mm_load_sd(&src[0][2]), hi_z = lo_z;
+        for (int i = 1; i < n; ++i) {
+            const __m128d xy = _mm_loadu_pd(src[i].data());
+            const __m128d z = _mm_load_sd(&src[i][2]);
+            lo_xy = _mm_min_pd(xy, lo_xy);
+            hi_xy = _mm_max_pd(xy, hi_xy);
+            lo_z = _mm_min_sd(z, lo_z);
+            hi_z = _mm_max_sd(z, hi_z);
+        }
+        _mm_storeu_pd(lo.data(), lo_xy);
+        _mm_storeu_pd(hi.data(), hi_xy);
+        _mm_store_sd(&lo[2], lo_z);
+        _mm_store_sd(&hi[2], hi_z);
+    }
 };
 
 /// Bounds of triangle `tri` clipped to the closed box `cell` (Sutherland-Hodgman in double),
@@ -295,102 +291,6 @@ bool clipped_bounds(const TriVerts& tri, const Aabb& cell, Aabb& out) {
     Polygon poly(tri);
     poly.clip(cell, 0, 3);
     return poly.bounds(cell, out);
-}
-
-/// clipped_bounds_in_children in the common case: a triangle with vertices on both sides of the
-/// split plane that no other plane of the children cuts. Polygon::clip then clips each child's
-/// polygon, the triangle itself, at the split plane only. Here each child keeps the vertices
-/// clip_polygon keeps and the points it makes on the edges whose ends it finds on either side,
-/// computed with clip_polygon's arithmetic from the same point to the next (an edge crossing
-/// for both children gives both the same point, computed once). A child's bounds are the min /
-/// max of its points: the order of the points changes at most the sign of a zero bound, which
-/// no event keeps (make_event maps -0 to +0). They are rounded as float_bounds rounds them. The
-/// other planes' checks are Polygon::clip's, on the same bounds: the axes before the split axis
-/// on the triangle's own bounds (shared, before the split plane), the split axis' far planes and
-/// the axes after it on each child's clipped bounds. False (nothing written) if a check fails or
-/// a coordinate on the split axis is not a number: the caller then takes the general path.
-bool straddler_in_children(const TriVerts& tri, const Aabb& left, const Aabb& right, int k,
-                           bool& left_ok, Aabb& left_box, bool& right_ok, Aabb& right_box) {
-    const double p = left.hi[k];  // == right.lo[k]
-    const std::array<const float*, 3> v = {tri.v0, tri.v1, tri.v2};
-    // Which vertices each child's clip keeps (clip_polygon<false> at p for the left child,
-    // clip_polygon<true> for the right one).
-    bool in_left[3], in_right[3];
-    for (int i = 0; i < 3; ++i) {
-        const double x = v[i][k];
-        if (x != x) return false;
-        in_left[i] = x <= p;
-        in_right[i] = x >= p;
-    }
-    // Vertices strictly on both sides: both clips cut, and neither leaves nothing.
-    if ((in_right[0] && in_right[1] && in_right[2]) || (in_left[0] && in_left[1] && in_left[2]))
-        return false;
-    // The axes before k: the triangle's own bounds inside the cell (the children agree there).
-    for (int b = 0; b < k; ++b) {
-        const float lo = std::min({tri.v0[b], tri.v1[b], tri.v2[b]});
-        const float hi = std::max({tri.v0[b], tri.v1[b], tri.v2[b]});
-        if (!(lo >= left.lo[b]) || !(hi <= left.hi[b])) return false;
-    }
-    // Running min / max over each child's points, x and y two per SSE2 operation.
-    const __m128d inf = _mm_set1_pd(std::numeric_limits<double>::infinity());
-    const __m128d neg_inf = _mm_set1_pd(-std::numeric_limits<double>::infinity());
-    __m128d llo_xy = inf, llo_z = inf, lhi_xy = neg_inf, lhi_z = neg_inf;
-    __m128d rlo_xy = inf, rlo_z = inf, rhi_xy = neg_inf, rhi_z = neg_inf;
-    __m128d xy[3], z[3];
-    for (int i = 0; i < 3; ++i) {
-        xy[i] = _mm_set_pd(v[i][1], v[i][0]);
-        z[i] = _mm_set_sd(v[i][2]);
-    }
-    const __m128d pv = _mm_set1_pd(p);
-    for (int i = 0; i < 3; ++i) {
-        const int i1 = i == 2 ? 0 : i + 1;
-        if (in_left[i]) {
-            llo_xy = _mm_min_pd(llo_xy, xy[i]), lhi_xy = _mm_max_pd(lhi_xy, xy[i]);
-            llo_z = _mm_min_sd(llo_z, z[i]), lhi_z = _mm_max_sd(lhi_z, z[i]);
-        }
-        if (in_right[i]) {
-            rlo_xy = _mm_min_pd(rlo_xy, xy[i]), rhi_xy = _mm_max_pd(rhi_xy, xy[i]);
-            rlo_z = _mm_min_sd(rlo_z, z[i]), rhi_z = _mm_max_sd(rhi_z, z[i]);
-        }
-        const bool cross_left = in_left[i] != in_left[i1];
-        const bool cross_right = in_right[i] != in_right[i1];
-        if (cross_left || cross_right) {
-            // clip_polygon's point: s = (bound - cur[a]) / (next[a] - cur[a]),
-            // q[b] = cur[b] + s * (next[b] - cur[b]), q[a] = bound.
-            const double cur_k = v[i][k], next_k = v[i1][k];
-            const __m128d sv = _mm_set1_pd((p - cur_k) / (next_k - cur_k));
-            __m128d q_xy = _mm_add_pd(xy[i], _mm_mul_pd(sv, _mm_sub_pd(xy[i1], xy[i])));
-            __m128d q_z = _mm_add_sd(z[i], _mm_mul_sd(sv, _mm_sub_sd(z[i1], z[i])));
-            if (k == 2) {
-                q_z = pv;
-            } else {
-                q_xy = k == 0 ? _mm_move_sd(q_xy, pv) : _mm_unpacklo_pd(q_xy, pv);
-            }
-            if (cross_left) {
-                llo_xy = _mm_min_pd(llo_xy, q_xy), lhi_xy = _mm_max_pd(lhi_xy, q_xy);
-                llo_z = _mm_min_sd(llo_z, q_z), lhi_z = _mm_max_sd(lhi_z, q_z);
-            }
-            if (cross_right) {
-                rlo_xy = _mm_min_pd(rlo_xy, q_xy), rhi_xy = _mm_max_pd(rhi_xy, q_xy);
-                rlo_z = _mm_min_sd(rlo_z, q_z), rhi_z = _mm_max_sd(rhi_z, q_z);
-            }
-        }
-    }
-    Point llo, lhi, rlo, rhi;
-    _mm_storeu_pd(llo.data(), llo_xy), _mm_store_sd(&llo[2], llo_z);
-    _mm_storeu_pd(lhi.data(), lhi_xy), _mm_store_sd(&lhi[2], lhi_z);
-    _mm_storeu_pd(rlo.data(), rlo_xy), _mm_store_sd(&rlo[2], rlo_z);
-    _mm_storeu_pd(rhi.data(), rhi_xy), _mm_store_sd(&rhi[2], rhi_z);
-    // The split axis' far planes: the left cell's low one is checked before the clip (on the
-    // triangle's bounds, whose low end the left polygon keeps), the right cell's high one after.
-    if (!(llo[k] >= left.lo[k]) || !(rhi[k] <= right.hi[k])) return false;
-    for (int b = k + 1; b < 3; ++b) {
-        if (!(llo[b] >= left.lo[b]) || !(lhi[b] <= left.hi[b])) return false;
-        if (!(rlo[b] >= right.lo[b]) || !(rhi[b] <= right.hi[b])) return false;
-    }
-    left_ok = float_bounds(llo, lhi, left, left_box);
-    right_ok = float_bounds(rlo, rhi, right, right_box);
-    return true;
 }
 
 /// clipped_bounds of `tri` in both children of a split on `axis`, computed together: the
@@ -1124,19 +1024,6 @@ bool clip_to_cell(const TriVerts& tri, const Aabb& cell, Aabb& out) {
 
 void clip_to_children(const TriVerts& tri, const Aabb& left, const Aabb& right, int axis,
                       bool& left_ok, Aabb& left_box, bool& right_ok, Aabb& right_box) {
-    if (!straddler_in_children(tri, left, right, axis, left_ok, left_box, right_ok, right_box))
-        clipped_bounds_in_children(tri, left, right, axis, left_ok, left_box, right_ok, right_box);
-    left_ok = left_ok || vertex_bounds_in(tri, left, left_box);
-    right_ok = right_ok || vertex_bounds_in(tri, right, right_box);
-}
-
-bool clip_straddler_to_children(const TriVerts& tri, const Aabb& left, const Aabb& right, int axis,
-                                bool& left_ok, Aabb& left_box, bool& right_ok, Aabb& right_box) {
-    return straddler_in_children(tri, left, right, axis, left_ok, left_box, right_ok, right_box);
-}
-
-void clip_to_children_by_polygon(const TriVerts& tri, const Aabb& left, const Aabb& right, int axis,
-                                 bool& left_ok, Aabb& left_box, bool& right_ok, Aabb& right_box) {
     clipped_bounds_in_children(tri, left, right, axis, left_ok, left_box, right_ok, right_box);
     left_ok = left_ok || vertex_bounds_in(tri, left, left_box);
     right_ok = right_ok || vertex_bounds_in(tri, right, right_box);
