@@ -227,7 +227,7 @@ public:
           cost_(SahCost::from(options)),
           bins_(std::clamp(params.bins, 4u, kMaxBins)),
           max_depth_(static_cast<uint32_t>(std::clamp(options.max_depth, 0, kMaxDepth))),
-          exact_(tris, options, params.empty_cuts_in_place) {}
+          exact_(tris, options, params.empty_cuts_in_place, params.prune_sweep) {}
 
     /// Builds the node of `refs` (tight bounds `geom`) in `cell` into `slot` of `out`.
     void build(SubTree& out, uint32_t slot, const Aabb& cell, Refs&& refs, const Aabb& geom,

@@ -33,7 +33,8 @@ struct SahCost {
         return {double{options.traversal_cost}, double{options.intersection_cost},
                 1.0 - double{options.empty_bonus}};
     }
-    /// What intersecting a leaf of `n` triangles costs, in triangle tests.
+    /// What intersecting a leaf of `n` triangles costs, in triangle tests. Must not decrease
+    /// with `n` (the exact sweep's pruning bounds rely on it).
     [[nodiscard]] static double tests(uint32_t n) noexcept { return static_cast<double>(n); }
     /// Cost of making a node of `n` triangles a leaf.
     [[nodiscard]] double leaf(uint32_t n) const noexcept { return c_isect * tests(n); }
@@ -60,8 +61,10 @@ class ExactSahBuilder {
 public:
     /// `empty_cuts_in_place`: a cut of empty space hands the node's event lists to its other
     /// child as they are (the same tree as copying them; false only for the tests that show it).
+    /// `prune_sweep`: the sweep skips blocks of candidates that provably cost too much (the same
+    /// tree; false only for the tests that show it).
     ExactSahBuilder(std::span<const TriVerts> tris, const BuildOptions& options,
-                    bool empty_cuts_in_place = true);
+                    bool empty_cuts_in_place = true, bool prune_sweep = true);
     ~ExactSahBuilder();
     ExactSahBuilder(const ExactSahBuilder&) = delete;
     ExactSahBuilder& operator=(const ExactSahBuilder&) = delete;
@@ -118,6 +121,9 @@ struct BinnedParams {
     /// as they are, instead of classifying and copying them (ExactSahBuilder). The tree is the
     /// same either way; tests turn it off to compare.
     bool empty_cuts_in_place = true;
+    /// The exact sweep skips blocks of candidates whose lower bound shows they cannot be chosen
+    /// (ExactSahBuilder). The tree is the same either way; tests turn it off to compare.
+    bool prune_sweep = true;
 };
 
 /// Maps a coordinate to its bin on one axis: [lo, lo + count / scale] in `count` equal bins,

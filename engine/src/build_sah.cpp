@@ -21,6 +21,9 @@
 //    so it is three runs: left of, on and right of the plane), then copies each axis into the
 //    children in one branch-free pass that also merges in the straddlers' new events.
 //  - The sweep counts a position's events in a register (kSweepCounts).
+//  - On lists of kPruneFrom events and more, the sweep skips blocks of positions whose lower bound
+//    on the SAH shows that no candidate in them can be chosen (sweep_pruned: costing at least
+//    the leaf, a lower axis' best, or more than the best found so far).
 //  - A cut of empty space hands the node's event lists to its non-empty child as they are: that
 //    child holds every triangle, none of them cut, so a partition would copy every event
 //    unchanged (the stadium: 16% of all events are in such children).
@@ -361,6 +364,16 @@ constexpr size_t kChunk = 1u << 14;      // events per chunk of a parallel sweep
 constexpr size_t kPooledEvents = 1u << 13;     // buffers up to this size are recycled per thread
 constexpr size_t kPoolSlots = 48;              // at most this many free buffers kept per thread
 constexpr size_t kRadixSortEvents = 1u << 11;  // a node's first sort: radix from this many events
+constexpr size_t kMinBlock = 32, kMaxBlock = 64;  // events per block of sweep_pruned
+constexpr size_t kPruneFrom = 256;  // events per axis from which the sweep prunes blocks
+
+/// A run of whole positions of one axis' sorted events, ev[begin, end), with the sweep's counts
+/// before it and a lower bound on the cost of every candidate in it (sweep_pruned).
+struct SweepBlock {
+    uint32_t begin, end;
+    uint32_t n_left, n_right;
+    double bound;
+};
 
 /// Per-thread scratch memory. Used only between TBB wait points, or inside isolated parallel
 /// regions that touch nothing but the calling node's data, so nested tasks never see it half-used.
@@ -370,6 +383,7 @@ struct Scratch {
     std::vector<uint32_t> straddling;
     NewEvents new_left, new_right;
     std::vector<uint32_t> prims;
+    std::vector<SweepBlock> blocks;  // find_split's blocks of one axis
 
     /// A buffer for at least `n` events, recycled when possible.
     EventBuffer take(size_t n) {
@@ -406,10 +420,11 @@ struct SweepSetup {
 class SahBuilder {
 public:
     SahBuilder(std::span<const TriVerts> tris, const BuildOptions& options,
-               bool empty_cuts_in_place)
+               bool empty_cuts_in_place, bool prune_sweep)
         : tris_(tris),
           cost_(SahCost::from(options)),
           empty_cuts_in_place_(empty_cuts_in_place),
+          prune_(prune_sweep),
           max_depth_(static_cast<uint32_t>(std::clamp(options.max_depth, 0, kMaxDepth))),
           scratch_([n = tris.size()] {
               Scratch s;
@@ -421,7 +436,7 @@ public:
     /// that may run on another thread looks up its own.
     void build(SubTree& out, uint32_t slot, NodeInput&& in, Scratch& scratch) {
         const Split split = in.depth < max_depth_ && !cost_.leaf_always_cheaper(in.prim_count)
-                                ? find_split(in)
+                                ? find_split(in, scratch)
                                 : Split{};
         if (!split.valid || !(split.cost < cost_.leaf(in.prim_count))) {
             make_leaf(out, slot, leaf_prims(in, scratch.prims));
@@ -593,7 +608,94 @@ private:
         return result;
     }
 
-    Split find_split(const NodeInput& in) const {
+    /// sweep() over ev[0, n) of a node of n_total triangles, with the candidates that cannot be
+    /// chosen skipped in blocks. `bound`: only a candidate costing less matters (the node's
+    /// leaf cost, or a lower axis' best, which wins ties). The list is cut into blocks of whole
+    /// positions; each block gets a lower bound on its candidates' costs, computed with the
+    /// sweep's own arithmetic from its smallest left and right probabilities and counts. Every
+    /// operation of SahCost::split on non-negative operands is monotone under IEEE rounding (and
+    /// -ffp-contract=off keeps each one rounded on its own), so the bound is at most the cost the
+    /// sweep computes for any of the block's candidates. The block of the lowest bound is swept
+    /// first; the rest in order, skipped when their bound is at least `bound` or above the best
+    /// cost so far (a block whose bound equals it may hold an earlier tie, so it is swept). The
+    /// best candidate (lowest cost, earliest on ties) among those costing less than `bound` is
+    /// the one sweep() finds; a candidate costing `bound` or more is never chosen by build().
+    static Split sweep_pruned(const SweepSetup& s, const Event* ev, size_t n, double bound,
+                              std::vector<SweepBlock>& blocks) {
+        const uint32_t key_lo = ordered_bits(s.lo), key_hi = ordered_bits(s.hi);
+        const double lo = s.lo, hi = s.hi;
+        const double empty_scale = std::min(s.cost.empty_scale, 1.0);
+        // Blocks of n / 8 events (kMinBlock to kMaxBlock), extended to the end of their last
+        // position.
+        const size_t block = std::clamp<size_t>(n / 8, kMinBlock, kMaxBlock);
+        blocks.clear();
+        uint32_t n_left = 0, n_right = s.n_total;
+        size_t best_block = 0;
+        double best_bound = INFINITY;
+        for (size_t i = 0; i < n;) {
+            size_t j = std::min(i + block, n);
+            // ev[n] is kSentinel, whose key is no real event's.
+            while (event_key(ev[j]) == event_key(ev[j - 1])) ++j;
+            // Types are 0 (end), 1 (planar), 2 (start): bit 31 of an event marks a start, bit 30
+            // a planar (summed in place, shifted once).
+            uint64_t start_bits = 0, planar_bits = 0;
+            for (size_t k = i; k < j; ++k) {
+                start_bits += ev[k] & (uint64_t{1} << 31);
+                planar_bits += ev[k] & (uint64_t{1} << 30);
+            }
+            const auto starts = static_cast<uint32_t>(start_bits >> 31);
+            const auto planars = static_cast<uint32_t>(planar_bits >> 30);
+            const uint32_t entering = starts + planars;
+            const auto leaving = static_cast<uint32_t>(j - i) - starts;  // ends and planars
+            const uint32_t first = std::max(event_key(ev[i]), key_lo);
+            const uint32_t last = std::min(event_key(ev[j - 1]), key_hi);
+            double lower = INFINITY;  // no candidate in the block
+            if (first <= last) {
+                // The smallest probabilities: left at the first candidate, right at the last;
+                // the smallest counts: left before the block, right after all its events.
+                const double pl =
+                    (s.cap + s.ring * (double{from_ordered_bits(first)} - lo)) * s.inv_area;
+                const double pr =
+                    (s.cap + s.ring * (hi - double{from_ordered_bits(last)})) * s.inv_area;
+                double c = s.cost.c_isect *
+                           (pl * SahCost::tests(n_left) + pr * SahCost::tests(n_right - leaving));
+                if (empty_scale < 1.0) c *= empty_scale;
+                lower = c + s.cost.c_trav;
+                if (!(lower == lower)) lower = -INFINITY;  // NaN: sweep it
+            }
+            blocks.push_back(
+                {static_cast<uint32_t>(i), static_cast<uint32_t>(j), n_left, n_right, lower});
+            if (lower < best_bound) best_bound = lower, best_block = blocks.size() - 1;
+            n_left += entering;
+            n_right -= leaving;
+            i = j;
+        }
+        Split best;
+        if (!(best_bound < bound)) return best;
+        {
+            const SweepBlock& b = blocks[best_block];
+            best = sweep(s, ev, b.begin, b.end, b.n_left, b.n_right);
+        }
+        for (size_t k = 0; k < blocks.size(); ++k) {
+            const SweepBlock& b = blocks[k];
+            if (k == best_block || !(b.bound < bound) || b.bound > best.cost) continue;
+            const Split r = sweep(s, ev, b.begin, b.end, b.n_left, b.n_right);
+            if (r.cost < best.cost || (r.cost == best.cost && k < best_block)) {
+                best = r;
+                best_block = k;
+            }
+        }
+        return best;
+    }
+
+    /// Whether sweep_pruned's bounds hold: SahCost::split monotone in the probabilities and
+    /// counts (non-negative, finite factors).
+    bool prunable() const noexcept {
+        return cost_.c_isect >= 0 && cost_.empty_scale >= 0 && std::isfinite(cost_.c_isect) &&
+               std::isfinite(cost_.empty_scale) && std::isfinite(cost_.c_trav);
+    }
+
+    Split find_split(const NodeInput& in, Scratch& scratch) const {
         std::array<Split, 3> per_axis;
         const double area = half_area(in.cell);
         if (!(area > 0)) return {};  // no area: nothing to split
@@ -610,6 +712,21 @@ private:
                 tbb::parallel_invoke([&] { sweep_axis(0); }, [&] { sweep_axis(1); },
                                      [&] { sweep_axis(2); });
             });
+        } else if (prune_ && prunable() && std::isfinite(inv_area)) {
+            // A candidate is chosen only if it costs less than the leaf and than every lower
+            // axis' best (which wins ties).
+            double bound = cost_.leaf(in.prim_count);
+            for (int a = 0; a < 3; ++a) {
+                if (!(in.cell.lo[a] < in.cell.hi[a])) continue;
+                const SweepSetup s = sweep_setup(in, a, inv_area);
+                // The bounds need non-negative, finite probabilities' factors (a valid cell).
+                const bool prune = in.count[a] >= kPruneFrom && s.cap >= 0 && s.ring >= 0 &&
+                                   std::isfinite(s.cap) && std::isfinite(s.ring);
+                per_axis[a] =
+                    prune ? sweep_pruned(s, in.events(a), in.count[a], bound, scratch.blocks)
+                          : sweep(s, in.events(a), 0, in.count[a], 0, in.prim_count);
+                bound = std::min(bound, per_axis[a].cost);
+            }
         } else {
             for (int a = 0; a < 3; ++a) sweep_axis(a);
         }
@@ -802,6 +919,7 @@ private:
     std::span<const TriVerts> tris_;
     SahCost cost_;
     bool empty_cuts_in_place_;
+    bool prune_;
     uint32_t max_depth_;
     tbb::enumerable_thread_specific<Scratch> scratch_;
 };
@@ -847,8 +965,9 @@ struct ExactSahBuilder::Impl {
 };
 
 ExactSahBuilder::ExactSahBuilder(std::span<const TriVerts> tris, const BuildOptions& options,
-                                 bool empty_cuts_in_place)
-    : impl_(std::make_unique<Impl>(Impl{SahBuilder(tris, options, empty_cuts_in_place)})) {}
+                                 bool empty_cuts_in_place, bool prune_sweep)
+    : impl_(std::make_unique<Impl>(
+          Impl{SahBuilder(tris, options, empty_cuts_in_place, prune_sweep)})) {}
 
 ExactSahBuilder::~ExactSahBuilder() = default;
 

@@ -1,0 +1,83 @@
+// The exact sweep's fast paths (build_sah.cpp) against the paths they stand for: the sweep that
+// skips blocks of candidates against the full sweep.
+
+#include <gtest/gtest.h>
+
+#include <algorithm>
+#include <cmath>
+#include <cstdint>
+#include <limits>
+#include <vector>
+
+#include "build_internal.h"
+#include "scenes.h"
+#include "test_util.h"
+
+namespace kdrt::test {
+namespace {
+
+using detail::BinnedParams;
+using detail::build_kdtree_with;
+
+bool same_tree(const KdTree& a, const KdTree& b) {
+    return a.nodes == b.nodes && a.leaf_refs == b.leaf_refs && a.tri_ids == b.tri_ids;
+}
+
+/// Soup on a grid: many shared positions (ties), a quarter of the triangles flat in an axis
+/// plane (planar events, planes through vertices).
+Mesh grid_soup(Rng& rng, size_t count, float grid) {
+    Mesh m;
+    auto snap = [&](Vec3 v) {
+        return Vec3{std::round(v.x / grid) * grid, std::round(v.y / grid) * grid,
+                    std::round(v.z / grid) * grid};
+    };
+    for (size_t i = 0; i < count; ++i) {
+        const Vec3 c = rng.in_box({{0, 0, 0}, {1, 1, 1}});
+        Vec3 v[3];
+        for (Vec3& x : v) x = snap(c + rng.on_sphere() * rng.uniform(0.0f, 0.3f));
+        if (i % 4 == 0) {
+            const int a = static_cast<int>(i / 4 % 3);
+            float* coords[3] = {&v[0].x, &v[1].x, &v[2].x};
+            for (float* q : coords) q[a] = coords[0][a];
+        }
+        add_triangle(m, v[0], v[1], v[2]);
+    }
+    return m;
+}
+
+// The sweep skips blocks of candidates whose lower bound (the sweep's own arithmetic on the
+// block's smallest probabilities and counts) shows they cannot be chosen, and sweeps the block
+// of the lowest bound first. The tree must be the full sweep's, byte for byte: ties between
+// positions (grid soups), between axes (the cube-like grid), planar triangles, empty cuts, and
+// cost settings whose empty bonus is on, off, or a penalty (empty_scale above 1).
+TEST(KdSweep, PrunedSweepBuildsTheFullSweepsTree) {
+    Rng rng(test_seed() + 700);
+    const std::vector<Mesh> meshes = {
+        teapot_in_stadium(), random_soup(rng, 6000, 0.3f), grid_soup(rng, 6000, 1.0f / 8),
+        grid_soup(rng, 9000, 1.0f / 256), grid_soup(rng, 3000, 1.0f / 2)};
+    std::vector<BuildOptions> settings(4);
+    settings[1].intersection_cost = 2.0f;
+    settings[1].empty_bonus = 0.5f;
+    settings[2].intersection_cost = 0.1f;
+    settings[2].empty_bonus = 0.0f;
+    settings[3].empty_bonus = -0.25f;
+    BinnedParams pruned;
+    pruned.exact_below = std::numeric_limits<uint32_t>::max();  // exact from the root
+    BinnedParams full = pruned;
+    full.prune_sweep = false;
+    size_t inner = 0;
+    for (size_t m = 0; m < meshes.size(); ++m) {
+        for (size_t o = 0; o < settings.size(); ++o) {
+            SCOPED_TRACE(testing::Message() << "mesh " << m << ", setting " << o);
+            const KdTree want = build_kdtree_with(meshes[m], settings[o], full);
+            const KdTree got = build_kdtree_with(meshes[m], settings[o], pruned);
+            EXPECT_TRUE(same_tree(got, want));
+            EXPECT_EQ(got.stats.max_depth, want.stats.max_depth);
+            for (const KdNode& n : got.nodes) inner += n.is_leaf() ? 0 : 1;
+        }
+    }
+    EXPECT_GT(inner, 20'000u);
+}
+
+}  // namespace
+}  // namespace kdrt::test
