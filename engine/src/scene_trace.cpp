@@ -92,7 +92,11 @@ bool rounds_pay(std::span<const Ray> rays) noexcept {
         }))
         return true;
     float lo[3] = {2, 2, 2}, hi[3] = {-2, -2, -2};
-    for (const Ray& r : rays) {
+    const auto narrow = [&] {
+        return hi[0] - lo[0] < 0.5f && hi[1] - lo[1] < 0.5f && hi[2] - lo[2] < 0.5f;
+    };
+    for (size_t i = 0; i < rays.size(); ++i) {
+        const Ray& r = rays[i];
         const float len = std::sqrt(r.dx * r.dx + r.dy * r.dy + r.dz * r.dz);
         if (!(len > 0.0f) || !std::isfinite(len)) continue;
         const float d[3] = {r.dx / len, r.dy / len, r.dz / len};
@@ -100,8 +104,11 @@ bool rounds_pay(std::span<const Ray> rays) noexcept {
             lo[a] = std::min(lo[a], d[a]);
             hi[a] = std::max(hi[a], d[a]);
         }
+        // The spread only grows: once an axis' reaches 0.5 the answer is false (incoherent
+        // blocks, whose every ray this used to normalise, mostly end here after a few rays).
+        if (i % 16 == 15 && !narrow()) return false;
     }
-    return hi[0] - lo[0] < 0.5f && hi[1] - lo[1] < 0.5f && hi[2] - lo[2] < 0.5f;
+    return narrow();
 }
 
 /// What a round does with an instance a ray reaches: nothing (already traced), take it, or stop
@@ -347,6 +354,7 @@ struct BlockScratch {
     std::vector<detail::Mailbox> mailbox;
     std::vector<SceneHit> best;
     std::vector<uint8_t> done;
+    std::vector<uint8_t> valid;                        ///< per ray: detail::ray_is_valid
     std::vector<std::pair<uint32_t, uint32_t>> pairs;  ///< (geom, ray) of a round
     InstanceGroups groups;
     std::vector<Ray> rays;
@@ -357,6 +365,14 @@ struct BlockScratch {
 struct Counts {
     uint64_t invalid = 0, visits = 0, batches = 0;
 };
+
+/// The calling thread's block scratch, kept between batches: a batch's first block on a thread
+/// no longer allocates and zero-fills the top-level walks' stacks (about 1 MB) anew. trace_block
+/// starts no tasks, so a thread never uses it for two blocks at once.
+BlockScratch& thread_scratch() {
+    thread_local BlockScratch scratch;
+    return scratch;
+}
 
 Isa resolved_isa(const TraceOptions& options) noexcept {
     return options.isa && isa_supported(*options.isa) ? *options.isa : default_isa();
@@ -385,12 +401,13 @@ void trace_block(const SceneData& s, std::span<const Ray> rays, std::span<SceneH
     b.mailbox.assign(n, detail::Mailbox{});
     b.best.resize(n);
     b.done.assign(n, 0);
+    b.valid.resize(n);
     for (size_t i = 0; i < n; ++i) {
         b.best[i] = no_hit_yet(rays[i]);
-        counts.invalid += detail::ray_is_valid(rays[i]) ? 0 : 1;
+        b.valid[i] = detail::ray_is_valid(rays[i]) ? 1 : 0;
+        counts.invalid += 1 - b.valid[i];
     }
-    b.walks.start(s, rays, resolved_isa(options),
-                  [&](size_t i) { return detail::ray_is_valid(rays[i]); });
+    b.walks.start(s, rays, resolved_isa(options), [&](size_t i) { return b.valid[i] != 0; });
     // Each round takes every live walk one leaf further: the next leaf whose cell starts at or
     // before its ray's closest hit so far with an instance the ray's widened segment reaches
     // (and its mailbox has not seen). A ray whose next cell starts beyond its closest hit stops
@@ -409,6 +426,15 @@ void trace_block(const SceneData& s, std::span<const Ray> rays, std::span<SceneH
         if (b.pairs.empty()) break;
         for_each_instance(
             b.pairs, b.groups, s.inst.size(), [&](uint32_t geom, size_t g0, size_t g1) {
+                if constexpr (AnyHit) {
+                    // A ray occluded by an instance earlier in this round (one of the same top
+                    // leaf: overlapping instances) is done: it is not traced again here.
+                    size_t kept = g0;
+                    for (size_t k = g0; k < g1; ++k)
+                        if (!b.done[b.pairs[k].second]) b.pairs[kept++] = b.pairs[k];
+                    g1 = kept;
+                    if (g1 == g0) return;
+                }
                 const size_t count = g1 - g0;
                 const KdTree& tree = *s.instances[geom].tree;
                 object_rays(
@@ -451,7 +477,6 @@ template <bool AnyHit>
 void trace_batch(const Scene& scene, std::span<const Ray> rays, std::span<SceneHit> hits,
                  std::span<uint8_t> occ, const TraceOptions& options, SceneTraceStats* stats) {
     const SceneData& s = scene.data();
-    tbb::enumerable_thread_specific<BlockScratch> scratch;
     tbb::enumerable_thread_specific<Counts> counts;
     const size_t blocks = (rays.size() + kBlock - 1) / kBlock;
     tbb::parallel_for(
@@ -461,7 +486,7 @@ void trace_batch(const Scene& scene, std::span<const Ray> rays, std::span<SceneH
                 trace_block<AnyHit>(s, rays.subspan(lo, len),
                                     AnyHit ? std::span<SceneHit>() : hits.subspan(lo, len),
                                     AnyHit ? occ.subspan(lo, len) : std::span<uint8_t>(), options,
-                                    scratch.local(), counts.local());
+                                    thread_scratch(), counts.local());
             }
         });
     if (stats) {
@@ -543,7 +568,7 @@ namespace {
 template <bool AnyHit>
 void trace_on_this_thread(const Scene& scene, std::span<const Ray> rays, std::span<SceneHit> hits,
                           std::span<uint8_t> occ, const TraceOptions& options) noexcept {
-    thread_local BlockScratch scratch;
+    BlockScratch& scratch = thread_scratch();
     Counts counts;
     for (size_t lo = 0; lo < rays.size(); lo += kBlock) {
         const size_t len = std::min(kBlock, rays.size() - lo);

@@ -502,6 +502,59 @@ void far_boxes(uint64_t seed, size_t count, TestScene& s, std::vector<Ray>& rays
     }
 }
 
+TEST(Scene, ShadowRoundsTraceNoRayPastAnInstanceThatOccludedIt) {
+    // Three copies of one quad on the same place (one top leaf: their boxes are equal) and a
+    // fourth beside them; camera rays from one origin go in rounds. A ray the first copy's group
+    // occludes in a round must not be traced again in the other copies' groups of that round, so
+    // each ray over the copies costs one instance visit, not three. Answers equal the oracle's.
+    const Mesh quad = unit_quad();
+    auto tree = std::make_shared<const KdTree>(build_kdtree(quad));
+    std::vector<SceneInstance> list;
+    Affine3x4 t;
+    t.m[0][0] = t.m[1][1] = 2.0f;
+    t.m[0][3] = t.m[1][3] = -1.0f;
+    for (int k = 0; k < 3; ++k) list.push_back({tree, t, nullptr, nullptr});
+    Affine3x4 beside = t;
+    beside.m[0][3] = 1.5f;
+    list.push_back({tree, beside, nullptr, nullptr});
+    const Scene scene = build_scene(std::move(list));
+    const SceneOracle oracle(scene);
+    std::vector<Ray> rays;
+    const Vec3 eye{0.0f, 0.0f, 5.0f};
+    for (int y = 0; y < 40; ++y)
+        for (int x = 0; x < 70; ++x) {
+            const Vec3 at{-1.2f + 0.05f * static_cast<float>(x),
+                          -1.2f + 0.06f * static_cast<float>(y), 0.0f};
+            Ray r = make_ray(eye, at - eye);
+            if ((x + y) % 13 == 0) r.tmax = 0.5f;  // ends before the quads
+            rays.push_back(r);
+        }
+    uint64_t over_copies = 0, beside_only = 0;
+    std::vector<uint8_t> want(rays.size());
+    for (size_t i = 0; i < rays.size(); ++i) {
+        want[i] = oracle.occluded(rays[i]) ? 1 : 0;
+        const float x = rays[i].dx / -rays[i].dz * 5.0f;  // where it crosses z = 0
+        const bool full = rays[i].tmax > 1.0f;
+        if (full && want[i] && x <= 1.0f) ++over_copies;
+        if (full && want[i] && x > 1.0f) ++beside_only;
+    }
+    ASSERT_GT(over_copies, 500u);
+    ASSERT_GT(beside_only, 100u);
+    for (Isa isa : supported_isas()) {
+        for (TraceMode mode : {TraceMode::kAuto, TraceMode::kPacket}) {
+            SCOPED_TRACE(std::string(isa_name(isa)) + " " + std::string(trace_mode_name(mode)));
+            std::vector<uint8_t> got(rays.size(), 7);
+            SceneTraceStats stats;
+            occluded(scene, rays, got, TraceOptions{mode, isa}, &stats);
+            for (size_t i = 0; i < rays.size(); ++i) ASSERT_EQ(got[i], want[i]) << "ray " << i;
+            // Rays well inside the copies cost one visit each; those near x = 1 may visit the
+            // fourth quad's box too (it starts at x = 1.5, widened), those beside it one.
+            EXPECT_LT(stats.instance_visits, over_copies + 2 * beside_only + rays.size() / 10)
+                << "occluded rays were traced again in later groups of the round";
+        }
+    }
+}
+
 TEST(Scene, FarRaysAtInstanceCornersMatchOracle) {
     // Rays from far away (1e3 .. 1e6 units) aimed at the corners and edges of rotated, scaled and
     // sheared boxes: the rounding of the object ray then moves the hit by far more than the mesh
