@@ -246,7 +246,7 @@ struct TopRounds {
                 } else {
                     const auto p = static_cast<uint32_t>(grouped.size());
                     packets[p].start(s, rays, top, &order[k], static_cast<int>(len),
-                                     &packet_cells[p * detail::kTopStack]);
+                                     &packet_cells[p * detail::kTopStack], *ops);
                     if (keep_or_hand_over(p)) grouped.push_back(p);
                 }
                 k += len;
