@@ -24,6 +24,7 @@
 #include "scan_internal.h"
 #include "scene_in_turn_ops.h"
 #include "scene_internal.h"
+#include "scene_packet.h"
 #include "test_util.h"
 
 namespace kdrt::test {
@@ -927,6 +928,117 @@ TEST(SceneAllHits, MatchOracleSingleAndBatch) {
 /// root (a packet of one live lane from the start) and of nine (a full packet and one alone), and
 /// a packet whose lanes all stop at a wall but one, which goes on through a hole (its last lane
 /// handed over mid-walk). Every answer against the oracle, in every mode and ISA.
+TEST(Scene, PacketRootClipIsClipWidenedInEveryLane) {
+    // TopPacket::start clips the root box for all lanes at once (TopPacketOps::clip), and clip /
+    // reach on an instance box: each lane must get clip_widened's answer and [tmin, tmax] bit for
+    // bit, in packets of 1 to 8 lanes, with the SSE halves and (where the CPU has it) AVX2.
+    const uint64_t seed = test_seed();
+    SCOPED_TRACE(testing::Message() << "seed=" << seed);
+    const TestScene s = mixed_scene(seed + 31, 16);
+    const detail::SceneData& d = s.scene.data();
+    Rng rng(seed + 32);
+    const Aabb b = d.bounds;
+    const Vec3 e = b.extent();
+    Aabb outer = b;
+    outer.lo = outer.lo - e;
+    outer.hi = outer.hi + e;
+    std::vector<Ray> rays;
+    for (int i = 0; i < 4000; ++i) {
+        const Vec3 o = rng.in_box(outer);
+        Vec3 target = rng.in_box(b);
+        switch (i % 6) {
+            case 1:  // a corner of the root box or of an instance box
+                for (int a = 0; a < 3; ++a) {
+                    const Aabb& box = rng.below(2) ? b : d.inst[rng.below(16)].world;
+                    target[a] = rng.below(2) ? box.lo[a] : box.hi[a];
+                }
+                break;
+            case 2: {  // on a face plane of the root box, or one float beside it
+                const int a = static_cast<int>(rng.below(3));
+                const float f = rng.below(2) ? b.lo[a] : b.hi[a];
+                target[a] =
+                    rng.below(3) == 0 ? std::nextafter(f, rng.below(2) ? INFINITY : -INFINITY) : f;
+                break;
+            }
+            default:
+                break;
+        }
+        Ray r = make_ray(o, target - o);
+        if (i % 6 == 3) {  // nearly parallel to a face
+            const int a = static_cast<int>(rng.below(3));
+            (&r.dx)[a] = (&r.dx)[a] > 0.0f ? 1e-7f : -1e-7f;
+        }
+        if (i % 6 == 4 || i % 6 == 5) {  // tmin / tmax at the root box's entry or exit
+            detail::TopRay p = detail::make_top_ray(d, r);
+            float t0 = r.tmin, t1 = r.tmax;
+            if (detail::clip_widened(p, b, t0, t1)) {
+                if (i % 6 == 4)
+                    r.tmax = rng.below(2) ? t0 : std::nextafter(t0, 0.0f);
+                else
+                    r.tmin = rng.below(2) ? t1 : std::nextafter(t1, INFINITY);
+            }
+        }
+        if (r.dx == 0.0f || r.dy == 0.0f || r.dz == 0.0f || !detail::ray_is_valid(r)) continue;
+        rays.push_back(r);
+    }
+    std::vector<detail::TopRay> top(rays.size());
+    for (size_t i = 0; i < rays.size(); ++i) top[i] = detail::make_top_ray(d, rays[i]);
+    // Rays by sign class, in packets of 1, 2, ..., 8, 1, ... lanes.
+    std::vector<std::vector<uint32_t>> by_class(8);
+    for (size_t i = 0; i < rays.size(); ++i) {
+        const detail::TopRay& p = top[i];
+        by_class[(p.dir[0] > 0 ? 1 : 0) | (p.dir[1] > 0 ? 2 : 0) | (p.dir[2] > 0 ? 4 : 0)]
+            .push_back(static_cast<uint32_t>(i));
+    }
+    const auto same = [](float x, float y) { return std::memcmp(&x, &y, sizeof x) == 0; };
+    std::vector<detail::TopPacketCell> cells(detail::kTopStack);
+    size_t reached = 0, missed = 0;
+    for (Isa isa : supported_isas()) {
+        SCOPED_TRACE(std::string(isa_name(isa)));
+        const detail::TopPacketOps& ops = detail::top_packet_ops(isa);
+        int count = 1;
+        for (const std::vector<uint32_t>& cls : by_class) {
+            for (size_t k = 0; k < cls.size();
+                 k += static_cast<size_t>(count), count = count % detail::kPacketLanes + 1) {
+                const int n = static_cast<int>(std::min<size_t>(count, cls.size() - k));
+                detail::TopPacket pk;
+                pk.start(d, rays, top, &cls[k], n, cells.data(), ops);
+                const uint32_t root_mask = pk.size > 0 ? pk.stack[0].mask : 0u;
+                const uint32_t g = rng.below(16);
+                const Aabb& box = d.inst[g].world;
+                detail::Lanes lo = detail::Lanes::fill(0.0f), hi = lo;
+                for (int l = 0; l < n; ++l) {
+                    lo.set(l, rays[cls[k + l]].tmin);
+                    hi.set(l, rays[cls[k + l]].tmax);
+                }
+                const uint32_t reach = ops.reach(pk, box, hi, pk.lanes);
+                const uint32_t clip = ops.clip(pk, box, lo, hi, pk.lanes);
+                ASSERT_EQ(reach, clip);
+                for (int l = 0; l < n; ++l) {
+                    const uint32_t i = cls[k + l];
+                    float t0 = rays[i].tmin, t1 = rays[i].tmax;
+                    const bool in = detail::clip_widened(top[i], b, t0, t1);
+                    ASSERT_EQ((root_mask >> l & 1u) != 0, in) << "ray " << i << " lane " << l;
+                    (in ? reached : missed) += 1;
+                    if (in) {
+                        ASSERT_TRUE(same(pk.stack[0].tmin.get(l), t0)) << "ray " << i;
+                        ASSERT_TRUE(same(pk.stack[0].tmax.get(l), t1)) << "ray " << i;
+                    }
+                    float u0 = rays[i].tmin, u1 = rays[i].tmax;
+                    const bool in_box = detail::clip_widened(top[i], box, u0, u1);
+                    ASSERT_EQ((clip >> l & 1u) != 0, in_box) << "ray " << i << " lane " << l;
+                    if (in_box) {
+                        ASSERT_TRUE(same(lo.get(l), u0)) << "ray " << i;
+                        ASSERT_TRUE(same(hi.get(l), u1)) << "ray " << i;
+                    }
+                }
+            }
+        }
+    }
+    EXPECT_GT(reached, rays.size() / 2);
+    EXPECT_GT(missed, rays.size() / 20);
+}
+
 TEST(Scene, PacketTopWalkKeepsEveryLaneAndInstance) {
     const uint64_t seed = test_seed();
     SCOPED_TRACE(testing::Message() << "seed=" << seed);
