@@ -113,6 +113,18 @@ struct TopRay {
     return p;
 }
 
+/// make_top_ray(s, r) for a ray `r` with the origin of `same`'s ray (bit for bit the same floats):
+/// the margin depends on the origin only, so it is `same`'s, and only the direction is new.
+[[gnu::always_inline]] inline TopRay make_top_ray_from(const TopRay& same, const Ray& r) noexcept {
+    TopRay p;
+    p.org[0] = same.org[0], p.org[1] = same.org[1], p.org[2] = same.org[2];
+    p.dir[0] = r.dx, p.dir[1] = r.dy, p.dir[2] = r.dz;
+    for (int a = 0; a < 3; ++a) p.inv[a] = 1.0f / p.dir[a];
+    p.delta = same.delta;
+    for (int a = 0; a < 3; ++a) p.eps[a] = p.dir[a] == 0.0f ? 0.0f : p.delta * std::fabs(p.inv[a]);
+    return p;
+}
+
 /// Clips [tmin, tmax] to `box` widened by the margin; false when the ray passes farther away.
 [[gnu::always_inline]] inline bool clip_widened(const TopRay& p, const Aabb& box, float& tmin,
                                                 float& tmax) noexcept {

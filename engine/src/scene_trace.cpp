@@ -215,16 +215,27 @@ struct TopRounds {
         size_t count[10] = {};
         order.resize(n);
         sign_class.resize(n);
+        const Ray* last = nullptr;  // the last valid ray (its TopRay is top[last - rays.data()])
         for (size_t i = 0; i < n; ++i) {
             walk[i].stack = &cells[i * detail::kTopStack];
             walk[i].size = 0;
             uint8_t c = 9;
             if (valid(i)) {
-                const detail::TopRay& p = top[i] = detail::make_top_ray(s, rays[i]);
-                c = p.dir[0] == 0.0f || p.dir[1] == 0.0f || p.dir[2] == 0.0f
-                        ? 8
-                        : (p.dir[0] > 0.0f ? 1 : 0) | (p.dir[1] > 0.0f ? 2 : 0) |
-                              (p.dir[2] > 0.0f ? 4 : 0);
+                const Ray& r = rays[i];
+                // Rays from one origin (a camera's, a lidar's) share the margin.
+                const detail::TopRay& p = top[i] =
+                    last && r.ox == last->ox && r.oy == last->oy && r.oz == last->oz
+                        ? detail::make_top_ray_from(top[static_cast<size_t>(last - rays.data())], r)
+                        : detail::make_top_ray(s, r);
+                last = &r;
+                // The direction's sign bits (a component is > 0 when its sign bit is clear and it
+                // is not zero; valid rays have no NaN).
+                const uint32_t bx = std::bit_cast<uint32_t>(p.dir[0]);
+                const uint32_t by = std::bit_cast<uint32_t>(p.dir[1]);
+                const uint32_t bz = std::bit_cast<uint32_t>(p.dir[2]);
+                const bool zero = (bx << 1) == 0 || (by << 1) == 0 || (bz << 1) == 0;
+                c = zero ? 8
+                         : static_cast<uint8_t>((~bx >> 31) | (~by >> 31) << 1 | (~bz >> 31) << 2);
             }
             sign_class[i] = c;
             ++count[c];
@@ -366,6 +377,37 @@ struct Counts {
     uint64_t invalid = 0, visits = 0, batches = 0;
 };
 
+/// detail::ray_is_valid(r) without branches: every origin and direction component finite (its
+/// exponent bits not all ones), the direction not zero (some component's bits other than the
+/// sign set), and tmin <= tmax (false with a NaN).
+inline bool ray_is_valid_bits(const Ray& r) noexcept {
+    constexpr uint32_t kExp = 0x7f800000u;
+    const uint32_t ox = std::bit_cast<uint32_t>(r.ox), oy = std::bit_cast<uint32_t>(r.oy),
+                   oz = std::bit_cast<uint32_t>(r.oz), dx = std::bit_cast<uint32_t>(r.dx),
+                   dy = std::bit_cast<uint32_t>(r.dy), dz = std::bit_cast<uint32_t>(r.dz);
+    const bool finite = ((ox & kExp) != kExp) & ((oy & kExp) != kExp) & ((oz & kExp) != kExp) &
+                        ((dx & kExp) != kExp) & ((dy & kExp) != kExp) & ((dz & kExp) != kExp);
+    const bool nonzero = ((dx | dy | dz) << 1) != 0;
+    return finite & nonzero & (r.tmin <= r.tmax);
+}
+
+/// valid[i] = detail::ray_is_valid(rays[i]) for each ray; returns the count of invalid rays.
+size_t mark_valid(std::span<const Ray> rays, uint8_t* valid) noexcept {
+    size_t invalid = 0;
+    for (size_t i = 0; i < rays.size(); ++i) {
+        valid[i] = ray_is_valid_bits(rays[i]) ? 1 : 0;
+        invalid += 1 - valid[i];
+    }
+    return invalid;
+}
+
+/// The invalid rays of `rays` (detail::ray_is_valid).
+size_t count_invalid(std::span<const Ray> rays) noexcept {
+    size_t invalid = 0;
+    for (const Ray& r : rays) invalid += ray_is_valid_bits(r) ? 0 : 1;
+    return invalid;
+}
+
 /// The calling thread's block scratch, kept between batches: a batch's first block on a thread
 /// no longer allocates and zero-fills the top-level walks' stacks (about 1 MB) anew. trace_block
 /// starts no tasks, so a thread never uses it for two blocks at once.
@@ -390,7 +432,7 @@ void trace_block(const SceneData& s, std::span<const Ray> rays, std::span<SceneH
         (options.mode == TraceMode::kAuto && !rounds_pay(rays))) {
         // Several rays' walks in turn, across the top level and the instances (scene_in_turn.h):
         // each ray's answer is intersect_one's / occluded_one's.
-        for (size_t i = 0; i < n; ++i) counts.invalid += detail::ray_is_valid(rays[i]) ? 0 : 1;
+        counts.invalid += count_invalid(rays);
         const detail::SceneInTurnOps& ops = detail::scene_in_turn_ops(resolved_isa(options));
         if constexpr (AnyHit)
             ops.occluded(s, rays.data(), n, occ_out.data(), counts.visits);
@@ -402,11 +444,8 @@ void trace_block(const SceneData& s, std::span<const Ray> rays, std::span<SceneH
     b.best.resize(n);
     b.done.assign(n, 0);
     b.valid.resize(n);
-    for (size_t i = 0; i < n; ++i) {
-        b.best[i] = no_hit_yet(rays[i]);
-        b.valid[i] = detail::ray_is_valid(rays[i]) ? 1 : 0;
-        counts.invalid += 1 - b.valid[i];
-    }
+    counts.invalid += mark_valid(rays, b.valid.data());
+    for (size_t i = 0; i < n; ++i) b.best[i] = no_hit_yet(rays[i]);
     b.walks.start(s, rays, resolved_isa(options), [&](size_t i) { return b.valid[i] != 0; });
     // Each round takes every live walk one leaf further: the next leaf whose cell starts at or
     // before its ray's closest hit so far with an instance the ray's widened segment reaches

@@ -8,6 +8,7 @@
 #include <atomic>
 #include <cmath>
 #include <cstring>
+#include <limits>
 #include <map>
 #include <memory>
 #include <numbers>
@@ -928,6 +929,72 @@ TEST(SceneAllHits, MatchOracleSingleAndBatch) {
 /// root (a packet of one live lane from the start) and of nine (a full packet and one alone), and
 /// a packet whose lanes all stop at a wall but one, which goes on through a hole (its last lane
 /// handed over mid-walk). Every answer against the oracle, in every mode and ISA.
+TEST(Scene, BatchesTellInvalidRaysAsRayIsValidDoes) {
+    // The batches test each ray's validity once, on its float bits (scene_trace.cpp): every
+    // special value in every component must be told as detail::ray_is_valid tells it, in rounds
+    // (kPacket) and in the in-turn walks (kSingle): the invalid count and the answers (misses for
+    // invalid rays) against the oracle.
+    const uint64_t seed = test_seed();
+    SCOPED_TRACE(testing::Message() << "seed=" << seed);
+    const TestScene s = mixed_scene(seed + 41, 12);
+    const Aabb box = s.scene.bounds();
+    const Vec3 eye = box.hi + box.extent();
+    Rng rng(seed + 42);
+    std::vector<Ray> base;
+    for (int i = 0; i < 64; ++i) base.push_back(make_ray(eye, rng.in_box(box) - eye));
+    const float specials[] = {INFINITY,
+                              -INFINITY,
+                              NAN,
+                              -NAN,
+                              std::numeric_limits<float>::max(),
+                              -std::numeric_limits<float>::max(),
+                              std::numeric_limits<float>::denorm_min(),
+                              -std::numeric_limits<float>::denorm_min(),
+                              0.0f,
+                              -0.0f};
+    std::vector<Ray> rays = base;
+    for (int c = 0; c < 8; ++c) {  // ox oy oz tmin dx dy dz tmax
+        for (float v : specials) {
+            Ray r = base[rays.size() % base.size()];
+            (&r.ox)[c] = v;
+            rays.push_back(r);
+        }
+    }
+    for (float z : {0.0f, -0.0f}) {
+        Ray r = base[0];
+        r.dx = r.dy = r.dz = z;
+        rays.push_back(r);
+        r.dy = std::numeric_limits<float>::denorm_min();  // only one component not zero
+        rays.push_back(r);
+    }
+    Ray late = base[1];
+    late.tmin = std::nextafter(late.tmax = 2.0f, INFINITY);  // tmin one float above tmax
+    rays.push_back(late);
+    late.tmin = 2.0f;  // tmin == tmax: valid
+    rays.push_back(late);
+    uint64_t invalid = 0;
+    for (const Ray& r : rays) invalid += detail::ray_is_valid(r) ? 0 : 1;
+    ASSERT_GT(invalid, 30u);
+    ASSERT_LT(invalid, rays.size() - 64);
+    const SceneOracle oracle(s.scene);
+    for (Isa isa : supported_isas()) {
+        for (TraceMode mode : {TraceMode::kPacket, TraceMode::kSingle, TraceMode::kAuto}) {
+            SCOPED_TRACE(std::string(isa_name(isa)) + " " + std::string(trace_mode_name(mode)));
+            std::vector<SceneHit> got(rays.size());
+            std::vector<uint8_t> occ(rays.size(), 7);
+            SceneTraceStats stats;
+            intersect(s.scene, rays, got, TraceOptions{mode, isa}, &stats);
+            EXPECT_EQ(stats.invalid_rays, invalid);
+            occluded(s.scene, rays, occ, TraceOptions{mode, isa}, &stats);
+            EXPECT_EQ(stats.invalid_rays, invalid);
+            for (size_t i = 0; i < rays.size(); ++i) {
+                ASSERT_TRUE(same_bits(got[i], oracle.intersect(rays[i]))) << "ray " << i;
+                ASSERT_EQ(occ[i] != 0, oracle.occluded(rays[i])) << "ray " << i;
+            }
+        }
+    }
+}
+
 TEST(Scene, PacketRootClipIsClipWidenedInEveryLane) {
     // TopPacket::start clips the root box for all lanes at once (TopPacketOps::clip), and clip /
     // reach on an instance box: each lane must get clip_widened's answer and [tmin, tmax] bit for
@@ -983,6 +1050,16 @@ TEST(Scene, PacketRootClipIsClipWidenedInEveryLane) {
     }
     std::vector<detail::TopRay> top(rays.size());
     for (size_t i = 0; i < rays.size(); ++i) top[i] = detail::make_top_ray(d, rays[i]);
+    // make_top_ray_from (the rounds' shortcut for a ray with the previous ray's origin) is
+    // make_top_ray bit for bit, zero direction components included.
+    for (size_t i = 1; i < rays.size(); ++i) {
+        Ray r = rays[i];
+        r.ox = rays[i - 1].ox, r.oy = rays[i - 1].oy, r.oz = rays[i - 1].oz;
+        if (i % 7 == 0) (&r.dx)[i % 3] = 0.0f;
+        const detail::TopRay want = detail::make_top_ray(d, r);
+        const detail::TopRay got = detail::make_top_ray_from(top[i - 1], r);
+        ASSERT_EQ(std::memcmp(&want, &got, sizeof want), 0) << "ray " << i;
+    }
     // Rays by sign class, in packets of 1, 2, ..., 8, 1, ... lanes.
     std::vector<std::vector<uint32_t>> by_class(8);
     for (size_t i = 0; i < rays.size(); ++i) {
