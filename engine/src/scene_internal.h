@@ -66,7 +66,10 @@ struct SceneData {
     std::vector<InstanceData> inst;
     std::vector<TopNode> nodes;  ///< nodes[0] is the root (a leaf for an empty scene)
     std::vector<uint32_t> refs;  ///< geometry ids, per leaf contiguous and ascending
-    Aabb bounds;                 ///< union of the world boxes (the root cell)
+    /// No instance is listed in two leaves, so a ray's walk (each leaf once) reaches each
+    /// instance once at most, and the batches' rounds need no mailbox.
+    bool refs_unique = false;
+    Aabb bounds;  ///< union of the world boxes (the root cell)
     /// Traversal margin (margin()): the largest kappa, and the largest of |t|, |L| * box and the
     /// root's coordinates.
     double kappa_max = 1.0;

@@ -440,7 +440,8 @@ void trace_block(const SceneData& s, std::span<const Ray> rays, std::span<SceneH
             ops.intersect(s, rays.data(), n, hits_out.data(), counts.visits);
         return;
     }
-    b.mailbox.assign(n, detail::Mailbox{});
+    const bool mail = !s.refs_unique;  // else no instance can be reached twice
+    if (mail) b.mailbox.assign(n, detail::Mailbox{});
     b.best.resize(n);
     b.done.assign(n, 0);
     b.valid.resize(n);
@@ -457,7 +458,7 @@ void trace_block(const SceneData& s, std::span<const Ray> rays, std::span<SceneH
             s, rays, [&](uint32_t i) { return AnyHit && b.done[i] != 0; },
             [&](uint32_t i) { return AnyHit ? rays[i].tmax : b.best[i].t; },
             [&](uint32_t i, uint32_t geom) {
-                if (b.mailbox[i].seen(geom)) return Take::kSkip;
+                if (mail && b.mailbox[i].seen(geom)) return Take::kSkip;
                 b.pairs.emplace_back(geom, i);
                 return Take::kTaken;
             },

@@ -995,6 +995,47 @@ TEST(Scene, BatchesTellInvalidRaysAsRayIsValidDoes) {
     }
 }
 
+/// detail::SceneData::refs_unique by brute force: no geometry id twice in the top level's refs.
+bool refs_unique_brute(const Scene& scene) {
+    const std::vector<uint32_t>& refs = scene.data().refs;
+    const std::set<uint32_t> ids(refs.begin(), refs.end());
+    return ids.size() == refs.size();
+}
+
+TEST(Scene, RoundsWithoutMailboxWhereNoInstanceIsListedTwice) {
+    // A grid of separated spheres lists each instance in one top leaf (refs_unique): the rounds
+    // then keep no mailbox, and every answer must still be the oracle's, in every mode and ISA.
+    // Overlapping instances (the mixed scene) are listed twice and keep it.
+    const uint64_t seed = test_seed();
+    SCOPED_TRACE(testing::Message() << "seed=" << seed);
+    TestScene grid;
+    grid.meshes.push_back(uv_sphere({0, 0, 0}, 0.4f, 8, 12));
+    grid.trees.push_back(std::make_shared<const KdTree>(build_kdtree(grid.meshes[0])));
+    std::vector<SceneInstance> list;
+    for (int y = 0; y < 5; ++y)
+        for (int x = 0; x < 5; ++x) {
+            Affine3x4 t;
+            t.m[0][3] = 3.0f * static_cast<float>(x), t.m[1][3] = 3.0f * static_cast<float>(y);
+            list.push_back({grid.trees[0], t, nullptr, nullptr});
+            grid.mesh_of.push_back(0);
+        }
+    grid.scene = build_scene(std::move(list));
+    EXPECT_TRUE(grid.scene.data().refs_unique);
+    EXPECT_EQ(grid.scene.data().refs_unique, refs_unique_brute(grid.scene));
+    const uint32_t res = scaled_res(48);
+    const Camera cam(default_camera(grid.scene.bounds(), 1.0f), res, res);
+    std::vector<Ray> rays;
+    for (uint32_t y = 0; y < res; ++y)
+        for (uint32_t x = 0; x < res; ++x) rays.push_back(cam.ray(x + 0.5f, y + 0.5f));
+    Rng rng(seed);
+    const std::vector<Ray> more = scene_rays(rng, grid.scene, grid.meshes, grid.mesh_of, 600);
+    rays.insert(rays.end(), more.begin(), more.end());
+    expect_matches_oracle(grid, rays, 40);
+    const TestScene mixed = mixed_scene(seed + 51, 24);
+    EXPECT_FALSE(mixed.scene.data().refs_unique);
+    EXPECT_EQ(mixed.scene.data().refs_unique, refs_unique_brute(mixed.scene));
+}
+
 TEST(Scene, PacketRootClipIsClipWidenedInEveryLane) {
     // TopPacket::start clips the root box for all lanes at once (TopPacketOps::clip), and clip /
     // reach on an instance box: each lane must get clip_widened's answer and [tmin, tmax] bit for
