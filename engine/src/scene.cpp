@@ -305,6 +305,14 @@ void build_top(SceneData& d, std::chrono::steady_clock::time_point start) {
     if (!geoms.empty()) builder.build(0, std::move(geoms), d.bounds, 0);
     d.nodes.shrink_to_fit();
     d.refs.shrink_to_fit();
+    {
+        std::vector<uint8_t> listed(d.inst.size(), 0);
+        d.refs_unique = true;
+        for (const uint32_t g : d.refs) {
+            if (listed[g]) d.refs_unique = false;
+            listed[g] = 1;
+        }
+    }
 
     SceneStats& st = d.stats;
     st.instances = d.instances.size();

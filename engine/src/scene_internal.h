@@ -66,7 +66,10 @@ struct SceneData {
     std::vector<InstanceData> inst;
     std::vector<TopNode> nodes;  ///< nodes[0] is the root (a leaf for an empty scene)
     std::vector<uint32_t> refs;  ///< geometry ids, per leaf contiguous and ascending
-    Aabb bounds;                 ///< union of the world boxes (the root cell)
+    /// No instance is listed in two leaves, so a ray's walk (each leaf once) reaches each
+    /// instance once at most, and the batches' rounds need no mailbox.
+    bool refs_unique = false;
+    Aabb bounds;  ///< union of the world boxes (the root cell)
     /// Traversal margin (margin()): the largest kappa, and the largest of |t|, |L| * box and the
     /// root's coordinates.
     double kappa_max = 1.0;
@@ -109,6 +112,18 @@ struct TopRay {
         mag = std::max(mag, static_cast<double>(std::fabs(p.org[a])));
     }
     p.delta = margin(s, mag);
+    for (int a = 0; a < 3; ++a) p.eps[a] = p.dir[a] == 0.0f ? 0.0f : p.delta * std::fabs(p.inv[a]);
+    return p;
+}
+
+/// make_top_ray(s, r) for a ray `r` with the origin of `same`'s ray (bit for bit the same floats):
+/// the margin depends on the origin only, so it is `same`'s, and only the direction is new.
+[[gnu::always_inline]] inline TopRay make_top_ray_from(const TopRay& same, const Ray& r) noexcept {
+    TopRay p;
+    p.org[0] = same.org[0], p.org[1] = same.org[1], p.org[2] = same.org[2];
+    p.dir[0] = r.dx, p.dir[1] = r.dy, p.dir[2] = r.dz;
+    for (int a = 0; a < 3; ++a) p.inv[a] = 1.0f / p.dir[a];
+    p.delta = same.delta;
     for (int a = 0; a < 3; ++a) p.eps[a] = p.dir[a] == 0.0f ? 0.0f : p.delta * std::fabs(p.inv[a]);
     return p;
 }

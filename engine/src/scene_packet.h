@@ -10,6 +10,7 @@
 
 #include <bit>
 #include <cstdint>
+#include <cstring>
 
 #include "kdrt/trace.h"
 
@@ -26,7 +27,10 @@ using I4 = int32_t __attribute__((vector_size(16)));
 struct alignas(32) Lanes {
     F4 h[2];
     [[nodiscard]] float get(int lane) const noexcept { return h[lane >> 2][lane & 3]; }
-    void set(int lane, float x) noexcept { h[lane >> 2][lane & 3] = x; }
+    /// One store (an element insert into the vector costs several instructions).
+    void set(int lane, float x) noexcept {
+        std::memcpy(reinterpret_cast<char*>(this) + 4 * lane, &x, sizeof x);
+    }
     static Lanes fill(float x) noexcept { return Lanes{{F4{} + x, F4{} + x}}; }
 };
 
@@ -35,6 +39,25 @@ struct TopPacketCell {
     Lanes tmin, tmax;
     uint32_t node = 0;
     uint32_t mask = 0;
+};
+
+struct TopPacket;
+
+/// The hot steps of a packet's walk (scene_packet_steps.h), compiled for one instruction set.
+struct TopPacketOps {
+    /// The next leaf any lane reaches with its cell starting at or before its `limit`, and the
+    /// lanes there (`at`), or nullptr when no lane's walk goes on. A lane leaves a cell that starts
+    /// beyond its limit, and walks on in the cells below it (as TopWalk::next_leaf drops the cell).
+    const TopNode* (*next_leaf)(TopPacket& packet, const SceneData& s, const Lanes& limit,
+                                uint32_t& at) noexcept;
+    /// The lanes of `mask` whose widened segment [ray.tmin, limit] reaches `box` (clip_widened's
+    /// arithmetic lane by lane).
+    uint32_t (*reach)(const TopPacket& packet, const Aabb& box, const Lanes& limit,
+                      uint32_t mask) noexcept;
+    /// reach() that also gives each lane's clipped segment: `tmin` (in: the lanes' tmin) and
+    /// `tmax` (in: their tmax) become clip_widened's [tmin, tmax], bit for bit.
+    uint32_t (*clip)(const TopPacket& packet, const Aabb& box, Lanes& tmin, Lanes& tmax,
+                     uint32_t mask) noexcept;
 };
 
 /// A packet's top-level walk that, as TopWalk, can stop at any leaf and resume later. The stack
@@ -49,9 +72,11 @@ struct TopPacket {
     int size = 0;
 
     /// Starts the walk of `count` (1 .. kPacketLanes) valid rays `index[]` of `rays` with the same
-    /// direction signs and no zero component, `top[index]` their TopRays.
+    /// direction signs and no zero component, `top[index]` their TopRays; the root box is clipped
+    /// lane by lane with `ops.clip`.
     void start(const SceneData& s, std::span<const Ray> rays, std::span<const TopRay> top,
-               const uint32_t* index, int count, TopPacketCell* storage) noexcept {
+               const uint32_t* index, int count, TopPacketCell* storage,
+               const TopPacketOps& ops) noexcept {
         stack = storage;
         size = 0;
         lanes = ended = 0;
@@ -63,6 +88,7 @@ struct TopPacket {
         delta = ray_tmin = Lanes::fill(0.0f);
         TopPacketCell root;
         root.tmin = root.tmax = Lanes::fill(0.0f);
+        root.mask = 0;
         for (int l = 0; l < count; ++l) {
             const uint32_t i = index[l];
             const TopRay& p = top[i];
@@ -75,13 +101,10 @@ struct TopPacket {
             }
             delta.set(l, p.delta);
             ray_tmin.set(l, rays[i].tmin);
-            float tmin = rays[i].tmin, tmax = rays[i].tmax;
-            if (!s.refs.empty() && clip_widened(p, s.bounds, tmin, tmax)) {
-                root.mask |= 1u << l;
-                root.tmin.set(l, tmin);
-                root.tmax.set(l, tmax);
-            }
+            root.tmin.set(l, rays[i].tmin);
+            root.tmax.set(l, rays[i].tmax);
         }
+        if (!s.refs.empty()) root.mask = ops.clip(*this, s.bounds, root.tmin, root.tmax, lanes);
         if (root.mask) stack[size++] = root;
     }
 
@@ -104,19 +127,6 @@ struct TopPacket {
                 walk.stack[walk.size++] = {stack[k].node, stack[k].tmin.get(lane),
                                            stack[k].tmax.get(lane)};
     }
-};
-
-/// The hot steps of a packet's walk (scene_packet_steps.h), compiled for one instruction set.
-struct TopPacketOps {
-    /// The next leaf any lane reaches with its cell starting at or before its `limit`, and the
-    /// lanes there (`at`), or nullptr when no lane's walk goes on. A lane leaves a cell that starts
-    /// beyond its limit, and walks on in the cells below it (as TopWalk::next_leaf drops the cell).
-    const TopNode* (*next_leaf)(TopPacket& packet, const SceneData& s, const Lanes& limit,
-                                uint32_t& at) noexcept;
-    /// The lanes of `mask` whose widened segment [ray.tmin, limit] reaches `box` (clip_widened's
-    /// arithmetic lane by lane).
-    uint32_t (*reach)(const TopPacket& packet, const Aabb& box, const Lanes& limit,
-                      uint32_t mask) noexcept;
 };
 
 /// The steps in two SSE halves (scene_packet_sse.cpp) and in one AVX2 register

@@ -92,7 +92,11 @@ bool rounds_pay(std::span<const Ray> rays) noexcept {
         }))
         return true;
     float lo[3] = {2, 2, 2}, hi[3] = {-2, -2, -2};
-    for (const Ray& r : rays) {
+    const auto narrow = [&] {
+        return hi[0] - lo[0] < 0.5f && hi[1] - lo[1] < 0.5f && hi[2] - lo[2] < 0.5f;
+    };
+    for (size_t i = 0; i < rays.size(); ++i) {
+        const Ray& r = rays[i];
         const float len = std::sqrt(r.dx * r.dx + r.dy * r.dy + r.dz * r.dz);
         if (!(len > 0.0f) || !std::isfinite(len)) continue;
         const float d[3] = {r.dx / len, r.dy / len, r.dz / len};
@@ -100,8 +104,11 @@ bool rounds_pay(std::span<const Ray> rays) noexcept {
             lo[a] = std::min(lo[a], d[a]);
             hi[a] = std::max(hi[a], d[a]);
         }
+        // The spread only grows: once an axis' reaches 0.5 the answer is false (incoherent
+        // blocks, whose every ray this used to normalise, mostly end here after a few rays).
+        if (i % 16 == 15 && !narrow()) return false;
     }
-    return hi[0] - lo[0] < 0.5f && hi[1] - lo[1] < 0.5f && hi[2] - lo[2] < 0.5f;
+    return narrow();
 }
 
 /// What a round does with an instance a ray reaches: nothing (already traced), take it, or stop
@@ -208,16 +215,27 @@ struct TopRounds {
         size_t count[10] = {};
         order.resize(n);
         sign_class.resize(n);
+        const Ray* last = nullptr;  // the last valid ray (its TopRay is top[last - rays.data()])
         for (size_t i = 0; i < n; ++i) {
             walk[i].stack = &cells[i * detail::kTopStack];
             walk[i].size = 0;
             uint8_t c = 9;
             if (valid(i)) {
-                const detail::TopRay& p = top[i] = detail::make_top_ray(s, rays[i]);
-                c = p.dir[0] == 0.0f || p.dir[1] == 0.0f || p.dir[2] == 0.0f
-                        ? 8
-                        : (p.dir[0] > 0.0f ? 1 : 0) | (p.dir[1] > 0.0f ? 2 : 0) |
-                              (p.dir[2] > 0.0f ? 4 : 0);
+                const Ray& r = rays[i];
+                // Rays from one origin (a camera's, a lidar's) share the margin.
+                const detail::TopRay& p = top[i] =
+                    last && r.ox == last->ox && r.oy == last->oy && r.oz == last->oz
+                        ? detail::make_top_ray_from(top[static_cast<size_t>(last - rays.data())], r)
+                        : detail::make_top_ray(s, r);
+                last = &r;
+                // The direction's sign bits (a component is > 0 when its sign bit is clear and it
+                // is not zero; valid rays have no NaN).
+                const uint32_t bx = std::bit_cast<uint32_t>(p.dir[0]);
+                const uint32_t by = std::bit_cast<uint32_t>(p.dir[1]);
+                const uint32_t bz = std::bit_cast<uint32_t>(p.dir[2]);
+                const bool zero = (bx << 1) == 0 || (by << 1) == 0 || (bz << 1) == 0;
+                c = zero ? 8
+                         : static_cast<uint8_t>((~bx >> 31) | (~by >> 31) << 1 | (~bz >> 31) << 2);
             }
             sign_class[i] = c;
             ++count[c];
@@ -239,7 +257,7 @@ struct TopRounds {
                 } else {
                     const auto p = static_cast<uint32_t>(grouped.size());
                     packets[p].start(s, rays, top, &order[k], static_cast<int>(len),
-                                     &packet_cells[p * detail::kTopStack]);
+                                     &packet_cells[p * detail::kTopStack], *ops);
                     if (keep_or_hand_over(p)) grouped.push_back(p);
                 }
                 k += len;
@@ -347,6 +365,7 @@ struct BlockScratch {
     std::vector<detail::Mailbox> mailbox;
     std::vector<SceneHit> best;
     std::vector<uint8_t> done;
+    std::vector<uint8_t> valid;                        ///< per ray: detail::ray_is_valid
     std::vector<std::pair<uint32_t, uint32_t>> pairs;  ///< (geom, ray) of a round
     InstanceGroups groups;
     std::vector<Ray> rays;
@@ -357,6 +376,45 @@ struct BlockScratch {
 struct Counts {
     uint64_t invalid = 0, visits = 0, batches = 0;
 };
+
+/// detail::ray_is_valid(r) without branches: every origin and direction component finite (its
+/// exponent bits not all ones), the direction not zero (some component's bits other than the
+/// sign set), and tmin <= tmax (false with a NaN).
+inline bool ray_is_valid_bits(const Ray& r) noexcept {
+    constexpr uint32_t kExp = 0x7f800000u;
+    const uint32_t ox = std::bit_cast<uint32_t>(r.ox), oy = std::bit_cast<uint32_t>(r.oy),
+                   oz = std::bit_cast<uint32_t>(r.oz), dx = std::bit_cast<uint32_t>(r.dx),
+                   dy = std::bit_cast<uint32_t>(r.dy), dz = std::bit_cast<uint32_t>(r.dz);
+    const bool finite = ((ox & kExp) != kExp) & ((oy & kExp) != kExp) & ((oz & kExp) != kExp) &
+                        ((dx & kExp) != kExp) & ((dy & kExp) != kExp) & ((dz & kExp) != kExp);
+    const bool nonzero = ((dx | dy | dz) << 1) != 0;
+    return finite & nonzero & (r.tmin <= r.tmax);
+}
+
+/// valid[i] = detail::ray_is_valid(rays[i]) for each ray; returns the count of invalid rays.
+size_t mark_valid(std::span<const Ray> rays, uint8_t* valid) noexcept {
+    size_t invalid = 0;
+    for (size_t i = 0; i < rays.size(); ++i) {
+        valid[i] = ray_is_valid_bits(rays[i]) ? 1 : 0;
+        invalid += 1 - valid[i];
+    }
+    return invalid;
+}
+
+/// The invalid rays of `rays` (detail::ray_is_valid).
+size_t count_invalid(std::span<const Ray> rays) noexcept {
+    size_t invalid = 0;
+    for (const Ray& r : rays) invalid += ray_is_valid_bits(r) ? 0 : 1;
+    return invalid;
+}
+
+/// The calling thread's block scratch, kept between batches: a batch's first block on a thread
+/// no longer allocates and zero-fills the top-level walks' stacks (about 1 MB) anew. trace_block
+/// starts no tasks, so a thread never uses it for two blocks at once.
+BlockScratch& thread_scratch() {
+    thread_local BlockScratch scratch;
+    return scratch;
+}
 
 Isa resolved_isa(const TraceOptions& options) noexcept {
     return options.isa && isa_supported(*options.isa) ? *options.isa : default_isa();
@@ -374,7 +432,7 @@ void trace_block(const SceneData& s, std::span<const Ray> rays, std::span<SceneH
         (options.mode == TraceMode::kAuto && !rounds_pay(rays))) {
         // Several rays' walks in turn, across the top level and the instances (scene_in_turn.h):
         // each ray's answer is intersect_one's / occluded_one's.
-        for (size_t i = 0; i < n; ++i) counts.invalid += detail::ray_is_valid(rays[i]) ? 0 : 1;
+        counts.invalid += count_invalid(rays);
         const detail::SceneInTurnOps& ops = detail::scene_in_turn_ops(resolved_isa(options));
         if constexpr (AnyHit)
             ops.occluded(s, rays.data(), n, occ_out.data(), counts.visits);
@@ -382,15 +440,14 @@ void trace_block(const SceneData& s, std::span<const Ray> rays, std::span<SceneH
             ops.intersect(s, rays.data(), n, hits_out.data(), counts.visits);
         return;
     }
-    b.mailbox.assign(n, detail::Mailbox{});
+    const bool mail = !s.refs_unique;  // else no instance can be reached twice
+    if (mail) b.mailbox.assign(n, detail::Mailbox{});
     b.best.resize(n);
     b.done.assign(n, 0);
-    for (size_t i = 0; i < n; ++i) {
-        b.best[i] = no_hit_yet(rays[i]);
-        counts.invalid += detail::ray_is_valid(rays[i]) ? 0 : 1;
-    }
-    b.walks.start(s, rays, resolved_isa(options),
-                  [&](size_t i) { return detail::ray_is_valid(rays[i]); });
+    b.valid.resize(n);
+    counts.invalid += mark_valid(rays, b.valid.data());
+    for (size_t i = 0; i < n; ++i) b.best[i] = no_hit_yet(rays[i]);
+    b.walks.start(s, rays, resolved_isa(options), [&](size_t i) { return b.valid[i] != 0; });
     // Each round takes every live walk one leaf further: the next leaf whose cell starts at or
     // before its ray's closest hit so far with an instance the ray's widened segment reaches
     // (and its mailbox has not seen). A ray whose next cell starts beyond its closest hit stops
@@ -401,7 +458,7 @@ void trace_block(const SceneData& s, std::span<const Ray> rays, std::span<SceneH
             s, rays, [&](uint32_t i) { return AnyHit && b.done[i] != 0; },
             [&](uint32_t i) { return AnyHit ? rays[i].tmax : b.best[i].t; },
             [&](uint32_t i, uint32_t geom) {
-                if (b.mailbox[i].seen(geom)) return Take::kSkip;
+                if (mail && b.mailbox[i].seen(geom)) return Take::kSkip;
                 b.pairs.emplace_back(geom, i);
                 return Take::kTaken;
             },
@@ -409,6 +466,15 @@ void trace_block(const SceneData& s, std::span<const Ray> rays, std::span<SceneH
         if (b.pairs.empty()) break;
         for_each_instance(
             b.pairs, b.groups, s.inst.size(), [&](uint32_t geom, size_t g0, size_t g1) {
+                if constexpr (AnyHit) {
+                    // A ray occluded by an instance earlier in this round (one of the same top
+                    // leaf: overlapping instances) is done: it is not traced again here.
+                    size_t kept = g0;
+                    for (size_t k = g0; k < g1; ++k)
+                        if (!b.done[b.pairs[k].second]) b.pairs[kept++] = b.pairs[k];
+                    g1 = kept;
+                    if (g1 == g0) return;
+                }
                 const size_t count = g1 - g0;
                 const KdTree& tree = *s.instances[geom].tree;
                 object_rays(
@@ -451,7 +517,6 @@ template <bool AnyHit>
 void trace_batch(const Scene& scene, std::span<const Ray> rays, std::span<SceneHit> hits,
                  std::span<uint8_t> occ, const TraceOptions& options, SceneTraceStats* stats) {
     const SceneData& s = scene.data();
-    tbb::enumerable_thread_specific<BlockScratch> scratch;
     tbb::enumerable_thread_specific<Counts> counts;
     const size_t blocks = (rays.size() + kBlock - 1) / kBlock;
     tbb::parallel_for(
@@ -461,7 +526,7 @@ void trace_batch(const Scene& scene, std::span<const Ray> rays, std::span<SceneH
                 trace_block<AnyHit>(s, rays.subspan(lo, len),
                                     AnyHit ? std::span<SceneHit>() : hits.subspan(lo, len),
                                     AnyHit ? occ.subspan(lo, len) : std::span<uint8_t>(), options,
-                                    scratch.local(), counts.local());
+                                    thread_scratch(), counts.local());
             }
         });
     if (stats) {
@@ -543,7 +608,7 @@ namespace {
 template <bool AnyHit>
 void trace_on_this_thread(const Scene& scene, std::span<const Ray> rays, std::span<SceneHit> hits,
                           std::span<uint8_t> occ, const TraceOptions& options) noexcept {
-    thread_local BlockScratch scratch;
+    BlockScratch& scratch = thread_scratch();
     Counts counts;
     for (size_t lo = 0; lo < rays.size(); lo += kBlock) {
         const size_t len = std::min(kBlock, rays.size() - lo);

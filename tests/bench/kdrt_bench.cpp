@@ -1154,6 +1154,9 @@ int run_scene_instances(const Args& args) {
                 const EmbreeSceneTiming et = em->trace(rays, occlusion, reps, eh, eo);
                 k["embree_mrays_per_s"] = rounded(et.best_mrays_per_s, 3);
                 k["embree_best_mode"] = et.best_mode;
+                Json modes = Json::object();  // every Embree mode's Mrays/s
+                for (const auto& [name, mrays] : et.modes) modes[name] = rounded(mrays, 3);
+                k["embree_modes"] = modes;
                 k["ratio_vs_embree"] = rounded(scene_mrays / et.best_mrays_per_s, 3);
                 uint64_t ediff = 0;
                 for (size_t i = 0; i < rays.size(); ++i)

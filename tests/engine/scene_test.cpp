@@ -8,6 +8,7 @@
 #include <atomic>
 #include <cmath>
 #include <cstring>
+#include <limits>
 #include <map>
 #include <memory>
 #include <numbers>
@@ -24,6 +25,7 @@
 #include "scan_internal.h"
 #include "scene_in_turn_ops.h"
 #include "scene_internal.h"
+#include "scene_packet.h"
 #include "test_util.h"
 
 namespace kdrt::test {
@@ -502,6 +504,59 @@ void far_boxes(uint64_t seed, size_t count, TestScene& s, std::vector<Ray>& rays
     }
 }
 
+TEST(Scene, ShadowRoundsTraceNoRayPastAnInstanceThatOccludedIt) {
+    // Three copies of one quad on the same place (one top leaf: their boxes are equal) and a
+    // fourth beside them; camera rays from one origin go in rounds. A ray the first copy's group
+    // occludes in a round must not be traced again in the other copies' groups of that round, so
+    // each ray over the copies costs one instance visit, not three. Answers equal the oracle's.
+    const Mesh quad = unit_quad();
+    auto tree = std::make_shared<const KdTree>(build_kdtree(quad));
+    std::vector<SceneInstance> list;
+    Affine3x4 t;
+    t.m[0][0] = t.m[1][1] = 2.0f;
+    t.m[0][3] = t.m[1][3] = -1.0f;
+    for (int k = 0; k < 3; ++k) list.push_back({tree, t, nullptr, nullptr});
+    Affine3x4 beside = t;
+    beside.m[0][3] = 1.5f;
+    list.push_back({tree, beside, nullptr, nullptr});
+    const Scene scene = build_scene(std::move(list));
+    const SceneOracle oracle(scene);
+    std::vector<Ray> rays;
+    const Vec3 eye{0.0f, 0.0f, 5.0f};
+    for (int y = 0; y < 40; ++y)
+        for (int x = 0; x < 70; ++x) {
+            const Vec3 at{-1.2f + 0.05f * static_cast<float>(x),
+                          -1.2f + 0.06f * static_cast<float>(y), 0.0f};
+            Ray r = make_ray(eye, at - eye);
+            if ((x + y) % 13 == 0) r.tmax = 0.5f;  // ends before the quads
+            rays.push_back(r);
+        }
+    uint64_t over_copies = 0, beside_only = 0;
+    std::vector<uint8_t> want(rays.size());
+    for (size_t i = 0; i < rays.size(); ++i) {
+        want[i] = oracle.occluded(rays[i]) ? 1 : 0;
+        const float x = rays[i].dx / -rays[i].dz * 5.0f;  // where it crosses z = 0
+        const bool full = rays[i].tmax > 1.0f;
+        if (full && want[i] && x <= 1.0f) ++over_copies;
+        if (full && want[i] && x > 1.0f) ++beside_only;
+    }
+    ASSERT_GT(over_copies, 500u);
+    ASSERT_GT(beside_only, 100u);
+    for (Isa isa : supported_isas()) {
+        for (TraceMode mode : {TraceMode::kAuto, TraceMode::kPacket}) {
+            SCOPED_TRACE(std::string(isa_name(isa)) + " " + std::string(trace_mode_name(mode)));
+            std::vector<uint8_t> got(rays.size(), 7);
+            SceneTraceStats stats;
+            occluded(scene, rays, got, TraceOptions{mode, isa}, &stats);
+            for (size_t i = 0; i < rays.size(); ++i) ASSERT_EQ(got[i], want[i]) << "ray " << i;
+            // Rays well inside the copies cost one visit each; those near x = 1 may visit the
+            // fourth quad's box too (it starts at x = 1.5, widened), those beside it one.
+            EXPECT_LT(stats.instance_visits, over_copies + 2 * beside_only + rays.size() / 10)
+                << "occluded rays were traced again in later groups of the round";
+        }
+    }
+}
+
 TEST(Scene, FarRaysAtInstanceCornersMatchOracle) {
     // Rays from far away (1e3 .. 1e6 units) aimed at the corners and edges of rotated, scaled and
     // sheared boxes: the rounding of the object ray then moves the hit by far more than the mesh
@@ -874,6 +929,234 @@ TEST(SceneAllHits, MatchOracleSingleAndBatch) {
 /// root (a packet of one live lane from the start) and of nine (a full packet and one alone), and
 /// a packet whose lanes all stop at a wall but one, which goes on through a hole (its last lane
 /// handed over mid-walk). Every answer against the oracle, in every mode and ISA.
+TEST(Scene, BatchesTellInvalidRaysAsRayIsValidDoes) {
+    // The batches test each ray's validity once, on its float bits (scene_trace.cpp): every
+    // special value in every component must be told as detail::ray_is_valid tells it, in rounds
+    // (kPacket) and in the in-turn walks (kSingle): the invalid count and the answers (misses for
+    // invalid rays) against the oracle.
+    const uint64_t seed = test_seed();
+    SCOPED_TRACE(testing::Message() << "seed=" << seed);
+    const TestScene s = mixed_scene(seed + 41, 12);
+    const Aabb box = s.scene.bounds();
+    const Vec3 eye = box.hi + box.extent();
+    Rng rng(seed + 42);
+    std::vector<Ray> base;
+    for (int i = 0; i < 64; ++i) base.push_back(make_ray(eye, rng.in_box(box) - eye));
+    const float specials[] = {INFINITY,
+                              -INFINITY,
+                              NAN,
+                              -NAN,
+                              std::numeric_limits<float>::max(),
+                              -std::numeric_limits<float>::max(),
+                              std::numeric_limits<float>::denorm_min(),
+                              -std::numeric_limits<float>::denorm_min(),
+                              0.0f,
+                              -0.0f};
+    std::vector<Ray> rays = base;
+    for (int c = 0; c < 8; ++c) {  // ox oy oz tmin dx dy dz tmax
+        for (float v : specials) {
+            Ray r = base[rays.size() % base.size()];
+            (&r.ox)[c] = v;
+            rays.push_back(r);
+        }
+    }
+    for (float z : {0.0f, -0.0f}) {
+        Ray r = base[0];
+        r.dx = r.dy = r.dz = z;
+        rays.push_back(r);
+        r.dy = std::numeric_limits<float>::denorm_min();  // only one component not zero
+        rays.push_back(r);
+    }
+    Ray late = base[1];
+    late.tmin = std::nextafter(late.tmax = 2.0f, INFINITY);  // tmin one float above tmax
+    rays.push_back(late);
+    late.tmin = 2.0f;  // tmin == tmax: valid
+    rays.push_back(late);
+    uint64_t invalid = 0;
+    for (const Ray& r : rays) invalid += detail::ray_is_valid(r) ? 0 : 1;
+    ASSERT_GT(invalid, 30u);
+    ASSERT_LT(invalid, rays.size() - 64);
+    const SceneOracle oracle(s.scene);
+    for (Isa isa : supported_isas()) {
+        for (TraceMode mode : {TraceMode::kPacket, TraceMode::kSingle, TraceMode::kAuto}) {
+            SCOPED_TRACE(std::string(isa_name(isa)) + " " + std::string(trace_mode_name(mode)));
+            std::vector<SceneHit> got(rays.size());
+            std::vector<uint8_t> occ(rays.size(), 7);
+            SceneTraceStats stats;
+            intersect(s.scene, rays, got, TraceOptions{mode, isa}, &stats);
+            EXPECT_EQ(stats.invalid_rays, invalid);
+            occluded(s.scene, rays, occ, TraceOptions{mode, isa}, &stats);
+            EXPECT_EQ(stats.invalid_rays, invalid);
+            for (size_t i = 0; i < rays.size(); ++i) {
+                ASSERT_TRUE(same_bits(got[i], oracle.intersect(rays[i]))) << "ray " << i;
+                ASSERT_EQ(occ[i] != 0, oracle.occluded(rays[i])) << "ray " << i;
+            }
+        }
+    }
+}
+
+/// detail::SceneData::refs_unique by brute force: no geometry id twice in the top level's refs.
+bool refs_unique_brute(const Scene& scene) {
+    const std::vector<uint32_t>& refs = scene.data().refs;
+    const std::set<uint32_t> ids(refs.begin(), refs.end());
+    return ids.size() == refs.size();
+}
+
+TEST(Scene, RoundsWithoutMailboxWhereNoInstanceIsListedTwice) {
+    // A grid of separated spheres lists each instance in one top leaf (refs_unique): the rounds
+    // then keep no mailbox, and every answer must still be the oracle's, in every mode and ISA.
+    // Overlapping instances (the mixed scene) are listed twice and keep it.
+    const uint64_t seed = test_seed();
+    SCOPED_TRACE(testing::Message() << "seed=" << seed);
+    TestScene grid;
+    grid.meshes.push_back(uv_sphere({0, 0, 0}, 0.4f, 8, 12));
+    grid.trees.push_back(std::make_shared<const KdTree>(build_kdtree(grid.meshes[0])));
+    std::vector<SceneInstance> list;
+    for (int y = 0; y < 5; ++y)
+        for (int x = 0; x < 5; ++x) {
+            Affine3x4 t;
+            t.m[0][3] = 3.0f * static_cast<float>(x), t.m[1][3] = 3.0f * static_cast<float>(y);
+            list.push_back({grid.trees[0], t, nullptr, nullptr});
+            grid.mesh_of.push_back(0);
+        }
+    grid.scene = build_scene(std::move(list));
+    EXPECT_TRUE(grid.scene.data().refs_unique);
+    EXPECT_EQ(grid.scene.data().refs_unique, refs_unique_brute(grid.scene));
+    const uint32_t res = scaled_res(48);
+    const Camera cam(default_camera(grid.scene.bounds(), 1.0f), res, res);
+    std::vector<Ray> rays;
+    for (uint32_t y = 0; y < res; ++y)
+        for (uint32_t x = 0; x < res; ++x) rays.push_back(cam.ray(x + 0.5f, y + 0.5f));
+    Rng rng(seed);
+    const std::vector<Ray> more = scene_rays(rng, grid.scene, grid.meshes, grid.mesh_of, 600);
+    rays.insert(rays.end(), more.begin(), more.end());
+    expect_matches_oracle(grid, rays, 40);
+    const TestScene mixed = mixed_scene(seed + 51, 24);
+    EXPECT_FALSE(mixed.scene.data().refs_unique);
+    EXPECT_EQ(mixed.scene.data().refs_unique, refs_unique_brute(mixed.scene));
+}
+
+TEST(Scene, PacketRootClipIsClipWidenedInEveryLane) {
+    // TopPacket::start clips the root box for all lanes at once (TopPacketOps::clip), and clip /
+    // reach on an instance box: each lane must get clip_widened's answer and [tmin, tmax] bit for
+    // bit, in packets of 1 to 8 lanes, with the SSE halves and (where the CPU has it) AVX2.
+    const uint64_t seed = test_seed();
+    SCOPED_TRACE(testing::Message() << "seed=" << seed);
+    const TestScene s = mixed_scene(seed + 31, 16);
+    const detail::SceneData& d = s.scene.data();
+    Rng rng(seed + 32);
+    const Aabb b = d.bounds;
+    const Vec3 e = b.extent();
+    Aabb outer = b;
+    outer.lo = outer.lo - e;
+    outer.hi = outer.hi + e;
+    std::vector<Ray> rays;
+    for (int i = 0; i < 4000; ++i) {
+        const Vec3 o = rng.in_box(outer);
+        Vec3 target = rng.in_box(b);
+        switch (i % 6) {
+            case 1:  // a corner of the root box or of an instance box
+                for (int a = 0; a < 3; ++a) {
+                    const Aabb& box = rng.below(2) ? b : d.inst[rng.below(16)].world;
+                    target[a] = rng.below(2) ? box.lo[a] : box.hi[a];
+                }
+                break;
+            case 2: {  // on a face plane of the root box, or one float beside it
+                const int a = static_cast<int>(rng.below(3));
+                const float f = rng.below(2) ? b.lo[a] : b.hi[a];
+                target[a] =
+                    rng.below(3) == 0 ? std::nextafter(f, rng.below(2) ? INFINITY : -INFINITY) : f;
+                break;
+            }
+            default:
+                break;
+        }
+        Ray r = make_ray(o, target - o);
+        if (i % 6 == 3) {  // nearly parallel to a face
+            const int a = static_cast<int>(rng.below(3));
+            (&r.dx)[a] = (&r.dx)[a] > 0.0f ? 1e-7f : -1e-7f;
+        }
+        if (i % 6 == 4 || i % 6 == 5) {  // tmin / tmax at the root box's entry or exit
+            detail::TopRay p = detail::make_top_ray(d, r);
+            float t0 = r.tmin, t1 = r.tmax;
+            if (detail::clip_widened(p, b, t0, t1)) {
+                if (i % 6 == 4)
+                    r.tmax = rng.below(2) ? t0 : std::nextafter(t0, 0.0f);
+                else
+                    r.tmin = rng.below(2) ? t1 : std::nextafter(t1, INFINITY);
+            }
+        }
+        if (r.dx == 0.0f || r.dy == 0.0f || r.dz == 0.0f || !detail::ray_is_valid(r)) continue;
+        rays.push_back(r);
+    }
+    std::vector<detail::TopRay> top(rays.size());
+    for (size_t i = 0; i < rays.size(); ++i) top[i] = detail::make_top_ray(d, rays[i]);
+    // make_top_ray_from (the rounds' shortcut for a ray with the previous ray's origin) is
+    // make_top_ray bit for bit, zero direction components included.
+    for (size_t i = 1; i < rays.size(); ++i) {
+        Ray r = rays[i];
+        r.ox = rays[i - 1].ox, r.oy = rays[i - 1].oy, r.oz = rays[i - 1].oz;
+        if (i % 7 == 0) (&r.dx)[i % 3] = 0.0f;
+        const detail::TopRay want = detail::make_top_ray(d, r);
+        const detail::TopRay got = detail::make_top_ray_from(top[i - 1], r);
+        ASSERT_EQ(std::memcmp(&want, &got, sizeof want), 0) << "ray " << i;
+    }
+    // Rays by sign class, in packets of 1, 2, ..., 8, 1, ... lanes.
+    std::vector<std::vector<uint32_t>> by_class(8);
+    for (size_t i = 0; i < rays.size(); ++i) {
+        const detail::TopRay& p = top[i];
+        by_class[(p.dir[0] > 0 ? 1 : 0) | (p.dir[1] > 0 ? 2 : 0) | (p.dir[2] > 0 ? 4 : 0)]
+            .push_back(static_cast<uint32_t>(i));
+    }
+    const auto same = [](float x, float y) { return std::memcmp(&x, &y, sizeof x) == 0; };
+    std::vector<detail::TopPacketCell> cells(detail::kTopStack);
+    size_t reached = 0, missed = 0;
+    for (Isa isa : supported_isas()) {
+        SCOPED_TRACE(std::string(isa_name(isa)));
+        const detail::TopPacketOps& ops = detail::top_packet_ops(isa);
+        int count = 1;
+        for (const std::vector<uint32_t>& cls : by_class) {
+            for (size_t k = 0; k < cls.size();
+                 k += static_cast<size_t>(count), count = count % detail::kPacketLanes + 1) {
+                const int n = static_cast<int>(std::min<size_t>(count, cls.size() - k));
+                detail::TopPacket pk;
+                pk.start(d, rays, top, &cls[k], n, cells.data(), ops);
+                const uint32_t root_mask = pk.size > 0 ? pk.stack[0].mask : 0u;
+                const uint32_t g = rng.below(16);
+                const Aabb& box = d.inst[g].world;
+                detail::Lanes lo = detail::Lanes::fill(0.0f), hi = lo;
+                for (int l = 0; l < n; ++l) {
+                    lo.set(l, rays[cls[k + l]].tmin);
+                    hi.set(l, rays[cls[k + l]].tmax);
+                }
+                const uint32_t reach = ops.reach(pk, box, hi, pk.lanes);
+                const uint32_t clip = ops.clip(pk, box, lo, hi, pk.lanes);
+                ASSERT_EQ(reach, clip);
+                for (int l = 0; l < n; ++l) {
+                    const uint32_t i = cls[k + l];
+                    float t0 = rays[i].tmin, t1 = rays[i].tmax;
+                    const bool in = detail::clip_widened(top[i], b, t0, t1);
+                    ASSERT_EQ((root_mask >> l & 1u) != 0, in) << "ray " << i << " lane " << l;
+                    (in ? reached : missed) += 1;
+                    if (in) {
+                        ASSERT_TRUE(same(pk.stack[0].tmin.get(l), t0)) << "ray " << i;
+                        ASSERT_TRUE(same(pk.stack[0].tmax.get(l), t1)) << "ray " << i;
+                    }
+                    float u0 = rays[i].tmin, u1 = rays[i].tmax;
+                    const bool in_box = detail::clip_widened(top[i], box, u0, u1);
+                    ASSERT_EQ((clip >> l & 1u) != 0, in_box) << "ray " << i << " lane " << l;
+                    if (in_box) {
+                        ASSERT_TRUE(same(lo.get(l), u0)) << "ray " << i;
+                        ASSERT_TRUE(same(hi.get(l), u1)) << "ray " << i;
+                    }
+                }
+            }
+        }
+    }
+    EXPECT_GT(reached, rays.size() / 2);
+    EXPECT_GT(missed, rays.size() / 20);
+}
+
 TEST(Scene, PacketTopWalkKeepsEveryLaneAndInstance) {
     const uint64_t seed = test_seed();
     SCOPED_TRACE(testing::Message() << "seed=" << seed);
