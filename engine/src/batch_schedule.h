@@ -274,6 +274,108 @@ template <bool AnyHit, class TraceRun>
     }
 }
 
+/// Rows of an image a packet's patch spans at most (trace_patch_block).
+constexpr int kPatchRows = 4;
+/// Blocks of one origin that go in input order, after one whose rows were not found (image_row),
+/// before the search is tried again.
+constexpr int kRowSearchGap = 32;
+
+/// |a's direction - b's|, summed over the axes.
+inline float direction_step(const Ray& a, const Ray& b) {
+    return __builtin_fabsf(a.dx - b.dx) + __builtin_fabsf(a.dy - b.dy) +
+           __builtin_fabsf(a.dz - b.dz);
+}
+
+inline bool same_origin(const Ray& a, const Ray& b) {
+    return a.ox == b.ox && a.oy == b.oy && a.oz == b.oz;
+}
+
+/// Whether block[0, n) looks like an image's rows of `row` rays each from one point (a pinhole
+/// camera's rays in image order), at a few samples: a ray and the one `row` on start where it
+/// does, and their directions differ by at most twice the step to the ray's right-hand
+/// neighbour (a row's end, whose step is a jump, passes). A heuristic: it only picks the order.
+inline bool rows_of(const Ray* block, int n, int row) {
+    if (row < 2 || 2 * row > n) return false;
+    constexpr int kChecks = 5;
+    for (int c = 0; c < kChecks; ++c) {
+        const int k = (n - row - 1) * c / (kChecks - 1);
+        const Ray& a = block[k];
+        if (!same_origin(a, block[k + row])) return false;
+        if (!(direction_step(a, block[k + row]) <= 2.0f * direction_step(a, block[k + 1])))
+            return false;
+    }
+    return true;
+}
+
+/// The row length of block[0, n) when its rays are an image's rows from one point (rows_of), or
+/// 0. `guess` (the last block's) is tried first; else the row ends are looked for, the steps
+/// between neighbours' directions more than four times the step before: the distance between
+/// the first two (or the first, when there is one).
+inline int image_row(const Ray* block, int n, int guess) {
+    if (n < 4 || !same_origin(block[0], block[n - 1])) return 0;
+    if (rows_of(block, n, guess)) return guess;
+    const float first = direction_step(block[0], block[1]);
+    const float second = direction_step(block[1], block[2]);
+    float step = first < second ? first : second;
+    int end[2] = {0, 0}, ends = 0;
+    for (int j = 2; j < n && ends < 2; ++j) {
+        const float s = direction_step(block[j - 1], block[j]);
+        if (s > 4.0f * step)
+            end[ends++] = j;
+        else
+            step = s;
+    }
+    const int row = ends == 2 ? end[1] - end[0] : end[0];
+    return rows_of(block, n, row) ? row : 0;
+}
+
+/// A coherent block of an image's rows (`row` rays each, image_row) traced in patches: bands of
+/// up to kPatchRows rows, each cut into runs of kCoherentRun rays (the band's rows over a range
+/// of columns), whose rays are ordered patch by patch (the band's rows by W / rows columns,
+/// row by row), then bucketed by octant (that order inside each). So a packet of W rays is a
+/// square patch of the image (4 x 4 at W = 16) rather than a strip of one row, and its rays stay
+/// together longer: 16 and 64 bunnies' primary packets visit fewer nodes
+/// (tests/bench/README.md). The rays past the last whole band go as trace_coherent_block does.
+/// Only the order changes: every valid ray is traced once; the invalid ones are answered as
+/// misses here.
+template <int W, bool AnyHit, class TraceRun>
+[[gnu::always_inline]] inline void trace_patch_block(const Ray* block, size_t base, int n, int row,
+                                                     Hit* hits, uint8_t* occluded,
+                                                     TraceCounters& counters,
+                                                     const TraceRun& trace_run) {
+    const int rows = n / row < kPatchRows ? n / row : kPatchRows;
+    const int cols = W / rows > 0 ? W / rows : 1;  // a patch's columns
+    const int run_cols = kCoherentRun / rows;
+    const int band = rows * row;
+    int first = 0;
+    for (; first + band <= n; first += band) {
+        for (int c0 = 0; c0 < row; c0 += run_cols) {
+            const int c1 = c0 + run_cols < row ? c0 + run_cols : row;
+            uint16_t bucket[8][kCoherentRun];
+            int bucket_size[8] = {0, 0, 0, 0, 0, 0, 0, 0};
+            for (int pc = c0; pc < c1; pc += cols) {
+                const int pe = pc + cols < c1 ? pc + cols : c1;
+                for (int r = 0; r < rows; ++r) {
+                    for (int c = pc; c < pe; ++c) {
+                        const int i = first + r * row + c;
+                        const int o = octant_or_invalid(block[i]);
+                        if (o < 0) {
+                            answer_miss<AnyHit>(base + static_cast<size_t>(i), hits, occluded,
+                                                counters);
+                            continue;
+                        }
+                        bucket[o][bucket_size[o]++] = static_cast<uint16_t>(i);
+                    }
+                }
+            }
+            for (int o = 0; o < 8; ++o) trace_run(block, base, bucket[o], bucket_size[o]);
+        }
+    }
+    if (first < n)
+        trace_coherent_block<AnyHit>(block + first, base + static_cast<size_t>(first), n - first,
+                                     hits, occluded, counters, trace_run);
+}
+
 /// Bits 0..15 of x spread to the even bits 0..30.
 constexpr uint32_t spread2(uint32_t x) {
     x &= 0xFFFFu;
