@@ -290,37 +290,63 @@ inline bool same_origin(const Ray& a, const Ray& b) {
     return a.ox == b.ox && a.oy == b.oy && a.oz == b.oz;
 }
 
+/// Whether the first and the last valid rays of block[0, n) start at one point (false when none
+/// is valid): a cheap first look for a camera's rays.
+inline bool ends_share_origin(const Ray* block, int n) {
+    int first = 0, last = n - 1;
+    while (first < n && !ray_is_valid(block[first])) ++first;
+    while (last > first && !ray_is_valid(block[last])) --last;
+    return last > first && same_origin(block[first], block[last]);
+}
+
 /// Whether block[0, n) looks like an image's rows of `row` rays each from one point (a pinhole
-/// camera's rays in image order), at a few samples: a ray and the one `row` on start where it
-/// does, and their directions differ by at most twice the step to the ray's right-hand
-/// neighbour (a row's end, whose step is a jump, passes). A heuristic: it only picks the order.
+/// camera's rays in image order), at a few samples k: ray k + row starts where ray k does, its
+/// direction is nearer k's than those of rays k + row - 1 and k + row + 1 are (the ray below,
+/// not one beside it), and at most twice as far as k + 1's (a row's end, whose step is a jump,
+/// passes). Samples with an invalid ray are skipped; at least two must pass. A heuristic: it
+/// only picks the order.
 inline bool rows_of(const Ray* block, int n, int row) {
     if (row < 2 || 2 * row > n) return false;
     constexpr int kChecks = 5;
+    int checked = 0;
     for (int c = 0; c < kChecks; ++c) {
-        const int k = (n - row - 1) * c / (kChecks - 1);
-        const Ray& a = block[k];
-        if (!same_origin(a, block[k + row])) return false;
-        if (!(direction_step(a, block[k + row]) <= 2.0f * direction_step(a, block[k + 1])))
+        const int k = (n - row - 2) * c / (kChecks - 1);
+        const Ray &a = block[k], &right = block[k + 1], &down = block[k + row];
+        const Ray &down_left = block[k + row - 1], &down_right = block[k + row + 1];
+        if (!ray_is_valid(a) || !ray_is_valid(right) || !ray_is_valid(down) ||
+            !ray_is_valid(down_left) || !ray_is_valid(down_right))
+            continue;
+        if (!same_origin(a, down)) return false;
+        const float below = direction_step(a, down);
+        if (!(below <= 2.0f * direction_step(a, right) && below < direction_step(a, down_left) &&
+              below < direction_step(a, down_right)))
             return false;
+        ++checked;
     }
-    return true;
+    return checked >= 2;
 }
 
 /// The row length of block[0, n) when its rays are an image's rows from one point (rows_of), or
 /// 0. `guess` (the last block's) is tried first; else the row ends are looked for, the steps
-/// between neighbours' directions more than four times the step before: the distance between
-/// the first two (or the first, when there is one).
+/// between neighbouring valid rays' directions more than 2.5 times the step before (a row
+/// of w rays ends in a step about w times as long): the
+/// distance between the first two (or the first, when there is one).
 inline int image_row(const Ray* block, int n, int guess) {
-    if (n < 4 || !same_origin(block[0], block[n - 1])) return 0;
+    if (n < 4 || !ends_share_origin(block, n)) return 0;
     if (rows_of(block, n, guess)) return guess;
-    const float first = direction_step(block[0], block[1]);
-    const float second = direction_step(block[1], block[2]);
-    float step = first < second ? first : second;
-    int end[2] = {0, 0}, ends = 0;
-    for (int j = 2; j < n && ends < 2; ++j) {
+    // The step before the first: the shorter of the first two (one of them may be a row's end).
+    float step = __builtin_inff();
+    for (int j = 1, seen = 0; j < n && seen < 2; ++j) {
+        if (!ray_is_valid(block[j - 1]) || !ray_is_valid(block[j])) continue;
         const float s = direction_step(block[j - 1], block[j]);
-        if (s > 4.0f * step)
+        step = s < step ? s : step;
+        ++seen;
+    }
+    int end[2] = {0, 0}, ends = 0;
+    for (int j = 1; j < n && ends < 2; ++j) {
+        if (!ray_is_valid(block[j - 1]) || !ray_is_valid(block[j])) continue;
+        const float s = direction_step(block[j - 1], block[j]);
+        if (s > 2.5f * step)
             end[ends++] = j;
         else
             step = s;

@@ -1205,7 +1205,7 @@ struct RunTracer {
             row = image_row(block, n, row_guess);
             if (row > 0)
                 row_guess = row;
-            else if (n >= 4 && same_origin(block[0], block[n - 1]))
+            else if (n >= 4 && ends_share_origin(block, n))
                 search_gap = kRowSearchGap;
         }
         if (row > 0)
