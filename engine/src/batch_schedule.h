@@ -274,6 +274,134 @@ template <bool AnyHit, class TraceRun>
     }
 }
 
+/// Rows of an image a packet's patch spans at most (trace_patch_block).
+constexpr int kPatchRows = 4;
+/// Blocks of one origin that go in input order, after one whose rows were not found (image_row),
+/// before the search is tried again.
+constexpr int kRowSearchGap = 32;
+
+/// |a's direction - b's|, summed over the axes.
+inline float direction_step(const Ray& a, const Ray& b) {
+    return __builtin_fabsf(a.dx - b.dx) + __builtin_fabsf(a.dy - b.dy) +
+           __builtin_fabsf(a.dz - b.dz);
+}
+
+inline bool same_origin(const Ray& a, const Ray& b) {
+    return a.ox == b.ox && a.oy == b.oy && a.oz == b.oz;
+}
+
+/// Whether the first and the last valid rays of block[0, n) start at one point (false when none
+/// is valid): a cheap first look for a camera's rays.
+inline bool ends_share_origin(const Ray* block, int n) {
+    int first = 0, last = n - 1;
+    while (first < n && !ray_is_valid(block[first])) ++first;
+    while (last > first && !ray_is_valid(block[last])) --last;
+    return last > first && same_origin(block[first], block[last]);
+}
+
+/// Whether block[0, n) looks like an image's rows of `row` rays each from one point (a pinhole
+/// camera's rays in image order), at a few samples k: ray k + row starts where ray k does, its
+/// direction is nearer k's than those of rays k + row - 1 and k + row + 1 are (the ray below,
+/// not one beside it), and at most twice as far as k + 1's (a row's end, whose step is a jump,
+/// passes). Samples with an invalid ray are skipped; at least two must pass. A heuristic: it
+/// only picks the order.
+inline bool rows_of(const Ray* block, int n, int row) {
+    if (row < 2 || 2 * row > n) return false;
+    constexpr int kChecks = 5;
+    int checked = 0;
+    for (int c = 0; c < kChecks; ++c) {
+        const int k = (n - row - 2) * c / (kChecks - 1);
+        const Ray &a = block[k], &right = block[k + 1], &down = block[k + row];
+        const Ray &down_left = block[k + row - 1], &down_right = block[k + row + 1];
+        if (!ray_is_valid(a) || !ray_is_valid(right) || !ray_is_valid(down) ||
+            !ray_is_valid(down_left) || !ray_is_valid(down_right))
+            continue;
+        if (!same_origin(a, down)) return false;
+        const float below = direction_step(a, down);
+        if (!(below <= 2.0f * direction_step(a, right) && below < direction_step(a, down_left) &&
+              below < direction_step(a, down_right)))
+            return false;
+        ++checked;
+    }
+    return checked >= 2;
+}
+
+/// The row length of block[0, n) when its rays are an image's rows from one point (rows_of), or
+/// 0. `guess` (the last block's) is tried first; else the row ends are looked for, the steps
+/// between neighbouring valid rays' directions more than 2.5 times the step before (a row
+/// of w rays ends in a step about w times as long): the
+/// distance between the first two (or the first, when there is one).
+inline int image_row(const Ray* block, int n, int guess) {
+    if (n < 4 || !ends_share_origin(block, n)) return 0;
+    if (rows_of(block, n, guess)) return guess;
+    // The step before the first: the shorter of the first two (one of them may be a row's end).
+    float step = __builtin_inff();
+    for (int j = 1, seen = 0; j < n && seen < 2; ++j) {
+        if (!ray_is_valid(block[j - 1]) || !ray_is_valid(block[j])) continue;
+        const float s = direction_step(block[j - 1], block[j]);
+        step = s < step ? s : step;
+        ++seen;
+    }
+    int end[2] = {0, 0}, ends = 0;
+    for (int j = 1; j < n && ends < 2; ++j) {
+        if (!ray_is_valid(block[j - 1]) || !ray_is_valid(block[j])) continue;
+        const float s = direction_step(block[j - 1], block[j]);
+        if (s > 2.5f * step)
+            end[ends++] = j;
+        else
+            step = s;
+    }
+    const int row = ends == 2 ? end[1] - end[0] : end[0];
+    return rows_of(block, n, row) ? row : 0;
+}
+
+/// A coherent block of an image's rows (`row` rays each, image_row) traced in patches: bands of
+/// up to kPatchRows rows, each cut into runs of kCoherentRun rays (the band's rows over a range
+/// of columns), whose rays are ordered patch by patch (the band's rows by W / rows columns,
+/// row by row), then bucketed by octant (that order inside each). So a packet of W rays is a
+/// square patch of the image (4 x 4 at W = 16) rather than a strip of one row, and its rays stay
+/// together longer: 16 and 64 bunnies' primary packets visit fewer nodes
+/// (tests/bench/README.md). The rays past the last whole band go as trace_coherent_block does.
+/// Only the order changes: every valid ray is traced once; the invalid ones are answered as
+/// misses here.
+template <int W, bool AnyHit, class TraceRun>
+[[gnu::always_inline]] inline void trace_patch_block(const Ray* block, size_t base, int n, int row,
+                                                     Hit* hits, uint8_t* occluded,
+                                                     TraceCounters& counters,
+                                                     const TraceRun& trace_run) {
+    const int rows = n / row < kPatchRows ? n / row : kPatchRows;
+    const int cols = W / rows > 0 ? W / rows : 1;  // a patch's columns
+    const int run_cols = kCoherentRun / rows;
+    const int band = rows * row;
+    int first = 0;
+    for (; first + band <= n; first += band) {
+        for (int c0 = 0; c0 < row; c0 += run_cols) {
+            const int c1 = c0 + run_cols < row ? c0 + run_cols : row;
+            uint16_t bucket[8][kCoherentRun];
+            int bucket_size[8] = {0, 0, 0, 0, 0, 0, 0, 0};
+            for (int pc = c0; pc < c1; pc += cols) {
+                const int pe = pc + cols < c1 ? pc + cols : c1;
+                for (int r = 0; r < rows; ++r) {
+                    for (int c = pc; c < pe; ++c) {
+                        const int i = first + r * row + c;
+                        const int o = octant_or_invalid(block[i]);
+                        if (o < 0) {
+                            answer_miss<AnyHit>(base + static_cast<size_t>(i), hits, occluded,
+                                                counters);
+                            continue;
+                        }
+                        bucket[o][bucket_size[o]++] = static_cast<uint16_t>(i);
+                    }
+                }
+            }
+            for (int o = 0; o < 8; ++o) trace_run(block, base, bucket[o], bucket_size[o]);
+        }
+    }
+    if (first < n)
+        trace_coherent_block<AnyHit>(block + first, base + static_cast<size_t>(first), n - first,
+                                     hits, occluded, counters, trace_run);
+}
+
 /// Bits 0..15 of x spread to the even bits 0..30.
 constexpr uint32_t spread2(uint32_t x) {
     x &= 0xFFFFu;

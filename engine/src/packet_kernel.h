@@ -1148,9 +1148,7 @@ struct RunTracer {
     /// as the sort slot says), kCoherentSortMeasured every one sorted against unsorted, and
     /// kCoherentSorted sorts every one. Every way gives every ray the single-ray kernel's answer.
     void coherent_block(const Ray* block, size_t base, int n) const {
-        const auto packets = [&](const Ray* rays, size_t at, int m) {
-            trace_coherent_block<AnyHit>(rays, at, m, hits, occluded, counters, *this);
-        };
+        const auto packets = [&](const Ray* rays, size_t at, int m) { image_block(rays, at, m); };
         const auto sorted = [&](const Ray* rays, size_t at, int m) {
             trace_origin_sorted_block<AnyHit>(tree, rays, at, m, hits, occluded, counters, *this);
         };
@@ -1193,6 +1191,29 @@ struct RunTracer {
             measured<CostSlot::kCoherent>(block, base, n, packets, false);
     }
 
+    /// A coherent block's rays in runs of packets (trace_coherent_block), or in square patches
+    /// when they are an image's rows from one point (image_row, trace_patch_block). The row
+    /// length found is kept per thread and tried first on the next block; after a block of one
+    /// origin whose rows were not found, kRowSearchGap such blocks go in input order unsearched.
+    void image_block(const Ray* block, size_t base, int n) const {
+        static thread_local int row_guess = 0;
+        static thread_local int search_gap = 0;
+        int row = 0;
+        if (search_gap > 0 && !rows_of(block, n, row_guess)) {
+            --search_gap;
+        } else {
+            row = image_row(block, n, row_guess);
+            if (row > 0)
+                row_guess = row;
+            else if (n >= 4 && ends_share_origin(block, n))
+                search_gap = kRowSearchGap;
+        }
+        if (row > 0)
+            trace_patch_block<W, AnyHit>(block, base, n, row, hits, occluded, counters, *this);
+        else
+            trace_coherent_block<AnyHit>(block, base, n, hits, occluded, counters, *this);
+    }
+
     /// A coherent any-hit block measured one of the two ways its packets may go: sorted by
     /// origin (trace_origin_sorted_block) or in input order (trace_coherent_block). A
     /// measurement takes two blocks in a row, one each way, the order swapping from one
@@ -1214,7 +1235,7 @@ struct RunTracer {
         const bool unsorted = first_of_two == by_sort.second_first;
         const uint64_t t0 = cycles();
         if (unsorted)
-            trace_coherent_block<AnyHit>(block, base, n, hits, occluded, counters, *this);
+            image_block(block, base, n);
         else
             trace_origin_sorted_block<AnyHit>(tree, block, base, n, hits, occluded, counters,
                                               *this);

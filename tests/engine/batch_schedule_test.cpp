@@ -21,6 +21,7 @@ namespace {
 
 using detail::block_is_incoherent;
 using detail::collect_valid;
+using detail::image_row;
 using detail::kBlockRays;
 using detail::kCoherentRun;
 using detail::kOctantShift;
@@ -32,6 +33,7 @@ using detail::schedule_rays;
 using detail::sort_by_origin_and_direction;
 using detail::spread3;
 using detail::trace_origin_sorted_block;
+using detail::trace_patch_block;
 using detail::TraceCounters;
 
 constexpr float kInf = std::numeric_limits<float>::infinity();
@@ -460,6 +462,132 @@ TEST(BatchSchedule, CoherentAnyHitBlocksAreSortedIntoPatchesAcrossTheirWay) {
         EXPECT_EQ(mean_group_span(input_order), 15.0);
         EXPECT_EQ(mean_group_span(s.runs[0]), 6.0);
     }
+}
+
+/// An image of width x height rays from one point, in image order, all of octant 0.
+std::vector<Ray> octant0_image(int width, int height) {
+    std::vector<Ray> rays;
+    for (int y = 0; y < height; ++y)
+        for (int x = 0; x < width; ++x)
+            rays.push_back(ray({0, 0, -5}, {1.0f + 0.01f * static_cast<float>(x),
+                                            1.0f + 0.01f * static_cast<float>(y), 1.0f}));
+    return rays;
+}
+
+TEST(BatchSchedule, AnImagesRowsAreFoundFromItsDirections) {
+    for (const uint32_t res : {4u, 16u, 64u}) {  // square camera images, 2 to 64 rows a block
+        const std::vector<Ray> rays = camera_rays(res);
+        const int n = static_cast<int>(std::min<size_t>(rays.size(), kBlockRays));
+        SCOPED_TRACE(testing::Message() << "res=" << res);
+        EXPECT_EQ(image_row(rays.data(), n, 0), static_cast<int>(res));
+        EXPECT_EQ(image_row(rays.data(), n, static_cast<int>(res) - 1), static_cast<int>(res));
+        EXPECT_EQ(image_row(rays.data(), n, static_cast<int>(res) + 1), static_cast<int>(res));
+        EXPECT_EQ(image_row(rays.data() + 3, n - 3, 0), static_cast<int>(res)) << "mid-row";
+        EXPECT_EQ(image_row(rays.data(), 2 * static_cast<int>(res) - 1, 0), 0) << "under 2 rows";
+        EXPECT_EQ(image_row(rays.data(), 2 * static_cast<int>(res), 0), static_cast<int>(res));
+    }
+    for (const int width : {3, 17, 100, 1024, 2048}) {  // wide images: whole blocks
+        const std::vector<Ray> rays =
+            octant0_image(width, static_cast<int>(kBlockRays) / width + 2);
+        SCOPED_TRACE(testing::Message() << "width=" << width);
+        EXPECT_EQ(image_row(rays.data(), static_cast<int>(kBlockRays), 0), width);
+        EXPECT_EQ(image_row(rays.data() + width - 1, static_cast<int>(kBlockRays), 0), width)
+            << "from a row's last ray";
+    }
+    std::vector<Ray> sprinkled = camera_rays(64);
+    const std::vector<Ray> bad = invalid_rays();
+    for (size_t i = 0; i < sprinkled.size(); i += 37) sprinkled[i] = bad[i % bad.size()];
+    EXPECT_EQ(image_row(sprinkled.data(), static_cast<int>(sprinkled.size()), 0), 64);
+    // No rows: random rays, rays from many points one way, one ray repeated, too few rays.
+    Rng rng(test_seed());
+    const std::vector<Ray> random = random_rays(rng, kBlockRays);
+    EXPECT_EQ(image_row(random.data(), static_cast<int>(random.size()), 64), 0);
+    std::vector<Ray> parallel = camera_rays(64);
+    for (size_t i = 0; i < parallel.size(); ++i) {
+        parallel[i].ox = static_cast<float>(i % 64);
+        parallel[i].oy = static_cast<float>(i / 64);
+        parallel[i].dx = 0.1f, parallel[i].dy = 0.2f, parallel[i].dz = 1.0f;
+    }
+    EXPECT_EQ(image_row(parallel.data(), static_cast<int>(parallel.size()), 64), 0);
+    const std::vector<Ray> same(kBlockRays, ray({0, 0, 0}, {1, 2, 3}));
+    EXPECT_EQ(image_row(same.data(), static_cast<int>(same.size()), 0), 0);
+    EXPECT_EQ(image_row(same.data(), 3, 0), 0);
+    const std::vector<Ray> only_bad(100, bad[0]);
+    EXPECT_EQ(image_row(only_bad.data(), static_cast<int>(only_bad.size()), 10), 0);
+}
+
+/// Traces block `rays` (whose first ray is the image's ray `first`) in patches of packets of W,
+/// checking that every valid ray is traced once and the invalid ones answered as misses in
+/// place, and returns the runs (indices into the image).
+template <int W>
+std::vector<std::vector<uint32_t>> patch_runs(const std::vector<Ray>& rays, int row) {
+    Scheduled s;
+    s.hits.assign(rays.size(), Hit{2.0f, 7, 0.5f, 0.5f});
+    s.occluded.assign(rays.size(), 7);
+    s.times_traced.assign(rays.size(), 0);
+    const RecordingRun run{rays, s.hits, s.occluded, s.times_traced, s.runs};
+    trace_patch_block<W, false>(rays.data(), 0, static_cast<int>(rays.size()), row, s.hits.data(),
+                                nullptr, s.counters, run);
+    uint64_t invalid = 0;
+    for (size_t i = 0; i < rays.size(); ++i) {
+        const bool valid = detail::ray_is_valid(rays[i]);
+        invalid += valid ? 0 : 1;
+        EXPECT_EQ(s.times_traced[i], valid ? 1 : 0) << "ray " << i;
+        if (valid)
+            EXPECT_EQ(s.hits[i].prim, i) << "ray " << i;
+        else
+            EXPECT_TRUE(is_miss(s.hits[i])) << "ray " << i;
+    }
+    EXPECT_EQ(s.counters.invalid_rays, invalid);
+    std::vector<std::vector<uint32_t>> runs;
+    for (auto& r : s.runs) {
+        EXPECT_LE(r.size(), static_cast<size_t>(kCoherentRun));
+        if (!r.empty()) runs.push_back(std::move(r));
+    }
+    return runs;
+}
+
+TEST(BatchSchedule, AnImagesBlocksGoInSquarePatches) {
+    // 64 rows of 64 (a whole block): runs of 4 rows, packets of 16 are 4 x 4 patches, of 8 are
+    // 4 rows by 2 columns, of 4 are columns of 4.
+    const std::vector<Ray> rays = octant0_image(64, 64);
+    const auto check = [&](const std::vector<std::vector<uint32_t>>& runs, int w, int rows,
+                           int cols) {
+        SCOPED_TRACE(testing::Message() << "W=" << w);
+        ASSERT_EQ(runs.size(), 16u);
+        for (const auto& run : runs) {
+            ASSERT_EQ(run.size(), 256u);
+            for (size_t g = 0; g < run.size(); g += static_cast<size_t>(w)) {
+                uint32_t x_lo = 64, x_hi = 0, y_lo = 64, y_hi = 0;
+                for (size_t k = g; k < g + static_cast<size_t>(w); ++k) {
+                    x_lo = std::min(x_lo, run[k] % 64), x_hi = std::max(x_hi, run[k] % 64);
+                    y_lo = std::min(y_lo, run[k] / 64), y_hi = std::max(y_hi, run[k] / 64);
+                }
+                EXPECT_EQ(x_hi - x_lo + 1, static_cast<uint32_t>(cols)) << "packet at " << run[g];
+                EXPECT_EQ(y_hi - y_lo + 1, static_cast<uint32_t>(rows)) << "packet at " << run[g];
+            }
+        }
+    };
+    check(patch_runs<16>(rays, 64), 16, 4, 4);
+    check(patch_runs<8>(rays, 64), 8, 4, 2);
+    check(patch_runs<4>(rays, 64), 4, 4, 1);
+    // Two rows a block (2 x 8 patches at W = 16), three (bands of three rows and the rest in
+    // input order), a remainder past the last band, and invalid rays: every ray answered once.
+    const std::vector<Ray> two = octant0_image(2048, 2);
+    const auto runs = patch_runs<16>(two, 2048);
+    ASSERT_FALSE(runs.empty());
+    for (size_t k = 0; k < 16; ++k) {
+        EXPECT_EQ(runs[0][k] % 2048, k % 8);
+        EXPECT_EQ(runs[0][k] / 2048, k / 8);
+    }
+    patch_runs<16>(octant0_image(1366, 3), 1366);
+    std::vector<Ray> odd = octant0_image(17, 240);
+    odd.resize(kBlockRays - 5);
+    const std::vector<Ray> bad = invalid_rays();
+    for (size_t i = 0; i < odd.size(); i += 31) odd[i] = bad[i % bad.size()];
+    for (size_t i = 1; i < odd.size(); i += 53) odd[i].dx = -odd[i].dx;  // another octant
+    patch_runs<16>(odd, 17);
+    patch_runs<8>(odd, 17);
 }
 
 TEST(BatchSchedule, AnEmptyTreeAnswersEveryRayAsAMiss) {

@@ -8,6 +8,7 @@
 
 #include <tbb/task_arena.h>
 
+#include "batch_schedule.h"
 #include "kdrt/camera.h"
 #include "kdrt/proto/mesh_io.h"
 #include "kdrt/proto/ray_batch.h"
@@ -275,6 +276,95 @@ TEST(PacketEquivalence, RepeatedTrianglesInManyLeavesAndTies) {
                 EXPECT_GT(stats.triangle_repeats_skipped, 0u) << what;
             }
             EXPECT_LE(stats.triangle_repeats_skipped, stats.triangle_tests) << what;
+        }
+    }
+}
+
+TEST(PacketEquivalence, CameraImagesInSquarePatchesEveryWidthIsaAndMode) {
+    // A camera's rays in image order go in square patches (trace_patch_block) once the block's
+    // row length is found (image_row). Images of widths around the thresholds: rows that fill a
+    // block's bands of four exactly (64, 1024), leave a remainder (17, 100), make only two rows a
+    // block (2048: exactly half, 1366: three rows), or too few (2049, 3000); blocks past the
+    // image's last whole band; invalid rays sprinkled in. Each pixel aims at a grid vertex or an
+    // edge midpoint (exact floats), and every other grid triangle comes twice more (a copy,
+    // whose tie the lower id must win, and one with rotated vertices).
+    Mesh mesh;
+    constexpr int kGrid = 16;
+    constexpr float kCell = 1.0f / kGrid;
+    for (int i = 0; i < kGrid; ++i)
+        for (int j = 0; j < kGrid; ++j) {
+            const float x = static_cast<float>(i) * kCell, y = static_cast<float>(j) * kCell;
+            const Vec3 a{x, y, 0}, b{x + kCell, y, 0}, c{x + kCell, y + kCell, 0},
+                d{x, y + kCell, 0};
+            add_triangle(mesh, a, b, c);
+            add_triangle(mesh, a, c, d);
+            if ((i + j) % 2 == 0) {
+                add_triangle(mesh, a, b, c);
+                add_triangle(mesh, b, c, a);
+            }
+        }
+    const KdTree tree = build_kdtree(mesh);
+    const std::vector<TriVerts> by_id = triangles_by_id(tree);
+    const Vec3 origin{0.5f, 0.5f, 2.0f};
+    struct Image {
+        int width, height;
+        bool invalid;  // every 97th ray made invalid
+    };
+    for (const Image image : {Image{17, 300, false}, Image{64, 64, true}, Image{100, 50, false},
+                              Image{1024, 9, true}, Image{2048, 3, false}, Image{1366, 4, false},
+                              Image{2049, 3, false}, Image{3000, 2, false}}) {
+        SCOPED_TRACE(testing::Message() << image.width << " x " << image.height);
+        std::vector<Ray> rays;
+        for (int y = 0; y < image.height; ++y)
+            for (int x = 0; x < image.width; ++x) {
+                // Half a cell a pixel: every other pixel of every other row aims at a vertex.
+                const float px = 0.5f + static_cast<float>(x - image.width / 2) * (kCell / 2);
+                const float py = 0.5f + static_cast<float>(y - image.height / 2) * (kCell / 2);
+                rays.push_back(make_ray(origin, {px - origin.x, py - origin.y, -origin.z}));
+            }
+        if (image.invalid)
+            for (size_t i = 0; i < rays.size(); i += 97) {
+                if (i % 2 == 0)
+                    rays[i].dx = NAN;
+                else
+                    rays[i].dx = rays[i].dy = rays[i].dz = 0;
+            }
+        // The first block's rows are found (and so go in patches) where it holds two or more.
+        const int first_block = static_cast<int>(std::min(rays.size(), detail::kBlockRays));
+        const int want_row = 2 * image.width <= first_block ? image.width : 0;
+        EXPECT_EQ(detail::image_row(rays.data(), first_block, 0), want_row);
+        EXPECT_EQ(detail::image_row(rays.data(), first_block, image.width + 1), want_row);
+
+        const std::vector<Hit> want = reference_hits(tree, rays);
+        expect_same_hits(want, brute_force_all(by_id, rays), rays, by_id);
+        size_t hit_count = 0;
+        for (const Hit& h : want) hit_count += h.is_hit() ? 1 : 0;
+        EXPECT_GT(hit_count, 0u);
+        std::vector<uint8_t> want_occ(rays.size());
+        for (size_t i = 0; i < rays.size(); ++i) want_occ[i] = occluded(tree, rays[i]) ? 1 : 0;
+        for (Isa isa : supported_isas()) {
+            for (TraceMode mode : {TraceMode::kPacket, TraceMode::kAuto}) {
+                for (const bool count : {false, true}) {
+                    const std::string what = std::string(isa_name(isa)) + "/" +
+                                             std::string(trace_mode_name(mode)) +
+                                             (count ? " counted" : "");
+                    TraceOptions options{mode, isa};
+                    options.count_work = count;
+                    std::vector<Hit> hits(rays.size());
+                    TraceStats stats;
+                    intersect(tree, rays, hits, options, &stats);
+                    expect_identical_bytes(hits, want, what);
+                    EXPECT_EQ(stats.packet_rays + stats.single_rays + stats.invalid_rays,
+                              rays.size())
+                        << what;
+                    std::vector<uint8_t> occ(rays.size());
+                    occluded(tree, rays, occ, options);
+                    EXPECT_TRUE(occ == want_occ) << what << ": occlusion differs";
+                    std::vector<Hit> block_hits(rays.size());
+                    intersect_block(tree, rays, block_hits, options);
+                    expect_identical_bytes(block_hits, want, what + " block");
+                }
+            }
         }
     }
 }
