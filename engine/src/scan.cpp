@@ -349,22 +349,37 @@ DepthImage scan_pinhole(const KdTree& tree, const PinholeSpec& spec) {
     return image;
 }
 
-PointCloud scan_lidar(const KdTree& tree, const LidarSpec& spec) {
+namespace detail {
+
+PointCloud scan_lidar(const KdTree& tree, const LidarSpec& spec, std::optional<Isa> isa) {
     validate(spec);
     const uint32_t channels = static_cast<uint32_t>(spec.elevation_deg.size());
-    const std::vector<Ray> rays = detail::lidar_rays(spec);
+    // The beams in tiles, as the scene scan traces them (scan_internal.h): a packet's eight beams
+    // at one elevation, side by side, rather than eight channels of one azimuth (the answers are
+    // per beam, so they do not depend on the order).
+    const std::vector<uint32_t> order = lidar_tile_order(channels, spec.azimuth_steps);
+    const std::vector<Ray> rays = lidar_rays(spec, order);
     AllHitsOptions options;
     options.max_hits = spec.returns;
     options.merge_coincident = true;
+    options.isa = isa;
     const AllHits all = intersect_all(tree, rays, options);
     PointCloud cloud;
     cloud.channels = channels;
     cloud.azimuth_steps = spec.azimuth_steps;
     cloud.returns = spec.returns;
-    detail::lidar_points(
-        std::span<const uint64_t>(all.offsets), std::span<const Hit>(all.hits), channels,
-        [&](const Hit& hit) { return hit_point(tree.triangle(hit.prim), hit); }, cloud);
+    lidar_points(
+        std::span<const uint32_t>(order), std::span<const uint64_t>(all.offsets),
+        std::span<const Hit>(all.hits), channels,
+        [&](const Hit& hit) { return hit_point(tree.triangle(hit.prim), hit); },
+        [](uint64_t, const Hit&) {}, cloud);
     return cloud;
+}
+
+}  // namespace detail
+
+PointCloud scan_lidar(const KdTree& tree, const LidarSpec& spec) {
+    return detail::scan_lidar(tree, spec, std::nullopt);
 }
 
 }  // namespace kdrt

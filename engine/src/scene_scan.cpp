@@ -57,45 +57,13 @@ ScenePointCloud scan_lidar(const Scene& scene, const LidarSpec& spec) {
     cloud.channels = channels;
     cloud.azimuth_steps = spec.azimuth_steps;
     cloud.returns = spec.returns;
-    // The returns in beam order (azimuth-major, as lidar_points writes them), each beam's hits
-    // from its place in the traced order. A column of blocks holds the same beams and returns in
-    // both orders (scan_internal.h): in parallel by column.
-    const size_t beams = order.size();
-    cloud.points.resize(all.hits.size());
     out.geom.resize(all.hits.size());
-    const size_t column = size_t{detail::kBlockAzimuth} * channels;
-    tbb::parallel_for(tbb::blocked_range<size_t>(0, (beams + column - 1) / column, 1),
-                      [&](const tbb::blocked_range<size_t>& r) {
-                          std::vector<uint64_t> start;
-                          for (size_t col = r.begin(); col != r.end(); ++col) {
-                              const size_t k0 = col * column, k1 = std::min(beams, k0 + column);
-                              // start[b - k0]: where beam b's returns go, from the column's first
-                              // return.
-                              start.assign(k1 - k0 + 1, 0);
-                              for (size_t k = k0; k < k1; ++k)
-                                  start[order[k] - k0 + 1] = all.offsets[k + 1] - all.offsets[k];
-                              start[0] = all.offsets[k0];
-                              for (size_t i = 0; i < k1 - k0; ++i) start[i + 1] += start[i];
-                              for (size_t k = k0; k < k1; ++k) {
-                                  const uint32_t b = order[k];
-                                  for (uint64_t j = all.offsets[k]; j < all.offsets[k + 1]; ++j) {
-                                      const SceneHit& hit = all.hits[j];
-                                      const Vec3 p = hit_point(scene, hit);
-                                      const uint64_t at = start[b - k0] + (j - all.offsets[k]);
-                                      cloud.points[at] =
-                                          LidarPoint{p.x,
-                                                     p.y,
-                                                     p.z,
-                                                     hit.t,
-                                                     b % channels,
-                                                     b / channels,
-                                                     static_cast<uint32_t>(j - all.offsets[k]),
-                                                     hit.prim};
-                                      out.geom[at] = hit.geom;
-                                  }
-                              }
-                          }
-                      });
+    // The returns in beam order, each beam's hits from its place in the traced order.
+    detail::lidar_points(
+        std::span<const uint32_t>(order), std::span<const uint64_t>(all.offsets),
+        std::span<const SceneHit>(all.hits), channels,
+        [&](const SceneHit& hit) { return hit_point(scene, hit); },
+        [&](uint64_t at, const SceneHit& hit) { out.geom[at] = hit.geom; }, cloud);
     return out;
 }
 

@@ -17,6 +17,7 @@
 #include "kdrt/scan.h"
 #include "kdrt/trace.h"
 #include "oracle.h"
+#include "scan_internal.h"
 #include "scenes.h"
 #include "test_util.h"
 
@@ -264,8 +265,8 @@ LidarSpec lidar_at(const double origin[3], uint32_t channels, uint32_t steps) {
 
 /// Every beam's returns equal brute_force_intersect_all's nearest (merged) hits of the ray built
 /// from the documented conventions; returns the number of points.
-size_t check_lidar(const KdTree& tree, std::span<const TriVerts> tris, const LidarSpec& spec) {
-    const PointCloud cloud = scan_lidar(tree, spec);
+size_t check_lidar_cloud(const PointCloud& cloud, std::span<const TriVerts> tris,
+                         const LidarSpec& spec) {
     const auto channels = static_cast<uint32_t>(spec.elevation_deg.size());
     EXPECT_EQ(cloud.channels, channels);
     EXPECT_EQ(cloud.azimuth_steps, spec.azimuth_steps);
@@ -301,6 +302,47 @@ size_t check_lidar(const KdTree& tree, std::span<const TriVerts> tris, const Lid
     EXPECT_EQ(next, cloud.points.size()) << "the cloud has extra points";
     EXPECT_EQ(bad, 0u);
     return cloud.points.size();
+}
+
+size_t check_lidar(const KdTree& tree, std::span<const TriVerts> tris, const LidarSpec& spec) {
+    return check_lidar_cloud(scan_lidar(tree, spec), tris, spec);
+}
+
+TEST(ScanLidar, TiledScanMatchesBruteForceOnEveryIsaWithPartialTiles) {
+    // scan_lidar traces the beams in tiles (detail::lidar_tile_order: 8 azimuth steps of one
+    // channel, blocks of 64 x 16) and writes the cloud back in beam order: every point equals
+    // brute force's, in beam order, on every ISA, for sizes with partial tiles and blocks, one
+    // and two returns. From inside nested spheres in a box: every beam returns, most twice.
+    Mesh mesh = box_mesh(-3, 3);
+    append(mesh, uv_sphere({0.2f, 0.1f, 0.0f}, 1.0f, 12, 24));
+    append(mesh, uv_sphere({1.8f, -0.5f, 0.3f}, 0.6f, 10, 20));
+    const KdTree tree = build_kdtree(mesh);
+    const std::vector<TriVerts> tris = triangles_by_id(tree);
+    const double origin[3] = {0.1, 0.0, 0.05};
+    for (const auto& [channels, steps] :
+         {std::pair{19u, 150u}, std::pair{3u, 13u}, std::pair{16u, 64u}, std::pair{1u, 9u}}) {
+        LidarSpec spec = lidar_at(origin, channels, steps);
+        for (const uint32_t returns : {1u, 2u}) {
+            spec.returns = returns;
+            const PointCloud public_scan = scan_lidar(tree, spec);
+            for (const Isa isa : supported_isas()) {
+                SCOPED_TRACE(std::to_string(channels) + " x " + std::to_string(steps) + ", " +
+                             std::to_string(returns) + " returns, " + std::string(isa_name(isa)));
+                const PointCloud cloud = detail::scan_lidar(tree, spec, isa);
+                EXPECT_EQ(cloud.returns, returns);
+                const size_t n = check_lidar_cloud(cloud, tris, spec);
+                EXPECT_GE(n, size_t{channels} * steps) << "every beam hits the inner sphere";
+                if (returns == 2) {
+                    EXPECT_GT(n, size_t{channels} * steps);
+                }
+                // The public scan (the default ISA) is the same cloud, bit for bit.
+                ASSERT_EQ(cloud.points.size(), public_scan.points.size());
+                EXPECT_EQ(std::memcmp(cloud.points.data(), public_scan.points.data(),
+                                      n * sizeof(LidarPoint)),
+                          0);
+            }
+        }
+    }
 }
 
 TEST(ScanLidar, ReturnsMatchBruteForceOnTheBunny) {
