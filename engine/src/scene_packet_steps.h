@@ -150,11 +150,10 @@ const TopNode* next_leaf_steps(TopPacket& pk, const SceneData& s, const Lanes& l
     return nullptr;
 }
 
-/// TopPacketOps::reach.
+/// The lanes' segments [t0, t1] clipped to `box` widened by each lane's delta: clip_widened's
+/// arithmetic (the shared part of TopPacketOps::reach and clip).
 template <class V>
-uint32_t reach_steps(const TopPacket& pk, const Aabb& box, const Lanes& limit,
-                     uint32_t mask) noexcept {
-    V t0 = load(pk.ray_tmin, V{}), t1 = load(limit, V{});
+void clip_lanes(const TopPacket& pk, const Aabb& box, V& t0, V& t1) noexcept {
     const V delta = load(pk.delta, V{});
     for (int a = 0; a < 3; ++a) {
         const V lo = splat(box.lo[a], V{}) - delta, hi = splat(box.hi[a], V{}) + delta;
@@ -166,6 +165,14 @@ uint32_t reach_steps(const TopPacket& pk, const Aabb& box, const Lanes& limit,
         t0 = take_gt(n0, t0);
         t1 = take_lt(n1, t1);
     }
+}
+
+/// TopPacketOps::reach.
+template <class V>
+uint32_t reach_steps(const TopPacket& pk, const Aabb& box, const Lanes& limit,
+                     uint32_t mask) noexcept {
+    V t0 = load(pk.ray_tmin, V{}), t1 = load(limit, V{});
+    clip_lanes(pk, box, t0, t1);
     return le_bits(t0, t1) & mask;
 }
 
@@ -174,16 +181,7 @@ template <class V>
 uint32_t clip_steps(const TopPacket& pk, const Aabb& box, Lanes& tmin, Lanes& tmax,
                     uint32_t mask) noexcept {
     V t0 = load(tmin, V{}), t1 = load(tmax, V{});
-    const V delta = load(pk.delta, V{});
-    for (int a = 0; a < 3; ++a) {
-        const V lo = splat(box.lo[a], V{}) - delta, hi = splat(box.hi[a], V{}) + delta;
-        const V org = load(pk.org[a], V{}), inv = load(pk.inv[a], V{});
-        const V a0 = (lo - org) * inv;
-        const V a1 = (hi - org) * inv;
-        const V n0 = take_lt(a1, a0), n1 = take_gt(a0, a1);
-        t0 = take_gt(n0, t0);
-        t1 = take_lt(n1, t1);
-    }
+    clip_lanes(pk, box, t0, t1);
     store(tmin, t0);
     store(tmax, t1);
     return le_bits(t0, t1) & mask;

@@ -1609,6 +1609,21 @@ TEST(SceneScan, IdentitySceneScansAsTheMeshAndNamesInstances) {
     }
 }
 
+/// A lidar of `channels` channels from `lo_deg` to `hi_deg`, `steps` azimuth steps and
+/// `range`, at the centre of `scene`'s bounds (inside a field of instances).
+LidarSpec lidar_at_centre(const Scene& scene, double lo_deg, double hi_deg, uint32_t channels,
+                          uint32_t steps, float range) {
+    LidarSpec lidar;
+    lidar.elevation_deg = lidar_elevations(lo_deg, hi_deg, channels);
+    lidar.azimuth_steps = steps;
+    lidar.max_range = range;
+    const Aabb b = scene.bounds();
+    lidar.pose.m[3] = 0.5 * (b.lo[0] + b.hi[0]);
+    lidar.pose.m[7] = 0.5 * (b.lo[1] + b.hi[1]);
+    lidar.pose.m[11] = 0.5 * (b.lo[2] + b.hi[2]);
+    return lidar;
+}
+
 TEST(SceneScan, LidarReturnsAreTheOraclesNearestHitsOfEachBeam) {
     // A lidar inside a field of overlapping instances: each beam's returns are the oracle's
     // every-hit list (merged) cut to `returns`, in order, with the geometry id of each.
@@ -1616,14 +1631,8 @@ TEST(SceneScan, LidarReturnsAreTheOraclesNearestHitsOfEachBeam) {
     SCOPED_TRACE(testing::Message() << "seed=" << seed);
     const TestScene s = mixed_scene(seed + 61, 24);
     const SceneOracle oracle(s.scene);
-    LidarSpec lidar;
-    lidar.elevation_deg = lidar_elevations(-40, 40, 12);
-    lidar.azimuth_steps = 60;
-    lidar.max_range = 8.0f;  // across the whole field from its centre
-    const Aabb b = s.scene.bounds();
-    lidar.pose.m[3] = 0.5 * (b.lo[0] + b.hi[0]);
-    lidar.pose.m[7] = 0.5 * (b.lo[1] + b.hi[1]);
-    lidar.pose.m[11] = 0.5 * (b.lo[2] + b.hi[2]);
+    // A range of 8 reaches across the whole field from its centre.
+    LidarSpec lidar = lidar_at_centre(s.scene, -40, 40, 12, 60, 8.0f);
     const Scene cleared = with_clearances(s.scene);
     for (const auto& [scene, returns] :
          {std::pair{&s.scene, 1u}, std::pair{&s.scene, 3u}, std::pair{&cleared, 1u}}) {
@@ -1665,14 +1674,7 @@ TEST(SceneScan, NearestHitsMatchTheOracleOnEveryIsaWithNoBeamOrLaneLeftOut) {
     SCOPED_TRACE(testing::Message() << "seed=" << seed);
     const TestScene s = mixed_scene(seed + 67, 24);
     const SceneOracle oracle(s.scene);
-    LidarSpec lidar;
-    lidar.elevation_deg = lidar_elevations(-35, 30, 13);
-    lidar.azimuth_steps = 97;
-    lidar.max_range = 6.0f;
-    const Aabb b = s.scene.bounds();
-    lidar.pose.m[3] = 0.5 * (b.lo[0] + b.hi[0]);
-    lidar.pose.m[7] = 0.5 * (b.lo[1] + b.hi[1]);
-    lidar.pose.m[11] = 0.5 * (b.lo[2] + b.hi[2]);
+    LidarSpec lidar = lidar_at_centre(s.scene, -35, 30, 13, 97, 6.0f);
     std::vector<Ray> rays;
     for (uint32_t a = 0; a < lidar.azimuth_steps; ++a)
         for (uint32_t c = 0; c < 13; ++c) rays.push_back(lidar_ray(lidar, c, a));
@@ -1888,14 +1890,7 @@ TEST(SceneScan, TiledLidarScanIsTheBeamOrderScanPointForPoint) {
     SCOPED_TRACE(testing::Message() << "seed=" << seed);
     const TestScene s = mixed_scene(seed + 71, 24);
     const SceneOracle oracle(s.scene);
-    LidarSpec lidar;
-    lidar.elevation_deg = lidar_elevations(-35, 30, 19);
-    lidar.azimuth_steps = 150;
-    lidar.max_range = 6.0f;
-    const Aabb b = s.scene.bounds();
-    lidar.pose.m[3] = 0.5 * (b.lo[0] + b.hi[0]);
-    lidar.pose.m[7] = 0.5 * (b.lo[1] + b.hi[1]);
-    lidar.pose.m[11] = 0.5 * (b.lo[2] + b.hi[2]);
+    LidarSpec lidar = lidar_at_centre(s.scene, -35, 30, 19, 150, 6.0f);
     const Scene cleared = with_clearances(s.scene);
     for (const auto& [scene, returns] :
          {std::pair{&s.scene, 1u}, std::pair{&s.scene, 2u}, std::pair{&cleared, 1u}}) {
