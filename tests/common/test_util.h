@@ -86,6 +86,29 @@ inline Mesh random_soup(Rng& rng, size_t count, float max_edge = 0.15f) {
     return m;
 }
 
+/// `count` triangles of the unit cube with their vertices snapped to a grid of `grid` (vertices up
+/// to `spread` from a random centre): many shared positions (ties between candidate planes), and
+/// every fourth triangle flat in an axis plane (planar events, planes through vertices).
+inline Mesh snapped_soup(Rng& rng, size_t count, float grid, float spread = 0.2f) {
+    Mesh m;
+    auto snap = [&](Vec3 v) {
+        return Vec3{std::round(v.x / grid) * grid, std::round(v.y / grid) * grid,
+                    std::round(v.z / grid) * grid};
+    };
+    for (size_t i = 0; i < count; ++i) {
+        const Vec3 c = rng.in_box({{0, 0, 0}, {1, 1, 1}});
+        Vec3 v[3];
+        for (Vec3& x : v) x = snap(c + rng.on_sphere() * rng.uniform(0.0f, spread));
+        if (i % 4 == 0) {  // flat in an axis plane
+            const int a = static_cast<int>(i / 4 % 3);
+            float* coords[3] = {&v[0].x, &v[1].x, &v[2].x};
+            for (float* q : coords) q[a] = coords[0][a];
+        }
+        add_triangle(m, v[0], v[1], v[2]);
+    }
+    return m;
+}
+
 inline Ray make_ray(Vec3 o, Vec3 d, float tmin = 0.0f, float tmax = INFINITY) {
     return Ray{o.x, o.y, o.z, tmin, d.x, d.y, d.z, tmax};
 }

@@ -346,26 +346,6 @@ RootSplit plain_root_split(const Mesh& mesh, const KdTree& tree, const BuildOpti
     return result;
 }
 
-Mesh snapped_soup(Rng& rng, size_t count, float grid) {
-    Mesh m;
-    auto snap = [&](Vec3 v) {
-        return Vec3{std::round(v.x / grid) * grid, std::round(v.y / grid) * grid,
-                    std::round(v.z / grid) * grid};
-    };
-    for (size_t i = 0; i < count; ++i) {
-        const Vec3 c = rng.in_box({{0, 0, 0}, {1, 1, 1}});
-        Vec3 v[3];
-        for (Vec3& x : v) x = snap(c + rng.on_sphere() * rng.uniform(0.0f, 0.2f));
-        if (i % 4 == 0) {  // flat in an axis plane
-            const int a = static_cast<int>(i / 4 % 3);
-            float* coords[3] = {&v[0].x, &v[1].x, &v[2].x};
-            for (float* q : coords) q[a] = coords[0][a];
-        }
-        add_triangle(m, v[0], v[1], v[2]);
-    }
-    return m;
-}
-
 TEST(KdSweep, RootSplitIsTheBestCandidate) {
     BuildOptions costly;  // other costs: other winners, more splits
     costly.intersection_cost = 2.0f;

@@ -23,28 +23,6 @@ bool same_tree(const KdTree& a, const KdTree& b) {
     return a.nodes == b.nodes && a.leaf_refs == b.leaf_refs && a.tri_ids == b.tri_ids;
 }
 
-/// Soup on a grid: many shared positions (ties), a quarter of the triangles flat in an axis
-/// plane (planar events, planes through vertices).
-Mesh grid_soup(Rng& rng, size_t count, float grid) {
-    Mesh m;
-    auto snap = [&](Vec3 v) {
-        return Vec3{std::round(v.x / grid) * grid, std::round(v.y / grid) * grid,
-                    std::round(v.z / grid) * grid};
-    };
-    for (size_t i = 0; i < count; ++i) {
-        const Vec3 c = rng.in_box({{0, 0, 0}, {1, 1, 1}});
-        Vec3 v[3];
-        for (Vec3& x : v) x = snap(c + rng.on_sphere() * rng.uniform(0.0f, 0.3f));
-        if (i % 4 == 0) {
-            const int a = static_cast<int>(i / 4 % 3);
-            float* coords[3] = {&v[0].x, &v[1].x, &v[2].x};
-            for (float* q : coords) q[a] = coords[0][a];
-        }
-        add_triangle(m, v[0], v[1], v[2]);
-    }
-    return m;
-}
-
 // The sweep skips blocks of candidates whose lower bound (the sweep's own arithmetic on the
 // block's smallest probabilities and counts) shows they cannot be chosen, and sweeps the block
 // of the lowest bound first. The tree must be the full sweep's, byte for byte: ties between
@@ -53,8 +31,8 @@ Mesh grid_soup(Rng& rng, size_t count, float grid) {
 TEST(KdSweep, PrunedSweepBuildsTheFullSweepsTree) {
     Rng rng(test_seed() + 700);
     const std::vector<Mesh> meshes = {
-        teapot_in_stadium(), random_soup(rng, 6000, 0.3f), grid_soup(rng, 6000, 1.0f / 8),
-        grid_soup(rng, 9000, 1.0f / 256), grid_soup(rng, 3000, 1.0f / 2)};
+        teapot_in_stadium(), random_soup(rng, 6000, 0.3f), snapped_soup(rng, 6000, 1.0f / 8, 0.3f),
+        snapped_soup(rng, 9000, 1.0f / 256, 0.3f), snapped_soup(rng, 3000, 1.0f / 2, 0.3f)};
     std::vector<BuildOptions> settings(4);
     settings[1].intersection_cost = 2.0f;
     settings[1].empty_bonus = 0.5f;
