@@ -304,6 +304,15 @@ size_t check_lidar_cloud(const PointCloud& cloud, std::span<const TriVerts> tris
     return cloud.points.size();
 }
 
+/// Two spheres, one around the origin and one beside it, inside a box [-3, 3]^3: a lidar near
+/// the origin sees every beam return, most of them twice or more.
+Mesh spheres_in_box() {
+    Mesh mesh = box_mesh(-3, 3);
+    append(mesh, uv_sphere({0.2f, 0.1f, 0.0f}, 1.0f, 12, 24));
+    append(mesh, uv_sphere({1.8f, -0.5f, 0.3f}, 0.6f, 10, 20));
+    return mesh;
+}
+
 size_t check_lidar(const KdTree& tree, std::span<const TriVerts> tris, const LidarSpec& spec) {
     return check_lidar_cloud(scan_lidar(tree, spec), tris, spec);
 }
@@ -313,10 +322,7 @@ TEST(ScanLidar, TiledScanMatchesBruteForceOnEveryIsaWithPartialTiles) {
     // channel, blocks of 64 x 16) and writes the cloud back in beam order: every point equals
     // brute force's, in beam order, on every ISA, for sizes with partial tiles and blocks, one
     // and two returns. From inside nested spheres in a box: every beam returns, most twice.
-    Mesh mesh = box_mesh(-3, 3);
-    append(mesh, uv_sphere({0.2f, 0.1f, 0.0f}, 1.0f, 12, 24));
-    append(mesh, uv_sphere({1.8f, -0.5f, 0.3f}, 0.6f, 10, 20));
-    const KdTree tree = build_kdtree(mesh);
+    const KdTree tree = build_kdtree(spheres_in_box());
     const std::vector<TriVerts> tris = triangles_by_id(tree);
     const double origin[3] = {0.1, 0.0, 0.05};
     for (const auto& [channels, steps] :
@@ -365,10 +371,7 @@ TEST(ScanLidar, ReturnsMatchBruteForceOnTheBunny) {
 
 TEST(ScanLidar, ReturnsMatchBruteForceInsideNestedSpheres) {
     // From inside: every beam crosses the inner sphere's far side... and the outer box.
-    Mesh mesh = box_mesh(-3, 3);
-    append(mesh, uv_sphere({0.2f, 0.1f, 0.0f}, 1.0f, 12, 24));
-    append(mesh, uv_sphere({1.8f, -0.5f, 0.3f}, 0.6f, 10, 20));
-    const KdTree tree = build_kdtree(mesh);
+    const KdTree tree = build_kdtree(spheres_in_box());
     const std::vector<TriVerts> tris = triangles_by_id(tree);
     const double origin[3] = {0.1, 0.0, 0.05};
     LidarSpec spec = lidar_at(origin, 8, static_cast<uint32_t>(std::max<size_t>(8, scaled(90))));
