@@ -8,6 +8,7 @@
 #include <array>
 #include <cmath>
 #include <numbers>
+#include <numeric>
 #include <string>
 
 #include <emmintrin.h>
@@ -230,25 +231,6 @@ void pinhole_rays(const PinholeSpec& spec, std::vector<Ray>& rays, std::vector<d
                       });
 }
 
-std::vector<Ray> lidar_rays(const LidarSpec& spec) {
-    const auto channels = static_cast<uint32_t>(spec.elevation_deg.size());
-    std::vector<Ray> rays(static_cast<size_t>(channels) * spec.azimuth_steps);
-    // Each channel's elevation cosine and sine once (not once per beam): the same values
-    // lidar_ray computes, so the same rays.
-    std::vector<std::array<double, 2>> elevation(channels);
-    for (uint32_t c = 0; c < channels; ++c) elevation[c] = elevation_trig(spec, c);
-    tbb::parallel_for(tbb::blocked_range<uint32_t>(0, spec.azimuth_steps, 16),
-                      [&](const tbb::blocked_range<uint32_t>& steps) {
-                          for (uint32_t a = steps.begin(); a != steps.end(); ++a) {
-                              const std::array<double, 2> azimuth = azimuth_trig(spec, a);
-                              for (uint32_t c = 0; c < channels; ++c)
-                                  rays[static_cast<size_t>(a) * channels + c] =
-                                      lidar_ray(spec, elevation[c], azimuth);
-                          }
-                      });
-    return rays;
-}
-
 std::vector<uint32_t> lidar_tile_order(uint32_t channels, uint32_t azimuth_steps) {
     std::vector<uint32_t> order(static_cast<size_t>(channels) * azimuth_steps);
     // A column of blocks (kBlockAzimuth steps, every channel) holds the same beams in both
@@ -310,6 +292,12 @@ std::vector<Ray> lidar_rays(const LidarSpec& spec, std::span<const uint32_t> ord
             rays[k] = lidar_ray(spec, elevation[order[k] % channels], azimuth[order[k] / channels]);
     });
     return rays;
+}
+
+std::vector<Ray> lidar_rays(const LidarSpec& spec) {
+    std::vector<uint32_t> order(spec.elevation_deg.size() * size_t{spec.azimuth_steps});
+    std::iota(order.begin(), order.end(), uint32_t{0});
+    return lidar_rays(spec, order);
 }
 
 }  // namespace detail

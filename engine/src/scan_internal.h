@@ -26,7 +26,8 @@ inline float pinhole_depth(float t, const std::vector<double>& cosines, size_t p
     return cosines.empty() ? t : static_cast<float>(static_cast<double>(t) * cosines[p]);
 }
 
-/// The beams of a lidar scan (`spec` validated), azimuth-major. Parallel over the arena.
+/// The beams of a lidar scan (`spec` validated), azimuth-major: lidar_rays(spec, order) with
+/// every beam in that order. Parallel over the arena.
 [[nodiscard]] std::vector<Ray> lidar_rays(const LidarSpec& spec);
 
 /// The order in which the lidar beams (mesh and scene scans) are traced: tiles of kTileAzimuth
