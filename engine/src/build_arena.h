@@ -10,10 +10,11 @@
 // pooled arrays and 135 MB for the root's, on 4 KiB pages. Here every array is a range of a
 // block: a range given back is merged with its free neighbours, and a request takes the
 // smallest free range that holds it (best fit), the rest staying free, so a big freed array
-// serves several smaller ones (64 bunnies: 270 MB of blocks in all). A new block, exactly the
-// request's size, is made only when no free range holds the request; it comes from
-// allocate_tree_memory, so a big one is a huge-page mapping faulted in by parallel tasks. Nothing
-// is zero-filled: the builder writes every element it reads. The blocks are freed with the arena.
+// serves several smaller ones (64 bunnies: 270 MB of blocks in all). A new block is made only
+// when no free range holds the request: from the heap, or, from 32 MiB, a huge-page mapping
+// (allocate_tree_memory) faulted in by parallel tasks, whose whole 2 MiB pages the block takes
+// (the tail past the request is a free range). Nothing is zero-filled: the builder writes every
+// element it reads. The blocks are freed with the arena.
 
 #include <cstddef>
 #include <cstdint>
@@ -21,6 +22,7 @@
 #include <map>
 #include <memory>
 #include <mutex>
+#include <new>
 #include <type_traits>
 #include <utility>
 #include <vector>
@@ -92,11 +94,22 @@ public:
             }
         }
         if (best_block == blocks_.size()) {
-            blocks_.push_back({BlockMemory(static_cast<T*>(allocate_tree_memory(n * sizeof(T))),
-                                           BlockFree{n * sizeof(T)}),
-                               n,
+            // A block of kOwnMapping bytes and more is a huge-page mapping (allocate_tree_memory,
+            // in whole 2 MiB pages, all faulted in: the block takes the whole mapping). glibc maps
+            // such an allocation afresh anyway (its mmap threshold never exceeds 32 MiB), on 4 KiB
+            // pages; smaller blocks come from the heap, which may hand back memory already
+            // touched (an earlier build's, on small meshes).
+            size_t bytes = n * sizeof(T);
+            const bool own_mapping = bytes >= kOwnMapping;
+            if (own_mapping) bytes = (bytes + kHugePage - 1) / kHugePage * kHugePage;
+            const size_t capacity = bytes / sizeof(T);
+            blocks_.push_back({BlockMemory(static_cast<T*>(own_mapping ? allocate_tree_memory(bytes)
+                                                                       : ::operator new(bytes)),
+                                           BlockFree{bytes, own_mapping}),
+                               capacity,
                                {}});
-            block_elements_ += n;
+            if (capacity > n) blocks_.back().free.emplace(n, capacity - n);
+            block_elements_ += capacity;
             best_at = 0;
         } else {
             auto& free = blocks_[best_block].free;
@@ -136,9 +149,18 @@ public:
     [[nodiscard]] size_t block_elements() const noexcept { return block_elements_; }
 
 private:
+    static constexpr size_t kHugePage = size_t{2} << 20;
+    static constexpr size_t kOwnMapping = size_t{32} << 20;
     struct BlockFree {
         size_t bytes = 0;
-        void operator()(T* p) const noexcept { free_tree_memory(p, bytes); }
+        bool own_mapping = false;
+        void operator()(T* p) const noexcept {
+            if (own_mapping) {
+                free_tree_memory(p, bytes);
+            } else {
+                ::operator delete(p);
+            }
+        }
     };
     using BlockMemory = std::unique_ptr<T, BlockFree>;
     struct Block {
