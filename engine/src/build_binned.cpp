@@ -28,7 +28,6 @@
 #include <array>
 #include <cmath>
 #include <cstdint>
-#include <mutex>
 #include <span>
 #include <type_traits>
 #include <utility>
@@ -37,6 +36,7 @@
 #include <tbb/parallel_for.h>
 #include <tbb/parallel_invoke.h>
 
+#include "build_arena.h"
 #include "build_common.h"
 #include "build_internal.h"
 #include "geometry.h"
@@ -59,27 +59,10 @@ struct Ref {
 static_assert(std::is_trivially_default_constructible_v<Ref>);
 constexpr uint32_t kCut = 0x80000000u;
 
-/// Leaves new elements uninitialised: every reference array is written in full right after it is
-/// sized, so value-initialising it first was one more pass over memory per binned level.
-template <typename T>
-struct UninitAllocator : std::allocator<T> {
-    template <typename U>
-    struct rebind {
-        using other = UninitAllocator<U>;
-    };
-    UninitAllocator() noexcept = default;
-    template <typename U>
-    explicit UninitAllocator(const UninitAllocator<U>& /*other*/) noexcept {}
-    template <typename U>
-    void construct(U* p) noexcept {
-        ::new (static_cast<void*>(p)) U;
-    }
-    template <typename U, typename... Args>
-    void construct(U* p, Args&&... args) {
-        ::new (static_cast<void*>(p)) U(std::forward<Args>(args)...);
-    }
-};
-using Refs = std::vector<Ref, UninitAllocator<Ref>>;
+/// A node's references: a range of the builder's arena (build_arena.h), given back to it once
+/// the node is partitioned or handed to the exact sweep.
+using RefArena = ArrayArena<Ref>;
+using Refs = RefArena::Array;
 
 /// Grows `b` to hold the reference's bounds.
 inline void extend(Aabb& b, const Ref& r) noexcept {
@@ -161,63 +144,6 @@ void for_chunks(size_t n, const Body& body) {
     });
 }
 
-/// The reference arrays of the binned levels, kept for reuse once their node is partitioned or
-/// handed to the exact sweep. Each big array was a fresh mapping (glibc maps allocations of tens
-/// of megabytes on their own and unmaps them when freed), so every binned level faulted in its
-/// children's arrays page by page: on 64 bunnies about half of the build's 4 KiB page faults. A
-/// node's children now take the smallest kept array that holds them (only what they write is
-/// touched), and the arrays go back to the system when the builder ends. Thread-safe: the two
-/// halves of a parallel node take and give at the same time.
-class RefsPool {
-public:
-    /// An array of `n` references (not written: Refs leaves new elements uninitialised).
-    Refs take(size_t n) {
-        Refs refs;
-        if (n >= kMinPooled) {
-            const std::lock_guard<std::mutex> lock(mutex_);
-            size_t best = kept_.size();
-            for (size_t i = 0; i < kept_.size(); ++i) {
-                if (kept_[i].capacity() >= n &&
-                    (best == kept_.size() || kept_[i].capacity() < kept_[best].capacity()))
-                    best = i;
-            }
-            if (best < kept_.size()) {
-                refs = std::move(kept_[best]);
-                kept_[best] = std::move(kept_.back());
-                kept_.pop_back();
-            }
-        }
-        refs.resize(n);
-        return refs;
-    }
-    /// Keeps `refs`' memory for a later take (small arrays are left to the heap).
-    void give(Refs&& refs) {
-        Refs gone = std::move(refs);
-        if (gone.capacity() < kMinPooled) return;
-        gone.clear();
-        const std::lock_guard<std::mutex> lock(mutex_);
-        if (kept_.size() < kMaxKept) {
-            kept_.push_back(std::move(gone));
-            return;
-        }
-        // Full: the smallest of the kept arrays and this one is dropped (outside the lock would
-        // be nicer, but this happens a few times per build at most).
-        size_t smallest = 0;
-        for (size_t i = 1; i < kept_.size(); ++i)
-            if (kept_[i].capacity() < kept_[smallest].capacity()) smallest = i;
-        if (kept_[smallest].capacity() < gone.capacity()) std::swap(kept_[smallest], gone);
-    }
-
-private:
-    /// Arrays this big (1 MiB of references) are kept; smaller ones come from the heap's free
-    /// lists anyway.
-    static constexpr size_t kMinPooled = (size_t{1} << 20) / sizeof(Ref);
-    /// At most this many arrays are kept: a binned level's nodes on two threads need a handful.
-    static constexpr size_t kMaxKept = 8;
-    std::mutex mutex_;
-    std::vector<Refs> kept_;
-};
-
 class BinnedBuilder {
 public:
     BinnedBuilder(std::span<const TriVerts> tris, const BuildOptions& options,
@@ -251,7 +177,7 @@ public:
         Refs left, right;
         Aabb left_geom, right_geom;
         partition(refs, split, left, right, left_geom, right_geom);
-        pool_.give(std::move(refs));  // the parent's references, for the children's children
+        arena_.give(std::move(refs));  // the parent's references, for the children's children
         if (left.size() + right.size() >= kParallelSubtrees) {
             // The left child straight into `out`, the right one apart and spliced in after it
             // (deferred: copied once, when the whole tree is done): the same layout as building
@@ -267,6 +193,41 @@ public:
             build(out, first, left_cell, std::move(left), left_geom, depth + 1);
             build(out, first + 1, right_cell, std::move(right), right_geom, depth + 1);
         }
+    }
+
+    /// Builds the whole tree in `cell` (the root cell) into slot 0 of `out`.
+    void build_root(SubTree& out, const Aabb& cell, const std::vector<uint8_t>& degenerate) {
+        // The root's references in triangle order, degenerate triangles left out: each chunk of
+        // triangles (in parallel for big meshes) writes its references from its own start, then the
+        // chunks are closed up in order (nothing moves unless a chunk dropped a triangle).
+        Refs refs = arena_.take(tris_.size());
+        const size_t chunks = (tris_.size() + kChunkRefs - 1) / kChunkRefs;
+        std::vector<size_t> kept(chunks, 0);
+        std::vector<Aabb> bounds(chunks);
+        for_chunks(tris_.size(), [&](size_t c, size_t begin, size_t end) {
+            Ref* dst = refs.data() + begin;
+            for (size_t prim = begin; prim < end; ++prim) {
+                Aabb box;
+                if (degenerate[prim] || !vertex_bounds_in_cell(tris_[prim], cell, box)) continue;
+                *dst++ = Ref{{box.lo.x, box.lo.y, box.lo.z},
+                             {box.hi.x, box.hi.y, box.hi.z},
+                             static_cast<uint32_t>(prim)};
+                extend(bounds[c], box);
+            }
+            kept[c] = static_cast<size_t>(dst - (refs.data() + begin));
+        });
+        Aabb geom;
+        for (const Aabb& b : bounds) extend(geom, b);
+        size_t size = 0;
+        for (size_t c = 0; c < chunks; ++c) {
+            const size_t begin = c * kChunkRefs;
+            if (size != begin)
+                std::copy(refs.begin() + begin, refs.begin() + begin + kept[c],
+                          refs.begin() + size);
+            size += kept[c];
+        }
+        refs.shrink(size);
+        build(out, 0, cell, std::move(refs), geom, 0);
     }
 
 private:
@@ -285,7 +246,7 @@ private:
             }
             prims.push_back(p);
         }
-        pool_.give(std::move(refs));
+        arena_.give(std::move(refs));
         exact_.build(out, slot, cell, prims, depth);
     }
 
@@ -443,8 +404,8 @@ private:
             counts[c][0] += counts[c - 1][0];
             counts[c][1] += counts[c - 1][1];
         }
-        left = pool_.take(counts[chunks][0]);
-        right = pool_.take(counts[chunks][1]);
+        left = arena_.take(counts[chunks][0]);
+        right = arena_.take(counts[chunks][1]);
         // Bounds per chunk, combined in chunk order (min and max: the same at any thread count).
         std::vector<std::array<Aabb, 2>> bounds(chunks);
         for_chunks(refs.size(), [&](size_t c, size_t begin, size_t end) {
@@ -467,7 +428,7 @@ private:
     uint32_t bins_;
     uint32_t max_depth_;
     ExactSahBuilder exact_;
-    RefsPool pool_;
+    RefArena arena_;
 };
 
 }  // namespace
@@ -475,36 +436,7 @@ private:
 void build_binned(std::span<const TriVerts> tris, const std::vector<uint8_t>& degenerate,
                   const Aabb& root, const BuildOptions& options, const BinnedParams& params,
                   SubTree& out) {
-    // The root's references in triangle order, degenerate triangles left out: each chunk of
-    // triangles (in parallel for big meshes) writes its references from its own start, then the
-    // chunks are closed up in order (nothing moves unless a chunk dropped a triangle).
-    Refs refs(tris.size());
-    const size_t chunks = (tris.size() + kChunkRefs - 1) / kChunkRefs;
-    std::vector<size_t> kept(chunks, 0);
-    std::vector<Aabb> bounds(chunks);
-    for_chunks(tris.size(), [&](size_t c, size_t begin, size_t end) {
-        Ref* out = refs.data() + begin;
-        for (size_t prim = begin; prim < end; ++prim) {
-            Aabb box;
-            if (degenerate[prim] || !vertex_bounds_in_cell(tris[prim], root, box)) continue;
-            *out++ = Ref{{box.lo.x, box.lo.y, box.lo.z},
-                         {box.hi.x, box.hi.y, box.hi.z},
-                         static_cast<uint32_t>(prim)};
-            extend(bounds[c], box);
-        }
-        kept[c] = static_cast<size_t>(out - (refs.data() + begin));
-    });
-    Aabb geom;
-    for (const Aabb& b : bounds) extend(geom, b);
-    size_t size = 0;
-    for (size_t c = 0; c < chunks; ++c) {
-        const size_t begin = c * kChunkRefs;
-        if (size != begin)
-            std::copy(refs.begin() + begin, refs.begin() + begin + kept[c], refs.begin() + size);
-        size += kept[c];
-    }
-    refs.resize(size);
-    BinnedBuilder(tris, options, params).build(out, 0, root, std::move(refs), geom, 0);
+    BinnedBuilder(tris, options, params).build_root(out, root, degenerate);
 }
 
 }  // namespace kdrt::detail
