@@ -22,6 +22,7 @@
 #include "kdrt/scan.h"
 #include "kdrt/scene.h"
 #include "kdrt/trace.h"
+#include "packet.h"
 #include "scan_internal.h"
 #include "scene_in_turn_ops.h"
 #include "scene_internal.h"
@@ -1034,6 +1035,56 @@ TEST(Scene, RoundsWithoutMailboxWhereNoInstanceIsListedTwice) {
     const TestScene mixed = mixed_scene(seed + 51, 24);
     EXPECT_FALSE(mixed.scene.data().refs_unique);
     EXPECT_EQ(mixed.scene.data().refs_unique, refs_unique_brute(mixed.scene));
+}
+
+TEST(Scene, LaneKernelsAnswerTheirMaskedLanesAsTheSingleRayKernel) {
+    // The mesh kernels' caller-packet entry (LaneKernels), every ISA with packets: packets of 8
+    // rays of mixed octants (and invalid ones) under random lane masks. Each lane of the mask
+    // gets intersect's / occluded's answer bit for bit; the other lanes are neither written nor
+    // reported, whatever their rays.
+    const uint64_t seed = test_seed();
+    SCOPED_TRACE(testing::Message() << "seed=" << seed);
+    Rng rng(seed + 250);
+    const Mesh mesh = random_soup(rng, 400);
+    const KdTree tree = build_kdtree(mesh);
+    std::vector<Ray> rays = oracle_rays(rng, mesh, tree, scaled(4000));
+    for (size_t i = 0; i < rays.size(); i += 37) rays[i].dz = NAN;
+    // Runs of neighbours with one octant, so many masks hold packets of three lanes or more.
+    std::sort(rays.begin(), rays.begin() + static_cast<std::ptrdiff_t>(rays.size() / 2),
+              [](const Ray& a, const Ray& b) {
+                  return std::signbit(a.dx) * 4 + std::signbit(a.dy) * 2 + std::signbit(a.dz) <
+                         std::signbit(b.dx) * 4 + std::signbit(b.dy) * 2 + std::signbit(b.dz);
+              });
+    const Hit sentinel{-1.0f, 12345u, 7.0f, 8.0f};
+    size_t checked = 0, hits = 0;
+    for (Isa isa : supported_isas()) {
+        const detail::LaneKernels* k = detail::lane_kernels_for(isa);
+        if (!k) continue;
+        SCOPED_TRACE(std::string(isa_name(isa)));
+        for (size_t at = 0; at + detail::kLaneRays <= rays.size(); at += detail::kLaneRays) {
+            const Ray* p = &rays[at];
+            const uint32_t mask = at % 5 == 0 ? 0xffu : rng.below(256);
+            std::array<Hit, detail::kLaneRays> got;
+            got.fill(sentinel);
+            k->intersect(tree, p, mask, got.data());
+            const uint32_t occ = k->occluded(tree, p, mask);
+            EXPECT_EQ(occ & ~mask, 0u) << "rays " << at;
+            for (int l = 0; l < detail::kLaneRays; ++l) {
+                if (!(mask >> l & 1u)) {
+                    ASSERT_EQ(std::memcmp(&got[l], &sentinel, sizeof sentinel), 0)
+                        << "rays " << at << ": lane " << l << " is not in the mask";
+                    continue;
+                }
+                const Hit want = intersect(tree, p[l]);
+                ASSERT_EQ(std::memcmp(&got[l], &want, sizeof want), 0) << "ray " << at + l;
+                ASSERT_EQ((occ >> l & 1u) != 0, occluded(tree, p[l])) << "ray " << at + l;
+                ++checked;
+                hits += want.is_hit();
+            }
+        }
+    }
+    EXPECT_GT(checked, rays.size() / 4);
+    EXPECT_GT(hits, checked / 10);
 }
 
 /// Every ISA's depth-first walk (detail::depth_first_intersect / _occluded, the scalar ISA's
