@@ -1405,23 +1405,30 @@ template <class Miss>
     return present;
 }
 
-/// LaneKernels::intersect with W-lane packets (W <= kLaneRays): the valid lanes of `mask`, per
-/// octant, W at a time, through setup_packet and traverse_packet (per lane the single-ray kernel's
-/// decisions), or through the single-ray kernel where few are live. Lanes outside `mask` are not
-/// touched.
-template <int W>
-void lanes_intersect(const KdTree& tree, const Ray* rays, uint32_t mask, Hit* hits) noexcept {
+/// LaneKernels' work with W-lane packets (W <= kLaneRays): the valid lanes of `mask`, per octant,
+/// W at a time, through setup_packet and traverse_packet (per lane the single-ray kernel's
+/// decisions), or through the single-ray kernel where few are live. Closest hit: answers into
+/// hits[lane]; any hit: returns the lanes occluded. Lanes outside `mask` are not touched.
+template <int W, bool AnyHit>
+uint32_t lanes_trace(const KdTree& tree, const Ray* rays, uint32_t mask, Hit* hits) noexcept {
     uint16_t by_octant[8][kLaneRays];
     int size[8];
-    uint32_t present =
-        lanes_by_octant(rays, mask, by_octant, size, [&](int l) { hits[l] = Hit{}; });
+    uint32_t present = lanes_by_octant(rays, mask, by_octant, size, [&](int l) {
+        if constexpr (!AnyHit) hits[l] = Hit{};
+    });
+    uint32_t occ = 0;
     TraceCounters unused;
     for (; present; present &= present - 1) {
         const int o = __builtin_ctz(present);
         const uint16_t* index = by_octant[o];
         const int count = size[o];
         if (count <= kLaneSingleMax || tree.bounds.empty()) {
-            for (int k = 0; k < count; ++k) hits[index[k]] = wide_intersect(tree, rays[index[k]]);
+            for (int k = 0; k < count; ++k) {
+                if constexpr (AnyHit)
+                    occ |= (wide_occluded(tree, rays[index[k]]) ? 1u : 0u) << index[k];
+                else
+                    hits[index[k]] = wide_intersect(tree, rays[index[k]]);
+            }
             continue;
         }
         for (int p = 0; p < count; p += W) {
@@ -1433,40 +1440,26 @@ void lanes_intersect(const KdTree& tree, const Ray* rays, uint32_t mask, Hit* hi
             best.u = simd::broadcast<W>(0.0f);
             best.v = simd::broadcast<W>(0.0f);
             best.prim = simd::broadcast_u<W>(kNoHit);
-            traverse_packet<W, false, false, false>(tree, pk, best, unused);
-            store_hits<W>(best, index + p, lanes, 0, hits);
-        }
-    }
-}
-
-/// LaneKernels::occluded with W-lane packets, as lanes_intersect.
-template <int W>
-uint32_t lanes_occluded(const KdTree& tree, const Ray* rays, uint32_t mask) noexcept {
-    uint16_t by_octant[8][kLaneRays];
-    int size[8];
-    uint32_t present = lanes_by_octant(rays, mask, by_octant, size, [](int) {});
-    uint32_t occ = 0;
-    TraceCounters unused;
-    for (; present; present &= present - 1) {
-        const int o = __builtin_ctz(present);
-        const uint16_t* index = by_octant[o];
-        const int count = size[o];
-        if (count <= kLaneSingleMax || tree.bounds.empty()) {
-            for (int k = 0; k < count; ++k)
-                occ |= (wide_occluded(tree, rays[index[k]]) ? 1u : 0u) << index[k];
-            continue;
-        }
-        for (int p = 0; p < count; p += W) {
-            const int lanes = count - p < W ? count - p : W;
-            Packet<W> pk;
-            setup_packet<W>(tree, rays, index + p, lanes, pk);
-            PacketHits<W> best;
-            const uint32_t bits =
-                simd::bits<W>(traverse_packet<W, true, false, false>(tree, pk, best, unused));
-            for (int l = 0; l < lanes; ++l) occ |= (bits >> l & 1u) << index[p + l];
+            [[maybe_unused]] const uint32_t bits =
+                simd::bits<W>(traverse_packet<W, AnyHit, false, false>(tree, pk, best, unused));
+            if constexpr (AnyHit) {
+                for (int l = 0; l < lanes; ++l) occ |= (bits >> l & 1u) << index[p + l];
+            } else {
+                store_hits<W>(best, index + p, lanes, 0, hits);
+            }
         }
     }
     return occ;
+}
+
+template <int W>
+void lanes_intersect(const KdTree& tree, const Ray* rays, uint32_t mask, Hit* hits) noexcept {
+    lanes_trace<W, false>(tree, rays, mask, hits);
+}
+
+template <int W>
+uint32_t lanes_occluded(const KdTree& tree, const Ray* rays, uint32_t mask) noexcept {
+    return lanes_trace<W, true>(tree, rays, mask, nullptr);
 }
 
 }  // namespace
