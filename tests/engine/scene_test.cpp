@@ -1003,12 +1003,8 @@ bool refs_unique_brute(const Scene& scene) {
     return ids.size() == refs.size();
 }
 
-TEST(Scene, RoundsWithoutMailboxWhereNoInstanceIsListedTwice) {
-    // A grid of separated spheres lists each instance in one top leaf (refs_unique): the rounds
-    // then keep no mailbox, and every answer must still be the oracle's, in every mode and ISA.
-    // Overlapping instances (the mixed scene) are listed twice and keep it.
-    const uint64_t seed = test_seed();
-    SCOPED_TRACE(testing::Message() << "seed=" << seed);
+/// A 5 x 5 grid of separated spheres: each instance in one top leaf (refs_unique).
+TestScene sphere_grid() {
     TestScene grid;
     grid.meshes.push_back(uv_sphere({0, 0, 0}, 0.4f, 8, 12));
     grid.trees.push_back(std::make_shared<const KdTree>(build_kdtree(grid.meshes[0])));
@@ -1021,6 +1017,16 @@ TEST(Scene, RoundsWithoutMailboxWhereNoInstanceIsListedTwice) {
             grid.mesh_of.push_back(0);
         }
     grid.scene = build_scene(std::move(list));
+    return grid;
+}
+
+TEST(Scene, RoundsWithoutMailboxWhereNoInstanceIsListedTwice) {
+    // A grid of separated spheres lists each instance in one top leaf (refs_unique): the rounds
+    // then keep no mailbox, and every answer must still be the oracle's, in every mode and ISA.
+    // Overlapping instances (the mixed scene) are listed twice and keep it.
+    const uint64_t seed = test_seed();
+    SCOPED_TRACE(testing::Message() << "seed=" << seed);
+    const TestScene grid = sphere_grid();
     EXPECT_TRUE(grid.scene.data().refs_unique);
     EXPECT_EQ(grid.scene.data().refs_unique, refs_unique_brute(grid.scene));
     const uint32_t res = scaled_res(48);
@@ -1092,9 +1098,25 @@ TEST(Scene, LaneKernelsAnswerTheirMaskedLanesAsTheSingleRayKernel) {
 /// every batch size from 1 to 40 at many offsets; the instance visits of the whole set equal the
 /// single-ray walks' (the in-turn walks', which are intersect_one's): each lane reaches the
 /// instances its own walk reaches, once each.
+struct OracleAnswers {
+    std::vector<SceneHit> hits;
+    std::vector<uint8_t> occ;
+};
+
+OracleAnswers oracle_answers(const Scene& scene, const std::vector<Ray>& rays) {
+    const SceneOracle oracle(scene);
+    OracleAnswers a{std::vector<SceneHit>(rays.size()), std::vector<uint8_t>(rays.size())};
+    for (size_t i = 0; i < rays.size(); ++i) {
+        a.hits[i] = oracle.intersect(rays[i]);
+        a.occ[i] = oracle.occluded(rays[i]) ? 1 : 0;
+    }
+    return a;
+}
+
 void expect_depth_first_matches(const Scene& scene, const std::vector<Ray>& rays,
-                                const std::vector<SceneHit>& want,
-                                const std::vector<uint8_t>& want_occ) {
+                                const OracleAnswers& answers) {
+    const std::vector<SceneHit>& want = answers.hits;
+    const std::vector<uint8_t>& want_occ = answers.occ;
     std::vector<Isa> isas = supported_isas();
     if (std::find(isas.begin(), isas.end(), Isa::kScalar) == isas.end())
         isas.push_back(Isa::kScalar);
@@ -1183,16 +1205,11 @@ TEST(Scene, DepthFirstPacketsAnswerAsTheOracleOnEveryIsa) {
         r.tmax = std::nextafter(h.t, 0.0f);
         rays.push_back(r);
     }
-    std::vector<SceneHit> want(rays.size());
-    std::vector<uint8_t> want_occ(rays.size());
-    size_t hits = 0;
-    for (size_t i = 0; i < rays.size(); ++i) {
-        want[i] = oracle.intersect(rays[i]);
-        want_occ[i] = oracle.occluded(rays[i]) ? 1 : 0;
-        hits += want[i].is_hit();
-    }
-    EXPECT_GT(hits, rays.size() / 10);
-    expect_depth_first_matches(s.scene, rays, want, want_occ);
+    const OracleAnswers want = oracle_answers(s.scene, rays);
+    EXPECT_GT(std::count_if(want.hits.begin(), want.hits.end(),
+                            [](const SceneHit& h) { return h.is_hit(); }),
+              static_cast<std::ptrdiff_t>(rays.size() / 10));
+    expect_depth_first_matches(s.scene, rays, want);
 
     // Ties: three coincident copies of one mesh and a fourth shifted by a little, every ray
     // hitting the copies hits all three at the same t; the lowest geometry id must win.
@@ -1209,41 +1226,18 @@ TEST(Scene, DepthFirstPacketsAnswerAsTheOracleOnEveryIsa) {
         ties.mesh_of.push_back(0);
     }
     ties.scene = build_scene(std::move(list));
-    const SceneOracle tie_oracle(ties.scene);
-    std::vector<Ray> tie_rays = camera_rays(ties.scene, scaled_res(40));
-    std::vector<SceneHit> tie_want(tie_rays.size());
-    std::vector<uint8_t> tie_occ(tie_rays.size());
-    size_t geom0 = 0;
-    for (size_t i = 0; i < tie_rays.size(); ++i) {
-        tie_want[i] = tie_oracle.intersect(tie_rays[i]);
-        tie_occ[i] = tie_oracle.occluded(tie_rays[i]) ? 1 : 0;
-        geom0 += tie_want[i].is_hit() && tie_want[i].geom == 0;
-    }
-    EXPECT_GT(geom0, tie_rays.size() / 10);
-    expect_depth_first_matches(ties.scene, tie_rays, tie_want, tie_occ);
+    const std::vector<Ray> tie_rays = camera_rays(ties.scene, scaled_res(40));
+    const OracleAnswers tie_want = oracle_answers(ties.scene, tie_rays);
+    EXPECT_GT(std::count_if(tie_want.hits.begin(), tie_want.hits.end(),
+                            [](const SceneHit& h) { return h.is_hit() && h.geom == 0; }),
+              static_cast<std::ptrdiff_t>(tie_rays.size() / 10));
+    expect_depth_first_matches(ties.scene, tie_rays, tie_want);
 
     // A grid of separated spheres (each listed once: no mailbox).
-    TestScene grid;
-    grid.meshes.push_back(uv_sphere({0, 0, 0}, 0.4f, 8, 12));
-    grid.trees.push_back(std::make_shared<const KdTree>(build_kdtree(grid.meshes[0])));
-    std::vector<SceneInstance> cells;
-    for (int y = 0; y < 5; ++y)
-        for (int x = 0; x < 5; ++x) {
-            Affine3x4 t;
-            t.m[0][3] = 3.0f * static_cast<float>(x), t.m[1][3] = 3.0f * static_cast<float>(y);
-            cells.push_back({grid.trees[0], t, nullptr, nullptr});
-        }
-    grid.scene = build_scene(std::move(cells));
+    const TestScene grid = sphere_grid();
     ASSERT_TRUE(grid.scene.data().refs_unique);
-    const SceneOracle grid_oracle(grid.scene);
     const std::vector<Ray> grid_rays = camera_rays(grid.scene, scaled_res(40));
-    std::vector<SceneHit> grid_want(grid_rays.size());
-    std::vector<uint8_t> grid_occ(grid_rays.size());
-    for (size_t i = 0; i < grid_rays.size(); ++i) {
-        grid_want[i] = grid_oracle.intersect(grid_rays[i]);
-        grid_occ[i] = grid_oracle.occluded(grid_rays[i]) ? 1 : 0;
-    }
-    expect_depth_first_matches(grid.scene, grid_rays, grid_want, grid_occ);
+    expect_depth_first_matches(grid.scene, grid_rays, oracle_answers(grid.scene, grid_rays));
 }
 
 TEST(Scene, PacketRootClipIsClipWidenedInEveryLane) {
