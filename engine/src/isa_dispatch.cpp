@@ -166,5 +166,19 @@ const PacketKernels* packet_kernels_for(Isa isa) noexcept {
     return nullptr;
 }
 
+const LaneKernels* lane_kernels_for(Isa isa) noexcept {
+    switch (isa) {
+        case Isa::kSse4:
+            return lane_kernels_sse4();
+        case Isa::kAvx2:
+            return lane_kernels_avx2();
+        case Isa::kAvx512:
+            return lane_kernels_avx512();
+        case Isa::kScalar:
+            break;
+    }
+    return nullptr;
+}
+
 }  // namespace detail
 }  // namespace kdrt

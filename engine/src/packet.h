@@ -134,4 +134,33 @@ Policy policy_for(TraceMode mode) noexcept;
 /// indices (24 KiB) stay in L1/L2 and fit 16-bit indices.
 inline constexpr size_t kBlockRays = 4096;
 
+// ---------------------------------------------------------------------------------------------
+// A caller's packet (scene instancing, depth first)
+
+/// Rays in a caller's packet (LaneKernels): a scene's top-level packet (scene_packet.h's
+/// kPacketLanes) carries its lanes into an instance as one such packet.
+inline constexpr int kLaneRays = 8;
+
+/// The mesh kernels for a caller's packet of up to kLaneRays object-space rays and a lane mask:
+/// the scene's depth-first walk hands them the lanes that reach one instance. Each lane's
+/// current bound is its ray's tmax (the scene's closest hit so far); only the lanes of `mask`
+/// are read and written, and each gets exactly the single-ray kernel's answer (intersect /
+/// occluded of trace.h) for its ray, whatever the other lanes are. The caller merges a lane's
+/// answer with its hits in other instances (the scene's tie rule puts the geometry id between
+/// t and prim, so the mesh cannot merge them itself).
+struct LaneKernels {
+    /// hits[l] = intersect(tree, rays[l]) for each lane l of `mask`.
+    void (*intersect)(const KdTree& tree, const Ray* rays, uint32_t mask, Hit* hits) noexcept;
+    /// The lanes l of `mask` with occluded(tree, rays[l]).
+    uint32_t (*occluded)(const KdTree& tree, const Ray* rays, uint32_t mask) noexcept;
+};
+
+/// Defined in packet_sse4.cpp (4-lane packets), packet_avx2.cpp and packet_avx512.cpp (8-lane
+/// packets: a caller's packet has 8 rays at most). Call only when the CPU has the instruction
+/// set; lane_kernels_for(Isa::kScalar) is nullptr (isa_dispatch.cpp).
+const LaneKernels* lane_kernels_sse4() noexcept;
+const LaneKernels* lane_kernels_avx2() noexcept;
+const LaneKernels* lane_kernels_avx512() noexcept;
+const LaneKernels* lane_kernels_for(Isa isa) noexcept;
+
 }  // namespace kdrt::detail

@@ -32,4 +32,9 @@ const PacketKernels* packet_kernels_avx512() noexcept {
     return &kKernels;
 }
 
+const LaneKernels* lane_kernels_avx512() noexcept {
+    static constexpr LaneKernels kKernels{&lanes_intersect<8>, &lanes_occluded<8>};
+    return &kKernels;
+}
+
 }  // namespace kdrt::detail

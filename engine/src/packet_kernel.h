@@ -1374,5 +1374,93 @@ void occluded_rays(const KdTree& tree, const Ray* rays, size_t count, uint8_t* o
     trace_rays<W, true, Count>(tree, rays, count, nullptr, occluded, policy, counters);
 }
 
+// ---------------------------------------------------------------------------------------------
+// A caller's packet (LaneKernels, packet.h): a scene's depth-first walk carries the lanes of its
+// top-level packet that reach an instance into the instance's tree at once.
+
+/// A caller's packet with this many active lanes or fewer (of one octant) goes as single rays: a
+/// packet's node visit costs about as much as two single rays' steps, so it pays from three live
+/// lanes (Embree's coherent switch, two lanes, in effect).
+constexpr int kLaneSingleMax = 2;
+
+/// The lanes of `mask` by the octant of their rays (a packet needs one: Packet::near_is_high),
+/// each octant's lanes ascending in by_octant[o][0..size[o]); each invalid ray is answered as the
+/// single-ray kernel answers it (no hit) by miss(lane). Returns the octants present (bit o).
+template <class Miss>
+[[gnu::always_inline]] inline uint32_t lanes_by_octant(const Ray* rays, uint32_t mask,
+                                                       uint16_t (*by_octant)[kLaneRays], int* size,
+                                                       Miss&& miss) {
+    uint32_t present = 0;
+    for (uint32_t m = mask; m; m &= m - 1) {
+        const int l = __builtin_ctz(m);
+        const int o = octant_or_invalid(rays[l]);
+        if (o < 0) {
+            miss(l);
+            continue;
+        }
+        if (!(present >> o & 1u)) size[o] = 0;
+        present |= 1u << o;
+        by_octant[o][size[o]++] = static_cast<uint16_t>(l);
+    }
+    return present;
+}
+
+/// LaneKernels' work with W-lane packets (W <= kLaneRays): the valid lanes of `mask`, per octant,
+/// W at a time, through setup_packet and traverse_packet (per lane the single-ray kernel's
+/// decisions), or through the single-ray kernel where few are live. Closest hit: answers into
+/// hits[lane]; any hit: returns the lanes occluded. Lanes outside `mask` are not touched.
+template <int W, bool AnyHit>
+uint32_t lanes_trace(const KdTree& tree, const Ray* rays, uint32_t mask, Hit* hits) noexcept {
+    uint16_t by_octant[8][kLaneRays];
+    int size[8];
+    uint32_t present = lanes_by_octant(rays, mask, by_octant, size, [&](int l) {
+        if constexpr (!AnyHit) hits[l] = Hit{};
+    });
+    uint32_t occ = 0;
+    TraceCounters unused;
+    for (; present; present &= present - 1) {
+        const int o = __builtin_ctz(present);
+        const uint16_t* index = by_octant[o];
+        const int count = size[o];
+        if (count <= kLaneSingleMax || tree.bounds.empty()) {
+            for (int k = 0; k < count; ++k) {
+                if constexpr (AnyHit)
+                    occ |= (wide_occluded(tree, rays[index[k]]) ? 1u : 0u) << index[k];
+                else
+                    hits[index[k]] = wide_intersect(tree, rays[index[k]]);
+            }
+            continue;
+        }
+        for (int p = 0; p < count; p += W) {
+            const int lanes = count - p < W ? count - p : W;
+            Packet<W> pk;
+            setup_packet<W>(tree, rays, index + p, lanes, pk);
+            PacketHits<W> best;
+            best.t = pk.ray_tmax;
+            best.u = simd::broadcast<W>(0.0f);
+            best.v = simd::broadcast<W>(0.0f);
+            best.prim = simd::broadcast_u<W>(kNoHit);
+            [[maybe_unused]] const uint32_t bits =
+                simd::bits<W>(traverse_packet<W, AnyHit, false, false>(tree, pk, best, unused));
+            if constexpr (AnyHit) {
+                for (int l = 0; l < lanes; ++l) occ |= (bits >> l & 1u) << index[p + l];
+            } else {
+                store_hits<W>(best, index + p, lanes, 0, hits);
+            }
+        }
+    }
+    return occ;
+}
+
+template <int W>
+void lanes_intersect(const KdTree& tree, const Ray* rays, uint32_t mask, Hit* hits) noexcept {
+    lanes_trace<W, false>(tree, rays, mask, hits);
+}
+
+template <int W>
+uint32_t lanes_occluded(const KdTree& tree, const Ray* rays, uint32_t mask) noexcept {
+    return lanes_trace<W, true>(tree, rays, mask, nullptr);
+}
+
 }  // namespace
 }  // namespace kdrt::detail

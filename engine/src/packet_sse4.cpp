@@ -30,4 +30,9 @@ const PacketKernels* packet_kernels_sse4() noexcept {
     return &kKernels;
 }
 
+const LaneKernels* lane_kernels_sse4() noexcept {
+    static constexpr LaneKernels kKernels{&lanes_intersect<4>, &lanes_occluded<4>};
+    return &kKernels;
+}
+
 }  // namespace kdrt::detail

@@ -315,6 +315,16 @@ inline Ray to_object_reference(const InstanceData& d, const Ray& r) noexcept {
 SceneAllHits nearest_hits(const Scene& scene, std::span<const Ray> rays, uint32_t max_hits,
                           bool merge_coincident, std::optional<Isa> isa = std::nullopt);
 
+/// The depth-first walk of coherent batches (scene_trace.cpp: packets of up to kPacketLanes rays
+/// walk the top level, and the lanes reaching an instance go into it at once through the mesh's
+/// caller-packet kernels), over every ray of `rays` in blocks, on the calling thread: each answer
+/// is intersect's / occluded's, and `visits` gains the instance visits, which are the single-ray
+/// walk's. `isa` must be supported. Tests call it for every ISA on any rays.
+void depth_first_intersect(const SceneData& s, std::span<const Ray> rays, std::span<SceneHit> hits,
+                           Isa isa, uint64_t& visits);
+void depth_first_occluded(const SceneData& s, std::span<const Ray> rays,
+                          std::span<uint8_t> occluded_out, Isa isa, uint64_t& visits);
+
 /// The tie rule: (t, geom, prim) lexicographically.
 inline bool scene_hit_less(const SceneHit& a, const SceneHit& b) noexcept {
     if (a.t != b.t) return a.t < b.t;

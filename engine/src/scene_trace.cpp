@@ -17,10 +17,12 @@
 #include <tbb/parallel_for.h>
 #include <tbb/task_arena.h>
 
+#include "batch_schedule.h"
 #include "geometry.h"
 #include "kdrt/query.h"
 #include "kdrt/scene.h"
 #include "kdrt/trace.h"
+#include "packet.h"
 #include "scene_clearance.h"
 #include "scene_in_turn_ops.h"
 #include "scene_internal.h"
@@ -371,6 +373,10 @@ struct BlockScratch {
     std::vector<Ray> rays;
     std::vector<Hit> hits;
     std::vector<uint8_t> occ;
+    // The depth-first walk's (DepthFirst): the packet, its stack and the world rays' TopRays.
+    detail::TopPacket packet;
+    std::vector<detail::TopPacketCell> packet_cells;
+    std::vector<detail::TopRay> top;
 };
 
 struct Counts {
@@ -423,6 +429,179 @@ Isa resolved_isa(const TraceOptions& options) noexcept {
 SceneHit intersect_one(const SceneData& s, const Ray& ray, uint64_t* visits) noexcept;
 bool occluded_one(const SceneData& s, const Ray& ray, uint64_t* visits) noexcept;
 
+/// True when a direction component of `r` is zero (such a ray cannot walk in a TopPacket).
+bool has_zero_component(const Ray& r) noexcept {
+    return (std::bit_cast<uint32_t>(r.dx) << 1) == 0 || (std::bit_cast<uint32_t>(r.dy) << 1) == 0 ||
+           (std::bit_cast<uint32_t>(r.dz) << 1) == 0;
+}
+
+/// A coherent block's rays depth first, as Embree's instancing goes: packets of up to
+/// kPacketLanes rays of one octant walk the top level (detail::TopPacket); at each instance a leaf
+/// lists, the lanes that reach its box go into it at once (their object rays, to_object's, with
+/// tmax their closest hit so far, through the mesh kernels' caller-packet entry, LaneKernels), and
+/// the answers are merged at once, so each lane's bound falls before the walk goes on. Per lane
+/// it is intersect_one's / occluded_one's walk: the same leaves in the same order, the same
+/// instances with the same bounds and object rays (a mailbox per lane where an instance may be
+/// listed twice), the same merge; an occluded lane ends. The packets are the order
+/// trace_patch_block / trace_coherent_block give (batch_schedule.h: an image's square patches, or
+/// runs in input order), whose calls this is (TraceRun): `order` indexes `block`, a part of the
+/// scene block `rays`.
+template <bool AnyHit>
+struct DepthFirst {
+    const SceneData& s;
+    std::span<const Ray> rays;
+    BlockScratch& b;
+    const detail::TopPacketOps& ops;
+    const detail::LaneKernels* lanes;  ///< nullptr: the scalar ISA (rays one by one)
+    Counts& counts;
+    bool mail;
+    mutable const Ray* last = nullptr;  ///< the last ray given a TopRay (its origin's margin)
+
+    void operator()(const Ray* block, size_t, const uint16_t* order, int count) const {
+        const auto first = static_cast<uint32_t>(block - rays.data());
+        uint32_t index[detail::kPacketLanes];
+        for (int k = 0; k < count;) {
+            int n = 0;
+            while (k < count && n < detail::kPacketLanes) {
+                const uint32_t i = first + order[k++];
+                if (has_zero_component(rays[i]))
+                    single(i);
+                else
+                    index[n++] = i;
+            }
+            if (n == 1)
+                single(index[0]);
+            else if (n > 1)
+                packet(index, n);
+        }
+    }
+
+private:
+    void single(uint32_t i) const {
+        if constexpr (AnyHit)
+            b.done[i] = occluded_one(s, rays[i], &counts.visits) ? 1 : 0;
+        else
+            b.best[i] = intersect_one(s, rays[i], &counts.visits);
+    }
+
+    void packet(const uint32_t* index, int n) const {
+        for (int l = 0; l < n; ++l) {
+            const Ray& r = rays[index[l]];
+            b.top[index[l]] =
+                last && r.ox == last->ox && r.oy == last->oy && r.oz == last->oz
+                    ? detail::make_top_ray_from(b.top[static_cast<size_t>(last - rays.data())], r)
+                    : detail::make_top_ray(s, r);
+            last = &r;
+        }
+        detail::TopPacket& pk = b.packet;
+        pk.start(s, rays, b.top, index, n, b.packet_cells.data(), ops);
+        detail::Lanes lim = detail::Lanes::fill(0.0f);
+        for (int l = 0; l < n; ++l) lim.set(l, AnyHit ? rays[index[l]].tmax : b.best[index[l]].t);
+        std::array<detail::Mailbox, detail::kPacketLanes> mailbox;
+        uint32_t at = 0;
+        while (const detail::TopNode* leaf = ops.next_leaf(pk, s, lim, at)) {
+            const uint32_t end = leaf->first_ref() + leaf->count();
+            for (uint32_t r = leaf->first_ref(); r < end && at; ++r) {
+                const uint32_t geom = s.refs[r];
+                uint32_t m = ops.reach(pk, s.inst[geom].world, lim, at);
+                if (mail)
+                    for (uint32_t q = m; q; q &= q - 1)
+                        if (mailbox[std::countr_zero(q)].seen(geom)) m &= ~(q & -q);
+                if (!m) continue;
+                visit(pk, geom, m, lim, at);
+            }
+        }
+    }
+
+    /// The lanes `m` of `pk` into instance `geom`.
+    void visit(detail::TopPacket& pk, uint32_t geom, uint32_t m, detail::Lanes& lim,
+               uint32_t& at) const {
+        const InstanceData& in = s.inst[geom];
+        const KdTree& tree = *s.instances[geom].tree;
+        std::array<Ray, detail::kPacketLanes> obj;
+        for (uint32_t q = m; q; q &= q - 1) {
+            const int l = std::countr_zero(q);
+            const uint32_t i = pk.ray[l];
+            obj[l] = detail::to_object(in, rays[i]);
+            if constexpr (!AnyHit) obj[l].tmax = b.best[i].t;
+            ++counts.visits;
+        }
+        if constexpr (AnyHit) {
+            uint32_t occ = 0;
+            if (lanes) {
+                occ = lanes->occluded(tree, obj.data(), m);
+            } else {
+                for (uint32_t q = m; q; q &= q - 1)
+                    if (occluded(tree, obj[std::countr_zero(q)])) occ |= q & -q;
+            }
+            for (uint32_t q = occ; q; q &= q - 1) b.done[pk.ray[std::countr_zero(q)]] = 1;
+            pk.end(occ);
+            at &= ~occ;
+        } else {
+            std::array<Hit, detail::kPacketLanes> h;
+            if (lanes) {
+                lanes->intersect(tree, obj.data(), m, h.data());
+            } else {
+                for (uint32_t q = m; q; q &= q - 1) {
+                    const int l = std::countr_zero(q);
+                    h[l] = intersect(tree, obj[l]);
+                }
+            }
+            for (uint32_t q = m; q; q &= q - 1) {
+                const int l = std::countr_zero(q);
+                SceneHit& best = b.best[pk.ray[l]];
+                offer(best, h[l], geom);
+                lim.set(l, best.t);
+            }
+        }
+    }
+};
+
+/// A coherent block depth first (DepthFirst): an image's rows from one point in square patches
+/// (image_row, trace_patch_block), other blocks in runs of input order (trace_coherent_block).
+/// AnyHit: occlusion into `occ_out`; else closest hits into `hits_out`.
+template <bool AnyHit>
+void depth_first_block(const SceneData& s, std::span<const Ray> rays, std::span<SceneHit> hits_out,
+                       std::span<uint8_t> occ_out, Isa isa, BlockScratch& b, Counts& counts) {
+    static_assert(detail::kPacketLanes == detail::kLaneRays);
+    const int n = static_cast<int>(rays.size());
+    b.best.resize(rays.size());
+    b.done.assign(rays.size(), 0);
+    for (size_t i = 0; i < rays.size(); ++i) b.best[i] = no_hit_yet(rays[i]);
+    b.top.resize(rays.size());
+    b.packet_cells.resize(detail::kTopStack);
+    // The batch scheduler's answers for invalid rays go to scratch (the caller's are set).
+    b.hits.resize(rays.size());
+    b.occ.resize(rays.size());
+    detail::TraceCounters tc;
+    const DepthFirst<AnyHit> run{
+        s,      rays,          b, detail::top_packet_ops(isa), detail::lane_kernels_for(isa),
+        counts, !s.refs_unique};
+    static thread_local int row_guess = 0;
+    const int row = detail::image_row(rays.data(), n, row_guess);
+    if (row > 0) {
+        row_guess = row;
+        detail::trace_patch_block<detail::kPacketLanes, AnyHit>(
+            rays.data(), 0, n, row, b.hits.data(), b.occ.data(), tc, run);
+    } else {
+        detail::trace_coherent_block<AnyHit>(rays.data(), 0, n, b.hits.data(), b.occ.data(), tc,
+                                             run);
+    }
+    counts.invalid += tc.invalid_rays;
+    for (size_t i = 0; i < rays.size(); ++i) {
+        if constexpr (AnyHit)
+            occ_out[i] = b.done[i];
+        else
+            hits_out[i] = finish(b.best[i]);
+    }
+}
+
+/// Whether a coherent block goes depth first (depth_first_block) rather than in rounds.
+template <bool AnyHit>
+bool depth_first_pays() noexcept {
+    return true;
+}
+
 template <bool AnyHit>
 void trace_block(const SceneData& s, std::span<const Ray> rays, std::span<SceneHit> hits_out,
                  std::span<uint8_t> occ_out, const TraceOptions& options, BlockScratch& b,
@@ -438,6 +617,10 @@ void trace_block(const SceneData& s, std::span<const Ray> rays, std::span<SceneH
             ops.occluded(s, rays.data(), n, occ_out.data(), counts.visits);
         else
             ops.intersect(s, rays.data(), n, hits_out.data(), counts.visits);
+        return;
+    }
+    if (options.mode == TraceMode::kAuto && depth_first_pays<AnyHit>()) {
+        depth_first_block<AnyHit>(s, rays, hits_out, occ_out, resolved_isa(options), b, counts);
         return;
     }
     const bool mail = !s.refs_unique;  // else no instance can be reached twice
@@ -629,6 +812,32 @@ void occluded_block(const Scene& scene, std::span<const Ray> rays, std::span<uin
                     const TraceOptions& options) noexcept {
     trace_on_this_thread<true>(scene, rays, {}, occluded_out, options);
 }
+
+namespace detail {
+
+void depth_first_intersect(const SceneData& s, std::span<const Ray> rays, std::span<SceneHit> hits,
+                           Isa isa, uint64_t& visits) {
+    Counts counts;
+    for (size_t lo = 0; lo < rays.size(); lo += kBlock) {
+        const size_t len = std::min(kBlock, rays.size() - lo);
+        depth_first_block<false>(s, rays.subspan(lo, len), hits.subspan(lo, len), {}, isa,
+                                 thread_scratch(), counts);
+    }
+    visits += counts.visits;
+}
+
+void depth_first_occluded(const SceneData& s, std::span<const Ray> rays,
+                          std::span<uint8_t> occluded_out, Isa isa, uint64_t& visits) {
+    Counts counts;
+    for (size_t lo = 0; lo < rays.size(); lo += kBlock) {
+        const size_t len = std::min(kBlock, rays.size() - lo);
+        depth_first_block<true>(s, rays.subspan(lo, len), {}, occluded_out.subspan(lo, len), isa,
+                                thread_scratch(), counts);
+    }
+    visits += counts.visits;
+}
+
+}  // namespace detail
 
 // ---------------------------------------------------------------------------------------------
 // Every hit

@@ -22,6 +22,7 @@
 #include "kdrt/scan.h"
 #include "kdrt/scene.h"
 #include "kdrt/trace.h"
+#include "packet.h"
 #include "scan_internal.h"
 #include "scene_in_turn_ops.h"
 #include "scene_internal.h"
@@ -1002,12 +1003,8 @@ bool refs_unique_brute(const Scene& scene) {
     return ids.size() == refs.size();
 }
 
-TEST(Scene, RoundsWithoutMailboxWhereNoInstanceIsListedTwice) {
-    // A grid of separated spheres lists each instance in one top leaf (refs_unique): the rounds
-    // then keep no mailbox, and every answer must still be the oracle's, in every mode and ISA.
-    // Overlapping instances (the mixed scene) are listed twice and keep it.
-    const uint64_t seed = test_seed();
-    SCOPED_TRACE(testing::Message() << "seed=" << seed);
+/// A 5 x 5 grid of separated spheres: each instance in one top leaf (refs_unique).
+TestScene sphere_grid() {
     TestScene grid;
     grid.meshes.push_back(uv_sphere({0, 0, 0}, 0.4f, 8, 12));
     grid.trees.push_back(std::make_shared<const KdTree>(build_kdtree(grid.meshes[0])));
@@ -1020,6 +1017,16 @@ TEST(Scene, RoundsWithoutMailboxWhereNoInstanceIsListedTwice) {
             grid.mesh_of.push_back(0);
         }
     grid.scene = build_scene(std::move(list));
+    return grid;
+}
+
+TEST(Scene, RoundsWithoutMailboxWhereNoInstanceIsListedTwice) {
+    // A grid of separated spheres lists each instance in one top leaf (refs_unique): the rounds
+    // then keep no mailbox, and every answer must still be the oracle's, in every mode and ISA.
+    // Overlapping instances (the mixed scene) are listed twice and keep it.
+    const uint64_t seed = test_seed();
+    SCOPED_TRACE(testing::Message() << "seed=" << seed);
+    const TestScene grid = sphere_grid();
     EXPECT_TRUE(grid.scene.data().refs_unique);
     EXPECT_EQ(grid.scene.data().refs_unique, refs_unique_brute(grid.scene));
     const uint32_t res = scaled_res(48);
@@ -1034,6 +1041,203 @@ TEST(Scene, RoundsWithoutMailboxWhereNoInstanceIsListedTwice) {
     const TestScene mixed = mixed_scene(seed + 51, 24);
     EXPECT_FALSE(mixed.scene.data().refs_unique);
     EXPECT_EQ(mixed.scene.data().refs_unique, refs_unique_brute(mixed.scene));
+}
+
+TEST(Scene, LaneKernelsAnswerTheirMaskedLanesAsTheSingleRayKernel) {
+    // The mesh kernels' caller-packet entry (LaneKernels), every ISA with packets: packets of 8
+    // rays of mixed octants (and invalid ones) under random lane masks. Each lane of the mask
+    // gets intersect's / occluded's answer bit for bit; the other lanes are neither written nor
+    // reported, whatever their rays.
+    const uint64_t seed = test_seed();
+    SCOPED_TRACE(testing::Message() << "seed=" << seed);
+    Rng rng(seed + 250);
+    const Mesh mesh = random_soup(rng, 400);
+    const KdTree tree = build_kdtree(mesh);
+    std::vector<Ray> rays = oracle_rays(rng, mesh, tree, scaled(4000));
+    for (size_t i = 0; i < rays.size(); i += 37) rays[i].dz = NAN;
+    // Runs of neighbours with one octant, so many masks hold packets of three lanes or more.
+    std::sort(rays.begin(), rays.begin() + static_cast<std::ptrdiff_t>(rays.size() / 2),
+              [](const Ray& a, const Ray& b) {
+                  return std::signbit(a.dx) * 4 + std::signbit(a.dy) * 2 + std::signbit(a.dz) <
+                         std::signbit(b.dx) * 4 + std::signbit(b.dy) * 2 + std::signbit(b.dz);
+              });
+    const Hit sentinel{-1.0f, 12345u, 7.0f, 8.0f};
+    size_t checked = 0, hits = 0;
+    for (Isa isa : supported_isas()) {
+        const detail::LaneKernels* k = detail::lane_kernels_for(isa);
+        if (!k) continue;
+        SCOPED_TRACE(std::string(isa_name(isa)));
+        for (size_t at = 0; at + detail::kLaneRays <= rays.size(); at += detail::kLaneRays) {
+            const Ray* p = &rays[at];
+            const uint32_t mask = at % 5 == 0 ? 0xffu : rng.below(256);
+            std::array<Hit, detail::kLaneRays> got;
+            got.fill(sentinel);
+            k->intersect(tree, p, mask, got.data());
+            const uint32_t occ = k->occluded(tree, p, mask);
+            EXPECT_EQ(occ & ~mask, 0u) << "rays " << at;
+            for (int l = 0; l < detail::kLaneRays; ++l) {
+                if (!(mask >> l & 1u)) {
+                    ASSERT_EQ(std::memcmp(&got[l], &sentinel, sizeof sentinel), 0)
+                        << "rays " << at << ": lane " << l << " is not in the mask";
+                    continue;
+                }
+                const Hit want = intersect(tree, p[l]);
+                ASSERT_EQ(std::memcmp(&got[l], &want, sizeof want), 0) << "ray " << at + l;
+                ASSERT_EQ((occ >> l & 1u) != 0, occluded(tree, p[l])) << "ray " << at + l;
+                ++checked;
+                hits += want.is_hit();
+            }
+        }
+    }
+    EXPECT_GT(checked, rays.size() / 4);
+    EXPECT_GT(hits, checked / 10);
+}
+
+/// Every ISA's depth-first walk (detail::depth_first_intersect / _occluded, the scalar ISA's
+/// too) on `rays` against `want` / `want_occ` (the oracle's) bit for bit, on the whole set and on
+/// every batch size from 1 to 40 at many offsets; the instance visits of the whole set equal the
+/// single-ray walks' (the in-turn walks', which are intersect_one's): each lane reaches the
+/// instances its own walk reaches, once each.
+struct OracleAnswers {
+    std::vector<SceneHit> hits;
+    std::vector<uint8_t> occ;
+};
+
+OracleAnswers oracle_answers(const Scene& scene, const std::vector<Ray>& rays) {
+    const SceneOracle oracle(scene);
+    OracleAnswers a{std::vector<SceneHit>(rays.size()), std::vector<uint8_t>(rays.size())};
+    for (size_t i = 0; i < rays.size(); ++i) {
+        a.hits[i] = oracle.intersect(rays[i]);
+        a.occ[i] = oracle.occluded(rays[i]) ? 1 : 0;
+    }
+    return a;
+}
+
+void expect_depth_first_matches(const Scene& scene, const std::vector<Ray>& rays,
+                                const OracleAnswers& answers) {
+    const std::vector<SceneHit>& want = answers.hits;
+    const std::vector<uint8_t>& want_occ = answers.occ;
+    std::vector<Isa> isas = supported_isas();
+    if (std::find(isas.begin(), isas.end(), Isa::kScalar) == isas.end())
+        isas.push_back(Isa::kScalar);
+    const detail::SceneData& data = scene.data();
+    for (Isa isa : isas) {
+        SCOPED_TRACE(std::string(isa_name(isa)));
+        std::vector<SceneHit> got(rays.size(), SceneHit{1, 2, 3, 4, 5});
+        std::vector<uint8_t> occ(rays.size(), 7);
+        uint64_t visits = 0, occ_visits = 0, single = 0, single_occ = 0;
+        detail::depth_first_intersect(data, rays, got, isa, visits);
+        detail::depth_first_occluded(data, rays, occ, isa, occ_visits);
+        for (size_t i = 0; i < rays.size(); ++i) {
+            ASSERT_TRUE(same_bits(got[i], want[i]))
+                << "ray " << i << ": got " << describe(got[i]) << ", want " << describe(want[i]);
+            ASSERT_EQ(occ[i], want_occ[i]) << "ray " << i;
+        }
+        std::vector<SceneHit> scratch(rays.size());
+        std::vector<uint8_t> scratch_occ(rays.size());
+        const detail::SceneInTurnOps& ops = detail::scene_in_turn_ops(isa);
+        ops.intersect(data, rays.data(), rays.size(), scratch.data(), single);
+        ops.occluded(data, rays.data(), rays.size(), scratch_occ.data(), single_occ);
+        EXPECT_GT(visits, 0u);
+        EXPECT_EQ(visits, single) << "closest hit: instance visits";
+        EXPECT_EQ(occ_visits, single_occ) << "any hit: instance visits";
+        for (size_t n = 1; n <= 40; ++n) {
+            for (size_t at = 0; at + n <= rays.size(); at += 211 + 7 * n) {
+                std::vector<SceneHit> part(n, SceneHit{1, 2, 3, 4, 5});
+                std::vector<uint8_t> part_occ(n, 7);
+                uint64_t v = 0;
+                detail::depth_first_intersect(data, std::span(rays).subspan(at, n), part, isa, v);
+                detail::depth_first_occluded(data, std::span(rays).subspan(at, n), part_occ, isa,
+                                             v);
+                for (size_t i = 0; i < n; ++i) {
+                    ASSERT_TRUE(same_bits(part[i], want[at + i]))
+                        << n << " rays at " << at << ", ray " << i << ": got " << describe(part[i])
+                        << ", want " << describe(want[at + i]);
+                    ASSERT_EQ(part_occ[i], want_occ[at + i]) << n << " rays at " << at;
+                }
+            }
+        }
+    }
+}
+
+/// A camera's rays over `scene` in image order (res x res), and after them `more`.
+std::vector<Ray> camera_rays(const Scene& scene, uint32_t res) {
+    const Camera cam(default_camera(scene.bounds(), 1.0f), res, res);
+    std::vector<Ray> rays;
+    for (uint32_t y = 0; y < res; ++y)
+        for (uint32_t x = 0; x < res; ++x) rays.push_back(cam.ray(x + 0.5f, y + 0.5f));
+    return rays;
+}
+
+TEST(Scene, DepthFirstPacketsAnswerAsTheOracleOnEveryIsa) {
+    // The depth-first walk (a packet of rays walks the top level; at each instance its lanes that
+    // reach it go into the mesh's caller-packet kernel at once), called directly for every ISA:
+    // overlapping instances of every kind of transform (rotation, scale, shear, mirror), listed
+    // in several top leaves (a mailbox per lane); a camera's rays in image order (square patches)
+    // with invalid ones among them; random, axis-parallel and grazing rays; windows at the
+    // closest hit and an ulp before it; coincident copies of one mesh (ties between instances:
+    // the lower geometry id wins); a grid of separated instances (no mailbox).
+    const uint64_t seed = test_seed();
+    SCOPED_TRACE(testing::Message() << "seed=" << seed);
+    const TestScene s = mixed_scene(seed + 240, 24);
+    ASSERT_FALSE(s.scene.data().refs_unique);
+    Rng rng(seed + 241);
+    std::vector<Ray> rays = camera_rays(s.scene, scaled_res(48));
+    for (size_t i = 0; i < rays.size(); i += 89) {
+        if (i % 3 == 0) rays[i].dy = NAN;
+        if (i % 3 == 1) rays[i].dx = rays[i].dy = rays[i].dz = 0;
+        if (i % 3 == 2) rays[i].tmin = 2 * rays[i].tmax;
+    }
+    const std::vector<Ray> more = scene_rays(rng, s.scene, s.meshes, s.mesh_of, scaled(1200));
+    rays.insert(rays.end(), more.begin(), more.end());
+    const std::vector<Ray> grazing = grazing_rays(rng, s.scene, scaled(600));
+    rays.insert(rays.end(), grazing.begin(), grazing.end());
+    const SceneOracle oracle(s.scene);
+    // Windows at the closest hit: tmax at it (a hit at tmax counts) and an ulp before it, as a
+    // camera's rays (neighbours in a packet).
+    const size_t base = rays.size();
+    for (size_t i = 0; i < base && rays.size() < base + 2 * scaled(800); ++i) {
+        const SceneHit h = oracle.intersect(rays[i]);
+        if (!h.is_hit() || !(h.t > rays[i].tmin)) continue;
+        Ray r = rays[i];
+        r.tmax = h.t;
+        rays.push_back(r);
+        r.tmax = std::nextafter(h.t, 0.0f);
+        rays.push_back(r);
+    }
+    const OracleAnswers want = oracle_answers(s.scene, rays);
+    EXPECT_GT(std::count_if(want.hits.begin(), want.hits.end(),
+                            [](const SceneHit& h) { return h.is_hit(); }),
+              static_cast<std::ptrdiff_t>(rays.size() / 10));
+    expect_depth_first_matches(s.scene, rays, want);
+
+    // Ties: three coincident copies of one mesh and a fourth shifted by a little, every ray
+    // hitting the copies hits all three at the same t; the lowest geometry id must win.
+    TestScene ties;
+    ties.meshes.push_back(uv_sphere({0, 0, 0}, 1.0f, 10, 14));
+    ties.trees.push_back(std::make_shared<const KdTree>(build_kdtree(ties.meshes[0])));
+    std::vector<SceneInstance> list;
+    for (int k = 0; k < 4; ++k) {
+        Affine3x4 t;
+        t.m[0][0] = t.m[1][1] = 1.5f;
+        t.m[2][0] = 0.25f;  // a shear
+        t.m[0][3] = k == 3 ? 0.7f : 0.0f;
+        list.push_back({ties.trees[0], t, nullptr, nullptr});
+        ties.mesh_of.push_back(0);
+    }
+    ties.scene = build_scene(std::move(list));
+    const std::vector<Ray> tie_rays = camera_rays(ties.scene, scaled_res(40));
+    const OracleAnswers tie_want = oracle_answers(ties.scene, tie_rays);
+    EXPECT_GT(std::count_if(tie_want.hits.begin(), tie_want.hits.end(),
+                            [](const SceneHit& h) { return h.is_hit() && h.geom == 0; }),
+              static_cast<std::ptrdiff_t>(tie_rays.size() / 10));
+    expect_depth_first_matches(ties.scene, tie_rays, tie_want);
+
+    // A grid of separated spheres (each listed once: no mailbox).
+    const TestScene grid = sphere_grid();
+    ASSERT_TRUE(grid.scene.data().refs_unique);
+    const std::vector<Ray> grid_rays = camera_rays(grid.scene, scaled_res(40));
+    expect_depth_first_matches(grid.scene, grid_rays, oracle_answers(grid.scene, grid_rays));
 }
 
 TEST(Scene, PacketRootClipIsClipWidenedInEveryLane) {
