@@ -10,9 +10,12 @@
 #include "ray_prep.h"
 
 #pragma GCC push_options
-#pragma GCC target("avx512f,avx512dq,avx512vl,avx512bw,popcnt")
-#define KDRT_WIDE_AVX2 1    // wide_kernel.h: 8-lane permutes
-#define KDRT_WIDE_AVX512 1  // wide_kernel.h: masked levels, vpcompress
+// Without avx512vl: the 16-lane packets need only 512-bit forms, and with VL GCC compiles the
+// single-ray walk's 8-lane comparisons through k-masks (moved to vectors and general registers
+// for each movemask), which ran the walks in turn 16% slower on an AMD family 1Ah
+// (tests/bench/README.md, session 24). So the walk is the AVX2 unit's code here too.
+#pragma GCC target("avx2,avx512f,avx512dq,avx512bw,popcnt")
+#define KDRT_WIDE_AVX2 1  // wide_kernel.h: 8-lane permutes
 #include "packet_kernel.h"
 #pragma GCC pop_options
 

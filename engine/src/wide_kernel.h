@@ -177,16 +177,17 @@ using Hits8 = LaneHits<F8>;
 static inline uint32_t lane_bits(I4 m) { return bits4(m); }
 static inline uint32_t lane_bits(I8 m) { return bits8(m); }
 
-/// The test itself, one triangle a lane, on the triangles' coordinates as columns:
-/// coord[vertex][axis] holds one coordinate of every lane's triangle. F is F4 or F8 (I its mask).
+/// The test itself, one triangle a lane, on the triangles' coordinates as columns in the ray's
+/// permuted frame: ray_axes[vertex][j] holds coordinate k_j (kx, ky, kz for j = 0, 1, 2) of every
+/// lane's triangle. F is F4 or F8 (I its mask).
 template <class F, class I>
-[[gnu::always_inline]] static inline uint32_t intersect_lanes(const PreparedRay& p,
-                                                              const F (&coord)[3][3], float tmin,
-                                                              LaneHits<F>& out) {
+[[gnu::always_inline]] static inline uint32_t intersect_ray_axes(const PreparedRay& p,
+                                                                 const F (&ray_axes)[3][3],
+                                                                 float tmin, LaneHits<F>& out) {
     const F ox = F{} + p.org[p.kx], oy = F{} + p.org[p.ky], oz = F{} + p.org[p.kz];
-    const F a_x = coord[0][p.kx] - ox, a_y = coord[0][p.ky] - oy, a_z = coord[0][p.kz] - oz;
-    const F b_x = coord[1][p.kx] - ox, b_y = coord[1][p.ky] - oy, b_z = coord[1][p.kz] - oz;
-    const F c_x = coord[2][p.kx] - ox, c_y = coord[2][p.ky] - oy, c_z = coord[2][p.kz] - oz;
+    const F a_x = ray_axes[0][0] - ox, a_y = ray_axes[0][1] - oy, a_z = ray_axes[0][2] - oz;
+    const F b_x = ray_axes[1][0] - ox, b_y = ray_axes[1][1] - oy, b_z = ray_axes[1][2] - oz;
+    const F c_x = ray_axes[2][0] - ox, c_y = ray_axes[2][1] - oy, c_z = ray_axes[2][2] - oz;
     const F sx = F{} + p.sx, sy = F{} + p.sy, sz = F{} + p.sz;
     const F ax = a_x - sx * a_z, ay = a_y - sy * a_z;
     const F bx = b_x - sx * b_z, by = b_y - sy * b_z;
@@ -218,6 +219,18 @@ template <class F, class I>
     return lane_bits(hit);
 }
 
+/// The same test on the columns in the mesh's axes: coord[vertex][axis]. The ray's axes are picked
+/// by index (the columns go through memory; for the four-lane passes).
+template <class F, class I>
+[[gnu::always_inline]] static inline uint32_t intersect_lanes(const PreparedRay& p,
+                                                              const F (&coord)[3][3], float tmin,
+                                                              LaneHits<F>& out) {
+    const F ray_axes[3][3] = {{coord[0][p.kx], coord[0][p.ky], coord[0][p.kz]},
+                              {coord[1][p.kx], coord[1][p.ky], coord[1][p.kz]},
+                              {coord[2][p.kx], coord[2][p.ky], coord[2][p.kz]}};
+    return intersect_ray_axes<F, I>(p, ray_axes, tmin, out);
+}
+
 [[gnu::always_inline]] static inline uint32_t intersect4(const PreparedRay& p,
                                                          const TriVerts* const tri[4], float tmin,
                                                          Hits4& out) {
@@ -239,14 +252,25 @@ template <class F, class I>
 /// Eight triangles in one pass (the single-ray walk on AVX2 and later): intersect4's test in
 /// eight lanes, so each lane's answer is the scalar test's bit for bit as well. A leaf's run of
 /// up to eight references is one pass instead of two, and the loop over a leaf's blocks exits
-/// (a branch the predictor mostly misses) half as often.
-[[gnu::always_inline]] static inline uint32_t intersect8(const PreparedRay& p,
-                                                         const TriVerts* const tri[8], float tmin,
-                                                         Hits8& out) {
+/// (a branch the predictor mostly misses) half as often. Lane i tests tris[index[i]].
+///
+/// Everything stays in registers: each triangle's row (floats 0..7) is read straight from `tris`
+/// by its index, the rows are transposed in registers, and each vertex's coordinates in the ray's
+/// axes (kx, ky, kz) are picked from the columns by blends with masks that are the same in every
+/// lane (intersect4 picks them by index, through memory). Picking is exact, so the values, and the
+/// answers, are intersect4's.
+[[gnu::always_inline]] static inline uint32_t intersect8(const PreparedRay& p, const TriVerts* tris,
+                                                         U8 index, float tmin, Hits8& out) {
     // Rows: floats 0..7 of each triangle (32 of its 36 bytes), then an 8x8 transpose in
     // registers; float 8 (v2's z) on its own.
     F8 r[8];
-    for (int i = 0; i < 8; ++i) __builtin_memcpy(&r[i], &tri[i]->v0[0], sizeof(F8));
+    float v2z[8];
+#pragma GCC unroll 8
+    for (int i = 0; i < 8; ++i) {
+        const TriVerts& tri = tris[index[i]];
+        __builtin_memcpy(&r[i], &tri.v0[0], sizeof(F8));
+        v2z[i] = tri.v2[2];
+    }
     F8 t[8], u[8];
     for (int i = 0; i < 8; i += 2) {
         t[i] = __builtin_shufflevector(r[i], r[i + 1], 0, 8, 1, 9, 4, 12, 5, 13);
@@ -259,17 +283,21 @@ template <class F, class I>
         u[i + 3] = __builtin_shufflevector(t[i + 1], t[i + 3], 2, 3, 10, 11, 6, 7, 14, 15);
     }
     // Column j: float j of every triangle (u[0..3] hold rows 0..3, u[4..7] rows 4..7).
-    F8 col[8];
+    F8 col[9];
     for (int j = 0; j < 4; ++j) {
         col[j] = __builtin_shufflevector(u[j], u[j + 4], 0, 1, 2, 3, 8, 9, 10, 11);
         col[j + 4] = __builtin_shufflevector(u[j], u[j + 4], 4, 5, 6, 7, 12, 13, 14, 15);
     }
-    const F8 coord[3][3] = {{col[0], col[1], col[2]},
-                            {col[3], col[4], col[5]},
-                            {col[6], col[7],
-                             F8{tri[0]->v2[2], tri[1]->v2[2], tri[2]->v2[2], tri[3]->v2[2],
-                                tri[4]->v2[2], tri[5]->v2[2], tri[6]->v2[2], tri[7]->v2[2]}}};
-    return intersect_lanes<F8, I8>(p, coord, tmin, out);
+    col[8] = F8{v2z[0], v2z[1], v2z[2], v2z[3], v2z[4], v2z[5], v2z[6], v2z[7]};
+    // Vertex v's coordinate k_j is column 3 v + k_j: the ray's axes as blend masks.
+    const int k[3] = {p.kx, p.ky, p.kz};
+    F8 ray_axes[3][3];
+    for (int j = 0; j < 3; ++j) {
+        const I8 is1 = (I8{} + k[j]) == 1, is2 = (I8{} + k[j]) == 2;
+        for (int v = 0; v < 3; ++v)
+            ray_axes[v][j] = pick(is2, col[3 * v + 2], pick(is1, col[3 * v + 1], col[3 * v]));
+    }
+    return intersect_ray_axes<F8, I8>(p, ray_axes, tmin, out);
 }
 
 /// A ray's per-axis values: as 8-lane broadcasts (org[a], ...), and the three axes in lanes 0..2
@@ -744,7 +772,8 @@ template <bool AnyHit, class Counter>
         wide::Hits4 h;
 #endif
         for (bool last = false; !last;) {
-            uint32_t slot[kBlock];
+            // The block's triangles (indices into tris), a lane each.
+            UB block;
             int n = 0;
             if (tree.refs_end - ref >= kBlock) {
                 // A block's words in one load: the run ends at the first marked one (or goes on).
@@ -757,23 +786,24 @@ template <bool AnyHit, class Counter>
                 const UB refs = words & ~KdTree::kLastRef;
                 const IB in_run = lane_id < n;
                 // A short run repeats its first triangle in the spare lanes.
-                const UB block = in_run ? refs : UB{} + refs[0];
-                __builtin_memcpy(slot, &block, sizeof slot);
+                block = in_run ? refs : UB{} + refs[0];
             } else {
+                uint32_t slot[kBlock];
                 do {
                     const uint32_t word = ref[n];
                     slot[n++] = word & ~KdTree::kLastRef;
                     last = (word & KdTree::kLastRef) != 0;
                 } while (!last && n < kBlock);
                 for (int i = n; i < kBlock; ++i) slot[i] = slot[0];
+                __builtin_memcpy(&block, slot, sizeof block);
             }
             ref += n;
-            const TriVerts* block[kBlock];
-            for (int i = 0; i < kBlock; ++i) block[i] = &tris[slot[i]];
 #if defined(KDRT_WIDE_AVX2)
-            uint32_t hits = wide::intersect8(r.p, block, r.ray_tmin, h);
+            uint32_t hits = wide::intersect8(r.p, tris, block, r.ray_tmin, h);
 #else
-            uint32_t hits = wide::intersect4(r.p, block, r.ray_tmin, h);
+            const TriVerts* const by_ref[kBlock] = {&tris[block[0]], &tris[block[1]],
+                                                    &tris[block[2]], &tris[block[3]]};
+            uint32_t hits = wide::intersect4(r.p, by_ref, r.ray_tmin, h);
 #endif
             if constexpr (AnyHit) {
                 if (hits & wide::lane_bits(h.t <= r.ray_tmax)) {
@@ -785,7 +815,7 @@ template <bool AnyHit, class Counter>
                     const int l = __builtin_ctz(hits);
                     const float t = h.t[l];
                     // The tie rule and the answer use mesh ids.
-                    const uint32_t prim = tree.ids[slot[l]];
+                    const uint32_t prim = tree.ids[block[l]];
                     if (t < best.t || (t == best.t && prim < best.prim)) {
                         best = {t, prim, h.v[l] / h.det[l], h.w[l] / h.det[l]};
                         found = true;

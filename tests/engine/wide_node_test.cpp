@@ -472,7 +472,8 @@ TEST(WideKernel, LeafBlocksInEveryRayFrameMatchBruteForce) {
 }
 
 /// On AVX2 and AVX-512 the single-ray walk tests a leaf eight references at a time
-/// (wide::intersect8: an 8x8 transpose, the spare lanes repeating the run's first triangle). Big
+/// (wide::intersect8: each lane's row read by its index, an 8x8 transpose, the ray's axes picked
+/// from the columns by blends, the spare lanes repeating the run's first triangle). Big
 /// triangles through one small region make leaves that no plane can split, with 9 to 24
 /// references: full blocks, short last blocks, and every lane position. Rays at points spread
 /// over each triangle, in all six ray frames, closest hit and occlusion, against brute force.
