@@ -18,7 +18,9 @@ namespace kdrt::detail {
 /// any-hit block, RunTracer::coherent_block). kCoherentSorted is auto with every coherent any-hit
 /// block in packets sorted by origin (trace_origin_sorted_block); kCoherentSortMeasured is auto
 /// with every coherent any-hit block measured half sorted, half in input order
-/// (RunTracer::sort_measured). Tests reach every way with them; policy_for never gives them.
+/// (RunTracer::sort_measured); kCoherentPairMeasured is auto with every coherent any-hit block
+/// measured as sorted packets against single rays, whole blocks in pairs, one each way
+/// (RunTracer::sorted_pair_measured). Tests reach every way with them; policy_for never gives them.
 enum class Policy : uint32_t {
     kAuto = 0,
     kSingle = 1,
@@ -27,7 +29,8 @@ enum class Policy : uint32_t {
     kIncoherentAsSingle = 4,
     kIncoherentMeasured = 5,
     kCoherentSorted = 6,
-    kCoherentSortMeasured = 7
+    kCoherentSortMeasured = 7,
+    kCoherentPairMeasured = 8
 };
 
 /// What a kernel did, summed over a batch (per-thread, added up afterwards).

@@ -1156,6 +1156,10 @@ struct RunTracer {
             sorted(block, base, n);
             return;
         }
+        if (AnyHit && !Count && policy == Policy::kCoherentPairMeasured) {
+            sorted_pair_measured(block, base, n);
+            return;
+        }
         if (AnyHit && !Count && policy == Policy::kCoherentSortMeasured) {
             sort_measured(block, base, n, incoherent_costs<AnyHit, CostSlot::kCoherentSort>(tree));
             return;
@@ -1168,27 +1172,43 @@ struct RunTracer {
         IncoherentCosts& by_sort = incoherent_costs<AnyHit, CostSlot::kCoherentSort>(tree);
         if (policy == Policy::kAuto && n >= kMeasureMinRays &&
             (by_sort.until_measure == 0 || by_sort.first_ticks != 0.0f)) {
-            // The sort is measured on blocks that go as packets anyway: no measurement against
-            // single rays is due and packets are the faster way so far (or the measurement's
-            // first block went already).
+            // The sort is measured where no measurement against single rays is due (or the
+            // measurement's first block went already). While single rays are the faster way,
+            // only until it has its three measurements: single rays may have won against
+            // unsorted packets only, and sorted ones may beat them (16 bunnies' shadow set:
+            // single rays over unsorted packets 0.65-0.99, over sorted ones 1.42-1.59); once
+            // known, a measurement there costs two blocks of packets and changes nothing (64
+            // bunnies). Where the sort's answer changes which packets go, the measurements
+            // against single rays were of the other packets: they start afresh.
             IncoherentCosts& costs = incoherent_costs<AnyHit, CostSlot::kCoherent>(tree);
             const float ratio = costs.median();
+            const bool singles_win = ratio != 0.0f && ratio < 1.0f;
             if (by_sort.first_ticks != 0.0f ||
-                (costs.until_measure > 0 && !(ratio != 0.0f && ratio < 1.0f))) {
+                (costs.until_measure > 0 && (!singles_win || by_sort.ratio[2] == 0.0f))) {
                 if (costs.until_measure > 0) --costs.until_measure;
+                const bool was_sorted = by_sort.median() > 1.0f;
                 sort_measured(block, base, n, by_sort);
+                if ((by_sort.median() > 1.0f) != was_sorted)
+                    costs = IncoherentCosts{.tree = costs.tree, .nodes = costs.nodes};
                 return;
             }
         } else if (by_sort.until_measure > 0) {
             --by_sort.until_measure;
         }
-        // Packets are measured against single rays as they trace: sorted ones on a measured
-        // block's halves, one each way (runs of kCoherentRun rays, about a row of an image's
-        // shadow rays, would make no patches).
-        if (by_sort.median() > 1.0f)
+        // Packets are measured against single rays as they trace: sorted ones on two whole
+        // neighbouring blocks (sorted_pair_measured), unsorted ones in runs of kCoherentRun
+        // rays each way in turn.
+        if (by_sort.median() > 1.0f) {
+            const IncoherentCosts& costs = incoherent_costs<AnyHit, CostSlot::kCoherent>(tree);
+            if (policy == Policy::kAuto &&
+                (costs.first_ticks != 0.0f || (n >= kMeasureMinRays && costs.until_measure == 0))) {
+                sorted_pair_measured(block, base, n);
+                return;
+            }
             measured<CostSlot::kCoherent>(block, base, n, sorted, true);
-        else
+        } else {
             measured<CostSlot::kCoherent>(block, base, n, packets, false);
+        }
     }
 
     /// A coherent block's rays in runs of packets (trace_coherent_block), or in square patches
@@ -1225,34 +1245,60 @@ struct RunTracer {
     /// are in image order, so two neighbouring blocks are neighbouring rows of about the same
     /// cost; the two blocks must be neighbours in the batch.
     void sort_measured(const Ray* block, size_t base, int n, IncoherentCosts& by_sort) const {
-        // A pending first block that is not this one's neighbour (the thread took a block from
-        // elsewhere in the batch, or another batch) is dropped: blocks far apart in an image
-        // cost up to 13 times as much as each other (16 bunnies' shadow set, 2 threads).
-        if (by_sort.next_block != block) by_sort.first_ticks = 0.0f;
-        by_sort.next_block = block + n;
-        const bool first_of_two = by_sort.first_ticks == 0.0f;
-        // second_first: this measurement's first block goes unsorted.
-        const bool unsorted = first_of_two == by_sort.second_first;
+        const auto sorted = [&](const Ray* rays, size_t at, int m) {
+            trace_origin_sorted_block<AnyHit>(tree, rays, at, m, hits, occluded, counters, *this);
+        };
+        const auto unsorted = [&](const Ray* rays, size_t at, int m) { image_block(rays, at, m); };
+        pair_measured(block, base, n, by_sort, sorted, unsorted, kSortGapScale);
+    }
+
+    /// A coherent any-hit block measured as sorted packets (trace_origin_sorted_block) or as
+    /// single rays walked in turn (CostSlot::kCoherent: single rays over packets), one whole
+    /// block each way (pair_measured), not a block's halves: the sort pays through the patches it
+    /// makes across a whole block's rows (see sort_measured). On a block's halves, 16 bunnies'
+    /// shadow set measured about as it does against unsorted packets (single rays ahead).
+    void sorted_pair_measured(const Ray* block, size_t base, int n) const {
+        const auto sorted = [&](const Ray* rays, size_t at, int m) {
+            trace_origin_sorted_block<AnyHit>(tree, rays, at, m, hits, occluded, counters, *this);
+        };
+        const auto single_rays = [&](const Ray* rays, size_t at, int m) { singles(rays, at, m); };
+        pair_measured(block, base, n, incoherent_costs<AnyHit, CostSlot::kCoherent>(tree), sorted,
+                      single_rays, kSortGapScale);
+    }
+
+    /// One block of a measurement over two neighbouring whole blocks, one traced `first`'s way,
+    /// the other `second`'s, the order swapping from one measurement to the next; the ratio of
+    /// their times per ray (second over first) goes to `costs` (its gap scaled by `gap_scale`).
+    /// A pending first block that is not this one's neighbour (the thread took a block from
+    /// elsewhere in the batch, or another batch) is dropped: blocks far apart in an image cost up
+    /// to 13 times as much as each other (16 bunnies' shadow set, 2 threads).
+    template <class First, class Second>
+    void pair_measured(const Ray* block, size_t base, int n, IncoherentCosts& costs,
+                       const First& first, const Second& second, float gap_scale) const {
+        if (costs.next_block != block) costs.first_ticks = 0.0f;
+        costs.next_block = block + n;
+        const bool first_of_two = costs.first_ticks == 0.0f;
+        // second_first: this measurement's first block goes the second way.
+        const bool second_way = first_of_two == costs.second_first;
         const uint64_t t0 = cycles();
-        if (unsorted)
-            image_block(block, base, n);
+        if (second_way)
+            second(block, base, n);
         else
-            trace_origin_sorted_block<AnyHit>(tree, block, base, n, hits, occluded, counters,
-                                              *this);
+            first(block, base, n);
         const uint64_t t1 = cycles();
         if (t1 <= t0) {  // a clock that stood still or went back: start again
-            by_sort.first_ticks = 0.0f;
+            costs.first_ticks = 0.0f;
             return;
         }
         const float ticks = static_cast<float>(t1 - t0) / static_cast<float>(n);
         if (first_of_two) {
-            by_sort.first_ticks = ticks;
+            costs.first_ticks = ticks;
             return;
         }
-        const float ratio = unsorted ? ticks / by_sort.first_ticks : by_sort.first_ticks / ticks;
-        by_sort.first_ticks = 0.0f;
-        by_sort.second_first = !by_sort.second_first;
-        by_sort.record(ratio, kSortGapScale);
+        const float ratio = second_way ? ticks / costs.first_ticks : costs.first_ticks / ticks;
+        costs.first_ticks = 0.0f;
+        costs.second_first = !costs.second_first;
+        costs.record(ratio, gap_scale);
     }
 
     /// Traces block[0, n) half one way, half the other (`second_first`: the first half goes the

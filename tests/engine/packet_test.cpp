@@ -467,6 +467,8 @@ TEST(PacketEquivalence, IncoherentBlocksAnswerInPlaceWhicheverWayTheyGo) {
 /// single rays walked in turn), the auto policy, every block in packets sorted by origin
 /// (kCoherentSorted, the way auto takes where the sort pays) and every block measured half
 /// sorted, half in input order (kCoherentSortMeasured, how auto measures whether the sort pays),
+/// every block measured as sorted packets against single rays, whole blocks in pairs
+/// (kCoherentPairMeasured, how auto measures single rays against sorted packets),
 /// against the oracle, on batches of several blocks, one block and a small one, with invalid
 /// rays among them. Closest-hit coherent blocks keep to packets: their counters equal those of
 /// the packets-only policy.
@@ -497,8 +499,9 @@ TEST(PacketEquivalence, CoherentBlocksAnswerInPlaceWhicheverWayTheyGo) {
             kernels->intersect(tree, rays.data(), n, packet_hits.data(),
                                Policy::kIncoherentAsPacket, c_packet);
             expect_identical_bytes(packet_hits, std::span(want).first(n), "packets");
-            for (Policy policy : {Policy::kIncoherentMeasured, Policy::kAuto,
-                                  Policy::kCoherentSorted, Policy::kCoherentSortMeasured}) {
+            for (Policy policy :
+                 {Policy::kIncoherentMeasured, Policy::kAuto, Policy::kCoherentSorted,
+                  Policy::kCoherentSortMeasured, Policy::kCoherentPairMeasured}) {
                 const std::string what = std::string(isa_name(isa)) + ", policy " +
                                          std::to_string(static_cast<int>(policy)) + ", " +
                                          std::to_string(n) + " rays";
@@ -514,6 +517,11 @@ TEST(PacketEquivalence, CoherentBlocksAnswerInPlaceWhicheverWayTheyGo) {
                     // way in turn, or two halves), the rest in packets.
                     EXPECT_GT(c_occ.packet_rays, 0u) << what;
                     EXPECT_GE(c_occ.single_rays + c_occ.invalid_rays, n / 3) << what;
+                }
+                if (policy == Policy::kCoherentPairMeasured && n > 2 * detail::kBlockRays) {
+                    // Whole blocks in pairs, one as sorted packets, the other as single rays.
+                    EXPECT_GE(c_occ.packet_rays, detail::kBlockRays / 2) << what;
+                    EXPECT_GE(c_occ.single_rays, detail::kBlockRays / 2) << what;
                 }
                 if (policy == Policy::kCoherentSorted || policy == Policy::kCoherentSortMeasured) {
                     // Packets only, sorted or in input order (an octant's tail of a few rays goes
