@@ -596,12 +596,6 @@ void depth_first_block(const SceneData& s, std::span<const Ray> rays, std::span<
     }
 }
 
-/// Whether a coherent block goes depth first (depth_first_block) rather than in rounds.
-template <bool AnyHit>
-bool depth_first_pays() noexcept {
-    return true;
-}
-
 template <bool AnyHit>
 void trace_block(const SceneData& s, std::span<const Ray> rays, std::span<SceneHit> hits_out,
                  std::span<uint8_t> occ_out, const TraceOptions& options, BlockScratch& b,
@@ -619,7 +613,9 @@ void trace_block(const SceneData& s, std::span<const Ray> rays, std::span<SceneH
             ops.intersect(s, rays.data(), n, hits_out.data(), counts.visits);
         return;
     }
-    if (options.mode == TraceMode::kAuto && depth_first_pays<AnyHit>()) {
+    // A coherent block under kAuto goes depth first (it never lost to the rounds: session 24);
+    // kPacket keeps the rounds.
+    if (options.mode == TraceMode::kAuto) {
         depth_first_block<AnyHit>(s, rays, hits_out, occ_out, resolved_isa(options), b, counts);
         return;
     }
