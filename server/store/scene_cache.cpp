@@ -643,11 +643,25 @@ std::vector<std::string> SceneCache::mesh_users(const std::string& mesh_id) {
 }
 
 void SceneCache::keep(const EntryPtr& entry) {
+    std::vector<EntryPtr> dropped;  // freed after the lock is let go
     std::lock_guard lock(mutex_);
     const Key key{entry->doc.id, entry->doc.revision};
     uint64_t& latest = latest_[entry->doc.id];
     latest = std::max(latest, entry->doc.revision);
-    if (by_key_.count(key)) return;
+    // The revisions this scene's newest has left behind, which get() refuses (older than the
+    // kept ones), go now: a moving sensor's pose updates filled the whole budget with them,
+    // each new revision on memory never used before (page faults) while they waited for the
+    // LRU to reach them.
+    const uint64_t kept = store_.revisions_kept();
+    for (auto it = by_key_.lower_bound({entry->doc.id, 0}); it != by_key_.end() &&
+                                                            it->first.first == entry->doc.id &&
+                                                            it->first.second + kept <= latest;) {
+        bytes_ -= (*it->second)->bytes;
+        dropped.push_back(std::move(*it->second));
+        lru_.erase(it->second);
+        it = by_key_.erase(it);
+    }
+    if (by_key_.count(key) || key.second + kept <= latest) return;
     lru_.push_front(entry);
     by_key_[key] = lru_.begin();
     bytes_ += entry->bytes;

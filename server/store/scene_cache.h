@@ -13,9 +13,10 @@
 ///   scanned pays nothing for it. The revision is kept in that form, and the revisions its pose
 ///   updates make carry it too, so a scan after a pose update builds nothing for it.
 /// - Built scenes are kept by (id, revision) in LRU order within `memory_budget` bytes
-///   (kdrt::SceneStats::bytes plus the document); a scene asked for again after eviction, or
-///   written by another replica, is read from the store and built again, its meshes' trees
-///   coming through the MeshCache (loaded from the shared store when this replica never saw
+///   (kdrt::SceneStats::bytes plus the document); a revision older than the store's kept ones
+///   (which get() refuses) leaves as soon as a newer one is kept; a scene asked for again after
+///   eviction, or written by another replica, is read from the store and built again, its meshes'
+///   trees coming through the MeshCache (loaded from the shared store when this replica never saw
 ///   them).
 /// - Another replica's newer revision or deletion is noticed on the next request for the scene
 ///   (one stat of the store).
@@ -187,7 +188,9 @@ private:
     Result<Committed> update(const std::string& id, std::optional<uint64_t> if_match,
                              const char* what,
                              const std::function<Result<Next>(const EntryPtr& base)>& next);
-    void keep(const EntryPtr& entry);  ///< into the LRU (evicting beyond the budget)
+    /// Into the LRU, evicting beyond the budget and the scene's revisions older than the kept
+    /// ones (an entry that old itself is not kept).
+    void keep(const EntryPtr& entry);
     /// Deletes the revisions older than the kept ones after a commit of `revision`, on the
     /// arena, after the answer (SceneStore::prune).
     void prune_later(const std::string& id, uint64_t revision);

@@ -170,6 +170,48 @@ TEST_F(SceneCacheTest, ClearanceIsBuiltAtTheFirstSingleReturnScanAndInheritedByP
     expect_same_scan(scan_lidar((*next)->scene, spec), scan_lidar(build_scene(bare), spec));
 }
 
+TEST_F(SceneCacheTest, RevisionsOlderThanTheKeptOnesLeaveTheCacheAsTheNewestMovesOn) {
+    // The store keeps 4 revisions (Caches); a budget that would hold every revision made here.
+    Caches caches(*this, 1ull << 30);
+    ASSERT_TRUE(caches.open());
+    SceneCache& scenes = caches.scenes;
+    const std::string a = caches.meshes.add(scene_sphere())->summary.id;
+    std::vector<proto::SceneInstanceSpec> instances;
+    for (uint32_t k = 0; k < 6; ++k) instances.push_back(placed(a, k, 0));
+    std::string id;
+    uint64_t one = 0;
+    std::vector<std::weak_ptr<const SceneEntry>> made;  // revision r at r - 1
+    {
+        auto created = scenes.create(instances);
+        ASSERT_TRUE(created);
+        id = (*created)->doc.id;
+        one = (*created)->bytes;
+        made.push_back(*created);
+    }
+    ASSERT_GT(one, 0u);
+    EXPECT_EQ(scenes.memory_bytes(), one);  // 4 revisions of these would fit the budget many times
+    for (uint32_t frame = 1; frame <= 10; ++frame) {
+        std::vector<proto::PoseEntry> poses;
+        for (uint32_t k = 0; k < 6; ++k) poses.push_back(pose_of(k, placed(a, k, frame)));
+        auto moved = scenes.set_poses(id, frame, poses);
+        ASSERT_TRUE(moved) << frame;
+        auto now = scenes.get(id);
+        ASSERT_TRUE(now);
+        EXPECT_EQ((*now)->doc.revision, frame + 1u);
+        made.push_back(*now);
+        // The newest four are kept and counted; the older ones are refused by get() and gone
+        // from memory as well.
+        uint64_t counted = 0;
+        for (uint64_t r = 1; r <= frame + 1; ++r) {
+            const bool servable = r + 4 > frame + 1;
+            EXPECT_EQ(bool(scenes.get(id, r)), servable) << "revision " << r << " at " << frame;
+            EXPECT_EQ(made[r - 1].expired(), !servable) << "revision " << r << " at " << frame;
+            if (auto entry = made[r - 1].lock(); entry && servable) counted += entry->bytes;
+        }
+        EXPECT_EQ(scenes.memory_bytes(), counted) << frame;
+    }
+}
+
 TEST_F(SceneCacheTest, ARevisionWhoseMeshWasDeletedTriesItsClearancesOnce) {
     // A revision taken before one of its meshes was deleted (a scan that got it just before the
     // delete; the current revision no longer uses the mesh, so the delete was allowed): its first

@@ -19,7 +19,7 @@ import struct
 
 import numpy as np
 
-from . import _scan, _wire
+from . import _scan, _transport, _wire
 from ._errors import Error
 
 SCENE_HIT_FLAG = 0x0100  # flag bit 8: a geometry-id plane ends the answer
@@ -204,13 +204,16 @@ class Scene:
 
     # ---- Queries --------------------------------------------------------------------------
 
-    def _post(self, route, parts, media_type, revision=None):
-        """One query request; returns (its answer body, the revision it answered from)."""
+    def _post(self, route, parts, media_type, revision=None, pooled=False):
+        """One query request; returns (its answer body, the revision it answered from). With
+        `pooled` the body is a memoryview of one of the client's reused answer buffers
+        (_transport.BodyBuffers), for answers whose decoded arrays are views of it."""
         self.commit()
         path = self._t.api(f"/v1/scenes/{self.id}/{route}")
         if revision is not None:
             path += ("&" if "?" in path else "?") + f"revision={int(revision)}"
-        _, headers, body = self._t.request("POST", path, parts, media_type)
+        read = _transport.read_pooled(self._t.bodies) if pooled else None
+        _, headers, body = self._t.request("POST", path, parts, media_type, read=read)
         answered = headers.get(REVISION_HEADER, "")
         if not answered.isdigit() or (revision is not None and int(answered) != int(revision)):
             raise Error(kind="protocol", title="bad response",
@@ -380,7 +383,7 @@ class Scene:
             lidar["pose"] = np.asarray(pose, dtype=np.float64).reshape(4, 4).tolist()
         request = {"lidar": lidar, "format": answer_format}
         body, _ = self._post("scan", [json.dumps(request).encode()], "application/json",
-                             revision)
+                             revision, pooled=True)
         if answer_format == "ranges":
             return _scan.decode_lidar_ranges(body, lidar, geometry_ids=True)
         return decode_scene_point_cloud(body)

@@ -78,6 +78,60 @@ def test_identity_scene_scans_as_the_mesh_and_checks_the_answer(server):
         assert e.value.kind == "protocol"
 
 
+def test_answer_buffers_are_reused_only_once_nothing_views_them():
+    """_transport.BodyBuffers: a kept buffer is handed out again only when no view of it (a
+    memoryview, a numpy array made from one) is alive; a larger answer replaces a free smaller
+    buffer; at most `keep` buffers are kept."""
+    pool = kdrt._transport.BodyBuffers(keep=2)
+    first = pool.take(1000)
+    first[:] = b"\1" * 1000
+    held = np.frombuffer(first, dtype=np.uint8)
+    del first
+    second = pool.take(1000)  # the first is still viewed by `held`
+    second[:] = b"\2" * 1000
+    assert (held == 1).all() and len(pool._buffers) == 2
+    third = pool.take(1000)  # both viewed: a buffer outside the pool
+    third[:] = b"\3" * 1000
+    assert (held == 1).all() and len(pool._buffers) == 2
+    base = id(held.base.obj)  # the bytearray behind the first answer
+    del held, third
+    again = pool.take(500)
+    assert id(again.obj) == base  # no view of it left: reused
+    del again, second
+    big = pool.take(3 << 20)  # larger than both: one free buffer gives its place
+    assert len(big) == 3 << 20 and len(pool._buffers) == 2
+    assert any(buf is big.obj for buf in pool._buffers)
+
+
+def test_a_scans_arrays_survive_the_next_scans(server):
+    """Scene.scan_lidar reads its answer into a reused buffer (_transport.read_pooled): an
+    earlier scan's arrays, still held, keep their values through the scans after it, and every
+    answer equals the same request read without the pool."""
+    client, mesh, scene = _box_and_empty_scene(server)
+    scene.add_triangles(mesh)
+    scene.add_triangles(mesh, transform=[[0, -1, 0, 3], [1, 0, 0, 0.5], [0, 0, 1, 0]])
+    scene.commit()
+    path = client._t.api(f"/v1/scenes/{scene.id}/scan")
+    scans = []
+    for k in range(5):
+        pose = [[1, 0, 0, 0.5 + 0.1 * k], [0, 1, 0, 0.5], [0, 0, 1, 0.5], [0, 0, 0, 1]]
+        lidar = dict(azimuth_steps=64 + 16 * k, vertical_fov=(-40, 40), channels=16, pose=pose)
+        got = scene.scan_lidar(**lidar)
+        request = {"lidar": {"azimuth_steps": 64 + 16 * k, "returns": 1, "min_range": 0.0,
+                             "vertical_fov": [-40.0, 40.0], "channels": 16, "pose": pose},
+                   "format": "binary"}
+        _, _, plain = client._t.request("POST", path, [json.dumps(request).encode()],
+                                        "application/json")
+        assert isinstance(plain, bytes)
+        want = kdrt.scene.decode_scene_point_cloud(plain)
+        assert want["range"].size > 100
+        scans.append((got, {key: value.copy() for key, value in want.items()}))
+        for held, expected in scans:
+            for key in expected:
+                assert np.array_equal(held[key], expected[key]), (k, key)
+    assert len(client._t.bodies._buffers) <= kdrt._transport.POOLED_BUFFERS
+
+
 def test_compact_scan_carries_what_kdrl_does(server):
     """record="ranges" (KDRB): the same ranges, prims and geometry ids bit for bit, the channel,
     azimuth and return indices implied by the beams, and points on the beams' rays that agree
