@@ -378,7 +378,10 @@ struct SweepBlock {
 /// Per-thread scratch memory. Used only between TBB wait points, or inside isolated parallel
 /// regions that touch nothing but the calling node's data, so nested tasks never see it half-used.
 struct Scratch {
-    std::vector<Side> side;  // per triangle id, written and read within one partition
+    /// Per triangle id, written and read within one partition. Not value-initialised: a page of
+    /// it is touched first where a partition writes it (a thread that never sees a triangle
+    /// never faults in its page; 64 bunnies: 9.7 MB per thread).
+    std::unique_ptr<Side[]> side;
     std::vector<EventBuffer> pool;
     std::vector<uint32_t> straddling;
     NewEvents new_left, new_right;
@@ -434,7 +437,7 @@ public:
           max_depth_(static_cast<uint32_t>(std::clamp(options.max_depth, 0, kMaxDepth))),
           scratch_([n = tris.size()] {
               Scratch s;
-              s.side.resize(n);
+              s.side = std::make_unique_for_overwrite<Side[]>(n);
               return s;
           }) {}
 
@@ -866,7 +869,7 @@ private:
 
         // The scratch memory is per thread; it is used only inside this call, whose parallel part
         // is isolated so no other node's work can run on this thread in between.
-        Side* side = scratch.side.data();
+        Side* side = scratch.side.get();
         std::vector<uint32_t>& straddling = scratch.straddling;
         straddling.clear();
         auto [left_only, right_only] = classify(in, split, side, straddling, tris_.data());
