@@ -361,8 +361,10 @@ constexpr uint32_t kParallelSubtrees = 4096;  // nodes at least this big build c
 constexpr size_t kParallelAxes = 1u
                                  << 15;  // events per axis above which axes/chunks run concurrently
 constexpr size_t kChunk = 1u << 14;      // events per chunk of a parallel sweep
-constexpr size_t kPooledEvents = 1u << 16;     // buffers up to this size are recycled per thread
+constexpr size_t kPooledEvents = 1u << 13;     // buffers up to this size are recycled per thread
 constexpr size_t kPoolSlots = 48;              // at most this many free buffers kept per thread
+constexpr size_t kBigPooledEvents = 1u << 16;  // ... and bigger ones up to this size
+constexpr size_t kBigPoolSlots = 8;            // at most this many of those
 constexpr size_t kRadixSortEvents = 1u << 11;  // a node's first sort: radix from this many events
 constexpr size_t kMinBlock = 32, kMaxBlock = 64;  // events per block of sweep_pruned
 constexpr size_t kPruneFrom = 256;  // events per axis from which the sweep prunes blocks
@@ -388,32 +390,48 @@ struct Scratch {
     std::vector<uint32_t> prims;
     std::vector<SweepBlock> blocks;  // find_split's blocks of one axis
 
-    /// A buffer for at least `n` events, recycled when possible: the smallest kept one that
-    /// holds them. Kept buffers include the exact subtrees' roots and the big nodes below them
-    /// (up to kPooledEvents: 64 bunnies' exact subtrees start at up to ~4k triangles, 25k
-    /// events): from the heap, ~10% of them were fresh pages to fault in (~90 MB on 64 bunnies).
+    /// Kept buffers of more than kPooledEvents: an exact subtree's root events, a sort's scratch
+    /// and the big nodes below the root (64 bunnies' exact subtrees start at up to ~4k
+    /// triangles, 25k events). From the heap each time, ~10% of them were fresh pages to fault
+    /// in.
+    std::vector<EventBuffer> big_pool;
+
+    /// A buffer for at least `n` events, recycled when possible: a small one, the last kept one
+    /// that holds them; a big one, the smallest kept one that does. Both are rounded up to a
+    /// power of two, so that they fit later nodes too.
     EventBuffer take(size_t n) {
         if (n <= kPooledEvents) {
-            size_t best = pool.size();
-            for (size_t i = 0; i < pool.size(); ++i)
-                if (pool[i].capacity >= n &&
-                    (best == pool.size() || pool[i].capacity < pool[best].capacity))
-                    best = i;
-            if (best < pool.size()) {
-                EventBuffer b = std::move(pool[best]);
-                pool[best] = std::move(pool.back());
-                pool.pop_back();
-                return b;
+            for (size_t i = pool.size(); i-- > 0;) {
+                if (pool[i].capacity >= n) return take_at(pool, i);
             }
-            n = std::max<size_t>(std::bit_ceil(n),
-                                 64);  // round up so the buffer fits later nodes too
+            n = std::max<size_t>(std::bit_ceil(n), 64);
+        } else if (n <= kBigPooledEvents) {
+            size_t best = big_pool.size();
+            for (size_t i = 0; i < big_pool.size(); ++i)
+                if (big_pool[i].capacity >= n &&
+                    (best == big_pool.size() || big_pool[i].capacity < big_pool[best].capacity))
+                    best = i;
+            if (best < big_pool.size()) return take_at(big_pool, best);
+            n = std::bit_ceil(n);
         }
         return {std::make_unique_for_overwrite<Event[]>(n), n};
     }
     void give_back(EventBuffer&& b) {
-        if (b.capacity != 0 && b.capacity <= kPooledEvents && pool.size() < kPoolSlots)
+        if (b.capacity != 0 && b.capacity <= kPooledEvents && pool.size() < kPoolSlots) {
             pool.push_back(std::move(b));
+        } else if (b.capacity > kPooledEvents && b.capacity <= kBigPooledEvents &&
+                   big_pool.size() < kBigPoolSlots) {
+            big_pool.push_back(std::move(b));
+        }
         b = {};
+    }
+
+private:
+    static EventBuffer take_at(std::vector<EventBuffer>& from, size_t i) {
+        EventBuffer b = std::move(from[i]);
+        from[i] = std::move(from.back());
+        from.pop_back();
+        return b;
     }
 };
 
