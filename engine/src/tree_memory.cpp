@@ -92,9 +92,10 @@ struct Recycled {
     std::map<uintptr_t, size_t> at;  ///< kept ranges: start -> length
     size_t bytes = 0;                ///< their total length
 };
+/// Never destroyed: a tree array may be freed by a static object's destructor at exit.
 Recycled& recycled() {
-    static Recycled r;
-    return r;
+    static auto* const r = new Recycled;
+    return *r;
 }
 
 /// A kept range of `len` bytes (the smallest that holds them; what is left of it stays kept),
