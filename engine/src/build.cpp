@@ -232,10 +232,12 @@ void finish_tree(KdTree& tree, SubTree&& sub, const Mesh& mesh, std::span<const 
     // into the tree array that order_triangles rewrites in place as tree.leaf_refs.
     // (flatten_deferred grew the root's own vectors instead: value-initialised, then overwritten,
     // and the references copied once more into a fresh leaf_refs.)
+    // Both are tree arrays, so that they take the pages the build's scratch arrays were given
+    // (RecycleTreeMappings) where they are big.
     const size_t node_count = sub.node_count();
-    const auto raw = std::make_unique_for_overwrite<std::byte[]>(node_count * sizeof(KdNode));
+    TreeArray<std::byte> raw = uninitialized_tree_array<std::byte>(node_count * sizeof(KdNode));
     // KdNode is trivially copyable (an implicit-lifetime type): its objects begin in this storage.
-    auto* const nodes = reinterpret_cast<KdNode*>(raw.get());
+    auto* const nodes = reinterpret_cast<KdNode*>(raw.data());
     TreeArray<uint32_t> refs = uninitialized_tree_array<uint32_t>(sub.ref_count());
     flatten_into(sub, nodes, refs.data(), 0, 1, 0, true);
     sub = SubTree{};  // the build's pieces are not read again
@@ -275,6 +277,9 @@ KdTree detail::build_kdtree_with(const Mesh& mesh, const BuildOptions& options,
                                  const BinnedParams& params) {
     const auto start = std::chrono::steady_clock::now();
     validate_mesh(mesh);
+    // The build's freed big arrays serve its later ones (the binned levels' arena's pages become
+    // the tree's final arrays).
+    const detail::RecycleTreeMappings recycle;
     KdTree tree;
     tree.options = options;
     TreeArray<TriVerts> by_id;

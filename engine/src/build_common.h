@@ -11,6 +11,23 @@
 
 namespace kdrt::detail {
 
+/// While one of these lives (on any thread), the huge-page mappings of freed tree arrays
+/// (free_tree_memory) are kept, and allocate_tree_memory serves big arrays from them (the
+/// smallest kept range that holds the array; the rest of it stays kept) before it maps fresh
+/// memory. When the last one ends, what is still kept is unmapped. A build holds one, so the
+/// tree's final arrays take the pages its scratch arrays (the binned levels' arena) were given
+/// and touched, instead of fresh pages to fault in. Kept memory is not zeroed.
+class RecycleTreeMappings {
+public:
+    RecycleTreeMappings();
+    ~RecycleTreeMappings();
+    RecycleTreeMappings(const RecycleTreeMappings&) = delete;
+    RecycleTreeMappings& operator=(const RecycleTreeMappings&) = delete;
+};
+
+/// Bytes of mappings kept for reuse now (RecycleTreeMappings).
+[[nodiscard]] size_t recycled_tree_bytes();
+
 /// A tree under construction, in the final layout: nodes[0] is this subtree's root, the two
 /// children of every inner node are adjacent, pairs laid out depth-first. Child and ref indices
 /// are local to the subtree until it is spliced into its parent.

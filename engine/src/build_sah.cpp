@@ -363,6 +363,8 @@ constexpr size_t kParallelAxes = 1u
 constexpr size_t kChunk = 1u << 14;      // events per chunk of a parallel sweep
 constexpr size_t kPooledEvents = 1u << 13;     // buffers up to this size are recycled per thread
 constexpr size_t kPoolSlots = 48;              // at most this many free buffers kept per thread
+constexpr size_t kBigPooledEvents = 1u << 16;  // ... and bigger ones up to this size
+constexpr size_t kBigPoolSlots = 8;            // at most this many of those
 constexpr size_t kRadixSortEvents = 1u << 11;  // a node's first sort: radix from this many events
 constexpr size_t kMinBlock = 32, kMaxBlock = 64;  // events per block of sweep_pruned
 constexpr size_t kPruneFrom = 256;  // events per axis from which the sweep prunes blocks
@@ -378,33 +380,58 @@ struct SweepBlock {
 /// Per-thread scratch memory. Used only between TBB wait points, or inside isolated parallel
 /// regions that touch nothing but the calling node's data, so nested tasks never see it half-used.
 struct Scratch {
-    std::vector<Side> side;  // per triangle id, written and read within one partition
+    /// Per triangle id, written and read within one partition. Not value-initialised: a page of
+    /// it is touched first where a partition writes it (a thread that never sees a triangle
+    /// never faults in its page; 64 bunnies: 9.7 MB per thread).
+    std::unique_ptr<Side[]> side;
     std::vector<EventBuffer> pool;
     std::vector<uint32_t> straddling;
     NewEvents new_left, new_right;
     std::vector<uint32_t> prims;
     std::vector<SweepBlock> blocks;  // find_split's blocks of one axis
 
-    /// A buffer for at least `n` events, recycled when possible.
+    /// Kept buffers of more than kPooledEvents: an exact subtree's root events, a sort's scratch
+    /// and the big nodes below the root (64 bunnies' exact subtrees start at up to ~4k
+    /// triangles, 25k events). From the heap each time, ~10% of them were fresh pages to fault
+    /// in.
+    std::vector<EventBuffer> big_pool;
+
+    /// A buffer for at least `n` events, recycled when possible: a small one, the last kept one
+    /// that holds them; a big one, the smallest kept one that does. Both are rounded up to a
+    /// power of two, so that they fit later nodes too.
     EventBuffer take(size_t n) {
         if (n <= kPooledEvents) {
             for (size_t i = pool.size(); i-- > 0;) {
-                if (pool[i].capacity >= n) {
-                    EventBuffer b = std::move(pool[i]);
-                    pool[i] = std::move(pool.back());
-                    pool.pop_back();
-                    return b;
-                }
+                if (pool[i].capacity >= n) return take_at(pool, i);
             }
-            n = std::max<size_t>(std::bit_ceil(n),
-                                 64);  // round up so the buffer fits later nodes too
+            n = std::max<size_t>(std::bit_ceil(n), 64);
+        } else if (n <= kBigPooledEvents) {
+            size_t best = big_pool.size();
+            for (size_t i = 0; i < big_pool.size(); ++i)
+                if (big_pool[i].capacity >= n &&
+                    (best == big_pool.size() || big_pool[i].capacity < big_pool[best].capacity))
+                    best = i;
+            if (best < big_pool.size()) return take_at(big_pool, best);
+            n = std::bit_ceil(n);
         }
         return {std::make_unique_for_overwrite<Event[]>(n), n};
     }
     void give_back(EventBuffer&& b) {
-        if (b.capacity != 0 && b.capacity <= 2 * kPooledEvents && pool.size() < kPoolSlots)
+        if (b.capacity != 0 && b.capacity <= kPooledEvents && pool.size() < kPoolSlots) {
             pool.push_back(std::move(b));
+        } else if (b.capacity > kPooledEvents && b.capacity <= kBigPooledEvents &&
+                   big_pool.size() < kBigPoolSlots) {
+            big_pool.push_back(std::move(b));
+        }
         b = {};
+    }
+
+private:
+    static EventBuffer take_at(std::vector<EventBuffer>& from, size_t i) {
+        EventBuffer b = std::move(from[i]);
+        from[i] = std::move(from.back());
+        from.pop_back();
+        return b;
     }
 };
 
@@ -428,7 +455,7 @@ public:
           max_depth_(static_cast<uint32_t>(std::clamp(options.max_depth, 0, kMaxDepth))),
           scratch_([n = tris.size()] {
               Scratch s;
-              s.side.resize(n);
+              s.side = std::make_unique_for_overwrite<Side[]>(n);
               return s;
           }) {}
 
@@ -486,6 +513,11 @@ public:
     void build_root(SubTree& out, uint32_t slot, NodeInput&& in) {
         build(out, slot, std::move(in), scratch_.local());
     }
+
+    /// A buffer for `n` events (a subtree root's, a sort's scratch), from the calling thread's
+    /// pool, and back to it.
+    EventBuffer take_buffer(size_t n) { return scratch_.local().take(n); }
+    void give_buffer(EventBuffer&& b) { scratch_.local().give_back(std::move(b)); }
 
 private:
     SweepSetup sweep_setup(const NodeInput& in, int axis, double inv_area) const {
@@ -855,7 +887,7 @@ private:
 
         // The scratch memory is per thread; it is used only inside this call, whose parallel part
         // is isolated so no other node's work can run on this thread in between.
-        Side* side = scratch.side.data();
+        Side* side = scratch.side.get();
         std::vector<uint32_t>& straddling = scratch.straddling;
         straddling.clear();
         auto [left_only, right_only] = classify(in, split, side, straddling, tris_.data());
@@ -927,8 +959,8 @@ private:
 /// Sorts the root's events of one axis, ev[0, n), in place. The events were created in triangle
 /// order, so a stable sort on the position and type bits alone (a least-significant-digit radix
 /// sort in three passes of 11, 11 and 12 bits) gives exactly the order of sorting the 64-bit
-/// integers.
-void radix_sort_events(Event* ev, size_t n) {
+/// integers. `temp`: room for n events.
+void radix_sort_events(Event* ev, size_t n, Event* temp) {
     constexpr int kShift[3] = {30, 41, 52};
     constexpr int kBits[3] = {11, 11, 12};
     std::vector<uint32_t> histogram[3];
@@ -936,11 +968,10 @@ void radix_sort_events(Event* ev, size_t n) {
     for (size_t i = 0; i < n; ++i)
         for (int p = 0; p < 3; ++p)
             ++histogram[p][(ev[i] >> kShift[p]) & ((uint64_t{1} << kBits[p]) - 1)];
-    // Uninitialised: every pass writes all n events before the next reads them.
-    const auto temp = std::make_unique_for_overwrite<Event[]>(n);
-    // Passes: ev -> temp -> ev -> temp, then back.
+    // Passes: ev -> temp -> ev -> temp, then back (each writes all n events before the next
+    // reads them).
     Event* src = ev;
-    Event* dst = temp.get();
+    Event* dst = temp;
     for (int p = 0; p < 3; ++p) {
         uint32_t sum = 0;
         for (uint32_t& h : histogram[p]) {
@@ -979,7 +1010,7 @@ void ExactSahBuilder::build(SubTree& out, uint32_t slot, const Aabb& cell,
     in.cell = cell;
     in.depth = depth;
     const size_t stride = 2 * prims.size() + 1;
-    in.buffer = {std::make_unique_for_overwrite<Event[]>(3 * stride), 3 * stride};
+    in.buffer = impl_->builder.take_buffer(3 * stride);
     for (int a = 0; a < 3; ++a) in.offset[a] = a * stride;
     Event* const ev = in.buffer.data.get();
     for (const PrimBox& p : prims) {
@@ -1001,7 +1032,9 @@ void ExactSahBuilder::build(SubTree& out, uint32_t slot, const Aabb& cell,
         // Both give the order of the 64-bit integers; the radix sort (stable, prims ascending)
         // only pays on long lists.
         if (in.count[a] >= kRadixSortEvents) {
-            radix_sort_events(first, in.count[a]);
+            EventBuffer temp = impl_->builder.take_buffer(in.count[a]);
+            radix_sort_events(first, in.count[a], temp.data.get());
+            impl_->builder.give_buffer(std::move(temp));
         } else {
             std::sort(first, first + in.count[a]);
         }

@@ -38,7 +38,8 @@ NodeArray cluster_nodes(std::span<const KdNode> nodes) {
     const size_t out_size = nodes.size() + 1;
     // new_first[f]: the new index of the child pair that starts at old index f. Not zero-filled:
     // it is read only at first children, and every pair gets its index before the copy below.
-    const auto new_first = std::make_unique_for_overwrite<uint32_t[]>(nodes.size());
+    // A tree array: a big one takes pages a build has freed (RecycleTreeMappings).
+    TreeArray<uint32_t> new_first = uninitialized_tree_array<uint32_t>(nodes.size());
     std::vector<uint32_t> order;  // old first indices, in their new order (pair i at 2 + 2 i)
     uint32_t slot = 2;  // the next free node index: line 0 starts with the root and an unused slot
     const auto walk = [&] {

@@ -11,6 +11,7 @@
 #include <sstream>
 #include <string>
 
+#include "build_common.h"
 #include "kdrt/kdtree.h"
 
 namespace kdrt::test {
@@ -100,6 +101,58 @@ TEST(TreeMemory, SmallArraysAreLineAligned) {
         EXPECT_EQ(reinterpret_cast<uintptr_t>(a.data()) % 64, 0u) << n;
         EXPECT_EQ(a[n - 1], 1.0f);
     }
+}
+
+// While a RecycleTreeMappings lives, a freed big array's mapping is kept (its pages stay
+// touched) and serves later big arrays: the smallest kept range that holds one, split, the rest
+// kept. When the last one ends, whatever is kept is unmapped; without one, a free unmaps.
+TEST(TreeMemory, FreedMappingsServeLaterArraysWhileABuildRuns) {
+    constexpr size_t kMiB = size_t{1} << 20;
+    ASSERT_EQ(detail::recycled_tree_bytes(), 0u);
+    {
+        void* gone = allocate_tree_memory(4 * kMiB);
+        free_tree_memory(gone, 4 * kMiB);
+        EXPECT_EQ(detail::recycled_tree_bytes(), 0u) << "no build runs: unmapped";
+        EXPECT_FALSE(mapping_of(gone).found);
+    }
+    void* big = nullptr;
+    {
+        const detail::RecycleTreeMappings outer;
+        big = allocate_tree_memory(16 * kMiB);
+        void* small = allocate_tree_memory(4 * kMiB - 100);  // takes two whole huge pages
+        std::memset(big, 0x5a, 16 * kMiB);
+        free_tree_memory(big, 16 * kMiB);
+        free_tree_memory(small, 4 * kMiB - 100);
+        EXPECT_EQ(detail::recycled_tree_bytes(), 20 * kMiB);
+        {
+            const detail::RecycleTreeMappings inner;  // a second build at the same time
+            // The smallest range that holds 3 MiB (rounded to 4): the small array's, whole.
+            EXPECT_EQ(allocate_tree_memory(3 * kMiB), small);
+            EXPECT_EQ(detail::recycled_tree_bytes(), 16 * kMiB);
+            free_tree_memory(small, 3 * kMiB);
+        }
+        EXPECT_EQ(detail::recycled_tree_bytes(), 20 * kMiB) << "the outer build still runs";
+        // 10 MiB: the big range's first 10, its other 6 stay kept; then 6 MiB take those.
+        auto* const a = static_cast<unsigned char*>(allocate_tree_memory(10 * kMiB));
+        EXPECT_EQ(a, big);
+        EXPECT_EQ(detail::recycled_tree_bytes(), 10 * kMiB);
+        auto* const b = static_cast<unsigned char*>(allocate_tree_memory(6 * kMiB));
+        EXPECT_EQ(b, a + 10 * kMiB);
+        EXPECT_EQ(detail::recycled_tree_bytes(), 4 * kMiB);
+        // Kept memory is handed out as it is (not zeroed again): the pages were touched before.
+        EXPECT_EQ(a[0], 0x5a);
+        EXPECT_EQ(b[6 * kMiB - 1], 0x5a);
+        // The pieces are arrays of their own: each frees its own range.
+        free_tree_memory(a, 10 * kMiB);
+        free_tree_memory(b, 6 * kMiB);
+        EXPECT_EQ(detail::recycled_tree_bytes(), 20 * kMiB);
+        // Nothing kept holds 32 MiB: a fresh mapping.
+        void* fresh = allocate_tree_memory(32 * kMiB);
+        EXPECT_EQ(detail::recycled_tree_bytes(), 20 * kMiB);
+        free_tree_memory(fresh, 32 * kMiB);
+    }
+    EXPECT_EQ(detail::recycled_tree_bytes(), 0u);
+    EXPECT_FALSE(mapping_of(big).found) << "kept ranges are unmapped when the last build ends";
 }
 
 }  // namespace
