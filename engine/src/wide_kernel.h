@@ -23,6 +23,7 @@
 
 #include <immintrin.h>
 
+#include <cstddef>
 #include <cstdint>
 
 #include "kdrt/kdtree.h"
@@ -75,15 +76,23 @@ struct OrderBytes {
 };
 inline constexpr OrderBytes kOrderBytes{};
 
-/// The orders reversed, farthest first (byte j: the slot at position 7 - j): a decode pushes its
-/// cells farthest first, so the nearest ends on top of the stack.
+/// The orders reversed, farthest first (byte j: the slot s at position 7 - j): a decode pushes
+/// its cells farthest first, so the nearest ends on top of the stack. With each slot's ancestor
+/// planes at levels 1 and 2 (byte j: 1 + (s >> 2) and 3 + (s >> 1)), so that a decode reads its
+/// three permutes' indices from one entry.
 struct FarFirstBytes {
-    uint64_t order[128];
-    constexpr FarFirstBytes() : order{} {
+    struct Entry {
+        uint64_t order, plane1, plane2;
+    };
+    Entry entry[128];
+    constexpr FarFirstBytes() : entry{} {
         for (uint32_t nh = 0; nh < 128; ++nh)
-            for (uint32_t j = 0; j < 8; ++j)
-                order[nh] |= static_cast<uint64_t>((kOrder.order[nh] >> (3 * (7 - j))) & 7u)
-                             << (8 * j);
+            for (uint32_t j = 0; j < 8; ++j) {
+                const uint32_t s = (kOrder.order[nh] >> (3 * (7 - j))) & 7u;
+                entry[nh].order |= static_cast<uint64_t>(s) << (8 * j);
+                entry[nh].plane1 |= static_cast<uint64_t>(1 + (s >> 2)) << (8 * j);
+                entry[nh].plane2 |= static_cast<uint64_t>(3 + (s >> 1)) << (8 * j);
+            }
     }
 };
 inline constexpr FarFirstBytes kFarFirstBytes{};
@@ -177,6 +186,30 @@ using Hits8 = LaneHits<F8>;
 static inline uint32_t lane_bits(I4 m) { return bits4(m); }
 static inline uint32_t lane_bits(I8 m) { return bits8(m); }
 
+/// The edge functions u, v, w of a pass, one triangle a lane.
+template <class F>
+struct EdgeLanes {
+    F u, v, w;
+};
+
+/// intersect_triangle's double-precision retry of the edge functions for the lanes set in
+/// `lanes` (where one came out exactly zero); the other lanes keep `e`. Rare (a ray through a
+/// triangle's edge or vertex), so it is a call: the pass's hot path keeps its registers.
+template <class F>
+[[gnu::noinline, gnu::cold]] static EdgeLanes<F> exact_edge_lanes(F ax, F ay, F bx, F by, F cx,
+                                                                  F cy, EdgeLanes<F> e,
+                                                                  uint32_t lanes) {
+    for (; lanes; lanes &= lanes - 1) {
+        const int l = __builtin_ctz(lanes);
+        float eu, ev, ew;
+        exact_edges(ax[l], ay[l], bx[l], by[l], cx[l], cy[l], eu, ev, ew);
+        e.u[l] = eu;
+        e.v[l] = ev;
+        e.w[l] = ew;
+    }
+    return e;
+}
+
 /// The test itself, one triangle a lane, on the triangles' coordinates as columns in the ray's
 /// permuted frame: ray_axes[vertex][j] holds coordinate k_j (kx, ky, kz for j = 0, 1, 2) of every
 /// lane's triangle. F is F4 or F8 (I its mask).
@@ -195,17 +228,14 @@ template <class F, class I>
     F u = cx * by - cy * bx;
     F v = ax * cy - ay * cx;
     F w = bx * ay - by * ax;
-    const I zero_edge = (u == 0.0f) | (v == 0.0f) | (w == 0.0f);
-    if (lane_bits(zero_edge) != 0) {
-        // intersect_triangle's double-precision retry, for the lanes that need it.
-        for (uint32_t m = lane_bits(zero_edge); m; m &= m - 1) {
-            const int l = __builtin_ctz(m);
-            float eu, ev, ew;
-            exact_edges(ax[l], ay[l], bx[l], by[l], cx[l], cy[l], eu, ev, ew);
-            u[l] = eu;
-            v[l] = ev;
-            w[l] = ew;
-        }
+    const uint32_t zero_edge = lane_bits((u == 0.0f) | (v == 0.0f) | (w == 0.0f));
+    if (__builtin_expect(zero_edge != 0, 0)) {
+        // intersect_triangle's double-precision retry, out of line (the inputs go by value), so
+        // that the pass keeps them in registers rather than on the stack for it.
+        const EdgeLanes<F> e = exact_edge_lanes<F>(ax, ay, bx, by, cx, cy, {u, v, w}, zero_edge);
+        u = e.u;
+        v = e.v;
+        w = e.w;
     }
     const I outside =
         ((u < 0.0f) | (v < 0.0f) | (w < 0.0f)) & ((u > 0.0f) | (v > 0.0f) | (w > 0.0f));
@@ -255,22 +285,39 @@ template <class F, class I>
 /// (a branch the predictor mostly misses) half as often. Lane i tests tris[index[i]].
 ///
 /// Everything stays in registers: each triangle's row (floats 0..7) is read straight from `tris`
-/// by its index, the rows are transposed in registers, and each vertex's coordinates in the ray's
-/// axes (kx, ky, kz) are picked from the columns by blends with masks that are the same in every
-/// lane (intersect4 picks them by index, through memory). Picking is exact, so the values, and the
-/// answers, are intersect4's.
+/// by its index and put in the ray's axes by one permute (v0's and v1's coordinates k_x, k_y,
+/// k_z; two of v2's), the rows are transposed in registers, and v2's coordinates are completed
+/// from its z (read on its own) by blends with masks that are the same in every lane (intersect4
+/// picks them by index, through memory). Picking is exact, so the values, and the answers, are
+/// intersect4's.
+#if defined(KDRT_WIDE_AVX2)
 [[gnu::always_inline]] static inline uint32_t intersect8(const PreparedRay& p, const TriVerts* tris,
                                                          U8 index, float tmin, Hits8& out) {
-    // Rows: floats 0..7 of each triangle (32 of its 36 bytes), then an 8x8 transpose in
-    // registers; float 8 (v2's z) on its own.
+    // The row's permute: lanes 0..5 are v0's and v1's coordinates in the ray's axes (float
+    // 3 v + k_j); lanes 6 and 7 two of v2's, and column 8 (v2's z, not in the row) the third,
+    // each in the place that leaves v2's picks below at one blend each for k_x and k_y and two
+    // for k_z: where kz = 2, lanes 6, 7 hold v2's k_x, k_y; where kx = 2, v2's k_z, k_y; where
+    // ky = 2, v2's k_x, k_z.
+    const int kx = p.kx, ky = p.ky, kz = p.kz;
+    const __m256i row_pick = _mm256_setr_epi32(kx, ky, kz, 3 + kx, 3 + ky, 3 + kz,
+                                               6 + (kx == 2 ? kz : kx), 6 + (ky == 2 ? kz : ky));
+    const I8 x_is_z = (I8{} + kx) == 2, y_is_z = (I8{} + ky) == 2, z_is_z = (I8{} + kz) == 2;
+    // Each triangle's offset in floats (9 an index) in the vector, so that a row's address is
+    // one addressing mode (base + 4 offset), not two more instructions a lane.
+    static_assert(sizeof(TriVerts) == 9 * sizeof(float));
+    const U8 floats = (index << 3) + index;
+    const char* base = reinterpret_cast<const char*>(tris);
     F8 r[8];
-    float v2z[8];
 #pragma GCC unroll 8
     for (int i = 0; i < 8; ++i) {
-        const TriVerts& tri = tris[index[i]];
-        __builtin_memcpy(&r[i], &tri.v0[0], sizeof(F8));
-        v2z[i] = tri.v2[2];
+        const char* tri = base + static_cast<size_t>(floats[i]) * sizeof(float);
+        __m256 row;
+        __builtin_memcpy(&row, tri, sizeof row);
+        r[i] = reinterpret_cast<F8>(_mm256_permutevar8x32_ps(row, row_pick));
     }
+    const F8 v2z = reinterpret_cast<F8>(
+        _mm256_i32gather_ps(reinterpret_cast<const float*>(base + offsetof(TriVerts, v2[2])),
+                            reinterpret_cast<__m256i>(floats), sizeof(float)));
     F8 t[8], u[8];
     for (int i = 0; i < 8; i += 2) {
         t[i] = __builtin_shufflevector(r[i], r[i + 1], 0, 8, 1, 9, 4, 12, 5, 13);
@@ -282,23 +329,20 @@ template <class F, class I>
         u[i + 2] = __builtin_shufflevector(t[i + 1], t[i + 3], 0, 1, 8, 9, 4, 5, 12, 13);
         u[i + 3] = __builtin_shufflevector(t[i + 1], t[i + 3], 2, 3, 10, 11, 6, 7, 14, 15);
     }
-    // Column j: float j of every triangle (u[0..3] hold rows 0..3, u[4..7] rows 4..7).
+    // Column j: lane j of every permuted row (u[0..3] hold rows 0..3, u[4..7] rows 4..7).
     F8 col[9];
     for (int j = 0; j < 4; ++j) {
         col[j] = __builtin_shufflevector(u[j], u[j + 4], 0, 1, 2, 3, 8, 9, 10, 11);
         col[j + 4] = __builtin_shufflevector(u[j], u[j + 4], 4, 5, 6, 7, 12, 13, 14, 15);
     }
-    col[8] = F8{v2z[0], v2z[1], v2z[2], v2z[3], v2z[4], v2z[5], v2z[6], v2z[7]};
-    // Vertex v's coordinate k_j is column 3 v + k_j: the ray's axes as blend masks.
-    const int k[3] = {p.kx, p.ky, p.kz};
-    F8 ray_axes[3][3];
-    for (int j = 0; j < 3; ++j) {
-        const I8 is1 = (I8{} + k[j]) == 1, is2 = (I8{} + k[j]) == 2;
-        for (int v = 0; v < 3; ++v)
-            ray_axes[v][j] = pick(is2, col[3 * v + 2], pick(is1, col[3 * v + 1], col[3 * v]));
-    }
+    col[8] = v2z;
+    const F8 ray_axes[3][3] = {{col[0], col[1], col[2]},
+                               {col[3], col[4], col[5]},
+                               {pick(x_is_z, col[8], col[6]), pick(y_is_z, col[8], col[7]),
+                                pick(z_is_z, col[8], pick(x_is_z, col[6], col[7]))}};
     return intersect_ray_axes<F8, I8>(p, ray_axes, tmin, out);
 }
+#endif
 
 /// A ray's per-axis values: as 8-lane broadcasts (org[a], ...), and the three axes in lanes 0..2
 /// (and again 4..6) of one vector each (xyz_org, ...) for a per-lane pick by permute.
@@ -390,18 +434,20 @@ static inline int decode(const WideNode& w, const Ray8& r, float tmin, float tma
         // the slot at front-to-back position q = 7 - j = 4 c0 + 2 c1 + c2 (kFarFirstBytes). There,
         // a lane lies on the far side of its plane at level d exactly when c_d is 1, whatever
         // the ray's near sides: a constant blend per level. Only which plane a lane
-        // takes at levels 1 and 2 depends on them (1 + (slot >> 2) and 3 + (slot >> 1)), and that
+        // takes at levels 1 and 2 depends on them (1 + (slot >> 2) and 3 + (slot >> 1), in the same
+        // table entry), and that
         // is known as soon as the near sides are, beside the crossings' arithmetic. So the
         // intervals need no permute into stack order after the levels: the path from a node's
         // load to its nearest child's is one permute shorter, and the far sides' masks cost
         // nothing. The same operations on the same values lane by lane as below, so the same
         // answers.
-        const __m256i far_first = _mm256_cvtepu8_epi32(
-            _mm_cvtsi64_si128(static_cast<long long>(kFarFirstBytes.order[nh])));
+        const FarFirstBytes::Entry& ff = kFarFirstBytes.entry[nh];
+        const __m256i far_first =
+            _mm256_cvtepu8_epi32(_mm_cvtsi64_si128(static_cast<long long>(ff.order)));
         const __m256i plane1 =
-            _mm256_add_epi32(_mm256_srli_epi32(far_first, 2), _mm256_set1_epi32(1));
+            _mm256_cvtepu8_epi32(_mm_cvtsi64_si128(static_cast<long long>(ff.plane1)));
         const __m256i plane2 =
-            _mm256_add_epi32(_mm256_srli_epi32(far_first, 1), _mm256_set1_epi32(3));
+            _mm256_cvtepu8_epi32(_mm_cvtsi64_si128(static_cast<long long>(ff.plane2)));
         const __m256 nm_v = reinterpret_cast<__m256>(near_max);
         const __m256 fm_v = reinterpret_cast<__m256>(far_min);
         __m256 l = _mm256_set1_ps(tmin), h = _mm256_set1_ps(tmax);
@@ -810,14 +856,22 @@ template <bool AnyHit, class Counter>
                     found = true;
                     return true;
                 }
-            } else {
+            } else if (hits != 0) {
+                // The lanes' values through memory only on a pass with a hit (most have none).
+                alignas(32) float ht[kBlock], hv[kBlock], hw[kBlock], hdet[kBlock];
+                alignas(32) uint32_t hblock[kBlock];
+                __builtin_memcpy(ht, &h.t, sizeof ht);
+                __builtin_memcpy(hv, &h.v, sizeof hv);
+                __builtin_memcpy(hw, &h.w, sizeof hw);
+                __builtin_memcpy(hdet, &h.det, sizeof hdet);
+                __builtin_memcpy(hblock, &block, sizeof hblock);
                 for (; hits; hits &= hits - 1) {
                     const int l = __builtin_ctz(hits);
-                    const float t = h.t[l];
+                    const float t = ht[l];
                     // The tie rule and the answer use mesh ids.
-                    const uint32_t prim = tree.ids[block[l]];
+                    const uint32_t prim = tree.ids[hblock[l]];
                     if (t < best.t || (t == best.t && prim < best.prim)) {
-                        best = {t, prim, h.v[l] / h.det[l], h.w[l] / h.det[l]};
+                        best = {t, prim, hv[l] / hdet[l], hw[l] / hdet[l]};
                         found = true;
                     }
                 }
@@ -831,11 +885,18 @@ template <bool AnyHit, class Counter>
     // intervals are widened by eps, so a later cell (the far side of a plane higher up) may start
     // before an earlier one (a deep near-side cell): the rest of the stack is skipped through,
     // not cut off at the first cell beyond the hit.
+    // (In locals: the walk's fields would be stored and reloaded at every cell skipped.)
+    int top = stack_size;
+    const float best_t = best.t;
     do {
-        if (stack_size == 0) return true;
-        --stack_size;
-    } while (!AnyHit && stack.tmin[stack_size] > best.t);
-    cell = stack.at(stack_size, Counter::kCounts);
+        if (top == 0) {
+            stack_size = 0;
+            return true;
+        }
+        --top;
+    } while (!AnyHit && stack.tmin[top] > best_t);
+    stack_size = top;
+    cell = stack.at(top, Counter::kCounts);
     return false;
 }
 
@@ -870,8 +931,17 @@ template <bool AnyHit, class Counter>
     // The first block's references (eight where the walk tests eight triangles at a time)
     // whether the run ends before them or not (a shorter run's neighbours are its leaf's
     // neighbours in leaf order, often on the same lines).
+    // The triangles' offsets in floats (9 an index) in a vector, as intersect8 reads them: each
+    // address is then one addressing mode.
+    using UF = uint32_t __attribute__((vector_size(4 * kFirst)));
+    UF index;
+    __builtin_memcpy(&index, ref, sizeof index);
+    index &= ~KdTree::kLastRef;
+    const UF floats = (index << 3) + index;
+    const char* base = reinterpret_cast<const char*>(tree.tris);
+#pragma GCC unroll 8
     for (int i = 0; i < kFirst; ++i) {
-        const char* t = reinterpret_cast<const char*>(tree.tris + (ref[i] & ~KdTree::kLastRef));
+        const char* t = base + static_cast<size_t>(floats[i]) * sizeof(float);
         __builtin_prefetch(t);
         __builtin_prefetch(t + sizeof(TriVerts) - 1);
     }
