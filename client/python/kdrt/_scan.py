@@ -117,7 +117,7 @@ def decode_depth_image(body: bytes) -> dict:
     if len(body) < 16:
         raise _bad(f"KDRZ answer has {len(body)} bytes, fewer than its 16-byte header")
     if body[:4] != b"KDRZ":
-        raise _bad(f"bad magic {body[:4]!r}, expected b'KDRZ'")
+        raise _bad(f"bad magic {bytes(body[:4])!r}, expected b'KDRZ'")
     version, flags, width, height = np.frombuffer(body, dtype="<u2", count=2, offset=4).tolist() \
         + np.frombuffer(body, dtype="<u4", count=2, offset=8).tolist()
     if version != 1 or flags & ~3:
@@ -152,7 +152,7 @@ def decode_point_cloud(body: bytes) -> np.ndarray:
     if len(body) < 32:
         raise _bad(f"KDRL answer has {len(body)} bytes, fewer than its 32-byte header")
     if body[:4] != b"KDRL":
-        raise _bad(f"bad magic {body[:4]!r}, expected b'KDRL'")
+        raise _bad(f"bad magic {bytes(body[:4])!r}, expected b'KDRL'")
     version, flags = np.frombuffer(body, dtype="<u2", count=2, offset=4).tolist()
     count, channels, steps, returns = np.frombuffer(body, dtype="<u4", count=4,
                                                     offset=8).tolist()

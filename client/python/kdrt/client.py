@@ -10,7 +10,7 @@ from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 
-from . import _scan, _wire
+from . import _scan, _transport, _wire
 from ._errors import Error
 from ._transport import FileBody, Transport
 from .png import read_png
@@ -659,11 +659,15 @@ class Client:
 
     # ---- Sensor scans (POST /v1/meshes/{id}/scan) ---------------------------------------------
 
-    def _scan(self, mesh, request) -> bytes:
+    def _scan(self, mesh, request, pooled=False):
+        """The scan's answer body: bytes, or with `pooled` a memoryview of one of the client's
+        reused answer buffers (_transport.BodyBuffers), for answers whose decoded arrays are
+        views of it (a fresh buffer of a scan's size costs a page fault every 4 KiB)."""
         mesh_id = _mesh_id(mesh)
         path = self._t.api("/v1/meshes/" + _segment(mesh_id) + "/scan?route=" + _segment(mesh_id))
+        read = _transport.read_pooled(self._t.bodies) if pooled else None
         _, _, data = self._t.request("POST", path, [json.dumps(request).encode()],
-                                     "application/json")
+                                     "application/json", read=read)
         return data
 
     def scan_pinhole(self, mesh, intrinsics=None, pose=None, camera=None, width=None,
@@ -680,7 +684,7 @@ class Client:
         request = {"pinhole": _scan.pinhole_request(intrinsics, pose, camera, width, height,
                                                     output, normals, min_range, max_range),
                    "format": "binary"}
-        return _scan.decode_depth_image(self._scan(mesh, request))
+        return _scan.decode_depth_image(self._scan(mesh, request, pooled=True))
 
     def scan_lidar(self, mesh, azimuth_steps, elevation_deg=None, vertical_fov=None,
                    channels=None, returns=1, pose=None, min_range=None,
@@ -699,7 +703,7 @@ class Client:
         answer_format = _scan.lidar_format(record)
         lidar = _scan.lidar_request(azimuth_steps, elevation_deg, vertical_fov, channels,
                                     returns, pose, min_range, max_range)
-        body = self._scan(mesh, {"lidar": lidar, "format": answer_format})
+        body = self._scan(mesh, {"lidar": lidar, "format": answer_format}, pooled=True)
         if answer_format == "ranges":
             return _scan.decode_lidar_ranges(body, lidar)
         return _scan.decode_point_cloud(body)

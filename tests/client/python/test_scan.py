@@ -145,6 +145,48 @@ def test_compact_lidar_scan_carries_what_kdrl_does(client, bunny, camera):
     assert e.value.kind == "input" and "record" in e.value.detail
 
 
+def test_scans_arrays_survive_the_next_scans(client, bunny, camera):
+    """scan_pinhole / scan_lidar read their answers into the client's reused buffers
+    (_transport.read_pooled): an earlier scan's arrays, still held, keep their values through
+    the scans after it, and each equals the same request's answer read as bytes (scan_bytes)."""
+    scans = []
+    for k in range(6):
+        pose = np.eye(4)
+        pose[:3, 3] = camera["centre"] + [(1.4 + 0.1 * k) * camera["radius"], 0, 0]
+        lidar = {"vertical_fov": [-30, 20], "channels": 16, "azimuth_steps": 64 + 32 * k,
+                 "returns": 1, "pose": pose.tolist()}
+        record = "ranges" if k % 3 == 2 else "points"
+        got = client.scan_lidar(bunny, azimuth_steps=64 + 32 * k, vertical_fov=(-30, 20),
+                                channels=16, pose=pose, record=record)
+        request = {"lidar": lidar, "format": kdrt._scan.lidar_format(record)}
+        plain = client.scan_bytes(bunny, request)
+        assert isinstance(plain, bytes)
+        if record == "ranges":
+            want = kdrt._scan.decode_lidar_ranges(plain, lidar)
+            got = {key: got[key] for key in ("range", "primitive_ids")}
+            want = {key: want[key].copy() for key in ("range", "primitive_ids")}
+        else:
+            want = kdrt._scan.decode_point_cloud(plain).copy()
+        assert len(want["range"]) > 20
+        scans.append((got, want))
+        eye = camera["centre"] + [0.4 * camera["radius"], 0.2 * k * camera["radius"],
+                                  2.5 * camera["radius"]]
+        image = client.scan_pinhole(bunny, intrinsics=camera["intrinsics"],
+                                    pose=look_pose(eye, camera["centre"]))
+        request = {"pinhole": kdrt._scan.pinhole_request(
+            camera["intrinsics"], look_pose(eye, camera["centre"]), None, None, None, "depth",
+            False, None, None), "format": "binary"}
+        want = kdrt._scan.decode_depth_image(client.scan_bytes(bunny, request))
+        scans.append((image, {key: value.copy() for key, value in want.items()}))
+        for held, expected in scans:
+            if isinstance(expected, np.ndarray):
+                assert held.tobytes() == expected.tobytes(), k
+            else:
+                for key in expected:
+                    assert np.array_equal(held[key], expected[key]), (k, key)
+    assert len(client._t.bodies._buffers) <= kdrt._transport.POOLED_BUFFERS
+
+
 def test_errors_name_the_field(client, bunny, camera):
     bad = np.array(camera["pose"])
     bad[:3, :3] *= 2
