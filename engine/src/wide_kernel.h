@@ -305,6 +305,8 @@ template <class F, class I>
     // Each triangle's offset in floats (9 an index) in the vector, so that a row's address is
     // one addressing mode (base + 4 offset), not two more instructions a lane.
     static_assert(sizeof(TriVerts) == 9 * sizeof(float));
+    static_assert(kMaxTriangles * 9 <= 0x7fffffffu,
+                  "a triangle's float offset fits the gather's int32");
     const U8 floats = (index << 3) + index;
     const char* base = reinterpret_cast<const char*>(tris);
     F8 r[8];

@@ -27,7 +27,9 @@ struct Mesh {
     }
 };
 
-/// Largest triangle count the 30-bit node fields can address.
-inline constexpr size_t kMaxTriangles = (size_t{1} << 30) - 1;
+/// Largest triangle count: the 30-bit node fields address up to 2^30 - 1, and the single-ray
+/// leaf test addresses the leaf-ordered triangles (9 floats each) by signed 32-bit float offsets
+/// (one gather a pass, wide_kernel.h), which reach (2^31 - 1) / 9 = 238,609,294 triangles.
+inline constexpr size_t kMaxTriangles = ((size_t{1} << 31) - 1) / 9;
 
 }  // namespace kdrt
