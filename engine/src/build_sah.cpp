@@ -327,10 +327,25 @@ struct Split {
     double cost = INFINITY;
 };
 
-/// Uninitialised storage for events (no zero-filling of memory that is overwritten anyway).
-struct EventBuffer {
-    std::unique_ptr<Event[]> data;
+/// Frees an EventBuffer's events (free_tree_memory, with the buffer's size).
+struct FreeEvents {
     size_t capacity = 0;
+    void operator()(Event* p) const noexcept { free_tree_memory(p, capacity * sizeof(Event)); }
+};
+
+/// Uninitialised storage for events (no zero-filling of memory that is overwritten anyway): tree
+/// memory (allocate_tree_memory), so a big buffer is a huge-page mapping of its own, and one freed
+/// while the build runs serves its later big buffers and arrays (RecycleTreeMappings) instead of
+/// going back to the heap, whose freed big blocks come back as fresh pages to fault in.
+struct EventBuffer {
+    std::unique_ptr<Event[], FreeEvents> data;
+    size_t capacity = 0;
+
+    static EventBuffer make(size_t n) {
+        return {std::unique_ptr<Event[], FreeEvents>(
+                    static_cast<Event*>(allocate_tree_memory(n * sizeof(Event))), FreeEvents{n}),
+                n};
+    }
 };
 
 /// A node to be built: its cell and its three sorted event lists, axis a at
@@ -414,7 +429,7 @@ struct Scratch {
             if (best < big_pool.size()) return take_at(big_pool, best);
             n = std::bit_ceil(n);
         }
-        return {std::make_unique_for_overwrite<Event[]>(n), n};
+        return EventBuffer::make(n);
     }
     void give_back(EventBuffer&& b) {
         if (b.capacity != 0 && b.capacity <= kPooledEvents && pool.size() < kPoolSlots) {
