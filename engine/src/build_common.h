@@ -17,12 +17,21 @@ namespace kdrt::detail {
 /// memory. When the last one ends, what is still kept is unmapped. A build holds one, so the
 /// tree's final arrays take the pages its scratch arrays (the binned levels' arena) were given
 /// and touched, instead of fresh pages to fault in. Kept memory is not zeroed.
+///
+/// The kept memory is capped: at most the sum of the live objects' `limit`s (whole 2 MiB pages;
+/// what does not fit is unmapped at its free, and when one ends, what the others' limits do not
+/// cover is unmapped). A build passes its own size, so a tree freed elsewhere while it runs (a
+/// cache's eviction) is kept only up to what this build can use, not whole and outside the
+/// caller's memory budget for as long as builds overlap.
 class RecycleTreeMappings {
 public:
-    RecycleTreeMappings();
+    explicit RecycleTreeMappings(size_t limit);
     ~RecycleTreeMappings();
     RecycleTreeMappings(const RecycleTreeMappings&) = delete;
     RecycleTreeMappings& operator=(const RecycleTreeMappings&) = delete;
+
+private:
+    size_t limit_;
 };
 
 /// Bytes of mappings kept for reuse now (RecycleTreeMappings).

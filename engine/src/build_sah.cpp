@@ -327,10 +327,18 @@ struct Split {
     double cost = INFINITY;
 };
 
+/// Frees an EventBuffer's events: as EventBuffer::make took them, by their capacity.
+struct FreeEvents {
+    size_t capacity = 0;
+    void operator()(Event* p) const noexcept;
+};
+
 /// Uninitialised storage for events (no zero-filling of memory that is overwritten anyway).
 struct EventBuffer {
-    std::unique_ptr<Event[]> data;
+    std::unique_ptr<Event[], FreeEvents> data;
     size_t capacity = 0;
+
+    static EventBuffer make(size_t n);
 };
 
 /// A node to be built: its cell and its three sorted event lists, axis a at
@@ -368,6 +376,28 @@ constexpr size_t kBigPoolSlots = 8;            // at most this many of those
 constexpr size_t kRadixSortEvents = 1u << 11;  // a node's first sort: radix from this many events
 constexpr size_t kMinBlock = 32, kMaxBlock = 64;  // events per block of sweep_pruned
 constexpr size_t kPruneFrom = 256;  // events per axis from which the sweep prunes blocks
+
+/// A buffer the per-thread pools do not keep (more than kBigPooledEvents: the nodes of more than
+/// ~11k triangles, a subtree root's events, the radix sort's scratch) is tree memory
+/// (allocate_tree_memory): from 2 MiB a huge-page mapping of its own, and one freed while the
+/// build runs serves its later big buffers and arrays (RecycleTreeMappings). From the heap, a
+/// freed big block went back to the kernel, and every big node's children and every sort's
+/// scratch were fresh pages to fault in (the stadium: ~3,700 faults a build). Smaller ones, which
+/// the pools keep, stay on the heap (its small blocks are reused warm).
+EventBuffer EventBuffer::make(size_t n) {
+    Event* const p = n > kBigPooledEvents
+                         ? static_cast<Event*>(allocate_tree_memory(n * sizeof(Event)))
+                         : new Event[n];
+    return {std::unique_ptr<Event[], FreeEvents>(p, FreeEvents{n}), n};
+}
+
+void FreeEvents::operator()(Event* p) const noexcept {
+    if (capacity > kBigPooledEvents) {
+        free_tree_memory(p, capacity * sizeof(Event));
+    } else {
+        delete[] p;
+    }
+}
 
 /// A run of whole positions of one axis' sorted events, ev[begin, end), with the sweep's counts
 /// before it and a lower bound on the cost of every candidate in it (sweep_pruned).
@@ -414,7 +444,7 @@ struct Scratch {
             if (best < big_pool.size()) return take_at(big_pool, best);
             n = std::bit_ceil(n);
         }
-        return {std::make_unique_for_overwrite<Event[]>(n), n};
+        return EventBuffer::make(n);
     }
     void give_back(EventBuffer&& b) {
         if (b.capacity != 0 && b.capacity <= kPooledEvents && pool.size() < kPoolSlots) {

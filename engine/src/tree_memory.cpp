@@ -86,9 +86,15 @@ void* map_huge(size_t bytes) {
 /// huge pages just before the tree's final arrays (~180 MB) are made, and a fresh huge page costs
 /// its zeroing by the host at its first touch (0.3-0.6 GB/s on this project's VM), a kept one
 /// nothing. Ranges are 2 MiB aligned, whole 2 MiB pages, advised MADV_HUGEPAGE and touched.
+///
+/// Kept memory is outside every budget the caller keeps (a server's tree cache counts its trees,
+/// not this), so it is capped: at most the sum of the live builds' own limits. Without the cap a
+/// freed tree (a cache eviction, a replaced mesh) was kept whole while any build ran, and with
+/// builds overlapping it was never given back.
 struct Recycled {
     std::mutex mutex;
     int builds = 0;                  ///< live RecycleTreeMappings objects
+    size_t limit = 0;                ///< the sum of their limits
     std::map<uintptr_t, size_t> at;  ///< kept ranges: start -> length
     size_t bytes = 0;                ///< their total length
 };
@@ -115,14 +121,18 @@ void* take_recycled(size_t len) {
     return reinterpret_cast<void*>(start);
 }
 
-/// Keeps the range if a build runs; false: the caller unmaps it.
-bool keep_recycled(void* p, size_t len) {
+/// Keeps as much of the range as the live builds' limit leaves room for (whole 2 MiB pages, its
+/// start); returns the bytes kept: the caller unmaps the rest.
+size_t keep_recycled(void* p, size_t len) {
     Recycled& r = recycled();
     const std::lock_guard<std::mutex> lock(r.mutex);
-    if (r.builds == 0) return false;
-    r.at.emplace(reinterpret_cast<uintptr_t>(p), len);
-    r.bytes += len;
-    return true;
+    if (r.builds == 0 || r.bytes >= r.limit) return 0;
+    const size_t room = (r.limit - r.bytes) / kHugePage * kHugePage;
+    const size_t kept = len < room ? len : room;
+    if (kept == 0) return 0;
+    r.at.emplace(reinterpret_cast<uintptr_t>(p), kept);
+    r.bytes += kept;
+    return kept;
 }
 
 }  // namespace
@@ -141,12 +151,12 @@ void* allocate_tree_memory(size_t bytes) {
 void free_tree_memory(void* p, size_t bytes) noexcept {
     if (own_mapping(bytes)) {
         const size_t len = mapping_bytes(bytes);
-        bool kept = false;
+        size_t kept = 0;
         try {
             kept = keep_recycled(p, len);
         } catch (...) {  // no room for the map's entry: unmapped as before
         }
-        if (!kept) (void)munmap(p, len);
+        if (kept < len) (void)munmap(static_cast<unsigned char*>(p) + kept, len - kept);
         return;
     }
     ::operator delete (p, std::align_val_t{kLine});
@@ -154,10 +164,11 @@ void free_tree_memory(void* p, size_t bytes) noexcept {
 
 namespace detail {
 
-RecycleTreeMappings::RecycleTreeMappings() {
+RecycleTreeMappings::RecycleTreeMappings(size_t limit) : limit_(limit) {
     Recycled& r = recycled();
     const std::lock_guard<std::mutex> lock(r.mutex);
     ++r.builds;
+    r.limit += limit_;
 }
 
 RecycleTreeMappings::~RecycleTreeMappings() {
@@ -165,9 +176,28 @@ RecycleTreeMappings::~RecycleTreeMappings() {
     std::map<uintptr_t, size_t> gone;
     {
         const std::lock_guard<std::mutex> lock(r.mutex);
-        if (--r.builds > 0) return;
-        gone.swap(r.at);
-        r.bytes = 0;
+        r.limit -= limit_;
+        if (--r.builds == 0) {
+            gone.swap(r.at);
+            r.bytes = 0;
+        } else {
+            // The builds still running keep no more than their own limits: the biggest ranges go
+            // first (the fewest unmaps), a range is cut to whole pages where part of it fits.
+            while (r.bytes > r.limit) {
+                auto big = r.at.begin();
+                for (auto it = r.at.begin(); it != r.at.end(); ++it)
+                    if (it->second > big->second) big = it;
+                const size_t over = mapping_bytes(r.bytes - r.limit);
+                const size_t cut = over < big->second ? over : big->second;
+                gone.emplace(big->first + big->second - cut, cut);
+                r.bytes -= cut;
+                if (cut == big->second) {
+                    r.at.erase(big);
+                } else {
+                    big->second -= cut;
+                }
+            }
+        }
     }
     for (const auto& [start, len] : gone) (void)munmap(reinterpret_cast<void*>(start), len);
 }

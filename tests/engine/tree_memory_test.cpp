@@ -108,6 +108,7 @@ TEST(TreeMemory, SmallArraysAreLineAligned) {
 // kept. When the last one ends, whatever is kept is unmapped; without one, a free unmaps.
 TEST(TreeMemory, FreedMappingsServeLaterArraysWhileABuildRuns) {
     constexpr size_t kMiB = size_t{1} << 20;
+    constexpr size_t kGiB = size_t{1} << 30;  // limits that hold everything here
     ASSERT_EQ(detail::recycled_tree_bytes(), 0u);
     {
         void* gone = allocate_tree_memory(4 * kMiB);
@@ -117,7 +118,7 @@ TEST(TreeMemory, FreedMappingsServeLaterArraysWhileABuildRuns) {
     }
     void* big = nullptr;
     {
-        const detail::RecycleTreeMappings outer;
+        const detail::RecycleTreeMappings outer(kGiB);
         big = allocate_tree_memory(16 * kMiB);
         void* small = allocate_tree_memory(4 * kMiB - 100);  // takes two whole huge pages
         std::memset(big, 0x5a, 16 * kMiB);
@@ -125,7 +126,7 @@ TEST(TreeMemory, FreedMappingsServeLaterArraysWhileABuildRuns) {
         free_tree_memory(small, 4 * kMiB - 100);
         EXPECT_EQ(detail::recycled_tree_bytes(), 20 * kMiB);
         {
-            const detail::RecycleTreeMappings inner;  // a second build at the same time
+            const detail::RecycleTreeMappings inner(kGiB);  // a second build at the same time
             // The smallest range that holds 3 MiB (rounded to 4): the small array's, whole.
             EXPECT_EQ(allocate_tree_memory(3 * kMiB), small);
             EXPECT_EQ(detail::recycled_tree_bytes(), 16 * kMiB);
@@ -153,6 +154,54 @@ TEST(TreeMemory, FreedMappingsServeLaterArraysWhileABuildRuns) {
     }
     EXPECT_EQ(detail::recycled_tree_bytes(), 0u);
     EXPECT_FALSE(mapping_of(big).found) << "kept ranges are unmapped when the last build ends";
+}
+
+// The kept memory is capped by the live builds' limits: a tree freed while a small build runs
+// (a cache's eviction) is kept only up to that build's limit, the rest of its mapping unmapped at
+// once; when a build ends, what the others' limits do not cover is unmapped; a build with no
+// limit keeps nothing.
+TEST(TreeMemory, KeptMappingsStayWithinTheLiveBuildsLimits) {
+    constexpr size_t kMiB = size_t{1} << 20;
+    ASSERT_EQ(detail::recycled_tree_bytes(), 0u);
+    {
+        const detail::RecycleTreeMappings none(0);
+        void* p = allocate_tree_memory(4 * kMiB);
+        free_tree_memory(p, 4 * kMiB);
+        EXPECT_EQ(detail::recycled_tree_bytes(), 0u) << "a limit of 0 keeps nothing";
+        EXPECT_FALSE(mapping_of(p).found);
+    }
+    auto* const evicted = static_cast<unsigned char*>(allocate_tree_memory(32 * kMiB));
+    auto* const other = static_cast<unsigned char*>(allocate_tree_memory(8 * kMiB));
+    {
+        // 11 MiB: 10 of them in whole 2 MiB pages.
+        const detail::RecycleTreeMappings small(11 * kMiB);
+        free_tree_memory(evicted, 32 * kMiB);
+        EXPECT_EQ(detail::recycled_tree_bytes(), 10 * kMiB);
+        EXPECT_TRUE(mapping_of(evicted).found) << "the kept head";
+        EXPECT_FALSE(mapping_of(evicted + 10 * kMiB).found) << "the rest is unmapped at once";
+        EXPECT_FALSE(mapping_of(evicted + 32 * kMiB - 1).found);
+        {
+            const detail::RecycleTreeMappings second(8 * kMiB);
+            free_tree_memory(other, 8 * kMiB);  // 18 MiB kept, 19 allowed
+            EXPECT_EQ(detail::recycled_tree_bytes(), 18 * kMiB);
+            void* extra = allocate_tree_memory(12 * kMiB);  // no kept range holds it: fresh
+            EXPECT_EQ(detail::recycled_tree_bytes(), 18 * kMiB);
+            free_tree_memory(extra, 12 * kMiB);  // room for less than a page: unmapped
+            EXPECT_EQ(detail::recycled_tree_bytes(), 18 * kMiB);
+            EXPECT_FALSE(mapping_of(extra).found);
+        }
+        // The second build's 8 MiB are gone: 18 kept against 11 allowed, the biggest range (the
+        // 10 MiB head) cut by whole pages to 2 MiB.
+        EXPECT_EQ(detail::recycled_tree_bytes(), 10 * kMiB);
+        EXPECT_TRUE(mapping_of(evicted).found);
+        EXPECT_FALSE(mapping_of(evicted + 2 * kMiB).found);
+        EXPECT_TRUE(mapping_of(other + 8 * kMiB - 1).found);
+        EXPECT_EQ(allocate_tree_memory(8 * kMiB), other) << "what is kept still serves";
+        free_tree_memory(other, 8 * kMiB);
+    }
+    EXPECT_EQ(detail::recycled_tree_bytes(), 0u);
+    EXPECT_FALSE(mapping_of(evicted).found);
+    EXPECT_FALSE(mapping_of(other).found);
 }
 
 }  // namespace
