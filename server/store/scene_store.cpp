@@ -27,10 +27,12 @@ constexpr const char* kLogName = "revisions.kdrs";
 
 bool flock_unsupported(int err) { return err == ENOLCK || err == EOPNOTSUPP || err == EINVAL; }
 
+/// The file system is full or a size limit refused a write.
+bool no_space(int err) { return err == ENOSPC || err == EDQUOT || err == EFBIG; }
+
 WriteError os_error(const std::string& what, const fs::path& path, const std::error_code& ec) {
     const int err = ec.value();
-    return WriteError{what + " \"" + path.string() + "\": " + ec.message(),
-                      err == ENOSPC || err == EDQUOT || err == EFBIG};
+    return WriteError{what + " \"" + path.string() + "\": " + ec.message(), no_space(err)};
 }
 
 /// The revision number of a file name "<20 digits>.json"; nullopt for any other name.
@@ -618,7 +620,12 @@ proto::Result<SceneStore::IndexPtr, WriteError> SceneStore::write_log(
     bytes.resize(bytes.size() + log_padding(last.size()));  // zeros for the next commits
     index->zero_tail = true;
     const fs::path path = log_path(id);
-    if (auto w = write_file_durably(path, tmp_dir_, bytes); !w) return proto::Err{w.error()};
+    auto w = write_file_durably(path, tmp_dir_, bytes);
+    if (!w && w.error().no_space) {  // no room for the zeros: the records alone
+        bytes.resize(index->end);
+        w = write_file_durably(path, tmp_dir_, bytes);
+    }
+    if (!w) return proto::Err{w.error()};
     if (auto d = sync_directory(dir_fd, scene_dir(id)); !d) return proto::Err{d.error()};
     struct stat st {};
     if (::stat(path.c_str(), &st) == 0) {
@@ -731,7 +738,13 @@ proto::Result<bool, WriteError> SceneStore::commit_to_log(StagedRevision& staged
         std::copy(staged.bytes.begin(), staged.bytes.end(), grown.begin());
         bytes = grown;
     }
-    if (!write_at(fd.fd, bytes, in.end) || (flush_commits_ && ::fdatasync(fd.fd) != 0)) {
+    bool written = write_at(fd.fd, bytes, in.end);
+    if (!written && !grown.empty() && no_space(errno)) {
+        // No room for the zeros (a full file system, a file size limit): the record alone.
+        written = ::ftruncate(fd.fd, static_cast<off_t>(in.end)) == 0 &&
+                  write_at(fd.fd, staged.bytes, in.end);
+    }
+    if (!written || (flush_commits_ && ::fdatasync(fd.fd) != 0)) {
         const int err = errno;
         // Best effort: what was written is cut off again (else the next commit does it).
         if (::ftruncate(fd.fd, static_cast<off_t>(in.end)) == 0) (void)::fdatasync(fd.fd);

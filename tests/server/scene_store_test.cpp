@@ -7,6 +7,7 @@
 
 #include <gtest/gtest.h>
 #include <signal.h>
+#include <sys/resource.h>
 #include <sys/wait.h>
 #include <unistd.h>
 
@@ -792,6 +793,38 @@ TEST_P(SceneLogTest, ALogIsCompactedToTheKeptRevisions) {
     EXPECT_EQ(std::distance(fs::directory_iterator(s.scene_dir(id)), {}), 1);
     EXPECT_TRUE(fs::is_empty(dir_ / "tmp" / "p"));
     EXPECT_TRUE(fs::is_empty(dir_ / "tmp" / "q"));
+}
+
+// Where the zeros do not fit (a full file system, a file size limit), a commit writes its record
+// alone and a compaction its records alone, as before the zeros: a scene is refused no sooner.
+TEST_P(SceneLogTest, WithoutRoomForTheZerosTheRecordsAreWrittenAlone) {
+    constexpr uint32_t kKept = 2;
+    SceneStore s = store(kKept);
+    const std::string id = SceneStore::new_id();
+    ASSERT_TRUE(s.create(scene(id, 1, 4)).ok());
+    const uint64_t record_bytes = proto::encode_scene_file(scene(id, 1, 4)).size();
+    const uint64_t limit = (SceneStore::kCompactRecords + kKept + 1) * record_bytes;
+    ASSERT_LT(limit, SceneStore::kPaddingBytes);
+    rlimit before{};
+    ASSERT_EQ(::getrlimit(RLIMIT_FSIZE, &before), 0);
+    const auto old_handler = ::signal(SIGXFSZ, SIG_IGN);  // EFBIG instead of the signal
+    const rlimit small{limit, before.rlim_max};
+    ASSERT_EQ(::setrlimit(RLIMIT_FSIZE, &small), 0);
+    const uint64_t last = SceneStore::kCompactRecords + kKept + 5;  // past one compaction
+    bool all = true;
+    for (uint64_t r = 2; r <= last && all; ++r) {
+        const auto committed = s.commit(scene(id, r, 4));
+        all = committed.ok() && *committed;
+        EXPECT_TRUE(all) << r << ": " << (committed.ok() ? "stale" : committed.error().message);
+    }
+    ::setrlimit(RLIMIT_FSIZE, &before);
+    ::signal(SIGXFSZ, old_handler);
+    ASSERT_TRUE(all);
+    EXPECT_LE(fs::file_size(s.log_path(id)), limit);
+    SceneStore fresh = store(kKept, "q");
+    EXPECT_EQ(*fresh.latest(id), last);
+    for (uint64_t r = last - kKept + 1; r <= last; ++r)
+        EXPECT_EQ(*fresh.read(id, r), scene(id, r, 4)) << r;
 }
 
 INSTANTIATE_TEST_SUITE_P(Forms, SceneStoreTest, ::testing::Values(true, false),
