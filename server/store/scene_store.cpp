@@ -27,10 +27,12 @@ constexpr const char* kLogName = "revisions.kdrs";
 
 bool flock_unsupported(int err) { return err == ENOLCK || err == EOPNOTSUPP || err == EINVAL; }
 
+/// The file system is full or a size limit refused a write.
+bool no_space(int err) { return err == ENOSPC || err == EDQUOT || err == EFBIG; }
+
 WriteError os_error(const std::string& what, const fs::path& path, const std::error_code& ec) {
     const int err = ec.value();
-    return WriteError{what + " \"" + path.string() + "\": " + ec.message(),
-                      err == ENOSPC || err == EDQUOT || err == EFBIG};
+    return WriteError{what + " \"" + path.string() + "\": " + ec.message(), no_space(err)};
 }
 
 /// The revision number of a file name "<20 digits>.json"; nullopt for any other name.
@@ -396,6 +398,41 @@ bool same_file(const Index& index, const struct stat& st) {
            index.mtime_ns == nanoseconds(st.st_mtim) && index.ctime_ns == nanoseconds(st.st_ctim);
 }
 
+/// False when the log open as `fd` may hold a record after the ones `index` knows: a commit
+/// (of any process) writes its record where the last known one ends, into the log's zeros
+/// without changing its size, and a time stamp may not tell (on kernels before 6.13 it moves
+/// once a clock tick), so the header there is read. A log without zeros after its records
+/// grows with each commit: the size tells.
+template <class Index>
+bool nothing_after(int fd, const Index& index) {
+    if (index.end >= index.size) return true;
+    std::byte head[proto::kSceneFileHeaderBytes];
+    if (index.end + sizeof head > index.size) return true;  // no room for a record
+    if (!read_at(fd, head, sizeof head, index.end)) return false;
+    const auto header = proto::read_scene_file_header(head);
+    return !header || header->revision != index.latest() + 1;
+}
+
+/// The zeros written after a record of `record_bytes` that did not fit in a log's zeros.
+uint64_t log_padding(uint64_t record_bytes) {
+    const uint64_t want =
+        std::max(SceneStore::kPaddingBytes, SceneStore::kPaddingRecords * record_bytes);
+    return (want + 4095) / 4096 * 4096;
+}
+
+/// True when the `n` bytes of `fd` from `offset` are all zero (a read error: false).
+bool zeros_at(int fd, uint64_t offset, uint64_t n) {
+    std::vector<std::byte> bytes(std::min<uint64_t>(n, 1 << 20));
+    for (uint64_t done = 0; done < n;) {
+        const size_t step = static_cast<size_t>(std::min<uint64_t>(bytes.size(), n - done));
+        if (!read_at(fd, bytes.data(), step, offset + done)) return false;
+        for (size_t i = 0; i < step; ++i)
+            if (bytes[i] != std::byte{0}) return false;
+        done += step;
+    }
+    return true;
+}
+
 }  // namespace
 
 void SceneStore::remember(const std::string& id, IndexPtr index) const {
@@ -413,11 +450,13 @@ proto::Result<SceneStore::IndexPtr, SceneStoreError> SceneStore::index_of(const 
     const fs::path path = log_path(id);
     struct stat st {};
     if (::fstat(fd, &st) != 0) return proto::Err{io_error("cannot stat", path, errno)};
+    IndexPtr cached;
     {
         std::lock_guard lock(indexes_->mutex);
         const auto it = indexes_->by_id.find(id);
-        if (it != indexes_->by_id.end() && same_file(*it->second, st)) return it->second;
+        if (it != indexes_->by_id.end() && same_file(*it->second, st)) cached = it->second;
     }
+    if (cached && nothing_after(fd, *cached)) return cached;
     auto walked = walk_log<LogIndex>(fd, st, path);
     if (!walked) return proto::Err{std::move(walked).error()};
     auto index = std::make_shared<const LogIndex>(std::move(walked).value());
@@ -441,9 +480,17 @@ proto::Result<SceneStore::IndexPtr, SceneStoreError> SceneStore::index(const std
         return proto::Err{io_error("cannot stat", path, errno)};
     }
     {
-        std::lock_guard lock(indexes_->mutex);
-        const auto it = indexes_->by_id.find(id);
-        if (it != indexes_->by_id.end() && same_file(*it->second, st)) return it->second;
+        IndexPtr cached;
+        {
+            std::lock_guard lock(indexes_->mutex);
+            const auto it = indexes_->by_id.find(id);
+            if (it != indexes_->by_id.end() && same_file(*it->second, st)) cached = it->second;
+        }
+        if (cached && cached->end >= cached->size) return cached;
+        if (cached) {  // zeros after its records: a commit there does not change the size
+            const FdCloser probe{::open(path.c_str(), O_RDONLY | O_CLOEXEC)};
+            if (probe.fd >= 0 && nothing_after(probe.fd, *cached)) return cached;
+        }
     }
     // Changed since this process read it (another process committed, or it is new here): walked
     // under a shared lock of the directory, so that a commit in progress (its record appended
@@ -570,8 +617,15 @@ proto::Result<SceneStore::IndexPtr, WriteError> SceneStore::write_log(
         {proto::read_scene_file_header(last)->revision, bytes.size(), last.size()});
     bytes.insert(bytes.end(), last.begin(), last.end());
     index->end = bytes.size();
+    bytes.resize(bytes.size() + log_padding(last.size()));  // zeros for the next commits
+    index->zero_tail = true;
     const fs::path path = log_path(id);
-    if (auto w = write_file_durably(path, tmp_dir_, bytes); !w) return proto::Err{w.error()};
+    auto w = write_file_durably(path, tmp_dir_, bytes);
+    if (!w && w.error().no_space) {  // no room for the zeros: the records alone
+        bytes.resize(index->end);
+        w = write_file_durably(path, tmp_dir_, bytes);
+    }
+    if (!w) return proto::Err{w.error()};
     if (auto d = sync_directory(dir_fd, scene_dir(id)); !d) return proto::Err{d.error()};
     struct stat st {};
     if (::stat(path.c_str(), &st) == 0) {
@@ -663,23 +717,44 @@ proto::Result<bool, WriteError> SceneStore::commit_to_log(StagedRevision& staged
             if (revision_of(entry.path().filename().string())) fs::remove(entry.path(), ec);
         return true;
     }
-    if (in.end < in.size) {
+    // After the records: the zeros of earlier commits, or what a crash in the middle of a
+    // commit left (a torn record, never acknowledged), which is cut off.
+    uint64_t size = in.size;
+    if (in.end < in.size && !in.zero_tail && !zeros_at(fd.fd, in.end, in.size - in.end)) {
         if (::ftruncate(fd.fd, static_cast<off_t>(in.end)) != 0)
             return os("cannot truncate", path, errno);
         notice(id, "cut a torn record of " + std::to_string(in.size - in.end) +
                        " bytes off the end of " + kLogName + " (never acknowledged)");
+        size = in.end;
     }
-    // The commit: one record appended and one flush (the data and the size), or none.
-    if (!write_at(fd.fd, staged.bytes, in.end) || (flush_commits_ && ::fdatasync(fd.fd) != 0)) {
+    // The commit: one record written and one flush, or none. Over the zeros when they hold it
+    // (only the data is flushed); else the record and new zeros after it (the flush commits the
+    // size and blocks too, once for the next commits).
+    const uint64_t end = in.end + staged.bytes.size();
+    std::span<const std::byte> bytes = staged.bytes;
+    std::vector<std::byte> grown;
+    if (end > size) {
+        grown.resize(staged.bytes.size() + log_padding(staged.bytes.size()));
+        std::copy(staged.bytes.begin(), staged.bytes.end(), grown.begin());
+        bytes = grown;
+    }
+    bool written = write_at(fd.fd, bytes, in.end);
+    if (!written && !grown.empty() && no_space(errno)) {
+        // No room for the zeros (a full file system, a file size limit): the record alone.
+        written = ::ftruncate(fd.fd, static_cast<off_t>(in.end)) == 0 &&
+                  write_at(fd.fd, staged.bytes, in.end);
+    }
+    if (!written || (flush_commits_ && ::fdatasync(fd.fd) != 0)) {
         const int err = errno;
         // Best effort: what was written is cut off again (else the next commit does it).
         if (::ftruncate(fd.fd, static_cast<off_t>(in.end)) == 0) (void)::fdatasync(fd.fd);
         forget(id);
-        return os("cannot append to", path, err);
+        return os("cannot write to", path, err);
     }
     auto next = std::make_shared<LogIndex>(in);
     next->records.push_back({staged.revision, in.end, staged.bytes.size()});
-    next->end = in.end + staged.bytes.size();
+    next->end = end;
+    next->zero_tail = true;
     struct stat st {};
     if (::fstat(fd.fd, &st) == 0) {
         next->size = static_cast<uint64_t>(st.st_size);

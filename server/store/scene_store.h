@@ -6,8 +6,10 @@
 ///                                 numbered one more than the one before (FORMATS.md "Scene
 ///                                 revision log").
 ///
-/// The current revision is the last whole record. A commit appends one record at the log's end
-/// and flushes it with a single fdatasync before the caller acknowledges it (unless
+/// The current revision is the last whole record; zeros may follow the records. A commit writes
+/// one record where the last one ends, over those zeros when they hold it (the file keeps its
+/// size, so the flush writes only data), else followed by kPaddingBytes of new zeros (the file
+/// grows), and flushes it with a single fdatasync before the caller acknowledges it (unless
 /// set_flush_commits(false): then no flush, and a power loss may drop the newest), holding an
 /// exclusive flock on the scene's directory that every process sharing the store takes: under
 /// it the commit compares its revision with the log's last (the compare-and-set of optimistic
@@ -208,6 +210,12 @@ public:
     static constexpr size_t kCompactRecords = 64;
     /// ... or this many bytes of them.
     static constexpr uint64_t kCompactBytes = 64ull << 20;
+    /// The zeros a log keeps after its records for the next commits (at least this many, or
+    /// kPaddingRecords of the record that grew it, in whole 4 KiB pages): a record written over
+    /// zeros already on the disk changes no metadata, so its flush writes only its data (an
+    /// append also commits the file's new size and blocks through the file system's journal).
+    static constexpr uint64_t kPaddingBytes = 1ull << 20;
+    static constexpr uint64_t kPaddingRecords = 8;
 
 private:
     /// What this process knows of one log: the file it read (device, inode, size, times), its
@@ -222,6 +230,9 @@ private:
         int64_t mtime_ns = 0, ctime_ns = 0;
         std::vector<Record> records;
         uint64_t end = 0;
+        /// True when the bytes from `end` to `size` are known to be zeros (this process wrote
+        /// them, or a commit read them): the next record is written there in place.
+        bool zero_tail = false;
         [[nodiscard]] uint64_t latest() const noexcept {
             return records.empty() ? 0 : records.back().revision;
         }

@@ -7,6 +7,7 @@
 
 #include <gtest/gtest.h>
 #include <signal.h>
+#include <sys/resource.h>
 #include <sys/wait.h>
 #include <unistd.h>
 
@@ -22,6 +23,20 @@ namespace kdrt::server {
 namespace {
 
 namespace fs = std::filesystem;
+
+/// A log's records: its bytes before the zeros it keeps after them for the next commits (the
+/// rest is checked to be zeros).
+std::string records_of(const std::string& log) {
+    size_t end = 0;
+    while (end + proto::kSceneFileHeaderBytes <= log.size()) {
+        const auto header = proto::read_scene_file_header(
+            {reinterpret_cast<const std::byte*>(log.data()) + end, proto::kSceneFileHeaderBytes});
+        if (!header || header->size > log.size() - end) break;
+        end += header->size;
+    }
+    EXPECT_EQ(log.find_first_not_of('\0', end), std::string::npos) << "zeros after the records";
+    return log.substr(0, end);
+}
 
 /// The parameter: true for the revision log, false for the per-revision files.
 class SceneStoreTest : public ::testing::TestWithParam<bool> {
@@ -176,6 +191,7 @@ TEST_P(SceneStoreTest, ARevisionEncodedByTheCallerIsStagedAsItsBytes) {
     // The revision file, or the log's last record.
     std::ifstream in(log_form() ? s.log_path(id) : s.revision_path(id, 2), std::ios::binary);
     std::string on_disk((std::istreambuf_iterator<char>(in)), std::istreambuf_iterator<char>());
+    if (log_form()) on_disk = records_of(on_disk);
     ASSERT_GE(on_disk.size(), bytes.size());
     on_disk = on_disk.substr(on_disk.size() - bytes.size());
     EXPECT_EQ(std::memcmp(on_disk.data(), bytes.data(), bytes.size()), 0);
@@ -254,8 +270,8 @@ TEST_P(SceneStoreTest, RevisionsAreKdrsAndRevisionFilesOfOlderStoresAreReadThenM
     if (log_form()) {
         // The log: two KDRS back to back, nothing else in the scene's directory.
         std::ifstream f(s.log_path(id), std::ios::binary);
-        const std::string log((std::istreambuf_iterator<char>(f)),
-                              std::istreambuf_iterator<char>());
+        const std::string log = records_of(
+            std::string((std::istreambuf_iterator<char>(f)), std::istreambuf_iterator<char>()));
         const auto one = proto::encode_scene_file(scene(id, 1, 3));
         const auto two = proto::encode_scene_file(scene(id, 2, 3));
         ASSERT_EQ(log.size(), one.size() + two.size());
@@ -606,7 +622,15 @@ void append(const fs::path& path, const std::string& bytes) {
     f.write(bytes.data(), static_cast<std::streamsize>(bytes.size()));
 }
 
-// What a crash (or a power loss) in the middle of an append can leave at the end of a log: part
+/// Writes `bytes` over the file's bytes from `offset` (the file grows if they go past its end).
+void overwrite(const fs::path& path, uint64_t offset, const std::string& bytes) {
+    std::fstream f(path, std::ios::binary | std::ios::in | std::ios::out);
+    f.seekp(static_cast<std::streamoff>(offset));
+    f.write(bytes.data(), static_cast<std::streamsize>(bytes.size()));
+}
+
+// What a crash (or a power loss) in the middle of a commit can leave after a log's records
+// (over the zeros a log keeps there, or at the end of an older server's log without them): part
 // of a record, a whole-sized record whose bytes did not all reach the disk, zeros. Readers ignore
 // it (in this process and in a fresh one), and the next commit cuts it off and says so.
 /// Tests of the log alone (revision files are linked in whole, and pruned one by one).
@@ -649,38 +673,90 @@ TEST_P(SceneLogTest, ATornRecordAtTheEndOfALogIsIgnoredAndCutOffByTheNextCommit)
          }},
     };
     for (const Tear& tear : tears) {
-        SCOPED_TRACE(tear.what);
-        SceneStore s = store();
-        std::vector<std::string> notices;
-        s.set_notice([&](const std::string&, const std::string& what) { notices.push_back(what); });
-        const std::string id = SceneStore::new_id();
-        ASSERT_TRUE(s.create(scene(id, 1, 4)).ok());
-        ASSERT_TRUE(*s.commit(scene(id, 2, 4)));
-        const std::string before = log_bytes(s, id);
-        const std::string torn = tear.make(record(id, 3));
-        append(s.log_path(id), torn);
-        for (SceneStore* reader : {&s}) {
-            EXPECT_EQ(*reader->latest(id), 2u);
-            EXPECT_TRUE(reader->is_current(id, 2));
-            EXPECT_FALSE(reader->has_revision(id, 3));
-            EXPECT_EQ(reader->read(id, 3).error().code, SceneStoreError::Code::kMissing);
-            EXPECT_EQ(*reader->read(id, 2), scene(id, 2, 4));
+        // Where a commit writes: over the zeros after the log's records, or (an older server's
+        // log, without them) at its end.
+        for (const bool zeros_after : {true, false}) {
+            SCOPED_TRACE(std::string(tear.what) +
+                         (zeros_after ? ", over the log's zeros" : ", appended (an older log)"));
+            SceneStore s = store();
+            std::vector<std::string> notices;
+            s.set_notice(
+                [&](const std::string&, const std::string& what) { notices.push_back(what); });
+            const std::string id = SceneStore::new_id();
+            ASSERT_TRUE(s.create(scene(id, 1, 4)).ok());
+            ASSERT_TRUE(*s.commit(scene(id, 2, 4)));
+            const std::string before = records_of(log_bytes(s, id));
+            ASSERT_GT(fs::file_size(s.log_path(id)), before.size()) << "zeros after the records";
+            const std::string torn = tear.make(record(id, 3));
+            if (zeros_after) {
+                overwrite(s.log_path(id), before.size(), torn);
+            } else {
+                fs::resize_file(s.log_path(id), before.size());
+                append(s.log_path(id), torn);
+            }
+            const uint64_t after = log_bytes(s, id).size();
+            for (SceneStore* reader : {&s}) {
+                EXPECT_EQ(*reader->latest(id), 2u);
+                EXPECT_TRUE(reader->is_current(id, 2));
+                EXPECT_FALSE(reader->has_revision(id, 3));
+                EXPECT_EQ(reader->read(id, 3).error().code, SceneStoreError::Code::kMissing);
+                EXPECT_EQ(*reader->read(id, 2), scene(id, 2, 4));
+            }
+            SceneStore fresh = store();
+            EXPECT_EQ(*fresh.latest(id), 2u);
+            EXPECT_EQ(*fresh.read(id, 1), scene(id, 1, 4));
+            EXPECT_TRUE(notices.empty());
+            EXPECT_FALSE(*s.commit(scene(id, 4, 4))) << "revision 3 was never committed";
+            ASSERT_TRUE(*s.commit(scene(id, 3, 4)));
+            EXPECT_EQ(records_of(log_bytes(s, id)), before + record(id, 3))
+                << "cut off, then written";
+            if (torn.find_first_not_of('\0') == std::string::npos) {
+                EXPECT_TRUE(notices.empty()) << "zeros are what a log keeps after its records";
+            } else {
+                ASSERT_EQ(notices.size(), 1u);
+                EXPECT_NE(notices[0].find("cut a torn record of " +
+                                          std::to_string(after - before.size()) + " bytes"),
+                          std::string::npos)
+                    << notices[0];
+            }
+            EXPECT_EQ(*fresh.latest(id), 3u);
+            EXPECT_EQ(*fresh.read(id, 3), scene(id, 3, 4));
+            ASSERT_TRUE(s.remove(id).ok());
         }
-        SceneStore fresh = store();
-        EXPECT_EQ(*fresh.latest(id), 2u);
-        EXPECT_EQ(*fresh.read(id, 1), scene(id, 1, 4));
-        EXPECT_TRUE(notices.empty());
-        EXPECT_FALSE(*s.commit(scene(id, 4, 4))) << "revision 3 was never committed";
-        ASSERT_TRUE(*s.commit(scene(id, 3, 4)));
-        EXPECT_EQ(log_bytes(s, id), before + record(id, 3)) << "cut off, then appended";
-        ASSERT_EQ(notices.size(), 1u);
-        EXPECT_NE(notices[0].find("cut a torn record of " + std::to_string(torn.size()) + " bytes"),
-                  std::string::npos)
-            << notices[0];
-        EXPECT_EQ(*fresh.latest(id), 3u);
-        EXPECT_EQ(*fresh.read(id, 3), scene(id, 3, 4));
-        ASSERT_TRUE(s.remove(id).ok());
     }
+}
+
+// A commit writes its record over the zeros after the log's records, so the file keeps its
+// size (its flush writes only the data: no new size or blocks through the file system's
+// journal); when they do not hold it, the record and new zeros after it grow the log. Another
+// store on the same directory (a replica) sees each record: a record written there changes no
+// size, and the time stamps may not change within one clock tick.
+TEST_P(SceneLogTest, ACommitWritesOverTheZerosAfterTheRecordsWithoutGrowingTheLog) {
+    SceneStore s = store(1000);
+    SceneStore other = store(1000, "q");
+    const std::string id = SceneStore::new_id();
+    ASSERT_TRUE(s.create(scene(id, 1, 40)).ok());
+    ASSERT_TRUE(*s.commit(scene(id, 2, 40)));
+    const uint64_t record_bytes = proto::encode_scene_file(scene(id, 2, 40)).size();
+    ASSERT_LT(record_bytes * SceneStore::kPaddingRecords, SceneStore::kPaddingBytes);
+    const uint64_t size = fs::file_size(s.log_path(id));
+    EXPECT_EQ(size, 2 * record_bytes + SceneStore::kPaddingBytes);
+    uint64_t r = 2;
+    for (; (r + 1) * record_bytes <= size; ++r) {
+        SceneStore& writer = r % 2 == 0 ? other : s;  // two replicas take turns
+        SceneStore& reader = r % 2 == 0 ? s : other;
+        ASSERT_EQ(*reader.latest(id), r);
+        ASSERT_TRUE(*writer.commit(scene(id, r + 1, 40))) << r + 1;
+        ASSERT_EQ(fs::file_size(s.log_path(id)), size) << "written in place, " << r + 1;
+        ASSERT_EQ(*reader.latest(id), r + 1) << "the other replica's commit is seen";
+        ASSERT_FALSE(*reader.commit(scene(id, r + 1, 40))) << "and is stale there";
+        ASSERT_EQ(*reader.read(id, r + 1), scene(id, r + 1, 40));
+    }
+    ASSERT_TRUE(*s.commit(scene(id, r + 1, 40)));
+    EXPECT_GT(fs::file_size(s.log_path(id)), size) << "grown by the record that did not fit";
+    EXPECT_EQ(records_of(log_bytes(s, id)).size(), (r + 1) * record_bytes);
+    SceneStore fresh = store(1000, "f");
+    for (uint64_t k = 1; k <= r + 1; ++k) ASSERT_EQ(*fresh.read(id, k), scene(id, k, 40)) << k;
 }
 
 // A log keeps growing by one record a commit until kCompactRecords revisions older than the kept
@@ -698,7 +774,7 @@ TEST_P(SceneLogTest, ALogIsCompactedToTheKeptRevisions) {
     for (uint64_t r = 2; r <= last; ++r) {
         SceneStore& writer = r % 3 == 0 ? other : s;  // two replicas take turns
         ASSERT_TRUE(*writer.commit(scene(id, r, 2))) << r;
-        const uint64_t size = fs::file_size(s.log_path(id));
+        const uint64_t size = records_of(log_bytes(s, id)).size();
         largest = std::max(largest, size);
         // At most kCompactRecords - 1 dropped revisions, the kept ones and this one.
         ASSERT_LE(size, (SceneStore::kCompactRecords + kKept) * record_bytes) << r;
@@ -717,6 +793,38 @@ TEST_P(SceneLogTest, ALogIsCompactedToTheKeptRevisions) {
     EXPECT_EQ(std::distance(fs::directory_iterator(s.scene_dir(id)), {}), 1);
     EXPECT_TRUE(fs::is_empty(dir_ / "tmp" / "p"));
     EXPECT_TRUE(fs::is_empty(dir_ / "tmp" / "q"));
+}
+
+// Where the zeros do not fit (a full file system, a file size limit), a commit writes its record
+// alone and a compaction its records alone, as before the zeros: a scene is refused no sooner.
+TEST_P(SceneLogTest, WithoutRoomForTheZerosTheRecordsAreWrittenAlone) {
+    constexpr uint32_t kKept = 2;
+    SceneStore s = store(kKept);
+    const std::string id = SceneStore::new_id();
+    ASSERT_TRUE(s.create(scene(id, 1, 4)).ok());
+    const uint64_t record_bytes = proto::encode_scene_file(scene(id, 1, 4)).size();
+    const uint64_t limit = (SceneStore::kCompactRecords + kKept + 1) * record_bytes;
+    ASSERT_LT(limit, SceneStore::kPaddingBytes);
+    rlimit before{};
+    ASSERT_EQ(::getrlimit(RLIMIT_FSIZE, &before), 0);
+    const auto old_handler = ::signal(SIGXFSZ, SIG_IGN);  // EFBIG instead of the signal
+    const rlimit small{limit, before.rlim_max};
+    ASSERT_EQ(::setrlimit(RLIMIT_FSIZE, &small), 0);
+    const uint64_t last = SceneStore::kCompactRecords + kKept + 5;  // past one compaction
+    bool all = true;
+    for (uint64_t r = 2; r <= last && all; ++r) {
+        const auto committed = s.commit(scene(id, r, 4));
+        all = committed.ok() && *committed;
+        EXPECT_TRUE(all) << r << ": " << (committed.ok() ? "stale" : committed.error().message);
+    }
+    ::setrlimit(RLIMIT_FSIZE, &before);
+    ::signal(SIGXFSZ, old_handler);
+    ASSERT_TRUE(all);
+    EXPECT_LE(fs::file_size(s.log_path(id)), limit);
+    SceneStore fresh = store(kKept, "q");
+    EXPECT_EQ(*fresh.latest(id), last);
+    for (uint64_t r = last - kKept + 1; r <= last; ++r)
+        EXPECT_EQ(*fresh.read(id, r), scene(id, r, 4)) << r;
 }
 
 INSTANTIATE_TEST_SUITE_P(Forms, SceneStoreTest, ::testing::Values(true, false),
