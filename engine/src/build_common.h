@@ -34,6 +34,11 @@ private:
     size_t limit_;
 };
 
+/// A kept mapping (RecycleTreeMappings) for an array of `bytes` (2 MiB or more), as
+/// allocate_tree_memory would give it, or null where none is kept: never fresh memory. Freed by
+/// free_tree_memory(p, bytes).
+[[nodiscard]] void* take_kept_tree_memory(size_t bytes);
+
 /// Bytes of mappings kept for reuse now (RecycleTreeMappings).
 [[nodiscard]] size_t recycled_tree_bytes();
 

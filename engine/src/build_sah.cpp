@@ -373,6 +373,7 @@ constexpr size_t kPooledEvents = 1u << 13;     // buffers up to this size are re
 constexpr size_t kPoolSlots = 48;              // at most this many free buffers kept per thread
 constexpr size_t kBigPooledEvents = 1u << 16;  // ... and bigger ones up to this size
 constexpr size_t kBigPoolSlots = 8;            // at most this many of those
+constexpr size_t kHugePageEvents = (size_t{2} << 20) / sizeof(Event);  // a 2 MiB page's
 constexpr size_t kRadixSortEvents = 1u << 11;  // a node's first sort: radix from this many events
 constexpr size_t kMinBlock = 32, kMaxBlock = 64;  // events per block of sweep_pruned
 constexpr size_t kPruneFrom = 256;  // events per axis from which the sweep prunes blocks
@@ -384,7 +385,19 @@ constexpr size_t kPruneFrom = 256;  // events per axis from which the sweep prun
 /// freed big block went back to the kernel, and every big node's children and every sort's
 /// scratch were fresh pages to fault in (the stadium: ~3,700 faults a build). Smaller ones, which
 /// the pools keep, stay on the heap (its small blocks are reused warm).
+///
+/// A buffer between the pools' size and a huge page (the children of nodes of ~11k-44k
+/// triangles) takes a whole kept huge page where the build has one (a freed bigger buffer's,
+/// already touched), else the heap as before: never a fresh mapping, which costs its zeroing
+/// where the heap's blocks may be warm from the build before. From the heap they were the
+/// stadium's biggest source of fresh pages (`distribute`, ~40% of a first build's faults).
 EventBuffer EventBuffer::make(size_t n) {
+    if (n > kBigPooledEvents && n < kHugePageEvents) {
+        if (void* p = take_kept_tree_memory(kHugePageEvents * sizeof(Event)))
+            return {std::unique_ptr<Event[], FreeEvents>(static_cast<Event*>(p),
+                                                         FreeEvents{kHugePageEvents}),
+                    kHugePageEvents};
+    }
     Event* const p = n > kBigPooledEvents
                          ? static_cast<Event*>(allocate_tree_memory(n * sizeof(Event)))
                          : new Event[n];
@@ -1057,14 +1070,29 @@ void ExactSahBuilder::build(SubTree& out, uint32_t slot, const Aabb& cell,
         }
     }
     in.prim_count = static_cast<uint32_t>(prims.size());
+    // A big root's axes, sorted concurrently, share one scratch buffer, each in its own part:
+    // one tree-memory mapping, which, freed right after the sorts, is kept for the build
+    // (RecycleTreeMappings) and serves the first partitions' children. Three buffers of their
+    // own were each just under a huge page (the stadium: 3 x 2.06 MB), heap blocks the heap gave
+    // back to the kernel: ~4 MB of fresh pages a first build that nothing else reused.
+    const size_t all_events = in.count[0] + in.count[1] + in.count[2];
+    EventBuffer shared;
+    if (prims.size() >= kParallelSubtrees && all_events >= kHugePageEvents)
+        shared = impl_->builder.take_buffer(all_events);
     auto sort_axis = [&](int a) {
         Event* first = ev + in.offset[a];
         // Both give the order of the 64-bit integers; the radix sort (stable, prims ascending)
         // only pays on long lists.
         if (in.count[a] >= kRadixSortEvents) {
-            EventBuffer temp = impl_->builder.take_buffer(in.count[a]);
-            radix_sort_events(first, in.count[a], temp.data.get());
-            impl_->builder.give_buffer(std::move(temp));
+            if (shared.data) {
+                Event* const part =
+                    shared.data.get() + (a > 0 ? in.count[0] : 0) + (a > 1 ? in.count[1] : 0);
+                radix_sort_events(first, in.count[a], part);
+            } else {
+                EventBuffer temp = impl_->builder.take_buffer(in.count[a]);
+                radix_sort_events(first, in.count[a], temp.data.get());
+                impl_->builder.give_buffer(std::move(temp));
+            }
         } else {
             std::sort(first, first + in.count[a]);
         }
@@ -1078,6 +1106,7 @@ void ExactSahBuilder::build(SubTree& out, uint32_t slot, const Aabb& cell,
     } else {
         for (int a = 0; a < 3; ++a) sort_axis(a);
     }
+    if (shared.data) impl_->builder.give_buffer(std::move(shared));
     impl_->builder.build_root(out, slot, std::move(in));
 }
 

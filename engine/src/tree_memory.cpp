@@ -202,6 +202,11 @@ RecycleTreeMappings::~RecycleTreeMappings() {
     for (const auto& [start, len] : gone) (void)munmap(reinterpret_cast<void*>(start), len);
 }
 
+void* take_kept_tree_memory(size_t bytes) {
+    const size_t len = mapping_bytes(bytes);
+    return own_mapping(bytes) && len >= bytes ? take_recycled(len) : nullptr;
+}
+
 size_t recycled_tree_bytes() {
     Recycled& r = recycled();
     const std::lock_guard<std::mutex> lock(r.mutex);

@@ -204,5 +204,41 @@ TEST(TreeMemory, KeptMappingsStayWithinTheLiveBuildsLimits) {
     EXPECT_FALSE(mapping_of(other).found);
 }
 
+// take_kept_tree_memory (the exact builder's mid-size event buffers) hands out only kept
+// mappings, as allocate_tree_memory would take them: with no build running, or none kept, it
+// gives nothing, never a fresh mapping; each piece frees as an array of its own.
+TEST(TreeMemory, KeptMemoryIsTakenOnlyWhereABuildKeepsSome) {
+    constexpr size_t kMiB = size_t{1} << 20;
+    ASSERT_EQ(detail::recycled_tree_bytes(), 0u);
+    EXPECT_EQ(detail::take_kept_tree_memory(2 * kMiB), nullptr) << "no build runs";
+    {
+        const detail::RecycleTreeMappings build(size_t{1} << 30);
+        EXPECT_EQ(detail::take_kept_tree_memory(2 * kMiB), nullptr) << "nothing kept";
+        EXPECT_EQ(detail::recycled_tree_bytes(), 0u);
+        auto* const freed = static_cast<unsigned char*>(allocate_tree_memory(4 * kMiB));
+        std::memset(freed, 0x5a, 4 * kMiB);
+        free_tree_memory(freed, 4 * kMiB);
+        EXPECT_EQ(detail::recycled_tree_bytes(), 4 * kMiB);
+        EXPECT_EQ(detail::take_kept_tree_memory(kMiB), nullptr) << "a heap array's size";
+        auto* const a = static_cast<unsigned char*>(detail::take_kept_tree_memory(2 * kMiB));
+        auto* const b = static_cast<unsigned char*>(detail::take_kept_tree_memory(2 * kMiB));
+        EXPECT_EQ(a, freed);
+        EXPECT_EQ(b, freed + 2 * kMiB);
+        EXPECT_EQ(detail::recycled_tree_bytes(), 0u);
+        EXPECT_EQ(detail::take_kept_tree_memory(2 * kMiB), nullptr) << "all taken";
+        ASSERT_NE(a, nullptr);
+        ASSERT_NE(b, nullptr);
+        EXPECT_EQ(a[0], 0x5a) << "the kept pages as they were";
+        EXPECT_EQ(b[2 * kMiB - 1], 0x5a);
+        free_tree_memory(b, 2 * kMiB);
+        EXPECT_EQ(detail::recycled_tree_bytes(), 2 * kMiB);
+        EXPECT_EQ(allocate_tree_memory(2 * kMiB), b) << "a freed piece serves again";
+        free_tree_memory(a, 2 * kMiB);
+        free_tree_memory(b, 2 * kMiB);
+        EXPECT_EQ(detail::recycled_tree_bytes(), 4 * kMiB);
+    }
+    EXPECT_EQ(detail::recycled_tree_bytes(), 0u);
+}
+
 }  // namespace
 }  // namespace kdrt::test
