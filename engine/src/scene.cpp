@@ -26,15 +26,27 @@ constexpr double kMaxCondition = 0x1p24;
     throw SceneError(index, field, "scene instance " + std::to_string(index) + " " + why);
 }
 
-/// A float rounded towards -inf / +inf from a double.
+/// The float next to finite `f` towards -inf / +inf (std::nextafter's answer, inline: it is
+/// called for most world-box coordinates; f is never the float range's end here).
+float next_down(float f) noexcept {
+    if (f == 0.0f) return -std::numeric_limits<float>::denorm_min();
+    uint32_t bits;
+    std::memcpy(&bits, &f, sizeof bits);
+    bits = f > 0.0f ? bits - 1u : bits + 1u;
+    std::memcpy(&f, &bits, sizeof bits);
+    return f;
+}
+float next_up(float f) noexcept { return -next_down(-f); }
+
+/// A float rounded towards -inf / +inf from a double (finite, within float range).
 float round_down(double x) noexcept {
     auto f = static_cast<float>(x);
-    if (static_cast<double>(f) > x) f = std::nextafter(f, -std::numeric_limits<float>::infinity());
+    if (static_cast<double>(f) > x) f = next_down(f);
     return f;
 }
 float round_up(double x) noexcept {
     auto f = static_cast<float>(x);
-    if (static_cast<double>(f) < x) f = std::nextafter(f, std::numeric_limits<float>::infinity());
+    if (static_cast<double>(f) < x) f = next_up(f);
     return f;
 }
 
@@ -44,6 +56,21 @@ double box_magnitude(const Aabb& b) noexcept {
         m = std::max(
             {m, std::fabs(static_cast<double>(b.lo[a])), std::fabs(static_cast<double>(b.hi[a]))});
     return m;
+}
+
+/// The least and greatest image of row r of `world = L * p + t` over the box's 8 corners (in
+/// corner order: the first corner's value among equal ones).
+void corner_scan(const std::array<double, 9>& L, const std::array<double, 3>& t, const Aabb& ob,
+                 int r, double& lo, double& hi) noexcept {
+    lo = std::numeric_limits<double>::infinity();
+    hi = -std::numeric_limits<double>::infinity();
+    for (int corner = 0; corner < 8; ++corner) {
+        const double p[3] = {(corner & 1) ? ob.hi.x : ob.lo.x, (corner & 2) ? ob.hi.y : ob.lo.y,
+                             (corner & 4) ? ob.hi.z : ob.lo.z};
+        const double w = L[3 * r] * p[0] + L[3 * r + 1] * p[1] + L[3 * r + 2] * p[2] + t[r];
+        lo = std::min(lo, w);
+        hi = std::max(hi, w);
+    }
 }
 
 /// The instance's clearance, if any, is one of its tree's triangle count (tree not null).
@@ -132,20 +159,24 @@ InstanceData prepare_instance(uint32_t index, const SceneInstance& inst, const A
     d.root_mag = box_magnitude(ob);
     d.lin_bounds = lin_norm * d.root_mag;
     if (!ob.empty()) {
+        // Row r's least and greatest image over the 8 corners, each L[r][c] * p[c] + ... + t
+        // summed left to right. A rounded sum is monotone in each term, so the corner taking
+        // each term's least (greatest) product gives the least (greatest) sum: the same double
+        // as the 8-corner scan, in 6 products a row instead of 24. Only the sign of a zero
+        // could differ (the scan keeps the first corner's among equal ones; not seen in the
+        // test's zero bounds, where ties pick the low corner in both): a zero bound is scanned.
         double lo[3], hi[3];
-        for (int a = 0; a < 3; ++a) {
-            lo[a] = std::numeric_limits<double>::infinity();
-            hi[a] = -std::numeric_limits<double>::infinity();
-        }
-        for (int corner = 0; corner < 8; ++corner) {
-            const double p[3] = {(corner & 1) ? ob.hi.x : ob.lo.x, (corner & 2) ? ob.hi.y : ob.lo.y,
-                                 (corner & 4) ? ob.hi.z : ob.lo.z};
-            for (int r = 0; r < 3; ++r) {
-                const double w =
-                    L[3 * r] * p[0] + L[3 * r + 1] * p[1] + L[3 * r + 2] * p[2] + d.trans[r];
-                lo[r] = std::min(lo[r], w);
-                hi[r] = std::max(hi[r], w);
+        for (int r = 0; r < 3; ++r) {
+            double pl[3], ph[3];
+            for (int c = 0; c < 3; ++c) {
+                const double a = L[3 * r + c] * static_cast<double>(ob.lo[c]);
+                const double b = L[3 * r + c] * static_cast<double>(ob.hi[c]);
+                pl[c] = std::min(a, b);
+                ph[c] = std::max(a, b);
             }
+            lo[r] = pl[0] + pl[1] + pl[2] + d.trans[r];
+            hi[r] = ph[0] + ph[1] + ph[2] + d.trans[r];
+            if (lo[r] == 0.0 || hi[r] == 0.0) corner_scan(L, d.trans, ob, r, lo[r], hi[r]);
         }
         constexpr double kFloatMax = std::numeric_limits<float>::max();
         for (int a = 0; a < 3; ++a) {
@@ -181,7 +212,8 @@ struct TopBuilder {
     uint64_t leaves = 0;
 
     void make_leaf(uint32_t index, std::vector<uint32_t>& geoms) {
-        std::sort(geoms.begin(), geoms.end());
+        // The references arrive sorted (the root's list is, and a split keeps their order).
+        if (!std::is_sorted(geoms.begin(), geoms.end())) std::sort(geoms.begin(), geoms.end());
         nodes[index] = TopNode{(static_cast<uint32_t>(geoms.size()) << 2) | 3u,
                                static_cast<uint32_t>(refs.size())};
         refs.insert(refs.end(), geoms.begin(), geoms.end());
@@ -251,15 +283,22 @@ struct TopBuilder {
             }
         }
         if (best_axis < 0 || !(best_cost < leaf_cost)) return make_leaf(index, geoms);
-        std::vector<uint32_t> left, right;
+        // A box touching the plane goes to both sides: the traversal's margin reaches both.
+        // Counted first, so each side is allocated once at its size (no growth).
+        size_t n_left = 0, n_right = 0;
         for (uint32_t g : geoms) {
             const Aabb& b = boxes[g];
-            // A box touching the plane goes to both sides: the traversal's margin reaches both.
-            if (b.lo[best_axis] <= best_split) left.push_back(g);
-            if (b.hi[best_axis] >= best_split) right.push_back(g);
+            n_left += b.lo[best_axis] <= best_split;
+            n_right += b.hi[best_axis] >= best_split;
         }
-        if (left.size() == geoms.size() && right.size() == geoms.size())
-            return make_leaf(index, geoms);
+        if (n_left == geoms.size() && n_right == geoms.size()) return make_leaf(index, geoms);
+        std::vector<uint32_t> left(n_left), right(n_right);
+        size_t l = 0, r = 0;
+        for (uint32_t g : geoms) {
+            const Aabb& b = boxes[g];
+            if (b.lo[best_axis] <= best_split) left[l++] = g;
+            if (b.hi[best_axis] >= best_split) right[r++] = g;
+        }
         geoms.clear();
         geoms.shrink_to_fit();
         const auto first = static_cast<uint32_t>(nodes.size());

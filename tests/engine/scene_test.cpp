@@ -744,6 +744,91 @@ TEST(SceneInTurn, EveryWalkAnswersAsTheOracleWithAnyNumberOfRaysInFlight) {
     expect_matches_oracle(s, rays);
 }
 
+/// The world box as the 8-corner scan computes it (the definition world_bounds documents): each
+/// row's least and greatest L * p + t over the corners in corner order, rounded outwards with
+/// std::nextafter.
+Aabb corner_scan_world_box(const Affine3x4& m, const Aabb& ob) {
+    Aabb w;
+    for (int r = 0; r < 3; ++r) {
+        double lo = std::numeric_limits<double>::infinity(), hi = -lo;
+        for (int corner = 0; corner < 8; ++corner) {
+            const double p[3] = {(corner & 1) ? ob.hi.x : ob.lo.x, (corner & 2) ? ob.hi.y : ob.lo.y,
+                                 (corner & 4) ? ob.hi.z : ob.lo.z};
+            const double v = double(m.m[r][0]) * p[0] + double(m.m[r][1]) * p[1] +
+                             double(m.m[r][2]) * p[2] + double(m.m[r][3]);
+            lo = std::min(lo, v);
+            hi = std::max(hi, v);
+        }
+        auto down = static_cast<float>(lo), up = static_cast<float>(hi);
+        if (double(down) > lo) down = std::nextafter(down, -std::numeric_limits<float>::infinity());
+        if (double(up) < hi) up = std::nextafter(up, std::numeric_limits<float>::infinity());
+        w.lo[r] = down;
+        w.hi[r] = up;
+    }
+    return w;
+}
+
+TEST(Scene, WorldBoxesAreTheCornerScanBitForBit) {
+    const uint64_t seed = test_seed();
+    SCOPED_TRACE(testing::Message() << "seed=" << seed);
+    Rng rng(seed);
+    // Root boxes touching zero, straddling it, away from it, and tiny.
+    const std::vector<Aabb> boxes = {{{0, 0, 0}, {1, 1, 1}},
+                                     {{-1, -2, -0.5f}, {1, 0.25f, 3}},
+                                     {{0.1f, 0.3f, 0.7f}, {0.9f, 1.3f, 2.7f}},
+                                     {{-3, -2, -1}, {0, 0, 0}},
+                                     {{1e-30f, -2e-30f, 3e-31f}, {3e-30f, 1e-30f, 7e-31f}}};
+    std::vector<std::shared_ptr<const KdTree>> trees;
+    for (const Aabb& b : boxes) {
+        Mesh m;
+        m.positions = {b.lo.x, b.lo.y, b.lo.z, b.hi.x, b.hi.y, b.hi.z, b.lo.x, b.hi.y, b.lo.z};
+        m.indices = {0, 1, 2};
+        trees.push_back(std::make_shared<const KdTree>(build_kdtree(m)));
+    }
+    const float picks[] = {0.0f, 1.0f, -1.0f, 0.5f, -2.0f};
+    std::vector<SceneInstance> list;
+    for (int i = 0; i < 4000; ++i) {
+        const auto& tree = trees[static_cast<size_t>(i) % trees.size()];
+        Affine3x4 a;
+        const int kind = i % 4;
+        if (kind == 0) {  // a random rotation, scaled
+            const std::array<double, 9> l = random_rotation(rng);
+            const float s = rng.uniform(0.01f, 100.0f);
+            for (int r = 0; r < 3; ++r)
+                for (int c = 0; c < 3; ++c) a.m[r][c] = static_cast<float>(l[3 * r + c] * s);
+        } else {  // a signed permutation or shear of small integers: many exact and zero sums
+            const std::array<double, 9> l = random_rotation(rng);
+            for (int r = 0; r < 3; ++r)
+                for (int c = 0; c < 3; ++c)
+                    a.m[r][c] = kind == 1 ? std::round(static_cast<float>(l[3 * r + c]))
+                                          : picks[rng.next() % 5] * (r == c ? 1.0f : 0.5f);
+        }
+        for (int r = 0; r < 3; ++r) {
+            const float corner = (rng.next() & 1) ? tree->bounds.lo[r] : tree->bounds.hi[r];
+            const uint64_t t = rng.next() % 4;
+            a.m[r][3] = t == 0 ? 0.0f : t == 1 ? -corner : t == 2 ? corner : rng.uniform(-5, 5);
+        }
+        try {
+            (void)build_scene({{tree, a, nullptr, nullptr}});
+        } catch (const SceneError&) {
+            continue;  // singular: not a box to compare
+        }
+        list.push_back({tree, a, nullptr, nullptr});
+    }
+    ASSERT_GT(list.size(), 2000u);
+    const Scene scene = build_scene(list);
+    size_t zeros = 0;
+    for (uint32_t g = 0; g < scene.size(); ++g) {
+        const Aabb want = corner_scan_world_box(list[g].transform, list[g].tree->bounds);
+        const Aabb got = scene.world_bounds(g);
+        for (int a = 0; a < 3; ++a) zeros += (want.lo[a] == 0.0f) + (want.hi[a] == 0.0f);
+        ASSERT_EQ(std::memcmp(&want, &got, sizeof want), 0)
+            << "instance " << g << " lo " << got.lo.x << " " << got.lo.y << " " << got.lo.z
+            << " hi " << got.hi.x << " " << got.hi.y << " " << got.hi.z;
+    }
+    EXPECT_GT(zeros, 100u) << "the zero bounds (their sign) are covered";
+}
+
 TEST(Scene, EmptyScenesMiss) {
     const Scene empty;
     EXPECT_EQ(empty.size(), 0u);
