@@ -8,8 +8,8 @@
 #include <cmath>
 #include <vector>
 
-#include "image_module.h"
 #include "kdrt/proto/file_io.h"
+#include "kdrt/proto/image_module.h"
 #include "kdrt/proto/mesh_id.h"
 
 namespace kdrt::cli {
@@ -88,7 +88,7 @@ proto::Result<std::string, int> Context::resolve_mesh_id(std::string_view arg) {
 }
 
 std::optional<int> Context::need_image_module() const {
-    auto module = image_module();
+    auto module = proto::image_module();
     if (module) return std::nullopt;
     console.err << "kdrt " << command << ": " << module.error() << "\n";
     return kExitRefused;

@@ -39,9 +39,9 @@ struct Context {
     /// resolved against the stored meshes (ambiguous: usage error); anything else as is (the
     /// server then answers 404).
     [[nodiscard]] proto::Result<std::string, int> resolve_mesh_id(std::string_view arg);
-    /// Loads the image module (image_module.h) for a command about to write an image: on failure
-    /// prints "kdrt <command>: <why and what to install>" and returns kExitRefused. Commands call
-    /// it before they start work on the server.
+    /// Loads the image module (kdrt/proto/image_module.h) for a command about to write an image: on
+    /// failure prints "kdrt <command>: <why and what to install>" and returns kExitRefused.
+    /// Commands call it before they start work on the server.
     [[nodiscard]] std::optional<int> need_image_module() const;
 
     /// --json was given: the report is JSON.

@@ -12,9 +12,9 @@
 #include "cli_context.h"
 #include "cli_output.h"
 #include "cli_progress.h"
-#include "image_module.h"
 #include "kdrt/camera.h"
 #include "kdrt/proto/file_io.h"
+#include "kdrt/proto/image_module.h"
 #include "kdrt/proto/json_api.h"
 
 namespace kdrt::cli {
@@ -260,7 +260,7 @@ int run_split_render(Context& ctx, const RenderRequest& request, unsigned parts,
         return ctx.fail(frame.error());
     }
     // The server's level (X-Kdrt-Png-Compression); a server that does not say gets the default.
-    auto bytes = (*image_module())
+    auto bytes = (*proto::image_module())
                      ->encode_render(frame->image, request.format, request.settings.shading,
                                      frame->png_compression.value_or(kDefaultServerPngCompression));
     if (!bytes) {

@@ -12,8 +12,8 @@
 #include "cli_context.h"
 #include "cli_output.h"
 #include "cli_scan.h"
-#include "image_module.h"
 #include "kdrt/proto/file_io.h"
+#include "kdrt/proto/image_module.h"
 #include "kdrt/proto/json_api.h"
 #include "kdrt/proto/scan.h"
 
@@ -245,7 +245,7 @@ proto::Result<std::vector<std::byte>, int> encode_scan_file(
     Context& ctx, const DepthImage* depth, const PointCloud* cloud,
     std::span<const uint32_t> geometry_ids) {
     if (cloud != nullptr) return proto::encode_point_cloud_ply(*cloud, geometry_ids);
-    auto exr = (*image_module())->encode_depth_exr(*depth, geometry_ids);
+    auto exr = (*proto::image_module())->encode_depth_exr(*depth, geometry_ids);
     if (!exr)
         return proto::Err{
             ctx.fail(make_client_error(ErrorKind::kInput, "cannot encode the EXR", exr.error()))};

@@ -169,12 +169,6 @@ std::vector<unsigned char> to_srgb8(const Image& image, uint32_t out_channels,
     return out;
 }
 
-std::string lower_extension(const std::filesystem::path& path) {
-    std::string ext = path.extension().string();
-    for (char& ch : ext) ch = static_cast<char>(std::tolower(static_cast<unsigned char>(ch)));
-    return ext;
-}
-
 std::optional<ImageFormat> sniff_format(std::span<const std::byte> bytes) noexcept {
     auto starts_with = [&](std::initializer_list<unsigned char> magic) {
         if (bytes.size() < magic.size()) return false;
@@ -224,51 +218,6 @@ std::string png_structure_problem(std::span<const std::byte> bytes) {
 
 }  // namespace
 
-std::optional<ImageFormat> image_format_from_name(std::string_view name) noexcept {
-    if (name == "png") return ImageFormat::kPng;
-    if (name == "jpeg" || name == "jpg") return ImageFormat::kJpeg;
-    if (name == "exr") return ImageFormat::kExr;
-    if (name == kRawImageFormatName) return ImageFormat::kRaw;
-    return std::nullopt;
-}
-
-std::optional<ImageFormat> image_format_from_path(const std::filesystem::path& path) {
-    const std::string ext = lower_extension(path);
-    if (ext.size() < 2) return std::nullopt;
-    const auto format = image_format_from_name(std::string_view(ext).substr(1));
-    // ".raw" names a raw mesh (proto/FORMATS.md), never a KDRI image.
-    if (format == ImageFormat::kRaw) return std::nullopt;
-    return format;
-}
-
-std::string_view image_format_name(ImageFormat format) noexcept {
-    switch (format) {
-        case ImageFormat::kPng:
-            return "png";
-        case ImageFormat::kJpeg:
-            return "jpeg";
-        case ImageFormat::kExr:
-            return "exr";
-        case ImageFormat::kRaw:
-            return kRawImageFormatName;
-    }
-    return "unknown";
-}
-
-std::string_view image_media_type(ImageFormat format) noexcept {
-    switch (format) {
-        case ImageFormat::kPng:
-            return "image/png";
-        case ImageFormat::kJpeg:
-            return "image/jpeg";
-        case ImageFormat::kExr:
-            return "image/x-exr";
-        case ImageFormat::kRaw:
-            return kRawImageMediaType;
-    }
-    return "application/octet-stream";
-}
-
 uint8_t linear_to_srgb8(float value) noexcept {
     if (!(value > 0.0f)) return 0;  // NaN too
     if (value >= 1.0f) return 255;  // +inf too; the last threshold is below 1
@@ -284,11 +233,6 @@ uint8_t linear_to_srgb8(float value) noexcept {
 }
 
 float srgb8_to_linear(uint8_t level) noexcept { return levels()[level]; }
-
-EightBitTransfer render_transfer(Shading shading) noexcept {
-    const bool light = shading == Shading::kEyelight || shading == Shading::kDiffuse;
-    return light ? EightBitTransfer::kSrgb : EightBitTransfer::kData;
-}
 
 Result<std::vector<std::byte>, std::string> encode_image(const Image& image, ImageFormat format,
                                                          const ImageEncodeOptions& options) {

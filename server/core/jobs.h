@@ -23,7 +23,7 @@
 #include "core/metrics.h"
 #include "core/rendering.h"
 #include "kdrt/kdtree.h"
-#include "kdrt/proto/image_io.h"
+#include "kdrt/proto/image_format.h"
 #include "kdrt/proto/json_api.h"
 #include "kdrt/proto/result.h"
 #include "kdrt/render.h"

@@ -2,15 +2,10 @@
 
 #include <chrono>
 
+#include "kdrt/proto/image_module.h"
 #include "kdrt/proto/raw_image.h"
 
 namespace kdrt::server {
-
-proto::ImageEncodeOptions eight_bit_options(const RenderSettings& settings,
-                                            proto::ImageEncodeOptions options) {
-    options.transfer = proto::render_transfer(settings.shading);
-    return options;
-}
 
 proto::Result<RenderedImage, std::string> render_and_encode(Compute& compute, const RenderJob& job,
                                                             const RenderControl& control) {
@@ -32,7 +27,13 @@ proto::Result<RenderedImage, std::string> render_and_encode(Compute& compute, co
                 .count();
         return out;
     }
-    auto encoded = proto::encode_image(image, format, eight_bit_options(settings, job.encode));
+    // The encoders are the image module's (kdrt/proto/image_module.h): encode_render applies
+    // the shading's transfer (proto::render_transfer) and job.encode's PNG level (the server sets
+    // no other option).
+    auto module = proto::image_module();
+    if (!module) return proto::Err{module.error()};
+    auto encoded = (*module)->encode_render(image, proto::image_format_name(format),
+                                            settings.shading, job.encode.png_compression);
     if (!encoded) return proto::Err{"encoding the image failed: " + encoded.error()};
     out.encode_ms =
         std::chrono::duration<double, std::milli>(std::chrono::steady_clock::now() - start).count();

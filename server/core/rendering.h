@@ -10,7 +10,7 @@
 
 #include "core/compute.h"
 #include "kdrt/kdtree.h"
-#include "kdrt/proto/image_io.h"
+#include "kdrt/proto/image_format.h"
 #include "kdrt/proto/result.h"
 #include "kdrt/render.h"
 #include "kdrt/scene.h"
@@ -22,10 +22,6 @@ struct RenderedImage {
     RenderStats stats;
     double encode_ms = 0;
 };
-
-/// `options` with the 8-bit transfer of the shading mode (proto::render_transfer).
-[[nodiscard]] proto::ImageEncodeOptions eight_bit_options(const RenderSettings& settings,
-                                                          proto::ImageEncodeOptions options);
 
 /// What a render draws and how it is encoded (POST /v1/render, POST /v1/scenes/{id}/render and
 /// their async jobs): a mesh's tree, or a scene revision.
@@ -42,10 +38,10 @@ struct RenderJob {
     proto::ImageEncodeOptions encode;  ///< PNG compression level
 };
 
-/// Renders `job`'s mesh or scene inside the compute arena and encodes the image (with
-/// eight_bit_options; kRaw as the KDRI of the settings' region of the frame). Throws what
-/// render() throws (RenderError for settings the tree cannot satisfy, RenderCancelled); an encoder
-/// failure is returned as an error string.
+/// Renders `job`'s mesh or scene inside the compute arena and encodes the image (through
+/// the image module, with the shading's 8-bit transfer; kRaw as the KDRI of the settings' region of
+/// the frame). Throws what render() throws (RenderError for settings the tree cannot satisfy,
+/// RenderCancelled); an encoder failure is returned as an error string.
 [[nodiscard]] proto::Result<RenderedImage, std::string> render_and_encode(
     Compute& compute, const RenderJob& job, const RenderControl& control = {});
 

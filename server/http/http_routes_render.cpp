@@ -13,7 +13,8 @@
 #include "http/http_util.h"
 #include "http/json_shape.h"
 #include "http/problems.h"
-#include "kdrt/proto/image_io.h"
+#include "kdrt/proto/image_format.h"
+#include "kdrt/proto/image_module.h"
 #include "kdrt/proto/json_api.h"
 #include "kdrt/proto/raw_image.h"
 
@@ -184,6 +185,15 @@ std::optional<RenderJob> Routes::make_render_job(const httplib::Request& req,
     if (auto p = raw_answer_problem(request, format, svc_.config.max_raw_render_bytes)) {
         reply_problem(req, res, std::move(*p));
         return std::nullopt;
+    }
+    // PNG, JPEG and EXR need the image module (kdrt/proto/image_module.h, loaded by the first
+    // request that encodes one): without it the render is refused before any work (an async job
+    // too), naming the paths tried and what to install.
+    if (format != proto::ImageFormat::kRaw) {
+        if (auto module = proto::image_module(); !module) {
+            reply_problem(req, res, make_problem(ProblemKind::kInternal, module.error()));
+            return std::nullopt;
+        }
     }
     RenderJob job;
     if (!attach(job)) return std::nullopt;

@@ -11,10 +11,10 @@
 #include "http/json_shape.h"
 #include "http/problems.h"
 #include "kdrt/camera.h"
+#include "kdrt/proto/image_module.h"
 #include "kdrt/proto/json_api.h"
 #include "kdrt/proto/problem.h"
 #include "kdrt/proto/scan.h"
-#include "kdrt/proto/scan_image.h"
 #include "kdrt/proto/text.h"
 #include "kdrt/scan.h"
 
@@ -128,11 +128,18 @@ void Routes::scan(const httplib::Request& req, httplib::Response& res,
                                proto::kLidarRangesMediaType);
         return reply_bytes(res, proto::encode_point_cloud(cloud), proto::kPointCloudMediaType);
     }
+    // EXR needs the image module (kdrt/proto/image_module.h, loaded by the first request that
+    // encodes one): without it the scan is refused before any work, naming what to install.
+    const bool exr_answer = request->format == proto::ScanFormat::kExr;
+    proto::Result<const proto::ImageModuleTable*, std::string> module = nullptr;
+    if (exr_answer) module = proto::image_module();
+    if (!module)
+        return reply_problem(req, res, make_problem(ProblemKind::kInternal, module.error()));
     const DepthImage image =
         svc_.compute.run([&] { return scan_pinhole(*tree, request->pinhole); });
-    if (request->format != proto::ScanFormat::kExr)
+    if (!exr_answer)
         return reply_bytes(res, proto::encode_depth_image(image), proto::kDepthImageMediaType);
-    auto exr = proto::encode_depth_exr(image);
+    auto exr = (*module)->encode_depth_exr(image, {});
     if (!exr) return reply_problem(req, res, make_problem(ProblemKind::kInternal, exr.error()));
     reply_bytes(res, std::move(*exr), "image/x-exr");
 }

@@ -1,5 +1,5 @@
 // What the `kdrt` binary loads at start (ldd: few shared libraries, no OpenImageIO), and its
-// image module (kdrt-image-module.so, client/cli/image_module.h): a kdrt without the module, or
+// image module (kdrt-image-module.so, kdrt/proto/image_module.h): a kdrt without the module, or
 // with one that cannot load, refuses the commands that write images with a message naming what
 // to install, before any request; every other command runs without it. That the module's bytes
 // are the server's is tested by the commands that use it (Cli.SplitRenderWritesTheBytesOf...,

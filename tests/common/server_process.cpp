@@ -40,8 +40,9 @@ ServerProcess::ServerProcess(Options options) : options_(std::move(options)) {
     port_path_ = options_.cache_dir.parent_path() / ("server-" + tag + ".port");
 
     std::vector<std::string> args = {
-        KDRT_SERVER_BINARY, "--listen", "127.0.0.1:0", "--port-file", port_path_.string(),
-        "--cache-dir", options_.cache_dir.string(), "--threads", "2", "--http-threads", "8",
+        options_.binary.empty() ? std::string(KDRT_SERVER_BINARY) : options_.binary.string(),
+        "--listen", "127.0.0.1:0", "--port-file", port_path_.string(), "--cache-dir",
+        options_.cache_dir.string(), "--threads", "2", "--http-threads", "8",
         // Idle keep-alive connections hold up a stop for this long.
         "--keep-alive-timeout-s", "1"};
     args.insert(args.end(), options_.args.begin(), options_.args.end());

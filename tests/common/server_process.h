@@ -31,6 +31,7 @@ class ServerProcess {
 public:
     struct Options {
         std::filesystem::path cache_dir = {};  ///< required
+        std::filesystem::path binary = {};     ///< the server (empty: KDRT_SERVER_BINARY)
         std::vector<std::string> args = {};    ///< extra flags
         std::vector<std::string> env = {};     ///< extra NAME=VALUE
         bool wait_ready = true;                ///< wait for /readyz 200

@@ -12,7 +12,7 @@
 #include "kdrt/mesh.h"
 #include "kdrt/proto/config_json.h"
 #include "kdrt/proto/file_io.h"
-#include "kdrt/proto/image_io.h"
+#include "kdrt/proto/image_format.h"
 #include "kdrt/proto/json_api.h"
 #include "kdrt/proto/ray_batch.h"
 #include "kdrt/render.h"

@@ -6,9 +6,12 @@
 #include <gtest/gtest.h>
 
 #include <cmath>
+#include <cstdio>
 #include <cstring>
+#include <filesystem>
 
 #include "http_test_util.h"
+#include "kdrt/proto/raw_image.h"
 #include "kdrt/proto/scan.h"
 #include "kdrt/proto/scan_image.h"
 #include "kdrt/scan.h"
@@ -287,6 +290,73 @@ TEST(HttpScanBudget, AScanThatCouldNeverFitIs413) {
     const proto::Problem p = expect_problem(res, 413);
     EXPECT_NE(p.detail.find("batch_memory_budget"), std::string::npos) << p.detail;
     EXPECT_EQ(p.limit, 1u << 20);
+}
+
+// kdrt-server links no image library: OpenImageIO's ~250 libraries cost every server start half a
+// second of CPU. Its encoders are the image module, beside the server in the build tree.
+TEST(HttpImageModule, TheServerLinksNoImageLibrary) {
+    std::string libs;
+    FILE* pipe = ::popen(("ldd '" + std::string(KDRT_SERVER_BINARY) + "' 2>&1").c_str(), "r");
+    ASSERT_TRUE(pipe);
+    char buf[4096];
+    while (std::fgets(buf, sizeof buf, pipe)) libs += buf;
+    ::pclose(pipe);
+    EXPECT_NE(libs.find("libc.so"), std::string::npos) << libs;
+    EXPECT_EQ(libs.find("not found"), std::string::npos) << libs;
+    for (const char* image_library : {"OpenImageIO", "libOpenEXR", "libpng", "libjpeg"})
+        EXPECT_EQ(libs.find(image_library), std::string::npos) << image_library << " in\n" << libs;
+    EXPECT_TRUE(std::filesystem::exists(std::filesystem::path(KDRT_SERVER_BINARY).parent_path() /
+                                        "kdrt-image-module.so"));
+}
+
+// A server whose image module (kdrt/proto/image_module.h) is missing: the server binary alone in a
+// directory. Image answers (PNG and EXR renders, sync and async, and EXR scans) are a problem+json
+// naming the module, the paths tried and the OpenImageIO package; every other answer (KDRI renders,
+// KDRZ scans, uploads, health) works as usual.
+TEST(HttpImageModule, WithoutTheModuleImagesAreAProblemAndTheRestWorks) {
+    TempDir dir;
+    const std::filesystem::path bin = dir.path() / "bin";
+    std::filesystem::create_directories(bin);
+    std::filesystem::copy_file(KDRT_SERVER_BINARY, bin / "kdrt-server");
+    ServerProcess server({.cache_dir = dir.path() / "cache", .binary = bin / "kdrt-server"});
+    ASSERT_TRUE(server.running());
+    auto cli = server.client();
+    const std::string id = upload_id(*cli, box_mesh(-1, 1));
+    ASSERT_FALSE(id.empty());
+    const auto expect_no_module = [&](const httplib::Result& res) {
+        ASSERT_TRUE(res);
+        EXPECT_EQ(res->status, 500) << res->body;
+        EXPECT_EQ(res->get_header_value("Content-Type"), "application/problem+json");
+        EXPECT_NE(res->body.find("kdrt-image-module.so"), std::string::npos) << res->body;
+        EXPECT_NE(res->body.find((bin / "kdrt-image-module.so").string()), std::string::npos)
+            << res->body;
+        EXPECT_NE(res->body.find("libopenimageio"), std::string::npos) << res->body;
+    };
+    const std::string render = R"({"mesh":")" + id + R"(","width":16,"height":12)";
+    for (const char* format : {"png", "jpg", "exr"})
+        expect_no_module(cli->Post("/v1/render", render + R"(,"format":")" + format + R"("})",
+                                   "application/json"));
+    expect_no_module(cli->Post("/v1/render", httplib::Headers{{"Prefer", "respond-async"}},
+                               render + "}", "application/json"));
+    auto raw = cli->Post("/v1/render", render + R"(,"format":"raw"})", "application/json");
+    ASSERT_TRUE(raw);
+    EXPECT_EQ(raw->status, 200) << raw->body;
+    EXPECT_EQ(raw->get_header_value("Content-Type"), proto::kRawImageMediaType);
+
+    proto::ScanRequest scan;
+    scan.pinhole.intrinsics = {20, 20, 8, 6, 16, 12};
+    scan.pinhole.pose.m = {1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, -4, 0, 0, 0, 1};
+    const std::string path = "/v1/meshes/" + id + "/scan";
+    auto kdrz = cli->Post(path, proto::encode_scan_request(scan), "application/json");
+    ASSERT_TRUE(kdrz);
+    EXPECT_EQ(kdrz->status, 200) << kdrz->body;
+    scan.format = proto::ScanFormat::kExr;
+    expect_no_module(cli->Post(path, proto::encode_scan_request(scan), "application/json"));
+    // The server is still up and well.
+    auto health = cli->Get("/healthz");
+    ASSERT_TRUE(health);
+    EXPECT_EQ(health->status, 200);
+    EXPECT_TRUE(server.running());
 }
 
 }  // namespace

@@ -1,6 +1,6 @@
-// kdrt: finding and loading the image writer module (image_module.h).
+// kdrt::proto: finding and loading the image module (kdrt/proto/image_module.h).
 
-#include "image_module.h"
+#include "kdrt/proto/image_module.h"
 
 #include <dlfcn.h>
 
@@ -9,7 +9,7 @@
 #include <mutex>
 #include <system_error>
 
-namespace kdrt::cli {
+namespace kdrt::proto {
 namespace {
 
 namespace fs = std::filesystem;
@@ -27,7 +27,7 @@ std::string join(const std::vector<std::string>& paths) {
     return out;
 }
 
-proto::Result<const ImageModuleTable*, std::string> load() {
+Result<const ImageModuleTable*, std::string> load() {
     const std::vector<std::string> candidates = image_module_candidates();
     for (const std::string& path : candidates) {
         std::error_code ec;
@@ -36,29 +36,28 @@ proto::Result<const ImageModuleTable*, std::string> load() {
         void* handle = ::dlopen(path.c_str(), RTLD_NOW | RTLD_LOCAL);
         if (!handle) {
             const char* why = ::dlerror();
-            return proto::Err{"cannot load the image module " + path + ": " +
-                              (why ? why : "unknown dlopen error") +
-                              ". It needs OpenImageIO: install the Debian package " +
-                              KDRT_OIIO_PACKAGE + " (apt-get install " + KDRT_OIIO_PACKAGE + ")"};
+            return Err{"cannot load the image module " + path + ": " +
+                       (why ? why : "unknown dlopen error") +
+                       ". It needs OpenImageIO: install the Debian package " + KDRT_OIIO_PACKAGE +
+                       " (apt-get install " + KDRT_OIIO_PACKAGE + ")"};
         }
         using Entry = const ImageModuleTable* (*)();
         auto entry = reinterpret_cast<Entry>(::dlsym(handle, kImageModuleEntry));
         const ImageModuleTable* table = entry ? entry() : nullptr;
         if (!table)
-            return proto::Err{"the image module " + path + " has no " + kImageModuleEntry +
-                              " (not a kdrt image module)"};
+            return Err{"the image module " + path + " has no " + kImageModuleEntry +
+                       " (not a kdrt image module)"};
         if (table->abi != kImageModuleAbi || !table->version ||
             std::strcmp(table->version, KDRT_VERSION) != 0)
-            return proto::Err{"the image module " + path + " is from kdrt " +
-                              (table->version ? table->version : "?") + " but this kdrt is " +
-                              KDRT_VERSION + ": install both from one build or package"};
+            return Err{"the image module " + path + " is from kdrt " +
+                       (table->version ? table->version : "?") + " but this kdrt is " +
+                       KDRT_VERSION + ": install both from one build or package"};
         return table;  // the handle stays open for the life of the process
     }
-    return proto::Err{"writing PNG, JPEG or EXR files needs kdrt's image module " +
-                      std::string(kImageModuleFile) + ", which is not installed (looked for " +
-                      join(candidates) +
-                      "). Install kdrt's package (it ships the module and depends on " +
-                      KDRT_OIIO_PACKAGE + "), or build the target kdrt_image_module next to kdrt"};
+    return Err{"encoding PNG, JPEG or EXR needs kdrt's image module " +
+               std::string(kImageModuleFile) + ", which is not installed (looked for " +
+               join(candidates) + "). Install kdrt's package (it ships the module and depends on " +
+               KDRT_OIIO_PACKAGE + "), or build the target kdrt_image_module"};
 }
 
 }  // namespace
@@ -70,11 +69,11 @@ std::vector<std::string> image_module_candidates() {
             (dir / KDRT_IMAGE_MODULE_RELDIR / kImageModuleFile).lexically_normal().string()};
 }
 
-proto::Result<const ImageModuleTable*, std::string> image_module() {
+Result<const ImageModuleTable*, std::string> image_module() {
     static std::once_flag once;
-    static proto::Result<const ImageModuleTable*, std::string> result{nullptr};
+    static Result<const ImageModuleTable*, std::string> result{nullptr};
     std::call_once(once, [] { result = load(); });
     return result;
 }
 
-}  // namespace kdrt::cli
+}  // namespace kdrt::proto
