@@ -207,6 +207,14 @@ public:
         std::unique_lock lock(mutex);
         return cv.wait_for(lock, 10s, [&] { return inside; });
     }
+    /// Warms `client`'s connection up until all 4 workers are free, then sends "/first" and
+    /// waits until it is being answered (its worker holds it until release()).
+    void start_first(WorkerClient& client) {
+        ASSERT_EQ(client.get("/warm"), "/warm:");
+        ASSERT_TRUE(front.wait_idle(4)) << "the 4 workers did not all start";
+        ASSERT_TRUE(client.send_raw("GET /first HTTP/1.1\r\nHost: x\r\n\r\n"));
+        ASSERT_TRUE(wait_inside());
+    }
     void release() {
         std::lock_guard lock(mutex);
         next_sent = true;
@@ -223,11 +231,8 @@ public:
 TEST(HttpFrontWorkers, ARequestWaitingAsItsConnectionsAnswerGoesOutIsTakenByThatWorker) {
     FollowFront f;
     WorkerClient client(f.front.port());
-    ASSERT_EQ(client.get("/warm"), "/warm:");
-    ASSERT_TRUE(f.front.wait_idle(4)) << "the 4 workers did not all start";
+    ASSERT_NO_FATAL_FAILURE(f.start_first(client));
     const uint64_t taken = f.front.taken_after_answer();
-    ASSERT_TRUE(client.send_raw("GET /first HTTP/1.1\r\nHost: x\r\n\r\n"));
-    ASSERT_TRUE(f.wait_inside());
     // A body of several reads, sent while /first is answered: its worker finds the request as
     // it finishes, takes it without the loop and reads the body from the socket.
     std::string body(300000, 'b');
@@ -251,11 +256,8 @@ TEST(HttpFrontWorkers, ARequestWaitingAsItsConnectionsAnswerGoesOutIsTakenByThat
 TEST(HttpFrontWorkers, APartOfAHeadWaitingAsTheAnswerGoesOutGoesBackToTheLoop) {
     FollowFront f;
     WorkerClient client(f.front.port());
-    ASSERT_EQ(client.get("/warm"), "/warm:");
-    ASSERT_TRUE(f.front.wait_idle(4)) << "the 4 workers did not all start";
+    ASSERT_NO_FATAL_FAILURE(f.start_first(client));
     const uint64_t taken = f.front.taken_after_answer();
-    ASSERT_TRUE(client.send_raw("GET /first HTTP/1.1\r\nHost: x\r\n\r\n"));
-    ASSERT_TRUE(f.wait_inside());
     // Empty lines (ignored) and half of the next head: the worker reads them and hands the
     // connection back; the loop scans them again with the rest.
     ASSERT_TRUE(client.send_raw("\r\nPOST /second HTTP/1.1\r\nHost: x\r\nContent-Len"));
