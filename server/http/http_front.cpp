@@ -17,6 +17,7 @@
 #include <chrono>
 #include <condition_variable>
 #include <cstring>
+#include <ctime>
 #include <deque>
 #include <limits>
 #include <mutex>
@@ -49,6 +50,12 @@ constexpr auto kSweepInterval = std::chrono::milliseconds(50);
 /// After an early reply the connection is read and dropped for up to this long before it is
 /// closed, so the client sees the reply rather than a reset caused by its own unread bytes.
 constexpr auto kLingerTime = std::chrono::seconds(1);
+/// How long a worker that answered a request waits for the connection's next one before it
+/// hands the connection back to the loop (next_request_here): a client's next request in a
+/// sequence comes within it (the moving sensor's scan ~0.4 ms after its pose update's answer,
+/// its next pose update 2-4 ms after the scan's in tests/bench/scene_latency.py; 2 ms missed
+/// about one in five of those).
+constexpr auto kNextRequestWait = std::chrono::nanoseconds(std::chrono::milliseconds(5));
 
 /// The numeric host and port of a socket's peer (peer = true) or own end.
 void socket_address(int fd, bool peer, std::string& host, int& port) {
@@ -674,35 +681,15 @@ struct HttpFront::Impl {
     /// Looks at what has arrived: hands a complete request to a worker, refuses a bad head.
     void progress(Connection& c) {
         if (c.state == Connection::State::kIdle || c.state == Connection::State::kHead) {
-            // RFC 9112 2.2: empty lines before a request line are ignored.
-            while (c.scan.scanned == 0 && c.buffered() > 0 &&
-                   (*c.data() == '\r' || *c.data() == '\n'))
-                c.consume(1);
-            if (c.buffered() == 0) {
-                c.state = Connection::State::kIdle;
-                return;
-            }
-            if (c.state == Connection::State::kIdle) {
-                c.state = Connection::State::kHead;
-                c.request_start = Clock::now();
-            }
-            const std::string_view arrived(c.data(), c.buffered());
-            const std::optional<size_t> end = find_head_end(arrived, c.scan);
-            c.method = std::string(arrived.substr(0, std::min<size_t>(arrived.find(' '), 32)));
-            if (!end) {
-                if (c.scan.lines > limits.max_headers + 1)
-                    return refuse(c, 431, too_many_headers());
-                if (c.buffered() > limits.max_head_bytes) return refuse(c, 431, head_too_large());
-                return;
-            }
-            auto head = parse_request_head(arrived.substr(0, *end),
-                                           {limits.max_head_bytes, limits.max_headers});
-            if (!head) return refuse(c, head.error().status, head.error().detail);
-            c.head_bytes = *end;
+            int status = 0;
+            std::string detail;
+            const HeadScanned scanned = scan_head(c, status, detail);
+            if (scanned == HeadScanned::kRefused) return refuse(c, status, detail);
+            if (scanned != HeadScanned::kComplete) return;
             c.body_wanted = 0;
-            if (head->content_length && !head->expect_continue) {
+            if (c.head->content_length && !c.head->expect_continue) {
                 const size_t wanted = static_cast<size_t>(
-                    std::min<uint64_t>(*head->content_length, limits.prebuffer_bytes));
+                    std::min<uint64_t>(*c.head->content_length, limits.prebuffer_bytes));
                 const size_t budget = std::max(kPrebufferBudgetBytes, limits.prebuffer_bytes);
                 if (prebuffered.fetch_add(wanted) + wanted <= budget) {
                     c.reserved = wanted;
@@ -711,11 +698,55 @@ struct HttpFront::Impl {
                     prebuffered -= wanted;  // over the budget: a worker receives the body
                 }
             }
-            c.head = std::move(*head);
             c.state = Connection::State::kBody;
         }
         if (c.state == Connection::State::kBody && c.buffered() >= c.head_bytes + c.body_wanted)
             dispatch(c);
+    }
+
+    enum class HeadScanned { kNone, kPartial, kRefused, kComplete };
+
+    /// Looks for the request head in what has arrived (kIdle or kHead), for the loop and for a
+    /// worker waiting for its connection's next request: kNone (nothing but empty lines),
+    /// kPartial (not all of it yet), kRefused (`status` and `detail` say why), kComplete
+    /// (`c.head` and `c.head_bytes` are set).
+    HeadScanned scan_head(Connection& c, int& status, std::string& detail) const {
+        // RFC 9112 2.2: empty lines before a request line are ignored.
+        while (c.scan.scanned == 0 && c.buffered() > 0 && (*c.data() == '\r' || *c.data() == '\n'))
+            c.consume(1);
+        if (c.buffered() == 0) {
+            c.state = Connection::State::kIdle;
+            return HeadScanned::kNone;
+        }
+        if (c.state == Connection::State::kIdle) {
+            c.state = Connection::State::kHead;
+            c.request_start = Clock::now();
+        }
+        const std::string_view arrived(c.data(), c.buffered());
+        const std::optional<size_t> end = find_head_end(arrived, c.scan);
+        c.method = std::string(arrived.substr(0, std::min<size_t>(arrived.find(' '), 32)));
+        if (!end) {
+            status = 431;
+            if (c.scan.lines > limits.max_headers + 1) {
+                detail = too_many_headers();
+                return HeadScanned::kRefused;
+            }
+            if (c.buffered() > limits.max_head_bytes) {
+                detail = head_too_large();
+                return HeadScanned::kRefused;
+            }
+            return HeadScanned::kPartial;
+        }
+        auto head = parse_request_head(arrived.substr(0, *end),
+                                       {limits.max_head_bytes, limits.max_headers});
+        if (!head) {
+            status = head.error().status;
+            detail = head.error().detail;
+            return HeadScanned::kRefused;
+        }
+        c.head_bytes = *end;
+        c.head = std::move(*head);
+        return HeadScanned::kComplete;
     }
 
     [[nodiscard]] std::string head_too_large() const {
@@ -814,10 +845,54 @@ struct HttpFront::Impl {
                 --gauges->waiting;
                 ++gauges->busy;
             }
-            const bool keep = serve_request(*c, stop_after);
+            bool keep = serve_request(*c, stop_after);
+            while (keep && next_request_here(*c, stop_after)) keep = serve_request(*c, stop_after);
             --gauges->busy;
             finish(*c, keep, self);
         }
+    }
+
+    /// After an answer, waits up to kNextRequestWait for the connection's next request on this
+    /// thread (while another worker is free for the other connections) and takes it when its
+    /// whole head has arrived: a client's request sent right after its last answer wakes this
+    /// thread, not the loop, which would then wake a worker. Anything else (nothing within the
+    /// wait, pipelined bytes, a partial or refused head, the peer gone) goes back to the loop,
+    /// which scans it again. True: the request's head is in `c.head`, to be served here.
+    bool next_request_here(Connection& c, bool& stop_after) {
+        if (c.buffered() > 0 || c.peer_closed) return false;
+        {
+            std::lock_guard lock(mutex);
+            if (stopping || idle.empty()) return false;
+            stop_after = stopping;
+        }
+        pollfd p{c.fd, POLLIN | POLLRDHUP, 0};
+        const timespec wait{0, static_cast<long>(kNextRequestWait.count())};
+        int ready = 0;
+        do {
+            ready = ::ppoll(&p, 1, &wait, nullptr);
+        } while (ready < 0 && errno == EINTR);
+        if (ready <= 0 || (p.revents & (POLLRDHUP | POLLHUP | POLLERR)) != 0) return false;
+        c.state = Connection::State::kIdle;
+        c.scan = HeadScan{};
+        c.head.reset();
+        const size_t limit = limits.max_head_bytes + 1;
+        while (c.buffered() < limit) {
+            const size_t room = std::min(kLoopReadBytes, limit - c.buffered());
+            const size_t old_size = c.buffer.size();
+            c.buffer.resize(old_size + room);
+            const ssize_t n = ::recv(c.fd, c.buffer.data() + old_size, room, MSG_DONTWAIT);
+            c.buffer.resize(old_size + static_cast<size_t>(std::max<ssize_t>(n, 0)));
+            if (n > 0) continue;
+            if (n < 0 && errno == EINTR) continue;
+            break;  // all that has arrived (or the peer closed: the loop sees it)
+        }
+        int status = 0;
+        std::string detail;
+        if (scan_head(c, status, detail) != HeadScanned::kComplete) return false;
+        c.body_wanted = 0;
+        c.state = Connection::State::kBusy;
+        ++gauges->taken_after_answer;
+        return true;
     }
 
     /// Back to the loop, or closed. A connection going back to the loop lists `self` (its

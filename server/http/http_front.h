@@ -42,6 +42,9 @@ struct ConnectionGauges {
     std::atomic<size_t> busy{0};     ///< worker threads answering a request
     std::atomic<size_t> idle{0};     ///< worker threads free for the next request (started)
     std::atomic<size_t> waiting{0};  ///< complete requests waiting for a worker thread
+    /// Requests a worker took from the connection it had just answered, without the event loop
+    /// (a count for tests, not exported as a metric).
+    std::atomic<uint64_t> taken_after_answer{0};
 };
 
 /// Bytes of request bodies the event loop holds, over all connections, while it waits for them

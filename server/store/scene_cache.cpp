@@ -408,11 +408,12 @@ SceneCache::Result<SceneCache::Committed> SceneCache::update(
                 done.reset();
                 in_flight_done();
             };
-            // The check (what the build would refuse) runs on an arena worker as well, while
-            // this thread stages the revision (with revision files: writes and flushes it under
-            // tmp/); the commit waits for it.
-            // Whichever comes first runs it: when the workers are busy (a long query holds the
-            // arena), this thread checks after the write instead of waiting for one.
+            // With revision files the check (what the build would refuse) runs on an arena worker
+            // as well, while this thread stages the revision (writes and flushes it under tmp/);
+            // the commit waits for it. Whichever comes first runs it: when the workers are busy
+            // (a long query holds the arena), this thread checks after the write instead of
+            // waiting for one. A log's stage writes nothing: this thread checks (beside the
+            // build), which spares the commit a hand-off from a worker that has to be woken.
             struct Check {
                 std::atomic<bool> claimed{false};
                 std::function<std::optional<SceneProblem>()> run;
@@ -431,20 +432,23 @@ SceneCache::Result<SceneCache::Committed> SceneCache::update(
             // With one thread the arena has no worker to run an enqueued task: checked before
             // the write, built after the commit.
             const bool overlap = compute_.threads() > 1;
-            if (overlap) {
+            const bool check_beside = overlap && !store_.uses_log();
+            if (check_beside) {
                 in_flight_add();
                 compute_.enqueue([this, check]() mutable {
                     if (!check->claimed.exchange(true)) check->done.set_value((*check)());
                     check.reset();
                     in_flight_done();
                 });
+            }
+            if (overlap) {
                 in_flight_add();
                 compute_.enqueue(task);
             }
             std::optional<SceneProblem> refused;
-            if (!overlap && (refused = (*check)())) return proto::Err{std::move(*refused)};
+            if (!check_beside && (refused = (*check)())) return proto::Err{std::move(*refused)};
             auto staged = store_.stage(id, summary.revision, std::move(n->file));
-            if (overlap) refused = check->claimed.exchange(true) ? checked.get() : (*check)();
+            if (check_beside) refused = check->claimed.exchange(true) ? checked.get() : (*check)();
             if (refused) return proto::Err{std::move(*refused)};
             if (!staged) return proto::Err{write_problem(staged.error())};
             auto committed = store_.commit(std::move(staged).value());
@@ -496,8 +500,7 @@ SceneCache::Result<proto::SceneListItem> SceneCache::set_poses(
         // base's, ~0.35 ms for 1,000 instances) is made by the build, off the request's path.
         n.file = proto::encode_scene_file(b->doc, n.summary.revision, *poses_in);
         // What the build would refuse, checked before the commit (so nothing is stored that it
-        // refuses) on an arena worker while the revision is written; the build overlaps the
-        // write too.
+        // refuses; update() says on which thread); the build overlaps the write.
         n.check = [scene = b->scene, engine_poses, poses_in]() -> std::optional<SceneProblem> {
             try {
                 scene.check_transforms(*engine_poses);

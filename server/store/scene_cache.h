@@ -164,8 +164,8 @@ private:
     ///   encoded from the base revision and the poses), written durably while `build` makes its
     ///   document and engine scene on an arena worker (it must not fail but for std::bad_alloc),
     ///   off the request's path. `check`, when set, says whether the revision may be committed
-    ///   (what the build would refuse); it runs on an arena worker while the file is written, and
-    ///   the commit waits for it.
+    ///   (what the build would refuse); the commit waits for it (run on the calling thread for a
+    ///   log, on an arena worker while the file is written for revision files).
     struct Next {
         proto::SceneDocument doc;
         Scene scene;

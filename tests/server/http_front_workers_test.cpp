@@ -47,6 +47,9 @@ public:
         thread_.join();
     }
     [[nodiscard]] int port() const { return port_; }
+    [[nodiscard]] uint64_t taken_after_answer() const {
+        return front_.gauges()->taken_after_answer.load();
+    }
     /// True once `n` workers are started and free, false if that takes over 10 s.
     bool wait_idle(size_t n) const {
         const auto gauges = front_.gauges();
@@ -83,27 +86,38 @@ public:
 
     /// GET `path`; the answer's body ("" when none came).
     std::string get(const std::string& path) {
-        const std::string request = "GET " + path + " HTTP/1.1\r\nHost: x\r\n\r\n";
-        if (::send(fd_, request.data(), request.size(), MSG_NOSIGNAL) !=
-            static_cast<ssize_t>(request.size()))
-            return "";
-        std::string in;
+        return send_raw("GET " + path + " HTTP/1.1\r\nHost: x\r\n\r\n") ? answer() : "";
+    }
+    bool send_raw(const std::string& bytes) {
+        return ::send(fd_, bytes.data(), bytes.size(), MSG_NOSIGNAL) ==
+               static_cast<ssize_t>(bytes.size());
+    }
+    /// The body of the next answer ("" when none came); bytes of the answers after it are kept
+    /// for them.
+    std::string answer() {
         char buf[4096];
         for (;;) {
-            const size_t end = in.find("\r\n\r\n");
+            const size_t end = in_.find("\r\n\r\n");
             if (end != std::string::npos) {
-                const size_t at = in.find("Content-Length: ");
-                const size_t length = at == std::string::npos ? 0 : std::stoul(in.substr(at + 16));
-                if (in.size() >= end + 4 + length) return in.substr(end + 4, length);
+                const size_t at = in_.find("Content-Length: ");
+                const size_t length =
+                    at == std::string::npos || at > end ? 0 : std::stoul(in_.substr(at + 16));
+                if (in_.size() >= end + 4 + length) {
+                    std::string body = in_.substr(end + 4, length);
+                    in_.erase(0, end + 4 + length);
+                    return body;
+                }
             }
             const ssize_t n = ::recv(fd_, buf, sizeof buf, 0);
             if (n <= 0) return "";
-            in.append(buf, static_cast<size_t>(n));
+            in_.append(buf, static_cast<size_t>(n));
         }
     }
+    [[nodiscard]] int fd() const { return fd_; }
 
 private:
     int fd_;
+    std::string in_;  ///< received bytes of answers not yet returned
 };
 
 TEST(HttpFrontWorkers, RequestsInTurnStayOnTheThreadThatAnsweredTheLastOne) {
@@ -164,6 +178,102 @@ TEST(HttpFrontWorkers, RequestsAtOnceStillGetAThreadEach) {
     for (int c = 0; c < kAtOnce; ++c) EXPECT_EQ(got[c], "together") << "client " << c;
     std::lock_guard lock(mutex);
     EXPECT_EQ(answered_by.size(), static_cast<size_t>(kAtOnce));
+}
+
+/// Answers "/first" once the test says its next request has been sent (so that it waits in the
+/// socket as the answer goes out), every other request with its path and body.
+class FollowFront {
+public:
+    FollowFront()
+        : front(4, [this](httplib::Request& req, httplib::Response& res,
+                          const httplib::ContentReader& reader) {
+              std::string body;
+              reader([&](const char* data, size_t size) {
+                  body.append(data, size);
+                  return true;
+              });
+              std::unique_lock lock(mutex);
+              by.push_back(std::this_thread::get_id());
+              if (req.path == "/first") {
+                  inside = true;
+                  cv.notify_all();
+                  cv.wait_for(lock, 10s, [&] { return next_sent; });
+              }
+              res.status = 200;
+              res.body = req.path + ":" + body;
+          }) {}
+    /// Waits until "/first" is being answered (false after 10 s).
+    bool wait_inside() {
+        std::unique_lock lock(mutex);
+        return cv.wait_for(lock, 10s, [&] { return inside; });
+    }
+    /// Warms `client`'s connection up until all 4 workers are free, then sends "/first" and
+    /// waits until it is being answered (its worker holds it until release()).
+    void start_first(WorkerClient& client) {
+        ASSERT_EQ(client.get("/warm"), "/warm:");
+        ASSERT_TRUE(front.wait_idle(4)) << "the 4 workers did not all start";
+        ASSERT_TRUE(client.send_raw("GET /first HTTP/1.1\r\nHost: x\r\n\r\n"));
+        ASSERT_TRUE(wait_inside());
+    }
+    void release() {
+        std::lock_guard lock(mutex);
+        next_sent = true;
+        cv.notify_all();
+    }
+
+    std::mutex mutex;
+    std::condition_variable cv;
+    bool inside = false, next_sent = false;
+    std::vector<std::thread::id> by;
+    WorkerFront front;
+};
+
+TEST(HttpFrontWorkers, ARequestWaitingAsItsConnectionsAnswerGoesOutIsTakenByThatWorker) {
+    FollowFront f;
+    WorkerClient client(f.front.port());
+    ASSERT_NO_FATAL_FAILURE(f.start_first(client));
+    const uint64_t taken = f.front.taken_after_answer();
+    // A body of several reads, sent while /first is answered: its worker finds the request as
+    // it finishes, takes it without the loop and reads the body from the socket.
+    std::string body(300000, 'b');
+    for (size_t i = 0; i < body.size(); i += 7) body[i] = static_cast<char>('a' + i % 26);
+    ASSERT_TRUE(client.send_raw("POST /second HTTP/1.1\r\nHost: x\r\nContent-Length: " +
+                                std::to_string(body.size()) + "\r\n\r\n" + body.substr(0, 1000)));
+    std::thread sender([&] { client.send_raw(body.substr(1000)); });
+    f.release();
+    EXPECT_EQ(client.answer(), "/first:");
+    const std::string second = client.answer();
+    EXPECT_TRUE(second == "/second:" + body) << "an answer of " << second.size() << " bytes";
+    sender.join();
+    EXPECT_EQ(f.front.taken_after_answer(), taken + 1);
+    // The next request on the connection is answered as well (by the loop or this worker).
+    EXPECT_EQ(client.get("/third"), "/third:");
+    std::lock_guard lock(f.mutex);
+    ASSERT_EQ(f.by.size(), 4u);
+    EXPECT_EQ(f.by[1], f.by[2]) << "/second went to another worker";
+}
+
+TEST(HttpFrontWorkers, APartOfAHeadWaitingAsTheAnswerGoesOutGoesBackToTheLoop) {
+    FollowFront f;
+    WorkerClient client(f.front.port());
+    ASSERT_NO_FATAL_FAILURE(f.start_first(client));
+    const uint64_t taken = f.front.taken_after_answer();
+    // Empty lines (ignored) and half of the next head: the worker reads them and hands the
+    // connection back; the loop scans them again with the rest.
+    ASSERT_TRUE(client.send_raw("\r\nPOST /second HTTP/1.1\r\nHost: x\r\nContent-Len"));
+    f.release();
+    EXPECT_EQ(client.answer(), "/first:");
+    // The worker is free again once it has handed the connection back.
+    ASSERT_TRUE(f.front.wait_idle(4));
+    ASSERT_TRUE(client.send_raw("gth: 5\r\n\r\nhello"));
+    EXPECT_EQ(client.answer(), "/second:hello");
+    EXPECT_EQ(f.front.taken_after_answer(), taken);
+    // A head refused after the answer: 400 from the loop, the connection closed.
+    ASSERT_TRUE(client.send_raw("GET /x HTTP/1.1\r\nHost: x\r\nbad header line\r\n\r\n"));
+    char buf[256];
+    const ssize_t n = ::recv(client.fd(), buf, sizeof buf, 0);
+    ASSERT_GT(n, 12);
+    EXPECT_EQ(std::string(buf, 12), "HTTP/1.1 400");
 }
 
 }  // namespace
