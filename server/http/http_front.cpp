@@ -868,9 +868,11 @@ struct HttpFront::Impl {
         pollfd p{c.fd, POLLIN | POLLRDHUP, 0};
         const timespec wait{0, static_cast<long>(kNextRequestWait.count())};
         int ready = 0;
+        --gauges->busy;  // waiting for a request is not answering one (kdrt_http_threads_busy)
         do {
             ready = ::ppoll(&p, 1, &wait, nullptr);
         } while (ready < 0 && errno == EINTR);
+        ++gauges->busy;
         if (ready <= 0 || (p.revents & (POLLRDHUP | POLLHUP | POLLERR)) != 0) return false;
         c.state = Connection::State::kIdle;
         c.scan = HeadScan{};
