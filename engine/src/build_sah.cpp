@@ -23,7 +23,8 @@
 //  - The sweep counts a position's events in a register (kSweepCounts).
 //  - On lists of kPruneFrom events and more, the sweep skips blocks of positions whose lower bound
 //    on the SAH shows that no candidate in them can be chosen (sweep_pruned: costing at least
-//    the leaf, a lower axis' best, or more than the best found so far).
+//    the leaf, a lower axis' best, or more than the best found so far). The big nodes' lists
+//    too: pruned, the axes one after the other, they cost less than the parallel chunked sweep.
 //  - A cut of empty space hands the node's event lists to its non-empty child as they are: that
 //    child holds every triangle, none of them cut, so a partition would copy every event
 //    unchanged (the stadium: 16% of all events are in such children).
@@ -31,9 +32,10 @@
 //    the copy of each event adds the two bytes as they are.
 //  - Clipping uses the exact double arithmetic of the straightforward version (only the library
 //    call of nextafter is replaced by bit arithmetic, checked equal for every finite float).
-//  - Big nodes (the top of the tree, where only one or two nodes exist) sweep their axes in
-//    parallel chunks; chunk results are combined in list order, so the chosen split is the one a
-//    sequential sweep finds. Subtrees of big nodes are built concurrently, as before.
+//  - Without pruning (tests; cost settings the bounds do not hold for), big nodes (the top of
+//    the tree, where only one or two nodes exist) sweep their axes in parallel chunks; chunk
+//    results are combined in list order, so the chosen split is the one a sequential sweep
+//    finds. Subtrees of big nodes are built concurrently, as before.
 
 #include <algorithm>
 #include <array>
@@ -690,11 +692,16 @@ private:
     /// sweep's own arithmetic from its smallest left and right probabilities and counts. Every
     /// operation of SahCost::split on non-negative operands is monotone under IEEE rounding (and
     /// -ffp-contract=off keeps each one rounded on its own), so the bound is at most the cost the
-    /// sweep computes for any of the block's candidates. The block of the lowest bound is swept
-    /// first; the rest in order, skipped when their bound is at least `bound` or above the best
-    /// cost so far (a block whose bound equals it may hold an earlier tie, so it is swept). The
-    /// best candidate (lowest cost, earliest on ties) among those costing less than `bound` is
-    /// the one sweep() finds; a candidate costing `bound` or more is never chosen by build().
+    /// sweep computes for any of the block's candidates. The empty bonus (a factor below 1) goes
+    /// into a block's bound only where one of its two counts is 0: a candidate's counts are at
+    /// least those, so only then may one of its sides be empty (the bonus on every block made
+    /// the bounds ~10% loose, and the stadium's big nodes swept nearly all their blocks: sweeping
+    /// them pruned instead of in parallel chunks paid only with this). The block of the lowest
+    /// bound is swept first; the rest in order, skipped when their bound is at least `bound` or
+    /// above the best cost so far (a block whose bound equals it may hold an earlier tie, so it is
+    /// swept). The best candidate (lowest cost, earliest on ties) among those costing less than
+    /// `bound` is the one sweep() finds; a candidate costing `bound` or more is never chosen by
+    /// build().
     static Split sweep_pruned(const SweepSetup& s, const Event* ev, size_t n, double bound,
                               std::vector<SweepBlock>& blocks) {
         const uint32_t key_lo = ordered_bits(s.lo), key_hi = ordered_bits(s.hi);
@@ -734,7 +741,9 @@ private:
                     (s.cap + s.ring * (hi - double{from_ordered_bits(last)})) * s.inv_area;
                 double c = s.cost.c_isect *
                            (pl * SahCost::tests(n_left) + pr * SahCost::tests(n_right - leaving));
-                if (empty_scale < 1.0) c *= empty_scale;
+                // The empty bonus only where a candidate of the block may leave a side empty:
+                // its counts are at least these, so a side is empty only if its count is 0.
+                if (empty_scale < 1.0 && (n_left == 0 || n_right - leaving == 0)) c *= empty_scale;
                 lower = c + s.cost.c_trav;
                 if (!(lower == lower)) lower = -INFINITY;  // NaN: sweep it
             }
@@ -782,12 +791,7 @@ private:
                               ? sweep_parallel(s, in.events(a), in.count[a])
                               : sweep(s, in.events(a), 0, in.count[a], 0, in.prim_count);
         };
-        if (std::max({in.count[0], in.count[1], in.count[2]}) >= kParallelAxes) {
-            tbb::this_task_arena::isolate([&] {
-                tbb::parallel_invoke([&] { sweep_axis(0); }, [&] { sweep_axis(1); },
-                                     [&] { sweep_axis(2); });
-            });
-        } else if (prune_ && prunable() && std::isfinite(inv_area)) {
+        if (prune_ && prunable() && std::isfinite(inv_area)) {
             // A candidate is chosen only if it costs less than the leaf and than every lower
             // axis' best (which wins ties).
             double bound = cost_.leaf(in.prim_count);
@@ -802,6 +806,11 @@ private:
                           : sweep(s, in.events(a), 0, in.count[a], 0, in.prim_count);
                 bound = std::min(bound, per_axis[a].cost);
             }
+        } else if (std::max({in.count[0], in.count[1], in.count[2]}) >= kParallelAxes) {
+            tbb::this_task_arena::isolate([&] {
+                tbb::parallel_invoke([&] { sweep_axis(0); }, [&] { sweep_axis(1); },
+                                     [&] { sweep_axis(2); });
+            });
         } else {
             for (int a = 0; a < 3; ++a) sweep_axis(a);
         }

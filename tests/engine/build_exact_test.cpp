@@ -25,14 +25,18 @@ bool same_tree(const KdTree& a, const KdTree& b) {
 
 // The sweep skips blocks of candidates whose lower bound (the sweep's own arithmetic on the
 // block's smallest probabilities and counts) shows they cannot be chosen, and sweeps the block
-// of the lowest bound first. The tree must be the full sweep's, byte for byte: ties between
+// of the lowest bound first (the empty bonus in a block's bound only where one of its counts
+// may be 0). The tree must be the full sweep's, byte for byte: ties between
 // positions (grid soups), between axes (the cube-like grid), planar triangles, empty cuts, and
 // cost settings whose empty bonus is on, off, or a penalty (empty_scale above 1).
 TEST(KdSweep, PrunedSweepBuildsTheFullSweepsTree) {
     Rng rng(test_seed() + 700);
     const std::vector<Mesh> meshes = {
         teapot_in_stadium(), random_soup(rng, 6000, 0.3f), snapped_soup(rng, 6000, 1.0f / 8, 0.3f),
-        snapped_soup(rng, 9000, 1.0f / 256, 0.3f), snapped_soup(rng, 3000, 1.0f / 2, 0.3f)};
+        snapped_soup(rng, 9000, 1.0f / 256, 0.3f), snapped_soup(rng, 3000, 1.0f / 2, 0.3f),
+        // Top nodes of more than 32k events an axis: pruned too, where the full build sweeps
+        // them in parallel chunks.
+        snapped_soup(rng, 24000, 1.0f / 64, 0.3f)};
     std::vector<BuildOptions> settings(4);
     settings[1].intersection_cost = 2.0f;
     settings[1].empty_bonus = 0.5f;
