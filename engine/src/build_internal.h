@@ -76,7 +76,18 @@ public:
     void build(SubTree& out, uint32_t slot, const Aabb& cell, std::span<const PrimBox> prims,
                uint32_t depth);
 
+    /// build() over every triangle of the builder's mesh that `skip` does not flag and whose
+    /// vertex bounds meet `cell`, each box those bounds in `cell` (vertex_bounds_in_cell): the
+    /// binned root's hand-over of the whole mesh, with no list of boxes made first. `count`:
+    /// how many such triangles there are.
+    void build_all(SubTree& out, uint32_t slot, const Aabb& cell, std::span<const uint8_t> skip,
+                   size_t count, uint32_t depth);
+
 private:
+    template <typename EachPrim>
+    void build_events(SubTree& out, uint32_t slot, const Aabb& cell, size_t count, uint32_t depth,
+                      const EachPrim& each_prim);
+
     struct Impl;
     std::unique_ptr<Impl> impl_;
 };
@@ -124,6 +135,10 @@ struct BinnedParams {
     /// The exact sweep skips blocks of candidates whose lower bound shows they cannot be chosen
     /// (ExactSahBuilder). The tree is the same either way; tests turn it off to compare.
     bool prune_sweep = true;
+    /// The root is counted, bounded and binned straight from the triangles, and its list of
+    /// references is made only where a binned split divides it (not where the exact sweep takes
+    /// the whole mesh). The tree is the same either way; tests turn it off to compare.
+    bool root_from_triangles = true;
 };
 
 /// Maps a coordinate to its bin on one axis: [lo, lo + count / scale] in `count` equal bins,
