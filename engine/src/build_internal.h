@@ -3,6 +3,7 @@
 
 #include <emmintrin.h>
 
+#include <algorithm>
 #include <array>
 #include <cstdint>
 #include <memory>
@@ -115,7 +116,17 @@ bool misses_cell(const TriVerts& tri, const Aabb& cell);
 bool clip_unless_missing(const TriVerts& tri, const Aabb& cell, Aabb& out);
 
 /// Bounds of the triangle's vertices intersected with `cell`; false if they do not overlap.
-bool vertex_bounds_in_cell(const TriVerts& tri, const Aabb& cell, Aabb& out);
+/// Inline: the binned root computes it for every triangle in each of its passes.
+inline bool vertex_bounds_in_cell(const TriVerts& tri, const Aabb& cell, Aabb& out) {
+    for (int a = 0; a < 3; ++a) {
+        const float lo = std::min({tri.v0[a], tri.v1[a], tri.v2[a]});
+        const float hi = std::max({tri.v0[a], tri.v1[a], tri.v2[a]});
+        out.lo[a] = std::max(lo, cell.lo[a]);
+        out.hi[a] = std::min(hi, cell.hi[a]);
+        if (out.lo[a] > out.hi[a]) return false;
+    }
+    return true;
+}
 
 /// Sorts the 64-bit integers [first, last) ascending, as std::sort does (the exact sweep's
 /// events, the straddlers' new ones above all), with a partition step free of data-dependent

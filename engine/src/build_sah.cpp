@@ -309,18 +309,6 @@ void clipped_bounds_in_children(const TriVerts& tri, const Aabb& left, const Aab
     right_ok = right_poly.bounds(right, right_box);
 }
 
-/// Bounds of a triangle's vertices intersected with `cell`; false if they do not overlap.
-bool vertex_bounds_in(const TriVerts& tri, const Aabb& cell, Aabb& out) {
-    for (int a = 0; a < 3; ++a) {
-        const float lo = std::min({tri.v0[a], tri.v1[a], tri.v2[a]});
-        const float hi = std::max({tri.v0[a], tri.v1[a], tri.v2[a]});
-        out.lo[a] = std::max(lo, cell.lo[a]);
-        out.hi[a] = std::min(hi, cell.hi[a]);
-        if (out.lo[a] > out.hi[a]) return false;
-    }
-    return true;
-}
-
 struct Split {
     bool valid = false;
     int axis = 0;
@@ -1143,14 +1131,14 @@ void ExactSahBuilder::build_events(SubTree& out, uint32_t slot, const Aabb& cell
 }
 
 bool clip_to_cell(const TriVerts& tri, const Aabb& cell, Aabb& out) {
-    return clipped_bounds(tri, cell, out) || vertex_bounds_in(tri, cell, out);
+    return clipped_bounds(tri, cell, out) || vertex_bounds_in_cell(tri, cell, out);
 }
 
 void clip_to_children(const TriVerts& tri, const Aabb& left, const Aabb& right, int axis,
                       bool& left_ok, Aabb& left_box, bool& right_ok, Aabb& right_box) {
     clipped_bounds_in_children(tri, left, right, axis, left_ok, left_box, right_ok, right_box);
-    left_ok = left_ok || vertex_bounds_in(tri, left, left_box);
-    right_ok = right_ok || vertex_bounds_in(tri, right, right_box);
+    left_ok = left_ok || vertex_bounds_in_cell(tri, left, left_box);
+    right_ok = right_ok || vertex_bounds_in_cell(tri, right, right_box);
 }
 
 bool misses_cell(const TriVerts& tri, const Aabb& cell) {
@@ -1170,11 +1158,7 @@ bool misses_cell(const TriVerts& tri, const Aabb& cell) {
 
 bool clip_unless_missing(const TriVerts& tri, const Aabb& cell, Aabb& out) {
     if (clipped_bounds(tri, cell, out)) return true;
-    return !misses_cell(tri, cell) && vertex_bounds_in(tri, cell, out);
-}
-
-bool vertex_bounds_in_cell(const TriVerts& tri, const Aabb& cell, Aabb& out) {
-    return vertex_bounds_in(tri, cell, out);
+    return !misses_cell(tri, cell) && vertex_bounds_in_cell(tri, cell, out);
 }
 
 }  // namespace kdrt::detail
