@@ -188,14 +188,16 @@ public:
         divide(out, slot, cell, std::move(refs), split, depth);
     }
 
-    /// Builds the whole tree in `cell` (the root cell) into slot 0 of `out`.
-    void build_root(SubTree& out, const Aabb& cell, const std::vector<uint8_t>& degenerate) {
+    /// Builds the whole tree in `cell` (the root cell) into slot 0 of `out`: the triangles that
+    /// `degenerate` does not flag, all in the cell, their vertex bounds `geom` (root_cell).
+    void build_root(SubTree& out, const Aabb& cell, const Aabb& geom,
+                    const std::vector<uint8_t>& degenerate) {
         // The root's references are the triangles' vertex bounds in the cell, degenerate
-        // triangles left out. They are counted, bounded and binned straight from the triangles
-        // (each chunk of triangles in parallel for big meshes), and written as a list only where
-        // a binned split divides the root: where the exact sweep takes the whole mesh (the
-        // stadium, a nearly empty cut) the list was 3.6 MB of fresh heap written and read once
-        // (~890 page faults a first build, ~10 us each on this project's VM).
+        // triangles left out. They are binned straight from the triangles (each chunk of
+        // triangles in parallel for big meshes), and written as a list only where a binned split
+        // divides the root: where the exact sweep takes the whole mesh (the stadium, a nearly
+        // empty cut) the list was 3.6 MB of fresh heap written and read once (~890 page faults a
+        // first build, ~10 us each on this project's VM).
         auto root_box = [&](size_t prim, Ref& r) -> const Ref* {
             Aabb box;
             if (degenerate[prim] || !vertex_bounds_in_cell(tris_[prim], cell, box)) return nullptr;
@@ -204,24 +206,8 @@ public:
                     static_cast<uint32_t>(prim)};
             return &r;
         };
-        const size_t chunks = (tris_.size() + kChunkRefs - 1) / kChunkRefs;
-        std::vector<size_t> kept(chunks + 1, 0);  // then each chunk's first reference
-        std::vector<Aabb> bounds(chunks);
-        for_chunks(tris_.size(), [&](size_t c, size_t begin, size_t end) {
-            size_t k = 0;
-            for (size_t prim = begin; prim < end; ++prim) {
-                Ref r;
-                if (const Ref* box = root_box(prim, r)) {
-                    extend(bounds[c], *box);
-                    ++k;
-                }
-            }
-            kept[c + 1] = k;
-        });
-        Aabb geom;
-        for (const Aabb& b : bounds) extend(geom, b);
-        for (size_t c = 1; c <= chunks; ++c) kept[c] += kept[c - 1];
-        const size_t n = kept[chunks];
+        const auto n =
+            static_cast<size_t>(std::count(degenerate.begin(), degenerate.end(), uint8_t{0}));
         if (params_.root_from_triangles) {
             // build()'s decision, on the boxes as the list would hold them.
             BinnedSplit split;
@@ -231,17 +217,23 @@ public:
                 exact_.build_all(out, 0, cell, degenerate, n, 0);
                 return;
             }
-            divide(out, 0, cell, root_refs(root_box, kept, n), split, 0);
+            divide(out, 0, cell, root_refs(root_box, degenerate, n), split, 0);
         } else {
-            build(out, 0, cell, root_refs(root_box, kept, n), geom, 0);
+            build(out, 0, cell, root_refs(root_box, degenerate, n), geom, 0);
         }
     }
 
 private:
-    /// The root's list of references, each chunk of triangles writing its own from its first
-    /// (`first[c]`: the references of the chunks before it).
+    /// The root's list of `n` references, each chunk of triangles writing its own from its first
+    /// (the chunks before it hold that many triangles that are not degenerate).
     template <typename RootBox>
-    Refs root_refs(const RootBox& root_box, const std::vector<size_t>& first, size_t n) {
+    Refs root_refs(const RootBox& root_box, const std::vector<uint8_t>& degenerate, size_t n) {
+        const size_t chunks = (tris_.size() + kChunkRefs - 1) / kChunkRefs;
+        std::vector<size_t> first(chunks, 0);
+        for (size_t c = 1; c < chunks; ++c)
+            first[c] = first[c - 1] +
+                       static_cast<size_t>(std::count(degenerate.begin() + (c - 1) * kChunkRefs,
+                                                      degenerate.begin() + c * kChunkRefs, 0));
         Refs refs = arena_.take(n);
         for_chunks(tris_.size(), [&](size_t c, size_t begin, size_t end) {
             Ref* dst = refs.data() + first[c];
@@ -521,9 +513,9 @@ private:
 }  // namespace
 
 void build_binned(std::span<const TriVerts> tris, const std::vector<uint8_t>& degenerate,
-                  const Aabb& root, const BuildOptions& options, const BinnedParams& params,
-                  SubTree& out) {
-    BinnedBuilder(tris, options, params).build_root(out, root, degenerate);
+                  const Aabb& root, const Aabb& tight, const BuildOptions& options,
+                  const BinnedParams& params, SubTree& out) {
+    BinnedBuilder(tris, options, params).build_root(out, root, tight, degenerate);
 }
 
 }  // namespace kdrt::detail

@@ -212,10 +212,11 @@ private:
 
 /// SAH build with min-max binned splits (Shevtsov et al. 2007, all three axes in one pass,
 /// parallel over references) on nodes of at least params.exact_below references, and the exact
-/// sweep below. Deterministic: byte-identical output at any thread count.
+/// sweep below. Deterministic: byte-identical output at any thread count. `root`: root_cell's
+/// cell; `tight`: the bounds it pads (every triangle that is not degenerate lies in the cell).
 void build_binned(std::span<const TriVerts> tris, const std::vector<uint8_t>& degenerate,
-                  const Aabb& root, const BuildOptions& options, const BinnedParams& params,
-                  SubTree& out);
+                  const Aabb& root, const Aabb& tight, const BuildOptions& options,
+                  const BinnedParams& params, SubTree& out);
 
 /// build_kdtree with explicit binning parameters (build_kdtree uses the defaults); tests use it to
 /// force the binned or the exact phase.
