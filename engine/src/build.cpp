@@ -149,7 +149,8 @@ std::vector<uint8_t> prepare_triangles(const Mesh& mesh, TreeArray<TriVerts>& tr
     return degenerate;
 }
 
-Aabb root_cell(std::span<const TriVerts> tris, const std::vector<uint8_t>& degenerate) {
+Aabb root_cell(std::span<const TriVerts> tris, const std::vector<uint8_t>& degenerate,
+               Aabb* tight) {
     // Per-chunk bounds, combined in chunk order.
     std::vector<Aabb> partial((tris.size() + kTriangleChunk - 1) / kTriangleChunk);
     for_triangle_chunks(tris.size(), [&](size_t c, size_t begin, size_t end) {
@@ -167,6 +168,7 @@ Aabb root_cell(std::span<const TriVerts> tris, const std::vector<uint8_t>& degen
         box.extend(b.lo);
         box.extend(b.hi);
     }
+    if (tight != nullptr) *tight = box;
     if (box.empty()) return box;
     float scale = 0.0f;
     for (int a = 0; a < 3; ++a)
@@ -286,13 +288,14 @@ KdTree detail::build_kdtree_with(const Mesh& mesh, const BuildOptions& options,
     tree.options = options;
     TreeArray<TriVerts> by_id;
     const std::vector<uint8_t> degenerate = detail::prepare_triangles(mesh, by_id);
-    tree.bounds = detail::root_cell(by_id, degenerate);
+    Aabb tight;
+    tree.bounds = detail::root_cell(by_id, degenerate, &tight);
     detail::SubTree sub;
     if (!tree.bounds.empty()) {
         if (options.builder == Builder::kMiddle) {
             detail::build_middle(by_id, degenerate, tree.bounds, options, sub);
         } else {
-            detail::build_binned(by_id, degenerate, tree.bounds, options, params, sub);
+            detail::build_binned(by_id, degenerate, tree.bounds, tight, options, params, sub);
         }
     }
     tree.stats.build_ms =

@@ -181,14 +181,80 @@ public:
             return;
         }
         const BinnedSplit split = find_split(cell, refs, geom);
-        const double leaf_cost = cost_.leaf(static_cast<uint32_t>(refs.size()));
-        // A node whose best binned split cuts off (nearly) empty space goes to the exact sweep
-        // too: its geometry is concentrated in a few bins, and their coarse boundaries miss the
-        // split through it that the exact sweep finds (the stadium: see kNearlyEmpty).
-        if (!split.valid || !(split.cost < leaf_cost) || split.cuts_empty) {
+        if (!divides(split, refs.size())) {
             to_exact(out, slot, cell, std::move(refs), depth);
             return;
         }
+        divide(out, slot, cell, std::move(refs), split, depth);
+    }
+
+    /// Builds the whole tree in `cell` (the root cell) into slot 0 of `out`: the triangles that
+    /// `degenerate` does not flag, all in the cell, their vertex bounds `geom` (root_cell).
+    void build_root(SubTree& out, const Aabb& cell, const Aabb& geom,
+                    const std::vector<uint8_t>& degenerate) {
+        // The root's references are the triangles' vertex bounds in the cell, degenerate
+        // triangles left out. They are binned straight from the triangles (each chunk of
+        // triangles in parallel for big meshes), and written as a list only where a binned split
+        // divides the root: where the exact sweep takes the whole mesh (the stadium, a nearly
+        // empty cut) the list was 3.6 MB of fresh heap written and read once (~890 page faults a
+        // first build, ~10 us each on this project's VM).
+        auto root_box = [&](size_t prim, Ref& r) -> const Ref* {
+            Aabb box;
+            if (degenerate[prim] || !vertex_bounds_in_cell(tris_[prim], cell, box)) return nullptr;
+            r = Ref{{box.lo.x, box.lo.y, box.lo.z},
+                    {box.hi.x, box.hi.y, box.hi.z},
+                    static_cast<uint32_t>(prim)};
+            return &r;
+        };
+        const auto n =
+            static_cast<size_t>(std::count(degenerate.begin(), degenerate.end(), uint8_t{0}));
+        if (params_.root_from_triangles) {
+            // build()'s decision, on the boxes as the list would hold them.
+            BinnedSplit split;
+            if (n >= params_.exact_below && max_depth_ > 0)
+                split = find_split(cell, tris_.size(), n, root_box, geom);
+            if (!divides(split, n)) {
+                exact_.build_all(out, 0, cell, degenerate, n, 0);
+                return;
+            }
+            divide(out, 0, cell, root_refs(root_box, degenerate, n), split, 0);
+        } else {
+            build(out, 0, cell, root_refs(root_box, degenerate, n), geom, 0);
+        }
+    }
+
+private:
+    /// The root's list of `n` references, each chunk of triangles writing its own from its first
+    /// (the chunks before it hold that many triangles that are not degenerate).
+    template <typename RootBox>
+    Refs root_refs(const RootBox& root_box, const std::vector<uint8_t>& degenerate, size_t n) {
+        const size_t chunks = (tris_.size() + kChunkRefs - 1) / kChunkRefs;
+        std::vector<size_t> first(chunks, 0);
+        for (size_t c = 1; c < chunks; ++c)
+            first[c] = first[c - 1] +
+                       static_cast<size_t>(std::count(degenerate.begin() + (c - 1) * kChunkRefs,
+                                                      degenerate.begin() + c * kChunkRefs, 0));
+        Refs refs = arena_.take(n);
+        for_chunks(tris_.size(), [&](size_t c, size_t begin, size_t end) {
+            Ref* dst = refs.data() + first[c];
+            for (size_t prim = begin; prim < end; ++prim)
+                if (root_box(prim, *dst)) ++dst;
+        });
+        return refs;
+    }
+
+    /// Whether a node of `n` references is divided at its best binned split (else the exact
+    /// sweep builds it). A node whose best binned split cuts off (nearly) empty space goes to the
+    /// exact sweep too: its geometry is concentrated in a few bins, and their coarse boundaries
+    /// miss the split through it that the exact sweep finds (the stadium: see kNearlyEmpty).
+    [[nodiscard]] bool divides(const BinnedSplit& split, size_t n) const noexcept {
+        return split.valid && split.cost < cost_.leaf(static_cast<uint32_t>(n)) &&
+               !split.cuts_empty;
+    }
+
+    /// Divides the node of `refs` in `cell` at `split` and builds its children.
+    void divide(SubTree& out, uint32_t slot, const Aabb& cell, Refs&& refs,
+                const BinnedSplit& split, uint32_t depth) {
         Aabb left_cell = cell, right_cell = cell;
         left_cell.hi[split.axis] = split.pos;
         right_cell.lo[split.axis] = split.pos;
@@ -213,42 +279,6 @@ public:
         }
     }
 
-    /// Builds the whole tree in `cell` (the root cell) into slot 0 of `out`.
-    void build_root(SubTree& out, const Aabb& cell, const std::vector<uint8_t>& degenerate) {
-        // The root's references in triangle order, degenerate triangles left out: each chunk of
-        // triangles (in parallel for big meshes) writes its references from its own start, then the
-        // chunks are closed up in order (nothing moves unless a chunk dropped a triangle).
-        Refs refs = arena_.take(tris_.size());
-        const size_t chunks = (tris_.size() + kChunkRefs - 1) / kChunkRefs;
-        std::vector<size_t> kept(chunks, 0);
-        std::vector<Aabb> bounds(chunks);
-        for_chunks(tris_.size(), [&](size_t c, size_t begin, size_t end) {
-            Ref* dst = refs.data() + begin;
-            for (size_t prim = begin; prim < end; ++prim) {
-                Aabb box;
-                if (degenerate[prim] || !vertex_bounds_in_cell(tris_[prim], cell, box)) continue;
-                *dst++ = Ref{{box.lo.x, box.lo.y, box.lo.z},
-                             {box.hi.x, box.hi.y, box.hi.z},
-                             static_cast<uint32_t>(prim)};
-                extend(bounds[c], box);
-            }
-            kept[c] = static_cast<size_t>(dst - (refs.data() + begin));
-        });
-        Aabb geom;
-        for (const Aabb& b : bounds) extend(geom, b);
-        size_t size = 0;
-        for (size_t c = 0; c < chunks; ++c) {
-            const size_t begin = c * kChunkRefs;
-            if (size != begin)
-                std::copy(refs.begin() + begin, refs.begin() + begin + kept[c],
-                          refs.begin() + size);
-            size += kept[c];
-        }
-        refs.shrink(size);
-        build(out, 0, cell, std::move(refs), geom, 0);
-    }
-
-private:
     /// Clips the references cut by binned splits to `cell` and builds the node exactly.
     void to_exact(SubTree& out, uint32_t slot, const Aabb& cell, Refs&& refs, uint32_t depth) {
         // The exact builder's boxes are written over the references, each after its reference
@@ -288,19 +318,30 @@ private:
     }
 
     BinnedSplit find_split(const Aabb& cell, const Refs& refs, const Aabb& geom) {
+        return find_split(
+            cell, refs.size(), refs.size(), [&](size_t i, Ref&) { return &refs[i]; }, geom);
+    }
+
+    /// The best binned split of the node of the references boxes(i, scratch) gives for i in
+    /// [0, items) (null: none at i; `n` in all), in `cell`, with tight bounds `geom`.
+    template <typename Boxes>
+    BinnedSplit find_split(const Aabb& cell, size_t items, size_t n, const Boxes& boxes,
+                           const Aabb& geom) {
         const double area = half_area(cell);
         if (!(area > 0)) return {};
         const double inv_area = 1.0 / area;
-        const uint32_t bins = bin_count(refs.size());
+        const uint32_t bins = bin_count(n);
         Bins total;
-        return best_binned_split(cell, inv_area, refs, geom, bins, total);
+        return best_binned_split(cell, inv_area, items, n, boxes, geom, bins, total);
     }
 
-    /// Bins the references, each axis over [range.lo, range.hi] of that axis (references
-    /// outside fall into the end bins), and returns the best candidate plane. `total` is scratch
-    /// space.
-    BinnedSplit best_binned_split(const Aabb& cell, double inv_area, const Refs& refs,
-                                  const Aabb& range, uint32_t bins, Bins& total) {
+    /// Bins the references (as find_split gives them), each axis over [range.lo, range.hi] of
+    /// that axis (references outside fall into the end bins), and returns the best candidate
+    /// plane. `total` is scratch space.
+    template <typename Boxes>
+    BinnedSplit best_binned_split(const Aabb& cell, double inv_area, size_t items, size_t n_refs,
+                                  const Boxes& boxes, const Aabb& range, uint32_t bins,
+                                  Bins& total) {
         std::array<BinMap, 3> maps;
         for (int a = 0; a < 3; ++a) {
             const double extent = double{range.hi[a]} - range.lo[a];
@@ -313,9 +354,12 @@ private:
             into.reset(bins);
             std::array<uint32_t, 6> b{};
             for (size_t i = begin; i < end; ++i) {
-                map6(refs[i].lo, refs[i].hi, b);
+                Ref scratch;
+                const Ref* const r = boxes(i, scratch);
+                if (r == nullptr) continue;
+                map6(r->lo, r->hi, b);
                 for (int a = 0; a < 3; ++a) {
-                    const float lo = refs[i].lo[a], hi = refs[i].hi[a];
+                    const float lo = r->lo[a], hi = r->hi[a];
                     const uint32_t bl = b[BoundsBinMap::kLo[a]], bh = b[BoundsBinMap::kHi[a]];
                     ++into.starts[a][bl];
                     ++into.ends[a][bh];
@@ -324,15 +368,15 @@ private:
                 }
             }
         };
-        if (refs.size() <= kChunkRefs) {
-            bin_range(total, 0, refs.size());
+        if (items <= kChunkRefs) {
+            bin_range(total, 0, items);
         } else {
-            const size_t chunks = (refs.size() + kChunkRefs - 1) / kChunkRefs;
+            const size_t chunks = (items + kChunkRefs - 1) / kChunkRefs;
             // Kept per thread (12 KiB a chunk, up to ~600 chunks on 64 bunnies' root); not
             // cleared here: bin_range resets the `bins` bins it uses.
             std::vector<Bins> partial = chunk_bins_.take();
             if (partial.size() < chunks) partial.resize(chunks);
-            for_chunks(refs.size(), [&](size_t c, size_t begin, size_t end) {
+            for_chunks(items, [&](size_t c, size_t begin, size_t end) {
                 bin_range(partial[c], begin, end);
             });
             total.reset(bins);
@@ -340,7 +384,7 @@ private:
             chunk_bins_.give(std::move(partial));
         }
 
-        const auto n = static_cast<uint32_t>(refs.size());
+        const auto n = static_cast<uint32_t>(n_refs);
         BinnedSplit best;
         for (int a = 0; a < 3; ++a) {
             const float lo = cell.lo[a], hi = cell.hi[a];
@@ -469,9 +513,9 @@ private:
 }  // namespace
 
 void build_binned(std::span<const TriVerts> tris, const std::vector<uint8_t>& degenerate,
-                  const Aabb& root, const BuildOptions& options, const BinnedParams& params,
-                  SubTree& out) {
-    BinnedBuilder(tris, options, params).build_root(out, root, degenerate);
+                  const Aabb& root, const Aabb& tight, const BuildOptions& options,
+                  const BinnedParams& params, SubTree& out) {
+    BinnedBuilder(tris, options, params).build_root(out, root, tight, degenerate);
 }
 
 }  // namespace kdrt::detail

@@ -128,8 +128,10 @@ inline TriVerts mesh_triangle(const Mesh& mesh, size_t i, bool degenerate) noexc
 std::vector<uint8_t> prepare_triangles(const Mesh& mesh, TreeArray<TriVerts>& tris);
 
 /// Root cell: the bounds of the non-degenerate triangles, padded by a small relative margin so
-/// that ray clipping is robust and flat meshes get a cell with volume.
-Aabb root_cell(std::span<const TriVerts> tris, const std::vector<uint8_t>& degenerate);
+/// that ray clipping is robust and flat meshes get a cell with volume. `tight`, if given, gets
+/// those bounds unpadded.
+Aabb root_cell(std::span<const TriVerts> tris, const std::vector<uint8_t>& degenerate,
+               Aabb* tight = nullptr);
 
 /// Makes `refs` (mesh triangle ids, leaf after leaf) tree.leaf_refs, each rewritten in place as an
 /// index into tree.tris, and fills tree.tris, tri_ids and tri_slots with every triangle of `mesh`

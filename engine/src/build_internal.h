@@ -3,6 +3,7 @@
 
 #include <emmintrin.h>
 
+#include <algorithm>
 #include <array>
 #include <cstdint>
 #include <memory>
@@ -76,7 +77,18 @@ public:
     void build(SubTree& out, uint32_t slot, const Aabb& cell, std::span<const PrimBox> prims,
                uint32_t depth);
 
+    /// build() over every triangle of the builder's mesh that `skip` does not flag and whose
+    /// vertex bounds meet `cell`, each box those bounds in `cell` (vertex_bounds_in_cell): the
+    /// binned root's hand-over of the whole mesh, with no list of boxes made first. `count`:
+    /// how many such triangles there are.
+    void build_all(SubTree& out, uint32_t slot, const Aabb& cell, std::span<const uint8_t> skip,
+                   size_t count, uint32_t depth);
+
 private:
+    template <typename EachPrim>
+    void build_events(SubTree& out, uint32_t slot, const Aabb& cell, size_t count, uint32_t depth,
+                      const EachPrim& each_prim);
+
     struct Impl;
     std::unique_ptr<Impl> impl_;
 };
@@ -104,7 +116,17 @@ bool misses_cell(const TriVerts& tri, const Aabb& cell);
 bool clip_unless_missing(const TriVerts& tri, const Aabb& cell, Aabb& out);
 
 /// Bounds of the triangle's vertices intersected with `cell`; false if they do not overlap.
-bool vertex_bounds_in_cell(const TriVerts& tri, const Aabb& cell, Aabb& out);
+/// Inline: the binned root computes it for every triangle in each of its passes.
+inline bool vertex_bounds_in_cell(const TriVerts& tri, const Aabb& cell, Aabb& out) {
+    for (int a = 0; a < 3; ++a) {
+        const float lo = std::min({tri.v0[a], tri.v1[a], tri.v2[a]});
+        const float hi = std::max({tri.v0[a], tri.v1[a], tri.v2[a]});
+        out.lo[a] = std::max(lo, cell.lo[a]);
+        out.hi[a] = std::min(hi, cell.hi[a]);
+        if (out.lo[a] > out.hi[a]) return false;
+    }
+    return true;
+}
 
 /// Sorts the 64-bit integers [first, last) ascending, as std::sort does (the exact sweep's
 /// events, the straddlers' new ones above all), with a partition step free of data-dependent
@@ -124,6 +146,10 @@ struct BinnedParams {
     /// The exact sweep skips blocks of candidates whose lower bound shows they cannot be chosen
     /// (ExactSahBuilder). The tree is the same either way; tests turn it off to compare.
     bool prune_sweep = true;
+    /// The root is counted, bounded and binned straight from the triangles, and its list of
+    /// references is made only where a binned split divides it (not where the exact sweep takes
+    /// the whole mesh). The tree is the same either way; tests turn it off to compare.
+    bool root_from_triangles = true;
 };
 
 /// Maps a coordinate to its bin on one axis: [lo, lo + count / scale] in `count` equal bins,
@@ -186,10 +212,11 @@ private:
 
 /// SAH build with min-max binned splits (Shevtsov et al. 2007, all three axes in one pass,
 /// parallel over references) on nodes of at least params.exact_below references, and the exact
-/// sweep below. Deterministic: byte-identical output at any thread count.
+/// sweep below. Deterministic: byte-identical output at any thread count. `root`: root_cell's
+/// cell; `tight`: the bounds it pads (every triangle that is not degenerate lies in the cell).
 void build_binned(std::span<const TriVerts> tris, const std::vector<uint8_t>& degenerate,
-                  const Aabb& root, const BuildOptions& options, const BinnedParams& params,
-                  SubTree& out);
+                  const Aabb& root, const Aabb& tight, const BuildOptions& options,
+                  const BinnedParams& params, SubTree& out);
 
 /// build_kdtree with explicit binning parameters (build_kdtree uses the defaults); tests use it to
 /// force the binned or the exact phase.

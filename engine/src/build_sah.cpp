@@ -309,18 +309,6 @@ void clipped_bounds_in_children(const TriVerts& tri, const Aabb& left, const Aab
     right_ok = right_poly.bounds(right, right_box);
 }
 
-/// Bounds of a triangle's vertices intersected with `cell`; false if they do not overlap.
-bool vertex_bounds_in(const TriVerts& tri, const Aabb& cell, Aabb& out) {
-    for (int a = 0; a < 3; ++a) {
-        const float lo = std::min({tri.v0[a], tri.v1[a], tri.v2[a]});
-        const float hi = std::max({tri.v0[a], tri.v1[a], tri.v2[a]});
-        out.lo[a] = std::max(lo, cell.lo[a]);
-        out.hi[a] = std::min(hi, cell.hi[a]);
-        if (out.lo[a] > out.hi[a]) return false;
-    }
-    return true;
-}
-
 struct Split {
     bool valid = false;
     int axis = 0;
@@ -1045,40 +1033,63 @@ void radix_sort_events(Event* ev, size_t n, Event* temp) {
 
 struct ExactSahBuilder::Impl {
     SahBuilder builder;
+    std::span<const TriVerts> tris;
 };
 
 ExactSahBuilder::ExactSahBuilder(std::span<const TriVerts> tris, const BuildOptions& options,
                                  bool empty_cuts_in_place, bool prune_sweep)
     : impl_(std::make_unique<Impl>(
-          Impl{SahBuilder(tris, options, empty_cuts_in_place, prune_sweep)})) {}
+          Impl{SahBuilder(tris, options, empty_cuts_in_place, prune_sweep), tris})) {}
 
 ExactSahBuilder::~ExactSahBuilder() = default;
 
 void ExactSahBuilder::build(SubTree& out, uint32_t slot, const Aabb& cell,
                             std::span<const PrimBox> prims, uint32_t depth) {
+    build_events(out, slot, cell, prims.size(), depth, [&](const auto& add) {
+        for (const PrimBox& p : prims) add(p.box, p.prim);
+    });
+}
+
+void ExactSahBuilder::build_all(SubTree& out, uint32_t slot, const Aabb& cell,
+                                std::span<const uint8_t> skip, size_t count, uint32_t depth) {
+    const std::span<const TriVerts> tris = impl_->tris;
+    build_events(out, slot, cell, count, depth, [&](const auto& add) {
+        size_t added = 0;
+        for (size_t prim = 0; prim < tris.size() && added < count; ++prim) {
+            Aabb box;
+            if (skip[prim] || !vertex_bounds_in_cell(tris[prim], cell, box)) continue;
+            add(box, static_cast<uint32_t>(prim));
+            ++added;
+        }
+    });
+}
+
+template <typename EachPrim>
+void ExactSahBuilder::build_events(SubTree& out, uint32_t slot, const Aabb& cell, size_t count,
+                                   uint32_t depth, const EachPrim& each_prim) {
     // The node's events go straight into its buffer (at most two per triangle and axis, plus the
     // sentinel), in triangle order; each axis is then sorted.
     NodeInput in;
     in.cell = cell;
     in.depth = depth;
-    const size_t stride = 2 * prims.size() + 1;
+    const size_t stride = 2 * count + 1;
     in.buffer = impl_->builder.take_buffer(3 * stride);
     for (int a = 0; a < 3; ++a) in.offset[a] = a * stride;
     Event* const ev = in.buffer.data.get();
-    for (const PrimBox& p : prims) {
+    each_prim([&](const Aabb& box, uint32_t prim) {
         for (int a = 0; a < 3; ++a) {
             Event* dst = ev + in.offset[a] + in.count[a];
-            if (p.box.lo[a] == p.box.hi[a]) {
-                dst[0] = make_event(p.box.lo[a], kPlanar, p.prim);
+            if (box.lo[a] == box.hi[a]) {
+                dst[0] = make_event(box.lo[a], kPlanar, prim);
                 in.count[a] += 1;
             } else {
-                dst[0] = make_event(p.box.lo[a], kStart, p.prim);
-                dst[1] = make_event(p.box.hi[a], kEnd, p.prim);
+                dst[0] = make_event(box.lo[a], kStart, prim);
+                dst[1] = make_event(box.hi[a], kEnd, prim);
                 in.count[a] += 2;
             }
         }
-    }
-    in.prim_count = static_cast<uint32_t>(prims.size());
+    });
+    in.prim_count = static_cast<uint32_t>(count);
     // A big root's axes, sorted concurrently, share one scratch buffer, each in its own part:
     // one tree-memory mapping, which, freed right after the sorts, is kept for the build
     // (RecycleTreeMappings) and serves the first partitions' children. Three buffers of their
@@ -1086,7 +1097,7 @@ void ExactSahBuilder::build(SubTree& out, uint32_t slot, const Aabb& cell,
     // back to the kernel: ~4 MB of fresh pages a first build that nothing else reused.
     const size_t all_events = in.count[0] + in.count[1] + in.count[2];
     EventBuffer shared;
-    if (prims.size() >= kParallelSubtrees && all_events >= kHugePageEvents)
+    if (count >= kParallelSubtrees && all_events >= kHugePageEvents)
         shared = impl_->builder.take_buffer(all_events);
     auto sort_axis = [&](int a) {
         Event* first = ev + in.offset[a];
@@ -1107,7 +1118,7 @@ void ExactSahBuilder::build(SubTree& out, uint32_t slot, const Aabb& cell,
         }
         first[in.count[a]] = kSentinel;
     };
-    if (prims.size() >= kParallelSubtrees) {
+    if (count >= kParallelSubtrees) {
         tbb::this_task_arena::isolate([&] {
             tbb::parallel_invoke([&] { sort_axis(0); }, [&] { sort_axis(1); },
                                  [&] { sort_axis(2); });
@@ -1120,14 +1131,14 @@ void ExactSahBuilder::build(SubTree& out, uint32_t slot, const Aabb& cell,
 }
 
 bool clip_to_cell(const TriVerts& tri, const Aabb& cell, Aabb& out) {
-    return clipped_bounds(tri, cell, out) || vertex_bounds_in(tri, cell, out);
+    return clipped_bounds(tri, cell, out) || vertex_bounds_in_cell(tri, cell, out);
 }
 
 void clip_to_children(const TriVerts& tri, const Aabb& left, const Aabb& right, int axis,
                       bool& left_ok, Aabb& left_box, bool& right_ok, Aabb& right_box) {
     clipped_bounds_in_children(tri, left, right, axis, left_ok, left_box, right_ok, right_box);
-    left_ok = left_ok || vertex_bounds_in(tri, left, left_box);
-    right_ok = right_ok || vertex_bounds_in(tri, right, right_box);
+    left_ok = left_ok || vertex_bounds_in_cell(tri, left, left_box);
+    right_ok = right_ok || vertex_bounds_in_cell(tri, right, right_box);
 }
 
 bool misses_cell(const TriVerts& tri, const Aabb& cell) {
@@ -1147,11 +1158,7 @@ bool misses_cell(const TriVerts& tri, const Aabb& cell) {
 
 bool clip_unless_missing(const TriVerts& tri, const Aabb& cell, Aabb& out) {
     if (clipped_bounds(tri, cell, out)) return true;
-    return !misses_cell(tri, cell) && vertex_bounds_in(tri, cell, out);
-}
-
-bool vertex_bounds_in_cell(const TriVerts& tri, const Aabb& cell, Aabb& out) {
-    return vertex_bounds_in(tri, cell, out);
+    return !misses_cell(tri, cell) && vertex_bounds_in_cell(tri, cell, out);
 }
 
 }  // namespace kdrt::detail

@@ -165,6 +165,51 @@ TEST(KdBinned, NearlyEmptyCutsAreLeftToTheExactSweep) {
     expect_traces_like_brute_force(stadium, exact, test_seed() + 325);
 }
 
+// The binned root is counted, bounded and binned straight from the triangles, its list of
+// references made only where a binned split divides it, and the exact sweep takes a whole mesh
+// from the triangles (BinnedParams::root_from_triangles). The tree must be the one the list gives,
+// byte for byte: with degenerate triangles mixed in (left out by both), a root the exact sweep
+// takes whole (the teapot in a stadium: a nearly empty cut; every node exact; no depth), a root
+// the bins divide, and meshes big enough to be counted and binned in parallel chunks.
+TEST(KdBinned, RootFromTrianglesBuildsTheListsTree) {
+    Rng rng(test_seed() + 330);
+    std::vector<Mesh> meshes = {teapot_in_stadium(), random_soup(rng, 3000, 0.2f),
+                                random_soup(rng, 40'000, 0.05f)};
+    for (Mesh& mesh : meshes) {  // degenerate triangles (zero area) at random places among them
+        const size_t solid = mesh.triangle_count();
+        for (size_t i = 0; i < solid / 50; ++i) {
+            const float t = static_cast<float>(i % 7) * 0.1f;
+            add_triangle(mesh, {t, t, t}, {t + 1, t + 1, t + 1}, {t + 2, t + 2, t + 2});
+        }
+        for (size_t i = solid; i < mesh.triangle_count(); ++i) {
+            const size_t j = rng.below(static_cast<uint32_t>(solid));
+            for (int k = 0; k < 3; ++k) std::swap(mesh.indices[3 * i + k], mesh.indices[3 * j + k]);
+        }
+    }
+    BuildOptions flat;  // no depth: the root is a leaf of the exact sweep
+    flat.max_depth = 0;
+    size_t divided = 0;
+    for (size_t m = 0; m < meshes.size(); ++m) {
+        for (const uint32_t exact_below : {0u, 64u, 4096u, kAllExact}) {
+            for (const BuildOptions& options : {BuildOptions{}, flat}) {
+                SCOPED_TRACE(testing::Message() << "mesh " << m << ", exact below " << exact_below
+                                                << ", max depth " << options.max_depth);
+                BinnedParams listed = binned_below(exact_below);
+                listed.root_from_triangles = false;
+                const KdTree want = build_kdtree_with(meshes[m], options, listed);
+                const KdTree got = build_kdtree_with(meshes[m], options, binned_below(exact_below));
+                EXPECT_TRUE(same_tree(got, want));
+                EXPECT_EQ(got.bounds, want.bounds);
+                EXPECT_EQ(got.stats.max_depth, want.stats.max_depth);
+                const KdTree exact = build_kdtree_with(meshes[m], options, binned_below(kAllExact));
+                divided += !same_tree(got, exact);
+            }
+        }
+    }
+    EXPECT_GT(divided, 0u);  // some roots were divided by the bins, not all taken whole
+    expect_traces_like_brute_force(meshes[0], build_kdtree(meshes[0]), test_seed() + 331, 4000);
+}
+
 TEST(KdBinned, AllTrianglesInOnePlane) {
     Mesh mesh;  // a 96x96 grid of triangle pairs in the plane z = 0.5
     const int n = 96;
