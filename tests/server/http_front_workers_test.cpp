@@ -276,5 +276,22 @@ TEST(HttpFrontWorkers, APartOfAHeadWaitingAsTheAnswerGoesOutGoesBackToTheLoop) {
     EXPECT_EQ(std::string(buf, 12), "HTTP/1.1 400");
 }
 
+TEST(HttpFrontWorkers, ABodyStillComingAfterTheWaitGoesBackToTheLoop) {
+    FollowFront f;
+    WorkerClient client(f.front.port());
+    ASSERT_NO_FATAL_FAILURE(f.start_first(client));
+    const uint64_t taken = f.front.taken_after_answer();
+    // A whole head but only part of its small body: the worker does not wait on the rest (the
+    // loop would have buffered it before giving the request to any thread), it hands the
+    // connection back, and the loop answers once the body is complete.
+    ASSERT_TRUE(client.send_raw("POST /second HTTP/1.1\r\nHost: x\r\nContent-Length: 5\r\n\r\nhe"));
+    f.release();
+    EXPECT_EQ(client.answer(), "/first:");
+    ASSERT_TRUE(f.front.wait_idle(4)) << "a worker is held by the body";
+    ASSERT_TRUE(client.send_raw("llo"));
+    EXPECT_EQ(client.answer(), "/second:hello");
+    EXPECT_EQ(f.front.taken_after_answer(), taken);
+}
+
 }  // namespace
 }  // namespace kdrt::server
