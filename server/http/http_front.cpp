@@ -865,32 +865,59 @@ struct HttpFront::Impl {
             if (stopping || idle.empty()) return false;
             stop_after = stopping;
         }
-        pollfd p{c.fd, POLLIN | POLLRDHUP, 0};
-        const timespec wait{0, static_cast<long>(kNextRequestWait.count())};
-        int ready = 0;
-        --gauges->busy;  // waiting for a request is not answering one (kdrt_http_threads_busy)
-        do {
-            ready = ::ppoll(&p, 1, &wait, nullptr);
-        } while (ready < 0 && errno == EINTR);
-        ++gauges->busy;
-        if (ready <= 0 || (p.revents & (POLLRDHUP | POLLHUP | POLLERR)) != 0) return false;
+        const Clock::time_point until = Clock::now() + kNextRequestWait;
+        // Waits for more bytes until `until`; false: none came, or the peer is gone.
+        auto wait_for_bytes = [&] {
+            pollfd p{c.fd, POLLIN | POLLRDHUP, 0};
+            const auto left = std::max(until - Clock::now(), Clock::duration::zero());
+            const auto ns = std::chrono::duration_cast<std::chrono::nanoseconds>(left).count();
+            const timespec wait{static_cast<time_t>(ns / 1'000'000'000),
+                                static_cast<long>(ns % 1'000'000'000)};
+            int ready = 0;
+            --gauges->busy;  // waiting for a request is not answering one
+            do {
+                ready = ::ppoll(&p, 1, &wait, nullptr);
+            } while (ready < 0 && errno == EINTR);
+            ++gauges->busy;
+            return ready > 0 && (p.revents & (POLLRDHUP | POLLHUP | POLLERR)) == 0;
+        };
+        // Reads what has arrived, up to `limit` bytes buffered in all.
+        auto read_arrived = [&](size_t limit) {
+            while (c.buffered() < limit) {
+                const size_t room = std::min(kLoopReadBytes, limit - c.buffered());
+                const size_t old_size = c.buffer.size();
+                c.buffer.resize(old_size + room);
+                const ssize_t n = ::recv(c.fd, c.buffer.data() + old_size, room, MSG_DONTWAIT);
+                c.buffer.resize(old_size + static_cast<size_t>(std::max<ssize_t>(n, 0)));
+                if (n > 0) continue;
+                if (n < 0 && errno == EINTR) continue;
+                break;  // all that has arrived (or the peer closed: the loop sees it)
+            }
+        };
+        if (!wait_for_bytes()) return false;
         c.state = Connection::State::kIdle;
         c.scan = HeadScan{};
         c.head.reset();
-        const size_t limit = limits.max_head_bytes + 1;
-        while (c.buffered() < limit) {
-            const size_t room = std::min(kLoopReadBytes, limit - c.buffered());
-            const size_t old_size = c.buffer.size();
-            c.buffer.resize(old_size + room);
-            const ssize_t n = ::recv(c.fd, c.buffer.data() + old_size, room, MSG_DONTWAIT);
-            c.buffer.resize(old_size + static_cast<size_t>(std::max<ssize_t>(n, 0)));
-            if (n > 0) continue;
-            if (n < 0 && errno == EINTR) continue;
-            break;  // all that has arrived (or the peer closed: the loop sees it)
-        }
+        read_arrived(limits.max_head_bytes + 1);
         int status = 0;
         std::string detail;
         if (scan_head(c, status, detail) != HeadScanned::kComplete) return false;
+        // The body's part the loop would buffer before giving the request to a thread must be
+        // here too (within the same wait): a worker never waits on a slow body that the loop
+        // would have held. Else the connection goes back to the loop, its head scanned anew.
+        const size_t wanted = c.head->content_length && !c.head->expect_continue
+                                  ? static_cast<size_t>(std::min<uint64_t>(*c.head->content_length,
+                                                                           limits.prebuffer_bytes))
+                                  : 0;
+        const size_t whole = c.head_bytes + wanted;
+        read_arrived(whole);
+        while (c.buffered() < whole && wait_for_bytes()) read_arrived(whole);
+        if (c.buffered() < whole) {
+            c.state = Connection::State::kIdle;
+            c.scan = HeadScan{};
+            c.head.reset();
+            return false;
+        }
         c.body_wanted = 0;
         c.state = Connection::State::kBusy;
         ++gauges->taken_after_answer;

@@ -233,18 +233,19 @@ TEST(HttpFrontWorkers, ARequestWaitingAsItsConnectionsAnswerGoesOutIsTakenByThat
     WorkerClient client(f.front.port());
     ASSERT_NO_FATAL_FAILURE(f.start_first(client));
     const uint64_t taken = f.front.taken_after_answer();
-    // A body of several reads, sent while /first is answered: its worker finds the request as
-    // it finishes, takes it without the loop and reads the body from the socket.
-    std::string body(300000, 'b');
+    // A body of several reads (16 KB each), sent whole while /first is answered: its worker
+    // finds the request as it finishes and takes it, body and all, without the loop. The body is
+    // sent before the release (it fits in the loopback sockets' buffers), so the worker finds it
+    // there within its wait however loaded the machine is (a body still coming after the wait
+    // goes back to the loop: ABodyStillComingAfterTheWaitGoesBackToTheLoop).
+    std::string body(60000, 'b');
     for (size_t i = 0; i < body.size(); i += 7) body[i] = static_cast<char>('a' + i % 26);
     ASSERT_TRUE(client.send_raw("POST /second HTTP/1.1\r\nHost: x\r\nContent-Length: " +
-                                std::to_string(body.size()) + "\r\n\r\n" + body.substr(0, 1000)));
-    std::thread sender([&] { client.send_raw(body.substr(1000)); });
+                                std::to_string(body.size()) + "\r\n\r\n" + body));
     f.release();
     EXPECT_EQ(client.answer(), "/first:");
     const std::string second = client.answer();
     EXPECT_TRUE(second == "/second:" + body) << "an answer of " << second.size() << " bytes";
-    sender.join();
     EXPECT_EQ(f.front.taken_after_answer(), taken + 1);
     // The next request on the connection is answered as well (by the loop or this worker).
     EXPECT_EQ(client.get("/third"), "/third:");
@@ -274,6 +275,23 @@ TEST(HttpFrontWorkers, APartOfAHeadWaitingAsTheAnswerGoesOutGoesBackToTheLoop) {
     const ssize_t n = ::recv(client.fd(), buf, sizeof buf, 0);
     ASSERT_GT(n, 12);
     EXPECT_EQ(std::string(buf, 12), "HTTP/1.1 400");
+}
+
+TEST(HttpFrontWorkers, ABodyStillComingAfterTheWaitGoesBackToTheLoop) {
+    FollowFront f;
+    WorkerClient client(f.front.port());
+    ASSERT_NO_FATAL_FAILURE(f.start_first(client));
+    const uint64_t taken = f.front.taken_after_answer();
+    // A whole head but only part of its small body: the worker does not wait on the rest (the
+    // loop would have buffered it before giving the request to any thread), it hands the
+    // connection back, and the loop answers once the body is complete.
+    ASSERT_TRUE(client.send_raw("POST /second HTTP/1.1\r\nHost: x\r\nContent-Length: 5\r\n\r\nhe"));
+    f.release();
+    EXPECT_EQ(client.answer(), "/first:");
+    ASSERT_TRUE(f.front.wait_idle(4)) << "a worker is held by the body";
+    ASSERT_TRUE(client.send_raw("llo"));
+    EXPECT_EQ(client.answer(), "/second:hello");
+    EXPECT_EQ(f.front.taken_after_answer(), taken);
 }
 
 }  // namespace
