@@ -870,14 +870,47 @@ template <bool AnyHit, bool Count>
 /// the leaf test is this test: the scalar kernel equals the brute-force oracle), so testing one
 /// more triangle of the tree first changes no answer. Any slot below the tree's triangle count is
 /// such a triangle, so an entry left by another tree at the same address is safe too.
+///
+/// The test costs about one packet triangle test a packet, which rays that are seldom occluded
+/// (the bunny's, diplodocus', 16 bunnies' shadow sets: 7-8%) do not win back: a lane caught
+/// saves the walk only the nodes and leaves it alone needed. So it runs while it pays, measured
+/// per thread as mailbox_pays measures the mailbox: always for the first kCacheWarmUp live lanes,
+/// then while it catches at least 1/kCachePaysShare of the live lanes it tests, else one packet
+/// in kCacheSampleGap + 1 to keep measuring (the counts halve as they grow, so they follow the
+/// rays). The choice changes no answer, only the work.
 struct OccluderCache {
+    static constexpr uint32_t kCacheWarmUp = 4096, kCachePaysShare = 8, kCacheWindow = 1u << 16,
+                              kCacheSampleGap = 63;
     const KdTree* tree = nullptr;
     uint32_t slot = kNoHit;  ///< kNoHit: none yet
+    uint32_t live = 0;       ///< live lanes tested against the cached triangle (halved as it grows)
+    uint32_t caught = 0;     ///< of those, the lanes it occluded
+    uint32_t skip = 0;       ///< packets to go untested before the next test
+    /// Whether this packet tests the cached triangle (there is one, and the test pays or is due).
+    [[nodiscard]] bool due() {
+        if (slot == kNoHit) return false;
+        if (skip == 0) return true;
+        --skip;
+        return false;
+    }
+    /// A test's live lanes and the lanes it caught.
+    void count(uint32_t live_lanes, uint32_t caught_lanes) {
+        live += live_lanes;
+        caught += caught_lanes;
+        if (live >= kCacheWindow) {
+            live >>= 1;
+            caught >>= 1;
+        }
+        const bool pays = live < kCacheWarmUp || caught * kCachePaysShare >= live;
+        skip = pays ? 0 : kCacheSampleGap;
+    }
 };
 
+/// This thread's OccluderCache for `tree` (a fresh one for another tree).
 inline OccluderCache& occluder_cache(const KdTree& tree) {
     static thread_local OccluderCache cache;
-    if (cache.tree != &tree || cache.slot >= tree.tris.size()) cache = {&tree, kNoHit};
+    if (cache.tree != &tree || (cache.slot != kNoHit && cache.slot >= tree.tris.size()))
+        cache = {.tree = &tree};
     return cache;
 }
 
@@ -896,10 +929,12 @@ template <int W>
 }
 
 /// Traces block[index[0..lanes)] as one packet; answers at hits / occluded [base + index[l]].
+/// `occluders`: the thread's OccluderCache for the tree (any hit without Count; else unused).
 template <int W, bool AnyHit, bool Count>
 [[gnu::always_inline]] inline void trace_packet(const KdTree& tree, const Ray* block, size_t base,
                                                 const uint16_t* index, int lanes, Hit* hits,
-                                                uint8_t* occluded, TraceCounters& counters) {
+                                                uint8_t* occluded, OccluderCache* occluders,
+                                                TraceCounters& counters) {
     Packet<W> pk;
     setup_packet<W>(tree, block, index, lanes, pk);
     PacketHits<W> best;
@@ -912,9 +947,14 @@ template <int W, bool AnyHit, bool Count>
         occ = traverse_packet<W, AnyHit, Count, !AnyHit>(tree, pk, best, counters);
     } else if (AnyHit && !Count) {
         // The counting kernels walk every lane (their counts stay the walk's).
-        OccluderCache& cache = occluder_cache(tree);
-        const VM<W> cached = cache.slot != kNoHit ? occluded_by_cache<W>(tree, cache.slot, pk)
-                                                  : simd::broadcast_i<W>(0);
+        OccluderCache& cache = *occluders;
+        VM<W> cached = simd::broadcast_i<W>(0);
+        if (cache.due()) {
+            const uint32_t live = simd::bits<W>(pk.tmin <= pk.tmax);
+            cached = occluded_by_cache<W>(tree, cache.slot, pk);
+            cache.count(static_cast<uint32_t>(__builtin_popcount(live)),
+                        static_cast<uint32_t>(__builtin_popcount(simd::bits<W>(cached))));
+        }
         const VM<W> walked = traverse_packet<W, AnyHit, Count, false>(tree, pk, best, counters);
         if (const uint32_t m = simd::bits<W>(walked)) cache.slot = best.prim[__builtin_ctz(m)];
         occ = cached | walked;
@@ -938,6 +978,8 @@ template <int W, bool AnyHit, bool Count>
                                              const uint16_t* order, int count, Hit* hits,
                                              uint8_t* occluded, Policy policy,
                                              TraceCounters& counters) {
+    OccluderCache* occluders = nullptr;  // looked up once a run
+    if constexpr (AnyHit && !Count) occluders = &occluder_cache(tree);
     for (int p = 0; p < count; p += W) {
         const int lanes = count - p < W ? count - p : W;
         const uint16_t* index = &order[p];
@@ -949,7 +991,8 @@ template <int W, bool AnyHit, bool Count>
             counters.single_rays += static_cast<uint64_t>(lanes);
             continue;
         }
-        trace_packet<W, AnyHit, Count>(tree, block, base, index, lanes, hits, occluded, counters);
+        trace_packet<W, AnyHit, Count>(tree, block, base, index, lanes, hits, occluded, occluders,
+                                       counters);
     }
 }
 
