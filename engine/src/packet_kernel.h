@@ -411,7 +411,8 @@ inline void count_visit(VM<W> active, uint64_t& per_ray, TraceCounters& counters
 
 /// The leaf of `n` references at `ref` for the lanes in `live`, lane by lane, four triangles a
 /// pass (wide::intersect4): closest hit into `best` with the packet's tie rule; any hit returns
-/// the lanes occluded. Each lane's prepared ray is the packet's set-up of that lane (the same
+/// the lanes occluded (and puts an occluder's tree slot in best.prim of each, for the
+/// OccluderCache). Each lane's prepared ray is the packet's set-up of that lane (the same
 /// values prepare_ray gives), so its answers are the packet test's.
 template <int W, bool AnyHit>
 inline VM<W> leaf_by_lanes(const Packet<W>& pk, uint32_t live, const uint32_t* ref, uint32_t n,
@@ -442,8 +443,9 @@ inline VM<W> leaf_by_lanes(const Packet<W>& pk, uint32_t live, const uint32_t* r
             wide::Hits4 h;
             uint32_t hits = wide::intersect4(p, block, ray_tmin, h);
             if constexpr (AnyHit) {
-                if (hits & wide::bits4(h.t <= ray_tmax)) {
+                if (const uint32_t in = hits & wide::bits4(h.t <= ray_tmax)) {
                     occluded[l] = -1;
+                    best.prim[l] = slot[__builtin_ctz(in)];  // the occluder (OccluderCache)
                     break;
                 }
             } else {
@@ -514,8 +516,8 @@ constexpr int kMailNone = 0, kMailRecord = 1, kMailSkip = 2;
 
 /// Tests the leaf's references refs[r, end) against the packet's lanes in `active`, one packet
 /// test per triangle in the frame of intersect_triangle_in_frame<W, Uniform>: closest hit into
-/// `best` with the packet's tie rule; any hit adds the lanes occluded to `done` and stops when
-/// every active lane is.
+/// `best` with the packet's tie rule; any hit adds the lanes occluded to `done` (an occluder's
+/// tree slot to their best.prim, for the OccluderCache) and stops when every active lane is.
 ///
 /// Closest hit skips a triangle that `mailbox` says every active lane has tested already. That
 /// changes no answer: a lane's test of a triangle depends only on the lane's ray and the
@@ -552,6 +554,7 @@ requires(!AnyHit || Mail == kMailNone) [[gnu::always_inline]] inline void leaf_p
         if (simd::none<W>(hit)) continue;
         if constexpr (AnyHit) {
             hit &= t <= pk.ray_tmax;
+            best.prim = simd::select<W>(hit, simd::broadcast_u<W>(slot), best.prim);  // occluder
             done |= hit;
             active &= ~hit;
             if (simd::none<W>(active)) break;
@@ -857,11 +860,81 @@ template <bool AnyHit, bool Count>
     }
 }
 
+/// The triangle (tree slot) that occluded a lane of this thread's last any-hit packet with an
+/// occluded lane on `tree`: a shadow cache (Haines and Greenberg 1986). Rays towards one light
+/// that start close together are mostly occluded by the same triangle (the stadium inside: every
+/// shadow ray occluded, 2.5 leaves and 6.7 triangle tests a ray to find it), so each any-hit
+/// packet first tests its lanes against that triangle, and a lane it occludes does not walk.
+/// Exact: a lane is occluded when some triangle of the tree hits it with ray tmin <= t <= ray
+/// tmax, as the walk's leaf tests decide it (the walk visits every leaf holding such a hit, and
+/// the leaf test is this test: the scalar kernel equals the brute-force oracle), so testing one
+/// more triangle of the tree first changes no answer. Any slot below the tree's triangle count is
+/// such a triangle, so an entry left by another tree at the same address is safe too.
+///
+/// The test costs about one packet triangle test a packet, which rays that are seldom occluded
+/// (the bunny's, diplodocus', 16 bunnies' shadow sets: 7-8%) do not win back: a lane caught
+/// saves the walk only the nodes and leaves it alone needed. So it runs while it pays, measured
+/// per thread as mailbox_pays measures the mailbox: always for the first kCacheWarmUp live lanes,
+/// then while it catches at least 1/kCachePaysShare of the live lanes it tests, else one packet
+/// in kCacheSampleGap + 1 to keep measuring (the counts halve as they grow, so they follow the
+/// rays). The choice changes no answer, only the work.
+struct OccluderCache {
+    static constexpr uint32_t kCacheWarmUp = 4096, kCachePaysShare = 8, kCacheWindow = 1u << 16,
+                              kCacheSampleGap = 63;
+    const KdTree* tree = nullptr;
+    uint32_t slot = kNoHit;  ///< kNoHit: none yet
+    uint32_t live = 0;       ///< live lanes tested against the cached triangle (halved as it grows)
+    uint32_t caught = 0;     ///< of those, the lanes it occluded
+    uint32_t skip = 0;       ///< packets to go untested before the next test
+    /// Whether this packet tests the cached triangle (there is one, and the test pays or is due).
+    [[nodiscard]] bool due() {
+        if (slot == kNoHit) return false;
+        if (skip == 0) return true;
+        --skip;
+        return false;
+    }
+    /// A test's live lanes and the lanes it caught.
+    void count(uint32_t live_lanes, uint32_t caught_lanes) {
+        live += live_lanes;
+        caught += caught_lanes;
+        if (live >= kCacheWindow) {
+            live >>= 1;
+            caught >>= 1;
+        }
+        const bool pays = live < kCacheWarmUp || caught * kCachePaysShare >= live;
+        skip = pays ? 0 : kCacheSampleGap;
+    }
+};
+
+/// This thread's OccluderCache for `tree` (a fresh one for another tree).
+inline OccluderCache& occluder_cache(const KdTree& tree) {
+    static thread_local OccluderCache cache;
+    if (cache.tree != &tree || (cache.slot != kNoHit && cache.slot >= tree.tris.size()))
+        cache = {.tree = &tree};
+    return cache;
+}
+
+/// Any hit: the packet's live lanes that the cached occluder hits (the leaf test's arithmetic and
+/// its ray tmin <= t <= ray tmax), taken out of the walk (empty intervals).
+template <int W>
+[[gnu::always_inline]] inline VM<W> occluded_by_cache(const KdTree& tree, uint32_t slot,
+                                                      Packet<W>& pk) {
+    VF<W> t, u, v;
+    VM<W> hit = intersect_triangle_packet<W>(pk, tree.tris[slot], pk.tmin <= pk.tmax, t, u, v);
+    if (simd::none<W>(hit)) return hit;
+    hit &= t <= pk.ray_tmax;
+    pk.tmin = simd::select<W>(hit, simd::broadcast<W>(__builtin_inff()), pk.tmin);
+    pk.tmax = simd::select<W>(hit, simd::broadcast<W>(-__builtin_inff()), pk.tmax);
+    return hit;
+}
+
 /// Traces block[index[0..lanes)] as one packet; answers at hits / occluded [base + index[l]].
+/// `occluders`: the thread's OccluderCache for the tree (any hit without Count; else unused).
 template <int W, bool AnyHit, bool Count>
 [[gnu::always_inline]] inline void trace_packet(const KdTree& tree, const Ray* block, size_t base,
                                                 const uint16_t* index, int lanes, Hit* hits,
-                                                uint8_t* occluded, TraceCounters& counters) {
+                                                uint8_t* occluded, OccluderCache* occluders,
+                                                TraceCounters& counters) {
     Packet<W> pk;
     setup_packet<W>(tree, block, index, lanes, pk);
     PacketHits<W> best;
@@ -870,10 +943,24 @@ template <int W, bool AnyHit, bool Count>
     best.v = simd::broadcast<W>(0.0f);
     best.prim = simd::broadcast_u<W>(kNoHit);
     VM<W> occ;
-    if (!AnyHit && mailbox_pays(counters))
+    if (!AnyHit && mailbox_pays(counters)) {
         occ = traverse_packet<W, AnyHit, Count, !AnyHit>(tree, pk, best, counters);
-    else
+    } else if (AnyHit && !Count) {
+        // The counting kernels walk every lane (their counts stay the walk's).
+        OccluderCache& cache = *occluders;
+        VM<W> cached = simd::broadcast_i<W>(0);
+        if (cache.due()) {
+            const uint32_t live = simd::bits<W>(pk.tmin <= pk.tmax);
+            cached = occluded_by_cache<W>(tree, cache.slot, pk);
+            cache.count(static_cast<uint32_t>(__builtin_popcount(live)),
+                        static_cast<uint32_t>(__builtin_popcount(simd::bits<W>(cached))));
+        }
+        const VM<W> walked = traverse_packet<W, AnyHit, Count, false>(tree, pk, best, counters);
+        if (const uint32_t m = simd::bits<W>(walked)) cache.slot = best.prim[__builtin_ctz(m)];
+        occ = cached | walked;
+    } else {
         occ = traverse_packet<W, AnyHit, Count, false>(tree, pk, best, counters);
+    }
     ++counters.packets;
     counters.packet_rays += static_cast<uint64_t>(lanes);
     if constexpr (AnyHit) {
@@ -891,6 +978,8 @@ template <int W, bool AnyHit, bool Count>
                                              const uint16_t* order, int count, Hit* hits,
                                              uint8_t* occluded, Policy policy,
                                              TraceCounters& counters) {
+    OccluderCache* occluders = nullptr;  // looked up once a run
+    if constexpr (AnyHit && !Count) occluders = &occluder_cache(tree);
     for (int p = 0; p < count; p += W) {
         const int lanes = count - p < W ? count - p : W;
         const uint16_t* index = &order[p];
@@ -902,7 +991,8 @@ template <int W, bool AnyHit, bool Count>
             counters.single_rays += static_cast<uint64_t>(lanes);
             continue;
         }
-        trace_packet<W, AnyHit, Count>(tree, block, base, index, lanes, hits, occluded, counters);
+        trace_packet<W, AnyHit, Count>(tree, block, base, index, lanes, hits, occluded, occluders,
+                                       counters);
     }
 }
 

@@ -219,6 +219,75 @@ TEST(PacketEquivalence, SharedOriginRaysThroughVerticesAndEdges) {
     }
 }
 
+TEST(PacketEquivalence, AnyHitPacketsTestTheLastOccluderFirstAndKeepEveryAnswer) {
+    // Any-hit packets first test the triangle that occluded a lane of the thread's previous
+    // packet (the occluder cache), and its lanes leave the walk. Shadow rays from a floor grid to
+    // a point light through a big square occluder (two triangles) among small clutter: most
+    // packets find the square, so the next packet tests it first. Every third ray ends before the
+    // square (tmax short of it), every fifth starts past it (tmin), every seventh ends where it
+    // crosses the square (at the floats either side of its t): the cached square must occlude
+    // none of those that the walk would not, so each ray answers as brute force over every
+    // triangle. Each round traces the tree and then a small second one on the same threads (the
+    // cache is per tree and per thread), twice.
+    Rng rng(test_seed() + 550);
+    Mesh mesh = random_soup(rng, 400, 0.02f);  // clutter in the unit cube
+    add_triangle(mesh, {0.2f, 0.2f, 1.5f}, {0.8f, 0.2f, 1.5f}, {0.8f, 0.8f, 1.5f});
+    add_triangle(mesh, {0.2f, 0.2f, 1.5f}, {0.8f, 0.8f, 1.5f}, {0.2f, 0.8f, 1.5f});
+    const KdTree tree = build_kdtree(mesh);
+    const Mesh small = random_soup(rng, 8, 0.3f);
+    const KdTree small_tree = build_kdtree(small);
+    const Vec3 light{0.5f, 0.5f, 3.0f};
+    std::vector<Ray> rays;
+    size_t short_of_square = 0;
+    for (int i = 0; i < 96; ++i)
+        for (int j = 0; j < 96; ++j) {
+            const Vec3 o{i / 96.0f, j / 96.0f, -0.25f};
+            Ray r = make_ray(o, {light.x - o.x, light.y - o.y, light.z - o.z});
+            r.tmin = 1e-4f;
+            r.tmax = 1.0f;
+            const size_t k = rays.size();
+            const float t_square = (1.5f - o.z) / (light.z - o.z);  // about 0.55
+            if (k % 3 == 0) {
+                r.tmax = 0.9f * t_square;
+                ++short_of_square;
+            }
+            if (k % 5 == 0) r.tmin = 1.1f * t_square;
+            if (k % 7 == 0) r.tmax = std::nextafter(t_square, k % 2 ? 0.0f : 1.0f);
+            rays.push_back(r);
+        }
+    const std::vector<TriVerts> tris = triangles_by_id(tree),
+                                small_tris = triangles_by_id(small_tree);
+    std::vector<uint8_t> want(rays.size()), want_small(rays.size());
+    size_t occluded_count = 0;
+    for (size_t i = 0; i < rays.size(); ++i) {
+        want[i] = brute_force_occluded(tris, rays[i]) ? 1 : 0;
+        want_small[i] = brute_force_occluded(small_tris, rays[i]) ? 1 : 0;
+        occluded_count += want[i];
+    }
+    // Enough of both kinds in every packet: the square occludes many rays, and many end short.
+    EXPECT_GT(occluded_count, rays.size() / 5);
+    EXPECT_LT(occluded_count, rays.size() * 3 / 4);
+    EXPECT_GT(short_of_square, rays.size() / 4);
+    for (Isa isa : supported_isas()) {
+        for (TraceMode mode : {TraceMode::kPacket, TraceMode::kAuto}) {
+            const std::string what =
+                std::string(isa_name(isa)) + "/" + std::string(trace_mode_name(mode));
+            for (int round = 0; round < 2; ++round) {
+                std::vector<uint8_t> occ(rays.size(), 7), occ_small(rays.size(), 7);
+                TraceStats stats;
+                occluded(tree, rays, occ, {mode, isa}, &stats);
+                if (mode == TraceMode::kPacket && isa != Isa::kScalar) {
+                    EXPECT_EQ(stats.packet_rays + stats.invalid_rays, rays.size()) << what;
+                    EXPECT_GT(stats.packet_rays, rays.size() / 2) << what;
+                }
+                EXPECT_TRUE(occ == want) << what << " round " << round << ": occlusion differs";
+                occluded(small_tree, rays, occ_small, {mode, isa});
+                EXPECT_TRUE(occ_small == want_small) << what << ": small tree differs";
+            }
+        }
+    }
+}
+
 TEST(PacketEquivalence, RepeatedTrianglesInManyLeavesAndTies) {
     // Closest-hit packets skip a triangle that all their active lanes have tested in an earlier
     // leaf (the packet mailbox). Long slivers crossing a dense cloud of small triangles are listed
