@@ -58,6 +58,13 @@ struct TopPacketOps {
     /// `tmax` (in: their tmax) become clip_widened's [tmin, tmax], bit for bit.
     uint32_t (*clip)(const TopPacket& packet, const Aabb& box, Lanes& tmin, Lanes& tmax,
                      uint32_t mask) noexcept;
+    /// TopPacket::start of `count` (1 .. kPacketLanes) rays rays[index[l]] as the caller gives
+    /// them, bit for bit (the same lanes, the same root cell), with each lane's TopRay fields
+    /// (make_top_ray's reciprocal direction, margin and its t widths) computed in the packet's
+    /// registers from the rays themselves, and `limit` = the rays' tmax. The rays must be valid,
+    /// of one octant, with no zero direction component.
+    void (*start)(TopPacket& packet, const SceneData& s, const Ray* rays, const uint32_t* index,
+                  int count, TopPacketCell* storage, Lanes& limit) noexcept;
 };
 
 /// A packet's top-level walk that, as TopWalk, can stop at any leaf and resume later. The stack

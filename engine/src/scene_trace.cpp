@@ -373,10 +373,9 @@ struct BlockScratch {
     std::vector<Ray> rays;
     std::vector<Hit> hits;
     std::vector<uint8_t> occ;
-    // The depth-first walk's (DepthFirst): the packet, its stack and the world rays' TopRays.
+    // The depth-first walk's (DepthFirst): the packet and its stack.
     detail::TopPacket packet;
     std::vector<detail::TopPacketCell> packet_cells;
-    std::vector<detail::TopRay> top;
 };
 
 struct Counts {
@@ -455,7 +454,6 @@ struct DepthFirst {
     const detail::LaneKernels* lanes;  ///< nullptr: the scalar ISA (rays one by one)
     Counts& counts;
     bool mail;
-    mutable const Ray* last = nullptr;  ///< the last ray given a TopRay (its origin's margin)
 
     void operator()(const Ray* block, size_t, const uint16_t* order, int count) const {
         const auto first = static_cast<uint32_t>(block - rays.data());
@@ -485,18 +483,11 @@ private:
     }
 
     void packet(const uint32_t* index, int n) const {
-        for (int l = 0; l < n; ++l) {
-            const Ray& r = rays[index[l]];
-            b.top[index[l]] =
-                last && r.ox == last->ox && r.oy == last->oy && r.oz == last->oz
-                    ? detail::make_top_ray_from(b.top[static_cast<size_t>(last - rays.data())], r)
-                    : detail::make_top_ray(s, r);
-            last = &r;
-        }
+        // Each lane's TopRay and its limit (its closest hit so far: none yet, so its tmax) are
+        // made in the packet's registers (TopPacketOps::start).
         detail::TopPacket& pk = b.packet;
-        pk.start(s, rays, b.top, index, n, b.packet_cells.data(), ops);
-        detail::Lanes lim = detail::Lanes::fill(0.0f);
-        for (int l = 0; l < n; ++l) lim.set(l, AnyHit ? rays[index[l]].tmax : b.best[index[l]].t);
+        detail::Lanes lim;
+        ops.start(pk, s, rays.data(), index, n, b.packet_cells.data(), lim);
         std::array<detail::Mailbox, detail::kPacketLanes> mailbox;
         uint32_t at = 0;
         while (const detail::TopNode* leaf = ops.next_leaf(pk, s, lim, at)) {
@@ -568,7 +559,6 @@ void depth_first_block(const SceneData& s, std::span<const Ray> rays, std::span<
     b.best.resize(rays.size());
     b.done.assign(rays.size(), 0);
     for (size_t i = 0; i < rays.size(); ++i) b.best[i] = no_hit_yet(rays[i]);
-    b.top.resize(rays.size());
     b.packet_cells.resize(detail::kTopStack);
     // The batch scheduler's answers for invalid rays go to scratch (the caller's are set).
     b.hits.resize(rays.size());

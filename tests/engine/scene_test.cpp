@@ -1446,6 +1446,100 @@ TEST(Scene, PacketRootClipIsClipWidenedInEveryLane) {
     EXPECT_GT(missed, rays.size() / 20);
 }
 
+TEST(Scene, PacketStartFromRaysIsStartBitForBit) {
+    // TopPacketOps::start (the depth-first walk's packets: each lane's TopRay made in the
+    // packet's registers from the rays) must give TopPacket::start's packet from make_top_ray's
+    // TopRays bit for bit: every lane's origin, reciprocal direction, margin and its t widths,
+    // tmin, the root cell, and the limit = tmax; in packets of 1 to 8 lanes, with the SSE halves
+    // and (where the CPU has it) AVX2.
+    const uint64_t seed = test_seed();
+    SCOPED_TRACE(testing::Message() << "seed=" << seed);
+    const TestScene s = mixed_scene(seed + 41, 16);
+    const detail::SceneData& d = s.scene.data();
+    Rng rng(seed + 42);
+    const Aabb b = d.bounds;
+    const Vec3 e = b.extent();
+    Aabb outer = b;
+    outer.lo = outer.lo - e * 3.0f;
+    outer.hi = outer.hi + e * 3.0f;
+    std::vector<Ray> rays;
+    Vec3 o = rng.in_box(outer);
+    for (int i = 0; i < 6000; ++i) {
+        // Runs of one origin (a camera's) and origins each their own (shadow rays), some far out
+        // or near zero (the margin follows the largest origin component), some on a bunny.
+        if (i % 16 == 0 || i % 3 == 0) {
+            o = rng.in_box(rng.below(4) == 0 ? outer : b);
+            if (i % 11 == 0) o = o * 1e3f;
+            if (i % 13 == 0) o = o * 1e-4f;
+        }
+        Vec3 target = rng.in_box(b);
+        Ray r = make_ray(o, target - o);
+        if (i % 5 == 1) r.tmin = rng.uniform() * 0.5f;
+        if (i % 5 == 2) r.tmax = rng.uniform() * 2.0f;
+        if (i % 7 == 3) (&r.dx)[i % 3] *= 1e-6f;  // nearly parallel to a face
+        if (i % 9 == 4) r.dx *= 1e5f;
+        if (r.dx == 0.0f || r.dy == 0.0f || r.dz == 0.0f || !detail::ray_is_valid(r)) continue;
+        rays.push_back(r);
+    }
+    std::vector<detail::TopRay> top(rays.size());
+    for (size_t i = 0; i < rays.size(); ++i) top[i] = detail::make_top_ray(d, rays[i]);
+    std::vector<std::vector<uint32_t>> by_class(8);
+    for (size_t i = 0; i < rays.size(); ++i) {
+        const Ray& r = rays[i];
+        by_class[(r.dx > 0 ? 1 : 0) | (r.dy > 0 ? 2 : 0) | (r.dz > 0 ? 4 : 0)].push_back(
+            static_cast<uint32_t>(i));
+    }
+    const auto same = [](float x, float y) { return std::memcmp(&x, &y, sizeof x) == 0; };
+    std::vector<detail::TopPacketCell> want_cells(detail::kTopStack), got_cells(detail::kTopStack);
+    size_t lanes_checked = 0, roots = 0;
+    for (Isa isa : supported_isas()) {
+        SCOPED_TRACE(std::string(isa_name(isa)));
+        const detail::TopPacketOps& ops = detail::top_packet_ops(isa);
+        int count = 1;
+        for (const std::vector<uint32_t>& cls : by_class) {
+            for (size_t k = 0; k < cls.size();
+                 k += static_cast<size_t>(count), count = count % detail::kPacketLanes + 1) {
+                const int n = static_cast<int>(std::min<size_t>(count, cls.size() - k));
+                detail::TopPacket want, got;
+                want.start(d, rays, top, &cls[k], n, want_cells.data(), ops);
+                detail::Lanes limit = detail::Lanes::fill(-1.0f);
+                ops.start(got, d, rays.data(), &cls[k], n, got_cells.data(), limit);
+                ASSERT_EQ(got.lanes, want.lanes);
+                ASSERT_EQ(got.ended, want.ended);
+                ASSERT_EQ(got.size, want.size);
+                ASSERT_EQ(got.stack, got_cells.data());
+                for (int a = 0; a < 3; ++a) ASSERT_EQ(got.forward[a], want.forward[a]);
+                for (int l = 0; l < n; ++l) {
+                    const uint32_t i = cls[k + l];
+                    SCOPED_TRACE(testing::Message() << "ray " << i << " lane " << l);
+                    ASSERT_EQ(got.ray[l], i);
+                    for (int a = 0; a < 3; ++a) {
+                        ASSERT_TRUE(same(got.org[a].get(l), want.org[a].get(l)));
+                        ASSERT_TRUE(same(got.inv[a].get(l), want.inv[a].get(l)));
+                        ASSERT_TRUE(same(got.eps[a].get(l), want.eps[a].get(l)));
+                    }
+                    ASSERT_TRUE(same(got.delta.get(l), want.delta.get(l)));
+                    ASSERT_TRUE(same(got.delta.get(l), top[i].delta));
+                    ASSERT_TRUE(same(got.ray_tmin.get(l), want.ray_tmin.get(l)));
+                    ASSERT_TRUE(same(limit.get(l), rays[i].tmax));
+                    ++lanes_checked;
+                }
+                if (want.size == 0) continue;
+                ++roots;
+                ASSERT_EQ(got.stack[0].node, want.stack[0].node);
+                ASSERT_EQ(got.stack[0].mask, want.stack[0].mask);
+                for (uint32_t m = want.stack[0].mask; m; m &= m - 1) {
+                    const int l = std::countr_zero(m);
+                    ASSERT_TRUE(same(got.stack[0].tmin.get(l), want.stack[0].tmin.get(l)));
+                    ASSERT_TRUE(same(got.stack[0].tmax.get(l), want.stack[0].tmax.get(l)));
+                }
+            }
+        }
+    }
+    EXPECT_GT(lanes_checked, rays.size());
+    EXPECT_GT(roots, rays.size() / 16);
+}
+
 TEST(Scene, PacketTopWalkKeepsEveryLaneAndInstance) {
     const uint64_t seed = test_seed();
     SCOPED_TRACE(testing::Message() << "seed=" << seed);
