@@ -262,6 +262,7 @@ void start_steps(TopPacket& pk, const SceneData& s, const Ray* rays, const uint3
         const V dir = from_halves(f[4 + a], V{});
         const V inv = splat(1.0f, V{}) / dir;
         store(pk.org[a], from_halves(f[a], V{}));
+        store(pk.dir[a], dir);
         store(pk.inv[a], inv);
         store(pk.eps[a], delta * abs(inv));  // no zero component: make_top_ray's eps
         pk.forward[a] = (&rays[index[0]].dx)[a] > 0.0f;
@@ -279,6 +280,38 @@ void start_steps(TopPacket& pk, const SceneData& s, const Ray* rays, const uint3
     store(root.tmax, t1);
     root.node = 0;
     root.mask = mask;
+}
+
+/// TopPacketOps::object_rays: to_object's arithmetic on four lanes at a time (per object axis i,
+/// float(inv[i][0] * x + inv[i][1] * y + inv[i][2] * z) in double, left to right, with
+/// x = double(org) - trans for the origin and x = double(dir) for the direction), then each lane's
+/// ray written whole (4 x 4 transposes back).
+void object_rays_steps(const TopPacket& pk, const InstanceData& in, const Lanes& tmax,
+                       Ray* out) noexcept {
+    using D4 = double __attribute__((vector_size(32)));
+    for (int h = 0; h < 2; ++h) {
+        D4 o[3], d[3];
+        for (int a = 0; a < 3; ++a) {
+            o[a] = __builtin_convertvector(pk.org[a].h[h], D4) - in.trans[a];
+            d[a] = __builtin_convertvector(pk.dir[a].h[h], D4);
+        }
+        __m128 lo[4], hi[4];
+        for (int i = 0; i < 3; ++i) {
+            const double* m = &in.inv[3 * i];
+            lo[i] = reinterpret_cast<__m128>(
+                __builtin_convertvector(m[0] * o[0] + m[1] * o[1] + m[2] * o[2], F4));
+            hi[i] = reinterpret_cast<__m128>(
+                __builtin_convertvector(m[0] * d[0] + m[1] * d[1] + m[2] * d[2], F4));
+        }
+        lo[3] = reinterpret_cast<__m128>(pk.ray_tmin.h[h]);
+        hi[3] = reinterpret_cast<__m128>(tmax.h[h]);
+        _MM_TRANSPOSE4_PS(lo[0], lo[1], lo[2], lo[3]);
+        _MM_TRANSPOSE4_PS(hi[0], hi[1], hi[2], hi[3]);
+        for (int k = 0; k < 4; ++k) {
+            _mm_storeu_ps(&out[4 * h + k].ox, lo[k]);
+            _mm_storeu_ps(&out[4 * h + k].dx, hi[k]);
+        }
+    }
 }
 
 }  // namespace

@@ -509,14 +509,11 @@ private:
                uint32_t& at) const {
         const InstanceData& in = s.inst[geom];
         const KdTree& tree = *s.instances[geom].tree;
+        // Every lane's object ray at once, tmax its limit (its ray's tmax, or its closest hit so
+        // far: lim holds b.best[i].t).
         std::array<Ray, detail::kPacketLanes> obj;
-        for (uint32_t q = m; q; q &= q - 1) {
-            const int l = std::countr_zero(q);
-            const uint32_t i = pk.ray[l];
-            obj[l] = detail::to_object(in, rays[i]);
-            if constexpr (!AnyHit) obj[l].tmax = b.best[i].t;
-            ++counts.visits;
-        }
+        ops.object_rays(pk, in, lim, obj.data());
+        for (uint32_t q = m; q; q &= q - 1) ++counts.visits;
         if constexpr (AnyHit) {
             uint32_t occ = 0;
             if (lanes) {

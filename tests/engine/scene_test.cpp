@@ -1540,6 +1540,75 @@ TEST(Scene, PacketStartFromRaysIsStartBitForBit) {
     EXPECT_GT(roots, rays.size() / 16);
 }
 
+TEST(Scene, PacketObjectRaysAreToObjectBitForBit) {
+    // TopPacketOps::object_rays (the depth-first walk's hand-off into an instance: every lane's
+    // object ray at once) must give to_object's ray, with tmax the lane's limit, bit for bit for
+    // every instance (rotated, scaled, sheared, mirrored: mixed_scene), in packets of 1 to 8
+    // lanes, with the SSE halves and (where the CPU has it) AVX2.
+    const uint64_t seed = test_seed();
+    SCOPED_TRACE(testing::Message() << "seed=" << seed);
+    const TestScene s = mixed_scene(seed + 51, 24);
+    const detail::SceneData& d = s.scene.data();
+    Rng rng(seed + 52);
+    const Aabb b = d.bounds;
+    std::vector<Ray> rays;
+    for (int i = 0; i < 3000; ++i) {
+        Vec3 o = rng.in_box(b);
+        if (i % 5 == 0) o = o * 1e4f;
+        if (i % 7 == 0) o = o * 1e-5f;
+        Ray r = make_ray(o, rng.in_box(b) - o);
+        if (i % 3 == 0) r.tmin = rng.uniform();
+        if (i % 4 == 0) r.tmax = 1.0f + rng.uniform() * 1e3f;
+        if (i % 6 == 0) (&r.dx)[i % 3] *= 1e-7f;
+        if (r.dx == 0.0f || r.dy == 0.0f || r.dz == 0.0f || !detail::ray_is_valid(r)) continue;
+        rays.push_back(r);
+    }
+    std::vector<detail::TopRay> top(rays.size());
+    for (size_t i = 0; i < rays.size(); ++i) top[i] = detail::make_top_ray(d, rays[i]);
+    std::vector<std::vector<uint32_t>> by_class(8);
+    for (size_t i = 0; i < rays.size(); ++i) {
+        const Ray& r = rays[i];
+        by_class[(r.dx > 0 ? 1 : 0) | (r.dy > 0 ? 2 : 0) | (r.dz > 0 ? 4 : 0)].push_back(
+            static_cast<uint32_t>(i));
+    }
+    std::vector<detail::TopPacketCell> cells(detail::kTopStack);
+    size_t checked = 0;
+    for (Isa isa : supported_isas()) {
+        SCOPED_TRACE(std::string(isa_name(isa)));
+        const detail::TopPacketOps& ops = detail::top_packet_ops(isa);
+        int count = 1;
+        for (const std::vector<uint32_t>& cls : by_class) {
+            for (size_t k = 0; k < cls.size();
+                 k += static_cast<size_t>(count), count = count % detail::kPacketLanes + 1) {
+                const int n = static_cast<int>(std::min<size_t>(count, cls.size() - k));
+                for (int way = 0; way < 2; ++way) {  // both starts fill the lanes it reads
+                    detail::TopPacket pk;
+                    detail::Lanes limit;
+                    if (way == 0) {
+                        ops.start(pk, d, rays.data(), &cls[k], n, cells.data(), limit);
+                    } else {
+                        pk.start(d, rays, top, &cls[k], n, cells.data(), ops);
+                        for (int l = 0; l < n; ++l) limit.set(l, rays[cls[k + l]].tmax);
+                    }
+                    for (int l = 0; l < n; ++l)  // a closest hit so far, below tmax
+                        if (rng.below(2)) limit.set(l, limit.get(l) * rng.uniform());
+                    const uint32_t g = rng.below(static_cast<uint32_t>(d.inst.size()));
+                    std::array<Ray, detail::kPacketLanes> got;
+                    ops.object_rays(pk, d.inst[g], limit, got.data());
+                    for (int l = 0; l < n; ++l) {
+                        Ray want = detail::to_object_reference(d.inst[g], rays[cls[k + l]]);
+                        want.tmax = limit.get(l);
+                        ASSERT_EQ(std::memcmp(&want, &got[l], sizeof want), 0)
+                            << "ray " << cls[k + l] << " lane " << l << " instance " << g;
+                        ++checked;
+                    }
+                }
+            }
+        }
+    }
+    EXPECT_GT(checked, rays.size());
+}
+
 TEST(Scene, PacketTopWalkKeepsEveryLaneAndInstance) {
     const uint64_t seed = test_seed();
     SCOPED_TRACE(testing::Message() << "seed=" << seed);
