@@ -58,12 +58,24 @@ struct TopPacketOps {
     /// `tmax` (in: their tmax) become clip_widened's [tmin, tmax], bit for bit.
     uint32_t (*clip)(const TopPacket& packet, const Aabb& box, Lanes& tmin, Lanes& tmax,
                      uint32_t mask) noexcept;
+    /// TopPacket::start of `count` (1 .. kPacketLanes) rays rays[index[l]] as the caller gives
+    /// them, bit for bit (the same lanes, the same root cell), with each lane's TopRay fields
+    /// (make_top_ray's reciprocal direction, margin and its t widths) computed in the packet's
+    /// registers from the rays themselves, and `limit` = the rays' tmax. The rays must be valid,
+    /// of one octant, with no zero direction component.
+    void (*start)(TopPacket& packet, const SceneData& s, const Ray* rays, const uint32_t* index,
+                  int count, TopPacketCell* storage, Lanes& limit) noexcept;
+    /// Every lane's object ray in instance `in`: out[l] = to_object(in, lane l's ray) with tmax =
+    /// tmax[l], bit for bit (the same double arithmetic, lanes side by side). All kPacketLanes
+    /// lanes are written; those not holding a ray hold no ray.
+    void (*object_rays)(const TopPacket& packet, const InstanceData& in, const Lanes& tmax,
+                        Ray* out) noexcept;
 };
 
 /// A packet's top-level walk that, as TopWalk, can stop at any leaf and resume later. The stack
 /// (kTopStack cells: one push per level at most, as TopWalk's) is the caller's.
 struct TopPacket {
-    Lanes org[3], inv[3], eps[3], delta, ray_tmin;
+    Lanes org[3], dir[3], inv[3], eps[3], delta, ray_tmin;
     uint32_t ray[kPacketLanes] = {};  ///< the batch's ray index of each lane
     uint32_t lanes = 0;               ///< lanes holding a ray
     uint32_t ended = 0;               ///< lanes whose walk ended (or that left the packet)
@@ -82,7 +94,7 @@ struct TopPacket {
         lanes = ended = 0;
         for (int a = 0; a < 3; ++a) {
             org[a] = Lanes::fill(0.0f);
-            inv[a] = eps[a] = Lanes::fill(1.0f);
+            dir[a] = inv[a] = eps[a] = Lanes::fill(1.0f);
             forward[a] = top[index[0]].dir[a] > 0.0f;
         }
         delta = ray_tmin = Lanes::fill(0.0f);
@@ -96,6 +108,7 @@ struct TopPacket {
             lanes |= 1u << l;
             for (int a = 0; a < 3; ++a) {
                 org[a].set(l, p.org[a]);
+                dir[a].set(l, p.dir[a]);
                 inv[a].set(l, p.inv[a]);
                 eps[a].set(l, p.eps[a]);
             }

@@ -12,6 +12,7 @@
 
 #include <immintrin.h>
 
+#include <cstddef>
 #include <cstdint>
 #include <cstring>
 
@@ -67,6 +68,16 @@ inline uint32_t not_gt_bits(const Halves& a, const Halves& b) noexcept {
 inline uint32_t le_bits(const Halves& a, const Halves& b) noexcept {
     return bits(a.h[0] <= b.h[0], a.h[1] <= b.h[1]);
 }
+inline Halves operator/(const Halves& a, const Halves& b) noexcept {
+    return Halves{{a.h[0] / b.h[0], a.h[1] / b.h[1]}};
+}
+/// |a| lane by lane (the sign bit cleared, as std::fabs).
+inline Halves abs(const Halves& a) noexcept {
+    const I4 m = I4{} + 0x7fffffff;
+    return Halves{{reinterpret_cast<F4>(reinterpret_cast<I4>(a.h[0]) & m),
+                   reinterpret_cast<F4>(reinterpret_cast<I4>(a.h[1]) & m)}};
+}
+inline Halves from_halves(const Halves& a, Halves) noexcept { return a; }
 
 #if KDRT_SCENE_STEPS_AVX2
 /// A packet's eight lanes in one AVX2 register.
@@ -90,7 +101,54 @@ inline uint32_t gt_bits(F8 a, F8 b) noexcept { return bits(a > b); }
 inline uint32_t not_lt_bits(F8 a, F8 b) noexcept { return bits(~(a < b)); }
 inline uint32_t not_gt_bits(F8 a, F8 b) noexcept { return bits(~(a > b)); }
 inline uint32_t le_bits(F8 a, F8 b) noexcept { return bits(a <= b); }
+inline F8 abs(F8 a) noexcept { return reinterpret_cast<F8>(reinterpret_cast<I8>(a) & 0x7fffffff); }
+inline F8 from_halves(const Halves& a, F8) noexcept {
+    return reinterpret_cast<F8>(
+        _mm256_set_m128(reinterpret_cast<__m128>(a.h[1]), reinterpret_cast<__m128>(a.h[0])));
+}
 #endif
+
+/// The fields of up to eight rays in lanes, by the Ray layout: ox, oy, oz, tmin, dx, dy, dz, tmax;
+/// lane l holds rays[index[l]] (lanes from `count` on repeat lane 0's ray). Two 4 x 4 transposes
+/// per half, so no lane is written alone (a vector load of eight single-float stores would wait
+/// for them all to leave the store buffer).
+inline void ray_lanes(const Ray* rays, const uint32_t* index, int count, Halves field[8]) noexcept {
+    static_assert(sizeof(Ray) == 8 * sizeof(float) && offsetof(Ray, dx) == 4 * sizeof(float));
+    for (int h = 0; h < 2; ++h) {
+        __m128 lo[4], hi[4];
+        for (int k = 0; k < 4; ++k) {
+            const Ray& r = rays[index[4 * h + k < count ? 4 * h + k : 0]];
+            lo[k] = _mm_loadu_ps(&r.ox);
+            hi[k] = _mm_loadu_ps(&r.dx);
+        }
+        _MM_TRANSPOSE4_PS(lo[0], lo[1], lo[2], lo[3]);
+        _MM_TRANSPOSE4_PS(hi[0], hi[1], hi[2], hi[3]);
+        for (int f = 0; f < 4; ++f) {
+            field[f].h[h] = reinterpret_cast<F4>(lo[f]);
+            field[4 + f].h[h] = reinterpret_cast<F4>(hi[f]);
+        }
+    }
+}
+
+/// make_top_ray's margin of each lane: float(kMarginScale * kappa_max * (3 mag + 3 size_max)),
+/// mag the largest |origin component|, in double as margin() does it (the largest of the floats
+/// is exact in double, and the same operations in the same order give the same bits).
+inline Halves margin_lanes(const SceneData& s, const Halves& ox, const Halves& oy,
+                           const Halves& oz) noexcept {
+    using D4 = double __attribute__((vector_size(32)));
+    const double scale = kMarginScale * s.kappa_max, size3 = 3.0 * s.size_max;
+    Halves out;
+    for (int h = 0; h < 2; ++h) {
+        F4 mag = reinterpret_cast<F4>(reinterpret_cast<I4>(ox.h[h]) & 0x7fffffff);
+        const F4 y = reinterpret_cast<F4>(reinterpret_cast<I4>(oy.h[h]) & 0x7fffffff);
+        const F4 z = reinterpret_cast<F4>(reinterpret_cast<I4>(oz.h[h]) & 0x7fffffff);
+        mag = y > mag ? y : mag;
+        mag = z > mag ? z : mag;
+        const D4 m = __builtin_convertvector(mag, D4);
+        out.h[h] = __builtin_convertvector(scale * (3.0 * m + size3), F4);
+    }
+    return out;
+}
 
 /// TopPacketOps::next_leaf.
 template <class V>
@@ -185,6 +243,75 @@ uint32_t clip_steps(const TopPacket& pk, const Aabb& box, Lanes& tmin, Lanes& tm
     store(tmin, t0);
     store(tmax, t1);
     return le_bits(t0, t1) & mask;
+}
+
+/// TopPacketOps::start.
+template <class V>
+void start_steps(TopPacket& pk, const SceneData& s, const Ray* rays, const uint32_t* index,
+                 int count, TopPacketCell* storage, Lanes& limit) noexcept {
+    Halves f[8];
+    ray_lanes(rays, index, count, f);
+    pk.stack = storage;
+    pk.size = 0;
+    pk.ended = 0;
+    pk.lanes = (1u << count) - 1u;
+    for (int l = 0; l < count; ++l) pk.ray[l] = index[l];
+    const V delta = from_halves(margin_lanes(s, f[0], f[1], f[2]), V{});
+    store(pk.delta, delta);
+    for (int a = 0; a < 3; ++a) {
+        const V dir = from_halves(f[4 + a], V{});
+        const V inv = splat(1.0f, V{}) / dir;
+        store(pk.org[a], from_halves(f[a], V{}));
+        store(pk.dir[a], dir);
+        store(pk.inv[a], inv);
+        store(pk.eps[a], delta * abs(inv));  // no zero component: make_top_ray's eps
+        pk.forward[a] = (&rays[index[0]].dx)[a] > 0.0f;
+    }
+    const V tmin = from_halves(f[3], V{}), tmax = from_halves(f[7], V{});
+    store(pk.ray_tmin, tmin);
+    store(limit, tmax);
+    if (s.refs.empty()) return;
+    V t0 = tmin, t1 = tmax;
+    clip_lanes(pk, s.bounds, t0, t1);
+    const uint32_t mask = le_bits(t0, t1) & pk.lanes;
+    if (!mask) return;
+    TopPacketCell& root = pk.stack[pk.size++];
+    store(root.tmin, t0);
+    store(root.tmax, t1);
+    root.node = 0;
+    root.mask = mask;
+}
+
+/// TopPacketOps::object_rays: to_object's arithmetic on four lanes at a time (per object axis i,
+/// float(inv[i][0] * x + inv[i][1] * y + inv[i][2] * z) in double, left to right, with
+/// x = double(org) - trans for the origin and x = double(dir) for the direction), then each lane's
+/// ray written whole (4 x 4 transposes back).
+void object_rays_steps(const TopPacket& pk, const InstanceData& in, const Lanes& tmax,
+                       Ray* out) noexcept {
+    using D4 = double __attribute__((vector_size(32)));
+    for (int h = 0; h < 2; ++h) {
+        D4 o[3], d[3];
+        for (int a = 0; a < 3; ++a) {
+            o[a] = __builtin_convertvector(pk.org[a].h[h], D4) - in.trans[a];
+            d[a] = __builtin_convertvector(pk.dir[a].h[h], D4);
+        }
+        __m128 lo[4], hi[4];
+        for (int i = 0; i < 3; ++i) {
+            const double* m = &in.inv[3 * i];
+            lo[i] = reinterpret_cast<__m128>(
+                __builtin_convertvector(m[0] * o[0] + m[1] * o[1] + m[2] * o[2], F4));
+            hi[i] = reinterpret_cast<__m128>(
+                __builtin_convertvector(m[0] * d[0] + m[1] * d[1] + m[2] * d[2], F4));
+        }
+        lo[3] = reinterpret_cast<__m128>(pk.ray_tmin.h[h]);
+        hi[3] = reinterpret_cast<__m128>(tmax.h[h]);
+        _MM_TRANSPOSE4_PS(lo[0], lo[1], lo[2], lo[3]);
+        _MM_TRANSPOSE4_PS(hi[0], hi[1], hi[2], hi[3]);
+        for (int k = 0; k < 4; ++k) {
+            _mm_storeu_ps(&out[4 * h + k].ox, lo[k]);
+            _mm_storeu_ps(&out[4 * h + k].dx, hi[k]);
+        }
+    }
 }
 
 }  // namespace

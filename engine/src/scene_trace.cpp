@@ -373,10 +373,9 @@ struct BlockScratch {
     std::vector<Ray> rays;
     std::vector<Hit> hits;
     std::vector<uint8_t> occ;
-    // The depth-first walk's (DepthFirst): the packet, its stack and the world rays' TopRays.
+    // The depth-first walk's (DepthFirst): the packet and its stack.
     detail::TopPacket packet;
     std::vector<detail::TopPacketCell> packet_cells;
-    std::vector<detail::TopRay> top;
 };
 
 struct Counts {
@@ -455,7 +454,6 @@ struct DepthFirst {
     const detail::LaneKernels* lanes;  ///< nullptr: the scalar ISA (rays one by one)
     Counts& counts;
     bool mail;
-    mutable const Ray* last = nullptr;  ///< the last ray given a TopRay (its origin's margin)
 
     void operator()(const Ray* block, size_t, const uint16_t* order, int count) const {
         const auto first = static_cast<uint32_t>(block - rays.data());
@@ -485,18 +483,11 @@ private:
     }
 
     void packet(const uint32_t* index, int n) const {
-        for (int l = 0; l < n; ++l) {
-            const Ray& r = rays[index[l]];
-            b.top[index[l]] =
-                last && r.ox == last->ox && r.oy == last->oy && r.oz == last->oz
-                    ? detail::make_top_ray_from(b.top[static_cast<size_t>(last - rays.data())], r)
-                    : detail::make_top_ray(s, r);
-            last = &r;
-        }
+        // Each lane's TopRay and its limit (its closest hit so far: none yet, so its tmax) are
+        // made in the packet's registers (TopPacketOps::start).
         detail::TopPacket& pk = b.packet;
-        pk.start(s, rays, b.top, index, n, b.packet_cells.data(), ops);
-        detail::Lanes lim = detail::Lanes::fill(0.0f);
-        for (int l = 0; l < n; ++l) lim.set(l, AnyHit ? rays[index[l]].tmax : b.best[index[l]].t);
+        detail::Lanes lim;
+        ops.start(pk, s, rays.data(), index, n, b.packet_cells.data(), lim);
         std::array<detail::Mailbox, detail::kPacketLanes> mailbox;
         uint32_t at = 0;
         while (const detail::TopNode* leaf = ops.next_leaf(pk, s, lim, at)) {
@@ -518,14 +509,11 @@ private:
                uint32_t& at) const {
         const InstanceData& in = s.inst[geom];
         const KdTree& tree = *s.instances[geom].tree;
+        // Every lane's object ray at once, tmax its limit (its ray's tmax, or its closest hit so
+        // far: lim holds b.best[i].t).
         std::array<Ray, detail::kPacketLanes> obj;
-        for (uint32_t q = m; q; q &= q - 1) {
-            const int l = std::countr_zero(q);
-            const uint32_t i = pk.ray[l];
-            obj[l] = detail::to_object(in, rays[i]);
-            if constexpr (!AnyHit) obj[l].tmax = b.best[i].t;
-            ++counts.visits;
-        }
+        ops.object_rays(pk, in, lim, obj.data());
+        for (uint32_t q = m; q; q &= q - 1) ++counts.visits;
         if constexpr (AnyHit) {
             uint32_t occ = 0;
             if (lanes) {
@@ -568,7 +556,6 @@ void depth_first_block(const SceneData& s, std::span<const Ray> rays, std::span<
     b.best.resize(rays.size());
     b.done.assign(rays.size(), 0);
     for (size_t i = 0; i < rays.size(); ++i) b.best[i] = no_hit_yet(rays[i]);
-    b.top.resize(rays.size());
     b.packet_cells.resize(detail::kTopStack);
     // The batch scheduler's answers for invalid rays go to scratch (the caller's are set).
     b.hits.resize(rays.size());

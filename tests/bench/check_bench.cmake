@@ -278,7 +278,7 @@ endif()
 # scene instances: a small two-level scene against the merged mesh (and Embree's instancing)
 set(scene_keys command kind instances bytes_per_instance pose_update_ms scene_build_ms top_nodes kinds)
 set(kind_keys kind rays merged_mrays_per_s scene_mrays_per_s ratio_vs_merged cpu_util
-    differences_vs_merged)
+    differences_vs_merged instance_visits_per_ray)
 set(scene_compare)
 if(EMBREE)
     set(scene_compare --compare embree)
@@ -293,6 +293,13 @@ foreach(k 0 1 2 3)  # primary, shadow, diffuse, random
     expect_keys("${kind_line}" ${kind_keys})
 endforeach()
 expect_failure(2 "--compare" scene instances --from sphere --compare optix)
+run_bench(scene_kinds_line scene instances --from sphere --copies 4 --res 16 --reps 1 --kinds shadow)
+string(JSON kind_count LENGTH "${scene_kinds_line}" kinds)
+string(JSON kind_name GET "${scene_kinds_line}" kinds 0 kind)
+if(NOT kind_count EQUAL 1 OR NOT kind_name MATCHES "^shadow$")
+    message(FATAL_ERROR "scene instances --kinds shadow: ${kind_count} kinds, the first ${kind_name}")
+endif()
+expect_failure(2 "--kinds" scene instances --from sphere --kinds sideways)
 
 # exit codes: 2 for the command line, 1 for a failed run naming the file
 expect_failure(2 "missing argument RAYS.kdrr" trace "${MESH}")

@@ -1038,6 +1038,19 @@ int run_scene_instances(const Args& args) {
         throw UsageError("option '--compare': only 'embree' is supported");
     if (embree && !kEmbreeAvailable)
         throw UsageError("option '--compare': this kdrt-bench was built without Embree");
+    // The ray kinds to time, in this order (--kinds primary,shadow: a profile of two of them).
+    std::vector<RayKind> ray_kinds;
+    const std::string kinds_text = args.get("kinds").value_or("primary,shadow,diffuse,random");
+    for (size_t at = 0; at <= kinds_text.size();) {
+        const size_t comma = std::min(kinds_text.find(',', at), kinds_text.size());
+        const std::string name = kinds_text.substr(at, comma - at);
+        const auto kind = parse_ray_kind(name);
+        if (!kind)
+            throw UsageError("option '--kinds': '" + name +
+                             "' is not one of primary, shadow, diffuse, random");
+        ray_kinds.push_back(*kind);
+        at = comma + 1;
+    }
     const Mesh mesh =
         from == "sphere" ? test::uv_sphere({0, 0, 0}, 1.0f, 24, 48) : load_mesh(from).mesh;
     Json line;
@@ -1089,8 +1102,7 @@ int run_scene_instances(const Args& args) {
             em->set_transforms(poses);
         }
         Json kinds = Json::array();
-        for (RayKind kind :
-             {RayKind::kPrimary, RayKind::kShadow, RayKind::kDiffuse, RayKind::kRandom}) {
+        for (const RayKind kind : ray_kinds) {
             RayGenOptions gen;
             gen.kind = kind;
             gen.res = res;
@@ -1121,7 +1133,10 @@ int run_scene_instances(const Args& args) {
             const double wall = std::chrono::duration<double>(Clock::now() - wall_start).count();
             const double cpu_util = (process_cpu_seconds() - cpu_start) / wall;
             SceneTraceStats stats;
-            if (!occlusion) intersect(scene, rays, sh, {}, &stats);
+            if (occlusion)
+                occluded(scene, rays, so, {}, &stats);
+            else
+                intersect(scene, rays, sh, {}, &stats);
             Json k;
             k["kind"] = std::string(ray_kind_name(kind));
             k["rays"] = rays.size();
@@ -1129,11 +1144,9 @@ int run_scene_instances(const Args& args) {
             k["scene_mrays_per_s"] = rounded(scene_mrays, 3);
             k["ratio_vs_merged"] = rounded(scene_mrays / merged_mrays, 3);
             k["cpu_util"] = rounded(cpu_util, 2);  // CPU seconds per wall second, kdrt passes
-            if (!occlusion) {
-                k["instance_visits_per_ray"] =
-                    rounded(static_cast<double>(stats.instance_visits) / n, 3);
-                k["batched_calls"] = stats.instance_batches;
-            }
+            k["instance_visits_per_ray"] =
+                rounded(static_cast<double>(stats.instance_visits) / n, 3);
+            k["batched_calls"] = stats.instance_batches;
             // The merged mesh's triangle ids: instance g's triangle p is g * T + p.
             const uint64_t tri_count = mesh.triangle_count();
             uint64_t merged_diff = 0;
@@ -1260,7 +1273,7 @@ constexpr std::string_view kSceneUsage =
     R"(usage: kdrt-bench scene stadium --out FILE [--size S]
        kdrt-bench scene grid --from MESH --copies N --out FILE
        kdrt-bench scene instances --from MESH|sphere --copies N [--res R] [--reps K]
-                                  [--threads T] [--compare embree]
+                                  [--threads T] [--compare embree] [--kinds K1,K2,...]
        kdrt-bench scene lidar --from MESH [--copies N] [--azimuth A] [--channels C]
                               [--returns R] [--frame F] [--reps K] [--threads T]
                               [--no-clearance]
@@ -1275,10 +1288,11 @@ Prints one JSON line: kind, triangles, vertices, out, bytes.
            2,256-triangle sphere) on the grid layout, against the same triangles merged into one
            mesh (grid) traced by the mesh kernel, and with --compare embree against Embree's
            instancing (RTC_GEOMETRY_TYPE_INSTANCE over one BLAS). Ray sets of the merged mesh
-           (primary, shadow, diffuse, random; R x R, default 512), K passes each (median, default
-           5). Prints one JSON line: build times, bytes_per_instance, pose_update_ms (every
-           instance moved, the top level rebuilt), and per ray kind the Mrays/s of each tracer,
-           ratio_vs_merged, ratio_vs_embree and the answers that differ.
+           (primary, shadow, diffuse, random, or those --kinds lists; R x R, default 512), K passes
+           each (median, default 5). Prints one JSON line: build times, bytes_per_instance,
+           pose_update_ms (every instance moved, the top level rebuilt), and per ray kind the
+           Mrays/s of each tracer, ratio_vs_merged, ratio_vs_embree, the answers that differ and
+           instance_visits_per_ray (the scene's, shadow rays included).
   lidar    scene_latency.py's scan in process: N instances of MESH (default 1,000) on its ring
            grid at frame F (default 1), a lidar of C channels (default 64, -25..15 degrees) x A
            azimuth steps (default 2048), R returns, from (0.7, 0.3, 0.2) to range 120; K scans
@@ -1462,9 +1476,9 @@ constexpr std::array<std::string_view, 8> kTraceOptions = {"mode", "isa",     "t
 constexpr std::array<std::string_view, 1> kTraceFlags = {"stats"};
 constexpr std::array<std::string_view, 7> kRaysOptions = {"kind", "res",     "seed",   "out",
                                                           "eye",  "look-at", "threads"};
-constexpr std::array<std::string_view, 12> kSceneOptions = {
-    "out",     "size",    "from",    "copies",   "res",     "reps",
-    "threads", "compare", "azimuth", "channels", "returns", "frame"};
+constexpr std::array<std::string_view, 13> kSceneOptions = {
+    "out",     "size",    "from",     "copies",  "res",   "reps", "threads",
+    "compare", "azimuth", "channels", "returns", "frame", "kinds"};
 constexpr std::array<std::string_view, 1> kSceneFlags = {"no-clearance"};
 constexpr std::array<std::string_view, 13> kRenderOptions = {
     "shading",    "res",     "spp",     "tile",    "threads", "reps",   "seed",

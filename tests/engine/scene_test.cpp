@@ -1325,6 +1325,39 @@ TEST(Scene, DepthFirstPacketsAnswerAsTheOracleOnEveryIsa) {
     expect_depth_first_matches(grid.scene, grid_rays, oracle_answers(grid.scene, grid_rays));
 }
 
+/// `b` grown by `times` its extent on every side.
+Aabb grown(const Aabb& b, float times) {
+    const Vec3 e = b.extent() * times;
+    return Aabb{b.lo - e, b.hi + e};
+}
+
+/// The rays' indices by the signs of their direction (a top packet's lanes share them).
+std::vector<std::vector<uint32_t>> by_sign_class(const std::vector<Ray>& rays) {
+    std::vector<std::vector<uint32_t>> by_class(8);
+    for (size_t i = 0; i < rays.size(); ++i) {
+        const Ray& r = rays[i];
+        by_class[(r.dx > 0 ? 1 : 0) | (r.dy > 0 ? 2 : 0) | (r.dz > 0 ? 4 : 0)].push_back(
+            static_cast<uint32_t>(i));
+    }
+    return by_class;
+}
+
+/// fn(ops, index, n) for each supported ISA's packet steps and packets of 1, 2, ..., 8, 1, ...
+/// lanes of one sign class each (index: n ray indices).
+template <class Fn>
+void for_each_packet(const std::vector<std::vector<uint32_t>>& by_class, Fn&& fn) {
+    for (Isa isa : supported_isas()) {
+        SCOPED_TRACE(std::string(isa_name(isa)));
+        const detail::TopPacketOps& ops = detail::top_packet_ops(isa);
+        int count = 1;
+        for (const std::vector<uint32_t>& cls : by_class) {
+            for (size_t k = 0; k < cls.size();
+                 k += static_cast<size_t>(count), count = count % detail::kPacketLanes + 1)
+                fn(ops, &cls[k], static_cast<int>(std::min<size_t>(count, cls.size() - k)));
+        }
+    }
+}
+
 TEST(Scene, PacketRootClipIsClipWidenedInEveryLane) {
     // TopPacket::start clips the root box for all lanes at once (TopPacketOps::clip), and clip /
     // reach on an instance box: each lane must get clip_widened's answer and [tmin, tmax] bit for
@@ -1335,10 +1368,7 @@ TEST(Scene, PacketRootClipIsClipWidenedInEveryLane) {
     const detail::SceneData& d = s.scene.data();
     Rng rng(seed + 32);
     const Aabb b = d.bounds;
-    const Vec3 e = b.extent();
-    Aabb outer = b;
-    outer.lo = outer.lo - e;
-    outer.hi = outer.hi + e;
+    const Aabb outer = grown(b, 1.0f);
     std::vector<Ray> rays;
     for (int i = 0; i < 4000; ++i) {
         const Vec3 o = rng.in_box(outer);
@@ -1391,59 +1421,177 @@ TEST(Scene, PacketRootClipIsClipWidenedInEveryLane) {
         ASSERT_EQ(std::memcmp(&want, &got, sizeof want), 0) << "ray " << i;
     }
     // Rays by sign class, in packets of 1, 2, ..., 8, 1, ... lanes.
-    std::vector<std::vector<uint32_t>> by_class(8);
-    for (size_t i = 0; i < rays.size(); ++i) {
-        const detail::TopRay& p = top[i];
-        by_class[(p.dir[0] > 0 ? 1 : 0) | (p.dir[1] > 0 ? 2 : 0) | (p.dir[2] > 0 ? 4 : 0)]
-            .push_back(static_cast<uint32_t>(i));
-    }
+    const std::vector<std::vector<uint32_t>> by_class = by_sign_class(rays);
     const auto same = [](float x, float y) { return std::memcmp(&x, &y, sizeof x) == 0; };
     std::vector<detail::TopPacketCell> cells(detail::kTopStack);
     size_t reached = 0, missed = 0;
-    for (Isa isa : supported_isas()) {
-        SCOPED_TRACE(std::string(isa_name(isa)));
-        const detail::TopPacketOps& ops = detail::top_packet_ops(isa);
-        int count = 1;
-        for (const std::vector<uint32_t>& cls : by_class) {
-            for (size_t k = 0; k < cls.size();
-                 k += static_cast<size_t>(count), count = count % detail::kPacketLanes + 1) {
-                const int n = static_cast<int>(std::min<size_t>(count, cls.size() - k));
-                detail::TopPacket pk;
-                pk.start(d, rays, top, &cls[k], n, cells.data(), ops);
-                const uint32_t root_mask = pk.size > 0 ? pk.stack[0].mask : 0u;
-                const uint32_t g = rng.below(16);
-                const Aabb& box = d.inst[g].world;
-                detail::Lanes lo = detail::Lanes::fill(0.0f), hi = lo;
-                for (int l = 0; l < n; ++l) {
-                    lo.set(l, rays[cls[k + l]].tmin);
-                    hi.set(l, rays[cls[k + l]].tmax);
-                }
-                const uint32_t reach = ops.reach(pk, box, hi, pk.lanes);
-                const uint32_t clip = ops.clip(pk, box, lo, hi, pk.lanes);
-                ASSERT_EQ(reach, clip);
-                for (int l = 0; l < n; ++l) {
-                    const uint32_t i = cls[k + l];
-                    float t0 = rays[i].tmin, t1 = rays[i].tmax;
-                    const bool in = detail::clip_widened(top[i], b, t0, t1);
-                    ASSERT_EQ((root_mask >> l & 1u) != 0, in) << "ray " << i << " lane " << l;
-                    (in ? reached : missed) += 1;
-                    if (in) {
-                        ASSERT_TRUE(same(pk.stack[0].tmin.get(l), t0)) << "ray " << i;
-                        ASSERT_TRUE(same(pk.stack[0].tmax.get(l), t1)) << "ray " << i;
-                    }
-                    float u0 = rays[i].tmin, u1 = rays[i].tmax;
-                    const bool in_box = detail::clip_widened(top[i], box, u0, u1);
-                    ASSERT_EQ((clip >> l & 1u) != 0, in_box) << "ray " << i << " lane " << l;
-                    if (in_box) {
-                        ASSERT_TRUE(same(lo.get(l), u0)) << "ray " << i;
-                        ASSERT_TRUE(same(hi.get(l), u1)) << "ray " << i;
-                    }
-                }
+    for_each_packet(by_class, [&](const detail::TopPacketOps& ops, const uint32_t* index, int n) {
+        detail::TopPacket pk;
+        pk.start(d, rays, top, index, n, cells.data(), ops);
+        const uint32_t root_mask = pk.size > 0 ? pk.stack[0].mask : 0u;
+        const uint32_t g = rng.below(16);
+        const Aabb& box = d.inst[g].world;
+        detail::Lanes lo = detail::Lanes::fill(0.0f), hi = lo;
+        for (int l = 0; l < n; ++l) {
+            lo.set(l, rays[index[l]].tmin);
+            hi.set(l, rays[index[l]].tmax);
+        }
+        const uint32_t reach = ops.reach(pk, box, hi, pk.lanes);
+        const uint32_t clip = ops.clip(pk, box, lo, hi, pk.lanes);
+        ASSERT_EQ(reach, clip);
+        for (int l = 0; l < n; ++l) {
+            const uint32_t i = index[l];
+            float t0 = rays[i].tmin, t1 = rays[i].tmax;
+            const bool in = detail::clip_widened(top[i], b, t0, t1);
+            ASSERT_EQ((root_mask >> l & 1u) != 0, in) << "ray " << i << " lane " << l;
+            (in ? reached : missed) += 1;
+            if (in) {
+                ASSERT_TRUE(same(pk.stack[0].tmin.get(l), t0)) << "ray " << i;
+                ASSERT_TRUE(same(pk.stack[0].tmax.get(l), t1)) << "ray " << i;
+            }
+            float u0 = rays[i].tmin, u1 = rays[i].tmax;
+            const bool in_box = detail::clip_widened(top[i], box, u0, u1);
+            ASSERT_EQ((clip >> l & 1u) != 0, in_box) << "ray " << i << " lane " << l;
+            if (in_box) {
+                ASSERT_TRUE(same(lo.get(l), u0)) << "ray " << i;
+                ASSERT_TRUE(same(hi.get(l), u1)) << "ray " << i;
             }
         }
-    }
+    });
     EXPECT_GT(reached, rays.size() / 2);
     EXPECT_GT(missed, rays.size() / 20);
+}
+
+TEST(Scene, PacketStartFromRaysIsStartBitForBit) {
+    // TopPacketOps::start (the depth-first walk's packets: each lane's TopRay made in the
+    // packet's registers from the rays) must give TopPacket::start's packet from make_top_ray's
+    // TopRays bit for bit: every lane's origin, reciprocal direction, margin and its t widths,
+    // tmin, the root cell, and the limit = tmax; in packets of 1 to 8 lanes, with the SSE halves
+    // and (where the CPU has it) AVX2.
+    const uint64_t seed = test_seed();
+    SCOPED_TRACE(testing::Message() << "seed=" << seed);
+    const TestScene s = mixed_scene(seed + 41, 16);
+    const detail::SceneData& d = s.scene.data();
+    Rng rng(seed + 42);
+    const Aabb b = d.bounds;
+    const Aabb outer = grown(b, 3.0f);
+    std::vector<Ray> rays;
+    Vec3 o = rng.in_box(outer);
+    for (int i = 0; i < 6000; ++i) {
+        // Runs of one origin (a camera's) and origins each their own (shadow rays), some far out
+        // or near zero (the margin follows the largest origin component), some on a bunny.
+        if (i % 16 == 0 || i % 3 == 0) {
+            o = rng.in_box(rng.below(4) == 0 ? outer : b);
+            if (i % 11 == 0) o = o * 1e3f;
+            if (i % 13 == 0) o = o * 1e-4f;
+        }
+        Vec3 target = rng.in_box(b);
+        Ray r = make_ray(o, target - o);
+        if (i % 5 == 1) r.tmin = rng.uniform() * 0.5f;
+        if (i % 5 == 2) r.tmax = rng.uniform() * 2.0f;
+        if (i % 7 == 3) (&r.dx)[i % 3] *= 1e-6f;  // nearly parallel to a face
+        if (i % 9 == 4) r.dx *= 1e5f;
+        if (r.dx == 0.0f || r.dy == 0.0f || r.dz == 0.0f || !detail::ray_is_valid(r)) continue;
+        rays.push_back(r);
+    }
+    std::vector<detail::TopRay> top(rays.size());
+    for (size_t i = 0; i < rays.size(); ++i) top[i] = detail::make_top_ray(d, rays[i]);
+    const std::vector<std::vector<uint32_t>> by_class = by_sign_class(rays);
+    const auto same = [](float x, float y) { return std::memcmp(&x, &y, sizeof x) == 0; };
+    std::vector<detail::TopPacketCell> want_cells(detail::kTopStack), got_cells(detail::kTopStack);
+    size_t lanes_checked = 0, roots = 0;
+    for_each_packet(by_class, [&](const detail::TopPacketOps& ops, const uint32_t* index, int n) {
+        detail::TopPacket want, got;
+        want.start(d, rays, top, index, n, want_cells.data(), ops);
+        detail::Lanes limit = detail::Lanes::fill(-1.0f);
+        ops.start(got, d, rays.data(), index, n, got_cells.data(), limit);
+        ASSERT_EQ(got.lanes, want.lanes);
+        ASSERT_EQ(got.ended, want.ended);
+        ASSERT_EQ(got.size, want.size);
+        ASSERT_EQ(got.stack, got_cells.data());
+        for (int a = 0; a < 3; ++a) ASSERT_EQ(got.forward[a], want.forward[a]);
+        for (int l = 0; l < n; ++l) {
+            const uint32_t i = index[l];
+            SCOPED_TRACE(testing::Message() << "ray " << i << " lane " << l);
+            ASSERT_EQ(got.ray[l], i);
+            for (int a = 0; a < 3; ++a) {
+                ASSERT_TRUE(same(got.org[a].get(l), want.org[a].get(l)));
+                ASSERT_TRUE(same(got.inv[a].get(l), want.inv[a].get(l)));
+                ASSERT_TRUE(same(got.eps[a].get(l), want.eps[a].get(l)));
+            }
+            ASSERT_TRUE(same(got.delta.get(l), want.delta.get(l)));
+            ASSERT_TRUE(same(got.delta.get(l), top[i].delta));
+            ASSERT_TRUE(same(got.ray_tmin.get(l), want.ray_tmin.get(l)));
+            ASSERT_TRUE(same(limit.get(l), rays[i].tmax));
+            ++lanes_checked;
+        }
+        if (want.size == 0) return;
+        ++roots;
+        ASSERT_EQ(got.stack[0].node, want.stack[0].node);
+        ASSERT_EQ(got.stack[0].mask, want.stack[0].mask);
+        for (uint32_t m = want.stack[0].mask; m; m &= m - 1) {
+            const int l = std::countr_zero(m);
+            ASSERT_TRUE(same(got.stack[0].tmin.get(l), want.stack[0].tmin.get(l)));
+            ASSERT_TRUE(same(got.stack[0].tmax.get(l), want.stack[0].tmax.get(l)));
+        }
+    });
+    EXPECT_GT(lanes_checked, rays.size());
+    EXPECT_GT(roots, rays.size() / 16);
+}
+
+TEST(Scene, PacketObjectRaysAreToObjectBitForBit) {
+    // TopPacketOps::object_rays (the depth-first walk's hand-off into an instance: every lane's
+    // object ray at once) must give to_object's ray, with tmax the lane's limit, bit for bit for
+    // every instance (rotated, scaled, sheared, mirrored: mixed_scene), in packets of 1 to 8
+    // lanes, with the SSE halves and (where the CPU has it) AVX2.
+    const uint64_t seed = test_seed();
+    SCOPED_TRACE(testing::Message() << "seed=" << seed);
+    const TestScene s = mixed_scene(seed + 51, 24);
+    const detail::SceneData& d = s.scene.data();
+    Rng rng(seed + 52);
+    const Aabb b = d.bounds;
+    std::vector<Ray> rays;
+    for (int i = 0; i < 3000; ++i) {
+        Vec3 o = rng.in_box(b);
+        if (i % 5 == 0) o = o * 1e4f;
+        if (i % 7 == 0) o = o * 1e-5f;
+        Ray r = make_ray(o, rng.in_box(b) - o);
+        if (i % 3 == 0) r.tmin = rng.uniform();
+        if (i % 4 == 0) r.tmax = 1.0f + rng.uniform() * 1e3f;
+        if (i % 6 == 0) (&r.dx)[i % 3] *= 1e-7f;
+        if (r.dx == 0.0f || r.dy == 0.0f || r.dz == 0.0f || !detail::ray_is_valid(r)) continue;
+        rays.push_back(r);
+    }
+    std::vector<detail::TopRay> top(rays.size());
+    for (size_t i = 0; i < rays.size(); ++i) top[i] = detail::make_top_ray(d, rays[i]);
+    const std::vector<std::vector<uint32_t>> by_class = by_sign_class(rays);
+    std::vector<detail::TopPacketCell> cells(detail::kTopStack);
+    size_t checked = 0;
+    for_each_packet(by_class, [&](const detail::TopPacketOps& ops, const uint32_t* index, int n) {
+        for (int way = 0; way < 2; ++way) {  // both starts fill the lanes it reads
+            detail::TopPacket pk;
+            detail::Lanes limit;
+            if (way == 0) {
+                ops.start(pk, d, rays.data(), index, n, cells.data(), limit);
+            } else {
+                pk.start(d, rays, top, index, n, cells.data(), ops);
+                for (int l = 0; l < n; ++l) limit.set(l, rays[index[l]].tmax);
+            }
+            for (int l = 0; l < n; ++l)  // a closest hit so far, below tmax
+                if (rng.below(2)) limit.set(l, limit.get(l) * rng.uniform());
+            const uint32_t g = rng.below(static_cast<uint32_t>(d.inst.size()));
+            std::array<Ray, detail::kPacketLanes> got;
+            ops.object_rays(pk, d.inst[g], limit, got.data());
+            for (int l = 0; l < n; ++l) {
+                Ray want = detail::to_object_reference(d.inst[g], rays[index[l]]);
+                want.tmax = limit.get(l);
+                ASSERT_EQ(std::memcmp(&want, &got[l], sizeof want), 0)
+                    << "ray " << index[l] << " lane " << l << " instance " << g;
+                ++checked;
+            }
+        }
+    });
+    EXPECT_GT(checked, rays.size());
 }
 
 TEST(Scene, PacketTopWalkKeepsEveryLaneAndInstance) {
