@@ -321,24 +321,27 @@ bool split_in_one_pass(const Polygon& poly, const Aabb& left, const Aabb& right,
     const int a = axis;
     const Point* src = poly.src;
     // Bounds kept as update_bounds keeps them: x and y two per SSE2 operation, z apart.
-    const __m128d inf = _mm_set1_pd(INFINITY), ninf = _mm_set1_pd(-INFINITY);
-    __m128d l_lo_xy = inf, l_hi_xy = ninf, r_lo_xy = inf, r_hi_xy = ninf;
-    __m128d l_lo_z = inf, l_hi_z = ninf, r_lo_z = inf, r_hi_z = ninf;
-    int l_count = 0, r_count = 0;
+    struct Bounds {
+        __m128d lo_xy = _mm_set1_pd(INFINITY), hi_xy = _mm_set1_pd(-INFINITY);
+        __m128d lo_z = lo_xy, hi_z = hi_xy;
+        int count = 0;
+        void add(__m128d xy, __m128d z) noexcept {
+            lo_xy = _mm_min_pd(xy, lo_xy), hi_xy = _mm_max_pd(xy, hi_xy);
+            lo_z = _mm_min_sd(z, lo_z), hi_z = _mm_max_sd(z, hi_z), ++count;
+        }
+        void store(Point& lo, Point& hi) const noexcept {
+            _mm_storeu_pd(lo.data(), lo_xy), _mm_store_sd(&lo[2], lo_z);
+            _mm_storeu_pd(hi.data(), hi_xy), _mm_store_sd(&hi[2], hi_z);
+        }
+    } l, r;
     bool in_l = src[0][a] <= p, in_r = src[0][a] >= p;
     for (int i = 0; i < n; ++i) {
         const Point& cur = src[i];
         const Point& next = src[i + 1 == n ? 0 : i + 1];
         const bool next_l = next[a] <= p, next_r = next[a] >= p;
         const __m128d xy = _mm_loadu_pd(cur.data()), z = _mm_load_sd(&cur[2]);
-        if (in_l) {
-            l_lo_xy = _mm_min_pd(xy, l_lo_xy), l_hi_xy = _mm_max_pd(xy, l_hi_xy);
-            l_lo_z = _mm_min_sd(z, l_lo_z), l_hi_z = _mm_max_sd(z, l_hi_z), ++l_count;
-        }
-        if (in_r) {
-            r_lo_xy = _mm_min_pd(xy, r_lo_xy), r_hi_xy = _mm_max_pd(xy, r_hi_xy);
-            r_lo_z = _mm_min_sd(z, r_lo_z), r_hi_z = _mm_max_sd(z, r_hi_z), ++r_count;
-        }
+        if (in_l) l.add(xy, z);
+        if (in_r) r.add(xy, z);
         const bool cross_l = in_l != next_l, cross_r = in_r != next_r;
         if (cross_l || cross_r) {
             const double s = (p - cur[a]) / (next[a] - cur[a]);
@@ -346,23 +349,16 @@ bool split_in_one_pass(const Polygon& poly, const Aabb& left, const Aabb& right,
             for (int b = 0; b < 3; ++b) q[b] = cur[b] + s * (next[b] - cur[b]);
             q[a] = p;
             const __m128d qxy = _mm_loadu_pd(q.data()), qz = _mm_load_sd(&q[2]);
-            if (cross_l) {
-                l_lo_xy = _mm_min_pd(qxy, l_lo_xy), l_hi_xy = _mm_max_pd(qxy, l_hi_xy);
-                l_lo_z = _mm_min_sd(qz, l_lo_z), l_hi_z = _mm_max_sd(qz, l_hi_z), ++l_count;
-            }
-            if (cross_r) {
-                r_lo_xy = _mm_min_pd(qxy, r_lo_xy), r_hi_xy = _mm_max_pd(qxy, r_hi_xy);
-                r_lo_z = _mm_min_sd(qz, r_lo_z), r_hi_z = _mm_max_sd(qz, r_hi_z), ++r_count;
-            }
+            if (cross_l) l.add(qxy, qz);
+            if (cross_r) r.add(qxy, qz);
         }
         in_l = next_l;
         in_r = next_r;
     }
+    const int l_count = l.count, r_count = r.count;
     Point l_lo, l_hi, r_lo, r_hi;
-    _mm_storeu_pd(l_lo.data(), l_lo_xy), _mm_store_sd(&l_lo[2], l_lo_z);
-    _mm_storeu_pd(l_hi.data(), l_hi_xy), _mm_store_sd(&l_hi[2], l_hi_z);
-    _mm_storeu_pd(r_lo.data(), r_lo_xy), _mm_store_sd(&r_lo[2], r_lo_z);
-    _mm_storeu_pd(r_hi.data(), r_hi_xy), _mm_store_sd(&r_hi[2], r_hi_z);
+    l.store(l_lo, l_hi);
+    r.store(r_lo, r_hi);
     // The planes Polygon::clip would look at next: the right child's high plane on `axis`, then
     // both children's planes on the later axes.
     if (r_count > 0 && !(r_hi[a] <= right.hi[a])) return false;

@@ -831,6 +831,24 @@ ClipCase random_clip_case(Rng& rng, float scale) {
     return c;
 }
 
+/// clip_to_children of `tri` against clip_to_cell in each child alone: the same answers and,
+/// where a child is reached, the same bounds bit for bit. `*_ok`: clip_to_children's answers.
+testing::AssertionResult children_clip_equals_each_alone(const TriVerts& tri, const Aabb& left,
+                                                         const Aabb& right, int axis, bool& left_ok,
+                                                         bool& right_ok) {
+    Aabb left_box, right_box, left_want, right_want;
+    detail::clip_to_children(tri, left, right, axis, left_ok, left_box, right_ok, right_box);
+    if (left_ok != detail::clip_to_cell(tri, left, left_want))
+        return testing::AssertionFailure() << "left answer";
+    if (right_ok != detail::clip_to_cell(tri, right, right_want))
+        return testing::AssertionFailure() << "right answer";
+    if (left_ok && std::memcmp(&left_box, &left_want, sizeof(Aabb)) != 0)
+        return testing::AssertionFailure() << "left bounds";
+    if (right_ok && std::memcmp(&right_box, &right_want, sizeof(Aabb)) != 0)
+        return testing::AssertionFailure() << "right bounds";
+    return testing::AssertionSuccess();
+}
+
 // The exact phase clips a straddler to both children at once (clip_to_children). It must give,
 // bit for bit, what clipping to each child alone gives: random triangles (inside, straddling,
 // outside, flat in an axis plane, at 1e6 scale) against random cells and split planes.
@@ -849,17 +867,9 @@ TEST(KdClip, BothChildrenAtOnceEqualEachChildAlone) {
         Aabb left = cell, right = cell;
         left.hi[axis] = pos;
         right.lo[axis] = pos;
-        Aabb left_box, right_box, left_want, right_want;
         bool left_ok = false, right_ok = false;
-        detail::clip_to_children(tri, left, right, axis, left_ok, left_box, right_ok, right_box);
-        ASSERT_EQ(left_ok, detail::clip_to_cell(tri, left, left_want)) << "case " << i;
-        ASSERT_EQ(right_ok, detail::clip_to_cell(tri, right, right_want)) << "case " << i;
-        if (left_ok) {
-            ASSERT_EQ(std::memcmp(&left_box, &left_want, sizeof(Aabb)), 0) << "case " << i;
-        }
-        if (right_ok) {
-            ASSERT_EQ(std::memcmp(&right_box, &right_want, sizeof(Aabb)), 0) << "case " << i;
-        }
+        ASSERT_TRUE(children_clip_equals_each_alone(tri, left, right, axis, left_ok, right_ok))
+            << "case " << i;
         (left_ok && right_ok ? in_both : left_ok || right_ok ? in_one : in_none) += 1;
     }
     // The cases must reach every outcome, the straddlers most of all.
@@ -924,17 +934,9 @@ TEST(KdClip, StraddlersClippedInOnePassEqualEachChildAlone) {
             default:
                 break;
         }
-        Aabb left_box, right_box, left_want, right_want;
         bool left_ok = false, right_ok = false;
-        detail::clip_to_children(tri, left, right, axis, left_ok, left_box, right_ok, right_box);
-        ASSERT_EQ(left_ok, detail::clip_to_cell(tri, left, left_want)) << "case " << i;
-        ASSERT_EQ(right_ok, detail::clip_to_cell(tri, right, right_want)) << "case " << i;
-        if (left_ok) {
-            ASSERT_EQ(std::memcmp(&left_box, &left_want, sizeof(Aabb)), 0) << "case " << i;
-        }
-        if (right_ok) {
-            ASSERT_EQ(std::memcmp(&right_box, &right_want, sizeof(Aabb)), 0) << "case " << i;
-        }
+        ASSERT_TRUE(children_clip_equals_each_alone(tri, left, right, axis, left_ok, right_ok))
+            << "case " << i;
         in_both += left_ok && right_ok ? 1 : 0;
     }
     EXPECT_GT(in_both, count / 2);  // the straddlers reach both children
