@@ -831,6 +831,24 @@ ClipCase random_clip_case(Rng& rng, float scale) {
     return c;
 }
 
+/// clip_to_children of `tri` against clip_to_cell in each child alone: the same answers and,
+/// where a child is reached, the same bounds bit for bit. `*_ok`: clip_to_children's answers.
+testing::AssertionResult children_clip_equals_each_alone(const TriVerts& tri, const Aabb& left,
+                                                         const Aabb& right, int axis, bool& left_ok,
+                                                         bool& right_ok) {
+    Aabb left_box, right_box, left_want, right_want;
+    detail::clip_to_children(tri, left, right, axis, left_ok, left_box, right_ok, right_box);
+    if (left_ok != detail::clip_to_cell(tri, left, left_want))
+        return testing::AssertionFailure() << "left answer";
+    if (right_ok != detail::clip_to_cell(tri, right, right_want))
+        return testing::AssertionFailure() << "right answer";
+    if (left_ok && std::memcmp(&left_box, &left_want, sizeof(Aabb)) != 0)
+        return testing::AssertionFailure() << "left bounds";
+    if (right_ok && std::memcmp(&right_box, &right_want, sizeof(Aabb)) != 0)
+        return testing::AssertionFailure() << "right bounds";
+    return testing::AssertionSuccess();
+}
+
 // The exact phase clips a straddler to both children at once (clip_to_children). It must give,
 // bit for bit, what clipping to each child alone gives: random triangles (inside, straddling,
 // outside, flat in an axis plane, at 1e6 scale) against random cells and split planes.
@@ -849,23 +867,79 @@ TEST(KdClip, BothChildrenAtOnceEqualEachChildAlone) {
         Aabb left = cell, right = cell;
         left.hi[axis] = pos;
         right.lo[axis] = pos;
-        Aabb left_box, right_box, left_want, right_want;
         bool left_ok = false, right_ok = false;
-        detail::clip_to_children(tri, left, right, axis, left_ok, left_box, right_ok, right_box);
-        ASSERT_EQ(left_ok, detail::clip_to_cell(tri, left, left_want)) << "case " << i;
-        ASSERT_EQ(right_ok, detail::clip_to_cell(tri, right, right_want)) << "case " << i;
-        if (left_ok) {
-            ASSERT_EQ(std::memcmp(&left_box, &left_want, sizeof(Aabb)), 0) << "case " << i;
-        }
-        if (right_ok) {
-            ASSERT_EQ(std::memcmp(&right_box, &right_want, sizeof(Aabb)), 0) << "case " << i;
-        }
+        ASSERT_TRUE(children_clip_equals_each_alone(tri, left, right, axis, left_ok, right_ok))
+            << "case " << i;
         (left_ok && right_ok ? in_both : left_ok || right_ok ? in_one : in_none) += 1;
     }
     // The cases must reach every outcome, the straddlers most of all.
     EXPECT_GT(in_both, count / 20);
     EXPECT_GT(in_one, count / 20);
     EXPECT_GT(in_none, count / 100);
+}
+
+// clip_to_children's one-pass path: a triangle that straddles the split plane and lies inside
+// the cell on the other axes (or just past one of the children's other planes, where the path
+// must hand over to the full clip), vertices on the plane too (an edge then crosses it for one
+// child only). Bit for bit what clipping to each child alone gives.
+TEST(KdClip, StraddlersClippedInOnePassEqualEachChildAlone) {
+    const uint64_t seed = test_seed() + 440;
+    SCOPED_TRACE(testing::Message() << "seed=" << seed << " (replay with KDRT_TEST_SEED)");
+    Rng rng(seed);
+    size_t in_both = 0;
+    const size_t count = scaled(200'000);
+    for (size_t i = 0; i < count; ++i) {
+        const float scale = i % 3 == 0 ? 1e6f : 1.0f;
+        Aabb cell;
+        for (int a = 0; a < 3; ++a) {
+            cell.lo[a] = rng.uniform(-1, 1) * scale;
+            cell.hi[a] = cell.lo[a] + rng.uniform(0.01f, 2) * scale;
+        }
+        const int axis = static_cast<int>(i % 3);
+        const float pos = cell.lo[axis] + rng.uniform(0.1f, 0.9f) * (cell.hi[axis] - cell.lo[axis]);
+        Aabb left = cell, right = cell;
+        left.hi[axis] = pos;
+        right.lo[axis] = pos;
+        TriVerts tri;
+        float* v[3] = {tri.v0, tri.v1, tri.v2};
+        for (int a = 0; a < 3; ++a)
+            for (int k = 0; k < 3; ++k)
+                v[k][a] = cell.lo[a] + rng.uniform() * (cell.hi[a] - cell.lo[a]);
+        // Straddling: one vertex on each side of the plane (the third anywhere in the cell).
+        v[0][axis] = std::min(v[0][axis], std::nextafter(pos, -INFINITY));
+        v[1][axis] = std::max(v[1][axis], std::nextafter(pos, INFINITY));
+        switch ((i / 3) % 8) {
+            case 0:  // the third vertex on the plane
+                v[2][axis] = pos;
+                break;
+            case 1:  // a vertex on the plane, one past it (an edge along the plane too)
+                v[0][axis] = pos;
+                v[2][axis] = pos;
+                break;
+            case 2: {  // a vertex past another plane of the cell, by an ulp or more
+                const int a = static_cast<int>(rng.below(3));
+                const bool high = rng.below(2) == 1;
+                const float face = high ? cell.hi[a] : cell.lo[a];
+                const float past = rng.below(2) == 0
+                                       ? std::nextafter(face, high ? INFINITY : -INFINITY)
+                                       : face + (high ? 0.25f : -0.25f) * (cell.hi[a] - cell.lo[a]);
+                v[rng.below(3)][a] = past;
+                break;
+            }
+            case 3: {  // a vertex on another plane of the cell
+                const int a = (axis + 1 + static_cast<int>(rng.below(2))) % 3;
+                v[rng.below(3)][a] = rng.below(2) == 1 ? cell.hi[a] : cell.lo[a];
+                break;
+            }
+            default:
+                break;
+        }
+        bool left_ok = false, right_ok = false;
+        ASSERT_TRUE(children_clip_equals_each_alone(tri, left, right, axis, left_ok, right_ok))
+            << "case " << i;
+        in_both += left_ok && right_ok ? 1 : 0;
+    }
+    EXPECT_GT(in_both, count / 2);  // the straddlers reach both children
 }
 
 // The binned phase hands its cut references to the exact sweep with clip_unless_missing: one
