@@ -50,6 +50,10 @@ TEST(KdSweep, PrunedSweepBuildsTheFullSweepsTree) {
     size_t inner = 0;
     for (size_t m = 0; m < meshes.size(); ++m) {
         for (size_t o = 0; o < settings.size(); ++o) {
+            // The sanitizer pass (KDRT_TEST_SCALE below 1) builds the 24,000-triangle soup, most
+            // of the test's time there, at setting 1 only: the parallel chunks' counts taken
+            // wrong fail it at every setting, their first-best-on-ties rule only at setting 1.
+            if (test_scale() < 1 && m + 1 == meshes.size() && o != 1) continue;
             SCOPED_TRACE(testing::Message() << "mesh " << m << ", setting " << o);
             const KdTree want = build_kdtree_with(meshes[m], settings[o], full);
             const KdTree got = build_kdtree_with(meshes[m], settings[o], pruned);
