@@ -228,6 +228,22 @@ public:
     WorkerFront front;
 };
 
+/// Sends `sent` while /first is answered (held by start_first), then `rest` once the worker is
+/// free again: the worker must hand the connection back to the loop rather than take the
+/// request (its wait sees `sent` only), and the loop answers "/second:hello" in the end.
+void expect_handed_back(FollowFront& f, WorkerClient& client, const std::string& sent,
+                        const std::string& rest) {
+    const uint64_t taken = f.front.taken_after_answer();
+    ASSERT_TRUE(client.send_raw(sent));
+    f.release();
+    EXPECT_EQ(client.answer(), "/first:");
+    // The worker is free again once it has handed the connection back (not held by the rest).
+    ASSERT_TRUE(f.front.wait_idle(4)) << "a worker is held by the request";
+    ASSERT_TRUE(client.send_raw(rest));
+    EXPECT_EQ(client.answer(), "/second:hello");
+    EXPECT_EQ(f.front.taken_after_answer(), taken);
+}
+
 TEST(HttpFrontWorkers, ARequestWaitingAsItsConnectionsAnswerGoesOutIsTakenByThatWorker) {
     FollowFront f;
     WorkerClient client(f.front.port());
@@ -258,17 +274,10 @@ TEST(HttpFrontWorkers, APartOfAHeadWaitingAsTheAnswerGoesOutGoesBackToTheLoop) {
     FollowFront f;
     WorkerClient client(f.front.port());
     ASSERT_NO_FATAL_FAILURE(f.start_first(client));
-    const uint64_t taken = f.front.taken_after_answer();
     // Empty lines (ignored) and half of the next head: the worker reads them and hands the
     // connection back; the loop scans them again with the rest.
-    ASSERT_TRUE(client.send_raw("\r\nPOST /second HTTP/1.1\r\nHost: x\r\nContent-Len"));
-    f.release();
-    EXPECT_EQ(client.answer(), "/first:");
-    // The worker is free again once it has handed the connection back.
-    ASSERT_TRUE(f.front.wait_idle(4));
-    ASSERT_TRUE(client.send_raw("gth: 5\r\n\r\nhello"));
-    EXPECT_EQ(client.answer(), "/second:hello");
-    EXPECT_EQ(f.front.taken_after_answer(), taken);
+    ASSERT_NO_FATAL_FAILURE(expect_handed_back(
+        f, client, "\r\nPOST /second HTTP/1.1\r\nHost: x\r\nContent-Len", "gth: 5\r\n\r\nhello"));
     // A head refused after the answer: 400 from the loop, the connection closed.
     ASSERT_TRUE(client.send_raw("GET /x HTTP/1.1\r\nHost: x\r\nbad header line\r\n\r\n"));
     char buf[256];
@@ -281,17 +290,11 @@ TEST(HttpFrontWorkers, ABodyStillComingAfterTheWaitGoesBackToTheLoop) {
     FollowFront f;
     WorkerClient client(f.front.port());
     ASSERT_NO_FATAL_FAILURE(f.start_first(client));
-    const uint64_t taken = f.front.taken_after_answer();
     // A whole head but only part of its small body: the worker does not wait on the rest (the
     // loop would have buffered it before giving the request to any thread), it hands the
     // connection back, and the loop answers once the body is complete.
-    ASSERT_TRUE(client.send_raw("POST /second HTTP/1.1\r\nHost: x\r\nContent-Length: 5\r\n\r\nhe"));
-    f.release();
-    EXPECT_EQ(client.answer(), "/first:");
-    ASSERT_TRUE(f.front.wait_idle(4)) << "a worker is held by the body";
-    ASSERT_TRUE(client.send_raw("llo"));
-    EXPECT_EQ(client.answer(), "/second:hello");
-    EXPECT_EQ(f.front.taken_after_answer(), taken);
+    ASSERT_NO_FATAL_FAILURE(expect_handed_back(
+        f, client, "POST /second HTTP/1.1\r\nHost: x\r\nContent-Length: 5\r\n\r\nhe", "llo"));
 }
 
 }  // namespace
