@@ -583,12 +583,17 @@ struct HttpFront::Impl {
         }
     }
 
-    /// A new connection, or one back from a worker: its next request may already be buffered.
-    void park(Connection& c) {
+    /// Idle again, its head to be scanned anew from the buffered bytes.
+    static void forget_head(Connection& c) {
         c.state = Connection::State::kIdle;
-        c.idle_since = Clock::now();
         c.scan = HeadScan{};
         c.head.reset();
+    }
+
+    /// A new connection, or one back from a worker: its next request may already be buffered.
+    void park(Connection& c) {
+        forget_head(c);
+        c.idle_since = Clock::now();
         if (c.buffered() == 0) {
             c.buffer.clear();
             c.buffer.shrink_to_fit();
@@ -895,9 +900,7 @@ struct HttpFront::Impl {
             }
         };
         if (!wait_for_bytes()) return false;
-        c.state = Connection::State::kIdle;
-        c.scan = HeadScan{};
-        c.head.reset();
+        forget_head(c);
         read_arrived(limits.max_head_bytes + 1);
         int status = 0;
         std::string detail;
@@ -913,9 +916,7 @@ struct HttpFront::Impl {
         read_arrived(whole);
         while (c.buffered() < whole && wait_for_bytes()) read_arrived(whole);
         if (c.buffered() < whole) {
-            c.state = Connection::State::kIdle;
-            c.scan = HeadScan{};
-            c.head.reset();
+            forget_head(c);
             return false;
         }
         c.body_wanted = 0;
