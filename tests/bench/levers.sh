@@ -1,0 +1,113 @@
+#!/usr/bin/env bash
+# What issue 23's kernel levers give, measured in one run, as Markdown: for each scene and ray set
+# of the standard table (run.sh), the traversal modes side by side, and for the shadow set the
+# same rays traced by the closest-hit kernel instead of the occlusion (any-hit) kernel.
+#
+#   tests/bench/levers.sh BUILD_DIR [WORK_DIR]
+#
+# Columns (Mrays/s, median of REPS passes, THREADS threads):
+#   auto     the default policy: packets where rays are coherent, single rays in turn elsewhere
+#   packet   every ray in packets (--mode packet)
+#   single   every ray walked alone over the wide kD nodes, twelve in turn (--mode single)
+#   one      one ray at a time through the public single-ray call (--mode one), the counterpart
+#            of rtcIntersect1 / rtcOccluded1; with COMPARE=embree, on the diffuse and random sets,
+#            also Embree's fastest one-ray mode and the ratio (the issue's single-ray goal)
+#   closest  shadow set only: the same rays with the occlusion flag cleared (a copy), so the
+#            closest-hit kernel traces them (auto); auto / closest is what the occlusion kernel
+#            gives over closest hit
+# WORK_DIR holds the ray sets as run.sh writes them (the same default, BUILD_DIR/bench-rays); a
+# missing set is generated. Tunables (environment): REPS=5, THREADS=2, RES=1024, SCENES="..." (as
+# run.sh), COMPARE=embree. Progress goes to stderr, raw JSON lines to WORK_DIR/levers.jsonl.
+set -euo pipefail
+
+if [[ $# -lt 1 || $# -gt 2 || "$1" == "-h" || "$1" == "--help" ]]; then
+    sed -n '2,21s/^# \{0,1\}//p' "$0" >&2
+    exit 2
+fi
+build_dir=$1
+work_dir=${2:-$build_dir/bench-rays}
+bench=$build_dir/tests/bench/kdrt-bench
+data_dir=$(cd "$(dirname "$0")/../data" && pwd)
+res=${RES:-1024}
+reps=${REPS:-5}
+threads=${THREADS:-2}
+compare=${COMPARE:-}
+read -r -a scenes <<< "${SCENES:-bunny00.off ChineseDragon-10kv.off diplodocus.off stadium.ply bunny16.ply bunny64.ply}"
+kinds=(primary shadow diffuse random)
+
+if [[ ! -x "$bench" ]]; then
+    echo "levers.sh: $bench not found; build it with: cmake --build $build_dir --target kdrt-bench" >&2
+    exit 1
+fi
+mkdir -p "$work_dir"
+results=$work_dir/levers.jsonl
+: > "$results"
+
+json_get() {
+    sed -n "s/.*\"$2\":\(\"[^\"]*\"\|[^,}]*\).*/\1/p" <<< "$1" | tr -d '"'
+}
+
+# trace MESH RAYS ARGS...: one kdrt-bench trace line, kept in levers.jsonl.
+trace() {
+    local line
+    line=$("$bench" trace "$1" "$2" --threads "$threads" --reps "$reps" "${@:3}")
+    echo "$line" >> "$results"
+    echo "$line"
+}
+
+# closest_copy SET: the set with its KDRR flags (bytes 6-7) cleared, so it is traced for closest hits.
+closest_copy() {
+    local copy=$work_dir/$(basename "${1%.kdrr}").closest.kdrr
+    if [[ ! -s "$copy" || "$copy" -ot "$1" ]]; then
+        cp "$1" "$copy.tmp"
+        printf '\0\0' | dd of="$copy.tmp" bs=1 seek=6 conv=notrunc status=none
+        mv "$copy.tmp" "$copy"
+    fi
+    echo "$copy"
+}
+
+echo "| scene | ray set | auto | packet | single | one | one / Embree one (mode) | closest-hit kernel on the shadow rays |"
+echo "|---|---|---|---|---|---|---|---|"
+for scene in "${scenes[@]}"; do
+    mesh=$data_dir/$scene
+    [[ -f "$mesh" ]] || mesh=$work_dir/$scene
+    stem=${scene%.*}
+    camera=()
+    if [[ $stem == stadium ]]; then
+        camera=(--eye 1.7,0.8,4.1 --look-at 0.3,-0.2,0.1)
+        stem=stadium-inside
+    fi
+    if [[ ! -s "$mesh" ]]; then
+        echo "levers.sh: $mesh not found (run.sh writes the generated scenes into WORK_DIR)" >&2
+        exit 1
+    fi
+    for kind in "${kinds[@]}"; do
+        rays_file=$work_dir/$stem.$kind.$res.kdrr
+        if [[ ! -s "$rays_file" ]]; then
+            echo "levers.sh: generating $rays_file" >&2
+            "$bench" rays "$mesh" --kind "$kind" --res "$res" "${camera[@]}" --out "$rays_file" >> "$results"
+        fi
+        echo "levers.sh: $stem $kind" >&2
+        row="| $stem | $kind |"
+        for mode in auto packet single; do
+            row+=" $(json_get "$(trace "$mesh" "$rays_file" --mode "$mode")" mrays_per_s) |"
+        done
+        one_args=(--mode one)
+        if [[ -n $compare && ( $kind == diffuse || $kind == random ) ]]; then
+            one_args+=(--compare "$compare")
+        fi
+        line=$(trace "$mesh" "$rays_file" "${one_args[@]}")
+        row+=" $(json_get "$line" mrays_per_s) |"
+        if [[ ${#one_args[@]} -gt 2 ]]; then
+            row+=" $(json_get "$line" ratio_1) ($(json_get "$line" embree_1_mode)) |"
+        else
+            row+=" |"
+        fi
+        if [[ $kind == shadow ]]; then
+            row+=" $(json_get "$(trace "$mesh" "$(closest_copy "$rays_file")" --mode auto)" mrays_per_s) |"
+        else
+            row+=" |"
+        fi
+        echo "$row"
+    done
+done
