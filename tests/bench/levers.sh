@@ -57,7 +57,8 @@ trace() {
 
 # closest_copy SET: the set with its KDRR flags (bytes 6-7) cleared, so it is traced for closest hits.
 closest_copy() {
-    local copy=$work_dir/$(basename "${1%.kdrr}").closest.kdrr
+    local copy
+    copy=$work_dir/$(basename "${1%.kdrr}").closest.kdrr
     if [[ ! -s "$copy" || "$copy" -ot "$1" ]]; then
         cp "$1" "$copy.tmp"
         printf '\0\0' | dd of="$copy.tmp" bs=1 seek=6 conv=notrunc status=none
@@ -74,6 +75,7 @@ for scene in "${scenes[@]}"; do
     stem=${scene%.*}
     camera=()
     if [[ $stem == stadium ]]; then
+        # shellcheck disable=SC2054  # the commas are part of the values
         camera=(--eye 1.7,0.8,4.1 --look-at 0.3,-0.2,0.1)
         stem=stadium-inside
     fi
