@@ -53,7 +53,8 @@ template <bool AnyHit>
             const uint32_t geom = s.refs[f.ref++];
             float t0 = ray.tmin, t1 = AnyHit ? ray.tmax : f.best.t;
             if (!clip_widened(f.p, s.inst[geom].world, t0, t1)) continue;
-            if (f.mailbox.seen(geom)) continue;
+            // No instance listed in two leaves (refs_unique): none can be met twice.
+            if (!s.refs_unique && f.mailbox.seen(geom)) continue;
             ++visits;
             Ray o = to_object(s.inst[geom], ray);
             if constexpr (!AnyHit) o.tmax = f.best.t;
@@ -108,7 +109,7 @@ template <bool AnyHit, int K>
             }
             f.p = make_top_ray(s, ray);
             f.walk.start(s, ray, f.p, top_cells[k]);
-            f.mailbox = Mailbox{};
+            if (!s.refs_unique) f.mailbox = Mailbox{};
             f.ref = f.ref_end = 0;
             f.in_instance = false;
             if (advance_top<AnyHit>(s, ray, f, visits)) {
