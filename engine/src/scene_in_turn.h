@@ -13,6 +13,8 @@
 // scene_internal.h, outside it): everything here is in an anonymous namespace, each ISA's copy
 // compiled for its own target (simd.h, wide_kernel.h).
 
+#include <cstddef>
+
 #include "scene_in_turn_ops.h"
 #include "scene_internal.h"
 #include "wide_kernel.h"
@@ -20,6 +22,38 @@
 namespace kdrt::detail {
 namespace {
 namespace in_turn {
+
+/// clip_widened(p, box, tmin, tmax)'s answer (whether the widened segment reaches `box`; not the
+/// clipped segment) for a ray with no zero direction component, the three axes side by side: per
+/// axis the same float operations (the box widened by the margin, (x - org) * inv, the swap),
+/// then the latest entry against the earliest exit. clip_widened takes an axis' entry or exit
+/// only where it compares greater / less (a NaN, from the infinite reciprocal of a subnormal
+/// component, never does), and so does each lane here; the largest and smallest of the rest are
+/// the same values in any order (+0 and -0 compare equal), so the answer is the same.
+[[gnu::always_inline]] inline bool reaches_box(const TopRay& p, const Aabb& box, float tmin,
+                                               float tmax) noexcept {
+    using V4 = float __attribute__((vector_size(16)));
+    static_assert(sizeof(Aabb) == 6 * sizeof(float) && offsetof(TopRay, dir) == 3 * sizeof(float));
+    V4 org, inv, lo, hi_shifted;
+    // org[0..2] then dir[0], inv[0..2] then delta; lo.xyz then hi.x, lo.z then hi.xyz (the
+    // fourth lane of each is not used).
+    __builtin_memcpy(&org, p.org, sizeof org);
+    __builtin_memcpy(&inv, p.inv, sizeof inv);
+    __builtin_memcpy(&lo, &box.lo.x, sizeof lo);
+    __builtin_memcpy(&hi_shifted, &box.lo.z, sizeof hi_shifted);
+    const V4 hi = __builtin_shufflevector(hi_shifted, hi_shifted, 1, 2, 3, 3);
+    const V4 delta = V4{} + p.delta;
+    const V4 a0 = ((lo - delta) - org) * inv, a1 = ((hi + delta) - org) * inv;
+    const V4 n0 = a0 > a1 ? a1 : a0, n1 = a0 > a1 ? a0 : a1;
+    const V4 vmin = V4{} + tmin, vmax = V4{} + tmax;
+    const V4 e = n0 > vmin ? n0 : vmin, x = n1 < vmax ? n1 : vmax;
+    float entry = e[0], exit = x[0];
+    entry = e[1] > entry ? e[1] : entry;
+    entry = e[2] > entry ? e[2] : entry;
+    exit = x[1] < exit ? x[1] : exit;
+    exit = x[2] < exit ? x[2] : exit;
+    return entry <= exit;
+}
 
 /// One ray in flight: its top-level walk, where it stands in a leaf's references, its answer so
 /// far, and the object-space walk of the instance it is tracing (when `in_instance`).
@@ -32,6 +66,7 @@ struct Flight {
     uint32_t ref, ref_end;
     uint32_t geom;  ///< the instance being traced
     bool in_instance;
+    bool flat;       ///< a zero direction component (clip_widened's own case)
     bool leaf_next;  ///< the instance walk's cell is a leaf whose triangles are not prefetched yet
     union Arrays {
         WideArrays a;
@@ -52,8 +87,11 @@ template <bool AnyHit>
         while (f.ref < f.ref_end) {
             const uint32_t geom = s.refs[f.ref++];
             float t0 = ray.tmin, t1 = AnyHit ? ray.tmax : f.best.t;
-            if (!clip_widened(f.p, s.inst[geom].world, t0, t1)) continue;
-            if (f.mailbox.seen(geom)) continue;
+            if (f.flat ? !clip_widened(f.p, s.inst[geom].world, t0, t1)
+                       : !reaches_box(f.p, s.inst[geom].world, t0, t1))
+                continue;
+            // No instance listed in two leaves (refs_unique): none can be met twice.
+            if (!s.refs_unique && f.mailbox.seen(geom)) continue;
             ++visits;
             Ray o = to_object(s.inst[geom], ray);
             if constexpr (!AnyHit) o.tmax = f.best.t;
@@ -107,8 +145,9 @@ template <bool AnyHit, int K>
                 continue;
             }
             f.p = make_top_ray(s, ray);
+            f.flat = ray.dx == 0.0f || ray.dy == 0.0f || ray.dz == 0.0f;
             f.walk.start(s, ray, f.p, top_cells[k]);
-            f.mailbox = Mailbox{};
+            if (!s.refs_unique) f.mailbox = Mailbox{};
             f.ref = f.ref_end = 0;
             f.in_instance = false;
             if (advance_top<AnyHit>(s, ray, f, visits)) {

@@ -58,13 +58,16 @@ struct TopPacketOps {
     /// `tmax` (in: their tmax) become clip_widened's [tmin, tmax], bit for bit.
     uint32_t (*clip)(const TopPacket& packet, const Aabb& box, Lanes& tmin, Lanes& tmax,
                      uint32_t mask) noexcept;
-    /// TopPacket::start of `count` (1 .. kPacketLanes) rays rays[index[l]] as the caller gives
-    /// them, bit for bit (the same lanes, the same root cell), with each lane's TopRay fields
-    /// (make_top_ray's reciprocal direction, margin and its t widths) computed in the packet's
-    /// registers from the rays themselves, and `limit` = the rays' tmax. The rays must be valid,
-    /// of one octant, with no zero direction component.
-    void (*start)(TopPacket& packet, const SceneData& s, const Ray* rays, const uint32_t* index,
-                  int count, TopPacketCell* storage, Lanes& limit) noexcept;
+    /// TopPacket::start of `count` (1 .. kPacketLanes) rays rays[first + order[l]] as the caller
+    /// gives them, bit for bit (the same lanes, the same root cell), with each lane's TopRay
+    /// fields (make_top_ray's reciprocal direction, margin and its t widths) computed in the
+    /// packet's registers from the rays themselves, and `limit` = the rays' tmax. The rays must be
+    /// valid and of one octant (the same direction sign bits). A lane whose direction has a zero
+    /// component cannot walk in a packet: it is left out (not in `lanes`, nor the root cell), and
+    /// the lanes left out are returned (the caller traces their rays alone).
+    uint32_t (*start)(TopPacket& packet, const SceneData& s, const Ray* rays, uint32_t first,
+                      const uint16_t* order, int count, TopPacketCell* storage,
+                      Lanes& limit) noexcept;
     /// Every lane's object ray in instance `in`: out[l] = to_object(in, lane l's ray) with tmax =
     /// tmax[l], bit for bit (the same double arithmetic, lanes side by side). All kPacketLanes
     /// lanes are written; those not holding a ray hold no ray.

@@ -109,15 +109,15 @@ inline F8 from_halves(const Halves& a, F8) noexcept {
 #endif
 
 /// The fields of up to eight rays in lanes, by the Ray layout: ox, oy, oz, tmin, dx, dy, dz, tmax;
-/// lane l holds rays[index[l]] (lanes from `count` on repeat lane 0's ray). Two 4 x 4 transposes
+/// lane l holds rays[order[l]] (lanes from `count` on repeat lane 0's ray). Two 4 x 4 transposes
 /// per half, so no lane is written alone (a vector load of eight single-float stores would wait
 /// for them all to leave the store buffer).
-inline void ray_lanes(const Ray* rays, const uint32_t* index, int count, Halves field[8]) noexcept {
+inline void ray_lanes(const Ray* rays, const uint16_t* order, int count, Halves field[8]) noexcept {
     static_assert(sizeof(Ray) == 8 * sizeof(float) && offsetof(Ray, dx) == 4 * sizeof(float));
     for (int h = 0; h < 2; ++h) {
         __m128 lo[4], hi[4];
         for (int k = 0; k < 4; ++k) {
-            const Ray& r = rays[index[4 * h + k < count ? 4 * h + k : 0]];
+            const Ray& r = rays[order[4 * h + k < count ? 4 * h + k : 0]];
             lo[k] = _mm_loadu_ps(&r.ox);
             hi[k] = _mm_loadu_ps(&r.dx);
         }
@@ -247,39 +247,47 @@ uint32_t clip_steps(const TopPacket& pk, const Aabb& box, Lanes& tmin, Lanes& tm
 
 /// TopPacketOps::start.
 template <class V>
-void start_steps(TopPacket& pk, const SceneData& s, const Ray* rays, const uint32_t* index,
-                 int count, TopPacketCell* storage, Lanes& limit) noexcept {
+uint32_t start_steps(TopPacket& pk, const SceneData& s, const Ray* rays, uint32_t first,
+                     const uint16_t* order, int count, TopPacketCell* storage,
+                     Lanes& limit) noexcept {
     Halves f[8];
-    ray_lanes(rays, index, count, f);
+    const Ray* block = rays + first;
+    ray_lanes(block, order, count, f);
     pk.stack = storage;
     pk.size = 0;
     pk.ended = 0;
-    pk.lanes = (1u << count) - 1u;
-    for (int l = 0; l < count; ++l) pk.ray[l] = index[l];
+    for (int l = 0; l < count; ++l) pk.ray[l] = first + order[l];
     const V delta = from_halves(margin_lanes(s, f[0], f[1], f[2]), V{});
     store(pk.delta, delta);
+    const V zero = splat(0.0f, V{});
+    uint32_t flat = 0;  // lanes with a zero direction component (|d| <= 0: no NaN in valid rays)
     for (int a = 0; a < 3; ++a) {
         const V dir = from_halves(f[4 + a], V{});
         const V inv = splat(1.0f, V{}) / dir;
+        flat |= le_bits(abs(dir), zero);
         store(pk.org[a], from_halves(f[a], V{}));
         store(pk.dir[a], dir);
         store(pk.inv[a], inv);
-        store(pk.eps[a], delta * abs(inv));  // no zero component: make_top_ray's eps
-        pk.forward[a] = (&rays[index[0]].dx)[a] > 0.0f;
+        store(pk.eps[a], delta * abs(inv));  // make_top_ray's eps where no component is zero
+        // The octant's sign (the same in every lane; lane 0's may be zero, but not its sign bit).
+        pk.forward[a] = !__builtin_signbit((&block[order[0]].dx)[a]);
     }
+    flat &= (1u << count) - 1u;
+    pk.lanes = (1u << count) - 1u - flat;
     const V tmin = from_halves(f[3], V{}), tmax = from_halves(f[7], V{});
     store(pk.ray_tmin, tmin);
     store(limit, tmax);
-    if (s.refs.empty()) return;
+    if (s.refs.empty()) return flat;
     V t0 = tmin, t1 = tmax;
     clip_lanes(pk, s.bounds, t0, t1);
     const uint32_t mask = le_bits(t0, t1) & pk.lanes;
-    if (!mask) return;
+    if (!mask) return flat;
     TopPacketCell& root = pk.stack[pk.size++];
     store(root.tmin, t0);
     store(root.tmax, t1);
     root.node = 0;
     root.mask = mask;
+    return flat;
 }
 
 /// TopPacketOps::object_rays: to_object's arithmetic on four lanes at a time (per object axis i,

@@ -6,6 +6,7 @@
 // kernel's packets. The lidar's nearest hits go in the same rounds.
 
 #include <algorithm>
+#include <array>
 #include <bit>
 #include <cmath>
 #include <limits>
@@ -376,6 +377,7 @@ struct BlockScratch {
     // The depth-first walk's (DepthFirst): the packet and its stack.
     detail::TopPacket packet;
     std::vector<detail::TopPacketCell> packet_cells;
+    std::array<detail::Mailbox, detail::kPacketLanes> lane_mailbox;  ///< where refs_unique fails
 };
 
 struct Counts {
@@ -428,12 +430,6 @@ Isa resolved_isa(const TraceOptions& options) noexcept {
 SceneHit intersect_one(const SceneData& s, const Ray& ray, uint64_t* visits) noexcept;
 bool occluded_one(const SceneData& s, const Ray& ray, uint64_t* visits) noexcept;
 
-/// True when a direction component of `r` is zero (such a ray cannot walk in a TopPacket).
-bool has_zero_component(const Ray& r) noexcept {
-    return (std::bit_cast<uint32_t>(r.dx) << 1) == 0 || (std::bit_cast<uint32_t>(r.dy) << 1) == 0 ||
-           (std::bit_cast<uint32_t>(r.dz) << 1) == 0;
-}
-
 /// A coherent block's rays depth first, as Embree's instancing goes: packets of up to
 /// kPacketLanes rays of one octant walk the top level (detail::TopPacket); at each instance a leaf
 /// lists, the lanes that reach its box go into it at once (their object rays, to_object's, with
@@ -449,6 +445,8 @@ template <bool AnyHit>
 struct DepthFirst {
     const SceneData& s;
     std::span<const Ray> rays;
+    SceneHit* hits_out;  ///< closest hit: the answers, at the rays' indices in `rays`
+    uint8_t* occ_out;    ///< AnyHit: the answers
     BlockScratch& b;
     const detail::TopPacketOps& ops;
     const detail::LaneKernels* lanes;  ///< nullptr: the scalar ISA (rays one by one)
@@ -457,38 +455,45 @@ struct DepthFirst {
 
     void operator()(const Ray* block, size_t, const uint16_t* order, int count) const {
         const auto first = static_cast<uint32_t>(block - rays.data());
-        uint32_t index[detail::kPacketLanes];
-        for (int k = 0; k < count;) {
-            int n = 0;
-            while (k < count && n < detail::kPacketLanes) {
-                const uint32_t i = first + order[k++];
-                if (has_zero_component(rays[i]))
-                    single(i);
-                else
-                    index[n++] = i;
-            }
+        for (int k = 0; k < count; k += detail::kPacketLanes) {
+            const int n = std::min(count - k, detail::kPacketLanes);
             if (n == 1)
-                single(index[0]);
-            else if (n > 1)
-                packet(index, n);
+                single(first + order[k]);
+            else
+                packet(first, order + k, n);
         }
     }
 
 private:
     void single(uint32_t i) const {
         if constexpr (AnyHit)
-            b.done[i] = occluded_one(s, rays[i], &counts.visits) ? 1 : 0;
+            occ_out[i] = occluded_one(s, rays[i], &counts.visits) ? 1 : 0;
         else
-            b.best[i] = intersect_one(s, rays[i], &counts.visits);
+            hits_out[i] = intersect_one(s, rays[i], &counts.visits);
     }
 
-    void packet(const uint32_t* index, int n) const {
+    /// The lanes' answers so far: closest hit, each lane's best hit where `hit` has its bit (its
+    /// t is the lane's limit; the other fields are set only there, so nothing is written up
+    /// front); AnyHit, the occluded lanes in `hit`.
+    struct Answers {
+        uint32_t hit = 0;
+        uint32_t prim[detail::kPacketLanes], geom[detail::kPacketLanes];
+        float u[detail::kPacketLanes], v[detail::kPacketLanes];
+        [[nodiscard]] SceneHit best(int l, const detail::Lanes& lim) const noexcept {
+            return SceneHit{lim.get(l), prim[l], u[l], v[l], geom[l]};
+        }
+    };
+
+    void packet(uint32_t first, const uint16_t* order, int n) const {
         // Each lane's TopRay and its limit (its closest hit so far: none yet, so its tmax) are
-        // made in the packet's registers (TopPacketOps::start).
+        // made in the packet's registers (TopPacketOps::start). Lanes whose direction has a zero
+        // component are left out, and traced alone.
         detail::TopPacket& pk = b.packet;
         detail::Lanes lim;
-        ops.start(pk, s, rays.data(), index, n, b.packet_cells.data(), lim);
-        std::array<detail::Mailbox, detail::kPacketLanes> mailbox;
+        const uint32_t flat =
+            ops.start(pk, s, rays.data(), first, order, n, b.packet_cells.data(), lim);
+        Answers ans;  // NOLINT(cppcoreguidelines-pro-type-member-init): set where `hit` says
+        if (mail) b.lane_mailbox.fill(detail::Mailbox{});
         uint32_t at = 0;
         while (const detail::TopNode* leaf = ops.next_leaf(pk, s, lim, at)) {
             const uint32_t end = leaf->first_ref() + leaf->count();
@@ -497,20 +502,29 @@ private:
                 uint32_t m = ops.reach(pk, s.inst[geom].world, lim, at);
                 if (mail)
                     for (uint32_t q = m; q; q &= q - 1)
-                        if (mailbox[std::countr_zero(q)].seen(geom)) m &= ~(q & -q);
+                        if (b.lane_mailbox[std::countr_zero(q)].seen(geom)) m &= ~(q & -q);
                 if (!m) continue;
-                visit(pk, geom, m, lim, at);
+                visit(pk, geom, m, lim, at, ans);
             }
         }
+        // Every lane's answer, in place: its walk has ended (or it was occluded).
+        for (uint32_t q = pk.lanes; q; q &= q - 1) {
+            const int l = std::countr_zero(q);
+            if constexpr (AnyHit)
+                occ_out[pk.ray[l]] = static_cast<uint8_t>(ans.hit >> l & 1u);
+            else
+                hits_out[pk.ray[l]] = ans.hit >> l & 1u ? ans.best(l, lim) : SceneHit{};
+        }
+        for (uint32_t q = flat; q; q &= q - 1) single(pk.ray[std::countr_zero(q)]);
     }
 
     /// The lanes `m` of `pk` into instance `geom`.
-    void visit(detail::TopPacket& pk, uint32_t geom, uint32_t m, detail::Lanes& lim,
-               uint32_t& at) const {
+    void visit(detail::TopPacket& pk, uint32_t geom, uint32_t m, detail::Lanes& lim, uint32_t& at,
+               Answers& ans) const {
         const InstanceData& in = s.inst[geom];
         const KdTree& tree = *s.instances[geom].tree;
         // Every lane's object ray at once, tmax its limit (its ray's tmax, or its closest hit so
-        // far: lim holds b.best[i].t).
+        // far).
         std::array<Ray, detail::kPacketLanes> obj;
         ops.object_rays(pk, in, lim, obj.data());
         for (uint32_t q = m; q; q &= q - 1) ++counts.visits;
@@ -522,7 +536,7 @@ private:
                 for (uint32_t q = m; q; q &= q - 1)
                     if (occluded(tree, obj[std::countr_zero(q)])) occ |= q & -q;
             }
-            for (uint32_t q = occ; q; q &= q - 1) b.done[pk.ray[std::countr_zero(q)]] = 1;
+            ans.hit |= occ;
             pk.end(occ);
             at &= ~occ;
         } else {
@@ -537,9 +551,14 @@ private:
             }
             for (uint32_t q = m; q; q &= q - 1) {
                 const int l = std::countr_zero(q);
-                SceneHit& best = b.best[pk.ray[l]];
-                offer(best, h[l], geom);
-                lim.set(l, best.t);
+                if (!h[l].is_hit()) continue;
+                // offer() against the lane's best so far: none yet is (tmax, kNoHit), which any
+                // hit (t <= tmax, geom < kNoHit) beats.
+                const SceneHit c{h[l].t, h[l].prim, h[l].u, h[l].v, geom};
+                if (ans.hit >> l & 1u && !detail::scene_hit_less(c, ans.best(l, lim))) continue;
+                ans.hit |= 1u << l;
+                ans.prim[l] = c.prim, ans.geom[l] = c.geom, ans.u[l] = c.u, ans.v[l] = c.v;
+                lim.set(l, c.t);
             }
         }
     }
@@ -547,39 +566,42 @@ private:
 
 /// A coherent block depth first (DepthFirst): an image's rows from one point in square patches
 /// (image_row, trace_patch_block), other blocks in runs of input order (trace_coherent_block).
-/// AnyHit: occlusion into `occ_out`; else closest hits into `hits_out`.
+/// AnyHit: occlusion into `occ_out`; else closest hits into `hits_out`. Each answer is written
+/// once, in place.
 template <bool AnyHit>
 void depth_first_block(const SceneData& s, std::span<const Ray> rays, std::span<SceneHit> hits_out,
                        std::span<uint8_t> occ_out, Isa isa, BlockScratch& b, Counts& counts) {
     static_assert(detail::kPacketLanes == detail::kLaneRays);
     const int n = static_cast<int>(rays.size());
-    b.best.resize(rays.size());
-    b.done.assign(rays.size(), 0);
-    for (size_t i = 0; i < rays.size(); ++i) b.best[i] = no_hit_yet(rays[i]);
     b.packet_cells.resize(detail::kTopStack);
-    // The batch scheduler's answers for invalid rays go to scratch (the caller's are set).
+    // The batch scheduler answers the invalid rays: occlusion in place, closest hits (its Hit
+    // type) to scratch, and as SceneHit below.
     b.hits.resize(rays.size());
-    b.occ.resize(rays.size());
     detail::TraceCounters tc;
-    const DepthFirst<AnyHit> run{
-        s,      rays,          b, detail::top_packet_ops(isa), detail::lane_kernels_for(isa),
-        counts, !s.refs_unique};
+    const DepthFirst<AnyHit> run{s,
+                                 rays,
+                                 hits_out.data(),
+                                 occ_out.data(),
+                                 b,
+                                 detail::top_packet_ops(isa),
+                                 detail::lane_kernels_for(isa),
+                                 counts,
+                                 !s.refs_unique};
     static thread_local int row_guess = 0;
     const int row = detail::image_row(rays.data(), n, row_guess);
     if (row > 0) {
         row_guess = row;
         detail::trace_patch_block<detail::kPacketLanes, AnyHit>(
-            rays.data(), 0, n, row, b.hits.data(), b.occ.data(), tc, run);
+            rays.data(), 0, n, row, b.hits.data(), occ_out.data(), tc, run);
     } else {
-        detail::trace_coherent_block<AnyHit>(rays.data(), 0, n, b.hits.data(), b.occ.data(), tc,
+        detail::trace_coherent_block<AnyHit>(rays.data(), 0, n, b.hits.data(), occ_out.data(), tc,
                                              run);
     }
     counts.invalid += tc.invalid_rays;
-    for (size_t i = 0; i < rays.size(); ++i) {
-        if constexpr (AnyHit)
-            occ_out[i] = b.done[i];
-        else
-            hits_out[i] = finish(b.best[i]);
+    if constexpr (!AnyHit) {
+        if (tc.invalid_rays > 0)
+            for (size_t i = 0; i < rays.size(); ++i)
+                if (!detail::ray_is_valid(rays[i])) hits_out[i] = SceneHit{};
     }
 }
 

@@ -706,6 +706,12 @@ TEST(SceneInTurn, EveryWalkAnswersAsTheOracleWithAnyNumberOfRaysInFlight) {
     if (std::find(isas.begin(), isas.end(), Isa::kScalar) == isas.end())
         isas.push_back(Isa::kScalar);
     const detail::SceneData& data = s.scene.data();
+    // Instances listed in several top leaves: each walk's mailbox keeps a ray from tracing one
+    // twice, so its visits are the single-ray walk's (which the depth-first walk counts too).
+    ASSERT_FALSE(data.refs_unique);
+    std::vector<SceneHit> depth_first(rays.size());
+    uint64_t single_visits = 0;
+    detail::depth_first_intersect(data, rays, depth_first, default_isa(), single_visits);
     for (Isa isa : isas) {
         SCOPED_TRACE(std::string(isa_name(isa)));
         const detail::SceneInTurnOps& ops = detail::scene_in_turn_ops(isa);
@@ -715,7 +721,7 @@ TEST(SceneInTurn, EveryWalkAnswersAsTheOracleWithAnyNumberOfRaysInFlight) {
         uint64_t visits = 0, occ_visits = 0;
         ops.intersect(data, rays.data(), rays.size(), got.data(), visits);
         ops.occluded(data, rays.data(), rays.size(), occ.data(), occ_visits);
-        EXPECT_GT(visits, 0u);
+        EXPECT_EQ(visits, single_visits);
         EXPECT_GT(occ_visits, 0u);
         EXPECT_LE(occ_visits, visits) << "an occluded ray stops at its first hit";
         for (size_t i = 0; i < rays.size(); ++i) {
@@ -1272,6 +1278,9 @@ TEST(Scene, DepthFirstPacketsAnswerAsTheOracleOnEveryIsa) {
         if (i % 3 == 0) rays[i].dy = NAN;
         if (i % 3 == 1) rays[i].dx = rays[i].dy = rays[i].dz = 0;
         if (i % 3 == 2) rays[i].tmin = 2 * rays[i].tmax;
+        // A zero direction component amid a packet's lanes (its octant's sign bit kept, or not):
+        // the lane is left out of the packet and traced alone.
+        if (i + 44 < rays.size()) (&rays[i + 44].dx)[i % 3] = i % 2 ? 0.0f : -0.0f;
     }
     const std::vector<Ray> more = scene_rays(rng, s.scene, s.meshes, s.mesh_of, scaled(1200));
     rays.insert(rays.end(), more.begin(), more.end());
@@ -1340,6 +1349,17 @@ std::vector<std::vector<uint32_t>> by_sign_class(const std::vector<Ray>& rays) {
             static_cast<uint32_t>(i));
     }
     return by_class;
+}
+
+/// TopPacketOps::start of the rays rays[index[0, n)] (their indices below 2^16: the order the
+/// batch scheduler gives), returning the lanes it left out.
+uint32_t start_from_rays(const detail::TopPacketOps& ops, detail::TopPacket& pk,
+                         const detail::SceneData& d, const std::vector<Ray>& rays,
+                         const uint32_t* index, int n, detail::TopPacketCell* cells,
+                         detail::Lanes& limit) {
+    std::array<uint16_t, detail::kPacketLanes> order{};
+    for (int l = 0; l < n; ++l) order[l] = static_cast<uint16_t>(index[l]);
+    return ops.start(pk, d, rays.data(), 0, order.data(), n, cells, limit);
 }
 
 /// fn(ops, index, n) for each supported ISA's packet steps and packets of 1, 2, ..., 8, 1, ...
@@ -1504,7 +1524,7 @@ TEST(Scene, PacketStartFromRaysIsStartBitForBit) {
         detail::TopPacket want, got;
         want.start(d, rays, top, index, n, want_cells.data(), ops);
         detail::Lanes limit = detail::Lanes::fill(-1.0f);
-        ops.start(got, d, rays.data(), index, n, got_cells.data(), limit);
+        ASSERT_EQ(start_from_rays(ops, got, d, rays, index, n, got_cells.data(), limit), 0u);
         ASSERT_EQ(got.lanes, want.lanes);
         ASSERT_EQ(got.ended, want.ended);
         ASSERT_EQ(got.size, want.size);
@@ -1537,6 +1557,83 @@ TEST(Scene, PacketStartFromRaysIsStartBitForBit) {
     });
     EXPECT_GT(lanes_checked, rays.size());
     EXPECT_GT(roots, rays.size() / 16);
+}
+
+TEST(Scene, PacketStartLeavesOutLanesWithAZeroComponent) {
+    // TopPacketOps::start takes a scheduler's octant run as it comes (the sign bits alike): a
+    // lane whose direction has a zero component (+0 or -0) cannot walk in a packet, so it is left
+    // out (not in `lanes`, nor in the root cell) and returned; every other lane is make_top_ray's
+    // with clip_widened's root clip, and the packet's direction signs are the octant's whichever
+    // lane comes first.
+    const uint64_t seed = test_seed();
+    SCOPED_TRACE(testing::Message() << "seed=" << seed);
+    const TestScene s = mixed_scene(seed + 61, 16);
+    const detail::SceneData& d = s.scene.data();
+    Rng rng(seed + 62);
+    const Aabb b = d.bounds;
+    const Aabb outer = grown(b, 1.0f);
+    const auto same = [](float x, float y) { return std::memcmp(&x, &y, sizeof x) == 0; };
+    std::vector<detail::TopPacketCell> cells(detail::kTopStack);
+    size_t flat_lanes = 0, walking_lanes = 0, roots = 0;
+    for (Isa isa : supported_isas()) {
+        SCOPED_TRACE(std::string(isa_name(isa)));
+        const detail::TopPacketOps& ops = detail::top_packet_ops(isa);
+        for (int trial = 0; trial < 600; ++trial) {
+            const uint32_t oct = rng.below(8);
+            const int n = 1 + static_cast<int>(rng.below(detail::kPacketLanes));
+            std::vector<Ray> rays;
+            uint32_t want_flat = 0;
+            Vec3 o = rng.in_box(outer);
+            for (int l = 0; l < n; ++l) {
+                if (rng.below(3) == 0) o = rng.in_box(outer);
+                Ray r = make_ray(o, rng.in_box(b) - o);
+                float* dir = &r.dx;
+                for (int a = 0; a < 3; ++a) {
+                    const float m = std::max(std::fabs(dir[a]), 1e-3f);
+                    dir[a] = oct >> a & 1u ? m : -m;
+                }
+                if (rng.below(3) == 0) {
+                    const uint32_t a = rng.below(3);
+                    dir[a] = oct >> a & 1u ? 0.0f : -0.0f;  // the octant's sign bit
+                    want_flat |= 1u << l;
+                }
+                rays.push_back(r);
+            }
+            std::array<uint32_t, detail::kPacketLanes> index{};
+            for (int l = 0; l < n; ++l) index[l] = static_cast<uint32_t>(l);
+            detail::TopPacket pk;
+            detail::Lanes limit;
+            ASSERT_EQ(start_from_rays(ops, pk, d, rays, index.data(), n, cells.data(), limit),
+                      want_flat);
+            ASSERT_EQ(pk.lanes, ((1u << n) - 1u) & ~want_flat);
+            for (int a = 0; a < 3; ++a) ASSERT_EQ(pk.forward[a], (oct >> a & 1u) != 0);
+            uint32_t want_root = 0;
+            for (int l = 0; l < n; ++l) {
+                ASSERT_EQ(pk.ray[l], static_cast<uint32_t>(l));
+                if (want_flat >> l & 1u) {
+                    ++flat_lanes;
+                    continue;
+                }
+                const detail::TopRay top = detail::make_top_ray(d, rays[l]);
+                for (int a = 0; a < 3; ++a) {
+                    ASSERT_TRUE(same(pk.inv[a].get(l), top.inv[a])) << "lane " << l;
+                    ASSERT_TRUE(same(pk.eps[a].get(l), top.eps[a])) << "lane " << l;
+                }
+                ASSERT_TRUE(same(pk.delta.get(l), top.delta)) << "lane " << l;
+                float t0 = rays[l].tmin, t1 = rays[l].tmax;
+                if (!detail::clip_widened(top, b, t0, t1)) continue;
+                want_root |= 1u << l;
+                ASSERT_TRUE(same(pk.stack[0].tmin.get(l), t0)) << "lane " << l;
+                ASSERT_TRUE(same(pk.stack[0].tmax.get(l), t1)) << "lane " << l;
+                ++walking_lanes;
+            }
+            ASSERT_EQ(pk.size > 0 ? pk.stack[0].mask : 0u, want_root);
+            roots += want_root ? 1 : 0;
+        }
+    }
+    EXPECT_GT(flat_lanes, 500u);
+    EXPECT_GT(walking_lanes, 1000u);
+    EXPECT_GT(roots, 300u);
 }
 
 TEST(Scene, PacketObjectRaysAreToObjectBitForBit) {
@@ -1572,7 +1669,7 @@ TEST(Scene, PacketObjectRaysAreToObjectBitForBit) {
             detail::TopPacket pk;
             detail::Lanes limit;
             if (way == 0) {
-                ops.start(pk, d, rays.data(), index, n, cells.data(), limit);
+                ASSERT_EQ(start_from_rays(ops, pk, d, rays, index, n, cells.data(), limit), 0u);
             } else {
                 pk.start(d, rays, top, index, n, cells.data(), ops);
                 for (int l = 0; l < n; ++l) limit.set(l, rays[index[l]].tmax);
