@@ -16,36 +16,22 @@
 #            closest-hit kernel traces them (auto); auto / closest is what the occlusion kernel
 #            gives over closest hit
 # WORK_DIR holds the ray sets as run.sh writes them (the same default, BUILD_DIR/bench-rays); a
-# missing set is generated. Tunables (environment): REPS=5, THREADS=2, RES=1024, SCENES="..." (as
-# run.sh), COMPARE=embree. Progress goes to stderr, raw JSON lines to WORK_DIR/levers.jsonl.
+# missing set or generated scene is made as run.sh makes it (bench_sets.sh). Tunables
+# (environment): REPS=5, THREADS=2, RES=1024, SCENES="..." (as run.sh), COMPARE=embree.
+# Progress goes to stderr, the raw JSON lines to WORK_DIR/levers.jsonl.
 set -euo pipefail
 
 if [[ $# -lt 1 || $# -gt 2 || "$1" == "-h" || "$1" == "--help" ]]; then
-    sed -n '2,21s/^# \{0,1\}//p' "$0" >&2
+    sed -n '2,/^set /s/^# \{0,1\}//p' "$0" >&2
     exit 2
 fi
 build_dir=$1
-work_dir=${2:-$build_dir/bench-rays}
-bench=$build_dir/tests/bench/kdrt-bench
-data_dir=$(cd "$(dirname "$0")/../data" && pwd)
-res=${RES:-1024}
+# shellcheck source=tests/bench/bench_sets.sh
+source "$(dirname "$0")/bench_sets.sh"
+bench_sets_init "$build_dir" "${2:-$build_dir/bench-rays}" levers.jsonl
 reps=${REPS:-5}
 threads=${THREADS:-2}
 compare=${COMPARE:-}
-read -r -a scenes <<< "${SCENES:-bunny00.off ChineseDragon-10kv.off diplodocus.off stadium.ply bunny16.ply bunny64.ply}"
-kinds=(primary shadow diffuse random)
-
-if [[ ! -x "$bench" ]]; then
-    echo "levers.sh: $bench not found; build it with: cmake --build $build_dir --target kdrt-bench" >&2
-    exit 1
-fi
-mkdir -p "$work_dir"
-results=$work_dir/levers.jsonl
-: > "$results"
-
-json_get() {
-    sed -n "s/.*\"$2\":\(\"[^\"]*\"\|[^,}]*\).*/\1/p" <<< "$1" | tr -d '"'
-}
 
 # trace MESH RAYS ARGS...: one kdrt-bench trace line, kept in levers.jsonl.
 trace() {
@@ -69,26 +55,11 @@ closest_copy() {
 
 echo "| scene | ray set | auto | packet | single | one | one / Embree one (mode) | closest-hit kernel on the shadow rays |"
 echo "|---|---|---|---|---|---|---|---|"
+bench_make_scenes
 for scene in "${scenes[@]}"; do
-    mesh=$data_dir/$scene
-    [[ -f "$mesh" ]] || mesh=$work_dir/$scene
-    stem=${scene%.*}
-    camera=()
-    if [[ $stem == stadium ]]; then
-        # shellcheck disable=SC2054  # the commas are part of the values
-        camera=(--eye 1.7,0.8,4.1 --look-at 0.3,-0.2,0.1)
-        stem=stadium-inside
-    fi
-    if [[ ! -s "$mesh" ]]; then
-        echo "levers.sh: $mesh not found (run.sh writes the generated scenes into WORK_DIR)" >&2
-        exit 1
-    fi
+    bench_scene "$scene"
     for kind in "${kinds[@]}"; do
-        rays_file=$work_dir/$stem.$kind.$res.kdrr
-        if [[ ! -s "$rays_file" ]]; then
-            echo "levers.sh: generating $rays_file" >&2
-            "$bench" rays "$mesh" --kind "$kind" --res "$res" "${camera[@]}" --out "$rays_file" >> "$results"
-        fi
+        rays_file=$(bench_rays "$kind")
         echo "levers.sh: $stem $kind" >&2
         row="| $stem | $kind |"
         for mode in auto packet single; do

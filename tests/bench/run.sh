@@ -21,34 +21,18 @@
 set -euo pipefail
 
 if [[ $# -lt 1 || $# -gt 2 || "$1" == "-h" || "$1" == "--help" ]]; then
-    sed -n '2,18s/^# \{0,1\}//p' "$0" >&2
+    sed -n '2,/^set /s/^# \{0,1\}//p' "$0" >&2
     exit 2
 fi
 build_dir=$1
-work_dir=${2:-$build_dir/bench-rays}
-bench=$build_dir/tests/bench/kdrt-bench
-data_dir=$(cd "$(dirname "$0")/../data" && pwd)
-res=${RES:-1024}
+# shellcheck source=tests/bench/bench_sets.sh
+source "$(dirname "$0")/bench_sets.sh"
+bench_sets_init "$build_dir" "${2:-$build_dir/bench-rays}" results.jsonl
 reps=${REPS:-9}
 build_reps=${BUILD_REPS:-3}
 threads_list=${THREADS:-"1 2"}
 mode=${MODE:-auto}
 compare=${COMPARE:-}
-read -r -a scenes <<< "${SCENES:-bunny00.off ChineseDragon-10kv.off diplodocus.off stadium.ply bunny16.ply bunny64.ply}"
-kinds=(primary shadow diffuse random)
-
-if [[ ! -x "$bench" ]]; then
-    echo "run.sh: $bench not found; build it with: cmake --build $build_dir --target kdrt-bench" >&2
-    exit 1
-fi
-mkdir -p "$work_dir"
-results=$work_dir/results.jsonl
-: > "$results"
-
-# json_get LINE KEY: the value of a top-level key in a flat JSON line (strings unquoted).
-json_get() {
-    sed -n "s/.*\"$2\":\(\"[^\"]*\"\|[^,}]*\).*/\1/p" <<< "$1" | tr -d '"'
-}
 
 columns=(scene triangles "build ms" "ray set" rays "hit %")
 for t in $threads_list; do columns+=("${t}T Mrays/s"); done
@@ -63,39 +47,17 @@ echo "|"
 printf '|---%.0s' "${columns[@]}"
 echo "|"
 
-# The generated scenes live in WORK_DIR, made once.
-if [[ ! -s "$work_dir/stadium.ply" ]]; then
-    "$bench" scene stadium --out "$work_dir/stadium.ply" >> "$results"
-fi
-for copies in 16 64; do
-    if [[ ! -s "$work_dir/bunny$copies.ply" ]]; then
-        "$bench" scene grid --from "$data_dir/bunny00.off" --copies $copies \
-            --out "$work_dir/bunny$copies.ply" >> "$results"
-    fi
-done
+bench_make_scenes
 
 for scene in "${scenes[@]}"; do
-    mesh=$data_dir/$scene
-    [[ -f "$mesh" ]] || mesh=$work_dir/$scene
-    stem=${scene%.*}
-    # The stadium's camera stands inside it, near the "teapot" (a unit sphere at (0.3, -0.2, 0.1)):
-    # from the default view outside, every ray would stop at the closed box's 12 triangles.
-    camera=()
-    if [[ $stem == stadium ]]; then
-        camera=(--eye 1.7,0.8,4.1 --look-at 0.3,-0.2,0.1)
-        stem=stadium-inside
-    fi
+    bench_scene "$scene"
     build_line=$("$bench" build "$mesh" --reps "$build_reps")
     echo "$build_line" >> "$results"
     triangles=$(json_get "$build_line" triangles)
     build_ms=$(json_get "$build_line" build_ms)
     bytes_per_tri=$(json_get "$build_line" bytes_per_triangle)
     for kind in "${kinds[@]}"; do
-        rays_file=$work_dir/$stem.$kind.$res.kdrr
-        if [[ ! -s "$rays_file" ]]; then
-            echo "run.sh: generating $rays_file" >&2
-            "$bench" rays "$mesh" --kind "$kind" --res "$res" "${camera[@]}" --out "$rays_file" >> "$results"
-        fi
+        rays_file=$(bench_rays "$kind")
         speeds=""
         embree_cols=""
         rays=0
