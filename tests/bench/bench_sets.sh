@@ -1,27 +1,36 @@
 # shellcheck shell=bash disable=SC2034  # its variables are for the scripts that source it
 # Shared by run.sh and levers.sh (sourced, not run): the standard table's scenes and ray sets.
 #
-#   bench_sets_init BUILD_DIR WORK_DIR RESULTS_NAME
-#       sets bench, data_dir, work_dir, res (RES, default 1024), scenes (SCENES), kinds and
-#       results (WORK_DIR/RESULTS_NAME, emptied); exits 1 if kdrt-bench is not built
+#   bench_sets_init RESULTS_NAME "$@"
+#       takes the script's arguments, BUILD_DIR [WORK_DIR] (default BUILD_DIR/bench-rays): prints
+#       the script's header comment and exits 2 on -h, --help or a wrong count; sets build_dir,
+#       bench, data_dir, work_dir, res (RES, default 1024), scenes (SCENES), kinds and results
+#       (WORK_DIR/RESULTS_NAME, emptied); exits 1 if kdrt-bench is not built
 #   bench_make_scenes         writes the generated scenes (stadium, 16 and 64 bunnies) to WORK_DIR once
 #   bench_scene SCENE         sets mesh, stem (the ray sets' name) and camera (kdrt-bench rays options)
 #   bench_rays KIND           the path of the current scene's KIND set, generated when missing
 #   json_get LINE KEY         the value of a top-level key in a flat JSON line (strings unquoted)
 
 bench_sets_init() {
-    bench=$1/tests/bench/kdrt-bench
-    work_dir=$2
+    local name=$1
+    shift
+    if [[ $# -lt 1 || $# -gt 2 || "$1" == "-h" || "$1" == "--help" ]]; then
+        sed -n '2,/^set /s/^# \{0,1\}//p' "$0" >&2
+        exit 2
+    fi
+    build_dir=$1
+    bench=$build_dir/tests/bench/kdrt-bench
+    work_dir=${2:-$build_dir/bench-rays}
     data_dir=$(cd "$(dirname "${BASH_SOURCE[0]}")/../data" && pwd)
     res=${RES:-1024}
     read -r -a scenes <<< "${SCENES:-bunny00.off ChineseDragon-10kv.off diplodocus.off stadium.ply bunny16.ply bunny64.ply}"
     kinds=(primary shadow diffuse random)
     if [[ ! -x "$bench" ]]; then
-        echo "$(basename "$0"): $bench not found; build it with: cmake --build $1 --target kdrt-bench" >&2
+        echo "$(basename "$0"): $bench not found; build it with: cmake --build $build_dir --target kdrt-bench" >&2
         exit 1
     fi
     mkdir -p "$work_dir"
-    results=$work_dir/$3
+    results=$work_dir/$name
     : > "$results"
 }
 

@@ -21,14 +21,9 @@
 # Progress goes to stderr, the raw JSON lines to WORK_DIR/levers.jsonl.
 set -euo pipefail
 
-if [[ $# -lt 1 || $# -gt 2 || "$1" == "-h" || "$1" == "--help" ]]; then
-    sed -n '2,/^set /s/^# \{0,1\}//p' "$0" >&2
-    exit 2
-fi
-build_dir=$1
 # shellcheck source=tests/bench/bench_sets.sh
 source "$(dirname "$0")/bench_sets.sh"
-bench_sets_init "$build_dir" "${2:-$build_dir/bench-rays}" levers.jsonl
+bench_sets_init levers.jsonl "$@"
 reps=${REPS:-5}
 threads=${THREADS:-2}
 compare=${COMPARE:-}

@@ -20,14 +20,9 @@
 # The table goes to stdout, progress to stderr; the raw JSON lines are kept in WORK_DIR/results.jsonl.
 set -euo pipefail
 
-if [[ $# -lt 1 || $# -gt 2 || "$1" == "-h" || "$1" == "--help" ]]; then
-    sed -n '2,/^set /s/^# \{0,1\}//p' "$0" >&2
-    exit 2
-fi
-build_dir=$1
 # shellcheck source=tests/bench/bench_sets.sh
 source "$(dirname "$0")/bench_sets.sh"
-bench_sets_init "$build_dir" "${2:-$build_dir/bench-rays}" results.jsonl
+bench_sets_init results.jsonl "$@"
 reps=${REPS:-9}
 build_reps=${BUILD_REPS:-3}
 threads_list=${THREADS:-"1 2"}
