@@ -33,7 +33,8 @@ namespace in_turn {
 [[gnu::always_inline]] inline bool reaches_box(const TopRay& p, const Aabb& box, float tmin,
                                                float tmax) noexcept {
     using V4 = float __attribute__((vector_size(16)));
-    static_assert(sizeof(Aabb) == 6 * sizeof(float) && offsetof(TopRay, dir) == 3 * sizeof(float));
+    static_assert(sizeof(Aabb) == 6 * sizeof(float) && offsetof(TopRay, dir) == 3 * sizeof(float) &&
+                  offsetof(TopRay, delta) == offsetof(TopRay, inv) + 3 * sizeof(float));
     V4 org, inv, lo, hi_shifted;
     // org[0..2] then dir[0], inv[0..2] then delta; lo.xyz then hi.x, lo.z then hi.xyz (the
     // fourth lane of each is not used).
