@@ -253,7 +253,8 @@ Image render_frame(const KdTree* tree, const Scene* scene, const RenderSettings&
     image.width = frame.region.width;
     image.height = frame.region.height;
     image.channels = frame.channels;
-    image.pixels.resize(size_t{image.width} * image.height * image.channels);
+    // Every tile writes each of its pixels (render_tile), so nothing writes the frame first.
+    image.pixels = uninitialized_pixels(size_t{image.width} * image.height * image.channels);
 
     const uint32_t tile_count = frame.tiles_x * frame.tiles_y;
     ProgressReporter progress(control.progress, tile_count);

@@ -37,7 +37,7 @@ standard input and writes OUT: .png (8-bit sRGB), .jpg/.jpeg (8-bit sRGB, no alp
 )";
 
 Image read_raw_image(uint32_t width, uint32_t height, uint32_t channels) {
-    Image image{width, height, channels, std::vector<float>(size_t{width} * height * channels)};
+    Image image{width, height, channels, Pixels(size_t{width} * height * channels)};
     auto* data = reinterpret_cast<char*>(image.pixels.data());
     const size_t want = image.pixels.size() * sizeof(float);
     size_t have = 0;

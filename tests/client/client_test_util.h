@@ -60,8 +60,8 @@ inline ClientOptions fast_options() {
 }
 
 /// Bitwise equality of two arrays of trivially copyable values (hits compare NaN-safe).
-template <class T>
-bool same_bits(const std::vector<T>& a, const std::vector<T>& b) {
+template <class T, class A>
+bool same_bits(const std::vector<T, A>& a, const std::vector<T, A>& b) {
     return a.size() == b.size() &&
            (a.empty() || std::memcmp(a.data(), b.data(), a.size() * sizeof(T)) == 0);
 }

@@ -95,7 +95,7 @@ TEST(SplitRows, RefusesZeroPartsAndMorePartsThanRows) {
 
 /// A frame whose every float is distinct (its index), so a misplaced pixel cannot go unseen.
 Image numbered_frame(uint32_t width, uint32_t height, uint32_t channels) {
-    Image image{width, height, channels, std::vector<float>(size_t{width} * height * channels)};
+    Image image{width, height, channels, Pixels(size_t{width} * height * channels)};
     std::iota(image.pixels.begin(), image.pixels.end(), 0.5f);
     return image;
 }

@@ -309,8 +309,7 @@ TEST(RenderDeterminism, FourRegionsStitchIntoTheFullFrameBitExactly) {
         const Image frame = render(bunny_tree(), full);
         // Uneven split points, off the tile grid: tiles inside a region start elsewhere.
         const uint32_t split_x = 29, split_y = 19;
-        Image stitched{full.width, full.height, frame.channels,
-                       std::vector<float>(frame.pixels.size(), -1.0f)};
+        Image stitched{full.width, full.height, frame.channels, Pixels(frame.pixels.size(), -1.0f)};
         const PixelRegion regions[4] = {
             {0, 0, split_x, split_y},
             {split_x, 0, full.width - split_x, split_y},
@@ -343,6 +342,39 @@ TEST(RenderDeterminism, OneThreadEqualsTwoThreadsBitExactly) {
         expect_same_image(one, two);
         EXPECT_EQ(stats_one.rays, stats_two.rays);
     }
+}
+
+TEST(RenderDeterminism, EveryPixelIsWrittenOverUsedMemory) {
+    // render() sizes its frame without writing it (uninitialized_pixels), so every pixel must be
+    // written by its tile. The frame is rendered into memory that held a marker just before:
+    // a block of the frame's size is filled with the marker and freed, and the heap hands it back
+    // to the next allocation of that size (checked: the frame's address). Frames of partial
+    // tiles (tile 16), alpha and not.
+    size_t reused = 0;
+    for (const bool alpha : {true, false}) {
+        for (const Shading shading : {Shading::kEyelight, Shading::kNormals}) {
+            SCOPED_TRACE(testing::Message() << shading_name(shading) << " alpha=" << alpha);
+            RenderSettings s = bunny_settings(shading, 40);
+            s.height = 23;
+            s.alpha = alpha;
+            const Image want = render_brute_force(bunny_tree(), s);
+            const size_t n = want.pixels.size();
+            const float* old = nullptr;
+            {
+                Pixels used = uninitialized_pixels(n);
+                const uint32_t marker = 0x7fc0dead;  // a quiet NaN no shading makes
+                for (float& v : used) std::memcpy(&v, &marker, sizeof v);
+                old = used.data();
+            }
+            const Image got = render(bunny_tree(), s);
+            reused += got.pixels.data() == old ? 1 : 0;
+            expect_same_image(got, want);
+        }
+    }
+#if !defined(__SANITIZE_ADDRESS__)
+    // ASan keeps freed memory out of use for a while; glibc's heap reuses the block at once.
+    EXPECT_GT(reused, 0u) << "no frame was rendered into the marked memory: the test saw nothing";
+#endif
 }
 
 TEST(RenderDeterminism, TileSizeDoesNotChangeTheImage) {

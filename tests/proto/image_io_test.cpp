@@ -62,7 +62,7 @@ private:
 /// A width x height image whose channels sweep [-0.1, 1.2] in different directions, with a few
 /// NaN/Inf values at fixed places, so every level and the clamps are exercised.
 Image gradient(uint32_t width, uint32_t height, uint32_t channels, bool specials = true) {
-    Image image{width, height, channels, std::vector<float>(size_t{width} * height * channels)};
+    Image image{width, height, channels, Pixels(size_t{width} * height * channels)};
     for (uint32_t y = 0; y < height; ++y) {
         for (uint32_t x = 0; x < width; ++x) {
             float* px = &image.pixels[(size_t{y} * width + x) * channels];
@@ -422,7 +422,7 @@ TEST(ImageIoJpeg, CloseToTheBufferAndAlphaDropped) {
 // Errors
 
 TEST(ImageIoErrors, MalformedImagesAndOptions) {
-    Image two_channels{2, 2, 2, std::vector<float>(8)};
+    Image two_channels{2, 2, 2, Pixels(8)};
     auto r = encode_image(two_channels, ImageFormat::kPng);
     ASSERT_FALSE(r.ok());
     EXPECT_NE(r.error().find("channels"), std::string::npos) << r.error();
@@ -432,7 +432,7 @@ TEST(ImageIoErrors, MalformedImagesAndOptions) {
     ASSERT_FALSE(r.ok());
     EXPECT_NE(r.error().find("empty"), std::string::npos) << r.error();
 
-    Image short_buffer{4, 4, 3, std::vector<float>(47)};
+    Image short_buffer{4, 4, 3, Pixels(47)};
     r = encode_image(short_buffer, ImageFormat::kPng);
     ASSERT_FALSE(r.ok());
     EXPECT_NE(r.error().find("expected 48"), std::string::npos) << r.error();

@@ -13,6 +13,7 @@
 #include "kdrt/mesh.h"
 #include "kdrt/tree_stats.h"
 #include "kdrt/types.h"
+#include "kdrt/uninitialized.h"
 
 namespace kdrt {
 
@@ -129,12 +130,6 @@ inline constexpr size_t kNodesPerLine = 64 / sizeof(KdNode);
 [[nodiscard]] void* allocate_tree_memory(size_t bytes);
 void free_tree_memory(void* p, size_t bytes) noexcept;
 
-/// Constructing a tree array's element from this tag leaves it uninitialised (TreeAllocator):
-/// for arrays that are written in full right after they are sized, where value-initialising them
-/// first is one more pass over memory (a big mesh's triangles: 36 bytes each, on one thread).
-/// Other constructions (resize, a size, a value) initialise as usual.
-struct Uninitialized {};
-
 /// The allocator of a tree's arrays (allocate_tree_memory).
 template <class T>
 struct TreeAllocator {
@@ -158,30 +153,6 @@ struct TreeAllocator {
 /// One of a tree's arrays.
 template <class T>
 using TreeArray = std::vector<T, TreeAllocator<T>>;
-
-namespace detail {
-/// A forward iterator over tags (uninitialized_tree_array): a vector built from a range of them
-/// sizes itself once and constructs each element from a tag through its allocator.
-struct UninitializedTags {
-    using iterator_category = std::forward_iterator_tag;
-    using value_type = Uninitialized;
-    using difference_type = std::ptrdiff_t;
-    using pointer = const Uninitialized*;
-    using reference = Uninitialized;
-    size_t i = 0;
-    Uninitialized operator*() const noexcept { return {}; }
-    UninitializedTags& operator++() noexcept {
-        ++i;
-        return *this;
-    }
-    UninitializedTags operator++(int) noexcept {
-        UninitializedTags old = *this;
-        ++i;
-        return old;
-    }
-    bool operator==(const UninitializedTags&) const noexcept = default;
-};
-}  // namespace detail
 
 /// A tree array of `n` uninitialised elements (see Uninitialized): every element must be written
 /// before it is read.
