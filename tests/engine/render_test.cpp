@@ -6,9 +6,12 @@
 #include <gtest/gtest.h>
 #include <tbb/task_arena.h>
 
+#include <algorithm>
 #include <atomic>
 #include <cmath>
+#include <cstdio>
 #include <cstring>
+#include <fstream>
 #include <set>
 #include <stdexcept>
 #include <string>
@@ -375,6 +378,48 @@ TEST(RenderDeterminism, EveryPixelIsWrittenOverUsedMemory) {
     // ASan keeps freed memory out of use for a while; glibc's heap reuses the block at once.
     EXPECT_GT(reused, 0u) << "no frame was rendered into the marked memory: the test saw nothing";
 #endif
+}
+
+/// The VmFlags line of the mapping holding `p` in /proc/self/smaps ("" if none).
+std::string vm_flags_at(const void* p) {
+    std::ifstream smaps("/proc/self/smaps");
+    const auto at = reinterpret_cast<uintptr_t>(p);
+    bool inside = false;
+    for (std::string line; std::getline(smaps, line);) {
+        unsigned long lo = 0, hi = 0;
+        if (std::sscanf(line.c_str(), "%lx-%lx ", &lo, &hi) == 2 && line.find('-') < 17) {
+            inside = lo <= at && at < hi;
+        } else if (inside && line.rfind("VmFlags:", 0) == 0) {
+            return line;
+        }
+    }
+    return "";
+}
+
+TEST(RenderMemory, BigPixelBuffersAreHugePageMappingsAndInitialiseAsAsked) {
+    constexpr size_t kHuge = size_t{2} << 20;
+    const size_t n = 3 * kHuge / sizeof(float) + 5;  // 6 MiB and a little: four huge pages
+    // Value-initialising constructions still zero every pixel; the tagged one writes nothing.
+    Pixels zeros(n);
+    EXPECT_EQ(reinterpret_cast<uintptr_t>(zeros.data()) % kHuge, 0u) << "a mapping of its own";
+    EXPECT_TRUE(std::all_of(zeros.begin(), zeros.end(), [](float v) { return v == 0.0f; }));
+    Pixels frame = uninitialized_pixels(n);
+    ASSERT_EQ(frame.size(), n);
+    EXPECT_EQ(reinterpret_cast<uintptr_t>(frame.data()) % kHuge, 0u);
+    for (size_t i = 0; i < n; ++i) frame[i] = static_cast<float>(i % 1000);
+    const Pixels copy = frame;
+    EXPECT_EQ(copy, frame);
+    frame.resize(n + kHuge, 7.0f);  // grows into a new mapping, keeps the values
+    EXPECT_EQ(frame[n - 1], static_cast<float>((n - 1) % 1000));
+    EXPECT_EQ(frame.back(), 7.0f);
+    // Advised for transparent huge pages ("hg") wherever the kernel has them.
+    if (std::ifstream("/sys/kernel/mm/transparent_hugepage/enabled")) {
+        EXPECT_NE(vm_flags_at(copy.data()).find(" hg"), std::string::npos)
+            << vm_flags_at(copy.data());
+    }
+    // Small buffers stay on the heap (no mapping of their own each).
+    const Pixels small(1000, 1.0f);
+    EXPECT_EQ(vm_flags_at(small.data()).find(" hg"), std::string::npos);
 }
 
 TEST(RenderDeterminism, TileSizeDoesNotChangeTheImage) {
