@@ -43,6 +43,9 @@ struct TopPacketCell {
 
 struct TopPacket;
 
+/// TopPacketOps::start_patch's answer for rays that are not one packet's.
+inline constexpr uint32_t kNotOnePacket = ~0u;
+
 /// The hot steps of a packet's walk (scene_packet_steps.h), compiled for one instruction set.
 struct TopPacketOps {
     /// The next leaf any lane reaches with its cell starting at or before its `limit`, and the
@@ -68,6 +71,11 @@ struct TopPacketOps {
     uint32_t (*start)(TopPacket& packet, const SceneData& s, const Ray* rays, uint32_t first,
                       const uint16_t* order, int count, TopPacketCell* storage,
                       Lanes& limit) noexcept;
+    /// start() of rays that the caller has not checked: when they are all valid and of one
+    /// octant, start()'s work and answer; else kNotOnePacket, and the packet is not touched.
+    uint32_t (*start_patch)(TopPacket& packet, const SceneData& s, const Ray* rays, uint32_t first,
+                            const uint16_t* order, int count, TopPacketCell* storage,
+                            Lanes& limit) noexcept;
     /// Every lane's object ray in instance `in`: out[l] = to_object(in, lane l's ray) with tmax =
     /// tmax[l], bit for bit (the same double arithmetic, lanes side by side). All kPacketLanes
     /// lanes are written; those not holding a ray hold no ray.
