@@ -11,6 +11,7 @@
 #include <bit>
 #include <cstdint>
 #include <cstring>
+#include <span>
 
 #include "kdrt/trace.h"
 
@@ -152,6 +153,11 @@ struct TopPacket {
                                            stack[k].tmax.get(lane)};
     }
 };
+
+/// Whether every ray of `rays` starts where the first does (==, component by component: a NaN
+/// differs from everything, -0 equals +0; true for none), as a coherent block's first test
+/// (scene_trace.cpp's rounds_pay).
+bool share_origin(std::span<const Ray> rays) noexcept;
 
 /// The steps in two SSE halves (scene_packet_sse.cpp) and in one AVX2 register
 /// (scene_packet_avx2.cpp; only for a CPU that has it).

@@ -1749,6 +1749,39 @@ TEST(Scene, PacketStartPatchTakesOnlyValidRaysOfOneOctant) {
     EXPECT_GT(refused, 700u);
 }
 
+TEST(Scene, ShareOriginComparesEveryRaysOrigin) {
+    // detail::share_origin (a coherent block's first test): blocks of 1 to 300 rays from one
+    // point are one origin; one ray's origin component changed anywhere (by an ulp, or to a NaN)
+    // makes them not; +0 against -0 is the same origin (==), and a NaN first origin shares none.
+    Rng rng(test_seed() + 81);
+    constexpr float kNaN = std::numeric_limits<float>::quiet_NaN();
+    size_t differing = 0;
+    for (size_t n = 1; n <= 300; n += 1 + n / 8) {
+        const Vec3 o{rng.uniform(-5.0f, 5.0f), 0.0f, rng.uniform(-5.0f, 5.0f)};
+        std::vector<Ray> rays;
+        for (size_t i = 0; i < n; ++i) {
+            Ray r = make_ray(o, {rng.uniform(-1.0f, 1.0f), 1.0f, rng.uniform(-1.0f, 1.0f)});
+            r.tmin = rng.uniform(0.0f, 1.0f);  // the fourth field is not compared
+            if (rng.below(2)) r.oy = -0.0f;
+            rays.push_back(r);
+        }
+        ASSERT_TRUE(detail::share_origin(rays)) << n;
+        for (int trial = 0; n > 1 && trial < 6; ++trial) {
+            std::vector<Ray> other = rays;
+            const size_t i = trial == 0 ? n - 1 : rng.below(static_cast<uint32_t>(n));
+            float& c = (&other[i].ox)[rng.below(3)];
+            c = trial % 2 ? kNaN : std::nextafter(c, 10.0f);
+            ASSERT_EQ(detail::share_origin(other), false) << n << " rays, ray " << i;
+            ++differing;
+        }
+    }
+    std::vector<Ray> nan_first(3, make_ray({0, 0, 0}, {1, 0, 0}));
+    nan_first[0].oz = kNaN;
+    EXPECT_FALSE(detail::share_origin(nan_first));
+    EXPECT_TRUE(detail::share_origin(std::span<const Ray>()));
+    EXPECT_GT(differing, 100u);
+}
+
 TEST(Scene, PacketObjectRaysAreToObjectBitForBit) {
     // TopPacketOps::object_rays (the depth-first walk's hand-off into an instance: every lane's
     // object ray at once) must give to_object's ray, with tmax the lane's limit, bit for bit for
