@@ -11,6 +11,7 @@
 #include <bit>
 #include <cstdint>
 #include <cstring>
+#include <span>
 
 #include "kdrt/trace.h"
 
@@ -43,6 +44,9 @@ struct TopPacketCell {
 
 struct TopPacket;
 
+/// TopPacketOps::start_patch's answer for rays that are not one packet's.
+inline constexpr uint32_t kNotOnePacket = ~0u;
+
 /// The hot steps of a packet's walk (scene_packet_steps.h), compiled for one instruction set.
 struct TopPacketOps {
     /// The next leaf any lane reaches with its cell starting at or before its `limit`, and the
@@ -68,6 +72,11 @@ struct TopPacketOps {
     uint32_t (*start)(TopPacket& packet, const SceneData& s, const Ray* rays, uint32_t first,
                       const uint16_t* order, int count, TopPacketCell* storage,
                       Lanes& limit) noexcept;
+    /// start() of rays that the caller has not checked: when they are all valid and of one
+    /// octant, start()'s work and answer; else kNotOnePacket, and the packet is not touched.
+    uint32_t (*start_patch)(TopPacket& packet, const SceneData& s, const Ray* rays, uint32_t first,
+                            const uint16_t* order, int count, TopPacketCell* storage,
+                            Lanes& limit) noexcept;
     /// Every lane's object ray in instance `in`: out[l] = to_object(in, lane l's ray) with tmax =
     /// tmax[l], bit for bit (the same double arithmetic, lanes side by side). All kPacketLanes
     /// lanes are written; those not holding a ray hold no ray.
@@ -144,6 +153,11 @@ struct TopPacket {
                                            stack[k].tmax.get(lane)};
     }
 };
+
+/// Whether every ray of `rays` starts where the first does (==, component by component: a NaN
+/// differs from everything, -0 equals +0; true for none), as a coherent block's first test
+/// (scene_trace.cpp's rounds_pay).
+bool share_origin(std::span<const Ray> rays) noexcept;
 
 /// The steps in two SSE halves (scene_packet_sse.cpp) and in one AVX2 register
 /// (scene_packet_avx2.cpp; only for a CPU that has it).

@@ -18,8 +18,9 @@
 namespace kdrt::detail {
 
 const TopPacketOps& top_packet_ops_avx2() noexcept {
-    static constexpr TopPacketOps kOps{&next_leaf_steps<F8>, &reach_steps<F8>, &clip_steps<F8>,
-                                       &start_steps<F8>, &object_rays_steps};
+    static constexpr TopPacketOps kOps{&next_leaf_steps<F8>,   &reach_steps<F8>,
+                                       &clip_steps<F8>,        &start_steps<F8>,
+                                       &start_steps<F8, true>, &object_rays_steps};
     return kOps;
 }
 

@@ -5,9 +5,9 @@
 namespace kdrt::detail {
 
 const TopPacketOps& top_packet_ops_sse() noexcept {
-    static constexpr TopPacketOps kOps{&next_leaf_steps<Halves>, &reach_steps<Halves>,
-                                       &clip_steps<Halves>, &start_steps<Halves>,
-                                       &object_rays_steps};
+    static constexpr TopPacketOps kOps{&next_leaf_steps<Halves>,   &reach_steps<Halves>,
+                                       &clip_steps<Halves>,        &start_steps<Halves>,
+                                       &start_steps<Halves, true>, &object_rays_steps};
     return kOps;
 }
 

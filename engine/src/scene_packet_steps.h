@@ -245,14 +245,37 @@ uint32_t clip_steps(const TopPacket& pk, const Aabb& box, Lanes& tmin, Lanes& tm
     return le_bits(t0, t1) & mask;
 }
 
-/// TopPacketOps::start.
-template <class V>
+/// Whether the rays in the lanes (ray_lanes' fields, lanes from `count` on repeating lane 0) are
+/// all valid and of one octant (true only where each ray's octant_or_invalid is one octant, the
+/// same in every lane). Valid: every origin and direction component finite (their sum times 0
+/// is 0 only then, though a sum that overflows is taken as invalid too: the caller then checks
+/// ray by ray), the direction not zero, tmin <= tmax. One octant: each direction component's
+/// sign bits alike in all lanes.
+inline bool one_valid_octant(const Halves f[8]) noexcept {
+    const F4 zero{};
+    uint32_t ok = 0, sign[3];
+    for (int h = 0; h < 2; ++h) {
+        const F4 sum = f[0].h[h] + f[1].h[h] + f[2].h[h] + f[4].h[h] + f[5].h[h] + f[6].h[h];
+        const I4 valid = (sum * zero == zero) & (f[3].h[h] <= f[7].h[h]) &
+                         ((f[4].h[h] != zero) | (f[5].h[h] != zero) | (f[6].h[h] != zero));
+        ok |= static_cast<uint32_t>(_mm_movemask_ps(reinterpret_cast<__m128>(valid))) << 4 * h;
+    }
+    for (int a = 0; a < 3; ++a)
+        sign[a] = bits(reinterpret_cast<I4>(f[4 + a].h[0]), reinterpret_cast<I4>(f[4 + a].h[1]));
+    const auto alike = [](uint32_t m) { return m == 0 || m == 0xffu; };
+    return ok == 0xffu && alike(sign[0]) && alike(sign[1]) && alike(sign[2]);
+}
+
+/// TopPacketOps::start (Checked: TopPacketOps::start_patch).
+template <class V, bool Checked = false>
 uint32_t start_steps(TopPacket& pk, const SceneData& s, const Ray* rays, uint32_t first,
                      const uint16_t* order, int count, TopPacketCell* storage,
                      Lanes& limit) noexcept {
     Halves f[8];
     const Ray* block = rays + first;
     ray_lanes(block, order, count, f);
+    if constexpr (Checked)
+        if (!one_valid_octant(f)) return kNotOnePacket;
     pk.stack = storage;
     pk.size = 0;
     pk.ended = 0;

@@ -5,10 +5,14 @@
 // instance in a round go to the mesh's batch entry together, so coherent rays become the mesh
 // kernel's packets. The lidar's nearest hits go in the same rounds.
 
+#include <immintrin.h>
+
 #include <algorithm>
 #include <array>
 #include <bit>
 #include <cmath>
+#include <cstddef>
+#include <cstring>
 #include <limits>
 #include <map>
 #include <utility>
@@ -30,6 +34,25 @@
 #include "scene_packet.h"
 
 namespace kdrt {
+
+/// Whether every ray starts where the first does (==, component by component: a NaN differs
+/// from everything, -0 equals +0). The comparisons of 64 rays at a time are gathered with no
+/// branch (SSE2: a ray's ox, oy, oz and tmin in one register), so a camera's block costs two
+/// instructions a ray.
+bool detail::share_origin(std::span<const Ray> rays) noexcept {
+    static_assert(offsetof(Ray, oy) == 4 && offsetof(Ray, oz) == 8);
+    if (rays.empty()) return true;
+    const __m128 o = _mm_loadu_ps(&rays[0].ox);
+    for (size_t i = 0; i < rays.size(); i += 64) {
+        const size_t end = std::min(rays.size(), i + 64);
+        __m128 differ = _mm_setzero_ps();
+        for (size_t k = i; k < end; ++k)
+            differ = _mm_or_ps(differ, _mm_cmpneq_ps(_mm_loadu_ps(&rays[k].ox), o));
+        if (_mm_movemask_ps(differ) & 7) return false;
+    }
+    return true;
+}
+
 namespace {
 
 using detail::InstanceData;
@@ -90,10 +113,7 @@ constexpr size_t kBlock = 1024;
 /// closest hit, which costs less than collecting every instance along it.
 bool rounds_pay(std::span<const Ray> rays) noexcept {
     // One origin first: it needs no square roots (camera rays, lidar beams).
-    if (std::all_of(rays.begin(), rays.end(), [&](const Ray& r) {
-            return r.ox == rays[0].ox && r.oy == rays[0].oy && r.oz == rays[0].oz;
-        }))
-        return true;
+    if (detail::share_origin(rays)) return true;
     float lo[3] = {2, 2, 2}, hi[3] = {-2, -2, -2};
     const auto narrow = [&] {
         return hi[0] - lo[0] < 0.5f && hi[1] - lo[1] < 0.5f && hi[2] - lo[2] < 0.5f;
@@ -453,6 +473,67 @@ struct DepthFirst {
     Counts& counts;
     bool mail;
 
+    /// An image's rows of `row` rays from one point (image_row), rays [0, n) of `rays`, in
+    /// trace_patch_block's patches (bands of up to kPatchRows rows, each patch the band's rows by
+    /// kPacketLanes / rows columns) without its buckets: each patch whose rays are all valid and
+    /// of one octant (nearly all) is a packet as it stands (TopPacketOps::start_patch checks it
+    /// in the packet's registers); the others go by octant (operator()), their invalid rays
+    /// answered as misses. The rows past the last whole band go as trace_coherent_block takes
+    /// them.
+    void patches(int n, int row, detail::TraceCounters& tc) const {
+        constexpr int kLanes = detail::kPacketLanes;
+        const int rows = std::min(n / row, detail::kPatchRows);
+        const int cols = std::max(kLanes / rows, 1);
+        const int band = rows * row;
+        // A whole patch's rays from its first: rows by cols, row by row.
+        using U8 = uint16_t __attribute__((vector_size(16)));
+        static_assert(kLanes == 8);
+        U8 step{};
+        for (int k = 0; k < rows * cols && k < kLanes; ++k)
+            step[k] = static_cast<uint16_t>(k / cols * row + k % cols);
+        int first = 0;
+        for (; first + band <= n; first += band) {
+            for (int pc = 0; pc < row; pc += cols) {
+                const int pe = std::min(pc + cols, row);
+                std::array<uint16_t, kLanes> order;
+                int count = 0;
+                if (pe - pc == cols) {
+                    const U8 o = step + static_cast<uint16_t>(first + pc);
+                    std::memcpy(order.data(), &o, sizeof o);
+                    count = rows * cols;
+                } else {
+                    for (int r = 0; r < rows; ++r)
+                        for (int c = pc; c < pe; ++c)
+                            order[count++] = static_cast<uint16_t>(first + r * row + c);
+                }
+                detail::TopPacket& pk = b.packet;
+                detail::Lanes lim;
+                const uint32_t flat = ops.start_patch(pk, s, rays.data(), 0, order.data(), count,
+                                                      b.packet_cells.data(), lim);
+                if (flat != detail::kNotOnePacket) {
+                    walk(flat, lim);
+                    continue;
+                }
+                // Another octant or an invalid ray in the patch: its rays by octant.
+                std::array<std::array<uint16_t, kLanes>, 8> bucket;
+                std::array<int, 8> size{};
+                for (int k = 0; k < count; ++k) {
+                    const int o = detail::octant_or_invalid(rays[order[k]]);
+                    if (o < 0) {
+                        miss(order[k], tc);
+                        continue;
+                    }
+                    bucket[o][size[o]++] = order[k];
+                }
+                for (int o = 0; o < 8; ++o)
+                    if (size[o]) (*this)(rays.data(), 0, bucket[o].data(), size[o]);
+            }
+        }
+        if (first < n)
+            detail::trace_coherent_block<AnyHit>(rays.data() + first, first, n - first,
+                                                 b.hits.data(), occ_out, tc, *this);
+    }
+
     void operator()(const Ray* block, size_t, const uint16_t* order, int count) const {
         const auto first = static_cast<uint32_t>(block - rays.data());
         for (int k = 0; k < count; k += detail::kPacketLanes) {
@@ -484,14 +565,27 @@ private:
         }
     };
 
+    /// Ray i (invalid) answered as a miss, as the batch scheduler answers it (answer_miss).
+    void miss(uint32_t i, detail::TraceCounters& tc) const {
+        if constexpr (AnyHit)
+            occ_out[i] = 0;
+        else
+            hits_out[i] = SceneHit{};
+        ++tc.invalid_rays;
+    }
+
     void packet(uint32_t first, const uint16_t* order, int n) const {
         // Each lane's TopRay and its limit (its closest hit so far: none yet, so its tmax) are
         // made in the packet's registers (TopPacketOps::start). Lanes whose direction has a zero
         // component are left out, and traced alone.
-        detail::TopPacket& pk = b.packet;
         detail::Lanes lim;
-        const uint32_t flat =
-            ops.start(pk, s, rays.data(), first, order, n, b.packet_cells.data(), lim);
+        walk(ops.start(b.packet, s, rays.data(), first, order, n, b.packet_cells.data(), lim), lim);
+    }
+
+    /// The depth-first walk of the packet b.packet (started, its lanes' limits `lim`); the lanes
+    /// `flat` left out of it are traced alone.
+    void walk(uint32_t flat, detail::Lanes& lim) const {
+        detail::TopPacket& pk = b.packet;
         Answers ans;  // NOLINT(cppcoreguidelines-pro-type-member-init): set where `hit` says
         if (mail) b.lane_mailbox.fill(detail::Mailbox{});
         uint32_t at = 0;
@@ -591,8 +685,7 @@ void depth_first_block(const SceneData& s, std::span<const Ray> rays, std::span<
     const int row = detail::image_row(rays.data(), n, row_guess);
     if (row > 0) {
         row_guess = row;
-        detail::trace_patch_block<detail::kPacketLanes, AnyHit>(
-            rays.data(), 0, n, row, b.hits.data(), occ_out.data(), tc, run);
+        run.patches(n, row, tc);
     } else {
         detail::trace_coherent_block<AnyHit>(rays.data(), 0, n, b.hits.data(), occ_out.data(), tc,
                                              run);

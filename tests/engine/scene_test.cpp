@@ -1636,6 +1636,152 @@ TEST(Scene, PacketStartLeavesOutLanesWithAZeroComponent) {
     EXPECT_GT(roots, 300u);
 }
 
+TEST(Scene, PacketStartPatchTakesOnlyValidRaysOfOneOctant) {
+    // TopPacketOps::start_patch (the depth-first walk's image patches, taken as packets without
+    // the scheduler's octant buckets): rays of one octant, all valid (zero components among
+    // them), give start's packet and answer bit for bit; a patch with one invalid ray (a NaN or
+    // infinite component, NaN tmin or tmax, tmin > tmax, a zero direction) or one ray of another
+    // octant (a component's sign flipped, +0 against -0 included) in any lane gives
+    // kNotOnePacket and leaves the packet alone.
+    const uint64_t seed = test_seed();
+    SCOPED_TRACE(testing::Message() << "seed=" << seed);
+    const TestScene s = mixed_scene(seed + 71, 16);
+    const detail::SceneData& d = s.scene.data();
+    Rng rng(seed + 72);
+    const Aabb b = d.bounds;
+    const Aabb outer = grown(b, 1.0f);
+    constexpr float kNaN = std::numeric_limits<float>::quiet_NaN();
+    constexpr float kInf = std::numeric_limits<float>::infinity();
+    const auto same_lanes = [](const detail::Lanes& x, const detail::Lanes& y) {
+        return std::memcmp(&x, &y, sizeof x) == 0;
+    };
+    std::vector<detail::TopPacketCell> cells(detail::kTopStack), got_cells(detail::kTopStack);
+    size_t taken = 0, refused = 0;
+    for (Isa isa : supported_isas()) {
+        SCOPED_TRACE(std::string(isa_name(isa)));
+        const detail::TopPacketOps& ops = detail::top_packet_ops(isa);
+        for (int trial = 0; trial < 800; ++trial) {
+            const uint32_t oct = rng.below(8);
+            const int n = 1 + static_cast<int>(rng.below(detail::kPacketLanes));
+            std::vector<Ray> rays;
+            const Vec3 o = rng.in_box(outer);
+            for (int l = 0; l < n; ++l) {
+                Ray r = make_ray(o, rng.in_box(b) - o);
+                float* dir = &r.dx;
+                for (int a = 0; a < 3; ++a) {
+                    const float m = std::max(std::fabs(dir[a]), 1e-3f);
+                    dir[a] = oct >> a & 1u ? -m : m;
+                }
+                if (rng.below(4) == 0) {
+                    const uint32_t a = rng.below(3);
+                    dir[a] = oct >> a & 1u ? -0.0f : 0.0f;  // the octant's sign bit
+                }
+                if (rng.below(4) == 0) r.tmin = 0.5f, r.tmax = 1e3f;
+                rays.push_back(r);
+            }
+            std::array<uint16_t, detail::kPacketLanes> order{};
+            for (int l = 0; l < n; ++l) order[l] = static_cast<uint16_t>(n - 1 - l);
+            detail::TopPacket want, got;
+            detail::Lanes want_limit, got_limit;
+            const uint32_t want_flat =
+                ops.start(want, d, rays.data(), 0, order.data(), n, cells.data(), want_limit);
+            ASSERT_EQ(ops.start_patch(got, d, rays.data(), 0, order.data(), n, got_cells.data(),
+                                      got_limit),
+                      want_flat);
+            ++taken;
+            ASSERT_EQ(got.lanes, want.lanes);
+            ASSERT_TRUE(same_lanes(got_limit, want_limit));
+            ASSERT_TRUE(same_lanes(got.delta, want.delta) &&
+                        same_lanes(got.ray_tmin, want.ray_tmin));
+            for (int a = 0; a < 3; ++a) {
+                ASSERT_EQ(got.forward[a], want.forward[a]);
+                ASSERT_TRUE(
+                    same_lanes(got.org[a], want.org[a]) && same_lanes(got.dir[a], want.dir[a]) &&
+                    same_lanes(got.inv[a], want.inv[a]) && same_lanes(got.eps[a], want.eps[a]));
+            }
+            for (int l = 0; l < n; ++l) ASSERT_EQ(got.ray[l], want.ray[l]);
+            ASSERT_EQ(got.size, want.size);
+            if (want.size) {
+                ASSERT_EQ(got.stack[0].mask, want.stack[0].mask);
+                ASSERT_TRUE(same_lanes(got.stack[0].tmin, want.stack[0].tmin) &&
+                            same_lanes(got.stack[0].tmax, want.stack[0].tmax));
+            }
+            // One lane spoiled: invalid, or of another octant (where there is another lane).
+            const int l = static_cast<int>(rng.below(static_cast<uint32_t>(n)));
+            Ray& r = rays[order[l]];
+            float* field = &r.ox;  // ox oy oz tmin dx dy dz tmax
+            const uint32_t kind = rng.below(n > 1 ? 7 : 5);
+            const uint32_t f = rng.below(8), a = rng.below(3);
+            switch (kind) {
+                case 0:
+                    field[f] = kNaN;
+                    break;
+                case 1:
+                    field[f == 3 || f == 7 ? f - 1 : f] = rng.below(2) ? kInf : -kInf;
+                    break;
+                case 2:
+                    r.dx = r.dy = r.dz = rng.below(2) ? 0.0f : -0.0f;
+                    break;
+                case 3:
+                    r.tmax = 1.0f;
+                    r.tmin = std::nextafter(1.0f, 2.0f);
+                    break;
+                case 4:
+                    field[rng.below(2) ? 3 : 7] = kNaN;
+                    break;
+                case 5:  // the sign bit flipped (+-0 too)
+                    (&r.dx)[a] = -(&r.dx)[a];
+                    break;
+                default:
+                    (&r.dx)[a] = std::signbit((&r.dx)[a]) ? 0.0f : -0.0f;
+                    break;
+            }
+            got.lanes = 0xabcdu;
+            ASSERT_EQ(ops.start_patch(got, d, rays.data(), 0, order.data(), n, got_cells.data(),
+                                      got_limit),
+                      detail::kNotOnePacket)
+                << "kind " << kind << " lane " << l << " of " << n;
+            ASSERT_EQ(got.lanes, 0xabcdu);
+            ++refused;
+        }
+    }
+    EXPECT_GT(taken, 700u);
+    EXPECT_GT(refused, 700u);
+}
+
+TEST(Scene, ShareOriginComparesEveryRaysOrigin) {
+    // detail::share_origin (a coherent block's first test): blocks of 1 to 300 rays from one
+    // point are one origin; one ray's origin component changed anywhere (by an ulp, or to a NaN)
+    // makes them not; +0 against -0 is the same origin (==), and a NaN first origin shares none.
+    Rng rng(test_seed() + 81);
+    constexpr float kNaN = std::numeric_limits<float>::quiet_NaN();
+    size_t differing = 0;
+    for (size_t n = 1; n <= 300; n += 1 + n / 8) {
+        const Vec3 o{rng.uniform(-5.0f, 5.0f), 0.0f, rng.uniform(-5.0f, 5.0f)};
+        std::vector<Ray> rays;
+        for (size_t i = 0; i < n; ++i) {
+            Ray r = make_ray(o, {rng.uniform(-1.0f, 1.0f), 1.0f, rng.uniform(-1.0f, 1.0f)});
+            r.tmin = rng.uniform(0.0f, 1.0f);  // the fourth field is not compared
+            if (rng.below(2)) r.oy = -0.0f;
+            rays.push_back(r);
+        }
+        ASSERT_TRUE(detail::share_origin(rays)) << n;
+        for (int trial = 0; n > 1 && trial < 6; ++trial) {
+            std::vector<Ray> other = rays;
+            const size_t i = trial == 0 ? n - 1 : rng.below(static_cast<uint32_t>(n));
+            float& c = (&other[i].ox)[rng.below(3)];
+            c = trial % 2 ? kNaN : std::nextafter(c, 10.0f);
+            ASSERT_EQ(detail::share_origin(other), false) << n << " rays, ray " << i;
+            ++differing;
+        }
+    }
+    std::vector<Ray> nan_first(3, make_ray({0, 0, 0}, {1, 0, 0}));
+    nan_first[0].oz = kNaN;
+    EXPECT_FALSE(detail::share_origin(nan_first));
+    EXPECT_TRUE(detail::share_origin(std::span<const Ray>()));
+    EXPECT_GT(differing, 100u);
+}
+
 TEST(Scene, PacketObjectRaysAreToObjectBitForBit) {
     // TopPacketOps::object_rays (the depth-first walk's hand-off into an instance: every lane's
     // object ray at once) must give to_object's ray, with tmax the lane's limit, bit for bit for
