@@ -69,6 +69,9 @@ struct Flight {
     bool in_instance;
     bool flat;       ///< a zero direction component (clip_widened's own case)
     bool leaf_next;  ///< the instance walk's cell is a leaf whose triangles are not prefetched yet
+    /// The mesh tree `arrays` were loaded from (nullptr: none yet): instances of one mesh share
+    /// its tree, and a visit to the same tree as the flight's last loads nothing again.
+    const KdTree* tree;
     union Arrays {
         WideArrays a;
         char none;
@@ -97,10 +100,16 @@ template <bool AnyHit>
             Ray o = to_object(s.inst[geom], ray);
             if constexpr (!AnyHit) o.tmax = f.best.t;
             const KdTree& tree = *s.instances[geom].tree;
-            f.arrays.a = WideArrays(tree);
-            // As intersect / occluded (kdrt/trace.h) start: a ray that misses the tree's box (or
-            // is not valid in object space) has no hit there.
-            if (!wide_start(tree, f.arrays.a, o, f.w.ray, f.w.cell)) continue;
+            if (&tree != f.tree) {
+                f.arrays.a = WideArrays(tree);
+                f.tree = &tree;
+            }
+            // As intersect / occluded (kdrt/trace.h) start: a ray that is not valid in object
+            // space or misses the tree's box has no hit there. (wide_start's check of the ray is
+            // made here; its other, an empty tree, is the scene's: an instance of one has an
+            // empty world box and is in no top-level leaf.)
+            if (!ray_shape(o).valid || !wide_start<true>(tree, f.arrays.a, o, f.w.ray, f.w.cell))
+                continue;
             f.w.best = {o.tmax, kNoHit, 0.0f, 0.0f};
             f.w.found = false;
             f.w.stack_size = 0;
@@ -126,6 +135,7 @@ template <bool AnyHit, int K>
     Flight flight[K];      // NOLINT(cppcoreguidelines-pro-type-member-init): set by start
     wide::Stack stack[K];  // NOLINT(cppcoreguidelines-pro-type-member-init): written first
     TopCell top_cells[K][kTopStack];
+    for (Flight& f : flight) f.tree = nullptr;
     size_t next = 0;
     const auto answer = [&](const Flight& f, bool hit) {
         if constexpr (AnyHit)
@@ -141,12 +151,13 @@ template <bool AnyHit, int K>
             f.index = next++;
             const Ray& ray = rays[f.index];
             f.best = SceneHit{ray.tmax, kNoHit, 0.0f, 0.0f, kNoHit};
-            if (!ray_is_valid(ray)) {
+            const RayShape shape = ray_shape(ray);
+            if (!shape.valid) {
                 answer(f, false);  // no hit: prim is kNoHit
                 continue;
             }
             f.p = make_top_ray(s, ray);
-            f.flat = ray.dx == 0.0f || ray.dy == 0.0f || ray.dz == 0.0f;
+            f.flat = shape.flat;
             f.walk.start(s, ray, f.p, top_cells[k]);
             if (!s.refs_unique) f.mailbox = Mailbox{};
             f.ref = f.ref_end = 0;
@@ -159,41 +170,57 @@ template <bool AnyHit, int K>
         }
         return false;
     };
+    // Flight k's turn: one cell of its instance's walk, or the prefetch of a leaf's triangles;
+    // where the instance's walk ends, the ray's top-level walk goes on to its next instance, or
+    // the flight takes the next ray. False when flight k has ended with no ray left to take.
+    const auto turn = [&](int k) __attribute__((always_inline)) {
+        Flight& f = flight[k];
+        if (f.leaf_next) {
+            prefetch_leaf_triangles(f.arrays.a, f.w.cell.slot);
+            f.leaf_next = false;
+            return true;
+        }
+        if (!wide_step<AnyHit>(f.arrays.a, f.w.ray, stack[k], f.w.stack_size, f.w.cell, f.w.best,
+                               f.w.found, NoCount{})) {
+            prefetch_cell(f.arrays.a, f.w.cell.slot);
+            f.leaf_next = WideNode::slot_tag(f.w.cell.slot) == WideNode::kSlotLeaf;
+            return true;
+        }
+        // The instance's walk has ended: its answer is intersect's / occluded's.
+        f.in_instance = false;
+        bool ended;
+        if constexpr (AnyHit) {
+            ended = f.w.found || advance_top<AnyHit>(s, rays[f.index], f, visits);
+            if (ended) answer(f, f.w.found);
+        } else {
+            if (f.w.found) {
+                const SceneHit c{f.w.best.t, f.w.best.prim, f.w.best.u, f.w.best.v, f.geom};
+                if (scene_hit_less(c, f.best)) f.best = c;
+            }
+            ended = advance_top<AnyHit>(s, rays[f.index], f, visits);
+            if (ended) answer(f, false);
+        }
+        return !ended || start(k);
+    };
     bool live[K];
     int n_live = 0;
     for (int k = 0; k < K; ++k) n_live += (live[k] = start(k)) ? 1 : 0;
+    // While the batch has rays to start, every flight is live and its turns are taken without
+    // a check; the first sweep in which a flight finds no ray ends this.
+    for (bool all = n_live == K; all;) {
+        for (int k = 0; k < K; ++k) {
+            if (!turn(k)) {
+                live[k] = false;
+                --n_live;
+                all = false;
+            }
+        }
+    }
     while (n_live > 0) {
         for (int k = 0; k < K; ++k) {
-            if (!live[k]) continue;
-            Flight& f = flight[k];
-            if (f.leaf_next) {
-                prefetch_leaf_triangles(f.arrays.a, f.w.cell.slot);
-                f.leaf_next = false;
-                continue;
-            }
-            if (!wide_step<AnyHit>(f.arrays.a, f.w.ray, stack[k], f.w.stack_size, f.w.cell,
-                                   f.w.best, f.w.found, NoCount{})) {
-                prefetch_cell(f.arrays.a, f.w.cell.slot);
-                f.leaf_next = WideNode::slot_tag(f.w.cell.slot) == WideNode::kSlotLeaf;
-                continue;
-            }
-            // The instance's walk has ended: its answer is intersect's / occluded's.
-            f.in_instance = false;
-            bool ended;
-            if constexpr (AnyHit) {
-                ended = f.w.found || advance_top<AnyHit>(s, rays[f.index], f, visits);
-                if (ended) answer(f, f.w.found);
-            } else {
-                if (f.w.found) {
-                    const SceneHit c{f.w.best.t, f.w.best.prim, f.w.best.u, f.w.best.v, f.geom};
-                    if (scene_hit_less(c, f.best)) f.best = c;
-                }
-                ended = advance_top<AnyHit>(s, rays[f.index], f, visits);
-                if (ended) answer(f, false);
-            }
-            if (ended) {
-                live[k] = start(k);
-                if (!live[k]) --n_live;
+            if (live[k] && !turn(k)) {
+                live[k] = false;
+                --n_live;
             }
         }
     }

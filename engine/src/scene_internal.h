@@ -3,8 +3,11 @@
 // kD-tree) and the top-level traversals every scene query shares (scene.cpp builds it;
 // scene_trace.cpp, scene_distance.cpp and scene_scan.cpp query it).
 
+#include <immintrin.h>
+
 #include <array>
 #include <cmath>
+#include <cstddef>
 #include <cstdint>
 #include <optional>
 #include <span>
@@ -101,6 +104,35 @@ struct TopRay {
     float delta;   ///< spatial margin
     float eps[3];  ///< delta in t along each axis (0 for a zero direction component)
 };
+
+/// What ray_is_valid(r) answers (valid) and whether a direction component is zero (flat, +0 or
+/// -0: clip_widened's own case), from the ray's two halves as SSE vectors (origin and tmin,
+/// direction and tmax): lane by lane the same comparisons (|x| < inf is isfinite, false for a
+/// NaN; x == 0 for a zero), a dozen instructions instead of ray_is_valid's chain of branches.
+/// Static: each translation unit keeps its own copy, compiled for its own target (ray_prep.h).
+struct RayShape {
+    bool valid, flat;
+};
+[[gnu::always_inline]] static inline RayShape ray_shape(const Ray& r) noexcept {
+    using V4 = float __attribute__((vector_size(16)));
+    using M4 = int32_t __attribute__((vector_size(16)));
+    static_assert(offsetof(Ray, tmin) == 3 * sizeof(float) &&
+                  offsetof(Ray, tmax) == 7 * sizeof(float));
+    V4 o, d;
+    __builtin_memcpy(&o, &r.ox, sizeof o);  // ox oy oz tmin
+    __builtin_memcpy(&d, &r.dx, sizeof d);  // dx dy dz tmax
+    const M4 abs_mask = M4{} + 0x7fffffff;
+    const V4 abs_o = reinterpret_cast<V4>(reinterpret_cast<M4>(o) & abs_mask);
+    const V4 abs_d = reinterpret_cast<V4>(reinterpret_cast<M4>(d) & abs_mask);
+    const V4 inf = V4{} + __builtin_inff();
+    const unsigned finite = static_cast<unsigned>(
+        _mm_movemask_ps(reinterpret_cast<__m128>((abs_o < inf) & (abs_d < inf))));
+    const unsigned zero =
+        static_cast<unsigned>(_mm_movemask_ps(reinterpret_cast<__m128>(d == V4{})));
+    const bool ordered = o[3] <= d[3];  // tmin <= tmax, false for a NaN
+    const bool valid = ((finite & 7u) == 7u) & ((zero & 7u) != 7u) & ordered;
+    return {valid, (zero & 7u) != 0u};
+}
 
 [[gnu::always_inline]] inline TopRay make_top_ray(const SceneData& s, const Ray& r) noexcept {
     TopRay p;

@@ -750,6 +750,37 @@ TEST(SceneInTurn, EveryWalkAnswersAsTheOracleWithAnyNumberOfRaysInFlight) {
     expect_matches_oracle(s, rays);
 }
 
+TEST(SceneInTurn, RayShapeIsRayIsValidAndTheZeroComponents) {
+    // ray_shape (the in-turn walks' check of a world ray and of each object ray): valid is
+    // ray_is_valid's answer and flat whether a direction component is +0 or -0, for rays made of
+    // zeros of both signs, subnormals, the largest floats, infinities and NaNs in every field.
+    const uint64_t seed = test_seed();
+    SCOPED_TRACE(testing::Message() << "seed=" << seed);
+    constexpr float kInf = std::numeric_limits<float>::infinity();
+    const float values[] = {
+        0.0f,      -0.0f,      1.0f,          -2.5f,
+        0x1p-149f, -0x1p-140f, 3e38f,         -std::numeric_limits<float>::max(),
+        kInf,      -kInf,      std::nanf(""), 0.5f};
+    constexpr size_t kValues = sizeof values / sizeof values[0];
+    Rng rng(seed);
+    size_t valid = 0, flat = 0, invalid = 0;
+    for (int i = 0; i < 200000; ++i) {
+        float f[8];
+        // Mostly ordinary fields, so every single odd one is met alone as well as together.
+        for (float& x : f) x = rng.below(3) == 0 ? values[rng.below(kValues)] : rng.uniform(-4, 4);
+        const Ray r{f[0], f[1], f[2], f[3], f[4], f[5], f[6], f[7]};
+        const detail::RayShape shape = detail::ray_shape(r);
+        ASSERT_EQ(shape.valid, detail::ray_is_valid(r)) << i;
+        ASSERT_EQ(shape.flat, r.dx == 0.0f || r.dy == 0.0f || r.dz == 0.0f) << i;
+        valid += shape.valid;
+        invalid += !shape.valid;
+        flat += shape.valid && shape.flat;
+    }
+    EXPECT_GT(valid, 1000u);
+    EXPECT_GT(invalid, 1000u);
+    EXPECT_GT(flat, 1000u);
+}
+
 /// The world box as the 8-corner scan computes it (the definition world_bounds documents): each
 /// row's least and greatest L * p + t over the corners in corner order, rounded outwards with
 /// std::nextafter.
