@@ -23,37 +23,12 @@ namespace kdrt::detail {
 namespace {
 namespace in_turn {
 
-/// clip_widened(p, box, tmin, tmax)'s answer (whether the widened segment reaches `box`; not the
-/// clipped segment) for a ray with no zero direction component, the three axes side by side: per
-/// axis the same float operations (the box widened by the margin, (x - org) * inv, the swap),
-/// then the latest entry against the earliest exit. clip_widened takes an axis' entry or exit
-/// only where it compares greater / less (a NaN, from the infinite reciprocal of a subnormal
-/// component, never does), and so does each lane here; the largest and smallest of the rest are
-/// the same values in any order (+0 and -0 compare equal), so the answer is the same.
+/// clip_widened(p, box, tmin, tmax)'s answer (whether the widened segment reaches `box`) for a
+/// ray with no zero direction component: clip_box's segment is not empty.
 [[gnu::always_inline]] inline bool reaches_box(const TopRay& p, const Aabb& box, float tmin,
                                                float tmax) noexcept {
-    using V4 = float __attribute__((vector_size(16)));
-    static_assert(sizeof(Aabb) == 6 * sizeof(float) && offsetof(TopRay, dir) == 3 * sizeof(float) &&
-                  offsetof(TopRay, delta) == offsetof(TopRay, inv) + 3 * sizeof(float));
-    V4 org, inv, lo, hi_shifted;
-    // org[0..2] then dir[0], inv[0..2] then delta; lo.xyz then hi.x, lo.z then hi.xyz (the
-    // fourth lane of each is not used).
-    __builtin_memcpy(&org, p.org, sizeof org);
-    __builtin_memcpy(&inv, p.inv, sizeof inv);
-    __builtin_memcpy(&lo, &box.lo.x, sizeof lo);
-    __builtin_memcpy(&hi_shifted, &box.lo.z, sizeof hi_shifted);
-    const V4 hi = __builtin_shufflevector(hi_shifted, hi_shifted, 1, 2, 3, 3);
-    const V4 delta = V4{} + p.delta;
-    const V4 a0 = ((lo - delta) - org) * inv, a1 = ((hi + delta) - org) * inv;
-    const V4 n0 = a0 > a1 ? a1 : a0, n1 = a0 > a1 ? a0 : a1;
-    const V4 vmin = V4{} + tmin, vmax = V4{} + tmax;
-    const V4 e = n0 > vmin ? n0 : vmin, x = n1 < vmax ? n1 : vmax;
-    float entry = e[0], exit = x[0];
-    entry = e[1] > entry ? e[1] : entry;
-    entry = e[2] > entry ? e[2] : entry;
-    exit = x[1] < exit ? x[1] : exit;
-    exit = x[2] < exit ? x[2] : exit;
-    return entry <= exit;
+    const TopSegment c = clip_box(p, box, tmin, tmax);
+    return c.entry <= c.exit;
 }
 
 /// One ray in flight: its top-level walk, where it stands in a leaf's references, its answer so
@@ -158,7 +133,16 @@ template <bool AnyHit, int K>
             }
             f.p = make_top_ray(s, ray);
             f.flat = shape.flat;
-            f.walk.start(s, ray, f.p, top_cells[k]);
+            if (shape.flat) {
+                f.walk.start(s, ray, f.p, top_cells[k]);
+            } else {
+                // TopWalk::start with clip_widened's root clip made by clip_box.
+                f.walk.stack = top_cells[k];
+                f.walk.size = 0;
+                const TopSegment c = clip_box(f.p, s.bounds, ray.tmin, ray.tmax);
+                if (!s.refs.empty() && c.entry <= c.exit)
+                    f.walk.stack[f.walk.size++] = {0, c.entry, c.exit};
+            }
             if (!s.refs_unique) f.mailbox = Mailbox{};
             f.ref = f.ref_end = 0;
             f.in_instance = false;

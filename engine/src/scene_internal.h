@@ -179,6 +179,48 @@ struct RayShape {
     return tmin <= tmax;
 }
 
+/// A ray's widened segment in a box: clip_box's [entry, exit] (empty when entry > exit).
+struct TopSegment {
+    float entry, exit;
+};
+
+/// clip_widened(p, box, tmin, tmax) for a ray with no zero direction component, the three axes
+/// side by side: [entry, exit] are clip_widened's clipped tmin and tmax bit for bit (its answer is
+/// entry <= exit). Per axis the same float operations (the box widened by the margin,
+/// (x - org) * inv, the swap); then each axis' entry is taken where it compares greater than
+/// tmin (else tmin), and the entries x, y, z in turn where one compares greater than the latest
+/// so far, as clip_widened takes them one axis at a time (so the same value, the sign of a zero
+/// too: a lane that is not greater leaves the running value as it is, and an axis clip_widened
+/// skips gives tmin, never greater than the running value); the exits alike with less. A NaN (from
+/// the infinite reciprocal of a subnormal component) never compares, in either. Static: each
+/// translation unit keeps its own copy, compiled for its own target.
+[[gnu::always_inline]] static inline TopSegment clip_box(const TopRay& p, const Aabb& box,
+                                                         float tmin, float tmax) noexcept {
+    using V4 = float __attribute__((vector_size(16)));
+    static_assert(sizeof(Aabb) == 6 * sizeof(float) && offsetof(TopRay, dir) == 3 * sizeof(float) &&
+                  offsetof(TopRay, delta) == offsetof(TopRay, inv) + 3 * sizeof(float));
+    V4 org, inv, lo, hi_shifted;
+    // org[0..2] then dir[0], inv[0..2] then delta; lo.xyz then hi.x, lo.z then hi.xyz (the
+    // fourth lane of each is not used).
+    __builtin_memcpy(&org, p.org, sizeof org);
+    __builtin_memcpy(&inv, p.inv, sizeof inv);
+    __builtin_memcpy(&lo, &box.lo.x, sizeof lo);
+    __builtin_memcpy(&hi_shifted, &box.lo.z, sizeof hi_shifted);
+    const V4 hi = __builtin_shufflevector(hi_shifted, hi_shifted, 1, 2, 3, 3);
+    const V4 delta = V4{} + p.delta;
+    const V4 a0 = ((lo - delta) - org) * inv, a1 = ((hi + delta) - org) * inv;
+    const V4 n0 = a0 > a1 ? a1 : a0, n1 = a0 > a1 ? a0 : a1;
+    // Broadcast as they are (V4{} + tmin would make a -0 +0).
+    const V4 vmin = {tmin, tmin, tmin, tmin}, vmax = {tmax, tmax, tmax, tmax};
+    const V4 e = n0 > vmin ? n0 : vmin, x = n1 < vmax ? n1 : vmax;
+    float entry = e[0], exit = x[0];
+    entry = e[1] > entry ? e[1] : entry;
+    entry = e[2] > entry ? e[2] : entry;
+    exit = x[1] < exit ? x[1] : exit;
+    exit = x[2] < exit ? x[2] : exit;
+    return {entry, exit};
+}
+
 /// A cell of the top level still to visit: its node and the widened [tmin, tmax] of the ray in it.
 struct TopCell {
     uint32_t node;
