@@ -23,37 +23,12 @@ namespace kdrt::detail {
 namespace {
 namespace in_turn {
 
-/// clip_widened(p, box, tmin, tmax)'s answer (whether the widened segment reaches `box`; not the
-/// clipped segment) for a ray with no zero direction component, the three axes side by side: per
-/// axis the same float operations (the box widened by the margin, (x - org) * inv, the swap),
-/// then the latest entry against the earliest exit. clip_widened takes an axis' entry or exit
-/// only where it compares greater / less (a NaN, from the infinite reciprocal of a subnormal
-/// component, never does), and so does each lane here; the largest and smallest of the rest are
-/// the same values in any order (+0 and -0 compare equal), so the answer is the same.
+/// clip_widened(p, box, tmin, tmax)'s answer (whether the widened segment reaches `box`) for a
+/// ray with no zero direction component: clip_box's segment is not empty.
 [[gnu::always_inline]] inline bool reaches_box(const TopRay& p, const Aabb& box, float tmin,
                                                float tmax) noexcept {
-    using V4 = float __attribute__((vector_size(16)));
-    static_assert(sizeof(Aabb) == 6 * sizeof(float) && offsetof(TopRay, dir) == 3 * sizeof(float) &&
-                  offsetof(TopRay, delta) == offsetof(TopRay, inv) + 3 * sizeof(float));
-    V4 org, inv, lo, hi_shifted;
-    // org[0..2] then dir[0], inv[0..2] then delta; lo.xyz then hi.x, lo.z then hi.xyz (the
-    // fourth lane of each is not used).
-    __builtin_memcpy(&org, p.org, sizeof org);
-    __builtin_memcpy(&inv, p.inv, sizeof inv);
-    __builtin_memcpy(&lo, &box.lo.x, sizeof lo);
-    __builtin_memcpy(&hi_shifted, &box.lo.z, sizeof hi_shifted);
-    const V4 hi = __builtin_shufflevector(hi_shifted, hi_shifted, 1, 2, 3, 3);
-    const V4 delta = V4{} + p.delta;
-    const V4 a0 = ((lo - delta) - org) * inv, a1 = ((hi + delta) - org) * inv;
-    const V4 n0 = a0 > a1 ? a1 : a0, n1 = a0 > a1 ? a0 : a1;
-    const V4 vmin = V4{} + tmin, vmax = V4{} + tmax;
-    const V4 e = n0 > vmin ? n0 : vmin, x = n1 < vmax ? n1 : vmax;
-    float entry = e[0], exit = x[0];
-    entry = e[1] > entry ? e[1] : entry;
-    entry = e[2] > entry ? e[2] : entry;
-    exit = x[1] < exit ? x[1] : exit;
-    exit = x[2] < exit ? x[2] : exit;
-    return entry <= exit;
+    const TopSegment c = clip_box(p, box, tmin, tmax);
+    return c.entry <= c.exit;
 }
 
 /// One ray in flight: its top-level walk, where it stands in a leaf's references, its answer so
@@ -69,6 +44,9 @@ struct Flight {
     bool in_instance;
     bool flat;       ///< a zero direction component (clip_widened's own case)
     bool leaf_next;  ///< the instance walk's cell is a leaf whose triangles are not prefetched yet
+    /// The mesh tree `arrays` were loaded from (nullptr: none yet): instances of one mesh share
+    /// its tree, and a visit to the same tree as the flight's last loads nothing again.
+    const KdTree* tree;
     union Arrays {
         WideArrays a;
         char none;
@@ -97,10 +75,16 @@ template <bool AnyHit>
             Ray o = to_object(s.inst[geom], ray);
             if constexpr (!AnyHit) o.tmax = f.best.t;
             const KdTree& tree = *s.instances[geom].tree;
-            f.arrays.a = WideArrays(tree);
-            // As intersect / occluded (kdrt/trace.h) start: a ray that misses the tree's box (or
-            // is not valid in object space) has no hit there.
-            if (!wide_start(tree, f.arrays.a, o, f.w.ray, f.w.cell)) continue;
+            if (&tree != f.tree) {
+                f.arrays.a = WideArrays(tree);
+                f.tree = &tree;
+            }
+            // As intersect / occluded (kdrt/trace.h) start: a ray that is not valid in object
+            // space or misses the tree's box has no hit there. (wide_start's check of the ray is
+            // made here; its other, an empty tree, is the scene's: an instance of one has an
+            // empty world box and is in no top-level leaf.)
+            if (!ray_shape(o).valid || !wide_start<true>(tree, f.arrays.a, o, f.w.ray, f.w.cell))
+                continue;
             f.w.best = {o.tmax, kNoHit, 0.0f, 0.0f};
             f.w.found = false;
             f.w.stack_size = 0;
@@ -126,6 +110,7 @@ template <bool AnyHit, int K>
     Flight flight[K];      // NOLINT(cppcoreguidelines-pro-type-member-init): set by start
     wide::Stack stack[K];  // NOLINT(cppcoreguidelines-pro-type-member-init): written first
     TopCell top_cells[K][kTopStack];
+    for (Flight& f : flight) f.tree = nullptr;
     size_t next = 0;
     const auto answer = [&](const Flight& f, bool hit) {
         if constexpr (AnyHit)
@@ -141,13 +126,23 @@ template <bool AnyHit, int K>
             f.index = next++;
             const Ray& ray = rays[f.index];
             f.best = SceneHit{ray.tmax, kNoHit, 0.0f, 0.0f, kNoHit};
-            if (!ray_is_valid(ray)) {
+            const RayShape shape = ray_shape(ray);
+            if (!shape.valid) {
                 answer(f, false);  // no hit: prim is kNoHit
                 continue;
             }
             f.p = make_top_ray(s, ray);
-            f.flat = ray.dx == 0.0f || ray.dy == 0.0f || ray.dz == 0.0f;
-            f.walk.start(s, ray, f.p, top_cells[k]);
+            f.flat = shape.flat;
+            if (shape.flat) {
+                f.walk.start(s, ray, f.p, top_cells[k]);
+            } else {
+                // TopWalk::start with clip_widened's root clip made by clip_box.
+                f.walk.stack = top_cells[k];
+                f.walk.size = 0;
+                const TopSegment c = clip_box(f.p, s.bounds, ray.tmin, ray.tmax);
+                if (!s.refs.empty() && c.entry <= c.exit)
+                    f.walk.stack[f.walk.size++] = {0, c.entry, c.exit};
+            }
             if (!s.refs_unique) f.mailbox = Mailbox{};
             f.ref = f.ref_end = 0;
             f.in_instance = false;
@@ -159,41 +154,57 @@ template <bool AnyHit, int K>
         }
         return false;
     };
+    // Flight k's turn: one cell of its instance's walk, or the prefetch of a leaf's triangles;
+    // where the instance's walk ends, the ray's top-level walk goes on to its next instance, or
+    // the flight takes the next ray. False when flight k has ended with no ray left to take.
+    const auto turn = [&](int k) __attribute__((always_inline)) {
+        Flight& f = flight[k];
+        if (f.leaf_next) {
+            prefetch_leaf_triangles(f.arrays.a, f.w.cell.slot);
+            f.leaf_next = false;
+            return true;
+        }
+        if (!wide_step<AnyHit>(f.arrays.a, f.w.ray, stack[k], f.w.stack_size, f.w.cell, f.w.best,
+                               f.w.found, NoCount{})) {
+            prefetch_cell(f.arrays.a, f.w.cell.slot);
+            f.leaf_next = WideNode::slot_tag(f.w.cell.slot) == WideNode::kSlotLeaf;
+            return true;
+        }
+        // The instance's walk has ended: its answer is intersect's / occluded's.
+        f.in_instance = false;
+        bool ended;
+        if constexpr (AnyHit) {
+            ended = f.w.found || advance_top<AnyHit>(s, rays[f.index], f, visits);
+            if (ended) answer(f, f.w.found);
+        } else {
+            if (f.w.found) {
+                const SceneHit c{f.w.best.t, f.w.best.prim, f.w.best.u, f.w.best.v, f.geom};
+                if (scene_hit_less(c, f.best)) f.best = c;
+            }
+            ended = advance_top<AnyHit>(s, rays[f.index], f, visits);
+            if (ended) answer(f, false);
+        }
+        return !ended || start(k);
+    };
     bool live[K];
     int n_live = 0;
     for (int k = 0; k < K; ++k) n_live += (live[k] = start(k)) ? 1 : 0;
+    // While the batch has rays to start, every flight is live and its turns are taken without
+    // a check; the first sweep in which a flight finds no ray ends this.
+    for (bool all = n_live == K; all;) {
+        for (int k = 0; k < K; ++k) {
+            if (!turn(k)) {
+                live[k] = false;
+                --n_live;
+                all = false;
+            }
+        }
+    }
     while (n_live > 0) {
         for (int k = 0; k < K; ++k) {
-            if (!live[k]) continue;
-            Flight& f = flight[k];
-            if (f.leaf_next) {
-                prefetch_leaf_triangles(f.arrays.a, f.w.cell.slot);
-                f.leaf_next = false;
-                continue;
-            }
-            if (!wide_step<AnyHit>(f.arrays.a, f.w.ray, stack[k], f.w.stack_size, f.w.cell,
-                                   f.w.best, f.w.found, NoCount{})) {
-                prefetch_cell(f.arrays.a, f.w.cell.slot);
-                f.leaf_next = WideNode::slot_tag(f.w.cell.slot) == WideNode::kSlotLeaf;
-                continue;
-            }
-            // The instance's walk has ended: its answer is intersect's / occluded's.
-            f.in_instance = false;
-            bool ended;
-            if constexpr (AnyHit) {
-                ended = f.w.found || advance_top<AnyHit>(s, rays[f.index], f, visits);
-                if (ended) answer(f, f.w.found);
-            } else {
-                if (f.w.found) {
-                    const SceneHit c{f.w.best.t, f.w.best.prim, f.w.best.u, f.w.best.v, f.geom};
-                    if (scene_hit_less(c, f.best)) f.best = c;
-                }
-                ended = advance_top<AnyHit>(s, rays[f.index], f, visits);
-                if (ended) answer(f, false);
-            }
-            if (ended) {
-                live[k] = start(k);
-                if (!live[k]) --n_live;
+            if (live[k] && !turn(k)) {
+                live[k] = false;
+                --n_live;
             }
         }
     }

@@ -3,8 +3,11 @@
 // kD-tree) and the top-level traversals every scene query shares (scene.cpp builds it;
 // scene_trace.cpp, scene_distance.cpp and scene_scan.cpp query it).
 
+#include <immintrin.h>
+
 #include <array>
 #include <cmath>
+#include <cstddef>
 #include <cstdint>
 #include <optional>
 #include <span>
@@ -102,6 +105,35 @@ struct TopRay {
     float eps[3];  ///< delta in t along each axis (0 for a zero direction component)
 };
 
+/// What ray_is_valid(r) answers (valid) and whether a direction component is zero (flat, +0 or
+/// -0: clip_widened's own case), from the ray's two halves as SSE vectors (origin and tmin,
+/// direction and tmax): lane by lane the same comparisons (|x| < inf is isfinite, false for a
+/// NaN; x == 0 for a zero), a dozen instructions instead of ray_is_valid's chain of branches.
+/// Static: each translation unit keeps its own copy, compiled for its own target (ray_prep.h).
+struct RayShape {
+    bool valid, flat;
+};
+[[gnu::always_inline]] static inline RayShape ray_shape(const Ray& r) noexcept {
+    using V4 = float __attribute__((vector_size(16)));
+    using M4 = int32_t __attribute__((vector_size(16)));
+    static_assert(offsetof(Ray, tmin) == 3 * sizeof(float) &&
+                  offsetof(Ray, tmax) == 7 * sizeof(float));
+    V4 o, d;
+    __builtin_memcpy(&o, &r.ox, sizeof o);  // ox oy oz tmin
+    __builtin_memcpy(&d, &r.dx, sizeof d);  // dx dy dz tmax
+    const M4 abs_mask = M4{} + 0x7fffffff;
+    const V4 abs_o = reinterpret_cast<V4>(reinterpret_cast<M4>(o) & abs_mask);
+    const V4 abs_d = reinterpret_cast<V4>(reinterpret_cast<M4>(d) & abs_mask);
+    const V4 inf = V4{} + __builtin_inff();
+    const unsigned finite = static_cast<unsigned>(
+        _mm_movemask_ps(reinterpret_cast<__m128>((abs_o < inf) & (abs_d < inf))));
+    const unsigned zero =
+        static_cast<unsigned>(_mm_movemask_ps(reinterpret_cast<__m128>(d == V4{})));
+    const bool ordered = o[3] <= d[3];  // tmin <= tmax, false for a NaN
+    const bool valid = ((finite & 7u) == 7u) & ((zero & 7u) != 7u) & ordered;
+    return {valid, (zero & 7u) != 0u};
+}
+
 [[gnu::always_inline]] inline TopRay make_top_ray(const SceneData& s, const Ray& r) noexcept {
     TopRay p;
     p.org[0] = r.ox, p.org[1] = r.oy, p.org[2] = r.oz;
@@ -145,6 +177,48 @@ struct TopRay {
         tmax = t1 < tmax ? t1 : tmax;
     }
     return tmin <= tmax;
+}
+
+/// A ray's widened segment in a box: clip_box's [entry, exit] (empty when entry > exit).
+struct TopSegment {
+    float entry, exit;
+};
+
+/// clip_widened(p, box, tmin, tmax) for a ray with no zero direction component, the three axes
+/// side by side: [entry, exit] are clip_widened's clipped tmin and tmax bit for bit (its answer is
+/// entry <= exit). Per axis the same float operations (the box widened by the margin,
+/// (x - org) * inv, the swap); then each axis' entry is taken where it compares greater than
+/// tmin (else tmin), and the entries x, y, z in turn where one compares greater than the latest
+/// so far, as clip_widened takes them one axis at a time (so the same value, the sign of a zero
+/// too: a lane that is not greater leaves the running value as it is, and an axis clip_widened
+/// skips gives tmin, never greater than the running value); the exits alike with less. A NaN (from
+/// the infinite reciprocal of a subnormal component) never compares, in either. Static: each
+/// translation unit keeps its own copy, compiled for its own target.
+[[gnu::always_inline]] static inline TopSegment clip_box(const TopRay& p, const Aabb& box,
+                                                         float tmin, float tmax) noexcept {
+    using V4 = float __attribute__((vector_size(16)));
+    static_assert(sizeof(Aabb) == 6 * sizeof(float) && offsetof(TopRay, dir) == 3 * sizeof(float) &&
+                  offsetof(TopRay, delta) == offsetof(TopRay, inv) + 3 * sizeof(float));
+    V4 org, inv, lo, hi_shifted;
+    // org[0..2] then dir[0], inv[0..2] then delta; lo.xyz then hi.x, lo.z then hi.xyz (the
+    // fourth lane of each is not used).
+    __builtin_memcpy(&org, p.org, sizeof org);
+    __builtin_memcpy(&inv, p.inv, sizeof inv);
+    __builtin_memcpy(&lo, &box.lo.x, sizeof lo);
+    __builtin_memcpy(&hi_shifted, &box.lo.z, sizeof hi_shifted);
+    const V4 hi = __builtin_shufflevector(hi_shifted, hi_shifted, 1, 2, 3, 3);
+    const V4 delta = V4{} + p.delta;
+    const V4 a0 = ((lo - delta) - org) * inv, a1 = ((hi + delta) - org) * inv;
+    const V4 n0 = a0 > a1 ? a1 : a0, n1 = a0 > a1 ? a0 : a1;
+    // Broadcast as they are (V4{} + tmin would make a -0 +0).
+    const V4 vmin = {tmin, tmin, tmin, tmin}, vmax = {tmax, tmax, tmax, tmax};
+    const V4 e = n0 > vmin ? n0 : vmin, x = n1 < vmax ? n1 : vmax;
+    float entry = e[0], exit = x[0];
+    entry = e[1] > entry ? e[1] : entry;
+    entry = e[2] > entry ? e[2] : entry;
+    exit = x[1] < exit ? x[1] : exit;
+    exit = x[2] < exit ? x[2] : exit;
+    return {entry, exit};
 }
 
 /// A cell of the top level still to visit: its node and the widened [tmin, tmax] of the ray in it.

@@ -6,6 +6,7 @@
 #include <algorithm>
 #include <array>
 #include <atomic>
+#include <bit>
 #include <cmath>
 #include <cstring>
 #include <limits>
@@ -748,6 +749,112 @@ TEST(SceneInTurn, EveryWalkAnswersAsTheOracleWithAnyNumberOfRaysInFlight) {
     }
     // And through the batch entry, which walks its single rays this way.
     expect_matches_oracle(s, rays);
+}
+
+TEST(SceneInTurn, RayShapeIsRayIsValidAndTheZeroComponents) {
+    // ray_shape (the in-turn walks' check of a world ray and of each object ray): valid is
+    // ray_is_valid's answer and flat whether a direction component is +0 or -0, for rays made of
+    // zeros of both signs, subnormals, the largest floats, infinities and NaNs in every field.
+    const uint64_t seed = test_seed();
+    SCOPED_TRACE(testing::Message() << "seed=" << seed);
+    constexpr float kInf = std::numeric_limits<float>::infinity();
+    const float values[] = {
+        0.0f,      -0.0f,      1.0f,          -2.5f,
+        0x1p-149f, -0x1p-140f, 3e38f,         -std::numeric_limits<float>::max(),
+        kInf,      -kInf,      std::nanf(""), 0.5f};
+    constexpr size_t kValues = sizeof values / sizeof values[0];
+    Rng rng(seed);
+    size_t valid = 0, flat = 0, invalid = 0;
+    for (int i = 0; i < 200000; ++i) {
+        float f[8];
+        // Mostly ordinary fields, so every single odd one is met alone as well as together.
+        for (float& x : f) x = rng.below(3) == 0 ? values[rng.below(kValues)] : rng.uniform(-4, 4);
+        const Ray r{f[0], f[1], f[2], f[3], f[4], f[5], f[6], f[7]};
+        const detail::RayShape shape = detail::ray_shape(r);
+        ASSERT_EQ(shape.valid, detail::ray_is_valid(r)) << i;
+        ASSERT_EQ(shape.flat, r.dx == 0.0f || r.dy == 0.0f || r.dz == 0.0f) << i;
+        valid += shape.valid;
+        invalid += !shape.valid;
+        flat += shape.valid && shape.flat;
+    }
+    EXPECT_GT(valid, 1000u);
+    EXPECT_GT(invalid, 1000u);
+    EXPECT_GT(flat, 1000u);
+}
+
+TEST(SceneInTurn, ClipBoxIsClipWidenedBitForBit) {
+    // clip_box (the in-turn walks' root clip and instance box test): for rays without a zero
+    // direction component, its [entry, exit] are clip_widened's clipped tmin and tmax bit for bit
+    // (the sign of a zero too) and entry <= exit its answer: instance boxes, the scene's, flat and
+    // tiny boxes; origins inside, outside and on the boxes' faces (where an axis' entry is +0 or
+    // -0); subnormal and huge direction components (an infinite reciprocal: NaN lanes); windows
+    // from -0, +0, inside and past the box.
+    const uint64_t seed = test_seed();
+    SCOPED_TRACE(testing::Message() << "seed=" << seed);
+    const TestScene s = mixed_scene(seed + 31, 12);
+    const detail::SceneData& data = s.scene.data();
+    Rng rng(seed + 32);
+    constexpr float kInf = std::numeric_limits<float>::infinity();
+    size_t reached = 0, missed = 0, zero_entries = 0, zero_signs[2] = {0, 0};
+    for (int i = 0; i < 100000; ++i) {
+        Aabb box = data.bounds;
+        const uint32_t pick = rng.below(4);
+        if (pick == 1) box = data.inst[rng.below(static_cast<uint32_t>(data.inst.size()))].world;
+        if (pick == 2) {  // flat in an axis
+            const int a = static_cast<int>(rng.below(3));
+            box.hi[a] = box.lo[a];
+        }
+        if (pick == 3) {  // far from the origin, where the margin is below an ulp
+            const Vec3 c = rng.in_box({{-1e6f, -1e6f, -1e6f}, {1e6f, 1e6f, 1e6f}});
+            box = {c, c + Vec3{rng.uniform(0, 4), rng.uniform(0, 4), rng.uniform(0, 4)}};
+        }
+        Vec3 o = rng.in_box({box.lo - Vec3{2, 2, 2}, box.hi + Vec3{2, 2, 2}});
+        for (int a = 0; a < 3; ++a) {
+            const uint32_t face = rng.below(6);
+            if (face == 0) o[a] = box.lo[a];
+            if (face == 1) o[a] = box.hi[a];
+        }
+        Vec3 d = rng.on_sphere();
+        for (int a = 0; a < 3; ++a) {
+            const uint32_t odd = rng.below(16);
+            if (odd == 0) d[a] = std::copysign(0x1p-140f, d[a]);
+            if (odd == 1) d[a] = std::copysign(3e37f, d[a]);
+            if (d[a] == 0.0f) d[a] = 0.5f;
+        }
+        Ray r = make_ray(o, d);
+        const float windows[] = {-0.0f, 0.0f, rng.uniform(-1, 3), rng.uniform(0, 1)};
+        r.tmin = windows[rng.below(4)];
+        r.tmax = rng.below(3) == 0 ? kInf : r.tmin + rng.uniform(0, 4);
+        detail::TopRay p = detail::make_top_ray(data, r);
+        // On a widened face, where that axis' entry or exit is +0 or -0 (by the reciprocal's
+        // sign).
+        for (int a = 0; a < 3; ++a) {
+            const uint32_t face = rng.below(8);
+            if (face == 0) p.org[a] = box.lo[a] - p.delta;
+            if (face == 1) p.org[a] = box.hi[a] + p.delta;
+        }
+        float t0 = r.tmin, t1 = r.tmax;
+        const bool want = detail::clip_widened(p, box, t0, t1);
+        const detail::TopSegment got = detail::clip_box(p, box, r.tmin, r.tmax);
+        ASSERT_EQ(std::bit_cast<uint32_t>(got.entry), std::bit_cast<uint32_t>(t0))
+            << i << ": " << got.entry << " vs " << t0 << " tmin " << r.tmin << " tmax " << r.tmax
+            << " o " << o[0] << " " << o[1] << " " << o[2] << " d " << d[0] << " " << d[1] << " "
+            << d[2] << " box " << box.lo[0] << " " << box.lo[1] << " " << box.lo[2] << " "
+            << box.hi[0] << " " << box.hi[1] << " " << box.hi[2] << " delta " << p.delta;
+        ASSERT_EQ(std::bit_cast<uint32_t>(got.exit), std::bit_cast<uint32_t>(t1))
+            << i << ": " << got.exit << " vs " << t1;
+        ASSERT_EQ(got.entry <= got.exit, want) << i;
+        reached += want;
+        missed += !want;
+        zero_entries += t0 == 0.0f && r.tmin != 0.0f;  // an axis' zero entry taken
+        zero_signs[std::signbit(t0) ? 1 : 0] += t0 == 0.0f;
+        zero_signs[std::signbit(t1) ? 1 : 0] += t1 == 0.0f;
+    }
+    EXPECT_GT(reached, 10000u);
+    EXPECT_GT(missed, 10000u);
+    EXPECT_GT(zero_entries, 0u) << "an axis' entry of zero";
+    EXPECT_GT(zero_signs[0], 0u) << "+0 entries or exits";
+    EXPECT_GT(zero_signs[1], 0u) << "-0 entries or exits";
 }
 
 /// The world box as the 8-corner scan computes it (the definition world_bounds documents): each
