@@ -687,7 +687,11 @@ TEST_P(SceneLogTest, ATornRecordAtTheEndOfALogIsIgnoredAndCutOffByTheNextCommit)
             std::vector<std::string> notices;
             s.set_notice(
                 [&](const std::string&, const std::string& what) { notices.push_back(what); });
-            const std::string id = SceneStore::new_id();
+            // A record ends in its checksum, whose last byte is 0 for about one id in 256: all
+            // but that byte over the log's zeros is then the whole record, rightly read as
+            // committed (the Debian 13 check met one). Such an id tears nothing here.
+            std::string id = SceneStore::new_id();
+            while (record(id, 3).back() == '\0') id = SceneStore::new_id();
             ASSERT_TRUE(s.create(scene(id, 1, 4)).ok());
             ASSERT_TRUE(*s.commit(scene(id, 2, 4)));
             const std::string before = records_of(log_bytes(s, id));
